@@ -1,0 +1,7 @@
+"""``python -m covnet`` is the ``covnet`` command."""
+
+import sys
+
+from covnet.cli import main
+
+sys.exit(main())

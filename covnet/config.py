@@ -1,0 +1,285 @@
+"""Scenario configuration: YAML -> validated, frozen records; every problem reported with its path.
+
+``load(path)`` parses YAML (``yaml.safe_load``), validates the structure with pydantic (unknown keys
+are errors: they are usually typos), then runs the semantic checks that span several fields
+(unique sensor ids, the desired-covariance schedule, allocation constraints, metric names).  All
+problems of one stage are collected and raised together as one :class:`ConfigError` whose lines
+read ``sensors[3].rho: must be in (-1, 1)``.
+
+The YAML is the single source of truth for a run; :func:`config_hash` stamps it into every result.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator
+
+__all__ = [
+    "ConfigError",
+    "Scenario",
+    "SensorSpec",
+    "config_hash",
+    "load",
+    "from_dict",
+]
+
+
+# Scalars are strict (no "0.5" strings, no booleans as numbers); lists become tuples.
+Float = Annotated[float, Strict()]
+Int = Annotated[int, Strict()]
+Str = Annotated[str, Strict()]
+
+
+class ConfigError(ValueError):
+    """A configuration problem; ``problems`` holds ``(path, message)`` pairs, all of them."""
+
+    def __init__(self, source: str, problems: Sequence[tuple[str, str]]):
+        self.source = source
+        self.problems = list(problems)
+        lines = [f"{path}: {msg}" if path else msg for path, msg in self.problems]
+        super().__init__(f"invalid config {source}:\n  " + "\n  ".join(lines))
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _positive(v: float) -> float:
+    if not v > 0:
+        raise ValueError(f"must be > 0, got {v}")
+    return v
+
+
+class SensorSpec(_Model):
+    """A linear position sensor: ``R = [[σx², ρσxσy], [ρσxσy, σy²]]``."""
+
+    id: Str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    sigma_x_m: Float
+    sigma_y_m: Float
+    rho: Float
+
+    _pos = field_validator("sigma_x_m", "sigma_y_m")(_positive)
+
+    @field_validator("rho")
+    @classmethod
+    def _rho(cls, v: float) -> float:
+        if not -1.0 < v < 1.0:
+            raise ValueError(f"must be in (-1, 1), got {v}")
+        return v
+
+
+class TargetSpec(_Model):
+    """One constant-velocity target in the plane, state ``[x, vx, y, vy]``."""
+
+    initial_position_m: tuple[Float, Float] = (0.0, 0.0)
+    initial_velocity_mps: tuple[Float, Float] = (426.0, 0.0)
+    accel_noise_std_mps2: Float = 0.5
+
+    @field_validator("accel_noise_std_mps2")
+    @classmethod
+    def _q(cls, v: float) -> float:
+        if not v >= 0:
+            raise ValueError(f"must be >= 0, got {v}")
+        return v
+
+
+class FilterSpec(_Model):
+    """Filter initialisation: ``P0 = diag(P0_diag)``; the estimate is the truth plus one draw
+    from ``N(0, P0)`` (``perturbed``, the default) or the truth itself (``truth``)."""
+
+    P0_diag: tuple[Float, Float, Float, Float] = (1.0e4, 1.0e2, 1.0e4, 1.0e2)
+    initial_estimate: Literal["perturbed", "truth"] = "perturbed"
+
+    @field_validator("P0_diag")
+    @classmethod
+    def _p0(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(d > 0 for d in v):
+            raise ValueError(f"every entry must be > 0, got {list(v)}")
+        return v
+
+
+class DesiredSpec(_Model):
+    """Desired covariance from scan ``from_scan`` on: ``diag`` (4 entries) or a full ``matrix``."""
+
+    from_scan: Int = Field(ge=1)
+    diag: tuple[Float, Float, Float, Float] | None = None
+    matrix: tuple[tuple[Float, Float, Float, Float], ...] | None = None
+
+    def as_matrix(self) -> np.ndarray:
+        if self.diag is not None:
+            return np.diag(np.asarray(self.diag, dtype=np.float64))
+        return np.asarray(self.matrix, dtype=np.float64)
+
+
+class AllocationSpec(_Model):
+    """Covariance-control allocation: metrics by registry name, constraints by sensor id."""
+
+    metrics: tuple[Str, ...] = ("spectral", "abs_trace", "svd")
+    required: tuple[Str, ...] = ()
+    excluded: tuple[Str, ...] = ()
+    max_active: Int | None = Field(default=None, ge=1)
+    tie_rtol: Float = Field(default=1e-9, ge=0.0, le=1e-3)
+
+
+class Scenario(_Model):
+    """A whole scenario: the paper's by default values where the source leaves them open."""
+
+    name: Str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    seed: Int = Field(ge=0)
+    scans: Int = Field(ge=1, le=1_000_000)
+    period_s: Float = 1.0
+    target: TargetSpec = TargetSpec()
+    filter: FilterSpec = FilterSpec()
+    sensors: tuple[SensorSpec, ...] = Field(min_length=1)
+    desired: tuple[DesiredSpec, ...] = Field(min_length=1)
+    allocation: AllocationSpec = AllocationSpec()
+
+    _period = field_validator("period_s")(_positive)
+
+    @property
+    def sensor_ids(self) -> tuple[str, ...]:
+        return tuple(s.id for s in self.sensors)
+
+
+def _fmt_loc(loc: Sequence[int | str]) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += f".{part}" if out else str(part)
+    return out
+
+
+def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
+    path = _fmt_loc([p for p in err["loc"] if not (isinstance(p, str) and "[" in p)])
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        return path, "unknown key"
+    if kind == "missing":
+        return path, "missing required key"
+    msg = str(err["msg"])
+    value = err.get("input")
+    if msg.startswith("Value error, "):
+        return path, msg[len("Value error, ") :]
+    if kind == "float_type" and isinstance(value, str) and _looks_numeric(value):
+        return path, (
+            f"expected a number, got the string {value!r} (YAML 1.1 reads an exponent without "
+            "a sign as text: write 1.0e+4 or 10000.0)"
+        )
+    return path, f"{msg}, got {value!r}"
+
+
+def _looks_numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
+    from covnet.core.metrics import METRICS
+
+    problems: list[tuple[str, str]] = []
+    ids = sc.sensor_ids
+    seen: set[str] = set()
+    for i, sid in enumerate(ids):
+        if sid in seen:
+            problems.append((f"sensors[{i}].id", f"duplicate sensor id {sid!r}"))
+        seen.add(sid)
+    if sc.desired[0].from_scan != 1:
+        problems.append(("desired[0].from_scan", "the first entry must start at scan 1"))
+    for i, d in enumerate(sc.desired):
+        if (d.diag is None) == (d.matrix is None):
+            problems.append((f"desired[{i}]", "give exactly one of 'diag' or 'matrix'"))
+            continue
+        if d.matrix is not None and len(d.matrix) != 4:
+            problems.append((f"desired[{i}].matrix", "must be 4x4"))
+            continue
+        M = d.as_matrix()
+        if not np.allclose(M, M.T) or np.linalg.eigvalsh(0.5 * (M + M.T)).min() <= 0:
+            problems.append((f"desired[{i}]", "must be symmetric positive definite"))
+        if i > 0 and d.from_scan <= sc.desired[i - 1].from_scan:
+            problems.append((f"desired[{i}].from_scan", "must increase along the schedule"))
+    al = sc.allocation
+    for i, m in enumerate(al.metrics):
+        if m not in METRICS:
+            problems.append(
+                (f"allocation.metrics[{i}]", f"unknown metric {m!r}; choose from {sorted(METRICS)}")
+            )
+    if not al.metrics:
+        problems.append(("allocation.metrics", "name at least one metric"))
+    for field in ("required", "excluded"):
+        for i, sid in enumerate(getattr(al, field)):
+            if sid not in seen:
+                problems.append((f"allocation.{field}[{i}]", f"no sensor with id {sid!r}"))
+    both = set(al.required) & set(al.excluded)
+    if both:
+        problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
+    if set(al.excluded) >= set(ids):
+        problems.append(("allocation.excluded", "excludes every sensor"))
+    if al.max_active is not None:
+        if al.max_active < len(set(al.required)):
+            problems.append(
+                ("allocation.max_active", f"smaller than the {len(al.required)} required sensors")
+            )
+        if al.max_active > len(ids):
+            problems.append(("allocation.max_active", f"more than the {len(ids)} sensors"))
+    return problems
+
+
+def from_dict(data: object, source: str = "<dict>") -> Scenario:
+    """Validate a parsed config mapping; raise :class:`ConfigError` listing every problem."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(source, [("", "the top level must be a mapping of keys to values")])
+    try:
+        sc = Scenario.model_validate(dict(data))
+    except ValidationError as exc:
+        raise ConfigError(source, [_fmt_error(e) for e in exc.errors()]) from None
+    problems = _semantic_problems(sc)
+    if problems:
+        raise ConfigError(source, problems)
+    return sc
+
+
+def load(path: str | Path) -> Scenario:
+    """Read and validate a YAML scenario file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(str(p), [("", f"not valid YAML: {where}{problem}")]) from None
+    return from_dict(data, str(p))
+
+
+def normalised(sc: Scenario) -> dict[str, Any]:
+    """The config with every default filled in, as plain JSON-able data."""
+    return sc.model_dump(mode="json")
+
+
+def config_hash(sc: Scenario) -> str:
+    """SHA-256 (first 16 hex digits) of the normalised config as canonical JSON."""
+    blob = json.dumps(normalised(sc), sort_keys=True, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def with_overrides(sc: Scenario, **changes: Any) -> Scenario:
+    """A copy of ``sc`` with top-level fields replaced, re-validated."""
+    data = normalised(sc)
+    data.update(changes)
+    return from_dict(data, f"{sc.name} (with overrides)")

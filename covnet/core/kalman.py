@@ -1,0 +1,79 @@
+"""Linear Kalman filter: prediction, sequential (Joseph-form) update and the information form.
+
+Prediction::
+
+    x⁻ = F x,            P⁻ = F P Fᵀ + Q
+
+Update with one sensor (Joseph form; no explicit inverse, a non-SPD ``S`` raises)::
+
+    S = H P⁻ Hᵀ + R,     K = P⁻ Hᵀ S⁻¹,
+    x⁺ = x⁻ + K (z − H x⁻),
+    P⁺ = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
+
+Processing the sensors of a subset one after another (:func:`update_sequential`) gives the same
+posterior as the information form (:func:`update_information`)::
+
+    Y⁺ = Y⁻ + Σ_j H_jᵀ R_j⁻¹ H_j,          Y = P⁻¹
+    y⁺ = y⁻ + Σ_j H_jᵀ R_j⁻¹ z_j,          y = P⁻¹ x
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import linalg
+
+from covnet.core.gaussian import Gaussian, Mat, Vec, symmetrise
+
+
+def predict(prior: Gaussian, F: Mat, Q: Mat) -> Gaussian:
+    """``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q``."""
+    return Gaussian(F @ prior.x, symmetrise(F @ prior.P @ F.T + Q))
+
+
+def predict_covariance(P: Mat, F: Mat, Q: Mat) -> Mat:
+    """The covariance part of :func:`predict` alone (it never depends on the measurements)."""
+    return symmetrise(F @ P @ F.T + Q)
+
+
+def update(prior: Gaussian, z: Vec, H: Mat, R: Mat) -> Gaussian:
+    """One Kalman update in Joseph form (see the module docstring for the equations)."""
+    P = prior.P
+    S = H @ P @ H.T + R
+    # K = P Hᵀ S⁻¹  ⇔  S Kᵀ = H P  (S and P symmetric); a Cholesky solve, never inv/pinv.
+    K = linalg.cho_solve(linalg.cho_factor(S), H @ P).T
+    I_KH = np.eye(P.shape[0]) - K @ H
+    x = prior.x + K @ (z - H @ prior.x)
+    return Gaussian(x, symmetrise(I_KH @ P @ I_KH.T + K @ R @ K.T))
+
+
+def update_sequential(prior: Gaussian, measurements: Sequence[tuple[Vec, Mat, Mat]]) -> Gaussian:
+    """Apply :func:`update` for each ``(z, H, R)`` in turn (independent measurement noises)."""
+    post = prior
+    for z, H, R in measurements:
+        post = update(post, z, H, R)
+    return post
+
+
+def update_information(prior: Gaussian, measurements: Sequence[tuple[Vec, Mat, Mat]]) -> Gaussian:
+    """Information-form update: ``Y⁺ = Y⁻ + Σ Hᵀ R⁻¹ H``, ``y⁺ = y⁻ + Σ Hᵀ R⁻¹ z``.
+
+    ``Y⁻ = P⁻⁻¹`` and the final ``P⁺ = Y⁺⁻¹`` are formed through Cholesky solves.
+    """
+    n = prior.dim
+    cP = linalg.cho_factor(prior.P)
+    Y = linalg.cho_solve(cP, np.eye(n))
+    y = linalg.cho_solve(cP, prior.x)
+    for z, H, R in measurements:
+        cR = linalg.cho_factor(R)
+        Y = Y + H.T @ linalg.cho_solve(cR, H)
+        y = y + H.T @ linalg.cho_solve(cR, z)
+    cY = linalg.cho_factor(symmetrise(Y))
+    return Gaussian(linalg.cho_solve(cY, y), symmetrise(linalg.cho_solve(cY, np.eye(n))))
+
+
+def nees(estimate: Gaussian, truth: Vec) -> float:
+    """Normalised estimation error squared ``ε = (x − x̂)ᵀ P⁻¹ (x − x̂)``."""
+    e = truth - estimate.x
+    return float(e @ linalg.cho_solve(linalg.cho_factor(estimate.P), e))

@@ -1,0 +1,142 @@
+"""The linear-Gaussian model of a scenario, and the per-scan steps every runner shares.
+
+:func:`build_model` turns a validated :class:`~covnet.config.Scenario` into arrays.  The scan
+steps (:func:`truth_trajectory`, :func:`initial_estimate`, :func:`decide`, :func:`measure`,
+:func:`fuse`) are what the in-process simulator calls, and what the world, sensor and manager
+processes call too: the distributed layer adds transport and nothing else.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from covnet.config import Scenario
+from covnet.core import streams
+from covnet.core.allocation import Allocation, Constraints, allocate
+from covnet.core.gaussian import Gaussian, Mat, Vec
+from covnet.core.kalman import predict, update_sequential
+from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_noise
+from covnet.core.sensing import correlated_noise, information_gain, position_matrix
+from covnet.core.sensing import measure as draw_measurement
+from covnet.core.truth import linear_gaussian_trajectory
+
+
+@dataclass(frozen=True)
+class Model:
+    """Arrays of one scenario: motion ``F, G, Q``, sensors ``H, R_j, J_j``, schedule ``P_d``."""
+
+    sensor_ids: tuple[str, ...]
+    T: float
+    F: Mat
+    G: Mat
+    Q: Mat
+    sigma_a: float
+    H: Mat
+    R: Mat  # (Ns, 2, 2)
+    gains: Mat  # (Ns, 4, 4): J_j = Hᵀ R_j⁻¹ H
+    P0: Mat
+    x0: Vec  # true initial state at t = 0
+    desired_from: tuple[int, ...]
+    desired_P: Mat  # (n_phases, 4, 4)
+    constraints: Constraints
+    tie_rtol: float
+    seed: int
+    scans: int
+
+    def desired(self, scan: int) -> Mat:
+        """``P_d(t_k)``: the last schedule entry whose ``from_scan <= scan``."""
+        i = int(np.searchsorted(np.asarray(self.desired_from), scan, side="right")) - 1
+        return self.desired_P[max(i, 0)]
+
+    def index(self, sensor_id: str) -> int:
+        return self.sensor_ids.index(sensor_id)
+
+
+def build_model(sc: Scenario) -> Model:
+    T = sc.period_s
+    ids = sc.sensor_ids
+    H = position_matrix(2)
+    R = np.stack([correlated_noise(s.sigma_x_m, s.sigma_y_m, s.rho) for s in sc.sensors])
+    al = sc.allocation
+    constraints = Constraints(
+        excluded=frozenset(ids.index(s) for s in al.excluded),
+        required=frozenset(ids.index(s) for s in al.required),
+        max_active=al.max_active,
+    )
+    px, py = sc.target.initial_position_m
+    vx, vy = sc.target.initial_velocity_mps
+    return Model(
+        sensor_ids=ids,
+        T=T,
+        F=cv_transition(T, 2),
+        G=dwna_noise_gain(T, 2),
+        Q=dwna_process_noise(T, sc.target.accel_noise_std_mps2, 2),
+        sigma_a=sc.target.accel_noise_std_mps2,
+        H=H,
+        R=R,
+        gains=np.stack([information_gain(H, Rj) for Rj in R]),
+        P0=np.diag(np.asarray(sc.filter.P0_diag, dtype=np.float64)),
+        x0=np.array([px, vx, py, vy], dtype=np.float64),
+        desired_from=tuple(d.from_scan for d in sc.desired),
+        desired_P=np.stack([d.as_matrix() for d in sc.desired]),
+        constraints=constraints,
+        tie_rtol=al.tie_rtol,
+        seed=sc.seed,
+        scans=sc.scans,
+    )
+
+
+def truth_trajectory(model: Model) -> Mat:
+    """True states at scans ``1..N`` (``(N, 4)``), from the seed's TRUTH stream."""
+    rng = streams.stream(model.seed, streams.TRUTH)
+    return linear_gaussian_trajectory(model.x0, model.F, model.G, model.sigma_a, model.scans, rng)
+
+
+def initial_estimate(model: Model, mode: str = "perturbed") -> Gaussian:
+    """``N(x̂0, P0)`` with ``x̂0 = x0 + e``, ``e ~ N(0, P0)`` (or ``x̂0 = x0`` for ``truth``)."""
+    if mode == "truth":
+        return Gaussian(model.x0.copy(), model.P0.copy())
+    rng = streams.stream(model.seed, streams.INITIAL)
+    e = np.linalg.cholesky(model.P0) @ rng.standard_normal(model.x0.shape[0])
+    return Gaussian(model.x0 + e, model.P0.copy())
+
+
+def predict_step(model: Model, posterior: Gaussian) -> Gaussian:
+    """One period ahead: ``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q``."""
+    return predict(posterior, model.F, model.Q)
+
+
+def decide(
+    model: Model,
+    P_pred: Mat,
+    scan: int,
+    metric: str,
+    unavailable: frozenset[int] = frozenset(),
+) -> Allocation:
+    """Covariance control for scan ``k``: argmin over feasible subsets of ``f(P_i, P_d(t_k))``.
+
+    ``unavailable`` (failed sensors seen at run time) joins the configured exclusions.
+    """
+    c = model.constraints
+    if unavailable:
+        c = Constraints(
+            excluded=c.excluded | (unavailable - c.required),
+            required=c.required - unavailable,
+            max_active=c.max_active,
+        )
+    return allocate(P_pred, model.gains, model.desired(scan), metric, c, tie_rtol=model.tie_rtol)
+
+
+def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:
+    """Sensor ``j``'s measurement at scan ``k``: ``z = H x + v``, ``v`` from stream (j, k)."""
+    rng = streams.sensor_stream(model.seed, sensor_index, scan)
+    return draw_measurement(model.H, model.R[sensor_index], true_state, rng)
+
+
+def fuse(model: Model, prior: Gaussian, measurements: Sequence[tuple[int, Vec]]) -> Gaussian:
+    """Sequential Joseph-form updates, in ascending sensor index (a canonical order)."""
+    ordered = sorted(measurements, key=lambda m: m[0])
+    return update_sequential(prior, [(z, model.H, model.R[j]) for j, z in ordered])

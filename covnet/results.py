@@ -1,0 +1,126 @@
+"""The run directory: ``summary.json``, ``arrays.npz``, ``config.json`` and the figures.
+
+Layout of a run directory::
+
+    summary.json    per metric (keyed by registry name under "metrics"): allocation_rate,
+                    sensors_per_scan, subsets, P_diag, rmse_position, ...; config hash, seed
+    arrays.npz      per-scan arrays for notebooks: t, truth, P_d, sensor_ids and, per metric m,
+                    x_est.m, P_post.m, P_pred.m, enabled.m, value.m, nees.m
+    config.json     the normalised config the run used (every default filled in)
+    fig*.png        the figures (see covnet.plots)
+
+Files are written to a temporary name and renamed, so a reader never sees half a file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from covnet import __version__
+from covnet.config import Scenario, config_hash, normalised
+from covnet.core.allocation import allocation_rate
+from covnet.simulate import MetricRun, Trajectory
+
+SUMMARY = "summary.json"
+ARRAYS = "arrays.npz"
+CONFIG = "config.json"
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def write_json(path: Path, obj: Any) -> None:
+    _atomic_write(path, (json.dumps(obj, indent=2) + "\n").encode())
+
+
+def metric_summary(
+    run: MetricRun, traj: Trajectory, sensor_ids: tuple[str, ...], switch_scan: int | None
+) -> dict[str, Any]:
+    """The per-metric block of ``summary.json``."""
+    counts = run.enabled.sum(axis=1)
+    err = run.x_est - traj.truth
+    pos_err2 = err[:, 0] ** 2 + err[:, 2] ** 2
+    vel_err2 = err[:, 1] ** 2 + err[:, 3] ** 2
+    usage = run.enabled.sum(axis=0)
+    out: dict[str, Any] = {
+        "allocation_rate": allocation_rate(counts.tolist(), len(sensor_ids)),
+        "sensors_per_scan": counts.astype(int).tolist(),
+        "subsets": [[sensor_ids[j] for j in np.flatnonzero(row)] for row in run.enabled],
+        "P_diag": np.diagonal(run.P_post, axis1=1, axis2=2).tolist(),
+        "value": run.value.tolist(),
+        "rmse_position": float(np.sqrt(pos_err2.mean())),
+        "rmse_velocity": float(np.sqrt(vel_err2.mean())),
+        "mean_nees": float(run.nees.mean()),
+        "usage": {sid: int(u) for sid, u in zip(sensor_ids, usage, strict=True)},
+        "decision_time_median_s": float(np.median(run.decision_s)),
+        "subsets_evaluated_median": float(np.median(run.n_evaluated)),
+    }
+    if switch_scan is not None and 1 < switch_scan <= len(counts):
+        cut = switch_scan - 1
+        out["usage_before_switch"] = dict(
+            zip(sensor_ids, run.enabled[:cut].sum(axis=0).astype(int).tolist(), strict=True)
+        )
+        out["usage_after_switch"] = dict(
+            zip(sensor_ids, run.enabled[cut:].sum(axis=0).astype(int).tolist(), strict=True)
+        )
+    return out
+
+
+def write_run(
+    out_dir: Path,
+    sc: Scenario,
+    traj: Trajectory,
+    runs: Mapping[str, MetricRun],
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write ``summary.json``, ``arrays.npz`` and ``config.json``; return the summary."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ids = sc.sensor_ids
+    switch = sc.desired[1].from_scan if len(sc.desired) > 1 else None
+    summary: dict[str, Any] = {
+        "scenario": sc.name,
+        "config_hash": config_hash(sc),
+        "seed": sc.seed,
+        "scans": sc.scans,
+        "sensor_ids": list(ids),
+        "desired_switch_scans": [d.from_scan for d in sc.desired],
+        "covnet_version": __version__,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "metrics": {m: metric_summary(r, traj, ids, switch) for m, r in runs.items()},
+    }
+    if extra:
+        summary.update(extra)
+    arrays: dict[str, np.ndarray] = {
+        "t": traj.t,
+        "truth": traj.truth,
+        "P_d": traj.P_d,
+        "sensor_ids": np.array(ids),
+        "metrics": np.array(list(runs)),
+    }
+    for m, r in runs.items():
+        arrays[f"x_est.{m}"] = r.x_est
+        arrays[f"P_post.{m}"] = r.P_post
+        arrays[f"P_pred.{m}"] = r.P_pred
+        arrays[f"enabled.{m}"] = r.enabled
+        arrays[f"value.{m}"] = r.value
+        arrays[f"nees.{m}"] = r.nees
+    tmp = out_dir / (ARRAYS + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
+    os.replace(tmp, out_dir / ARRAYS)
+    write_json(out_dir / CONFIG, normalised(sc))
+    write_json(out_dir / SUMMARY, summary)
+    return summary
+
+
+def load_summary(run_dir: Path) -> dict[str, Any]:
+    return json.loads((run_dir / SUMMARY).read_text())  # type: ignore[no-any-return]

@@ -1,0 +1,149 @@
+"""The ``covnet`` CLI end to end: run the paper scenario, check, plot, and user mistakes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from covnet.cli import main
+from covnet.plots import FIGURES
+
+
+@pytest.fixture(scope="module")
+def paper_run(tmp_path_factory, paper_path):
+    out = tmp_path_factory.mktemp("run") / "paper"
+    assert main(["run", str(paper_path), "--out", str(out)]) == 0
+    return out
+
+
+def test_run_writes_complete_run_directory(paper_run):
+    summary = json.loads((paper_run / "summary.json").read_text())
+    assert summary["seed"] == 2026 and len(summary["config_hash"]) == 16
+    assert set(summary["metrics"]) == {"spectral", "abs_trace", "svd"}
+    for _m, blk in summary["metrics"].items():
+        assert len(blk["sensors_per_scan"]) == 100
+        assert len(blk["subsets"]) == 100 and len(blk["P_diag"]) == 100
+        assert all(len(d) == 4 for d in blk["P_diag"])
+        assert [len(s) for s in blk["subsets"]] == blk["sensors_per_scan"]
+        assert blk["allocation_rate"] == pytest.approx(sum(blk["sensors_per_scan"]) / 800)
+        assert np.isfinite(blk["rmse_position"]) and blk["rmse_position"] > 0
+    arrays = np.load(paper_run / "arrays.npz")
+    assert arrays["truth"].shape == (100, 4)
+    assert arrays["x_est.svd"].shape == (100, 4)
+    assert arrays["P_post.spectral"].shape == (100, 4, 4)
+    assert arrays["enabled.abs_trace"].shape == (100, 8)
+    # summary and arrays tell the same story
+    en = arrays["enabled.spectral"]
+    assert en.sum(axis=1).tolist() == summary["metrics"]["spectral"]["sensors_per_scan"]
+    np.testing.assert_allclose(
+        np.diagonal(arrays["P_post.svd"], axis1=1, axis2=2), summary["metrics"]["svd"]["P_diag"]
+    )
+    for f in FIGURES:
+        assert (paper_run / f).stat().st_size > 10_000, f
+
+
+def test_run_single_metric_and_seed_override(tmp_path, paper_path):
+    out = tmp_path / "one"
+    assert (
+        main(
+            [
+                "run",
+                str(paper_path),
+                "--out",
+                str(out),
+                "--metric",
+                "kl",
+                "--seed",
+                "5",
+                "--no-figures",
+            ]
+        )
+        == 0
+    )
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["metrics"]) == ["kl"] and summary["seed"] == 5
+
+
+def test_refuses_to_overwrite_a_run(paper_run, paper_path, capsys):
+    assert main(["run", str(paper_path), "--out", str(paper_run)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (paper_run / "summary.json").is_file()
+
+
+def test_unknown_metric_is_a_usage_error(tmp_path, paper_path, capsys):
+    assert main(["run", str(paper_path), "--out", str(tmp_path / "x"), "--metric", "nope"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown metric 'nope'" in err and "spectral" in err
+
+
+def test_bad_config_exits_2_with_path_and_no_traceback(tmp_path, paper_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(paper_path.read_text().replace("rho: 0.78}", "rho: 1.78}"))
+    proc = subprocess.run(
+        [sys.executable, "-m", "covnet", "run", str(bad), "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "sensors[2].rho: must be in (-1, 1)" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_check_prints_normalised_config_and_hash(paper_path, capsys):
+    assert main(["check", str(paper_path)]) == 0
+    out = capsys.readouterr().out
+    assert "# config hash: " in out and "sigma_x_m: 21.1" in out
+
+
+def test_plot_redraws_from_files(paper_run, capsys):
+    for f in FIGURES:
+        (paper_run / f).unlink()
+    assert main(["plot", str(paper_run)]) == 0
+    assert all((paper_run / f).is_file() for f in FIGURES)
+
+
+def test_plot_on_incomplete_directory(tmp_path, capsys):
+    assert main(["plot", str(tmp_path)]) == 2
+    assert "not a complete run directory" in capsys.readouterr().err
+
+
+def test_bench_json_rows(paper_path, capsys):
+    rc = main(
+        [
+            "bench",
+            "--sensors",
+            "4,6",
+            "--metric",
+            "abs_trace",
+            "--metric",
+            "spectral",
+            "--problems",
+            "2",
+            "--repeat",
+            "1",
+            "--json",
+            "--config",
+            str(paper_path),
+        ]
+    )
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert rc == 0
+    assert {(r["metric"], r["n_sensors"]) for r in rows} == {
+        (m, n) for m in ("abs_trace", "spectral") for n in (4, 6)
+    }
+    for r in rows:
+        assert set(r) >= {"metric", "n_sensors", "median_s", "baseline_median_s", "peak_mb"}
+        assert r["median_s"] > 0 and r["baseline_median_s"] > 0 and r["agree"]
+
+
+def test_bench_rejects_bad_sensor_list(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["bench", "--sensors", "8,x"])
+    assert info.value.code == 2
+    assert "comma-separated integers" in capsys.readouterr().err

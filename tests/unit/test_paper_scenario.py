@@ -1,0 +1,81 @@
+"""The paper scenario's qualitative behaviour (spec: 'What the scenario should show')."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from covnet.config import with_overrides
+from covnet.model import build_model
+from covnet.simulate import run_metric
+
+METRICS = ("spectral", "abs_trace", "svd")
+
+
+@pytest.fixture(scope="module")
+def runs(paper):
+    model = build_model(paper)
+    return {m: run_metric(paper, m, model) for m in METRICS}
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_sensor_count_jumps_when_desired_tightens(runs, metric):
+    counts = runs[metric].enabled.sum(axis=1)
+    settled_before = counts[40:50].max()  # scans 41-50
+    assert counts[50] > settled_before  # scan 51: P_d tightens
+    assert counts[50:55].max() >= settled_before + 2
+    # ... and then settles lower again
+    assert counts[80:].mean() < counts[50:55].max()
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_accurate_sensors_used_more_after_switch(runs, metric):
+    en = runs[metric].enabled
+    before, after = en[:50, :4].sum(), en[50:, :4].sum()
+    assert after > before
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_position_variance_approaches_desired_levels(runs, metric):
+    P = runs[metric].P_post
+    p11_phase1 = P[30:50, 0, 0]
+    p11_phase2 = P[75:, 0, 0]
+    p33_phase2 = P[75:, 2, 2]
+    # steered towards 25 m² (not to the 1e4 prior, not to what 8 sensors give) ...
+    assert 10.0 < np.median(p11_phase1) < 40.0
+    # ... then towards 7 m²
+    assert 3.0 < np.median(p11_phase2) < 12.0
+    assert 3.0 < np.median(p33_phase2) < 12.0
+    assert np.median(p11_phase2) < np.median(p11_phase1)
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_allocation_rate_well_below_full(runs, metric):
+    rate = runs[metric].enabled.mean()
+    assert 0.05 < rate < 0.6
+
+
+def test_abs_trace_uses_fewest_sensors(runs):
+    rates = {m: r.enabled.mean() for m, r in runs.items()}
+    assert rates["abs_trace"] <= min(rates.values())
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_allocation_sequence_does_not_depend_on_seed(paper, runs, metric):
+    other = with_overrides(paper, seed=paper.seed + 12345)
+    r2 = run_metric(other, metric)
+    np.testing.assert_array_equal(r2.enabled, runs[metric].enabled)
+    np.testing.assert_allclose(r2.P_post, runs[metric].P_post, rtol=1e-12)
+    assert not np.allclose(r2.x_est, runs[metric].x_est)  # the estimates do change
+
+
+def test_same_seed_same_result(paper, runs):
+    r = run_metric(paper, "svd")
+    np.testing.assert_array_equal(r.x_est, runs["svd"].x_est)
+    np.testing.assert_array_equal(r.enabled, runs["svd"].enabled)
+
+
+def test_filter_is_consistent_on_average(runs):
+    """NEES averaged over scans 11-100 and the three metrics stays near its mean of 4."""
+    eps = np.concatenate([r.nees[10:] for r in runs.values()])
+    assert 2.0 < eps.mean() < 6.5
