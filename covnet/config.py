@@ -35,6 +35,8 @@ __all__ = [
 Float = Annotated[float, Strict()]
 Int = Annotated[int, Strict()]
 Str = Annotated[str, Strict()]
+Pair = Annotated[tuple[Float, ...], Field(min_length=2, max_length=2)]
+Quad = Annotated[tuple[Float, ...], Field(min_length=4, max_length=4)]
 
 
 class ConfigError(ValueError):
@@ -78,8 +80,8 @@ class SensorSpec(_Model):
 class TargetSpec(_Model):
     """One constant-velocity target in the plane, state ``[x, vx, y, vy]``."""
 
-    initial_position_m: tuple[Float, Float] = (0.0, 0.0)
-    initial_velocity_mps: tuple[Float, Float] = (426.0, 0.0)
+    initial_position_m: Pair = (0.0, 0.0)
+    initial_velocity_mps: Pair = (426.0, 0.0)
     accel_noise_std_mps2: Float = 0.5
 
     @field_validator("accel_noise_std_mps2")
@@ -94,7 +96,7 @@ class FilterSpec(_Model):
     """Filter initialisation: ``P0 = diag(P0_diag)``; the estimate is the truth plus one draw
     from ``N(0, P0)`` (``perturbed``, the default) or the truth itself (``truth``)."""
 
-    P0_diag: tuple[Float, Float, Float, Float] = (1.0e4, 1.0e2, 1.0e4, 1.0e2)
+    P0_diag: Quad = (1.0e4, 1.0e2, 1.0e4, 1.0e2)
     initial_estimate: Literal["perturbed", "truth"] = "perturbed"
 
     @field_validator("P0_diag")
@@ -109,8 +111,8 @@ class DesiredSpec(_Model):
     """Desired covariance from scan ``from_scan`` on: ``diag`` (4 entries) or a full ``matrix``."""
 
     from_scan: Int = Field(ge=1)
-    diag: tuple[Float, Float, Float, Float] | None = None
-    matrix: tuple[tuple[Float, Float, Float, Float], ...] | None = None
+    diag: Quad | None = None
+    matrix: Annotated[tuple[Quad, ...], Field(min_length=4, max_length=4)] | None = None
 
     def as_matrix(self) -> np.ndarray:
         if self.diag is not None:

@@ -44,9 +44,9 @@ def ellipse_points(R: np.ndarray, n: int = 200) -> np.ndarray:
     return np.linalg.cholesky(R) @ np.vstack([np.cos(th), np.sin(th)])
 
 
-def _switch_lines(ax: plt.Axes, switches: list[int]) -> None:
+def _switch_lines(ax: plt.Axes, switches: list[int], color: str = "0.5") -> None:
     for s in switches[1:]:
-        ax.axvline(s, color="0.5", ls=":", lw=1)
+        ax.axvline(s, color=color, ls=":", lw=1.2)
 
 
 def make_figures(run_dir: Path) -> list[Path]:
@@ -138,7 +138,7 @@ def make_figures(run_dir: Path) -> list[Path]:
         ax.set_ylabel("sensor")
         rate = 100 * summary["metrics"][m]["allocation_rate"]
         ax.set_title(f"{m}: sensors allocated (filled) per scan, rate {rate:.1f} %")
-        _switch_lines(ax, switches)
+        _switch_lines(ax, switches, color="tab:red")
     axes[-1, 0].set_xlabel("scan k")
     fig.savefig(paths[3], dpi=120)
     plt.close(fig)
