@@ -88,18 +88,50 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"{m:>10}: {sc.scans} scans in {time.perf_counter() - t0:.2f} s, "
             f"allocation rate {rate:.1f} %"
         )
-    summary = write_run(out, sc, traj, runs)
+    summary = write_run(out, sc, traj, runs, extra={"mode": "in-process"})
     if not args.no_figures:
         from covnet.plots import make_figures
 
         make_figures(out)
-    print(f"run directory: {out}  (config {summary['config_hash']}, seed {sc.seed})")
+    _print_summary(out, summary)
+    return EXIT_OK
+
+
+def _print_summary(out: Path, summary: dict) -> None:  # type: ignore[type-arg]
+    print(f"run directory: {out}  (config {summary['config_hash']}, seed {summary['seed']})")
     for m, blk in summary["metrics"].items():
         print(
             f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, "
             f"position RMSE {blk['rmse_position']:.2f} m, mean NEES {blk['mean_nees']:.2f}"
         )
-    return EXIT_OK
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from covnet.messages import new_run_id
+    from covnet.results import load_summary
+    from covnet.up import UpError, up
+
+    sc = _load(args.config, args.seed)
+    metrics = _metrics_for(sc, args.metric)
+    if args.speed <= 0:
+        raise UsageError(f"--speed: must be > 0, got {args.speed}")
+    out = _prepare_out(args.out, sc.name, args.force)
+    try:
+        status = up(
+            sc, args.config, out, metrics, seed=args.seed, realtime=args.realtime,
+            speed=args.speed, run_id=new_run_id(), verbose=args.verbose,
+        )
+    except UpError as exc:
+        _err(str(exc))
+        status = EXIT_FAIL
+    if (out / "summary.json").is_file():
+        summary = load_summary(out)
+        if not args.no_figures and summary["metrics"]:
+            from covnet.plots import make_figures
+
+            make_figures(out)
+        _print_summary(out, summary)
+    return status
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -197,6 +229,22 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     r.set_defaults(func=cmd_run)
+
+    u = sub.add_parser(
+        "up", help="run the network: world, one process per sensor, the manager, over zenoh"
+    )
+    u.add_argument("config", help="scenario YAML, e.g. configs/paper.yaml")
+    u.add_argument("--out", help="run directory (default: a new folder under runs/)")
+    u.add_argument("--metric", action="append", metavar="NAME",
+                   help="run only this metric (repeatable; default: the config's)")
+    u.add_argument("--seed", type=int, help="override the config's seed")
+    u.add_argument("--realtime", action="store_true",
+                   help="pace scans by the config's period (default: lockstep, as fast as possible)")
+    u.add_argument("--speed", type=float, default=1.0, help="real-time speed factor (--realtime)")
+    u.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    u.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    u.add_argument("--verbose", action="store_true", help="show every process's output")
+    u.set_defaults(func=cmd_up)
 
     c = sub.add_parser("check", help="validate a config; print it normalised with its hash")
     c.add_argument("config")

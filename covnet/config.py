@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -130,6 +131,43 @@ class AllocationSpec(_Model):
     tie_rtol: Float = Field(default=1e-9, ge=0.0, le=1e-3)
 
 
+class NetworkSpec(_Model):
+    """How ``covnet up`` wires the processes over zenoh (see README, "Running a network").
+
+    The manager's session is the router (``router`` endpoint; port 0 picks a free port at
+    launch); world and sensors are clients connecting to ``connect`` (default: the router
+    endpoint).  Everything listens on loopback unless changed here.
+    """
+
+    router: Str = "tcp/127.0.0.1:0"
+    connect: Str | None = None
+    lease_ms: Int = Field(default=1000, ge=100, le=60_000)
+    heartbeat_s: Float = 0.2
+    failure_timeout_s: Float = 1.0
+    ready_timeout_s: Float = 30.0
+    scan_timeout_s: Float = 10.0
+    deadline_fraction: Float = 0.8
+    restart: Literal["never", "on-failure"] = "never"
+
+    _pos = field_validator(
+        "heartbeat_s", "failure_timeout_s", "ready_timeout_s", "scan_timeout_s"
+    )(_positive)
+
+    @field_validator("deadline_fraction")
+    @classmethod
+    def _frac(cls, v: float) -> float:
+        if not 0.0 < v <= 1.0:
+            raise ValueError(f"must be in (0, 1], got {v}")
+        return v
+
+    @field_validator("router", "connect")
+    @classmethod
+    def _endpoint(cls, v: str | None) -> str | None:
+        if v is not None and not re.fullmatch(r"(tcp|udp|tls|quic)/[^/\s]+:\d+", v):
+            raise ValueError(f"expected a zenoh endpoint like tcp/127.0.0.1:7447, got {v!r}")
+        return v
+
+
 class Scenario(_Model):
     """A whole scenario: the paper's by default values where the source leaves them open."""
 
@@ -142,6 +180,7 @@ class Scenario(_Model):
     sensors: tuple[SensorSpec, ...] = Field(min_length=1)
     desired: tuple[DesiredSpec, ...] = Field(min_length=1)
     allocation: AllocationSpec = AllocationSpec()
+    network: NetworkSpec = NetworkSpec()
 
     _period = field_validator("period_s")(_positive)
 
@@ -226,6 +265,10 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     both = set(al.required) & set(al.excluded)
     if both:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
+    if sc.network.failure_timeout_s <= sc.network.heartbeat_s:
+        problems.append(
+            ("network.failure_timeout_s", "must be longer than network.heartbeat_s")
+        )
     if set(al.excluded) >= set(ids):
         problems.append(("allocation.excluded", "excludes every sensor"))
     if al.max_active is not None:

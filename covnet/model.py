@@ -136,7 +136,8 @@ def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:
     return draw_measurement(model.H, model.R[sensor_index], true_state, rng)
 
 
-def fuse(model: Model, prior: Gaussian, measurements: Sequence[tuple[int, Vec]]) -> Gaussian:
-    """Sequential Joseph-form updates, in ascending sensor index (a canonical order)."""
+def fuse(model: Model, prior: Gaussian, measurements: Sequence[tuple[int, Vec, Mat]]) -> Gaussian:
+    """Sequential Joseph-form updates with ``(sensor_index, z, R)``, in ascending sensor index
+    (a canonical order, so the result does not depend on arrival order)."""
     ordered = sorted(measurements, key=lambda m: m[0])
-    return update_sequential(prior, [(z, model.H, model.R[j]) for j, z in ordered])
+    return update_sequential(prior, [(z, model.H, R) for _, z, R in ordered])

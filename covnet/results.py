@@ -48,7 +48,7 @@ def metric_summary(
 ) -> dict[str, Any]:
     """The per-metric block of ``summary.json``."""
     counts = run.enabled.sum(axis=1)
-    err = run.x_est - traj.truth
+    err = run.x_est - traj.truth[: len(run.x_est)]  # a stopped network run may be partial
     pos_err2 = err[:, 0] ** 2 + err[:, 2] ** 2
     vel_err2 = err[:, 1] ** 2 + err[:, 3] ** 2
     usage = run.enabled.sum(axis=0)

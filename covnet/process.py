@@ -1,0 +1,90 @@
+"""What every node process (world, sensor, manager) does around its loop.
+
+``python -m sensors --config C --id S3 --run RUN --connect tcp/HOST:PORT`` (likewise
+``python -m manager`` and ``python -m covnet.world``): load and validate the config, open the
+zenoh session (retrying while the router is not up yet, up to ``network.ready_timeout_s``),
+turn SIGINT/SIGTERM into a stop event the loop polls, run the loop, close the session, exit.
+
+Exit status: 0 stopped or finished cleanly, 1 the loop failed, 2 a user's mistake (bad config
+or option; one readable line on stderr, no traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from covnet.config import ConfigError, Scenario, load, with_overrides
+
+EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
+
+
+def common_parser(prog: str, description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    p.add_argument("--config", required=True, help="scenario YAML (the single source of truth)")
+    p.add_argument("--run", required=True, help="run id: the key prefix shared by one network")
+    p.add_argument("--seed", type=int, help="override the config's seed")
+    p.add_argument("--realtime", action="store_true", help="pace scans by the config's period")
+    p.add_argument("--speed", type=float, default=1.0, help="real-time speed factor")
+    return p
+
+
+def load_config(path: str, seed: int | None) -> Scenario:
+    sc = load(path)
+    return with_overrides(sc, seed=seed) if seed is not None else sc
+
+
+def stop_on_signals() -> threading.Event:
+    """SIGINT and SIGTERM set the returned event (the loop then winds down and returns)."""
+    stop = threading.Event()
+
+    def handler(signum: int, frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def open_bus(
+    mode: str,
+    *,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    lease_ms: int | None,
+    timeout_s: float,
+    stop: threading.Event,
+    extra_json5: dict[str, object] | None = None,
+) -> Any:
+    """Open a :class:`~covnet.zenoh_bus.ZenohBus`, retrying a client's connection for up to
+    ``timeout_s`` (so processes may start in any order, as on several hosts)."""
+    from covnet.zenoh_bus import ZenohBus, zenoh_config
+
+    cfg_args = dict(listen=list(listen), connect=list(connect), lease_ms=lease_ms)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return ZenohBus.open(zenoh_config(mode, extra_json5=extra_json5, **cfg_args))  # type: ignore[arg-type]
+        except Exception as exc:  # zenoh raises its own ZError
+            if time.monotonic() > deadline or stop.is_set():
+                raise ConnectionError(
+                    f"cannot open a zenoh {mode} session ({listen or connect}): {exc}"
+                ) from None
+            stop.wait(0.1)
+
+
+def guarded(body: Callable[[], int], prog: str) -> int:
+    """Run ``body``; a user's mistake prints one line and exits 2, a failure exits 1."""
+    try:
+        return body()
+    except ConfigError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except (ValueError, ConnectionError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_FAIL

@@ -1,0 +1,238 @@
+"""``covnet up``: start the whole network on this machine, show its status, stop it cleanly.
+
+Processes (each its own ``python -m``, its own zenoh session)::
+
+    manager  (router, listens on network.router)  <-- world, S1 ... Sn (clients)
+
+The launcher itself holds no zenoh session: it supervises the children
+(:class:`covnet.launch.Supervisor`: ``processes.json`` written as soon as they start; SIGINT,
+then SIGTERM, then SIGKILL on the way out), waits for the manager's ``READY`` line, renders the
+manager's ``STATUS`` lines as a live display (plain lines when not on a terminal), restarts
+sensors under ``network.restart: on-failure``, and, once the manager is done, stops the rest and
+draws the figures from the run directory.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from covnet.config import Scenario
+from covnet.launch import ProcessSpec, Supervisor
+
+READY_GRACE_S = 15.0  # on top of network.ready_timeout_s: interpreter start-up, imports
+
+
+class UpError(RuntimeError):
+    """The network could not be brought up or did not finish."""
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def resolve_router(endpoint: str) -> str:
+    """``tcp/127.0.0.1:0`` -> the same with a free port; a concrete port is kept."""
+    proto, _, hostport = endpoint.partition("/")
+    host, _, port = hostport.rpartition(":")
+    if port == "0":
+        return f"{proto}/{host}:{free_port(host.strip('[]'))}"
+    return endpoint
+
+
+def process_specs(
+    sc: Scenario,
+    config_path: str,
+    run_id: str,
+    router: str,
+    out: Path,
+    metrics: list[str],
+    *,
+    seed: int | None,
+    realtime: bool,
+    speed: float,
+) -> list[ProcessSpec]:
+    py = sys.executable
+    common = ["--config", str(config_path), "--run", run_id]
+    if seed is not None:
+        common += ["--seed", str(seed)]
+    if realtime:
+        common += ["--realtime", "--speed", str(speed)]
+    connect = sc.network.connect or router
+    specs = [
+        ProcessSpec(
+            "manager",
+            [py, "-m", "manager", *common, "--listen", router, "--out", str(out)]
+            + [a for m in metrics for a in ("--metric", m)],
+        ),
+        ProcessSpec("world", [py, "-m", "covnet.world", *common, "--connect", connect]),
+    ]
+    restart = sc.network.restart == "on-failure"
+    for sid in sc.sensor_ids:
+        specs.append(
+            ProcessSpec(
+                sid,
+                [py, "-m", "sensors", *common, "--id", sid, "--connect", connect],
+                restart=restart,
+            )
+        )
+    return specs
+
+
+@dataclass
+class StatusView:
+    """Renders the manager's STATUS lines: a rich live bar on a terminal, plain lines else."""
+
+    scans: int
+    metrics: list[str]
+    tty: bool = field(default_factory=lambda: sys.stdout.isatty())
+    last: dict[str, Any] | None = None
+    _progress: Any = None
+    _task: Any = None
+    _last_plain: float = 0.0
+
+    def __enter__(self) -> StatusView:
+        if self.tty:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+            self._progress = Progress(
+                TextColumn("[bold]{task.fields[metric]:>10}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[info]}"),
+                transient=False,
+            )
+            self._progress.__enter__()
+            self._task = self._progress.add_task(
+                "scan", total=self.scans * len(self.metrics), metric="", info="waiting for READY"
+            )
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._progress is not None:
+            self._progress.__exit__(None, None, None)
+
+    def line(self, text: str) -> None:
+        if self._progress is not None:
+            self._progress.console.print(text, markup=False, highlight=False)
+        else:
+            print(text, flush=True)
+
+    def update(self, st: dict[str, Any]) -> None:
+        self.last = st
+        info = (
+            f"scan {st['scan']}/{st['scans']}  enabled {','.join(st['enabled']) or '-'}  "
+            f"tr P {st['trace_P']:.1f} / tr Pd {st['trace_Pd']:.1f}  "
+            f"{st['latency_ms']:.2f} ms  {st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
+        )
+        if st["failed"]:
+            info += f"  failed {','.join(st['failed'])}"
+        done = st["episode"] * st["scans"] + st["scan"]
+        if self._progress is not None:
+            self._progress.update(self._task, completed=done, metric=st["metric"], info=info)
+        else:
+            now = time.monotonic()
+            if now - self._last_plain >= 1.0 or st["scan"] == st["scans"]:
+                print(f"[status] {st['metric']}: {info}", flush=True)
+                self._last_plain = now
+
+
+def up(
+    sc: Scenario,
+    config_path: str,
+    out: Path,
+    metrics: list[str],
+    *,
+    seed: int | None = None,
+    realtime: bool = False,
+    speed: float = 1.0,
+    run_id: str,
+    verbose: bool = False,
+    on_ready: Callable[[Supervisor], None] | None = None,
+) -> int:
+    """Run the network to completion; returns the manager's exit status (130 on Ctrl-C)."""
+    out.mkdir(parents=True, exist_ok=True)
+    router = resolve_router(sc.network.router)
+    specs = process_specs(
+        sc, config_path, run_id, router, out, metrics, seed=seed, realtime=realtime, speed=speed
+    )
+    ready = threading.Event()
+    view = StatusView(sc.scans, metrics)
+
+    def on_line(name: str, text: str) -> None:
+        if name == "manager" and text.startswith("STATUS "):
+            try:
+                view.update(json.loads(text[7:]))
+            except (ValueError, KeyError):
+                view.line(f"[{name}] {text}")
+            return
+        if name == "manager" and text == "READY":
+            ready.set()
+        if verbose or name == "manager" or "error" in text.lower() or "Traceback" in text:
+            view.line(f"[{name}] {text}")
+
+    def raise_interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    view.line(f"[launcher] run {run_id}: router {router}, run directory {out}")
+    previous = signal.signal(signal.SIGTERM, raise_interrupt)
+    status = 0
+    try:
+        with view, Supervisor(specs, on_line=on_line, pids_file=out / "processes.json") as sup:
+            deadline = time.monotonic() + sc.network.ready_timeout_s + READY_GRACE_S
+            while not ready.wait(0.1):
+                rcs = sup.poll()
+                if rcs.get("manager") is not None:
+                    raise UpError(f"the manager exited with status {rcs['manager']} before READY")
+                if time.monotonic() > deadline:
+                    raise UpError("the network did not become READY in time")
+            if on_ready is not None:
+                on_ready(sup)
+            restarts_seen = 0
+            while True:
+                rcs = sup.poll()
+                n = sum(sup.restarts.values())
+                if n != restarts_seen:
+                    restarts_seen = n
+                    view.line(f"[launcher] restarted: {dict((k, v) for k, v in sup.restarts.items() if v)}")
+                if rcs["manager"] is not None:
+                    status = int(rcs["manager"])
+                    break
+                time.sleep(0.05)
+            final = sup.stop()
+        _note_restarts(out, sup.restarts)
+        others = {k: v for k, v in final.items() if k != "manager" and v not in (0, None)}
+        if status != 0:
+            raise UpError(
+                f"the manager failed (exit status {status}); the run directory {out} holds what "
+                "was recorded up to then"
+            )
+        if others and not sc.network.restart == "on-failure":
+            view.line(f"[launcher] note: processes that did not exit cleanly: {others}")
+        return 0
+    except KeyboardInterrupt:
+        print("covnet up: interrupted; every process stopped", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _note_restarts(out: Path, restarts: dict[str, int]) -> None:
+    path = out / "summary.json"
+    if not path.is_file():
+        return
+    summary = json.loads(path.read_text())
+    summary["restarts"] = {k: v for k, v in restarts.items() if v}
+    from covnet.results import write_json
+
+    write_json(path, summary)

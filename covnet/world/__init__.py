@@ -1,0 +1,1 @@
+"""The world process: ground truth, published on the manager's scan tick."""

@@ -1,0 +1,33 @@
+"""``python -m covnet.world --config C --run RUN --connect tcp/HOST:PORT``: the world."""
+
+from __future__ import annotations
+
+import sys
+
+from covnet.clock import WallClock
+from covnet.process import EXIT_OK, common_parser, guarded, load_config, open_bus
+from covnet.process import stop_on_signals
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = common_parser("world", "The world process: publishes ground truth each scan.")
+    p.add_argument("--connect", help="router endpoint (default: the config's network)")
+    args = p.parse_args(argv)
+
+    def body() -> int:
+        from covnet.world import node
+
+        stop = stop_on_signals()
+        sc = load_config(args.config, args.seed)
+        endpoint = args.connect or sc.network.connect or sc.network.router
+        with open_bus("client", connect=[endpoint], lease_ms=sc.network.lease_ms,
+                      timeout_s=sc.network.ready_timeout_s, stop=stop) as bus:
+            counts = node.run(sc, bus, args.run, WallClock(args.speed), stop)
+        print(f"stopped: {dict(counts)}")
+        return EXIT_OK
+
+    return guarded(body, "world")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

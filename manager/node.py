@@ -1,0 +1,373 @@
+"""The fusion manager's loop: predict -> allocate -> command -> collect -> fuse -> publish.
+
+One *episode* per allocation metric (the paper compares three on the same scenario); in each,
+per scan ``k``::
+
+    1. x⁻, P⁻ = predict(x, P)
+    2. D = argmin over feasible subsets of f(P_i, P_d(t_k)); failed sensors are infeasible
+    3. publish Command(k, enabled = D)           (the world answers with Truth(k))
+    4. collect Measurement(k) from each enabled sensor until all arrived, a sensor failed, or
+       the deadline passed (lockstep: ``network.scan_timeout_s``; real time: ``t_k +
+       deadline_fraction * T``).  Anything malformed, from the wrong key, for another scan or
+       from a sensor that was not enabled is counted by reason and dropped, never fused.
+    5. fuse (sequential updates, ascending sensor index); publish Track(k) and Status(k)
+
+The steps are the functions of :mod:`covnet.model`, the same ones ``covnet run`` calls, so a
+lockstep network run reproduces the in-process run bit for bit.  The loop takes its bus, clock
+and stop event from the caller: a test runs it in a thread over ``InMemoryBus``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from covnet import messages as msg
+from covnet.bus import Bus
+from covnet.clock import Clock
+from covnet.config import Scenario
+from covnet.core.kalman import nees
+from covnet.model import (
+    Model,
+    build_model,
+    decide,
+    fuse,
+    initial_estimate,
+    predict_step,
+    truth_trajectory,
+)
+from covnet.runtime_stats import NetStats
+from covnet.simulate import MetricRun
+from manager.membership import Membership
+
+WORLD_ID = "world"
+
+
+class ManagerError(RuntimeError):
+    """The network could not run (nodes never came up, the stop was requested, ...)."""
+
+
+@dataclass
+class EpisodeLog:
+    """Rows of one episode, appended per scan; converted to a :class:`MetricRun` at the end."""
+
+    metric: str
+    enabled: list[np.ndarray] = field(default_factory=list)
+    value: list[float] = field(default_factory=list)
+    x_est: list[np.ndarray] = field(default_factory=list)
+    P_post: list[np.ndarray] = field(default_factory=list)
+    P_pred: list[np.ndarray] = field(default_factory=list)
+    nees: list[float] = field(default_factory=list)
+    decision_s: list[float] = field(default_factory=list)
+    n_evaluated: list[int] = field(default_factory=list)
+    fused_from: list[list[str]] = field(default_factory=list)
+    failures: list[dict[str, Any]] = field(default_factory=list)
+
+    def as_run(self, n_sensors: int) -> MetricRun:
+        n = len(self.value)
+        return MetricRun(
+            metric=self.metric,
+            enabled=np.array(self.enabled, dtype=bool).reshape(n, n_sensors),
+            value=np.array(self.value, dtype=np.float64),
+            x_est=np.array(self.x_est, dtype=np.float64).reshape(n, 4),
+            P_post=np.array(self.P_post, dtype=np.float64).reshape(n, 4, 4),
+            P_pred=np.array(self.P_pred, dtype=np.float64).reshape(n, 4, 4),
+            nees=np.array(self.nees, dtype=np.float64),
+            decision_s=np.array(self.decision_s, dtype=np.float64),
+            n_evaluated=np.array(self.n_evaluated, dtype=np.int64),
+        )
+
+
+@dataclass
+class ManagerResult:
+    """What the loop has done so far (live while it runs; final when :func:`run` returns)."""
+
+    episodes: dict[str, EpisodeLog]
+    stats: NetStats
+    completed: bool = False
+    error: str | None = None
+
+
+StatusFn = Callable[[dict[str, Any]], None]
+
+
+class _Loop:
+    """The manager's state; only :func:`run` drives it."""
+
+    def __init__(self, sc: Scenario, bus: Bus, run_id: str, clock: Clock) -> None:
+        self.sc, self.bus, self.run_id, self.clock = sc, bus, run_id, clock
+        self.model: Model = build_model(sc)
+        self.ids = self.model.sensor_ids
+        net = sc.network
+        self.members = Membership(
+            expected=(*self.ids, WORLD_ID), failure_timeout_ns=int(net.failure_timeout_s * 1e9)
+        )
+        self.stats = NetStats()
+        self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
+        self.hb_sub = bus.subscribe(msg.heartbeat_keyexpr(run_id))
+        self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))
+        self.token = bus.declare_token(msg.alive_key(run_id, "manager", "manager"))
+        self.keys = {
+            "cmd": msg.command_key(run_id),
+            "track": msg.track_key(run_id),
+            "status": msg.status_key(run_id),
+        }
+        self.failed_now: frozenset[str] = frozenset()
+
+    # ---- bus helpers --------------------------------------------------------------------
+
+    def publish(self, key: str, message: msg.Message) -> None:
+        payload = msg.encode(message)
+        self.bus.publish(key, payload)
+        self.stats.sent(key, len(payload))
+
+    def poll_membership(self) -> None:
+        """Drain liveliness events and heartbeats (non-blocking)."""
+        now = self.clock.now_ns()
+        while (ev := self.live_sub.try_recv()) is not None:
+            try:
+                role, node = msg.parse_alive_key(ev.key)
+            except ValueError:
+                self.stats.reject(ev.key, "bad_key")
+                continue
+            if role in ("sensor", "world"):
+                self.members.token(node, ev.alive, now)
+        while (s := self.hb_sub.try_recv()) is not None:
+            self.stats.received(s.key, len(s.payload))
+            try:
+                hb = msg.decode_as(s.payload, msg.Heartbeat)
+            except msg.WireError as exc:
+                self.stats.reject(s.key, exc.reason)
+                continue
+            if msg.heartbeat_key(self.run_id, hb.role, hb.node_id) != s.key:
+                self.stats.reject(s.key, "key_mismatch")
+                continue
+            if hb.node_id in self.members.expected:
+                self.members.heartbeat(hb.node_id, now)
+
+    def wait_ready(self, stop: threading.Event) -> None:
+        deadline = time.monotonic() + self.sc.network.ready_timeout_s
+        while True:
+            self.poll_membership()
+            missing = self.members.missing_tokens()
+            if not missing:
+                return
+            if stop.is_set():
+                raise ManagerError("stopped before the network was ready")
+            if time.monotonic() > deadline:
+                raise ManagerError(
+                    f"nodes not alive after {self.sc.network.ready_timeout_s} s: {missing}"
+                )
+            ev = self.live_sub.recv(timeout=0.05)
+            if ev is not None:
+                role, node = msg.parse_alive_key(ev.key)
+                if role in ("sensor", "world"):
+                    self.members.token(node, ev.alive, self.clock.now_ns())
+
+    # ---- one scan -----------------------------------------------------------------------
+
+    def collect(
+        self, episode: int, k: int, waiting: set[str], deadline: float, stop: threading.Event
+    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Receive scan ``k``'s measurements from the ``waiting`` sensors (see module doc)."""
+        got: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        while waiting:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or stop.is_set():
+                self.stats.lost += len(waiting)
+                break
+            s = self.meas_sub.recv(timeout=min(0.05, remaining))
+            if s is not None:
+                self._take(s, episode, k, waiting, got)
+            self.poll_membership()
+            dead = {sid for sid in waiting if not self.members.is_up(sid, self.clock.now_ns())}
+            if dead:
+                self.stats.lost += len(dead)
+                waiting -= dead
+        # anything else already queued for this scan (duplicates, strays) is judged now
+        while (s := self.meas_sub.try_recv()) is not None:
+            self._take(s, episode, k, set(), got)
+        return got
+
+    def _take(
+        self,
+        s: Any,
+        episode: int,
+        k: int,
+        waiting: set[str],
+        got: dict[str, tuple[np.ndarray, np.ndarray]],
+    ) -> None:
+        self.stats.received(s.key, len(s.payload))
+        try:
+            m = msg.decode_as(s.payload, msg.Measurement)
+            key_sensor = msg.parse_measurement_key(s.key)
+        except msg.WireError as exc:
+            self.stats.reject(s.key, exc.reason)
+            return
+        except ValueError:
+            self.stats.reject(s.key, "bad_key")
+            return
+        if key_sensor != m.sensor_id:
+            self.stats.reject(s.key, "key_mismatch")
+        elif (m.episode, m.scan) < (episode, k):
+            self.stats.late += 1
+            self.stats.reject(s.key, "late")
+        elif (m.episode, m.scan) != (episode, k):
+            self.stats.reject(s.key, "wrong_scan")
+        elif m.sensor_id in got:
+            self.stats.reject(s.key, "duplicate")
+        elif m.sensor_id not in waiting:
+            self.stats.reject(s.key, "not_enabled")
+        elif m.z.shape != (1, 2) or m.R.shape != (2, 2) or not _is_spd(m.R):
+            self.stats.reject(s.key, "bad_measurement")
+        else:
+            got[m.sensor_id] = (m.z[0], m.R)
+            waiting.discard(m.sensor_id)
+            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+
+
+def _is_spd(R: np.ndarray) -> bool:
+    return bool(R[0, 1] == R[1, 0] and R[0, 0] > 0 and R[0, 0] * R[1, 1] - R[0, 1] ** 2 > 0)
+
+
+def run(
+    sc: Scenario,
+    metrics: list[str],
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    *,
+    realtime: bool = False,
+    on_ready: Callable[[], None] | None = None,
+    on_status: StatusFn | None = None,
+    on_progress: Callable[[ManagerResult, bool], None] | None = None,
+) -> ManagerResult:
+    """Run every metric's episode over the bus; returns what was done (also when stopped,
+    with ``completed=False``, or when the network never came up, with ``error`` set).
+    ``on_progress(result, episode_done)`` is called after every scan."""
+    loop = _Loop(sc, bus, run_id, clock)
+    model, ids = loop.model, loop.ids
+    net = sc.network
+    result = ManagerResult({}, loop.stats)
+    truth = truth_trajectory(model)  # for NEES in the results only; never sent to anyone
+    try:
+        try:
+            loop.wait_ready(stop)
+        except ManagerError as exc:
+            result.error = str(exc)
+            return result
+        if on_ready is not None:
+            on_ready()
+        for e, metric in enumerate(metrics):
+            log = result.episodes[metric] = EpisodeLog(metric)
+            est = initial_estimate(model, sc.filter.initial_estimate)
+            t_origin = clock.now()
+            failed_prev: frozenset[str] = frozenset()
+            for k in range(1, model.scans + 1):
+                if stop.is_set():
+                    return result
+                t_k = k * model.T
+                if realtime:
+                    _pace(clock, t_origin + (k - 1) * model.T, stop)
+                pred = predict_step(model, est)
+                loop.poll_membership()
+                failed = loop.members.failed(clock.now_ns())
+                for sid in sorted((failed ^ failed_prev) - {WORLD_ID}):
+                    log.failures.append(
+                        {"sensor": sid, "scan": k, "event": "failed" if sid in failed else "rejoined"}
+                    )
+                failed_prev = failed
+                unavailable = frozenset(ids.index(s) for s in failed if s in ids)
+                t0 = time.perf_counter()
+                alloc = decide(model, pred.P, k, metric, unavailable)
+                decision_s = time.perf_counter() - t0
+                enabled = tuple(ids[j] for j in alloc.subset)
+                t_sent = clock.now_ns()
+                cmd = msg.Command(
+                    scan=k, t=t_k, enabled=enabled, t_sent_ns=t_sent, episode=e
+                )
+                loop.publish(loop.keys["cmd"], cmd)
+                if realtime:
+                    deadline = time.monotonic() + net.deadline_fraction * model.T / _speed(clock)
+                else:
+                    deadline = time.monotonic() + net.scan_timeout_s
+                got = loop.collect(e, k, set(enabled), deadline, stop)
+                est = fuse(
+                    model, pred, [(ids.index(sid), z, R) for sid, (z, R) in got.items()]
+                )
+                loop.stats.scan_latency_ns.append(clock.now_ns() - t_sent)
+                loop.publish(
+                    loop.keys["track"],
+                    msg.Track(scan=k, t=t_k, x=est.x, P=est.P, t_sent_ns=clock.now_ns(), episode=e),
+                )
+                P_d = model.desired(k)
+                status = msg.Status(
+                    scan=k,
+                    t=t_k,
+                    enabled=enabled,
+                    trace_P=float(np.trace(est.P)),
+                    trace_Pd=float(np.trace(P_d)),
+                    value=float(alloc.value),
+                    t_sent_ns=clock.now_ns(),
+                    episode=e,
+                )
+                loop.publish(loop.keys["status"], status)
+                mask = np.zeros(len(ids), dtype=bool)
+                mask[list(alloc.subset)] = True
+                log.enabled.append(mask)
+                log.value.append(float(alloc.value))
+                log.x_est.append(est.x)
+                log.P_post.append(est.P)
+                log.P_pred.append(pred.P)
+                log.nees.append(nees(est, truth[k - 1]))
+                log.decision_s.append(decision_s)
+                log.n_evaluated.append(alloc.n_evaluated)
+                log.fused_from.append(sorted(got))
+                if on_status is not None:
+                    on_status(
+                        {
+                            "metric": metric,
+                            "episode": e,
+                            "scan": k,
+                            "scans": model.scans,
+                            "enabled": list(enabled),
+                            "fused": sorted(got),
+                            "failed": sorted(failed - {WORLD_ID}),
+                            "trace_P": status.trace_P,
+                            "trace_Pd": status.trace_Pd,
+                            "latency_ms": (clock.now_ns() - t_sent) / 1e6,
+                            "messages": sum(loop.stats.recv_msgs.values())
+                            + sum(loop.stats.sent_msgs.values()),
+                            "bytes": sum(loop.stats.recv_bytes.values())
+                            + sum(loop.stats.sent_bytes.values()),
+                        }
+                    )
+                if on_progress is not None:
+                    on_progress(result, k == model.scans)
+        result.completed = True
+    finally:
+        loop.token.undeclare()
+    return result
+
+
+def _pace(clock: Clock, t: float, stop: threading.Event) -> None:
+    """Wait until scenario time ``t`` on a wall clock, waking for ``stop``; a simulated
+    clock just jumps."""
+    if not hasattr(clock, "speed"):
+        clock.sleep_until(t)
+        return
+    while not stop.is_set():
+        remaining = (t - clock.now()) / _speed(clock)
+        if remaining <= 0:
+            return
+        stop.wait(min(remaining, 0.05))
+
+
+def _speed(clock: Clock) -> float:
+    return float(getattr(clock, "speed", 1.0))

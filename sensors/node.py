@@ -1,0 +1,119 @@
+"""A sensor's loop: obey the manager's commands, measure the truth, publish.
+
+Per command for scan ``k``: if this sensor is listed in ``enabled`` it waits for the world's
+``Truth(k)``, draws its measurement ``z = H x + v`` from its own noise stream ``(seed, j, k)``
+(:func:`covnet.model.measure`, the same draw ``covnet run`` makes) and publishes
+``Measurement(k)``; if it is not listed it publishes nothing for that scan.  It sends a heartbeat
+every ``network.heartbeat_s`` (a hung loop stops sending them) and declares its liveliness
+token once its subscriptions exist.  Malformed messages are counted by reason and dropped.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from covnet import messages as msg
+from covnet.bus import Bus
+from covnet.clock import Clock
+from covnet.config import Scenario
+from covnet.model import build_model, measure
+
+
+@dataclass
+class SensorStats:
+    commands: int = 0
+    enabled_scans: int = 0
+    measurements_sent: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)
+
+
+def run(
+    sc: Scenario,
+    sensor_id: str,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+) -> SensorStats:
+    """Serve commands until ``stop`` is set; returns this sensor's counters."""
+    model = build_model(sc)
+    j = model.index(sensor_id)
+    R = model.R[j]
+    stats = SensorStats()
+    cmd_sub = bus.subscribe(msg.command_key(run_id))
+    truth_sub = bus.subscribe(msg.truth_key(run_id))
+    token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
+    meas_key = msg.measurement_key(run_id, sensor_id)
+    hb_key = msg.heartbeat_key(run_id, "sensor", sensor_id)
+    hb_period_ns = int(sc.network.heartbeat_s * 1e9)
+    truths: dict[int, np.ndarray] = {}
+    last_scan = 0
+    next_hb = 0
+
+    def heartbeat() -> None:
+        nonlocal next_hb
+        now = clock.now_ns()
+        if now >= next_hb:
+            hb = msg.Heartbeat(role="sensor", node_id=sensor_id, scan=last_scan, t_sent_ns=now)
+            bus.publish(hb_key, msg.encode(hb))
+            next_hb = now + hb_period_ns
+
+    def take_truth(timeout: float | None) -> bool:
+        s = truth_sub.recv(timeout) if timeout is not None else truth_sub.try_recv()
+        if s is None:
+            return False
+        try:
+            tr = msg.decode_as(s.payload, msg.Truth)
+        except msg.WireError as exc:
+            stats.rejected[exc.reason] += 1
+            return True
+        if tr.states.shape[1] != 4 or tr.states.shape[0] < 1:
+            stats.rejected["bad_shape"] += 1
+            return True
+        truths[tr.scan] = tr.states[0]
+        return True
+
+    try:
+        while not stop.is_set():
+            heartbeat()
+            s = cmd_sub.recv(timeout=sc.network.heartbeat_s / 2)
+            while take_truth(None):
+                pass
+            if s is None:
+                continue
+            try:
+                cmd = msg.decode_as(s.payload, msg.Command)
+            except msg.WireError as exc:
+                stats.rejected[exc.reason] += 1
+                continue
+            stats.commands += 1
+            last_scan = cmd.scan
+            if sensor_id not in cmd.enabled:
+                continue
+            stats.enabled_scans += 1
+            while cmd.scan not in truths and not stop.is_set():
+                heartbeat()
+                take_truth(sc.network.heartbeat_s / 2)
+            if stop.is_set():
+                break
+            z = measure(model, j, cmd.scan, truths[cmd.scan])
+            m = msg.Measurement(
+                sensor_id=sensor_id,
+                scan=cmd.scan,
+                t=cmd.t,
+                z=z[None, :],
+                R=R,
+                t_sent_ns=clock.now_ns(),
+                episode=cmd.episode,
+            )
+            bus.publish(meas_key, msg.encode(m))
+            stats.measurements_sent += 1
+            for old in [k for k in truths if k < cmd.scan - 1]:
+                del truths[old]
+    finally:
+        token.undeclare()
+    return stats

@@ -1,0 +1,100 @@
+"""World, sensor and manager loops in threads over one InMemoryHub: the distributed protocol
+without processes.  It must reproduce ``covnet run`` exactly (same functions, same streams)."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from covnet.bus import InMemoryBus, InMemoryHub
+from covnet.clock import WallClock
+from covnet.config import with_overrides
+from covnet.simulate import run_metric
+from covnet.world import node as world_node
+from manager import node as manager_node
+from sensors import node as sensor_node
+
+
+def run_network(sc, metrics, *, kill_after_scan=None, victim=None):
+    hub = InMemoryHub()
+    stop = threading.Event()
+    node_stops = {}
+    threads = []
+    stats = {}
+
+    def start(name, target, *args):
+        ev = threading.Event()
+        node_stops[name] = ev
+        bus = InMemoryBus(hub, name=name)
+
+        def body():
+            try:
+                stats[name] = target(*args, bus, "t", WallClock(), ev)
+            finally:
+                bus.close()
+
+        th = threading.Thread(target=body, name=name, daemon=True)
+        th.start()
+        threads.append(th)
+
+    start("world", world_node.run, sc)
+    for sid in sc.sensor_ids:
+        start(
+            sid,
+            lambda sc_, bus, run, clock, ev, sid=sid: sensor_node.run(
+                sc_, sid, bus, run, clock, ev
+            ),
+            sc,
+        )
+
+    def on_status(st):
+        if kill_after_scan is not None and st["scan"] == kill_after_scan:
+            node_stops[victim].set()
+
+    mbus = InMemoryBus(hub, name="manager")
+    try:
+        result = manager_node.run(sc, metrics, mbus, "t", WallClock(), stop, on_status=on_status)
+    finally:
+        for ev in node_stops.values():
+            ev.set()
+        for th in threads:
+            th.join(timeout=10)
+        mbus.close()
+    return result, stats
+
+
+@pytest.fixture(scope="module")
+def short_paper(paper):
+    return with_overrides(paper, scans=30)
+
+
+def test_in_process_network_equals_run(short_paper):
+    metrics = ["spectral", "svd"]
+    result, stats = run_network(short_paper, metrics)
+    assert result.completed and result.error is None
+    for m in metrics:
+        ref = run_metric(short_paper, m)
+        got = result.episodes[m].as_run(8)
+        np.testing.assert_array_equal(got.enabled, ref.enabled)
+        np.testing.assert_array_equal(got.x_est, ref.x_est)
+        np.testing.assert_array_equal(got.P_post, ref.P_post)
+    # obedience: each sensor measured exactly in the scans it was enabled
+    for j, sid in enumerate(short_paper.sensor_ids):
+        enabled = sum(int(result.episodes[m].as_run(8).enabled[:, j].sum()) for m in metrics)
+        assert stats[sid].measurements_sent == enabled == stats[sid].enabled_scans
+    assert result.stats.rejected == {}
+    assert result.stats.lost == 0
+
+
+def test_failed_sensor_is_excluded_and_run_completes(short_paper):
+    sc = with_overrides(short_paper, scans=20)
+    # S2 is used by spectral at scan 1; stop it after scan 3
+    result, _ = run_network(sc, ["spectral"], kill_after_scan=3, victim="S2")
+    assert result.completed
+    en = result.episodes["spectral"].as_run(8).enabled
+    assert not en[4:, 1].any()  # never enabled again once seen failed
+    events = result.episodes["spectral"].failures
+    assert events and events[0]["sensor"] == "S2" and events[0]["event"] == "failed"
+    assert events[0]["scan"] <= 5

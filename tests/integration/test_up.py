@@ -1,0 +1,88 @@
+"""``covnet up`` with real processes and real zenoh sessions on 127.0.0.1 (a free port per run,
+multicast scouting off, a per-run key prefix)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from covnet.cli import main as covnet_main
+
+from multiproc import CovnetProcess, assert_nothing_left
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, paper_path):
+    out = tmp_path_factory.mktemp("ref") / "run"
+    assert covnet_main(["run", str(paper_path), "--out", str(out), "--no-figures"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def lockstep_up(tmp_path_factory, paper_path):
+    out = tmp_path_factory.mktemp("up") / "run"
+    p = CovnetProcess(["up", str(paper_path), "--out", str(out)])
+    try:
+        rc = p.wait(timeout=150)
+    finally:
+        p.stop()
+    assert rc == 0, p.output()
+    return out, p.output()
+
+
+def test_up_equals_run(reference, lockstep_up):
+    out, _ = lockstep_up
+    ref = json.loads((reference / "summary.json").read_text())
+    got = json.loads((out / "summary.json").read_text())
+    assert got["completed"] is True and got["mode"] == "network"
+    assert set(got["metrics"]) == set(ref["metrics"])
+    a_ref, a_got = np.load(reference / "arrays.npz"), np.load(out / "arrays.npz")
+    for m in ref["metrics"]:
+        assert got["metrics"][m]["subsets"] == ref["metrics"][m]["subsets"]
+        np.testing.assert_allclose(a_got[f"x_est.{m}"], a_ref[f"x_est.{m}"], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(a_got[f"P_post.{m}"], a_ref[f"P_post.{m}"], rtol=0, atol=1e-12)
+
+
+def test_sensors_obey_commands(lockstep_up):
+    out, _ = lockstep_up
+    summary = json.loads((out / "summary.json").read_text())
+    net = json.loads((out / "network.json").read_text())
+    for sid in summary["sensor_ids"]:
+        enabled = sum(blk["usage"][sid] for blk in summary["metrics"].values())
+        keys = [k for k in net["received"] if k.endswith(f"/sensor/{sid}/meas")]
+        received = sum(net["received"][k]["messages"] for k in keys)
+        assert received == enabled, sid
+    assert net["rejected"] == {} and net["lost"] == 0
+
+
+def test_run_directory_complete(lockstep_up):
+    out, output = lockstep_up
+    names = set(json.loads((out / "processes.json").read_text()))
+    assert names == {"manager", "world", *(f"S{i}" for i in range(1, 9))}
+    for f in ("summary.json", "arrays.npz", "config.json", "network.json"):
+        assert (out / f).is_file(), f
+    net = json.loads((out / "network.json").read_text())
+    assert net["scan_latency"]["n"] == 300 and net["scan_latency"]["p50_ms"] > 0
+    assert "READY" in output
+    assert_nothing_left(out)
+
+
+def test_ctrl_c_stops_everything_and_keeps_what_was_recorded(covnet_proc, tmp_path, paper_path):
+    out = tmp_path / "run"
+    p = covnet_proc(["up", str(paper_path), "--out", str(out), "--realtime", "--speed", "25",
+                     "--metric", "spectral", "--no-figures"])
+    assert p.wait_for("[manager] READY", timeout=60), p.output()
+    assert p.wait_for(lambda s: s.startswith("[status]") and "scan 1/" not in s, timeout=30)
+    os.killpg(p.proc.pid, signal.SIGINT)
+    assert p.wait(timeout=8) == 130, p.output()
+    assert_nothing_left(out)
+    summary = json.loads((out / "summary.json").read_text())
+    done = summary["scans_completed"]["spectral"]
+    assert 0 < done < 100 and summary["completed"] is False
+    assert len(summary["metrics"]["spectral"]["subsets"]) == done
