@@ -88,7 +88,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"{m:>10}: {sc.scans} scans in {time.perf_counter() - t0:.2f} s, "
             f"allocation rate {rate:.1f} %"
         )
-    summary = write_run(out, sc, traj, runs, extra={"mode": "in-process"})
+    summary = write_run(out, sc, traj, runs, run_info={"mode": "in-process"})
     if not args.no_figures:
         from covnet.plots import make_figures
 

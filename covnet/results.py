@@ -7,6 +7,8 @@ Layout of a run directory::
     arrays.npz      per-scan arrays for notebooks: t, truth, P_d, sensor_ids and, per metric m,
                     x_est.m, P_post.m, P_pred.m, enabled.m, value.m, nees.m
     config.json     the normalised config the run used (every default filled in)
+    run.json        wall-clock facts: creation time, version, mode, decision times, process
+                    layout (what a replay cannot and need not reproduce)
     fig*.png        the figures (see covnet.plots)
 
 Files are written to a temporary name and renamed, so a reader never sees half a file.
@@ -31,6 +33,7 @@ from covnet.simulate import MetricRun, Trajectory
 SUMMARY = "summary.json"
 ARRAYS = "arrays.npz"
 CONFIG = "config.json"
+RUN_INFO = "run.json"
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -62,7 +65,6 @@ def metric_summary(
         "rmse_velocity": float(np.sqrt(vel_err2.mean())),
         "mean_nees": float(run.nees.mean()),
         "usage": {sid: int(u) for sid, u in zip(sensor_ids, usage, strict=True)},
-        "decision_time_median_s": float(np.median(run.decision_s)),
         "subsets_evaluated_median": float(np.median(run.n_evaluated)),
     }
     if switch_scan is not None and 1 < switch_scan <= len(counts):
@@ -82,8 +84,14 @@ def write_run(
     traj: Trajectory,
     runs: Mapping[str, MetricRun],
     extra: Mapping[str, Any] | None = None,
+    run_info: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Write ``summary.json``, ``arrays.npz`` and ``config.json``; return the summary."""
+    """Write ``summary.json``, ``arrays.npz``, ``config.json`` and ``run.json``; return the
+    summary.
+
+    ``summary.json`` holds only what the config, seed and recorded data determine (``extra``
+    adds to it), so a replay reproduces it byte for byte; wall-clock facts (creation time,
+    decision times, the process layout: ``run_info``) go to ``run.json``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     ids = sc.sensor_ids
     switch = sc.desired[1].from_scan if len(sc.desired) > 1 else None
@@ -95,11 +103,16 @@ def write_run(
         "sensor_ids": list(ids),
         "desired_switch_scans": [d.from_scan for d in sc.desired],
         "covnet_version": __version__,
-        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "metrics": {m: metric_summary(r, traj, ids, switch) for m, r in runs.items()},
     }
     if extra:
         summary.update(extra)
+    info: dict[str, Any] = {
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "covnet_version": __version__,
+        "decision_time_median_s": {m: float(np.median(r.decision_s)) for m, r in runs.items()},
+    }
+    info.update(run_info or {})
     arrays: dict[str, np.ndarray] = {
         "t": traj.t,
         "truth": traj.truth,
@@ -118,6 +131,7 @@ def write_run(
     np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
     os.replace(tmp, out_dir / ARRAYS)
     write_json(out_dir / CONFIG, normalised(sc))
+    write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)
     return summary
 

@@ -228,7 +228,7 @@ def up(
 
 
 def _note_restarts(out: Path, restarts: dict[str, int]) -> None:
-    path = out / "summary.json"
+    path = out / "run.json"
     if not path.is_file():
         return
     summary = json.loads(path.read_text())

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         if endpoint.endswith(":0"):
             raise ValueError(f"--listen: give a concrete port, got {endpoint!r}")
         out = Path(args.out)
-        extra = {"run_id": args.run, "clock": "realtime" if args.realtime else "lockstep",
+        run_info = {"run_id": args.run, "clock": "realtime" if args.realtime else "lockstep",
                  "speed": args.speed, "router": endpoint}
         last_write = [time.monotonic()]
         last_status = [0.0]
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         def on_progress(result: node.ManagerResult, episode_done: bool) -> None:
             now = time.monotonic()
             if episode_done or now - last_write[0] >= 1.0:
-                write_network_run(out, sc, result, extra)
+                write_network_run(out, sc, result, run_info)
                 last_write[0] = time.monotonic()
 
         with open_bus("router", listen=[endpoint], lease_ms=sc.network.lease_ms,
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             result = node.run(sc, metrics, bus, args.run, WallClock(args.speed), stop,
                               realtime=args.realtime, on_ready=on_ready, on_status=on_status,
                               on_progress=on_progress)
-        write_network_run(out, sc, result, extra)
+        write_network_run(out, sc, result, run_info)
         if result.error:
             print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
             return EXIT_FAIL

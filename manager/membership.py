@@ -17,6 +17,7 @@ class Membership:
     failure_timeout_ns: int
     alive_tokens: set[str] = field(default_factory=set)
     last_heartbeat_ns: dict[str, int] = field(default_factory=dict)
+    token_lost_ns: dict[str, int] = field(default_factory=dict)  # when the token went
 
     def token(self, node_id: str, alive: bool, now_ns: int) -> None:
         if alive:
@@ -24,6 +25,14 @@ class Membership:
             self.last_heartbeat_ns.setdefault(node_id, now_ns)
         else:
             self.alive_tokens.discard(node_id)
+            self.token_lost_ns[node_id] = now_ns
+
+    def down_since_ns(self, node_id: str) -> int | None:
+        """When the node was first seen down: its token's loss, or its heartbeat's deadline."""
+        if node_id not in self.alive_tokens:
+            return self.token_lost_ns.get(node_id)
+        last = self.last_heartbeat_ns.get(node_id)
+        return None if last is None else last + self.failure_timeout_ns
 
     def heartbeat(self, node_id: str, now_ns: int) -> None:
         self.last_heartbeat_ns[node_id] = now_ns

@@ -279,9 +279,14 @@ def run(
                 loop.poll_membership()
                 failed = loop.members.failed(clock.now_ns())
                 for sid in sorted((failed ^ failed_prev) - {WORLD_ID}):
-                    log.failures.append(
-                        {"sensor": sid, "scan": k, "event": "failed" if sid in failed else "rejoined"}
-                    )
+                    event: dict[str, Any] = {
+                        "sensor": sid,
+                        "scan": k,
+                        "event": "failed" if sid in failed else "rejoined",
+                    }
+                    if sid in failed:
+                        event["detected_ns"] = loop.members.down_since_ns(sid)
+                    log.failures.append(event)
                 failed_prev = failed
                 unavailable = frozenset(ids.index(s) for s in failed if s in ids)
                 t0 = time.perf_counter()
@@ -316,6 +321,8 @@ def run(
                     value=float(alloc.value),
                     t_sent_ns=clock.now_ns(),
                     episode=e,
+                    fused=tuple(sorted(got, key=ids.index)),
+                    failed=tuple(sorted(failed - {WORLD_ID})),
                 )
                 loop.publish(loop.keys["status"], status)
                 mask = np.zeros(len(ids), dtype=bool)

@@ -14,7 +14,7 @@ from manager.node import ManagerResult
 
 
 def write_network_run(
-    out: Path, sc: Scenario, result: ManagerResult, extra: dict[str, Any] | None = None
+    out: Path, sc: Scenario, result: ManagerResult, run_info: dict[str, Any] | None = None
 ) -> dict[str, Any]:
     """Write summary/arrays/config (as ``covnet run`` does, for the scans done) and
     ``network.json``; safe to call repeatedly while the run goes on."""
@@ -22,14 +22,22 @@ def write_network_run(
     traj = shared_trajectory(model)
     n_sensors = len(model.sensor_ids)
     runs = {m: log.as_run(n_sensors) for m, log in result.episodes.items() if log.value}
-    info: dict[str, Any] = {
-        "mode": "network",
+    extra: dict[str, Any] = {
         "completed": result.completed,
         "scans_completed": {m: len(log.value) for m, log in result.episodes.items()},
-        "failures": {m: log.failures for m, log in result.episodes.items()},
+        "failures": {
+            m: [{k: v for k, v in ev.items() if k != "detected_ns"} for ev in log.failures]
+            for m, log in result.episodes.items()
+        },
     }
-    if extra:
-        info.update(extra)
-    summary = write_run(out, sc, traj, runs, extra=info)
+    info: dict[str, Any] = {
+        "mode": "network",
+        "failure_detected_ns": {
+            m: [ev for ev in log.failures if "detected_ns" in ev]
+            for m, log in result.episodes.items()
+        },
+    }
+    info.update(run_info or {})
+    summary = write_run(out, sc, traj, runs, extra=extra, run_info=info)
     write_json(out / "network.json", result.stats.as_dict())
     return summary
