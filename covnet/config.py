@@ -148,6 +148,7 @@ class NetworkSpec(_Model):
     scan_timeout_s: Float = 10.0
     deadline_fraction: Float = 0.8
     restart: Literal["never", "on-failure"] = "never"
+    record: bool = True
 
     _pos = field_validator(
         "heartbeat_s", "failure_timeout_s", "ready_timeout_s", "scan_timeout_s"

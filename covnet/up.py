@@ -77,6 +77,14 @@ def process_specs(
         ),
         ProcessSpec("world", [py, "-m", "covnet.world", *common, "--connect", connect]),
     ]
+    if sc.network.record:
+        specs.append(
+            ProcessSpec(
+                "recorder",
+                [py, "-m", "covnet.recorder", *common, "--connect", connect,
+                 "--out", str(out / "recording.mcap")],
+            )
+        )
     restart = sc.network.restart == "on-failure"
     for sid in sc.sensor_ids:
         specs.append(

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         if endpoint.endswith(":0"):
             raise ValueError(f"--listen: give a concrete port, got {endpoint!r}")
         out = Path(args.out)
-        run_info = {"run_id": args.run, "clock": "realtime" if args.realtime else "lockstep",
+        run_info = {"episodes": metrics, "run_id": args.run, "clock": "realtime" if args.realtime else "lockstep",
                  "speed": args.speed, "router": endpoint}
         last_write = [time.monotonic()]
         last_status = [0.0]

@@ -46,6 +46,7 @@ from covnet.simulate import MetricRun
 from manager.membership import Membership
 
 WORLD_ID = "world"
+RECORDER_ID = "recorder"
 
 
 class ManagerError(RuntimeError):
@@ -107,6 +108,8 @@ class _Loop:
         self.members = Membership(
             expected=(*self.ids, WORLD_ID), failure_timeout_ns=int(net.failure_timeout_s * 1e9)
         )
+        # the recorder must hear everything: wait for its token too (never allocated)
+        self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
         self.stats = NetStats()
         self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
         self.hb_sub = bus.subscribe(msg.heartbeat_keyexpr(run_id))
@@ -135,7 +138,7 @@ class _Loop:
             except ValueError:
                 self.stats.reject(ev.key, "bad_key")
                 continue
-            if role in ("sensor", "world"):
+            if role in ("sensor", "world", "recorder"):
                 self.members.token(node, ev.alive, now)
         while (s := self.hb_sub.try_recv()) is not None:
             self.stats.received(s.key, len(s.payload))
@@ -154,7 +157,8 @@ class _Loop:
         deadline = time.monotonic() + self.sc.network.ready_timeout_s
         while True:
             self.poll_membership()
-            missing = self.members.missing_tokens()
+            missing = [n for n in self.wait_for if n not in self.members.alive_tokens]
+            missing = missing or self.members.missing_tokens()
             if not missing:
                 return
             if stop.is_set():
@@ -166,7 +170,7 @@ class _Loop:
             ev = self.live_sub.recv(timeout=0.05)
             if ev is not None:
                 role, node = msg.parse_alive_key(ev.key)
-                if role in ("sensor", "world"):
+                if role in ("sensor", "world", "recorder"):
                     self.members.token(node, ev.alive, self.clock.now_ns())
 
     # ---- one scan -----------------------------------------------------------------------

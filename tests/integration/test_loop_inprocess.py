@@ -67,7 +67,8 @@ def run_network(sc, metrics, *, kill_after_scan=None, victim=None):
 
 @pytest.fixture(scope="module")
 def short_paper(paper):
-    return with_overrides(paper, scans=30)
+    net = paper.network.model_dump() | {"record": False}
+    return with_overrides(paper, scans=30, network=net)
 
 
 def test_in_process_network_equals_run(short_paper):
