@@ -1,0 +1,737 @@
+"""THE wire schema of covnet: every message that crosses a process boundary, and every key.
+
+Nothing else in covnet formats a key expression or packs a payload.
+
+Encoding
+--------
+A message is a msgpack map ``{"v": SCHEMA_VERSION, "k": KIND, <field>: <value>, ...}`` with the
+fields in declaration order. Floats are msgpack float64, ints are msgpack ints, id tuples are
+msgpack arrays of str. A numpy array is an ``ExtType(1, packb(["<f8", [d0, d1, ...], raw]))``:
+little-endian float64, C order (one ``default=`` hook, one ``ext_hook=``). Optional fields whose
+value is ``None`` are omitted, so adding an optional field later does not change the bytes of
+messages that do not use it (the golden-bytes test in ``tests/wire`` pins the format).
+``episode`` (Command, Measurement, Track, Status; default 0 when building) numbers the
+manager's episodes (one per allocation metric) so that scans of two episodes never mix; it is
+always sent, and a payload without it is ``missing_field``.
+
+Decoding is strict
+------------------
+:func:`decode` / :func:`decode_as` accept exactly what :func:`encode` produces and raise
+:class:`WireError` (never anything else) on any other input. ``WireError.reason`` is one of
+:data:`REASONS`:
+
+============== ============================================================================
+reason         meaning
+============== ============================================================================
+not_msgpack    not valid msgpack, or trailing bytes after the first object
+truncated      valid msgpack prefix that ends early
+too_large      payload, string, array or id list over the caps below
+not_a_map      the top-level object is not a map
+bad_version    ``"v"`` absent, not an int, or not :data:`SCHEMA_VERSION`
+unknown_kind   ``"k"`` is not a known message kind
+wrong_kind     ``decode_as(payload, cls)`` got another (known or unknown) kind
+missing_field  a required field (or ``"k"``) is absent
+unknown_field  a key the message kind does not define (strict: no silent extras)
+bad_type       a value of the wrong type: ints are ints (not bools, not floats), floats are
+               floats (not ints), strings are str, arrays are the float64 ext type
+bad_shape      wrong array rank, or inconsistent shapes (z vs R, x vs P, states vs ids)
+non_finite     NaN or infinity in a float field or an array
+bad_value      out of bounds (negative scan or stamp) or an invalid / duplicated id
+============== ============================================================================
+
+Constructing a message validates it the same way (raising the same :class:`WireError`), so an
+invalid message can never be encoded; constructors are lenient only in *converting* values
+(ints and numpy scalars to float for float fields, sequences to tuples, array-likes to
+float64 arrays). Arrays held by messages are read-only.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import uuid
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar, TypeVar
+
+import msgpack
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "MAX_ARRAY_ELEMENTS",
+    "MAX_IDS",
+    "MAX_NAME_LEN",
+    "MAX_PAYLOAD_BYTES",
+    "MESSAGE_TYPES",
+    "REASONS",
+    "SCHEMA_VERSION",
+    "Command",
+    "Heartbeat",
+    "Measurement",
+    "Message",
+    "Status",
+    "Track",
+    "Truth",
+    "WireError",
+    "alive_key",
+    "alive_keyexpr",
+    "command_key",
+    "decode",
+    "decode_as",
+    "encode",
+    "heartbeat_key",
+    "heartbeat_keyexpr",
+    "measurement_key",
+    "measurement_keyexpr",
+    "new_run_id",
+    "parse_alive_key",
+    "parse_measurement_key",
+    "run_keyexpr",
+    "status_key",
+    "track_key",
+    "truth_key",
+]
+
+SCHEMA_VERSION = 1
+
+MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
+"""Largest payload :func:`decode` looks at."""
+MAX_ARRAY_ELEMENTS = 1 << 20
+"""Largest number of elements in one array (8 MiB of float64)."""
+MAX_IDS = 4096
+"""Longest id tuple (``target_ids``, ``enabled``) and largest ``modes`` map."""
+MAX_NAME_LEN = 64
+"""Longest id (run, role, node, sensor, target) and ``modes`` value."""
+
+REASONS = frozenset(
+    {
+        "not_msgpack",
+        "truncated",
+        "too_large",
+        "not_a_map",
+        "bad_version",
+        "unknown_kind",
+        "wrong_kind",
+        "missing_field",
+        "unknown_field",
+        "bad_type",
+        "bad_shape",
+        "non_finite",
+        "bad_value",
+    }
+)
+
+_EXT_NDARRAY = 1
+_WIRE_DTYPE = "<f8"
+_MAX_NDIM = 2
+_MAX_STR_LEN = 1024  # any msgpack str; ids over MAX_NAME_LEN are then bad_value
+_MAX_MAP_LEN = MAX_IDS + 16
+_INT64_MAX = 2**63 - 1
+
+
+class WireError(ValueError):
+    """A payload (or a message being built) that does not satisfy the schema.
+
+    ``reason`` is one of :data:`REASONS` (stable, for counters); ``detail`` is for humans.
+    """
+
+    def __init__(self, reason: str, detail: str) -> None:
+        assert reason in REASONS, reason
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+# --------------------------------------------------------------------------------------------
+# ids and key expressions
+# --------------------------------------------------------------------------------------------
+
+_BAD_NAME = re.compile(r"[/*$?#\s]")
+
+
+def _name_problem(value: object) -> str | None:
+    """Why ``value`` cannot be an id / key chunk, or None when it can."""
+    if not isinstance(value, str):
+        return f"must be a str, got {type(value).__name__}"
+    if not value:
+        return "must be non-empty"
+    if len(value) > MAX_NAME_LEN:
+        return f"longer than {MAX_NAME_LEN} characters"
+    if _BAD_NAME.search(value) or not value.isprintable():
+        return "must not contain '/', '*', '$', '?', '#', whitespace or control characters"
+    return None
+
+
+def _valid(value: object, what: str) -> str:
+    problem = _name_problem(value)
+    if problem is not None:
+        raise ValueError(f"invalid {what} {value!r}: {problem}")
+    assert isinstance(value, str)
+    return value
+
+
+def new_run_id() -> str:
+    """A short unique run id (12 hex digits), valid as a key chunk."""
+    return uuid.uuid4().hex[:12]
+
+
+def _root(run: str) -> str:
+    return f"covnet/{_valid(run, 'run id')}"
+
+
+def run_keyexpr(run: str) -> str:
+    """``covnet/<run>/**``: every publication of one run (what the recorder subscribes to)."""
+    return f"{_root(run)}/**"
+
+
+def truth_key(run: str) -> str:
+    """``covnet/<run>/truth``: ground truth, one :class:`Truth` per scan (world -> sensors)."""
+    return f"{_root(run)}/truth"
+
+
+def command_key(run: str) -> str:
+    """``covnet/<run>/cmd``: one broadcast :class:`Command` per scan (manager -> sensors)."""
+    return f"{_root(run)}/cmd"
+
+
+def measurement_key(run: str, sensor_id: str) -> str:
+    """``covnet/<run>/sensor/<id>/meas``: one sensor's :class:`Measurement` s."""
+    return f"{_root(run)}/sensor/{_valid(sensor_id, 'sensor id')}/meas"
+
+
+def measurement_keyexpr(run: str) -> str:
+    """``covnet/<run>/sensor/*/meas``: every sensor's measurements."""
+    return f"{_root(run)}/sensor/*/meas"
+
+
+def parse_measurement_key(key: str) -> str:
+    """The sensor id of a concrete measurement key (to check it against the payload's)."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != "covnet" or parts[2] != "sensor" or parts[4] != "meas":
+        raise ValueError(f"not a measurement key: {key!r}")
+    _valid(parts[1], "run id")
+    return _valid(parts[3], "sensor id")
+
+
+def track_key(run: str) -> str:
+    """``covnet/<run>/track``: the fused :class:`Track` per scan (manager)."""
+    return f"{_root(run)}/track"
+
+
+def status_key(run: str) -> str:
+    """``covnet/<run>/manager/status``: the manager's :class:`Status` per scan."""
+    return f"{_root(run)}/manager/status"
+
+
+def heartbeat_key(run: str, role: str, node_id: str) -> str:
+    """``covnet/<run>/hb/<role>/<id>``: a node's :class:`Heartbeat` (last scan it handled)."""
+    return f"{_root(run)}/hb/{_valid(role, 'role')}/{_valid(node_id, 'node id')}"
+
+
+def heartbeat_keyexpr(run: str) -> str:
+    """``covnet/<run>/hb/*/*``: every node's heartbeats."""
+    return f"{_root(run)}/hb/*/*"
+
+
+def alive_key(run: str, role: str, node_id: str) -> str:
+    """``covnet/<run>/alive/<role>/<id>``: a node's liveliness token."""
+    return f"{_root(run)}/alive/{_valid(role, 'role')}/{_valid(node_id, 'node id')}"
+
+
+def alive_keyexpr(run: str, role: str | None = None) -> str:
+    """``covnet/<run>/alive/<role>/*`` (or ``alive/*/*`` for every role): liveliness tokens."""
+    return f"{_root(run)}/alive/{'*' if role is None else _valid(role, 'role')}/*"
+
+
+def parse_alive_key(key: str) -> tuple[str, str]:
+    """``(role, node_id)`` of a concrete liveliness key; ValueError for anything else."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != "covnet" or parts[2] != "alive":
+        raise ValueError(f"not a liveliness key: {key!r}")
+    _valid(parts[1], "run id")
+    return _valid(parts[3], "role"), _valid(parts[4], "node id")
+
+
+# --------------------------------------------------------------------------------------------
+# field kinds: one coercion/validation routine per kind, strict (decode) or lenient (build)
+# --------------------------------------------------------------------------------------------
+
+# kinds: "count" int >= 0; "stamp" int ns >= 0; "float" finite float; "name" id str;
+# "names" tuple of unique ids; "vec"/"mat" float64 1-D/2-D finite array; "modes" dict id->id;
+# "counts" dict id->count.
+
+
+def _is_int(v: object, strict: bool) -> bool:
+    if strict:
+        return type(v) is int
+    return isinstance(v, int | np.integer) and not isinstance(v, bool | np.bool_)
+
+
+def _coerce(kind: str, name: str, v: object, strict: bool) -> Any:
+    if kind in ("count", "stamp"):
+        if not _is_int(v, strict):
+            raise WireError("bad_type", f"{name} must be an int, got {type(v).__name__}")
+        i = int(v)  # type: ignore[call-overload]
+        if not 0 <= i <= _INT64_MAX:
+            raise WireError("bad_value", f"{name}={i} out of [0, 2**63)")
+        return i
+    if kind == "float":
+        if strict:
+            ok = type(v) is float
+        else:
+            ok = isinstance(v, float | int | np.floating | np.integer) and not isinstance(
+                v, bool | np.bool_
+            )
+        if not ok:
+            raise WireError("bad_type", f"{name} must be a float, got {type(v).__name__}")
+        f = float(v)  # type: ignore[arg-type]
+        if not math.isfinite(f):
+            raise WireError("non_finite", f"{name}={f}")
+        return f
+    if kind == "name":
+        if (type(v) is not str) if strict else not isinstance(v, str):
+            raise WireError("bad_type", f"{name} must be a str, got {type(v).__name__}")
+        problem = _name_problem(v)
+        if problem is not None:
+            raise WireError("bad_value", f"{name}={v!r}: {problem}")
+        return str(v)
+    if kind == "names":
+        return _coerce_names(name, v, strict)
+    if kind in ("vec", "mat"):
+        return _coerce_array(name, v, 1 if kind == "vec" else 2, strict)
+    if kind == "modes":
+        return _coerce_modes(name, v, strict)
+    if kind == "counts":
+        return _coerce_counts(name, v, strict)
+    raise AssertionError(kind)  # pragma: no cover
+
+
+def _coerce_counts(name: str, v: object, strict: bool) -> dict[str, int] | None:
+    if v is None:
+        if strict:
+            raise WireError("bad_type", f"{name} must be a map, got nil")
+        return None
+    if not isinstance(v, Mapping) or (strict and type(v) is not dict):
+        raise WireError("bad_type", f"{name} must be a map of str to int")
+    if len(v) > MAX_IDS:
+        raise WireError("too_large", f"{name} has {len(v)} entries > {MAX_IDS}")
+    return {
+        _coerce("name", f"{name} key", k, strict): _coerce("count", f"{name}[{k!r}]", x, strict)
+        for k, x in v.items()
+    }
+
+
+def _coerce_names(name: str, v: object, strict: bool) -> tuple[str, ...]:
+    if strict:
+        if type(v) is not list:
+            raise WireError("bad_type", f"{name} must be a list of str, got {type(v).__name__}")
+        items = v
+    else:
+        if isinstance(v, str | bytes) or not isinstance(v, Iterable):
+            raise WireError("bad_type", f"{name} must be a sequence of str")
+        items = list(v)
+    if len(items) > MAX_IDS:
+        raise WireError("too_large", f"{name} has {len(items)} ids > {MAX_IDS}")
+    out = tuple(_coerce("name", f"{name}[{i}]", item, strict) for i, item in enumerate(items))
+    if len(set(out)) != len(out):
+        raise WireError("bad_value", f"{name} has duplicate ids")
+    return out
+
+
+def _coerce_modes(name: str, v: object, strict: bool) -> dict[str, str] | None:
+    if v is None:
+        if strict:  # None is never sent (omitted), so an explicit nil is not what we encode
+            raise WireError("bad_type", f"{name} must be a map, got nil")
+        return None
+    if not isinstance(v, Mapping) or (strict and type(v) is not dict):
+        raise WireError("bad_type", f"{name} must be a map of str to str")
+    if len(v) > MAX_IDS:
+        raise WireError("too_large", f"{name} has {len(v)} entries > {MAX_IDS}")
+    return {
+        _coerce("name", f"{name} key", k, strict): _coerce("name", f"{name}[{k!r}]", x, strict)
+        for k, x in v.items()
+    }
+
+
+def _coerce_array(name: str, v: object, ndim: int, strict: bool) -> NDArray[np.float64]:
+    if strict:
+        if not isinstance(v, np.ndarray):  # only the ext hook makes arrays
+            raise WireError("bad_type", f"{name} must be a float64 array, got {type(v).__name__}")
+        a = v
+    else:
+        if isinstance(v, np.ndarray) and v.dtype.kind not in "fiu":
+            raise WireError("bad_type", f"{name} must be real, got dtype {v.dtype}")
+        try:
+            a = np.array(v, dtype=np.float64, order="C", copy=True)
+        except (TypeError, ValueError) as e:
+            raise WireError("bad_type", f"{name}: {e}") from None
+        a.flags.writeable = False
+    if a.ndim != ndim:
+        raise WireError("bad_shape", f"{name} must be {ndim}-D, got shape {a.shape}")
+    if a.size > MAX_ARRAY_ELEMENTS:
+        raise WireError("too_large", f"{name} has {a.size} elements > {MAX_ARRAY_ELEMENTS}")
+    if not np.isfinite(a).all():
+        raise WireError("non_finite", f"{name} has NaN or inf")
+    return a
+
+
+# --------------------------------------------------------------------------------------------
+# messages
+# --------------------------------------------------------------------------------------------
+
+
+class _Message:
+    """Base of every message: field validation, and value equality (arrays compared exactly)."""
+
+    __slots__ = ()
+    KIND: ClassVar[str]
+    _KINDS: ClassVar[dict[str, str]]  # field name -> kind, in wire order
+
+    def __post_init__(self) -> None:
+        for name, kind in self._KINDS.items():
+            object.__setattr__(self, name, _coerce(kind, name, getattr(self, name), strict=False))
+        self._check()
+
+    def _check(self) -> None:
+        """Cross-field consistency (shapes); overridden where there is some."""
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for n in self._KINDS:
+            a, b = getattr(self, n), getattr(other, n)
+            if isinstance(a, np.ndarray):
+                if a.shape != b.shape or not np.array_equal(a, b):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Truth(_Message):
+    """Ground truth at scan ``scan``, scenario time ``t`` [s]: row i of ``states`` ``(m, n)``
+    is the state of target ``target_ids[i]``."""
+
+    KIND: ClassVar[str] = "truth"
+    _KINDS: ClassVar[dict[str, str]] = {
+        "scan": "count",
+        "t": "float",
+        "target_ids": "names",
+        "states": "mat",
+    }
+    scan: int
+    t: float
+    target_ids: tuple[str, ...]
+    states: NDArray[np.float64]
+
+    def _check(self) -> None:
+        if self.states.shape[0] != len(self.target_ids):
+            raise WireError(
+                "bad_shape",
+                f"states has {self.states.shape[0]} rows for {len(self.target_ids)} targets",
+            )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Command(_Message):
+    """The manager's tasking for scan ``scan`` (time ``t`` [s]), one broadcast: sensors listed
+    in ``enabled`` measure, every other sensor is disabled for this scan. ``modes`` (optional)
+    maps a sensor id to a policy-specific mode name. ``t_sent_ns``: monotonic ns at publish."""
+
+    KIND: ClassVar[str] = "cmd"
+    _KINDS: ClassVar[dict[str, str]] = {
+        "scan": "count",
+        "t": "float",
+        "enabled": "names",
+        "t_sent_ns": "stamp",
+        "episode": "count",
+        "modes": "modes",
+    }
+    scan: int
+    t: float
+    enabled: tuple[str, ...]
+    t_sent_ns: int
+    episode: int = 0
+    modes: dict[str, str] | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Measurement(_Message):
+    """Sensor ``sensor_id``'s measurements for scan ``scan`` at time ``t`` [s]: ``z`` is
+    ``(m, dz)`` (m detections, possibly 0), each with noise covariance ``R`` ``(dz, dz)``."""
+
+    KIND: ClassVar[str] = "meas"
+    _KINDS: ClassVar[dict[str, str]] = {
+        "sensor_id": "name",
+        "scan": "count",
+        "t": "float",
+        "z": "mat",
+        "R": "mat",
+        "t_sent_ns": "stamp",
+        "episode": "count",
+    }
+    sensor_id: str
+    scan: int
+    t: float
+    z: NDArray[np.float64]
+    R: NDArray[np.float64]
+    t_sent_ns: int
+    episode: int = 0
+
+    def _check(self) -> None:
+        dz = self.R.shape[0]
+        if self.R.shape != (dz, dz) or dz == 0:
+            raise WireError("bad_shape", f"R must be square and non-empty, got {self.R.shape}")
+        if self.z.shape[1] != dz:
+            raise WireError("bad_shape", f"z is {self.z.shape} but R is {self.R.shape}")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Track(_Message):
+    """The fused estimate ``N(x, P)`` for scan ``scan`` at time ``t`` [s]: ``x`` ``(n,)``,
+    ``P`` ``(n, n)``."""
+
+    KIND: ClassVar[str] = "track"
+    _KINDS: ClassVar[dict[str, str]] = {
+        "scan": "count",
+        "t": "float",
+        "x": "vec",
+        "P": "mat",
+        "t_sent_ns": "stamp",
+        "episode": "count",
+    }
+    scan: int
+    t: float
+    x: NDArray[np.float64]
+    P: NDArray[np.float64]
+    t_sent_ns: int
+    episode: int = 0
+
+    def _check(self) -> None:
+        n = self.x.shape[0]
+        if n == 0 or self.P.shape != (n, n):
+            raise WireError("bad_shape", f"x is {self.x.shape} but P is {self.P.shape}")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Status(_Message):
+    """The manager's per-scan summary: the allocation (``enabled``), the sensors whose
+    measurements were fused (``fused``), those seen failed when allocating (``failed``),
+    ``tr P`` of the fused covariance, ``tr Pd`` of the desired one, and the allocation
+    objective ``value``.  ``episode`` (here and in Command, Measurement, Track) numbers the
+    metric episodes of one run (one per allocation metric)."""
+
+    KIND: ClassVar[str] = "status"
+    _KINDS: ClassVar[dict[str, str]] = {
+        "scan": "count",
+        "t": "float",
+        "enabled": "names",
+        "trace_P": "float",
+        "trace_Pd": "float",
+        "value": "float",
+        "t_sent_ns": "stamp",
+        "episode": "count",
+        "fused": "names",
+        "failed": "names",
+    }
+    scan: int
+    t: float
+    enabled: tuple[str, ...]
+    trace_P: float
+    trace_Pd: float
+    value: float
+    t_sent_ns: int
+    episode: int = 0
+    fused: tuple[str, ...] = ()
+    failed: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Heartbeat(_Message):
+    """A node's application-level heartbeat: the last scan it handled (a hung loop stops
+    sending these although its zenoh session still keeps its liveliness token alive), and
+    optionally its running count of rejected messages by reason (so the manager's
+    ``network.json`` can report every node's rejections)."""
+
+    KIND: ClassVar[str] = "hb"
+    _KINDS: ClassVar[dict[str, str]] = {
+        "role": "name",
+        "node_id": "name",
+        "scan": "count",
+        "t_sent_ns": "stamp",
+        "rejected": "counts",
+    }
+    role: str
+    node_id: str
+    scan: int
+    t_sent_ns: int
+    rejected: dict[str, int] | None = None
+
+
+Message = Truth | Command | Measurement | Track | Status | Heartbeat
+MESSAGE_TYPES: tuple[type[Message], ...] = (Truth, Command, Measurement, Track, Status, Heartbeat)
+_BY_KIND: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
+_M = TypeVar("_M", bound=_Message)
+
+
+# --------------------------------------------------------------------------------------------
+# encode / decode
+# --------------------------------------------------------------------------------------------
+
+
+def _default(obj: object) -> msgpack.ExtType:
+    if isinstance(obj, np.ndarray) and obj.dtype == np.float64:
+        a = np.ascontiguousarray(obj, dtype=_WIRE_DTYPE)
+        inner = msgpack.packb([_WIRE_DTYPE, list(a.shape), a.tobytes()], use_bin_type=True)
+        return msgpack.ExtType(_EXT_NDARRAY, inner)
+    raise TypeError(f"cannot encode {type(obj).__name__}")
+
+
+def encode(msg: Message) -> bytes:
+    """``msg`` as msgpack bytes: ``{"v": SCHEMA_VERSION, "k": KIND, ...fields}``."""
+    if not isinstance(msg, _Message):
+        raise TypeError(f"not a message: {type(msg).__name__}")
+    d: dict[str, object] = {"v": SCHEMA_VERSION, "k": msg.KIND}
+    for f in fields(msg):
+        value = getattr(msg, f.name)
+        if value is None:  # optional and unset: omitted
+            continue
+        d[f.name] = value
+    return msgpack.packb(d, default=_default, use_bin_type=True)  # type: ignore[no-any-return]
+
+
+def _ext_hook(code: int, data: bytes) -> NDArray[np.float64]:
+    if code != _EXT_NDARRAY:
+        raise WireError("bad_type", f"unknown ext type {code}")
+    try:
+        inner = msgpack.unpackb(
+            data,
+            raw=False,
+            use_list=True,
+            strict_map_key=True,
+            max_str_len=16,
+            max_bin_len=len(data),
+            max_array_len=_MAX_NDIM + 1,
+            max_map_len=0,
+            max_ext_len=0,
+        )
+    except Exception as e:  # any malformed inner payload
+        raise WireError("bad_type", f"array ext: {type(e).__name__}") from None
+    if type(inner) is not list or len(inner) != 3:
+        raise WireError("bad_type", "array ext must be [dtype, shape, bytes]")
+    dtype, shape, raw = inner
+    if dtype != _WIRE_DTYPE:
+        raise WireError("bad_type", f"array dtype must be {_WIRE_DTYPE!r}, got {dtype!r}")
+    if (
+        type(shape) is not list
+        or not 1 <= len(shape) <= _MAX_NDIM
+        or not all(type(s) is int and s >= 0 for s in shape)
+    ):
+        raise WireError("bad_shape", f"array shape {shape!r}")
+    if type(raw) is not bytes:
+        raise WireError("bad_type", "array data must be bin")
+    size = math.prod(shape)
+    if size > MAX_ARRAY_ELEMENTS:
+        raise WireError("too_large", f"array of {size} elements > {MAX_ARRAY_ELEMENTS}")
+    if len(raw) != 8 * size:
+        raise WireError("bad_shape", f"array shape {shape} needs {8 * size} bytes, got {len(raw)}")
+    a = np.frombuffer(raw, dtype=_WIRE_DTYPE).reshape(shape)  # read-only view of the payload
+    return a.astype(np.float64, copy=False)
+
+
+def _unpack(payload: bytes) -> dict[str, Any]:
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise WireError("too_large", f"payload of {len(payload)} bytes > {MAX_PAYLOAD_BYTES}")
+    unpacker = msgpack.Unpacker(
+        raw=False,
+        use_list=True,
+        strict_map_key=True,
+        ext_hook=_ext_hook,
+        max_buffer_size=max(MAX_PAYLOAD_BYTES, 1),
+        max_str_len=_MAX_STR_LEN,
+        max_bin_len=MAX_PAYLOAD_BYTES,  # bin is only valid inside the array ext: bad_type
+        max_array_len=MAX_IDS,
+        max_map_len=_MAX_MAP_LEN,
+        max_ext_len=MAX_PAYLOAD_BYTES,
+    )
+    unpacker.feed(payload)
+    try:
+        obj = unpacker.unpack()
+    except WireError:
+        raise
+    except msgpack.OutOfData:
+        raise WireError("truncated" if len(payload) else "not_msgpack", "incomplete") from None
+    except Exception as e:  # msgpack raises ValueError, FormatError, StackError, Unicode...
+        text = str(e)  # msgpack signals limits and map-key types by ValueError messages
+        if "exceeds max_" in text:
+            reason = "too_large"
+        elif "for map key" in text:
+            reason = "bad_type"
+        else:
+            reason = "not_msgpack"
+        raise WireError(reason, f"{type(e).__name__}: {e}") from None
+    try:
+        unpacker.unpack()
+    except msgpack.OutOfData:
+        pass
+    except Exception:  # anything after the first object is trailing garbage
+        raise WireError("not_msgpack", "trailing bytes after the message") from None
+    else:
+        raise WireError("not_msgpack", "trailing bytes after the message")
+    if type(obj) is not dict:
+        raise WireError("not_a_map", f"top level is {type(obj).__name__}")
+    for key in obj:
+        if type(key) is not str:
+            raise WireError("bad_type", f"map key {key!r} is not a str")
+    version = obj.get("v")
+    if type(version) is not int or version != SCHEMA_VERSION:
+        raise WireError("bad_version", f"v={version!r}, expected {SCHEMA_VERSION}")
+    if "k" not in obj:
+        raise WireError("missing_field", "k")
+    return obj
+
+
+_OMITTED = object()
+
+
+def _build(cls: type[_M], obj: dict[str, Any]) -> _M:
+    names = cls._KINDS
+    extra = sorted(set(obj) - set(names) - {"v", "k"})
+    if extra:
+        raise WireError("unknown_field", f"{cls.KIND}: {', '.join(extra)}")
+    msg = object.__new__(cls)
+    for f in fields(cls):  # type: ignore[arg-type]  # every _Message is a dataclass
+        value = obj.get(f.name, _OMITTED)
+        if value is _OMITTED:
+            if f.default is not None:  # only optional fields (default None) may be omitted
+                raise WireError("missing_field", f"{cls.KIND}.{f.name}")
+            object.__setattr__(msg, f.name, None)
+        else:
+            object.__setattr__(msg, f.name, _coerce(names[f.name], f.name, value, strict=True))
+    msg._check()
+    return msg
+
+
+def decode(payload: bytes) -> Message:
+    """Decode any message kind; raises :class:`WireError` (and nothing else) on bad bytes."""
+    obj = _unpack(payload)
+    kind = obj["k"]
+    cls = _BY_KIND.get(kind) if type(kind) is str else None
+    if cls is None:
+        raise WireError("unknown_kind", f"k={kind!r}")
+    return _build(cls, obj)
+
+
+def decode_as(payload: bytes, cls: type[_M]) -> _M:
+    """Decode a payload from a key that admits only ``cls``; another kind is ``wrong_kind``."""
+    obj = _unpack(payload)
+    kind = obj["k"]
+    if type(kind) is not str or kind != cls.KIND:
+        raise WireError("wrong_kind", f"expected {cls.KIND!r}, got {kind!r}")
+    return _build(cls, obj)
