@@ -59,7 +59,8 @@ def _print_line(name: str, line: str) -> None:
 @dataclass(frozen=True)
 class ProcessSpec:
     """One child: ``argv`` run with the parent's environment updated by ``env``.
-    ``restart=True``: :meth:`Supervisor.poll` restarts it when it has exited."""
+    ``restart=True``: :meth:`Supervisor.poll` restarts it when it has *failed* (exited with a
+    non-zero status or by a signal); a clean exit (status 0) is final."""
 
     name: str
     argv: list[str]
@@ -243,12 +244,13 @@ class Supervisor:
 
     def poll(self) -> dict[str, int | None]:
         """Each child's return code (None while running). Children with ``restart=True``
-        that have exited are restarted here (counted in :attr:`restarts`) and report None."""
+        that have failed (non-zero status) are restarted here (counted in :attr:`restarts`)
+        and report None."""
         with self._lock:
             out: dict[str, int | None] = {}
             for name, run in list(self._runs.items()):
                 rc = run.proc.poll()
-                if rc is not None and self._specs[name].restart and not self._stopping:
+                if rc not in (None, 0) and self._specs[name].restart and not self._stopping:
                     self._finish(run)
                     self._spawn(name)
                     self.restarts[name] += 1

@@ -136,6 +136,18 @@ def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:
     return draw_measurement(model.H, model.R[sensor_index], true_state, rng)
 
 
+def usable_measurement(z: Mat, R: Mat) -> bool:
+    """A measurement the filter may fuse: one position ``z`` ``(1, 2)`` with a symmetric
+    positive-definite ``R`` ``(2, 2)`` (finiteness is the wire schema's job)."""
+    return bool(
+        z.shape == (1, 2)
+        and R.shape == (2, 2)
+        and R[0, 1] == R[1, 0]
+        and R[0, 0] > 0
+        and R[0, 0] * R[1, 1] - R[0, 1] ** 2 > 0
+    )
+
+
 def fuse(model: Model, prior: Gaussian, measurements: Sequence[tuple[int, Vec, Mat]]) -> Gaussian:
     """Sequential Joseph-form updates with ``(sensor_index, z, R)``, in ascending sensor index
     (a canonical order, so the result does not depend on arrival order)."""

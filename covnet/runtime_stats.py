@@ -1,5 +1,11 @@
 """Counters a process keeps about the bus: messages and bytes per key, rejections by reason,
 per-scan latency.  Written to ``network.json`` by the manager.
+
+``rejected`` / ``rejected_by_key`` are the manager's own rejections (measurements, heartbeats);
+``rejected_by_node`` are the other nodes' (world, sensors: commands, truth), as last reported in
+their heartbeats.  Reasons are :data:`covnet.messages.REASONS` plus the manager's semantic ones:
+``key_mismatch``, ``late``, ``wrong_scan``, ``duplicate``, ``not_enabled``, ``bad_measurement``,
+``bad_key``.
 """
 
 from __future__ import annotations
@@ -23,8 +29,12 @@ class NetStats:
     )
     scan_latency_ns: list[int] = field(default_factory=list)  # command sent -> scan fused
     meas_latency_ns: list[int] = field(default_factory=list)  # one-way sensor -> manager
+    core_ns: list[int] = field(default_factory=list)  # per scan: predict+allocate+fuse
+    loop_wall_ns: int = 0  # READY -> last scan fused, all episodes
+    scans_done: int = 0
     late: int = 0
     lost: int = 0
+    node_rejected: dict[str, dict[str, int]] = field(default_factory=dict)  # from heartbeats
 
     def sent(self, key: str, n_bytes: int) -> None:
         self.sent_msgs[key] += 1
@@ -57,8 +67,14 @@ class NetStats:
             },
             "rejected": dict(self.rejected),
             "rejected_by_key": {k: dict(v) for k, v in self.rejected_by_key.items()},
+            "rejected_by_node": self.node_rejected,
             "scan_latency": pct(self.scan_latency_ns),
             "measurement_latency": pct(self.meas_latency_ns),
+            "core": pct(self.core_ns),
+            "scans": self.scans_done,
+            "loop_wall_s": self.loop_wall_ns / 1e9,
+            "core_share": sum(self.core_ns) / self.loop_wall_ns if self.loop_wall_ns else None,
+            "scans_per_s": self.scans_done / (self.loop_wall_ns / 1e9) if self.loop_wall_ns else None,
             "late": self.late,
             "lost": self.lost,
         }

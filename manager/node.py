@@ -40,6 +40,7 @@ from covnet.model import (
     initial_estimate,
     predict_step,
     truth_trajectory,
+    usable_measurement,
 )
 from covnet.runtime_stats import NetStats
 from covnet.simulate import MetricRun
@@ -152,6 +153,8 @@ class _Loop:
                 continue
             if hb.node_id in self.members.expected:
                 self.members.heartbeat(hb.node_id, now)
+            if hb.rejected:
+                self.stats.node_rejected[hb.node_id] = dict(hb.rejected)
 
     def wait_ready(self, stop: threading.Event) -> None:
         deadline = time.monotonic() + self.sc.network.ready_timeout_s
@@ -227,16 +230,12 @@ class _Loop:
             self.stats.reject(s.key, "duplicate")
         elif m.sensor_id not in waiting:
             self.stats.reject(s.key, "not_enabled")
-        elif m.z.shape != (1, 2) or m.R.shape != (2, 2) or not _is_spd(m.R):
+        elif not usable_measurement(m.z, m.R):
             self.stats.reject(s.key, "bad_measurement")
         else:
             got[m.sensor_id] = (m.z[0], m.R)
             waiting.discard(m.sensor_id)
             self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
-
-
-def _is_spd(R: np.ndarray) -> bool:
-    return bool(R[0, 1] == R[1, 0] and R[0, 0] > 0 and R[0, 0] * R[1, 1] - R[0, 1] ** 2 > 0)
 
 
 def run(
@@ -268,6 +267,7 @@ def run(
             return result
         if on_ready is not None:
             on_ready()
+        t_loop = time.perf_counter_ns()
         for e, metric in enumerate(metrics):
             log = result.episodes[metric] = EpisodeLog(metric)
             est = initial_estimate(model, sc.filter.initial_estimate)
@@ -279,6 +279,7 @@ def run(
                 t_k = k * model.T
                 if realtime:
                     _pace(clock, t_origin + (k - 1) * model.T, stop)
+                t_core0 = time.perf_counter_ns()
                 pred = predict_step(model, est)
                 loop.poll_membership()
                 failed = loop.members.failed(clock.now_ns())
@@ -296,6 +297,7 @@ def run(
                 t0 = time.perf_counter()
                 alloc = decide(model, pred.P, k, metric, unavailable)
                 decision_s = time.perf_counter() - t0
+                core_ns = time.perf_counter_ns() - t_core0
                 enabled = tuple(ids[j] for j in alloc.subset)
                 t_sent = clock.now_ns()
                 cmd = msg.Command(
@@ -307,9 +309,13 @@ def run(
                 else:
                     deadline = time.monotonic() + net.scan_timeout_s
                 got = loop.collect(e, k, set(enabled), deadline, stop)
+                t_core1 = time.perf_counter_ns()
                 est = fuse(
                     model, pred, [(ids.index(sid), z, R) for sid, (z, R) in got.items()]
                 )
+                loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
+                loop.stats.scans_done += 1
+                loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop
                 loop.stats.scan_latency_ns.append(clock.now_ns() - t_sent)
                 loop.publish(
                     loop.keys["track"],
@@ -365,6 +371,27 @@ def run(
     finally:
         loop.token.undeclare()
     return result
+
+
+def wait_for_nodes_to_leave(bus: Bus, run_id: str, timeout_s: float, stop: threading.Event) -> None:
+    """After the run: wait (bounded) until no other node of the run is alive."""
+    watch = bus.watch_liveliness(msg.alive_keyexpr(run_id))
+    alive: set[str] = set()
+    deadline = time.monotonic() + timeout_s
+    first = True
+    while time.monotonic() < deadline and not stop.is_set():
+        ev = watch.recv(timeout=0.05)
+        if ev is not None:
+            if ev.alive:
+                alive.add(ev.key)
+            else:
+                alive.discard(ev.key)
+            first = False
+            continue
+        if not alive and not first:
+            break
+        first = False
+    watch.close()
 
 
 def _pace(clock: Clock, t: float, stop: threading.Event) -> None:

@@ -3,21 +3,25 @@
 Per command for scan ``k``: if this sensor is listed in ``enabled`` it waits for the world's
 ``Truth(k)``, draws its measurement ``z = H x + v`` from its own noise stream ``(seed, j, k)``
 (:func:`covnet.model.measure`, the same draw ``covnet run`` makes) and publishes
-``Measurement(k)``; if it is not listed it publishes nothing for that scan.  It sends a heartbeat
+``Measurement(k)``; if it is not listed it publishes nothing for that scan.  A command whose
+truth never comes (a sensor restarted after the world sent it) is dropped as soon as a newer
+command arrives, so a sensor never stalls on a scan that has passed.  It sends a heartbeat
 every ``network.heartbeat_s`` (a hung loop stops sending them) and declares its liveliness
 token once its subscriptions exist.  Malformed messages are counted by reason and dropped.
+It ends on ``stop`` or when the manager it has seen leaves (its liveliness token goes: the run
+is over, or the manager died).
 """
 
 from __future__ import annotations
 
 import threading
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from covnet import messages as msg
-from covnet.bus import Bus
+from covnet.bus import Bus, Sample
 from covnet.clock import Clock
 from covnet.config import Scenario
 from covnet.model import build_model, measure
@@ -28,6 +32,7 @@ class SensorStats:
     commands: int = 0
     enabled_scans: int = 0
     measurements_sent: int = 0
+    missed_truth: int = 0  # commanded scans whose truth never came (e.g. just after a restart)
     rejected: Counter[str] = field(default_factory=Counter)
 
 
@@ -46,6 +51,8 @@ def run(
     stats = SensorStats()
     cmd_sub = bus.subscribe(msg.command_key(run_id))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
+    manager_watch = bus.watch_liveliness(msg.alive_key(run_id, "manager", "manager"))
+    manager_seen = False
     token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
     meas_key = msg.measurement_key(run_id, sensor_id)
     hb_key = msg.heartbeat_key(run_id, "sensor", sensor_id)
@@ -58,9 +65,50 @@ def run(
         nonlocal next_hb
         now = clock.now_ns()
         if now >= next_hb:
-            hb = msg.Heartbeat(role="sensor", node_id=sensor_id, scan=last_scan, t_sent_ns=now)
+            hb = msg.Heartbeat(
+                role="sensor",
+                node_id=sensor_id,
+                scan=last_scan,
+                t_sent_ns=now,
+                rejected=dict(stats.rejected) or None,
+            )
             bus.publish(hb_key, msg.encode(hb))
             next_hb = now + hb_period_ns
+
+    pending: deque[msg.Command] = deque()  # enabled commands not yet answered, oldest first
+
+    def accept(s: Sample | None) -> bool:
+        """Decode one command; queue it if this sensor is enabled. False when ``s`` is None."""
+        nonlocal last_scan
+        if s is None:
+            return False
+        try:
+            cmd = msg.decode_as(s.payload, msg.Command)
+        except msg.WireError as exc:
+            stats.rejected[exc.reason] += 1
+            return True
+        stats.commands += 1
+        last_scan = cmd.scan
+        if sensor_id in cmd.enabled:
+            stats.enabled_scans += 1
+            pending.append(cmd)
+        return True
+
+    def publish_measurement(cmd: msg.Command) -> None:
+        z = measure(model, j, cmd.scan, truths[cmd.scan])
+        m = msg.Measurement(
+            sensor_id=sensor_id,
+            scan=cmd.scan,
+            t=cmd.t,
+            z=z[None, :],
+            R=R,
+            t_sent_ns=clock.now_ns(),
+            episode=cmd.episode,
+        )
+        bus.publish(meas_key, msg.encode(m))
+        stats.measurements_sent += 1
+        for old in [k for k in truths if k < cmd.scan - 1]:
+            del truths[old]
 
     def take_truth(timeout: float | None) -> bool:
         s = truth_sub.recv(timeout) if timeout is not None else truth_sub.try_recv()
@@ -77,43 +125,37 @@ def run(
         truths[tr.scan] = tr.states[0]
         return True
 
+    def manager_left() -> bool:
+        nonlocal manager_seen
+        while (ev := manager_watch.try_recv()) is not None:
+            if ev.alive:
+                manager_seen = True
+            elif manager_seen:
+                return True
+        return False
+
     try:
         while not stop.is_set():
             heartbeat()
-            s = cmd_sub.recv(timeout=sc.network.heartbeat_s / 2)
+            if manager_left():
+                break
+            if pending:  # waiting for a commanded scan's truth
+                take_truth(sc.network.heartbeat_s / 2)
+            else:
+                accept(cmd_sub.recv(timeout=sc.network.heartbeat_s / 2))
+            while accept(cmd_sub.try_recv()):
+                pass
             while take_truth(None):
                 pass
-            if s is None:
-                continue
-            try:
-                cmd = msg.decode_as(s.payload, msg.Command)
-            except msg.WireError as exc:
-                stats.rejected[exc.reason] += 1
-                continue
-            stats.commands += 1
-            last_scan = cmd.scan
-            if sensor_id not in cmd.enabled:
-                continue
-            stats.enabled_scans += 1
-            while cmd.scan not in truths and not stop.is_set():
-                heartbeat()
-                take_truth(sc.network.heartbeat_s / 2)
-            if stop.is_set():
-                break
-            z = measure(model, j, cmd.scan, truths[cmd.scan])
-            m = msg.Measurement(
-                sensor_id=sensor_id,
-                scan=cmd.scan,
-                t=cmd.t,
-                z=z[None, :],
-                R=R,
-                t_sent_ns=clock.now_ns(),
-                episode=cmd.episode,
-            )
-            bus.publish(meas_key, msg.encode(m))
-            stats.measurements_sent += 1
-            for old in [k for k in truths if k < cmd.scan - 1]:
-                del truths[old]
+            while pending:
+                cmd = pending[0]
+                if cmd.scan in truths:
+                    publish_measurement(cmd)
+                elif len(pending) > 1:  # a newer command came first: this truth is gone
+                    stats.missed_truth += 1
+                else:
+                    break
+                pending.popleft()
     finally:
         token.undeclare()
     return stats

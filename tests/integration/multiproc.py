@@ -18,9 +18,9 @@ REPO = Path(__file__).resolve().parents[2]
 class CovnetProcess:
     """``python -m covnet ARGS`` in its own session, its output collected line by line."""
 
-    def __init__(self, args: list[str], cwd: Path = REPO):
+    def __init__(self, args: list[str], cwd: Path = REPO, prefix: list[str] | None = None):
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "covnet", *args],
+            [*(prefix or []), sys.executable, "-m", "covnet", *args],
             cwd=cwd,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,

@@ -21,7 +21,9 @@ VICTIM = "S5"  # used at every scan of phase 1 by spectral
 
 def _config(tmp_path, paper_path, restart: str):
     data = yaml.safe_load(paper_path.read_text())
-    data["scans"] = 60
+    # long enough (at SPEED scans/s) for a restarted interpreter to come back even on a busy
+    # machine: about 10 s with restarts, 3 s without
+    data["scans"] = 200 if restart == "on-failure" else 60
     data["network"] = {"restart": restart}
     path = tmp_path / f"paper-{restart}.yaml"
     path.write_text(yaml.safe_dump(data))

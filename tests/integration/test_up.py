@@ -65,8 +65,9 @@ def test_sensors_obey_commands(lockstep_up):
 def test_run_directory_complete(lockstep_up):
     out, output = lockstep_up
     names = set(json.loads((out / "processes.json").read_text()))
-    assert names == {"manager", "world", *(f"S{i}" for i in range(1, 9))}
-    for f in ("summary.json", "arrays.npz", "config.json", "network.json"):
+    assert names == {"manager", "world", "recorder", *(f"S{i}" for i in range(1, 9))}
+    for f in ("summary.json", "arrays.npz", "config.json", "network.json", "run.json",
+              "recording.mcap"):
         assert (out / f).is_file(), f
     net = json.loads((out / "network.json").read_text())
     assert net["scan_latency"]["n"] == 300 and net["scan_latency"]["p50_ms"] > 0

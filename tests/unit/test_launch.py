@@ -161,6 +161,7 @@ def test_restart_by_hand_and_automatic(tmp_path):
         ProcessSpec("manual", [PY, "-c", POLITE]),
         ProcessSpec("auto", [PY, "-c", "print('READY'); raise SystemExit(3)"], restart=True),
         ProcessSpec("once", [PY, "-c", "raise SystemExit(4)"]),
+        ProcessSpec("clean", [PY, "-c", "raise SystemExit(0)"], restart=True),
     ]
     with Supervisor(specs, on_line=Lines(), pids_file=pids_file) as sup:
         assert sup.wait_for_line("manual", "READY", timeout=20)
@@ -172,9 +173,10 @@ def test_restart_by_hand_and_automatic(tmp_path):
 
         assert sup.wait("auto", timeout=20) == 3
         assert sup.wait("once", timeout=20) == 4
-        status = sup.poll()  # restarts "auto", not "once"
-        assert status["auto"] is None and status["once"] == 4
-        assert sup.restarts == {"manual": 1, "auto": 1, "once": 0}
+        assert sup.wait("clean", timeout=20) == 0
+        status = sup.poll()  # restarts "auto" (failed), not "once" (no policy), not "clean"
+        assert status["auto"] is None and status["once"] == 4 and status["clean"] == 0
+        assert sup.restarts == {"manual": 1, "auto": 1, "once": 0, "clean": 0}
         assert sup.pids["auto"] != old["auto"]
         assert json.loads(pids_file.read_text()) == sup.pids
         assert sup.wait_for_line("auto", "READY", timeout=20)

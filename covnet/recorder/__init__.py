@@ -1,0 +1,1 @@
+"""The recorder process: every message of a run, as received, into ``recording.mcap``."""

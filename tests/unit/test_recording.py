@@ -1,0 +1,234 @@
+"""The MCAP recording: round trip (also of garbage), reading a file cut anywhere (a SIGKILLed
+recorder), damage, metadata, and the run key expression the recorder subscribes to."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from covnet import messages as msg
+from covnet.bus import InMemoryBus, keyexpr_matches
+from covnet.config import config_hash
+from covnet.recording import (
+    META_CONFIG,
+    META_RUN,
+    RecordedSample,
+    RecordingReader,
+    RecordingWriter,
+    key_kind,
+    read_metadata,
+    read_recording,
+    run_metadata,
+)
+
+RUN = "r1"
+
+
+def _samples(n: int = 40) -> list[RecordedSample]:
+    """A mix of valid messages of every kind and payloads that do not decode."""
+    out: list[RecordedSample] = []
+    t = 1_000_000
+    for k in range(1, n + 1):
+        cmd = msg.Command(scan=k, t=float(k), enabled=("S1", "S2"), t_sent_ns=t, episode=0)
+        tru = msg.Truth(scan=k, t=float(k), target_ids=("T1",), states=np.ones((1, 4)) * k)
+        meas = msg.Measurement(
+            sensor_id="S1", scan=k, t=float(k), z=[[k, -k]], R=np.eye(2), t_sent_ns=t + 5
+        )
+        hb = msg.Heartbeat(role="sensor", node_id="S2", scan=k, t_sent_ns=t + 7)
+        for key, m in (
+            (msg.command_key(RUN), cmd),
+            (msg.truth_key(RUN), tru),
+            (msg.measurement_key(RUN, "S1"), meas),
+            (msg.heartbeat_key(RUN, "sensor", "S2"), hb),
+        ):
+            t += 11
+            sent = getattr(m, "t_sent_ns", t)
+            out.append(RecordedSample(key, msg.encode(m), t, sent))
+        t += 3
+        # garbage: not msgpack, an empty payload, and a truncated message on a valid key
+        out.append(RecordedSample(msg.measurement_key(RUN, "S2"), b"\xc1\x00junk", t, t))
+        out.append(RecordedSample(f"covnet/{RUN}/elsewhere/x", b"", t + 1, t + 1))
+        out.append(RecordedSample(msg.status_key(RUN), msg.encode(cmd)[:-3], t + 2, t + 2))
+    return out
+
+
+def _write(path, samples, **kw) -> RecordingWriter:
+    w = RecordingWriter(path, run_id=RUN, metadata={"covnet.run": {"run_id": RUN}}, **kw)
+    for s in samples:
+        decodes = True
+        try:
+            msg.decode(s.payload)
+        except msg.WireError:
+            decodes = False
+        w.write(s.key, s.payload, s.t_recv_ns, s.t_sent_ns if decodes else None)
+    return w
+
+
+def test_round_trip_keeps_every_payload_and_time(tmp_path):
+    samples = _samples()
+    path = tmp_path / "rec.mcap"
+    _write(path, samples).close()
+    assert list(read_recording(path)) == samples
+    reader = RecordingReader(path)
+    assert len(list(reader.samples())) == len(samples)
+    assert reader.complete and not reader.truncated and reader.error is None
+
+
+def test_standard_mcap_reader_sees_channels_schemas_and_times(tmp_path):
+    samples = _samples(5)
+    path = tmp_path / "rec.mcap"
+    _write(path, samples).close()
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count == len(samples)
+        topics = {c.topic: c for c in summary.channels.values()}
+        meas = topics[msg.measurement_key(RUN, "S1")]
+        assert meas.message_encoding == "msgpack"
+        assert summary.schemas[meas.schema_id].name == "covnet.Measurement"
+        assert summary.schemas[meas.schema_id].encoding == ""
+        assert topics[f"covnet/{RUN}/elsewhere/x"].schema_id == 0  # no builder makes it
+        assert topics[msg.status_key(RUN)].metadata == {"kind": "status"}
+        got = [
+            (ch.topic, m.log_time, m.publish_time, m.data)
+            for _, ch, m in reader.iter_messages(log_time_order=False)
+        ]
+    assert got == [(s.key, s.t_recv_ns, s.t_sent_ns, s.payload) for s in samples]
+
+
+def test_a_file_cut_anywhere_reads_a_prefix_and_stops_cleanly(tmp_path):
+    samples = _samples(30)
+    path = tmp_path / "rec.mcap"
+    _write(path, samples, chunk_size=512).close()
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    seen_counts = set()
+    cut_records = 0
+    for n in range(0, len(data), 97):
+        cut.write_bytes(data[:n])
+        reader = RecordingReader(cut)
+        got = list(reader.samples())
+        assert got == samples[: len(got)]
+        assert not reader.complete and reader.error is None
+        seen_counts.add(len(got))
+        cut_records += reader.truncated
+    assert len(seen_counts) > 10  # the chunks do arrive one by one
+    assert cut_records > 0
+
+
+def test_flushed_messages_survive_a_killed_writer(tmp_path):
+    """What a SIGKILL leaves: the file as it is on disk while the writer is still open."""
+    samples = _samples(10)
+    path = tmp_path / "rec.mcap"
+    w = _write(path, samples[:20])
+    w.flush()
+    w.write(samples[20].key, samples[20].payload, samples[20].t_recv_ns, None)  # not flushed
+    snapshot = tmp_path / "killed.mcap"
+    shutil.copyfile(path, snapshot)
+    w.close()
+    reader = RecordingReader(snapshot)
+    assert list(reader.samples()) == samples[:20]
+    assert not reader.complete and not reader.truncated  # ends between two records
+    assert read_metadata(snapshot) == {"covnet.run": {"run_id": RUN}}
+
+
+def test_flush_interval_bounds_what_stays_in_memory(tmp_path):
+    samples = _samples(3)
+    path = tmp_path / "rec.mcap"
+    w = _write(path, samples, flush_interval_s=0.0)  # every write is flushed
+    snapshot = tmp_path / "snap.mcap"
+    shutil.copyfile(path, snapshot)
+    w.close()
+    assert list(read_recording(snapshot)) == samples
+
+
+def test_a_corrupt_chunk_is_skipped_and_reported(tmp_path):
+    samples = _samples(30)
+    path = tmp_path / "rec.mcap"
+    _write(path, samples, chunk_size=2048).close()
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) > 3
+    second = chunks[1]
+    data = bytearray(path.read_bytes())
+    mid = second.chunk_start_offset + second.chunk_length - second.compressed_size // 2
+    data[mid : mid + 8] = bytes(b ^ 0xFF for b in data[mid : mid + 8])
+    path.write_bytes(bytes(data))
+    reader = RecordingReader(path)
+    got = list(reader.samples())
+    assert reader.corrupt_chunks == [second.chunk_start_offset]
+    assert reader.complete and reader.error is None
+    assert 0 < len(got) < len(samples)
+    assert all(s in samples for s in got)  # the other chunks are read in full
+
+
+def test_metadata_records_run_and_config(tmp_path, paper):
+    path = tmp_path / "rec.mcap"
+    with RecordingWriter(path, run_id="abc", metadata=run_metadata("abc", paper)):
+        pass
+    meta = read_metadata(path)
+    assert meta[META_RUN]["run_id"] == "abc"
+    assert meta[META_RUN]["config_hash"] == config_hash(paper)
+    assert meta[META_RUN]["seed"] == str(paper.seed)
+    assert json.loads(meta[META_CONFIG]["config.json"])["name"] == paper.name
+    reader = RecordingReader(path)
+    assert list(reader.samples()) == []
+    assert reader.metadata == meta and reader.complete
+
+
+def test_writing_after_close_is_an_error(tmp_path):
+    w = RecordingWriter(tmp_path / "r.mcap", run_id=RUN)
+    w.close()
+    w.close()  # idempotent
+    with pytest.raises(ValueError, match="closed"):
+        w.write(msg.truth_key(RUN), b"x", 1, None)
+
+
+def test_key_kinds_follow_the_key_builders():
+    assert key_kind(RUN, msg.truth_key(RUN)) == "truth"
+    assert key_kind(RUN, msg.command_key(RUN)) == "cmd"
+    assert key_kind(RUN, msg.measurement_key(RUN, "S7")) == "meas"
+    assert key_kind(RUN, msg.track_key(RUN)) == "track"
+    assert key_kind(RUN, msg.status_key(RUN)) == "status"
+    assert key_kind(RUN, msg.heartbeat_key(RUN, "world", "world")) == "hb"
+    assert key_kind(RUN, msg.truth_key("other")) is None
+    assert key_kind(RUN, f"covnet/{RUN}/sensor/S1/meas/extra") is None
+
+
+def test_run_keyexpr_matches_every_key_of_the_run_and_nothing_else():
+    expr = msg.run_keyexpr(RUN)
+    assert expr == f"covnet/{RUN}/**"
+    for key in (
+        msg.truth_key(RUN),
+        msg.command_key(RUN),
+        msg.measurement_key(RUN, "S1"),
+        msg.track_key(RUN),
+        msg.status_key(RUN),
+        msg.heartbeat_key(RUN, "recorder", "recorder"),
+    ):
+        assert keyexpr_matches(expr, key)
+    assert not keyexpr_matches(expr, msg.truth_key("r2"))
+    with pytest.raises(ValueError):
+        msg.run_keyexpr("bad/run")
+    bus = InMemoryBus()
+    try:
+        sub = bus.subscribe(expr)
+        bus.publish(msg.measurement_key(RUN, "S3"), b"p")
+        bus.publish(msg.truth_key("r2"), b"q")
+        s = sub.recv(1.0)
+        assert s is not None and s.payload == b"p" and sub.try_recv() is None
+    finally:
+        bus.close()
+
+
+def test_not_an_mcap_file_reads_nothing_and_says_why(tmp_path):
+    path = tmp_path / "junk.mcap"
+    path.write_bytes(b"this is not an MCAP file at all")
+    reader = RecordingReader(path)
+    assert list(reader.samples()) == []
+    assert reader.error is not None and "byte 0" in reader.error
+    assert read_metadata(path) == {}
