@@ -116,10 +116,23 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.speed <= 0:
         raise UsageError(f"--speed: must be > 0, got {args.speed}")
     out = _prepare_out(args.out, sc.name, args.force)
+    nodes = [n.strip() for n in args.nodes.split(",")] if args.nodes else None
+    known = {"manager", "world", "recorder", "sensors", *sc.sensor_ids}
+    for n in nodes or []:
+        if n not in known:
+            raise UsageError(f"--nodes: unknown process {n!r}; choose from {sorted(known)}")
+    if args.run is not None:
+        from covnet.messages import run_keyexpr  # validates like every key part
+
+        try:
+            run_keyexpr(args.run)
+        except ValueError as exc:
+            raise UsageError(f"--run: {exc}") from None
     try:
         status = up(
             sc, args.config, out, metrics, seed=args.seed, realtime=args.realtime,
-            speed=args.speed, run_id=new_run_id(), verbose=args.verbose,
+            speed=args.speed, run_id=args.run or new_run_id(), verbose=args.verbose,
+            nodes=nodes, router=args.router,
         )
     except UpError as exc:
         _err(str(exc))
@@ -134,12 +147,36 @@ def cmd_up(args: argparse.Namespace) -> int:
     return status
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    from covnet.replay import replay_run
+
+    run_dir = Path(args.run_dir)
+    missing = [f for f in ("config.json", "run.json", "summary.json", "recording.mcap")
+               if not (run_dir / f).is_file()]
+    if missing:
+        raise UsageError(
+            f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
+        )
+    report = replay_run(run_dir, Path(args.out) if args.out else None)
+    if report.identical:
+        print(f"replayed {run_dir}: summary.json reproduced exactly ({report.out_dir})")
+        return EXIT_OK
+    print(f"replayed {run_dir}: summary.json DIFFERS ({report.out_dir}):", file=sys.stderr)
+    for d in report.differences[:20]:
+        print(f"  {d}", file=sys.stderr)
+    return EXIT_FAIL
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     import yaml
 
     from covnet.config import config_hash, normalised
 
+    from covnet.security import preflight
+
     sc = _load(args.config)
+    # the files security needs on this host (keys, certificates, passwords), for every node
+    preflight(sc, ["manager", "world", "recorder", *sc.sensor_ids], args.config)
     print(yaml.safe_dump(normalised(sc), sort_keys=False), end="")
     print(f"# config hash: {config_hash(sc)}")
     return EXIT_OK
@@ -171,7 +208,32 @@ def _int_list(text: str) -> list[int]:
     return vals
 
 
+def cmd_bench_up(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from covnet.experiments.bench_up import run as bench_up_run
+
+    sc = _load(args.config)
+    with tempfile.TemporaryDirectory(prefix="covnet-bench-up-") as tmp:
+        rows = bench_up_run(sc, args.config, Path(tmp), repeat=args.repeat, quiet=args.json)
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+        return EXIT_OK
+    print(f"{'run':>4} {'scans':>6} {'scans/s':>8} {'wall s':>7} {'p50 ms':>7} {'p99 ms':>7} "
+          f"{'core p50 ms':>11} {'core share':>10}")
+    for i, r in enumerate(rows):
+        print(f"{i + 1:>4} {r['scans']:>6} {r['scans_per_s']:>8.0f} {r['wall_s']:>7.2f} "
+              f"{r['scan_p50_ms']:>7.2f} {r['scan_p99_ms']:>7.2f} {r['core_p50_ms']:>11.3f} "
+              f"{100 * r['core_share']:>9.1f}%")
+    med = sorted(r["scans_per_s"] for r in rows)[len(rows) // 2]
+    print(f"median: {med:.0f} scans/s (loop: READY to last scan fused; wall includes start-up)")
+    return EXIT_OK
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
+    if args.target == "up":
+        return cmd_bench_up(args)
     from covnet.experiments import bench_allocation
 
     sc = _load(args.config)
@@ -244,7 +306,19 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
     u.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     u.add_argument("--verbose", action="store_true", help="show every process's output")
+    u.add_argument("--run", help="run id (key prefix) shared with nodes started elsewhere")
+    u.add_argument("--router", help="router endpoint, overriding network.router "
+                   "(e.g. tcp/192.0.2.10:7447 to accept sensors from other hosts)")
+    u.add_argument("--nodes", help="start only these here: comma-separated from manager, "
+                   "world, recorder, sensors, or sensor ids (default: all)")
     u.set_defaults(func=cmd_up)
+
+    rp = sub.add_parser(
+        "replay", help="re-fuse a network run's recorded measurements; check summary.json"
+    )
+    rp.add_argument("run_dir", help="a run directory written by covnet up (with recording.mcap)")
+    rp.add_argument("--out", help="where to write the replayed run (default: RUN_DIR/replay)")
+    rp.set_defaults(func=cmd_replay)
 
     c = sub.add_parser("check", help="validate a config; print it normalised with its hash")
     c.add_argument("config")
@@ -254,7 +328,12 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("run_dir")
     pl.set_defaults(func=cmd_plot)
 
-    b = sub.add_parser("bench", help="benchmark the allocator against the plain baseline")
+    b = sub.add_parser(
+        "bench",
+        help="benchmark: the allocator against the plain baseline (default), or 'up': the network",
+    )
+    b.add_argument("target", nargs="?", choices=["alloc", "up"], default="alloc",
+                   help="alloc: allocation decisions per metric and N; up: covnet up in lockstep")
     b.add_argument(
         "--sensors",
         type=_int_list,
@@ -271,7 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument("--config", default="configs/paper.yaml", help="sensor table and scenario")
     b.add_argument("--problems", type=int, default=5, help="decision problems per N (scans)")
-    b.add_argument("--repeat", type=int, default=3, help="timed repeats per problem")
+    b.add_argument("--repeat", type=int, default=3,
+                   help="timed repeats per problem (alloc) or whole runs (up)")
     b.add_argument("--json", action="store_true", help="one JSON row per (metric, N)")
     b.set_defaults(func=cmd_bench)
     return p

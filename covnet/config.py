@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -25,7 +26,9 @@ from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, fiel
 __all__ = [
     "ConfigError",
     "Scenario",
+    "SecuritySpec",
     "SensorSpec",
+    "TlsSpec",
     "config_hash",
     "load",
     "from_dict",
@@ -36,6 +39,7 @@ __all__ = [
 Float = Annotated[float, Strict()]
 Int = Annotated[int, Strict()]
 Str = Annotated[str, Strict()]
+Bool = Annotated[bool, Strict()]
 Pair = Annotated[tuple[Float, ...], Field(min_length=2, max_length=2)]
 Quad = Annotated[tuple[Float, ...], Field(min_length=4, max_length=4)]
 
@@ -131,12 +135,54 @@ class AllocationSpec(_Model):
     tie_rtol: Float = Field(default=1e-9, ge=0.0, le=1e-3)
 
 
+class TlsSpec(_Model):
+    """Mutual TLS for every zenoh link (``tcp/`` endpoints become ``tls/``).
+
+    ``ca``: the CA certificate (PEM) that signed every node's certificate; ``cert_dir``: a
+    directory holding ``<node_id>.pem`` and ``<node_id>.key`` (PEM) for the nodes that run on
+    this host (the node id is the certificate's common name, and ``manager.pem`` is the router's
+    certificate: its subject alternative names must match the host the clients connect to).
+    ``verify_name: false`` lets clients accept a router certificate issued for another name.
+    """
+
+    ca: Str = Field(min_length=1)
+    cert_dir: Str = Field(min_length=1)
+    verify_name: Bool = True
+
+
+class SecuritySpec(_Model):
+    """Zenoh's access control, user/password authentication and mutual TLS (see
+    :mod:`covnet.security` for what exactly is enforced). All off by default.
+
+    - ``access_control``: the router (the manager's session) lets each node publish only its own
+      keys; needs an identity, i.e. ``credentials_file`` and/or ``tls``.
+    - ``credentials_file``: lines ``user:password``, one per node id (``world``, ``recorder``,
+      each sensor id); each process authenticates as its node id with the password it reads from
+      the file, and the router checks them against the whole file (so a host needs only the
+      lines of the nodes it runs; the manager's host needs them all). A lab measure, not a
+      secret store: whoever can read the file can impersonate every node in it.
+    - ``tls``: mutual TLS (:class:`TlsSpec`).
+
+    Relative paths are resolved against the config file's directory by :func:`load`.
+    """
+
+    access_control: Bool = False
+    credentials_file: Str | None = Field(default=None, min_length=1)
+    tls: TlsSpec | None = None
+
+    @property
+    def authenticated(self) -> bool:
+        """Does every client prove an identity (password or certificate)?"""
+        return self.credentials_file is not None or self.tls is not None
+
+
 class NetworkSpec(_Model):
     """How ``covnet up`` wires the processes over zenoh (see README, "Running a network").
 
     The manager's session is the router (``router`` endpoint; port 0 picks a free port at
     launch); world and sensors are clients connecting to ``connect`` (default: the router
-    endpoint).  Everything listens on loopback unless changed here.
+    endpoint).  Everything listens on loopback unless changed here; a network reachable from
+    other hosts should turn on ``security`` (passwords and/or mutual TLS, access control).
     """
 
     router: Str = "tcp/127.0.0.1:0"
@@ -149,6 +195,7 @@ class NetworkSpec(_Model):
     deadline_fraction: Float = 0.8
     restart: Literal["never", "on-failure"] = "never"
     record: bool = True
+    security: SecuritySpec = SecuritySpec()
 
     _pos = field_validator(
         "heartbeat_s", "failure_timeout_s", "ready_timeout_s", "scan_timeout_s"
@@ -270,6 +317,9 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
         problems.append(
             ("network.failure_timeout_s", "must be longer than network.heartbeat_s")
         )
+    from covnet.security import security_problems
+
+    problems += security_problems(sc.network, ids)
     if set(al.excluded) >= set(ids):
         problems.append(("allocation.excluded", "excludes every sensor"))
     if al.max_active is not None:
@@ -282,12 +332,48 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     return problems
 
 
-def from_dict(data: object, source: str = "<dict>") -> Scenario:
-    """Validate a parsed config mapping; raise :class:`ConfigError` listing every problem."""
+_SECURITY_PATHS = (("credentials_file",), ("tls", "ca"), ("tls", "cert_dir"))
+
+
+def _resolve_security_paths(data: dict[str, Any], base_dir: Path) -> dict[str, Any]:
+    """A copy of ``data`` whose relative ``network.security`` paths are joined to ``base_dir``
+    (anything that is not a string is left for validation to report)."""
+    net = data.get("network")
+    sec = net.get("security") if isinstance(net, Mapping) else None
+    if not isinstance(sec, Mapping):
+        return data
+    sec = dict(sec)
+    for path in _SECURITY_PATHS:
+        holder: Any = sec
+        for part in path[:-1]:
+            inner = holder.get(part)
+            if not isinstance(inner, Mapping):
+                holder = None
+                break
+            holder[part] = inner = dict(inner)
+            holder = inner
+        if holder is None:
+            continue
+        value = holder.get(path[-1])
+        if isinstance(value, str) and value:
+            p = Path(os.path.expanduser(value))
+            holder[path[-1]] = str(p if p.is_absolute() else base_dir / p)
+    return {**data, "network": {**net, "security": sec}}
+
+
+def from_dict(data: object, source: str = "<dict>", base_dir: str | Path | None = None) -> Scenario:
+    """Validate a parsed config mapping; raise :class:`ConfigError` listing every problem.
+
+    ``base_dir``: relative paths under ``network.security`` are resolved against it (:func:`load`
+    passes the config file's directory); without it they stay relative to the working directory.
+    """
     if not isinstance(data, Mapping):
         raise ConfigError(source, [("", "the top level must be a mapping of keys to values")])
+    data = dict(data)
+    if base_dir is not None:
+        data = _resolve_security_paths(data, Path(base_dir).absolute())
     try:
-        sc = Scenario.model_validate(dict(data))
+        sc = Scenario.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(source, [_fmt_error(e) for e in exc.errors()]) from None
     problems = _semantic_problems(sc)
@@ -310,12 +396,16 @@ def load(path: str | Path) -> Scenario:
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(str(p), [("", f"not valid YAML: {where}{problem}")]) from None
-    return from_dict(data, str(p))
+    return from_dict(data, str(p), base_dir=p.parent)
 
 
 def normalised(sc: Scenario) -> dict[str, Any]:
-    """The config with every default filled in, as plain JSON-able data."""
-    return sc.model_dump(mode="json")
+    """The config with every default filled in, as plain JSON-able data (except
+    ``network.security`` while it is all off, so that configs without it keep their hash)."""
+    data = sc.model_dump(mode="json")
+    if sc.network.security == SecuritySpec():
+        del data["network"]["security"]
+    return data
 
 
 def config_hash(sc: Scenario) -> str:

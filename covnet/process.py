@@ -60,6 +60,7 @@ def open_bus(
     timeout_s: float,
     stop: threading.Event,
     extra_json5: dict[str, object] | None = None,
+    express: bool = False,
 ) -> Any:
     """Open a :class:`~covnet.zenoh_bus.ZenohBus`, retrying a client's connection for up to
     ``timeout_s`` (so processes may start in any order, as on several hosts)."""
@@ -69,7 +70,7 @@ def open_bus(
     deadline = time.monotonic() + timeout_s
     while True:
         try:
-            return ZenohBus.open(zenoh_config(mode, extra_json5=extra_json5, **cfg_args))  # type: ignore[arg-type]
+            return ZenohBus.open(zenoh_config(mode, extra_json5=extra_json5, **cfg_args), express=express)  # type: ignore[arg-type]
         except Exception as exc:  # zenoh raises its own ZError
             if time.monotonic() > deadline or stop.is_set():
                 raise ConnectionError(

@@ -27,6 +27,7 @@ from typing import Any
 
 from covnet.config import Scenario
 from covnet.launch import ProcessSpec, Supervisor
+from covnet.security import endpoint, preflight
 
 READY_GRACE_S = 15.0  # on top of network.ready_timeout_s: interpreter start-up, imports
 
@@ -68,7 +69,7 @@ def process_specs(
         common += ["--seed", str(seed)]
     if realtime:
         common += ["--realtime", "--speed", str(speed)]
-    connect = sc.network.connect or router
+    connect = endpoint(sc.network, sc.network.connect or router)
     specs = [
         ProcessSpec(
             "manager",
@@ -167,13 +168,28 @@ def up(
     run_id: str,
     verbose: bool = False,
     on_ready: Callable[[Supervisor], None] | None = None,
+    nodes: list[str] | None = None,
+    router: str | None = None,
 ) -> int:
-    """Run the network to completion; returns the manager's exit status (130 on Ctrl-C)."""
+    """Run the network to completion; returns the manager's exit status (130 on Ctrl-C).
+
+    ``nodes`` limits which processes this host starts (names: ``manager``, ``world``,
+    ``recorder``, ``sensors`` for all sensors, or sensor ids); the others are started
+    elsewhere (``python -m sensors ... --connect ROUTER``).  ``router`` overrides
+    ``network.router``."""
     out.mkdir(parents=True, exist_ok=True)
-    router = resolve_router(sc.network.router)
+    router = resolve_router(endpoint(sc.network, router or sc.network.router))
     specs = process_specs(
         sc, config_path, run_id, router, out, metrics, seed=seed, realtime=realtime, speed=speed
     )
+    if nodes is not None:
+        wanted = set(nodes)
+        if "sensors" in wanted:
+            wanted |= set(sc.sensor_ids)
+        specs = [sp for sp in specs if sp.name in wanted]
+    preflight(sc, [sp.name for sp in specs], str(config_path))  # keys, passwords: on this host
+    if not any(sp.name == "manager" for sp in specs):
+        return _supervise_without_manager(specs, out, run_id, router)
     ready = threading.Event()
     view = StatusView(sc.scans, metrics)
 
@@ -233,6 +249,24 @@ def up(
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def _supervise_without_manager(
+    specs: list[ProcessSpec], out: Path, run_id: str, router: str
+) -> int:
+    """Nodes only (the manager runs on another host): run until they all leave (they do when
+    the manager's run ends) or Ctrl-C."""
+    print(f"[launcher] run {run_id}: nodes {[s.name for s in specs]} -> router {router}", flush=True)
+    try:
+        with Supervisor(specs, pids_file=out / "processes.json") as sup:
+            while any(rc is None for rc in sup.poll().values()):
+                time.sleep(0.1)
+            final = sup.stop()
+        bad = {k: v for k, v in final.items() if v != 0}
+        return 1 if bad else 0
+    except KeyboardInterrupt:
+        print("covnet up: interrupted; every process stopped", file=sys.stderr)
+        return 130
 
 
 def _note_restarts(out: Path, restarts: dict[str, int]) -> None:

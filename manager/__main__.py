@@ -37,7 +37,9 @@ def main(argv: list[str] | None = None) -> int:
         for m in metrics:
             if m not in METRICS:
                 raise ValueError(f"--metric: unknown metric {m!r}; choose from {sorted(METRICS)}")
-        endpoint = args.listen or sc.network.router
+        from covnet import security
+
+        endpoint = security.endpoint(sc.network, args.listen or sc.network.router)
         if endpoint.endswith(":0"):
             raise ValueError(f"--listen: give a concrete port, got {endpoint!r}")
         out = Path(args.out)
@@ -61,12 +63,17 @@ def main(argv: list[str] | None = None) -> int:
                 write_network_run(out, sc, result, run_info)
                 last_write[0] = time.monotonic()
 
+        extra = security.zenoh_settings(sc.network, "manager", "manager", listen=True,
+                                        sensor_ids=sc.sensor_ids, source=args.config)
         with open_bus("router", listen=[endpoint], lease_ms=sc.network.lease_ms,
-                      timeout_s=sc.network.ready_timeout_s, stop=stop) as bus:
+                      timeout_s=sc.network.ready_timeout_s, stop=stop, extra_json5=extra) as bus:
             print(f"LISTENING {endpoint}", flush=True)
             result = node.run(sc, metrics, bus, args.run, WallClock(args.speed), stop,
                               realtime=args.realtime, on_ready=on_ready, on_status=on_status,
                               on_progress=on_progress)
+            # the run is over (our token is gone): the nodes leave on their own; keep the
+            # router up until they have, so that none is cut off mid-publish
+            node.wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
         write_network_run(out, sc, result, run_info)
         if result.error:
             print(f"manager: error: {result.error}", file=sys.stderr, flush=True)

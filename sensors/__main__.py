@@ -24,9 +24,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"sensors: error: --id {args.id!r} is not in the config's sensors "
                   f"{list(sc.sensor_ids)}", file=sys.stderr)
             return EXIT_USAGE
+        from covnet import security
+
         endpoint = args.connect or sc.network.connect or sc.network.router
+        endpoint = security.endpoint(sc.network, endpoint)
+        extra = security.zenoh_settings(sc.network, "sensor", args.id, listen=False,
+                                        source=args.config)
         with open_bus("client", connect=[endpoint], lease_ms=sc.network.lease_ms,
-                      timeout_s=sc.network.ready_timeout_s, stop=stop) as bus:
+                      timeout_s=sc.network.ready_timeout_s, stop=stop, extra_json5=extra) as bus:
             stats = node.run(sc, args.id, bus, args.run, WallClock(args.speed), stop)
         print(f"stopped: {stats.enabled_scans} scans enabled, "
               f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}")

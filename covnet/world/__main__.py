@@ -19,9 +19,14 @@ def main(argv: list[str] | None = None) -> int:
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
+        from covnet import security
+
         endpoint = args.connect or sc.network.connect or sc.network.router
+        endpoint = security.endpoint(sc.network, endpoint)
+        extra = security.zenoh_settings(sc.network, "world", "world", listen=False,
+                                        source=args.config)
         with open_bus("client", connect=[endpoint], lease_ms=sc.network.lease_ms,
-                      timeout_s=sc.network.ready_timeout_s, stop=stop) as bus:
+                      timeout_s=sc.network.ready_timeout_s, stop=stop, extra_json5=extra) as bus:
             counts = node.run(sc, bus, args.run, WallClock(args.speed), stop)
         print(f"stopped: {dict(counts)}")
         return EXIT_OK
