@@ -17,7 +17,7 @@ from covnet.config import Scenario
 from covnet.core import streams
 from covnet.core.allocation import Allocation, Constraints, allocate
 from covnet.core.gaussian import Gaussian, Mat, Vec
-from covnet.core.kalman import predict, update_sequential
+from covnet.core.kalman import predict, predict_covariance, update_covariance, update_sequential
 from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_noise
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 from covnet.core.sensing import measure as draw_measurement
@@ -109,6 +109,11 @@ def predict_step(model: Model, posterior: Gaussian) -> Gaussian:
     return predict(posterior, model.F, model.Q)
 
 
+def predict_cov(model: Model, P: Mat) -> Mat:
+    """The covariance of :func:`predict_step` alone (bit for bit the same)."""
+    return predict_covariance(P, model.F, model.Q)
+
+
 def decide(
     model: Model,
     P_pred: Mat,
@@ -134,6 +139,15 @@ def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:
     """Sensor ``j``'s measurement at scan ``k``: ``z = H x + v``, ``v`` from stream (j, k)."""
     rng = streams.sensor_stream(model.seed, sensor_index, scan)
     return draw_measurement(model.H, model.R[sensor_index], true_state, rng)
+
+
+def fused_covariance(model: Model, P_pred: Mat, noises: Sequence[tuple[int, Mat]]) -> Mat:
+    """The posterior covariance :func:`fuse` will produce from ``(sensor_index, R)``, without
+    the measurements: bit for bit the same (the same updates, in the same order)."""
+    P = P_pred
+    for _, R in sorted(noises, key=lambda m: m[0]):
+        P = update_covariance(P, model.H, R)
+    return P
 
 
 def usable_measurement(z: Mat, R: Mat) -> bool:

@@ -29,7 +29,7 @@ from covnet.core.gaussian import Gaussian, Mat, Vec, symmetrise
 
 def predict(prior: Gaussian, F: Mat, Q: Mat) -> Gaussian:
     """``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q``."""
-    return Gaussian(F @ prior.x, symmetrise(F @ prior.P @ F.T + Q))
+    return Gaussian(F @ prior.x, predict_covariance(prior.P, F, Q))
 
 
 def predict_covariance(P: Mat, F: Mat, Q: Mat) -> Mat:
@@ -37,15 +37,26 @@ def predict_covariance(P: Mat, F: Mat, Q: Mat) -> Mat:
     return symmetrise(F @ P @ F.T + Q)
 
 
-def update(prior: Gaussian, z: Vec, H: Mat, R: Mat) -> Gaussian:
-    """One Kalman update in Joseph form (see the module docstring for the equations)."""
-    P = prior.P
+def _gain_and_covariance(P: Mat, H: Mat, R: Mat) -> tuple[Mat, Mat]:
+    """``K = P Hᵀ S⁻¹`` and the Joseph-form ``P⁺``; neither depends on the measured value."""
     S = H @ P @ H.T + R
     # K = P Hᵀ S⁻¹  ⇔  S Kᵀ = H P  (S and P symmetric); a Cholesky solve, never inv/pinv.
     K = linalg.cho_solve(linalg.cho_factor(S), H @ P).T
     I_KH = np.eye(P.shape[0]) - K @ H
-    x = prior.x + K @ (z - H @ prior.x)
-    return Gaussian(x, symmetrise(I_KH @ P @ I_KH.T + K @ R @ K.T))
+    return K, symmetrise(I_KH @ P @ I_KH.T + K @ R @ K.T)
+
+
+def update(prior: Gaussian, z: Vec, H: Mat, R: Mat) -> Gaussian:
+    """One Kalman update in Joseph form (see the module docstring for the equations)."""
+    K, P = _gain_and_covariance(prior.P, H, R)
+    return Gaussian(prior.x + K @ (z - H @ prior.x), P)
+
+
+def update_covariance(P: Mat, H: Mat, R: Mat) -> Mat:
+    """The covariance of :func:`update` alone, bit for bit the same: in a linear Kalman filter
+    the posterior covariance does not depend on the measured value, so it can be computed
+    before the measurement arrives."""
+    return _gain_and_covariance(P, H, R)[1]
 
 
 def update_sequential(prior: Gaussian, measurements: Sequence[tuple[Vec, Mat, Mat]]) -> Gaussian:

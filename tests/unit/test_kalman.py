@@ -104,3 +104,16 @@ def test_gaussian_checks_shapes():
         Gaussian(np.zeros(3), np.eye(2))
     with pytest.raises(ValueError, match="Gaussian.x"):
         Gaussian(np.zeros((3, 1)), np.eye(3))
+
+
+def test_covariance_only_update_is_bitwise_the_same():
+    """The manager decides scan k+1 before scan k's measurements arrive: that relies on the
+    covariance-only path reproducing the full update's P exactly."""
+    from covnet.core.kalman import update_covariance
+
+    rng = np.random.default_rng(3)
+    H = position_matrix()
+    prior = Gaussian(rng.normal(size=4), np.diag([1e4, 1e2, 1e4, 1e2]))
+    R = correlated_noise(9.23, 20.9, -0.61)
+    post = update(prior, rng.normal(size=2), H, R)
+    np.testing.assert_array_equal(update_covariance(prior.P, H, R), post.P)
