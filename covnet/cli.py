@@ -108,6 +108,7 @@ def _print_summary(out: Path, summary: dict) -> None:  # type: ignore[type-arg]
 
 def cmd_up(args: argparse.Namespace) -> int:
     from covnet.messages import new_run_id
+    from covnet.process import default_run_id
     from covnet.results import load_summary
     from covnet.up import UpError, up
 
@@ -128,11 +129,22 @@ def cmd_up(args: argparse.Namespace) -> int:
             run_keyexpr(args.run)
         except ValueError as exc:
             raise UsageError(f"--run: {exc}") from None
+    # a whole network here: a fresh run id; a part of one (--nodes): the id every process
+    # derives from the config, so the parts started on other hosts agree without being told
+    run_id = args.run or (default_run_id(sc) if nodes is not None else new_run_id())
     try:
         status = up(
-            sc, args.config, out, metrics, seed=args.seed, realtime=args.realtime,
-            speed=args.speed, run_id=args.run or new_run_id(), verbose=args.verbose,
-            nodes=nodes, router=args.router,
+            sc,
+            args.config,
+            out,
+            metrics,
+            seed=args.seed,
+            realtime=args.realtime,
+            speed=args.speed,
+            run_id=run_id,
+            verbose=args.verbose,
+            nodes=nodes,
+            router=args.router,
         )
     except UpError as exc:
         _err(str(exc))
@@ -151,8 +163,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from covnet.replay import replay_run
 
     run_dir = Path(args.run_dir)
-    missing = [f for f in ("config.json", "run.json", "summary.json", "recording.mcap")
-               if not (run_dir / f).is_file()]
+    missing = [
+        f
+        for f in ("config.json", "run.json", "summary.json", "recording.mcap")
+        if not (run_dir / f).is_file()
+    ]
     if missing:
         raise UsageError(
             f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
@@ -171,7 +186,6 @@ def cmd_check(args: argparse.Namespace) -> int:
     import yaml
 
     from covnet.config import config_hash, normalised
-
     from covnet.security import preflight
 
     sc = _load(args.config)
@@ -220,12 +234,16 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
         for row in rows:
             print(json.dumps(row))
         return EXIT_OK
-    print(f"{'run':>4} {'scans':>6} {'scans/s':>8} {'wall s':>7} {'p50 ms':>7} {'p99 ms':>7} "
-          f"{'core p50 ms':>11} {'core share':>10}")
+    print(
+        f"{'run':>4} {'scans':>6} {'scans/s':>8} {'wall s':>7} {'p50 ms':>7} {'p99 ms':>7} "
+        f"{'core p50 ms':>11} {'core share':>10}"
+    )
     for i, r in enumerate(rows):
-        print(f"{i + 1:>4} {r['scans']:>6} {r['scans_per_s']:>8.0f} {r['wall_s']:>7.2f} "
-              f"{r['scan_p50_ms']:>7.2f} {r['scan_p99_ms']:>7.2f} {r['core_p50_ms']:>11.3f} "
-              f"{100 * r['core_share']:>9.1f}%")
+        print(
+            f"{i + 1:>4} {r['scans']:>6} {r['scans_per_s']:>8.0f} {r['wall_s']:>7.2f} "
+            f"{r['scan_p50_ms']:>7.2f} {r['scan_p99_ms']:>7.2f} {r['core_p50_ms']:>11.3f} "
+            f"{100 * r['core_share']:>9.1f}%"
+        )
     med = sorted(r["scans_per_s"] for r in rows)[len(rows) // 2]
     print(f"median: {med:.0f} scans/s (loop: READY to last scan fused; wall includes start-up)")
     return EXIT_OK
@@ -297,20 +315,37 @@ def build_parser() -> argparse.ArgumentParser:
     )
     u.add_argument("config", help="scenario YAML, e.g. configs/paper.yaml")
     u.add_argument("--out", help="run directory (default: a new folder under runs/)")
-    u.add_argument("--metric", action="append", metavar="NAME",
-                   help="run only this metric (repeatable; default: the config's)")
+    u.add_argument(
+        "--metric",
+        action="append",
+        metavar="NAME",
+        help="run only this metric (repeatable; default: the config's)",
+    )
     u.add_argument("--seed", type=int, help="override the config's seed")
-    u.add_argument("--realtime", action="store_true",
-                   help="pace scans by the config's period (default: lockstep, as fast as possible)")
+    u.add_argument(
+        "--realtime",
+        action="store_true",
+        help="pace scans by the config's period (default: lockstep, as fast as possible)",
+    )
     u.add_argument("--speed", type=float, default=1.0, help="real-time speed factor (--realtime)")
     u.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
     u.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     u.add_argument("--verbose", action="store_true", help="show every process's output")
-    u.add_argument("--run", help="run id (key prefix) shared with nodes started elsewhere")
-    u.add_argument("--router", help="router endpoint, overriding network.router "
-                   "(e.g. tcp/192.0.2.10:7447 to accept sensors from other hosts)")
-    u.add_argument("--nodes", help="start only these here: comma-separated from manager, "
-                   "world, recorder, sensors, or sensor ids (default: all)")
+    u.add_argument(
+        "--run",
+        help="run id (key prefix); default: a fresh one, or with --nodes the "
+        "one every process derives from the config",
+    )
+    u.add_argument(
+        "--router",
+        help="router endpoint, overriding network.router "
+        "(e.g. tcp/192.0.2.10:7447 to accept sensors from other hosts)",
+    )
+    u.add_argument(
+        "--nodes",
+        help="start only these here: comma-separated from manager, "
+        "world, recorder, sensors, or sensor ids (default: all)",
+    )
     u.set_defaults(func=cmd_up)
 
     rp = sub.add_parser(
@@ -332,8 +367,13 @@ def build_parser() -> argparse.ArgumentParser:
         "bench",
         help="benchmark: the allocator against the plain baseline (default), or 'up': the network",
     )
-    b.add_argument("target", nargs="?", choices=["alloc", "up"], default="alloc",
-                   help="alloc: allocation decisions per metric and N; up: covnet up in lockstep")
+    b.add_argument(
+        "target",
+        nargs="?",
+        choices=["alloc", "up"],
+        default="alloc",
+        help="alloc: allocation decisions per metric and N; up: covnet up in lockstep",
+    )
     b.add_argument(
         "--sensors",
         type=_int_list,
@@ -350,8 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument("--config", default="configs/paper.yaml", help="sensor table and scenario")
     b.add_argument("--problems", type=int, default=5, help="decision problems per N (scans)")
-    b.add_argument("--repeat", type=int, default=3,
-                   help="timed repeats per problem (alloc) or whole runs (up)")
+    b.add_argument(
+        "--repeat", type=int, default=3, help="timed repeats per problem (alloc) or whole runs (up)"
+    )
     b.add_argument("--json", action="store_true", help="one JSON row per (metric, N)")
     b.set_defaults(func=cmd_bench)
     return p

@@ -197,9 +197,9 @@ class NetworkSpec(_Model):
     record: bool = True
     security: SecuritySpec = SecuritySpec()
 
-    _pos = field_validator(
-        "heartbeat_s", "failure_timeout_s", "ready_timeout_s", "scan_timeout_s"
-    )(_positive)
+    _pos = field_validator("heartbeat_s", "failure_timeout_s", "ready_timeout_s", "scan_timeout_s")(
+        _positive
+    )
 
     @field_validator("deadline_fraction")
     @classmethod
@@ -314,9 +314,7 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     if both:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
     if sc.network.failure_timeout_s <= sc.network.heartbeat_s:
-        problems.append(
-            ("network.failure_timeout_s", "must be longer than network.heartbeat_s")
-        )
+        problems.append(("network.failure_timeout_s", "must be longer than network.heartbeat_s"))
     from covnet.security import security_problems
 
     problems += security_problems(sc.network, ids)

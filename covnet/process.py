@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from covnet.config import ConfigError, Scenario, load, with_overrides
+from covnet.config import ConfigError, Scenario, config_hash, load, with_overrides
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
 
@@ -27,7 +27,11 @@ EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
 def common_parser(prog: str, description: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description=description)
     p.add_argument("--config", required=True, help="scenario YAML (the single source of truth)")
-    p.add_argument("--run", required=True, help="run id: the key prefix shared by one network")
+    p.add_argument(
+        "--run",
+        help="run id: the key prefix shared by one network (default: derived from the config, "
+        "'<name>-<hash>', the same for every process started with the same config)",
+    )
     p.add_argument("--seed", type=int, help="override the config's seed")
     p.add_argument("--realtime", action="store_true", help="pace scans by the config's period")
     p.add_argument("--speed", type=float, default=1.0, help="real-time speed factor")
@@ -37,6 +41,17 @@ def common_parser(prog: str, description: str) -> argparse.ArgumentParser:
 def load_config(path: str, seed: int | None) -> Scenario:
     sc = load(path)
     return with_overrides(sc, seed=seed) if seed is not None else sc
+
+
+def default_run_id(sc: Scenario) -> str:
+    """The run id processes started separately agree on without being told: ``name-hash``."""
+    return f"{sc.name}-{config_hash(sc)[:8]}"
+
+
+def resolve_run(args: Any, sc: Scenario) -> str:
+    """``--run`` or the default; sets ``args.run`` so the rest of a ``main`` can use it."""
+    args.run = args.run or default_run_id(sc)
+    return str(args.run)
 
 
 def stop_on_signals() -> threading.Event:
@@ -70,7 +85,9 @@ def open_bus(
     deadline = time.monotonic() + timeout_s
     while True:
         try:
-            return ZenohBus.open(zenoh_config(mode, extra_json5=extra_json5, **cfg_args), express=express)  # type: ignore[arg-type]
+            return ZenohBus.open(
+                zenoh_config(mode, extra_json5=extra_json5, **cfg_args), express=express
+            )  # type: ignore[arg-type]
         except Exception as exc:  # zenoh raises its own ZError
             if time.monotonic() > deadline or stop.is_set():
                 raise ConnectionError(

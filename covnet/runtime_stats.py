@@ -61,7 +61,9 @@ class NetStats:
             }
 
         return {
-            "sent": {k: {"messages": v, "bytes": self.sent_bytes[k]} for k, v in self.sent_msgs.items()},
+            "sent": {
+                k: {"messages": v, "bytes": self.sent_bytes[k]} for k, v in self.sent_msgs.items()
+            },
             "received": {
                 k: {"messages": v, "bytes": self.recv_bytes[k]} for k, v in self.recv_msgs.items()
             },
@@ -74,7 +76,9 @@ class NetStats:
             "scans": self.scans_done,
             "loop_wall_s": self.loop_wall_ns / 1e9,
             "core_share": sum(self.core_ns) / self.loop_wall_ns if self.loop_wall_ns else None,
-            "scans_per_s": self.scans_done / (self.loop_wall_ns / 1e9) if self.loop_wall_ns else None,
+            "scans_per_s": self.scans_done / (self.loop_wall_ns / 1e9)
+            if self.loop_wall_ns
+            else None,
             "late": self.late,
             "lost": self.lost,
         }

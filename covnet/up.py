@@ -82,8 +82,16 @@ def process_specs(
         specs.append(
             ProcessSpec(
                 "recorder",
-                [py, "-m", "covnet.recorder", *common, "--connect", connect,
-                 "--out", str(out / "recording.mcap")],
+                [
+                    py,
+                    "-m",
+                    "covnet.recorder",
+                    *common,
+                    "--connect",
+                    connect,
+                    "--out",
+                    str(out / "recording.mcap"),
+                ],
             )
         )
     restart = sc.network.restart == "on-failure"
@@ -228,7 +236,8 @@ def up(
                 n = sum(sup.restarts.values())
                 if n != restarts_seen:
                     restarts_seen = n
-                    view.line(f"[launcher] restarted: {dict((k, v) for k, v in sup.restarts.items() if v)}")
+                    counts = {k: v for k, v in sup.restarts.items() if v}
+                    view.line(f"[launcher] restarted: {counts}")
                 if rcs["manager"] is not None:
                     status = int(rcs["manager"])
                     break
@@ -256,7 +265,9 @@ def _supervise_without_manager(
 ) -> int:
     """Nodes only (the manager runs on another host): run until they all leave (they do when
     the manager's run ends) or Ctrl-C."""
-    print(f"[launcher] run {run_id}: nodes {[s.name for s in specs]} -> router {router}", flush=True)
+    print(
+        f"[launcher] run {run_id}: nodes {[s.name for s in specs]} -> router {router}", flush=True
+    )
     try:
         with Supervisor(specs, pids_file=out / "processes.json") as sup:
             while any(rc is None for rc in sup.poll().values()):

@@ -14,8 +14,16 @@ import time
 from pathlib import Path
 
 from covnet.clock import WallClock
-from covnet.process import EXIT_FAIL, EXIT_OK, common_parser, guarded, load_config, open_bus
-from covnet.process import stop_on_signals
+from covnet.process import (
+    EXIT_FAIL,
+    EXIT_OK,
+    common_parser,
+    guarded,
+    load_config,
+    open_bus,
+    resolve_run,
+    stop_on_signals,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
+        resolve_run(args, sc)
         metrics = args.metric or list(sc.allocation.metrics)
         from covnet.core.metrics import METRICS
 
@@ -43,8 +52,13 @@ def main(argv: list[str] | None = None) -> int:
         if endpoint.endswith(":0"):
             raise ValueError(f"--listen: give a concrete port, got {endpoint!r}")
         out = Path(args.out)
-        run_info = {"episodes": metrics, "run_id": args.run, "clock": "realtime" if args.realtime else "lockstep",
-                 "speed": args.speed, "router": endpoint}
+        run_info = {
+            "episodes": metrics,
+            "run_id": args.run,
+            "clock": "realtime" if args.realtime else "lockstep",
+            "speed": args.speed,
+            "router": endpoint,
+        }
         last_write = [time.monotonic()]
         last_status = [0.0]
 
@@ -63,14 +77,35 @@ def main(argv: list[str] | None = None) -> int:
                 write_network_run(out, sc, result, run_info)
                 last_write[0] = time.monotonic()
 
-        extra = security.zenoh_settings(sc.network, "manager", "manager", listen=True,
-                                        sensor_ids=sc.sensor_ids, source=args.config)
-        with open_bus("router", listen=[endpoint], lease_ms=sc.network.lease_ms,
-                      timeout_s=sc.network.ready_timeout_s, stop=stop, extra_json5=extra) as bus:
+        extra = security.zenoh_settings(
+            sc.network,
+            "manager",
+            "manager",
+            listen=True,
+            sensor_ids=sc.sensor_ids,
+            source=args.config,
+        )
+        with open_bus(
+            "router",
+            listen=[endpoint],
+            lease_ms=sc.network.lease_ms,
+            timeout_s=sc.network.ready_timeout_s,
+            stop=stop,
+            extra_json5=extra,
+        ) as bus:
             print(f"LISTENING {endpoint}", flush=True)
-            result = node.run(sc, metrics, bus, args.run, WallClock(args.speed), stop,
-                              realtime=args.realtime, on_ready=on_ready, on_status=on_status,
-                              on_progress=on_progress)
+            result = node.run(
+                sc,
+                metrics,
+                bus,
+                args.run,
+                WallClock(args.speed),
+                stop,
+                realtime=args.realtime,
+                on_ready=on_ready,
+                on_status=on_status,
+                on_progress=on_progress,
+            )
             # the run is over (our token is gone): the nodes leave on their own; keep the
             # router up until they have, so that none is cut off mid-publish
             node.wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)

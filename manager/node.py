@@ -306,9 +306,7 @@ def run(
                 core_ns = time.perf_counter_ns() - t_core0
                 enabled = tuple(ids[j] for j in alloc.subset)
                 t_sent = clock.now_ns()
-                cmd = msg.Command(
-                    scan=k, t=t_k, enabled=enabled, t_sent_ns=t_sent, episode=e
-                )
+                cmd = msg.Command(scan=k, t=t_k, enabled=enabled, t_sent_ns=t_sent, episode=e)
                 loop.publish(loop.keys["cmd"], cmd)
                 # while the sensors measure: decide scan k+1 assuming every enabled sensor's
                 # measurement arrives (P does not depend on the measured values)
@@ -319,9 +317,7 @@ def run(
                     deadline = time.monotonic() + net.scan_timeout_s
                 got = loop.collect(e, k, set(enabled), deadline, stop)
                 t_core1 = time.perf_counter_ns()
-                est = fuse(
-                    model, pred, [(ids.index(sid), z, R) for sid, (z, R) in got.items()]
-                )
+                est = fuse(model, pred, [(ids.index(sid), z, R) for sid, (z, R) in got.items()])
                 loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
                 loop.stats.scans_done += 1
                 loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop
@@ -397,9 +393,7 @@ class _Speculation:
 
     def matches(self, k: int, P_pred: np.ndarray, unavailable: frozenset[int]) -> bool:
         return (
-            self.k == k
-            and self.unavailable == unavailable
-            and np.array_equal(self.P_pred, P_pred)
+            self.k == k and self.unavailable == unavailable and np.array_equal(self.P_pred, P_pred)
         )
 
 

@@ -5,8 +5,16 @@ from __future__ import annotations
 import sys
 
 from covnet.clock import WallClock
-from covnet.process import EXIT_OK, EXIT_USAGE, common_parser, guarded, load_config, open_bus
-from covnet.process import stop_on_signals
+from covnet.process import (
+    EXIT_OK,
+    EXIT_USAGE,
+    common_parser,
+    guarded,
+    load_config,
+    open_bus,
+    resolve_run,
+    stop_on_signals,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,21 +28,34 @@ def main(argv: list[str] | None = None) -> int:
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
+        resolve_run(args, sc)
         if args.id not in sc.sensor_ids:
-            print(f"sensors: error: --id {args.id!r} is not in the config's sensors "
-                  f"{list(sc.sensor_ids)}", file=sys.stderr)
+            print(
+                f"sensors: error: --id {args.id!r} is not in the config's sensors "
+                f"{list(sc.sensor_ids)}",
+                file=sys.stderr,
+            )
             return EXIT_USAGE
         from covnet import security
 
         endpoint = args.connect or sc.network.connect or sc.network.router
         endpoint = security.endpoint(sc.network, endpoint)
-        extra = security.zenoh_settings(sc.network, "sensor", args.id, listen=False,
-                                        source=args.config)
-        with open_bus("client", connect=[endpoint], lease_ms=sc.network.lease_ms,
-                      timeout_s=sc.network.ready_timeout_s, stop=stop, extra_json5=extra) as bus:
+        extra = security.zenoh_settings(
+            sc.network, "sensor", args.id, listen=False, source=args.config
+        )
+        with open_bus(
+            "client",
+            connect=[endpoint],
+            lease_ms=sc.network.lease_ms,
+            timeout_s=sc.network.ready_timeout_s,
+            stop=stop,
+            extra_json5=extra,
+        ) as bus:
             stats = node.run(sc, args.id, bus, args.run, WallClock(args.speed), stop)
-        print(f"stopped: {stats.enabled_scans} scans enabled, "
-              f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}")
+        print(
+            f"stopped: {stats.enabled_scans} scans enabled, "
+            f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}"
+        )
         return EXIT_OK
 
     return guarded(body, "sensors")

@@ -11,7 +11,15 @@ import sys
 from pathlib import Path
 
 from covnet.clock import WallClock
-from covnet.process import EXIT_OK, common_parser, guarded, load_config, open_bus, stop_on_signals
+from covnet.process import (
+    EXIT_OK,
+    common_parser,
+    guarded,
+    load_config,
+    open_bus,
+    resolve_run,
+    stop_on_signals,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
+        resolve_run(args, sc)
         endpoint = args.connect or sc.network.connect or sc.network.router
         endpoint = security.endpoint(sc.network, endpoint)
         extra = security.zenoh_settings(

@@ -5,8 +5,15 @@ from __future__ import annotations
 import sys
 
 from covnet.clock import WallClock
-from covnet.process import EXIT_OK, common_parser, guarded, load_config, open_bus
-from covnet.process import stop_on_signals
+from covnet.process import (
+    EXIT_OK,
+    common_parser,
+    guarded,
+    load_config,
+    open_bus,
+    resolve_run,
+    stop_on_signals,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -19,14 +26,22 @@ def main(argv: list[str] | None = None) -> int:
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
+        resolve_run(args, sc)
         from covnet import security
 
         endpoint = args.connect or sc.network.connect or sc.network.router
         endpoint = security.endpoint(sc.network, endpoint)
-        extra = security.zenoh_settings(sc.network, "world", "world", listen=False,
-                                        source=args.config)
-        with open_bus("client", connect=[endpoint], lease_ms=sc.network.lease_ms,
-                      timeout_s=sc.network.ready_timeout_s, stop=stop, extra_json5=extra) as bus:
+        extra = security.zenoh_settings(
+            sc.network, "world", "world", listen=False, source=args.config
+        )
+        with open_bus(
+            "client",
+            connect=[endpoint],
+            lease_ms=sc.network.lease_ms,
+            timeout_s=sc.network.ready_timeout_s,
+            stop=stop,
+            extra_json5=extra,
+        ) as bus:
             counts = node.run(sc, bus, args.run, WallClock(args.speed), stop)
         print(f"stopped: {dict(counts)}")
         return EXIT_OK

@@ -22,9 +22,7 @@ from covnet.model import build_model, truth_trajectory
 TARGET_IDS = ("T1",)
 
 
-def run(
-    sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
-) -> Counter[str]:
+def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event) -> Counter[str]:
     """Serve truth until ``stop`` is set; returns counters (``published``, and
     ``rejected:<reason>`` for every malformed or out-of-range command dropped)."""
     model = build_model(sc)

@@ -109,5 +109,3 @@ def assert_nothing_left(run_dir: Path) -> None:
         time.sleep(0.05)
     left = {n: p for n, p in pids.items() if pid_alive(p)}
     assert not left, f"processes left running: {left}"
-
-

@@ -31,15 +31,21 @@ def _raw(d: dict) -> bytes:
 def bad_payloads(run: str) -> list[tuple[str, bytes, str]]:
     """(key, payload, expected reason) for every subscribed key."""
     good_meas = msg.encode(
-        msg.Measurement(sensor_id="S1", scan=1, t=1.0, z=np.zeros((1, 2)), R=np.eye(2),
-                        t_sent_ns=1)
+        msg.Measurement(sensor_id="S1", scan=1, t=1.0, z=np.zeros((1, 2)), R=np.eye(2), t_sent_ns=1)
     )
     good_cmd = msg.encode(msg.Command(scan=1, t=1.0, enabled=("S1",), t_sent_ns=1))
-    good_truth = msg.encode(
-        msg.Truth(scan=1, t=1.0, target_ids=("T1",), states=np.zeros((1, 4)))
-    )
-    meas = {"v": 1, "k": "meas", "sensor_id": "S1", "scan": 1, "t": 1.0, "z": _arr([[0.0, 0.0]]),
-            "R": _arr(np.eye(2)), "t_sent_ns": 1, "episode": 0}
+    good_truth = msg.encode(msg.Truth(scan=1, t=1.0, target_ids=("T1",), states=np.zeros((1, 4))))
+    meas = {
+        "v": 1,
+        "k": "meas",
+        "sensor_id": "S1",
+        "scan": 1,
+        "t": 1.0,
+        "z": _arr([[0.0, 0.0]]),
+        "R": _arr(np.eye(2)),
+        "t_sent_ns": 1,
+        "episode": 0,
+    }
     out: list[tuple[str, bytes, str]] = []
     keys = {
         "meas": msg.measurement_key(run, "S1"),
@@ -57,11 +63,39 @@ def bad_payloads(run: str) -> list[tuple[str, bytes, str]]:
     out.append((keys["meas"], _raw(meas | {"z": _arr([[0.0, 0.0, 0.0]])}), "bad_shape"))
     out.append((keys["meas"], _raw(meas | {"z": _arr([[np.nan, 0.0]])}), "non_finite"))
     out.append((keys["meas"], _raw(meas | {"scan": True}), "bad_type"))
-    out.append((keys["truth"], _raw({"v": 1, "k": "truth", "scan": 1, "t": 1.0,
-                                     "target_ids": ["T1"], "states": _arr([[np.inf, 0, 0, 0]])}),
-                "non_finite"))
-    out.append((keys["cmd"], _raw({"v": 1, "k": "cmd", "scan": 1, "t": 1.0, "enabled": "S1",
-                                   "t_sent_ns": 1, "episode": 0}), "bad_type"))
+    out.append(
+        (
+            keys["truth"],
+            _raw(
+                {
+                    "v": 1,
+                    "k": "truth",
+                    "scan": 1,
+                    "t": 1.0,
+                    "target_ids": ["T1"],
+                    "states": _arr([[np.inf, 0, 0, 0]]),
+                }
+            ),
+            "non_finite",
+        )
+    )
+    out.append(
+        (
+            keys["cmd"],
+            _raw(
+                {
+                    "v": 1,
+                    "k": "cmd",
+                    "scan": 1,
+                    "t": 1.0,
+                    "enabled": "S1",
+                    "t_sent_ns": 1,
+                    "episode": 0,
+                }
+            ),
+            "bad_type",
+        )
+    )
     out.append((keys["hb"], _raw({"v": 1, "k": "hb", "role": "sensor"}), "missing_field"))
     return out
 
@@ -75,8 +109,7 @@ def test_garbage_on_every_key_is_counted_and_dropped(covnet_proc, tmp_path, pape
     cfg = tmp_path / "long.yaml"
     cfg.write_text(yaml.safe_dump(data))
     ref = tmp_path / "ref"
-    assert covnet_main(["run", str(cfg), "--out", str(ref), "--metric", "svd",
-                        "--no-figures"]) == 0
+    assert covnet_main(["run", str(cfg), "--out", str(ref), "--metric", "svd", "--no-figures"]) == 0
 
     out = tmp_path / "run"
     p = covnet_proc(["up", str(cfg), "--out", str(out), "--metric", "svd", "--no-figures"])

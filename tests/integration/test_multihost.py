@@ -13,9 +13,9 @@ import sys
 
 import pytest
 import yaml
+from multiproc import CovnetProcess
 
 from covnet.cli import main as covnet_main
-from multiproc import CovnetProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
@@ -77,10 +77,14 @@ def test_sensors_on_another_host(two_hosts, tmp_path, paper_path):
     router = f"tcp/{addr_a}:7447"
     run_id = f"mh{os.getpid()}"
     common = [str(cfg), "--router", router, "--run", run_id, "--no-figures"]
-    mgr = CovnetProcess(["up", *common, "--out", str(tmp_path / "a"),
-                         "--nodes", "manager,world,recorder"], prefix=["ip", "netns", "exec", ns_a])
-    sens = CovnetProcess(["up", *common, "--out", str(tmp_path / "b"), "--nodes", "sensors"],
-                         prefix=["ip", "netns", "exec", ns_b])
+    mgr = CovnetProcess(
+        ["up", *common, "--out", str(tmp_path / "a"), "--nodes", "manager,world,recorder"],
+        prefix=["ip", "netns", "exec", ns_a],
+    )
+    sens = CovnetProcess(
+        ["up", *common, "--out", str(tmp_path / "b"), "--nodes", "sensors"],
+        prefix=["ip", "netns", "exec", ns_b],
+    )
     try:
         assert mgr.wait(timeout=180) == 0, mgr.output() + "\n---\n" + sens.output()
         assert sens.wait(timeout=30) == 0, sens.output()
@@ -96,8 +100,16 @@ def test_sensors_on_another_host(two_hosts, tmp_path, paper_path):
     assert info["router"] == router
     # the sensors really were elsewhere: their namespace has no route to the manager's loopback
     probe = subprocess.run(
-        ["ip", "netns", "exec", ns_b, sys.executable, "-c",
-         "import socket; s=socket.socket(); s.settimeout(1); s.connect(('127.0.0.1', 7447))"],
-        capture_output=True, timeout=20,
+        [
+            "ip",
+            "netns",
+            "exec",
+            ns_b,
+            sys.executable,
+            "-c",
+            "import socket; s=socket.socket(); s.settimeout(1); s.connect(('127.0.0.1', 7447))",
+        ],
+        capture_output=True,
+        timeout=20,
     )
     assert probe.returncode != 0

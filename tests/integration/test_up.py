@@ -9,10 +9,9 @@ import signal
 
 import numpy as np
 import pytest
+from multiproc import CovnetProcess, assert_nothing_left
 
 from covnet.cli import main as covnet_main
-
-from multiproc import CovnetProcess, assert_nothing_left
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
@@ -66,8 +65,14 @@ def test_run_directory_complete(lockstep_up):
     out, output = lockstep_up
     names = set(json.loads((out / "processes.json").read_text()))
     assert names == {"manager", "world", "recorder", *(f"S{i}" for i in range(1, 9))}
-    for f in ("summary.json", "arrays.npz", "config.json", "network.json", "run.json",
-              "recording.mcap"):
+    for f in (
+        "summary.json",
+        "arrays.npz",
+        "config.json",
+        "network.json",
+        "run.json",
+        "recording.mcap",
+    ):
         assert (out / f).is_file(), f
     net = json.loads((out / "network.json").read_text())
     assert net["scan_latency"]["n"] == 300 and net["scan_latency"]["p50_ms"] > 0
@@ -77,8 +82,20 @@ def test_run_directory_complete(lockstep_up):
 
 def test_ctrl_c_stops_everything_and_keeps_what_was_recorded(covnet_proc, tmp_path, paper_path):
     out = tmp_path / "run"
-    p = covnet_proc(["up", str(paper_path), "--out", str(out), "--realtime", "--speed", "25",
-                     "--metric", "spectral", "--no-figures"])
+    p = covnet_proc(
+        [
+            "up",
+            str(paper_path),
+            "--out",
+            str(out),
+            "--realtime",
+            "--speed",
+            "25",
+            "--metric",
+            "spectral",
+            "--no-figures",
+        ]
+    )
     assert p.wait_for("[manager] READY", timeout=60), p.output()
     assert p.wait_for(lambda s: s.startswith("[status]") and "scan 1/" not in s, timeout=30)
     os.killpg(p.proc.pid, signal.SIGINT)

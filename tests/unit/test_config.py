@@ -74,7 +74,12 @@ BAD_CASES = [
     ("scans", lambda d: d.update(scans=0), "scans", "greater than or equal to 1"),
     ("period", lambda d: d.update(period_s=0.0), "period_s", "must be > 0"),
     ("p0", lambda d: d["filter"].update(P0_diag=[1, 1, -1, 1]), "filter.P0_diag", "> 0"),
-    ("p0-len", lambda d: d["filter"].update(P0_diag=[1, 1, 1]), "filter.P0_diag", "at least 4 items"),
+    (
+        "p0-len",
+        lambda d: d["filter"].update(P0_diag=[1, 1, 1]),
+        "filter.P0_diag",
+        "at least 4 items",
+    ),
     (
         "estimate",
         lambda d: d["filter"].update(initial_estimate="guess"),

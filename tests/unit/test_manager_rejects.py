@@ -20,8 +20,18 @@ def loop(paper):
 
 def _sample(sensor_key: str, **fields) -> Sample:
     m = msg.Measurement(
-        **({"sensor_id": "S1", "scan": 5, "t": 5.0, "z": np.zeros((1, 2)), "R": np.eye(2),
-            "t_sent_ns": 1, "episode": 0} | fields)
+        **(
+            {
+                "sensor_id": "S1",
+                "scan": 5,
+                "t": 5.0,
+                "z": np.zeros((1, 2)),
+                "R": np.eye(2),
+                "t_sent_ns": 1,
+                "episode": 0,
+            }
+            | fields
+        )
     )
     return Sample(msg.measurement_key(RUN, sensor_key), msg.encode(m), 2)
 
