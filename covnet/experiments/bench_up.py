@@ -20,7 +20,9 @@ from covnet.messages import new_run_id
 from covnet.up import up
 
 
-def run(sc: Scenario, config_path: str, tmp: Path, *, repeat: int = 3, quiet: bool = False) -> list[dict[str, Any]]:
+def run(
+    sc: Scenario, config_path: str, tmp: Path, *, repeat: int = 3, quiet: bool = False
+) -> list[dict[str, Any]]:
     rows = []
     for i in range(repeat):
         out = tmp / f"run{i}"
