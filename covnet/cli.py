@@ -68,7 +68,36 @@ def _prepare_out(out: str | None, name: str, force: bool) -> Path:
     return p
 
 
+def _kind(path: str) -> str:
+    from covnet.config import KINDS, scenario_kind
+
+    kind = scenario_kind(path)
+    if kind not in KINDS:
+        raise UsageError(f"{path}: kind: unknown scenario kind {kind!r}; choose from {list(KINDS)}")
+    return kind
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    kind = _kind(args.config)
+    if kind == "mobile":
+        from covnet.mobile.cli_entry import run_cmd
+
+        if args.metric:
+            raise UsageError("--metric: a mobile scenario has no allocation metric; see --solver")
+        return run_cmd(
+            args.config,
+            args.out,
+            args.solver,
+            args.seed,
+            force=args.force,
+            figures=not args.no_figures,
+        )
+    if kind == "passive":
+        from covnet.passive.cli_entry import scene_cmd
+
+        return scene_cmd(args.config, args.out, args.seed)
+    if args.solver is not None:
+        raise UsageError("--solver: only a mobile scenario (kind: mobile) has solvers")
     from covnet.model import build_model
     from covnet.results import write_run
     from covnet.simulate import run_metric, shared_trajectory
@@ -106,12 +135,34 @@ def _print_summary(out: Path, summary: dict) -> None:  # type: ignore[type-arg]
         )
 
 
+def cmd_mc(args: argparse.Namespace) -> int:
+    kind = _kind(args.config)
+    if kind == "mobile":
+        from covnet.mobile.cli_entry import mc_cmd as mobile_mc
+
+        return mobile_mc(args.config, args.out, args.trials or 20, True, force=args.force)
+    if kind == "passive":
+        from covnet.passive.cli_entry import mc_cmd as passive_mc
+
+        return passive_mc(args.config, args.out, args.trials, True)
+    raise UsageError(
+        f"{args.config}: covnet mc runs the mobile and passive evaluation protocols; for a "
+        "covariance-control scenario use covnet run (one seed) or covnet up"
+    )
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from covnet.messages import new_run_id
     from covnet.process import default_run_id
     from covnet.results import load_summary
     from covnet.up import UpError, up
 
+    kind = _kind(args.config)
+    if kind != "covariance_control":
+        raise UsageError(
+            f"{args.config}: covnet up runs covariance-control scenarios; the {kind} scenario's "
+            f"network runtime is not built yet (use covnet run / covnet mc for it)"
+        )
     sc = _load(args.config, args.seed)
     metrics = _metrics_for(sc, args.metric)
     if args.speed <= 0:
@@ -252,6 +303,14 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.target == "up":
         return cmd_bench_up(args)
+    if args.target == "mobile":
+        from covnet.mobile.cli_entry import bench_cmd as mobile_bench
+
+        return mobile_bench(args.json)
+    if args.target == "passive":
+        from covnet.passive.cli_entry import bench_cmd as passive_bench
+
+        return passive_bench(args.json)
     from covnet.experiments import bench_allocation
 
     sc = _load(args.config)
@@ -308,7 +367,24 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, help="override the config's seed")
     r.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    r.add_argument(
+        "--solver",
+        metavar="NAME",
+        help="mobile scenarios: lp (default), lp_highs, closed_form or milp",
+    )
     r.set_defaults(func=cmd_run)
+
+    mc = sub.add_parser("mc", help="Monte Carlo evaluation of a mobile or passive scenario")
+    mc.add_argument("config", help="configs/mobile.yaml or configs/passive.yaml")
+    mc.add_argument(
+        "--trials",
+        type=int,
+        metavar="N",
+        help="seeds (mobile, default 20) or trials per cell (passive, default: config)",
+    )
+    mc.add_argument("--out", help="results directory (default: a new folder under runs/)")
+    mc.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    mc.set_defaults(func=cmd_mc)
 
     u = sub.add_parser(
         "up", help="run the network: world, one process per sensor, the manager, over zenoh"

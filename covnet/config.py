@@ -219,6 +219,7 @@ class NetworkSpec(_Model):
 class Scenario(_Model):
     """A whole scenario: the paper's by default values where the source leaves them open."""
 
+    kind: Literal["covariance_control"] = "covariance_control"
     name: Str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
     seed: Int = Field(ge=0)
     scans: Int = Field(ge=1, le=1_000_000)
@@ -357,6 +358,22 @@ def _resolve_security_paths(data: dict[str, Any], base_dir: Path) -> dict[str, A
             p = Path(os.path.expanduser(value))
             holder[path[-1]] = str(p if p.is_absolute() else base_dir / p)
     return {**data, "network": {**net, "security": sec}}
+
+
+KINDS = ("covariance_control", "mobile", "passive")
+
+
+def scenario_kind(path: str | Path) -> str:
+    """The top-level ``kind`` of a scenario file (``covariance_control`` when absent), so the CLI
+    can route a file to its runner before validating it; unreadable files give the default and
+    fail later with the loader's message."""
+    try:
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return "covariance_control"
+    if isinstance(data, Mapping) and isinstance(data.get("kind"), str):
+        return str(data["kind"])
+    return "covariance_control"
 
 
 def from_dict(data: object, source: str = "<dict>", base_dir: str | Path | None = None) -> Scenario:

@@ -1,0 +1,161 @@
+"""The Monte Carlo evaluation of the mobile scenario: the same config over seeds 0..n−1.
+
+Each seed is one in-process run (:func:`covnet.mobile.simulate.run`) in a worker process
+(``concurrent.futures.ProcessPoolExecutor``, *spawn* context, one worker per core by default),
+summarised there (:func:`covnet.mobile.results.summarise`, without the per-decision lists), and
+sent back as a small dict.  The results are ordered by seed whatever order the workers finish
+in, so ``montecarlo.json`` depends only on the config and the seeds (the wall times inside aside).
+
+Aggregates (``aggregate``): for every scalar metric of the per-run summary, the mean, standard
+deviation (ddof = 0), min and max over seeds; the optimality counts are pooled over all decisions
+of all seeds (share of decisions where the LP + post-step is worse than the MILP, mean and max
+gap, conflicts resolved).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from covnet.mobile.config import MobileConfig, config_hash, from_dict, normalised
+from covnet.mobile.results import WORSE_TOL, summarise
+from covnet.results import write_json
+
+MC_FILE = "montecarlo.json"
+#: progress(done, total, seed) after each finished seed
+McProgress = Callable[[int, int, int], None]
+
+
+def run_seed(cfg_data: Mapping[str, Any], seed: int, solver: str | None) -> dict[str, Any]:
+    """One seed in a worker: validate, simulate, summarise (top level so it pickles)."""
+    from covnet.mobile.simulate import run
+
+    cfg = from_dict({**cfg_data, "seed": seed}, f"seed {seed}")
+    r = run(cfg, solver)
+    s = summarise(cfg, r)
+    opt = s.get("optimality")
+    if opt is not None:
+        per = opt.pop("per_decision")
+        opt["gaps"] = [g for g in per["gap"] if g is not None]
+    return s
+
+
+def default_workers() -> int:
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1)
+
+
+def run_seeds(
+    cfg: MobileConfig,
+    seeds: Sequence[int],
+    solver: str | None = None,
+    workers: int | None = None,
+    progress: McProgress | None = None,
+) -> list[dict[str, Any]]:
+    """Summaries of ``cfg`` run with each seed, in the order of ``seeds``.
+
+    ``workers`` processes (default: the cores this process may use); ``workers=1`` runs in this
+    process, without a pool.
+    """
+    data = normalised(cfg)
+    seeds = list(seeds)
+    n = min(workers or default_workers(), max(1, len(seeds)))
+    out: dict[int, dict[str, Any]] = {}
+    if n == 1:
+        for s in seeds:
+            out[s] = run_seed(data, s, solver)
+            if progress is not None:
+                progress(len(out), len(seeds), s)
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
+            futures = {pool.submit(run_seed, data, s, solver): s for s in seeds}
+            for fut in as_completed(futures):
+                s = futures[fut]
+                out[s] = fut.result()
+                if progress is not None:
+                    progress(len(out), len(seeds), s)
+    return [out[s] for s in seeds]
+
+
+def _stats(values: Iterable[float]) -> dict[str, float]:
+    v = np.asarray(list(values), dtype=np.float64)
+    return {
+        "mean": float(v.mean()),
+        "std": float(v.std()),
+        "min": float(v.min()),
+        "max": float(v.max()),
+    }
+
+
+_BLOCK_KEYS = (
+    "rmse_position_m",
+    "rmse_position_second_half_m",
+    "missed_detection_rate",
+    "missed_detection_rate_first_half",
+    "missed_detection_rate_second_half",
+    "miss_given_assigned",
+    "unobserved_scans",
+)
+
+
+def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Mean, std, min, max over seeds of every metric; optimality pooled over decisions."""
+    first = rows[0]
+    agg: dict[str, Any] = {
+        "targets": {
+            t: {k: _stats(r["targets"][t][k] for r in rows) for k in _BLOCK_KEYS}
+            for t in first["target_ids"]
+        },
+        "overall": {k: _stats(r["overall"][k] for r in rows) for k in _BLOCK_KEYS},
+        "usage_cost_total": _stats(r["usage_cost_total"] for r in rows),
+        "platform_travel_m": {
+            s: _stats(r["platform_travel_m"][s] for r in rows) for s in first["platform_travel_m"]
+        },
+        "mode_conflicts_resolved": int(
+            sum(r["decisions"]["mode_conflicts_resolved"] for r in rows)
+        ),
+        "decision_time_median_s": {
+            part: float(np.median([r["decision_time_s"][part]["median"] for r in rows]))
+            for part in first.get("decision_time_s", {})
+        },
+    }
+    if all("optimality" in r for r in rows):
+        gaps = np.concatenate([np.asarray(r["optimality"]["gaps"], dtype=np.float64) for r in rows])
+        agg["optimality"] = {
+            "decisions": int(gaps.size),
+            "share_lp_post_worse": float(np.mean(gaps > WORSE_TOL)),
+            "decisions_lp_post_worse": int(np.count_nonzero(gaps > WORSE_TOL)),
+            "mean_gap": float(gaps.mean()),
+            "max_gap": float(gaps.max()),
+            "conflicts_resolved": int(sum(r["optimality"]["conflicts_resolved"] for r in rows)),
+            "mean_integrality_gap": float(
+                np.mean([r["optimality"]["mean_integrality_gap"] for r in rows])
+            ),
+            "exact_not_optimal": int(sum(r["optimality"]["exact_not_optimal"] for r in rows)),
+        }
+    return agg
+
+
+def write_mc(
+    out_dir: Path, cfg: MobileConfig, seeds: Sequence[int], rows: Sequence[Mapping[str, Any]]
+) -> dict[str, Any]:
+    """Write ``montecarlo.json`` (config hash, seeds, aggregate, per-seed summaries)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "kind": "mobile-montecarlo",
+        "scenario": cfg.name,
+        "config_hash": config_hash(cfg),
+        "solver": rows[0]["solver"] if rows else cfg.solver,
+        "seeds": list(seeds),
+        "aggregate": aggregate(rows),
+        "per_seed": list(rows),
+    }
+    write_json(out_dir / MC_FILE, doc)
+    write_json(out_dir / "config.json", normalised(cfg))
+    return doc

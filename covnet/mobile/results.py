@@ -1,0 +1,174 @@
+"""The mobile run directory: ``summary.json``, ``arrays.npz``, ``config.json``, ``run.json``.
+
+``summary.json`` (spec §8.2, issue 7)::
+
+    kind, scenario, config_hash, seed, scans, solver, covnet_version, target_ids, sensor_ids
+    targets.<id>:   rmse_position_m, rmse_position_second_half_m, missed_detection_rate,
+                    missed_detection_rate_first_half, _second_half, miss_given_assigned,
+                    unobserved_scans
+    overall:        the same over all targets (RMSE pooled over targets and scans)
+    usage_cost_total                          Σ b_jρ over the chosen pairs (raw units)
+    platform_travel_m.<id>, .total            path length of every platform
+    decisions:      mode_conflicts_resolved, fractional_vertices, solver_status_counts
+    optimality:     (with compare_exact) decisions, share_lp_post_worse, mean_gap, max_gap,
+                    conflicts_resolved, mean_integrality_gap, exact_not_optimal,
+                    per_decision: J_lp, J_lp_post, J_star, J_relax, gap, conflicts
+    decision_time_s: cost_tensor, solver, comparison: {mean, median, p95} (wall clock;
+                    comparison: the other solver and the relaxation, with compare_exact)
+
+"Second half" is scans ``K//2 + 1 .. K``.  A missed detection is a (target, scan) without a
+detection, unobserved targets included; "given assigned" counts only the assigned ones.
+Relative gaps are ``(J_LP+post − J*) / |J*|``; a decision counts as worse when its gap exceeds
+1e-9.  The integrality gap is ``(J* − J_relax) / |J*|``.
+
+Everything but ``decision_time_s`` (and ``run.json``) is a function of the config and the seed.
+Files are written to a temporary name and renamed (:func:`covnet.results.write_json`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from covnet import __version__
+from covnet.mobile.config import MobileConfig, config_hash, normalised
+from covnet.mobile.simulate import MobileRun
+from covnet.results import write_json
+
+SUMMARY = "summary.json"
+ARRAYS = "arrays.npz"
+CONFIG = "config.json"
+RUN_INFO = "run.json"
+WORSE_TOL = 1e-9
+
+
+def _rate(x: np.ndarray) -> float:
+    return float(x.mean()) if x.size else float("nan")
+
+
+def _stats(t: np.ndarray) -> dict[str, float]:
+    return {
+        "mean": float(t.mean()),
+        "median": float(np.median(t)),
+        "p95": float(np.percentile(t, 95)),
+    }
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def _target_block(err2: np.ndarray, missed: np.ndarray, assigned: np.ndarray) -> dict[str, Any]:
+    """err2, missed, assigned: (K, ...) arrays of one target or of all targets."""
+    K = err2.shape[0]
+    h = K // 2
+    return {
+        "rmse_position_m": float(np.sqrt(err2.mean())),
+        "rmse_position_second_half_m": float(np.sqrt(err2[h:].mean())),
+        "missed_detection_rate": _rate(missed),
+        "missed_detection_rate_first_half": _rate(missed[:h]),
+        "missed_detection_rate_second_half": _rate(missed[h:]),
+        "miss_given_assigned": _rate(missed[assigned]),
+        "unobserved_scans": int(np.count_nonzero(~assigned)),
+    }
+
+
+def summarise(cfg: MobileConfig, run: MobileRun, timing: bool = True) -> dict[str, Any]:
+    """The content of ``summary.json`` for one run (``timing=False`` leaves out the wall times,
+    which are the only part that is not a function of config and seed)."""
+    e = run.x_est[1:] - run.truth[1:]
+    err2 = e[..., 0] ** 2 + e[..., 2] ** 2  # (K, M)
+    missed = ~run.detected
+    assigned = run.assign >= 0
+    targets = {
+        tid: _target_block(err2[:, i], missed[:, i], assigned[:, i])
+        for i, tid in enumerate(cfg.target_ids)
+    }
+    travel = np.linalg.norm(np.diff(run.platforms, axis=0), axis=2).sum(axis=0)
+    codes, counts = np.unique(run.status, return_counts=True)
+    summary: dict[str, Any] = {
+        "kind": "mobile",
+        "scenario": cfg.name,
+        "config_hash": config_hash(cfg),
+        "seed": cfg.seed,
+        "scans": cfg.scans,
+        "solver": run.solver,
+        "covnet_version": __version__,
+        "target_ids": list(cfg.target_ids),
+        "sensor_ids": list(cfg.sensor_ids),
+        "targets": targets,
+        "overall": _target_block(err2, missed, assigned),
+        "usage_cost_total": float(run.usage.sum()),
+        "platform_travel_m": {
+            **{sid: float(t) for sid, t in zip(cfg.sensor_ids, travel, strict=True)},
+            "total": float(travel.sum()),
+        },
+        "decisions": {
+            "mode_conflicts_resolved": int(run.conflicts[run.conflicts >= 0].sum()),
+            "fractional_vertices": int(run.fractional.sum()),
+            "solver_status_counts": {
+                str(int(c)): int(n) for c, n in zip(codes, counts, strict=True)
+            },
+        },
+    }
+    done = np.isfinite(run.J_star)
+    if done.any():
+        g = run.gap[done]
+        js = run.J_star[done]
+        integ = (js - run.J_relax[done]) / np.abs(js)
+        summary["optimality"] = {
+            "decisions": int(done.sum()),
+            "share_lp_post_worse": float(np.mean(g > WORSE_TOL)),
+            "mean_gap": float(g.mean()),
+            "max_gap": float(g.max()),
+            "conflicts_resolved": int(run.conflicts[done].sum()),
+            "mean_integrality_gap": float(np.nanmean(integ)),
+            "exact_not_optimal": int(np.count_nonzero(run.exact_status[done] != 0)),
+            "per_decision": {
+                "J_lp": [_finite(v) for v in run.J_lp],
+                "J_lp_post": [_finite(v) for v in run.J_post],
+                "J_star": [_finite(v) for v in run.J_star],
+                "J_relax": [_finite(v) for v in run.J_relax],
+                "gap": [_finite(v) for v in run.gap],
+                "conflicts": [int(v) for v in run.conflicts],
+            },
+        }
+    if timing:
+        t = {"cost_tensor": _stats(run.cost_s), "solver": _stats(run.solve_s)}
+        if done.any():
+            t["comparison"] = _stats(run.compare_s[done])
+        summary["decision_time_s"] = t
+    return summary
+
+
+def write_run(out_dir: Path, cfg: MobileConfig, run: MobileRun) -> dict[str, Any]:
+    """Write the run directory; return the summary."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = summarise(cfg, run)
+    arrays = run.arrays()
+    arrays["target_ids"] = np.array(cfg.target_ids)
+    arrays["sensor_ids"] = np.array(cfg.sensor_ids)
+    tmp = out_dir / (ARRAYS + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
+    os.replace(tmp, out_dir / ARRAYS)
+    write_json(out_dir / CONFIG, normalised(cfg))
+    write_json(
+        out_dir / RUN_INFO,
+        {
+            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "covnet_version": __version__,
+            "mode": "in-process",
+            "kind": "mobile",
+        },
+    )
+    write_json(out_dir / SUMMARY, summary)
+    return summary
+
+
+def load_summary(run_dir: Path) -> dict[str, Any]:
+    return json.loads((run_dir / SUMMARY).read_text())  # type: ignore[no-any-return]

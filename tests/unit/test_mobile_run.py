@@ -1,0 +1,216 @@
+"""The in-process mobile run end to end: run_cmd, results, figure, determinism in and across
+processes, failed sensors, too little capacity, unobservable targets, Monte Carlo, bench."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from covnet.config import ConfigError
+from covnet.mobile import bench
+from covnet.mobile.cli_entry import bench_cmd, mc_cmd, run_cmd
+from covnet.mobile.config import from_dict, load
+from covnet.mobile.model import build_model, decide, initial_tracks
+from covnet.mobile.montecarlo import aggregate, run_seeds
+from covnet.mobile.plots import FIGURE
+from covnet.mobile.results import summarise
+from covnet.mobile.simulate import TIMING_FIELDS, run
+
+REPO = Path(__file__).resolve().parents[2]
+MOBILE = REPO / "configs" / "mobile.yaml"
+
+
+def short(scans: int = 12, **changes) -> dict:
+    data = yaml.safe_load(MOBILE.read_text())
+    data.update(scans=scans, **changes)
+    return data
+
+
+def write_cfg(tmp_path: Path, data: dict, name: str = "mobile-short.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+def deterministic(r) -> dict[str, np.ndarray]:
+    return {k: v for k, v in r.arrays().items() if k not in TIMING_FIELDS}
+
+
+def assert_same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+@pytest.mark.parametrize("solver", ["lp", "milp"])
+def test_run_cmd_end_to_end(tmp_path, capsys, solver):
+    cfg_path = write_cfg(tmp_path, short(12))
+    out = tmp_path / "run"
+    assert run_cmd(cfg_path, out, solver, 3) == 0
+    for f in ("summary.json", "arrays.npz", "config.json", "run.json", FIGURE):
+        assert (out / f).is_file(), f
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["kind"], s["seed"], s["solver"], s["scans"]) == ("mobile", 3, solver, 12)
+    assert set(s["targets"]) == {"T1", "T2", "T3"}
+    t1 = s["targets"]["T1"]
+    for key in ("rmse_position_m", "rmse_position_second_half_m", "missed_detection_rate",
+                "missed_detection_rate_first_half", "missed_detection_rate_second_half",
+                "miss_given_assigned"):  # fmt: skip
+        assert np.isfinite(t1[key]), key
+    assert s["platform_travel_m"]["S3"] == 0.0  # the far corner never moves
+    assert s["usage_cost_total"] > 0
+    opt = s["optimality"]
+    assert opt["decisions"] == 12 and len(opt["per_decision"]["J_star"]) == 12
+    assert opt["max_gap"] >= -1e-9
+    assert set(s["decision_time_s"]) == {"cost_tensor", "solver", "comparison"}
+    with np.load(out / "arrays.npz") as arr:
+        assert arr["modes"].shape == (12, 4) and arr["x_est"].shape == (13, 3, 4)
+    text = capsys.readouterr().out
+    assert "run directory:" in text and "optimality:" in text and "figure:" in text
+    from covnet.cli import UsageError
+
+    with pytest.raises(UsageError, match="not empty"):
+        run_cmd(cfg_path, out, solver, 3)
+
+
+def test_run_cmd_bad_config_raises_config_error(tmp_path):
+    bad = short(5)
+    bad["sensors"][0]["speed_mps"] = -2.0
+    with pytest.raises(ConfigError) as info:
+        run_cmd(write_cfg(tmp_path, bad), tmp_path / "o", None, None)
+    assert ("sensors[0].speed_mps", "must be >= 0, got -2.0") in info.value.problems
+    with pytest.raises(ConfigError, match="unknown solver"):
+        run_cmd(write_cfg(tmp_path, short(5)), tmp_path / "o2", "simplex", None)
+
+
+_CHILD = """
+import sys, numpy as np, yaml
+from covnet.mobile.config import from_dict
+from covnet.mobile.simulate import TIMING_FIELDS, run
+r = run(from_dict(yaml.safe_load(open(sys.argv[1]))))
+np.savez(sys.argv[2], **{k: v for k, v in r.arrays().items() if k not in TIMING_FIELDS})
+"""
+
+
+def test_determinism_in_process_and_across_processes(tmp_path):
+    data = short(15, seed=4)
+    cfg = from_dict(data)
+    a = deterministic(run(cfg))
+    b = deterministic(run(cfg))
+    assert_same(a, b)
+    cfg_path = write_cfg(tmp_path, data)
+    out = tmp_path / "child.npz"
+    subprocess.run([sys.executable, "-c", _CHILD, str(cfg_path), str(out)], check=True, cwd=REPO)
+    with np.load(out) as child:
+        assert_same(a, {k: child[k] for k in child.files})
+    assert summarise(cfg, run(cfg), timing=False) == summarise(cfg, run(cfg), timing=False)
+
+
+def test_lp_and_milp_share_the_truth_and_the_start():
+    data = short(6, compare_exact=False)
+    lp = run(from_dict({**data, "solver": "lp"}))
+    milp = run(from_dict({**data, "solver": "milp"}))
+    np.testing.assert_array_equal(lp.truth, milp.truth)
+    np.testing.assert_array_equal(lp.x_est[0], milp.x_est[0])
+    assert np.all(np.isnan(lp.J_star)) and np.all(lp.conflicts >= 0)
+
+
+def test_a_failed_sensor_leaves_the_problem():
+    model = build_model(load(MOBILE))
+    x, P = initial_tracks(model)
+    alive = np.array([True, False, True, True])
+    step = decide(model, x, P, model.sensors.position, alive=alive)
+    d = step.decision
+    assert step.problem.N == 3
+    assert np.all(d.assign >= 0) and np.all(d.assign != 1)
+    assert d.modes[1] == 0
+    # nobody alive: every target unobserved, every sensor stays
+    step = decide(model, x, P, model.sensors.position, alive=np.zeros(4, dtype=bool))
+    assert np.all(step.decision.assign == -1) and np.all(step.decision.modes == 0)
+
+
+def test_too_little_capacity_reports_unobserved_targets_and_goes_on():
+    data = short(8)
+    for s, k in zip(data["sensors"], [1, 0, 0, 0], strict=True):
+        s["capacity"] = k
+    cfg = from_dict(data)
+    r = run(cfg)
+    assert np.all((r.assign >= 0).sum(axis=1) == 1)
+    assert np.all(r.modes[:, 1:] == 0)
+    s = summarise(cfg, r)
+    assert s["overall"]["unobserved_scans"] == 2 * 8
+    assert s["overall"]["missed_detection_rate"] >= 2 / 3
+    assert s["optimality"]["max_gap"] <= 1e-9  # capacity 1: the LP is exact
+
+
+def test_an_unobservable_target_is_still_covered():
+    data = short(6)
+    data["targets"].append({"id": "FAR", "x0": [1.0e5, 0.0, 1.0e5, 0.0], "sigma_a_mps2": 0.05})
+    cfg = from_dict(data)
+    r = run(cfg)
+    assert np.all(r.assign[:, 3] >= 0)
+    assert np.all(r.pd_true[:, 3] < 1e-12) and not r.detected[:, 3].any()
+    s = summarise(cfg, r)
+    assert s["targets"]["FAR"]["missed_detection_rate"] == 1.0
+    assert np.isfinite(s["targets"]["FAR"]["rmse_position_m"])
+
+
+def test_montecarlo_pool_equals_in_process(tmp_path, capsys):
+    cfg = from_dict(short(5, compare_exact=True))
+    seen = []
+    inline = run_seeds(cfg, [0, 1], workers=1, progress=lambda d, n, s: seen.append((d, n, s)))
+    pooled = run_seeds(cfg, [0, 1], workers=2)
+    strip = [{k: v for k, v in r.items() if k != "decision_time_s"} for r in (*inline, *pooled)]
+    assert strip[0] == strip[2] and strip[1] == strip[3] and strip[0] != strip[1]
+    assert [s for _, _, s in seen] == [0, 1] and seen[-1][:2] == (2, 2)
+    agg = aggregate(inline)
+    assert agg["optimality"]["decisions"] == 10
+    assert (
+        agg["overall"]["missed_detection_rate"]["min"]
+        <= (agg["overall"]["missed_detection_rate"]["mean"])
+    )
+    out = tmp_path / "mc"
+    assert mc_cmd(write_cfg(tmp_path, short(4)), out, 2, True, workers=1) == 0
+    doc = json.loads((out / "montecarlo.json").read_text())
+    assert doc["seeds"] == [0, 1] and len(doc["per_seed"]) == 2
+    captured = capsys.readouterr()
+    assert "seed   1 done (2/2" in captured.err and "Monte Carlo:" in captured.out
+    calls: list[tuple[int, int, int]] = []
+    cb = lambda d, n, s: calls.append((d, n, s))  # noqa: E731
+    assert mc_cmd(write_cfg(tmp_path, short(3)), tmp_path / "mc2", 1, cb, workers=1) == 0
+    assert calls == [(1, 1, 0)] and capsys.readouterr().err == ""
+
+
+def test_bench_rows_and_command(monkeypatch, capsys):
+    row = bench.bench_case(4, 3, 2, problems=1, repeat=1, milp=True)
+    for key in ("cost_ms", "lp_ms", "decision_ms", "lp_highs_ms", "milp_ms"):
+        assert row[key] > 0, key
+    assert row["closed_form_ms"] is None and row["lp_post_worse"] in (0, 1)
+    original = bench.run
+    monkeypatch.setattr(bench, "run", lambda **kw: original(sensors=(4,), targets=(3,), **kw))
+    assert bench_cmd(False, problems=1, repeat=1) == 0
+    text = capsys.readouterr().out
+    assert "goal: whole decision" in text and "goal: closed form" in text
+    assert bench_cmd(True, milp=False, problems=1, repeat=1) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(lines) == 3 and "goals" in lines[-1] and lines[0]["milp_ms"] is None
+
+
+def test_covnet_cli_routes_mobile_configs(tmp_path, capsys):
+    """`covnet run FILE --solver` and `covnet mc` reach the mobile runner; `covnet up` says why
+    not yet; `--metric` on a mobile file is a usage error."""
+    from covnet.cli import main
+
+    cfg_path = write_cfg(tmp_path, short(8))
+    assert main(["run", str(cfg_path), "--solver", "milp", "--out", str(tmp_path / "r"),
+                 "--no-figures"]) == 0
+    assert json.loads((tmp_path / "r" / "summary.json").read_text())["solver"] == "milp"
+    assert main(["run", str(cfg_path), "--metric", "svd", "--out", str(tmp_path / "x")]) == 2
+    assert main(["up", str(cfg_path)]) == 2
+    assert "not built yet" in capsys.readouterr().err
