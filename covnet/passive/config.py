@@ -1,0 +1,332 @@
+"""``configs/passive.yaml``: passive association configs -> validated, frozen records.
+
+A passive config is identified by its top-level key ``kind: passive``.  Validation works like
+:mod:`covnet.config` (and reuses its :class:`~covnet.config.ConfigError` and path formatting):
+unknown keys are errors, scalars are strict, and every problem is reported together with its
+path, e.g. ``montecarlo.methods[1]: unknown method 'lp'; choose from [...]``.
+
+Sections: ``sensors`` (exactly three; the third is the reference of the height test),
+``targets`` (formation, spacing d, centre, altitude), ``noise`` (σ_α, σ_ε in mrad),
+``clutter`` (the clutter-on setting of the protocol: P_D, λ_fa, window; ``enabled`` for single
+scans), ``association`` (method and its parameters), ``montecarlo`` (the §9 grid).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import Field, Strict, ValidationError, field_validator
+
+from covnet.config import ConfigError, Float, Int, Str, _fmt_error, _Model
+from covnet.core.passive.methods import METHODS
+from covnet.core.passive.model import AssocParams
+from covnet.passive.scene import FORMATIONS, SceneModel, formation
+
+__all__ = [
+    "KIND",
+    "PassiveConfig",
+    "config_hash",
+    "from_dict",
+    "is_passive",
+    "load",
+    "normalised",
+]
+
+KIND = "passive"
+Bool = Annotated[bool, Strict()]
+Triple = Annotated[tuple[Float, ...], Field(min_length=3, max_length=3)]
+Pair = Annotated[tuple[Float, ...], Field(min_length=2, max_length=2)]
+FormationName = Literal["horizontal", "cross"]
+
+
+def _positive(v: float) -> float:
+    if not v > 0:
+        raise ValueError(f"must be > 0, got {v}")
+    return v
+
+
+class PassiveSensorSpec(_Model):
+    """One passive sensor: id and position ``(x, y, z)`` km (x east, y north, z up)."""
+
+    id: Str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    position_km: Triple
+
+
+class TargetsSpec(_Model):
+    """The paper's five targets: ``formation`` with spacing ``d`` around ``center_km``."""
+
+    formation: FormationName = "cross"
+    spacing_km: Float = 1.0
+    center_km: Pair = (5.0, 5.0)
+    altitude_km: Float = 1.0
+
+    _pos = field_validator("spacing_km")(_positive)
+
+
+class NoiseSpec(_Model):
+    """Additive Gaussian angle noise, std in mrad (the paper: σ_α = σ_ε = σ_s)."""
+
+    sigma_azimuth_mrad: Float = 3.0
+    sigma_elevation_mrad: Float = 3.0
+
+    _pos = field_validator("sigma_azimuth_mrad", "sigma_elevation_mrad")(_positive)
+
+
+class ClutterSpec(_Model):
+    """The clutter-on setting (spec §3): per (target, sensor) detection probability, Poisson
+    false returns per sensor and scan, uniform in ``window_rad`` (azimuth, elevation) around
+    the direction of the formation centroid.  ``enabled``: use it for single scans
+    (``covnet scene``); the Monte Carlo grid switches it with ``montecarlo.clutter``."""
+
+    enabled: Bool = False
+    p_detect: Float = 0.95
+    rate_per_scan: Float = 0.25
+    window_rad: Pair = (0.1, 0.1)
+
+    @field_validator("p_detect")
+    @classmethod
+    def _pd(cls, v: float) -> float:
+        if not 0.0 < v <= 1.0:
+            raise ValueError(f"must be in (0, 1], got {v}")
+        return v
+
+    @field_validator("rate_per_scan")
+    @classmethod
+    def _rate(cls, v: float) -> float:
+        if not v >= 0:
+            raise ValueError(f"must be >= 0, got {v}")
+        return v
+
+    @field_validator("window_rad")
+    @classmethod
+    def _window(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(0 < w < np.pi for w in v):
+            raise ValueError(f"both widths must be in (0, π) rad, got {list(v)}")
+        return v
+
+
+class LRSpec(_Model):
+    """Lagrangian relaxation (spec §8.3)."""
+
+    max_iterations: Int = Field(default=100, ge=1, le=100_000)
+    rel_gap: Float = Field(default=1e-3, ge=0.0, le=1.0)
+    step: Float = Field(default=1.0, gt=0.0, le=2.0)
+    halve_after: Int = Field(default=5, ge=0)
+
+
+class MILPSpec(_Model):
+    time_limit_s: Float = Field(default=10.0, gt=0.0)
+
+
+class AssociationSpec(_Model):
+    """The association method (a ``METHODS`` name) and the parameters of every method."""
+
+    method: Str = "cot"
+    gate_sigma: Float = Field(default=3.0, gt=0.0)
+    cot_cost: Literal["raw", "normalised"] = "raw"
+    azimuth_form: Literal["cot", "sine"] = "cot"
+    target_density_km3: Float = Field(default=0.025, ge=0.0)
+    gauss_newton_steps: Int = Field(default=3, ge=0, le=50)
+    lr: LRSpec = LRSpec()
+    milp: MILPSpec = MILPSpec()
+
+
+class MonteCarloSpec(_Model):
+    """The evaluation grid of spec §9 (every combination is one cell)."""
+
+    trials: Int = Field(default=100, ge=1, le=1_000_000)
+    formations: tuple[FormationName, ...] = FORMATIONS
+    spacings_km: tuple[Float, ...] = (0.5, 1.0, 2.0)
+    sigmas_mrad: tuple[Float, ...] = (1.0, 3.0, 5.0)
+    clutter: tuple[Bool, ...] = (False, True)
+    methods: tuple[Str, ...] = ("cot", "lr", "milp", "greedy")
+    workers: Int = Field(default=0, ge=0, le=1024)
+
+
+class PassiveConfig(_Model):
+    """A whole passive association config (``kind: passive``)."""
+
+    kind: Literal["passive"]
+    name: Str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    seed: Int = Field(ge=0)
+    sensors: tuple[PassiveSensorSpec, ...] = Field(min_length=3, max_length=3)
+    targets: TargetsSpec = TargetsSpec()
+    noise: NoiseSpec = NoiseSpec()
+    clutter: ClutterSpec = ClutterSpec()
+    association: AssociationSpec = AssociationSpec()
+    montecarlo: MonteCarloSpec = MonteCarloSpec()
+
+    @property
+    def sensor_positions(self) -> np.ndarray:
+        return np.array([s.position_km for s in self.sensors], dtype=np.float64)
+
+    def scene_model(
+        self,
+        formation_name: str | None = None,
+        spacing_km: float | None = None,
+        sigma_mrad: float | None = None,
+        clutter: bool | None = None,
+    ) -> SceneModel:
+        """The :class:`SceneModel` of this config, optionally for one grid cell (``sigma_mrad``
+        sets σ_α = σ_ε; ``clutter`` False means P_D = 1 and no false returns)."""
+        t = self.targets
+        targets = formation(
+            formation_name or t.formation,
+            t.spacing_km if spacing_km is None else spacing_km,
+            (t.center_km[0], t.center_km[1]),
+            t.altitude_km,
+        )
+        if sigma_mrad is None:
+            sa, se = self.noise.sigma_azimuth_mrad, self.noise.sigma_elevation_mrad
+        else:
+            sa = se = sigma_mrad
+        on = self.clutter.enabled if clutter is None else clutter
+        c = self.clutter
+        return SceneModel(
+            sensors=self.sensor_positions,
+            targets=targets,
+            sigma_azimuth=np.full(3, 1e-3 * sa),
+            sigma_elevation=np.full(3, 1e-3 * se),
+            p_detect=c.p_detect if on else 1.0,
+            clutter_rate=c.rate_per_scan if on else 0.0,
+            window_rad=(c.window_rad[0], c.window_rad[1]),
+        )
+
+    def assoc_params(self, model: SceneModel) -> AssocParams:
+        """:class:`AssocParams` for ``model`` with this config's association settings."""
+        a = self.association
+        return model.params(
+            gate=a.gate_sigma,
+            cot_cost=a.cot_cost,
+            azimuth_form=a.azimuth_form,
+            target_density=a.target_density_km3,
+            gn_steps=a.gauss_newton_steps,
+            lr_max_iter=a.lr.max_iterations,
+            lr_rel_gap=a.lr.rel_gap,
+            lr_step=a.lr.step,
+            lr_halve_after=a.lr.halve_after,
+            milp_time_limit_s=a.milp.time_limit_s,
+        )
+
+
+def _semantic_problems(cfg: PassiveConfig) -> list[tuple[str, str]]:
+    problems: list[tuple[str, str]] = []
+    seen: set[str] = set()
+    for i, s in enumerate(cfg.sensors):
+        if s.id in seen:
+            problems.append((f"sensors[{i}].id", f"duplicate sensor id {s.id!r}"))
+        seen.add(s.id)
+    pos = cfg.sensor_positions
+    for i in range(3):
+        for j in range(i + 1, 3):
+            if np.hypot(*(pos[i, :2] - pos[j, :2])) < 1e-6:
+                problems.append(
+                    (f"sensors[{j}].position_km", f"same horizontal position as sensors[{i}]")
+                )
+    choices = sorted(METHODS)
+    if cfg.association.method not in METHODS:
+        problems.append(
+            (
+                "association.method",
+                f"unknown method {cfg.association.method!r}; choose from {choices}",
+            )
+        )
+    mc = cfg.montecarlo
+    for i, m in enumerate(mc.methods):
+        if m not in METHODS:
+            problems.append(
+                (f"montecarlo.methods[{i}]", f"unknown method {m!r}; choose from {choices}")
+            )
+    for field, values in (
+        ("formations", mc.formations),
+        ("spacings_km", mc.spacings_km),
+        ("sigmas_mrad", mc.sigmas_mrad),
+        ("clutter", mc.clutter),
+        ("methods", mc.methods),
+    ):
+        if not values:
+            problems.append((f"montecarlo.{field}", "must not be empty"))
+        elif len(set(values)) != len(values):
+            problems.append((f"montecarlo.{field}", f"duplicate entries in {list(values)}"))
+    for field, values in (("spacings_km", mc.spacings_km), ("sigmas_mrad", mc.sigmas_mrad)):
+        for i, v in enumerate(values):
+            if not v > 0:
+                problems.append((f"montecarlo.{field}[{i}]", f"must be > 0, got {v}"))
+    c = cfg.clutter
+    if c.p_detect < 1.0 and c.rate_per_scan == 0.0:
+        problems.append(
+            (
+                "clutter.rate_per_scan",
+                "must be > 0 when clutter.p_detect < 1 (the S-D cost weighs every tuple against "
+                "'all measurements false', which needs a false-alarm density)",
+            )
+        )
+    return problems
+
+
+def from_dict(data: object, source: str = "<dict>") -> PassiveConfig:
+    """Validate a parsed passive config; raise :class:`ConfigError` listing every problem."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(source, [("", "the top level must be a mapping of keys to values")])
+    kind = data.get("kind")
+    if kind != KIND:
+        got = "missing" if kind is None else f"got {kind!r}"
+        raise ConfigError(
+            source, [("kind", f"expected {KIND!r} (a passive association config), {got}")]
+        )
+    try:
+        cfg = PassiveConfig.model_validate(dict(data))
+    except ValidationError as exc:
+        raise ConfigError(source, [_fmt_error(e) for e in exc.errors()]) from None
+    problems = _semantic_problems(cfg)
+    if problems:
+        raise ConfigError(source, problems)
+    return cfg
+
+
+def _read_yaml(path: str | Path) -> tuple[Path, Any]:
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
+    try:
+        return p, yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(str(p), [("", f"not valid YAML: {where}{problem}")]) from None
+
+
+def load(path: str | Path) -> PassiveConfig:
+    """Read and validate a passive YAML config."""
+    p, data = _read_yaml(path)
+    return from_dict(data, str(p))
+
+
+def is_passive(path: str | Path) -> bool:
+    """Does the YAML file at ``path`` declare ``kind: passive``? (False when unreadable: the
+    caller's own loader then reports the problem.)"""
+    try:
+        _, data = _read_yaml(path)
+    except ConfigError:
+        return False
+    return isinstance(data, Mapping) and data.get("kind") == KIND
+
+
+def normalised(cfg: PassiveConfig) -> dict[str, Any]:
+    """The config with every default filled in, as plain JSON-able data."""
+    return cfg.model_dump(mode="json")
+
+
+def config_hash(cfg: PassiveConfig) -> str:
+    """SHA-256 (first 16 hex digits) of the normalised config as canonical JSON."""
+    blob = json.dumps(normalised(cfg), sort_keys=True, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]

@@ -1,0 +1,150 @@
+"""The command entry points: ``mc_cmd`` end to end (tiny grid, process pool), ``scene_cmd``,
+``bench_cmd``, and their errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from covnet.config import ConfigError
+from covnet.core.passive import METHODS, Association
+from covnet.passive import bench
+from covnet.passive.cli_entry import bench_cmd, mc_cmd, scene_cmd
+
+REPO = Path(__file__).resolve().parents[2]
+PASSIVE = REPO / "configs" / "passive.yaml"
+ROW_KEYS = {
+    "formation",
+    "d_km",
+    "sigma_mrad",
+    "clutter",
+    "method",
+    "p",
+    "precision",
+    "exact_scan_rate",
+    "median_time_s",
+    "mean_candidates_azimuth",
+    "mean_candidates_elevation",
+    "sd_optimal_rate",
+}
+
+
+def _tiny(tmp_path: Path, **mc) -> Path:
+    data = yaml.safe_load(PASSIVE.read_text())
+    data["montecarlo"].update(
+        {
+            "trials": 2,
+            "formations": ["cross"],
+            "spacings_km": [1.0],
+            "sigmas_mrad": [3.0],
+            "clutter": [False, True],
+            "workers": 2,
+            **mc,
+        }
+    )
+    p = tmp_path / "tiny.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+def test_mc_cmd_end_to_end(tmp_path, capsys):
+    cfg = _tiny(tmp_path)
+    seen = []
+    out = tmp_path / "mc"
+    assert mc_cmd(cfg, out, None, lambda d, n, label: seen.append((d, n, label))) == 0
+    assert [s[:2] for s in seen] == [(1, 2), (2, 2)]
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["trials"] == 2 and doc["workers"] == 2 and doc["cells"] == 2
+    rows = doc["rows"]
+    assert len(rows) == 2 * len(METHODS)
+    assert [(r["clutter"], r["method"]) for r in rows] == [
+        (c, m) for c in (False, True) for m in ("cot", "lr", "milp", "greedy")
+    ]
+    for r in rows:
+        assert ROW_KEYS <= set(r)
+        assert 0.0 <= r["p"] <= 1.0 and r["median_time_s"] > 0
+    cot = rows[0]
+    assert cot["mean_candidates_azimuth"] >= cot["mean_candidates_elevation"] > 0
+    lr = rows[1]
+    assert lr["sd_optimal_rate"] is not None and cot["sd_optimal_rate"] is None
+    table = (out / "results.md").read_text()
+    assert table.count("| cross |") == len(rows)
+    for f in ("fig_p_vs_d.png", "fig_time.png", "config.json"):
+        assert (out / f).stat().st_size > 1000 or f == "config.json"
+    printed = capsys.readouterr().out
+    assert "results:" in printed and "cot" in printed
+
+
+def test_mc_trials_override_and_a_user_method(tmp_path, monkeypatch, capsys):
+    """A method added to the registry is selectable by name (in-process run: workers 1)."""
+
+    def null(scan, params):
+        return Association.empty(info={"n_tuples": 0})
+
+    monkeypatch.setitem(METHODS, "null", null)
+    cfg = _tiny(tmp_path, workers=1, methods=["null", "cot"], clutter=[False])
+    out = tmp_path / "mc"
+    assert mc_cmd(cfg, out, 3, False) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["trials"] == 3
+    null_row = next(r for r in doc["rows"] if r["method"] == "null")
+    assert null_row["p"] == 0.0 and null_row["exact_scan_rate"] == 0.0
+
+
+def test_mc_errors(tmp_path):
+    with pytest.raises(ConfigError, match="--trials"):
+        mc_cmd(PASSIVE, tmp_path / "x", 0, False)
+    with pytest.raises(ConfigError, match="kind: expected 'passive'"):
+        mc_cmd(REPO / "configs" / "paper.yaml", tmp_path / "x", 1, False)
+    f = tmp_path / "file"
+    f.write_text("")
+    with pytest.raises(ConfigError, match="not a directory"):
+        mc_cmd(_tiny(tmp_path), f, 1, False)
+
+
+def test_scene_cmd_writes_results_and_figure(tmp_path, capsys):
+    out = tmp_path / "scene"
+    assert scene_cmd(PASSIVE, out, 5) == 0
+    doc = json.loads((out / "association.json").read_text())
+    assert doc["seed"] == 5 and doc["method"] == "cot"
+    assert len(doc["measurements"]) == 3
+    assert len(doc["positions_km"]) == len(doc["triples"]) == len(doc["correct"])
+    targets = np.array(doc["targets_km"])
+    for p, ok, t in zip(doc["positions_km"], doc["correct"], doc["target_of_triple"], strict=True):
+        if ok:
+            assert np.linalg.norm(np.array(p) - targets[t]) < 0.1
+    assert (out / "scene.png").stat().st_size > 1000
+    assert "run directory" in capsys.readouterr().out
+    with pytest.raises(ConfigError, match="--seed"):
+        scene_cmd(PASSIVE, out, -1)
+
+
+def test_bench_cmd(monkeypatch, capsys):
+    monkeypatch.setattr(bench, "DEFAULT_SCANS", 1)
+    assert bench_cmd(json_out=True) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    rows, summary = lines[:-1], lines[-1]["summary"]
+    assert {r["method"] for r in rows} == set(METHODS)
+    assert summary["scenes"] == 24 and summary["scans_per_scene"] == 1
+    assert summary["ratio_lr_over_cot_d_ge_1"] > 0
+    assert bench_cmd(json_out=False) == 0
+    text = capsys.readouterr().out
+    assert "goal (cot >= 3x faster than lr for d >= 1 km)" in text
+
+
+def test_covnet_cli_routes_passive_configs(tmp_path, capsys):
+    """`covnet run` draws and associates one scan; `covnet mc` runs the protocol;
+    `covnet up` says the passive network is not built yet."""
+    from pathlib import Path
+
+    from covnet.cli import main
+
+    cfg = Path(__file__).resolve().parents[2] / "configs" / "passive.yaml"
+    assert main(["run", str(cfg), "--out", str(tmp_path / "scene")]) == 0
+    assert (tmp_path / "scene" / "association.json").is_file()
+    assert main(["up", str(cfg)]) == 2
+    assert "not built yet" in capsys.readouterr().err
