@@ -1,0 +1,895 @@
+"""The exact fast search behind :func:`covnet.core.allocation.allocate`.
+
+Problem (spec, "Covariance-control sensor allocation")::
+
+    D_opt = argmin_{D_i in D_c} f(P_i, P_d),   P_i = (P⁻¹ + J_i)⁻¹,   J_i = sum_{j in D_i} J_j
+
+with the tie rule of :func:`tie_threshold` / :func:`tie_select`.  The plain reference evaluates
+``f`` exactly on every feasible subset; this module returns the same subset while evaluating
+``f`` exactly on few of them.
+
+**Stage 1: a cheap lower bound for every feasible subset** (``2**CHUNK_BITS`` subsets at a time,
+structure-of-arrays numpy, so memory stays bounded at any N).  The gains only touch the
+*support* ``s`` (state coordinates with a non-zero gain entry: the positions, for position
+sensors), ``r = |s|``.  With ``C = P[s, s]``, ``Kᵀ = C⁻¹ P[s, :]`` and ``P∞ = P - K P[s, :]``
+(block elimination, i.e. Woodbury)::
+
+    P_i = P∞ + K Z_i⁻¹ Kᵀ,     Z_i = C⁻¹ + S_i,     S_i = J_i[s, s] = sum_{j in D_i} S_j
+
+so a subset costs one ``r x r`` inverse (closed form ``adj(Z) / det Z`` for the usual ``r = 2``)
+and ``P_i`` is affine in it: one small matrix product per chunk.  All ``Z_i`` of a chunk come
+from one product of the sensors' ``S_j`` with a 0/1 table of the subsets' bits.  The metric's
+cheap bound (:data:`METRIC_BOUNDS`) runs on these approximate ``P_i``; bounds only pay for the
+entries they read (``abs_trace`` reads the diagonal).
+
+**Stage 2: exact values for few subsets**, computed with the reference's arithmetic (``J_i``
+summed in ascending sensor order by :func:`gain_sums`, ``P_i`` by :func:`spd_inverse`, the
+metric itself on the stack).  The subset with the smallest bound is evaluated first; with ``U``
+the smallest exact value so far and ``L`` the smallest bound, a subset is discarded once its
+bound exceeds ``τ = U + rtol·max(|U|, |L|, tiny)``; the others are evaluated in increasing-bound
+order while ``τ`` shrinks.  A metric with a ``refine`` bound (tighter, costlier: ``spectral``,
+``svd``) first refines the survivors block by block, evaluating each block's best few at once so
+``τ`` falls early.  As ``L <= f* <= U``, ``τ`` never drops below the reference's tie threshold
+``f* + rtol·max(|f*|, tiny)``: no member of the reference's tie set is discarded, and the tie rule
+runs on bit-identical values (the metrics are batch-invariant, :mod:`covnet.core.metrics`), so
+the choice, its value and its ``P`` are the reference's.
+
+**Rounding.**  A bound must stay below the exact value *as computed in floating point*.  Each
+bound receives a :class:`BoundContext`: an entrywise error bound ``err`` of the stage-1 ``P_i``,
+``ERR_FACTOR · n² · eps · κ · λmax(P)`` with ``κ = tr(P) tr(P⁻¹ + J_all) >= cond(P_i)`` for every
+subset, and spectral limits valid for every subset by Loewner monotonicity
+(``(P⁻¹ + J_all)⁻¹ <= P_i <= P``), and deflates its value by the resulting perturbation bound
+plus a relative rounding allowance.  This is a worst-case error model with a generous constant,
+not a certified interval computation; measured stage-1 errors stay below 1e-3 of ``err`` even
+for condition numbers of 1e19 (and the property tests check bound <= exact value on every
+subset).  Near-degenerate problems (the spec's scans 1-2, where subsets differ by a relative
+1e-9) cannot be separated by bounds and fall back to many exact evaluations: still exact, slower.
+
+**Fallback.**  A metric without a registered bound (a user's own function) is evaluated exactly
+on every feasible subset, in batches; values within a relative 1e-6 of the tie threshold are
+re-evaluated one subset per call, as the reference calls the metric.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import lapack
+
+from covnet.core.gaussian import Mat
+from covnet.core.metrics import EIG_TIE_RTOL, METRICS, MetricFn, ordered_eigh
+
+EPS = float(np.finfo(np.float64).eps)
+TINY = float(np.finfo(np.float64).tiny)
+#: stage 1 processes at most 2**CHUNK_BITS subsets at a time (bounded memory at any N)
+CHUNK_BITS = 12
+#: stage 2 and the fallback evaluate at most EXACT_BLOCK subsets per batch
+EXACT_BLOCK = 4096
+#: with a refinable bound, the first exact evaluation goes to the best refined bound among the
+#: SEED_POOL best cheap bounds, for metrics marked ``refine_seed`` or above SEED_POOL_ABOVE
+#: feasible subsets
+SEED_POOL = 32
+SEED_POOL_ABOVE = 2048
+#: with a refinable bound, each refined block's REFINED_PICKS best are evaluated at once
+REFINED_PICKS = 4
+#: metrics whose batched values equal their one-at-a-time values bit for bit (tested); other
+#: metrics get a pruning margin and a one-at-a-time recheck of near ties
+BATCH_INVARIANT = frozenset(METRICS.values())
+#: stage-1 entrywise error model: err = ERR_FACTOR · n² · eps · κ · λmax(P_pred)
+ERR_FACTOR = 64.0
+
+
+# --------------------------------------------------------------------------------------------
+# exact building blocks, shared with the plain reference
+# --------------------------------------------------------------------------------------------
+
+
+def spd_inverse(A: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``A⁻¹`` of SPD ``A`` via its Cholesky factor: LAPACK ``potrf`` (``A = L Lᵀ``) then
+    ``potri`` (``A⁻¹ = L⁻ᵀ L⁻¹`` from ``L``), lower triangle mirrored so the result is exactly
+    symmetric.  Batched over leading axes, one LAPACK call pair per matrix: a matrix gets the same
+    bits alone or in a stack.  Reads the lower triangle.  Raises ``numpy.linalg.LinAlgError``
+    unless positive definite.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    n = A.shape[-1]
+    lo, hi = _tril(n)
+    if A.ndim == 2 or A.size == n * n:
+        inv = _potri(A.reshape(n, n), 0)
+        inv[hi, lo] = inv[lo, hi]
+        return inv.reshape(A.shape)
+    flat = A.reshape(-1, n, n)
+    out = np.empty(flat.shape)
+    for k in range(flat.shape[0]):
+        out[k] = _potri(flat[k], k)
+    out[:, hi, lo] = out[:, lo, hi]
+    return out.reshape(A.shape)
+
+
+def _potri(A: Mat, k: int) -> Mat:
+    """LAPACK ``potrf`` + ``potri`` on one matrix: the inverse in the lower triangle."""
+    c, info = lapack.dpotrf(A, lower=1)
+    if info == 0:
+        inv, info = lapack.dpotri(c, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(
+            f"matrix {k} of the batch is not positive definite (LAPACK info {info})"
+        )
+    return np.asarray(inv)
+
+
+@functools.lru_cache(maxsize=16)
+def _tril(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Row and column indices of the strictly lower triangle (a constant per n)."""
+    lo, hi = np.tril_indices(n, -1)
+    return lo, hi
+
+
+def gain_sums(gains: NDArray[np.float64], masks: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """``J_i = sum_{j in D_i} J_j`` for boolean rows ``masks (m, Ns)``, as ``(m, n, n)``.
+
+    Added left to right in ascending sensor order (a cumulative sum, sequential by definition;
+    non-members contribute ``+0.0``, which changes no sum), so each ``J_i`` has the bits of
+    ``J = 0; for j in subset: J = J + J_j``.  The final ``+ 0.0`` maps ``-0.0`` to ``+0.0`` as
+    that loop, which starts from ``+0.0``, would.
+    """
+    W = np.where(masks[:, :, None, None], gains[None], 0.0)
+    return np.cumsum(W, axis=1)[:, -1] + 0.0
+
+
+def tie_threshold(f_star: float, tie_rtol: float) -> float:
+    """Values ``f <= f* + tie_rtol · max(|f*|, tiny)`` tie with the minimum ``f*``."""
+    return f_star + tie_rtol * max(abs(f_star), TINY)
+
+
+def tie_select(values: NDArray[np.float64], masks: NDArray[np.bool_], tie_rtol: float) -> int:
+    """Row of the chosen subset: within the tie set of :func:`tie_threshold`, the fewest sensors,
+    then the lexicographically smallest ascending index tuple.
+
+    Of two subsets of equal size, the lexicographically smaller tuple is the one containing the
+    lowest index at which they differ; hence the sort keys: size, then "contains sensor 0",
+    "contains sensor 1", ...
+    """
+    thr = tie_threshold(float(values.min()), tie_rtol)
+    tie = np.flatnonzero(values <= thr)
+    if tie.size == 1:
+        return int(tie[0])
+    sub = masks[tie]
+    keys = [~sub[:, j] for j in reversed(range(sub.shape[1]))] + [sub.sum(axis=1)]
+    return int(tie[np.lexsort(keys)[0]])
+
+
+# --------------------------------------------------------------------------------------------
+# stage 1: the reduced information form, and the bounds evaluated on it
+# --------------------------------------------------------------------------------------------
+
+
+class BoundContext(NamedTuple):
+    """What a bound may assume about the exact ``P_i`` behind its stage-1 approximation:
+
+    - ``|P_exact - P_stage1| <= err`` entrywise;
+    - ``lam_min <= λ(P_exact) <= lam_max`` (Loewner: ``(P⁻¹ + J_all)⁻¹ <= P_i <= P_pred``);
+    - ``kappa >= lam_max / lam_min``, a condition-number bound valid for every subset;
+    - ``scale >= max(λmax(P_pred), ||P_d||_2)``, the magnitude of the metric's inputs.
+    """
+
+    err: float
+    lam_min: float
+    lam_max: float
+    kappa: float
+    scale: float
+
+
+class _Setup:
+    """The reduced information form of one problem (module docstring).
+
+    With ``s`` the support (``r = |s|``), ``C = P[s, s]``, ``Kᵀ = C⁻¹ P[s, :]`` and
+    ``P∞ = P - K P[s, :]``: ``P_i = P∞ + K Z_i⁻¹ Kᵀ`` with ``Z_i = C⁻¹ + sum_{j in i} S_j``
+    (``S_j = J_j[s, s]``).  Flattened, ``P_i = T g_i + P∞`` with ``T[(a, b), (c, d)] = K_ac K_bd``
+    and ``g_i`` the entries of ``Z_i⁻¹``; for ``r = 2``, ``Z⁻¹ = adj(Z) / det Z`` with
+    ``adj(Z) = J Z Jᵀ``, ``J = [[0, 1], [-1, 0]]``, so ``K`` becomes ``K J`` in ``T`` and
+    ``g_i = Z_i / det Z_i``.
+    ``memo`` holds per-problem constants of the bounds.
+    """
+
+    __slots__ = (
+        "n",
+        "r",
+        "s",
+        "P",
+        "Y0",
+        "P_d",
+        "Zc",
+        "KT",
+        "T",
+        "P_inf",
+        "M_inf",
+        "S_free",
+        "base",
+        "ctx",
+        "memo",
+    )
+
+    def __init__(
+        self, P: Mat, gains: Mat, P_d: Mat, Y0: Mat, active: Mat, free: list[int], req: list[int]
+    ) -> None:
+        n = P.shape[0]
+        s = active.reshape(-1, n).any(axis=0).nonzero()[0]
+        r = s.size
+        if r == n:
+            KT = np.eye(n)
+            P_inf = np.zeros((n, n))
+            Zc = Y0
+        else:
+            Ps = P[s]
+            Zc = spd_inverse(Ps[:, s]) if r else np.zeros((0, 0))
+            KT = Zc @ Ps
+            P_inf = P - KT.T @ Ps
+        # for r = 2, K adj(Z) Kᵀ = (K J) Z (K J)ᵀ with J = [[0, 1], [-1, 0]]: fold J into K
+        KJT = KT[::-1] * _ADJ2_SIGN if r == 2 else KT
+        self.T = np.multiply.outer(KJT, KJT).transpose(1, 3, 0, 2).reshape(n * n, r * r)
+        self.P_inf = P_inf.reshape(n * n)
+        self.M_inf = self.P_inf - P_d.reshape(n * n)
+        S = gains[:, s[:, None], s].reshape(gains.shape[0], r * r)
+        self.S_free = S if len(free) == gains.shape[0] else S[free]
+        self.base = Zc.reshape(r * r) + S[req].sum(axis=0) if req else Zc.reshape(r * r)
+        self.n, self.r, self.s, self.Zc, self.KT = n, r, s, Zc, KT
+        self.P, self.Y0, self.P_d = P, Y0, P_d
+        self.memo: dict[str, object] = {}
+        # limits valid for every subset (a PSD matrix's trace bounds its largest eigenvalue)
+        lam_max = float(P.trace())
+        tr_Y_all = float(Y0.trace()) + float(np.einsum("jii->", active))
+        kappa = lam_max * tr_Y_all
+        err = ERR_FACTOR * n * n * EPS * kappa * lam_max
+        scale = lam_max + float(np.abs(P_d).sum())
+        self.ctx = BoundContext(err, 1.0 / tr_Y_all, lam_max, kappa, scale)
+
+    def covariances(self, Z: Mat) -> Stage1P:
+        """Stage-1 ``P_i`` of the subsets with ``Z_i = Z[:, i]`` (``(r*r, B)``)."""
+        if self.r == 2:
+            det = Z[0] * Z[3] - Z[1] * Z[2]
+            return Stage1P(self, Z, det, Z / det)
+        return Stage1P(self, Z, None, _spd_inverse_soa(Z, self.r))
+
+    def subsets(self, codes: NDArray[np.int64]) -> Stage1P:
+        """Stage-1 ``P_i`` of arbitrary subsets (codes over the free sensors)."""
+        bits = ((codes[None, :] >> np.arange(self.S_free.shape[0])[:, None]) & 1).astype(float)
+        return self.covariances(self.base[:, None] + self.S_free.T @ bits)
+
+
+_ADJ2_SIGN = np.array([[-1.0], [1.0]])  # Jᵀ Kᵀ = [-Kᵀ[1], Kᵀ[0]]
+
+
+class Stage1P:
+    """The stage-1 covariances of ``B`` subsets, structure-of-arrays: entry ``(i, j)`` of every
+    subset's ``P_i`` is one ``(B,)`` row, computed on demand (a bound that needs only the
+    diagonal pays only for it).
+
+    ``diag()`` ``(n, B)``, ``full()`` ``(n*n, B)`` (row ``i*n + j``), ``stack()`` ``(B, n, n)``;
+    ``diff_diag()``, ``diff_full()`` the same for ``P_i - P_d``.  ``Z`` ``(r*r, B)``: the
+    subsets' information on the support, ``det`` its determinant when ``r = 2``; ``setup`` the
+    problem's :class:`_Setup`.
+    """
+
+    __slots__ = ("n", "size", "setup", "Z", "det", "_g", "_full")
+
+    def __init__(self, setup: _Setup, Z: Mat, det: Mat | None, g: Mat) -> None:
+        self.n, self.size, self.setup = setup.n, Z.shape[1], setup
+        self.Z, self.det, self._g = Z, det, g
+        self._full: Mat | None = None
+
+    def _rows(self, rows: slice, offset: Mat) -> Mat:
+        X = self.setup.T[rows] @ self._g
+        X += offset[rows, None]
+        return X
+
+    def diag(self) -> Mat:
+        return self._rows(slice(None, None, self.n + 1), self.setup.P_inf)
+
+    def diff_diag(self) -> Mat:
+        return self._rows(slice(None, None, self.n + 1), self.setup.M_inf)
+
+    def full(self) -> Mat:
+        if self._full is None:
+            self._full = self._rows(slice(None), self.setup.P_inf)
+        return self._full
+
+    def diff_full(self) -> Mat:
+        return self._rows(slice(None), self.setup.M_inf)
+
+    def stack(self) -> Mat:
+        return self.full().reshape(self.n, self.n, self.size).transpose(2, 0, 1)
+
+
+BoundFn = Callable[[Stage1P, NDArray[np.float64], BoundContext], NDArray[np.float64]]
+
+
+@dataclass(frozen=True, slots=True)
+class MetricBound:
+    """Lower bounds for one metric: ``cheap`` runs on every feasible subset, the optional
+    ``refine`` (tighter, costlier) only on the survivors of ``cheap``.
+
+    Contract: ``fn(P, P_d, ctx)`` returns ``(P.size,)`` values ``<= metric(P_exact, P_d)`` *as
+    computed in floating point*, for every ``P_exact`` allowed by ``ctx``.  NaN or ``-inf``
+    (no information) are always safe.
+    """
+
+    cheap: BoundFn
+    refine: BoundFn | None = None
+    #: refine a pool of the best cheap bounds before the first exact evaluation even for small
+    #: problems (worth it when ``cheap`` is loose, as the size-only bound of ``svd`` is)
+    refine_seed: bool = False
+
+
+def _cov_slack(v: Mat, lipschitz: float, ctx: BoundContext) -> Mat:
+    """Deflate a value ``v >= 0`` in covariance units that moves by at most ``lipschitz · err``
+    when ``P`` moves by ``err`` entrywise; plus a relative ``64 n eps`` (of ``v`` and of the input
+    scale) for the rounding of both computations."""
+    rel = 64.0 * lipschitz * EPS
+    return v * (1.0 - rel) - (lipschitz * ctx.err + rel * ctx.scale)
+
+
+def _abs_trace_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """``sum_i |(P - D)_ii|`` of the stage-1 ``P``."""
+    return _cov_slack(np.abs(P.diff_diag()).sum(axis=0), P.n, ctx)
+
+
+def _trace_diff_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """``|tr(P - D)|`` of the stage-1 ``P``."""
+    return _cov_slack(np.abs(P.diff_diag().sum(axis=0)), P.n, ctx)
+
+
+def _frobenius_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """``||P - D||_F`` of the stage-1 ``P``."""
+    M = P.diff_full()
+    return _cov_slack(np.sqrt(np.einsum("kb,kb->b", M, M)), P.n, ctx)
+
+
+def _one_norm_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """``max_j sum_i |(P - D)_ij|`` of the stage-1 ``P``."""
+    A = np.abs(P.diff_full()).reshape(P.n, P.n, P.size)
+    return _cov_slack(A.sum(axis=0).max(axis=0), P.n, ctx)
+
+
+def _inf_norm_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """``max_i sum_j |(P - D)_ij|`` of the stage-1 ``P``."""
+    A = np.abs(P.diff_full()).reshape(P.n, P.n, P.size)
+    return _cov_slack(A.sum(axis=1).max(axis=0), P.n, ctx)
+
+
+def _spectral_cheap(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """``||M||_2`` is at least the largest column norm ``max_j ||M e_j||_2`` and, by Cauchy
+    interlacing, the spectral norm of any 2 x 2 principal submatrix, ``|m| + sqrt(h² + o²)`` with
+    ``m`` (``h``) the mean (half difference) of its diagonal and ``o`` its off-diagonal entry."""
+    n = P.n
+    M = P.diff_full()
+    lb = np.sqrt((M * M).reshape(n, n, P.size).sum(axis=0).max(axis=0))
+    if n > 1:
+        pi, pj = _pairs(n)
+        diag = M[:: n + 1]
+        half = 0.5 * (diag[pi] - diag[pj])
+        off = M[pi * n + pj]
+        pair = np.abs(diag[pj] + half) + np.sqrt(half * half + off * off)
+        lb = np.maximum(lb, pair.max(axis=0))
+    return _cov_slack(lb, n, ctx)
+
+
+@functools.lru_cache(maxsize=16)
+def _pairs(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Index pairs ``i < j`` (a constant per n)."""
+    pi, pj = np.triu_indices(n, 1)
+    return pi, pj
+
+
+def _spectral_refine(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """The spectral norm of the stage-1 ``M`` (Weyl: it moves by ``<= ||ΔP||_2 <= n err``)."""
+    w = np.linalg.eigvalsh(P.stack() - D)
+    return _cov_slack(np.maximum(w[:, -1], -w[:, 0]), P.n, ctx)
+
+
+def _svd_cheap(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """Size term only (the orientation term is ``>= 0``).  With ``λ`` the eigenvalues of ``P``
+    and ``s`` those of ``D``, both descending, ``||λ - s||_2`` is at least
+
+    - ``|tr P - tr D| / sqrt(n)`` (Cauchy-Schwarz on ``sum_i (λ_i - s_i)``);
+    - ``(tr P - min_i P_ii - sum_{i<n} s_i) / sqrt(n-1)`` and
+      ``(sum_{i>1} s_i - tr P + max_i P_ii) / sqrt(n-1)``: by Ky Fan (Schur-Horn) the ``n-1``
+      largest (smallest) eigenvalues sum to at least (at most) the ``n-1`` largest (smallest)
+      diagonal entries;
+    - ``sqrt(sum_i d_i²)`` with ``d_i`` the distance from ``s_i`` to the interval that Cauchy
+      interlacing gives for ``λ_i`` from the 2 x 2 principal submatrices (eigenvalues
+      ``μ_1 >= μ_2``): ``λ_1 >= max μ_1``, ``λ_2 >= max μ_2``, ``λ_{n-1} <= min μ_1``,
+      ``λ_n <= min μ_2``.
+    """
+    n = P.n
+    s_D, sum_D, pi, pj = _svd_consts(P.setup, D)
+    A = P.full()
+    diag = A[:: n + 1]
+    tr = diag.sum(axis=0)
+    lb = np.abs(tr - sum_D) / math.sqrt(n)
+    if n > 1:
+        r = 1.0 / math.sqrt(n - 1)
+        lb = np.maximum(lb, (tr - diag.min(axis=0) - (sum_D - s_D[-1])) * r)
+        lb = np.maximum(lb, ((sum_D - s_D[0]) - tr + diag.max(axis=0)) * r)
+        half = 0.5 * (diag[pi] - diag[pj])
+        off = A[pi * n + pj]
+        rad = np.sqrt(half * half + off * off)
+        mid = diag[pj] + half  # (d_i + d_j) / 2
+        mu1, mu2 = mid + rad, mid - rad
+        lower = [mu1.max(axis=0), mu2.max(axis=0)]  # for λ_1, λ_2
+        upper = [mu1.min(axis=0), mu2.min(axis=0)]  # for λ_{n-1}, λ_n
+        dist = [np.maximum(lower[0] - s_D[0], 0.0), np.maximum(lower[1] - s_D[1], 0.0)]
+        if n == 2:
+            pass  # the only 2 x 2 block is P: its eigenvalues are λ itself, lower bounds suffice
+        elif n == 3:  # λ_2 has both bounds
+            dist[1] = np.maximum(dist[1], s_D[1] - upper[0])
+            dist.append(np.maximum(s_D[2] - upper[1], 0.0))
+        else:
+            dist.append(np.maximum(s_D[n - 2] - upper[0], 0.0))
+            dist.append(np.maximum(s_D[n - 1] - upper[1], 0.0))
+        lb = np.maximum(lb, np.sqrt(sum(x * x for x in dist)))
+    # each μ moves by <= 2 err, the Ky Fan terms by <= (n + 1) err / sqrt(n - 1): 2n covers all
+    return _cov_slack(lb, 2.0 * n, ctx)
+
+
+def _svd_consts(setup: _Setup, D: Mat) -> tuple[Mat, float, Mat, Mat]:
+    if "svd" not in setup.memo:
+        s_D = _memo_D(setup, D)["eig"][0]  # type: ignore[index]
+        pi, pj = _pairs(setup.n)
+        setup.memo["svd"] = (s_D, float(s_D.sum()), pi, pj)
+    return setup.memo["svd"]  # type: ignore[return-value]
+
+
+def _memo_D(setup: _Setup, D: Mat) -> dict[str, object]:
+    """Per-problem constants of ``P_d`` shared by the bounds (computed once per decision)."""
+    if "eig" not in setup.memo:
+        setup.memo["eig"] = ordered_eigh(D)
+    return setup.memo
+
+
+def _D_inverse(setup: _Setup, D: Mat) -> tuple[Mat, float]:
+    """``P_d⁻¹`` and ``κ_D = tr(P_d) tr(P_d⁻¹) >= cond(P_d)``, once per decision."""
+    if "D_inv" not in setup.memo:
+        D_inv = spd_inverse(D)
+        setup.memo["D_inv"] = (D_inv, float(D.trace()) * float(D_inv.trace()))
+    return setup.memo["D_inv"]  # type: ignore[return-value]
+
+
+def _svd_refine(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """Size term from the stage-1 eigenvalues (Mirsky: the sorted eigenvalues move by
+    ``<= ||ΔP||_F <= n err`` in 2-norm), plus a lower bound of the orientation term.
+
+    With ``e = n err`` (plus solver rounding) bounding ``||ΔP||_2``: an eigenvalue separated from
+    its neighbours by ``gap > 4e +`` twice the tie tolerance keeps its rank and is in no tie group
+    in the exact ``P``, and by Davis-Kahan its exact eigenvector is within ``sqrt(2) e / (gap - e)``
+    of the stage-1 one (up to sign), so ``|u_Pi · u_Di|`` exceeds the stage-1 value by at most
+    that.  An eigenvector without such a gap is credited nothing (``|u_Pi · u_Di| <= 1``)."""
+    n = P.n
+    s_D, U_D = _memo_D(P.setup, D)["eig"]  # type: ignore[misc]
+    w, U = np.linalg.eigh(P.stack())  # ascending
+    size = _cov_slack(np.sqrt(((w[:, ::-1] - s_D) ** 2).sum(axis=-1)), n, ctx)
+    e = n * ctx.err + 64.0 * n * EPS * ctx.scale
+    gap = np.full(w.shape, np.inf)
+    step = w[:, 1:] - w[:, :-1]
+    gap[:, :-1] = step
+    gap[:, 1:] = np.minimum(gap[:, 1:], step)
+    need = 4.0 * e + 2.0 * EIG_TIE_RTOL * (np.abs(w).max(axis=1, keepdims=True) + e)
+    dist = np.where(gap > need, np.sqrt(2.0) * e / (gap - e), 1.0)
+    cos = np.abs(np.einsum("bki,ki->bi", U, U_D[:, ::-1]))
+    orient = (n - np.minimum(cos + dist, 1.0).sum(axis=1)) / n - 64.0 * n * EPS
+    return size + np.maximum(orient, 0.0)
+
+
+def _logdet_spd(A: Mat) -> float:
+    """``log det A`` of one SPD matrix from its Cholesky factor (NaN unless SPD)."""
+    if A.size == 0:
+        return 0.0
+    c, info = lapack.dpotrf(A, lower=1)
+    return float(2.0 * np.log(np.diagonal(c)).sum()) if info == 0 else np.nan
+
+
+def _logdet_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """The stage-1 value of ``log det((P+D)/2) - ½ log det P - ½ log det D`` via the reduced
+    form: with ``v`` the non-support coordinates, ``W = P∞ + D`` and ``V = Kᵀ W⁻¹ K``,
+    ``det P_i = det(P∞[v, v]) / det Z_i`` and ``det(P_i + D) = det W det(Z_i + V) / det Z_i``, so
+
+        f_i = c + log det(Z_i + V) - ½ log det Z_i,
+        c = log det W - n log 2 - ½ log det P∞[v, v] - ½ log det D,
+
+    deflated by the effect of the stage-1 error of ``P∞`` and by rounding relative to the
+    condition numbers of ``P_i``, ``P_d`` and ``W``."""
+    st = P.setup
+    if "logdet" not in st.memo:
+        n, r = st.n, st.r
+        P_inf = st.P_inf.reshape(n, n)
+        W = P_inf + D
+        V = st.KT @ spd_inverse(W) @ st.KT.T
+        v = np.ones(n, dtype=bool)
+        v[st.s] = False
+        ld_vv = _logdet_spd(P_inf[v][:, v])
+        ld_W = _logdet_spd(W)
+        c = ld_W - n * np.log(2.0) - 0.5 * ld_vv - 0.5 * _logdet_spd(D)
+        D_inv, kappa_D = _D_inverse(st, D)
+        kappa_W = (ctx.lam_max + float(D.trace())) * float(D_inv.trace())  # >= cond(W)
+        lam_lo = min(ctx.lam_min, 1.0 / float(D_inv.trace()))  # <= λmin of P∞[v, v], W, P_i
+        # P∞ (so W and P∞[v, v]) carries the stage-1 error err: |Δ log det X| <= n² err / λmin;
+        # the rest is rounding, relative to the condition numbers involved
+        slack = 2.0 * n * n * ctx.err / lam_lo
+        rel = ERR_FACTOR * n * n * EPS * (ctx.kappa + kappa_D + kappa_W)
+        mag = 1.0 + abs(ld_W) + abs(ld_vv) + abs(c) + float(r)
+        st.memo["logdet"] = (c, V.reshape(r * r), slack + rel * mag, rel)
+    c, Vf, slack, rel = st.memo["logdet"]  # type: ignore[misc]
+    if st.r == 2:
+        ZV = P.Z + Vf[:, None]
+        val = c + np.log((ZV[0] * ZV[3] - ZV[1] * ZV[2]) / np.sqrt(P.det))
+    else:
+        val = c + _logdet_soa(P.Z + Vf[:, None], st.r) - 0.5 * _logdet_soa(P.Z, st.r)
+    return val - (slack + rel * np.abs(val))
+
+
+def _kl_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """The stage-1 value of ``¼[tr(D⁻¹P) + tr(P⁻¹D) - 2n]``: ``tr(D⁻¹P_i)`` is linear in the
+    stage-1 entries and ``tr(P_i⁻¹ D) = tr((P⁻¹ + J_i) D) = tr(Y0 D) + vec(D[s, s]) ·
+    (Z_i - C⁻¹)`` is linear in ``Z_i`` (the information form, exact up to rounding); deflated by
+    ``¼ sum|D⁻¹| err`` for the first and by rounding relative to the condition numbers."""
+    st = P.setup
+    D_inv, kappa_D = _D_inverse(st, D)
+    if "kl" not in st.memo:
+        n, s = st.n, st.s
+        D_inv_f = D_inv.reshape(n * n)
+        d_ss = D[s][:, s].reshape(s.size * s.size)
+        c2 = float((st.Y0 * D).sum()) - float(d_ss @ st.Zc.reshape(s.size * s.size))
+        st.memo["kl"] = (D_inv_f @ st.T, float(D_inv_f @ st.P_inf), d_ss, c2)
+    w1, c1, d_ss, c2 = st.memo["kl"]  # type: ignore[misc]
+    t1 = w1 @ P._g + c1
+    t2 = d_ss @ P.Z + c2
+    val = 0.25 * (t1 + t2 - 2 * P.n)
+    # t1 is linear in the stage-1 entries (each off by <= err); the rest is rounding, relative
+    # to the condition numbers of P_i and P_d
+    rel = ERR_FACTOR * P.n * P.n * EPS * (ctx.kappa + kappa_D)
+    slack = 0.25 * (float(np.abs(D_inv).sum()) * ctx.err + rel * (np.abs(t1) + np.abs(t2) + P.n))
+    return val - (slack + rel * np.abs(val))
+
+
+#: metric name -> lower bounds used by :func:`fast_search`.  A metric without an entry (or a
+#: user's own function) is searched by the batched exhaustive fallback, still exact.
+METRIC_BOUNDS: dict[str, MetricBound] = {
+    "abs_trace": MetricBound(_abs_trace_bound),
+    "trace_diff": MetricBound(_trace_diff_bound),
+    "frobenius": MetricBound(_frobenius_bound),
+    "one_norm": MetricBound(_one_norm_bound),
+    "inf_norm": MetricBound(_inf_norm_bound),
+    "spectral": MetricBound(_spectral_cheap, _spectral_refine),
+    "svd": MetricBound(_svd_cheap, _svd_refine, refine_seed=True),
+    "logdet": MetricBound(_logdet_bound),
+    "kl": MetricBound(_kl_bound),
+}
+
+
+def _chol_soa(A: Mat) -> list[list[Mat]]:
+    """Column Cholesky of ``(r, r, B)`` SPD matrices entry by entry: ``L[i][j]`` ``(B,)`` for
+    ``i >= j``.  A non-positive pivot gives NaN (the callers ignore floating-point errors)."""
+    n = A.shape[0]
+    L: list[list[Mat]] = [[A[0, 0]] * n for _ in range(n)]
+    for j in range(n):
+        piv = A[j, j]
+        for k in range(j):
+            piv = piv - L[j][k] * L[j][k]
+        d = np.sqrt(piv)
+        L[j][j] = d
+        for i in range(j + 1, n):
+            v = A[i, j]
+            for k in range(j):
+                v = v - L[i][k] * L[j][k]
+            L[i][j] = v / d
+    return L
+
+
+def _logdet_soa(Z: Mat, r: int) -> Mat:
+    """``log det`` of ``(r*r, B)`` SPD matrices (``0`` for ``r = 0``)."""
+    if r == 0:
+        return np.zeros(Z.shape[1])
+    L = _chol_soa(Z.reshape(r, r, -1))
+    return 2.0 * np.log(np.prod([L[i][i] for i in range(r)], axis=0))
+
+
+def _spd_inverse_soa(Z: Mat, r: int) -> Mat:
+    """Inverses of SPD ``r x r`` matrices stored as columns of ``Z (r*r, B)`` (row-major
+    entries); closed form for ``r = 1``, column Cholesky otherwise.  Rounding trouble shows as
+    NaN/inf, which the bounds turn into "no information"."""
+    if r == 0:
+        return Z
+    if r == 1:
+        return 1.0 / Z
+    A = Z.reshape(r, r, -1)
+    L = _chol_soa(A)
+    M: list[list[Mat]] = [[A[0, 0]] * r for _ in range(r)]  # M = L⁻¹, lower triangular
+    for i in range(r):
+        M[i][i] = 1.0 / L[i][i]
+        for j in range(i - 1, -1, -1):
+            v = L[i][j] * M[j][j]
+            for k in range(j + 1, i):
+                v = v + L[i][k] * M[k][j]
+            M[i][j] = -v * M[i][i]
+    out = np.empty_like(A)
+    for c in range(r):  # (L⁻ᵀ L⁻¹)_cd = sum_{k >= max(c, d)} M_kc M_kd
+        for d in range(c, r):
+            acc = M[d][c] * M[d][d]
+            for k in range(d + 1, r):
+                acc = acc + M[k][c] * M[k][d]
+            out[c, d] = acc
+            out[d, c] = acc
+    return out.reshape(r * r, -1)
+
+
+# --------------------------------------------------------------------------------------------
+# the search
+# --------------------------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=2 * (CHUNK_BITS + 1))
+def _bit_table(k: int) -> tuple[Mat, NDArray[np.int64]]:
+    """Constant tables for k bits: ``(k, 2^k)`` 0/1 floats (column t holds the bits of t) and
+    the popcount of every t."""
+    t = np.arange(1 << k, dtype=np.int64)
+    bits = ((t[None, :] >> np.arange(k)[:, None]) & 1).astype(np.float64)
+    pc = bits.sum(axis=0).astype(np.int64)
+    bits.flags.writeable = False
+    pc.flags.writeable = False
+    return bits, pc
+
+
+class SearchResult(NamedTuple):
+    subset: tuple[int, ...]
+    value: float
+    P: Mat
+    n_feasible: int
+    n_evaluated: int
+
+
+class _Exact:
+    """Exact values, with the reference's arithmetic, of subsets given as codes over the free
+    sensors (bit b of a code <-> sensor ``free[b]``; required sensors always in)."""
+
+    def __init__(
+        self, Y0: Mat, gains: Mat, P_d: Mat, metric: MetricFn, free: list[int], req: list[int]
+    ) -> None:
+        self.Y0, self.gains, self.P_d, self.metric = Y0, gains, P_d, metric
+        self.free, self.req = free, req
+        self.plain = not req and len(free) == gains.shape[0]  # free == all sensors, in order
+
+    def masks(self, codes: NDArray[np.int64]) -> NDArray[np.bool_]:
+        bits = ((codes[:, None] >> np.arange(len(self.free))) & 1).astype(bool)
+        if self.plain:
+            return bits
+        out = np.zeros((codes.shape[0], self.gains.shape[0]), dtype=bool)
+        out[:, self.free] = bits
+        out[:, self.req] = True
+        return out
+
+    def covariances(self, masks: NDArray[np.bool_]) -> Mat:
+        """``P_i = (P⁻¹ + J_i)⁻¹`` exactly as :func:`~covnet.core.allocation.subset_covariance`."""
+        return spd_inverse(self.Y0 + gain_sums(self.gains, masks))
+
+    def values(self, P: Mat) -> NDArray[np.float64]:
+        v = np.asarray(self.metric(P, self.P_d), dtype=np.float64)
+        if v.shape != P.shape[:1]:
+            raise ValueError(f"metric returned shape {v.shape} for a batch of {P.shape[0]}")
+        if not np.isfinite(v).all():
+            raise ValueError("metric returned a non-finite value")
+        return v
+
+
+def fast_search(
+    P_pred: Mat,
+    gains: Mat,
+    P_d: Mat,
+    metric: MetricFn,
+    bound: MetricBound | None,
+    excluded: frozenset[int],
+    required: frozenset[int],
+    max_active: int,
+    tie_rtol: float,
+) -> SearchResult:
+    """Exact argmin with the tie rule (module docstring); the inputs are already validated."""
+    N = gains.shape[0]
+    if excluded or required:
+        free = [j for j in range(N) if j not in excluded and j not in required]
+        req = sorted(required)
+    else:
+        free, req = list(range(N)), []
+    m = len(free)
+    kmin = 0 if req else 1
+    kmax = min(m, max_active - len(req))
+    n_feasible = sum(math.comb(m, k) for k in range(kmin, kmax + 1))
+    Y0 = spd_inverse(P_pred)
+    ex = _Exact(Y0, gains, P_d, metric, free, req)
+    if bound is None:
+        return _batched_exhaustive(ex, m, kmin, kmax, n_feasible, tie_rtol)
+
+    # ---- stage 1: a cheap lower bound for every feasible subset
+    with np.errstate(all="ignore"):  # a NaN bound means "no information", handled below
+        active = gains[[j for j in range(N) if j not in excluded]] if excluded else gains
+        st = _Setup(P_pred, gains, P_d, Y0, active, free, req)
+        codes, lb = _stage1(st, bound.cheap, P_d, m, kmin, kmax)
+    L = float(lb.min())
+    if L != L:  # NaN: no information from those bounds
+        lb[np.isnan(lb)] = -np.inf
+        L = -np.inf
+
+    # ---- stage 2: exact values in increasing-bound order while they can still tie
+    refined = np.zeros(lb.size, dtype=bool) if bound.refine is not None else None
+    if refined is not None and lb.size > (SEED_POOL if bound.refine_seed else SEED_POOL_ABOVE):
+        # a better first candidate: the best refined bound among the best cheap ones (a larger
+        # pool for small problems, where the refinement's fixed cost dominates)
+        size = SEED_POOL if lb.size > 1024 else min(4 * SEED_POOL, lb.size - 1)
+        pool = np.argpartition(lb, size)[:size]
+        with np.errstate(all="ignore"):
+            lb2 = bound.refine(st.subsets(codes[pool]), P_d, st.ctx)
+        lb[pool] = np.fmax(lb[pool], lb2)
+        refined[pool] = True
+    best = int(lb.argmin())
+    code = int(codes[best])
+    subset = sorted(req + [free[b] for b in range(m) if code >> b & 1])
+    J = np.zeros_like(Y0)
+    for j in subset:  # the reference's additions, in its order
+        J = J + gains[j]
+    P_best = spd_inverse(Y0 + J)
+    U = _single_value(metric, P_best, P_d)  # called as the reference calls it
+    # a metric not known to be batch-invariant may differ in the last bits between the batched
+    # calls below and the reference's single calls: prune with a margin, recheck near ties
+    margin = 0.0 if metric in BATCH_INVARIANT else 1e-6
+    tau = _threshold(U, L, tie_rtol, margin)
+    lb[best] = np.inf  # evaluated
+    cand = (lb <= tau).nonzero()[0]
+    if cand.size == 0:  # the common case: one exact evaluation settles it
+        return SearchResult(tuple(subset), U, P_best, n_feasible, 1)
+    ev_masks, ev_P, ev_v = [ex.masks(codes[best : best + 1])], [P_best[None]], [np.array([U])]
+
+    def evaluate(rows: NDArray[np.intp]) -> float:
+        """Exact values of ``rows``; returns the new tau.  Evaluated rows get bound +inf."""
+        nonlocal U
+        masks = ex.masks(codes[rows])
+        P_ev = ex.covariances(masks)
+        v_ev = ex.values(P_ev)
+        ev_masks.append(masks)
+        ev_P.append(P_ev)
+        ev_v.append(v_ev)
+        lb[rows] = np.inf
+        U = min(U, float(v_ev.min()))
+        return _threshold(U, L, tie_rtol, margin)
+
+    cand = cand[np.argsort(lb[cand], kind="stable")]
+    if refined is not None:
+        # refine the bounds in cheap-bound order, evaluating each block's best refined few
+        # exactly at once so that tau falls early
+        for lo in range(0, cand.size, EXACT_BLOCK):
+            rows = cand[lo : lo + EXACT_BLOCK]
+            rows = rows[lb[rows] <= tau]
+            if rows.size == 0:
+                break  # sorted: every later cheap bound exceeds tau too
+            todo = rows[~refined[rows]]
+            if todo.size:
+                with np.errstate(all="ignore"):
+                    lb2 = bound.refine(st.subsets(codes[todo]), P_d, st.ctx)
+                lb[todo] = np.fmax(lb[todo], lb2)  # a NaN refinement keeps the cheap bound
+            rows = rows[lb[rows] <= tau]
+            if rows.size:
+                tau = evaluate(rows[np.argsort(lb[rows], kind="stable")[:REFINED_PICKS]])
+        cand = cand[lb[cand] <= tau]
+        cand = cand[np.argsort(lb[cand], kind="stable")]
+    # exact values in increasing-bound order, blocks of growing size, while they can still tie
+    pos, block = 0, min(32, EXACT_BLOCK)
+    while pos < cand.size and lb[cand[pos]] <= tau:
+        rows = cand[pos : pos + block]
+        tau = evaluate(rows[lb[rows] <= tau])
+        pos += block
+        block = min(4 * block, EXACT_BLOCK)
+    all_masks, all_P, all_v = (np.concatenate(x) for x in (ev_masks, ev_P, ev_v))
+    if margin:
+        _recheck_singly(all_v, all_P, metric, P_d, tie_rtol, margin)
+    k = tie_select(all_v, all_masks, tie_rtol)
+    subset = tuple(all_masks[k].nonzero()[0].tolist())
+    return SearchResult(subset, float(all_v[k]), all_P[k], n_feasible, int(all_v.size))
+
+
+def _single_value(metric: MetricFn, P: Mat, P_d: Mat) -> float:
+    """``f(P, P_d)`` for one ``(n, n)`` matrix, exactly as the reference calls the metric."""
+    v = float(np.asarray(metric(P, P_d), dtype=np.float64))
+    if not np.isfinite(v):
+        raise ValueError("metric returned a non-finite value")
+    return v
+
+
+def _recheck_singly(
+    values: Mat, P: Mat, metric: MetricFn, P_d: Mat, tie_rtol: float, margin: float
+) -> None:
+    """Replace, in place, the values within ``margin`` (relative) of the tie threshold by one
+    call per subset, as the reference computes them."""
+    f0 = float(values.min())
+    near = (values <= tie_threshold(f0, tie_rtol) + margin * max(abs(f0), TINY)).nonzero()[0]
+    for q in near.tolist():
+        values[q] = _single_value(metric, P[q], P_d)
+
+
+def _threshold(U: float, L: float, tie_rtol: float, margin: float = 0.0) -> float:
+    """``τ = U + (rtol + margin) · max(|U|, |L|, tiny)`` >= the reference's tie threshold
+    whenever the minimum ``f*`` lies in ``[L, U]``; ``+inf`` (no pruning) without a finite
+    ``L``."""
+    if L == -np.inf:
+        return np.inf
+    return U + (tie_rtol + margin) * max(abs(U), abs(L), TINY)
+
+
+def _stage1(
+    st: _Setup, bound_fn: BoundFn, P_d: Mat, m: int, kmin: int, kmax: int
+) -> tuple[NDArray[np.int64], Mat]:
+    """Codes of every feasible subset and their cheap lower bounds, chunk by chunk: the low
+    ``c`` bits of a code vary within a chunk, the high bits are fixed per chunk."""
+    c = min(m, CHUNK_BITS)
+    bits_lo, pc_lo = _bit_table(c)
+    Z_lo = st.S_free[:c].T @ bits_lo  # (r*r, 2^c)
+    Z_lo += st.base[:, None]
+    if m == c:
+        Z_hi, pc_hi = Z_lo[:, :0], np.zeros(1, dtype=np.int64)
+    else:
+        bits_hi, pc_hi = _bit_table(m - c)
+        Z_hi = st.S_free[c:].T @ bits_hi  # (r*r, 2^(m-c))
+    codes_parts, lb_parts = [], []
+    for h in range(pc_hi.size):
+        lo, hi = kmin - int(pc_hi[h]), kmax - int(pc_hi[h])
+        if hi < 0 or lo > c:
+            continue
+        if lo <= 0 and hi >= c:
+            t = np.arange(1 << c)
+            Z = Z_lo
+        elif lo == 1 and hi >= c:  # all but the empty low part
+            t = np.arange(1, 1 << c)
+            Z = Z_lo[:, 1:]
+        else:
+            t = ((pc_lo >= lo) & (pc_lo <= hi)).nonzero()[0]
+            Z = Z_lo[:, t]
+        if h:
+            Z = Z + Z_hi[:, h : h + 1]
+            t = t + (h << c)
+        lb_parts.append(bound_fn(st.covariances(Z), P_d, st.ctx))
+        codes_parts.append(t)
+    if len(lb_parts) == 1:
+        return codes_parts[0], lb_parts[0]
+    return np.concatenate(codes_parts), np.concatenate(lb_parts)
+
+
+def _batched_exhaustive(
+    ex: _Exact, m: int, kmin: int, kmax: int, n_feasible: int, tie_rtol: float
+) -> SearchResult:
+    """Every feasible subset with exact ``P_i``, the metric called on batches.  Values within a
+    relative 1e-6 of the tie threshold are recomputed one subset per call, as the reference
+    calls the metric, so a metric whose batched and single results differ in the last bits still
+    selects the reference's subset."""
+    c = min(m, CHUNK_BITS)
+    pc_lo = _bit_table(c)[1]
+    pc_hi = _bit_table(m - c)[1]
+    parts_c, parts_v = [], []
+    for h in range(pc_hi.size):
+        pcs = pc_lo + pc_hi[h]
+        t = ((pcs >= kmin) & (pcs <= kmax)).nonzero()[0] + (h << c)
+        for lo in range(0, t.size, EXACT_BLOCK):
+            codes = t[lo : lo + EXACT_BLOCK]
+            parts_c.append(codes)
+            parts_v.append(ex.values(ex.covariances(ex.masks(codes))))
+    codes = np.concatenate(parts_c)
+    vals = np.concatenate(parts_v)
+    f0 = float(vals.min())
+    near = (vals <= tie_threshold(f0, tie_rtol) + 1e-6 * max(abs(f0), TINY)).nonzero()[0]
+    masks = ex.masks(codes[near])
+    P_near = ex.covariances(masks)
+    single = np.array([_single_value(ex.metric, P_q, ex.P_d) for P_q in P_near])
+    k = tie_select(single, masks, tie_rtol)
+    subset = tuple(masks[k].nonzero()[0].tolist())
+    return SearchResult(subset, float(single[k]), P_near[k], n_feasible, n_feasible)

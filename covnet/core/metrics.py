@@ -1,0 +1,275 @@
+"""Matrix metrics ``f(A, B)`` for covariance control, and the ``METRICS`` registry.
+
+A metric compares an achievable covariance ``A = P_i`` with a desired one ``B = P_d``.
+Every metric here takes symmetric ``(..., n, n)`` arrays, broadcasts over the leading axes and
+returns a ``(...)`` float64 array, so the allocator scores a whole batch of subsets in one call.
+They satisfy ``f(A, B) >= 0``, ``f(A, A) = 0`` and ``f(A, B) = f(B, A)``; the triangle inequality
+is not required (spec: "Matrix metrics").
+
+To add one: write a plain function with its equation in the docstring and add one line to
+``METRICS``; the property tests iterate over ``sorted(METRICS)``.
+
+Batch invariance.  Each function computes one matrix's value with exactly the same floating-point
+operations whether it is called on one matrix or on a stack: per-matrix LAPACK calls
+(``numpy.linalg`` gufuncs), elementwise ufuncs, and sums over the small last axes written out in a
+fixed order (``_sum_last``) rather than left to numpy's reduction machinery, whose summation order
+depends on memory layout.  The allocator relies on this: its batched search and the plain loop
+over subsets then see bit-identical values, so the tie rule resolves identically.  (A user's own
+metric need not be batch-invariant: the allocator then re-checks near ties one call per subset.)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+MetricFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
+
+#: Eigenvalues within ``EIG_TIE_RTOL * max|λ|`` of each other form one tie group (svd convention).
+EIG_TIE_RTOL = 1e-9
+
+
+def _sum_last(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``sum_k x[..., k]`` added left to right: a fixed order whatever the layout or batch size."""
+    acc = x[..., 0]
+    for k in range(1, x.shape[-1]):
+        acc = acc + x[..., k]
+    return acc
+
+
+def _diff(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.asarray(A, dtype=np.float64) - np.asarray(B, dtype=np.float64)
+
+
+def _diag(M: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.diagonal(M, axis1=-2, axis2=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# the metrics
+# --------------------------------------------------------------------------------------------
+
+
+def spectral(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Spectral norm of the difference: ``f = ||A - B||_2 = max_k |λ_k(A - B)|``.
+
+    ``A - B`` is symmetric, so its singular values are the absolute eigenvalues.
+    """
+    w = np.linalg.eigvalsh(_diff(A, B))
+    return np.maximum(w[..., -1], -w[..., 0]) + 0.0  # + 0.0 turns -0.0 into 0.0
+
+
+def abs_trace(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Absolute trace: ``f = sum_i |A_ii - B_ii|`` (only the diagonal of ``A - B``)."""
+    return _sum_last(np.abs(_diag(_diff(A, B))))
+
+
+def ordered_eigh(
+    A: NDArray[np.float64], rtol: float = EIG_TIE_RTOL
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Eigen-decomposition ``A = U diag(s) Uᵀ`` under the spec's deterministic convention.
+
+    1. Eigenpairs are ordered by descending eigenvalue ``s``.
+    2. Eigenvalues closer than ``rtol * max_k |s_k|`` (chained between neighbours) form a tie
+       group.  The eigenvectors of a group are not unique, so the group's basis is rebuilt from its
+       projector ``Π = U_g U_gᵀ`` alone, independent of LAPACK's choice: repeatedly take the axis
+       ``a`` with the largest ``Π_aa`` (lowest index among equals), set ``u = Π e_a / sqrt(Π_aa)``
+       and deflate ``Π <- Π - u uᵀ``.  ``u``'s largest-magnitude component is then ``u_a``.
+    3. Within a group the vectors are ordered by the index of their largest-magnitude component;
+       the group's eigenvalues stay in descending order.
+    4. Each eigenvector's sign is fixed so that its largest-magnitude component is positive.
+
+    For a diagonal matrix with repeated entries this gives the unit axes in state order within a
+    tie group.  ``U[..., :, i]`` is the i-th eigenvector.  Batched over leading axes.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    if A.ndim == 2 and not np.any(A - np.diag(np.diagonal(A))):
+        return _ordered_diagonal(np.diagonal(A), rtol)
+    w, U = np.linalg.eigh(A)
+    s = w[..., ::-1]
+    U = U[..., :, ::-1]
+    n = s.shape[-1]
+    if n > 1:
+        # max|λ| = max(s_1, -s_n) for descending s
+        tol = rtol * np.maximum(s[..., :1], -s[..., -1:])
+        tied = (s[..., :-1] - s[..., 1:]) <= tol
+        if tied.any():
+            U = U.reshape(-1, n, n).copy()
+            tied_rows = tied.reshape(-1, n - 1)
+            for row in np.flatnonzero(tied_rows.any(axis=1)).tolist():
+                U[row] = _canonical_groups(U[row], tied_rows[row].tolist())
+            U = U.reshape(A.shape)
+    # sign: the largest-magnitude component of every eigenvector is positive
+    big = np.abs(U).argmax(axis=-2)[..., None, :]
+    sign = np.where(np.take_along_axis(U, big, axis=-2) < 0.0, -1.0, 1.0)
+    return s.copy(), U * sign
+
+
+def _ordered_diagonal(
+    d: NDArray[np.float64], rtol: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`ordered_eigh` of ``diag(d)`` without LAPACK: the same result as the general path
+    (whose eigen-solver is exact on a diagonal matrix), namely the entries in descending order
+    and unit axes, in state order within each tie group."""
+    n = d.size
+    order = sorted(range(n), key=lambda i: (-d[i], i))
+    s = d[order]
+    if n > 1:
+        tol = rtol * max(float(s[0]), float(-s[-1]))
+        start = 0
+        for k in range(1, n + 1):  # sort each tie group's axes by index
+            if k == n or float(s[k - 1] - s[k]) > tol:
+                order[start:k] = sorted(order[start:k])
+                start = k
+    U = np.zeros((n, n))
+    U[order, np.arange(n)] = 1.0
+    return s, U
+
+
+def _canonical_groups(U: NDArray[np.float64], tied: list[bool]) -> NDArray[np.float64]:
+    """Replace every tie group's columns of one ``(n, n)`` eigenvector matrix (ordered_eigh).
+
+    Plain Python floats: groups are tiny and rare, and this runs once per call for a ``P_d``
+    with repeated eigenvalues."""
+    n = U.shape[0]
+    cols_all = U.T.tolist()  # eigenvectors as rows
+    start = 0
+    while start < n:
+        stop = start + 1
+        while stop < n and tied[stop - 1]:
+            stop += 1
+        if stop - start > 1:
+            Ug = U[:, start:stop]
+            Pi = (Ug @ Ug.T).tolist()
+            chosen = []
+            for _ in range(stop - start):
+                d = [Pi[i][i] for i in range(n)]
+                top = max(d)
+                a = next(i for i in range(n) if d[i] >= top * (1.0 - 1e-9))
+                root = math.sqrt(d[a])
+                u = [Pi[i][a] / root for i in range(n)]
+                chosen.append((a, u))
+                Pi = [[Pi[i][j] - u[i] * u[j] for j in range(n)] for i in range(n)]
+            chosen.sort(key=lambda au: au[0])
+            cols_all[start:stop] = [u for _, u in chosen]
+        start = stop
+    return np.array(cols_all).T
+
+
+def svd(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Orientation plus size: ``f = (n - sum_i |u_Ai · u_Bi|) / n + ||s_A - s_B||_2``.
+
+    ``A = U_A diag(s_A) U_Aᵀ``, ``B = U_B diag(s_B) U_Bᵀ`` with eigenvalues descending and the
+    eigenvector convention of :func:`ordered_eigh` (ties broken by the index of the largest
+    component, that component positive).  The first term compares orientations (invariant to
+    scale and eigenvector sign), the second the sizes.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    n = A.shape[-1]
+    s_A, U_A = ordered_eigh(A)
+    s_B, U_B = ordered_eigh(B)
+    # cos_i = sum_k U_A[k, i] U_B[k, i], summed over k in a fixed order
+    cos = _sum_last(np.swapaxes(U_A * U_B, -1, -2))
+    orientation = np.maximum((n - _sum_last(np.abs(cos))) / n, 0.0)  # rounding below 0 clipped
+    return orientation + np.sqrt(_sum_last((s_A - s_B) ** 2))
+
+
+def frobenius(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Frobenius norm of the difference: ``f = ||A - B||_F = sqrt(sum_ij (A - B)_ij²)``."""
+    M = _diff(A, B)
+    return np.sqrt(_sum_last(_sum_last(M * M)))
+
+
+def one_norm(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Induced 1-norm of the difference: ``f = max_j sum_i |(A - B)_ij|`` (largest column sum)."""
+    absM = np.abs(_diff(A, B))
+    return np.max(_sum_last(np.swapaxes(absM, -1, -2)), axis=-1)
+
+
+def inf_norm(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Induced inf-norm of the difference: ``f = max_i sum_j |(A - B)_ij|`` (largest row sum)."""
+    return np.max(_sum_last(np.abs(_diff(A, B))), axis=-1)
+
+
+def trace_diff(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Trace difference: ``f = |tr A - tr B|``.
+
+    A pseudo-metric (``f = 0`` for any two matrices of equal trace), kept because users ask for
+    it; the allocator's tie rule still makes its choice deterministic.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    return np.abs(_sum_last(_diag(A)) - _sum_last(_diag(B)))
+
+
+def _chol_logdet(A: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``log det A = 2 sum_i log L_ii`` with ``A = L Lᵀ``; raises ``LinAlgError`` unless SPD."""
+    L = np.linalg.cholesky(A)
+    return 2.0 * _sum_last(np.log(_diag(L)))
+
+
+def logdet(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Symmetric log-determinant divergence (log of a determinant ratio), for SPD ``A``, ``B``:
+
+    ``f = log det((A + B)/2) - ½ log det A - ½ log det B = log[det((A+B)/2) / sqrt(det A det B)]``.
+
+    ``f >= 0`` with equality iff ``A = B`` (log-concavity of det); rounding below 0 is clipped.
+    Log-determinants via Cholesky factors.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    f = _chol_logdet(0.5 * (A + B)) - 0.5 * (_chol_logdet(A) + _chol_logdet(B))
+    return np.maximum(f, 0.0)
+
+
+def kl(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Symmetrised Gaussian relative entropy between ``N(0, A)`` and ``N(0, B)``, SPD inputs:
+
+    ``f = ½[KL(A||B) + KL(B||A)] = ¼[tr(B⁻¹A) + tr(A⁻¹B) - 2n]``.
+
+    With ``A = L_A L_Aᵀ``, ``B = L_B L_Bᵀ``: ``tr(B⁻¹A) = ||L_B⁻¹ L_A||_F²`` (triangular solves,
+    no inverse).  Rounding below 0 is clipped.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    n = A.shape[-1]
+    L_A = np.linalg.cholesky(A)
+    L_B = np.linalg.cholesky(B)
+    L_A, L_B = np.broadcast_arrays(L_A, L_B)
+    X = np.linalg.solve(L_B, L_A)  # L_B⁻¹ L_A
+    Y = np.linalg.solve(L_A, L_B)  # L_A⁻¹ L_B
+    t_ba = _sum_last(_sum_last(X * X))
+    t_ab = _sum_last(_sum_last(Y * Y))
+    return np.maximum(0.25 * ((t_ba + t_ab) - 2 * n), 0.0)
+
+
+METRICS: Mapping[str, MetricFn] = {
+    "spectral": spectral,
+    "abs_trace": abs_trace,
+    "svd": svd,
+    "frobenius": frobenius,
+    "one_norm": one_norm,
+    "inf_norm": inf_norm,
+    "trace_diff": trace_diff,
+    "logdet": logdet,
+    "kl": kl,
+}
+
+
+def metric_names() -> list[str]:
+    """The registered metric names, sorted."""
+    return sorted(METRICS)
+
+
+def get_metric(name: str) -> MetricFn:
+    """The metric registered under ``name``; ``KeyError`` listing the valid names otherwise."""
+    try:
+        return METRICS[name]
+    except KeyError:
+        raise KeyError(
+            f"unknown metric {name!r}; valid metrics: {', '.join(metric_names())}"
+        ) from None

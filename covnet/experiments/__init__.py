@@ -1,0 +1,1 @@
+"""Experiments built on the core: benchmarks, Monte Carlo runs, sweeps."""
