@@ -23,6 +23,7 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
 
 from covnet.core.sensing import correlated_noise  # noqa: E402
+from covnet.results import load_arrays  # noqa: E402
 
 FIGURES = (
     "fig1_sensor_ellipses.png",
@@ -53,7 +54,7 @@ def make_figures(run_dir: Path) -> list[Path]:
     """Draw the four figures into ``run_dir``; returns their paths."""
     cfg = json.loads((run_dir / "config.json").read_text())
     summary = json.loads((run_dir / "summary.json").read_text())
-    arrays = np.load(run_dir / "arrays.npz")
+    arrays = load_arrays(run_dir / "arrays.npz")
     metrics = [str(m) for m in arrays["metrics"]]
     ids = [str(s) for s in arrays["sensor_ids"]]
     t_scan = np.arange(1, len(arrays["t"]) + 1)

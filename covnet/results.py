@@ -136,5 +136,11 @@ def write_run(
     return summary
 
 
+def load_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, read into memory (the file is closed on return)."""
+    with np.load(path) as data:
+        return {k: data[k] for k in data.files}
+
+
 def load_summary(run_dir: Path) -> dict[str, Any]:
     return json.loads((run_dir / SUMMARY).read_text())  # type: ignore[no-any-return]

@@ -26,6 +26,8 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
+from covnet.results import load_arrays  # noqa: E402
+
 FIGURE = "fig_mobile_trajectories.png"
 SENSOR_COLORS = (
     "tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple",
@@ -41,7 +43,7 @@ def _every(K: int) -> int:
 def make_figure(run_dir: Path) -> Path:
     """Draw the figure into ``run_dir``; returns its path."""
     summary = json.loads((run_dir / "summary.json").read_text())
-    arr = np.load(run_dir / "arrays.npz")
+    arr = load_arrays(run_dir / "arrays.npz")
     tids = [str(t) for t in arr["target_ids"]]
     sids = [str(s) for s in arr["sensor_ids"]]
     X, Xe, A = arr["truth"], arr["x_est"], arr["platforms"]

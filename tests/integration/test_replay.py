@@ -26,6 +26,7 @@ from covnet.launch import ProcessSpec, Supervisor
 from covnet.recorder import node as recorder_node
 from covnet.recording import RecordingReader, RecordingWriter, read_metadata, run_metadata
 from covnet.replay import RECORDING, replay_run
+from covnet.results import load_arrays
 from covnet.world import node as world_node
 from manager import node as manager_node
 from manager.report import write_network_run
@@ -112,7 +113,7 @@ def test_replay_reproduces_summary_byte_for_byte(recorded_run):
     assert report.differences == []
     assert report.out_dir == out / "replay"
     assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()
-    a, b = np.load(out / "arrays.npz"), np.load(out / "replay" / "arrays.npz")
+    a, b = load_arrays(out / "arrays.npz"), load_arrays(out / "replay" / "arrays.npz")
     for name in a.files:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
     # the recording holds every message the manager sent and every measurement it got

@@ -24,6 +24,7 @@ from multiproc import REPO, CovnetProcess
 from covnet import messages as msg
 from covnet.cli import main as covnet_main
 from covnet.config import load, normalised
+from covnet.results import load_arrays
 from covnet.security import zenoh_settings
 from covnet.up import free_port
 from covnet.zenoh_bus import ZenohBus, zenoh_config
@@ -438,7 +439,7 @@ def test_up_over_mutual_tls_with_access_control(lab, paper, tmp_path):
     want = json.loads((ref / "summary.json").read_text())["metrics"]["spectral"]
     got = json.loads((out / "summary.json").read_text())["metrics"]["spectral"]
     assert got["subsets"] == want["subsets"]
-    a_ref, a_got = np.load(ref / "arrays.npz"), np.load(out / "arrays.npz")
+    a_ref, a_got = load_arrays(ref / "arrays.npz"), load_arrays(out / "arrays.npz")
     np.testing.assert_allclose(a_got["x_est.spectral"], a_ref["x_est.spectral"], atol=1e-12)
     net = json.loads((out / "network.json").read_text())
     assert net["rejected"] == {} and net["lost"] == 0

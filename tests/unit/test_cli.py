@@ -11,6 +11,7 @@ import pytest
 
 from covnet.cli import main
 from covnet.plots import FIGURES
+from covnet.results import load_arrays
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +32,7 @@ def test_run_writes_complete_run_directory(paper_run):
         assert [len(s) for s in blk["subsets"]] == blk["sensors_per_scan"]
         assert blk["allocation_rate"] == pytest.approx(sum(blk["sensors_per_scan"]) / 800)
         assert np.isfinite(blk["rmse_position"]) and blk["rmse_position"] > 0
-    arrays = np.load(paper_run / "arrays.npz")
+    arrays = load_arrays(paper_run / "arrays.npz")
     assert arrays["truth"].shape == (100, 4)
     assert arrays["x_est.svd"].shape == (100, 4)
     assert arrays["P_post.spectral"].shape == (100, 4, 4)
