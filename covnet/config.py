@@ -368,8 +368,8 @@ def scenario_kind(path: str | Path) -> str:
     can route a file to its runner before validating it; unreadable files give the default and
     fail later with the loader's message."""
     try:
-        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError):
+        data = read_yaml(path)
+    except ConfigError:
         return "covariance_control"
     if isinstance(data, Mapping) and isinstance(data.get("kind"), str):
         return str(data["kind"])
@@ -397,21 +397,27 @@ def from_dict(data: object, source: str = "<dict>", base_dir: str | Path | None 
     return sc
 
 
-def load(path: str | Path) -> Scenario:
-    """Read and validate a YAML scenario file."""
+def read_yaml(path: str | Path) -> object:
+    """Parse a YAML file (``safe_load``); an unreadable file or bad YAML is a
+    :class:`ConfigError` naming the line and column.  Every scenario kind's loader uses it."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(str(p), [("", f"not valid YAML: {where}{problem}")]) from None
-    return from_dict(data, str(p), base_dir=p.parent)
+
+
+def load(path: str | Path) -> Scenario:
+    """Read and validate a YAML scenario file."""
+    p = Path(path)
+    return from_dict(read_yaml(p), str(p), base_dir=p.parent)
 
 
 def normalised(sc: Scenario) -> dict[str, Any]:

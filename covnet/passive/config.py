@@ -20,10 +20,9 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import Field, Strict, ValidationError, field_validator
 
-from covnet.config import ConfigError, Float, Int, Str, _fmt_error, _Model
+from covnet.config import ConfigError, Float, Int, Str, _fmt_error, _Model, read_yaml
 from covnet.core.passive.methods import METHODS
 from covnet.core.passive.model import AssocParams
 from covnet.passive.scene import FORMATIONS, SceneModel, formation
@@ -290,19 +289,8 @@ def from_dict(data: object, source: str = "<dict>") -> PassiveConfig:
     return cfg
 
 
-def _read_yaml(path: str | Path) -> tuple[Path, Any]:
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
-    try:
-        return p, yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(str(p), [("", f"not valid YAML: {where}{problem}")]) from None
+def _read_yaml(path: str | Path) -> tuple[Path, object]:
+    return Path(path), read_yaml(path)
 
 
 def load(path: str | Path) -> PassiveConfig:
