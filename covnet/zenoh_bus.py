@@ -56,7 +56,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from typing import Literal
+from typing import Generic, Literal, TypeVar
 
 import zenoh
 
@@ -73,6 +73,8 @@ from covnet.bus import (
 )
 
 __all__ = ["Mode", "ZenohBus", "zenoh_config"]
+
+_T = TypeVar("_T")
 
 Mode = Literal["router", "client", "peer"]
 
@@ -139,25 +141,23 @@ def _signals_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-class _ZenohSubscription:
+class _ChannelSubscription(Generic[_T]):
+    """A zenoh subscriber feeding a :class:`~covnet.bus.Channel` that the loop drains."""
+
     def __init__(self, bus: ZenohBus, keyexpr: str) -> None:
         self._bus = bus
         self.keyexpr = keyexpr
-        self.channel: Channel[Sample] = Channel()
-        put = self.channel.put
-
-        def on_sample(sample: zenoh.Sample) -> None:  # zenoh's thread: enqueue only
-            put(Sample(str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns()))
-
+        self.channel: Channel[_T] = Channel()
         with _signals_blocked():
-            self._sub: zenoh.Subscriber[None] | None = bus._session.declare_subscriber(
-                keyexpr, zenoh.handlers.Callback(on_sample)
-            )
+            self._sub: zenoh.Subscriber[None] | None = self._declare(bus._session, keyexpr)
 
-    def try_recv(self) -> Sample | None:
+    def _declare(self, session: zenoh.Session, keyexpr: str) -> zenoh.Subscriber[None]:
+        raise NotImplementedError
+
+    def try_recv(self) -> _T | None:
         return self.channel.try_recv()
 
-    def recv(self, timeout: float | None) -> Sample | None:
+    def recv(self, timeout: float | None) -> _T | None:
         return self.channel.recv(timeout)
 
     def close(self) -> None:
@@ -174,40 +174,27 @@ class _ZenohSubscription:
         self.channel.close()
 
 
-class _ZenohLivelinessSubscription:
-    def __init__(self, bus: ZenohBus, keyexpr: str) -> None:
-        self._bus = bus
-        self.keyexpr = keyexpr
-        self.channel: Channel[LivelinessEvent] = Channel()
+class _ZenohSubscription(_ChannelSubscription[Sample]):
+    def _declare(self, session: zenoh.Session, keyexpr: str) -> zenoh.Subscriber[None]:
+        put = self.channel.put
+
+        def on_sample(sample: zenoh.Sample) -> None:  # zenoh's thread: enqueue only
+            put(Sample(str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns()))
+
+        return session.declare_subscriber(keyexpr, zenoh.handlers.Callback(on_sample))
+
+
+class _ZenohLivelinessSubscription(_ChannelSubscription[LivelinessEvent]):
+    def _declare(self, session: zenoh.Session, keyexpr: str) -> zenoh.Subscriber[None]:
         put = self.channel.put
         put_kind = zenoh.SampleKind.PUT
 
         def on_sample(sample: zenoh.Sample) -> None:  # zenoh's thread: enqueue only
             put(LivelinessEvent(str(sample.key_expr), sample.kind == put_kind))
 
-        with _signals_blocked():
-            self._sub: zenoh.Subscriber[None] | None = bus._session.liveliness().declare_subscriber(
-                keyexpr, zenoh.handlers.Callback(on_sample), history=True
-            )
-
-    def try_recv(self) -> LivelinessEvent | None:
-        return self.channel.try_recv()
-
-    def recv(self, timeout: float | None) -> LivelinessEvent | None:
-        return self.channel.recv(timeout)
-
-    def close(self) -> None:
-        self._bus._forget(self)
-        self._undeclare()
-
-    def _undeclare(self) -> None:
-        sub, self._sub = self._sub, None
-        if sub is not None:
-            try:
-                sub.undeclare()  # type: ignore[no-untyped-call]
-            except zenoh.ZError:
-                pass
-        self.channel.close()
+        return session.liveliness().declare_subscriber(
+            keyexpr, zenoh.handlers.Callback(on_sample), history=True
+        )
 
 
 class _ZenohToken:
@@ -230,7 +217,7 @@ class _ZenohToken:
                 pass
 
 
-_Entity = _ZenohSubscription | _ZenohLivelinessSubscription | _ZenohToken
+_Entity = _ChannelSubscription[Sample] | _ChannelSubscription[LivelinessEvent] | _ZenohToken
 
 
 class ZenohBus:
