@@ -158,13 +158,26 @@ def cmd_up(args: argparse.Namespace) -> int:
     from covnet.up import UpError, up
 
     kind = _kind(args.config)
-    if kind != "covariance_control":
+    if kind not in ("covariance_control", "mobile"):
         raise UsageError(
-            f"{args.config}: covnet up runs covariance-control scenarios; the {kind} scenario's "
-            f"network runtime is not built yet (use covnet run / covnet mc for it)"
+            f"{args.config}: covnet up runs covariance-control and mobile scenarios; the {kind} "
+            f"scenario's network runtime is not built yet (use covnet run / covnet mc for it)"
         )
-    sc = _load(args.config, args.seed)
-    metrics = _metrics_for(sc, args.metric)
+    mobile = kind == "mobile"
+    if mobile:
+        from covnet.mobile.config import load as load_mobile
+        from covnet.mobile.config import with_overrides as mobile_overrides
+
+        if args.metric:
+            raise UsageError("--metric: a mobile scenario has no allocation metric; see --solver")
+        sc = load_mobile(args.config)
+        sc = mobile_overrides(sc, args.config, seed=args.seed, solver=args.solver)
+        metrics: list[str] = []
+    else:
+        if args.solver is not None:
+            raise UsageError("--solver: only a mobile scenario (kind: mobile) has solvers")
+        sc = _load(args.config, args.seed)
+        metrics = _metrics_for(sc, args.metric)
     if args.speed <= 0:
         raise UsageError(f"--speed: must be > 0, got {args.speed}")
     out = _prepare_out(args.out, sc.name, args.force)
@@ -196,10 +209,22 @@ def cmd_up(args: argparse.Namespace) -> int:
             verbose=args.verbose,
             nodes=nodes,
             router=args.router,
+            solver=args.solver if mobile else None,
         )
     except UpError as exc:
         _err(str(exc))
         status = EXIT_FAIL
+    if mobile:
+        if (out / "summary.json").is_file():
+            from covnet.mobile.cli_entry import print_summary
+            from covnet.mobile.results import load_summary as load_mobile_summary
+
+            if not args.no_figures:
+                from covnet.mobile.plots import make_figure
+
+                print(f"figure: {make_figure(out)}")
+            print_summary(out, load_mobile_summary(out))
+        return status
     if (out / "summary.json").is_file():
         summary = load_summary(out)
         if not args.no_figures and summary["metrics"]:
@@ -222,6 +247,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if missing:
         raise UsageError(
             f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
+        )
+    if json.loads((run_dir / "run.json").read_text()).get("kind") == "mobile":
+        raise UsageError(
+            f"{run_dir}: covnet replay re-fuses covariance-control runs; a mobile run's replay "
+            "is not built yet (its recording.mcap holds every message of the run)"
         )
     report = replay_run(run_dir, Path(args.out) if args.out else None)
     if report.identical:
@@ -398,6 +428,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="run only this metric (repeatable; default: the config's)",
     )
     u.add_argument("--seed", type=int, help="override the config's seed")
+    u.add_argument(
+        "--solver",
+        help="kind: mobile only: the decision's solver (lp, lp_highs, closed_form, milp)",
+    )
     u.add_argument(
         "--realtime",
         action="store_true",

@@ -259,7 +259,7 @@ def parse_alive_key(key: str) -> tuple[str, str]:
 
 # kinds: "count" int >= 0; "stamp" int ns >= 0; "float" finite float; "name" id str;
 # "names" tuple of unique ids; "vec"/"mat" float64 1-D/2-D finite array; "modes" dict id->id;
-# "counts" dict id->count.
+# "counts" dict id->count; "targets" dict id->tuple of unique ids.
 
 
 def _is_int(v: object, strict: bool) -> bool:
@@ -304,6 +304,8 @@ def _coerce(kind: str, name: str, v: object, strict: bool) -> Any:
         return _coerce_modes(name, v, strict)
     if kind == "counts":
         return _coerce_counts(name, v, strict)
+    if kind == "targets":
+        return _coerce_targets(name, v, strict)
     raise AssertionError(kind)  # pragma: no cover
 
 
@@ -318,6 +320,21 @@ def _coerce_counts(name: str, v: object, strict: bool) -> dict[str, int] | None:
         raise WireError("too_large", f"{name} has {len(v)} entries > {MAX_IDS}")
     return {
         _coerce("name", f"{name} key", k, strict): _coerce("count", f"{name}[{k!r}]", x, strict)
+        for k, x in v.items()
+    }
+
+
+def _coerce_targets(name: str, v: object, strict: bool) -> dict[str, tuple[str, ...]] | None:
+    if v is None:
+        if strict:
+            raise WireError("bad_type", f"{name} must be a map, got nil")
+        return None
+    if not isinstance(v, Mapping) or (strict and type(v) is not dict):
+        raise WireError("bad_type", f"{name} must be a map of str to a list of str")
+    if len(v) > MAX_IDS:
+        raise WireError("too_large", f"{name} has {len(v)} entries > {MAX_IDS}")
+    return {
+        _coerce("name", f"{name} key", k, strict): _coerce_names(f"{name}[{k!r}]", x, strict)
         for k, x in v.items()
     }
 
@@ -381,6 +398,17 @@ def _coerce_array(name: str, v: object, ndim: int, strict: bool) -> NDArray[np.f
 # --------------------------------------------------------------------------------------------
 
 
+_OPTIONAL: dict[type, frozenset[str]] = {}
+
+
+def _optional_fields(cls: type) -> frozenset[str]:
+    """Fields that default to None: omitted from the wire when unset."""
+    opt = _OPTIONAL.get(cls)
+    if opt is None:
+        opt = _OPTIONAL[cls] = frozenset(f.name for f in fields(cls) if f.default is None)
+    return opt
+
+
 class _Message:
     """Base of every message: field validation, and value equality (arrays compared exactly)."""
 
@@ -389,8 +417,12 @@ class _Message:
     _KINDS: ClassVar[dict[str, str]]  # field name -> kind, in wire order
 
     def __post_init__(self) -> None:
+        optional = _optional_fields(type(self))
         for name, kind in self._KINDS.items():
-            object.__setattr__(self, name, _coerce(kind, name, getattr(self, name), strict=False))
+            value = getattr(self, name)
+            if value is None and name in optional:
+                continue  # an optional field left unset (never sent)
+            object.__setattr__(self, name, _coerce(kind, name, value, strict=False))
         self._check()
 
     def _check(self) -> None:
@@ -401,6 +433,8 @@ class _Message:
             return NotImplemented
         for n in self._KINDS:
             a, b = getattr(self, n), getattr(other, n)
+            if (a is None) != (b is None):
+                return False
             if isinstance(a, np.ndarray):
                 if a.shape != b.shape or not np.array_equal(a, b):
                     return False
@@ -414,7 +448,9 @@ class _Message:
 @dataclass(frozen=True, slots=True, eq=False)
 class Truth(_Message):
     """Ground truth at scan ``scan``, scenario time ``t`` [s]: row i of ``states`` ``(m, n)``
-    is the state of target ``target_ids[i]``."""
+    is the state of target ``target_ids[i]``.  Optionally (mobile scenarios, both or neither)
+    the sensor platforms: row j of ``platforms`` ``(N, 4)`` is ``[qx, qy, q̇x, q̇y]`` (position
+    [m] and velocity [m/s] over the last scan) of sensor ``sensor_ids[j]``."""
 
     KIND: ClassVar[str] = "truth"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -422,11 +458,15 @@ class Truth(_Message):
         "t": "float",
         "target_ids": "names",
         "states": "mat",
+        "sensor_ids": "names",
+        "platforms": "mat",
     }
     scan: int
     t: float
     target_ids: tuple[str, ...]
     states: NDArray[np.float64]
+    sensor_ids: tuple[str, ...] | None = None
+    platforms: NDArray[np.float64] | None = None
 
     def _check(self) -> None:
         if self.states.shape[0] != len(self.target_ids):
@@ -434,13 +474,22 @@ class Truth(_Message):
                 "bad_shape",
                 f"states has {self.states.shape[0]} rows for {len(self.target_ids)} targets",
             )
+        if (self.sensor_ids is None) != (self.platforms is None):
+            raise WireError("bad_shape", "sensor_ids and platforms come together")
+        if self.platforms is not None and self.platforms.shape != (len(self.sensor_ids or ()), 4):
+            raise WireError(
+                "bad_shape",
+                f"platforms is {self.platforms.shape} for {len(self.sensor_ids or ())} sensors",
+            )
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Command(_Message):
     """The manager's tasking for scan ``scan`` (time ``t`` [s]), one broadcast: sensors listed
     in ``enabled`` measure, every other sensor is disabled for this scan. ``modes`` (optional)
-    maps a sensor id to a policy-specific mode name. ``t_sent_ns``: monotonic ns at publish."""
+    maps a sensor id to a policy-specific mode name; ``targets`` (optional, mobile scenarios)
+    maps a sensor id to the ids of the targets it is to measure (possibly none).
+    ``t_sent_ns``: monotonic ns at publish."""
 
     KIND: ClassVar[str] = "cmd"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -450,6 +499,7 @@ class Command(_Message):
         "t_sent_ns": "stamp",
         "episode": "count",
         "modes": "modes",
+        "targets": "targets",
     }
     scan: int
     t: float
@@ -457,12 +507,18 @@ class Command(_Message):
     t_sent_ns: int
     episode: int = 0
     modes: dict[str, str] | None = None
+    targets: dict[str, tuple[str, ...]] | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Measurement(_Message):
     """Sensor ``sensor_id``'s measurements for scan ``scan`` at time ``t`` [s]: ``z`` is
-    ``(m, dz)`` (m detections, possibly 0), each with noise covariance ``R`` ``(dz, dz)``."""
+    ``(m, dz)`` (m detections, possibly 0), each with noise covariance ``R`` ``(dz, dz)``.
+
+    Optional (mobile scenarios): ``target_ids`` names the target of each row of ``z``, and
+    ``platform`` ``(4,)`` is the sensor's own ``[qx, qy, q̇x, q̇y]`` when it measured (``R`` is
+    then its base noise ``R0``: the geometric noise of each detection is the receiver's to
+    model)."""
 
     KIND: ClassVar[str] = "meas"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -473,6 +529,8 @@ class Measurement(_Message):
         "R": "mat",
         "t_sent_ns": "stamp",
         "episode": "count",
+        "target_ids": "names",
+        "platform": "vec",
     }
     sensor_id: str
     scan: int
@@ -481,6 +539,8 @@ class Measurement(_Message):
     R: NDArray[np.float64]
     t_sent_ns: int
     episode: int = 0
+    target_ids: tuple[str, ...] | None = None
+    platform: NDArray[np.float64] | None = None
 
     def _check(self) -> None:
         dz = self.R.shape[0]
@@ -488,12 +548,19 @@ class Measurement(_Message):
             raise WireError("bad_shape", f"R must be square and non-empty, got {self.R.shape}")
         if self.z.shape[1] != dz:
             raise WireError("bad_shape", f"z is {self.z.shape} but R is {self.R.shape}")
+        if self.target_ids is not None and len(self.target_ids) != self.z.shape[0]:
+            raise WireError(
+                "bad_shape", f"{len(self.target_ids)} target ids for {self.z.shape[0]} rows of z"
+            )
+        if self.platform is not None and self.platform.shape != (4,):
+            raise WireError("bad_shape", f"platform must be (4,), got {self.platform.shape}")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Track(_Message):
     """The fused estimate ``N(x, P)`` for scan ``scan`` at time ``t`` [s]: ``x`` ``(n,)``,
-    ``P`` ``(n, n)``."""
+    ``P`` ``(n, n)``.  ``target_id`` (optional): the target of this track when there are
+    several (mobile scenarios: one Track per target and scan)."""
 
     KIND: ClassVar[str] = "track"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -503,6 +570,7 @@ class Track(_Message):
         "P": "mat",
         "t_sent_ns": "stamp",
         "episode": "count",
+        "target_id": "name",
     }
     scan: int
     t: float
@@ -510,6 +578,7 @@ class Track(_Message):
     P: NDArray[np.float64]
     t_sent_ns: int
     episode: int = 0
+    target_id: str | None = None
 
     def _check(self) -> None:
         n = self.x.shape[0]

@@ -19,7 +19,14 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from covnet.config import ConfigError, Scenario, config_hash, load, with_overrides
+from covnet.config import (
+    ConfigError,
+    Scenario,
+    config_hash,
+    load,
+    scenario_kind,
+    with_overrides,
+)
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
 
@@ -38,13 +45,29 @@ def common_parser(prog: str, description: str) -> argparse.ArgumentParser:
     return p
 
 
-def load_config(path: str, seed: int | None) -> Scenario:
+def load_config(path: str, seed: int | None) -> Any:
+    """The scenario of ``path``: a :class:`Scenario`, or a mobile config (``kind: mobile``)."""
+    if scenario_kind(path) == "mobile":
+        from covnet.mobile import config as mobile_config
+
+        cfg = mobile_config.load(path)
+        return mobile_config.with_overrides(cfg, path, seed=seed) if seed is not None else cfg
     sc = load(path)
     return with_overrides(sc, seed=seed) if seed is not None else sc
 
 
+def is_mobile(sc: Any) -> bool:
+    from covnet.mobile.config import MobileConfig
+
+    return isinstance(sc, MobileConfig)
+
+
 def default_run_id(sc: Scenario) -> str:
     """The run id processes started separately agree on without being told: ``name-hash``."""
+    if is_mobile(sc):
+        from covnet.mobile.config import config_hash as mobile_hash
+
+        return f"{sc.name}-{mobile_hash(sc)[:8]}"  # type: ignore[arg-type]
     return f"{sc.name}-{config_hash(sc)[:8]}"
 
 

@@ -235,7 +235,10 @@ def run_metadata(run_id: str, config: Any | None) -> dict[str, dict[str, str]]:
     """The metadata records of a recording: ``covnet.run`` (and ``covnet.config`` when the
     :class:`~covnet.config.Scenario` is given)."""
     from covnet.config import config_hash, normalised
+    from covnet.mobile import config as mobile_config
 
+    if isinstance(config, mobile_config.MobileConfig):
+        config_hash, normalised = mobile_config.config_hash, mobile_config.normalised  # type: ignore[assignment]
     run: dict[str, str] = {
         "run_id": run_id,
         "covnet_version": __version__,

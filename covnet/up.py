@@ -62,7 +62,10 @@ def process_specs(
     seed: int | None,
     realtime: bool,
     speed: float,
+    solver: str | None = None,
 ) -> list[ProcessSpec]:
+    """The processes of one network.  ``sc`` is a covariance-control :class:`Scenario` or a
+    mobile config (``metrics`` then empty; ``solver``, when given, goes to the manager)."""
     py = sys.executable
     common = ["--config", str(config_path), "--run", run_id]
     if seed is not None:
@@ -74,7 +77,8 @@ def process_specs(
         ProcessSpec(
             "manager",
             [py, "-m", "manager", *common, "--listen", router, "--out", str(out)]
-            + [a for m in metrics for a in ("--metric", m)],
+            + [a for m in metrics for a in ("--metric", m)]
+            + (["--solver", solver] if solver else []),
         ),
         ProcessSpec("world", [py, "-m", "covnet.world", *common, "--connect", connect]),
     ]
@@ -147,13 +151,16 @@ class StatusView:
 
     def update(self, st: dict[str, Any]) -> None:
         self.last = st
-        info = (
-            f"scan {st['scan']}/{st['scans']}  enabled {','.join(st['enabled']) or '-'}  "
-            f"tr P {st['trace_P']:.1f} / tr Pd {st['trace_Pd']:.1f}  "
-            f"{st['latency_ms']:.2f} ms  {st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
-        )
-        if st["failed"]:
-            info += f"  failed {','.join(st['failed'])}"
+        if "info" in st:  # a manager that formats its own line (kind: mobile)
+            info = f"{st['info']}  {st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
+        else:
+            info = (
+                f"scan {st['scan']}/{st['scans']}  enabled {','.join(st['enabled']) or '-'}  "
+                f"tr P {st['trace_P']:.1f} / tr Pd {st['trace_Pd']:.1f}  "
+                f"{st['latency_ms']:.2f} ms  {st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
+            )
+            if st["failed"]:
+                info += f"  failed {','.join(st['failed'])}"
         done = st["episode"] * st["scans"] + st["scan"]
         if self._progress is not None:
             self._progress.update(self._task, completed=done, metric=st["metric"], info=info)
@@ -178,17 +185,28 @@ def up(
     on_ready: Callable[[Supervisor], None] | None = None,
     nodes: list[str] | None = None,
     router: str | None = None,
+    solver: str | None = None,
 ) -> int:
     """Run the network to completion; returns the manager's exit status (130 on Ctrl-C).
 
     ``nodes`` limits which processes this host starts (names: ``manager``, ``world``,
     ``recorder``, ``sensors`` for all sensors, or sensor ids); the others are started
     elsewhere (``python -m sensors ... --connect ROUTER``).  ``router`` overrides
-    ``network.router``."""
+    ``network.router``.  A mobile config (``kind: mobile``) runs with ``metrics=[]`` and
+    ``solver`` (default: the config's)."""
     out.mkdir(parents=True, exist_ok=True)
     router = resolve_router(endpoint(sc.network, router or sc.network.router))
     specs = process_specs(
-        sc, config_path, run_id, router, out, metrics, seed=seed, realtime=realtime, speed=speed
+        sc,
+        config_path,
+        run_id,
+        router,
+        out,
+        metrics,
+        seed=seed,
+        realtime=realtime,
+        speed=speed,
+        solver=solver,
     )
     if nodes is not None:
         wanted = set(nodes)
@@ -199,7 +217,7 @@ def up(
     if not any(sp.name == "manager" for sp in specs):
         return _supervise_without_manager(specs, out, run_id, router)
     ready = threading.Event()
-    view = StatusView(sc.scans, metrics)
+    view = StatusView(sc.scans, metrics or [solver or getattr(sc, "solver", "")])
 
     def on_line(name: str, text: str) -> None:
         if name == "manager" and text.startswith("STATUS "):

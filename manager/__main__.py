@@ -31,15 +31,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--listen", help="router endpoint to listen on (default: network.router)")
     p.add_argument("--out", required=True, help="run directory to write")
     p.add_argument("--metric", action="append", help="metric(s) to run (default: the config's)")
+    p.add_argument("--solver", help="kind: mobile only: the decision's solver (default: config's)")
     args = p.parse_args(argv)
 
     def body() -> int:
+        from covnet.process import is_mobile
         from manager import node
         from manager.report import write_network_run
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
         resolve_run(args, sc)
+        if is_mobile(sc):
+            from covnet.mobile.nodes.manager import main_body
+
+            return main_body(args, sc, stop)
+        if args.solver is not None:
+            raise ValueError("--solver: only a mobile scenario (kind: mobile) has solvers")
         metrics = args.metric or list(sc.allocation.metrics)
         from covnet.core.metrics import METRICS
 

@@ -19,6 +19,7 @@ Names follow spec §2.1/§7 with units in the key where there is one::
     filter: {P0_diag}
     targets: [{id, x0: [px, vx, py, vy], sigma_a_mps2, A?, B?}]
     sensors: [{id, start_m, speed_mps, sigma0_m | R0_m2, r_pd_m, b0, b1, capacity}]
+    network: the covariance-control config's table (covnet up: router, timeouts, record, ...)
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import numpy as np
 import yaml
 from pydantic import Field, Strict, ValidationError, field_validator
 
-from covnet.config import ConfigError, Float, Int, Str, _fmt_error, _Model
+from covnet.config import ConfigError, Float, Int, NetworkSpec, Str, _fmt_error, _Model
 from covnet.core.mobile.decision import SOLVERS
 
 __all__ = [
@@ -192,6 +193,7 @@ class MobileConfig(_Model):
     filter: MobileFilterSpec = MobileFilterSpec()
     targets: tuple[MobileTargetSpec, ...] = Field(min_length=1)
     sensors: tuple[MobileSensorSpec, ...] = Field(min_length=1)
+    network: NetworkSpec = NetworkSpec()  # covnet up (the same table as covariance control)
 
     _period = field_validator("scan_period_s")(_gt0)
 
@@ -299,8 +301,12 @@ def load(path: str | Path) -> MobileConfig:
 
 
 def normalised(cfg: MobileConfig) -> dict[str, Any]:
-    """The config with every default filled in, as plain JSON-able data."""
-    return cfg.model_dump(mode="json")
+    """The config with every default filled in, as plain JSON-able data (``network`` only when
+    it differs from the defaults, so that configs without it keep their hash)."""
+    data = cfg.model_dump(mode="json")
+    if cfg.network == NetworkSpec():
+        del data["network"]
+    return data
 
 
 def config_hash(cfg: MobileConfig) -> str:

@@ -207,6 +207,12 @@ def noise_of(model: MobileModel, j: int, x: Vec, q: Vec, qdot: Vec) -> Mat:
     return noise_covariance(g, model.sensors.R0[j])
 
 
+def true_pd(model: MobileModel, j: int, x_true: Vec, q: Vec) -> float:
+    """Pd of sensor j at ``q`` for a target truly at ``x_true`` (the truth's field)."""
+    p = model.params
+    return float(detection_probability(x_true, q, model.sensors.r_pd[j], p.PD, p.a, p.b, p.c))
+
+
 def measure_pair(
     model: MobileModel, scan: int, i: int, j: int, x_true: Vec, q: Vec, qdot: Vec
 ) -> tuple[bool, Vec, float]:
@@ -216,8 +222,7 @@ def measure_pair(
     ``pd_include_track_cov`` says: that option widens the manager's model of the field for an
     uncertain track; a real target at a known position has no track covariance.
     """
-    p = model.params
-    Pd = float(detection_probability(x_true, q, model.sensors.r_pd[j], p.PD, p.a, p.b, p.c))
+    Pd = true_pd(model, j, x_true, q)
     R = noise_of(model, j, x_true, q, qdot)
     detected, z = draw_detection(pair_stream(model.seed, scan, i, j), Pd, C_POS @ x_true, R)
     return detected, z, Pd

@@ -114,7 +114,7 @@ def test_replay_reproduces_summary_byte_for_byte(recorded_run):
     assert report.out_dir == out / "replay"
     assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()
     a, b = load_arrays(out / "arrays.npz"), load_arrays(out / "replay" / "arrays.npz")
-    for name in a.files:
+    for name in a:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
     # the recording holds every message the manager sent and every measurement it got
     sent = result.stats.sent_msgs

@@ -203,8 +203,8 @@ def test_bench_rows_and_command(monkeypatch, capsys):
 
 
 def test_covnet_cli_routes_mobile_configs(tmp_path, capsys):
-    """`covnet run FILE --solver` and `covnet mc` reach the mobile runner; `covnet up` says why
-    not yet; `--metric` on a mobile file is a usage error."""
+    """`covnet run FILE --solver` and `covnet mc` reach the mobile runner; `--metric` on a
+    mobile file is a usage error (for `covnet up` too: tests/integration/test_mobile_up.py)."""
     from covnet.cli import main
 
     cfg_path = write_cfg(tmp_path, short(8))
@@ -212,5 +212,6 @@ def test_covnet_cli_routes_mobile_configs(tmp_path, capsys):
                  "--no-figures"]) == 0
     assert json.loads((tmp_path / "r" / "summary.json").read_text())["solver"] == "milp"
     assert main(["run", str(cfg_path), "--metric", "svd", "--out", str(tmp_path / "x")]) == 2
-    assert main(["up", str(cfg_path)]) == 2
-    assert "not built yet" in capsys.readouterr().err
+    capsys.readouterr()
+    assert main(["up", str(cfg_path), "--metric", "svd", "--out", str(tmp_path / "u")]) == 2
+    assert "no allocation metric" in capsys.readouterr().err

@@ -54,6 +54,36 @@ CASES = [
     Heartbeat(role="sensor", node_id="s1", scan=11, t_sent_ns=12),
     Heartbeat(role="manager", node_id="fusion-0.A_b", scan=0, t_sent_ns=0),
     Heartbeat("sensor", "s2", 5, 6, rejected={"bad_type": 2, "non_finite": 0}),
+    # the mobile scenario's optional fields
+    Truth(
+        scan=3,
+        t=3.0,
+        target_ids=("T1",),
+        states=np.ones((1, 4)),
+        sensor_ids=("S1", "S2"),
+        platforms=np.arange(8.0).reshape(2, 4),
+    ),
+    Truth(2, 2.0, (), np.zeros((0, 4)), sensor_ids=(), platforms=np.zeros((0, 4))),
+    Command(
+        1,
+        1.0,
+        ("S1", "S2"),
+        5,
+        modes={"S1": "NE", "S2": "stay"},
+        targets={"S1": ("T1", "T2"), "S2": ()},
+    ),
+    Measurement(
+        "S1",
+        1,
+        1.0,
+        np.array([[1.0, 2.0]]),
+        np.eye(2),
+        6,
+        target_ids=("T2",),
+        platform=np.array([3.0, 0.0, 3.0, 0.0]),
+    ),
+    Measurement("S2", 1, 1.0, np.zeros((0, 2)), np.eye(2), 6, target_ids=(), platform=np.zeros(4)),
+    Track(1, 1.0, np.zeros(4), np.eye(4), 7, target_id="T3"),
 ]
 CASE_IDS = [
     "truth",
@@ -73,6 +103,12 @@ CASE_IDS = [
     "hb-sensor",
     "hb-manager",
     "hb-rejected",
+    "truth-platforms",
+    "truth-no-platforms",
+    "cmd-targets",
+    "meas-target-ids",
+    "meas-no-detections-mobile",
+    "track-target",
 ]
 
 
@@ -267,6 +303,79 @@ GOLDEN_HEX = {
 }
 
 
+# the mobile scenario's optional fields (kind: mobile); messages without them keep the bytes
+# above (optional fields are omitted when unset)
+GOLDEN_MOBILE_MSGS = {
+    "truth-platforms": Truth(
+        scan=7,
+        t=7.0,
+        target_ids=("T1",),
+        states=np.array([[1.0, -2.0, 0.5, 0.0]]),
+        sensor_ids=("S1", "S2"),
+        platforms=np.array([[0.0, 3.0, 0.0, 3.0], [300.0, 0.0, -2.5, 0.0]]),
+    ),
+    "cmd-targets": Command(
+        scan=7,
+        t=7.0,
+        enabled=("S1", "S2"),
+        t_sent_ns=1_000_000_007,
+        modes={"S1": "N", "S2": "stay"},
+        targets={"S1": ("T1", "T3"), "S2": ()},
+    ),
+    "meas-target-ids": Measurement(
+        sensor_id="S1",
+        scan=7,
+        t=7.0,
+        z=np.array([[1.25, -3.5]]),
+        R=np.array([[4.0, 0.0], [0.0, 4.0]]),
+        t_sent_ns=1_000_000_123,
+        target_ids=("T3",),
+        platform=np.array([0.0, 3.0, 0.0, 3.0]),
+    ),
+    "track-target": Track(
+        scan=7,
+        t=7.0,
+        x=np.array([1.0, 2.0, 0.5, -0.5]),
+        P=np.eye(4),
+        t_sent_ns=1_000_000_456,
+        target_id="T1",
+    ),
+}
+
+GOLDEN_MOBILE_HEX: dict[str, str] = {
+    "truth-platforms": (
+        "88a17601a16ba57472757468a47363616e07a174cb401c000000000000aa7461726765745f696473"
+        "91a25431a6737461746573c72a0193a33c6638920104c420000000000000f03f00000000000000c0"
+        "000000000000e03f0000000000000000aa73656e736f725f69647392a25331a25332a9706c617466"
+        "6f726d73c74a0193a33c6638920204c4400000000000000000000000000000084000000000000000"
+        "0000000000000008400000000000c07240000000000000000000000000000004c000000000000000"
+        "00"
+    ),
+    "cmd-targets": (
+        "89a17601a16ba3636d64a47363616e07a174cb401c000000000000a7656e61626c656492a25331a2"
+        "5332a9745f73656e745f6e73ce3b9aca07a7657069736f646500a56d6f64657382a25331a14ea253"
+        "32a473746179a77461726765747382a2533192a25431a25433a2533290"
+    ),
+    "meas-target-ids": (
+        "8ba17601a16ba46d656173a973656e736f725f6964a25331a47363616e07a174cb401c0000000000"
+        "00a17ac71a0193a33c6638920102c410000000000000f43f0000000000000cc0a152c72a0193a33c"
+        "6638920202c4200000000000001040000000000000000000000000000000000000000000001040a9"
+        "745f73656e745f6e73ce3b9aca7ba7657069736f646500aa7461726765745f69647391a25433a870"
+        "6c6174666f726dc7290193a33c66389104c420000000000000000000000000000008400000000000"
+        "0000000000000000000840"
+    ),
+    "track-target": (
+        "89a17601a16ba5747261636ba47363616e07a174cb401c000000000000a178c7290193a33c663891"
+        "04c420000000000000f03f0000000000000040000000000000e03f000000000000e0bfa150c78a01"
+        "93a33c6638920404c480000000000000f03f00000000000000000000000000000000000000000000"
+        "00000000000000000000000000000000f03f00000000000000000000000000000000000000000000"
+        "00000000000000000000000000000000f03f00000000000000000000000000000000000000000000"
+        "00000000000000000000000000000000f03fa9745f73656e745f6e73ce3b9acbc8a7657069736f64"
+        "6500a97461726765745f6964a25431"
+    ),
+}
+
+
 def test_golden_covers_every_kind():
     assert set(GOLDEN_MSGS) == {cls.KIND for cls in MESSAGE_TYPES} == set(GOLDEN_HEX)
     assert SCHEMA_VERSION == 1, "a new schema version needs a new golden table"
@@ -277,6 +386,20 @@ def test_golden_bytes(kind):
     golden = bytes.fromhex(GOLDEN_HEX[kind])
     assert encode(GOLDEN_MSGS[kind]) == golden
     assert decode(golden) == GOLDEN_MSGS[kind]
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN_MOBILE_MSGS))
+def test_golden_bytes_mobile(name):
+    golden = bytes.fromhex(GOLDEN_MOBILE_HEX[name])
+    assert encode(GOLDEN_MOBILE_MSGS[name]) == golden
+    assert decode(golden) == GOLDEN_MOBILE_MSGS[name]
+
+
+def test_unset_optional_fields_are_omitted():
+    assert set(_raw(GOLDEN_MSGS["truth"])) == {"v", "k", "scan", "t", "target_ids", "states"}
+    assert "targets" not in _raw(GOLDEN_MSGS["cmd"])
+    assert not {"target_ids", "platform"} & set(_raw(GOLDEN_MSGS["meas"]))
+    assert "target_id" not in _raw(GOLDEN_MSGS["track"])
 
 
 # --------------------------------------------------------------------------------------------
@@ -396,6 +519,49 @@ REJECT = {
     "empty-id": (_with(MEAS, sensor_id=""), None, "bad_value"),
     "long-id": (_with(MEAS, sensor_id="s" * 65), None, "bad_value"),
     "duplicate-ids": (_with(CMD, enabled=["s1", "s1"]), None, "bad_value"),
+    # the mobile scenario's optional fields
+    "targets-nil": (_with(CMD, targets=None), None, "bad_type"),
+    "targets-not-map": (_with(CMD, targets=["S1"]), None, "bad_type"),
+    "targets-str-value": (_with(CMD, targets={"S1": "T1"}), None, "bad_type"),
+    "targets-int-id": (_with(CMD, targets={"S1": [1]}), None, "bad_type"),
+    "targets-duplicate": (_with(CMD, targets={"S1": ["T1", "T1"]}), None, "bad_value"),
+    "targets-bad-key": (_with(CMD, targets={"S/1": []}), None, "bad_value"),
+    "targets-too-many": (
+        _with(CMD, targets={"S1": [f"T{i}" for i in range(MAX_IDS + 1)]}),
+        None,
+        "too_large",
+    ),
+    "platforms-without-ids": (_with(TRUTH, platforms=_ext(shape=(1, 4))), None, "bad_shape"),
+    "ids-without-platforms": (_with(TRUTH, sensor_ids=["S1"]), None, "bad_shape"),
+    "platforms-vs-ids": (
+        _with(TRUTH, sensor_ids=["S1"], platforms=_ext(shape=(2, 4))),
+        None,
+        "bad_shape",
+    ),
+    "platforms-3-cols": (
+        _with(TRUTH, sensor_ids=["S1"], platforms=_ext(shape=(1, 3))),
+        None,
+        "bad_shape",
+    ),
+    "platforms-nil": (_with(TRUTH, sensor_ids=["S1"], platforms=None), None, "bad_type"),
+    "platforms-nan": (
+        _with(
+            TRUTH,
+            sensor_ids=["S1"],
+            platforms=_ext(shape=(1, 4), raw=np.array([0, 0, np.nan, 0], "<f8").tobytes()),
+        ),
+        None,
+        "non_finite",
+    ),
+    "meas-target-ids-vs-z": (_with(MEAS, target_ids=["T1", "T2"]), None, "bad_shape"),
+    "meas-target-ids-duplicate": (_with(MEAS, target_ids=["T1", "T1"]), None, "bad_value"),
+    "meas-target-ids-nil": (_with(MEAS, target_ids=None), None, "bad_type"),
+    "meas-platform-shape": (_with(MEAS, platform=_ext(shape=(2,))), None, "bad_shape"),
+    "meas-platform-2d": (_with(MEAS, platform=_ext(shape=(1, 4))), None, "bad_shape"),
+    "meas-platform-list": (_with(MEAS, platform=[0.0, 0.0, 0.0, 0.0]), None, "bad_type"),
+    "track-target-id-int": (_with(TRACK, target_id=1), None, "bad_type"),
+    "track-target-id-bad": (_with(TRACK, target_id="T*"), None, "bad_value"),
+    "track-target-id-nil": (_with(TRACK, target_id=None), None, "bad_type"),
 }
 
 
@@ -623,12 +789,13 @@ def test_new_run_id_is_short_unique_and_valid():
         m.truth_key(run)
 
 
-if __name__ == "__main__":  # print a fresh GOLDEN_HEX table
-    print("GOLDEN_HEX = {")
-    for kind, golden_msg in GOLDEN_MSGS.items():
-        hexed = encode(golden_msg).hex()
-        print(f'    "{kind}": (')
-        for i in range(0, len(hexed), 80):
-            print(f'        "{hexed[i : i + 80]}"')
-        print("    ),")
-    print("}")
+if __name__ == "__main__":  # print fresh GOLDEN_HEX and GOLDEN_MOBILE_HEX tables
+    for table, msgs in (("GOLDEN_HEX", GOLDEN_MSGS), ("GOLDEN_MOBILE_HEX", GOLDEN_MOBILE_MSGS)):
+        print(f"{table} = {{")
+        for kind, golden_msg in msgs.items():
+            hexed = encode(golden_msg).hex()
+            print(f'    "{kind}": (')
+            for i in range(0, len(hexed), 80):
+                print(f'        "{hexed[i : i + 80]}"')
+            print("    ),")
+        print("}")

@@ -1,0 +1,546 @@
+"""The mobile manager: predict every track, decide modes and targets, command, collect, update.
+
+Per scan ``k`` (the steps of :func:`covnet.mobile.simulate.run`, with the same functions)::
+
+    1. predict every track to k                                  predict_tracks
+    2. the sensors alive (liveliness + heartbeats, manager.membership); a failed sensor leaves
+       the problem: decide(..., alive=mask) gives its targets to others or leaves them
+       unobserved, and its platform stays
+    3. Command(k): enabled = the alive sensors, modes and targets of each
+    4. (compare_exact) the exact solver and the relaxation, while the sensors measure
+    5. collect Measurement(k) from every enabled sensor until all arrived, one failed, or the
+       deadline passed; anything malformed, for another scan, from a sensor not enabled,
+       detecting a target it was not commanded or without its platform state is counted by
+       reason and dropped
+    6. each observed target updates with its detection (update_track, R from the sensor's
+       reported position and velocity); publish Track(k) per target and Status(k)
+
+The platforms' positions for the next decision are the ones the sensors reported; a sensor
+that did not report is dead-reckoned from its commanded mode (move_platforms, as the world
+moves it).  The truth is computed here for the results only (errors, the true Pd of each
+chosen pair) and never sent.  The loop takes its bus, clock and stop event from the caller: a
+test runs it in a thread over ``InMemoryBus``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from covnet import messages as msg
+from covnet.bus import Bus
+from covnet.clock import Clock
+from covnet.core.mobile.decision import compare, decide_milp, relaxation
+from covnet.core.mobile.models import MODE_NAMES, predict_tracks, usage_cost
+from covnet.mobile.config import MobileConfig
+from covnet.mobile.model import (
+    MobileModel,
+    build_model,
+    decide,
+    initial_tracks,
+    lp_reference,
+    move_platforms,
+    true_pd,
+    truth,
+    update_track,
+)
+from covnet.mobile.simulate import MobileRun
+from covnet.runtime_stats import NetStats
+from manager.membership import Membership
+from manager.node import RECORDER_ID, WORLD_ID, ManagerError, _Loop, _pace, _speed
+
+__all__ = ["MobileResult", "run"]
+
+
+@dataclass
+class MobileResult:
+    """What the loop has done so far (live while it runs; final when :func:`run` returns)."""
+
+    solver: str
+    seed: int
+    rows: dict[str, list[Any]] = field(default_factory=dict)
+    failures: list[dict[str, Any]] = field(default_factory=list)
+    stats: NetStats = field(default_factory=NetStats)
+    completed: bool = False
+    error: str | None = None
+    x0: np.ndarray | None = None
+    P0: np.ndarray | None = None
+    pos0: np.ndarray | None = None
+    truth: np.ndarray | None = None
+
+    @property
+    def scans_done(self) -> int:
+        return len(self.rows.get("modes", ()))
+
+    def as_run(self) -> MobileRun:
+        """The scans done as a :class:`MobileRun` (``covnet run``'s arrays)."""
+        assert self.x0 is not None and self.P0 is not None and self.pos0 is not None
+        assert self.truth is not None
+        n = self.scans_done
+        r = self.rows
+
+        def arr(name: str, dtype: Any = np.float64) -> np.ndarray:
+            return np.array(r[name], dtype=dtype)
+
+        def with_start(name: str, start: np.ndarray) -> np.ndarray:
+            return np.array([start, *r[name]], dtype=np.float64)
+
+        return MobileRun(
+            solver=self.solver,
+            seed=self.seed,
+            truth=self.truth[: n + 1],
+            x_est=with_start("x_est", self.x0),
+            P_post=with_start("P_post", self.P0),
+            platforms=with_start("platforms", self.pos0),
+            modes=arr("modes", np.int64).reshape(n, len(self.pos0)),
+            assign=arr("assign", np.int64).reshape(n, len(self.x0)),
+            detected=arr("detected", bool).reshape(n, len(self.x0)),
+            pd_true=arr("pd_true").reshape(n, len(self.x0)),
+            usage=arr("usage"),
+            objective=arr("objective"),
+            status=arr("status", np.int64),
+            fractional=arr("fractional", bool),
+            J_lp=arr("J_lp"),
+            J_post=arr("J_post"),
+            J_star=arr("J_star"),
+            J_relax=arr("J_relax"),
+            gap=arr("gap"),
+            conflicts=arr("conflicts", np.int64),
+            mip_gap=arr("mip_gap"),
+            exact_status=arr("exact_status", np.int64),
+            cost_s=arr("cost_s"),
+            solve_s=arr("solve_s"),
+            compare_s=arr("compare_s"),
+        )
+
+
+_COMPARISON = "J_lp J_post J_star J_relax gap conflicts mip_gap exact_status compare_s".split()
+_ROWS = (
+    "x_est P_post platforms modes assign detected pd_true usage objective status fractional "
+    "J_lp J_post J_star J_relax gap conflicts mip_gap exact_status cost_s solve_s compare_s"
+).split()
+
+StatusFn = Callable[[dict[str, Any]], None]
+
+
+class _MobileLoop(_Loop):
+    """The covariance-control manager's membership and bus helpers over a mobile model."""
+
+    def __init__(self, cfg: MobileConfig, bus: Bus, run_id: str, clock: Clock) -> None:
+        self.sc, self.bus, self.run_id, self.clock = cfg, bus, run_id, clock  # type: ignore[assignment]
+        self.mobile: MobileModel = build_model(cfg)
+        self.ids = self.mobile.sensor_ids
+        net = cfg.network
+        self.members = Membership(
+            expected=(*self.ids, WORLD_ID), failure_timeout_ns=int(net.failure_timeout_s * 1e9)
+        )
+        self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
+        self.stats = NetStats()
+        self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
+        self.hb_sub = bus.subscribe(msg.heartbeat_keyexpr(run_id))
+        self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))
+        self.token = bus.declare_token(msg.alive_key(run_id, "manager", "manager"))
+        self.keys = {
+            "cmd": msg.command_key(run_id),
+            "track": msg.track_key(run_id),
+            "status": msg.status_key(run_id),
+        }
+        self.failed_now = frozenset()
+
+    def collect_mobile(
+        self,
+        k: int,
+        waiting: set[str],
+        commanded: dict[str, tuple[str, ...]],
+        deadline: float,
+        stop: threading.Event,
+    ) -> dict[str, msg.Measurement]:
+        got: dict[str, msg.Measurement] = {}
+        while waiting:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or stop.is_set():
+                self.stats.lost += len(waiting)
+                break
+            s = self.meas_sub.recv(timeout=min(0.05, remaining))
+            if s is not None:
+                self._take_mobile(s, k, waiting, commanded, got)
+            self.poll_membership()
+            dead = {sid for sid in waiting if not self.members.is_up(sid, self.clock.now_ns())}
+            if dead:
+                self.stats.lost += len(dead)
+                waiting -= dead
+        while (s := self.meas_sub.try_recv()) is not None:
+            self._take_mobile(s, k, set(), commanded, got)
+        return got
+
+    def _take_mobile(
+        self,
+        s: Any,
+        k: int,
+        waiting: set[str],
+        commanded: dict[str, tuple[str, ...]],
+        got: dict[str, msg.Measurement],
+    ) -> None:
+        self.stats.received(s.key, len(s.payload))
+        try:
+            m = msg.decode_as(s.payload, msg.Measurement)
+            key_sensor = msg.parse_measurement_key(s.key)
+        except msg.WireError as exc:
+            self.stats.reject(s.key, exc.reason)
+            return
+        except ValueError:
+            self.stats.reject(s.key, "bad_key")
+            return
+        if key_sensor != m.sensor_id:
+            self.stats.reject(s.key, "key_mismatch")
+        elif m.scan < k:
+            self.stats.late += 1
+            self.stats.reject(s.key, "late")
+        elif (m.episode, m.scan) != (0, k):
+            self.stats.reject(s.key, "wrong_scan")
+        elif m.sensor_id in got:
+            self.stats.reject(s.key, "duplicate")
+        elif m.sensor_id not in waiting:
+            self.stats.reject(s.key, "not_enabled")
+        elif (
+            m.platform is None
+            or m.target_ids is None
+            or m.z.shape[1] != 2
+            or not set(m.target_ids) <= set(commanded.get(m.sensor_id, ()))
+        ):
+            self.stats.reject(s.key, "bad_measurement")
+        else:
+            got[m.sensor_id] = m
+            waiting.discard(m.sensor_id)
+            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+
+
+def run(
+    cfg: MobileConfig,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    *,
+    solver: str | None = None,
+    realtime: bool = False,
+    on_ready: Callable[[], None] | None = None,
+    on_status: StatusFn | None = None,
+    on_progress: Callable[[MobileResult, bool], None] | None = None,
+) -> MobileResult:
+    """Run the scans over the bus; returns what was done (also when stopped, with
+    ``completed=False``, or when the network never came up, with ``error`` set)."""
+    loop = _MobileLoop(cfg, bus, run_id, clock)
+    model, ids = loop.mobile, loop.ids
+    solver = solver or model.solver
+    K, M = model.scans, model.M
+    tids = model.target_ids
+    net = cfg.network
+    X = truth(model)  # for the results only; never sent by the manager
+    x, P = initial_tracks(model)
+    pos = model.sensors.position.copy()
+    b = usage_cost(model.sensors.b0, model.sensors.b1)
+    result = MobileResult(solver, model.seed, {n: [] for n in _ROWS}, stats=loop.stats)
+    result.x0, result.P0, result.pos0, result.truth = x.copy(), P.copy(), pos.copy(), X
+    try:
+        try:
+            loop.wait_ready(stop)
+        except ManagerError as exc:
+            result.error = str(exc)
+            return result
+        if on_ready is not None:
+            on_ready()
+        t_loop = time.perf_counter_ns()
+        t_origin = clock.now()
+        failed_prev: frozenset[str] = frozenset()
+        for r in range(K):
+            k = r + 1
+            if stop.is_set():
+                return result
+            if realtime:
+                _pace(clock, t_origin + r * model.T, stop)
+            t_core0 = time.perf_counter_ns()
+            xp, Pp = predict_tracks(x, P, model.targets)
+            loop.poll_membership()
+            failed = loop.members.failed(clock.now_ns())
+            for sid in sorted((failed ^ failed_prev) - {WORLD_ID}):
+                event: dict[str, Any] = {
+                    "sensor": sid,
+                    "scan": k,
+                    "event": "failed" if sid in failed else "rejoined",
+                }
+                if sid in failed:
+                    event["detected_ns"] = loop.members.down_since_ns(sid)
+                result.failures.append(event)
+            failed_prev = failed
+            alive = np.array([sid not in failed for sid in ids])
+            if not alive.any():
+                raise ManagerError(f"scan {k}: every sensor has failed")
+            step = decide(model, xp, Pp, pos, alive=alive, solver=solver)
+            d = step.decision
+            enabled = tuple(sid for sid, a in zip(ids, alive, strict=True) if a)
+            targets = {
+                sid: tuple(tids[i] for i in np.flatnonzero(d.assign == j))
+                for j, sid in enumerate(ids)
+                if alive[j]
+            }
+            core_ns = time.perf_counter_ns() - t_core0
+            t_sent = clock.now_ns()
+            cmd = msg.Command(
+                scan=k,
+                t=k * model.T,
+                enabled=enabled,
+                t_sent_ns=t_sent,
+                modes={sid: MODE_NAMES[int(d.modes[j])] for j, sid in enumerate(ids) if alive[j]},
+                targets=targets,
+            )
+            loop.publish(loop.keys["cmd"], cmd)
+            # while the sensors measure: the comparison with the exact solver (as covnet run)
+            row: dict[str, Any] = {n: np.nan for n in ("J_lp", "J_post", "J_star", "J_relax")}
+            row.update(gap=np.nan, mip_gap=np.nan, conflicts=-1, exact_status=-1, compare_s=0.0)
+            row["J_lp"] = d.J_lp
+            if d.solver != "milp":
+                row["conflicts"], row["J_post"] = d.conflicts, d.objective
+            if model.compare_exact:
+                t0 = time.perf_counter()
+                ref = lp_reference(step.problem, step)
+                exact = d if d.solver == "milp" else decide_milp(step.problem, model.options)
+                _, _, jr = relaxation(step.problem, model.options.linking)
+                row["compare_s"] = time.perf_counter() - t0
+                c = compare(ref, exact, jr)
+                row.update(J_lp=c.J_lp, J_post=c.J_post, J_star=c.J_star, J_relax=jr)
+                row.update(gap=c.gap, conflicts=c.conflicts, mip_gap=c.mip_gap)
+                row["exact_status"] = c.exact_status
+            if realtime:
+                deadline = time.monotonic() + net.deadline_fraction * model.T / _speed(clock)
+            else:
+                deadline = time.monotonic() + net.scan_timeout_s
+            got = loop.collect_mobile(k, set(enabled), targets, deadline, stop)
+            t_core1 = time.perf_counter_ns()
+            # platforms: as reported; a silent one dead-reckoned from its commanded mode
+            pos_dr, qdot = move_platforms(model, pos, d.modes)
+            pos = pos_dr.copy()
+            for sid, m in got.items():
+                j = ids.index(sid)
+                assert m.platform is not None
+                pos[j], qdot[j] = m.platform[:2], m.platform[2:]
+            xn, Pn = xp.copy(), Pp.copy()
+            detected = np.zeros(M, dtype=bool)
+            pd = np.full(M, np.nan)
+            usage = 0.0
+            for i in np.flatnonzero(d.assign >= 0):
+                j = int(d.assign[i])
+                usage += b[j, d.modes[j]]
+                pd[i] = true_pd(model, j, X[k, i], pos[j])
+                m = got.get(ids[j])
+                if m is not None and m.target_ids is not None and tids[i] in m.target_ids:
+                    z = np.array(m.z[m.target_ids.index(tids[i])])
+                    post = update_track(model, xp[i], Pp[i], z, j, pos[j], qdot[j])
+                    xn[i], Pn[i] = post.x, post.P
+                    detected[i] = True
+            x, P = xn, Pn
+            loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
+            loop.stats.scans_done += 1
+            loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop
+            latency_ms = (clock.now_ns() - t_sent) / 1e6
+            loop.stats.scan_latency_ns.append(clock.now_ns() - t_sent)
+            for i, tid in enumerate(tids):
+                tr = msg.Track(
+                    scan=k, t=k * model.T, x=x[i], P=P[i], t_sent_ns=clock.now_ns(), target_id=tid
+                )
+                loop.publish(loop.keys["track"], tr)
+            trace_P = float(np.trace(P, axis1=1, axis2=2).sum())
+            fused = tuple(sid for sid in ids if sid in got)
+            failed_ids = tuple(sorted(failed - {WORLD_ID}))
+            loop.publish(
+                loop.keys["status"],
+                msg.Status(
+                    scan=k,
+                    t=k * model.T,
+                    enabled=enabled,
+                    trace_P=trace_P,
+                    trace_Pd=0.0,
+                    value=float(d.objective) if np.isfinite(d.objective) else 0.0,
+                    t_sent_ns=clock.now_ns(),
+                    fused=fused,
+                    failed=failed_ids,
+                ),
+            )
+            rows = result.rows
+            for name, value in (
+                ("x_est", x),
+                ("P_post", P),
+                ("platforms", pos.copy()),
+                ("modes", d.modes),
+                ("assign", d.assign),
+                ("detected", detected),
+                ("pd_true", pd),
+                ("usage", usage),
+                ("objective", d.objective),
+                ("status", d.status),
+                ("fractional", d.fractional),
+                ("cost_s", step.cost_s),
+                ("solve_s", step.solve_s),
+            ):
+                rows[name].append(value)
+            for name in _COMPARISON:
+                rows[name].append(row[name])
+            if on_status is not None:
+                assigned_to = [ids[a] if a >= 0 else None for a in d.assign]
+                assign = " ".join(
+                    f"{tid}:{ids[a] if a >= 0 else '-'}{'+' if detected[i] else ''}"
+                    for i, (tid, a) in enumerate(zip(tids, d.assign, strict=True))
+                )
+                info = f"scan {k}/{K}  {assign}  tr P {trace_P:.1f}  {latency_ms:.2f} ms"
+                if failed_ids:
+                    info += f"  failed {','.join(failed_ids)}"
+                on_status(
+                    {
+                        "metric": solver,
+                        "episode": 0,
+                        "scan": k,
+                        "scans": K,
+                        "enabled": list(enabled),
+                        "fused": list(fused),
+                        "failed": list(failed_ids),
+                        "assign": dict(zip(tids, assigned_to, strict=True)),
+                        "trace_P": trace_P,
+                        "latency_ms": latency_ms,
+                        "messages": sum(loop.stats.recv_msgs.values())
+                        + sum(loop.stats.sent_msgs.values()),
+                        "bytes": sum(loop.stats.recv_bytes.values())
+                        + sum(loop.stats.sent_bytes.values()),
+                        "info": info,
+                    }
+                )
+            if on_progress is not None:
+                on_progress(result, k == K)
+        result.completed = True
+    except ManagerError as exc:
+        result.error = str(exc)
+    finally:
+        loop.token.undeclare()
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# the run directory and the process's main (called by ``python -m manager`` for kind: mobile)
+# --------------------------------------------------------------------------------------------
+
+
+def write_network_run(
+    out: Any, cfg: MobileConfig, result: MobileResult, run_info: dict[str, Any] | None = None
+) -> dict[str, Any] | None:
+    """``covnet run``'s files for the scans done (summary.json, arrays.npz, config.json) plus
+    ``network.json`` and the network's ``run.json``; None before the first scan."""
+    from pathlib import Path
+
+    from covnet.mobile.results import RUN_INFO, write_run
+    from covnet.results import write_json
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "network.json", result.stats.as_dict())
+    info: dict[str, Any] = {
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "mode": "network",
+        "kind": "mobile",
+        "solver": result.solver,
+        "completed": result.completed,
+        "scans_completed": result.scans_done,
+        "failures": [{k: v for k, v in ev.items() if k != "detected_ns"} for ev in result.failures],
+        "failure_detected_ns": [ev for ev in result.failures if "detected_ns" in ev],
+        **(run_info or {}),
+    }
+    if result.error:
+        info["error"] = result.error
+    summary = write_run(out, cfg, result.as_run()) if result.scans_done else None
+    write_json(out / RUN_INFO, info)
+    return summary
+
+
+def main_body(args: Any, cfg: MobileConfig, stop: threading.Event) -> int:
+    """``python -m manager --config MOBILE.yaml ...``: the process around :func:`run`."""
+    import json
+    import sys
+    from pathlib import Path
+
+    from covnet import security
+    from covnet.clock import WallClock
+    from covnet.core.mobile.decision import SOLVERS
+    from covnet.process import EXIT_FAIL, EXIT_OK, open_bus
+    from manager.node import wait_for_nodes_to_leave
+
+    if args.metric:
+        raise ValueError("--metric: a mobile scenario has no allocation metric; see --solver")
+    solver = args.solver or cfg.solver
+    if solver not in SOLVERS:
+        raise ValueError(f"--solver: unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
+    endpoint = security.endpoint(cfg.network, args.listen or cfg.network.router)
+    if endpoint.endswith(":0"):
+        raise ValueError(f"--listen: give a concrete port, got {endpoint!r}")
+    out = Path(args.out)
+    run_info = {
+        "run_id": args.run,
+        "clock": "realtime" if args.realtime else "lockstep",
+        "speed": args.speed,
+        "router": endpoint,
+    }
+    last_write = [time.monotonic()]
+    last_status = [0.0]
+
+    def on_ready() -> None:
+        print("READY", flush=True)
+
+    def on_status(st: dict[str, Any]) -> None:
+        now = time.monotonic()
+        if now - last_status[0] >= 0.05 or st["scan"] == st["scans"]:
+            print("STATUS " + json.dumps(st), flush=True)
+            last_status[0] = now
+
+    def on_progress(result: MobileResult, done: bool) -> None:
+        if not done and time.monotonic() - last_write[0] >= 2.0:
+            write_network_run(out, cfg, result, run_info)
+            last_write[0] = time.monotonic()
+
+    extra = security.zenoh_settings(
+        cfg.network,
+        "manager",
+        "manager",
+        listen=True,
+        sensor_ids=cfg.sensor_ids,
+        source=args.config,
+    )
+    with open_bus(
+        "router",
+        listen=[endpoint],
+        lease_ms=cfg.network.lease_ms,
+        timeout_s=cfg.network.ready_timeout_s,
+        stop=stop,
+        extra_json5=extra,
+    ) as bus:
+        print(f"LISTENING {endpoint}", flush=True)
+        result = run(
+            cfg,
+            bus,
+            args.run,
+            WallClock(args.speed),
+            stop,
+            solver=solver,
+            realtime=args.realtime,
+            on_ready=on_ready,
+            on_status=on_status,
+            on_progress=on_progress,
+        )
+        wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
+    write_network_run(out, cfg, result, run_info)
+    if result.error:
+        print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
+        return EXIT_FAIL
+    print(f"DONE completed={result.completed} out={out}", flush=True)
+    return EXIT_OK
