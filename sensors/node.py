@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import threading
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-
-import numpy as np
 
 from covnet import messages as msg
 from covnet.bus import Bus, Sample
 from covnet.clock import Clock
-from covnet.config import Scenario
+from covnet.config import NetworkSpec, Scenario
 from covnet.model import build_model, measure
 
 
@@ -36,30 +35,40 @@ class SensorStats:
     rejected: Counter[str] = field(default_factory=Counter)
 
 
-def run(
-    sc: Scenario,
+TruthCheck = Callable[[msg.Truth], bool]
+Respond = Callable[[msg.Command, msg.Truth], msg.Measurement]
+
+
+def serve(
     sensor_id: str,
     bus: Bus,
     run_id: str,
     clock: Clock,
     stop: threading.Event,
+    net: NetworkSpec,
+    *,
+    truth_ok: TruthCheck,
+    respond: Respond,
 ) -> SensorStats:
-    """Serve commands until ``stop`` is set; returns this sensor's counters."""
-    model = build_model(sc)
-    j = model.index(sensor_id)
-    R = model.R[j]
+    """The protocol every kind of sensor shares (see the module docstring).
+
+    ``truth_ok(truth)`` says whether a decoded ``Truth`` is usable by this sensor (else it is
+    counted as ``bad_shape``); ``respond(command, truth)`` makes the measurement message for
+    an enabled command once its scan's truth is in hand.  Returns the sensor's counters."""
     stats = SensorStats()
     cmd_sub = bus.subscribe(msg.command_key(run_id))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
     manager_watch = bus.watch_liveliness(msg.alive_key(run_id, "manager", "manager"))
-    manager_seen = False
     token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
     meas_key = msg.measurement_key(run_id, sensor_id)
     hb_key = msg.heartbeat_key(run_id, "sensor", sensor_id)
-    hb_period_ns = int(sc.network.heartbeat_s * 1e9)
-    truths: dict[int, np.ndarray] = {}
+    hb_period_ns = int(net.heartbeat_s * 1e9)
+    wait_s = net.heartbeat_s / 2
+    truths: dict[int, msg.Truth] = {}
+    pending: deque[msg.Command] = deque()  # enabled commands not yet answered, oldest first
     last_scan = 0
     next_hb = 0
+    manager_seen = False
 
     def heartbeat() -> None:
         nonlocal next_hb
@@ -75,7 +84,14 @@ def run(
             bus.publish(hb_key, msg.encode(hb))
             next_hb = now + hb_period_ns
 
-    pending: deque[msg.Command] = deque()  # enabled commands not yet answered, oldest first
+    def manager_left() -> bool:
+        nonlocal manager_seen
+        while (ev := manager_watch.try_recv()) is not None:
+            if ev.alive:
+                manager_seen = True
+            elif manager_seen:
+                return True
+        return False
 
     def accept(s: Sample | None) -> bool:
         """Decode one command; queue it if this sensor is enabled. False when ``s`` is None."""
@@ -94,22 +110,6 @@ def run(
             pending.append(cmd)
         return True
 
-    def publish_measurement(cmd: msg.Command) -> None:
-        z = measure(model, j, cmd.scan, truths[cmd.scan])
-        m = msg.Measurement(
-            sensor_id=sensor_id,
-            scan=cmd.scan,
-            t=cmd.t,
-            z=z[None, :],
-            R=R,
-            t_sent_ns=clock.now_ns(),
-            episode=cmd.episode,
-        )
-        bus.publish(meas_key, msg.encode(m))
-        stats.measurements_sent += 1
-        for old in [k for k in truths if k < cmd.scan - 1]:
-            del truths[old]
-
     def take_truth(timeout: float | None) -> bool:
         s = truth_sub.recv(timeout) if timeout is not None else truth_sub.try_recv()
         if s is None:
@@ -119,20 +119,13 @@ def run(
         except msg.WireError as exc:
             stats.rejected[exc.reason] += 1
             return True
-        if tr.states.shape[1] != 4 or tr.states.shape[0] < 1:
+        if not truth_ok(tr):
             stats.rejected["bad_shape"] += 1
             return True
-        truths[tr.scan] = tr.states[0]
+        truths[tr.scan] = tr
+        for old in [k for k in truths if k < tr.scan - 2]:
+            del truths[old]
         return True
-
-    def manager_left() -> bool:
-        nonlocal manager_seen
-        while (ev := manager_watch.try_recv()) is not None:
-            if ev.alive:
-                manager_seen = True
-            elif manager_seen:
-                return True
-        return False
 
     try:
         while not stop.is_set():
@@ -140,9 +133,9 @@ def run(
             if manager_left():
                 break
             if pending:  # waiting for a commanded scan's truth
-                take_truth(sc.network.heartbeat_s / 2)
+                take_truth(wait_s)
             else:
-                accept(cmd_sub.recv(timeout=sc.network.heartbeat_s / 2))
+                accept(cmd_sub.recv(timeout=wait_s))
             while accept(cmd_sub.try_recv()):
                 pass
             while take_truth(None):
@@ -150,7 +143,8 @@ def run(
             while pending:
                 cmd = pending[0]
                 if cmd.scan in truths:
-                    publish_measurement(cmd)
+                    bus.publish(meas_key, msg.encode(respond(cmd, truths[cmd.scan])))
+                    stats.measurements_sent += 1
                 elif len(pending) > 1:  # a newer command came first: this truth is gone
                     stats.missed_truth += 1
                 else:
@@ -159,3 +153,36 @@ def run(
     finally:
         token.undeclare()
     return stats
+
+
+def run(
+    sc: Scenario,
+    sensor_id: str,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+) -> SensorStats:
+    """A covariance-control position sensor; serves commands until ``stop`` is set."""
+    model = build_model(sc)
+    j = model.index(sensor_id)
+    R = model.R[j]
+
+    def truth_ok(tr: msg.Truth) -> bool:
+        return tr.states.shape[0] >= 1 and tr.states.shape[1] == 4
+
+    def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement:
+        z = measure(model, j, cmd.scan, tr.states[0])
+        return msg.Measurement(
+            sensor_id=sensor_id,
+            scan=cmd.scan,
+            t=cmd.t,
+            z=z[None, :],
+            R=R,
+            t_sent_ns=clock.now_ns(),
+            episode=cmd.episode,
+        )
+
+    return serve(
+        sensor_id, bus, run_id, clock, stop, sc.network, truth_ok=truth_ok, respond=respond
+    )
