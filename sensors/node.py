@@ -24,6 +24,7 @@ from covnet.bus import Bus, Sample
 from covnet.clock import Clock
 from covnet.config import NetworkSpec, Scenario
 from covnet.model import build_model, measure
+from covnet.node_kit import Heartbeat, ManagerWatch
 
 
 @dataclass
@@ -58,40 +59,14 @@ def serve(
     stats = SensorStats()
     cmd_sub = bus.subscribe(msg.command_key(run_id))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
-    manager_watch = bus.watch_liveliness(msg.alive_key(run_id, "manager", "manager"))
+    manager = ManagerWatch(bus, run_id)
     token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
     meas_key = msg.measurement_key(run_id, sensor_id)
-    hb_key = msg.heartbeat_key(run_id, "sensor", sensor_id)
-    hb_period_ns = int(net.heartbeat_s * 1e9)
+    heartbeat = Heartbeat(bus, clock, run_id, "sensor", sensor_id, net.heartbeat_s)
     wait_s = net.heartbeat_s / 2
     truths: dict[int, msg.Truth] = {}
     pending: deque[msg.Command] = deque()  # enabled commands not yet answered, oldest first
     last_scan = 0
-    next_hb = 0
-    manager_seen = False
-
-    def heartbeat() -> None:
-        nonlocal next_hb
-        now = clock.now_ns()
-        if now >= next_hb:
-            hb = msg.Heartbeat(
-                role="sensor",
-                node_id=sensor_id,
-                scan=last_scan,
-                t_sent_ns=now,
-                rejected=dict(stats.rejected) or None,
-            )
-            bus.publish(hb_key, msg.encode(hb))
-            next_hb = now + hb_period_ns
-
-    def manager_left() -> bool:
-        nonlocal manager_seen
-        while (ev := manager_watch.try_recv()) is not None:
-            if ev.alive:
-                manager_seen = True
-            elif manager_seen:
-                return True
-        return False
 
     def accept(s: Sample | None) -> bool:
         """Decode one command; queue it if this sensor is enabled. False when ``s`` is None."""
@@ -129,8 +104,8 @@ def serve(
 
     try:
         while not stop.is_set():
-            heartbeat()
-            if manager_left():
+            heartbeat.tick(last_scan, stats.rejected)
+            if manager.left:
                 break
             if pending:  # waiting for a commanded scan's truth
                 take_truth(wait_s)
@@ -152,6 +127,7 @@ def serve(
                 pending.popleft()
     finally:
         token.undeclare()
+        manager.close()
     return stats
 
 

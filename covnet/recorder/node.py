@@ -24,6 +24,7 @@ from covnet import messages as msg
 from covnet.bus import Bus, Sample
 from covnet.clock import Clock
 from covnet.config import Scenario
+from covnet.node_kit import Heartbeat, ManagerWatch
 from covnet.recording import RecordingWriter
 
 ROLE = NODE_ID = "recorder"
@@ -47,18 +48,10 @@ def run(
     ``undecodable:<reason>`` and ``kind:<kind>`` per message kind recorded."""
     counts: Counter[str] = Counter()
     sub = bus.subscribe(msg.run_keyexpr(run_id))
-    manager_watch = bus.watch_liveliness(msg.alive_key(run_id, "manager", "manager"))
+    manager = ManagerWatch(bus, run_id)
     token = bus.declare_token(msg.alive_key(run_id, ROLE, NODE_ID))
-    hb_key = msg.heartbeat_key(run_id, ROLE, NODE_ID)
-    hb_period_ns = int(sc.network.heartbeat_s * 1e9)
-    next_hb = 0
+    heartbeat = Heartbeat(bus, clock, run_id, ROLE, NODE_ID, sc.network.heartbeat_s)
     last_scan = 0
-    manager = {"seen": False, "up": False}
-
-    def poll_manager() -> None:
-        while (ev := manager_watch.try_recv()) is not None:
-            manager["seen"] = manager["seen"] or ev.alive
-            manager["up"] = ev.alive
 
     def record(s: Sample) -> None:
         nonlocal last_scan
@@ -77,31 +70,26 @@ def run(
 
     try:
         while not stop.is_set():
-            now = clock.now_ns()
-            if now >= next_hb:
-                hb = msg.Heartbeat(role=ROLE, node_id=NODE_ID, scan=last_scan, t_sent_ns=now)
-                bus.publish(hb_key, msg.encode(hb))
-                next_hb = now + hb_period_ns
+            heartbeat.tick(last_scan)
             s = sub.recv(timeout=sc.network.heartbeat_s / 2)
             while s is not None:
                 record(s)
                 s = sub.try_recv()
             writer.maybe_flush()
-            poll_manager()
-            if manager["seen"] and not manager["up"]:
+            if manager.left:
                 break  # the manager left: the run is over
         # wind down: what is in flight, and the manager's last scan when stopped by a signal
         deadline = time.monotonic() + linger_s
         while (remaining := deadline - time.monotonic()) > 0:
             s = sub.recv(timeout=min(QUIET_S, remaining))
-            poll_manager()
+            manager.poll()
             if s is not None:
                 record(s)
-            elif not manager["up"]:
+            elif not manager.up:
                 break
     finally:
         token.undeclare()
         sub.close()
-        manager_watch.close()
+        manager.close()
     writer.flush()
     return counts

@@ -18,6 +18,7 @@ from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.config import Scenario
 from covnet.model import build_model, truth_trajectory
+from covnet.node_kit import serve_commands
 
 TARGET_IDS = ("T1",)
 
@@ -28,58 +29,25 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     model = build_model(sc)
     truth = truth_trajectory(model)
     counts: Counter[str] = Counter()
-    cmd_sub = bus.subscribe(msg.command_key(run_id))
-    manager_watch = bus.watch_liveliness(msg.alive_key(run_id, "manager", "manager"))
-    manager_seen = False
-    token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
     key = msg.truth_key(run_id)
-    hb_key = msg.heartbeat_key(run_id, "world", "world")
-    hb_period_ns = int(sc.network.heartbeat_s * 1e9)
-    next_hb = 0
-    last_scan = 0
     published: set[int] = set()  # scans whose truth went out since the last command
-    try:
-        while not stop.is_set():
-            while (ev := manager_watch.try_recv()) is not None:
-                manager_seen = manager_seen or ev.alive
-                if manager_seen and not ev.alive:
-                    stop.set()  # the manager left: the run is over
-            now = clock.now_ns()
-            if now >= next_hb:
-                rejected = {
-                    k.split(":", 1)[1]: v for k, v in counts.items() if k.startswith("rejected:")
-                }
-                hb = msg.Heartbeat(
-                    role="world",
-                    node_id="world",
-                    scan=last_scan,
-                    t_sent_ns=now,
-                    rejected=rejected or None,
+
+    def handle(cmd: msg.Command) -> bool:
+        nonlocal published
+        if not 1 <= cmd.scan <= model.scans:
+            counts["rejected:bad_scan"] += 1
+            return False
+        # scan k now, and k+1 ahead of its command: the sensors then have the truth in
+        # hand when the next command comes (one bus hop less on the scan's critical path)
+        for k in (cmd.scan, cmd.scan + 1):
+            if k <= model.scans and k not in published:
+                tr = msg.Truth(
+                    scan=k, t=k * model.T, target_ids=TARGET_IDS, states=truth[k - 1][None, :]
                 )
-                bus.publish(hb_key, msg.encode(hb))
-                next_hb = now + hb_period_ns
-            s = cmd_sub.recv(timeout=sc.network.heartbeat_s / 2)
-            if s is None:
-                continue
-            try:
-                cmd = msg.decode_as(s.payload, msg.Command)
-            except msg.WireError as exc:
-                counts[f"rejected:{exc.reason}"] += 1
-                continue
-            if not 1 <= cmd.scan <= model.scans:
-                counts["rejected:bad_scan"] += 1
-                continue
-            last_scan = cmd.scan
-            # scan k now, and k+1 ahead of its command: the sensors then have the truth in
-            # hand when the next command comes (one bus hop less on the scan's critical path)
-            for k in (cmd.scan, cmd.scan + 1):
-                if k <= model.scans and k not in published:
-                    tr = msg.Truth(
-                        scan=k, t=k * model.T, target_ids=TARGET_IDS, states=truth[k - 1][None, :]
-                    )
-                    bus.publish(key, msg.encode(tr))
-                    counts["published"] += 1
-            published = {cmd.scan, cmd.scan + 1}
-    finally:
-        token.undeclare()
+                bus.publish(key, msg.encode(tr))
+                counts["published"] += 1
+        published = {cmd.scan, cmd.scan + 1}
+        return True
+
+    serve_commands(bus, run_id, clock, stop, sc.network, "world", "world", counts, handle)
     return counts
