@@ -8,19 +8,13 @@ after each episode, about once a second, and when stopped.
 
 from __future__ import annotations
 
-import json
 import sys
-import time
 from pathlib import Path
 
-from covnet.clock import WallClock
 from covnet.process import (
-    EXIT_FAIL,
-    EXIT_OK,
     common_parser,
     guarded,
     load_config,
-    open_bus,
     resolve_run,
     stop_on_signals,
 )
@@ -54,11 +48,9 @@ def main(argv: list[str] | None = None) -> int:
         for m in metrics:
             if m not in METRICS:
                 raise ValueError(f"--metric: unknown metric {m!r}; choose from {sorted(METRICS)}")
-        from covnet import security
+        from manager.process import router_endpoint, serve
 
-        endpoint = security.endpoint(sc.network, args.listen or sc.network.router)
-        if endpoint.endswith(":0"):
-            raise ValueError(f"--listen: give a concrete port, got {endpoint!r}")
+        endpoint = router_endpoint(sc.network, args.listen)
         out = Path(args.out)
         run_info = {
             "episodes": metrics,
@@ -67,62 +59,30 @@ def main(argv: list[str] | None = None) -> int:
             "speed": args.speed,
             "router": endpoint,
         }
-        last_write = [time.monotonic()]
-        last_status = [0.0]
 
-        def on_ready() -> None:
-            print("READY", flush=True)
-
-        def on_status(st: dict[str, object]) -> None:
-            now = time.monotonic()
-            if now - last_status[0] >= 0.05 or st["scan"] == st["scans"]:
-                print("STATUS " + json.dumps(st), flush=True)
-                last_status[0] = now
-
-        def on_progress(result: node.ManagerResult, episode_done: bool) -> None:
-            now = time.monotonic()
-            if episode_done or now - last_write[0] >= 1.0:
-                write_network_run(out, sc, result, run_info)
-                last_write[0] = time.monotonic()
-
-        extra = security.zenoh_settings(
-            sc.network,
-            "manager",
-            "manager",
-            listen=True,
-            sensor_ids=sc.sensor_ids,
-            source=args.config,
-        )
-        with open_bus(
-            "router",
-            listen=[endpoint],
-            lease_ms=sc.network.lease_ms,
-            timeout_s=sc.network.ready_timeout_s,
-            stop=stop,
-            extra_json5=extra,
-        ) as bus:
-            print(f"LISTENING {endpoint}", flush=True)
-            result = node.run(
+        def run_loop(bus, clock, hooks):  # type: ignore[no-untyped-def]
+            return node.run(
                 sc,
                 metrics,
                 bus,
                 args.run,
-                WallClock(args.speed),
+                clock,
                 stop,
                 realtime=args.realtime,
-                on_ready=on_ready,
-                on_status=on_status,
-                on_progress=on_progress,
+                on_ready=hooks.on_ready,
+                on_status=hooks.on_status,
+                on_progress=hooks.on_progress,
             )
-            # the run is over (our token is gone): the nodes leave on their own; keep the
-            # router up until they have, so that none is cut off mid-publish
-            node.wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
-        write_network_run(out, sc, result, run_info)
-        if result.error:
-            print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
-            return EXIT_FAIL
-        print(f"DONE completed={result.completed} out={out}", flush=True)
-        return EXIT_OK
+
+        return serve(
+            args,
+            sc.network,
+            sc.sensor_ids,
+            stop,
+            endpoint,
+            run_loop,
+            lambda result: write_network_run(out, sc, result, run_info),
+        )
 
     return guarded(body, "manager")
 

@@ -30,7 +30,7 @@ import numpy as np
 from covnet import messages as msg
 from covnet.bus import Bus
 from covnet.clock import Clock
-from covnet.config import Scenario
+from covnet.config import NetworkSpec, Scenario
 from covnet.core.kalman import nees
 from covnet.model import (
     Model,
@@ -103,11 +103,11 @@ StatusFn = Callable[[dict[str, Any]], None]
 class _Loop:
     """The manager's state; only :func:`run` drives it."""
 
-    def __init__(self, sc: Scenario, bus: Bus, run_id: str, clock: Clock) -> None:
-        self.sc, self.bus, self.run_id, self.clock = sc, bus, run_id, clock
-        self.model: Model = build_model(sc)
-        self.ids = self.model.sensor_ids
-        net = sc.network
+    def __init__(
+        self, net: NetworkSpec, sensor_ids: tuple[str, ...], bus: Bus, run_id: str, clock: Clock
+    ) -> None:
+        self.net, self.bus, self.run_id, self.clock = net, bus, run_id, clock
+        self.ids = sensor_ids
         self.members = Membership(
             expected=(*self.ids, WORLD_ID), failure_timeout_ns=int(net.failure_timeout_s * 1e9)
         )
@@ -123,7 +123,6 @@ class _Loop:
             "track": msg.track_key(run_id),
             "status": msg.status_key(run_id),
         }
-        self.failed_now: frozenset[str] = frozenset()
 
     # ---- bus helpers --------------------------------------------------------------------
 
@@ -159,7 +158,7 @@ class _Loop:
                 self.stats.node_rejected[hb.node_id] = dict(hb.rejected)
 
     def wait_ready(self, stop: threading.Event) -> None:
-        deadline = time.monotonic() + self.sc.network.ready_timeout_s
+        deadline = time.monotonic() + self.net.ready_timeout_s
         while True:
             self.poll_membership()
             missing = [n for n in self.wait_for if n not in self.members.alive_tokens]
@@ -170,7 +169,7 @@ class _Loop:
                 raise ManagerError("stopped before the network was ready")
             if time.monotonic() > deadline:
                 raise ManagerError(
-                    f"nodes not alive after {self.sc.network.ready_timeout_s} s: {missing}"
+                    f"nodes not alive after {self.net.ready_timeout_s} s: {missing}"
                 )
             ev = self.live_sub.recv(timeout=0.05)
             if ev is not None:
@@ -256,8 +255,9 @@ def run(
     """Run every metric's episode over the bus; returns what was done (also when stopped,
     with ``completed=False``, or when the network never came up, with ``error`` set).
     ``on_progress(result, episode_done)`` is called after every scan."""
-    loop = _Loop(sc, bus, run_id, clock)
-    model, ids = loop.model, loop.ids
+    model = build_model(sc)
+    loop = _Loop(sc.network, model.sensor_ids, bus, run_id, clock)
+    ids = loop.ids
     net = sc.network
     result = ManagerResult({}, loop.stats)
     truth = truth_trajectory(model)  # for NEES in the results only; never sent to anyone

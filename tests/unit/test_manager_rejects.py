@@ -15,7 +15,7 @@ RUN = "r1"
 
 @pytest.fixture()
 def loop(paper):
-    return _Loop(paper, InMemoryBus(), RUN, SimClock())
+    return _Loop(paper.network, paper.sensor_ids, InMemoryBus(), RUN, SimClock())
 
 
 def _sample(sensor_key: str, **fields) -> Sample:

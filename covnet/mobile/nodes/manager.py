@@ -51,8 +51,7 @@ from covnet.mobile.model import (
 )
 from covnet.mobile.simulate import MobileRun
 from covnet.runtime_stats import NetStats
-from manager.membership import Membership
-from manager.node import RECORDER_ID, WORLD_ID, ManagerError, _Loop, _pace, _speed
+from manager.node import WORLD_ID, ManagerError, _Loop, _pace, _speed
 
 __all__ = ["MobileResult", "run"]
 
@@ -132,25 +131,8 @@ class _MobileLoop(_Loop):
     """The covariance-control manager's membership and bus helpers over a mobile model."""
 
     def __init__(self, cfg: MobileConfig, bus: Bus, run_id: str, clock: Clock) -> None:
-        self.sc, self.bus, self.run_id, self.clock = cfg, bus, run_id, clock  # type: ignore[assignment]
         self.mobile: MobileModel = build_model(cfg)
-        self.ids = self.mobile.sensor_ids
-        net = cfg.network
-        self.members = Membership(
-            expected=(*self.ids, WORLD_ID), failure_timeout_ns=int(net.failure_timeout_s * 1e9)
-        )
-        self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
-        self.stats = NetStats()
-        self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
-        self.hb_sub = bus.subscribe(msg.heartbeat_keyexpr(run_id))
-        self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))
-        self.token = bus.declare_token(msg.alive_key(run_id, "manager", "manager"))
-        self.keys = {
-            "cmd": msg.command_key(run_id),
-            "track": msg.track_key(run_id),
-            "status": msg.status_key(run_id),
-        }
-        self.failed_now = frozenset()
+        super().__init__(cfg.network, self.mobile.sensor_ids, bus, run_id, clock)
 
     def collect_mobile(
         self,
@@ -466,24 +448,17 @@ def write_network_run(
 
 def main_body(args: Any, cfg: MobileConfig, stop: threading.Event) -> int:
     """``python -m manager --config MOBILE.yaml ...``: the process around :func:`run`."""
-    import json
-    import sys
     from pathlib import Path
 
-    from covnet import security
-    from covnet.clock import WallClock
     from covnet.core.mobile.decision import SOLVERS
-    from covnet.process import EXIT_FAIL, EXIT_OK, open_bus
-    from manager.node import wait_for_nodes_to_leave
+    from manager.process import router_endpoint, serve
 
     if args.metric:
         raise ValueError("--metric: a mobile scenario has no allocation metric; see --solver")
     solver = args.solver or cfg.solver
     if solver not in SOLVERS:
         raise ValueError(f"--solver: unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
-    endpoint = security.endpoint(cfg.network, args.listen or cfg.network.router)
-    if endpoint.endswith(":0"):
-        raise ValueError(f"--listen: give a concrete port, got {endpoint!r}")
+    endpoint = router_endpoint(cfg.network, args.listen)
     out = Path(args.out)
     run_info = {
         "run_id": args.run,
@@ -491,56 +466,28 @@ def main_body(args: Any, cfg: MobileConfig, stop: threading.Event) -> int:
         "speed": args.speed,
         "router": endpoint,
     }
-    last_write = [time.monotonic()]
-    last_status = [0.0]
 
-    def on_ready() -> None:
-        print("READY", flush=True)
-
-    def on_status(st: dict[str, Any]) -> None:
-        now = time.monotonic()
-        if now - last_status[0] >= 0.05 or st["scan"] == st["scans"]:
-            print("STATUS " + json.dumps(st), flush=True)
-            last_status[0] = now
-
-    def on_progress(result: MobileResult, done: bool) -> None:
-        if not done and time.monotonic() - last_write[0] >= 2.0:
-            write_network_run(out, cfg, result, run_info)
-            last_write[0] = time.monotonic()
-
-    extra = security.zenoh_settings(
-        cfg.network,
-        "manager",
-        "manager",
-        listen=True,
-        sensor_ids=cfg.sensor_ids,
-        source=args.config,
-    )
-    with open_bus(
-        "router",
-        listen=[endpoint],
-        lease_ms=cfg.network.lease_ms,
-        timeout_s=cfg.network.ready_timeout_s,
-        stop=stop,
-        extra_json5=extra,
-    ) as bus:
-        print(f"LISTENING {endpoint}", flush=True)
-        result = run(
+    def run_loop(bus: Bus, clock: Clock, hooks: Any) -> MobileResult:
+        return run(
             cfg,
             bus,
             args.run,
-            WallClock(args.speed),
+            clock,
             stop,
             solver=solver,
             realtime=args.realtime,
-            on_ready=on_ready,
-            on_status=on_status,
-            on_progress=on_progress,
+            on_ready=hooks.on_ready,
+            on_status=hooks.on_status,
+            on_progress=hooks.on_progress,
         )
-        wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
-    write_network_run(out, cfg, result, run_info)
-    if result.error:
-        print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
-        return EXIT_FAIL
-    print(f"DONE completed={result.completed} out={out}", flush=True)
-    return EXIT_OK
+
+    return serve(
+        args,
+        cfg.network,
+        cfg.sensor_ids,
+        stop,
+        endpoint,
+        run_loop,
+        lambda result: write_network_run(out, cfg, result, run_info),
+        write_every_s=2.0,
+    )

@@ -1,0 +1,96 @@
+"""What a manager process does around its loop, whatever the scenario kind: listen as the
+network's router, print ``LISTENING``/``READY``/``STATUS``/``DONE`` lines for the launcher, write
+the run directory as it goes, let the nodes leave before the router closes, set the exit code.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from covnet import security
+from covnet.bus import Bus
+from covnet.clock import Clock, WallClock
+from covnet.config import NetworkSpec
+from covnet.process import EXIT_FAIL, EXIT_OK, open_bus
+from manager.node import wait_for_nodes_to_leave
+
+
+class LoopResult(Protocol):
+    completed: bool
+    error: str | None
+
+
+@dataclass
+class Hooks:
+    """The callbacks a manager loop takes (see :func:`manager.node.run`)."""
+
+    on_ready: Callable[[], None]
+    on_status: Callable[[dict[str, Any]], None]
+    on_progress: Callable[[Any, bool], None]
+
+
+def router_endpoint(net: NetworkSpec, listen: str | None) -> str:
+    endpoint = security.endpoint(net, listen or net.router)
+    if endpoint.endswith(":0"):
+        raise ValueError(f"--listen: give a concrete port, got {endpoint!r}")
+    return endpoint
+
+
+def serve(
+    args: Any,
+    net: NetworkSpec,
+    sensor_ids: tuple[str, ...],
+    stop: threading.Event,
+    endpoint: str,
+    run_loop: Callable[[Bus, Clock, Hooks], LoopResult],
+    write: Callable[[Any], object],
+    *,
+    write_every_s: float = 1.0,
+) -> int:
+    """Open the router session, run ``run_loop(bus, clock, hooks)``, write with ``write(result)``
+    (after each episode, every ``write_every_s`` and at the end); exit 0, or 1 on an error."""
+    last_write = [time.monotonic()]
+    last_status = [0.0]
+
+    def on_ready() -> None:
+        print("READY", flush=True)
+
+    def on_status(st: dict[str, Any]) -> None:
+        now = time.monotonic()
+        if now - last_status[0] >= 0.05 or st["scan"] == st["scans"]:
+            print("STATUS " + json.dumps(st), flush=True)
+            last_status[0] = now
+
+    def on_progress(result: Any, episode_done: bool) -> None:
+        if episode_done or time.monotonic() - last_write[0] >= write_every_s:
+            write(result)
+            last_write[0] = time.monotonic()
+
+    extra = security.zenoh_settings(
+        net, "manager", "manager", listen=True, sensor_ids=sensor_ids, source=args.config
+    )
+    with open_bus(
+        "router",
+        listen=[endpoint],
+        lease_ms=net.lease_ms,
+        timeout_s=net.ready_timeout_s,
+        stop=stop,
+        extra_json5=extra,
+    ) as bus:
+        print(f"LISTENING {endpoint}", flush=True)
+        result = run_loop(bus, WallClock(args.speed), Hooks(on_ready, on_status, on_progress))
+        # the run is over (our token is gone): the nodes leave on their own; keep the router
+        # up until they have, so that none is cut off mid-publish
+        wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
+    write(result)
+    if result.error:
+        print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
+        return EXIT_FAIL
+    print(f"DONE completed={result.completed} out={args.out}", flush=True)
+    return EXIT_OK
