@@ -9,13 +9,13 @@ processes call too: the distributed layer adds transport and nothing else.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from covnet.config import Scenario
 from covnet.core import streams
-from covnet.core.allocation import Allocation, Constraints, allocate
+from covnet.core.allocation import Allocation, AllocationPlan, Constraints, allocate, prepare
 from covnet.core.gaussian import Gaussian, Mat, Vec
 from covnet.core.kalman import predict, predict_covariance, update_covariance, update_sequential
 from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_noise
@@ -26,7 +26,16 @@ from covnet.core.truth import linear_gaussian_trajectory
 
 @dataclass(frozen=True)
 class Model:
-    """Arrays of one scenario: motion ``F, G, Q``, sensors ``H, R_j, J_j``, schedule ``P_d``."""
+    """Arrays of one scenario: motion ``F, G, Q``, sensors ``H, R_j, J_j``, schedule ``P_d``.
+
+    ``plan``: the allocation plan of ``gains`` under the configured ``constraints``
+    (:func:`covnet.core.allocation.prepare`: the gains validated and the gain-only subset tables
+    built once, in :func:`build_model`); :func:`decide` passes it at every scan.  ``plans``: the
+    plans per constraint set, ``constraints -> plan``, holding ``plan`` and, added by
+    :meth:`plan_for` the first time a set of run-time failures (``unavailable``) produces it,
+    one plan per further constraint set (a handful in practice: at most one per distinct set of
+    failed sensors).
+    """
 
     sensor_ids: tuple[str, ...]
     T: float
@@ -45,6 +54,20 @@ class Model:
     tie_rtol: float
     seed: int
     scans: int
+    plan: AllocationPlan
+    plans: dict[Constraints, AllocationPlan] = field(
+        default_factory=dict, compare=False, repr=False
+    )
+
+    def __post_init__(self) -> None:
+        self.plans.setdefault(self.plan.constraints, self.plan)
+
+    def plan_for(self, constraints: Constraints) -> AllocationPlan:
+        """The plan for ``constraints``: from :attr:`plans`, prepared (once) if new."""
+        plan = self.plans.get(constraints)
+        if plan is None:
+            plan = self.plans[constraints] = prepare(self.gains, constraints)
+        return plan
 
     def desired(self, scan: int) -> Mat:
         """``P_d(t_k)``: the last schedule entry whose ``from_scan <= scan``."""
@@ -66,6 +89,7 @@ def build_model(sc: Scenario) -> Model:
         required=frozenset(ids.index(s) for s in al.required),
         max_active=al.max_active,
     )
+    gains = np.stack([information_gain(H, Rj) for Rj in R])
     px, py = sc.target.initial_position_m
     vx, vy = sc.target.initial_velocity_mps
     return Model(
@@ -77,7 +101,7 @@ def build_model(sc: Scenario) -> Model:
         sigma_a=sc.target.accel_noise_std_mps2,
         H=H,
         R=R,
-        gains=np.stack([information_gain(H, Rj) for Rj in R]),
+        gains=gains,
         P0=np.diag(np.asarray(sc.filter.P0_diag, dtype=np.float64)),
         x0=np.array([px, vx, py, vy], dtype=np.float64),
         desired_from=tuple(d.from_scan for d in sc.desired),
@@ -86,6 +110,7 @@ def build_model(sc: Scenario) -> Model:
         tie_rtol=al.tie_rtol,
         seed=sc.seed,
         scans=sc.scans,
+        plan=prepare(gains, constraints),
     )
 
 
@@ -123,16 +148,19 @@ def decide(
 ) -> Allocation:
     """Covariance control for scan ``k``: argmin over feasible subsets of ``f(P_i, P_d(t_k))``.
 
-    ``unavailable`` (failed sensors seen at run time) joins the configured exclusions.
+    ``unavailable`` (failed sensors seen at run time) joins the configured exclusions; the plan
+    for the resulting constraints comes from :meth:`Model.plan_for` (prepared once per set).
     """
-    c = model.constraints
+    plan = model.plan
     if unavailable:
+        c = model.constraints
         c = Constraints(
             excluded=c.excluded | (unavailable - c.required),
             required=c.required - unavailable,
             max_active=c.max_active,
         )
-    return allocate(P_pred, model.gains, model.desired(scan), metric, c, tie_rtol=model.tie_rtol)
+        plan = model.plan_for(c)
+    return allocate(P_pred, plan, model.desired(scan), metric, tie_rtol=model.tie_rtol)
 
 
 def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:

@@ -8,6 +8,11 @@ with the tie rule of :func:`tie_threshold` / :func:`tie_select`.  The plain refe
 ``f`` exactly on every feasible subset; this module returns the same subset while evaluating
 ``f`` exactly on few of them.
 
+**Gain-only tables** (:class:`SearchTables`, built once per gains and constraints, held by
+:class:`covnet.core.allocation.AllocationPlan`): the feasible codes, the support, the sensors'
+``S_j``, every subset's ``sum S_j`` (or the chunk tables for large ``Ns``), the subset masks and,
+for small ``Ns``, every subset's exact ``J_i``.  A decision then does only ``P``-dependent work.
+
 **Stage 1: a cheap lower bound for every feasible subset** (``2**CHUNK_BITS`` subsets at a time,
 structure-of-arrays numpy, so memory stays bounded at any N).  The gains only touch the
 *support* ``s`` (state coordinates with a non-zero gain entry: the positions, for position
@@ -18,7 +23,7 @@ sensors), ``r = |s|``.  With ``C = P[s, s]``, ``Kᵀ = C⁻¹ P[s, :]`` and ``P�
 
 so a subset costs one ``r x r`` inverse (closed form ``adj(Z) / det Z`` for the usual ``r = 2``)
 and ``P_i`` is affine in it: one small matrix product per chunk.  All ``Z_i`` of a chunk come
-from one product of the sensors' ``S_j`` with a 0/1 table of the subsets' bits.  The metric's
+from the per-subset sums of the sensors' ``S_j`` in the tables plus ``C⁻¹``.  The metric's
 cheap bound (:data:`METRIC_BOUNDS`) runs on these approximate ``P_i``; bounds only pay for the
 entries they read (``abs_trace`` reads the diagonal).
 
@@ -69,12 +74,17 @@ EPS = float(np.finfo(np.float64).eps)
 TINY = float(np.finfo(np.float64).tiny)
 #: stage 1 processes at most 2**CHUNK_BITS subsets at a time (bounded memory at any N)
 CHUNK_BITS = 12
+#: a plan with a single chunk keeps every feasible subset's exact ``J_i`` when that table has at
+#: most EXACT_TABLE_MAX entries (``n_feasible · n²``; 2**20 float64 = 8 MiB)
+EXACT_TABLE_MAX = 2**20
 #: stage 2 and the fallback evaluate at most EXACT_BLOCK subsets per batch
 EXACT_BLOCK = 4096
 #: with a refinable bound, the first exact evaluation goes to the best refined bound among the
 #: SEED_POOL best cheap bounds, for metrics marked ``refine_seed`` or above SEED_POOL_ABOVE
 #: feasible subsets
 SEED_POOL = 32
+#: the pool for problems of at most 1024 feasible subsets
+SMALL_SEED_POOL = 128
 SEED_POOL_ABOVE = 2048
 #: with a refinable bound, each refined block's REFINED_PICKS best are evaluated at once
 REFINED_PICKS = 4
@@ -98,18 +108,50 @@ def spd_inverse(A: NDArray[np.float64]) -> NDArray[np.float64]:
     unless positive definite.
     """
     A = np.asarray(A, dtype=np.float64)
+    if A.ndim == 2:
+        return _spd_inverse_one(A)
     n = A.shape[-1]
+    if A.size == n * n:
+        return _spd_inverse_one(A.reshape(n, n)).reshape(A.shape)
     lo, hi = _tril(n)
-    if A.ndim == 2 or A.size == n * n:
-        inv = _potri(A.reshape(n, n), 0)
-        inv[hi, lo] = inv[lo, hi]
-        return inv.reshape(A.shape)
     flat = A.reshape(-1, n, n)
     out = np.empty(flat.shape)
     for k in range(flat.shape[0]):
         out[k] = _potri(flat[k], k)
     out[:, hi, lo] = out[:, lo, hi]
     return out.reshape(A.shape)
+
+
+def _spd_inverse_one(A: Mat) -> Mat:
+    """:func:`spd_inverse` of one ``(n, n)`` float64 matrix (the same operations: ``potrf``,
+    ``potri``, lower triangle copied to the upper one), with little Python overhead."""
+    c, info = _dpotrf(A, lower=1)
+    if info == 0:
+        inv, info = _dpotri(c, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(
+            f"matrix 0 of the batch is not positive definite (LAPACK info {info})"
+        )
+    n = A.shape[0]
+    if inv.flags.f_contiguous:  # LAPACK's usual layout: the transpose is a C-order view
+        f = inv.T.reshape(n * n)
+        src, dst = _mirror_flat(n)
+        f[dst] = f[src]  # inv[hi, lo] = inv[lo, hi], through the transposed view
+        return inv
+    lo, hi = _tril(n)
+    inv[hi, lo] = inv[lo, hi]
+    return inv
+
+
+_dpotrf, _dpotri = lapack.dpotrf, lapack.dpotri
+
+
+@functools.lru_cache(maxsize=16)
+def _mirror_flat(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Flat indices, in the transposed (C-order) view ``y = inv.T``, of ``y[hi, lo]`` (source:
+    the lower triangle of ``inv``) and ``y[lo, hi]`` (destination: its upper triangle)."""
+    lo, hi = np.tril_indices(n, -1)
+    return hi * n + lo, lo * n + hi
 
 
 def _potri(A: Mat, k: int) -> Mat:
@@ -186,6 +228,116 @@ class BoundContext(NamedTuple):
     scale: float
 
 
+class SearchTables:
+    """Everything the search needs that depends only on the gains and the constraints, built once
+    (:func:`covnet.core.allocation.prepare`); the inputs are already validated.
+
+    - the feasible set: ``free`` sensors (bit ``b`` of a subset *code* <-> sensor ``free[b]``),
+      ``req`` (always in), codes with ``kmin..kmax`` free bits, ``n_feasible`` of them;
+    - the support ``s`` of the active gains (``r = |s|``), ``S_free`` ``(m, r*r)`` the free
+      sensors' ``S_j = J_j[s, s]``, ``S_req`` the required ones' sum, ``active_trace`` the sum of
+      the active gains' traces (for the condition-number bound of :class:`BoundContext`);
+    - ``m <= CHUNK_BITS`` free sensors (*single chunk*): ``codes`` of every feasible subset,
+      ``S_sub`` ``(r*r, n_feasible)`` their ``sum_{j in i, free} S_j``, ``masks`` their sensor
+      rows, ``subsets`` their index tuples and, below ``EXACT_TABLE_MAX`` entries, ``J``
+      ``(n_feasible, n, n)`` their ``J_i`` in the reference's arithmetic (:func:`gain_sums`), so
+      an exact evaluation is one lookup plus one inverse;
+    - otherwise ``S_lo`` ``(r*r, 2^c)`` / ``S_hi`` ``(r*r, 2^(m-c))`` the same sums over the low
+      ``c = CHUNK_BITS`` and the high bits of a code (chunk tables, bounded memory at any N).
+    """
+
+    __slots__ = (
+        "gains",
+        "N",
+        "n",
+        "free",
+        "req",
+        "m",
+        "kmin",
+        "kmax",
+        "n_feasible",
+        "plain",
+        "s",
+        "r",
+        "S_free",
+        "S_req",
+        "active_trace",
+        "chunk",
+        "codes",
+        "S_sub",
+        "masks",
+        "subsets",
+        "J",
+        "S_lo",
+        "pc_lo",
+        "S_hi",
+        "pc_hi",
+        "diag_rows",
+        "s_index",
+    )
+
+    def __init__(
+        self, gains: Mat, excluded: frozenset[int], required: frozenset[int], max_active: int
+    ) -> None:
+        N, n = gains.shape[0], gains.shape[1]
+        if excluded or required:
+            free = [j for j in range(N) if j not in excluded and j not in required]
+            req = sorted(required)
+        else:
+            free, req = list(range(N)), []
+        m = len(free)
+        self.gains, self.N, self.n, self.free, self.req, self.m = gains, N, n, free, req, m
+        self.kmin = 0 if req else 1
+        self.kmax = min(m, max_active - len(req))
+        self.n_feasible = sum(math.comb(m, k) for k in range(self.kmin, self.kmax + 1))
+        self.plain = not req and m == N  # free == all sensors, in order
+        active = gains[[j for j in range(N) if j not in excluded]] if excluded else gains
+        s = active.reshape(-1, n).any(axis=0).nonzero()[0]
+        r = s.size
+        S = gains[:, s[:, None], s].reshape(N, r * r)
+        self.s, self.r = s, r
+        # a basic slice when the support is evenly spaced (the positions [0, 2] of [x, vx, y,
+        # vy]): indexing P with it is a view, cheaper per decision than fancy indexing
+        step = int(s[1] - s[0]) if r > 1 else 1
+        even = r > 0 and step > 0 and bool(np.all(np.diff(s) == step))
+        self.s_index = slice(int(s[0]), int(s[-1]) + 1, step) if even else s
+        self.S_free = S if self.plain else S[free]
+        self.S_req = S[req].sum(axis=0) if req else None
+        self.active_trace = float(np.einsum("jii->", active))
+        self.diag_rows = np.arange(0, n * n, n + 1)
+        c = min(m, CHUNK_BITS)
+        bits_lo, pc_lo = _bit_table(c)
+        S_lo = self.S_free[:c].T @ bits_lo  # (r*r, 2^c)
+        self.chunk = m == c
+        if self.chunk:
+            t = np.arange(1 << c)
+            t = t[(pc_lo >= self.kmin) & (pc_lo <= self.kmax)]
+            self.codes = t
+            self.S_sub = np.ascontiguousarray(S_lo[:, t])
+            self.masks = self.code_masks(t)
+            self.subsets = [tuple(row.nonzero()[0].tolist()) for row in self.masks]
+            self.J = gain_sums(gains, self.masks) if t.size * n * n <= EXACT_TABLE_MAX else None
+            self.S_lo = self.pc_lo = self.S_hi = self.pc_hi = None
+        else:
+            bits_hi, pc_hi = _bit_table(m - c)
+            self.S_lo, self.pc_lo = S_lo, pc_lo
+            self.S_hi, self.pc_hi = self.S_free[c:].T @ bits_hi, pc_hi  # (r*r, 2^(m-c))
+            self.codes = self.S_sub = self.masks = self.J = self.subsets = None
+        for a in (self.S_free, self.S_sub, self.masks, self.J, self.S_lo, self.S_hi, self.codes):
+            if a is not None:
+                a.flags.writeable = False
+
+    def code_masks(self, codes: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Boolean sensor rows ``(len(codes), N)`` of subsets given as codes."""
+        bits = ((codes[:, None] >> np.arange(self.m)) & 1).astype(bool)
+        if self.plain:
+            return bits
+        out = np.zeros((codes.shape[0], self.N), dtype=bool)
+        out[:, self.free] = bits
+        out[:, self.req] = True
+        return out
+
+
 class _Setup:
     """The reduced information form of one problem (module docstring).
 
@@ -194,7 +346,8 @@ class _Setup:
     (``S_j = J_j[s, s]``).  Flattened, ``P_i = T g_i + P∞`` with ``T[(a, b), (c, d)] = K_ac K_bd``
     and ``g_i`` the entries of ``Z_i⁻¹``; for ``r = 2``, ``Z⁻¹ = adj(Z) / det Z`` with
     ``adj(Z) = J Z Jᵀ``, ``J = [[0, 1], [-1, 0]]``, so ``K`` becomes ``K J`` in ``T`` and
-    ``g_i = Z_i / det Z_i``.
+    ``g_i = Z_i / det Z_i``.  Only the ``P``-dependent part is built here; the gain-only part
+    (support, ``S_j``, subset sums) comes from :class:`SearchTables`.
     ``memo`` holds per-problem constants of the bounds.
     """
 
@@ -214,40 +367,54 @@ class _Setup:
         "base",
         "ctx",
         "memo",
+        "tab",
     )
 
-    def __init__(
-        self, P: Mat, gains: Mat, P_d: Mat, Y0: Mat, active: Mat, free: list[int], req: list[int]
-    ) -> None:
-        n = P.shape[0]
-        s = active.reshape(-1, n).any(axis=0).nonzero()[0]
-        r = s.size
+    def __init__(self, P: Mat, P_d: Mat, Y0: Mat, tab: SearchTables) -> None:
+        n, r, s = tab.n, tab.r, tab.s
+        KJT = None
         if r == n:
             KT = np.eye(n)
-            P_inf = np.zeros((n, n))
+            P_inf = np.zeros(n * n)
             Zc = Y0
+        elif r == 2:
+            si = tab.s_index
+            Ps = P[si]
+            (c00, c01), (_, c11) = Ps[:, si].tolist()
+            det = c00 * c11 - c01 * c01
+            a, b, c = c11 / det, -c01 / det, c00 / det
+            # rows 0-1: Zc = C⁻¹ (closed form); rows 2-3: Jᵀ C⁻¹ with J = [[0, 1], [-1, 0]]
+            W = np.array([[a, b], [b, c], [-b, -c], [a, b]])
+            KT_KJT = W @ Ps
+            Zc, KT, KJT = W[:2], KT_KJT[:2], KT_KJT[2:]
+            P_inf = (P - KT.T @ Ps).reshape(n * n)
         else:
-            Ps = P[s]
-            Zc = spd_inverse(Ps[:, s]) if r else np.zeros((0, 0))
+            si = tab.s_index
+            Ps = P[si]
+            Zc = spd_inverse(Ps[:, si]) if r else np.zeros((0, 0))
             KT = Zc @ Ps
-            P_inf = P - KT.T @ Ps
-        # for r = 2, K adj(Z) Kᵀ = (K J) Z (K J)ᵀ with J = [[0, 1], [-1, 0]]: fold J into K
-        KJT = KT[::-1] * _ADJ2_SIGN if r == 2 else KT
-        self.T = np.multiply.outer(KJT, KJT).transpose(1, 3, 0, 2).reshape(n * n, r * r)
-        self.P_inf = P_inf.reshape(n * n)
-        self.M_inf = self.P_inf - P_d.reshape(n * n)
-        S = gains[:, s[:, None], s].reshape(gains.shape[0], r * r)
-        self.S_free = S if len(free) == gains.shape[0] else S[free]
-        self.base = Zc.reshape(r * r) + S[req].sum(axis=0) if req else Zc.reshape(r * r)
+            P_inf = (P - KT.T @ Ps).reshape(n * n)
+        if r != 2:
+            KJT = KT
+        elif KJT is None:  # r = n = 2
+            KJT = KT[::-1] * _ADJ2_SIGN
+        # for r = 2, K adj(Z) Kᵀ = (K J) Z (K J)ᵀ with J = [[0, 1], [-1, 0]]: J folded into K
+        KJ = KJT.T  # (n, r)
+        self.T = (KJ[:, None, :, None] * KJ[None, :, None, :]).reshape(n * n, r * r)
+        self.P_inf = P_inf
+        self.M_inf = P_inf - P_d.reshape(n * n)
+        self.S_free = tab.S_free
+        base = Zc.reshape(r * r)
+        self.base = base + tab.S_req if tab.S_req is not None else base
         self.n, self.r, self.s, self.Zc, self.KT = n, r, s, Zc, KT
-        self.P, self.Y0, self.P_d = P, Y0, P_d
+        self.P, self.Y0, self.P_d, self.tab = P, Y0, P_d, tab
         self.memo: dict[str, object] = {}
         # limits valid for every subset (a PSD matrix's trace bounds its largest eigenvalue)
         lam_max = float(P.trace())
-        tr_Y_all = float(Y0.trace()) + float(np.einsum("jii->", active))
+        tr_Y_all = float(Y0.trace()) + tab.active_trace
         kappa = lam_max * tr_Y_all
         err = ERR_FACTOR * n * n * EPS * kappa * lam_max
-        scale = lam_max + float(np.abs(P_d).sum())
+        scale = lam_max + float(_sum(abs(P_d), None))
         self.ctx = BoundContext(err, 1.0 / tr_Y_all, lam_max, kappa, scale)
 
     def covariances(self, Z: Mat) -> Stage1P:
@@ -263,6 +430,7 @@ class _Setup:
         return self.covariances(self.base[:, None] + self.S_free.T @ bits)
 
 
+_sum = np.add.reduce
 _ADJ2_SIGN = np.array([[-1.0], [1.0]])  # Jᵀ Kᵀ = [-Kᵀ[1], Kᵀ[0]]
 
 
@@ -654,28 +822,23 @@ class SearchResult(NamedTuple):
 
 
 class _Exact:
-    """Exact values, with the reference's arithmetic, of subsets given as codes over the free
-    sensors (bit b of a code <-> sensor ``free[b]``; required sensors always in)."""
+    """Exact values, with the reference's arithmetic, of feasible subsets given as rows of
+    ``codes`` (codes over the free sensors, :class:`SearchTables`)."""
 
     def __init__(
-        self, Y0: Mat, gains: Mat, P_d: Mat, metric: MetricFn, free: list[int], req: list[int]
+        self, Y0: Mat, P_d: Mat, metric: MetricFn, tab: SearchTables, codes: NDArray[np.int64]
     ) -> None:
-        self.Y0, self.gains, self.P_d, self.metric = Y0, gains, P_d, metric
-        self.free, self.req = free, req
-        self.plain = not req and len(free) == gains.shape[0]  # free == all sensors, in order
+        self.Y0, self.P_d, self.metric, self.tab, self.codes = Y0, P_d, metric, tab, codes
+        # the plan's exact J_i table applies when the rows index the plan's own codes
+        self.table = tab.J is not None and codes is tab.codes
 
-    def masks(self, codes: NDArray[np.int64]) -> NDArray[np.bool_]:
-        bits = ((codes[:, None] >> np.arange(len(self.free))) & 1).astype(bool)
-        if self.plain:
-            return bits
-        out = np.zeros((codes.shape[0], self.gains.shape[0]), dtype=bool)
-        out[:, self.free] = bits
-        out[:, self.req] = True
-        return out
+    def masks(self, rows: NDArray[np.intp]) -> NDArray[np.bool_]:
+        return self.tab.masks[rows] if self.table else self.tab.code_masks(self.codes[rows])
 
-    def covariances(self, masks: NDArray[np.bool_]) -> Mat:
+    def covariances(self, rows: NDArray[np.intp], masks: NDArray[np.bool_]) -> Mat:
         """``P_i = (P⁻¹ + J_i)⁻¹`` exactly as :func:`~covnet.core.allocation.subset_covariance`."""
-        return spd_inverse(self.Y0 + gain_sums(self.gains, masks))
+        J = self.tab.J[rows] if self.table else gain_sums(self.tab.gains, masks)
+        return spd_inverse(self.Y0 + J)
 
     def values(self, P: Mat) -> NDArray[np.float64]:
         v = np.asarray(self.metric(P, self.P_d), dtype=np.float64)
@@ -688,36 +851,28 @@ class _Exact:
 
 def fast_search(
     P_pred: Mat,
-    gains: Mat,
     P_d: Mat,
     metric: MetricFn,
     bound: MetricBound | None,
-    excluded: frozenset[int],
-    required: frozenset[int],
-    max_active: int,
+    tab: SearchTables,
     tie_rtol: float,
 ) -> SearchResult:
-    """Exact argmin with the tie rule (module docstring); the inputs are already validated."""
-    N = gains.shape[0]
-    if excluded or required:
-        free = [j for j in range(N) if j not in excluded and j not in required]
-        req = sorted(required)
-    else:
-        free, req = list(range(N)), []
-    m = len(free)
-    kmin = 0 if req else 1
-    kmax = min(m, max_active - len(req))
-    n_feasible = sum(math.comb(m, k) for k in range(kmin, kmax + 1))
+    """Exact argmin with the tie rule (module docstring); the inputs are already validated and
+    ``tab`` holds the gain-only part of the problem."""
+    n_feasible = tab.n_feasible
     Y0 = spd_inverse(P_pred)
-    ex = _Exact(Y0, gains, P_d, metric, free, req)
     if bound is None:
-        return _batched_exhaustive(ex, m, kmin, kmax, n_feasible, tie_rtol)
+        return _batched_exhaustive(Y0, P_d, metric, tab, tie_rtol)
 
     # ---- stage 1: a cheap lower bound for every feasible subset
     with np.errstate(all="ignore"):  # a NaN bound means "no information", handled below
-        active = gains[[j for j in range(N) if j not in excluded]] if excluded else gains
-        st = _Setup(P_pred, gains, P_d, Y0, active, free, req)
-        codes, lb = _stage1(st, bound.cheap, P_d, m, kmin, kmax)
+        st = _Setup(P_pred, P_d, Y0, tab)
+        if tab.chunk:
+            codes = tab.codes
+            lb = bound.cheap(st.covariances(tab.S_sub + st.base[:, None]), P_d, st.ctx)
+        else:
+            codes, lb = _stage1(st, bound.cheap, P_d, tab)
+    ex = _Exact(Y0, P_d, metric, tab, codes)
     L = float(lb.min())
     if L != L:  # NaN: no information from those bounds
         lb[np.isnan(lb)] = -np.inf
@@ -728,19 +883,17 @@ def fast_search(
     if refined is not None and lb.size > (SEED_POOL if bound.refine_seed else SEED_POOL_ABOVE):
         # a better first candidate: the best refined bound among the best cheap ones (a larger
         # pool for small problems, where the refinement's fixed cost dominates)
-        size = SEED_POOL if lb.size > 1024 else min(4 * SEED_POOL, lb.size - 1)
+        size = SEED_POOL if lb.size > 1024 else min(SMALL_SEED_POOL, lb.size - 1)
         pool = np.argpartition(lb, size)[:size]
         with np.errstate(all="ignore"):
             lb2 = bound.refine(st.subsets(codes[pool]), P_d, st.ctx)
         lb[pool] = np.fmax(lb[pool], lb2)
         refined[pool] = True
     best = int(lb.argmin())
-    code = int(codes[best])
-    subset = sorted(req + [free[b] for b in range(m) if code >> b & 1])
-    J = np.zeros_like(Y0)
-    for j in subset:  # the reference's additions, in its order
-        J = J + gains[j]
-    P_best = spd_inverse(Y0 + J)
+    if ex.table:  # the plan's exact J_i: the reference's sums, looked up
+        P_best = spd_inverse(Y0 + tab.J[best])
+    else:
+        P_best = ex.covariances(np.array([best]), ex.masks(np.array([best])))[0]
     U = _single_value(metric, P_best, P_d)  # called as the reference calls it
     # a metric not known to be batch-invariant may differ in the last bits between the batched
     # calls below and the reference's single calls: prune with a margin, recheck near ties
@@ -748,15 +901,18 @@ def fast_search(
     tau = _threshold(U, L, tie_rtol, margin)
     lb[best] = np.inf  # evaluated
     cand = (lb <= tau).nonzero()[0]
-    if cand.size == 0:  # the common case: one exact evaluation settles it
-        return SearchResult(tuple(subset), U, P_best, n_feasible, 1)
-    ev_masks, ev_P, ev_v = [ex.masks(codes[best : best + 1])], [P_best[None]], [np.array([U])]
+    if cand.size == 0 and ex.table:  # the common case: one exact evaluation settles it
+        return SearchResult(tab.subsets[best], U, P_best, n_feasible, 1)
+    best_mask = ex.masks(np.array([best]))
+    if cand.size == 0:
+        return SearchResult(tuple(best_mask[0].nonzero()[0].tolist()), U, P_best, n_feasible, 1)
+    ev_masks, ev_P, ev_v = [best_mask], [P_best[None]], [np.array([U])]
 
     def evaluate(rows: NDArray[np.intp]) -> float:
         """Exact values of ``rows``; returns the new tau.  Evaluated rows get bound +inf."""
         nonlocal U
-        masks = ex.masks(codes[rows])
-        P_ev = ex.covariances(masks)
+        masks = ex.masks(rows)
+        P_ev = ex.covariances(rows, masks)
         v_ev = ex.values(P_ev)
         ev_masks.append(masks)
         ev_P.append(P_ev)
@@ -802,7 +958,7 @@ def fast_search(
 def _single_value(metric: MetricFn, P: Mat, P_d: Mat) -> float:
     """``f(P, P_d)`` for one ``(n, n)`` matrix, exactly as the reference calls the metric."""
     v = float(np.asarray(metric(P, P_d), dtype=np.float64))
-    if not np.isfinite(v):
+    if not math.isfinite(v):
         raise ValueError("metric returned a non-finite value")
     return v
 
@@ -828,19 +984,14 @@ def _threshold(U: float, L: float, tie_rtol: float, margin: float = 0.0) -> floa
 
 
 def _stage1(
-    st: _Setup, bound_fn: BoundFn, P_d: Mat, m: int, kmin: int, kmax: int
+    st: _Setup, bound_fn: BoundFn, P_d: Mat, tab: SearchTables
 ) -> tuple[NDArray[np.int64], Mat]:
     """Codes of every feasible subset and their cheap lower bounds, chunk by chunk: the low
     ``c`` bits of a code vary within a chunk, the high bits are fixed per chunk."""
-    c = min(m, CHUNK_BITS)
-    bits_lo, pc_lo = _bit_table(c)
-    Z_lo = st.S_free[:c].T @ bits_lo  # (r*r, 2^c)
-    Z_lo += st.base[:, None]
-    if m == c:
-        Z_hi, pc_hi = Z_lo[:, :0], np.zeros(1, dtype=np.int64)
-    else:
-        bits_hi, pc_hi = _bit_table(m - c)
-        Z_hi = st.S_free[c:].T @ bits_hi  # (r*r, 2^(m-c))
+    c = CHUNK_BITS
+    kmin, kmax, pc_lo, pc_hi = tab.kmin, tab.kmax, tab.pc_lo, tab.pc_hi
+    Z_lo = tab.S_lo + st.base[:, None]
+    Z_hi = tab.S_hi
     codes_parts, lb_parts = [], []
     for h in range(pc_hi.size):
         lo, hi = kmin - int(pc_hi[h]), kmax - int(pc_hi[h])
@@ -866,30 +1017,28 @@ def _stage1(
 
 
 def _batched_exhaustive(
-    ex: _Exact, m: int, kmin: int, kmax: int, n_feasible: int, tie_rtol: float
+    Y0: Mat, P_d: Mat, metric: MetricFn, tab: SearchTables, tie_rtol: float
 ) -> SearchResult:
     """Every feasible subset with exact ``P_i``, the metric called on batches.  Values within a
     relative 1e-6 of the tie threshold are recomputed one subset per call, as the reference
     calls the metric, so a metric whose batched and single results differ in the last bits still
     selects the reference's subset."""
-    c = min(m, CHUNK_BITS)
-    pc_lo = _bit_table(c)[1]
-    pc_hi = _bit_table(m - c)[1]
-    parts_c, parts_v = [], []
-    for h in range(pc_hi.size):
-        pcs = pc_lo + pc_hi[h]
-        t = ((pcs >= kmin) & (pcs <= kmax)).nonzero()[0] + (h << c)
-        for lo in range(0, t.size, EXACT_BLOCK):
-            codes = t[lo : lo + EXACT_BLOCK]
-            parts_c.append(codes)
-            parts_v.append(ex.values(ex.covariances(ex.masks(codes))))
-    codes = np.concatenate(parts_c)
+    if tab.chunk:
+        codes = tab.codes
+    else:  # code = h << CHUNK_BITS | t: row h, column t
+        pcs = tab.pc_lo[None, :] + tab.pc_hi[:, None]
+        codes = ((pcs >= tab.kmin) & (pcs <= tab.kmax)).reshape(-1).nonzero()[0]
+    ex = _Exact(Y0, P_d, metric, tab, codes)
+    parts_v = []
+    for lo in range(0, codes.size, EXACT_BLOCK):
+        rows = np.arange(lo, min(lo + EXACT_BLOCK, codes.size))
+        parts_v.append(ex.values(ex.covariances(rows, ex.masks(rows))))
     vals = np.concatenate(parts_v)
     f0 = float(vals.min())
     near = (vals <= tie_threshold(f0, tie_rtol) + 1e-6 * max(abs(f0), TINY)).nonzero()[0]
-    masks = ex.masks(codes[near])
-    P_near = ex.covariances(masks)
-    single = np.array([_single_value(ex.metric, P_q, ex.P_d) for P_q in P_near])
+    masks = ex.masks(near)
+    P_near = ex.covariances(near, masks)
+    single = np.array([_single_value(metric, P_q, P_d) for P_q in P_near])
     k = tie_select(single, masks, tie_rtol)
     subset = tuple(masks[k].nonzero()[0].tolist())
-    return SearchResult(subset, float(single[k]), P_near[k], n_feasible, n_feasible)
+    return SearchResult(subset, float(single[k]), P_near[k], tab.n_feasible, tab.n_feasible)

@@ -21,11 +21,26 @@ Two implementations return the same :class:`Allocation`:
   provably cannot reach the tie set, and exact evaluation (the reference's arithmetic) of the rest.
   A metric without a registered bound (e.g. a user's own function) gets a batched exhaustive
   search, still exact.
+
+**Plans.**  Everything that depends only on the gains and the constraints (their validation,
+including the PSD check of every gain, the support of the reduced form, the per-subset sums of the
+reduced information, the subset masks and, for small ``Ns``, every subset's exact ``J_i``) is
+built once by :func:`prepare` into an :class:`AllocationPlan`; a running filter passes the plan to
+:func:`allocate` at every scan (:class:`covnet.model.Model` holds it), leaving only the
+``P_pred`` / ``P_d`` dependent work per decision.  Passing the gains array still works: a plan is
+then prepared inside the call.
+
+**What is checked where.**  :func:`prepare`: gains shape, finiteness, symmetry, positive
+semi-definiteness; constraint indices, exclusive sets, budget.  Every :func:`allocate` call:
+``P_pred`` and ``P_d`` shape (against the plan), finiteness and symmetry; ``P_pred`` positive
+definite (its Cholesky factorisation); the metric; ``tie_rtol``; the constraints, if given, equal
+to the plan's.
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from numbers import Integral
@@ -37,6 +52,7 @@ from covnet.core._allocation_fast import (
     METRIC_BOUNDS,
     BoundContext,
     MetricBound,
+    SearchTables,
     fast_search,
     spd_inverse,
     tie_threshold,
@@ -47,6 +63,7 @@ from covnet.core.metrics import METRICS, MetricFn, get_metric
 __all__ = [
     "METRIC_BOUNDS",
     "Allocation",
+    "AllocationPlan",
     "BoundContext",
     "Constraints",
     "InfeasibleAllocation",
@@ -54,6 +71,7 @@ __all__ = [
     "allocate",
     "allocate_exhaustive",
     "allocation_rate",
+    "prepare",
     "subset_covariance",
 ]
 
@@ -121,50 +139,112 @@ def allocation_rate(counts: Sequence[int], n_sensors: int) -> float:
 
 
 # --------------------------------------------------------------------------------------------
-# validation (shared by both paths)
+# validation (shared by both paths) and the plan
 # --------------------------------------------------------------------------------------------
 
 
-def _symmetrised(P: Mat, D: Mat, G: Mat) -> tuple[Mat, Mat, Mat]:
-    """``(A + Aᵀ)/2`` of ``P_pred``, ``P_d`` and every gain, after checking each is finite and
-    symmetric to a relative 1e-9 (``max|A - Aᵀ| <= 1e-9 max(A + Aᵀ)``; the largest entry of a
-    PSD matrix is on its diagonal).  Both allocators then work on exactly symmetric inputs."""
-    X = np.concatenate((P[None], D[None], G))
+@dataclass(frozen=True, slots=True, eq=False)
+class AllocationPlan:
+    """The part of an allocation problem that depends only on the gains and the constraints,
+    validated and prepared once by :func:`prepare`, then passed to :func:`allocate` in place of
+    the gains at every decision (the gains do not change between scans).
+
+    ``gains``: the validated gains, symmetrised ``(J + Jᵀ)/2``, read-only ``(Ns, n, n)``;
+    ``constraints``: the constraints it was prepared for (:func:`allocate` refuses others);
+    ``n``: the state dimension; ``max_active``: the effective budget;
+    ``infeasible``: why no non-empty subset is feasible (raised by :func:`allocate` as
+    :class:`InfeasibleAllocation`), else ``None``; ``tables``: the search's gain-only tables
+    (:class:`covnet.core._allocation_fast.SearchTables`: support of the gains, per-subset sums of
+    the reduced information, subset masks, exact ``J_i`` of every subset for small ``Ns``).
+    """
+
+    gains: NDArray[np.float64]
+    constraints: Constraints
+    n: int
+    max_active: int
+    infeasible: str | None
+    tables: SearchTables | None
+
+    @property
+    def n_sensors(self) -> int:
+        return int(self.gains.shape[0])
+
+
+def _checked_pd(P_pred: object, P_d: object, n: int | None = None) -> tuple[Mat, Mat]:
+    """``P_pred`` and ``P_d`` as ``(n, n)`` float arrays, each checked finite and symmetric to a
+    relative 1e-9 (``max|A - Aᵀ| <= 1e-9 max(A + Aᵀ)``; the largest entry of a PSD matrix is on
+    its diagonal), returned as ``(A + Aᵀ)/2``.  (Positive definiteness of ``P_pred`` is checked
+    by the Cholesky factorisation of the search itself, ``P_d``'s by the metrics that need it.)"""
+    P = np.asarray(P_pred, dtype=np.float64)
+    if P.ndim != 2 or P.shape[0] != P.shape[1] or P.shape[0] == 0:
+        raise ValueError(f"P_pred must be a non-empty square (n, n) matrix, got shape {P.shape}")
+    if n is not None and P.shape[0] != n:
+        raise ValueError(f"P_pred must be ({n}, {n}) like the plan's gains, got shape {P.shape}")
+    n = P.shape[0]
+    D = np.asarray(P_d, dtype=np.float64)
+    if D.shape != (n, n):
+        raise ValueError(f"P_d must be ({n}, {n}) like P_pred, got shape {D.shape}")
+    return _symmetric(P, "P_pred"), _symmetric(D, "P_d")
+
+
+_max = np.maximum.reduce
+
+
+def _symmetric(A: Mat, name: str) -> Mat:
+    """``(A + Aᵀ)/2`` of one matrix after the check of :func:`_symmetrised` (same bits).
+
+    Shortcut: an exactly symmetric, finite ``A`` (``A - Aᵀ`` has no non-zero and no NaN entry)
+    with a non-negative largest entry passes that check and ``(A + Aᵀ)/2 = A`` (``2a/2 = a``;
+    entries beyond ``DBL_MAX / 2`` aside), so ``A`` itself is returned, not copied."""
+    At = A.T
+    if not (A - At).any() and _max(A, None) >= 0:
+        return A
+    S = A + At
+    if not _max(A - At, None) <= 1e-9 * _max(S, None):  # written so that NaN fails
+        if not np.isfinite(A).all():
+            raise ValueError(f"{name} has non-finite entries")
+        raise ValueError(f"{name} must be symmetric (and positive semi-definite)")
+    S *= 0.5
+    return S
+
+
+def _symmetrised(X: Mat, names: Sequence[str] | None = None) -> Mat:
+    """``(A + Aᵀ)/2`` of every matrix of the stack ``X``, after checking each is finite and
+    symmetric to a relative 1e-9 (:func:`_checked_pd`).  Both allocators then work on exactly
+    symmetric inputs (the same bits whichever path symmetrised them: elementwise arithmetic)."""
     Xt = X.transpose(0, 2, 1)
     S = X + Xt
     ok = (X - Xt).max(axis=(1, 2)) <= 1e-9 * S.max(axis=(1, 2))  # X - Xᵀ is antisymmetric
     if not ok.all():
         k = int(np.argmin(ok))
-        name = "P_pred" if k == 0 else "P_d" if k == 1 else f"gains[{k - 2}]"
+        name = names[k] if names is not None else f"gains[{k}]"
         if not np.isfinite(X[k]).all():
             raise ValueError(f"{name} has non-finite entries")
         raise ValueError(f"{name} must be symmetric (and positive semi-definite)")
     S *= 0.5
-    return S[0], S[1], S[2:]
+    return S
 
 
-def _validate(
-    P_pred: object,
-    gains: object,
-    P_d: object,
-    metric: str | MetricFn,
-    constraints: Constraints,
-    tie_rtol: float,
-) -> tuple[Mat, Mat, Mat, MetricFn, str | None, int]:
-    """Check everything once, at the boundary; returns arrays, the metric, its registered name
-    (``None`` for a user's function) and the effective budget."""
-    P = np.asarray(P_pred, dtype=np.float64)
-    if P.ndim != 2 or P.shape[0] != P.shape[1] or P.shape[0] == 0:
-        raise ValueError(f"P_pred must be a non-empty square (n, n) matrix, got shape {P.shape}")
-    n = P.shape[0]
-    D = np.asarray(P_d, dtype=np.float64)
-    if D.shape != (n, n):
-        raise ValueError(f"P_d must be ({n}, {n}) like P_pred, got shape {D.shape}")
+def prepare(gains: Mat, constraints: Constraints = Constraints()) -> AllocationPlan:
+    """Validate the gains and the constraints once and build everything that depends only on
+    them (:class:`AllocationPlan`); pass the plan to :func:`allocate` at every decision.
+
+    Checks (the same messages as :func:`allocate` with a gains array): ``gains`` ``(Ns, n, n)``,
+    each finite, symmetric and positive semi-definite (eigenvalues), the constraints' indices,
+    exclusive sets and budget.  An infeasible constraint set (all sensors excluded, no sensors) is
+    recorded, not raised: :func:`allocate` raises :class:`InfeasibleAllocation` with the plan."""
     G = np.asarray(gains, dtype=np.float64)
-    if G.ndim != 3 or G.shape[1:] != (n, n):
-        raise ValueError(f"gains must be (Ns, {n}, {n}) (one J_j per sensor), got {G.shape}")
-    P, D, G = _symmetrised(P, D, G)
+    if G.ndim != 3 or G.shape[1] != G.shape[2] or G.shape[1] == 0:
+        raise ValueError(f"gains must be (Ns, n, n) (one J_j per sensor), got {G.shape}")
+    return _prepare(G, constraints, tables=True)
+
+
+def _prepare(G: Mat, constraints: Constraints, tables: bool) -> AllocationPlan:
+    """:func:`prepare` on a gains array of checked shape (``tables=False``: validation only,
+    for the plain reference)."""
+    n = G.shape[1]
     if G.shape[0]:
+        G = _symmetrised(G)
         # the fast path's bounds rest on J_j >= 0 (Loewner); a rounding-level negative is fine
         w = np.linalg.eigvalsh(G)
         negative = w[:, 0] < -64.0 * n * np.finfo(np.float64).eps * np.abs(w).max(axis=1)
@@ -174,16 +254,9 @@ def _validate(
                 f"gains[{j}] must be positive semi-definite (an information gain Hᵀ R⁻¹ H is), "
                 f"smallest eigenvalue {w[j, 0]:.3g}"
             )
-    if not (np.isfinite(tie_rtol) and tie_rtol >= 0):
-        raise ValueError(f"tie_rtol must be finite and >= 0, got {tie_rtol}")
-    if isinstance(metric, str):
-        fn: MetricFn = get_metric(metric)
-        name: str | None = metric
-    elif callable(metric):
-        fn = metric
-        name = next((k for k, f in METRICS.items() if f is metric), None)
     else:
-        raise TypeError(f"metric must be a registered name or a callable, got {type(metric)}")
+        G = G.copy()
+    G.flags.writeable = False
     if not isinstance(constraints, Constraints):
         raise TypeError(f"constraints must be a Constraints, got {type(constraints)}")
     Ns = G.shape[0]
@@ -209,13 +282,37 @@ def _validate(
                 f"max_active={K} is smaller than the {len(constraints.required)} required "
                 f"sensors {sorted(constraints.required)}"
             )
+    K_eff = Ns if K is None else int(K)
+    infeasible = None
     if Ns == 0:
-        raise InfeasibleAllocation("no sensors: gains is empty, so no non-empty subset exists")
-    if len(constraints.excluded) == Ns:
-        raise InfeasibleAllocation(
-            f"all {Ns} sensors are excluded, so no non-empty subset is feasible"
-        )
-    return P, G, D, fn, name, (Ns if K is None else int(K))
+        infeasible = "no sensors: gains is empty, so no non-empty subset exists"
+    elif len(constraints.excluded) == Ns:
+        infeasible = f"all {Ns} sensors are excluded, so no non-empty subset is feasible"
+    tab = None
+    if tables and infeasible is None:
+        tab = SearchTables(G, constraints.excluded, constraints.required, K_eff)
+    return AllocationPlan(G, constraints, n, K_eff, infeasible, tab)
+
+
+def _resolve_metric(metric: str | MetricFn) -> tuple[MetricFn, str | None]:
+    """The metric function and its registered name (``None`` for a user's function)."""
+    if isinstance(metric, str):
+        return get_metric(metric), metric
+    if callable(metric):
+        return metric, next((k for k, f in METRICS.items() if f is metric), None)
+    raise TypeError(f"metric must be a registered name or a callable, got {type(metric)}")
+
+
+def _check_rtol(tie_rtol: float) -> None:
+    if not (math.isfinite(tie_rtol) and tie_rtol >= 0):
+        raise ValueError(f"tie_rtol must be finite and >= 0, got {tie_rtol}")
+
+
+def _gains_array(gains: object, n: int) -> Mat:
+    G = np.asarray(gains, dtype=np.float64)
+    if G.ndim != 3 or G.shape[1:] != (n, n):
+        raise ValueError(f"gains must be (Ns, {n}, {n}) (one J_j per sensor), got {G.shape}")
+    return G
 
 
 def _spd_error(exc: np.linalg.LinAlgError) -> ValueError:
@@ -241,8 +338,13 @@ def allocate_exhaustive(
     """The plain reference: every feasible subset in turn, ``P_i`` by the information form with
     Cholesky solves (:func:`subset_covariance`), one metric call per subset, then the tie rule
     (module docstring).  Clarity over speed: use :func:`allocate`, which returns the same."""
-    P, G, D, f, _, K = _validate(P_pred, gains, P_d, metric, constraints, tie_rtol)
-    n = P.shape[0]
+    P, D = _checked_pd(P_pred, P_d)
+    plan = _prepare(_gains_array(gains, P.shape[0]), constraints, tables=False)
+    f, _ = _resolve_metric(metric)
+    _check_rtol(tie_rtol)
+    if plan.infeasible is not None:
+        raise InfeasibleAllocation(plan.infeasible)
+    G, K, n = plan.gains, plan.max_active, plan.n
     allowed = [j for j in range(G.shape[0]) if j not in constraints.excluded]
     subsets: list[tuple[int, ...]] = []
     values: list[float] = []
@@ -275,25 +377,45 @@ def allocate_exhaustive(
 
 def allocate(
     P_pred: Mat,
-    gains: Mat,
+    gains: Mat | AllocationPlan,
     P_d: Mat,
     metric: str | MetricFn,
-    constraints: Constraints = Constraints(),
+    constraints: Constraints | None = None,
     tie_rtol: float = 1e-9,
 ) -> Allocation:
     """The fast exact path: the same :class:`Allocation` as :func:`allocate_exhaustive` (same
     subset, same value and ``P`` bits), evaluating the metric exactly on few subsets.
 
+    ``gains``: either the ``(Ns, n, n)`` PSD gains (a plan is prepared internally, every call),
+    or an :class:`AllocationPlan` from :func:`prepare`, which skips the gain-only work (validation
+    incl. the PSD check, the reduced-form tables); ``constraints`` then defaults to the plan's,
+    and other constraints are refused (prepare a plan per constraint set).  Checked per call:
+    ``P_pred`` ``(n, n)`` and ``P_d`` ``(n, n)`` finite and symmetric (then symmetrised),
+    ``P_pred`` positive definite (by its Cholesky factorisation), the metric and ``tie_rtol``.
+
     Registered metrics with an entry in :data:`METRIC_BOUNDS` use bound-based pruning (see
     :mod:`covnet.core._allocation_fast`); any other metric function the batched exhaustive
-    search.  ``P_pred`` ``(n, n)`` SPD, ``gains`` ``(Ns, n, n)`` PSD, ``P_d`` ``(n, n)``.
+    search.
     """
-    P, G, D, f, name, K = _validate(P_pred, gains, P_d, metric, constraints, tie_rtol)
+    if isinstance(gains, AllocationPlan):
+        plan = gains
+        if constraints is not None and constraints != plan.constraints:
+            raise ValueError(
+                f"the plan was prepared for {plan.constraints}, not {constraints}: "
+                "prepare a plan for these constraints"
+            )
+        P, D = _checked_pd(P_pred, P_d, plan.n)
+    else:
+        P, D = _checked_pd(P_pred, P_d)
+        c = Constraints() if constraints is None else constraints
+        plan = _prepare(_gains_array(gains, P.shape[0]), c, tables=True)
+    f, name = _resolve_metric(metric)
+    _check_rtol(tie_rtol)
+    if plan.tables is None:
+        raise InfeasibleAllocation(plan.infeasible)
     bound = METRIC_BOUNDS.get(name) if name is not None else None
     try:
-        res = fast_search(
-            P, G, D, f, bound, constraints.excluded, constraints.required, K, tie_rtol
-        )
+        res = fast_search(P, D, f, bound, plan.tables, tie_rtol)
     except np.linalg.LinAlgError as exc:
         raise _spd_error(exc) from exc
     return Allocation(res.subset, res.value, res.P, res.n_feasible, res.n_evaluated)

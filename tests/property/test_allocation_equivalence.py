@@ -143,7 +143,7 @@ def test_bounds_never_exceed_the_exact_value(name, pb):
     N, n = gains.shape[0], gains.shape[1]
     P_pred, P_d = 0.5 * (P_pred + P_pred.T), 0.5 * (P_d + P_d.T)
     Y0 = fast.spd_inverse(P_pred)
-    st_ = fast._Setup(P_pred, gains, P_d, Y0, gains, list(range(N)), [])
+    st_ = fast._Setup(P_pred, P_d, Y0, fast.SearchTables(gains, frozenset(), frozenset(), N))
     codes = np.arange(1, 2**N)
     masks = ((codes[:, None] >> np.arange(N)) & 1).astype(bool)
     exact = METRICS[name](fast.spd_inverse(Y0 + fast.gain_sums(gains, masks)), P_d)

@@ -11,12 +11,14 @@ import pytest
 from covnet.core.allocation import (
     METRIC_BOUNDS,
     Allocation,
+    AllocationPlan,
     Constraints,
     InfeasibleAllocation,
     MetricBound,
     allocate,
     allocate_exhaustive,
     allocation_rate,
+    prepare,
     subset_covariance,
 )
 from covnet.core.metrics import METRICS
@@ -301,3 +303,82 @@ def test_allocation_rate_rejects_bad_input():
         allocation_rate([9], 8)
     with pytest.raises(ValueError, match="n_sensors must be >= 1"):
         allocation_rate([1], 0)
+
+
+# ---- the plan: gain-only work prepared once -----------------------------------------------
+
+
+PLAN_CONSTRAINTS = [Constraints(), *CONSTRAINTS]
+
+
+@pytest.mark.parametrize("c", PLAN_CONSTRAINTS, ids=[f"c{k}" for k in range(-1, len(CONSTRAINTS))])
+@pytest.mark.parametrize("name", sorted(METRICS))
+def test_plan_equals_gains_equals_exhaustive(c, name, gains8):
+    plan = prepare(gains8, c)
+    assert isinstance(plan, AllocationPlan) and plan.constraints == c
+    for P_pred, P_d in paper_problems(gains8, name, [10, 55]):
+        with_plan = allocate(P_pred, plan, P_d, name)
+        with_plan_c = allocate(P_pred, plan, P_d, name, c)  # the plan's own constraints: fine
+        without = allocate(P_pred, gains8, P_d, name, c)
+        ref = allocate_exhaustive(P_pred, gains8, P_d, name, c)
+        for a in (with_plan, with_plan_c, without):
+            assert (a.subset, a.value, a.n_feasible) == (ref.subset, ref.value, ref.n_feasible)
+            np.testing.assert_array_equal(a.P, ref.P)
+        assert with_plan.n_evaluated == without.n_evaluated
+
+
+def test_plan_with_a_user_metric(gains8):
+    plan = prepare(gains8, Constraints(required=frozenset({3})))
+    for P_pred, P_d in paper_problems(gains8, "abs_trace", [5, 60]):
+        a = allocate(P_pred, plan, P_d, _weighted_trace)
+        ref = allocate_exhaustive(P_pred, gains8, P_d, _weighted_trace, plan.constraints)
+        assert (a.subset, a.value) == (ref.subset, ref.value)
+
+
+def test_plan_is_read_only_and_independent_of_the_caller(gains8):
+    g = gains8.copy()
+    plan = prepare(g)
+    g[:] = 0.0  # the caller's array changes: the plan keeps its own validated copy
+    assert not plan.gains.flags.writeable
+    assert plan.n == 4 and plan.n_sensors == 8
+    a = allocate(P_PRED, plan, D1, "spectral")
+    assert a.subset == allocate_exhaustive(P_PRED, gains8, D1, "spectral").subset
+
+
+def test_plan_refuses_other_constraints(gains8):
+    plan = prepare(gains8, Constraints(excluded=frozenset({1})))
+    with pytest.raises(ValueError, match="prepare a plan for these constraints"):
+        allocate(P_PRED, plan, D1, "spectral", Constraints())
+    with pytest.raises(ValueError, match=r"P_pred must be \(4, 4\) like the plan's gains"):
+        allocate(np.eye(3), plan, np.eye(3), "spectral")
+
+
+def test_plan_infeasible_is_raised_by_allocate(gains8):
+    plan = prepare(gains8, Constraints(excluded=frozenset(range(8))))
+    with pytest.raises(InfeasibleAllocation, match="all 8 sensors are excluded"):
+        allocate(P_PRED, plan, D1, "svd")
+    with pytest.raises(InfeasibleAllocation, match="no sensors"):
+        allocate(P_PRED, prepare(np.zeros((0, 4, 4))), D1, "svd")
+
+
+PLAN_BAD = [
+    (dict(gains=np.zeros((8, 4))), r"gains must be \(Ns, n, n\)"),
+    (dict(gains=np.stack([np.eye(4), -np.eye(4)])), r"gains\[1\] must be positive"),
+    (dict(gains=np.stack([np.eye(4), np.triu(np.ones((4, 4)))])), r"gains\[1\] must be symm"),
+    (dict(gains=np.full((2, 4, 4), np.nan)), r"gains\[0\] has non-finite entries"),
+    *((dict(constraints=kw["constraints"]), match) for kw, _, match in BAD[:5]),
+]
+
+
+@pytest.mark.parametrize(
+    ("override", "match"), PLAN_BAD, ids=[f"bad{k}" for k in range(len(PLAN_BAD))]
+)
+def test_prepare_rejects_bad_gains_and_constraints(override, match, gains8):
+    """The same messages as allocate with a gains array (test_validation_messages)."""
+    args = dict(gains=gains8, constraints=Constraints())
+    args.update(override)
+    with pytest.raises(ValueError, match=match):
+        prepare(**args)
+    if "gains" in override and override["gains"].ndim == 3:
+        with pytest.raises(ValueError, match=match):
+            allocate(P_PRED, override["gains"], D1, "spectral")

@@ -79,3 +79,26 @@ def test_filter_is_consistent_on_average(runs):
     """NEES averaged over scans 11-100 and the three metrics stays near its mean of 4."""
     eps = np.concatenate([r.nees[10:] for r in runs.values()])
     assert 2.0 < eps.mean() < 6.5
+
+
+def test_model_holds_one_plan_per_constraint_set(paper):
+    """build_model prepares the allocation plan once; decide passes it, and run-time failures get
+    a plan per constraint set, prepared once and kept in ``model.plans``."""
+    from covnet.core.allocation import allocate_exhaustive
+    from covnet.model import decide, predict_cov
+
+    model = build_model(paper)
+    assert model.plans == {model.constraints: model.plan}
+    assert model.plan.constraints == model.constraints
+    P_pred = predict_cov(model, predict_cov(model, model.P0))
+    for _ in range(3):  # a few scans in, away from the near-degenerate first ones
+        P_pred = predict_cov(model, decide(model, P_pred, 3, "spectral").P)
+    ref = allocate_exhaustive(P_pred, model.gains, model.desired(3), "spectral", model.constraints)
+    assert decide(model, P_pred, 3, "spectral").subset == ref.subset
+    failed = frozenset({0, 2})
+    a = decide(model, P_pred, 3, "spectral", unavailable=failed)
+    assert not set(a.subset) & failed
+    assert len(model.plans) == 2
+    plan = model.plan_for(next(c for c in model.plans if c != model.constraints))
+    assert decide(model, P_pred, 3, "spectral", unavailable=failed).subset == a.subset
+    assert len(model.plans) == 2 and model.plans[plan.constraints] is plan
