@@ -98,8 +98,6 @@ def serve(
             stats.rejected["bad_shape"] += 1
             return True
         truths[tr.scan] = tr
-        for old in [k for k in truths if k < tr.scan - 2]:
-            del truths[old]
         return True
 
     try:
@@ -120,6 +118,8 @@ def serve(
                 if cmd.scan in truths:
                     bus.publish(meas_key, msg.encode(respond(cmd, truths[cmd.scan])))
                     stats.measurements_sent += 1
+                    for old in [k for k in truths if k < cmd.scan - 1]:
+                        del truths[old]
                 elif len(pending) > 1:  # a newer command came first: this truth is gone
                     stats.missed_truth += 1
                 else:

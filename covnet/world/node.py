@@ -2,9 +2,10 @@
 
 The trajectory is a pure function of the scenario and its seed
 (:func:`covnet.model.truth_trajectory`); the world advances on the manager's scan tick, in
-lockstep and in real time alike: on ``Command(k)`` it publishes ``Truth(k)`` (unless already
-sent) and ``Truth(k+1)`` ahead, so that an enabled sensor usually holds the truth when its next
-command arrives (a sensor only measures a scan it was commanded for).  It ends on ``stop`` or
+lockstep and in real time alike: on ``Command(k)`` it publishes ``Truth(k)`` .. ``Truth(k+16)``
+unless the previous window already covered ``k`` and no sensor has joined since, so that an
+enabled sensor holds the truth when its command arrives and wakes for truth once per window (a
+sensor only measures a scan it was commanded for).  It ends on ``stop`` or
 when the manager it has seen leaves.
 """
 
@@ -21,6 +22,7 @@ from covnet.model import build_model, truth_trajectory
 from covnet.node_kit import serve_commands
 
 TARGET_IDS = ("T1",)
+TRUTH_WINDOW = 16  # scans of truth published at once, ahead of their commands
 
 
 def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event) -> Counter[str]:
@@ -30,24 +32,35 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     truth = truth_trajectory(model)
     counts: Counter[str] = Counter()
     key = msg.truth_key(run_id)
-    published: set[int] = set()  # scans whose truth went out since the last command
+    window = [0, -1]  # the scans whose truth went out with the last window
+    # a sensor that (re)joins mid-run has missed the window: the next command starts a new one
+    joins = bus.watch_liveliness(msg.alive_keyexpr(run_id, "sensor"))
 
     def handle(cmd: msg.Command) -> bool:
-        nonlocal published
         if not 1 <= cmd.scan <= model.scans:
             counts["rejected:bad_scan"] += 1
             return False
-        # scan k now, and k+1 ahead of its command: the sensors then have the truth in
-        # hand when the next command comes (one bus hop less on the scan's critical path)
-        for k in (cmd.scan, cmd.scan + 1):
-            if k <= model.scans and k not in published:
+        # Truth goes out a window of scans ahead (the trajectory does not depend on the
+        # commands): a sensor wakes for truth once per window, not once per scan, and holds
+        # the truth when its command comes.  A new window when a command leaves the last one
+        # (or the scans start again: the next metric's episode).
+        k0 = cmd.scan
+        while (ev := joins.try_recv()) is not None:
+            if ev.alive:
+                window[:] = [0, -1]
+        if not window[0] <= k0 < window[1]:
+            hi = min(k0 + TRUTH_WINDOW, model.scans)
+            for k in range(k0, hi + 1):
                 tr = msg.Truth(
                     scan=k, t=k * model.T, target_ids=TARGET_IDS, states=truth[k - 1][None, :]
                 )
                 bus.publish(key, msg.encode(tr))
                 counts["published"] += 1
-        published = {cmd.scan, cmd.scan + 1}
+            window[:] = [k0, hi]
         return True
 
-    serve_commands(bus, run_id, clock, stop, sc.network, "world", "world", counts, handle)
+    try:
+        serve_commands(bus, run_id, clock, stop, sc.network, "world", "world", counts, handle)
+    finally:
+        joins.close()
     return counts
