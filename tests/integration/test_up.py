@@ -100,9 +100,42 @@ def test_ctrl_c_stops_everything_and_keeps_what_was_recorded(covnet_proc, tmp_pa
     assert p.wait_for("[manager] READY", timeout=60), p.output()
     assert p.wait_for(lambda s: s.startswith("[status]") and "scan 1/" not in s, timeout=30)
     os.killpg(p.proc.pid, signal.SIGINT)
-    assert p.wait(timeout=8) == 130, p.output()
+    assert p.wait(timeout=5) == 130, p.output()  # Ctrl-C: everything stops within 5 s
     assert_nothing_left(out)
     summary = json.loads((out / "summary.json").read_text())
     done = summary["scans_completed"]["spectral"]
     assert 0 < done < 100 and summary["completed"] is False
     assert len(summary["metrics"]["spectral"]["subsets"]) == done
+
+
+def test_crashed_manager_ends_the_run_with_a_message(covnet_proc, tmp_path, paper_path):
+    out = tmp_path / "run"
+    p = covnet_proc(
+        [
+            "up",
+            str(paper_path),
+            "--out",
+            str(out),
+            "--realtime",
+            "--speed",
+            "20",
+            "--metric",
+            "spectral",
+            "--no-figures",
+        ]
+    )
+    assert p.wait_for("[manager] READY", timeout=60), p.output()
+    # past the manager's first periodic write (about once a second)
+    assert p.wait_for(
+        lambda s: (
+            s.startswith("[status]") and " scan 1/" not in s and (out / "summary.json").is_file()
+        ),
+        timeout=30,
+    ), p.output()
+    pids = json.loads((out / "processes.json").read_text())
+    os.kill(pids["manager"], signal.SIGKILL)
+    assert p.wait(timeout=20) == 1, p.output()
+    assert "the manager failed (exit status -9)" in p.output()
+    assert_nothing_left(out)
+    summary = json.loads((out / "summary.json").read_text())  # intact, up to its last write
+    assert summary["completed"] is False and 0 < summary["scans_completed"]["spectral"] < 100
