@@ -158,13 +158,21 @@ def cmd_up(args: argparse.Namespace) -> int:
     from covnet.up import UpError, up
 
     kind = _kind(args.config)
-    if kind not in ("covariance_control", "mobile"):
-        raise UsageError(
-            f"{args.config}: covnet up runs covariance-control and mobile scenarios; the {kind} "
-            f"scenario's network runtime is not built yet (use covnet run / covnet mc for it)"
-        )
     mobile = kind == "mobile"
-    if mobile:
+    passive = kind == "passive"
+    if passive:
+        from covnet.passive.config import load as load_passive
+        from covnet.passive.config import with_overrides as passive_overrides
+
+        if args.metric:
+            raise UsageError("--metric: a passive scenario has no allocation metric")
+        if args.solver is not None:
+            raise UsageError("--solver: a passive scenario names its method in association.method")
+        if args.seed is not None and args.seed < 0:
+            raise UsageError(f"--seed: must be >= 0, got {args.seed}")
+        sc = passive_overrides(load_passive(args.config), args.config, seed=args.seed)
+        metrics: list[str] = []
+    elif mobile:
         from covnet.mobile.config import load as load_mobile
         from covnet.mobile.config import with_overrides as mobile_overrides
 
@@ -172,7 +180,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             raise UsageError("--metric: a mobile scenario has no allocation metric; see --solver")
         sc = load_mobile(args.config)
         sc = mobile_overrides(sc, args.config, seed=args.seed, solver=args.solver)
-        metrics: list[str] = []
+        metrics = []
     else:
         if args.solver is not None:
             raise UsageError("--solver: only a mobile scenario (kind: mobile) has solvers")
@@ -214,6 +222,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     except UpError as exc:
         _err(str(exc))
         status = EXIT_FAIL
+    if passive:
+        if (out / "association.json").is_file():
+            _print_passive_up(out, figures=not args.no_figures)
+        return status
     if mobile:
         if (out / "summary.json").is_file():
             from covnet.mobile.cli_entry import print_summary
@@ -235,10 +247,34 @@ def cmd_up(args: argparse.Namespace) -> int:
     return status
 
 
+def _print_passive_up(out: Path, *, figures: bool) -> None:
+    """The summary of a passive network run, and its scene figure (the last associated scan)."""
+    doc = json.loads((out / "association.json").read_text())
+    sm = doc["summary"]
+    print(
+        f"{doc['method']}: {sm['scans']} scan(s), {sm['associated']} associated, "
+        f"{sm['unassociated']} not associated (a list missing); "
+        f"{sm['correct']}/{sm['truth']} targets associated correctly, "
+        f"{sm['output'] - sm['correct']} wrong triple(s)"
+    )
+    if figures and "correct" in doc:  # a scored scan (the manager redraws the truth)
+        from covnet.passive.plots import scene_figure
+
+        print(f"figure: {scene_figure(out)}")
+    print(f"run directory: {out}  (config {doc['config_hash']}, seed {doc['seed']})")
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from covnet.replay import replay_run
 
     run_dir = Path(args.run_dir)
+    run_json = run_dir / "run.json"
+    run_kind = json.loads(run_json.read_text()).get("kind") if run_json.is_file() else None
+    if run_kind in ("mobile", "passive"):
+        raise UsageError(
+            f"{run_dir}: covnet replay re-fuses covariance-control runs; a {run_kind} run's "
+            "replay is not built yet (its recording.mcap holds every message of the run)"
+        )
     missing = [
         f
         for f in ("config.json", "run.json", "summary.json", "recording.mcap")
@@ -247,11 +283,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if missing:
         raise UsageError(
             f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
-        )
-    if json.loads((run_dir / "run.json").read_text()).get("kind") == "mobile":
-        raise UsageError(
-            f"{run_dir}: covnet replay re-fuses covariance-control runs; a mobile run's replay "
-            "is not built yet (its recording.mcap holds every message of the run)"
         )
     report = replay_run(run_dir, Path(args.out) if args.out else None)
     if report.identical:
@@ -363,6 +394,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         for row in rows:
             print(json.dumps({k: row[k] for k in keys} | {"agree": row["agree"]}))
     else:
+        print(
+            "fast: per-decision allocate(P_pred, plan, P_d, metric) with plan = prepare(gains) "
+            "built once per (N, metric), outside the timing"
+        )
         print(
             f"{'metric':>10} {'N':>3} {'fast (ms)':>11} {'plain (ms)':>11} {'speedup':>8} "
             f"{'peak MB':>8}  agree"

@@ -46,7 +46,13 @@ def common_parser(prog: str, description: str) -> argparse.ArgumentParser:
 
 
 def load_config(path: str, seed: int | None) -> Any:
-    """The scenario of ``path``: a :class:`Scenario`, or a mobile config (``kind: mobile``)."""
+    """The scenario of ``path``: a :class:`Scenario`, a mobile config (``kind: mobile``) or a
+    passive config (``kind: passive``)."""
+    if scenario_kind(path) == "passive":
+        from covnet.passive import config as passive_config
+
+        pcfg = passive_config.load(path)
+        return passive_config.with_overrides(pcfg, path, seed=seed) if seed is not None else pcfg
     if scenario_kind(path) == "mobile":
         from covnet.mobile import config as mobile_config
 
@@ -62,12 +68,22 @@ def is_mobile(sc: Any) -> bool:
     return isinstance(sc, MobileConfig)
 
 
+def is_passive(sc: Any) -> bool:
+    from covnet.passive.config import PassiveConfig
+
+    return isinstance(sc, PassiveConfig)
+
+
 def default_run_id(sc: Scenario) -> str:
     """The run id processes started separately agree on without being told: ``name-hash``."""
     if is_mobile(sc):
         from covnet.mobile.config import config_hash as mobile_hash
 
         return f"{sc.name}-{mobile_hash(sc)[:8]}"  # type: ignore[arg-type]
+    if is_passive(sc):
+        from covnet.passive.config import config_hash as passive_hash
+
+        return f"{sc.name}-{passive_hash(sc)[:8]}"  # type: ignore[arg-type]
     return f"{sc.name}-{config_hash(sc)[:8]}"
 
 

@@ -64,8 +64,9 @@ def process_specs(
     speed: float,
     solver: str | None = None,
 ) -> list[ProcessSpec]:
-    """The processes of one network.  ``sc`` is a covariance-control :class:`Scenario` or a
-    mobile config (``metrics`` then empty; ``solver``, when given, goes to the manager)."""
+    """The processes of one network.  ``sc`` is a covariance-control :class:`Scenario`, a
+    mobile config (``metrics`` then empty; ``solver``, when given, goes to the manager) or a
+    passive config (``metrics`` empty, no ``solver``)."""
     py = sys.executable
     common = ["--config", str(config_path), "--run", run_id]
     if seed is not None:
@@ -151,7 +152,7 @@ class StatusView:
 
     def update(self, st: dict[str, Any]) -> None:
         self.last = st
-        if "info" in st:  # a manager that formats its own line (kind: mobile)
+        if "info" in st:  # a manager that formats its own line (kind: mobile, passive)
             info = f"{st['info']}  {st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
         else:
             info = (
@@ -193,7 +194,7 @@ def up(
     ``recorder``, ``sensors`` for all sensors, or sensor ids); the others are started
     elsewhere (``python -m sensors ... --connect ROUTER``).  ``router`` overrides
     ``network.router``.  A mobile config (``kind: mobile``) runs with ``metrics=[]`` and
-    ``solver`` (default: the config's)."""
+    ``solver`` (default: the config's); a passive one (``kind: passive``) with ``metrics=[]``."""
     out.mkdir(parents=True, exist_ok=True)
     router = resolve_router(endpoint(sc.network, router or sc.network.router))
     specs = process_specs(

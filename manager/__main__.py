@@ -29,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def body() -> int:
-        from covnet.process import is_mobile
+        from covnet.process import is_mobile, is_passive
         from manager import node
         from manager.report import write_network_run
 
@@ -40,6 +40,10 @@ def main(argv: list[str] | None = None) -> int:
             from covnet.mobile.nodes.manager import main_body
 
             return main_body(args, sc, stop)
+        if is_passive(sc):
+            from covnet.passive.nodes.manager import main_body as passive_main
+
+            return passive_main(args, sc, stop)
         if args.solver is not None:
             raise ValueError("--solver: only a mobile scenario (kind: mobile) has solvers")
         metrics = args.metric or list(sc.allocation.metrics)

@@ -24,13 +24,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def body() -> int:
-        from covnet.process import is_mobile
+        from covnet.process import is_mobile, is_passive
         from sensors import node
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
         if is_mobile(sc):  # kind: mobile -> measures its commanded targets
             from covnet.mobile.nodes import sensor as node  # type: ignore[no-redef]
+        elif is_passive(sc):  # kind: passive -> its list of angle pairs per scan
+            from covnet.passive.nodes import sensor as node  # type: ignore[no-redef]
         resolve_run(args, sc)
         if args.id not in sc.sensor_ids:
             print(

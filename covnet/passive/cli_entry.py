@@ -175,108 +175,45 @@ def bench_cmd(json_out: bool = False) -> int:
     return EXIT_OK
 
 
-def _json_number(v: Any) -> Any:
-    """Plain JSON: numpy scalars to Python, non-finite floats to None."""
-    if isinstance(v, np.generic):
-        v = v.item()
-    if isinstance(v, float) and not np.isfinite(v):
-        return None
-    return v
-
-
 def scene_cmd(
     config_path: str | Path, out: str | Path | None = None, seed: int | None = None
 ) -> int:
     """Draw one scan of the config's scene (``seed`` overrides the config's), associate it with
     ``association.method``, triangulate the triples; write ``association.json`` and
-    ``scene.png``."""
-    from covnet.core.passive.methods import METHODS
-    from covnet.core.passive.sd import triangulate
-    from covnet.passive.config import config_hash, load, normalised
+    ``scene.png``.  (This scan is scan 1 of ``covnet up`` with the same seed: trial 0.)"""
+    from covnet.passive.associate import header, scan_record
+    from covnet.passive.config import load, normalised, with_overrides
     from covnet.passive.plots import scene_figure
-    from covnet.passive.scene import draw, score
+    from covnet.passive.scene import draw
     from covnet.results import write_json
 
     cfg = load(config_path)
     if seed is not None and not (isinstance(seed, int) and seed >= 0):
         raise ConfigError(str(config_path), [("--seed", f"must be an integer >= 0, got {seed}")])
-    seed = cfg.seed if seed is None else seed
+    if seed is not None:  # config.json and the hash then record the seed used
+        cfg = with_overrides(cfg, str(config_path), seed=seed)
+    seed = cfg.seed
     out_dir = _out_dir(out, cfg.name, "scene")
     model = cfg.scene_model()
     params = cfg.assoc_params(model)
     scene = draw(model, seed, 0)
     method = cfg.association.method
-    METHODS[method](scene.scan, params)  # warm-up: the timed call below excludes first-call costs
-    t0 = time.perf_counter()
-    a = METHODS[method](scene.scan, params)
-    dt = time.perf_counter() - t0
-    Z = a.triples
-    az = np.stack([scene.scan.z[s][Z[:, s], 0] for s in range(3)], axis=1)
-    el = np.stack([scene.scan.z[s][Z[:, s], 1] for s in range(3)], axis=1)
-    tri = triangulate(
-        scene.scan.sensors,
-        az,
-        el,
-        np.ones(Z.shape, dtype=bool),
-        params.sigma_azimuth,
-        params.sigma_elevation,
-        params.gn_steps,
-    )
-    truth = {tuple(map(int, t)) for t in scene.truth}
-    correct = [tuple(map(int, t)) in truth for t in Z]
-    target_of = [int(scene.labels[0][t[0]]) if ok else -1 for t, ok in zip(Z, correct, strict=True)]
-    hit, n_truth, n_out, exact = score(scene.truth, Z)
-    doc = {
-        "kind": "passive-scene",
-        "config": cfg.name,
-        "config_hash": config_hash(cfg),
-        "seed": seed,
-        "trial": 0,
-        "method": method,
-        "formation": cfg.targets.formation,
-        "d_km": cfg.targets.spacing_km,
-        "sigma_azimuth_mrad": cfg.noise.sigma_azimuth_mrad,
-        "sigma_elevation_mrad": cfg.noise.sigma_elevation_mrad,
-        "clutter": cfg.clutter.enabled,
-        "sensors": [{"id": s.id, "position_km": list(s.position_km)} for s in cfg.sensors],
-        "targets_km": scene.targets.tolist(),
-        "measurements": [
-            [
-                {"azimuth_rad": float(z[0]), "elevation_rad": float(z[1]), "label": int(lab)}
-                for z, lab in zip(scene.scan.z[s], scene.labels[s], strict=True)
-            ]
-            for s in range(3)
-        ],
-        "truth": scene.truth.tolist(),
-        "truth_targets": scene.truth_targets.tolist(),
-        "triples": Z.tolist(),
-        "tuples": a.tuples.tolist(),
-        "positions_km": tri.x.tolist(),
-        "correct": correct,
-        "target_of_triple": target_of,
-        "score": {
-            "correct": hit,
-            "truth": n_truth,
-            "output": n_out,
-            "exact": exact,
-            "p": hit / n_truth if n_truth else None,
-            "precision": hit / n_out if n_out else None,
-        },
-        "cost": _json_number(a.cost),
-        "status": a.status,
-        "message": a.message,
-        "info": {k: _json_number(v) for k, v in a.info.items()},
-        "time_s": dt,
-    }
+    rec, positions, _ = scan_record(scene.scan, params, method, scene)
+    doc = {"kind": "passive-scene", **header(cfg, seed, method), "trial": 0, **rec}
+    Z = rec["triples"]
+    correct = rec["correct"]
+    hit, n_truth, n_out = (rec["score"][k] for k in ("correct", "truth", "output"))
+    dt = rec["time_s"]
+    a_status, a_message = rec["status"], rec["message"]
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / "config.json", normalised(cfg))
     write_json(out_dir / "association.json", doc)
     fig = scene_figure(out_dir)
     print(
         f"{method}: {hit}/{n_truth} targets associated correctly, {n_out - hit} wrong triple(s), "
-        f"{1e3 * dt:.2f} ms (status {a.status}: {a.message})"
+        f"{1e3 * dt:.2f} ms (status {a_status}: {a_message})"
     )
-    for t, p, ok in zip(Z.tolist(), tri.x, correct, strict=True):
+    for t, p, ok in zip(Z, positions, correct, strict=True):
         tag = "correct" if ok else "GHOST"
         print(f"  triple {t}: ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) km  {tag}")
     print(f"run directory: {out_dir}  (config {doc['config_hash']}, seed {seed})")

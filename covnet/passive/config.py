@@ -8,7 +8,10 @@ path, e.g. ``montecarlo.methods[1]: unknown method 'lp'; choose from [...]``.
 Sections: ``sensors`` (exactly three; the third is the reference of the height test),
 ``targets`` (formation, spacing d, centre, altitude), ``noise`` (σ_α, σ_ε in mrad),
 ``clutter`` (the clutter-on setting of the protocol: P_D, λ_fa, window; ``enabled`` for single
-scans), ``association`` (method and its parameters), ``montecarlo`` (the §9 grid).
+scans), ``association`` (method and its parameters), ``montecarlo`` (the §9 grid),
+``scans`` (how many scans ``covnet up`` runs; default 1) and ``network`` (the covariance-control
+config's table, for ``covnet up``).  ``scans`` at its default and ``network`` at its defaults are
+left out of :func:`normalised`, so configs without them keep their hash.
 """
 
 from __future__ import annotations
@@ -22,7 +25,16 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field, Strict, ValidationError, field_validator
 
-from covnet.config import ConfigError, Float, Int, Str, _fmt_error, _Model, read_yaml
+from covnet.config import (
+    ConfigError,
+    Float,
+    Int,
+    NetworkSpec,
+    Str,
+    _fmt_error,
+    _Model,
+    read_yaml,
+)
 from covnet.core.passive.methods import METHODS
 from covnet.core.passive.model import AssocParams
 from covnet.passive.scene import FORMATIONS, SceneModel, formation
@@ -35,6 +47,7 @@ __all__ = [
     "is_passive",
     "load",
     "normalised",
+    "with_overrides",
 ]
 
 KIND = "passive"
@@ -160,6 +173,12 @@ class PassiveConfig(_Model):
     clutter: ClutterSpec = ClutterSpec()
     association: AssociationSpec = AssociationSpec()
     montecarlo: MonteCarloSpec = MonteCarloSpec()
+    scans: Int = Field(default=1, ge=1, le=100_000)  # covnet up: scans k = 1..scans (trial k-1)
+    network: NetworkSpec = NetworkSpec()  # covnet up (the same table as covariance control)
+
+    @property
+    def sensor_ids(self) -> tuple[str, ...]:
+        return tuple(s.id for s in self.sensors)
 
     @property
     def sensor_positions(self) -> np.ndarray:
@@ -310,11 +329,26 @@ def is_passive(path: str | Path) -> bool:
 
 
 def normalised(cfg: PassiveConfig) -> dict[str, Any]:
-    """The config with every default filled in, as plain JSON-able data."""
-    return cfg.model_dump(mode="json")
+    """The config with every default filled in, as plain JSON-able data (``scans`` only when
+    not 1 and ``network`` only when it differs from the defaults: configs without them keep
+    their hash)."""
+    data = cfg.model_dump(mode="json")
+    if cfg.scans == 1:
+        del data["scans"]
+    if cfg.network == NetworkSpec():
+        del data["network"]
+    return data
 
 
 def config_hash(cfg: PassiveConfig) -> str:
     """SHA-256 (first 16 hex digits) of the normalised config as canonical JSON."""
     blob = json.dumps(normalised(cfg), sort_keys=True, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def with_overrides(cfg: PassiveConfig, source: str | None = None, **changes: Any) -> PassiveConfig:
+    """A copy of ``cfg`` with top-level fields replaced (``None`` values are ignored),
+    re-validated."""
+    data = normalised(cfg)
+    data.update({k: v for k, v in changes.items() if v is not None})
+    return from_dict(data, source or f"{cfg.name} (with overrides)")

@@ -277,7 +277,9 @@ def scene_figure(out_dir: Path) -> Path:
     axes[0].legend(loc="upper right", fontsize=8, framealpha=0.9)
     s = doc["score"]
     fig.suptitle(
-        f"{doc['method']} on one scan ({doc['formation']}, d = {doc['d_km']:g} km, "
+        f"{doc['method']} on "
+        + (f"scan {doc['scan']} of a network run" if "scan" in doc else "one scan")
+        + f" ({doc['formation']}, d = {doc['d_km']:g} km, "
         f"σ = {doc['sigma_azimuth_mrad']:g}/{doc['sigma_elevation_mrad']:g} mrad, clutter "
         f"{'on' if doc['clutter'] else 'off'}, seed {doc['seed']}): "
         f"{s['correct']} of the {s['truth']} targets seen by all three sensors associated, "

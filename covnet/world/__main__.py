@@ -22,13 +22,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def body() -> int:
-        from covnet.process import is_mobile
+        from covnet.process import is_mobile, is_passive
         from covnet.world import node
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
         if is_mobile(sc):  # kind: mobile -> the mobile world (targets and platforms)
             from covnet.mobile.nodes import world as node  # type: ignore[no-redef]
+        elif is_passive(sc):  # kind: passive -> the target positions
+            from covnet.passive.nodes import world as node  # type: ignore[no-redef]
         resolve_run(args, sc)
         from covnet import security
 

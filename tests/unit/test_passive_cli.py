@@ -138,7 +138,8 @@ def test_bench_cmd(monkeypatch, capsys):
 
 def test_covnet_cli_routes_passive_configs(tmp_path, capsys):
     """`covnet run` draws and associates one scan; `covnet mc` runs the protocol;
-    `covnet up` says the passive network is not built yet."""
+    `covnet up` runs it (tests/integration/test_passive_up.py) and refuses the options of
+    the other kinds."""
     from pathlib import Path
 
     from covnet.cli import main
@@ -146,5 +147,7 @@ def test_covnet_cli_routes_passive_configs(tmp_path, capsys):
     cfg = Path(__file__).resolve().parents[2] / "configs" / "passive.yaml"
     assert main(["run", str(cfg), "--out", str(tmp_path / "scene")]) == 0
     assert (tmp_path / "scene" / "association.json").is_file()
-    assert main(["up", str(cfg)]) == 2
-    assert "not built yet" in capsys.readouterr().err
+    assert main(["up", str(cfg), "--metric", "trace"]) == 2
+    assert "no allocation metric" in capsys.readouterr().err
+    assert main(["up", str(cfg), "--solver", "lp"]) == 2
+    assert "association.method" in capsys.readouterr().err

@@ -52,6 +52,23 @@ def test_hash_is_stable_and_sensitive(raw):
     assert config_hash(from_dict(raw)) != config_hash(a)
 
 
+def test_scans_and_network_for_covnet_up(raw):
+    """``scans`` (default 1) and ``network`` (defaults) stay out of the hash at their defaults;
+    ``with_overrides`` re-validates."""
+    from covnet.passive.config import normalised, with_overrides
+
+    raw.pop("scans", None)
+    a = from_dict(copy.deepcopy(raw))
+    assert a.scans == 1 and a.sensor_ids == ("s1", "s2", "s3")
+    assert config_hash(from_dict(copy.deepcopy(raw) | {"scans": 1})) == config_hash(a)
+    assert "network" not in normalised(a) and "scans" not in normalised(a)
+    b = with_overrides(a, scans=4, seed=9, network={"record": False})
+    assert (b.scans, b.seed, b.network.record) == (4, 9, False)
+    assert config_hash(b) != config_hash(a)
+    with pytest.raises(ConfigError, match="scans"):
+        with_overrides(a, scans=0)
+
+
 def test_minimal_config_takes_the_spec_defaults(raw):
     cfg = from_dict({k: raw[k] for k in ("kind", "name", "seed", "sensors")})
     assert cfg.association.method == "cot" and cfg.association.gate_sigma == 3.0

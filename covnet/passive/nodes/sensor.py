@@ -1,0 +1,58 @@
+"""A passive sensor: per enabled ``Command(k)`` and the world's ``Truth(k)`` (the target
+positions), its list of (azimuth, elevation) pairs for scan ``k``, with missed detections and
+clutter when the config enables them, published as one ``Measurement(k)``: ``z`` ``(n, 2)`` rad
+(possibly ``n = 0``), ``R = diag(σ_α², σ_ε²)``.
+
+The list is row ``j`` of :func:`covnet.passive.scene.draw` for trial ``k - 1`` with the truth's
+positions (see :mod:`covnet.passive.nodes` for why each sensor draws the whole scene).  The
+protocol (commands, truth, heartbeats, liveliness, a missed truth, the end of the run) is the
+one every sensor shares, :func:`sensors.node.serve`.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+
+import numpy as np
+
+from covnet import messages as msg
+from covnet.bus import Bus
+from covnet.clock import Clock
+from covnet.passive.config import PassiveConfig
+from covnet.passive.scene import draw
+from sensors.node import SensorStats, serve
+
+
+def run(
+    cfg: PassiveConfig,
+    sensor_id: str,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+) -> SensorStats:
+    """Serve commands until ``stop`` is set; returns this sensor's counters."""
+    model = cfg.scene_model()
+    j = cfg.sensor_ids.index(sensor_id)
+    R = np.diag([model.sigma_azimuth[j] ** 2, model.sigma_elevation[j] ** 2])
+    n_targets = model.targets.shape[0]
+
+    def truth_ok(tr: msg.Truth) -> bool:
+        return tr.states.shape == (n_targets, 3)
+
+    def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement:
+        scene = draw(replace(model, targets=np.array(tr.states)), cfg.seed, cmd.scan - 1)
+        return msg.Measurement(
+            sensor_id=sensor_id,
+            scan=cmd.scan,
+            t=cmd.t,
+            z=scene.scan.z[j],
+            R=R,
+            t_sent_ns=clock.now_ns(),
+            episode=cmd.episode,
+        )
+
+    return serve(
+        sensor_id, bus, run_id, clock, stop, cfg.network, truth_ok=truth_ok, respond=respond
+    )
