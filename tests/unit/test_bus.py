@@ -288,7 +288,7 @@ def test_blocked_recv_runs_signal_handlers_delivered_to_another_thread():
         t0 = time.monotonic()
         with pytest.raises(_Interrupted):
             ch.recv(timeout=None)
-        assert time.monotonic() - t0 < 1.0
+        assert time.monotonic() - t0 < 5.0  # without slicing it would block forever
     finally:
         release.set()
         other.join(10)
