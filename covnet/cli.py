@@ -510,14 +510,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser(
         "bench",
-        help="benchmark: the allocator against the plain baseline (default), or 'up': the network",
+        help="benchmark: the allocator (default), the network ('up'), 'mobile' or 'passive'",
     )
     b.add_argument(
         "target",
         nargs="?",
-        choices=["alloc", "up"],
+        choices=["alloc", "up", "mobile", "passive"],
         default="alloc",
-        help="alloc: allocation decisions per metric and N; up: covnet up in lockstep",
+        help="alloc: allocation decisions per metric and N; up: covnet up in lockstep; "
+        "mobile: cost tensor and LP/MILP; passive: association methods",
     )
     b.add_argument(
         "--sensors",

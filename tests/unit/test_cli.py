@@ -148,3 +148,14 @@ def test_bench_rejects_bad_sensor_list(capsys):
         main(["bench", "--sensors", "8,x"])
     assert info.value.code == 2
     assert "comma-separated integers" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("target", ["mobile", "passive"])
+def test_bench_routes_to_the_scenario_benchmarks(monkeypatch, target):
+    import importlib
+
+    mod = importlib.import_module(f"covnet.{target}.cli_entry")
+    calls = []
+    monkeypatch.setattr(mod, "bench_cmd", lambda json_out, **kw: calls.append(json_out) or 0)
+    assert main(["bench", target, "--json"]) == 0
+    assert calls == [True]
