@@ -168,9 +168,7 @@ class _Loop:
             if stop.is_set():
                 raise ManagerError("stopped before the network was ready")
             if time.monotonic() > deadline:
-                raise ManagerError(
-                    f"nodes not alive after {self.net.ready_timeout_s} s: {missing}"
-                )
+                raise ManagerError(f"nodes not alive after {self.net.ready_timeout_s} s: {missing}")
             ev = self.live_sub.recv(timeout=0.05)
             if ev is not None:
                 role, node = msg.parse_alive_key(ev.key)
@@ -180,10 +178,18 @@ class _Loop:
     # ---- one scan -----------------------------------------------------------------------
 
     def collect(
-        self, episode: int, k: int, waiting: set[str], deadline: float, stop: threading.Event
-    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Receive scan ``k``'s measurements from the ``waiting`` sensors (see module doc)."""
-        got: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self,
+        episode: int,
+        k: int,
+        waiting: set[str],
+        deadline: float,
+        stop: threading.Event,
+        usable: Callable[[msg.Measurement], bool],
+    ) -> dict[str, msg.Measurement]:
+        """Receive scan ``k``'s measurements from the ``waiting`` sensors until all arrived, a
+        sensor failed or the deadline passed (see module doc); ``usable`` is the scenario
+        kind's test of a measurement's content. Every kind of manager collects this way."""
+        got: dict[str, msg.Measurement] = {}
         while waiting:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or stop.is_set():
@@ -191,7 +197,7 @@ class _Loop:
                 break
             s = self.meas_sub.recv(timeout=min(0.05, remaining))
             if s is not None:
-                self._take(s, episode, k, waiting, got)
+                self._take(s, episode, k, waiting, got, usable)
             self.poll_membership()
             dead = {sid for sid in waiting if not self.members.is_up(sid, self.clock.now_ns())}
             if dead:
@@ -199,7 +205,7 @@ class _Loop:
                 waiting -= dead
         # anything else already queued for this scan (duplicates, strays) is judged now
         while (s := self.meas_sub.try_recv()) is not None:
-            self._take(s, episode, k, set(), got)
+            self._take(s, episode, k, set(), got, usable)
         return got
 
     def _take(
@@ -208,7 +214,8 @@ class _Loop:
         episode: int,
         k: int,
         waiting: set[str],
-        got: dict[str, tuple[np.ndarray, np.ndarray]],
+        got: dict[str, msg.Measurement],
+        usable: Callable[[msg.Measurement], bool],
     ) -> None:
         self.stats.received(s.key, len(s.payload))
         try:
@@ -231,12 +238,17 @@ class _Loop:
             self.stats.reject(s.key, "duplicate")
         elif m.sensor_id not in waiting:
             self.stats.reject(s.key, "not_enabled")
-        elif not usable_measurement(m.z, m.R):
+        elif not usable(m):
             self.stats.reject(s.key, "bad_measurement")
         else:
-            got[m.sensor_id] = (m.z[0], m.R)
+            got[m.sensor_id] = m
             waiting.discard(m.sensor_id)
             self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+
+
+def usable_position(m: msg.Measurement) -> bool:
+    """A covariance-control measurement the filter may fuse (see ``usable_measurement``)."""
+    return usable_measurement(m.z, m.R)
 
 
 def run(
@@ -315,9 +327,9 @@ def run(
                     deadline = time.monotonic() + net.deadline_fraction * model.T / _speed(clock)
                 else:
                     deadline = time.monotonic() + net.scan_timeout_s
-                got = loop.collect(e, k, set(enabled), deadline, stop)
+                got = loop.collect(e, k, set(enabled), deadline, stop, usable_position)
                 t_core1 = time.perf_counter_ns()
-                est = fuse(model, pred, [(ids.index(sid), z, R) for sid, (z, R) in got.items()])
+                est = fuse(model, pred, [(ids.index(sid), m.z[0], m.R) for sid, m in got.items()])
                 loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
                 loop.stats.scans_done += 1
                 loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop

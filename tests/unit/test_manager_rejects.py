@@ -8,7 +8,7 @@ import pytest
 from covnet import messages as msg
 from covnet.bus import InMemoryBus, Sample
 from covnet.clock import SimClock
-from manager.node import _Loop
+from manager.node import _Loop, usable_position
 
 RUN = "r1"
 
@@ -52,7 +52,7 @@ CASES = [
 def test_measurement_verdicts(loop, sample, reason):
     got: dict = {}
     waiting = {"S1", "S2"}
-    loop._take(sample, 0, 5, waiting, got)
+    loop._take(sample, 0, 5, waiting, got, usable_position)
     if reason is None:
         assert set(got) == {"S1"} and "S1" not in waiting and not loop.stats.rejected
     else:
@@ -62,11 +62,13 @@ def test_measurement_verdicts(loop, sample, reason):
 def test_duplicate_is_rejected(loop):
     got: dict = {}
     waiting = {"S1"}
-    loop._take(_sample("S1"), 0, 5, waiting, got)
-    loop._take(_sample("S1"), 0, 5, waiting, got)
+    loop._take(_sample("S1"), 0, 5, waiting, got, usable_position)
+    loop._take(_sample("S1"), 0, 5, waiting, got, usable_position)
     assert set(got) == {"S1"} and dict(loop.stats.rejected) == {"duplicate": 1}
 
 
 def test_garbage_counted_not_raised(loop):
-    loop._take(Sample(msg.measurement_key(RUN, "S1"), b"\x00\x01", 1), 0, 5, {"S1"}, {})
+    loop._take(
+        Sample(msg.measurement_key(RUN, "S1"), b"\x00\x01", 1), 0, 5, {"S1"}, {}, usable_position
+    )
     assert sum(loop.stats.rejected.values()) == 1

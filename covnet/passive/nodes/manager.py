@@ -100,54 +100,8 @@ class _PassiveLoop(_Loop):
     def collect_lists(
         self, k: int, waiting: set[str], deadline: float, stop: threading.Event
     ) -> dict[str, msg.Measurement]:
-        got: dict[str, msg.Measurement] = {}
-        while waiting:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or stop.is_set():
-                self.stats.lost += len(waiting)
-                break
-            s = self.meas_sub.recv(timeout=min(0.05, remaining))
-            if s is not None:
-                self._take_list(s, k, waiting, got)
-            self.poll_membership()
-            dead = {sid for sid in waiting if not self.members.is_up(sid, self.clock.now_ns())}
-            if dead:
-                self.stats.lost += len(dead)
-                waiting -= dead
-        while (s := self.meas_sub.try_recv()) is not None:
-            self._take_list(s, k, set(), got)
-        return got
-
-    def _take_list(
-        self, s: Any, k: int, waiting: set[str], got: dict[str, msg.Measurement]
-    ) -> None:
-        self.stats.received(s.key, len(s.payload))
-        try:
-            m = msg.decode_as(s.payload, msg.Measurement)
-            key_sensor = msg.parse_measurement_key(s.key)
-        except msg.WireError as exc:
-            self.stats.reject(s.key, exc.reason)
-            return
-        except ValueError:
-            self.stats.reject(s.key, "bad_key")
-            return
-        if key_sensor != m.sensor_id:
-            self.stats.reject(s.key, "key_mismatch")
-        elif m.scan < k:
-            self.stats.late += 1
-            self.stats.reject(s.key, "late")
-        elif (m.episode, m.scan) != (0, k):
-            self.stats.reject(s.key, "wrong_scan")
-        elif m.sensor_id in got:
-            self.stats.reject(s.key, "duplicate")
-        elif m.sensor_id not in waiting:
-            self.stats.reject(s.key, "not_enabled")
-        elif not usable_list(m):
-            self.stats.reject(s.key, "bad_measurement")
-        else:
-            got[m.sensor_id] = m
-            waiting.discard(m.sensor_id)
-            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+        """The shared collection (:meth:`_Loop.collect`) with the passive list check."""
+        return self.collect(0, k, waiting, deadline, stop, usable_list)
 
 
 def run(
