@@ -157,6 +157,33 @@ class _Loop:
             if hb.rejected:
                 self.stats.node_rejected[hb.node_id] = dict(hb.rejected)
 
+    def membership_changes(
+        self, k: int, previous: frozenset[str]
+    ) -> tuple[frozenset[str], list[dict[str, Any]]]:
+        """The failed set at scan ``k`` and the failure/rejoin events since ``previous``
+        (a failure carries when it was first seen, ``detected_ns``)."""
+        self.poll_membership()
+        failed = self.members.failed(self.clock.now_ns())
+        events: list[dict[str, Any]] = []
+        for sid in sorted((failed ^ previous) - {WORLD_ID}):
+            event: dict[str, Any] = {
+                "sensor": sid,
+                "scan": k,
+                "event": "failed" if sid in failed else "rejoined",
+            }
+            if sid in failed:
+                event["detected_ns"] = self.members.down_since_ns(sid)
+            events.append(event)
+        return failed, events
+
+    def traffic(self) -> tuple[int, int]:
+        """Messages and bytes this manager has sent and received so far."""
+        st = self.stats
+        return (
+            sum(st.recv_msgs.values()) + sum(st.sent_msgs.values()),
+            sum(st.recv_bytes.values()) + sum(st.sent_bytes.values()),
+        )
+
     def wait_ready(self, stop: threading.Event) -> None:
         deadline = time.monotonic() + self.net.ready_timeout_s
         while True:
@@ -296,17 +323,8 @@ def run(
                     _pace(clock, t_origin + (k - 1) * model.T, stop)
                 t_core0 = time.perf_counter_ns()
                 pred = predict_step(model, est)
-                loop.poll_membership()
-                failed = loop.members.failed(clock.now_ns())
-                for sid in sorted((failed ^ failed_prev) - {WORLD_ID}):
-                    event: dict[str, Any] = {
-                        "sensor": sid,
-                        "scan": k,
-                        "event": "failed" if sid in failed else "rejoined",
-                    }
-                    if sid in failed:
-                        event["detected_ns"] = loop.members.down_since_ns(sid)
-                    log.failures.append(event)
+                failed, events = loop.membership_changes(k, failed_prev)
+                log.failures.extend(events)
                 failed_prev = failed
                 unavailable = frozenset(ids.index(s) for s in failed if s in ids)
                 if spec is not None and spec.matches(k, pred.P, unavailable):
@@ -376,10 +394,8 @@ def run(
                             "trace_P": status.trace_P,
                             "trace_Pd": status.trace_Pd,
                             "latency_ms": (clock.now_ns() - t_sent) / 1e6,
-                            "messages": sum(loop.stats.recv_msgs.values())
-                            + sum(loop.stats.sent_msgs.values()),
-                            "bytes": sum(loop.stats.recv_bytes.values())
-                            + sum(loop.stats.sent_bytes.values()),
+                            "messages": loop.traffic()[0],
+                            "bytes": loop.traffic()[1],
                         }
                     )
                 if on_progress is not None:

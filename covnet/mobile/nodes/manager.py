@@ -202,17 +202,8 @@ def run(
                 _pace(clock, t_origin + r * model.T, stop)
             t_core0 = time.perf_counter_ns()
             xp, Pp = predict_tracks(x, P, model.targets)
-            loop.poll_membership()
-            failed = loop.members.failed(clock.now_ns())
-            for sid in sorted((failed ^ failed_prev) - {WORLD_ID}):
-                event: dict[str, Any] = {
-                    "sensor": sid,
-                    "scan": k,
-                    "event": "failed" if sid in failed else "rejoined",
-                }
-                if sid in failed:
-                    event["detected_ns"] = loop.members.down_since_ns(sid)
-                result.failures.append(event)
+            failed, events = loop.membership_changes(k, failed_prev)
+            result.failures.extend(events)
             failed_prev = failed
             alive = np.array([sid not in failed for sid in ids])
             if not alive.any():
@@ -347,10 +338,8 @@ def run(
                         "assign": dict(zip(tids, assigned_to, strict=True)),
                         "trace_P": trace_P,
                         "latency_ms": latency_ms,
-                        "messages": sum(loop.stats.recv_msgs.values())
-                        + sum(loop.stats.sent_msgs.values()),
-                        "bytes": sum(loop.stats.recv_bytes.values())
-                        + sum(loop.stats.sent_bytes.values()),
+                        "messages": loop.traffic()[0],
+                        "bytes": loop.traffic()[1],
                         "info": info,
                     }
                 )

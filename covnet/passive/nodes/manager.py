@@ -141,17 +141,8 @@ def run(
                 return result
             if realtime:
                 _pace(clock, t_origin + (k - 1) * SCAN_PERIOD_S, stop)
-            loop.poll_membership()
-            failed = loop.members.failed(clock.now_ns())
-            for sid in sorted((failed ^ failed_prev) - {WORLD_ID}):
-                event: dict[str, Any] = {
-                    "sensor": sid,
-                    "scan": k,
-                    "event": "failed" if sid in failed else "rejoined",
-                }
-                if sid in failed:
-                    event["detected_ns"] = loop.members.down_since_ns(sid)
-                result.failures.append(event)
+            failed, events = loop.membership_changes(k, failed_prev)
+            result.failures.extend(events)
             failed_prev = failed
             enabled = tuple(sid for sid in ids if sid not in failed)
             t_sent = clock.now_ns()
@@ -236,10 +227,8 @@ def run(
                         "associated": not missing,
                         "triples": n_tracks,
                         "latency_ms": latency_ms,
-                        "messages": sum(loop.stats.recv_msgs.values())
-                        + sum(loop.stats.sent_msgs.values()),
-                        "bytes": sum(loop.stats.recv_bytes.values())
-                        + sum(loop.stats.sent_bytes.values()),
+                        "messages": loop.traffic()[0],
+                        "bytes": loop.traffic()[1],
                         "info": info,
                     }
                 )
