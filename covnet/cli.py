@@ -300,11 +300,20 @@ def cmd_check(args: argparse.Namespace) -> int:
     from covnet.config import config_hash, normalised
     from covnet.security import preflight
 
-    sc = _load(args.config)
+    kind = _kind(args.config)
+    if kind == "covariance_control":
+        sc = _load(args.config)
+        data, digest = normalised(sc), config_hash(sc)
+    else:
+        import importlib
+
+        mod = importlib.import_module(f"covnet.{kind}.config")
+        sc = mod.load(args.config)
+        data, digest = mod.normalised(sc), mod.config_hash(sc)
     # the files security needs on this host (keys, certificates, passwords), for every node
-    preflight(sc, ["manager", "world", "recorder", *sc.sensor_ids], args.config)
-    print(yaml.safe_dump(normalised(sc), sort_keys=False), end="")
-    print(f"# config hash: {config_hash(sc)}")
+    preflight(sc, ["manager", "world", "recorder", *sc.sensor_ids], args.config)  # type: ignore[arg-type]
+    print(yaml.safe_dump(data, sort_keys=False), end="")
+    print(f"# config hash: {digest}")
     return EXIT_OK
 
 

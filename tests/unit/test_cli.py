@@ -159,3 +159,13 @@ def test_bench_routes_to_the_scenario_benchmarks(monkeypatch, target):
     monkeypatch.setattr(mod, "bench_cmd", lambda json_out, **kw: calls.append(json_out) or 0)
     assert main(["bench", target, "--json"]) == 0
     assert calls == [True]
+
+
+@pytest.mark.parametrize("name", ["mobile", "passive"])
+def test_check_validates_every_scenario_kind(name, capsys):
+    from pathlib import Path
+
+    cfg = Path(__file__).resolve().parents[2] / "configs" / f"{name}.yaml"
+    assert main(["check", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert f"kind: {name}" in out and "# config hash: " in out
