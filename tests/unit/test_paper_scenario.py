@@ -102,3 +102,22 @@ def test_model_holds_one_plan_per_constraint_set(paper):
     plan = model.plan_for(next(c for c in model.plans if c != model.constraints))
     assert decide(model, P_pred, 3, "spectral", unavailable=failed).subset == a.subset
     assert len(model.plans) == 2 and model.plans[plan.constraints] is plan
+
+
+def test_filter_nees_inside_the_95_percent_band_over_a_monte_carlo_batch(paper):
+    """50 seeds x 100 scans: the time-averaged NEES per scan, averaged over runs, stays in the
+    two-sided 95 % chi-square band for 50 runs of a 4-dimensional state (scans 11-100)."""
+    from scipy.stats import chi2
+
+    runs = 50
+    eps = np.stack(
+        [
+            run_metric(with_overrides(paper, seed=1000 + i), "abs_trace").nees[10:]
+            for i in range(runs)
+        ]
+    )
+    lo, hi = chi2.ppf([0.025, 0.975], 4 * runs) / runs
+    mean_per_scan = eps.mean(axis=0)
+    inside = np.mean((mean_per_scan > lo) & (mean_per_scan < hi))
+    assert inside >= 0.9  # ~95 % expected; scans are correlated
+    assert lo < mean_per_scan.mean() < hi  # the grand mean, against the (wider) per-scan band
