@@ -429,10 +429,16 @@ def normalised(sc: Scenario) -> dict[str, Any]:
     return data
 
 
+def hash_of(data: Mapping[str, Any]) -> str:
+    """SHA-256 (first 16 hex digits) of JSON-able data as canonical JSON: every scenario kind's
+    config hash."""
+    blob = json.dumps(data, sort_keys=True, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
 def config_hash(sc: Scenario) -> str:
     """SHA-256 (first 16 hex digits) of the normalised config as canonical JSON."""
-    blob = json.dumps(normalised(sc), sort_keys=True, separators=(",", ":")).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
+    return hash_of(normalised(sc))
 
 
 def with_overrides(sc: Scenario, **changes: Any) -> Scenario:

@@ -21,6 +21,7 @@ from typing import Any
 
 from covnet.config import (
     ConfigError,
+    NetworkSpec,
     Scenario,
     config_hash,
     load,
@@ -133,6 +134,24 @@ def open_bus(
                     f"cannot open a zenoh {mode} session ({listen or connect}): {exc}"
                 ) from None
             stop.wait(0.1)
+
+
+def open_client(args: Any, net: NetworkSpec, role: str, node_id: str, stop: threading.Event) -> Any:
+    """The client session of a world, sensor or recorder process: the endpoint from
+    ``--connect`` or the config (``tls/`` when TLS is on), this node's security settings,
+    retries while the router is not up yet."""
+    from covnet import security
+
+    endpoint = security.endpoint(net, args.connect or net.connect or net.router)
+    extra = security.zenoh_settings(net, role, node_id, listen=False, source=args.config)
+    return open_bus(
+        "client",
+        connect=[endpoint],
+        lease_ms=net.lease_ms,
+        timeout_s=net.ready_timeout_s,
+        stop=stop,
+        extra_json5=extra,
+    )
 
 
 def guarded(body: Callable[[], int], prog: str) -> int:

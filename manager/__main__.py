@@ -53,16 +53,11 @@ def main(argv: list[str] | None = None) -> int:
             if m not in METRICS:
                 raise ValueError(f"--metric: unknown metric {m!r}; choose from {sorted(METRICS)}")
         from manager.process import router_endpoint, serve
+        from manager.process import run_info as base_run_info
 
         endpoint = router_endpoint(sc.network, args.listen)
         out = Path(args.out)
-        run_info = {
-            "episodes": metrics,
-            "run_id": args.run,
-            "clock": "realtime" if args.realtime else "lockstep",
-            "speed": args.speed,
-            "router": endpoint,
-        }
+        run_info = {"episodes": metrics, **base_run_info(args, endpoint)}
 
         def run_loop(bus, clock, hooks):  # type: ignore[no-untyped-def]
             return node.run(
@@ -73,9 +68,7 @@ def main(argv: list[str] | None = None) -> int:
                 clock,
                 stop,
                 realtime=args.realtime,
-                on_ready=hooks.on_ready,
-                on_status=hooks.on_status,
-                on_progress=hooks.on_progress,
+                **hooks.kwargs(),
             )
 
         return serve(

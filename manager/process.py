@@ -34,6 +34,24 @@ class Hooks:
     on_status: Callable[[dict[str, Any]], None]
     on_progress: Callable[[Any, bool], None]
 
+    def kwargs(self) -> dict[str, Any]:
+        """As keyword arguments of a manager loop's ``run``."""
+        return {
+            "on_ready": self.on_ready,
+            "on_status": self.on_status,
+            "on_progress": self.on_progress,
+        }
+
+
+def run_info(args: Any, endpoint: str) -> dict[str, Any]:
+    """The process facts every manager writes to ``run.json``."""
+    return {
+        "run_id": args.run,
+        "clock": "realtime" if args.realtime else "lockstep",
+        "speed": args.speed,
+        "router": endpoint,
+    }
+
 
 def router_endpoint(net: NetworkSpec, listen: str | None) -> str:
     endpoint = security.endpoint(net, listen or net.router)

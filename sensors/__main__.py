@@ -11,7 +11,7 @@ from covnet.process import (
     common_parser,
     guarded,
     load_config,
-    open_bus,
+    open_client,
     resolve_run,
     stop_on_signals,
 )
@@ -41,21 +41,7 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return EXIT_USAGE
-        from covnet import security
-
-        endpoint = args.connect or sc.network.connect or sc.network.router
-        endpoint = security.endpoint(sc.network, endpoint)
-        extra = security.zenoh_settings(
-            sc.network, "sensor", args.id, listen=False, source=args.config
-        )
-        with open_bus(
-            "client",
-            connect=[endpoint],
-            lease_ms=sc.network.lease_ms,
-            timeout_s=sc.network.ready_timeout_s,
-            stop=stop,
-            extra_json5=extra,
-        ) as bus:
+        with open_client(args, sc.network, "sensor", args.id, stop) as bus:
             stats = node.run(sc, args.id, bus, args.run, WallClock(args.speed), stop)
         print(
             f"stopped: {stats.enabled_scans} scans enabled, "

@@ -24,8 +24,6 @@ Names follow spec §2.1/§7 with units in the key where there is one::
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -34,7 +32,7 @@ import numpy as np
 import yaml
 from pydantic import Field, Strict, ValidationError, field_validator
 
-from covnet.config import ConfigError, Float, Int, NetworkSpec, Str, _fmt_error, _Model
+from covnet.config import ConfigError, Float, Int, NetworkSpec, Str, _fmt_error, _Model, hash_of
 from covnet.core.mobile.decision import SOLVERS
 
 __all__ = [
@@ -311,8 +309,7 @@ def normalised(cfg: MobileConfig) -> dict[str, Any]:
 
 def config_hash(cfg: MobileConfig) -> str:
     """SHA-256 (first 16 hex digits) of the normalised config as canonical JSON."""
-    blob = json.dumps(normalised(cfg), sort_keys=True, separators=(",", ":")).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
+    return hash_of(normalised(cfg))
 
 
 def with_overrides(cfg: MobileConfig, source: str | None = None, **changes: Any) -> MobileConfig:

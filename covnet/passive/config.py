@@ -16,8 +16,6 @@ left out of :func:`normalised`, so configs without them keep their hash.
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -33,6 +31,7 @@ from covnet.config import (
     Str,
     _fmt_error,
     _Model,
+    hash_of,
     read_yaml,
 )
 from covnet.core.passive.methods import METHODS
@@ -342,8 +341,7 @@ def normalised(cfg: PassiveConfig) -> dict[str, Any]:
 
 def config_hash(cfg: PassiveConfig) -> str:
     """SHA-256 (first 16 hex digits) of the normalised config as canonical JSON."""
-    blob = json.dumps(normalised(cfg), sort_keys=True, separators=(",", ":")).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
+    return hash_of(normalised(cfg))
 
 
 def with_overrides(cfg: PassiveConfig, source: str | None = None, **changes: Any) -> PassiveConfig:

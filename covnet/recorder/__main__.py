@@ -16,7 +16,7 @@ from covnet.process import (
     common_parser,
     guarded,
     load_config,
-    open_bus,
+    open_client,
     resolve_run,
     stop_on_signals,
 )
@@ -29,28 +29,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def body() -> int:
-        from covnet import security
         from covnet.recorder import node
         from covnet.recording import RecordingWriter, run_metadata
 
         stop = stop_on_signals()
         sc = load_config(args.config, args.seed)
         resolve_run(args, sc)
-        endpoint = args.connect or sc.network.connect or sc.network.router
-        endpoint = security.endpoint(sc.network, endpoint)
-        extra = security.zenoh_settings(
-            sc.network, node.ROLE, node.NODE_ID, listen=False, source=args.config
-        )
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        with open_bus(
-            "client",
-            connect=[endpoint],
-            lease_ms=sc.network.lease_ms,
-            timeout_s=sc.network.ready_timeout_s,
-            stop=stop,
-            extra_json5=extra,
-        ) as bus:
+        with open_client(args, sc.network, node.ROLE, node.NODE_ID, stop) as bus:
             with RecordingWriter(out, run_id=args.run, metadata=run_metadata(args.run, sc)) as w:
                 counts = node.run(sc, bus, args.run, WallClock(args.speed), stop, w)
         print(f"stopped: {w.messages} messages recorded to {out}; {dict(counts)}")

@@ -10,7 +10,7 @@ from covnet.process import (
     common_parser,
     guarded,
     load_config,
-    open_bus,
+    open_client,
     resolve_run,
     stop_on_signals,
 )
@@ -32,21 +32,7 @@ def main(argv: list[str] | None = None) -> int:
         elif is_passive(sc):  # kind: passive -> the target positions
             from covnet.passive.nodes import world as node  # type: ignore[no-redef]
         resolve_run(args, sc)
-        from covnet import security
-
-        endpoint = args.connect or sc.network.connect or sc.network.router
-        endpoint = security.endpoint(sc.network, endpoint)
-        extra = security.zenoh_settings(
-            sc.network, "world", "world", listen=False, source=args.config
-        )
-        with open_bus(
-            "client",
-            connect=[endpoint],
-            lease_ms=sc.network.lease_ms,
-            timeout_s=sc.network.ready_timeout_s,
-            stop=stop,
-            extra_json5=extra,
-        ) as bus:
+        with open_client(args, sc.network, "world", "world", stop) as bus:
             counts = node.run(sc, bus, args.run, WallClock(args.speed), stop)
         print(f"stopped: {dict(counts)}")
         return EXIT_OK

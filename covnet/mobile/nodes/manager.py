@@ -395,6 +395,7 @@ def main_body(args: Any, cfg: MobileConfig, stop: threading.Event) -> int:
 
     from covnet.core.mobile.decision import SOLVERS
     from manager.process import router_endpoint, serve
+    from manager.process import run_info as base_run_info
 
     if args.metric:
         raise ValueError("--metric: a mobile scenario has no allocation metric; see --solver")
@@ -403,12 +404,7 @@ def main_body(args: Any, cfg: MobileConfig, stop: threading.Event) -> int:
         raise ValueError(f"--solver: unknown solver {solver!r}; choose from {sorted(SOLVERS)}")
     endpoint = router_endpoint(cfg.network, args.listen)
     out = Path(args.out)
-    run_info = {
-        "run_id": args.run,
-        "clock": "realtime" if args.realtime else "lockstep",
-        "speed": args.speed,
-        "router": endpoint,
-    }
+    run_info = base_run_info(args, endpoint)
 
     def run_loop(bus: Bus, clock: Clock, hooks: Any) -> MobileResult:
         return run(
@@ -419,9 +415,7 @@ def main_body(args: Any, cfg: MobileConfig, stop: threading.Event) -> int:
             stop,
             solver=solver,
             realtime=args.realtime,
-            on_ready=hooks.on_ready,
-            on_status=hooks.on_status,
-            on_progress=hooks.on_progress,
+            **hooks.kwargs(),
         )
 
     return serve(

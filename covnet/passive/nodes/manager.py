@@ -305,6 +305,7 @@ def main_body(args: Any, cfg: PassiveConfig, stop: threading.Event) -> int:
     from pathlib import Path
 
     from manager.process import router_endpoint, serve
+    from manager.process import run_info as base_run_info
 
     if args.metric:
         raise ValueError("--metric: a passive scenario has no allocation metric")
@@ -312,12 +313,7 @@ def main_body(args: Any, cfg: PassiveConfig, stop: threading.Event) -> int:
         raise ValueError("--solver: a passive scenario names its method in association.method")
     endpoint = router_endpoint(cfg.network, args.listen)
     out = Path(args.out)
-    run_info = {
-        "run_id": args.run,
-        "clock": "realtime" if args.realtime else "lockstep",
-        "speed": args.speed,
-        "router": endpoint,
-    }
+    run_info = base_run_info(args, endpoint)
 
     def run_loop(bus: Bus, clock: Clock, hooks: Any) -> PassiveResult:
         return run(
@@ -327,9 +323,7 @@ def main_body(args: Any, cfg: PassiveConfig, stop: threading.Event) -> int:
             clock,
             stop,
             realtime=args.realtime,
-            on_ready=hooks.on_ready,
-            on_status=hooks.on_status,
-            on_progress=hooks.on_progress,
+            **hooks.kwargs(),
         )
 
     return serve(
