@@ -319,17 +319,9 @@ def _rebuild(
                     f"{where} scan {k}: replayed estimate differs from the "
                     f"recorded Track (max |dx| = {dx:.6g})",
                 )
-            mask = np.zeros(len(ids), dtype=bool)
-            mask[list(alloc.subset)] = True
-            log.enabled.append(mask)
-            log.value.append(float(alloc.value))
-            log.x_est.append(est.x)
-            log.P_post.append(est.P)
-            log.P_pred.append(pred.P)
-            log.nees.append(nees(est, truth[k - 1]))
-            log.decision_s.append(decision_s)
-            log.n_evaluated.append(alloc.n_evaluated)
-            log.fused_from.append(sorted(st.fused))
+            log.record(
+                len(ids), alloc, pred, est, nees(est, truth[k - 1]), decision_s, sorted(st.fused)
+            )
         if len(log.value) < model.scans:
             completed = False
     result.completed = completed

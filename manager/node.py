@@ -31,6 +31,8 @@ from covnet import messages as msg
 from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.config import NetworkSpec, Scenario
+from covnet.core.allocation import Allocation
+from covnet.core.gaussian import Gaussian
 from covnet.core.kalman import nees
 from covnet.model import (
     Model,
@@ -71,6 +73,29 @@ class EpisodeLog:
     n_evaluated: list[int] = field(default_factory=list)
     fused_from: list[list[str]] = field(default_factory=list)
     failures: list[dict[str, Any]] = field(default_factory=list)
+
+    def record(
+        self,
+        n_sensors: int,
+        alloc: Allocation,
+        pred: Gaussian,
+        est: Gaussian,
+        nees_value: float,
+        decision_s: float,
+        fused: list[str],
+    ) -> None:
+        """Append one scan: the allocation, the predicted and fused estimates, NEES, timing."""
+        mask = np.zeros(n_sensors, dtype=bool)
+        mask[list(alloc.subset)] = True
+        self.enabled.append(mask)
+        self.value.append(float(alloc.value))
+        self.x_est.append(est.x)
+        self.P_post.append(est.P)
+        self.P_pred.append(pred.P)
+        self.nees.append(nees_value)
+        self.decision_s.append(decision_s)
+        self.n_evaluated.append(alloc.n_evaluated)
+        self.fused_from.append(fused)
 
     def as_run(self, n_sensors: int) -> MetricRun:
         n = len(self.value)
@@ -370,17 +395,9 @@ def run(
                     failed=tuple(sorted(failed - {WORLD_ID})),
                 )
                 loop.publish(loop.keys["status"], status)
-                mask = np.zeros(len(ids), dtype=bool)
-                mask[list(alloc.subset)] = True
-                log.enabled.append(mask)
-                log.value.append(float(alloc.value))
-                log.x_est.append(est.x)
-                log.P_post.append(est.P)
-                log.P_pred.append(pred.P)
-                log.nees.append(nees(est, truth[k - 1]))
-                log.decision_s.append(decision_s)
-                log.n_evaluated.append(alloc.n_evaluated)
-                log.fused_from.append(sorted(got))
+                log.record(
+                    len(ids), alloc, pred, est, nees(est, truth[k - 1]), decision_s, sorted(got)
+                )
                 if on_status is not None:
                     on_status(
                         {
