@@ -27,13 +27,10 @@ def _err(msg: str) -> None:
     print(f"covnet: error: {msg}", file=sys.stderr)
 
 
-def _load(path: str, seed: int | None = None):  # type: ignore[no-untyped-def]
-    from covnet.config import load, with_overrides
+def _load(path: str, seed: int | None = None, fusion: str | None = None):  # type: ignore[no-untyped-def]
+    from covnet.config import load, with_run_overrides
 
-    sc = load(path)
-    if seed is not None:
-        sc = with_overrides(sc, seed=seed)
-    return sc
+    return with_run_overrides(load(path), seed=seed, fusion=fusion)
 
 
 def _metrics_for(sc, requested: Sequence[str] | None) -> list[str]:  # type: ignore[no-untyped-def]
@@ -79,6 +76,8 @@ def _kind(path: str) -> str:
 
 def cmd_run(args: argparse.Namespace) -> int:
     kind = _kind(args.config)
+    if args.fusion is not None and kind in ("mobile", "passive"):
+        raise UsageError("--fusion: only a covariance-control scenario has fusion modes")
     if kind == "mobile":
         from covnet.mobile.cli_entry import run_cmd
 
@@ -100,24 +99,28 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise UsageError("--solver: only a mobile scenario (kind: mobile) has solvers")
     from covnet.model import build_model
     from covnet.results import write_run
-    from covnet.simulate import run_metric, shared_trajectory
+    from covnet.simulate import shared_trajectory
+    from covnet.simulate_decentral import run_mode
 
-    sc = _load(args.config, args.seed)
+    sc = _load(args.config, args.seed, args.fusion)
     metrics = _metrics_for(sc, args.metric)
     out = _prepare_out(args.out, sc.name, args.force)
     model = build_model(sc)
     traj = shared_trajectory(model)
     runs = {}
+    node_runs = {}
     for m in metrics:
         t0 = time.perf_counter()
-        runs[m] = run_metric(sc, m, model)
+        runs[m], nodes = run_mode(sc, m, model)
+        if nodes is not None:
+            node_runs[m] = nodes
         r = runs[m]
         rate = 100.0 * r.enabled.sum() / r.enabled.size
         print(
             f"{m:>10}: {sc.scans} scans in {time.perf_counter() - t0:.2f} s, "
             f"allocation rate {rate:.1f} %"
         )
-    summary = write_run(out, sc, traj, runs, run_info={"mode": "in-process"})
+    summary = write_run(out, sc, traj, runs, run_info={"mode": "in-process"}, node_runs=node_runs)
     if not args.no_figures:
         from covnet.plots import make_figures
 
@@ -127,8 +130,20 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _print_summary(out: Path, summary: dict) -> None:  # type: ignore[type-arg]
-    print(f"run directory: {out}  (config {summary['config_hash']}, seed {summary['seed']})")
+    print(
+        f"run directory: {out}  (config {summary['config_hash']}, seed {summary['seed']}, "
+        f"fusion {summary.get('fusion', 'central')})"
+    )
     for m, blk in summary["metrics"].items():
+        peer = summary.get("peer", {}).get(m)
+        if peer is not None:
+            print(
+                f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, position RMSE "
+                f"{peer['rmse_position_mean']:.2f} m (node mean; worst "
+                f"{peer['rmse_position_worst']:.2f}), mean NEES {peer['mean_nees']:.2f}, "
+                f"nodes agree: {'yes' if peer['agreement'] else 'NO'}"
+            )
+            continue
         print(
             f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, "
             f"position RMSE {blk['rmse_position']:.2f} m, mean NEES {blk['mean_nees']:.2f}"
@@ -184,8 +199,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     else:
         if args.solver is not None:
             raise UsageError("--solver: only a mobile scenario (kind: mobile) has solvers")
-        sc = _load(args.config, args.seed)
+        sc = _load(args.config, args.seed, args.fusion)
         metrics = _metrics_for(sc, args.metric)
+    if args.fusion is not None and (mobile or passive):
+        raise UsageError("--fusion: only a covariance-control scenario has fusion modes")
     if args.speed <= 0:
         raise UsageError(f"--speed: must be > 0, got {args.speed}")
     out = _prepare_out(args.out, sc.name, args.force)
@@ -292,6 +309,63 @@ def cmd_replay(args: argparse.Namespace) -> int:
     for d in report.differences[:20]:
         print(f"  {d}", file=sys.stderr)
     return EXIT_FAIL
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from covnet import compare as cmp
+
+    if _kind(args.config) in ("mobile", "passive"):
+        raise UsageError("compare: fusion structures belong to covariance-control scenarios")
+    sc = _load(args.config, args.seed)
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    for m in modes:
+        if m not in cmp.MODES:
+            raise UsageError(f"--modes: unknown mode {m!r}; choose from {', '.join(cmp.MODES)}")
+    if not modes:
+        raise UsageError("--modes: name at least one mode")
+    metric = (args.metric or [sc.allocation.metrics[0]])[-1]
+    _metrics_for(sc, [metric])
+    if args.runs < 2:
+        raise UsageError(f"--runs: at least 2 runs for a NEES band, got {args.runs}")
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers: must be >= 1, got {args.workers}")
+    out = _prepare_out(args.out, f"{sc.name}-compare", args.force)
+    total = len(modes) * args.runs
+    shown = [0.0]
+
+    def progress(done: int, n: int) -> None:
+        now = time.monotonic()
+        if done == n or now - shown[0] > 1.0:
+            print(f"[compare] {done}/{n} runs", flush=True)
+            shown[0] = now
+
+    print(
+        f"comparing {', '.join(modes)} on {sc.name}: metric {metric}, {args.runs} seeds from "
+        f"{sc.seed}, {total} runs",
+        flush=True,
+    )
+    rows = cmp.compare(
+        sc, modes, metric, args.runs, graph=args.graph, workers=args.workers, progress=progress
+    )
+    meta = {
+        "scenario": sc.name,
+        "metric": metric,
+        "runs": args.runs,
+        "first_seed": sc.seed,
+        "graph": args.graph or sc.fusion.peer.graph,
+    }
+    cmp.write_table(out, rows, meta)
+    if not args.no_figures:
+        cmp.make_figure(
+            out, rows, f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds"
+        )
+    if args.json:
+        for r in rows:
+            print(json.dumps(r))
+    else:
+        print(cmp.format_table(rows))
+    print(f"results: {out}")
+    return EXIT_OK
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -421,6 +495,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return EXIT_OK if all(r["agree"] for r in rows) else EXIT_FAIL
 
 
+def _fusion_option(p: argparse.ArgumentParser) -> None:
+    from covnet.config import FUSION_MODES
+
+    p.add_argument(
+        "--fusion",
+        choices=FUSION_MODES,
+        metavar="MODE",
+        help="fusion structure, overriding the config's fusion.mode: central (raw measurements), "
+        "info or ci (local tracks fused by information-matrix fusion or covariance "
+        "intersection), peer (no fusion centre; see fusion.peer)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="covnet",
@@ -439,6 +526,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run only this metric (repeatable; default: the config's allocation.metrics)",
     )
     r.add_argument("--seed", type=int, help="override the config's seed")
+    _fusion_option(r)
     r.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     r.add_argument(
@@ -472,6 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run only this metric (repeatable; default: the config's)",
     )
     u.add_argument("--seed", type=int, help="override the config's seed")
+    _fusion_option(u)
     u.add_argument(
         "--solver",
         help="kind: mobile only: the decision's solver (lp, lp_highs, closed_form, milp)",
@@ -508,6 +597,34 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("run_dir", help="a run directory written by covnet up (with recording.mcap)")
     rp.add_argument("--out", help="where to write the replayed run (default: RUN_DIR/replay)")
     rp.set_defaults(func=cmd_replay)
+
+    cp = sub.add_parser(
+        "compare",
+        help="fusion structures side by side (central, info, ci, peer) over a Monte Carlo batch",
+    )
+    cp.add_argument("config", help="scenario YAML, e.g. configs/paper.yaml")
+    cp.add_argument(
+        "--modes",
+        default="central,info,ci,peer-info,peer-ci",
+        help="comma-separated from central, info, ci, ci-fast, peer-info, peer-ci "
+        "(default: %(default)s)",
+    )
+    cp.add_argument("--runs", type=int, default=20, help="seeds per mode (default: %(default)s)")
+    cp.add_argument(
+        "--metric", action="append", metavar="NAME", help="allocation metric (default: the first)"
+    )
+    cp.add_argument(
+        "--graph",
+        choices=("full", "ring", "star", "custom"),
+        help="peer modes' communication graph (default: the config's fusion.peer.graph)",
+    )
+    cp.add_argument("--seed", type=int, help="first seed (default: the config's)")
+    cp.add_argument("--workers", type=int, help="processes (default: one per core)")
+    cp.add_argument("--out", help="results directory (default: a new folder under runs/)")
+    cp.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    cp.add_argument("--no-figures", action="store_true", help="skip compare.png")
+    cp.add_argument("--json", action="store_true", help="one JSON row per mode")
+    cp.set_defaults(func=cmd_compare)
 
     c = sub.add_parser("check", help="validate a config; print it normalised with its hash")
     c.add_argument("config")

@@ -25,6 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, fiel
 
 __all__ = [
     "ConfigError",
+    "FusionSpec",
+    "PeerSpec",
     "Scenario",
     "SecuritySpec",
     "SensorSpec",
@@ -135,6 +137,41 @@ class AllocationSpec(_Model):
     tie_rtol: Float = Field(default=1e-9, ge=0.0, le=1e-3)
 
 
+FUSION_MODES = ("central", "info", "ci", "peer")
+PEER_RULES = ("info", "ci")
+PEER_GRAPHS = ("full", "ring", "star", "custom")
+CI_OBJECTIVES = ("det", "trace", "fast")
+
+
+class PeerSpec(_Model):
+    """Peer-to-peer mode: which sensors exchange local tracks (``graph``; ``custom`` takes
+    undirected ``edges`` by sensor id; ``star`` has ``hub`` at its centre, default the first
+    sensor) and how each node fuses what it receives (``rule``)."""
+
+    rule: Literal["info", "ci"] = "info"
+    graph: Literal["full", "ring", "star", "custom"] = "full"
+    hub: Str | None = None
+    edges: tuple[tuple[Str, Str], ...] = ()
+
+
+class FusionSpec(_Model):
+    """The fusion structure (README, "Decentralized fusion"): ``central`` (the manager fuses
+    raw measurements), ``info`` / ``ci`` (sensors run local filters and publish local tracks;
+    the manager fuses them by information-matrix fusion or covariance intersection), ``peer``
+    (no fusion centre: nodes fuse their neighbours' tracks, see :class:`PeerSpec`).
+    ``ci_objective``: what the covariance-intersection weights minimise (``det``, ``trace``)
+    or ``fast`` (closed-form weights ``w_i ∝ 1 / tr P_i``)."""
+
+    mode: Literal["central", "info", "ci", "peer"] = "central"
+    ci_objective: Literal["det", "trace", "fast"] = "det"
+    peer: PeerSpec = PeerSpec()
+
+    @property
+    def rule(self) -> str:
+        """The track-fusion rule in effect: ``central``, ``info`` or ``ci``."""
+        return self.peer.rule if self.mode == "peer" else self.mode
+
+
 class TlsSpec(_Model):
     """Mutual TLS for every zenoh link (``tcp/`` endpoints become ``tls/``).
 
@@ -230,6 +267,7 @@ class Scenario(_Model):
     desired: tuple[DesiredSpec, ...] = Field(min_length=1)
     allocation: AllocationSpec = AllocationSpec()
     network: NetworkSpec = NetworkSpec()
+    fusion: FusionSpec = FusionSpec()
 
     _period = field_validator("period_s")(_positive)
 
@@ -319,6 +357,7 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     from covnet.security import security_problems
 
     problems += security_problems(sc.network, ids)
+    problems += _peer_problems(sc.fusion.peer, ids)
     if set(al.excluded) >= set(ids):
         problems.append(("allocation.excluded", "excludes every sensor"))
     if al.max_active is not None:
@@ -328,6 +367,24 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
             )
         if al.max_active > len(ids):
             problems.append(("allocation.max_active", f"more than the {len(ids)} sensors"))
+    return problems
+
+
+def _peer_problems(peer: PeerSpec, ids: tuple[str, ...]) -> list[tuple[str, str]]:
+    problems: list[tuple[str, str]] = []
+    known = set(ids)
+    if peer.hub is not None and peer.hub not in known:
+        problems.append(("fusion.peer.hub", f"no sensor with id {peer.hub!r}"))
+    if peer.graph == "custom" and not peer.edges:
+        problems.append(("fusion.peer.edges", "a custom graph needs at least one edge"))
+    if peer.graph != "custom" and peer.edges:
+        problems.append(("fusion.peer.edges", "edges are only used with graph: custom"))
+    for i, (a, b) in enumerate(peer.edges):
+        for end, sid in enumerate((a, b)):
+            if sid not in known:
+                problems.append((f"fusion.peer.edges[{i}][{end}]", f"no sensor with id {sid!r}"))
+        if a == b:
+            problems.append((f"fusion.peer.edges[{i}]", f"a self-loop on {a!r}"))
     return problems
 
 
@@ -439,6 +496,20 @@ def hash_of(data: Mapping[str, Any]) -> str:
 def config_hash(sc: Scenario) -> str:
     """SHA-256 (first 16 hex digits) of the normalised config as canonical JSON."""
     return hash_of(normalised(sc))
+
+
+def with_run_overrides(
+    sc: Scenario, seed: int | None = None, fusion: str | None = None
+) -> Scenario:
+    """``sc`` with the command line's ``--seed`` and ``--fusion MODE`` applied (re-validated)."""
+    if seed is None and fusion is None:
+        return sc
+    data = normalised(sc)
+    if seed is not None:
+        data["seed"] = seed
+    if fusion is not None:
+        data["fusion"] = {**data["fusion"], "mode": fusion}
+    return from_dict(data, f"{sc.name} (with overrides)")
 
 
 def with_overrides(sc: Scenario, **changes: Any) -> Scenario:

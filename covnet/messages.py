@@ -68,6 +68,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "Command",
     "Heartbeat",
+    "LocalTrack",
     "Measurement",
     "Message",
     "Status",
@@ -87,6 +88,10 @@ __all__ = [
     "new_run_id",
     "parse_alive_key",
     "parse_measurement_key",
+    "parse_peer_key",
+    "peer_keyexpr",
+    "peer_status_key",
+    "peer_track_key",
     "run_keyexpr",
     "status_key",
     "track_key",
@@ -212,6 +217,36 @@ def parse_measurement_key(key: str) -> str:
         raise ValueError(f"not a measurement key: {key!r}")
     _valid(parts[1], "run id")
     return _valid(parts[3], "sensor id")
+
+
+def peer_track_key(run: str, node_id: str) -> str:
+    """``covnet/<run>/peer/<id>/track``: a peer node's own fused :class:`Track` (peer mode)."""
+    return f"{_root(run)}/peer/{_valid(node_id, 'node id')}/track"
+
+
+def peer_status_key(run: str, node_id: str) -> str:
+    """``covnet/<run>/peer/<id>/status``: a peer node's :class:`Status` per scan (peer mode):
+    the enabled set it decided, the tracks it fused, the members it excluded."""
+    return f"{_root(run)}/peer/{_valid(node_id, 'node id')}/status"
+
+
+def peer_keyexpr(run: str, what: str = "*") -> str:
+    """``covnet/<run>/peer/*/<what>``: every peer node's tracks or statuses (or both: ``*``)."""
+    return f"{_root(run)}/peer/*/{what}"
+
+
+def parse_peer_key(key: str) -> tuple[str, str]:
+    """``(node_id, "track" | "status")`` of a concrete peer key; ValueError for anything else."""
+    parts = key.split("/")
+    if (
+        len(parts) != 5
+        or parts[0] != "covnet"
+        or parts[2] != "peer"
+        or parts[4] not in ("track", "status")
+    ):
+        raise ValueError(f"not a peer key: {key!r}")
+    _valid(parts[1], "run id")
+    return _valid(parts[3], "node id"), parts[4]
 
 
 def track_key(run: str) -> str:
@@ -560,7 +595,8 @@ class Measurement(_Message):
 class Track(_Message):
     """The fused estimate ``N(x, P)`` for scan ``scan`` at time ``t`` [s]: ``x`` ``(n,)``,
     ``P`` ``(n, n)``.  ``target_id`` (optional): the target of this track when there are
-    several (mobile scenarios: one Track per target and scan)."""
+    several (mobile scenarios: one Track per target and scan).  ``node_id`` (optional, peer
+    mode): the peer node whose own fused estimate this is."""
 
     KIND: ClassVar[str] = "track"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -571,6 +607,7 @@ class Track(_Message):
         "t_sent_ns": "stamp",
         "episode": "count",
         "target_id": "name",
+        "node_id": "name",
     }
     scan: int
     t: float
@@ -579,6 +616,7 @@ class Track(_Message):
     t_sent_ns: int
     episode: int = 0
     target_id: str | None = None
+    node_id: str | None = None
 
     def _check(self) -> None:
         n = self.x.shape[0]
@@ -592,7 +630,8 @@ class Status(_Message):
     measurements were fused (``fused``), those seen failed when allocating (``failed``),
     ``tr P`` of the fused covariance, ``tr Pd`` of the desired one, and the allocation
     objective ``value``.  ``episode`` (here and in Command, Measurement, Track) numbers the
-    metric episodes of one run (one per allocation metric)."""
+    metric episodes of one run (one per allocation metric).  ``node_id`` (optional, peer mode):
+    the peer node reporting (each node decides and fuses for itself)."""
 
     KIND: ClassVar[str] = "status"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -606,6 +645,7 @@ class Status(_Message):
         "episode": "count",
         "fused": "names",
         "failed": "names",
+        "node_id": "name",
     }
     scan: int
     t: float
@@ -617,6 +657,48 @@ class Status(_Message):
     episode: int = 0
     fused: tuple[str, ...] = ()
     failed: tuple[str, ...] = ()
+    node_id: str | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LocalTrack(_Message):
+    """Decentralized modes: sensor ``sensor_id``'s local-filter track for scan ``scan`` (time
+    ``t`` [s]), published instead of its measurement at a scan it was enabled: the posterior
+    ``N(x, P)`` and the local filter's own prediction ``N(x_prior, P_prior)`` for that scan (the
+    information-matrix fusion removes it; see :mod:`covnet.core.fusion`)."""
+
+    KIND: ClassVar[str] = "ltrack"
+    _KINDS: ClassVar[dict[str, str]] = {
+        "sensor_id": "name",
+        "scan": "count",
+        "t": "float",
+        "x": "vec",
+        "P": "mat",
+        "x_prior": "vec",
+        "P_prior": "mat",
+        "t_sent_ns": "stamp",
+        "episode": "count",
+    }
+    sensor_id: str
+    scan: int
+    t: float
+    x: NDArray[np.float64]
+    P: NDArray[np.float64]
+    x_prior: NDArray[np.float64]
+    P_prior: NDArray[np.float64]
+    t_sent_ns: int
+    episode: int = 0
+
+    def _check(self) -> None:
+        n = self.x.shape[0]
+        if n == 0 or self.P.shape != (n, n):
+            raise WireError("bad_shape", f"x is {self.x.shape} but P is {self.P.shape}")
+        if self.x_prior.shape != (n,) or self.P_prior.shape != (n, n):
+            raise WireError(
+                "bad_shape",
+                f"x_prior is {self.x_prior.shape}, P_prior {self.P_prior.shape}; expected "
+                f"({n},) and ({n}, {n})",
+            )
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -641,8 +723,16 @@ class Heartbeat(_Message):
     rejected: dict[str, int] | None = None
 
 
-Message = Truth | Command | Measurement | Track | Status | Heartbeat
-MESSAGE_TYPES: tuple[type[Message], ...] = (Truth, Command, Measurement, Track, Status, Heartbeat)
+Message = Truth | Command | Measurement | Track | Status | Heartbeat | LocalTrack
+MESSAGE_TYPES: tuple[type[Message], ...] = (
+    Truth,
+    Command,
+    Measurement,
+    Track,
+    Status,
+    Heartbeat,
+    LocalTrack,
+)
 _BY_KIND: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 _M = TypeVar("_M", bound=_Message)
 

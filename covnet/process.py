@@ -20,13 +20,14 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from covnet.config import (
+    FUSION_MODES,
     ConfigError,
     NetworkSpec,
     Scenario,
     config_hash,
     load,
     scenario_kind,
-    with_overrides,
+    with_run_overrides,
 )
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
@@ -43,12 +44,20 @@ def common_parser(prog: str, description: str) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="override the config's seed")
     p.add_argument("--realtime", action="store_true", help="pace scans by the config's period")
     p.add_argument("--speed", type=float, default=1.0, help="real-time speed factor")
+    p.add_argument(
+        "--fusion",
+        choices=FUSION_MODES,
+        help="override the config's fusion.mode (covariance-control scenarios)",
+    )
     return p
 
 
-def load_config(path: str, seed: int | None) -> Any:
+def load_config(path: str, seed: int | None, fusion: str | None = None) -> Any:
     """The scenario of ``path``: a :class:`Scenario`, a mobile config (``kind: mobile``) or a
-    passive config (``kind: passive``)."""
+    passive config (``kind: passive``).  ``fusion`` (a fusion mode) applies to a
+    covariance-control scenario only."""
+    if fusion is not None and scenario_kind(path) != "covariance_control":
+        raise ConfigError(path, [("fusion", "only a covariance-control scenario has fusion modes")])
     if scenario_kind(path) == "passive":
         from covnet.passive import config as passive_config
 
@@ -59,8 +68,7 @@ def load_config(path: str, seed: int | None) -> Any:
 
         cfg = mobile_config.load(path)
         return mobile_config.with_overrides(cfg, path, seed=seed) if seed is not None else cfg
-    sc = load(path)
-    return with_overrides(sc, seed=seed) if seed is not None else sc
+    return with_run_overrides(load(path), seed=seed, fusion=fusion)
 
 
 def is_mobile(sc: Any) -> bool:

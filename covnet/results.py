@@ -78,6 +78,33 @@ def metric_summary(
     return out
 
 
+def peer_summary(
+    nodes: Mapping[str, MetricRun], traj: Trajectory, sensor_ids: tuple[str, ...]
+) -> dict[str, Any]:
+    """Peer mode, one metric: each node's own estimate quality and whether all nodes enabled
+    the same sensors at every scan (``agreement``; ``disagree_scans`` lists where not)."""
+    per_node = {sid: metric_summary(r, traj, sensor_ids, None) for sid, r in nodes.items()}
+    runs = list(nodes.values())
+    n = min(len(r.enabled) for r in runs)
+    disagree = [
+        k + 1
+        for k in range(n)
+        if any(not np.array_equal(r.enabled[k], runs[0].enabled[k]) for r in runs)
+    ]
+    rmse = [b["rmse_position"] for b in per_node.values()]
+    return {
+        "agreement": not disagree,
+        "disagree_scans": disagree,
+        "rmse_position_mean": float(np.mean(rmse)),
+        "rmse_position_worst": float(np.max(rmse)),
+        "mean_nees": float(np.mean([b["mean_nees"] for b in per_node.values()])),
+        "nodes": {
+            sid: {k: b[k] for k in ("rmse_position", "rmse_velocity", "mean_nees")}
+            for sid, b in per_node.items()
+        },
+    }
+
+
 def write_run(
     out_dir: Path,
     sc: Scenario,
@@ -85,13 +112,17 @@ def write_run(
     runs: Mapping[str, MetricRun],
     extra: Mapping[str, Any] | None = None,
     run_info: Mapping[str, Any] | None = None,
+    node_runs: Mapping[str, Mapping[str, MetricRun]] | None = None,
 ) -> dict[str, Any]:
     """Write ``summary.json``, ``arrays.npz``, ``config.json`` and ``run.json``; return the
     summary.
 
     ``summary.json`` holds only what the config, seed and recorded data determine (``extra``
     adds to it), so a replay reproduces it byte for byte; wall-clock facts (creation time,
-    decision times, the process layout: ``run_info``) go to ``run.json``."""
+    decision times, the process layout: ``run_info``) go to ``run.json``.  ``node_runs`` (peer
+    mode: metric -> node id -> run) adds each node's block under ``"peer"`` and its arrays
+    (``x_est.<metric>.<node>``, ``P_post.<metric>.<node>``, ``nees.<metric>.<node>``); ``runs``
+    then holds the first node's run."""
     out_dir.mkdir(parents=True, exist_ok=True)
     ids = sc.sensor_ids
     switch = sc.desired[1].from_scan if len(sc.desired) > 1 else None
@@ -103,8 +134,11 @@ def write_run(
         "sensor_ids": list(ids),
         "desired_switch_scans": [d.from_scan for d in sc.desired],
         "covnet_version": __version__,
+        "fusion": fusion_label(sc),
         "metrics": {m: metric_summary(r, traj, ids, switch) for m, r in runs.items()},
     }
+    if node_runs:
+        summary["peer"] = {m: peer_summary(nodes, traj, ids) for m, nodes in node_runs.items()}
     if extra:
         summary.update(extra)
     info: dict[str, Any] = {
@@ -127,6 +161,11 @@ def write_run(
         arrays[f"enabled.{m}"] = r.enabled
         arrays[f"value.{m}"] = r.value
         arrays[f"nees.{m}"] = r.nees
+    for m, nodes in (node_runs or {}).items():
+        for sid, r in nodes.items():
+            arrays[f"x_est.{m}.{sid}"] = r.x_est
+            arrays[f"P_post.{m}.{sid}"] = r.P_post
+            arrays[f"nees.{m}.{sid}"] = r.nees
     tmp = out_dir / (ARRAYS + ".tmp.npz")
     np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
     os.replace(tmp, out_dir / ARRAYS)
@@ -134,6 +173,16 @@ def write_run(
     write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)
     return summary
+
+
+def fusion_label(sc: Scenario) -> str:
+    """The fusion structure in one word: ``central``, ``info``, ``ci`` (with its objective:
+    ``ci-det``), or ``peer-<rule>-<graph>``."""
+    f = sc.fusion
+    if f.mode == "peer":
+        rule = f"ci-{f.ci_objective}" if f.peer.rule == "ci" else f.peer.rule
+        return f"peer-{rule}-{f.peer.graph}"
+    return f"ci-{f.ci_objective}" if f.mode == "ci" else f.mode
 
 
 def load_arrays(path: Path) -> dict[str, np.ndarray]:

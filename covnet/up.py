@@ -71,6 +71,8 @@ def process_specs(
     common = ["--config", str(config_path), "--run", run_id]
     if seed is not None:
         common += ["--seed", str(seed)]
+    if getattr(sc, "fusion", None) is not None and sc.fusion.mode != "central":
+        common += ["--fusion", sc.fusion.mode]
     if realtime:
         common += ["--realtime", "--speed", str(speed)]
     connect = endpoint(sc.network, sc.network.connect or router)
@@ -100,12 +102,15 @@ def process_specs(
             )
         )
     restart = sc.network.restart == "on-failure"
+    peer = getattr(sc, "fusion", None) is not None and sc.fusion.mode == "peer"
+    peer_metrics = [a for m in metrics for a in ("--metric", m)]
     for sid in sc.sensor_ids:
         specs.append(
             ProcessSpec(
                 sid,
-                [py, "-m", "sensors", *common, "--id", sid, "--connect", connect],
-                restart=restart,
+                [py, "-m", "sensors", *common, "--id", sid, "--connect", connect]
+                + (peer_metrics if peer else []),
+                restart=restart and not peer,  # a peer node's state is not restartable
             )
         )
     return specs

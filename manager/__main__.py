@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
         from manager.report import write_network_run
 
         stop = stop_on_signals()
-        sc = load_config(args.config, args.seed)
+        sc = load_config(args.config, args.seed, args.fusion)
         resolve_run(args, sc)
         if is_mobile(sc):
             from covnet.mobile.nodes.manager import main_body
@@ -59,27 +59,36 @@ def main(argv: list[str] | None = None) -> int:
         out = Path(args.out)
         run_info = {"episodes": metrics, **base_run_info(args, endpoint)}
 
-        def run_loop(bus, clock, hooks):  # type: ignore[no-untyped-def]
-            return node.run(
-                sc,
-                metrics,
-                bus,
-                args.run,
-                clock,
-                stop,
-                realtime=args.realtime,
-                **hooks.kwargs(),
-            )
+        if sc.fusion.mode == "peer":  # no fusion centre: this process only routes and watches
+            from manager import peer_monitor
 
-        return serve(
-            args,
-            sc.network,
-            sc.sensor_ids,
-            stop,
-            endpoint,
-            run_loop,
-            lambda result: write_network_run(out, sc, result, run_info),
-        )
+            if args.realtime:
+                raise ValueError("--realtime: peer mode runs in lockstep only")
+
+            def run_loop(bus, clock, hooks):  # type: ignore[no-untyped-def]
+                return peer_monitor.run(sc, metrics, bus, args.run, clock, stop, **hooks.kwargs())
+
+            def write(result):  # type: ignore[no-untyped-def]
+                return peer_monitor.write_peer_run(out, sc, result, run_info)
+
+        else:
+
+            def run_loop(bus, clock, hooks):  # type: ignore[no-untyped-def]
+                return node.run(
+                    sc,
+                    metrics,
+                    bus,
+                    args.run,
+                    clock,
+                    stop,
+                    realtime=args.realtime,
+                    **hooks.kwargs(),
+                )
+
+            def write(result):  # type: ignore[no-untyped-def]
+                return write_network_run(out, sc, result, run_info)
+
+        return serve(args, sc.network, sc.sensor_ids, stop, endpoint, run_loop, write)
 
     return guarded(body, "manager")
 

@@ -32,8 +32,10 @@ from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.config import NetworkSpec, Scenario
 from covnet.core.allocation import Allocation
-from covnet.core.gaussian import Gaussian
+from covnet.core.fusion import LocalTrack
+from covnet.core.gaussian import Gaussian, is_spd
 from covnet.core.kalman import nees
+from covnet.decentral import Mirror, decide_rule, fuse_tracks
 from covnet.model import (
     Model,
     build_model,
@@ -236,12 +238,14 @@ class _Loop:
         waiting: set[str],
         deadline: float,
         stop: threading.Event,
-        usable: Callable[[msg.Measurement], bool],
-    ) -> dict[str, msg.Measurement]:
-        """Receive scan ``k``'s measurements from the ``waiting`` sensors until all arrived, a
-        sensor failed or the deadline passed (see module doc); ``usable`` is the scenario
-        kind's test of a measurement's content. Every kind of manager collects this way."""
-        got: dict[str, msg.Measurement] = {}
+        usable: Callable[[Any], bool],
+        kind: type[msg.Measurement] | type[msg.LocalTrack] = msg.Measurement,
+    ) -> dict[str, Any]:
+        """Receive scan ``k``'s measurements (or, in the decentralized modes, local tracks:
+        ``kind``) from the ``waiting`` sensors until all arrived, a sensor failed or the
+        deadline passed (see module doc); ``usable`` is the scenario kind's test of a
+        message's content. Every kind of manager collects this way."""
+        got: dict[str, Any] = {}
         while waiting:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or stop.is_set():
@@ -249,7 +253,7 @@ class _Loop:
                 break
             s = self.meas_sub.recv(timeout=min(0.05, remaining))
             if s is not None:
-                self._take(s, episode, k, waiting, got, usable)
+                self._take(s, episode, k, waiting, got, usable, kind)
             self.poll_membership()
             dead = {sid for sid in waiting if not self.members.is_up(sid, self.clock.now_ns())}
             if dead:
@@ -257,7 +261,7 @@ class _Loop:
                 waiting -= dead
         # anything else already queued for this scan (duplicates, strays) is judged now
         while (s := self.meas_sub.try_recv()) is not None:
-            self._take(s, episode, k, set(), got, usable)
+            self._take(s, episode, k, set(), got, usable, kind)
         return got
 
     def _take(
@@ -266,12 +270,13 @@ class _Loop:
         episode: int,
         k: int,
         waiting: set[str],
-        got: dict[str, msg.Measurement],
-        usable: Callable[[msg.Measurement], bool],
+        got: dict[str, Any],
+        usable: Callable[[Any], bool],
+        kind: type[msg.Measurement] | type[msg.LocalTrack] = msg.Measurement,
     ) -> None:
         self.stats.received(s.key, len(s.payload))
         try:
-            m = msg.decode_as(s.payload, msg.Measurement)
+            m = msg.decode_as(s.payload, kind)
             key_sensor = msg.parse_measurement_key(s.key)
         except msg.WireError as exc:
             self.stats.reject(s.key, exc.reason)
@@ -303,6 +308,16 @@ def usable_position(m: msg.Measurement) -> bool:
     return usable_measurement(m.z, m.R)
 
 
+def usable_track(m: msg.LocalTrack) -> bool:
+    """A local track the fusion rules may take: a 4-state estimate with a symmetric positive
+    definite posterior and prior covariance."""
+    return m.x.shape == (4,) and is_spd(m.P) and is_spd(m.P_prior)
+
+
+def as_local_track(m: msg.LocalTrack) -> LocalTrack:
+    return LocalTrack(post=Gaussian(m.x, m.P), prior=Gaussian(m.x_prior, m.P_prior))
+
+
 def run(
     sc: Scenario,
     metrics: list[str],
@@ -320,6 +335,10 @@ def run(
     with ``completed=False``, or when the network never came up, with ``error`` set).
     ``on_progress(result, episode_done)`` is called after every scan."""
     model = build_model(sc)
+    fusion = sc.fusion
+    decentral = fusion.mode in ("info", "ci")  # sensors publish local tracks, not measurements
+    if fusion.mode == "peer":
+        raise ManagerError("peer mode has no fusion manager: run manager.peer_monitor")
     loop = _Loop(sc.network, model.sensor_ids, bus, run_id, clock)
     ids = loop.ids
     net = sc.network
@@ -337,6 +356,7 @@ def run(
         for e, metric in enumerate(metrics):
             log = result.episodes[metric] = EpisodeLog(metric)
             est = initial_estimate(model, sc.filter.initial_estimate)
+            mirror = Mirror.start(model)  # the local filters' covariances (decentralized modes)
             t_origin = clock.now()
             failed_prev: frozenset[str] = frozenset()
             spec: _Speculation | None = None
@@ -356,7 +376,11 @@ def run(
                     alloc, decision_s = spec.alloc, spec.decision_s  # decided ahead, exactly
                 else:
                     t0 = time.perf_counter()
-                    alloc = decide(model, pred.P, k, metric, unavailable)
+                    if decentral:
+                        P_loc = mirror.predicted(model)[1]
+                        alloc = decide_rule(fusion, model, pred.P, P_loc, k, metric, unavailable)
+                    else:
+                        alloc = decide(model, pred.P, k, metric, unavailable)
                     decision_s = time.perf_counter() - t0
                 core_ns = time.perf_counter_ns() - t_core0
                 enabled = tuple(ids[j] for j in alloc.subset)
@@ -365,14 +389,29 @@ def run(
                 loop.publish(loop.keys["cmd"], cmd)
                 # while the sensors measure: decide scan k+1 assuming every enabled sensor's
                 # measurement arrives (P does not depend on the measured values)
-                spec = _speculate(model, pred.P, alloc.subset, k + 1, metric, unavailable)
+                if not decentral:
+                    spec = _speculate(model, pred.P, alloc.subset, k + 1, metric, unavailable)
                 if realtime:
                     deadline = time.monotonic() + net.deadline_fraction * model.T / _speed(clock)
                 else:
                     deadline = time.monotonic() + net.scan_timeout_s
-                got = loop.collect(e, k, set(enabled), deadline, stop, usable_position)
+                if decentral:
+                    got = loop.collect(
+                        e, k, set(enabled), deadline, stop, usable_track, msg.LocalTrack
+                    )
+                else:
+                    got = loop.collect(e, k, set(enabled), deadline, stop, usable_position)
                 t_core1 = time.perf_counter_ns()
-                est = fuse(model, pred, [(ids.index(sid), m.z[0], m.R) for sid, m in got.items()])
+                if decentral:
+                    tracks = [(ids.index(sid), as_local_track(m)) for sid, m in got.items()]
+                    est = fuse_tracks(fusion, pred, tracks)
+                    mirror.advance(fusion, model, [j for j, _ in tracks])
+                    for j, tr in tracks:  # what the sensor reports is what it has
+                        mirror.P_local[j] = tr.post.P
+                else:
+                    est = fuse(
+                        model, pred, [(ids.index(sid), m.z[0], m.R) for sid, m in got.items()]
+                    )
                 loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
                 loop.stats.scans_done += 1
                 loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop

@@ -21,6 +21,9 @@ def main(argv: list[str] | None = None) -> int:
     p = common_parser("sensors", "One sensor process: obeys commands, publishes measurements.")
     p.add_argument("--id", required=True, help="sensor id from the config's sensors table")
     p.add_argument("--connect", help="router endpoint (default: the config's network)")
+    p.add_argument(
+        "--metric", action="append", help="peer mode: metric episode(s) (default: the config's)"
+    )
     args = p.parse_args(argv)
 
     def body() -> int:
@@ -28,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
         from sensors import node
 
         stop = stop_on_signals()
-        sc = load_config(args.config, args.seed)
+        sc = load_config(args.config, args.seed, args.fusion)
         if is_mobile(sc):  # kind: mobile -> measures its commanded targets
             from covnet.mobile.nodes import sensor as node  # type: ignore[no-redef]
         elif is_passive(sc):  # kind: passive -> its list of angle pairs per scan
@@ -41,6 +44,8 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return EXIT_USAGE
+        if not (is_mobile(sc) or is_passive(sc)) and sc.fusion.mode == "peer":
+            return _peer(args, sc, stop)
         with open_client(args, sc.network, "sensor", args.id, stop) as bus:
             stats = node.run(sc, args.id, bus, args.run, WallClock(args.speed), stop)
         print(
@@ -50,6 +55,27 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_OK
 
     return guarded(body, "sensors")
+
+
+def _peer(args, sc, stop) -> int:  # type: ignore[no-untyped-def]
+    """``fusion.mode: peer``: this sensor is a peer node (decides and fuses with its
+    neighbours); the episodes are ``--metric`` or the config's metrics."""
+    from covnet.core.metrics import METRICS
+    from sensors import peer
+
+    if args.realtime:
+        raise ValueError("--realtime: peer mode runs in lockstep only")
+    metrics = args.metric or list(sc.allocation.metrics)
+    for m in metrics:
+        if m not in METRICS:
+            raise ValueError(f"--metric: unknown metric {m!r}; choose from {sorted(METRICS)}")
+    with open_client(args, sc.network, "sensor", args.id, stop) as bus:
+        stats = peer.run(sc, args.id, metrics, bus, args.run, WallClock(args.speed), stop)
+    print(
+        f"stopped: {stats.scans} scans, {stats.tracks_sent} tracks sent, "
+        f"{stats.tracks_fused} fused, rejected {dict(stats.rejected)}"
+    )
+    return EXIT_OK
 
 
 if __name__ == "__main__":

@@ -23,7 +23,9 @@ from covnet import messages as msg
 from covnet.bus import Bus, Sample
 from covnet.clock import Clock
 from covnet.config import NetworkSpec, Scenario
-from covnet.model import build_model, measure
+from covnet.core.gaussian import Gaussian
+from covnet.decentral import local_track
+from covnet.model import Model, build_model, initial_estimate, measure, predict_step
 from covnet.node_kit import Heartbeat, ManagerWatch
 
 
@@ -139,13 +141,36 @@ def run(
     clock: Clock,
     stop: threading.Event,
 ) -> SensorStats:
-    """A covariance-control position sensor; serves commands until ``stop`` is set."""
+    """A covariance-control position sensor; serves commands until ``stop`` is set.
+
+    In the decentralized centre modes (``fusion.mode: info | ci``) it runs its own local Kalman
+    filter and publishes a :class:`~covnet.messages.LocalTrack` instead of the measurement: the
+    filter predicts every scan (lazily, scan by scan up to the commanded one: the same
+    arithmetic as predicting at every scan) and updates at the scans it is enabled; a new
+    episode restarts it from the initial estimate."""
     model = build_model(sc)
     j = model.index(sensor_id)
     R = model.R[j]
+    local = LocalFilter(model, sc.filter.initial_estimate)
 
     def truth_ok(tr: msg.Truth) -> bool:
         return tr.states.shape[0] >= 1 and tr.states.shape[1] == 4
+
+    def respond_track(cmd: msg.Command, tr: msg.Truth) -> msg.LocalTrack:
+        prior = local.predict_to(cmd.episode, cmd.scan)
+        track = local_track(model, j, prior, measure(model, j, cmd.scan, tr.states[0]))
+        local.set(track.post)
+        return msg.LocalTrack(
+            sensor_id=sensor_id,
+            scan=cmd.scan,
+            t=cmd.t,
+            x=track.post.x,
+            P=track.post.P,
+            x_prior=prior.x,
+            P_prior=prior.P,
+            t_sent_ns=clock.now_ns(),
+            episode=cmd.episode,
+        )
 
     def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement:
         z = measure(model, j, cmd.scan, tr.states[0])
@@ -159,6 +184,39 @@ def run(
             episode=cmd.episode,
         )
 
+    decentral = sc.fusion.mode in ("info", "ci")
     return serve(
-        sensor_id, bus, run_id, clock, stop, sc.network, truth_ok=truth_ok, respond=respond
+        sensor_id,
+        bus,
+        run_id,
+        clock,
+        stop,
+        sc.network,
+        truth_ok=truth_ok,
+        respond=respond_track if decentral else respond,  # type: ignore[arg-type]
     )
+
+
+class LocalFilter:
+    """A sensor's own Kalman filter over the scans of one episode (decentralized modes):
+    ``predict_to(episode, k)`` returns its prediction for scan ``k`` (a new episode restarts
+    from the initial estimate at scan 0); ``set(posterior)`` stores the update of that scan."""
+
+    def __init__(self, model: Model, initial: str) -> None:
+        self.model, self.initial = model, initial
+        self.episode, self.scan = -1, 0
+        self.estimate: Gaussian = initial_estimate(model, initial)
+
+    def predict_to(self, episode: int, scan: int) -> Gaussian:
+        if episode != self.episode:
+            self.episode, self.scan = episode, 0
+            self.estimate = initial_estimate(self.model, self.initial)
+        g = self.estimate
+        while self.scan < scan:
+            g = predict_step(self.model, g)
+            self.scan += 1
+        self.estimate = g
+        return g
+
+    def set(self, posterior: Gaussian) -> None:
+        self.estimate = posterior

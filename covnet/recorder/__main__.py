@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
         from covnet.recording import RecordingWriter, run_metadata
 
         stop = stop_on_signals()
-        sc = load_config(args.config, args.seed)
+        sc = load_config(args.config, args.seed, args.fusion)
         resolve_run(args, sc)
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
         from covnet.world import node
 
         stop = stop_on_signals()
-        sc = load_config(args.config, args.seed)
+        sc = load_config(args.config, args.seed, args.fusion)
         if is_mobile(sc):  # kind: mobile -> the mobile world (targets and platforms)
             from covnet.mobile.nodes import world as node  # type: ignore[no-redef]
         elif is_passive(sc):  # kind: passive -> the target positions

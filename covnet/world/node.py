@@ -14,12 +14,14 @@ from __future__ import annotations
 import threading
 from collections import Counter
 
+import numpy as np
+
 from covnet import messages as msg
 from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.config import Scenario
 from covnet.model import build_model, truth_trajectory
-from covnet.node_kit import serve_commands
+from covnet.node_kit import Heartbeat, ManagerWatch, serve_commands
 
 TARGET_IDS = ("T1",)
 TRUTH_WINDOW = 16  # scans of truth published at once, ahead of their commands
@@ -32,6 +34,9 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     truth = truth_trajectory(model)
     counts: Counter[str] = Counter()
     key = msg.truth_key(run_id)
+    if sc.fusion.mode == "peer":
+        _serve_peers(sc, bus, run_id, clock, stop, truth, counts)
+        return counts
     window = [0, -1]  # the scans whose truth went out with the last window
     # a sensor that (re)joins mid-run has missed the window: the next command starts a new one
     joins = bus.watch_liveliness(msg.alive_keyexpr(run_id, "sensor"))
@@ -64,3 +69,61 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     finally:
         joins.close()
     return counts
+
+
+def _serve_peers(
+    sc: Scenario,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    truth: np.ndarray,
+    counts: Counter[str],
+) -> None:
+    """Peer mode (no commands): the first window of truth goes out once every sensor is up,
+    the next ones ahead of the scans the peer nodes' statuses show they have reached."""
+    model = build_model(sc)
+    key = msg.truth_key(run_id)
+    status_sub = bus.subscribe(msg.peer_keyexpr(run_id, "status"))
+    live = bus.watch_liveliness(msg.alive_keyexpr(run_id, "sensor"))
+    manager = ManagerWatch(bus, run_id)
+    token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
+    heartbeat = Heartbeat(bus, clock, run_id, "world", "world", sc.network.heartbeat_s)
+    alive: set[str] = set()
+    window = [0, -1]
+    last_scan = 0
+
+    def publish_from(k0: int) -> None:
+        hi = min(k0 + TRUTH_WINDOW, model.scans)
+        for k in range(k0, hi + 1):
+            tr = msg.Truth(scan=k, t=k * model.T, target_ids=TARGET_IDS, states=truth[k - 1][None])
+            bus.publish(key, msg.encode(tr))
+            counts["published"] += 1
+        window[:] = [k0, hi]
+
+    try:
+        while not stop.is_set() and not manager.left:
+            rejected = {k[9:]: v for k, v in counts.items() if k.startswith("rejected:")}
+            heartbeat.tick(last_scan, rejected)
+            while (ev := live.try_recv()) is not None:
+                node = ev.key.rsplit("/", 1)[-1]
+                (alive.add if ev.alive else alive.discard)(node)
+            if window[1] < 0 and alive >= set(sc.sensor_ids):
+                publish_from(1)
+            s = status_sub.recv(timeout=sc.network.heartbeat_s / 2)
+            if s is None or window[1] < 0:
+                continue
+            try:
+                st = msg.decode_as(s.payload, msg.Status)
+            except msg.WireError as exc:
+                counts[f"rejected:{exc.reason}"] += 1
+                continue
+            need = st.scan + 1 if st.scan < model.scans else 1
+            last_scan = st.scan
+            if not window[0] <= need <= window[1]:
+                publish_from(need)
+    finally:
+        token.undeclare()
+        manager.close()
+        live.close()
+        status_sub.close()

@@ -22,6 +22,7 @@ from covnet.messages import (
     SCHEMA_VERSION,
     Command,
     Heartbeat,
+    LocalTrack,
     Measurement,
     Status,
     Track,
@@ -84,6 +85,10 @@ CASES = [
     ),
     Measurement("S2", 1, 1.0, np.zeros((0, 2)), np.eye(2), 6, target_ids=(), platform=np.zeros(4)),
     Track(1, 1.0, np.zeros(4), np.eye(4), 7, target_id="T3"),
+    # the decentralized modes
+    LocalTrack("S1", 3, 3.0, np.ones(4), np.eye(4), np.zeros(4), 2.0 * np.eye(4), 8, episode=1),
+    Track(3, 3.0, np.zeros(4), np.eye(4), 9, node_id="S2"),
+    Status(3, 3.0, ("S1",), 1.0, 2.0, 3.0, 10, fused=("S1", "S2"), node_id="S2"),
 ]
 CASE_IDS = [
     "truth",
@@ -109,6 +114,9 @@ CASE_IDS = [
     "meas-target-ids",
     "meas-no-detections-mobile",
     "track-target",
+    "ltrack",
+    "track-peer",
+    "status-peer",
 ]
 
 
@@ -260,6 +268,17 @@ GOLDEN_MSGS = {
         failed=("s4",),
     ),
     "hb": Heartbeat(role="sensor", node_id="s4", scan=7, t_sent_ns=1_000_001_000),
+    "ltrack": LocalTrack(
+        sensor_id="S3",
+        scan=7,
+        t=7.0,
+        x=np.array([1.0, 2.0, 0.5, -0.5]),
+        P=np.eye(4),
+        x_prior=np.array([1.5, 2.0, 0.0, -0.5]),
+        P_prior=2.0 * np.eye(4),
+        t_sent_ns=1_000_000_789,
+        episode=1,
+    ),
 }
 
 # schema version 1, computed from the messages above; after a deliberate schema change,
@@ -299,6 +318,20 @@ GOLDEN_HEX = {
     "hb": (
         "86a17601a16ba26862a4726f6c65a673656e736f72a76e6f64655f6964a27334a47363616e07a974"
         "5f73656e745f6e73ce3b9acde8"
+    ),
+    "ltrack": (
+        "8ba17601a16ba66c747261636ba973656e736f725f6964a25333a47363616e07a174cb401c000000"
+        "000000a178c7290193a33c66389104c420000000000000f03f0000000000000040000000000000e0"
+        "3f000000000000e0bfa150c78a0193a33c6638920404c480000000000000f03f0000000000000000"
+        "000000000000000000000000000000000000000000000000000000000000f03f0000000000000000"
+        "000000000000000000000000000000000000000000000000000000000000f03f0000000000000000"
+        "000000000000000000000000000000000000000000000000000000000000f03fa7785f7072696f72"
+        "c7290193a33c66389104c420000000000000f83f0000000000000040000000000000000000000000"
+        "0000e0bfa7505f7072696f72c78a0193a33c6638920404c480000000000000004000000000000000"
+        "00000000000000000000000000000000000000000000000000000000000000004000000000000000"
+        "00000000000000000000000000000000000000000000000000000000000000004000000000000000"
+        "000000000000000000000000000000000000000000000000000000000000000040a9745f73656e74"
+        "5f6e73ce3b9acd15a7657069736f646501"
     ),
 }
 

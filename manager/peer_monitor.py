@@ -1,0 +1,278 @@
+"""The observer of a peer-mode network (``fusion.mode: peer``): no fusion, no decisions.
+
+In peer mode there is no fusion centre (:mod:`sensors.peer`); the manager process is only the
+network's router and this monitor: it watches every node's ``peer/<id>/track`` and
+``peer/<id>/status``, counts the traffic (local tracks included), prints the live status and
+writes the run directory: per metric, every node's own estimates (``arrays.npz``), the
+``peer`` block of ``summary.json`` (each node's RMSE and NEES, and whether all nodes enabled the
+same sensors at every scan), and the failures the nodes reported.  Its liveliness token is the
+run's: the nodes leave when it goes.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from covnet import messages as msg
+from covnet.bus import Bus
+from covnet.clock import Clock
+from covnet.config import Scenario
+from covnet.core.gaussian import Gaussian, is_spd
+from covnet.core.kalman import nees
+from covnet.model import build_model, truth_trajectory
+from covnet.results import write_json, write_run
+from covnet.runtime_stats import NetStats
+from covnet.simulate import MetricRun, shared_trajectory
+
+
+@dataclass
+class NodeLog:
+    """One node's reports in one episode, by scan."""
+
+    tracks: dict[int, msg.Track] = field(default_factory=dict)
+    statuses: dict[int, msg.Status] = field(default_factory=dict)
+
+    def scans(self) -> int:
+        """Scans 1..n reported completely (track and status), without a gap."""
+        n = 0
+        while n + 1 in self.tracks and n + 1 in self.statuses:
+            n += 1
+        return n
+
+    def as_run(self, metric: str, ids: tuple[str, ...], truth: np.ndarray) -> MetricRun:
+        n = self.scans()
+        enabled = np.zeros((n, len(ids)), dtype=bool)
+        for k in range(1, n + 1):
+            enabled[k - 1, [ids.index(s) for s in self.statuses[k].enabled]] = True
+        x = np.array([self.tracks[k].x for k in range(1, n + 1)]).reshape(n, 4)
+        P = np.array([self.tracks[k].P for k in range(1, n + 1)]).reshape(n, 4, 4)
+        eps = np.array([nees(Gaussian(x[i], P[i]), truth[i]) for i in range(n)])
+        return MetricRun(
+            metric=metric,
+            enabled=enabled,
+            value=np.array([self.statuses[k].value for k in range(1, n + 1)]),
+            x_est=x,
+            P_post=P,
+            P_pred=np.full((n, 4, 4), np.nan),  # a peer node does not report its prediction
+            nees=eps,
+            decision_s=np.zeros(n),
+            n_evaluated=np.zeros(n, dtype=np.int64),
+        )
+
+
+@dataclass
+class PeerResult:
+    metrics: list[str]
+    nodes: dict[int, dict[str, NodeLog]]  # episode -> node -> log
+    stats: NetStats
+    completed: bool = False
+    error: str | None = None
+
+
+def run(
+    sc: Scenario,
+    metrics: list[str],
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    *,
+    on_ready: Callable[[], None] | None = None,
+    on_status: Callable[[dict[str, Any]], None] | None = None,
+    on_progress: Callable[[PeerResult, bool], None] | None = None,
+) -> PeerResult:
+    """Watch the peer nodes until every live node has reported the last scan of the last
+    episode (``completed``), or ``stop``, or no report for ``network.scan_timeout_s``."""
+    model = build_model(sc)
+    ids = model.sensor_ids
+    net = sc.network
+    stats = NetStats()
+    result = PeerResult(list(metrics), {e: {} for e in range(len(metrics))}, stats)
+    subs = [
+        bus.subscribe(msg.peer_keyexpr(run_id, "*")),
+        bus.subscribe(msg.measurement_keyexpr(run_id)),  # the local tracks: counted only
+    ]
+    live = bus.watch_liveliness(msg.alive_keyexpr(run_id))
+    token = bus.declare_token(msg.alive_key(run_id, "manager", "manager"))
+    alive: set[str] = set()
+    expected = {*ids, "world", *(("recorder",) if net.record else ())}
+    reported: set[tuple[int, int]] = set()  # (episode, scan) whose status went to on_status
+    t_loop = time.perf_counter_ns()
+
+    def drain_live() -> None:
+        while (ev := live.try_recv()) is not None:
+            node = ev.key.rsplit("/", 1)[-1]
+            (alive.add if ev.alive else alive.discard)(node)
+
+    def take(s: Any) -> None:
+        stats.received(s.key, len(s.payload))
+        if "/peer/" not in s.key:
+            return
+        try:
+            node, what = msg.parse_peer_key(s.key)
+            m = msg.decode_as(s.payload, msg.Track if what == "track" else msg.Status)
+        except msg.WireError as exc:
+            stats.reject(s.key, exc.reason)
+            return
+        except ValueError:
+            stats.reject(s.key, "bad_key")
+            return
+        if m.node_id != node or node not in ids:
+            stats.reject(s.key, "key_mismatch")
+            return
+        if not (0 <= m.episode < len(metrics) and 1 <= m.scan <= model.scans):
+            stats.reject(s.key, "wrong_scan")
+            return
+        if isinstance(m, msg.Track) and not (m.x.shape == (4,) and is_spd(m.P)):
+            stats.reject(s.key, "bad_measurement")
+            return
+        log = result.nodes[m.episode].setdefault(node, NodeLog())
+        (log.tracks if isinstance(m, msg.Track) else log.statuses)[m.scan] = m  # type: ignore[index]
+
+    def scan_done(e: int, k: int) -> bool:
+        logs = result.nodes[e]
+        return all(n in logs and k in logs[n].statuses or n not in alive for n in ids)
+
+    try:
+        deadline = time.monotonic() + net.ready_timeout_s
+        while not expected <= alive:
+            drain_live()
+            if stop.is_set():
+                result.error = "stopped before the network was ready"
+                return result
+            if time.monotonic() > deadline:
+                result.error = (
+                    f"nodes not alive after {net.ready_timeout_s} s: {sorted(expected - alive)}"
+                )
+                return result
+            time.sleep(0.01)
+        if on_ready is not None:
+            on_ready()
+        last_news = time.monotonic()
+        e = 0
+        k = 1
+        while e < len(metrics):
+            if stop.is_set():
+                return result
+            got = False
+            for sub in subs:
+                while (s := sub.try_recv()) is not None:
+                    take(s)
+                    got = True
+            drain_live()
+            if got:
+                last_news = time.monotonic()
+            elif time.monotonic() - last_news > net.scan_timeout_s:
+                result.error = (
+                    f"no peer reported for {net.scan_timeout_s} s (episode {e}, scan {k})"
+                )
+                return result
+            else:
+                s = subs[0].recv(timeout=0.01)
+                if s is not None:
+                    take(s)
+                    last_news = time.monotonic()
+            while e < len(metrics) and scan_done(e, k):
+                stats.scans_done += 1
+                stats.loop_wall_ns = time.perf_counter_ns() - t_loop
+                _report(result, e, k, model.scans, metrics[e], ids, stats, on_status, reported)
+                last = k == model.scans
+                if on_progress is not None:
+                    on_progress(result, last)
+                e, k = (e + 1, 1) if last else (e, k + 1)
+        result.completed = True
+    finally:
+        token.undeclare()
+        for sub in subs:
+            sub.close()
+        live.close()
+    return result
+
+
+def _report(
+    result: PeerResult,
+    e: int,
+    k: int,
+    scans: int,
+    metric: str,
+    ids: tuple[str, ...],
+    stats: NetStats,
+    on_status: Callable[[dict[str, Any]], None] | None,
+    reported: set[tuple[int, int]],
+) -> None:
+    if on_status is None or (e, k) in reported:
+        return
+    reported.add((e, k))
+    sts = [log.statuses[k] for log in result.nodes[e].values() if k in log.statuses]
+    if not sts:
+        return
+    st = sts[0]
+    n_msgs = sum(stats.recv_msgs.values())
+    on_status(
+        {
+            "metric": metric,
+            "episode": e,
+            "scan": k,
+            "scans": scans,
+            "enabled": list(st.enabled),
+            "fused": sorted({n for s in sts for n in s.fused}, key=ids.index),
+            "failed": list(st.failed),
+            "trace_P": float(np.mean([s.trace_P for s in sts])),
+            "trace_Pd": st.trace_Pd,
+            "latency_ms": 0.0,
+            "messages": n_msgs,
+            "bytes": sum(stats.recv_bytes.values()),
+            "agree": all(s.enabled == st.enabled for s in sts),
+        }
+    )
+
+
+def write_peer_run(
+    out: Path, sc: Scenario, result: PeerResult, run_info: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The run directory of a peer-mode network: as ``covnet run --fusion peer`` writes it (the
+    first node's run under ``metrics``, every node's under ``peer``), for the scans reported,
+    plus ``network.json`` and the failures the nodes reported (``failures``: per metric, the
+    first scan at which the live nodes excluded each failed node)."""
+    model = build_model(sc)
+    traj = shared_trajectory(model)
+    truth = truth_trajectory(model)
+    ids = model.sensor_ids
+    node_runs: dict[str, dict[str, MetricRun]] = {}
+    runs: dict[str, MetricRun] = {}
+    failures: dict[str, list[dict[str, Any]]] = {}
+    for e, metric in enumerate(result.metrics):
+        logs = result.nodes.get(e, {})
+        nodes = {n: logs[n].as_run(metric, ids, truth) for n in ids if n in logs}
+        nodes = {n: r for n, r in nodes.items() if len(r.value)}
+        if not nodes:
+            continue
+        node_runs[metric] = nodes
+        # the metrics block: the first node that completed the most scans
+        first = max(nodes, key=lambda n: (len(nodes[n].value), -ids.index(n)))
+        runs[metric] = nodes[first]
+        seen: dict[str, int] = {}
+        for log in logs.values():
+            for k, st in sorted(log.statuses.items()):
+                for n in st.failed:
+                    seen[n] = min(seen.get(n, k), k)
+        failures[metric] = [
+            {"sensor": n, "scan": k, "event": "failed"} for n, k in sorted(seen.items())
+        ]
+    extra: dict[str, Any] = {
+        "completed": result.completed,
+        "scans_completed": {m: len(r.value) for m, r in runs.items()},
+        "failures": failures,
+    }
+    info: dict[str, Any] = {"mode": "network"}
+    info.update(run_info or {})
+    summary = write_run(out, sc, traj, runs, extra=extra, run_info=info, node_runs=node_runs)
+    write_json(out / "network.json", result.stats.as_dict())
+    return summary

@@ -1,0 +1,330 @@
+"""A peer node (``fusion.mode: peer``): a sensor that also fuses, with no fusion centre.
+
+Every node runs, per metric episode and scan ``k`` (lockstep)::
+
+    1. members(k): itself and every node whose Status(k-1) it received; it waits for each
+       node's Status(k-1) until it arrives or the node's liveliness token goes (scan 1: every
+       node whose token is up at the start).  Statuses go to every node through the router, so
+       every node sees the same set: a node that died before publishing its status is out
+       for everyone, one that published it is in for everyone.
+    2. the decision: the same deterministic function of shared information on every node,
+       :func:`covnet.decentral.decide_rule` over the *covariance mirror* (every node's fused
+       covariance and every local filter's covariance follow from the config and the agreed
+       enabled sets alone), the failed nodes infeasible, a subset scored by its worst live node.
+    3. if enabled: measure (truth from the world), update the local filter, publish its
+       LocalTrack on its own measurement key.
+    4. collect the LocalTracks of its enabled neighbours (the communication graph of
+       ``fusion.peer``: a node subscribes to its neighbours' keys only) until all arrived,
+       a neighbour died or ``network.scan_timeout_s`` passed.
+    5. fuse its own prediction with its own and its neighbours' tracks (``fusion.peer.rule``),
+       publish its Track and Status (``node_id`` set) on its ``peer/<id>/`` keys.
+
+The mirror advances with the *decided* subset (what every node knows), so decisions stay
+identical on every node even when a track is lost.  A node that died stays out for the rest of
+the run (peer mode does not restart nodes).  Malformed messages are counted and dropped.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Collection, Container, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from covnet import messages as msg
+from covnet.bus import Bus, Sample
+from covnet.clock import Clock
+from covnet.config import Scenario
+from covnet.decentral import (
+    Mirror,
+    decide_rule,
+    fuse_tracks,
+    local_track,
+    neighbours,
+    reach_matrix,
+)
+from covnet.model import build_model, initial_estimate, measure, predict_step
+from covnet.node_kit import Heartbeat, ManagerWatch
+from manager.node import as_local_track, usable_track
+from sensors.node import LocalFilter
+
+
+@dataclass
+class PeerStats:
+    scans: int = 0
+    tracks_sent: int = 0
+    tracks_fused: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)
+
+
+class _Inbox:
+    """What a node has heard: statuses (node, episode, scan), neighbours' tracks, truth,
+    peers' liveliness."""
+
+    def __init__(self, bus: Bus, run_id: str, me: str, nbr_ids: Sequence[str], stats: PeerStats):
+        self.stats = stats
+        self.me = me
+        self.status_sub = bus.subscribe(msg.peer_keyexpr(run_id, "status"))
+        self.track_subs = [bus.subscribe(msg.measurement_key(run_id, n)) for n in nbr_ids]
+        self.truth_sub = bus.subscribe(msg.truth_key(run_id))
+        self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
+        self.statuses: set[tuple[str, int, int]] = set()
+        self.tracks: dict[tuple[str, int, int], msg.LocalTrack] = {}
+        self.truth: dict[int, np.ndarray] = {}
+        self.alive: set[str] = set()
+
+    def drain(self) -> None:
+        while (ev := self.live_sub.try_recv()) is not None:
+            try:
+                _, node = msg.parse_alive_key(ev.key)
+            except ValueError:
+                self.stats.rejected["bad_key"] += 1
+                continue
+            (self.alive.add if ev.alive else self.alive.discard)(node)
+        while (s := self.status_sub.try_recv()) is not None:
+            self._status(s)
+        for sub in self.track_subs:
+            while (s := sub.try_recv()) is not None:
+                try:
+                    tr = msg.decode_as(s.payload, msg.LocalTrack)
+                    sender = msg.parse_measurement_key(s.key)
+                except msg.WireError as exc:
+                    self.stats.rejected[exc.reason] += 1
+                    continue
+                except ValueError:
+                    self.stats.rejected["bad_key"] += 1
+                    continue
+                if sender != tr.sensor_id:
+                    self.stats.rejected["key_mismatch"] += 1
+                elif not usable_track(tr):
+                    self.stats.rejected["bad_measurement"] += 1
+                elif (sender, tr.episode, tr.scan) in self.tracks:
+                    self.stats.rejected["duplicate"] += 1
+                else:
+                    self.tracks[(sender, tr.episode, tr.scan)] = tr
+        while (s := self.truth_sub.try_recv()) is not None:
+            try:
+                t = msg.decode_as(s.payload, msg.Truth)
+            except msg.WireError as exc:
+                self.stats.rejected[exc.reason] += 1
+                continue
+            if t.states.ndim == 2 and t.states.shape[0] >= 1 and t.states.shape[1] == 4:
+                self.truth[t.scan] = t.states[0]
+            else:
+                self.stats.rejected["bad_shape"] += 1
+
+    def _status(self, s: Sample) -> None:
+        try:
+            st = msg.decode_as(s.payload, msg.Status)
+            node, _ = msg.parse_peer_key(s.key)
+        except msg.WireError as exc:
+            self.stats.rejected[exc.reason] += 1
+            return
+        except ValueError:
+            self.stats.rejected["bad_key"] += 1
+            return
+        if st.node_id != node:
+            self.stats.rejected["key_mismatch"] += 1
+            return
+        self.statuses.add((node, st.episode, st.scan))
+
+    def wait(
+        self,
+        done: Callable[[], bool],
+        deadline: float,
+        stop: threading.Event,
+        heartbeat: Callable[[], None],
+    ) -> bool:
+        """Drain until ``done()`` (True) or the deadline / stop (False)."""
+        while True:
+            self.drain()
+            if done():
+                return True
+            if stop.is_set() or time.monotonic() > deadline:
+                return False
+            heartbeat()
+            s = self.status_sub.recv(timeout=0.001)  # sleeps until a status or 1 ms
+            if s is not None:
+                self._status(s)
+
+    def each(
+        self,
+        nodes: Collection[str],
+        have: Container[tuple[str, int, int]],
+        episode: int,
+        scan: int,
+        timeout_s: float,
+        stop: threading.Event,
+        heartbeat: Callable[[], None],
+    ) -> bool:
+        """Wait until every node of ``nodes`` has its ``(node, episode, scan)`` entry in
+        ``have`` (statuses or tracks) or has left (its liveliness token is gone)."""
+        return self.wait(
+            lambda: all((n, episode, scan) in have or n not in self.alive for n in nodes),
+            time.monotonic() + timeout_s,
+            stop,
+            heartbeat,
+        )
+
+    def close(self) -> None:
+        for sub in (self.status_sub, self.truth_sub, *self.track_subs):
+            sub.close()
+        self.live_sub.close()
+
+
+def run(
+    sc: Scenario,
+    node_id: str,
+    metrics: Sequence[str],
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+) -> PeerStats:
+    """Serve every metric's episode as peer node ``node_id`` (see the module docstring)."""
+    model = build_model(sc)
+    fusion, net = sc.fusion, sc.network
+    ids = model.sensor_ids
+    me = ids.index(node_id)
+    nbrs = neighbours(fusion, ids)[me]
+    stats = PeerStats()
+    inbox = _Inbox(bus, run_id, node_id, [ids[n] for n in nbrs], stats)
+    manager = ManagerWatch(bus, run_id)
+    token = bus.declare_token(msg.alive_key(run_id, "sensor", node_id))
+    heartbeat = Heartbeat(bus, clock, run_id, "sensor", node_id, net.heartbeat_s)
+    keys = {
+        "meas": msg.measurement_key(run_id, node_id),
+        "track": msg.peer_track_key(run_id, node_id),
+        "status": msg.peer_status_key(run_id, node_id),
+    }
+    reach = reach_matrix(fusion, ids)
+    last = [0]
+
+    def beat() -> None:
+        heartbeat.tick(last[0], stats.rejected)
+
+    try:
+        # start: every peer, the world, the monitor (and the recorder) up, so that every node
+        # starts with the same members and nothing goes unrecorded
+        everyone = {*ids, "world", "manager", *(("recorder",) if net.record else ())}
+        if not inbox.wait(
+            lambda: inbox.alive >= everyone, time.monotonic() + net.ready_timeout_s, stop, beat
+        ):
+            return stats
+        members = set(ids)
+        prev: tuple[int, int] | None = None
+        for e, metric in enumerate(metrics):
+            fused = initial_estimate(model, sc.filter.initial_estimate)
+            local = LocalFilter(model, sc.filter.initial_estimate)
+            mirror = Mirror.start(model, reach)
+            for k in range(1, model.scans + 1):
+                if stop.is_set() or manager.left:
+                    return stats
+                if prev is not None:
+                    pe, pk = prev
+                    others = members - {node_id}
+                    inbox.each(others, inbox.statuses, pe, pk, net.scan_timeout_s, stop, beat)
+                    members = {node_id} | {n for n in others if (n, pe, pk) in inbox.statuses}
+                live = np.array([n in members for n in ids])
+                unavailable = frozenset(int(j) for j in np.flatnonzero(~live))
+                P_nodes, P_loc = mirror.predicted(model)
+                alloc = decide_rule(
+                    fusion,
+                    model,
+                    P_nodes[live],
+                    P_loc,
+                    k,
+                    metric,
+                    unavailable,
+                    reach=reach[live],
+                )
+                enabled = tuple(ids[j] for j in alloc.subset)
+                t_k = k * model.T
+                pred = predict_step(model, fused)
+                heard = []
+                if node_id in enabled:
+                    if inbox.wait(
+                        lambda k=k: k in inbox.truth,
+                        time.monotonic() + net.scan_timeout_s,
+                        stop,
+                        beat,
+                    ):
+                        prior = local.predict_to(e, k)
+                        tr = local_track(model, me, prior, measure(model, me, k, inbox.truth[k]))
+                        local.set(tr.post)
+                        bus.publish(
+                            keys["meas"],
+                            msg.encode(
+                                msg.LocalTrack(
+                                    sensor_id=node_id,
+                                    scan=k,
+                                    t=t_k,
+                                    x=tr.post.x,
+                                    P=tr.post.P,
+                                    x_prior=prior.x,
+                                    P_prior=prior.P,
+                                    t_sent_ns=clock.now_ns(),
+                                    episode=e,
+                                )
+                            ),
+                        )
+                        stats.tracks_sent += 1
+                        heard.append((me, tr))
+                want = [ids[j] for j in alloc.subset if j in nbrs and ids[j] in members]
+                inbox.each(want, inbox.tracks, e, k, net.scan_timeout_s, stop, beat)
+                for n in want:
+                    m = inbox.tracks.pop((n, e, k), None)
+                    if m is not None:
+                        heard.append((ids.index(n), as_local_track(m)))
+                fused = fuse_tracks(fusion, pred, heard)
+                mirror.advance(fusion, model, alloc.subset)
+                stats.tracks_fused += len(heard)
+                stats.scans += 1
+                last[0] = k
+                now = clock.now_ns()
+                bus.publish(
+                    keys["track"],
+                    msg.encode(
+                        msg.Track(
+                            scan=k,
+                            t=t_k,
+                            x=fused.x,
+                            P=fused.P,
+                            t_sent_ns=now,
+                            episode=e,
+                            node_id=node_id,
+                        )
+                    ),
+                )
+                bus.publish(
+                    keys["status"],
+                    msg.encode(
+                        msg.Status(
+                            scan=k,
+                            t=t_k,
+                            enabled=enabled,
+                            trace_P=float(np.trace(fused.P)),
+                            trace_Pd=float(np.trace(model.desired(k))),
+                            value=float(alloc.value),
+                            t_sent_ns=now,
+                            episode=e,
+                            fused=tuple(sorted((ids[j] for j, _ in heard), key=ids.index)),
+                            failed=tuple(n for n in ids if n not in members),
+                            node_id=node_id,
+                        )
+                    ),
+                )
+                for key in [key for key in inbox.tracks if key[1:] < (e, k)]:
+                    del inbox.tracks[key]
+                prev = (e, k)
+        # the last status must reach the others before this node leaves
+        beat()
+        inbox.wait(lambda: manager.left, time.monotonic() + net.ready_timeout_s, stop, beat)
+    finally:
+        token.undeclare()
+        manager.close()
+        inbox.close()
+    return stats

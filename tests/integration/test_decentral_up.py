@@ -1,0 +1,113 @@
+"""Decentralized modes over real zenoh sessions between real processes (127.0.0.1, free port,
+per-run key prefix): a centre fusing local tracks, and peer nodes with no centre."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+
+import numpy as np
+import pytest
+import yaml
+from multiproc import CovnetProcess, assert_nothing_left
+
+from covnet.cli import main as covnet_main
+from covnet.results import load_arrays
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
+
+
+def _config(tmp_path, paper_path, name, scans, fusion):
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = scans
+    data["fusion"] = fusion
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _run_both(tmp_path, cfg, metric):
+    ref, out = tmp_path / "ref", tmp_path / "up"
+    args = ["--metric", metric, "--no-figures"]
+    assert covnet_main(["run", str(cfg), "--out", str(ref), *args]) == 0
+    p = CovnetProcess(["up", str(cfg), "--out", str(out), *args])
+    try:
+        rc = p.wait(timeout=200)
+    finally:
+        p.stop()
+    assert rc == 0, p.output()
+    assert_nothing_left(out)
+    return ref, out
+
+
+@pytest.mark.parametrize("mode", ["info", "ci"])
+def test_centre_fusing_local_tracks_equals_the_in_process_run(tmp_path, paper_path, mode):
+    cfg = _config(tmp_path, paper_path, mode, 60, {"mode": mode})
+    ref, out = _run_both(tmp_path, cfg, "spectral")
+    a, b = (
+        json.loads((ref / "summary.json").read_text()),
+        json.loads((out / "summary.json").read_text()),
+    )
+    assert b["completed"] is True and b["fusion"] == a["fusion"]
+    assert b["metrics"]["spectral"]["subsets"] == a["metrics"]["spectral"]["subsets"]
+    x, y = load_arrays(ref / "arrays.npz"), load_arrays(out / "arrays.npz")
+    np.testing.assert_allclose(y["x_est.spectral"], x["x_est.spectral"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(y["P_post.spectral"], x["P_post.spectral"], rtol=0, atol=1e-12)
+    # obedience: one local track per enabled scan, from each sensor, and nothing rejected
+    net = json.loads((out / "network.json").read_text())
+    for sid, used in b["metrics"]["spectral"]["usage"].items():
+        keys = [k for k in net["received"] if k.endswith(f"/sensor/{sid}/meas")]
+        assert sum(net["received"][k]["messages"] for k in keys) == used, sid
+    assert net["rejected"] == {} and net["lost"] == 0
+
+
+def test_peer_ring_equals_the_in_process_run_and_nodes_agree(tmp_path, paper_path):
+    cfg = _config(tmp_path, paper_path, "ring", 40, {"mode": "peer", "peer": {"graph": "ring"}})
+    ref, out = _run_both(tmp_path, cfg, "abs_trace")
+    b = json.loads((out / "summary.json").read_text())
+    assert b["completed"] is True and b["fusion"] == "peer-info-ring"
+    assert b["peer"]["abs_trace"]["agreement"] is True
+    x, y = load_arrays(ref / "arrays.npz"), load_arrays(out / "arrays.npz")
+    for sid in b["sensor_ids"]:
+        for name in ("x_est", "P_post"):
+            key = f"{name}.abs_trace.{sid}"
+            np.testing.assert_allclose(y[key], x[key], rtol=0, atol=1e-12, err_msg=key)
+    names = set(json.loads((out / "processes.json").read_text()))
+    assert "manager" in names  # the router and monitor: it neither decides nor fuses
+
+
+def test_a_killed_peer_is_dropped_from_every_decision(covnet_proc, tmp_path, paper_path):
+    victim = "S3"  # used often by abs_trace
+    cfg = _config(tmp_path, paper_path, "kill", 400, {"mode": "peer", "peer": {"graph": "ring"}})
+    out = tmp_path / "run"
+    p = covnet_proc(["up", str(cfg), "--out", str(out), "--metric", "abs_trace", "--no-figures"])
+    assert p.wait_for("[manager] READY", timeout=90), p.output()
+    m = p.wait_for(
+        lambda s: re.search(r"scan (\d+)/", s) and int(re.search(r"scan (\d+)/", s)[1]) >= 5,
+        timeout=90,
+    )
+    assert m, p.output()
+    pids = json.loads((out / "processes.json").read_text())
+    os.kill(pids[victim], signal.SIGKILL)
+    assert p.wait(timeout=200) == 0, p.output()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] is True
+    peer = summary["peer"]["abs_trace"]
+    assert peer["agreement"] is True  # every node decided the same at every scan it ran
+    failed = [e for e in summary["failures"]["abs_trace"] if e["sensor"] == victim]
+    assert failed, summary["failures"]
+    k_fail = failed[0]["scan"]
+    assert k_fail < 400
+    arrays = load_arrays(out / "arrays.npz")
+    ids = summary["sensor_ids"]
+    for sid in ids:
+        if sid == victim:
+            continue
+        x = arrays.get(f"x_est.abs_trace.{sid}")
+        assert x is not None and len(x) == 400, sid  # the survivors finished
+    # from the failure on, no survivor enables the victim
+    subsets = summary["metrics"]["abs_trace"]["subsets"]
+    assert all(victim not in s for s in subsets[k_fail - 1 :])
+    assert_nothing_left(out)

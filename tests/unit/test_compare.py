@@ -1,0 +1,110 @@
+"""``covnet compare``: the table's numbers follow from the runs (info == central, message
+counts from the enabled sets), the NEES verdicts, the files, the CLI."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from covnet.cli import main
+from covnet.compare import MODES, Trial, compare, scenario_for, summarise
+from covnet.config import from_dict, load, normalised
+
+
+@pytest.fixture(scope="module")
+def short(paper_path):
+    data = normalised(load(paper_path))
+    data["scans"] = 50
+    return from_dict(data)
+
+
+@pytest.fixture(scope="module")
+def rows(short):
+    return {r["mode"]: r for r in compare(short, MODES, "abs_trace", 5, graph="ring", workers=1)}
+
+
+def test_info_row_equals_central(rows):
+    a, b = rows["central"], rows["info"]
+    for key in ("allocation_rate", "sensors_per_scan", "messages_per_scan"):
+        assert a[key] == b[key], key
+    assert b["rmse_position"] == pytest.approx(a["rmse_position"], rel=1e-9)
+    assert b["mean_nees"] == pytest.approx(a["mean_nees"], rel=1e-9)
+    assert b["bytes_per_scan"] > a["bytes_per_scan"]  # a local track carries two estimates
+
+
+def test_message_counts_follow_from_the_enabled_sets(rows):
+    # central: command + one measurement per enabled sensor + track + status
+    c = rows["central"]
+    assert c["messages_per_scan"] == pytest.approx(3 + c["sensors_per_scan"])
+    # peer: one local track per enabled node + a track and a status from each of the 8 nodes
+    p = rows["peer-info"]
+    assert p["messages_per_scan"] == pytest.approx(16 + p["sensors_per_scan"])
+    # ring: each local track reaches its 2 neighbours; each status 8 receivers
+    assert p["deliveries_per_scan"] == pytest.approx(2 * p["sensors_per_scan"] + 8 + 64)
+
+
+def test_ci_is_conservative_and_bands_are_ordered(rows):
+    for r in rows.values():
+        lo, hi = r["nees_band_95"]
+        glo, ghi = r["nees_mean_ci_95"]
+        assert lo < 4.0 < hi and glo < r["mean_nees"] < ghi
+        assert 0.0 <= r["nees_inside_fraction"] <= 1.0
+    assert rows["ci"]["mean_nees"] < rows["central"]["mean_nees"]
+    assert rows["central"]["nees_verdict"] != "optimistic"
+
+
+@pytest.mark.parametrize(
+    ("level", "verdict"), [(2.0, "conservative"), (4.0, "consistent"), (7.0, "optimistic")]
+)
+def test_nees_verdict_from_the_run_averages(short, level, verdict):
+    rng = np.random.default_rng(0)
+    trials = [
+        Trial("central", r, level * rng.chisquare(4, 50) / 4, np.ones(50), np.ones((50, 8), bool))
+        for r in range(30)
+    ]
+    row = summarise(short, "central", trials, None)
+    assert row["nees_verdict"] == verdict
+    assert row["mean_nees"] == pytest.approx(level, rel=0.1)
+
+
+def test_scenario_for_each_mode(short):
+    assert scenario_for(short, "ci-fast").fusion.ci_objective == "fast"
+    sc = scenario_for(short, "peer-ci", graph="star", seed=7)
+    assert (sc.fusion.mode, sc.fusion.rule, sc.fusion.peer.graph, sc.seed) == (
+        "peer",
+        "ci",
+        "star",
+        7,
+    )
+    with pytest.raises(ValueError, match="unknown fusion mode"):
+        scenario_for(short, "gossip")
+
+
+def test_cli_compare_writes_table_and_figure(paper_path, tmp_path, capsys):
+    out = tmp_path / "cmp"
+    args = ["compare", str(paper_path), "--modes", "central,ci", "--runs", "2", "--workers", "1"]
+    assert main([*args, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "verdict" in text and "central" in text
+    doc = json.loads((out / "compare.json").read_text())
+    assert [r["mode"] for r in doc["rows"]] == ["central", "ci"] and doc["runs"] == 2
+    with (out / "compare.csv").open() as f:
+        assert [r["mode"] for r in csv.DictReader(f)] == ["central", "ci"]
+    assert (out / "compare.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["--modes", "central,gossip"], "--modes: unknown mode 'gossip'"),
+        (["--runs", "1"], "--runs: at least 2"),
+        (["--metric", "nope"], "nope"),
+    ],
+)
+def test_cli_compare_bad_options(paper_path, tmp_path, capsys, extra, needle):
+    rc = main(["compare", str(paper_path), "--out", str(tmp_path / "x"), *extra])
+    assert rc == 2
+    assert needle in capsys.readouterr().err
