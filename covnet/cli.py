@@ -109,18 +109,36 @@ def cmd_run(args: argparse.Namespace) -> int:
     traj = shared_trajectory(model)
     runs = {}
     node_runs = {}
+    latency: dict[str, dict[str, int]] = {}
+    slow = not sc.network.latency.is_ideal(sc.sensor_ids)
+    if slow and sc.fusion.mode == "peer":
+        raise UsageError("network.latency: peer mode has no fusion centre; latency runs need one")
     for m in metrics:
         t0 = time.perf_counter()
-        runs[m], nodes = run_mode(sc, m, model)
-        if nodes is not None:
-            node_runs[m] = nodes
+        if slow:
+            from covnet.latency_sim import run_latency
+
+            runs[m], counts = run_latency(sc, m, model)
+            latency[m] = counts.as_dict()
+        else:
+            runs[m], nodes = run_mode(sc, m, model)
+            if nodes is not None:
+                node_runs[m] = nodes
         r = runs[m]
         rate = 100.0 * r.enabled.sum() / r.enabled.size
         print(
             f"{m:>10}: {sc.scans} scans in {time.perf_counter() - t0:.2f} s, "
             f"allocation rate {rate:.1f} %"
         )
-    summary = write_run(out, sc, traj, runs, run_info={"mode": "in-process"}, node_runs=node_runs)
+    summary = write_run(
+        out,
+        sc,
+        traj,
+        runs,
+        extra={"latency": latency} if latency else None,
+        run_info={"mode": "in-process"},
+        node_runs=node_runs,
+    )
     if not args.no_figures:
         from covnet.plots import make_figures
 
@@ -301,7 +319,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise UsageError(
             f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
         )
-    report = replay_run(run_dir, Path(args.out) if args.out else None)
+    from covnet.replay import ReplayError
+
+    try:
+        report = replay_run(run_dir, Path(args.out) if args.out else None)
+    except ReplayError as exc:
+        _err(str(exc))
+        return EXIT_FAIL
     if report.identical:
         print(f"replayed {run_dir}: summary.json reproduced exactly ({report.out_dir})")
         return EXIT_OK
@@ -357,7 +381,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
     cmp.write_table(out, rows, meta)
     if not args.no_figures:
         cmp.make_figure(
-            out, rows, f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds"
+            out,
+            rows,
+            f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds, "
+            f"peer graph {meta['graph']}",
         )
     if args.json:
         for r in rows:
@@ -455,6 +482,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from covnet.passive.cli_entry import bench_cmd as passive_bench
 
         return passive_bench(args.json)
+    if args.target == "fusion":
+        from covnet.experiments import bench_fusion
+
+        rows = bench_fusion.run_bench(args.sensors or [8, 12, 16], repeat=max(args.repeat, 3))
+        if args.json:
+            for row in rows:
+                print(json.dumps(row))
+        else:
+            print(bench_fusion.format_table(rows))
+        return EXIT_OK
+    args.sensors = args.sensors or [8, 12, 16, 20]
     from covnet.experiments import bench_allocation
 
     sc = _load(args.config)
@@ -641,18 +679,18 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "target",
         nargs="?",
-        choices=["alloc", "up", "mobile", "passive"],
+        choices=["alloc", "up", "mobile", "passive", "fusion"],
         default="alloc",
         help="alloc: allocation decisions per metric and N; up: covnet up in lockstep; "
-        "mobile: cost tensor and LP/MILP; passive: association methods",
+        "mobile: cost tensor and LP/MILP; passive: association methods; fusion: the batched "
+        "covariance-intersection candidates of every subset against a scipy loop",
     )
     b.add_argument(
         "--sensors",
         type=_int_list,
-        default=[8, 12, 16, 20],
         metavar="N,N,...",
-        help="sensor counts (default 8,12,16,20; beyond 8 the paper table cycles "
-        "with both sigmas scaled by 1 + 0.5 (j // 8))",
+        help="sensor counts (default 8,12,16,20; fusion: 8,12,16; beyond 8 the paper table "
+        "cycles with both sigmas scaled by 1 + 0.5 (j // 8))",
     )
     b.add_argument(
         "--metric",

@@ -288,8 +288,19 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
         ax.set_title(label)
         ax.tick_params(axis="x", rotation=35)
         ax.grid(axis="y", alpha=0.3)
+    ci = np.array([r["nees_mean_ci_95"] for r in rows]).T
+    mean = np.array([r["mean_nees"] for r in rows])
+    axes[2].errorbar(
+        modes,
+        mean,
+        yerr=[mean - ci[0], ci[1] - mean],
+        fmt="none",
+        ecolor="k",
+        capsize=4,
+        label="95 % CI of the mean",
+    )
     lo, hi = rows[0]["nees_band_95"]
-    axes[2].axhspan(lo, hi, color="0.6", alpha=0.35, label="95 % χ² band")
+    axes[2].axhspan(lo, hi, color="0.6", alpha=0.35, label="95 % χ² band (per scan)")
     axes[2].axhline(4.0, color="k", lw=0.8, ls="--")
     axes[2].legend(loc="upper right", fontsize=8)
     fig.suptitle(title)

@@ -21,7 +21,15 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 __all__ = [
     "ConfigError",
@@ -135,6 +143,7 @@ class AllocationSpec(_Model):
     excluded: tuple[Str, ...] = ()
     max_active: Int | None = Field(default=None, ge=1)
     tie_rtol: Float = Field(default=1e-9, ge=0.0, le=1e-3)
+    account_for_loss: Bool = False
 
 
 FUSION_MODES = ("central", "info", "ci", "peer")
@@ -213,6 +222,73 @@ class SecuritySpec(_Model):
         return self.credentials_file is not None or self.tls is not None
 
 
+class LinkConfig(_Model):
+    """One direction of a link (:class:`covnet.core.delay.LinkSpec`): ``delay`` a distribution
+    (``{kind: constant, value_s: 0.02}``, ``uniform`` low_s/high_s, ``normal`` mean_s/std_s,
+    ``exponential`` offset_s/mean_s, ``empirical`` samples_s), ``jitter_s`` (std of an extra
+    normal), ``loss`` (i.i.d. drop probability), ``reorder`` (probability a message may overtake
+    earlier ones)."""
+
+    delay: dict[Str, Any] = Field(default_factory=lambda: {"kind": "constant", "value_s": 0.0})
+    jitter_s: Float = 0.0
+    loss: Float = 0.0
+    reorder: Float = 0.0
+
+    @model_validator(mode="after")
+    def _valid_link(self) -> LinkConfig:
+        for key, value in self.delay.items():
+            values = value if key == "samples_s" and isinstance(value, list | tuple) else [value]
+            if key != "kind" and not all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in values
+            ):
+                raise ValueError(f"delay.{key} must be a number of seconds, got {value!r}")
+        self.spec()  # the core's checks, with its messages naming the field
+        return self
+
+    def spec(self) -> Any:
+        from covnet.core.delay import LinkSpec
+
+        return LinkSpec.from_dict(self.model_dump())
+
+
+class SensorLinks(_Model):
+    """Per-sensor overrides of the default links."""
+
+    uplink: LinkConfig | None = None
+    downlink: LinkConfig | None = None
+
+
+class LatencySpec(_Model):
+    """The network between the sensors and the fusion node (README, "Network latency").
+
+    ``uplink`` (sensor -> manager: measurements, local tracks) and ``downlink`` (manager ->
+    sensor: commands) apply to every sensor unless ``sensors.<id>`` overrides them.  Scan ``k``
+    has its deadline ``deadline_fraction * period_s`` after ``t_k`` (``network.
+    deadline_fraction``); a measurement arriving after it is ``late``: re-filtered as an
+    out-of-sequence measurement (``late: oosm``, up to ``oosm_depth`` scans back; older ones are
+    dropped) or dropped (``late: drop``), counted either way.  A sensor whose command for scan
+    ``k`` has not arrived by ``t_k`` follows ``missed_command``: ``keep_last`` (its last
+    command's on/off for itself), ``off`` or ``on``.  Draws come from per-link streams of the
+    seed: the same config and seed give the same arrivals."""
+
+    uplink: LinkConfig = LinkConfig()
+    downlink: LinkConfig = LinkConfig()
+    sensors: dict[Str, SensorLinks] = Field(default_factory=dict)
+    late: Literal["oosm", "drop"] = "oosm"
+    oosm_depth: Int = Field(default=5, ge=1, le=1000)
+    missed_command: Literal["keep_last", "off", "on"] = "keep_last"
+
+    def link(self, sensor_id: str, direction: str) -> Any:
+        """The :class:`~covnet.core.delay.LinkSpec` of ``sensor_id``'s ``uplink`` or
+        ``downlink``."""
+        own = self.sensors.get(sensor_id)
+        cfg = getattr(own, direction) if own is not None else None
+        return (cfg or getattr(self, direction)).spec()
+
+    def is_ideal(self, sensor_ids: Sequence[str]) -> bool:
+        return all(self.link(s, d).is_ideal for s in sensor_ids for d in ("uplink", "downlink"))
+
+
 class NetworkSpec(_Model):
     """How ``covnet up`` wires the processes over zenoh (see README, "Running a network").
 
@@ -233,6 +309,7 @@ class NetworkSpec(_Model):
     restart: Literal["never", "on-failure"] = "never"
     record: bool = True
     security: SecuritySpec = SecuritySpec()
+    latency: LatencySpec = LatencySpec()
 
     _pos = field_validator("heartbeat_s", "failure_timeout_s", "ready_timeout_s", "scan_timeout_s")(
         _positive
@@ -358,6 +435,9 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
 
     problems += security_problems(sc.network, ids)
     problems += _peer_problems(sc.fusion.peer, ids)
+    for sid in sc.network.latency.sensors:
+        if sid not in seen:
+            problems.append((f"network.latency.sensors.{sid}", f"no sensor with id {sid!r}"))
     if set(al.excluded) >= set(ids):
         problems.append(("allocation.excluded", "excludes every sensor"))
     if al.max_active is not None:

@@ -49,6 +49,12 @@ def common_parser(prog: str, description: str) -> argparse.ArgumentParser:
         choices=FUSION_MODES,
         help="override the config's fusion.mode (covariance-control scenarios)",
     )
+    p.add_argument(
+        "--no-app-latency",
+        action="store_true",
+        help="do not emulate network.latency inside the process (a real emulated path, "
+        "covnet up --netns, delays the packets instead)",
+    )
     return p
 
 

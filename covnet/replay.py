@@ -16,6 +16,12 @@ that does not decode is counted by reason and skipped, never used):
   definite);
 - the manager's :class:`~covnet.messages.Track` per ``(episode, scan)`` (a cross-check only).
 
+In the decentralized centre modes (``fusion.mode: info | ci``) the sensors' keys carry
+:class:`~covnet.messages.LocalTrack` s instead of measurements, and the steps below are the
+manager's for those modes (:func:`covnet.decentral.decide_rule` over the local filters'
+covariance mirror, :func:`covnet.decentral.fuse_tracks`).  A peer-mode run has no centre to
+replay (a :class:`ReplayError` says so).
+
 Per episode ``e`` (metric ``m = episodes[e]``) and scan ``k = 1, 2, ...`` while a Status of
 ``(e, k)`` was recorded, exactly the manager's steps (:mod:`manager.node`)::
 
@@ -55,6 +61,7 @@ import numpy as np
 from covnet import messages as msg
 from covnet.config import Scenario, config_hash, from_dict
 from covnet.core.kalman import nees
+from covnet.decentral import Mirror, decide_rule, fuse_tracks
 from covnet.model import (
     build_model,
     decide,
@@ -67,7 +74,7 @@ from covnet.model import (
 from covnet.recording import META_RUN, RecordedSample, RecordingReader, key_kind, read_metadata
 from covnet.results import RUN_INFO, SUMMARY, write_json
 from covnet.runtime_stats import NetStats
-from manager.node import EpisodeLog, ManagerResult
+from manager.node import EpisodeLog, ManagerResult, as_local_track, usable_track
 from manager.report import write_network_run
 
 __all__ = ["RECORDING", "REPLAY_DIR", "ReplayError", "ReplayReport", "replay_run"]
@@ -132,14 +139,17 @@ class _Recorded:
 
     status: dict[tuple[int, int], msg.Status] = field(default_factory=dict)
     track: dict[tuple[int, int], msg.Track] = field(default_factory=dict)
-    meas: dict[tuple[int, int, str], msg.Measurement] = field(default_factory=dict)
+    meas: dict[tuple[int, int, str], Any] = field(default_factory=dict)  # or LocalTrack
     counts: dict[str, int] = field(default_factory=dict)
 
     def count(self, what: str) -> None:
         self.counts[what] = self.counts.get(what, 0) + 1
 
 
-def _load_recording(samples: Iterator[RecordedSample], run_id: str) -> _Recorded:
+def _load_recording(
+    samples: Iterator[RecordedSample], run_id: str, decentral: bool = False
+) -> _Recorded:
+    """``decentral``: the sensors' keys carry local tracks (``fusion.mode: info | ci``)."""
     rec = _Recorded()
     for s in samples:
         rec.count("samples")
@@ -153,6 +163,13 @@ def _load_recording(samples: Iterator[RecordedSample], run_id: str) -> _Recorded
             elif kind == msg.Track.KIND:
                 tr = msg.decode_as(s.payload, msg.Track)
                 rec.track.setdefault((tr.episode, tr.scan), tr)
+            elif kind == msg.Measurement.KIND and decentral:
+                lt = msg.decode_as(s.payload, msg.LocalTrack)
+                rec.count("local_track")
+                if lt.sensor_id != msg.parse_measurement_key(s.key) or not usable_track(lt):
+                    rec.count("skipped:invalid_local_track")
+                elif rec.meas.setdefault((lt.episode, lt.scan, lt.sensor_id), lt) is not lt:
+                    rec.count("local_track_duplicate")
             elif kind == msg.Measurement.KIND:
                 m = msg.decode_as(s.payload, msg.Measurement)
                 rec.count("measurement")
@@ -184,6 +201,11 @@ def replay_run(run_dir: Path, out: Path | None = None) -> ReplayReport:
         if not (run_dir / name).is_file():
             raise ReplayError(f"{run_dir} has no {name}: not a recorded network run")
     sc = from_dict(_read_json(run_dir / "config.json"), str(run_dir / "config.json"))
+    if sc.fusion.mode == "peer":
+        raise ReplayError(
+            f"{run_dir} is a peer-mode run: there is no fusion centre to re-fuse (each node's "
+            "own estimates are in its arrays.npz); replay covers central, info and ci runs"
+        )
     info = _read_json(run_dir / RUN_INFO)
     metrics = info.get("episodes")
     if not isinstance(metrics, list) or not all(isinstance(m, str) for m in metrics):
@@ -201,7 +223,7 @@ def replay_run(run_dir: Path, out: Path | None = None) -> ReplayReport:
     if meta_run.get("config_hash", h) != h:
         diffs.add("metadata", f"recording: config hash {meta_run['config_hash']}, config.json: {h}")
     reader = RecordingReader(run_dir / RECORDING)
-    rec = _load_recording(reader.samples(), run_id)
+    rec = _load_recording(reader.samples(), run_id, sc.fusion.mode in ("info", "ci"))
     if not reader.complete:
         notes.append(
             "recording has no footer (the recorder did not close it: killed?); read up to "
@@ -248,6 +270,8 @@ def _rebuild(
     model = build_model(sc)
     ids = model.sensor_ids
     truth = truth_trajectory(model)
+    fusion = sc.fusion
+    decentral = fusion.mode in ("info", "ci")
     result = ManagerResult({}, NetStats())
     completed = True
     for e, metric in enumerate(metrics):
@@ -258,6 +282,7 @@ def _rebuild(
         log = result.episodes[metric] = EpisodeLog(metric)
         where = f"episode {e} ({metric})"
         est = initial_estimate(model, sc.filter.initial_estimate)
+        mirror = Mirror.start(model)
         failed_prev: frozenset[str] = frozenset()
         for k in range(1, model.scans + 1):
             st = rec.status.get((e, k))
@@ -278,7 +303,11 @@ def _rebuild(
             failed_prev = failed
             unavailable = frozenset(ids.index(s) for s in failed if s in ids)
             t0 = time.perf_counter()
-            alloc = decide(model, pred.P, k, metric, unavailable)
+            if decentral:
+                P_loc = mirror.predicted(model)[1]
+                alloc = decide_rule(fusion, model, pred.P, P_loc, k, metric, unavailable)
+            else:
+                alloc = decide(model, pred.P, k, metric, unavailable)
             decision_s = time.perf_counter() - t0
             enabled = tuple(ids[j] for j in alloc.subset)
             if enabled != st.enabled:
@@ -303,8 +332,15 @@ def _rebuild(
                         "valid measurement of it is recorded",
                     )
                     continue
-                got.append((ids.index(sid), m.z[0], m.R))
-            est = fuse(model, pred, got)
+                got.append((ids.index(sid), m))
+            if decentral:  # the manager's steps (manager.node.run)
+                tracks = [(j, as_local_track(m)) for j, m in got]
+                est = fuse_tracks(fusion, pred, tracks)
+                mirror.advance(fusion, model, [j for j, _ in tracks])
+                for j, t in tracks:
+                    mirror.P_local[j] = t.post.P
+            else:
+                est = fuse(model, pred, [(j, m.z[0], m.R) for j, m in got])
             if float(np.trace(est.P)) != st.trace_P:
                 diffs.add(
                     "trace_P",

@@ -255,8 +255,12 @@ def _any_run(key: str) -> str:
 def _own_keys(role: str, node_id: str) -> tuple[list[str], list[str]]:
     """``(put keys, liveliness keys)`` a node may publish, for any run."""
     puts = [msg.heartbeat_key(_RUN, role, node_id)]
-    if role == "sensor":
-        puts.insert(0, msg.measurement_key(_RUN, node_id))
+    if role == "sensor":  # its measurements or local tracks; in peer mode its own track/status
+        puts[:0] = [
+            msg.measurement_key(_RUN, node_id),
+            msg.peer_track_key(_RUN, node_id),
+            msg.peer_status_key(_RUN, node_id),
+        ]
     elif role == "world":
         puts.insert(0, msg.truth_key(_RUN))
     tokens = [msg.alive_key(_RUN, role, node_id)]

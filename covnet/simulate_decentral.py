@@ -116,11 +116,17 @@ def run_mode(
     sc: Scenario, metric: str, model: Model | None = None
 ) -> tuple[MetricRun, dict[str, MetricRun] | None]:
     """The run of ``sc.fusion.mode``: ``(run, None)`` for a fusion centre (``central``, ``info``,
-    ``ci``); in ``peer`` mode ``(run of the first node, every node's run)``."""
+    ``ci``); in ``peer`` mode ``(run of the first node, every node's run)``.  With slow or lossy
+    links (``network.latency`` not ideal) a centre's run is :func:`covnet.latency_sim.
+    run_latency` (simulated time; its counts: call that function directly)."""
     from covnet.simulate import run_metric
 
     model = model or build_model(sc)
     mode = sc.fusion.mode
+    if not sc.network.latency.is_ideal(model.sensor_ids):
+        from covnet.latency_sim import run_latency
+
+        return run_latency(sc, metric, model)[0], None
     if mode == "central":
         return run_metric(sc, metric, model), None
     if mode == "peer":

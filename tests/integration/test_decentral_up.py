@@ -61,6 +61,9 @@ def test_centre_fusing_local_tracks_equals_the_in_process_run(tmp_path, paper_pa
         keys = [k for k in net["received"] if k.endswith(f"/sensor/{sid}/meas")]
         assert sum(net["received"][k]["messages"] for k in keys) == used, sid
     assert net["rejected"] == {} and net["lost"] == 0
+    # the recording of local tracks re-fuses to the same summary, byte for byte
+    assert covnet_main(["replay", str(out)]) == 0
+    assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()
 
 
 def test_peer_ring_equals_the_in_process_run_and_nodes_agree(tmp_path, paper_path):
@@ -76,6 +79,7 @@ def test_peer_ring_equals_the_in_process_run_and_nodes_agree(tmp_path, paper_pat
             np.testing.assert_allclose(y[key], x[key], rtol=0, atol=1e-12, err_msg=key)
     names = set(json.loads((out / "processes.json").read_text()))
     assert "manager" in names  # the router and monitor: it neither decides nor fuses
+    assert covnet_main(["replay", str(out)]) == 1  # no centre to re-fuse: a clear refusal
 
 
 def test_a_killed_peer_is_dropped_from_every_decision(covnet_proc, tmp_path, paper_path):

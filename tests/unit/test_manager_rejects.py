@@ -8,7 +8,7 @@ import pytest
 from covnet import messages as msg
 from covnet.bus import InMemoryBus, Sample
 from covnet.clock import SimClock
-from manager.node import _Loop, usable_position
+from manager.node import _Loop, usable_position, usable_track
 
 RUN = "r1"
 
@@ -72,3 +72,54 @@ def test_garbage_counted_not_raised(loop):
         Sample(msg.measurement_key(RUN, "S1"), b"\x00\x01", 1), 0, 5, {"S1"}, {}, usable_position
     )
     assert sum(loop.stats.rejected.values()) == 1
+
+
+# decentralized modes: the sensors' keys carry local tracks
+
+
+def _track_sample(sensor_key: str, **fields) -> Sample:
+    m = msg.LocalTrack(
+        **(
+            {
+                "sensor_id": "S1",
+                "scan": 5,
+                "t": 5.0,
+                "x": np.zeros(4),
+                "P": np.eye(4),
+                "x_prior": np.zeros(4),
+                "P_prior": 2.0 * np.eye(4),
+                "t_sent_ns": 1,
+                "episode": 0,
+            }
+            | fields
+        )
+    )
+    return Sample(msg.measurement_key(RUN, sensor_key), msg.encode(m), 2)
+
+
+TRACK_CASES = [
+    ("accepted", _track_sample("S1"), None),
+    ("key-mismatch", _track_sample("S2"), "key_mismatch"),
+    ("late", _track_sample("S1", scan=4), "late"),
+    (
+        "three-states",
+        _track_sample("S1", x=np.zeros(3), P=np.eye(3), x_prior=np.zeros(3), P_prior=np.eye(3)),
+        "bad_measurement",
+    ),
+    ("not-spd", _track_sample("S1", P=-np.eye(4)), "bad_measurement"),
+    ("prior-not-spd", _track_sample("S1", P_prior=np.zeros((4, 4))), "bad_measurement"),
+    ("a-measurement", _sample("S1"), "wrong_kind"),
+]
+
+
+@pytest.mark.parametrize(
+    "sample, reason", [c[1:] for c in TRACK_CASES], ids=[c[0] for c in TRACK_CASES]
+)
+def test_local_track_verdicts(loop, sample, reason):
+    got: dict = {}
+    waiting = {"S1", "S2"}
+    loop._take(sample, 0, 5, waiting, got, usable_track, msg.LocalTrack)
+    if reason is None:
+        assert set(got) == {"S1"} and not loop.stats.rejected
+    else:
+        assert got == {} and dict(loop.stats.rejected) == {reason: 1}

@@ -329,6 +329,11 @@ def test_access_control_rules(paper, lab, identity):
     assert not ingress_put("S1", msg.measurement_key(RUN, "S2"))
     assert not ingress_put("S1", msg.heartbeat_key(RUN, "sensor", "S2"))
     assert not ingress_put("S1", msg.truth_key(RUN))
+    # peer mode: a node publishes its own fused track and status, nobody else's
+    assert ingress_put("S1", msg.peer_track_key(RUN, "S1"))
+    assert ingress_put("S1", msg.peer_status_key(RUN, "S1"))
+    assert not ingress_put("S1", msg.peer_status_key(RUN, "S2"))
+    assert not ingress_put("world", msg.peer_track_key(RUN, "S1"))
     assert ingress_put("world", msg.truth_key(RUN))
     assert not ingress_put("world", msg.measurement_key(RUN, "S1"))
     assert ingress_put("recorder", msg.heartbeat_key(RUN, "recorder", "recorder"))
