@@ -93,6 +93,9 @@ REFINED_PICKS = 4
 BATCH_INVARIANT = frozenset(METRICS.values())
 #: stage-1 entrywise error model: err = ERR_FACTOR · n² · eps · κ · λmax(P_pred)
 ERR_FACTOR = 64.0
+#: an offset ``o`` folded into the products of a single-chunk plan's stage 1
+#: (:meth:`_Setup.diag_coeffs`) adds at most ``FOLD_ERR · n · eps · κ · |o|`` to an entry
+FOLD_ERR = 64.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -274,6 +277,10 @@ class SearchTables:
         "pc_hi",
         "diag_rows",
         "s_index",
+        "d_cache",
+        "S_req_list",
+        "Q",
+        "checked_d",
     )
 
     def __init__(
@@ -303,8 +310,12 @@ class SearchTables:
         self.s_index = slice(int(s[0]), int(s[-1]) + 1, step) if even else s
         self.S_free = S if self.plain else S[free]
         self.S_req = S[req].sum(axis=0) if req else None
+        self.S_req_list = self.S_req.tolist() if req else None
         self.active_trace = float(np.einsum("jii->", active))
         self.diag_rows = np.arange(0, n * n, n + 1)
+        self.d_cache: dict[bytes, _DConstants] = {}
+        #: desired covariances as given -> as checked (:func:`covnet.core.allocation.allocate`)
+        self.checked_d: dict[bytes, Mat] = {}
         c = min(m, CHUNK_BITS)
         bits_lo, pc_lo = _bit_table(c)
         S_lo = self.S_free[:c].T @ bits_lo  # (r*r, 2^c)
@@ -317,15 +328,32 @@ class SearchTables:
             self.masks = self.code_masks(t)
             self.subsets = [tuple(row.nonzero()[0].tolist()) for row in self.masks]
             self.J = gain_sums(gains, self.masks) if t.size * n * n <= EXACT_TABLE_MAX else None
+            self.Q = None
+            if r == 2:  # Z_i and det Z_i as one product (_Setup.chunk_covariances)
+                Ss = self.S_sub
+                self.Q = np.concatenate(
+                    [Ss, np.ones((1, t.size)), (Ss[0] * Ss[3] - Ss[1] * Ss[2])[None]]
+                )
             self.S_lo = self.pc_lo = self.S_hi = self.pc_hi = None
         else:
             bits_hi, pc_hi = _bit_table(m - c)
             self.S_lo, self.pc_lo = S_lo, pc_lo
             self.S_hi, self.pc_hi = self.S_free[c:].T @ bits_hi, pc_hi  # (r*r, 2^(m-c))
-            self.codes = self.S_sub = self.masks = self.J = self.subsets = None
+            self.codes = self.S_sub = self.masks = self.J = self.subsets = self.Q = None
         for a in (self.S_free, self.S_sub, self.masks, self.J, self.S_lo, self.S_hi, self.codes):
             if a is not None:
                 a.flags.writeable = False
+
+    def d_constants(self, P_d: Mat) -> _DConstants:
+        """The constants of one desired covariance (:class:`_DConstants`), kept for the next
+        decisions with the same ``P_d`` (a schedule changes it rarely); keyed by its bytes."""
+        key = P_d.tobytes()
+        dc = self.d_cache.get(key)
+        if dc is None:
+            if len(self.d_cache) >= D_CACHE_SIZE:
+                self.d_cache.clear()
+            dc = self.d_cache[key] = _DConstants(P_d)
+        return dc
 
     def code_masks(self, codes: NDArray[np.int64]) -> NDArray[np.bool_]:
         """Boolean sensor rows ``(len(codes), N)`` of subsets given as codes."""
@@ -336,6 +364,48 @@ class SearchTables:
         out[:, self.free] = bits
         out[:, self.req] = True
         return out
+
+
+class _DConstants:
+    """Per-``P_d`` constants of the bounds, each computed on first use: ``flat`` (the entries,
+    ``(n*n,)``), ``diag``, ``abs_sum`` (``sum |P_d|``), :meth:`eig` (``ordered_eigh(P_d)``),
+    :meth:`inverse` (``P_d⁻¹`` and ``κ_D = tr(P_d) tr(P_d⁻¹) >= cond(P_d)``), :meth:`logdet`.
+    Functions of the bits of ``P_d`` alone: one instance serves every decision with that ``P_d``."""
+
+    __slots__ = ("D", "flat", "diag", "diag_list", "abs_sum", "_eig", "_inv", "_logdet", "memo")
+
+    def __init__(self, P_d: Mat) -> None:
+        self.D = P_d.copy()
+        self.D.flags.writeable = False
+        self.flat = self.D.reshape(-1)
+        self.diag = self.D.diagonal().copy()
+        self.diag_list = self.diag.tolist()
+        self.abs_sum = float(_sum(abs(self.D), None))
+        self._eig: tuple[Mat, Mat] | None = None
+        self._inv: tuple[Mat, float] | None = None
+        self._logdet: float | None = None
+        #: derived per-``P_d`` constants of individual bounds
+        self.memo: dict[str, object] = {}
+
+    def eig(self) -> tuple[Mat, Mat]:
+        if self._eig is None:
+            self._eig = ordered_eigh(self.D)
+        return self._eig
+
+    def inverse(self) -> tuple[Mat, float]:
+        if self._inv is None:
+            D_inv = spd_inverse(self.D)
+            self._inv = (D_inv, float(self.D.trace()) * float(D_inv.trace()))
+        return self._inv
+
+    def logdet(self) -> float:
+        if self._logdet is None:
+            self._logdet = _logdet_spd(self.D)
+        return self._logdet
+
+
+#: desired covariances whose constants a plan keeps (:meth:`SearchTables.d_constants`)
+D_CACHE_SIZE = 8
 
 
 class _Setup:
@@ -358,64 +428,230 @@ class _Setup:
         "P",
         "Y0",
         "P_d",
-        "Zc",
-        "KT",
-        "T",
-        "P_inf",
-        "M_inf",
+        "_Zc",
+        "_KT",
+        "_KJ",
+        "_T",
+        "_T_diag",
+        "_P_inf",
+        "_M_inf",
+        "_P_inf_diag",
+        "_M_inf_diag",
+        "_T_K",
+        "_base",
+        "_py",
         "S_free",
-        "base",
         "ctx",
         "memo",
         "tab",
+        "dc",
     )
 
     def __init__(self, P: Mat, P_d: Mat, Y0: Mat, tab: SearchTables) -> None:
         n, r, s = tab.n, tab.r, tab.s
-        KJT = None
-        if r == n:
-            KT = np.eye(n)
-            P_inf = np.zeros(n * n)
-            Zc = Y0
-        elif r == 2:
-            si = tab.s_index
-            Ps = P[si]
-            (c00, c01), (_, c11) = Ps[:, si].tolist()
+        self.n, self.r, self.s = n, r, s
+        self.P, self.Y0, self.P_d, self.tab = P, Y0, P_d, tab
+        self.S_free = tab.S_free
+        self.dc = dc = tab.d_constants(P_d)
+        self.memo: dict[str, object] = {}
+        self._T = self._T_diag = self._P_inf = self._M_inf = None
+        self._P_inf_diag = self._M_inf_diag = self._KJ = self._T_K = None
+        pl = P.ravel().tolist()
+        self._py = None
+        if r == 2 and n > 2:
+            # the usual case (position sensors): C⁻¹ and Kᵀ = C⁻¹ P[s, :] in Python floats, the
+            # arrays only when a bound asks for them (attributes below)
+            i0, i1 = s.tolist()
+            p0, p1 = pl[i0 * n : i0 * n + n], pl[i1 * n : i1 * n + n]
+            c00, c01, c11 = p0[i0], p0[i1], p1[i1]
             det = c00 * c11 - c01 * c01
             a, b, c = c11 / det, -c01 / det, c00 / det
-            # rows 0-1: Zc = C⁻¹ (closed form); rows 2-3: Jᵀ C⁻¹ with J = [[0, 1], [-1, 0]]
-            W = np.array([[a, b], [b, c], [-b, -c], [a, b]])
-            KT_KJT = W @ Ps
-            Zc, KT, KJT = W[:2], KT_KJT[:2], KT_KJT[2:]
-            P_inf = (P - KT.T @ Ps).reshape(n * n)
+            kt0 = [a * x + b * y for x, y in zip(p0, p1, strict=True)]
+            kt1 = [b * x + c * y for x, y in zip(p0, p1, strict=True)]
+            self._py = (kt0, kt1, p0, p1, pl, a, b, c)
+            self._Zc = self._KT = None
+            sr = tab.S_req_list
+            self._base = (
+                (a, b, b, c) if sr is None else (a + sr[0], b + sr[1], b + sr[2], c + sr[3])
+            )
         else:
-            si = tab.s_index
-            Ps = P[si]
-            Zc = spd_inverse(Ps[:, si]) if r else np.zeros((0, 0))
-            KT = Zc @ Ps
-            P_inf = (P - KT.T @ Ps).reshape(n * n)
-        if r != 2:
-            KJT = KT
-        elif KJT is None:  # r = n = 2
-            KJT = KT[::-1] * _ADJ2_SIGN
-        # for r = 2, K adj(Z) Kᵀ = (K J) Z (K J)ᵀ with J = [[0, 1], [-1, 0]]: J folded into K
-        KJ = KJT.T  # (n, r)
-        self.T = (KJ[:, None, :, None] * KJ[None, :, None, :]).reshape(n * n, r * r)
-        self.P_inf = P_inf
-        self.M_inf = P_inf - P_d.reshape(n * n)
-        self.S_free = tab.S_free
-        base = Zc.reshape(r * r)
-        self.base = base + tab.S_req if tab.S_req is not None else base
-        self.n, self.r, self.s, self.Zc, self.KT = n, r, s, Zc, KT
-        self.P, self.Y0, self.P_d, self.tab = P, Y0, P_d, tab
-        self.memo: dict[str, object] = {}
+            if r == n:
+                KT = np.eye(n)
+                P_inf = np.zeros(n * n)
+                Zc = Y0
+            else:
+                si = tab.s_index
+                Ps = P[si]
+                Zc = spd_inverse(Ps[:, si]) if r else np.zeros((0, 0))
+                KT = Zc @ Ps
+                P_inf = (P - KT.T @ Ps).reshape(n * n)
+            if r == 2:  # r = n = 2: K adj(Z) Kᵀ = (K J) Z (K J)ᵀ, J = [[0, 1], [-1, 0]]
+                self._KJ = (KT[::-1] * _ADJ2_SIGN).T
+            else:
+                self._KJ = KT.T
+            self._Zc, self._KT, self._P_inf = Zc, KT, P_inf
+            base = Zc.reshape(r * r)
+            self._base = base + tab.S_req if tab.S_req is not None else base
         # limits valid for every subset (a PSD matrix's trace bounds its largest eigenvalue)
-        lam_max = float(P.trace())
-        tr_Y_all = float(Y0.trace()) + tab.active_trace
+        d = n + 1
+        lam_max = sum(pl[::d])
+        tr_Y_all = sum(Y0.ravel().tolist()[::d]) + tab.active_trace
         kappa = lam_max * tr_Y_all
         err = ERR_FACTOR * n * n * EPS * kappa * lam_max
-        scale = lam_max + float(_sum(abs(P_d), None))
-        self.ctx = BoundContext(err, 1.0 / tr_Y_all, lam_max, kappa, scale)
+        self.ctx = BoundContext(err, 1.0 / tr_Y_all, lam_max, kappa, lam_max + dc.abs_sum)
+
+    # -- the reduced form's arrays, built on first use -----------------------------------------
+
+    @property
+    def base(self) -> Mat:
+        """``C⁻¹`` plus the required sensors' ``S``, flattened ``(r*r,)``."""
+        if isinstance(self._base, tuple):
+            self._base = np.array(self._base)
+        return self._base
+
+    @property
+    def Zc(self) -> Mat:
+        """``C⁻¹ = P[s, s]⁻¹`` ``(r, r)``."""
+        if self._Zc is None:
+            a, b, c = self._py[5:]  # type: ignore[index]
+            self._Zc = np.array(((a, b), (b, c)))
+        return self._Zc
+
+    @property
+    def KT(self) -> Mat:
+        """``Kᵀ = C⁻¹ P[s, :]`` ``(r, n)``."""
+        if self._KT is None:
+            kt0, kt1 = self._py[:2]  # type: ignore[index]
+            self._KT = np.array((kt0, kt1))
+        return self._KT
+
+    @property
+    def KJ(self) -> Mat:
+        """``K`` (``K J`` for ``r = 2``, the adjugate's sign pattern folded in) ``(n, r)``."""
+        if self._KJ is None:
+            kt0, kt1 = self._py[:2]  # type: ignore[index]
+            self._KJ = np.array([(-y, x) for x, y in zip(kt0, kt1, strict=True)])
+        return self._KJ
+
+    @property
+    def P_inf(self) -> Mat:
+        """``P∞ = P - K P[s, :]`` flattened ``(n*n,)``."""
+        if self._P_inf is None:
+            Ps = self.P[self.tab.s_index]
+            self._P_inf = (self.P - self.KT.T @ Ps).reshape(self.n * self.n)
+        return self._P_inf
+
+    @property
+    def M_inf(self) -> Mat:
+        """``P∞ - P_d`` flattened ``(n*n,)``."""
+        if self._M_inf is None:
+            self._M_inf = self.P_inf - self.dc.flat
+        return self._M_inf
+
+    @property
+    def T(self) -> Mat:
+        """``T`` ``(n*n, r*r)``: ``P_i = T g_i + P∞`` flattened."""
+        if self._T is None:
+            KJ, n, r = self.KJ, self.n, self.r
+            self._T = (KJ[:, None, :, None] * KJ[None, :, None, :]).reshape(n * n, r * r)
+        return self._T
+
+    @property
+    def T_K(self) -> Mat:
+        """``K ⊗ K`` ``(n*n, 4)`` (``r = 2 < n``): ``P_i = P + T_K vec(Z_i⁻¹ - C)`` flattened, since
+        ``P∞ = P - K C Kᵀ`` (:meth:`_ChunkStage1P.full`)."""
+        if self._T_K is None:
+            kt0, kt1 = self._py[:2]  # type: ignore[index]
+            K = np.array((kt0, kt1)).T
+            n = self.n
+            self._T_K = (K[:, None, :, None] * K[None, :, None, :]).reshape(n * n, 4)
+        return self._T_K
+
+    @property
+    def T_diag(self) -> Mat:
+        """The diagonal rows ``T[::n+1]`` ``(n, r*r)`` alone (for bounds that read the diagonal
+        only), the same products as :attr:`T`."""
+        if self._T_diag is None:
+            if self._T is not None:
+                self._T_diag = self._T[:: self.n + 1]
+            elif self._py is not None:
+                kt0, kt1 = self._py[:2]
+                self._T_diag = np.array(
+                    [(y * y, -y * x, x * -y, x * x) for x, y in zip(kt0, kt1, strict=True)]
+                )
+            else:
+                KJ = self.KJ
+                self._T_diag = (KJ[:, :, None] * KJ[:, None, :]).reshape(self.n, self.r * self.r)
+        return self._T_diag
+
+    @property
+    def P_inf_diag(self) -> Mat:
+        """The diagonal of ``P∞`` ``(n,)``."""
+        if self._P_inf_diag is None:
+            if self._P_inf is None and self._py is not None:
+                kt0, kt1, p0, p1, pl = self._py[:5]
+                d = self.n + 1
+                self._P_inf_diag = np.array(
+                    [pl[i * d] - (kt0[i] * p0[i] + kt1[i] * p1[i]) for i in range(self.n)]
+                )
+            else:
+                self._P_inf_diag = self.P_inf[:: self.n + 1]
+        return self._P_inf_diag
+
+    @property
+    def M_inf_diag(self) -> Mat:
+        """The diagonal of ``P∞ - P_d`` ``(n,)``."""
+        if self._M_inf_diag is None:
+            self._M_inf_diag = self.P_inf_diag - self.dc.diag
+        return self._M_inf_diag
+
+    def chunk_covariances(self) -> Stage1P:
+        """Stage-1 ``P_i`` of every feasible subset of a single-chunk plan (``tab.S_sub``): a
+        :class:`_ChunkStage1P` when the plan has the ``Q`` table and ``r = 2 < n``."""
+        if self.tab.Q is None or self._py is None:
+            return self.covariances(self.tab.S_sub + self.base[:, None])
+        return _ChunkStage1P(self)
+
+    def _base4(self) -> tuple[float, float, float, float]:
+        b = self._base
+        return b if isinstance(b, tuple) else tuple(b.tolist())  # type: ignore[return-value]
+
+    def det_row(self, b: tuple[float, ...] | None = None) -> list[float]:
+        """Coefficients of ``det(b + S_i)`` on the rows of ``Q`` (:meth:`chunk_covariances`),
+        ``b`` the flattened ``2 x 2`` base (default ``C⁻¹`` plus the required sensors, giving
+        ``det Z_i``): ``det(b + S) = det S + b3 S00 - b2 S01 - b1 S10 + b0 S11 + det b``."""
+        b0, b1, b2, b3 = self._base4() if b is None else b
+        return [b3, -b2, -b1, b0, b0 * b3 - b1 * b2, 1.0]
+
+    def diag_coeffs(self, diff: bool, fold: bool) -> tuple[list[list[float]], float]:
+        """Rows ``A_a`` (``a < n``) and ``A_n`` with ``A_a · Q_i = T[aa] · Z_i``, the numerator of
+        ``(K Z_i⁻¹ Kᵀ)_aa = T[aa] · Z_i / det Z_i``, and ``A_n · Q_i = det Z_i``
+        (:meth:`chunk_covariances`); Python floats (``r = 2 < n``).
+
+        ``fold``: ``o_a = P∞_aa`` (``diff``: ``P∞_aa - P_d,aa``) folded in, ``A_a + o_a A_n``, so
+        that ``A_a · Q_i = det Z_i · (P_i - P_d)_aa`` (no division and no addition per subset).
+        Returns the rows and ``max_a |o_a|`` (the folded products round relative to it: after the
+        division by ``det Z_i`` an error of a few ``eps · κ · max|o_a|``, :data:`FOLD_ERR`)."""
+        kt0, kt1, p0, p1, pl = self._py[:5]  # type: ignore[misc]
+        b0, b1, b2, b3 = self._base4()
+        drow = self.det_row()
+        d_diag = self.dc.diag_list if diff else None
+        rows: list[list[float]] = []
+        o_max = 0.0
+        d = self.n + 1
+        # K J row a = (-y, x): T[aa] = (y², -yx, -xy, x²)
+        for a, (x, y) in enumerate(zip(kt0, kt1, strict=True)):
+            t0, t1, t3 = y * y, -y * x, x * x
+            row = [t0, t1, t1, t3, t0 * b0 + t1 * b1 + t1 * b2 + t3 * b3, 0.0]
+            if fold:
+                o = pl[a * d] - (x * p0[a] + y * p1[a])
+                if d_diag is not None:
+                    o -= d_diag[a]
+                o_max = max(o_max, abs(o))
+                row = [u + o * v for u, v in zip(row, drow, strict=True)]
+            rows.append(row)
+        rows.append(drow)
+        return rows, o_max
 
     def covariances(self, Z: Mat) -> Stage1P:
         """Stage-1 ``P_i`` of the subsets with ``Z_i = Z[:, i]`` (``(r*r, B)``)."""
@@ -431,6 +667,7 @@ class _Setup:
 
 
 _sum = np.add.reduce
+_min = np.minimum.reduce
 _ADJ2_SIGN = np.array([[-1.0], [1.0]])  # Jᵀ Kᵀ = [-Kᵀ[1], Kᵀ[0]]
 
 
@@ -452,27 +689,140 @@ class Stage1P:
         self.Z, self.det, self._g = Z, det, g
         self._full: Mat | None = None
 
-    def _rows(self, rows: slice, offset: Mat) -> Mat:
-        X = self.setup.T[rows] @ self._g
-        X += offset[rows, None]
+    def diag(self) -> Mat:
+        X = self.setup.T_diag @ self._g
+        X += self.setup.P_inf_diag[:, None]
         return X
 
-    def diag(self) -> Mat:
-        return self._rows(slice(None, None, self.n + 1), self.setup.P_inf)
-
     def diff_diag(self) -> Mat:
-        return self._rows(slice(None, None, self.n + 1), self.setup.M_inf)
+        X = self.setup.T_diag @ self._g
+        X += self.setup.M_inf_diag[:, None]
+        return X
 
     def full(self) -> Mat:
         if self._full is None:
-            self._full = self._rows(slice(None), self.setup.P_inf)
+            X = self.setup.T @ self._g
+            X += self.setup.P_inf[:, None]
+            self._full = X
         return self._full
 
     def diff_full(self) -> Mat:
-        return self._rows(slice(None), self.setup.M_inf)
+        X = self.setup.T @ self._g
+        X += self.setup.M_inf[:, None]
+        return X
 
     def stack(self) -> Mat:
         return self.full().reshape(self.n, self.n, self.size).transpose(2, 0, 1)
+
+
+class _ChunkStage1P(Stage1P):
+    """:class:`Stage1P` of all subsets of a single-chunk plan with ``r = 2 < n``, from the plan's
+    ``Q = [S_i entries; 1; det S_i]`` rows ``(6, B)``: ``Z_i``, ``det Z_i`` and the diagonal
+    entries' numerators are linear in them, so each is one small product ``A @ Q`` (coefficients
+    ``A`` from ``C⁻¹`` and ``K``) instead of one numpy call per term.  ``Z``, ``det`` and the
+    entries of ``Z_i⁻¹`` are computed on first use (a diagonal-only bound never needs them)."""
+
+    __slots__ = ("_Zd", "_g_lazy", "_gp_lazy")
+
+    def __init__(self, setup: _Setup) -> None:
+        self.n, self.size, self.setup = setup.n, setup.tab.Q.shape[1], setup
+        self._Zd: Mat | None = None
+        self._g_lazy: Mat | None = None
+        self._gp_lazy: Mat | None = None
+        self._full = None
+
+    def _zd(self) -> Mat:
+        if self._Zd is None:
+            b0, b1, b2, b3 = self.setup._base4()
+            B = np.array(
+                [1.0, 0.0, 0.0, 0.0, b0, 0.0, 0.0, 1.0, 0.0, 0.0, b1, 0.0]
+                + [0.0, 0.0, 1.0, 0.0, b2, 0.0, 0.0, 0.0, 0.0, 1.0, b3, 0.0]
+                + self.setup.det_row()
+            ).reshape(5, 6)
+            self._Zd = B @ self.setup.tab.Q
+        return self._Zd
+
+    @property  # type: ignore[override]
+    def Z(self) -> Mat:
+        return self._zd()[:4]
+
+    @property  # type: ignore[override]
+    def det(self) -> Mat:
+        return self._zd()[4]
+
+    @property  # type: ignore[override]
+    def _g(self) -> Mat:
+        if self._g_lazy is None:
+            Zd = self._zd()
+            self._g_lazy = Zd[:4] / Zd[4]
+        return self._g_lazy
+
+    def _gp(self) -> Mat:
+        """``vec(Z_i⁻¹ - C)`` ``(4, B)``, ``C = P[s, s]``: ``adj(Z_i) - C det Z_i`` and
+        ``det Z_i`` are linear in the rows of ``Q``, one product, one division."""
+        if self._gp_lazy is None:
+            st = self.setup
+            b0, b1, b2, b3 = st._base4()
+            drow = st.det_row()
+            pl = st._py[4]  # type: ignore[index]
+            n = self.n
+            i0, i1 = st.s.tolist()
+            C = (pl[i0 * n + i0], pl[i0 * n + i1], pl[i1 * n + i0], pl[i1 * n + i1])
+            # adj(Z) = (Z11, -Z01, -Z10, Z00) with Z = b + S on Q's rows (S00, S01, S10, S11, 1, .)
+            adj = (
+                (0.0, 0.0, 0.0, 1.0, b3, 0.0),
+                (0.0, -1.0, 0.0, 0.0, -b1, 0.0),
+                (0.0, 0.0, -1.0, 0.0, -b2, 0.0),
+                (1.0, 0.0, 0.0, 0.0, b0, 0.0),
+            )
+            flat = [
+                u - c * v
+                for row, c in zip(adj, C, strict=True)
+                for u, v in zip(row, drow, strict=True)
+            ] + drow
+            R = np.array(flat).reshape(5, 6) @ st.tab.Q
+            X = R[:4]
+            X /= R[4]
+            self._gp_lazy = X
+        return self._gp_lazy
+
+    def full(self) -> Mat:
+        if self._full is None:
+            X = self.setup.T_K @ self._gp()
+            X += self.setup.P.reshape(-1, 1)
+            self._full = X
+        return self._full
+
+    def diff_full(self) -> Mat:
+        st = self.setup
+        X = st.T_K @ self._gp()
+        X += (st.P.reshape(-1) - st.dc.flat)[:, None]
+        return X
+
+    def _diag_rows(self, offset: Mat) -> Mat:
+        rows, _ = self.setup.diag_coeffs(False, False)
+        R = np.array(rows) @ self.setup.tab.Q
+        n = self.n
+        X = R[:n]
+        X /= R[n]
+        X += offset[:, None]
+        return X
+
+    def diff_diag_scaled(self, total: bool = False) -> tuple[Mat, float]:
+        """``R`` with ``R[a] = det Z_i · (P_i - P_d)_aa`` (``a < n``; ``total``: one row, their
+        sum) and last row ``det Z_i``, in one product; and the absolute error bound that the
+        folding adds to each ``(P_i - P_d)_aa`` (:meth:`_Setup.diag_coeffs`)."""
+        st = self.setup
+        rows, o_max = st.diag_coeffs(True, True)
+        if total:
+            rows = [[sum(c) for c in zip(*rows[:-1], strict=True)], rows[-1]]
+        return np.array(rows) @ st.tab.Q, FOLD_ERR * self.n * EPS * st.ctx.kappa * o_max
+
+    def diag(self) -> Mat:
+        return self._diag_rows(self.setup.P_inf_diag)
+
+    def diff_diag(self) -> Mat:
+        return self._diag_rows(self.setup.M_inf_diag)
 
 
 BoundFn = Callable[[Stage1P, NDArray[np.float64], BoundContext], NDArray[np.float64]]
@@ -495,22 +845,37 @@ class MetricBound:
     refine_seed: bool = False
 
 
-def _cov_slack(v: Mat, lipschitz: float, ctx: BoundContext) -> Mat:
+def _cov_slack(v: Mat, lipschitz: float, ctx: BoundContext, extra: float = 0.0) -> Mat:
     """Deflate a value ``v >= 0`` in covariance units that moves by at most ``lipschitz · err``
     when ``P`` moves by ``err`` entrywise; plus a relative ``64 n eps`` (of ``v`` and of the input
-    scale) for the rounding of both computations."""
+    scale) for the rounding of both computations, and ``extra`` (an absolute error of ``v``
+    known to the caller)."""
     rel = 64.0 * lipschitz * EPS
-    return v * (1.0 - rel) - (lipschitz * ctx.err + rel * ctx.scale)
+    v = v * (1.0 - rel)
+    v -= lipschitz * ctx.err + rel * ctx.scale + extra
+    return v
 
 
 def _abs_trace_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """``sum_i |(P - D)_ii|`` of the stage-1 ``P``."""
-    return _cov_slack(np.abs(P.diff_diag()).sum(axis=0), P.n, ctx)
+    if isinstance(P, _ChunkStage1P):  # sum_i |det Z · (P - D)_ii| / det Z
+        R, fold = P.diff_diag_scaled()
+        X = R[: P.n]
+        v = _sum(np.abs(X, out=X), 0)
+        v /= R[P.n]
+        return _cov_slack(v, P.n, ctx, P.n * fold)
+    X = P.diff_diag()
+    return _cov_slack(_sum(np.abs(X, out=X), 0), P.n, ctx)
 
 
 def _trace_diff_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """``|tr(P - D)|`` of the stage-1 ``P``."""
-    return _cov_slack(np.abs(P.diff_diag().sum(axis=0)), P.n, ctx)
+    if isinstance(P, _ChunkStage1P):  # |det Z · tr(P - D)| / det Z
+        R, fold = P.diff_diag_scaled(total=True)
+        v = np.abs(R[0], out=R[0])
+        v /= R[1]
+        return _cov_slack(v, P.n, ctx, P.n * fold)
+    return _cov_slack(np.abs(_sum(P.diff_diag(), 0)), P.n, ctx)
 
 
 def _frobenius_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
@@ -607,26 +972,17 @@ def _svd_cheap(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
 
 
 def _svd_consts(setup: _Setup, D: Mat) -> tuple[Mat, float, Mat, Mat]:
-    if "svd" not in setup.memo:
-        s_D = _memo_D(setup, D)["eig"][0]  # type: ignore[index]
+    memo = setup.dc.memo
+    if "svd" not in memo:
+        s_D = setup.dc.eig()[0]
         pi, pj = _pairs(setup.n)
-        setup.memo["svd"] = (s_D, float(s_D.sum()), pi, pj)
-    return setup.memo["svd"]  # type: ignore[return-value]
-
-
-def _memo_D(setup: _Setup, D: Mat) -> dict[str, object]:
-    """Per-problem constants of ``P_d`` shared by the bounds (computed once per decision)."""
-    if "eig" not in setup.memo:
-        setup.memo["eig"] = ordered_eigh(D)
-    return setup.memo
+        memo["svd"] = (s_D, float(s_D.sum()), pi, pj)
+    return memo["svd"]  # type: ignore[return-value]
 
 
 def _D_inverse(setup: _Setup, D: Mat) -> tuple[Mat, float]:
-    """``P_d⁻¹`` and ``κ_D = tr(P_d) tr(P_d⁻¹) >= cond(P_d)``, once per decision."""
-    if "D_inv" not in setup.memo:
-        D_inv = spd_inverse(D)
-        setup.memo["D_inv"] = (D_inv, float(D.trace()) * float(D_inv.trace()))
-    return setup.memo["D_inv"]  # type: ignore[return-value]
+    """``P_d⁻¹`` and ``κ_D = tr(P_d) tr(P_d⁻¹) >= cond(P_d)`` (cached per ``P_d``)."""
+    return setup.dc.inverse()
 
 
 def _svd_refine(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
@@ -639,7 +995,7 @@ def _svd_refine(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     of the stage-1 one (up to sign), so ``|u_Pi · u_Di|`` exceeds the stage-1 value by at most
     that.  An eigenvector without such a gap is credited nothing (``|u_Pi · u_Di| <= 1``)."""
     n = P.n
-    s_D, U_D = _memo_D(P.setup, D)["eig"]  # type: ignore[misc]
+    s_D, U_D = P.setup.dc.eig()
     w, U = np.linalg.eigh(P.stack())  # ascending
     size = _cov_slack(np.sqrt(((w[:, ::-1] - s_D) ** 2).sum(axis=-1)), n, ctx)
     e = n * ctx.err + 64.0 * n * EPS * ctx.scale
@@ -662,6 +1018,21 @@ def _logdet_spd(A: Mat) -> float:
     return float(2.0 * np.log(np.diagonal(c)).sum()) if info == 0 else np.nan
 
 
+def _spd_inverse_logdet(A: Mat) -> tuple[Mat, float]:
+    """:func:`spd_inverse` of one SPD matrix and its ``log det`` (:func:`_logdet_spd`) from one
+    Cholesky factorisation (the same factor both compute)."""
+    c, info = _dpotrf(A, lower=1)
+    if info != 0:
+        return spd_inverse(A), np.nan  # raises
+    ld = float(2.0 * np.log(np.diagonal(c)).sum())
+    inv, info = _dpotri(c, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"matrix is not positive definite (LAPACK info {info})")
+    lo, hi = _tril(A.shape[0])
+    inv[hi, lo] = inv[lo, hi]
+    return inv, ld
+
+
 def _logdet_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """The stage-1 value of ``log det((P+D)/2) - ½ log det P - ½ log det D`` via the reduced
     form: with ``v`` the non-support coordinates, ``W = P∞ + D`` and ``V = Kᵀ W⁻¹ K``,
@@ -677,12 +1048,12 @@ def _logdet_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
         n, r = st.n, st.r
         P_inf = st.P_inf.reshape(n, n)
         W = P_inf + D
-        V = st.KT @ spd_inverse(W) @ st.KT.T
+        W_inv, ld_W = _spd_inverse_logdet(W)
+        V = st.KT @ W_inv @ st.KT.T
         v = np.ones(n, dtype=bool)
         v[st.s] = False
         ld_vv = _logdet_spd(P_inf[v][:, v])
-        ld_W = _logdet_spd(W)
-        c = ld_W - n * np.log(2.0) - 0.5 * ld_vv - 0.5 * _logdet_spd(D)
+        c = ld_W - n * np.log(2.0) - 0.5 * ld_vv - 0.5 * st.dc.logdet()
         D_inv, kappa_D = _D_inverse(st, D)
         kappa_W = (ctx.lam_max + float(D.trace())) * float(D_inv.trace())  # >= cond(W)
         lam_lo = min(ctx.lam_min, 1.0 / float(D_inv.trace()))  # <= λmin of P∞[v, v], W, P_i
@@ -693,6 +1064,22 @@ def _logdet_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
         mag = 1.0 + abs(ld_W) + abs(ld_vv) + abs(c) + float(r)
         st.memo["logdet"] = (c, V.reshape(r * r), slack + rel * mag, rel)
     c, Vf, slack, rel = st.memo["logdet"]  # type: ignore[misc]
+    if isinstance(P, _ChunkStage1P):
+        # det(Z_i + V) and det Z_i in one product (det_row of C⁻¹ + V and of C⁻¹ on Q); the
+        # metric is >= 0, so a negative value needs no deflation of its own and val·(1 - rel)
+        # - slack (<= val - rel |val| - slack for val >= 0, < 0 otherwise) is a valid bound
+        b = P.setup._base4()
+        Cm = np.array(
+            P.setup.det_row(tuple(x + y for x, y in zip(b, Vf.tolist(), strict=True)))
+            + P.setup.det_row(b)
+        )
+        R = Cm.reshape(2, 6) @ st.tab.Q
+        x = R[0]
+        x /= np.sqrt(R[1])
+        lb = np.log(x, out=x)
+        lb *= 1.0 - rel
+        lb += c * (1.0 - rel) - slack
+        return lb
     if st.r == 2:
         ZV = P.Z + Vf[:, None]
         val = c + np.log((ZV[0] * ZV[3] - ZV[1] * ZV[2]) / np.sqrt(P.det))
@@ -869,14 +1256,15 @@ def fast_search(
         st = _Setup(P_pred, P_d, Y0, tab)
         if tab.chunk:
             codes = tab.codes
-            lb = bound.cheap(st.covariances(tab.S_sub + st.base[:, None]), P_d, st.ctx)
+            lb = bound.cheap(st.chunk_covariances(), P_d, st.ctx)
         else:
             codes, lb = _stage1(st, bound.cheap, P_d, tab)
-    ex = _Exact(Y0, P_d, metric, tab, codes)
-    L = float(lb.min())
+    best = int(lb.argmin())  # the first NaN, if any
+    L = float(lb[best])
     if L != L:  # NaN: no information from those bounds
         lb[np.isnan(lb)] = -np.inf
         L = -np.inf
+        best = int(lb.argmin())
 
     # ---- stage 2: exact values in increasing-bound order while they can still tie
     refined = np.zeros(lb.size, dtype=bool) if bound.refine is not None else None
@@ -889,10 +1277,13 @@ def fast_search(
             lb2 = bound.refine(st.subsets(codes[pool]), P_d, st.ctx)
         lb[pool] = np.fmax(lb[pool], lb2)
         refined[pool] = True
-    best = int(lb.argmin())
-    if ex.table:  # the plan's exact J_i: the reference's sums, looked up
-        P_best = spd_inverse(Y0 + tab.J[best])
+        best = int(lb.argmin())
+    # the plan's exact J_i (the reference's sums, looked up) when the rows are the plan's codes
+    table = tab.J is not None and codes is tab.codes
+    if table:
+        P_best = _spd_inverse_one(Y0 + tab.J[best])
     else:
+        ex = _Exact(Y0, P_d, metric, tab, codes)
         P_best = ex.covariances(np.array([best]), ex.masks(np.array([best])))[0]
     U = _single_value(metric, P_best, P_d)  # called as the reference calls it
     # a metric not known to be batch-invariant may differ in the last bits between the batched
@@ -900,9 +1291,11 @@ def fast_search(
     margin = 0.0 if metric in BATCH_INVARIANT else 1e-6
     tau = _threshold(U, L, tie_rtol, margin)
     lb[best] = np.inf  # evaluated
-    cand = (lb <= tau).nonzero()[0]
-    if cand.size == 0 and ex.table:  # the common case: one exact evaluation settles it
+    if table and not _min(lb) <= tau:  # the common case: one exact evaluation settles it
         return SearchResult(tab.subsets[best], U, P_best, n_feasible, 1)
+    cand = (lb <= tau).nonzero()[0]
+    if table:
+        ex = _Exact(Y0, P_d, metric, tab, codes)
     best_mask = ex.masks(np.array([best]))
     if cand.size == 0:
         return SearchResult(tuple(best_mask[0].nonzero()[0].tolist()), U, P_best, n_feasible, 1)

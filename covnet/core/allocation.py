@@ -170,11 +170,16 @@ class AllocationPlan:
         return int(self.gains.shape[0])
 
 
-def _checked_pd(P_pred: object, P_d: object, n: int | None = None) -> tuple[Mat, Mat]:
+def _checked_pd(
+    P_pred: object, P_d: object, n: int | None = None, cache: dict[bytes, Mat] | None = None
+) -> tuple[Mat, Mat]:
     """``P_pred`` and ``P_d`` as ``(n, n)`` float arrays, each checked finite and symmetric to a
     relative 1e-9 (``max|A - Aᵀ| <= 1e-9 max(A + Aᵀ)``; the largest entry of a PSD matrix is on
     its diagonal), returned as ``(A + Aᵀ)/2``.  (Positive definiteness of ``P_pred`` is checked
-    by the Cholesky factorisation of the search itself, ``P_d``'s by the metrics that need it.)"""
+    by the Cholesky factorisation of the search itself, ``P_d``'s by the metrics that need it.)
+
+    ``cache`` (a plan's): the checked ``P_d`` by the bytes of the given one, a read-only copy
+    (a desired covariance changes rarely: a schedule); the same bits as checking it again."""
     P = np.asarray(P_pred, dtype=np.float64)
     if P.ndim != 2 or P.shape[0] != P.shape[1] or P.shape[0] == 0:
         raise ValueError(f"P_pred must be a non-empty square (n, n) matrix, got shape {P.shape}")
@@ -184,10 +189,22 @@ def _checked_pd(P_pred: object, P_d: object, n: int | None = None) -> tuple[Mat,
     D = np.asarray(P_d, dtype=np.float64)
     if D.shape != (n, n):
         raise ValueError(f"P_d must be ({n}, {n}) like P_pred, got shape {D.shape}")
-    return _symmetric(P, "P_pred"), _symmetric(D, "P_d")
+    if cache is None:
+        return _symmetric(P, "P_pred"), _symmetric(D, "P_d")
+    key = D.tobytes()
+    D_checked = cache.get(key)
+    if D_checked is None:
+        D_checked = _symmetric(D, "P_d").copy()
+        D_checked.flags.writeable = False
+        if len(cache) >= 8:
+            cache.clear()
+        cache[key] = D_checked
+    return _symmetric(P, "P_pred"), D_checked
 
 
 _max = np.maximum.reduce
+#: matrices of at most this many entries get :func:`_symmetric`'s shortcut test in Python floats
+_SMALL = 64
 
 
 def _symmetric(A: Mat, name: str) -> Mat:
@@ -195,9 +212,25 @@ def _symmetric(A: Mat, name: str) -> Mat:
 
     Shortcut: an exactly symmetric, finite ``A`` (``A - Aᵀ`` has no non-zero and no NaN entry)
     with a non-negative largest entry passes that check and ``(A + Aᵀ)/2 = A`` (``2a/2 = a``;
-    entries beyond ``DBL_MAX / 2`` aside), so ``A`` itself is returned, not copied."""
+    entries beyond ``DBL_MAX / 2`` aside), so ``A`` itself is returned, not copied.
+
+    A small ``A`` with finite entries (a finite sum of its entries; else the numpy code below
+    decides) is checked and symmetrised in Python floats, cheaper than numpy calls on a few
+    entries and the same IEEE operations: ``a_ij == a_ji`` everywhere is the shortcut, otherwise
+    ``(a + b) * 0.5`` entrywise after the same test on ``max(A - Aᵀ)`` and ``max(A + Aᵀ)``."""
     At = A.T
-    if not (A - At).any() and _max(A, None) >= 0:
+    if A.size <= _SMALL:
+        flat = A.ravel().tolist()
+        if math.isfinite(sum(flat)):
+            flat_t = At.ravel().tolist()
+            if flat == flat_t:
+                if max(flat) >= 0:
+                    return A
+            else:
+                S = [a + b for a, b in zip(flat, flat_t, strict=True)]
+                if max([a - b for a, b in zip(flat, flat_t, strict=True)]) <= 1e-9 * max(S):
+                    return np.array([x * 0.5 for x in S]).reshape(A.shape)
+    elif not (A - At).any() and _max(A, None) >= 0:
         return A
     S = A + At
     if not _max(A - At, None) <= 1e-9 * _max(S, None):  # written so that NaN fails
@@ -404,7 +437,7 @@ def allocate(
                 f"the plan was prepared for {plan.constraints}, not {constraints}: "
                 "prepare a plan for these constraints"
             )
-        P, D = _checked_pd(P_pred, P_d, plan.n)
+        P, D = _checked_pd(P_pred, P_d, plan.n, plan.tables.checked_d if plan.tables else None)
     else:
         P, D = _checked_pd(P_pred, P_d)
         c = Constraints() if constraints is None else constraints

@@ -20,6 +20,7 @@ metric need not be batch-invariant: the allocator then re-checks near ties one c
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping
 
@@ -33,11 +34,51 @@ EIG_TIE_RTOL = 1e-9
 
 
 def _sum_last(x: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``sum_k x[..., k]`` added left to right: a fixed order whatever the layout or batch size."""
+    """``sum_k x[..., k]`` added left to right: a fixed order whatever the layout or batch size.
+
+    A 1-d ``x`` (one matrix's value) is added in Python floats, the same IEEE additions in the
+    same order without a numpy call per term."""
+    if x.ndim == 1:
+        return np.float64(_left_sum(x.tolist()))  # type: ignore[return-value]
     acc = x[..., 0]
     for k in range(1, x.shape[-1]):
         acc = acc + x[..., k]
     return acc
+
+
+def _left_sum(vals: list[float]) -> float:
+    """``vals[0] + vals[1] + ...`` left to right (:func:`_sum_last` of one row)."""
+    it = iter(vals)
+    acc = next(it)
+    for v in it:
+        acc = acc + v
+    return acc
+
+
+def _max_nan(vals: list[float]) -> float:
+    """``max(vals)``, NaN if any is NaN (as ``np.max``)."""
+    for v in vals:
+        if v != v:
+            return v
+    return max(vals)
+
+
+def _one_pair(A: object, B: object) -> list[list[float]] | None:
+    """The rows of ``A - B`` as Python floats when ``A`` and ``B`` are one ``(n, n)`` float64
+    pair (``n >= 1``), else ``None``.  The metrics then do per matrix, in Python floats, the same
+    IEEE operations in the same order as their batched numpy code, without a numpy call per
+    step: the same bits (tested against the batched path)."""
+    if (
+        type(A) is np.ndarray
+        and type(B) is np.ndarray
+        and A.ndim == 2
+        and A.shape == B.shape
+        and A.size
+        and A.dtype == np.float64
+        and B.dtype == np.float64
+    ):
+        return (A - B).tolist()  # type: ignore[no-any-return]
+    return None
 
 
 def _diff(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -59,11 +100,16 @@ def spectral(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float
     ``A - B`` is symmetric, so its singular values are the absolute eigenvalues.
     """
     w = np.linalg.eigvalsh(_diff(A, B))
+    if w.ndim == 1 and w.size:  # one matrix: the same maximum in Python floats
+        return np.float64(_max_nan([w[-1].item(), -w[0].item()]) + 0.0)  # type: ignore[return-value]
     return np.maximum(w[..., -1], -w[..., 0]) + 0.0  # + 0.0 turns -0.0 into 0.0
 
 
 def abs_trace(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Absolute trace: ``f = sum_i |A_ii - B_ii|`` (only the diagonal of ``A - B``)."""
+    rows = _one_pair(A, B)
+    if rows is not None:
+        return np.float64(_left_sum([abs(r[i]) for i, r in enumerate(rows)]))  # type: ignore[return-value]
     return _sum_last(np.abs(_diag(_diff(A, B))))
 
 
@@ -86,8 +132,10 @@ def ordered_eigh(
     tie group.  ``U[..., :, i]`` is the i-th eigenvector.  Batched over leading axes.
     """
     A = np.asarray(A, dtype=np.float64)
+    if A.ndim == 2 and A.shape[0] and math.isfinite(sum(A.ravel().tolist())):
+        return _ordered_eigh_one(A, rtol)
     if A.ndim == 2 and not np.any(A - np.diag(np.diagonal(A))):
-        return _ordered_diagonal(np.diagonal(A), rtol)
+        return _ordered_diagonal(np.diagonal(A).tolist(), rtol)
     w, U = np.linalg.eigh(A)
     s = w[..., ::-1]
     U = U[..., :, ::-1]
@@ -108,25 +156,56 @@ def ordered_eigh(
     return s.copy(), U * sign
 
 
-def _ordered_diagonal(
-    d: NDArray[np.float64], rtol: float
+def _ordered_eigh_one(
+    A: NDArray[np.float64], rtol: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`ordered_eigh` of ``diag(d)`` without LAPACK: the same result as the general path
-    (whose eigen-solver is exact on a diagonal matrix), namely the entries in descending order
-    and unit axes, in state order within each tie group."""
-    n = d.size
-    order = sorted(range(n), key=lambda i: (-d[i], i))
-    s = d[order]
+    """:func:`ordered_eigh` of one finite ``(n, n)`` matrix: the same operations as the batched
+    path, bit for bit, with the per-eigenvalue bookkeeping in Python floats instead of numpy
+    calls on a few entries (all finite, so Python's ``max`` agrees with ``np.maximum``)."""
+    n = A.shape[0]
+    flat = A.ravel().tolist()
+    off = flat.copy()
+    del off[:: n + 1]
+    if not any(off):  # no non-zero off-diagonal entry: A is diagonal
+        return _ordered_diagonal(flat[:: n + 1], rtol)
+    w, U = np.linalg.eigh(A)
+    wl = w.tolist()[::-1]
+    s = w[::-1]
+    U = U[:, ::-1]
     if n > 1:
-        tol = rtol * max(float(s[0]), float(-s[-1]))
+        tol = rtol * max(wl[0], -wl[-1])
+        tied = [wl[k] - wl[k + 1] <= tol for k in range(n - 1)]
+        if any(tied):
+            U = _canonical_groups(U.copy(), tied)  # C order, as the batched path's copy
+    # sign: the largest-magnitude component of every eigenvector is positive
+    sign = np.where(U[np.abs(U).argmax(axis=0), _arange(n)] < 0.0, -1.0, 1.0)
+    return s.copy(), U * sign
+
+
+@functools.lru_cache(maxsize=16)
+def _arange(n: int) -> NDArray[np.intp]:
+    return np.arange(n)
+
+
+def _ordered_diagonal(
+    d: list[float], rtol: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`ordered_eigh` of ``diag(d)`` (finite entries) without LAPACK: the same result as the
+    general path (whose eigen-solver is exact on a diagonal matrix), namely the entries in
+    descending order and unit axes, in state order within each tie group."""
+    n = len(d)
+    order = sorted(range(n), key=lambda i: (-d[i], i))
+    sl = [d[i] for i in order]
+    if n > 1:
+        tol = rtol * max(sl[0], -sl[-1])
         start = 0
         for k in range(1, n + 1):  # sort each tie group's axes by index
-            if k == n or float(s[k - 1] - s[k]) > tol:
+            if k == n or sl[k - 1] - sl[k] > tol:
                 order[start:k] = sorted(order[start:k])
                 start = k
     U = np.zeros((n, n))
     U[order, np.arange(n)] = 1.0
-    return s, U
+    return np.array(sl), U
 
 
 def _canonical_groups(U: NDArray[np.float64], tied: list[bool]) -> NDArray[np.float64]:
@@ -180,18 +259,29 @@ def svd(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def frobenius(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Frobenius norm of the difference: ``f = ||A - B||_F = sqrt(sum_ij (A - B)_ij²)``."""
+    rows = _one_pair(A, B)
+    if rows is not None:
+        return np.float64(math.sqrt(_left_sum([_left_sum([x * x for x in r]) for r in rows])))
     M = _diff(A, B)
     return np.sqrt(_sum_last(_sum_last(M * M)))
 
 
 def one_norm(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Induced 1-norm of the difference: ``f = max_j sum_i |(A - B)_ij|`` (largest column sum)."""
+    rows = _one_pair(A, B)
+    if rows is not None:
+        return np.float64(
+            _max_nan([_left_sum([abs(x) for x in c]) for c in zip(*rows, strict=True)])
+        )
     absM = np.abs(_diff(A, B))
     return np.max(_sum_last(np.swapaxes(absM, -1, -2)), axis=-1)
 
 
 def inf_norm(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Induced inf-norm of the difference: ``f = max_i sum_j |(A - B)_ij|`` (largest row sum)."""
+    rows = _one_pair(A, B)
+    if rows is not None:
+        return np.float64(_max_nan([_left_sum([abs(x) for x in r]) for r in rows]))
     return np.max(_sum_last(np.abs(_diff(A, B))), axis=-1)
 
 
@@ -203,6 +293,10 @@ def trace_diff(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.flo
     """
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
+    if A.ndim == 2 and A.shape == B.shape and A.size:
+        d = A.shape[0] + 1
+        a, b = A.ravel().tolist()[::d], B.ravel().tolist()[::d]
+        return np.float64(abs(_left_sum(a) - _left_sum(b)))
     return np.abs(_sum_last(_diag(A)) - _sum_last(_diag(B)))
 
 
@@ -222,6 +316,9 @@ def logdet(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64
     """
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
+    if A.ndim == 2 and B.shape == A.shape:  # one pair: the three factorisations in one call
+        ld = _chol_logdet(np.stack((0.5 * (A + B), A, B)))
+        return np.maximum(ld[0] - 0.5 * (ld[1] + ld[2]), 0.0)
     f = _chol_logdet(0.5 * (A + B)) - 0.5 * (_chol_logdet(A) + _chol_logdet(B))
     return np.maximum(f, 0.0)
 
@@ -237,6 +334,11 @@ def kl(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
     n = A.shape[-1]
+    if A.ndim == 2 and B.shape == A.shape:  # one pair: each LAPACK step once, on a stack of 2
+        L = np.linalg.cholesky(np.stack((A, B)))
+        XY = np.linalg.solve(L[::-1], L)  # (L_B⁻¹ L_A, L_A⁻¹ L_B)
+        t = _sum_last(_sum_last(XY * XY))
+        return np.maximum(0.25 * ((t[0] + t[1]) - 2 * n), 0.0)
     L_A = np.linalg.cholesky(A)
     L_B = np.linalg.cholesky(B)
     L_A, L_B = np.broadcast_arrays(L_A, L_B)

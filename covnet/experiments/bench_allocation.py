@@ -8,7 +8,10 @@ relative 1e-9 in f, spec "Facts").
 
 For every (metric, N): the fast path's median wall time per decision over problems x repeats, the
 baseline's median, their ratio, the fast path's peak traced memory, and whether both chose the same
-subset on every problem.  The fast path is timed as a running filter uses it: the gain-only work
+subset on every problem.  Per problem, each path is called once untimed (warm-up), then timed in a
+block of its own: at least ``repeat`` calls and enough to last ``MIN_BLOCK_S`` (capped at
+``MAX_REPEAT``), the count fixed by the first problem's warm-up so every problem weighs the same.
+The fast path is timed as a running filter uses it: the gain-only work
 (validation, the PSD check of the gains, the subset tables) is prepared once per (N, metric) by
 :func:`covnet.core.allocation.prepare`, outside the timed call, and every decision is
 ``allocate(P_pred, plan, P_d, metric)``; ``plan_s`` / ``plan_mb`` report that one-off
@@ -21,6 +24,8 @@ Run: ``python -m covnet.experiments.bench_allocation``.
 
 from __future__ import annotations
 
+import functools
+import math
 import sys
 import time
 import tracemalloc
@@ -29,7 +34,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from covnet.core.allocation import allocate, prepare
+from covnet.core.allocation import AllocationPlan, allocate, prepare
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import METRICS, svd
 from covnet.core.motion import cv_transition, dwna_process_noise
@@ -56,6 +61,46 @@ _D2.flags.writeable = False
 DEFAULT_DESIRED: tuple[tuple[int, Mat], ...] = ((1, _D1), (51, _D2))
 #: above this many subsets the baseline runs once per problem, not ``repeat`` times
 BASELINE_ONCE_ABOVE = 2**18
+#: a timed block (one path, one problem) lasts at least this long, up to MAX_REPEAT calls: short
+#: calls (tens of microseconds at N = 8) get enough samples for a stable median
+MIN_BLOCK_S = 0.02
+MAX_REPEAT = 200
+
+
+def _fast_subset(P_pred: Mat, plan: AllocationPlan, P_d: Mat, name: str) -> tuple[int, ...]:
+    return allocate(P_pred, plan, P_d, name).subset
+
+
+def _time_block(
+    call: Callable[[], tuple[int, ...]],
+    key: str,
+    reps: dict[str, int],
+    repeat: int,
+    out: list[float],
+    once: bool = False,
+) -> tuple[int, ...]:
+    """One untimed warm-up ``call()`` (its result is returned), then ``reps[key]`` timed calls
+    appended to ``out``; ``reps[key]`` is set by the first warm-up (:func:`_repeats`).  ``once``:
+    the single call is the timed one."""
+    t0 = time.perf_counter()
+    result = call()
+    t_call = time.perf_counter() - t0
+    if once:
+        out.append(t_call)
+        return result
+    if not reps[key]:
+        reps[key] = _repeats(repeat, t_call)
+    for _ in range(reps[key]):
+        t0 = time.perf_counter()
+        call()
+        out.append(time.perf_counter() - t0)
+    return result
+
+
+def _repeats(repeat: int, t_call: float) -> int:
+    """Timed calls per block: at least ``repeat``, enough for ``MIN_BLOCK_S`` (at most
+    ``MAX_REPEAT``) at ``t_call`` seconds per call."""
+    return max(repeat, min(MAX_REPEAT, math.ceil(MIN_BLOCK_S / max(t_call, 1e-9))))
 
 
 def paper_like_gains(base_table: Sequence[tuple[float, float, float]], n_sensors: int) -> Mat:
@@ -184,8 +229,10 @@ def run(
     Rows ``{"metric", "n_sensors", "median_s", "baseline_median_s", "speedup", "peak_mb",
     "plan_s", "plan_mb", "agree"}``: medians (``time.perf_counter``) over problems x repeats of
     one decision ``allocate(P_pred, plan, P_d, metric)`` with the plan prepared once per
-    (N, metric) outside the timing (the baseline once per problem above ``BASELINE_ONCE_ABOVE``
-    subsets), ``peak_mb`` the largest tracemalloc peak of one fast call per problem, ``plan_s`` /
+    (N, metric) outside the timing, after one untimed warm-up call per problem and path (the
+    baseline once per problem, no warm-up, above ``BASELINE_ONCE_ABOVE`` subsets; repeats per
+    block: :func:`_repeats`), ``peak_mb`` the largest tracemalloc peak of one fast call per
+    problem, ``plan_s`` /
     ``plan_mb`` the time / tracemalloc peak of :func:`covnet.core.allocation.prepare`, ``agree``
     whether both chose the same subset on every problem.
     """
@@ -204,17 +251,16 @@ def run(
             plan_s = time.perf_counter() - t0
             plan_mb = tracemalloc.get_traced_memory()[1] / 2**20
             tracemalloc.stop()
-            fast_t, base_t, peaks, agree = [], [], [], True
-            base_reps = 1 if 2**N - 1 > BASELINE_ONCE_ABOVE else repeat
+            fast_t: list[float] = []
+            base_t: list[float] = []
+            peaks, agree = [], True
+            once = 2**N - 1 > BASELINE_ONCE_ABOVE
+            reps = {"fast": 0, "base": 0}  # set from the first problem's warm-up calls
             for P_pred, P_d in problems:
-                for _ in range(repeat):
-                    t0 = time.perf_counter()
-                    chosen = allocate(P_pred, plan, P_d, name).subset
-                    fast_t.append(time.perf_counter() - t0)
-                for _ in range(base_reps):
-                    t0 = time.perf_counter()
-                    expected = plain_baseline(P_pred, gains, P_d, name)
-                    base_t.append(time.perf_counter() - t0)
+                fast = functools.partial(_fast_subset, P_pred, plan, P_d, name)
+                base = functools.partial(plain_baseline, P_pred, gains, P_d, name)
+                chosen = _time_block(fast, "fast", reps, repeat, fast_t)
+                expected = _time_block(base, "base", reps, repeat, base_t, once)
                 agree &= chosen == expected
                 tracemalloc.start()
                 allocate(P_pred, plan, P_d, name)

@@ -16,6 +16,7 @@ from covnet.core.allocation import (
     InfeasibleAllocation,
     allocate,
     allocate_exhaustive,
+    prepare,
 )
 from covnet.core.metrics import METRICS
 from covnet.core.motion import cv_transition, dwna_process_noise
@@ -152,6 +153,34 @@ def test_bounds_never_exceed_the_exact_value(name, pb):
         lbs = [bound.cheap(st_.subsets(codes), P_d, st_.ctx)]
         if bound.refine is not None:
             lbs.append(bound.refine(st_.subsets(codes), P_d, st_.ctx))
+    for lb in lbs:
+        assert lb.shape == exact.shape
+        assert not np.any(lb > exact), (name, float(np.max(lb - exact)))
+    assert n == P_pred.shape[0]
+
+
+@pytest.mark.parametrize("name", sorted(fast.METRIC_BOUNDS))
+@settings(max_examples=25)
+@given(pb=problem())
+def test_single_chunk_bounds_never_exceed_the_exact_value(name, pb):
+    """The single-chunk plan's stage 1 (``_Setup.chunk_covariances``: ``Z_i`` and ``det Z_i``
+    as one product with the plan's ``Q`` table, the diagonal rows fused) is as safe as the
+    general one: every bound <= the exact value of every feasible subset, with constraints."""
+    P_pred, gains, P_d, c = pb
+    n = gains.shape[1]
+    P_pred, P_d = 0.5 * (P_pred + P_pred.T), 0.5 * (P_d + P_d.T)
+    plan = prepare(gains, c)
+    tab = plan.tables
+    if tab is None or not tab.chunk:
+        return
+    Y0 = fast.spd_inverse(P_pred)
+    exact = METRICS[name](fast.spd_inverse(Y0 + fast.gain_sums(plan.gains, tab.masks)), P_d)
+    bound = fast.METRIC_BOUNDS[name]
+    st_ = fast._Setup(P_pred, P_d, Y0, tab)
+    with np.errstate(all="ignore"):
+        lbs = [bound.cheap(st_.chunk_covariances(), P_d, st_.ctx)]
+        if bound.refine is not None:
+            lbs.append(bound.refine(st_.chunk_covariances(), P_d, st_.ctx))
     for lb in lbs:
         assert lb.shape == exact.shape
         assert not np.any(lb > exact), (name, float(np.max(lb - exact)))
