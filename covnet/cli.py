@@ -354,14 +354,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers: must be >= 1, got {args.workers}")
     out = _prepare_out(args.out, f"{sc.name}-compare", args.force)
-    total = len(modes) * args.runs
-    shown = [0.0]
+    from covnet.batch import progress_printer
 
-    def progress(done: int, n: int) -> None:
-        now = time.monotonic()
-        if done == n or now - shown[0] > 1.0:
-            print(f"[compare] {done}/{n} runs", flush=True)
-            shown[0] = now
+    total = len(modes) * args.runs
+    progress = progress_printer("compare")
 
     print(
         f"comparing {', '.join(modes)} on {sc.name}: metric {metric}, {args.runs} seeds from "
@@ -378,21 +374,70 @@ def cmd_compare(args: argparse.Namespace) -> int:
         "first_seed": sc.seed,
         "graph": args.graph or sc.fusion.peer.graph,
     }
-    cmp.write_table(out, rows, meta)
+    title = (
+        f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds, "
+        f"peer graph {meta['graph']}"
+    )
+    return _batch_results(cmp, args, out, rows, meta, title)
+
+
+def _batch_results(module, args, out, rows, meta, title) -> int:  # type: ignore[no-untyped-def]
+    """The end of ``covnet compare`` / ``sweep``: the table files, the figure, the printout."""
+    module.write_table(out, rows, meta)
     if not args.no_figures:
-        cmp.make_figure(
-            out,
-            rows,
-            f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds, "
-            f"peer graph {meta['graph']}",
-        )
+        module.make_figure(out, rows, title)
     if args.json:
         for r in rows:
             print(json.dumps(r))
     else:
-        print(cmp.format_table(rows))
+        print(module.format_table(rows))
     print(f"results: {out}")
     return EXIT_OK
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from covnet import sweep as sw
+    from covnet.batch import progress_printer
+    from covnet.config import SweepSpec
+
+    if _kind(args.config) in ("mobile", "passive"):
+        raise UsageError("sweep: the latency grid belongs to covariance-control scenarios")
+    sc = _load(args.config, args.seed)
+    if sc.fusion.mode == "peer":
+        raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
+    spec = sc.sweep or SweepSpec()
+    metric = (args.metric or [spec.metric or sc.allocation.metrics[0]])[-1]
+    _metrics_for(sc, [metric])
+    for name in ("seeds", "workers"):
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise UsageError(f"--{name}: must be >= 1, got {v}")
+    seeds = args.seeds or spec.seeds
+    points = sw.grid(spec)
+    out = _prepare_out(args.out, f"{sc.name}-sweep", args.force)
+    print(
+        f"sweeping {sc.name}: {len(points)} grid points x {seeds} seeds = "
+        f"{len(points) * seeds} runs, metric {metric}"
+        + ("" if sc.sweep else " (no sweep section in the config: the default grid)"),
+        flush=True,
+    )
+    rows = sw.sweep(
+        sc, metric=metric, seeds=seeds, workers=args.workers, progress=progress_printer("sweep")
+    )
+    meta = {
+        "scenario": sc.name,
+        "metric": metric,
+        "seeds": seeds,
+        "first_seed": sc.seed,
+        "delay_kind": spec.delay_kind,
+        "deadline_fraction": sc.network.deadline_fraction,
+        "period_s": sc.period_s,
+    }
+    title = (
+        f"{sc.name}: delay and loss ({spec.delay_kind} delays, both directions), "
+        f"metric {metric}, {seeds} seeds, deadline {sc.network.deadline_fraction:g} T"
+    )
+    return _batch_results(sw, args, out, rows, meta, title)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -663,6 +708,21 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--no-figures", action="store_true", help="skip compare.png")
     cp.add_argument("--json", action="store_true", help="one JSON row per mode")
     cp.set_defaults(func=cmd_compare)
+
+    sw = sub.add_parser(
+        "sweep",
+        help="network latency: a grid of delay x loss x fusion mode x seeds (the config's sweep)",
+    )
+    sw.add_argument("config", help="scenario YAML with a sweep section, e.g. configs/latency.yaml")
+    sw.add_argument("--seeds", type=int, help="seeds per grid point (default: sweep.seeds)")
+    sw.add_argument("--metric", action="append", metavar="NAME", help="allocation metric")
+    sw.add_argument("--seed", type=int, help="first seed (default: the config's)")
+    sw.add_argument("--workers", type=int, help="processes (default: one per core)")
+    sw.add_argument("--out", help="results directory (default: a new folder under runs/)")
+    sw.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    sw.add_argument("--no-figures", action="store_true", help="skip sweep.png")
+    sw.add_argument("--json", action="store_true", help="one JSON row per grid point")
+    sw.set_defaults(func=cmd_sweep)
 
     c = sub.add_parser("check", help="validate a config; print it normalised with its hash")
     c.add_argument("config")

@@ -29,13 +29,8 @@ seed, so the table is too.
 
 from __future__ import annotations
 
-import csv
-import json
-import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +39,7 @@ from scipy.stats import chi2
 from scipy.stats import t as student_t
 
 from covnet import messages as msg
+from covnet.batch import parallel_map, write_rows
 from covnet.config import Scenario, from_dict, normalised
 from covnet.decentral import neighbours
 from covnet.simulate import MetricRun
@@ -201,19 +197,7 @@ def compare(
         scenario_for(sc, m, graph)  # validates every mode (and the graph) before any work
     data = normalised(sc)
     tasks = [(data, m, graph, sc.seed + r, metric) for m in modes for r in range(runs)]
-    workers = workers or min(os.cpu_count() or 1, len(tasks))
-    trials: list[Trial] = []
-    if workers <= 1:
-        for i, t in enumerate(tasks):
-            trials.append(run_trial(t))
-            if progress:
-                progress(i + 1, len(tasks))
-    else:
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            for i, trial in enumerate(pool.map(run_trial, tasks)):
-                trials.append(trial)
-                if progress:
-                    progress(i + 1, len(tasks))
+    trials = parallel_map(run_trial, tasks, workers, progress)
     return [summarise(sc, m, [t for t in trials if t.mode == m], graph) for m in modes]
 
 
@@ -235,13 +219,7 @@ COLUMNS = (
 
 def write_table(out: Path, rows: Sequence[dict[str, Any]], meta: dict[str, Any]) -> None:
     """``compare.json`` (rows and how they were made) and ``compare.csv``."""
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "compare.json").write_text(json.dumps({**meta, "rows": list(rows)}, indent=2) + "\n")
-    with (out / "compare.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(COLUMNS), extrasaction="ignore")
-        w.writeheader()
-        for r in rows:
-            w.writerow(r)
+    write_rows(out, "compare", rows, meta, COLUMNS)
 
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:

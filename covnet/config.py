@@ -330,6 +330,46 @@ class NetworkSpec(_Model):
         return v
 
 
+class SweepSpec(_Model):
+    """The grid of ``covnet sweep`` (README, "Network latency"): every combination of the mean
+    one-way delay ``delay_ms`` (both directions; distributed as ``delay_kind``: ``constant``,
+    ``exponential`` with that mean, ``uniform`` on ``[0, 2 · mean]``; the same for every
+    sensor: ``network.latency.sensors`` is not used), the loss probability
+    ``loss`` (both directions), the fusion ``modes``, ``account_for_loss`` and the ``late``
+    policy, each run with ``seeds`` seeds from the config's.  ``metric``: the allocation metric
+    (default: the config's first)."""
+
+    delay_ms: tuple[Float, ...] = (0.0, 100.0, 200.0, 400.0)
+    delay_kind: Literal["constant", "exponential", "uniform"] = "exponential"
+    loss: tuple[Float, ...] = (0.0, 0.1, 0.2)
+    modes: tuple[Literal["central", "info", "ci"], ...] = ("central", "ci")
+    account_for_loss: tuple[Bool, ...] = (False, True)
+    late: tuple[Literal["oosm", "drop"], ...] = ("oosm",)
+    seeds: Int = Field(default=4, ge=1, le=10_000)
+    metric: Str | None = None
+
+    @field_validator("delay_ms")
+    @classmethod
+    def _delays(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not v or any(d < 0 for d in v):
+            raise ValueError(f"give at least one delay, each >= 0 ms; got {list(v)}")
+        return v
+
+    @field_validator("loss")
+    @classmethod
+    def _losses(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not v or any(not 0.0 <= x < 1.0 for x in v):
+            raise ValueError(f"give at least one loss probability, each in [0, 1); got {list(v)}")
+        return v
+
+    @field_validator("modes", "account_for_loss", "late")
+    @classmethod
+    def _non_empty(cls, v: tuple[Any, ...]) -> tuple[Any, ...]:
+        if not v:
+            raise ValueError("give at least one value")
+        return v
+
+
 class Scenario(_Model):
     """A whole scenario: the paper's by default values where the source leaves them open."""
 
@@ -345,6 +385,7 @@ class Scenario(_Model):
     allocation: AllocationSpec = AllocationSpec()
     network: NetworkSpec = NetworkSpec()
     fusion: FusionSpec = FusionSpec()
+    sweep: SweepSpec | None = None
 
     _period = field_validator("period_s")(_positive)
 
@@ -435,6 +476,10 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
 
     problems += security_problems(sc.network, ids)
     problems += _peer_problems(sc.fusion.peer, ids)
+    if sc.sweep is not None and sc.sweep.metric is not None and sc.sweep.metric not in METRICS:
+        problems.append(
+            ("sweep.metric", f"unknown metric {sc.sweep.metric!r}; choose from {sorted(METRICS)}")
+        )
     for sid in sc.network.latency.sensors:
         if sid not in seen:
             problems.append((f"network.latency.sensors.{sid}", f"no sensor with id {sid!r}"))

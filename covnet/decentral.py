@@ -163,6 +163,7 @@ def decide_rule(
     metric: str,
     unavailable: frozenset[int] = frozenset(),
     reach: np.ndarray | None = None,
+    delivery: np.ndarray | None = None,
 ) -> Allocation:
     """Covariance control under the fusion rule: argmin over the feasible subsets of
     ``f(P_i, P_d(t_k))`` with ``P_i`` the covariance the rule produces from subset ``D_i``.
@@ -176,7 +177,12 @@ def decide_rule(
     Several fusion points (peer mode: ``P_prior`` ``(K, n, n)``, one per node, and ``reach``
     ``(K, Ns)``: the sensors whose tracks node k hears): subset i is scored by its worst node,
     ``max_k f(P_ik, P_d)``, ``P_ik`` from the tracks of ``D_i ∩ reach_k``.  The reported
-    ``P`` is the worst node's."""
+    ``P`` is the worst node's.
+
+    ``delivery`` (``ci``; ``allocation.account_for_loss``): each sensor's probability ``p_j`` that
+    its track arrives in time; a candidate then uses the *expected* local information
+    ``Y_j⁻ + p_j (Y_j⁺ − Y_j⁻)`` (for ``central``/``info`` the caller scales the gains:
+    :func:`covnet.latency_sim.loss_aware_model`)."""
     P_prior = np.asarray(P_prior, dtype=np.float64)
     if P_prior.ndim == 2 and fusion.rule != "ci":
         return decide(model, P_prior, scan, metric, unavailable)
@@ -187,6 +193,10 @@ def decide_rule(
     if not subsets:
         raise ValueError("no feasible subset: every sensor is excluded or failed")
     P_local_post = local_posterior_covs(model, P_local_prior)
+    if delivery is not None:
+        Ym = np.linalg.inv(P_local_prior)
+        Y = Ym + delivery[:, None, None] * (np.linalg.inv(P_local_post) - Ym)
+        P_local_post = symmetrise(np.linalg.inv(Y))
     # every fusion point's candidates in one stack, the metric in one batched call
     cands = np.stack(
         [

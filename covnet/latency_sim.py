@@ -30,7 +30,8 @@ late tracks are dropped and counted).  Peer mode has no centre and is not simula
 ``allocation.account_for_loss``: the decision scales sensor ``j``'s information by its
 probability ``p_j`` of delivering on time (command in time for ``t_k`` and measurement in time
 for ``d_k``; estimated once from ``20 000`` draws of a dedicated stream per link), i.e. it
-allocates on the *expected* information ``Σ p_j J_j`` (the fusion itself uses what arrives).
+allocates on the *expected* information ``Σ p_j J_j`` (``ci``: each local track's expected
+information ``Y⁻ + p_j (Y⁺ − Y⁻)``); the fusion itself uses what arrives.
 """
 
 from __future__ import annotations
@@ -161,11 +162,10 @@ def run_latency(
     up_specs, down_specs = link_specs(sc)
     up = [LinkState(s, link_stream(sc.seed, j, UP)) for j, s in enumerate(up_specs)]
     down = [LinkState(s, link_stream(sc.seed, j, DOWN)) for j, s in enumerate(down_specs)]
-    alloc_model = (
-        loss_aware_model(model, delivery_probabilities(sc))
-        if sc.allocation.account_for_loss
-        else model
-    )
+    p_deliver = delivery_probabilities(sc) if sc.allocation.account_for_loss else None
+    alloc_model = model
+    if p_deliver is not None and mode != "ci":
+        alloc_model = loss_aware_model(model, p_deliver)
     counts = LatencyCounts()
     est0 = initial_estimate(model, sc.filter.initial_estimate)
     buffer = ReFilterBuffer(model.F, model.Q, model.H, lat.oosm_depth)
@@ -194,9 +194,8 @@ def run_latency(
         s_k = t_k - (1.0 - delta) * T  # the previous deadline
         t0 = time.perf_counter()
         if mode == "ci":
-            alloc = decide_rule(
-                sc.fusion, alloc_model, pred.P, mirror.predicted(model)[1], k, metric
-            )
+            P_loc = mirror.predicted(model)[1]
+            alloc = decide_rule(sc.fusion, model, pred.P, P_loc, k, metric, delivery=p_deliver)
         else:
             alloc = decide(alloc_model, pred.P, k, metric)
         rows["dt"][i] = time.perf_counter() - t0

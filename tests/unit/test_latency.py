@@ -1,0 +1,216 @@
+"""Latency experiments (covnet.latency_sim, covnet.sweep): ideal links are the plain run, the
+counts add up, out-of-sequence re-filtering equals in-order processing, loss-aware allocation,
+determinism, the sweep's files and the CLI."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from covnet.cli import main
+from covnet.config import ConfigError, from_dict, load, normalised
+from covnet.latency_sim import (
+    delivery_probabilities,
+    measurement_from_track,
+    run_latency,
+)
+from covnet.model import build_model, truth_trajectory
+from covnet.simulate import run_metric
+from covnet.simulate_decentral import run_centre
+from covnet.sweep import grid, link_for, point_scenario, sweep
+
+
+def _sc(paper_path, scans=40, mode="central", **latency):
+    data = normalised(load(paper_path))
+    data["scans"] = scans
+    data["fusion"]["mode"] = mode
+    data["network"]["latency"] = {**data["network"]["latency"], **latency}
+    return from_dict(data)
+
+
+def _link(delay_s=0.0, loss=0.0, kind="exponential"):
+    return link_for(1000 * delay_s, kind, loss)
+
+
+def test_ideal_links_are_exactly_the_plain_run(paper_path):
+    sc = _sc(paper_path, scans=100)
+    plain = run_metric(sc, "spectral")
+    run, counts = run_latency(sc, "spectral")
+    np.testing.assert_array_equal(run.enabled, plain.enabled)
+    np.testing.assert_array_equal(run.x_est, plain.x_est)  # bit for bit
+    np.testing.assert_array_equal(run.P_post, plain.P_post)
+    c = counts.as_dict()
+    assert c["measured"] == c["on_time"] == c["commanded"] == plain.enabled.sum()
+    assert c["lost"] == c["late_refiltered"] == c["late_dropped"] == c["deadline_misses"] == 0
+
+
+@pytest.mark.parametrize("mode", ["info", "ci"])
+def test_ideal_links_decentralized_equal_the_plain_run(paper_path, mode):
+    sc = _sc(paper_path, mode=mode)
+    plain = run_centre(sc, "abs_trace")
+    run, _ = run_latency(sc, "abs_trace")
+    np.testing.assert_array_equal(run.enabled, plain.enabled)
+    assert np.max(np.abs(run.x_est - plain.x_est)) / np.max(np.abs(plain.x_est)) < 1e-12
+
+
+@pytest.mark.parametrize("late", ["oosm", "drop"])
+@pytest.mark.parametrize("mode", ["central", "info", "ci"])
+def test_every_measurement_is_accounted_for(paper_path, late, mode):
+    link = _link(0.4, 0.15)
+    sc = _sc(paper_path, mode=mode, uplink=link, downlink=_link(0.2, 0.05), late=late)
+    _, counts = run_latency(sc, "spectral")
+    c = counts.as_dict()
+    # loss reduces the fused measurements by exactly the counted number
+    fused = c["on_time"] + c["late_refiltered"]
+    assert fused == c["measured"] - c["lost"] - c["late_dropped"]
+    assert sum(counts.per_scan_fused) == c["on_time"]
+    assert c["lost"] > 0 and c["late_refiltered"] + c["late_dropped"] > 0
+    if late == "drop" or mode == "ci":
+        assert c["late_refiltered"] == 0
+    else:
+        assert c["late_refiltered"] > 0
+
+
+def test_refiltered_late_measurements_give_the_in_order_filter(paper_path):
+    """Every measurement 1.5 periods late (deadline 0.8 T): scan k's measurements arrive before
+    scan k+1's deadline and are re-filtered into scan k, so the estimate at scan k+1's deadline
+    (nothing on time) is the prediction of the in-order posterior of scan k, bit for bit."""
+    from covnet.model import fuse, initial_estimate, measure, predict_step, truth_trajectory
+
+    sc = _sc(paper_path, scans=30, uplink=_link(1.5, kind="constant"), late="oosm")
+    run, counts = run_latency(sc, "spectral")
+    assert counts.on_time == 0 and counts.late_refiltered == counts.measured - run.enabled[-1].sum()
+    model = build_model(sc)
+    truth = truth_trajectory(model)
+    est = initial_estimate(model, sc.filter.initial_estimate)
+    for i in range(sc.scans - 1):
+        pred = predict_step(model, est)
+        meas = [
+            (j, measure(model, j, i + 1, truth[i]), model.R[j])
+            for j in np.flatnonzero(run.enabled[i])
+        ]
+        est = fuse(model, pred, meas)  # in order: scan i+1 with all its measurements
+        nxt = predict_step(model, est)
+        np.testing.assert_array_equal(run.x_est[i + 1], nxt.x)
+        np.testing.assert_array_equal(run.P_post[i + 1], nxt.P)
+
+
+def test_measurement_recovered_from_a_local_track(paper_path):
+    from covnet.core.gaussian import Gaussian
+    from covnet.core.kalman import update
+
+    model = build_model(_sc(paper_path))
+    prior = Gaussian(np.array([1.0, 2.0, 3.0, 4.0]), np.diag([50.0, 4.0, 60.0, 5.0]))
+    z = np.array([10.0, -20.0])
+    post = update(prior, z, model.H, model.R[2])
+    z2, R2 = measurement_from_track(post, prior)
+    np.testing.assert_allclose(z2, z, rtol=1e-9)
+    np.testing.assert_allclose(R2, model.R[2], rtol=1e-9)
+
+
+def test_loss_aware_allocation_is_the_allocation_with_noisier_sensors(paper_path):
+    """Scaling J_j by p_j is allocating as if R_j were R_j / p_j: the two decide alike."""
+    from covnet.latency_sim import loss_aware_model
+    from covnet.model import decide
+
+    sc = _sc(paper_path, uplink=_link(0.0, 0.5), downlink=_link(0.0, 0.0))
+    p = delivery_probabilities(sc)
+    assert np.allclose(p, 0.5, atol=0.02)
+    model = build_model(sc)
+    aware = loss_aware_model(model, p)
+    np.testing.assert_allclose(aware.gains, p[:, None, None] * model.gains)
+    data = normalised(sc)
+    for j, s in enumerate(data["sensors"]):
+        s["sigma_x_m"] /= np.sqrt(p[j])
+        s["sigma_y_m"] /= np.sqrt(p[j])
+    noisy = build_model(from_dict(data))
+    P_seq = run_metric(sc, "spectral").P_pred
+    for k in range(3, 40):
+        a = decide(aware, P_seq[k - 1], k, "spectral")
+        b = decide(noisy, P_seq[k - 1], k, "spectral")
+        assert a.subset == b.subset, k
+
+
+def test_deterministic_for_a_seed(paper_path):
+    sc = _sc(paper_path, uplink=_link(0.3, 0.1), downlink=_link(0.2, 0.1))
+    a, ca = run_latency(sc, "spectral")
+    b, cb = run_latency(sc, "spectral")
+    np.testing.assert_array_equal(a.x_est, b.x_est)
+    assert ca.as_dict() == cb.as_dict()
+
+
+def test_missed_command_policies(paper_path):
+    down = _link(0.9, 0.0, "constant")  # every command arrives after its scan's time
+    out = {}
+    for policy in ("keep_last", "off", "on"):
+        _, c = run_latency(_sc(paper_path, downlink=down, missed_command=policy), "spectral")
+        out[policy] = c.as_dict()
+        assert c.commands_missed == 40 * 8
+    assert out["off"]["measured"] == 0
+    assert out["on"]["measured"] == 40 * 8
+    assert 0 < out["keep_last"]["measured"] < 40 * 8
+
+
+def test_bad_latency_config_names_the_field(paper_path):
+    data = normalised(load(paper_path))
+    data["network"]["latency"] = {"uplink": {"loss": 1.5}}
+    with pytest.raises(ConfigError, match=r"network.latency.uplink"):
+        from_dict(data)
+    data["network"]["latency"] = {"uplink": {"delay": {"kind": "constant", "value_s": "0.1"}}}
+    with pytest.raises(ConfigError, match=r"delay.value_s must be a number"):
+        from_dict(data)
+    data["network"]["latency"] = {"sensors": {"S9": {}}}
+    with pytest.raises(ConfigError, match=r"network.latency.sensors.S9"):
+        from_dict(data)
+
+
+def test_zero_point_of_a_sweep_is_the_plain_run(paper_path):
+    sc = _sc(paper_path, scans=30)
+    data = normalised(sc)
+    data["sweep"] = {
+        "delay_ms": [0, 300],
+        "loss": [0.0],
+        "modes": ["central"],
+        "account_for_loss": [False],
+        "seeds": 2,
+    }
+    sc = from_dict(data)
+    rows = sweep(sc, metric="spectral", workers=1)
+    assert [r["delay_ms"] for r in rows] == [0.0, 300.0]
+    zero = rows[0]
+    err2 = []
+    for r in range(2):  # the plain in-process run of each seed
+        point = point_scenario(sc, grid(sc.sweep)[0], sc.seed + r)
+        e = run_metric(point, "spectral").x_est - truth_trajectory(build_model(point))
+        err2.append(np.mean(e[:, 0] ** 2 + e[:, 2] ** 2))
+    assert zero["rmse_position"] == pytest.approx(float(np.sqrt(np.mean(err2))), rel=1e-12)
+    assert zero["deadline_miss_rate"] == zero["late"] == zero["lost"] == 0
+    assert rows[1]["late"] > 0
+
+
+def test_cli_sweep_writes_table_and_figure(paper_path, tmp_path, capsys):
+    cfg = tmp_path / "s.yaml"
+    import yaml
+
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = 20
+    data["sweep"] = {
+        "delay_ms": [0, 200],
+        "loss": [0.0, 0.2],
+        "modes": ["central", "ci"],
+        "account_for_loss": [False],
+        "seeds": 1,
+    }
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "sw"
+    assert main(["sweep", str(cfg), "--out", str(out), "--workers", "1"]) == 0
+    assert "late/run" in capsys.readouterr().out
+    doc = json.loads((out / "sweep.json").read_text())
+    assert len(doc["rows"]) == 8 and doc["seeds"] == 1
+    with (out / "sweep.csv").open() as f:
+        assert len(list(csv.DictReader(f))) == 8
+    assert (out / "sweep.png").stat().st_size > 20_000
+    assert main(["sweep", str(cfg), "--out", str(out), "--seeds", "0", "--force"]) == 2
