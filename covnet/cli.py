@@ -221,6 +221,15 @@ def cmd_up(args: argparse.Namespace) -> int:
         metrics = _metrics_for(sc, args.metric)
     if args.fusion is not None and (mobile or passive):
         raise UsageError("--fusion: only a covariance-control scenario has fusion modes")
+    if not (mobile or passive) and not sc.network.latency.is_ideal(sc.sensor_ids):
+        if sc.fusion.mode == "peer":
+            raise UsageError("network.latency: peer mode has no fusion centre to be late for")
+        if not args.realtime and not getattr(args, "netns", False):
+            raise UsageError(
+                "network.latency describes slow or lossy links: run covnet up with --realtime "
+                "(a lockstep run waits for every message), or covnet run / covnet sweep, which "
+                "simulate the links in simulated time"
+            )
     if args.speed <= 0:
         raise UsageError(f"--speed: must be > 0, got {args.speed}")
     out = _prepare_out(args.out, sc.name, args.force)

@@ -63,6 +63,19 @@ def local_track(model: Model, j: int, prior: Gaussian, z: Vec) -> LocalTrack:
     return LocalTrack(post=local_update(model, j, prior, z), prior=prior)
 
 
+def measurement_from_track(post: Gaussian, prior: Gaussian) -> tuple[np.ndarray, np.ndarray]:
+    """The position measurement ``(z, R)`` whose information a local track added:
+    ``R = (H ΔY Hᵀ)⁻¹``, ``z = R H Δy`` with ``ΔY = P⁺⁻¹ − P⁻⁻¹``, ``Δy = P⁺⁻¹ x⁺ − P⁻⁻¹ x⁻``
+    and ``H`` the position selector (rows 0 and 2 of the state)."""
+    Yp, Ym = np.linalg.inv(post.P), np.linalg.inv(prior.P)
+    dY = Yp - Ym
+    dy = Yp @ post.x - Ym @ prior.x
+    idx = [0, 2]
+    R = np.linalg.inv(dY[np.ix_(idx, idx)])
+    R = 0.5 * (R + R.T)
+    return R @ dy[idx], R
+
+
 # --------------------------------------------------------------------------------------------
 # fusion and allocation under a rule
 # --------------------------------------------------------------------------------------------

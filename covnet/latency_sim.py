@@ -2,24 +2,28 @@
 
 The network of ``network.latency`` (per sensor an uplink and a downlink
 :class:`~covnet.core.delay.LinkSpec`, each drawing from its own stream of the seed) between the
-sensors and a fusion centre, with the real-time protocol (``T`` the period, ``δ`` the
-``network.deadline_fraction``, ``t_k = k T``)::
+sensors and a fusion centre, with the real-time protocol of ``covnet up --realtime`` (``T`` the
+period, ``δ`` the ``network.deadline_fraction``, ``t_k = k T``, ``d_k = t_k + δ T`` the
+deadline of scan k)::
 
-    at d_{k-1} = t_{k-1} + δ T   the centre decides scan k and sends Command(k)   (s_k = d_{k-1})
-    at t_k                       sensor j obeys the newest command it has received for a scan
-                                 <= k, if that is Command(k); else ``missed_command``:
-                                 keep_last (its newest command's on/off), off or on
-                                 an obeying sensor measures (noise stream (j, k)) and sends
-    at d_k = t_k + δ T           the centre: (1) late measurements that arrived in (d_{k-1}, d_k]
-                                 (scans < k): re-filtered from their scan (``late: oosm``, exact,
-                                 up to ``oosm_depth`` scans back, older ones dropped) or dropped
-                                 (``late: drop``); (2) fuses scan k's measurements that arrived
-                                 by d_k; (3) decides scan k+1
+    at t_k    the centre decides scan k (from what it had fused by d_{k-1}) and sends
+              Command(k) down every link
+    on receipt of Command(k) at a sensor (time a):
+              older than its newest command: stale, ignored;
+              scans it never got a command for (lost or overtaken) are filled by
+              ``missed_command``: keep_last (its newest command's on/off), off or on, measured
+              now (so late);
+              if enabled: it measures scan k (noise stream (j, k)) and sends at a
+    at d_k    the centre: (1) late messages that arrived in (d_{k-1}, d_k] (scans < k):
+              re-filtered from their scan (``late: oosm``, exact, up to ``oosm_depth`` scans
+              back, older ones dropped) or dropped (``late: drop``); (2) fuses scan k's
+              messages that arrived by d_k
 
+So a measurement is on time when its command's delay plus its own delay is at most ``δ T``.
 A message lost by its link never arrives.  The centre fuses what it received, whoever sent it
-(it knows what each sensor did from what arrives: a sensor that measured on a stale command is
-fused too).  With ideal links every measurement arrives on time and the loop is exactly the
-plain one (:func:`covnet.simulate.run_metric`, the same bits for ``central``).
+(it knows what each sensor did from what arrives: one that measured on its fallback is fused
+too).  With ideal links everything arrives on time and the loop is exactly the plain one
+(:func:`covnet.simulate.run_metric`: the same bits for ``central``).
 
 Fusion modes: ``central`` (measurements); ``info`` (local tracks; a track's new information
 ``(Y⁺ − Y⁻, y⁺ − y⁻) = (Hᵀ R⁻¹ H, Hᵀ R⁻¹ z)`` is the measurement's, so the centre recovers
@@ -28,16 +32,17 @@ like late measurements); ``ci`` (covariance intersection has no exact out-of-seq
 late tracks are dropped and counted).  Peer mode has no centre and is not simulated here.
 
 ``allocation.account_for_loss``: the decision scales sensor ``j``'s information by its
-probability ``p_j`` of delivering on time (command in time for ``t_k`` and measurement in time
-for ``d_k``; estimated once from ``20 000`` draws of a dedicated stream per link), i.e. it
+probability ``p_j`` of delivering on time (command and measurement both arrive, within ``δ T``
+together; estimated once from ``20 000`` draws of a dedicated stream per link), i.e. it
 allocates on the *expected* information ``Σ p_j J_j`` (``ci``: each local track's expected
 information ``Y⁻ + p_j (Y⁺ − Y⁻)``); the fusion itself uses what arrives.
 """
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import time
-from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -47,9 +52,15 @@ from covnet.config import Scenario
 from covnet.core.allocation import prepare
 from covnet.core.delay import LinkSpec, LinkState, link_stream
 from covnet.core.gaussian import Gaussian
-from covnet.core.kalman import nees
 from covnet.core.oosm import ReFilterBuffer
-from covnet.decentral import Mirror, decide_rule, fuse_tracks, local_track
+from covnet.decentral import (
+    Mirror,
+    decide_rule,
+    fuse_tracks,
+    local_track,
+    measurement_from_track,
+)
+from covnet.latency_bus import DOWN, UP
 from covnet.model import (
     Model,
     build_model,
@@ -60,8 +71,8 @@ from covnet.model import (
     truth_trajectory,
 )
 from covnet.simulate import MetricRun
+from covnet.simulate_decentral import RunRows
 
-UP, DOWN = 0, 1  # link directions (covnet.core.delay.link_stream)
 PROBABILITY_DRAWS = 20_000
 _PROB_STREAM_OFFSET = 1_000  # link indices of the delivery-probability estimate's own streams
 
@@ -95,27 +106,24 @@ def link_specs(sc: Scenario) -> tuple[list[LinkSpec], list[LinkSpec]]:
     )
 
 
-def _p_within(link: LinkSpec, horizon_s: float, rng: np.random.Generator) -> float:
-    """``P(delivered within horizon_s)`` of one message: not lost, delay + jitter <= horizon
-    (Monte Carlo over :data:`PROBABILITY_DRAWS` draws)."""
+def _delays(link: LinkSpec, rng: np.random.Generator) -> np.ndarray:
+    """:data:`PROBABILITY_DRAWS` one-way delays of ``link`` (``inf`` where lost)."""
     d = link.delay.sample(rng, PROBABILITY_DRAWS)
     if link.jitter_s > 0:
         d = d + link.jitter_s * rng.standard_normal(PROBABILITY_DRAWS)
-    return float((1.0 - link.loss) * np.mean(np.maximum(d, 0.0) <= horizon_s))
+    lost = rng.random(PROBABILITY_DRAWS) < link.loss
+    return np.where(lost, np.inf, np.maximum(d, 0.0))
 
 
 def delivery_probabilities(sc: Scenario) -> np.ndarray:
-    """``p_j``: command in time for ``t_k`` (within ``(1 − δ) T``) and measurement in time for
-    ``d_k`` (within ``δ T``), per sensor (see the module docstring)."""
-    T, delta = sc.period_s, sc.network.deadline_fraction
+    """``p_j = P(down_j + up_j <= δ T)``, lost messages never arriving (module docstring)."""
+    horizon = sc.network.deadline_fraction * sc.period_s
     up, down = link_specs(sc)
     p = []
     for j, (u, dn) in enumerate(zip(up, down, strict=True)):
         i = _PROB_STREAM_OFFSET + j
-        p.append(
-            _p_within(u, delta * T, link_stream(sc.seed, i, UP))
-            * _p_within(dn, (1.0 - delta) * T, link_stream(sc.seed, i, DOWN))
-        )
+        total = _delays(dn, link_stream(sc.seed, i, DOWN)) + _delays(u, link_stream(sc.seed, i, UP))
+        p.append(float(np.mean(total <= horizon)))
     return np.array(p)
 
 
@@ -124,19 +132,6 @@ def loss_aware_model(model: Model, p: np.ndarray) -> Model:
     delivers gets a tiny gain, so the plan stays valid)."""
     gains = np.maximum(p, 1e-12)[:, None, None] * model.gains
     return replace(model, gains=gains, plan=prepare(gains, model.constraints), plans={})
-
-
-def measurement_from_track(post: Gaussian, prior: Gaussian) -> tuple[np.ndarray, np.ndarray]:
-    """The position measurement ``(z, R)`` whose information a local track added:
-    ``R = (H ΔY Hᵀ)⁻¹``, ``z = R H Δy`` with ``ΔY = P⁺⁻¹ − P⁻⁻¹``, ``Δy = P⁺⁻¹ x⁺ − P⁻⁻¹ x⁻``
-    and ``H`` the position selector (rows 0 and 2 of the state)."""
-    Yp, Ym = np.linalg.inv(post.P), np.linalg.inv(prior.P)
-    dY = Yp - Ym
-    dy = Yp @ post.x - Ym @ prior.x
-    idx = [0, 2]
-    R = np.linalg.inv(dY[np.ix_(idx, idx)])
-    R = 0.5 * (R + R.T)
-    return R @ dy[idx], R
 
 
 def _as_measurement(mode: str, payload: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -156,8 +151,7 @@ def run_latency(
     model = model or build_model(sc)
     lat = sc.network.latency
     T, delta = model.T, sc.network.deadline_fraction
-    ids = model.sensor_ids
-    Ns, N = len(ids), model.scans
+    Ns, N = len(model.sensor_ids), model.scans
     truth = truth_trajectory(model)
     up_specs, down_specs = link_specs(sc)
     up = [LinkState(s, link_stream(sc.seed, j, UP)) for j, s in enumerate(up_specs)]
@@ -167,123 +161,114 @@ def run_latency(
     if p_deliver is not None and mode != "ci":
         alloc_model = loss_aware_model(model, p_deliver)
     counts = LatencyCounts()
-    est0 = initial_estimate(model, sc.filter.initial_estimate)
+    est = initial_estimate(model, sc.filter.initial_estimate)
     buffer = ReFilterBuffer(model.F, model.Q, model.H, lat.oosm_depth)
-    est = est0
-    local = [est0] * Ns  # the sensors' own filters (info, ci)
+    sensors = [_Sensor(model, sc.filter.initial_estimate) for _ in range(Ns)]
     mirror = Mirror.start(model)
-    # per sensor: commands received, (scan, arrival, enabled)
-    inbox: list[list[tuple[int, float, bool]]] = [[] for _ in range(Ns)]
-    last_cmd = [False] * Ns  # keep_last: the newest command's on/off for itself
-    newest_cmd = [0] * Ns
-    pending: dict[float, list[tuple[int, int, Any]]] = defaultdict(list)  # arrival -> messages
-    rows = {
-        "enabled": np.zeros((N, Ns), dtype=bool),
-        "value": np.empty(N),
-        "x": np.empty((N, 4)),
-        "P": np.empty((N, 4, 4)),
-        "Pp": np.empty((N, 4, 4)),
-        "nees": np.empty(N),
-        "dt": np.empty(N),
-        "ne": np.empty(N, dtype=np.int64),
-    }
+    commands: list[tuple[float, int, int, int, bool]] = []  # heap: (arrival, seq, j, scan, on)
+    seq = itertools.count()
+    pending: list[tuple[float, int, int, int, Any]] = []  # heap: (arrival, seq, scan, j, payload)
+    sent_for = np.zeros(N + 1, dtype=np.int64)  # messages sent for each scan
+    on_time_for = np.zeros(N + 1, dtype=np.int64)
+    rows = RunRows(N, Ns)
+
+    def send(j: int, scan: int, at: float) -> None:
+        """Sensor ``j`` measures scan ``scan`` at time ``at`` and sends it up its link."""
+        z = measure(model, j, scan, truth[scan - 1])
+        payload = (z, model.R[j]) if mode == "central" else sensors[j].track(model, j, scan, z)
+        counts.measured += 1
+        sent_for[scan] += 1
+        a = up[j].on_send(at)
+        if a is None:
+            counts.lost += 1
+        else:
+            heapq.heappush(pending, (a, next(seq), scan, j, payload))
+
     pred = predict_step(model, est)
     for i in range(N):
         k = i + 1
         t_k = k * T
-        s_k = t_k - (1.0 - delta) * T  # the previous deadline
         t0 = time.perf_counter()
         if mode == "ci":
             P_loc = mirror.predicted(model)[1]
             alloc = decide_rule(sc.fusion, model, pred.P, P_loc, k, metric, delivery=p_deliver)
         else:
             alloc = decide(alloc_model, pred.P, k, metric)
-        rows["dt"][i] = time.perf_counter() - t0
+        dt = time.perf_counter() - t0
         counts.commanded += len(alloc.subset)
-        # the command goes out on every downlink
-        for j in range(Ns):
-            a = down[j].on_send(s_k)
+        for j in range(Ns):  # Command(k) goes out on every downlink at t_k
+            a = down[j].on_send(t_k)
             if a is not None:
-                inbox[j].append((k, a, j in alloc.subset))
-        # at t_k each sensor obeys the newest command it has, or its fallback
-        sent: list[int] = []
-        for j in range(Ns):
-            have = [c for c in inbox[j] if c[1] <= t_k and c[0] <= k]
-            inbox[j] = [c for c in inbox[j] if not (c[1] <= t_k and c[0] <= k)]
-            for scan, _, on in sorted(have):
-                if scan >= newest_cmd[j]:
-                    newest_cmd[j], last_cmd[j] = scan, on
-            if newest_cmd[j] == k:
-                on = last_cmd[j]
-            else:
-                counts.commands_missed += 1
-                on = {"keep_last": last_cmd[j], "off": False, "on": True}[lat.missed_command]
-            if on:
-                sent.append(j)
-        # the obeying sensors measure at t_k and send (local filters: predict, then update)
-        local_pred = [predict_step(model, g) for g in local] if mode != "central" else local
-        for j in sent:
-            z = measure(model, j, k, truth[i])
-            counts.measured += 1
-            counts.unsolicited += j not in alloc.subset
-            if mode == "central":
-                payload: Any = (z, model.R[j])
-            else:
-                payload = local_track(model, j, local_pred[j], z)
-                local_pred[j] = payload.post
-            a = up[j].on_send(t_k)
-            if a is None:
-                counts.lost += 1
-            else:
-                pending[a].append((k, j, payload))
-        local = local_pred
-        # at d_k: late arrivals first (scans < k, oldest first), then scan k's on-time ones
+                heapq.heappush(commands, (a, next(seq), j, k, j in alloc.subset))
         d_k = t_k + delta * T
+        # the sensors act on the commands that reach them by d_k, in time order
+        while commands and commands[0][0] <= d_k:
+            a, _, j, scan, on = heapq.heappop(commands)
+            sn = sensors[j]
+            if scan <= sn.newest:
+                continue  # overtaken by a newer command: stale
+            for m in range(sn.newest + 1, scan):  # commands it never got: its fallback
+                counts.commands_missed += 1
+                if {"keep_last": sn.last_on, "off": False, "on": True}[lat.missed_command]:
+                    counts.unsolicited += 1
+                    send(j, m, a)
+            sn.newest, sn.last_on = scan, on
+            if on:
+                send(j, scan, a)
+        # at d_k: late arrivals first (scans < k, in arrival order), then scan k's on-time ones
         on_time: list[tuple[int, Any]] = []
         late: list[tuple[int, int, Any]] = []
-        for a in sorted(a for a in pending if a <= d_k):
-            for scan, j, payload in pending.pop(a):
-                (on_time.append((j, payload)) if scan == k else late.append((scan, j, payload)))
-        for scan, j, payload in sorted(late, key=lambda m: (m[0], m[1])):
+        while pending and pending[0][0] <= d_k:
+            _, _, scan, j, payload = heapq.heappop(pending)
+            (on_time.append((j, payload)) if scan == k else late.append((scan, j, payload)))
+        for scan, j, payload in late:
             if mode == "ci" or lat.late == "drop":
                 counts.late_dropped += 1
-                continue
-            z, R = _as_measurement(mode, payload)
-            if buffer.insert(scan, j, z, R) is None:
+            elif buffer.insert(scan, j, *_as_measurement(mode, payload)) is None:
                 counts.late_dropped += 1  # older than the buffer
             else:
                 counts.late_refiltered += 1
-        if late and len(buffer) and mode != "ci":
+        if late and mode != "ci":
             pred = buffer.predicted()  # scan k's prior, after re-filtering
         counts.on_time += len(on_time)
-        counts.deadline_misses += len(on_time) < len(sent)
+        on_time_for[k] = len(on_time)
         counts.per_scan_fused.append(len(on_time))
+        on_time.sort(key=lambda m: m[0])
         if mode == "ci":
-            tracks = sorted(on_time, key=lambda m: m[0])
-            est = fuse_tracks(sc.fusion, pred, tracks)
-            mirror.advance(sc.fusion, model, [j for j, _ in tracks])
-            for j, tr in tracks:
+            est = fuse_tracks(sc.fusion, pred, on_time)
+            mirror.advance(sc.fusion, model, [j for j, _ in on_time])
+            for j, tr in on_time:
                 mirror.P_local[j] = tr.post.P
         else:
             meas = [(j, *_as_measurement(mode, payload)) for j, payload in on_time]
             est = buffer.step(k, meas, prior=pred).post
-        rows["enabled"][i, list(alloc.subset)] = True
-        rows["value"][i] = alloc.value
-        rows["x"][i], rows["P"][i], rows["Pp"][i] = est.x, est.P, pred.P
-        rows["nees"][i] = nees(est, truth[i])
-        rows["ne"][i] = alloc.n_evaluated
+        rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
         pred = predict_step(model, est)
-    # anything still in flight at the end never made a deadline
-    counts.late_dropped += sum(len(v) for v in pending.values())
-    run = MetricRun(
-        metric,
-        rows["enabled"],
-        rows["value"],
-        rows["x"],
-        rows["P"],
-        rows["Pp"],
-        rows["nees"],
-        rows["dt"],
-        rows["ne"],
-    )
-    return run, counts
+    counts.late_dropped += len(pending)  # still in flight at the end: never fused
+    counts.deadline_misses = int(np.sum(sent_for > on_time_for))
+    return rows.run(metric), counts
+
+
+@dataclass
+class _Sensor:
+    """A sensor's state in the simulation: its newest command and, in the decentralized modes,
+    its own filter (predicting lazily up to the scan it measures, as the process does)."""
+
+    local: Gaussian
+    scan: int = 0
+    newest: int = 0
+    last_on: bool = False
+
+    def __init__(self, model: Model, initial: str) -> None:
+        self.local = initial_estimate(model, initial)
+        self.scan = self.newest = 0
+        self.last_on = False
+
+    def track(self, model: Model, j: int, scan: int, z: np.ndarray) -> Any:
+        g = self.local
+        while self.scan < scan:
+            g = predict_step(model, g)
+            self.scan += 1
+        tr = local_track(model, j, g, z)
+        self.local = tr.post
+        return tr

@@ -34,6 +34,9 @@ class NetStats:
     scans_done: int = 0
     late: int = 0
     lost: int = 0
+    late_refiltered: int = 0  # late, re-filtered from their scan (network.latency.late: oosm)
+    late_dropped: int = 0  # late and dropped (policy drop, older than the buffer, CI)
+    unsolicited: int = 0  # fused from a sensor that measured on a stale command
     node_rejected: dict[str, dict[str, int]] = field(default_factory=dict)  # from heartbeats
 
     def sent(self, key: str, n_bytes: int) -> None:
@@ -81,4 +84,7 @@ class NetStats:
             else None,
             "late": self.late,
             "lost": self.lost,
+            "late_refiltered": self.late_refiltered,
+            "late_dropped": self.late_dropped,
+            "unsolicited": self.unsolicited,
         }

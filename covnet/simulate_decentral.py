@@ -46,7 +46,7 @@ from covnet.model import (
 from covnet.simulate import MetricRun
 
 
-class _Rows:
+class RunRows:
     """Per-scan rows of one estimate stream (a centre, or one peer node)."""
 
     def __init__(self, N: int, Ns: int) -> None:
@@ -87,7 +87,7 @@ def run_centre(sc: Scenario, metric: str, model: Model | None = None) -> MetricR
     fusion = sc.fusion
     truth = truth_trajectory(model)
     N, Ns = model.scans, len(model.sensor_ids)
-    rows = _Rows(N, Ns)
+    rows = RunRows(N, Ns)
     est = initial_estimate(model, sc.filter.initial_estimate)
     local = [est] * Ns
     mirror = Mirror.start(model)
@@ -142,7 +142,7 @@ def run_peer(sc: Scenario, metric: str, model: Model | None = None) -> dict[str,
     truth = truth_trajectory(model)
     N, Ns = model.scans, len(model.sensor_ids)
     nbrs = neighbours(fusion, model.sensor_ids)
-    rows = [_Rows(N, Ns) for _ in range(Ns)]
+    rows = [RunRows(N, Ns) for _ in range(Ns)]
     est0 = initial_estimate(model, sc.filter.initial_estimate)
     fused = [est0] * Ns
     local = [est0] * Ns

@@ -35,7 +35,8 @@ from covnet.core.allocation import Allocation
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
 from covnet.core.kalman import nees
-from covnet.decentral import Mirror, decide_rule, fuse_tracks
+from covnet.core.oosm import ReFilterBuffer
+from covnet.decentral import Mirror, decide_rule, fuse_tracks, measurement_from_track
 from covnet.model import (
     Model,
     build_model,
@@ -141,6 +142,10 @@ class _Loop:
         # the recorder must hear everything: wait for its token too (never allocated)
         self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
         self.stats = NetStats()
+        # slow links (network.latency): a late message goes to on_late (re-filtered or
+        # dropped, it says which); a sensor that measured on a stale command is fused too
+        self.on_late: Callable[[Any], bool] | None = None
+        self.accept_unsolicited = False
         self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
         self.hb_sub = bus.subscribe(msg.heartbeat_keyexpr(run_id))
         self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))
@@ -288,19 +293,66 @@ class _Loop:
             self.stats.reject(s.key, "key_mismatch")
         elif (m.episode, m.scan) < (episode, k):
             self.stats.late += 1
-            self.stats.reject(s.key, "late")
+            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+            if self.on_late is not None and m.episode == episode and usable(m):
+                if self.on_late(m):
+                    self.stats.late_refiltered += 1
+                else:
+                    self.stats.late_dropped += 1
+            else:
+                self.stats.reject(s.key, "late")
         elif (m.episode, m.scan) != (episode, k):
             self.stats.reject(s.key, "wrong_scan")
         elif m.sensor_id in got:
             self.stats.reject(s.key, "duplicate")
-        elif m.sensor_id not in waiting:
+        elif m.sensor_id not in waiting and not self.accept_unsolicited:
             self.stats.reject(s.key, "not_enabled")
         elif not usable(m):
             self.stats.reject(s.key, "bad_measurement")
         else:
+            self.stats.unsolicited += m.sensor_id not in waiting
             got[m.sensor_id] = m
             waiting.discard(m.sensor_id)
             self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+
+
+class _LateHandler:
+    """One episode's out-of-sequence processing on slow links (``network.latency.late``):
+    ``central``/``info`` keep a :class:`~covnet.core.oosm.ReFilterBuffer` of the last
+    ``oosm_depth`` scans and filter every scan through it (the same updates as
+    :func:`covnet.model.fuse`; a local track enters as the measurement whose information it
+    added), so that a late message is re-filtered from its scan; ``ci`` and ``late: drop``
+    drop late messages.  The loop counts which (``late_refiltered`` / ``late_dropped``)."""
+
+    def __init__(self, sc: Scenario, model: Model, episode: int) -> None:
+        lat = sc.network.latency
+        self.mode = sc.fusion.mode
+        self.ids = model.sensor_ids
+        self.inserted = False
+        keep = lat.late == "oosm" and self.mode != "ci"
+        self.buffer = ReFilterBuffer(model.F, model.Q, model.H, lat.oosm_depth) if keep else None
+
+    def _measurement(self, m: Any) -> tuple[np.ndarray, np.ndarray]:
+        if self.mode == "central":
+            return m.z[0], m.R
+        t = as_local_track(m)
+        return measurement_from_track(t.post, t.prior)
+
+    def insert(self, m: Any) -> bool:
+        """A late message: True when it was re-filtered into its scan."""
+        if self.buffer is None:
+            return False
+        try:
+            done = self.buffer.insert(m.scan, self.ids.index(m.sensor_id), *self._measurement(m))
+        except ValueError:  # that sensor's message of that scan is in already
+            return False
+        self.inserted = self.inserted or done is not None
+        return done is not None
+
+    def fuse(self, k: int, pred: Gaussian, got: dict[str, Any]) -> Gaussian:
+        assert self.buffer is not None
+        meas = [(self.ids.index(sid), *self._measurement(m)) for sid, m in got.items()]
+        return self.buffer.step(k, meas, prior=pred).post
 
 
 def usable_position(m: msg.Measurement) -> bool:
@@ -339,6 +391,9 @@ def run(
     decentral = fusion.mode in ("info", "ci")  # sensors publish local tracks, not measurements
     if fusion.mode == "peer":
         raise ManagerError("peer mode has no fusion manager: run manager.peer_monitor")
+    # slow links (network.latency): late messages are re-filtered (or dropped), sensors that
+    # measured on their missed-command fallback are fused too (see covnet.latency_sim)
+    slow = not sc.network.latency.is_ideal(model.sensor_ids)
     loop = _Loop(sc.network, model.sensor_ids, bus, run_id, clock)
     ids = loop.ids
     net = sc.network
@@ -357,6 +412,9 @@ def run(
             log = result.episodes[metric] = EpisodeLog(metric)
             est = initial_estimate(model, sc.filter.initial_estimate)
             mirror = Mirror.start(model)  # the local filters' covariances (decentralized modes)
+            late = _LateHandler(sc, model, e) if slow else None
+            loop.on_late = late.insert if late is not None else None
+            loop.accept_unsolicited = slow
             t_origin = clock.now()
             failed_prev: frozenset[str] = frozenset()
             spec: _Speculation | None = None
@@ -389,7 +447,7 @@ def run(
                 loop.publish(loop.keys["cmd"], cmd)
                 # while the sensors measure: decide scan k+1 assuming every enabled sensor's
                 # measurement arrives (P does not depend on the measured values)
-                if not decentral:
+                if not decentral and not slow:
                     spec = _speculate(model, pred.P, alloc.subset, k + 1, metric, unavailable)
                 if realtime:
                     deadline = time.monotonic() + net.deadline_fraction * model.T / _speed(clock)
@@ -402,7 +460,12 @@ def run(
                 else:
                     got = loop.collect(e, k, set(enabled), deadline, stop, usable_position)
                 t_core1 = time.perf_counter_ns()
-                if decentral:
+                if late is not None and late.buffer is not None:
+                    if late.inserted:  # re-filtered: scan k's prior changed
+                        pred = late.buffer.predicted()
+                        late.inserted = False
+                    est = late.fuse(k, pred, got)
+                elif decentral:
                     tracks = [(ids.index(sid), as_local_track(m)) for sid, m in got.items()]
                     est = fuse_tracks(fusion, pred, tracks)
                     mirror.advance(fusion, model, [j for j, _ in tracks])

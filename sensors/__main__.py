@@ -47,7 +47,16 @@ def main(argv: list[str] | None = None) -> int:
         if not (is_mobile(sc) or is_passive(sc)) and sc.fusion.mode == "peer":
             return _peer(args, sc, stop)
         with open_client(args, sc.network, "sensor", args.id, stop) as bus:
-            stats = node.run(sc, args.id, bus, args.run, WallClock(args.speed), stop)
+            delayed = None
+            if app_latency(args, sc):  # network.latency emulated in this process
+                from covnet.latency_bus import for_sensor
+
+                delayed = for_sensor(bus, sc, args.id, args.run, args.speed)
+            try:
+                stats = node.run(sc, args.id, delayed or bus, args.run, WallClock(args.speed), stop)
+            finally:
+                if delayed is not None:
+                    delayed.close()
         print(
             f"stopped: {stats.enabled_scans} scans enabled, "
             f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}"
@@ -55,6 +64,17 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_OK
 
     return guarded(body, "sensors")
+
+
+def app_latency(args, sc) -> bool:  # type: ignore[no-untyped-def]
+    """Emulate ``network.latency`` inside this process: a covariance-control scenario with
+    links that are not ideal, in real time, unless a real emulated path does it
+    (``--no-app-latency``, set by ``covnet up --netns``)."""
+    from covnet.process import is_mobile, is_passive
+
+    if is_mobile(sc) or is_passive(sc) or not args.realtime or args.no_app_latency:
+        return False
+    return not sc.network.latency.is_ideal(sc.sensor_ids)
 
 
 def _peer(args, sc, stop) -> int:  # type: ignore[no-untyped-def]

@@ -35,6 +35,7 @@ class SensorStats:
     enabled_scans: int = 0
     measurements_sent: int = 0
     missed_truth: int = 0  # commanded scans whose truth never came (e.g. just after a restart)
+    missed_commands: int = 0  # scans whose command never came (slow links)
     rejected: Counter[str] = field(default_factory=Counter)
 
 
@@ -52,12 +53,19 @@ def serve(
     *,
     truth_ok: TruthCheck,
     respond: Respond,
+    missed_command: str | None = None,
 ) -> SensorStats:
     """The protocol every kind of sensor shares (see the module docstring).
 
     ``truth_ok(truth)`` says whether a decoded ``Truth`` is usable by this sensor (else it is
     counted as ``bad_shape``); ``respond(command, truth)`` makes the measurement message for
-    an enabled command once its scan's truth is in hand.  Returns the sensor's counters."""
+    an enabled command once its scan's truth is in hand.  Returns the sensor's counters.
+
+    ``missed_command`` (slow links, ``network.latency.missed_command``): a command older than
+    the newest one received is stale and ignored; scans whose command never came (a gap before
+    the command just received) are filled by the policy, ``keep_last`` (the newest command's
+    on/off for this sensor), ``off`` or ``on``, and measured at once (so late: the manager
+    re-filters or drops them)."""
     stats = SensorStats()
     cmd_sub = bus.subscribe(msg.command_key(run_id))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
@@ -69,6 +77,8 @@ def serve(
     truths: dict[int, msg.Truth] = {}
     pending: deque[msg.Command] = deque()  # enabled commands not yet answered, oldest first
     last_scan = 0
+    newest = (-1, 0)  # (episode, scan) of the newest command received
+    last_on = False
 
     def accept(s: Sample | None) -> bool:
         """Decode one command; queue it if this sensor is enabled. False when ``s`` is None."""
@@ -80,7 +90,21 @@ def serve(
         except msg.WireError as exc:
             stats.rejected[exc.reason] += 1
             return True
+        nonlocal newest, last_on
         stats.commands += 1
+        if missed_command is not None:
+            if (cmd.episode, cmd.scan) <= newest:
+                stats.rejected["stale_command"] += 1
+                return True
+            first = newest[1] + 1 if cmd.episode == newest[0] else 1
+            for m in range(first, cmd.scan):  # commands that never came: the fallback
+                stats.missed_commands += 1
+                if {"keep_last": last_on, "off": False, "on": True}[missed_command]:
+                    t_m = cmd.t * m / cmd.scan  # t = scan * period
+                    pending.append(
+                        msg.Command(m, t_m, (sensor_id,), cmd.t_sent_ns, episode=cmd.episode)
+                    )
+            newest, last_on = (cmd.episode, cmd.scan), sensor_id in cmd.enabled
         last_scan = cmd.scan
         if sensor_id in cmd.enabled:
             stats.enabled_scans += 1
@@ -185,6 +209,7 @@ def run(
         )
 
     decentral = sc.fusion.mode in ("info", "ci")
+    slow = not sc.network.latency.is_ideal(sc.sensor_ids)
     return serve(
         sensor_id,
         bus,
@@ -194,6 +219,7 @@ def run(
         sc.network,
         truth_ok=truth_ok,
         respond=respond_track if decentral else respond,  # type: ignore[arg-type]
+        missed_command=sc.network.latency.missed_command if slow else None,
     )
 
 

@@ -1,0 +1,67 @@
+"""Slow, lossy links emulated inside the processes (``covnet up --realtime`` with
+``network.latency``): the network run equals the simulated-time run of ``covnet run``, late
+measurements are re-filtered, lost ones counted; ``covnet up`` without ``--realtime`` refuses."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from multiproc import CovnetProcess, assert_nothing_left
+
+from covnet.cli import main as covnet_main
+from covnet.results import load_arrays
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
+
+
+def _config(tmp_path, paper_path, mode="central"):
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = 24
+    data["fusion"] = {"mode": mode}
+    # every measurement ~1.6 periods late (deadline 0.8): it lands in the next scan's window,
+    # 0.2 periods from either edge, and is re-filtered into its own scan; a fifth are lost;
+    # a tenth of the commands are lost and filled by keep_last (measured later, also late)
+    data["network"] = {
+        "latency": {
+            "uplink": {"delay": {"kind": "constant", "value_s": 1.5}, "loss": 0.2},
+            "downlink": {"delay": {"kind": "constant", "value_s": 0.1}, "loss": 0.1},
+        }
+    }
+    path = tmp_path / f"latency-{mode}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("mode", ["central", "info"])
+def test_network_run_equals_the_simulated_time_run(tmp_path, paper_path, mode):
+    cfg = _config(tmp_path, paper_path, mode)
+    ref, out = tmp_path / "ref", tmp_path / "up"
+    args = ["--metric", "spectral", "--no-figures"]
+    assert covnet_main(["run", str(cfg), "--out", str(ref), *args]) == 0
+    p = CovnetProcess(["up", str(cfg), "--out", str(out), "--realtime", "--speed", "1.5", *args])
+    try:
+        rc = p.wait(timeout=200)
+    finally:
+        p.stop()
+    assert rc == 0, p.output()
+    assert_nothing_left(out)
+    a = json.loads((ref / "summary.json").read_text())
+    b = json.loads((out / "summary.json").read_text())
+    assert b["metrics"]["spectral"]["subsets"] == a["metrics"]["spectral"]["subsets"]
+    x, y = load_arrays(ref / "arrays.npz"), load_arrays(out / "arrays.npz")
+    np.testing.assert_allclose(y["x_est.spectral"], x["x_est.spectral"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(y["P_post.spectral"], x["P_post.spectral"], rtol=0, atol=1e-9)
+    counts = a["latency"]["spectral"]
+    net = json.loads((out / "network.json").read_text())
+    assert counts["late_refiltered"] > 0 and counts["lost"] > 0 and counts["unsolicited"] > 0
+    assert net["late_refiltered"] == counts["late_refiltered"]
+    assert net["unsolicited"] == 0  # every fallback measurement arrived late, none on time
+
+
+def test_up_refuses_slow_links_in_lockstep(tmp_path, paper_path, capsys):
+    cfg = _config(tmp_path, paper_path)
+    assert covnet_main(["up", str(cfg), "--out", str(tmp_path / "x")]) == 2
+    assert "--realtime" in capsys.readouterr().err
