@@ -88,6 +88,8 @@ SMALL_SEED_POOL = 128
 SEED_POOL_ABOVE = 2048
 #: with a refinable bound, each refined block's REFINED_PICKS best are evaluated at once
 REFINED_PICKS = 4
+#: the first block of refined bounds (then 4x larger each, up to EXACT_BLOCK)
+REFINE_BLOCK = 16
 #: metrics whose batched values equal their one-at-a-time values bit for bit (tested); other
 #: metrics get a pruning margin and a one-at-a-time recheck of near ties
 BATCH_INVARIANT = frozenset(METRICS.values())
@@ -372,7 +374,18 @@ class _DConstants:
     :meth:`inverse` (``P_d⁻¹`` and ``κ_D = tr(P_d) tr(P_d⁻¹) >= cond(P_d)``), :meth:`logdet`.
     Functions of the bits of ``P_d`` alone: one instance serves every decision with that ``P_d``."""
 
-    __slots__ = ("D", "flat", "diag", "diag_list", "abs_sum", "_eig", "_inv", "_logdet", "memo")
+    __slots__ = (
+        "D",
+        "flat",
+        "diag",
+        "diag_list",
+        "trace",
+        "abs_sum",
+        "_eig",
+        "_inv",
+        "_logdet",
+        "memo",
+    )
 
     def __init__(self, P_d: Mat) -> None:
         self.D = P_d.copy()
@@ -380,6 +393,7 @@ class _DConstants:
         self.flat = self.D.reshape(-1)
         self.diag = self.D.diagonal().copy()
         self.diag_list = self.diag.tolist()
+        self.trace = float(self.D.trace())
         self.abs_sum = float(_sum(abs(self.D), None))
         self._eig: tuple[Mat, Mat] | None = None
         self._inv: tuple[Mat, float] | None = None
@@ -395,7 +409,7 @@ class _DConstants:
     def inverse(self) -> tuple[Mat, float]:
         if self._inv is None:
             D_inv = spd_inverse(self.D)
-            self._inv = (D_inv, float(self.D.trace()) * float(D_inv.trace()))
+            self._inv = (D_inv, self.trace * float(D_inv.trace()))
         return self._inv
 
     def logdet(self) -> float:
@@ -567,6 +581,17 @@ class _Setup:
             self._T_K = (K[:, None, :, None] * K[None, :, None, :]).reshape(n * n, 4)
         return self._T_K
 
+    def TK_with(self, which: str) -> Mat:
+        """``[T_K, vec(P)]`` (``which="P"``) or ``[T_K, vec(P - P_d)]`` (``"M"``) ``(n*n, 5)``:
+        times ``[vec(Z_i⁻¹ - C); 1]`` (:meth:`_ChunkStage1P._gp`) they give ``P_i`` or
+        ``P_i - P_d`` flattened."""
+        key = "TK_" + which
+        A = self.memo.get(key)
+        if A is None:
+            col = self.P.reshape(-1) if which == "P" else self.P.reshape(-1) - self.dc.flat
+            A = self.memo[key] = np.concatenate((self.T_K, col[:, None]), axis=1)
+        return A  # type: ignore[return-value]
+
     @property
     def T_diag(self) -> Mat:
         """The diagonal rows ``T[::n+1]`` ``(n, r*r)`` alone (for bounds that read the diagonal
@@ -660,6 +685,14 @@ class _Setup:
             return Stage1P(self, Z, det, Z / det)
         return Stage1P(self, Z, None, _spd_inverse_soa(Z, self.r))
 
+    def take(self, S1: Stage1P, rows: NDArray[np.intp], codes: NDArray[np.int64]) -> Stage1P:
+        """Stage-1 ``P_i`` of the subsets ``codes[rows]``, where ``S1`` holds all of ``codes``:
+        the same representation restricted to those columns for a single-chunk
+        :class:`_ChunkStage1P`, else :meth:`subsets`."""
+        if isinstance(S1, _ChunkStage1P):
+            return S1.take(rows)
+        return self.subsets(codes[rows])
+
     def subsets(self, codes: NDArray[np.int64]) -> Stage1P:
         """Stage-1 ``P_i`` of arbitrary subsets (codes over the free sensors)."""
         bits = ((codes[None, :] >> np.arange(self.S_free.shape[0])[:, None]) & 1).astype(float)
@@ -722,14 +755,26 @@ class _ChunkStage1P(Stage1P):
     ``A`` from ``C⁻¹`` and ``K``) instead of one numpy call per term.  ``Z``, ``det`` and the
     entries of ``Z_i⁻¹`` are computed on first use (a diagonal-only bound never needs them)."""
 
-    __slots__ = ("_Zd", "_g_lazy", "_gp_lazy")
+    __slots__ = ("Q", "_Zd", "_g_lazy", "_gp_lazy")
 
-    def __init__(self, setup: _Setup) -> None:
-        self.n, self.size, self.setup = setup.n, setup.tab.Q.shape[1], setup
+    def __init__(self, setup: _Setup, rows: NDArray[np.intp] | None = None) -> None:
+        Q = setup.tab.Q
+        self.Q = Q if rows is None else Q[:, rows]
+        self.n, self.size, self.setup = setup.n, self.Q.shape[1], setup
         self._Zd: Mat | None = None
         self._g_lazy: Mat | None = None
         self._gp_lazy: Mat | None = None
         self._full = None
+
+    def take(self, rows: NDArray[np.intp]) -> _ChunkStage1P:
+        """The same subsets' stage 1 restricted to the columns ``rows``; what is already computed
+        is sliced, not recomputed."""
+        sub = _ChunkStage1P(self.setup, rows)
+        for name in ("_Zd", "_g_lazy", "_gp_lazy"):
+            X = getattr(self, name)
+            if X is not None:
+                setattr(sub, name, X[:, rows])
+        return sub
 
     def _zd(self) -> Mat:
         if self._Zd is None:
@@ -739,7 +784,7 @@ class _ChunkStage1P(Stage1P):
                 + [0.0, 0.0, 1.0, 0.0, b2, 0.0, 0.0, 0.0, 0.0, 1.0, b3, 0.0]
                 + self.setup.det_row()
             ).reshape(5, 6)
-            self._Zd = B @ self.setup.tab.Q
+            self._Zd = B @ self.Q
         return self._Zd
 
     @property  # type: ignore[override]
@@ -758,50 +803,48 @@ class _ChunkStage1P(Stage1P):
         return self._g_lazy
 
     def _gp(self) -> Mat:
-        """``vec(Z_i⁻¹ - C)`` ``(4, B)``, ``C = P[s, s]``: ``adj(Z_i) - C det Z_i`` and
-        ``det Z_i`` are linear in the rows of ``Q``, one product, one division."""
+        """``[vec(Z_i⁻¹ - C); 1]`` ``(5, B)``, ``C = P[s, s]``: ``adj(Z_i) - C det Z_i`` and
+        ``det Z_i`` are linear in the rows of ``Q`` (one product), then one division; the last
+        row of ones carries the constant term of :meth:`full` / :meth:`diff_full` (one product
+        with ``[T_K, vec(P)]``, no addition per subset)."""
         if self._gp_lazy is None:
             st = self.setup
             b0, b1, b2, b3 = st._base4()
-            drow = st.det_row()
+            d0, d1, d2, d3, d4, _ = st.det_row()
             pl = st._py[4]  # type: ignore[index]
             n = self.n
             i0, i1 = st.s.tolist()
-            C = (pl[i0 * n + i0], pl[i0 * n + i1], pl[i1 * n + i0], pl[i1 * n + i1])
-            # adj(Z) = (Z11, -Z01, -Z10, Z00) with Z = b + S on Q's rows (S00, S01, S10, S11, 1, .)
-            adj = (
-                (0.0, 0.0, 0.0, 1.0, b3, 0.0),
-                (0.0, -1.0, 0.0, 0.0, -b1, 0.0),
-                (0.0, 0.0, -1.0, 0.0, -b2, 0.0),
-                (1.0, 0.0, 0.0, 0.0, b0, 0.0),
+            c0, c1, c2, c3 = pl[i0 * n + i0], pl[i0 * n + i1], pl[i1 * n + i0], pl[i1 * n + i1]
+            # adj(Z) = (Z11, -Z01, -Z10, Z00) with Z = b + S on Q's rows (S00, S01, S10, S11, 1,
+            # det S), minus C_k times the det row (d0..d4, 1)
+            R = (
+                np.array(
+                    (
+                        (-c0 * d0, -c0 * d1, -c0 * d2, 1.0 - c0 * d3, b3 - c0 * d4, -c0),
+                        (-c1 * d0, -1.0 - c1 * d1, -c1 * d2, -c1 * d3, -b1 - c1 * d4, -c1),
+                        (-c2 * d0, -c2 * d1, -1.0 - c2 * d2, -c2 * d3, -b2 - c2 * d4, -c2),
+                        (1.0 - c3 * d0, -c3 * d1, -c3 * d2, -c3 * d3, b0 - c3 * d4, -c3),
+                        (d0, d1, d2, d3, d4, 1.0),
+                    )
+                )
+                @ self.Q
             )
-            flat = [
-                u - c * v
-                for row, c in zip(adj, C, strict=True)
-                for u, v in zip(row, drow, strict=True)
-            ] + drow
-            R = np.array(flat).reshape(5, 6) @ st.tab.Q
-            X = R[:4]
-            X /= R[4]
-            self._gp_lazy = X
+            R[:4] /= R[4]
+            R[4] = 1.0
+            self._gp_lazy = R
         return self._gp_lazy
 
     def full(self) -> Mat:
         if self._full is None:
-            X = self.setup.T_K @ self._gp()
-            X += self.setup.P.reshape(-1, 1)
-            self._full = X
+            self._full = self.setup.TK_with("P") @ self._gp()
         return self._full
 
     def diff_full(self) -> Mat:
-        st = self.setup
-        X = st.T_K @ self._gp()
-        X += (st.P.reshape(-1) - st.dc.flat)[:, None]
-        return X
+        return self.setup.TK_with("M") @ self._gp()
 
     def _diag_rows(self, offset: Mat) -> Mat:
         rows, _ = self.setup.diag_coeffs(False, False)
-        R = np.array(rows) @ self.setup.tab.Q
+        R = np.array(rows) @ self.Q
         n = self.n
         X = R[:n]
         X /= R[n]
@@ -816,7 +859,7 @@ class _ChunkStage1P(Stage1P):
         rows, o_max = st.diag_coeffs(True, True)
         if total:
             rows = [[sum(c) for c in zip(*rows[:-1], strict=True)], rows[-1]]
-        return np.array(rows) @ st.tab.Q, FOLD_ERR * self.n * EPS * st.ctx.kappa * o_max
+        return np.array(rows) @ self.Q, FOLD_ERR * self.n * EPS * st.ctx.kappa * o_max
 
     def diag(self) -> Mat:
         return self._diag_rows(self.setup.P_inf_diag)
@@ -1018,6 +1061,18 @@ def _logdet_spd(A: Mat) -> float:
     return float(2.0 * np.log(np.diagonal(c)).sum()) if info == 0 else np.nan
 
 
+_LOG2 = math.log(2.0)
+
+
+def _logdet_spd2(a: float, b: float, c: float) -> float:
+    """``log det [[a, b], [b, c]]`` from its Cholesky factor (NaN unless positive definite)."""
+    if not a > 0.0:
+        return math.nan
+    l10 = b / math.sqrt(a)
+    d = c - l10 * l10
+    return math.log(a) + math.log(d) if d > 0.0 else math.nan
+
+
 def _spd_inverse_logdet(A: Mat) -> tuple[Mat, float]:
     """:func:`spd_inverse` of one SPD matrix and its ``log det`` (:func:`_logdet_spd`) from one
     Cholesky factorisation (the same factor both compute)."""
@@ -1050,13 +1105,19 @@ def _logdet_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
         W = P_inf + D
         W_inv, ld_W = _spd_inverse_logdet(W)
         V = st.KT @ W_inv @ st.KT.T
-        v = np.ones(n, dtype=bool)
-        v[st.s] = False
-        ld_vv = _logdet_spd(P_inf[v][:, v])
-        c = ld_W - n * np.log(2.0) - 0.5 * ld_vv - 0.5 * st.dc.logdet()
+        if st._py is not None and n == 4:  # P∞[v, v] is 2 x 2: its Cholesky factor by hand
+            v0, v1 = (j for j in range(n) if j not in st.s.tolist())
+            Pl = P_inf.tolist()
+            ld_vv = _logdet_spd2(Pl[v0][v0], Pl[v0][v1], Pl[v1][v1])
+        else:
+            v = np.ones(n, dtype=bool)
+            v[st.s] = False
+            ld_vv = _logdet_spd(P_inf[v][:, v])
+        c = ld_W - n * _LOG2 - 0.5 * ld_vv - 0.5 * st.dc.logdet()
         D_inv, kappa_D = _D_inverse(st, D)
-        kappa_W = (ctx.lam_max + float(D.trace())) * float(D_inv.trace())  # >= cond(W)
-        lam_lo = min(ctx.lam_min, 1.0 / float(D_inv.trace()))  # <= λmin of P∞[v, v], W, P_i
+        tr_D_inv = kappa_D / st.dc.trace
+        kappa_W = (ctx.lam_max + st.dc.trace) * tr_D_inv  # >= cond(W)
+        lam_lo = min(ctx.lam_min, 1.0 / tr_D_inv)  # <= λmin of P∞[v, v], W, P_i
         # P∞ (so W and P∞[v, v]) carries the stage-1 error err: |Δ log det X| <= n² err / λmin;
         # the rest is rounding, relative to the condition numbers involved
         slack = 2.0 * n * n * ctx.err / lam_lo
@@ -1073,7 +1134,7 @@ def _logdet_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
             P.setup.det_row(tuple(x + y for x, y in zip(b, Vf.tolist(), strict=True)))
             + P.setup.det_row(b)
         )
-        R = Cm.reshape(2, 6) @ st.tab.Q
+        R = Cm.reshape(2, 6) @ P.Q
         x = R[0]
         x /= np.sqrt(R[1])
         lb = np.log(x, out=x)
@@ -1254,9 +1315,11 @@ def fast_search(
     # ---- stage 1: a cheap lower bound for every feasible subset
     with np.errstate(all="ignore"):  # a NaN bound means "no information", handled below
         st = _Setup(P_pred, P_d, Y0, tab)
+        S1: Stage1P | None = None
         if tab.chunk:
             codes = tab.codes
-            lb = bound.cheap(st.chunk_covariances(), P_d, st.ctx)
+            S1 = st.chunk_covariances()
+            lb = bound.cheap(S1, P_d, st.ctx)
         else:
             codes, lb = _stage1(st, bound.cheap, P_d, tab)
     best = int(lb.argmin())  # the first NaN, if any
@@ -1274,7 +1337,7 @@ def fast_search(
         size = SEED_POOL if lb.size > 1024 else min(SMALL_SEED_POOL, lb.size - 1)
         pool = np.argpartition(lb, size)[:size]
         with np.errstate(all="ignore"):
-            lb2 = bound.refine(st.subsets(codes[pool]), P_d, st.ctx)
+            lb2 = bound.refine(st.take(S1, pool, codes), P_d, st.ctx)
         lb[pool] = np.fmax(lb[pool], lb2)
         refined[pool] = True
         best = int(lb.argmin())
@@ -1317,16 +1380,20 @@ def fast_search(
     cand = cand[np.argsort(lb[cand], kind="stable")]
     if refined is not None:
         # refine the bounds in cheap-bound order, evaluating each block's best refined few
-        # exactly at once so that tau falls early
-        for lo in range(0, cand.size, EXACT_BLOCK):
-            rows = cand[lo : lo + EXACT_BLOCK]
+        # exactly at once so that tau falls early; blocks grow from REFINE_BLOCK (a small first
+        # block when tau is still loose, large ones for throughput)
+        lo, block = 0, REFINE_BLOCK
+        while lo < cand.size:
+            rows = cand[lo : lo + block]
+            lo += block
+            block = min(4 * block, EXACT_BLOCK)
             rows = rows[lb[rows] <= tau]
             if rows.size == 0:
                 break  # sorted: every later cheap bound exceeds tau too
             todo = rows[~refined[rows]]
             if todo.size:
                 with np.errstate(all="ignore"):
-                    lb2 = bound.refine(st.subsets(codes[todo]), P_d, st.ctx)
+                    lb2 = bound.refine(st.take(S1, todo, codes), P_d, st.ctx)
                 lb[todo] = np.fmax(lb[todo], lb2)  # a NaN refinement keeps the cheap bound
             rows = rows[lb[rows] <= tau]
             if rows.size:
@@ -1340,6 +1407,8 @@ def fast_search(
         tau = evaluate(rows[lb[rows] <= tau])
         pos += block
         block = min(4 * block, EXACT_BLOCK)
+    if len(ev_v) == 1 and table and not margin:  # the refined bounds pruned every candidate
+        return SearchResult(tab.subsets[best], U, P_best, n_feasible, 1)
     all_masks, all_P, all_v = (np.concatenate(x) for x in (ev_masks, ev_P, ev_v))
     if margin:
         _recheck_singly(all_v, all_P, metric, P_d, tie_rtol, margin)

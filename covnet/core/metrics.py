@@ -316,9 +316,12 @@ def logdet(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64
     """
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
-    if A.ndim == 2 and B.shape == A.shape:  # one pair: the three factorisations in one call
-        ld = _chol_logdet(np.stack((0.5 * (A + B), A, B)))
-        return np.maximum(ld[0] - 0.5 * (ld[1] + ld[2]), 0.0)
+    if A.ndim == 2 and B.shape == A.shape and A.size:
+        # one pair: the three factorisations in one call, the sums in Python floats
+        L = np.linalg.cholesky(np.array((0.5 * (A + B), A, B)))
+        logs = np.log(np.diagonal(L, axis1=-2, axis2=-1)).tolist()
+        ld_m, ld_a, ld_b = (2.0 * _left_sum(x) for x in logs)
+        return np.maximum(np.float64(ld_m - 0.5 * (ld_a + ld_b)), 0.0)  # type: ignore[no-any-return]
     f = _chol_logdet(0.5 * (A + B)) - 0.5 * (_chol_logdet(A) + _chol_logdet(B))
     return np.maximum(f, 0.0)
 
@@ -334,11 +337,12 @@ def kl(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
     n = A.shape[-1]
-    if A.ndim == 2 and B.shape == A.shape:  # one pair: each LAPACK step once, on a stack of 2
-        L = np.linalg.cholesky(np.stack((A, B)))
+    if A.ndim == 2 and B.shape == A.shape and n:
+        # one pair: each LAPACK step once, on a stack of 2, the sums in Python floats
+        L = np.linalg.cholesky(np.array((A, B)))
         XY = np.linalg.solve(L[::-1], L)  # (L_B⁻¹ L_A, L_A⁻¹ L_B)
-        t = _sum_last(_sum_last(XY * XY))
-        return np.maximum(0.25 * ((t[0] + t[1]) - 2 * n), 0.0)
+        t_ba, t_ab = (_left_sum([_left_sum(r) for r in X]) for X in (XY * XY).tolist())
+        return np.maximum(np.float64(0.25 * ((t_ba + t_ab) - 2 * n)), 0.0)  # type: ignore[no-any-return]
     L_A = np.linalg.cholesky(A)
     L_B = np.linalg.cholesky(B)
     L_A, L_B = np.broadcast_arrays(L_A, L_B)
