@@ -201,6 +201,12 @@ def replay_run(run_dir: Path, out: Path | None = None) -> ReplayReport:
         if not (run_dir / name).is_file():
             raise ReplayError(f"{run_dir} has no {name}: not a recorded network run")
     sc = from_dict(_read_json(run_dir / "config.json"), str(run_dir / "config.json"))
+    if not sc.network.latency.is_ideal(sc.sensor_ids):
+        raise ReplayError(
+            f"{run_dir} ran over slow links (network.latency): which late measurements were "
+            "re-filtered depends on when they arrived, which the recorded statuses do not "
+            "carry; covnet run reproduces such a run in simulated time instead"
+        )
     if sc.fusion.mode == "peer":
         raise ReplayError(
             f"{run_dir} is a peer-mode run: there is no fusion centre to re-fuse (each node's "
