@@ -1,0 +1,142 @@
+"""Peer nodes, the world and the peer monitor as threads over one InMemoryHub: the peer
+protocol without processes reproduces the in-process peer run exactly, malformed statuses and
+tracks are counted and dropped, and a stopped node drops out of every decision."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from covnet import messages as msg
+from covnet.bus import InMemoryBus, InMemoryHub
+from covnet.clock import WallClock
+from covnet.config import from_dict, normalised
+from covnet.simulate_decentral import run_peer
+from covnet.world import node as world_node
+from manager import peer_monitor
+from sensors import peer
+
+pytestmark = pytest.mark.timeout(120)
+RUN = "t"
+
+
+def _scenario(paper, graph="ring", scans=15):
+    data = normalised(paper)
+    data["scans"] = scans
+    data["network"]["record"] = False
+    data["fusion"] = {"mode": "peer", "peer": {"graph": graph}}
+    return from_dict(data)
+
+
+def _network(sc, metrics, *, extra=None, stop_node=None):
+    hub = InMemoryHub()
+    stops: dict[str, threading.Event] = {}
+    threads = []
+    stats = {}
+
+    def start(name, target):
+        ev = threading.Event()
+        stops[name] = ev
+        bus = InMemoryBus(hub, name=name)
+
+        def body():
+            try:
+                stats[name] = target(bus, ev)
+            finally:
+                bus.close()
+
+        th = threading.Thread(target=body, name=name, daemon=True)
+        th.start()
+        threads.append(th)
+
+    start("world", lambda bus, ev: world_node.run(sc, bus, RUN, WallClock(), ev))
+    for sid in sc.sensor_ids:
+        start(sid, lambda bus, ev, sid=sid: peer.run(sc, sid, metrics, bus, RUN, WallClock(), ev))
+
+    def on_status(st):
+        if extra is not None:
+            extra(hub, st)
+        if stop_node is not None and st["scan"] == stop_node[1]:
+            stops[stop_node[0]].set()
+
+    mbus = InMemoryBus(hub, name="monitor")
+    try:
+        result = peer_monitor.run(
+            sc, metrics, mbus, RUN, WallClock(), threading.Event(), on_status=on_status
+        )
+    finally:
+        mbus.close()  # the monitor's token goes: the nodes finish
+        for th in threads:
+            th.join(timeout=20)
+        for ev in stops.values():
+            ev.set()
+    return result, stats
+
+
+def test_threads_reproduce_the_in_process_peer_run(paper):
+    sc = _scenario(paper)
+    result, stats = _network(sc, ["abs_trace"])
+    assert result.completed and result.error is None
+    ref = run_peer(sc, "abs_trace")
+    truth = np.zeros((sc.scans, 4))
+    for sid, log in result.nodes[0].items():
+        run = log.as_run("abs_trace", sc.sensor_ids, truth)
+        np.testing.assert_array_equal(run.enabled, ref[sid].enabled)
+        np.testing.assert_array_equal(run.x_est, ref[sid].x_est)
+        np.testing.assert_array_equal(run.P_post, ref[sid].P_post)
+    assert all(stats[s].scans == sc.scans for s in sc.sensor_ids)
+
+
+def test_malformed_peer_messages_are_counted_and_dropped(paper):
+    sc = _scenario(paper)
+    bad = [
+        (msg.peer_status_key(RUN, "S1"), b"\x00garbage"),
+        (
+            msg.peer_status_key(RUN, "S2"),
+            msg.encode(msg.Status(3, 3.0, ("S1",), 1.0, 1.0, 1.0, 1, node_id="S5")),
+        ),  # the key names another node
+        (
+            msg.measurement_key(RUN, "S2"),
+            msg.encode(msg.Measurement("S2", 3, 3.0, np.zeros((1, 2)), np.eye(2), 1)),
+        ),  # a measurement where a local track belongs
+        (msg.peer_track_key(RUN, "S3"), b"\x92\x01"),
+    ]
+    sent = []
+
+    def inject(hub, st):
+        if st["scan"] == 2 and not sent:
+            bus = InMemoryBus(hub, name="rogue")
+            for key, payload in bad:
+                bus.publish(key, payload)
+            bus.close()
+            sent.append(True)
+
+    result, stats = _network(sc, ["abs_trace"], extra=inject)
+    assert result.completed
+    ref = run_peer(sc, "abs_trace")
+    truth = np.zeros((sc.scans, 4))
+    for sid, log in result.nodes[0].items():  # nothing malformed was fused
+        np.testing.assert_array_equal(
+            log.as_run("abs_trace", sc.sensor_ids, truth).x_est, ref[sid].x_est
+        )
+    rejected = sum(sum(s.rejected.values()) for sid, s in stats.items() if sid in sc.sensor_ids)
+    assert rejected >= 8  # every node saw the two bad statuses; S1 and S3 the bad track
+    assert sum(result.stats.rejected.values()) >= 3
+
+
+def test_a_stopped_node_drops_out_of_every_decision(paper):
+    sc = _scenario(paper, scans=30)
+    result, _ = _network(sc, ["abs_trace"], stop_node=("S3", 5))
+    assert result.completed
+    logs = result.nodes[0]
+    survivors = [s for s in sc.sensor_ids if s != "S3"]
+    last = {s: max(logs[s].statuses) for s in survivors}
+    assert all(v == 30 for v in last.values())
+    out_from = min(k for k, st in logs["S1"].statuses.items() if "S3" in st.failed)
+    for s in survivors:
+        for k in range(out_from, 31):
+            st = logs[s].statuses[k]
+            assert "S3" in st.failed and "S3" not in st.enabled
+            assert st.enabled == logs["S1"].statuses[k].enabled  # all agree
