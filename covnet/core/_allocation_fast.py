@@ -27,6 +27,18 @@ from the per-subset sums of the sensors' ``S_j`` in the tables plus ``C⁻¹``. 
 cheap bound (:data:`METRIC_BOUNDS`) runs on these approximate ``P_i``; bounds only pay for the
 entries they read (``abs_trace`` reads the diagonal).
 
+**Small problems** (one chunk, ``r = 2 < n``: the paper's 8 sensors) are bound by the fixed cost
+of numpy calls on tiny arrays, not by arithmetic, so their stage 1 is written for few calls
+(:class:`_ChunkStage1P`): the plan keeps ``Q = [S_i entries; 1; det S_i]`` ``(6, B)``, in which
+``Z_i``, ``det Z_i = det S_i + tr(adj(C⁻¹) S_i) + det C⁻¹``, ``adj(Z_i) - C det Z_i`` and the
+numerators of the diagonal entries are all linear, so each is one ``(k, 6) @ Q`` product with
+coefficients from ``C⁻¹`` and ``K`` (a few Python floats per decision).  Full matrices use
+``P∞ = P - K C Kᵀ``: ``P_i = P + (K ⊗ K) vec(Z_i⁻¹ - C)``, one product with ``[K ⊗ K, vec P]``.
+The diagonal bounds fold ``P∞ - P_d`` into the product (``det Z_i · (P_i - P_d)_aa``, divided
+once per subset), which adds a rounding term of ``FOLD_ERR · n · eps · κ · |P∞ - P_d|`` they
+deflate by.  Constants of ``P_d`` (inverse, eigen-decomposition, log-determinant) are kept per
+plan for the next decisions with the same ``P_d`` (:class:`_DConstants`).
+
 **Stage 2: exact values for few subsets**, computed with the reference's arithmetic (``J_i``
 summed in ascending sensor order by :func:`gain_sums`, ``P_i`` by :func:`spd_inverse`, the
 metric itself on the stack).  The subset with the smallest bound is evaluated first; with ``U``
@@ -432,7 +444,11 @@ class _Setup:
     ``adj(Z) = J Z Jᵀ``, ``J = [[0, 1], [-1, 0]]``, so ``K`` becomes ``K J`` in ``T`` and
     ``g_i = Z_i / det Z_i``.  Only the ``P``-dependent part is built here; the gain-only part
     (support, ``S_j``, subset sums) comes from :class:`SearchTables`.
-    ``memo`` holds per-problem constants of the bounds.
+    ``memo`` holds per-problem constants of the bounds, ``dc`` those of ``P_d``.
+
+    For ``r = 2 < n`` the constructor computes only ``C⁻¹`` and ``Kᵀ`` (Python floats); the
+    arrays (``KT``, ``KJ``, ``T``, ``T_K``, ``P∞``, ...) are properties built on first use, so
+    a bound pays only for what it reads.
     """
 
     __slots__ = (
@@ -584,12 +600,17 @@ class _Setup:
     def TK_with(self, which: str) -> Mat:
         """``[T_K, vec(P)]`` (``which="P"``) or ``[T_K, vec(P - P_d)]`` (``"M"``) ``(n*n, 5)``:
         times ``[vec(Z_i⁻¹ - C); 1]`` (:meth:`_ChunkStage1P._gp`) they give ``P_i`` or
-        ``P_i - P_d`` flattened."""
+        ``P_i - P_d`` flattened.  Built as ``v[ia] * v[ib]`` from one vector
+        ``v = [K entries, vec(P or P - P_d), 1]`` and constant index tables (:func:`_tk_index`):
+        entry ``((a, b), (c, d))`` is ``K_ac K_bd``, column 4 is ``vec(·) · 1``."""
         key = "TK_" + which
         A = self.memo.get(key)
         if A is None:
-            col = self.P.reshape(-1) if which == "P" else self.P.reshape(-1) - self.dc.flat
-            A = self.memo[key] = np.concatenate((self.T_K, col[:, None]), axis=1)
+            kt0, kt1, _, _, pl = self._py[:5]  # type: ignore[misc]
+            col = pl if which == "P" else self.P.reshape(-1) - self.dc.flat
+            v = np.concatenate((np.array((kt0, kt1)).T.reshape(-1), col, _ONE))
+            ia, ib = _tk_index(self.n)
+            A = self.memo[key] = v[ia] * v[ib]
         return A  # type: ignore[return-value]
 
     @property
@@ -700,6 +721,26 @@ class _Setup:
 
 
 _sum = np.add.reduce
+_max = np.maximum.reduce
+_ONE = np.ones(1)
+
+
+@functools.lru_cache(maxsize=16)
+def _tk_index(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Index tables of :meth:`_Setup.TK_with` for ``v = [K (n x 2) row-major, vec (n*n), 1]``."""
+    ab = np.arange(n * n)
+    a, b = ab // n, ab % n
+    ia = np.empty((n * n, 5), dtype=np.intp)
+    ib = np.empty((n * n, 5), dtype=np.intp)
+    for cd, (c, d) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        ia[:, cd] = 2 * a + c
+        ib[:, cd] = 2 * b + d
+    ia[:, 4] = 2 * n + ab
+    ib[:, 4] = 2 * n + n * n
+    ia.flags.writeable = ib.flags.writeable = False
+    return ia, ib
+
+
 _min = np.minimum.reduce
 _ADJ2_SIGN = np.array([[-1.0], [1.0]])  # Jᵀ Kᵀ = [-Kᵀ[1], Kᵀ[0]]
 
@@ -894,7 +935,7 @@ def _cov_slack(v: Mat, lipschitz: float, ctx: BoundContext, extra: float = 0.0) 
     scale) for the rounding of both computations, and ``extra`` (an absolute error of ``v``
     known to the caller)."""
     rel = 64.0 * lipschitz * EPS
-    v = v * (1.0 - rel)
+    v *= 1.0 - rel  # in place: every caller passes a fresh array
     v -= lipschitz * ctx.err + rel * ctx.scale + extra
     return v
 
@@ -929,14 +970,12 @@ def _frobenius_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
 
 def _one_norm_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """``max_j sum_i |(P - D)_ij|`` of the stage-1 ``P``."""
-    A = np.abs(P.diff_full()).reshape(P.n, P.n, P.size)
-    return _cov_slack(A.sum(axis=0).max(axis=0), P.n, ctx)
+    return _cov_slack(_max(_sum_mats(P.n)[0] @ np.abs(P.diff_full()), 0), P.n, ctx)
 
 
 def _inf_norm_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """``max_i sum_j |(P - D)_ij|`` of the stage-1 ``P``."""
-    A = np.abs(P.diff_full()).reshape(P.n, P.n, P.size)
-    return _cov_slack(A.sum(axis=1).max(axis=0), P.n, ctx)
+    return _cov_slack(_max(_sum_mats(P.n)[1] @ np.abs(P.diff_full()), 0), P.n, ctx)
 
 
 def _spectral_cheap(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
@@ -945,15 +984,45 @@ def _spectral_cheap(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     ``m`` (``h``) the mean (half difference) of its diagonal and ``o`` its off-diagonal entry."""
     n = P.n
     M = P.diff_full()
-    lb = np.sqrt((M * M).reshape(n, n, P.size).sum(axis=0).max(axis=0))
+    lb = _max(_sum_mats(n)[0] @ (M * M), 0)  # squared column norms
+    np.sqrt(lb, out=lb)
     if n > 1:
-        pi, pj = _pairs(n)
-        diag = M[:: n + 1]
-        half = 0.5 * (diag[pi] - diag[pj])
-        off = M[pi * n + pj]
-        pair = np.abs(diag[pj] + half) + np.sqrt(half * half + off * off)
-        lb = np.maximum(lb, pair.max(axis=0))
+        ii, jj, ij = _pair_rows(n)
+        dj = M[jj]
+        half = M[ii]
+        half -= dj
+        half *= 0.5
+        off = M[ij]
+        off *= off
+        dj += half
+        np.abs(dj, out=dj)
+        half *= half
+        half += off
+        np.sqrt(half, out=half)
+        half += dj
+        np.maximum(lb, _max(half, 0), out=lb)
     return _cov_slack(lb, n, ctx)
+
+
+@functools.lru_cache(maxsize=16)
+def _pair_rows(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    """For the flattened ``(n*n, B)`` layout: the rows of ``M_ii``, ``M_jj``, ``M_ij`` for the
+    index pairs ``i < j`` (constants per n)."""
+    pi, pj = np.triu_indices(n, 1)
+    return pi * (n + 1), pj * (n + 1), pi * n + pj
+
+
+@functools.lru_cache(maxsize=16)
+def _sum_mats(n: int) -> tuple[Mat, Mat]:
+    """``(n, n*n)`` 0/1 matrices summing the flattened ``(n*n, B)`` layout over ``i`` for each
+    column ``j`` and over ``j`` for each row ``i`` (constants per n)."""
+    col = np.zeros((n, n * n))
+    row = np.zeros((n, n * n))
+    for j in range(n):
+        col[j, j::n] = 1.0
+        row[j, j * n : j * n + n] = 1.0
+    col.flags.writeable = row.flags.writeable = False
+    return col, row
 
 
 @functools.lru_cache(maxsize=16)
@@ -1308,7 +1377,7 @@ def fast_search(
     """Exact argmin with the tie rule (module docstring); the inputs are already validated and
     ``tab`` holds the gain-only part of the problem."""
     n_feasible = tab.n_feasible
-    Y0 = spd_inverse(P_pred)
+    Y0 = _spd_inverse_one(P_pred)
     if bound is None:
         return _batched_exhaustive(Y0, P_d, metric, tab, tie_rtol)
 

@@ -34,7 +34,8 @@ then prepared inside the call.
 semi-definiteness; constraint indices, exclusive sets, budget.  Every :func:`allocate` call:
 ``P_pred`` and ``P_d`` shape (against the plan), finiteness and symmetry; ``P_pred`` positive
 definite (its Cholesky factorisation); the metric; ``tie_rtol``; the constraints, if given, equal
-to the plan's.
+to the plan's.  (A plan remembers the last few checked ``P_d`` by their bytes: a ``P_d`` equal to
+one already checked is not checked again, with the same result.)
 """
 
 from __future__ import annotations

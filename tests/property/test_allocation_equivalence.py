@@ -185,3 +185,45 @@ def test_single_chunk_bounds_never_exceed_the_exact_value(name, pb):
         assert lb.shape == exact.shape
         assert not np.any(lb > exact), (name, float(np.max(lb - exact)))
     assert n == P_pred.shape[0]
+
+
+@st.composite
+def decisions(draw):
+    """One gains/constraints set and a few decisions on it, the desired covariances drawn from a
+    small pool (so a plan sees the same ``P_d`` again, after others), some sensors duplicated
+    (exact ties between subsets)."""
+    P_pred, gains, P_d, c = draw(problem())
+    if gains.shape[0] >= 2 and draw(st.booleans()):
+        gains = np.concatenate([gains, gains[:1]])  # an identical sensor: tied subsets
+        c = Constraints()
+    n = gains.shape[1]
+    pool = [P_d, draw(spd(n, floor=0.1)), np.eye(n)]
+    steps = []
+    for _ in range(draw(st.integers(2, 4))):
+        scale = draw(st.sampled_from([0.5, 1.0, 2.0]))
+        steps.append((P_pred * scale, pool[draw(st.integers(0, len(pool) - 1))]))
+    return gains, c, steps
+
+
+@pytest.mark.parametrize("name", sorted(METRICS))
+@settings(max_examples=15)
+@given(pb=decisions())
+def test_a_plan_reused_over_decisions_equals_exhaustive(name, pb):
+    """The small-N path with one plan over several decisions (its per-``P_d`` caches hit and
+    miss) picks what the plain loop picks, bit for bit, at every decision."""
+    gains, c, steps = pb
+    plan = prepare(gains, c)
+    for P_pred, P_d in steps:
+        try:
+            ref = allocate_exhaustive(P_pred, gains, P_d, name, c)
+        except InfeasibleAllocation:
+            with pytest.raises(InfeasibleAllocation):
+                allocate(P_pred, plan, P_d, name)
+            continue
+        except ValueError:  # e.g. a P_d the metric cannot take (not SPD for logdet, kl)
+            with pytest.raises(ValueError):
+                allocate(P_pred, plan, P_d, name)
+            continue
+        got = allocate(P_pred, plan, P_d, name)
+        assert (got.subset, got.value, got.n_feasible) == (ref.subset, ref.value, ref.n_feasible)
+        np.testing.assert_array_equal(got.P, ref.P)

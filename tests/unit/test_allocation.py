@@ -382,3 +382,35 @@ def test_prepare_rejects_bad_gains_and_constraints(override, match, gains8):
     if "gains" in override and override["gains"].ndim == 3:
         with pytest.raises(ValueError, match=match):
             allocate(P_PRED, override["gains"], D1, "spectral")
+
+
+def test_plan_cache_does_not_keep_the_callers_P_d(gains8):
+    """The plan caches the checked ``P_d`` by value: a caller reusing (mutating) one array for
+    the desired covariance gets each decision for its current content."""
+    plan = prepare(gains8)
+    D = D1.copy()
+    first = allocate(P_PRED, plan, D, "abs_trace")
+    D[:] = D2  # the same array, now the tightened desire
+    second = allocate(P_PRED, plan, D, "abs_trace")
+    assert first.subset == allocate_exhaustive(P_PRED, gains8, D1, "abs_trace").subset
+    assert second.subset == allocate_exhaustive(P_PRED, gains8, D2, "abs_trace").subset
+    assert first.subset != second.subset
+    D[:] = D1
+    assert allocate(P_PRED, plan, D, "abs_trace").subset == first.subset
+
+
+@pytest.mark.parametrize("name", sorted(METRICS))
+def test_one_pair_metric_paths_equal_the_batched_ones(name):
+    """Each metric on one ``(n, n)`` pair (its Python-float path) gives the same bits as the same
+    pair inside a batch (the numpy path), which the allocator's exactness relies on."""
+    rng = np.random.default_rng(11)
+    for n in (1, 2, 4, 5):
+        X = rng.standard_normal((6, n, n))
+        A = X @ np.swapaxes(X, -1, -2) + 0.1 * np.eye(n)
+        A[1] = np.diag(rng.choice([25.0, 1.4], n))  # diagonal, repeated values (svd ties)
+        B = np.diag(rng.choice([25.0, 1.4, 7.0], n))
+        batched = METRICS[name](A, B)
+        for k in range(A.shape[0]):
+            one = METRICS[name](A[k], B)
+            assert np.asarray(one).shape == ()
+            assert np.asarray(one).tobytes() == batched[k].tobytes()
