@@ -751,9 +751,9 @@ class Stage1P:
     diagonal pays only for it).
 
     ``diag()`` ``(n, B)``, ``full()`` ``(n*n, B)`` (row ``i*n + j``), ``stack()`` ``(B, n, n)``;
-    ``diff_diag()``, ``diff_full()`` the same for ``P_i - P_d``.  ``Z`` ``(r*r, B)``: the
-    subsets' information on the support, ``det`` its determinant when ``r = 2``; ``setup`` the
-    problem's :class:`_Setup`.
+    ``diff_diag()``, ``diff_full()``, ``diff_stack()`` the same for ``P_i - P_d``.
+    ``Z`` ``(r*r, B)``: the subsets' information on the support, ``det`` its determinant when
+    ``r = 2``; ``setup`` the problem's :class:`_Setup`.
     """
 
     __slots__ = ("n", "size", "setup", "Z", "det", "_g", "_full")
@@ -787,6 +787,9 @@ class Stage1P:
 
     def stack(self) -> Mat:
         return self.full().reshape(self.n, self.n, self.size).transpose(2, 0, 1)
+
+    def diff_stack(self) -> Mat:
+        return self.diff_full().reshape(self.n, self.n, self.size).transpose(2, 0, 1)
 
 
 class _ChunkStage1P(Stage1P):
@@ -1034,7 +1037,7 @@ def _pairs(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
 
 def _spectral_refine(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """The spectral norm of the stage-1 ``M`` (Weyl: it moves by ``<= ||ΔP||_2 <= n err``)."""
-    w = np.linalg.eigvalsh(P.stack() - D)
+    w = np.linalg.eigvalsh(P.diff_stack())
     return _cov_slack(np.maximum(w[:, -1], -w[:, 0]), P.n, ctx)
 
 

@@ -218,7 +218,7 @@ def _symmetric(A: Mat, name: str) -> Mat:
     A small ``A`` with finite entries (a finite sum of its entries; else the numpy code below
     decides) is checked and symmetrised in Python floats, cheaper than numpy calls on a few
     entries and the same IEEE operations: ``a_ij == a_ji`` everywhere is the shortcut, otherwise
-    ``(a + b) * 0.5`` entrywise after the same test on ``max(A - Aᵀ)`` and ``max(A + Aᵀ)``."""
+    the same test on ``max(A - Aᵀ)`` and ``max(A + Aᵀ)``, then ``(A + Aᵀ) * 0.5``."""
     At = A.T
     if A.size <= _SMALL:
         flat = A.ravel().tolist()
@@ -228,9 +228,12 @@ def _symmetric(A: Mat, name: str) -> Mat:
                 if max(flat) >= 0:
                     return A
             else:
-                S = [a + b for a, b in zip(flat, flat_t, strict=True)]
-                if max([a - b for a, b in zip(flat, flat_t, strict=True)]) <= 1e-9 * max(S):
-                    return np.array([x * 0.5 for x in S]).reshape(A.shape)
+                S = A + At  # the sums in numpy, the test on Python floats
+                if max([a - b for a, b in zip(flat, flat_t, strict=True)]) <= 1e-9 * max(
+                    [a + b for a, b in zip(flat, flat_t, strict=True)]
+                ):
+                    S *= 0.5
+                    return S
     elif not (A - At).any() and _max(A, None) >= 0:
         return A
     S = A + At

@@ -8,9 +8,11 @@ relative 1e-9 in f, spec "Facts").
 
 For every (metric, N): the fast path's median wall time per decision over problems x repeats, the
 baseline's median, their ratio, the fast path's peak traced memory, and whether both chose the same
-subset on every problem.  Per problem, each path is called once untimed (warm-up), then timed in a
-block of its own: at least ``repeat`` calls and enough to last ``MIN_BLOCK_S`` (capped at
-``MAX_REPEAT``), the count fixed by the first problem's warm-up so every problem weighs the same.
+subset on every problem.  Per problem, each path is called once untimed (warm-up), then timed:
+at least ``repeat`` calls and enough to last ``MIN_BLOCK_S`` (capped at ``MAX_REPEAT``), the
+count fixed by the first problem's warm-up so every problem weighs the same, in ``ROUNDS``
+alternating blocks (fast, baseline, fast, ...): each path warm in its own blocks, and a change in
+the shared machine's load hits both paths alike, so their ratio is steadier than either time.
 The fast path is timed as a running filter uses it: the gain-only work
 (validation, the PSD check of the gains, the subset tables) is prepared once per (N, metric) by
 :func:`covnet.core.allocation.prepare`, outside the timed call, and every decision is
@@ -63,42 +65,65 @@ DEFAULT_DESIRED: tuple[tuple[int, Mat], ...] = ((1, _D1), (51, _D2))
 BASELINE_ONCE_ABOVE = 2**18
 #: a timed block (one path, one problem) lasts at least this long, up to MAX_REPEAT calls: short
 #: calls (tens of microseconds at N = 8) get enough samples for a stable median
-MIN_BLOCK_S = 0.02
+MIN_BLOCK_S = 0.04
 MAX_REPEAT = 200
+#: per problem, each path's timed calls are split into this many alternating blocks
+ROUNDS = 4
 
 
 def _fast_subset(P_pred: Mat, plan: AllocationPlan, P_d: Mat, name: str) -> tuple[int, ...]:
     return allocate(P_pred, plan, P_d, name).subset
 
 
-def _time_block(
-    call: Callable[[], tuple[int, ...]],
-    key: str,
-    reps: dict[str, int],
-    repeat: int,
-    out: list[float],
-    once: bool = False,
-) -> tuple[int, ...]:
-    """One untimed warm-up ``call()`` (its result is returned), then ``reps[key]`` timed calls
-    appended to ``out``; ``reps[key]`` is set by the first warm-up (:func:`_repeats`).  ``once``:
-    the single call is the timed one."""
+def _timed(
+    call: Callable[[], tuple[int, ...]], out: list[float] | None = None
+) -> tuple[tuple[int, ...], float]:
+    """``call()`` and its wall time (appended to ``out`` if given)."""
     t0 = time.perf_counter()
     result = call()
-    t_call = time.perf_counter() - t0
-    if once:
-        out.append(t_call)
-        return result
-    if not reps[key]:
-        reps[key] = _repeats(repeat, t_call)
-    for _ in range(reps[key]):
-        t0 = time.perf_counter()
-        call()
-        out.append(time.perf_counter() - t0)
-    return result
+    dt = time.perf_counter() - t0
+    if out is not None:
+        out.append(dt)
+    return result, dt
+
+
+def _time_paths(
+    fast: Callable[[], tuple[int, ...]],
+    base: Callable[[], tuple[int, ...]],
+    reps: dict[str, int],
+    repeat: int,
+    fast_t: list[float],
+    base_t: list[float],
+    base_once: bool,
+) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Time both paths on one problem; returns their choices.
+
+    One untimed warm-up call each (on the first problem it sets ``reps``, :func:`_repeats`),
+    then ``ROUNDS`` rounds of a block of fast calls followed by a block of baseline calls, each
+    path's ``reps`` calls split over the rounds: every path runs in its own warm blocks, and a
+    change of the (shared) machine's load during the problem hits both alike.  ``base_once``:
+    the baseline's single call is its timed one, no warm-up."""
+    chosen, t_fast = _timed(fast)
+    expected, t_base = _timed(base, base_t if base_once else None)
+    if not reps["fast"]:
+        reps["fast"] = _repeats(repeat, t_fast)
+        reps["base"] = 0 if base_once else _repeats(repeat, t_base)
+    rounds = min(ROUNDS, reps["fast"], reps["base"] or reps["fast"])
+    for k in range(rounds):
+        for _ in range(_share(reps["fast"], rounds, k)):
+            _timed(fast, fast_t)
+        for _ in range(_share(reps["base"], rounds, k)):
+            _timed(base, base_t)
+    return chosen, expected
+
+
+def _share(total: int, parts: int, k: int) -> int:
+    """Part ``k`` of ``total`` split into ``parts`` near-equal parts."""
+    return total // parts + (1 if k < total % parts else 0)
 
 
 def _repeats(repeat: int, t_call: float) -> int:
-    """Timed calls per block: at least ``repeat``, enough for ``MIN_BLOCK_S`` (at most
+    """Timed calls per problem: at least ``repeat``, enough for ``MIN_BLOCK_S`` (at most
     ``MAX_REPEAT``) at ``t_call`` seconds per call."""
     return max(repeat, min(MAX_REPEAT, math.ceil(MIN_BLOCK_S / max(t_call, 1e-9))))
 
@@ -230,11 +255,11 @@ def run(
     "plan_s", "plan_mb", "agree"}``: medians (``time.perf_counter``) over problems x repeats of
     one decision ``allocate(P_pred, plan, P_d, metric)`` with the plan prepared once per
     (N, metric) outside the timing, after one untimed warm-up call per problem and path (the
-    baseline once per problem, no warm-up, above ``BASELINE_ONCE_ABOVE`` subsets; repeats per
-    block: :func:`_repeats`), ``peak_mb`` the largest tracemalloc peak of one fast call per
-    problem, ``plan_s`` /
-    ``plan_mb`` the time / tracemalloc peak of :func:`covnet.core.allocation.prepare`, ``agree``
-    whether both chose the same subset on every problem.
+    baseline once per problem, no warm-up, above ``BASELINE_ONCE_ABOVE`` subsets; repeats and
+    alternating blocks: :func:`_time_paths`), ``peak_mb`` the largest tracemalloc peak of one
+    fast call per problem, ``plan_s`` / ``plan_mb`` the time / tracemalloc peak of
+    :func:`covnet.core.allocation.prepare`, ``agree`` whether both chose the same subset on
+    every problem.
     """
     names = list(metrics) if metrics is not None else sorted(METRICS)
     scans = problem_scans(n_problems)
@@ -259,8 +284,7 @@ def run(
             for P_pred, P_d in problems:
                 fast = functools.partial(_fast_subset, P_pred, plan, P_d, name)
                 base = functools.partial(plain_baseline, P_pred, gains, P_d, name)
-                chosen = _time_block(fast, "fast", reps, repeat, fast_t)
-                expected = _time_block(base, "base", reps, repeat, base_t, once)
+                chosen, expected = _time_paths(fast, base, reps, repeat, fast_t, base_t, once)
                 agree &= chosen == expected
                 tracemalloc.start()
                 allocate(P_pred, plan, P_d, name)
