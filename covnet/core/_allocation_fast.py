@@ -392,6 +392,7 @@ class _DConstants:
         "diag",
         "diag_list",
         "trace",
+        "flat_list",
         "abs_sum",
         "_eig",
         "_inv",
@@ -406,6 +407,7 @@ class _DConstants:
         self.diag = self.D.diagonal().copy()
         self.diag_list = self.diag.tolist()
         self.trace = float(self.D.trace())
+        self.flat_list = self.flat.tolist()
         self.abs_sum = float(_sum(abs(self.D), None))
         self._eig: tuple[Mat, Mat] | None = None
         self._inv: tuple[Mat, float] | None = None
@@ -607,8 +609,10 @@ class _Setup:
         A = self.memo.get(key)
         if A is None:
             kt0, kt1, _, _, pl = self._py[:5]  # type: ignore[misc]
-            col = pl if which == "P" else self.P.reshape(-1) - self.dc.flat
-            v = np.concatenate((np.array((kt0, kt1)).T.reshape(-1), col, _ONE))
+            col = (
+                pl if which == "P" else [a - b for a, b in zip(pl, self.dc.flat_list, strict=True)]
+            )
+            v = np.array([x for xy in zip(kt0, kt1, strict=True) for x in xy] + col + [1.0])
             ia, ib = _tk_index(self.n)
             A = self.memo[key] = v[ia] * v[ib]
         return A  # type: ignore[return-value]
@@ -722,7 +726,6 @@ class _Setup:
 
 _sum = np.add.reduce
 _max = np.maximum.reduce
-_ONE = np.ones(1)
 
 
 @functools.lru_cache(maxsize=16)
@@ -861,18 +864,16 @@ class _ChunkStage1P(Stage1P):
             c0, c1, c2, c3 = pl[i0 * n + i0], pl[i0 * n + i1], pl[i1 * n + i0], pl[i1 * n + i1]
             # adj(Z) = (Z11, -Z01, -Z10, Z00) with Z = b + S on Q's rows (S00, S01, S10, S11, 1,
             # det S), minus C_k times the det row (d0..d4, 1)
-            R = (
-                np.array(
-                    (
-                        (-c0 * d0, -c0 * d1, -c0 * d2, 1.0 - c0 * d3, b3 - c0 * d4, -c0),
-                        (-c1 * d0, -1.0 - c1 * d1, -c1 * d2, -c1 * d3, -b1 - c1 * d4, -c1),
-                        (-c2 * d0, -c2 * d1, -1.0 - c2 * d2, -c2 * d3, -b2 - c2 * d4, -c2),
-                        (1.0 - c3 * d0, -c3 * d1, -c3 * d2, -c3 * d3, b0 - c3 * d4, -c3),
-                        (d0, d1, d2, d3, d4, 1.0),
-                    )
-                )
-                @ self.Q
-            )
+            # fmt: off
+            A = np.array((
+                -c0 * d0, -c0 * d1, -c0 * d2, 1.0 - c0 * d3, b3 - c0 * d4, -c0,
+                -c1 * d0, -1.0 - c1 * d1, -c1 * d2, -c1 * d3, -b1 - c1 * d4, -c1,
+                -c2 * d0, -c2 * d1, -1.0 - c2 * d2, -c2 * d3, -b2 - c2 * d4, -c2,
+                1.0 - c3 * d0, -c3 * d1, -c3 * d2, -c3 * d3, b0 - c3 * d4, -c3,
+                d0, d1, d2, d3, d4, 1.0,
+            ))
+            # fmt: on
+            R = A.reshape(5, 6) @ self.Q
             R[:4] /= R[4]
             R[4] = 1.0
             self._gp_lazy = R
