@@ -631,7 +631,9 @@ class Status(_Message):
     ``tr P`` of the fused covariance, ``tr Pd`` of the desired one, and the allocation
     objective ``value``.  ``episode`` (here and in Command, Measurement, Track) numbers the
     metric episodes of one run (one per allocation metric).  ``node_id`` (optional, peer mode):
-    the peer node reporting (each node decides and fuses for itself)."""
+    the peer node reporting (each node decides and fuses for itself).  ``refiltered`` (optional,
+    slow links): the late messages, ``"<sensor>:<scan>"``, re-filtered into their past scans
+    while this scan was collected (so that a replay re-filters the same ones)."""
 
     KIND: ClassVar[str] = "status"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -646,6 +648,7 @@ class Status(_Message):
         "fused": "names",
         "failed": "names",
         "node_id": "name",
+        "refiltered": "names",
     }
     scan: int
     t: float
@@ -658,6 +661,7 @@ class Status(_Message):
     fused: tuple[str, ...] = ()
     failed: tuple[str, ...] = ()
     node_id: str | None = None
+    refiltered: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -74,7 +74,7 @@ from covnet.model import (
 from covnet.recording import META_RUN, RecordedSample, RecordingReader, key_kind, read_metadata
 from covnet.results import RUN_INFO, SUMMARY, write_json
 from covnet.runtime_stats import NetStats
-from manager.node import EpisodeLog, ManagerResult, as_local_track, usable_track
+from manager.node import EpisodeLog, LateHandler, ManagerResult, as_local_track, usable_track
 from manager.report import write_network_run
 
 __all__ = ["RECORDING", "REPLAY_DIR", "ReplayError", "ReplayReport", "replay_run"]
@@ -201,12 +201,6 @@ def replay_run(run_dir: Path, out: Path | None = None) -> ReplayReport:
         if not (run_dir / name).is_file():
             raise ReplayError(f"{run_dir} has no {name}: not a recorded network run")
     sc = from_dict(_read_json(run_dir / "config.json"), str(run_dir / "config.json"))
-    if not sc.network.latency.is_ideal(sc.sensor_ids):
-        raise ReplayError(
-            f"{run_dir} ran over slow links (network.latency): which late measurements were "
-            "re-filtered depends on when they arrived, which the recorded statuses do not "
-            "carry; covnet run reproduces such a run in simulated time instead"
-        )
     if sc.fusion.mode == "peer":
         raise ReplayError(
             f"{run_dir} is a peer-mode run: there is no fusion centre to re-fuse (each node's "
@@ -278,6 +272,7 @@ def _rebuild(
     truth = truth_trajectory(model)
     fusion = sc.fusion
     decentral = fusion.mode in ("info", "ci")
+    slow = not sc.network.latency.is_ideal(ids)
     result = ManagerResult({}, NetStats())
     completed = True
     for e, metric in enumerate(metrics):
@@ -289,6 +284,7 @@ def _rebuild(
         where = f"episode {e} ({metric})"
         est = initial_estimate(model, sc.filter.initial_estimate)
         mirror = Mirror.start(model)
+        late = LateHandler(sc, model, e) if slow else None
         failed_prev: frozenset[str] = frozenset()
         for k in range(1, model.scans + 1):
             st = rec.status.get((e, k))
@@ -339,7 +335,21 @@ def _rebuild(
                     )
                     continue
                 got.append((ids.index(sid), m))
-            if decentral:  # the manager's steps (manager.node.run)
+            for token in st.refiltered or ():  # the late ones the manager re-filtered
+                sid, _, scan = token.rpartition(":")
+                m = rec.meas.get((e, int(scan), sid)) if scan.isdigit() else None
+                if m is None or late is None or not late.insert(m):
+                    diffs.add(
+                        "refiltered",
+                        f"{where} scan {k}: the manager re-filtered {token} but the replay "
+                        "cannot (no valid recorded message, or not insertable)",
+                    )
+            if late is not None and late.buffer is not None:
+                if late.inserted:
+                    pred = late.buffer.predicted()
+                    late.inserted = False
+                est = late.fuse(k, pred, {ids[j]: m for j, m in got})
+            elif decentral:  # the manager's steps (manager.node.run)
                 tracks = [(j, as_local_track(m)) for j, m in got]
                 est = fuse_tracks(fusion, pred, tracks)
                 mirror.advance(fusion, model, [j for j, _ in tracks])

@@ -316,7 +316,7 @@ class _Loop:
             self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
 
 
-class _LateHandler:
+class LateHandler:
     """One episode's out-of-sequence processing on slow links (``network.latency.late``):
     ``central``/``info`` keep a :class:`~covnet.core.oosm.ReFilterBuffer` of the last
     ``oosm_depth`` scans and filter every scan through it (the same updates as
@@ -329,6 +329,7 @@ class _LateHandler:
         self.mode = sc.fusion.mode
         self.ids = model.sensor_ids
         self.inserted = False
+        self.refiltered: list[str] = []  # "<sensor>:<scan>" since the last Status
         keep = lat.late == "oosm" and self.mode != "ci"
         self.buffer = ReFilterBuffer(model.F, model.Q, model.H, lat.oosm_depth) if keep else None
 
@@ -346,8 +347,14 @@ class _LateHandler:
             done = self.buffer.insert(m.scan, self.ids.index(m.sensor_id), *self._measurement(m))
         except ValueError:  # that sensor's message of that scan is in already
             return False
-        self.inserted = self.inserted or done is not None
+        if done is not None:
+            self.inserted = True
+            self.refiltered.append(f"{m.sensor_id}:{m.scan}")
         return done is not None
+
+    def take_refiltered(self) -> tuple[str, ...]:
+        out, self.refiltered = tuple(self.refiltered), []
+        return out
 
     def fuse(self, k: int, pred: Gaussian, got: dict[str, Any]) -> Gaussian:
         assert self.buffer is not None
@@ -412,7 +419,7 @@ def run(
             log = result.episodes[metric] = EpisodeLog(metric)
             est = initial_estimate(model, sc.filter.initial_estimate)
             mirror = Mirror.start(model)  # the local filters' covariances (decentralized modes)
-            late = _LateHandler(sc, model, e) if slow else None
+            late = LateHandler(sc, model, e) if slow else None
             loop.on_late = late.insert if late is not None else None
             loop.accept_unsolicited = slow
             t_origin = clock.now()
@@ -495,6 +502,7 @@ def run(
                     episode=e,
                     fused=tuple(sorted(got, key=ids.index)),
                     failed=tuple(sorted(failed - {WORLD_ID})),
+                    refiltered=late.take_refiltered() if late is not None else None,
                 )
                 loop.publish(loop.keys["status"], status)
                 log.record(

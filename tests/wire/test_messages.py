@@ -89,6 +89,7 @@ CASES = [
     LocalTrack("S1", 3, 3.0, np.ones(4), np.eye(4), np.zeros(4), 2.0 * np.eye(4), 8, episode=1),
     Track(3, 3.0, np.zeros(4), np.eye(4), 9, node_id="S2"),
     Status(3, 3.0, ("S1",), 1.0, 2.0, 3.0, 10, fused=("S1", "S2"), node_id="S2"),
+    Status(4, 4.0, ("S1",), 1.0, 2.0, 3.0, 11, refiltered=("S3:2", "S1:3")),
 ]
 CASE_IDS = [
     "truth",
@@ -117,6 +118,7 @@ CASE_IDS = [
     "ltrack",
     "track-peer",
     "status-peer",
+    "status-refiltered",
 ]
 
 
