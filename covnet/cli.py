@@ -232,6 +232,17 @@ def cmd_up(args: argparse.Namespace) -> int:
             )
     if args.speed <= 0:
         raise UsageError(f"--speed: must be > 0, got {args.speed}")
+    if args.netns:
+        from covnet.netns_launch import unsupported_reason
+
+        if args.nodes or args.router:
+            raise UsageError(
+                "--netns runs the whole network on this machine, each sensor in its own "
+                "namespace: not with --nodes or --router (for several hosts, leave out --netns)"
+            )
+        reason = unsupported_reason()
+        if reason is not None:
+            raise UsageError(reason)
     out = _prepare_out(args.out, sc.name, args.force)
     nodes = [n.strip() for n in args.nodes.split(",")] if args.nodes else None
     known = {"manager", "world", "recorder", "sensors", *sc.sensor_ids}
@@ -262,6 +273,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             nodes=nodes,
             router=args.router,
             solver=args.solver if mobile else None,
+            netns=args.netns,
         )
     except UpError as exc:
         _err(str(exc))
@@ -680,6 +692,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--nodes",
         help="start only these here: comma-separated from manager, "
         "world, recorder, sensors, or sensor ids (default: all)",
+    )
+    u.add_argument(
+        "--netns",
+        action="store_true",
+        help="each sensor in its own network namespace, linked to the manager's by an "
+        "emulated link with network.latency's delays and loss (root; docs/netem.md)",
     )
     u.set_defaults(func=cmd_up)
 

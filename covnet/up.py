@@ -23,11 +23,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from covnet.config import Scenario
 from covnet.launch import ProcessSpec, Supervisor
 from covnet.security import endpoint, preflight
+
+if TYPE_CHECKING:
+    from covnet.netns_launch import NetnsTopology
 
 READY_GRACE_S = 15.0  # on top of network.ready_timeout_s: interpreter start-up, imports
 
@@ -192,6 +195,8 @@ def up(
     nodes: list[str] | None = None,
     router: str | None = None,
     solver: str | None = None,
+    netns: bool = False,
+    topology: NetnsTopology | None = None,
 ) -> int:
     """Run the network to completion; returns the manager's exit status (130 on Ctrl-C).
 
@@ -199,7 +204,20 @@ def up(
     ``recorder``, ``sensors`` for all sensors, or sensor ids); the others are started
     elsewhere (``python -m sensors ... --connect ROUTER``).  ``router`` overrides
     ``network.router``.  A mobile config (``kind: mobile``) runs with ``metrics=[]`` and
-    ``solver`` (default: the config's); a passive one (``kind: passive``) with ``metrics=[]``."""
+    ``solver`` (default: the config's); a passive one (``kind: passive``) with ``metrics=[]``.
+
+    ``netns``: each sensor in its own network namespace, linked to the manager's by an emulated
+    link (:mod:`covnet.netns_launch`, which calls back with ``topology``); not with ``nodes``
+    or ``router``."""
+    if netns:
+        if nodes is not None or router is not None:
+            raise UpError("--netns runs the whole network here: not with --nodes or --router")
+        from covnet.netns_launch import up_in_namespaces
+
+        return up_in_namespaces(
+            up, sc, config_path, out, metrics, seed=seed, realtime=realtime, speed=speed,
+            run_id=run_id, verbose=verbose, on_ready=on_ready, solver=solver,
+        )  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     router = resolve_router(endpoint(sc.network, router or sc.network.router))
     specs = process_specs(
@@ -214,6 +232,8 @@ def up(
         speed=speed,
         solver=solver,
     )
+    if topology is not None:  # --netns: each process in its namespace, with its endpoint
+        specs, router = topology.apply(specs), topology.listen
     if nodes is not None:
         wanted = set(nodes)
         if "sensors" in wanted:
