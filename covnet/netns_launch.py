@@ -249,6 +249,40 @@ def _signals_deferred() -> Iterator[None]:
             signal.signal(s, h)
 
 
+class _LinkHolder(threading.Thread):
+    """Opens one link (``cm``, an :func:`~covnet.netem.emulated_link`) and holds it until
+    released, in its own thread: the links start in parallel (a forwarder takes most of a
+    second to start), and each forwarder's parent thread lives as long as the link (the
+    forwarder's ``PR_SET_PDEATHSIG`` fires when the *thread* that started it ends)."""
+
+    def __init__(self, link: SensorLink, cm: Any) -> None:
+        super().__init__(name=f"netns-link-{link.sensor_id}", daemon=True)
+        self.link, self.cm = link, cm
+        self.ready = threading.Event()  # up, or failed (``error``)
+        self.release = threading.Event()
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            with self.cm as info:
+                self.link.info = info
+                self.ready.set()
+                self.release.wait()
+        except BaseException as exc:  # handed to the main thread
+            self.error = exc
+        finally:
+            self.ready.set()
+
+
+def _release(holders: list[_LinkHolder]) -> None:
+    """Close every link (forwarders stopped: SIGINT, SIGTERM, SIGKILL) and wait for it."""
+    for h in holders:
+        h.release.set()
+    for h in holders:
+        if h.is_alive() or h.ident is not None:
+            h.join(timeout=60.0)
+
+
 @contextmanager
 def netns_topology(
     sc: Any,
@@ -263,6 +297,7 @@ def netns_topology(
     to :func:`covnet.netem.emulated_link`; ``tag`` (default: this pid) makes the names unique.
     Raises ``RuntimeError`` when a namespace or link cannot be made (nothing is left then)."""
     from covnet.netem import emulated_link
+    from covnet.netem.link import choose_mode
     from covnet.security import endpoint
 
     tag = str(os.getpid()) if tag is None else tag
@@ -297,18 +332,36 @@ def netns_topology(
             )
             topo.links[sid] = lk
             stack.enter_context(_namespace(lk.ns))
-            lk.info = stack.enter_context(
+        # each link's mode chosen here, once: the probes behind it are not for threads
+        modes = {
+            sid: choose_mode(mode, lk.wire_uplink, lk.wire_downlink)
+            for sid, lk in topo.links.items()
+        }
+        holders = [
+            _LinkHolder(
+                lk,
                 emulated_link(
                     lk.ns,
                     topo.manager_ns,
                     lk.wire_uplink,  # a -> b: sensor -> manager
                     lk.wire_downlink,
                     seed,
-                    mode=mode,
-                    link_index=j,
-                    subnet=str(subnet),
-                )
+                    mode=modes[lk.sensor_id],
+                    link_index=lk.index,
+                    subnet=str(link_subnet(lk.index)),
+                ),
             )
+            for lk in topo.links.values()
+        ]
+        stack.callback(_release, holders)  # closed before the namespaces go
+        for h in holders:
+            h.start()
+        for h in holders:
+            while not h.ready.wait(0.1):  # sliced: Ctrl-C is handled meanwhile
+                pass
+        errors = [h.error for h in holders if h.error is not None]
+        if errors:
+            raise errors[0]
         yield topo
     finally:
         with _signals_deferred():
