@@ -83,6 +83,7 @@ __all__ = [
     "encode",
     "heartbeat_key",
     "heartbeat_keyexpr",
+    "id_bytes",
     "measurement_key",
     "measurement_keyexpr",
     "new_run_id",
@@ -179,6 +180,13 @@ def _valid(value: object, what: str) -> str:
 def new_run_id() -> str:
     """A short unique run id (12 hex digits), valid as a key chunk."""
     return uuid.uuid4().hex[:12]
+
+
+def id_bytes(node_id: str) -> bytes:
+    """The bytes of id ``node_id`` inside any payload that lists it (e.g. a Command's
+    ``enabled``): a payload without them does not name that id (a cheap test that needs no
+    decode; the converse does not hold)."""
+    return msgpack.packb(_valid(node_id, "id"), use_bin_type=True)  # type: ignore[no-any-return]
 
 
 def _root(run: str) -> str:
@@ -303,7 +311,40 @@ def _is_int(v: object, strict: bool) -> bool:
     return isinstance(v, int | np.integer) and not isinstance(v, bool | np.bool_)
 
 
+# Ids already found valid (see _name_problem): most messages repeat the same few, and checking
+# one costs a regex search.  Bounded: once full, new ids are checked every time.
+_GOOD_NAMES: set[str] = set()
+_GOOD_NAMES_MAX = 4096
+
+
 def _coerce(kind: str, name: str, v: object, strict: bool) -> Any:
+    """``v`` as field ``name`` of kind ``kind`` holds it, or :class:`WireError`; ``strict``:
+    as decoded from the wire (exact types only), else as given to a constructor.  The common
+    cases take a shortcut with the same outcome as the full checks of :func:`_coerce_slow`."""
+    t = type(v)
+    if t is int:
+        if (kind == "count" or kind == "stamp") and 0 <= v <= _INT64_MAX:  # type: ignore[operator]
+            return v
+    elif t is float:
+        if kind == "float" and v - v == 0.0:  # type: ignore[operator]  # finite
+            return v
+    elif t is str:
+        if kind == "name" and v in _GOOD_NAMES:
+            return v
+    elif t is list if strict else t is tuple:
+        if (
+            kind == "names"
+            and len(v) <= MAX_IDS  # type: ignore[arg-type]
+            and _GOOD_NAMES.issuperset(v)  # type: ignore[arg-type]
+            and (strict or all(type(x) is str for x in v))  # type: ignore[attr-defined]
+        ):
+            out = tuple(v)  # type: ignore[arg-type]
+            if len(set(out)) == len(out):
+                return out
+    return _coerce_slow(kind, name, v, strict)
+
+
+def _coerce_slow(kind: str, name: str, v: object, strict: bool) -> Any:
     if kind in ("count", "stamp"):
         if not _is_int(v, strict):
             raise WireError("bad_type", f"{name} must be an int, got {type(v).__name__}")
@@ -330,6 +371,8 @@ def _coerce(kind: str, name: str, v: object, strict: bool) -> Any:
         problem = _name_problem(v)
         if problem is not None:
             raise WireError("bad_value", f"{name}={v!r}: {problem}")
+        if type(v) is str and len(_GOOD_NAMES) < _GOOD_NAMES_MAX:
+            _GOOD_NAMES.add(v)
         return str(v)
     if kind == "names":
         return _coerce_names(name, v, strict)
@@ -759,29 +802,33 @@ def encode(msg: Message) -> bytes:
     if not isinstance(msg, _Message):
         raise TypeError(f"not a message: {type(msg).__name__}")
     d: dict[str, object] = {"v": SCHEMA_VERSION, "k": msg.KIND}
-    for f in fields(msg):
-        value = getattr(msg, f.name)
+    for name, _, _ in _spec(type(msg)).fields:
+        value = getattr(msg, name)
         if value is None:  # optional and unset: omitted
             continue
-        d[f.name] = value
+        d[name] = value
     return msgpack.packb(d, default=_default, use_bin_type=True)  # type: ignore[no-any-return]
+
+
+_INNER_LIMITS: dict[str, Any] = {
+    "raw": False,
+    "use_list": True,
+    "strict_map_key": True,
+    "max_str_len": 16,
+    "max_bin_len": MAX_PAYLOAD_BYTES,  # no bin is longer than the payload it is in
+    "max_array_len": _MAX_NDIM + 1,
+    "max_map_len": 0,
+    "max_ext_len": 0,
+}
+_F8 = np.dtype(_WIRE_DTYPE)
+_F8_NATIVE = _F8 == np.dtype(np.float64)
 
 
 def _ext_hook(code: int, data: bytes) -> NDArray[np.float64]:
     if code != _EXT_NDARRAY:
         raise WireError("bad_type", f"unknown ext type {code}")
     try:
-        inner = msgpack.unpackb(
-            data,
-            raw=False,
-            use_list=True,
-            strict_map_key=True,
-            max_str_len=16,
-            max_bin_len=len(data),
-            max_array_len=_MAX_NDIM + 1,
-            max_map_len=0,
-            max_ext_len=0,
-        )
+        inner = msgpack.unpackb(data, **_INNER_LIMITS)
     except Exception as e:  # any malformed inner payload
         raise WireError("bad_type", f"array ext: {type(e).__name__}") from None
     if type(inner) is not list or len(inner) != 3:
@@ -797,13 +844,13 @@ def _ext_hook(code: int, data: bytes) -> NDArray[np.float64]:
         raise WireError("bad_shape", f"array shape {shape!r}")
     if type(raw) is not bytes:
         raise WireError("bad_type", "array data must be bin")
-    size = math.prod(shape)
+    size = shape[0] if len(shape) == 1 else shape[0] * shape[1]
     if size > MAX_ARRAY_ELEMENTS:
         raise WireError("too_large", f"array of {size} elements > {MAX_ARRAY_ELEMENTS}")
     if len(raw) != 8 * size:
         raise WireError("bad_shape", f"array shape {shape} needs {8 * size} bytes, got {len(raw)}")
-    a = np.frombuffer(raw, dtype=_WIRE_DTYPE).reshape(shape)  # read-only view of the payload
-    return a.astype(np.float64, copy=False)
+    a = np.frombuffer(raw, dtype=_F8).reshape(shape)  # read-only view of the payload
+    return a if _F8_NATIVE else a.astype(np.float64)
 
 
 def _unpack(payload: bytes) -> dict[str, Any]:
@@ -811,6 +858,31 @@ def _unpack(payload: bytes) -> dict[str, Any]:
         raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
     if len(payload) > MAX_PAYLOAD_BYTES:
         raise WireError("too_large", f"payload of {len(payload)} bytes > {MAX_PAYLOAD_BYTES}")
+    # One call for a well-formed payload; anything msgpack rejects is judged again by the
+    # streaming unpacker below, which tells the reasons apart (same limits, same result).
+    try:
+        obj = msgpack.unpackb(payload, **_UNPACK_LIMITS)
+    except WireError:
+        raise
+    except Exception:
+        obj = _unpack_stream(payload)
+    return _check_top(obj)
+
+
+_UNPACK_LIMITS: dict[str, Any] = {
+    "raw": False,
+    "use_list": True,
+    "strict_map_key": True,
+    "ext_hook": _ext_hook,
+    "max_str_len": _MAX_STR_LEN,
+    "max_bin_len": MAX_PAYLOAD_BYTES,  # bin is only valid inside the array ext: bad_type
+    "max_array_len": MAX_IDS,
+    "max_map_len": _MAX_MAP_LEN,
+    "max_ext_len": MAX_PAYLOAD_BYTES,
+}
+
+
+def _unpack_stream(payload: bytes) -> Any:
     unpacker = msgpack.Unpacker(
         raw=False,
         use_list=True,
@@ -847,6 +919,10 @@ def _unpack(payload: bytes) -> dict[str, Any]:
         raise WireError("not_msgpack", "trailing bytes after the message") from None
     else:
         raise WireError("not_msgpack", "trailing bytes after the message")
+    return obj
+
+
+def _check_top(obj: Any) -> dict[str, Any]:
     if type(obj) is not dict:
         raise WireError("not_a_map", f"top level is {type(obj).__name__}")
     for key in obj:
@@ -863,20 +939,45 @@ def _unpack(payload: bytes) -> dict[str, Any]:
 _OMITTED = object()
 
 
+@dataclass(frozen=True)
+class _Spec:
+    """A message class's fields in declaration order as ``(name, kind, optional)``, and the
+    map keys its payload may hold."""
+
+    fields: tuple[tuple[str, str, bool], ...]
+    keys: frozenset[str]
+
+
+_SPECS: dict[type, _Spec] = {}
+
+
+def _spec(cls: type) -> _Spec:
+    spec = _SPECS.get(cls)
+    if spec is None:
+        kinds = cls._KINDS  # type: ignore[attr-defined]
+        spec = _SPECS[cls] = _Spec(
+            tuple((f.name, kinds[f.name], f.default is None) for f in fields(cls)),
+            frozenset(kinds) | {"v", "k"},
+        )
+    return spec
+
+
 def _build(cls: type[_M], obj: dict[str, Any]) -> _M:
-    names = cls._KINDS
-    extra = sorted(set(obj) - set(names) - {"v", "k"})
-    if extra:
+    spec = _spec(cls)
+    if not spec.keys.issuperset(obj):
+        extra = sorted(set(obj) - spec.keys)
         raise WireError("unknown_field", f"{cls.KIND}: {', '.join(extra)}")
     msg = object.__new__(cls)
-    for f in fields(cls):  # type: ignore[arg-type]  # every _Message is a dataclass
-        value = obj.get(f.name, _OMITTED)
+    setattr_ = object.__setattr__
+    get = obj.get
+    for name, kind, optional in spec.fields:
+        value = get(name, _OMITTED)
         if value is _OMITTED:
-            if f.default is not None:  # only optional fields (default None) may be omitted
-                raise WireError("missing_field", f"{cls.KIND}.{f.name}")
-            object.__setattr__(msg, f.name, None)
+            if not optional:  # only optional fields (default None) may be omitted
+                raise WireError("missing_field", f"{cls.KIND}.{name}")
+            setattr_(msg, name, None)
         else:
-            object.__setattr__(msg, f.name, _coerce(names[f.name], f.name, value, strict=True))
+            setattr_(msg, name, _coerce(kind, name, value, True))
     msg._check()
     return msg
 

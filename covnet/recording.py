@@ -27,7 +27,8 @@ Layout of ``recording.mcap``
 - Messages: ``data`` = the payload exactly as received (also when it does not decode: the
   recording is of the wire, the replay decodes strictly); ``log_time`` = receive time
   (:attr:`covnet.bus.Sample.t_recv_ns`); ``publish_time`` = the message's own ``t_sent_ns``
-  when it decodes and has one, else the receive time; ``sequence`` = 1, 2, ... per channel.
+  when it has one (read by :func:`peek`, without the strict decode), else the receive time;
+  ``sequence`` = 1, 2, ... per channel.
 - Chunks: zstd-compressed, at most :data:`CHUNK_SIZE` bytes (uncompressed) each, and a chunk is
   also closed and flushed to the OS every :data:`FLUSH_INTERVAL_S` seconds, so a recorder killed
   with SIGKILL leaves a file whose every complete chunk :func:`read_recording` still reads (the
@@ -50,6 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import msgpack
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -67,6 +69,7 @@ __all__ = [
     "RecordingReader",
     "RecordingWriter",
     "key_kind",
+    "peek",
     "read_metadata",
     "read_recording",
     "run_metadata",
@@ -106,6 +109,36 @@ def key_kind(run_id: str, key: str) -> str | None:
     return None
 
 
+_KINDS = frozenset(cls.KIND for cls in msg.MESSAGE_TYPES)
+_STAMP_MAX = 2**63 - 1
+
+
+def peek(payload: bytes) -> tuple[str, int | None, int | None]:
+    """What a recorder needs of a payload, read with one plain msgpack unpack (no strict
+    decode: the recording is of the wire, and the replay decodes strictly): ``(kind,
+    t_sent_ns, scan)``.  ``kind`` is the payload's ``"k"`` when it is a msgpack map of a known
+    kind and :data:`~covnet.messages.SCHEMA_VERSION`, else ``"undecodable:<reason>"``
+    (``not_msgpack``, ``not_a_map``, ``bad_version`` or ``unknown_kind``); ``t_sent_ns`` and
+    ``scan`` are its fields when they are ints in ``[0, 2**63)``, else None."""
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception:  # msgpack's ValueError, ExtraData, FormatError, StackError, ...
+        return "undecodable:not_msgpack", None, None
+    if type(obj) is not dict:
+        return "undecodable:not_a_map", None, None
+    version, kind = obj.get("v"), obj.get("k")
+    if type(version) is not int or version != msg.SCHEMA_VERSION:
+        return "undecodable:bad_version", None, None
+    if type(kind) is not str or kind not in _KINDS:
+        return "undecodable:unknown_kind", None, None
+    t_sent, scan = obj.get("t_sent_ns"), obj.get("scan")
+    return (
+        kind,
+        t_sent if type(t_sent) is int and 0 <= t_sent <= _STAMP_MAX else None,
+        scan if type(scan) is int and 0 <= scan <= _STAMP_MAX else None,
+    )
+
+
 def _schema_name(cls: type[msg.Message]) -> str:
     return f"covnet.{cls.__name__}"
 
@@ -114,7 +147,7 @@ def _schema_name(cls: type[msg.Message]) -> str:
 class RecordedSample:
     """One recorded message: its key (the MCAP topic), its payload as received, the receive
     stamp (``log_time``) and the sender's stamp (``publish_time``: the message's
-    ``t_sent_ns`` when it decoded at record time, else equal to ``t_recv_ns``)."""
+    ``t_sent_ns`` when :func:`peek` found one at record time, else equal to ``t_recv_ns``)."""
 
     key: str
     payload: bytes

@@ -34,6 +34,7 @@ from covnet.config import NetworkSpec, Scenario
 from covnet.core.allocation import Allocation
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
+from covnet.core.kalman import _gain_and_covariance as gain_and_covariance
 from covnet.core.kalman import nees
 from covnet.core.oosm import ReFilterBuffer
 from covnet.decentral import Mirror, decide_rule, fuse_tracks, measurement_from_track
@@ -42,7 +43,6 @@ from covnet.model import (
     build_model,
     decide,
     fuse,
-    fused_covariance,
     initial_estimate,
     predict_cov,
     predict_step,
@@ -454,8 +454,10 @@ def run(
                 loop.publish(loop.keys["cmd"], cmd)
                 # while the sensors measure: decide scan k+1 assuming every enabled sensor's
                 # measurement arrives (P does not depend on the measured values)
+                gains = None
                 if not decentral and not slow:
-                    spec = _speculate(model, pred.P, alloc.subset, k + 1, metric, unavailable)
+                    gains = _Gains.of(model, pred.P, alloc.subset)
+                    spec = _speculate(model, gains.P_post, k + 1, metric, unavailable)
                 if realtime:
                     deadline = time.monotonic() + net.deadline_fraction * model.T / _speed(clock)
                 else:
@@ -479,7 +481,7 @@ def run(
                     for j, tr in tracks:  # what the sensor reports is what it has
                         mirror.P_local[j] = tr.post.P
                 else:
-                    est = fuse(
+                    est = _fuse_with_gains(gains, model, pred, got, ids) or fuse(
                         model, pred, [(ids.index(sid), m.z[0], m.R) for sid, m in got.items()]
                     )
                 loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
@@ -552,18 +554,60 @@ class _Speculation:
         )
 
 
+@dataclass(frozen=True)
+class _Gains:
+    """Scan ``k``'s Kalman updates when every enabled sensor's measurement arrives, computed
+    while the sensors measure (neither the gains nor the covariances depend on the measured
+    values): the gain of each sensor of ``subset`` (ascending index, the order of
+    :func:`covnet.model.fuse`) and the posterior covariance, bit for bit those of
+    :func:`covnet.model.fused_covariance` and of :func:`covnet.model.fuse`."""
+
+    subset: tuple[int, ...]
+    R: tuple[bytes, ...]  # each sensor's noise covariance the gains were computed with
+    K: tuple[np.ndarray, ...]
+    P_post: np.ndarray
+
+    @staticmethod
+    def of(model: Model, P_pred: np.ndarray, subset: tuple[int, ...]) -> _Gains:
+        order = tuple(sorted(subset))
+        P, gains = P_pred, []
+        for j in order:  # = fused_covariance(model, P_pred, [(j, model.R[j]) ...]), step by step
+            K, P = gain_and_covariance(P, model.H, model.R[j])
+            gains.append(K)
+        return _Gains(order, tuple(model.R[j].tobytes() for j in order), tuple(gains), P)
+
+
+def _fuse_with_gains(
+    gains: _Gains | None, model: Model, pred: Gaussian, got: dict[str, Any], ids: tuple[str, ...]
+) -> Gaussian | None:
+    """:func:`covnet.model.fuse` of ``got`` bit for bit, from the gains computed ahead, when
+    they are the ones it needs (every enabled sensor's measurement arrived, with the noise
+    covariance the gains assumed); None otherwise."""
+    if gains is None or len(got) != len(gains.subset):
+        return None
+    ordered = sorted((ids.index(sid), m) for sid, m in got.items())
+    if tuple(j for j, _ in ordered) != gains.subset or any(
+        m.R.tobytes() != r for (_, m), r in zip(ordered, gains.R, strict=True)
+    ):
+        return None
+    if not ordered:
+        return pred
+    H, x = model.H, pred.x
+    for (_, m), K in zip(ordered, gains.K, strict=True):  # kalman.update's mean, in fuse's order
+        z = m.z[0]
+        x = x + K @ (z - H @ x)
+    return Gaussian(x, gains.P_post)
+
+
 def _speculate(
-    model: Model,
-    P_pred: np.ndarray,
-    subset: tuple[int, ...],
-    k_next: int,
-    metric: str,
-    unavailable: frozenset[int],
+    model: Model, P_post: np.ndarray, k_next: int, metric: str, unavailable: frozenset[int]
 ) -> _Speculation | None:
+    """Decide scan ``k_next`` from ``P_post``, scan ``k_next - 1``'s posterior covariance if
+    every enabled sensor's measurement arrives."""
     if k_next > model.scans:
         return None
     t0 = time.perf_counter()
-    P_next = predict_cov(model, fused_covariance(model, P_pred, [(j, model.R[j]) for j in subset]))
+    P_next = predict_cov(model, P_post)
     alloc = decide(model, P_next, k_next, metric, unavailable)
     return _Speculation(k_next, P_next, unavailable, alloc, time.perf_counter() - t0)
 
