@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import yaml
 from multiproc import REPO, assert_nothing_left
+from nodethreads import NodeThreads
 
-from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
 from covnet.mobile.config import load, with_overrides
 from covnet.mobile.nodes import manager as manager_node
@@ -48,46 +48,26 @@ def _cfg(scans: int, seed: int = 0, record: bool = False):
 
 
 def run_network(cfg, *, solver=None, kill_after_scan=None, victim=None):
-    hub = InMemoryHub()
-    node_stops: dict[str, threading.Event] = {}
-    threads = []
-    stats = {}
-
-    def start(name, target):
-        ev = threading.Event()
-        node_stops[name] = ev
-        bus = InMemoryBus(hub, name=name)
-
-        def body():
-            try:
-                stats[name] = target(bus, ev)
-            finally:
-                bus.close()
-
-        th = threading.Thread(target=body, name=name, daemon=True)
-        th.start()
-        threads.append(th)
-
-    start("world", lambda bus, ev: world_node.run(cfg, bus, "t", WallClock(), ev))
+    nodes = NodeThreads()
+    nodes.start("world", lambda bus, ev: world_node.run(cfg, bus, "t", WallClock(), ev))
     for sid in cfg.sensor_ids:
-        start(sid, lambda bus, ev, sid=sid: sensor_node.run(cfg, sid, bus, "t", WallClock(), ev))
+        nodes.start(
+            sid, lambda bus, ev, sid=sid: sensor_node.run(cfg, sid, bus, "t", WallClock(), ev)
+        )
 
     def on_status(st):
         if kill_after_scan is not None and st["scan"] == kill_after_scan:
-            node_stops[victim].set()
+            nodes.stop(victim)
 
-    mbus = InMemoryBus(hub, name="manager")
+    mbus = nodes.bus("manager")
     try:
         result = manager_node.run(
             cfg, mbus, "t", WallClock(), threading.Event(), solver=solver, on_status=on_status
         )
     finally:
-        for ev in node_stops.values():
-            ev.set()
-        for th in threads:
-            th.join(timeout=10)
+        nodes.close()
         mbus.close()
-    return result, stats
+    return result, nodes.stats
 
 
 @pytest.mark.timeout(60)

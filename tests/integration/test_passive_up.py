@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import yaml
 from multiproc import REPO, assert_nothing_left
+from nodethreads import NodeThreads
 
 from covnet import messages as msg
-from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
 from covnet.passive.associate import scan_record
 from covnet.passive.cli_entry import scene_cmd
@@ -60,56 +60,34 @@ def run_network(cfg, sensor_runs=None, *, kill_after_scan=None, victim=None):
     """World, sensors and manager in threads; ``sensor_runs`` replaces some sensors' loops
     (``sid -> fn(bus, stop)``).  Returns the manager's result, the nodes' counters and every
     Track the manager published."""
-    hub = InMemoryHub()
-    node_stops: dict[str, threading.Event] = {}
-    threads = []
-    stats = {}
+    nodes = NodeThreads()
     sensor_runs = sensor_runs or {}
-
-    def start(name, target):
-        ev = threading.Event()
-        node_stops[name] = ev
-        bus = InMemoryBus(hub, name=name)
-
-        def body():
-            try:
-                stats[name] = target(bus, ev)
-            finally:
-                bus.close()
-
-        th = threading.Thread(target=body, name=name, daemon=True)
-        th.start()
-        threads.append(th)
-
-    start("world", lambda bus, ev: world_node.run(cfg, bus, "t", WallClock(), ev))
+    nodes.start("world", lambda bus, ev: world_node.run(cfg, bus, "t", WallClock(), ev))
     for sid in cfg.sensor_ids:
         fn = sensor_runs.get(sid) or (
             lambda bus, ev, sid=sid: sensor_node.run(cfg, sid, bus, "t", WallClock(), ev)
         )
-        start(sid, fn)
-    listener = InMemoryBus(hub, name="listener")
+        nodes.start(sid, fn)
+    listener = nodes.bus("listener")
     tracks = listener.subscribe(msg.track_key("t"))
 
     def on_status(st):
         if kill_after_scan is not None and st["scan"] == kill_after_scan:
-            node_stops[victim].set()
+            nodes.stop(victim)
 
-    mbus = InMemoryBus(hub, name="manager")
+    mbus = nodes.bus("manager")
     try:
         result = manager_node.run(
             cfg, mbus, "t", WallClock(), threading.Event(), on_status=on_status
         )
     finally:
-        for ev in node_stops.values():
-            ev.set()
-        for th in threads:
-            th.join(timeout=10)
+        nodes.close()
         mbus.close()
     got = []
     while (s := tracks.try_recv()) is not None:
         got.append(msg.decode_as(s.payload, msg.Track))
     listener.close()
-    return result, stats, got
+    return result, nodes.stats, got
 
 
 @pytest.mark.timeout(60)

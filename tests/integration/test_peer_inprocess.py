@@ -8,9 +8,10 @@ import threading
 
 import numpy as np
 import pytest
+from nodethreads import NodeThreads
 
 from covnet import messages as msg
-from covnet.bus import InMemoryBus, InMemoryHub
+from covnet.bus import InMemoryBus
 from covnet.clock import WallClock
 from covnet.config import from_dict, normalised
 from covnet.simulate_decentral import run_peer
@@ -31,48 +32,28 @@ def _scenario(paper, graph="ring", scans=15):
 
 
 def _network(sc, metrics, *, extra=None, stop_node=None):
-    hub = InMemoryHub()
-    stops: dict[str, threading.Event] = {}
-    threads = []
-    stats = {}
-
-    def start(name, target):
-        ev = threading.Event()
-        stops[name] = ev
-        bus = InMemoryBus(hub, name=name)
-
-        def body():
-            try:
-                stats[name] = target(bus, ev)
-            finally:
-                bus.close()
-
-        th = threading.Thread(target=body, name=name, daemon=True)
-        th.start()
-        threads.append(th)
-
-    start("world", lambda bus, ev: world_node.run(sc, bus, RUN, WallClock(), ev))
+    nodes = NodeThreads()
+    nodes.start("world", lambda bus, ev: world_node.run(sc, bus, RUN, WallClock(), ev))
     for sid in sc.sensor_ids:
-        start(sid, lambda bus, ev, sid=sid: peer.run(sc, sid, metrics, bus, RUN, WallClock(), ev))
+        nodes.start(
+            sid, lambda bus, ev, sid=sid: peer.run(sc, sid, metrics, bus, RUN, WallClock(), ev)
+        )
 
     def on_status(st):
         if extra is not None:
-            extra(hub, st)
+            extra(nodes.hub, st)
         if stop_node is not None and st["scan"] == stop_node[1]:
-            stops[stop_node[0]].set()
+            nodes.stop(stop_node[0])
 
-    mbus = InMemoryBus(hub, name="monitor")
+    mbus = nodes.bus("monitor")
     try:
         result = peer_monitor.run(
             sc, metrics, mbus, RUN, WallClock(), threading.Event(), on_status=on_status
         )
     finally:
-        mbus.close()  # the monitor's token goes: the nodes finish
-        for th in threads:
-            th.join(timeout=20)
-        for ev in stops.values():
-            ev.set()
-    return result, stats
+        mbus.close()  # the monitor's token goes: the nodes finish on their own
+        nodes.close(20.0, stop_first=False)
+    return result, nodes.stats
 
 
 def test_threads_reproduce_the_in_process_peer_run(paper):
