@@ -105,6 +105,7 @@ def run(
     expected = {*ids, "world", *(("recorder",) if net.record else ())}
     reported: set[tuple[int, int]] = set()  # (episode, scan) whose status went to on_status
     t_loop = time.perf_counter_ns()
+    t_prev = [time.perf_counter_ns()]  # when the previous scan was complete
 
     def drain_live() -> None:
         while (ev := live.try_recv()) is not None:
@@ -181,7 +182,10 @@ def run(
                     last_news = time.monotonic()
             while e < len(metrics) and scan_done(e, k):
                 stats.scans_done += 1
-                stats.loop_wall_ns = time.perf_counter_ns() - t_loop
+                now_ns = time.perf_counter_ns()
+                stats.loop_wall_ns = now_ns - t_loop
+                stats.scan_latency_ns.append(now_ns - t_prev[0])  # previous scan -> this one
+                t_prev[0] = now_ns
                 _report(result, e, k, model.scans, metrics[e], ids, stats, on_status, reported)
                 last = k == model.scans
                 if on_progress is not None:
@@ -226,7 +230,7 @@ def _report(
             "failed": list(st.failed),
             "trace_P": float(np.mean([s.trace_P for s in sts])),
             "trace_Pd": st.trace_Pd,
-            "latency_ms": 0.0,
+            "latency_ms": stats.scan_latency_ns[-1] / 1e6 if stats.scan_latency_ns else 0.0,
             "messages": n_msgs,
             "bytes": sum(stats.recv_bytes.values()),
             "agree": all(s.enabled == st.enabled for s in sts),
