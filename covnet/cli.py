@@ -488,6 +488,20 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from covnet.plots import make_figures
 
     run_dir = Path(args.run_dir)
+    for stem in ("compare", "sweep"):  # a covnet compare / covnet sweep results directory
+        if (run_dir / f"{stem}.json").is_file():
+            import importlib
+
+            module = importlib.import_module(f"covnet.{stem}")
+            try:
+                doc = json.loads((run_dir / f"{stem}.json").read_text())
+                rows = doc["rows"]
+            except (ValueError, KeyError) as exc:
+                table = run_dir / f"{stem}.json"
+                raise UsageError(f"{table}: not a {stem} table ({exc})") from None
+            title = f"{doc.get('scenario', '')}: covnet {stem}, metric {doc.get('metric', '?')}"
+            print(module.make_figure(run_dir, rows, title))
+            return EXIT_OK
     missing = [
         f for f in ("summary.json", "arrays.npz", "config.json") if not (run_dir / f).is_file()
     ]

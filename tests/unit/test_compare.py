@@ -94,6 +94,9 @@ def test_cli_compare_writes_table_and_figure(paper_path, tmp_path, capsys):
     with (out / "compare.csv").open() as f:
         assert [r["mode"] for r in csv.DictReader(f)] == ["central", "ci"]
     assert (out / "compare.png").stat().st_size > 10_000
+    (out / "compare.png").unlink()
+    assert main(["plot", str(out)]) == 0  # redrawn from compare.json alone
+    assert (out / "compare.png").stat().st_size > 10_000
 
 
 @pytest.mark.parametrize(
