@@ -171,7 +171,7 @@ def decide_rule(
     fusion: FusionSpec,
     model: Model,
     P_prior: Mat,
-    P_local_prior: Mat,
+    P_local_prior: Mat | None,
     scan: int,
     metric: str,
     unavailable: frozenset[int] = frozenset(),
@@ -199,6 +199,8 @@ def decide_rule(
     P_prior = np.asarray(P_prior, dtype=np.float64)
     if P_prior.ndim == 2 and fusion.rule != "ci":
         return decide(model, P_prior, scan, metric, unavailable)
+    if P_local_prior is None:
+        raise ValueError("the ci rule and peer nodes decide from the local filters' covariances")
     points = P_prior[None] if P_prior.ndim == 2 else P_prior
     if reach is None:
         reach = np.ones((points.shape[0], len(model.sensor_ids)), dtype=bool)

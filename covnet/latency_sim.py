@@ -51,7 +51,6 @@ import numpy as np
 from covnet.config import Scenario
 from covnet.core.allocation import prepare
 from covnet.core.delay import LinkSpec, LinkState, link_stream
-from covnet.core.gaussian import Gaussian
 from covnet.core.oosm import ReFilterBuffer
 from covnet.decentral import (
     Mirror,
@@ -93,8 +92,7 @@ class LatencyCounts:
     per_scan_fused: list[int] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
-        d = {k: v for k, v in self.__dict__.items() if k != "per_scan_fused"}
-        return d
+        return {k: v for k, v in self.__dict__.items() if k != "per_scan_fused"}
 
 
 def link_specs(sc: Scenario) -> tuple[list[LinkSpec], list[LinkSpec]]:
@@ -249,15 +247,9 @@ def run_latency(
     return rows.run(metric), counts
 
 
-@dataclass
 class _Sensor:
     """A sensor's state in the simulation: its newest command and, in the decentralized modes,
     its own filter (predicting lazily up to the scan it measures, as the process does)."""
-
-    local: Gaussian
-    scan: int = 0
-    newest: int = 0
-    last_on: bool = False
 
     def __init__(self, model: Model, initial: str) -> None:
         self.local = initial_estimate(model, initial)

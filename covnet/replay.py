@@ -61,11 +61,8 @@ import numpy as np
 from covnet import messages as msg
 from covnet.config import Scenario, config_hash, from_dict
 from covnet.core.kalman import nees
-from covnet.decentral import Mirror, decide_rule, fuse_tracks
 from covnet.model import (
     build_model,
-    decide,
-    fuse,
     initial_estimate,
     predict_step,
     truth_trajectory,
@@ -74,7 +71,7 @@ from covnet.model import (
 from covnet.recording import META_RUN, RecordedSample, RecordingReader, key_kind, read_metadata
 from covnet.results import RUN_INFO, SUMMARY, write_json
 from covnet.runtime_stats import NetStats
-from manager.node import EpisodeLog, LateHandler, ManagerResult, as_local_track, usable_track
+from manager.node import CentreFilter, EpisodeLog, ManagerResult, usable_track
 from manager.report import write_network_run
 
 __all__ = ["RECORDING", "REPLAY_DIR", "ReplayError", "ReplayReport", "replay_run"]
@@ -270,9 +267,6 @@ def _rebuild(
     model = build_model(sc)
     ids = model.sensor_ids
     truth = truth_trajectory(model)
-    fusion = sc.fusion
-    decentral = fusion.mode in ("info", "ci")
-    slow = not sc.network.latency.is_ideal(ids)
     result = ManagerResult({}, NetStats())
     completed = True
     for e, metric in enumerate(metrics):
@@ -283,8 +277,7 @@ def _rebuild(
         log = result.episodes[metric] = EpisodeLog(metric)
         where = f"episode {e} ({metric})"
         est = initial_estimate(model, sc.filter.initial_estimate)
-        mirror = Mirror.start(model)
-        late = LateHandler(sc, model, e) if slow else None
+        centre = CentreFilter(sc, model)  # the manager's own filter steps
         failed_prev: frozenset[str] = frozenset()
         for k in range(1, model.scans + 1):
             st = rec.status.get((e, k))
@@ -305,11 +298,7 @@ def _rebuild(
             failed_prev = failed
             unavailable = frozenset(ids.index(s) for s in failed if s in ids)
             t0 = time.perf_counter()
-            if decentral:
-                P_loc = mirror.predicted(model)[1]
-                alloc = decide_rule(fusion, model, pred.P, P_loc, k, metric, unavailable)
-            else:
-                alloc = decide(model, pred.P, k, metric, unavailable)
+            alloc = centre.decide(pred.P, k, metric, unavailable)
             decision_s = time.perf_counter() - t0
             enabled = tuple(ids[j] for j in alloc.subset)
             if enabled != st.enabled:
@@ -324,7 +313,7 @@ def _rebuild(
                     f"{where} scan {k}: replayed objective {float(alloc.value)!r}"
                     f" != recorded {st.value!r}",
                 )
-            got = []
+            got: dict[str, Any] = {}
             for sid in st.fused:
                 m = rec.meas.get((e, k, sid))
                 if m is None or sid not in ids:
@@ -334,29 +323,18 @@ def _rebuild(
                         "valid measurement of it is recorded",
                     )
                     continue
-                got.append((ids.index(sid), m))
+                got[sid] = m
             for token in st.refiltered or ():  # the late ones the manager re-filtered
                 sid, _, scan = token.rpartition(":")
                 m = rec.meas.get((e, int(scan), sid)) if scan.isdigit() else None
-                if m is None or late is None or not late.insert(m):
+                if m is None or not centre.insert_late(m):
                     diffs.add(
                         "refiltered",
                         f"{where} scan {k}: the manager re-filtered {token} but the replay "
                         "cannot (no valid recorded message, or not insertable)",
                     )
-            if late is not None and late.buffer is not None:
-                if late.inserted:
-                    pred = late.buffer.predicted()
-                    late.inserted = False
-                est = late.fuse(k, pred, {ids[j]: m for j, m in got})
-            elif decentral:  # the manager's steps (manager.node.run)
-                tracks = [(j, as_local_track(m)) for j, m in got]
-                est = fuse_tracks(fusion, pred, tracks)
-                mirror.advance(fusion, model, [j for j, _ in tracks])
-                for j, t in tracks:
-                    mirror.P_local[j] = t.post.P
-            else:
-                est = fuse(model, pred, [(j, m.z[0], m.R) for j, m in got])
+            pred = centre.prior(pred)
+            est = centre.fuse(k, pred, got)
             if float(np.trace(est.P)) != st.trace_P:
                 diffs.add(
                     "trace_P",

@@ -90,12 +90,12 @@ def run_centre(sc: Scenario, metric: str, model: Model | None = None) -> MetricR
     rows = RunRows(N, Ns)
     est = initial_estimate(model, sc.filter.initial_estimate)
     local = [est] * Ns
-    mirror = Mirror.start(model)
+    mirror = Mirror.start(model) if fusion.rule == "ci" else None  # only CI decides from it
     for i in range(N):
         k = i + 1
         pred = predict_step(model, est)
         local_pred = [predict_step(model, g) for g in local]
-        _, P_loc = mirror.predicted(model)
+        P_loc = mirror.predicted(model)[1] if mirror is not None else None
         t0 = time.perf_counter()
         alloc = decide_rule(fusion, model, pred.P, P_loc, k, metric)
         dt = time.perf_counter() - t0
@@ -107,7 +107,8 @@ def run_centre(sc: Scenario, metric: str, model: Model | None = None) -> MetricR
         for j, tr in tracks:
             local[j] = tr.post
         est = fuse_tracks(fusion, pred, tracks)
-        mirror.advance(fusion, model, alloc.subset)
+        if mirror is not None:
+            mirror.advance(fusion, model, alloc.subset)
         rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
     return rows.run(metric)
 

@@ -324,7 +324,7 @@ class LateHandler:
     added), so that a late message is re-filtered from its scan; ``ci`` and ``late: drop``
     drop late messages.  The loop counts which (``late_refiltered`` / ``late_dropped``)."""
 
-    def __init__(self, sc: Scenario, model: Model, episode: int) -> None:
+    def __init__(self, sc: Scenario, model: Model) -> None:
         lat = sc.network.latency
         self.mode = sc.fusion.mode
         self.ids = model.sensor_ids
@@ -360,6 +360,66 @@ class LateHandler:
         assert self.buffer is not None
         meas = [(self.ids.index(sid), *self._measurement(m)) for sid, m in got.items()]
         return self.buffer.step(k, meas, prior=pred).post
+
+
+class CentreFilter:
+    """One episode of the fusion centre's filter, in every mode (``central``, ``info``,
+    ``ci``) and over ideal or slow links: the manager's loop and ``covnet replay`` both step
+    it, so a replay recomputes exactly what the manager did.
+
+    ``decide`` allocates scan ``k`` from ``P⁻`` (``ci``: against the local filters'
+    covariances of :class:`~covnet.decentral.Mirror`, the only mode that needs them);
+    ``insert_late`` takes a late message (slow links: :class:`LateHandler`); ``prior`` is scan
+    ``k``'s prior once late messages were re-filtered; ``fuse`` fuses what arrived for scan
+    ``k`` (``sensor id -> Measurement | LocalTrack``)."""
+
+    def __init__(self, sc: Scenario, model: Model) -> None:
+        self.model, self.fusion = model, sc.fusion
+        self.ids = model.sensor_ids
+        self.decentral = sc.fusion.mode in ("info", "ci")
+        self.mirror = Mirror.start(model) if sc.fusion.rule == "ci" else None
+        slow = not sc.network.latency.is_ideal(model.sensor_ids)
+        self.late = LateHandler(sc, model) if slow else None
+
+    def decide(
+        self, P_pred: np.ndarray, k: int, metric: str, unavailable: frozenset[int]
+    ) -> Allocation:
+        if self.mirror is None:
+            return decide(self.model, P_pred, k, metric, unavailable)
+        P_loc = self.mirror.predicted(self.model)[1]
+        return decide_rule(self.fusion, self.model, P_pred, P_loc, k, metric, unavailable)
+
+    def insert_late(self, m: Any) -> bool:
+        """A late message of an earlier scan: True when it was re-filtered into its scan."""
+        return self.late is not None and self.late.insert(m)
+
+    def prior(self, pred: Gaussian) -> Gaussian:
+        """Scan ``k``'s prior: ``pred``, or the re-filtered one after late insertions."""
+        late = self.late
+        if late is not None and late.buffer is not None and late.inserted:
+            late.inserted = False
+            return late.buffer.predicted()
+        return pred
+
+    def fuse(
+        self, k: int, pred: Gaussian, got: dict[str, Any], gains: _Gains | None = None
+    ) -> Gaussian:
+        """Scan ``k``'s posterior from ``pred`` and what arrived (``gains``: the central
+        update's covariance work done ahead, used when it fits)."""
+        if self.late is not None and self.late.buffer is not None:
+            return self.late.fuse(k, pred, got)
+        ids = self.ids
+        if self.decentral:
+            tracks = [(ids.index(sid), as_local_track(m)) for sid, m in got.items()]
+            est = fuse_tracks(self.fusion, pred, tracks)
+            if self.mirror is not None:
+                self.mirror.advance(self.fusion, self.model, [j for j, _ in tracks])
+                for j, tr in tracks:  # what the sensor reports is what it has
+                    self.mirror.P_local[j] = tr.post.P
+            return est
+        return _fuse_with_gains(gains, self.model, pred, got, ids) or fuse(
+            self.model, pred, [(ids.index(sid), m.z[0], m.R) for sid, m in got.items()]
+        )
 
 
 def usable_position(m: msg.Measurement) -> bool:
@@ -418,9 +478,8 @@ def run(
         for e, metric in enumerate(metrics):
             log = result.episodes[metric] = EpisodeLog(metric)
             est = initial_estimate(model, sc.filter.initial_estimate)
-            mirror = Mirror.start(model)  # the local filters' covariances (decentralized modes)
-            late = LateHandler(sc, model, e) if slow else None
-            loop.on_late = late.insert if late is not None else None
+            centre = CentreFilter(sc, model)
+            loop.on_late = centre.insert_late if slow else None
             loop.accept_unsolicited = slow
             t_origin = clock.now()
             failed_prev: frozenset[str] = frozenset()
@@ -441,11 +500,7 @@ def run(
                     alloc, decision_s = spec.alloc, spec.decision_s  # decided ahead, exactly
                 else:
                     t0 = time.perf_counter()
-                    if decentral:
-                        P_loc = mirror.predicted(model)[1]
-                        alloc = decide_rule(fusion, model, pred.P, P_loc, k, metric, unavailable)
-                    else:
-                        alloc = decide(model, pred.P, k, metric, unavailable)
+                    alloc = centre.decide(pred.P, k, metric, unavailable)
                     decision_s = time.perf_counter() - t0
                 core_ns = time.perf_counter_ns() - t_core0
                 enabled = tuple(ids[j] for j in alloc.subset)
@@ -469,21 +524,8 @@ def run(
                 else:
                     got = loop.collect(e, k, set(enabled), deadline, stop, usable_position)
                 t_core1 = time.perf_counter_ns()
-                if late is not None and late.buffer is not None:
-                    if late.inserted:  # re-filtered: scan k's prior changed
-                        pred = late.buffer.predicted()
-                        late.inserted = False
-                    est = late.fuse(k, pred, got)
-                elif decentral:
-                    tracks = [(ids.index(sid), as_local_track(m)) for sid, m in got.items()]
-                    est = fuse_tracks(fusion, pred, tracks)
-                    mirror.advance(fusion, model, [j for j, _ in tracks])
-                    for j, tr in tracks:  # what the sensor reports is what it has
-                        mirror.P_local[j] = tr.post.P
-                else:
-                    est = _fuse_with_gains(gains, model, pred, got, ids) or fuse(
-                        model, pred, [(ids.index(sid), m.z[0], m.R) for sid, m in got.items()]
-                    )
+                pred = centre.prior(pred)  # re-filtered late messages change scan k's prior
+                est = centre.fuse(k, pred, got, gains)
                 loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
                 loop.stats.scans_done += 1
                 loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop
@@ -504,7 +546,7 @@ def run(
                     episode=e,
                     fused=tuple(sorted(got, key=ids.index)),
                     failed=tuple(sorted(failed - {WORLD_ID})),
-                    refiltered=late.take_refiltered() if late is not None else None,
+                    refiltered=centre.late.take_refiltered() if centre.late is not None else None,
                 )
                 loop.publish(loop.keys["status"], status)
                 log.record(
