@@ -169,3 +169,11 @@ def test_check_validates_every_scenario_kind(name, capsys):
     assert main(["check", str(cfg)]) == 0
     out = capsys.readouterr().out
     assert f"kind: {name}" in out and "# config hash: " in out
+
+
+def test_bench_fusion_json_rows(capsys):
+    assert main(["bench", "fusion", "--sensors", "4", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert {r["objective"] for r in rows} == {"det", "trace", "fast"}
+    for r in rows:
+        assert r["n_sensors"] == 4 and r["n_subsets"] == 15 and r["median_s"] > 0
