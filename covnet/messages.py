@@ -83,7 +83,6 @@ __all__ = [
     "encode",
     "heartbeat_key",
     "heartbeat_keyexpr",
-    "id_bytes",
     "measurement_key",
     "measurement_keyexpr",
     "new_run_id",
@@ -180,13 +179,6 @@ def _valid(value: object, what: str) -> str:
 def new_run_id() -> str:
     """A short unique run id (12 hex digits), valid as a key chunk."""
     return uuid.uuid4().hex[:12]
-
-
-def id_bytes(node_id: str) -> bytes:
-    """The bytes of id ``node_id`` inside any payload that lists it (e.g. a Command's
-    ``enabled``): a payload without them does not name that id (a cheap test that needs no
-    decode; the converse does not hold)."""
-    return msgpack.packb(_valid(node_id, "id"), use_bin_type=True)  # type: ignore[no-any-return]
 
 
 def _root(run: str) -> str:

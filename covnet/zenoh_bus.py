@@ -13,18 +13,25 @@ measured with the probes behind ``tests/integration/test_zenoh_bus.py``):
 - ``Session.put`` / ``Publisher.put`` default to ``CongestionControl.DROP`` (drops under load);
   every publisher here is declared with ``BLOCK``. Publishers are declared once per key and
   cached (declaring per put costs a declaration round on the network).
-- A subscriber's ``recv()`` has no timeout, so each subscription is fed by a
-  ``zenoh.handlers.Callback`` that only stamps ``time.monotonic_ns()`` and enqueues
-  ``(key, payload bytes)`` into a :class:`~covnet.bus.Channel`; the loop drains it with
-  ``recv(timeout)``. The callback never calls the session. With the default ``indirect=True``
-  the callback runs on one zenoh-owned Python thread (not the caller's), so per-subscriber
-  order is kept: 1000 puts from a client arrived in order.
-- A received message costs its process three thread wake-ups (zenoh's network thread, the
-  callback thread, the loop) and the machine's two cores are the limit of ``covnet up``, so
-  :meth:`ZenohBus.subscribe_lazy` lets a loop say which payloads need not wake it (a sensor:
-  commands that do not name it).  Measured on the paper run (``covnet up``, total CPU per
-  scan of all 11 processes): callbacks on zenoh's own thread (``indirect=False``) cost ~8 %
-  more (that thread then waits for the GIL), express publishers ~12 % more.
+- A subscriber with a ``FifoChannel`` handler: ``recv()`` blocks with the GIL released and
+  has no timeout; a pending signal interrupts it (``KeyboardInterrupt`` at once when the
+  handler raises); ``undeclare`` from another thread while ``recv`` blocks fails ("Already
+  borrowed"); a session's ``close`` ends a blocked ``recv`` with ``ZError``. A ``delete`` put
+  with ``allowed_destination=Locality.SESSION_LOCAL`` (and an attachment) reaches only this
+  session's subscribers. So :meth:`ZenohBus.subscribe` gives the loop's own thread the FIFO
+  (one thread hand-off per sample: zenoh's network thread -> the loop) and a per-bus waker
+  thread delivers such a local *wake sample* when a ``recv(timeout)`` times out or every
+  ``SIGNAL_CHECK_S`` (:class:`_Waker`). Per-subscriber order is kept.
+- A received message costs a callback subscriber three thread wake-ups (zenoh's network
+  thread, the callback thread, the loop) and a FIFO subscriber two. Measured on a bare loop
+  of the scan's shape (a router publishing one command, 8 clients, ~5 replies a scan, no
+  other work): 1180 scans/s with callbacks feeding a queue, 2230-2490 with FIFOs; on the
+  paper run (3000 scans, 11 processes on 2 cores) the FIFOs cut the CPU per scan of all
+  processes from 4.7-4.9 ms to 4.3-4.5 ms (326-341 -> 360-377 scans/s). Callbacks on zenoh's
+  own thread (``indirect=False``) cost ~8 % more than queue-feeding callbacks, express
+  publishers ~12 % more, ``transport/unicast/lowlatency`` no gain (382 vs 412 scans/s,
+  alternating runs). :meth:`ZenohBus.subscribe_stamped` keeps the callback for a loop that
+  needs arrival stamps while it drains in bursts (the recorder).
 - A session hears its own puts (default locality ``ANY``).
 - Liveliness is per key: a second token on a key already alive gives no new event, and the
   key goes ``DELETE`` only when its last token goes. ``declare_subscriber(history=True)``
@@ -58,16 +65,17 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import signal
 import threading
 import time
-from collections import deque
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Generic, Literal, TypeVar
 
 import zenoh
 
 from covnet.bus import (
+    SIGNAL_CHECK_S,
     BusClosed,
     Channel,
     LivelinessEvent,
@@ -194,55 +202,201 @@ class _ZenohSubscription(_ChannelSubscription[Sample]):
         return session.declare_subscriber(keyexpr, zenoh.handlers.Callback(on_sample))
 
 
-class _LazyChannel(Channel[Sample]):
-    """A :class:`~covnet.bus.Channel` that does not wake a blocked ``recv`` for a sample whose
-    payload ``wake(payload)`` says can wait: such a sample is held, in order, and handed out
-    after everything queued before it, when a waking sample arrives (it goes first), by
-    ``try_recv``, or when ``recv`` times out.  Nothing is dropped or reordered."""
+#: a FIFO subscription holds at most this many samples its loop has not taken yet; a full one
+#: makes zenoh's receiving thread wait (back-pressure, as ``CongestionControl.BLOCK``)
+FIFO_CAPACITY = 1 << 16
+#: the waker's longest sleep while a loop is blocked (deadlines are met exactly: it sleeps until
+#: the earliest one when that comes first)
+WAKER_TICK_S = SIGNAL_CHECK_S / 2
 
-    def __init__(self, wake: Callable[[bytes], bool]) -> None:
-        super().__init__()
-        self._wake = wake
-        self._held: deque[Sample] = deque()  # everything in it arrived after all in the queue
 
-    def put(self, item: Sample) -> None:
-        wake = self._wake(item.payload)
-        with self._lock:
+def _wake_key(keyexpr: str) -> str:
+    """A concrete key in ``keyexpr`` (every wildcard chunk becomes ``_wake``)."""
+    return "/".join("_wake" if c in ("*", "**") else c for c in keyexpr.split("/"))
+
+
+class _Waker:
+    """Ends a FIFO subscription's blocking ``recv`` when its timeout passes, and at least every
+    :data:`~covnet.bus.SIGNAL_CHECK_S` (so that the main thread runs a signal handler), by
+    delivering a *wake sample* to it: a ``DELETE`` on a key of the subscription carrying the
+    subscription's nonce as attachment, put with ``Locality.SESSION_LOCAL`` (it never leaves
+    the process).  One daemon thread per bus, started at the first blocking ``recv``; it sleeps
+    while no loop is blocked, otherwise until the earliest deadline or ``WAKER_TICK_S``, and is
+    notified only when a loop blocks with a deadline earlier than its planned wake (never in a
+    loop that receives faster than its timeouts)."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.Lock())
+        # subscription -> [deadline_ns or None, last wake (or block) ns]
+        self._blocked: dict[_ZenohFifoSubscription, list[int | None]] = {}
+        self._planned_ns: float = float("inf")
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    def block(self, sub: _ZenohFifoSubscription, deadline_ns: int | None) -> None:
+        with self._cond:
             if self._closed:
                 return
-            if not wake:
-                self._held.append(item)
-                return
-            while self._held:
-                self._q.put(self._held.popleft())
-            self._q.put(item)
+            self._blocked[sub] = [deadline_ns, time.monotonic_ns()]
+            if self._thread is None:
+                with _signals_blocked():  # the thread inherits the mask: signals go elsewhere
+                    self._thread = threading.Thread(
+                        target=self._run, name="covnet-waker", daemon=True
+                    )
+                    self._thread.start()
+            elif (deadline_ns if deadline_ns is not None else float("inf")) < self._planned_ns or (
+                self._planned_ns == float("inf")
+            ):
+                self._cond.notify()
+
+    def unblock(self, sub: _ZenohFifoSubscription) -> None:
+        with self._cond:
+            self._blocked.pop(sub, None)
 
     def close(self) -> None:
-        with self._lock:
-            while self._held:
-                self._q.put(self._held.popleft())
-        super().close()
+        with self._cond:
+            self._closed = True
+            self._blocked.clear()
+            self._cond.notify()
 
-    def _held_one(self) -> Sample | None:
-        with self._lock:
-            return self._held.popleft() if self._held else None
+    def _run(self) -> None:
+        check_ns = int(SIGNAL_CHECK_S * 1e9)
+        tick_ns = int(WAKER_TICK_S * 1e9)
+        while True:
+            with self._cond:
+                if self._closed:
+                    return
+                now = time.monotonic_ns()
+                due = []
+                planned = float("inf") if not self._blocked else now + tick_ns
+                for sub, entry in self._blocked.items():
+                    deadline, last = entry
+                    if deadline is not None and deadline <= now:
+                        entry[0] = None  # woken for it; a new recv sets a new one
+                        entry[1] = now
+                        due.append(sub)
+                    elif now - last >= check_ns:  # type: ignore[operator]
+                        entry[1] = now
+                        due.append(sub)
+                    elif deadline is not None:
+                        planned = min(planned, deadline)
+                if not due:
+                    self._planned_ns = planned
+                    timeout = None if planned == float("inf") else (planned - now) / 1e9
+                    self._cond.wait(timeout)
+                    continue
+            for sub in due:  # outside the lock: the put may take a moment
+                sub._wake()
+
+
+class _ZenohFifoSubscription:
+    """A zenoh subscriber with a FIFO channel that the loop's own thread receives from: a
+    sample costs one thread hand-off (zenoh's network thread -> the loop) instead of two (a
+    callback thread first), and no Python runs for it before the loop takes it.  Measured on a
+    bare loop of the scan's shape (1 router, 8 clients, one command, ~5 replies): 2230-2490
+    scans/s against 1180 with callbacks feeding a queue.
+
+    ``Sample.t_recv_ns`` is stamped when the loop takes the sample.  Timeouts and signal checks
+    come from the bus's :class:`_Waker`; a remote ``DELETE`` (not a wake sample) is handed out
+    as a sample with an empty payload, which every decoder rejects, as before."""
+
+    def __init__(self, bus: ZenohBus, keyexpr: str) -> None:
+        self._bus = bus
+        self.keyexpr = keyexpr
+        self._key = _wake_key(keyexpr)
+        self._nonce = _new_nonce()
+        self._closed = False
+        with _signals_blocked():
+            self._sub: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = (
+                bus._session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(FIFO_CAPACITY))
+            )
+        self._recv = self._sub.recv
+        self._try_recv = self._sub.try_recv
+
+    def _sample(self, s: zenoh.Sample) -> Sample | None:
+        """The covnet sample for ``s``, or None for one of our wake samples."""
+        if s.kind == _DELETE:
+            att = s.attachment
+            if att is not None and att.to_bytes() == self._nonce:
+                return None
+        return Sample(str(s.key_expr), s.payload.to_bytes(), time.monotonic_ns())
 
     def try_recv(self) -> Sample | None:
-        item = super().try_recv()
-        return item if item is not None else self._held_one()
+        while not self._closed:
+            try:
+                s = self._try_recv()
+            except zenoh.ZError:  # the channel is closed
+                return None
+            if s is None:
+                return None
+            out = self._sample(s)
+            if out is not None:
+                return out
+        return None
 
     def recv(self, timeout: float | None) -> Sample | None:
-        item = super().recv(timeout)
-        return item if item is not None else self._held_one()
+        """The next sample; None after ``timeout`` seconds (None: wait forever) or once closed.
+        A wait longer than :data:`~covnet.bus.SIGNAL_CHECK_S` is cut into slices, so that the
+        main thread runs signal handlers meanwhile (as :meth:`covnet.bus.Channel.recv`)."""
+        out = self.try_recv()
+        if out is not None or (timeout is not None and timeout <= 0):
+            return out
+        deadline = None if timeout is None else time.monotonic_ns() + int(timeout * 1e9)
+        waker = self._bus._waker
+        while not self._closed:
+            waker.block(self, deadline)
+            try:
+                s = self._recv()
+            except zenoh.ZError:  # closed under us
+                return None
+            finally:
+                waker.unblock(self)
+            out = self._sample(s)
+            if out is not None:
+                return out
+            if deadline is not None and time.monotonic_ns() >= deadline:
+                return None
+        return None
+
+    def _wake(self) -> None:
+        try:
+            self._bus._session.delete(
+                self._key, attachment=self._nonce, allowed_destination=_SESSION_LOCAL
+            )
+        except zenoh.ZError:  # the session is closing
+            pass
+
+    def close(self) -> None:
+        self._bus._forget(self)
+        self._undeclare()
+
+    def _undeclare(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        sub, self._sub = self._sub, None
+        if sub is None:
+            return
+        self._wake()  # a loop blocked in recv returns (and sees _closed)
+        deadline = time.monotonic() + 2.0
+        while True:
+            try:
+                sub.undeclare()  # type: ignore[no-untyped-call]
+                return
+            except zenoh.ZError:  # the session is already closed
+                return
+            except RuntimeError:  # "Already borrowed": a recv has not returned yet
+                if time.monotonic() > deadline:
+                    return  # the session's close ends it
+                time.sleep(0.001)
 
 
-class _ZenohLazySubscription(_ZenohSubscription):
-    def __init__(self, bus: ZenohBus, keyexpr: str, wake: Callable[[bytes], bool]) -> None:
-        self._wake = wake
-        super().__init__(bus, keyexpr)
+_DELETE = zenoh.SampleKind.DELETE
+_SESSION_LOCAL = zenoh.Locality.SESSION_LOCAL
 
-    def _new_channel(self) -> Channel[Sample]:
-        return _LazyChannel(self._wake)
+
+def _new_nonce() -> bytes:
+    return os.urandom(16)
 
 
 class _ZenohLivelinessSubscription(_ChannelSubscription[LivelinessEvent]):
@@ -278,7 +432,12 @@ class _ZenohToken:
                 pass
 
 
-_Entity = _ChannelSubscription[Sample] | _ChannelSubscription[LivelinessEvent] | _ZenohToken
+_Entity = (
+    _ChannelSubscription[Sample]
+    | _ChannelSubscription[LivelinessEvent]
+    | _ZenohFifoSubscription
+    | _ZenohToken
+)
 
 
 class ZenohBus:
@@ -292,6 +451,7 @@ class ZenohBus:
         self._closed = False
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._entities: set[_Entity] = set()
+        self._waker = _Waker()
 
     @classmethod
     def open(cls, config: zenoh.Config, *, express: bool = False) -> ZenohBus:
@@ -337,20 +497,18 @@ class ZenohBus:
         check_keyexpr(keyexpr)
         with self._lock:
             self._check_open()
-            sub = _ZenohSubscription(self, keyexpr)
+            sub = _ZenohFifoSubscription(self, keyexpr)
             self._entities.add(sub)
         return sub
 
-    def subscribe_lazy(self, keyexpr: str, wake: Callable[[bytes], bool]) -> Subscription:
-        """:meth:`subscribe`, but a sample whose payload ``wake(payload)`` calls unimportant
-        does not wake a blocked ``recv`` (one thread hand-off fewer for a message the loop
-        can take later): it is handed out, in order, with the next sample that wakes it, by
-        ``try_recv``, or when ``recv`` times out.  ``wake`` runs on zenoh's thread: a pure
-        function of the payload."""
+    def subscribe_stamped(self, keyexpr: str) -> Subscription:
+        """:meth:`subscribe`, with each sample stamped when it arrives (on zenoh's thread, a
+        callback feeding a queue) rather than when the loop takes it: for a loop that drains in
+        bursts and records receive times (the recorder)."""
         check_keyexpr(keyexpr)
         with self._lock:
             self._check_open()
-            sub = _ZenohLazySubscription(self, keyexpr, wake)
+            sub = _ZenohSubscription(self, keyexpr)
             self._entities.add(sub)
         return sub
 
@@ -380,6 +538,7 @@ class ZenohBus:
             entities, self._entities = list(self._entities), set()
             publishers, self._publishers = list(self._publishers.values()), {}
         try:
+            self._waker.close()
             for entity in entities:
                 entity._undeclare()
             for publisher in publishers:

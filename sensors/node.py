@@ -8,10 +8,8 @@ truth never comes (a sensor restarted after the world sent it) is dropped as soo
 command arrives, so a sensor never stalls on a scan that has passed.  It sends a heartbeat
 every ``network.heartbeat_s`` (a hung loop stops sending them) and declares its liveliness
 token once its subscriptions exist.  Malformed messages are counted by reason and dropped.
-Over zenoh, a command that does not name the sensor does not wake its loop (it is taken, in
-order, with the next command that does, or at the next wait's end), and the measurement noise
-of every scan is drawn at start-up (:class:`NoiseTable`): both take work off the scan's
-critical path and change no result.
+The measurement noise of every scan is drawn at start-up (:class:`NoiseTable`): that takes
+work off the scan's critical path and changes no result.
 It ends on ``stop`` or when the manager it has seen leaves (its liveliness token goes: the run
 is over, or the manager died).
 """
@@ -73,16 +71,7 @@ def serve(
     on/off for this sensor), ``off`` or ``on``, and measured at once (so late: the manager
     re-filters or drops them)."""
     stats = SensorStats()
-    # A command that does not name this sensor leaves it nothing to do at once (it only
-    # counts it): where the bus can (zenoh), such a command does not wake the loop and is
-    # taken, in order, with the next one that does or at the next wait's end.  With slow links
-    # every command is acted on at once (the missed-command policy).
-    subscribe_lazy = getattr(bus, "subscribe_lazy", None)
-    if subscribe_lazy is not None and missed_command is None:
-        mine = msg.id_bytes(sensor_id)
-        cmd_sub = subscribe_lazy(msg.command_key(run_id), lambda payload: mine in payload)
-    else:
-        cmd_sub = bus.subscribe(msg.command_key(run_id))
+    cmd_sub = bus.subscribe(msg.command_key(run_id))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
     manager = ManagerWatch(bus, run_id)
     token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))

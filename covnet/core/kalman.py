@@ -19,11 +19,12 @@ posterior as the information form (:func:`update_information`)::
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import linalg
 
+from covnet.core.cholesky import cho_factor, cho_solve
 from covnet.core.gaussian import Gaussian, Mat, Vec, symmetrise
 
 
@@ -37,12 +38,20 @@ def predict_covariance(P: Mat, F: Mat, Q: Mat) -> Mat:
     return symmetrise(F @ P @ F.T + Q)
 
 
+@functools.lru_cache(maxsize=8)
+def _eye(n: int) -> Mat:
+    I = np.eye(n)
+    I.flags.writeable = False
+    return I
+
+
 def _gain_and_covariance(P: Mat, H: Mat, R: Mat) -> tuple[Mat, Mat]:
     """``K = P Hᵀ S⁻¹`` and the Joseph-form ``P⁺``; neither depends on the measured value."""
-    S = H @ P @ H.T + R
+    HP = H @ P
+    S = HP @ H.T + R
     # K = P Hᵀ S⁻¹  ⇔  S Kᵀ = H P  (S and P symmetric); a Cholesky solve, never inv/pinv.
-    K = linalg.cho_solve(linalg.cho_factor(S), H @ P).T
-    I_KH = np.eye(P.shape[0]) - K @ H
+    K = cho_solve(cho_factor(S), HP).T
+    I_KH = _eye(P.shape[0]) - K @ H
     return K, symmetrise(I_KH @ P @ I_KH.T + K @ R @ K.T)
 
 
@@ -73,18 +82,18 @@ def update_information(prior: Gaussian, measurements: Sequence[tuple[Vec, Mat, M
     ``Y⁻ = P⁻⁻¹`` and the final ``P⁺ = Y⁺⁻¹`` are formed through Cholesky solves.
     """
     n = prior.dim
-    cP = linalg.cho_factor(prior.P)
-    Y = linalg.cho_solve(cP, np.eye(n))
-    y = linalg.cho_solve(cP, prior.x)
+    cP = cho_factor(prior.P)
+    Y = cho_solve(cP, _eye(n))
+    y = cho_solve(cP, prior.x)
     for z, H, R in measurements:
-        cR = linalg.cho_factor(R)
-        Y = Y + H.T @ linalg.cho_solve(cR, H)
-        y = y + H.T @ linalg.cho_solve(cR, z)
-    cY = linalg.cho_factor(symmetrise(Y))
-    return Gaussian(linalg.cho_solve(cY, y), symmetrise(linalg.cho_solve(cY, np.eye(n))))
+        cR = cho_factor(R)
+        Y = Y + H.T @ cho_solve(cR, H)
+        y = y + H.T @ cho_solve(cR, z)
+    cY = cho_factor(symmetrise(Y))
+    return Gaussian(cho_solve(cY, y), symmetrise(cho_solve(cY, _eye(n))))
 
 
 def nees(estimate: Gaussian, truth: Vec) -> float:
     """Normalised estimation error squared ``ε = (x − x̂)ᵀ P⁻¹ (x − x̂)``."""
     e = truth - estimate.x
-    return float(e @ linalg.cho_solve(linalg.cho_factor(estimate.P), e))
+    return float(e @ cho_solve(cho_factor(estimate.P), e))

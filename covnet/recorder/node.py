@@ -55,7 +55,7 @@ def run(
     """Record until the run is over (see module doc); returns counters: ``recorded``,
     ``undecodable:<reason>`` and ``kind:<kind>`` per message kind recorded."""
     counts: Counter[str] = Counter()
-    sub = bus.subscribe(msg.run_keyexpr(run_id))
+    sub = getattr(bus, "subscribe_stamped", bus.subscribe)(msg.run_keyexpr(run_id))
     manager = ManagerWatch(bus, run_id)
     token = bus.declare_token(msg.alive_key(run_id, ROLE, NODE_ID))
     heartbeat = Heartbeat(bus, clock, run_id, ROLE, NODE_ID, sc.network.heartbeat_s)

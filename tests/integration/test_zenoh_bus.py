@@ -278,3 +278,76 @@ def test_concurrent_runs_do_not_hear_each_other(router):
         assert [m.decode(s.payload).sensor_id for s in got] == ["s2"] * 3
         assert sub_a.recv(timeout=0.1) is None
         assert np.array_equal(m.decode(got[2].payload).z, [[2.0, -2.0]])
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_fifo_subscription_timeouts_wakes_and_close(router, run):
+    """The loop's own thread receives from the FIFO: timeouts are kept (the waker's local wake
+    samples end the wait and never surface), a remote DELETE surfaces as an empty payload (every
+    decoder rejects it), and closing the bus ends a recv blocked in another thread."""
+    bus, endpoint = router
+    sub = bus.subscribe(m.measurement_keyexpr(run))
+    for timeout in (0.02, 0.15, 0.3):  # below, near and above the waker's tick
+        t0 = time.monotonic()
+        assert sub.recv(timeout=timeout) is None
+        waited = time.monotonic() - t0
+        assert timeout <= waited < timeout + 0.5
+    assert sub.try_recv() is None  # no stray wake sample left behind
+    with ZenohBus.open(zenoh_config("client", connect=[endpoint])) as client:
+        key = m.measurement_key(run, "s1")
+        client.publish(key, b"one")
+        got = sub.recv(timeout=5)
+        assert got is not None and got.payload == b"one" and got.key == key
+        client.session.delete(key)  # a remote DELETE: an (empty) sample, not a wake
+        got = sub.recv(timeout=5)
+        assert got is not None and got.payload == b"" and got.key == key
+
+    results: list[object] = []
+    blocked = bus.subscribe(m.command_key(run))
+    reader = threading.Thread(target=lambda: results.append(blocked.recv(timeout=None)))
+    reader.start()
+    time.sleep(0.2)
+    t0 = time.monotonic()
+    bus.close()
+    reader.join(10)
+    assert not reader.is_alive() and results == [None]
+    assert time.monotonic() - t0 < 5.0
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_fifo_recv_runs_signal_handlers_delivered_to_another_thread(router, run):
+    """A main thread blocked in a FIFO recv (GIL released, in zenoh) still runs a signal
+    handler within about SIGNAL_CHECK_S when the kernel hands the signal to another thread."""
+    bus, _ = router
+    sub = bus.subscribe(m.command_key(run))
+    release = threading.Event()
+
+    class Interrupted(Exception):
+        pass
+
+    def handler(signum, frame):
+        raise Interrupted
+
+    def idle():
+        if not release.wait(0.3):
+            signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)
+        release.wait(30)
+
+    other = threading.Thread(target=idle)
+    old = signal.signal(signal.SIGUSR1, handler)
+    try:
+        t0 = time.monotonic()
+        other.start()
+        with pytest.raises(Interrupted):
+            sub.recv(timeout=None)
+        assert 0.25 < time.monotonic() - t0 < 2.0
+        # the subscription still works afterwards
+        bus.publish(m.command_key(run), b"after")
+        got = sub.recv(timeout=5)
+        assert got is not None and got.payload == b"after"
+    finally:
+        release.set()
+        other.join(10)
+        signal.signal(signal.SIGUSR1, old)

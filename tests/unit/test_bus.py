@@ -270,10 +270,12 @@ def test_blocked_recv_runs_signal_handlers_delivered_to_another_thread():
     main thread only between bytecodes, so recv must not block in one long wait."""
     assert threading.current_thread() is threading.main_thread()
     ch: Channel[int] = Channel()
-    other_ready, release = threading.Event(), threading.Event()
+    release = threading.Event()
 
     def idle():
-        other_ready.set()
+        # once the main thread is blocked in recv, the signal lands on this thread
+        if not release.wait(0.3):
+            signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)
         release.wait(30)
 
     def handler(signum, frame):
@@ -282,13 +284,11 @@ def test_blocked_recv_runs_signal_handlers_delivered_to_another_thread():
     other = threading.Thread(target=idle)
     old = signal.signal(signal.SIGUSR1, handler)
     try:
-        other.start()
-        assert other_ready.wait(10)
-        signal.pthread_kill(other.ident, signal.SIGUSR1)  # lands on the idle thread
         t0 = time.monotonic()
+        other.start()
         with pytest.raises(_Interrupted):
             ch.recv(timeout=None)
-        assert time.monotonic() - t0 < 5.0  # without slicing it would block forever
+        assert 0.25 < time.monotonic() - t0 < 5.0  # without slicing it would block forever
     finally:
         release.set()
         other.join(10)

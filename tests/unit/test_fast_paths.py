@@ -1,6 +1,6 @@
-"""The throughput shortcuts of ``covnet up`` change costs, never results: the lazy command
-channel keeps order and drops nothing, the recorder's ``peek`` reads what a strict decode
-reads, a sensor's noise table draws what ``covnet.model.measure`` draws, bit for bit."""
+"""The throughput shortcuts of ``covnet up`` change costs, never results: the recorder's
+``peek`` reads what a strict decode reads, a sensor's noise table draws what
+``covnet.model.measure`` draws, bit for bit."""
 
 from __future__ import annotations
 
@@ -8,43 +8,9 @@ import numpy as np
 import pytest
 
 from covnet import messages as msg
-from covnet.bus import Sample
 from covnet.model import build_model, measure, truth_trajectory
 from covnet.recording import peek
-from covnet.zenoh_bus import _LazyChannel
 from sensors.node import NoiseTable
-
-
-def _s(i: int, wake: bool) -> Sample:
-    return Sample("k", (b"W" if wake else b"q") + bytes([i]), i)
-
-
-def test_lazy_channel_holds_quiet_samples_in_order():
-    ch = _LazyChannel(lambda p: p[:1] == b"W")
-    for i, wake in enumerate([False, False, True, False]):
-        ch.put(_s(i, wake))
-    got = [ch.try_recv() for _ in range(4)]
-    assert [s.t_recv_ns for s in got if s is not None] == [0, 1, 2, 3]
-    assert ch.try_recv() is None
-
-
-def test_lazy_channel_recv_times_out_with_a_held_sample_and_close_flushes():
-    ch = _LazyChannel(lambda p: p[:1] == b"W")
-    ch.put(_s(0, False))
-    s = ch.recv(timeout=0.01)
-    assert s is not None and s.t_recv_ns == 0
-    ch.put(_s(1, False))
-    ch.put(_s(2, False))
-    ch.close()
-    ch.put(_s(3, True))  # after close: ignored
-    assert [ch.recv(0.01).t_recv_ns, ch.try_recv().t_recv_ns] == [1, 2]  # type: ignore[union-attr]
-    assert ch.recv(0.01) is None and ch.try_recv() is None
-
-
-def test_id_bytes_are_in_a_command_that_names_the_id():
-    cmd = msg.encode(msg.Command(scan=3, t=3.0, enabled=("S1", "S12"), t_sent_ns=5))
-    assert msg.id_bytes("S1") in cmd and msg.id_bytes("S12") in cmd
-    assert msg.id_bytes("S2") not in cmd
 
 
 def _paper_messages() -> list[msg.Message]:

@@ -208,8 +208,12 @@ def test_covnet_cli_routes_mobile_configs(tmp_path, capsys):
     from covnet.cli import main
 
     cfg_path = write_cfg(tmp_path, short(8))
-    assert main(["run", str(cfg_path), "--solver", "milp", "--out", str(tmp_path / "r"),
-                 "--no-figures"]) == 0
+    assert (
+        main(
+            ["run", str(cfg_path), "--solver", "milp", "--out", str(tmp_path / "r"), "--no-figures"]
+        )
+        == 0
+    )
     assert json.loads((tmp_path / "r" / "summary.json").read_text())["solver"] == "milp"
     assert main(["run", str(cfg_path), "--metric", "svd", "--out", str(tmp_path / "x")]) == 2
     capsys.readouterr()
