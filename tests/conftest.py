@@ -30,3 +30,45 @@ def paper():
     from covnet.config import load
 
     return load(PAPER)
+
+
+class SignalFromAnotherThread(Exception):
+    """Raised by the SIGUSR1 handler of :func:`interrupted_from_another_thread`."""
+
+
+@pytest.fixture
+def interrupted_from_another_thread():
+    """``check(blocking_call)``: runs ``blocking_call()`` in the main thread while another
+    thread, 0.3 s later, takes a SIGUSR1 whose handler raises; returns the seconds until the
+    call was interrupted (the kernel may hand a process signal to any thread, and Python runs
+    the handler in the main thread only between bytecodes)."""
+    import signal
+    import threading
+    import time
+
+    def check(blocking_call) -> float:
+        assert threading.current_thread() is threading.main_thread()
+        release = threading.Event()
+
+        def idle():
+            if not release.wait(0.3):  # the main thread is blocked by now
+                signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)
+            release.wait(30)
+
+        def handler(signum, frame):
+            raise SignalFromAnotherThread
+
+        other = threading.Thread(target=idle)
+        old = signal.signal(signal.SIGUSR1, handler)
+        try:
+            t0 = time.monotonic()
+            other.start()
+            with pytest.raises(SignalFromAnotherThread):
+                blocking_call()
+            return time.monotonic() - t0
+        finally:
+            release.set()
+            other.join(10)
+            signal.signal(signal.SIGUSR1, old)
+
+    return check

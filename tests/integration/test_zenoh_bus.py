@@ -317,37 +317,14 @@ def test_fifo_subscription_timeouts_wakes_and_close(router, run):
 
 @pytest.mark.integration
 @pytest.mark.timeout(60)
-def test_fifo_recv_runs_signal_handlers_delivered_to_another_thread(router, run):
+def test_fifo_recv_runs_signal_handlers_delivered_to_another_thread(
+    router, run, interrupted_from_another_thread
+):
     """A main thread blocked in a FIFO recv (GIL released, in zenoh) still runs a signal
     handler within about SIGNAL_CHECK_S when the kernel hands the signal to another thread."""
     bus, _ = router
     sub = bus.subscribe(m.command_key(run))
-    release = threading.Event()
-
-    class Interrupted(Exception):
-        pass
-
-    def handler(signum, frame):
-        raise Interrupted
-
-    def idle():
-        if not release.wait(0.3):
-            signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)
-        release.wait(30)
-
-    other = threading.Thread(target=idle)
-    old = signal.signal(signal.SIGUSR1, handler)
-    try:
-        t0 = time.monotonic()
-        other.start()
-        with pytest.raises(Interrupted):
-            sub.recv(timeout=None)
-        assert 0.25 < time.monotonic() - t0 < 2.0
-        # the subscription still works afterwards
-        bus.publish(m.command_key(run), b"after")
-        got = sub.recv(timeout=5)
-        assert got is not None and got.payload == b"after"
-    finally:
-        release.set()
-        other.join(10)
-        signal.signal(signal.SIGUSR1, old)
+    assert 0.25 < interrupted_from_another_thread(lambda: sub.recv(timeout=None)) < 2.0
+    bus.publish(m.command_key(run), b"after")  # the subscription still works afterwards
+    got = sub.recv(timeout=5)
+    assert got is not None and got.payload == b"after"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import signal
 import threading
 import time
 
@@ -261,38 +260,13 @@ def test_channel_put_after_close_is_ignored():
     assert [ch.try_recv(), ch.try_recv(), ch.recv(None)] == [1, None, None]
 
 
-class _Interrupted(Exception):
-    pass
-
-
-def test_blocked_recv_runs_signal_handlers_delivered_to_another_thread():
-    """The kernel may hand a process signal to any thread; Python runs the handler in the
-    main thread only between bytecodes, so recv must not block in one long wait."""
-    assert threading.current_thread() is threading.main_thread()
+def test_blocked_recv_runs_signal_handlers_delivered_to_another_thread(
+    interrupted_from_another_thread,
+):
+    """Python runs a signal handler in the main thread only between bytecodes, so recv must not
+    block in one long wait (without slicing it would block forever)."""
     ch: Channel[int] = Channel()
-    release = threading.Event()
-
-    def idle():
-        # once the main thread is blocked in recv, the signal lands on this thread
-        if not release.wait(0.3):
-            signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)
-        release.wait(30)
-
-    def handler(signum, frame):
-        raise _Interrupted
-
-    other = threading.Thread(target=idle)
-    old = signal.signal(signal.SIGUSR1, handler)
-    try:
-        t0 = time.monotonic()
-        other.start()
-        with pytest.raises(_Interrupted):
-            ch.recv(timeout=None)
-        assert 0.25 < time.monotonic() - t0 < 5.0  # without slicing it would block forever
-    finally:
-        release.set()
-        other.join(10)
-        signal.signal(signal.SIGUSR1, old)
+    assert 0.25 < interrupted_from_another_thread(lambda: ch.recv(timeout=None)) < 5.0
 
 
 # --------------------------------------------------------------------------------------------
