@@ -10,8 +10,9 @@ transport calls back ever touches process state. Two implementations:
 Semantics both implementations share:
 
 - ``subscribe(keyexpr)`` delivers every matching ``publish`` made after it returns, in publish
-  order per publisher, into an unbounded FIFO: nothing is dropped. A handle hears its own
-  publications (as a zenoh session does).
+  order per publisher, into a FIFO: nothing is dropped (the in-memory one is unbounded; over
+  zenoh a full FIFO makes the sender wait). A handle hears its own publications (as a zenoh
+  session does).
 - Key expressions follow zenoh: chunks separated by ``/``; ``*`` matches exactly one chunk,
   ``**`` zero or more chunks (:func:`keyexpr_matches`). Published keys are concrete.
 - ``declare_token(key)`` announces liveliness until ``Token.undeclare()`` or ``close()``;
@@ -59,7 +60,8 @@ __all__ = [
 @dataclass(frozen=True, slots=True)
 class Sample:
     """One received publication: its concrete key, payload, and ``time.monotonic_ns()`` at
-    receipt (stamped by the transport's receiving thread, before the loop drains it)."""
+    receipt: when it was queued for the loop (in memory, and zenoh's ``subscribe_stamped``) or
+    when the loop took it (zenoh's ``subscribe``, whose FIFO the loop reads directly)."""
 
     key: str
     payload: bytes
