@@ -39,6 +39,15 @@ once per subset), which adds a rounding term of ``FOLD_ERR · n · eps · κ · 
 deflate by.  Constants of ``P_d`` (inverse, eigen-decomposition, log-determinant) are kept per
 plan for the next decisions with the same ``P_d`` (:class:`_DConstants`).
 
+**svd** (``n = 4``, :func:`_svd_block`): the eigenvalues and the eigenvector components the
+metric compares are enclosed for all subsets at once.  Every stage-1 ``P_i`` is rotated by one
+orthogonal ``V`` (the eigenvectors of ``P⁻¹ + J_all/2``, folded into the stage-1 product);
+the two 2 x 2 diagonal blocks of ``Vᵀ P_i V`` are solved in closed form and the coupling block
+``E`` bounds the rest: eigenvalues to ``2||E||²/(η + sqrt(η² + 4||E||²))`` (Li & Li), the
+eigenvectors by ``||E||/η`` out of their block and ``||E||²/(η · gap)`` within it, plus a
+Davis-Kahan term for the stage-1 error; an eigenvalue without a gap above the tie tolerance is
+credited nothing.  On the paper's problems this bound leaves one candidate.
+
 **Stage 2: exact values for few subsets**, computed with the reference's arithmetic (``J_i``
 summed in ascending sensor order by :func:`gain_sums`, ``P_i`` by :func:`spd_inverse`, the
 metric itself on the stack).  The subset with the smallest bound is evaluated first; with ``U``
@@ -279,6 +288,7 @@ class SearchTables:
         "S_free",
         "S_req",
         "active_trace",
+        "J_mid",
         "chunk",
         "codes",
         "S_sub",
@@ -326,6 +336,9 @@ class SearchTables:
         self.S_req = S[req].sum(axis=0) if req else None
         self.S_req_list = self.S_req.tolist() if req else None
         self.active_trace = float(np.einsum("jii->", active))
+        #: half the active gains' sum: ``Y0 + J_mid`` is the reference of :func:`_svd_block`
+        self.J_mid = 0.5 * active.sum(axis=0)
+        self.J_mid.flags.writeable = False
         self.diag_rows = np.arange(0, n * n, n + 1)
         self.d_cache: dict[bytes, _DConstants] = {}
         #: desired covariances as given -> as checked (:func:`covnet.core.allocation.allocate`)
@@ -527,7 +540,7 @@ class _Setup:
         # limits valid for every subset (a PSD matrix's trace bounds its largest eigenvalue)
         d = n + 1
         lam_max = sum(pl[::d])
-        tr_Y_all = sum(Y0.ravel().tolist()[::d]) + tab.active_trace
+        tr_Y_all = sum(Y0.diagonal().tolist()) + tab.active_trace
         kappa = lam_max * tr_Y_all
         err = ERR_FACTOR * n * n * EPS * kappa * lam_max
         self.ctx = BoundContext(err, 1.0 / tr_Y_all, lam_max, kappa, lam_max + dc.abs_sum)
@@ -608,14 +621,60 @@ class _Setup:
         key = "TK_" + which
         A = self.memo.get(key)
         if A is None:
-            kt0, kt1, _, _, pl = self._py[:5]  # type: ignore[misc]
-            col = (
-                pl if which == "P" else [a - b for a, b in zip(pl, self.dc.flat_list, strict=True)]
-            )
-            v = np.array([x for xy in zip(kt0, kt1, strict=True) for x in xy] + col + [1.0])
+            if which == "P":
+                kt0, kt1, _, _, pl = self._py[:5]  # type: ignore[misc]
+                v = np.array([x for xy in zip(kt0, kt1, strict=True) for x in xy] + pl + [1.0])
+            else:
+                v = self.TK_vec_M()
             ia, ib = _tk_index(self.n)
             A = self.memo[key] = v[ia] * v[ib]
         return A  # type: ignore[return-value]
+
+    def gp_coeffs(self) -> Mat:
+        """``(5, 6)`` coefficients on the rows of ``Q`` (:meth:`chunk_covariances`) of
+        ``[adj(Z_i) - C det Z_i; det Z_i]`` (``r = 2 < n``), i.e. of ``det Z_i · [vec(Z_i⁻¹ -
+        C); 1]`` (:meth:`_ChunkStage1P._gp`)."""
+        A = self.memo.get("gp")
+        if A is None:
+            b0, b1, b2, b3 = self._base4()
+            d0, d1, d2, d3, d4, _ = self.det_row()
+            pl = self._py[4]  # type: ignore[index]
+            n = self.n
+            i0, i1 = self.s.tolist()
+            c0, c1, c2, c3 = pl[i0 * n + i0], pl[i0 * n + i1], pl[i1 * n + i0], pl[i1 * n + i1]
+            # adj(Z) = (Z11, -Z01, -Z10, Z00) with Z = b + S on Q's rows (S00, S01, S10, S11, 1,
+            # det S), minus C_k times the det row (d0..d4, 1)
+            # fmt: off
+            A = self.memo["gp"] = np.array((
+                -c0 * d0, -c0 * d1, -c0 * d2, 1.0 - c0 * d3, b3 - c0 * d4, -c0,
+                -c1 * d0, -1.0 - c1 * d1, -c1 * d2, -c1 * d3, -b1 - c1 * d4, -c1,
+                -c2 * d0, -c2 * d1, -1.0 - c2 * d2, -c2 * d3, -b2 - c2 * d4, -c2,
+                1.0 - c3 * d0, -c3 * d1, -c3 * d2, -c3 * d3, b0 - c3 * d4, -c3,
+                d0, d1, d2, d3, d4, 1.0,
+            )).reshape(5, 6)
+            # fmt: on
+        return A  # type: ignore[return-value]
+
+    def TK_vec_M(self) -> Mat:
+        """``[K entries (row-major), vec(P - P_d), 1]`` (``r = 2 < n``): the factors of
+        :meth:`TK_with` and :meth:`TK_sym_M`."""
+        n = self.n
+        kt0, kt1 = self._py[:2]  # type: ignore[index]
+        v = np.empty(2 * n + n * n + 1)
+        v[: 2 * n : 2] = kt0
+        v[1 : 2 * n : 2] = kt1
+        np.subtract(self.P.reshape(n * n), self.dc.flat, out=v[2 * n : -1])
+        v[-1] = 1.0
+        return v
+
+    def TK_sym_M(self) -> Mat:
+        """The rows ``(a, b)``, ``a <= b``, of ``[T_K, vec(P - P_d)]`` (:meth:`TK_with`), those
+        with ``a < b`` times ``sqrt 2`` ``(n(n+1)/2, 5)``."""
+        ia, ib, w = _tk_sym_index(self.n)
+        v = self.TK_vec_M()
+        A = v[ia] * v[ib]
+        A *= w
+        return A
 
     @property
     def T_diag(self) -> Mat:
@@ -744,6 +803,20 @@ def _tk_index(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     return ia, ib
 
 
+@functools.lru_cache(maxsize=16)
+def _tk_sym_index(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp], Mat]:
+    """The rows ``(a, b)``, ``a <= b``, of :func:`_tk_index`, and their weights ``(k, 1)``: ``1``
+    on the diagonal, ``sqrt 2`` off it."""
+    ia, ib = _tk_index(n)
+    a, b = np.triu_indices(n)
+    rows = a * n + b
+    w = np.where(a == b, 1.0, math.sqrt(2.0))[:, None]
+    out = ia[rows], ib[rows], w
+    for x in out:
+        x.flags.writeable = False
+    return out
+
+
 _min = np.minimum.reduce
 _ADJ2_SIGN = np.array([[-1.0], [1.0]])  # Jᵀ Kᵀ = [-Kᵀ[1], Kᵀ[0]]
 
@@ -855,29 +928,34 @@ class _ChunkStage1P(Stage1P):
         row of ones carries the constant term of :meth:`full` / :meth:`diff_full` (one product
         with ``[T_K, vec(P)]``, no addition per subset)."""
         if self._gp_lazy is None:
-            st = self.setup
-            b0, b1, b2, b3 = st._base4()
-            d0, d1, d2, d3, d4, _ = st.det_row()
-            pl = st._py[4]  # type: ignore[index]
-            n = self.n
-            i0, i1 = st.s.tolist()
-            c0, c1, c2, c3 = pl[i0 * n + i0], pl[i0 * n + i1], pl[i1 * n + i0], pl[i1 * n + i1]
-            # adj(Z) = (Z11, -Z01, -Z10, Z00) with Z = b + S on Q's rows (S00, S01, S10, S11, 1,
-            # det S), minus C_k times the det row (d0..d4, 1)
-            # fmt: off
-            A = np.array((
-                -c0 * d0, -c0 * d1, -c0 * d2, 1.0 - c0 * d3, b3 - c0 * d4, -c0,
-                -c1 * d0, -1.0 - c1 * d1, -c1 * d2, -c1 * d3, -b1 - c1 * d4, -c1,
-                -c2 * d0, -c2 * d1, -1.0 - c2 * d2, -c2 * d3, -b2 - c2 * d4, -c2,
-                1.0 - c3 * d0, -c3 * d1, -c3 * d2, -c3 * d3, b0 - c3 * d4, -c3,
-                d0, d1, d2, d3, d4, 1.0,
-            ))
-            # fmt: on
-            R = A.reshape(5, 6) @ self.Q
+            R = self.setup.gp_coeffs() @ self.Q
             R[:4] /= R[4]
             R[4] = 1.0
             self._gp_lazy = R
         return self._gp_lazy
+
+    def diff_full_sym_scaled(self) -> tuple[Mat, float]:
+        """``R`` with rows ``w_ab · det Z_i · (P_i - P_d)_ab`` for ``a <= b`` (``w = 1`` on the
+        diagonal, ``sqrt 2`` off it, so the squares of the rows sum to ``det Z_i² ||P_i -
+        P_d||_F²``) and a last row ``det Z_i``, in one product with ``Q``: ``det Z_i · [vec(Z_i⁻¹
+        - C); 1]`` is linear in ``Q`` (:meth:`_Setup.gp_coeffs`), so the coefficients are
+        ``[T_K, vec(P - P_d)]`` (symmetric rows) times those of :meth:`_gp`; and the absolute
+        error bound the folding adds to each entry of ``P_i - P_d`` (relative to ``|P - P_d|``
+        and ``|K C Kᵀ| <= λmax``, as :meth:`_Setup.diag_coeffs`)."""
+        st = self.setup
+        c = st.memo.get("frob_sym")
+        if c is None:
+            A = st.gp_coeffs()
+            TKs = st.TK_sym_M()
+            k = TKs.shape[0]
+            C = np.empty((k + 1, 6))
+            np.matmul(TKs, A, out=C[:k])
+            C[k] = A[4]
+            # |P - P_d| <= λmax + sum|P_d| = scale entrywise
+            o_max = st.ctx.scale + st.ctx.lam_max
+            c = st.memo["frob_sym"] = (C, FOLD_ERR * self.n * EPS * st.ctx.kappa * o_max)
+        C, fold = c  # type: ignore[misc]
+        return C @ self.Q, fold
 
     def full(self) -> Mat:
         if self._full is None:
@@ -929,8 +1007,9 @@ class MetricBound:
     cheap: BoundFn
     refine: BoundFn | None = None
     #: refine a pool of the best cheap bounds before the first exact evaluation even for small
-    #: problems (worth it when ``cheap`` is loose, as the size-only bound of ``svd`` is)
-    refine_seed: bool = False
+    #: problems (worth it when ``cheap`` is loose, as the size-only bound of ``svd`` for
+    #: ``n != 4`` is); a function of the state dimension ``n`` or a constant
+    refine_seed: bool | Callable[[int], bool] = False
 
 
 def _cov_slack(v: Mat, lipschitz: float, ctx: BoundContext, extra: float = 0.0) -> Mat:
@@ -968,6 +1047,15 @@ def _trace_diff_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
 
 def _frobenius_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """``||P - D||_F`` of the stage-1 ``P``."""
+    if isinstance(P, _ChunkStage1P):  # sqrt(sum_(a<=b) (w_ab det Z (P - D)_ab)²) / det Z
+        R, fold = P.diff_full_sym_scaled()
+        k = R.shape[0] - 1
+        X = R[:k]
+        X *= X
+        v = _sum(X, 0)
+        np.sqrt(v, out=v)
+        v /= R[k]
+        return _cov_slack(v, P.n, ctx, P.n * fold)
     M = P.diff_full()
     return _cov_slack(np.sqrt(np.einsum("kb,kb->b", M, M)), P.n, ctx)
 
@@ -1043,6 +1131,14 @@ def _spectral_refine(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
 
 
 def _svd_cheap(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """The cheap ``svd`` bound: :func:`_svd_block` (size and orientation) for ``n = 4``, else
+    :func:`_svd_size_cheap` (size only)."""
+    if P.n == 4:
+        return _svd_block(P, D, ctx)
+    return _svd_size_cheap(P, D, ctx)
+
+
+def _svd_size_cheap(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """Size term only (the orientation term is ``>= 0``).  With ``λ`` the eigenvalues of ``P``
     and ``s`` those of ``D``, both descending, ``||λ - s||_2`` is at least
 
@@ -1085,6 +1181,248 @@ def _svd_cheap(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
         lb = np.maximum(lb, np.sqrt(sum(x * x for x in dist)))
     # each μ moves by <= 2 err, the Ky Fan terms by <= (n + 1) err / sqrt(n - 1): 2n covers all
     return _cov_slack(lb, 2.0 * n, ctx)
+
+
+_dsyev = lapack.dsyev
+
+
+def _svd_rows() -> Mat:
+    """``(11, 16)``: the rows ``m_A, m_C, h_A, h_C, b_A, b_C, m_A - m_C, 2E`` of
+    :func:`_svd_block` as combinations of the 16 entries ``M_ij`` (index ``4i + j``)."""
+    G = np.zeros((11, 16))
+    G[0, 0] = G[0, 5] = G[2, 0] = G[1, 10] = G[1, 15] = G[3, 10] = 0.5
+    G[2, 5] = G[3, 15] = -0.5
+    G[4, 1] = G[5, 11] = 1.0
+    G[6] = G[0] - G[1]
+    for k, ij in enumerate((2, 3, 6, 7)):  # E = M[:2, 2:]
+        G[7 + k, ij] = 2.0
+    G.flags.writeable = False
+    return G
+
+
+_SVD_ROWS = _svd_rows()
+_EYE4 = np.eye(4)
+_EYE4.flags.writeable = False
+
+
+class _SvdBlock(NamedTuple):
+    """Per-decision constants of :func:`_svd_block`: the 15 rows as coefficients on the stage-1
+    representation (``coef``; plus ``const`` for a general :class:`Stage1P`), ``s_D``'s half
+    gaps ``d``, ``½||w_j||²`` of its own block and ``½||w_j||`` of the other one, the error
+    bounds ``c`` (``>= 2e`` plus the size's rounding) and ``δ``, the tie threshold ``tie``
+    (``>= e``) and the relative rounding of the size."""
+
+    coef: Mat
+    const: Mat | None
+    d: Mat
+    half_n2: Mat
+    n_other: Mat
+    c: float
+    delta: float
+    tie: float
+    rel: float
+
+
+def _svd_d_consts(dc: _DConstants) -> tuple[Mat, float, float, Mat]:
+    """``(U_D, σ_A, σ_C, [[d_A], [d_C]])`` of one ``P_d`` (cached with it): ``s_D = (σ_A ± d_A,
+    σ_C ± d_C)`` descending, ``U_D`` the eigenvectors of
+    :func:`covnet.core.metrics.ordered_eigh`."""
+    k = dc.memo.get("svd_blk")
+    if k is None:
+        s_D, U_D = dc.eig()
+        s = s_D.tolist()
+        d = np.array([[0.5 * (s[0] - s[1])], [0.5 * (s[2] - s[3])]])
+        k = dc.memo["svd_blk"] = (U_D, 0.5 * (s[0] + s[1]), 0.5 * (s[2] + s[3]), d)
+    return k  # type: ignore[return-value]
+
+
+def _svd_block_consts(P: Stage1P) -> _SvdBlock:
+    """The constants of :func:`_svd_block` for one decision (kept in ``setup.memo``)."""
+    st = P.setup
+    chunk = isinstance(P, _ChunkStage1P)
+    key = "svd_blk_c" if chunk else "svd_blk"
+    k = st.memo.get(key)
+    if k is not None:
+        return k  # type: ignore[return-value]
+    n, ctx = 4, st.ctx
+    # V: eigenvectors of the reference Y0 + J_mid (the information of half of every active
+    # gain), ascending information = descending covariance.  Any V is valid; this one makes
+    # the coupling E small for every subset of the paper's problems.
+    _, V, info = _dsyev(st.Y0 + st.tab.J_mid)
+    if info != 0:
+        V = _EYE4
+    U_D, sA, sC, d = _svd_d_consts(st.dc)
+    if chunk:  # P_i = P + (K ⊗ K) vec(Z_i⁻¹ - C): coefficients on [vec(Z_i⁻¹ - C); 1]
+        Kc, base = st.KT, st.P
+    else:  # P_i = P∞ + (KJ ⊗ KJ) g_i
+        Kc, base = st.KJ.T, st.P_inf.reshape(n, n)
+    # Vᵀ [V, U_D, base V, Kcᵀ]: VᵀV, w_j = Vᵀ u_Dj, Vᵀ base V, Uᵀ = (Kc V)ᵀ
+    X = V.T @ np.concatenate((V, U_D, base @ V, Kc.T), axis=1)
+    xl = X.tolist()
+    delta = 16.0 * n * EPS  # >= ||V - Q||_2 (<= ||VᵀV - I||_2 <= Σ|VᵀV - I|)
+    for i, row in enumerate(xl):
+        for j in range(n):
+            delta += abs(row[j] - 1.0) if i == j else abs(row[j])
+    Ut = X[:, 3 * n :]  # (4, r): M_ij = sum_cd U_ci U_dj g_cd (+ Vᵀ base V)
+    r2 = Ut.shape[1] * Ut.shape[1]
+    O = np.empty((n * n, r2 + 1))
+    O[:, :r2] = (Ut[:, None, :, None] * Ut[None, :, None, :]).reshape(n * n, r2)
+    O[:, r2] = X[:, 2 * n : 3 * n].reshape(n * n)
+    C11 = _SVD_ROWS @ O  # (11, r² + 1)
+    # t_j = ±½ (p_j h + q_j b) on j's block, p = w_0² - w_1², q = 2 w_0 w_1 (w = w_j's block)
+    mix = [0.0] * 16
+    g, h2, n_oth = [], [], []
+    for j, i0 in enumerate((0, 0, 2, 2)):
+        w0, w1 = xl[i0][n + j], xl[i0 + 1][n + j]
+        o0, o1 = xl[2 - i0][n + j], xl[3 - i0][n + j]
+        p, q = w0 * w0 - w1 * w1, 2.0 * w0 * w1
+        half = 0.5 if j % 2 == 0 else -0.5  # the block's larger / smaller eigenvalue
+        b = i0 // 2  # rows h, b of the block: C11[2 + b], C11[4 + b] (mix columns b, 2 + b)
+        mix[4 * j + b] = half * p
+        mix[4 * j + 2 + b] = half * q
+        g.append(0.5 * (abs(p) + abs(q)))
+        h2.append(0.5 * (w0 * w0 + w1 * w1) + 64.0 * EPS)
+        n_oth.append(0.5 * math.sqrt(o0 * o0 + o1 * o1))
+    coef = np.empty((15, r2 + 1))
+    coef[:11] = C11
+    np.matmul(np.array(mix).reshape(4, 4), C11[2:6], out=coef[11:])
+    # e >= ||M̃ - Qᵀ P_exact Q||_2 (docstring of _svd_block)
+    v1 = (1.0 + delta) ** 2
+    e = 2.0 * n * n * v1 * ctx.err + 3.0 * delta * ctx.lam_max + 64.0 * n * EPS * v1 * ctx.scale
+    rnd = 32.0 * EPS * v1 * ctx.scale
+    shift = np.array([-sA, -sC, 0.0, 0.0, 0.0, 0.0, -rnd, 0.0, 0.0, 0.0, 0.0] + g)
+    shift[11:] *= e
+    const = None
+    if chunk:
+        coef[:, r2] += shift
+    else:
+        const = coef[:, r2] + shift
+        coef = coef[:, :r2]
+    hn = np.array(h2 + n_oth).reshape(2, 2, 2, 1)
+    k = _SvdBlock(
+        coef,
+        const,
+        d,
+        hn[0],
+        hn[1],
+        2.0 * e + 2.0 * rnd + 128.0 * n * EPS * ctx.scale + 2.0 * n * ctx.err,
+        2.0 * delta + 64.0 * n * EPS,
+        EIG_TIE_RTOL * (ctx.lam_max + e) + e,
+        128.0 * n * EPS,
+    )
+    st.memo[key] = k
+    return k
+
+
+def _svd_block(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
+    """Size plus orientation from a 2 + 2 block split (``n = 4``), every subset at once.
+
+    **Rotation.**  ``V``: the eigenvectors of one reference ``Y0 + J_mid`` (half of every
+    active gain), columns by descending covariance; ``Q`` the orthogonal polar factor of ``V``,
+    ``δ = Σ|VᵀV - I| >= ||V - Q||_2``.  ``M = Vᵀ P_i V = [[A, E], [Eᵀ, C]]`` (2 x 2 blocks): its
+    rows ``m_A - σ_A``, ``h_A``, ``b_A`` (``A = [[m_A + h_A, b_A], [b_A, m_A - h_A]]``), the same
+    for ``C``, ``m_A - m_C``, ``2E`` and the ``t_j`` below come from one product of per-decision
+    coefficients (``V`` folded into the stage-1 representation) with the subsets' columns.  With
+    ``M̃`` the matrix the computed rows define, ``||M̃ - Qᵀ P_exact Q||_2 <= e = 2n²(1+δ)² err
+    + 3δ λmax + 64 n eps (1+δ)² scale`` (stage-1 error through the fold, ``V`` versus ``Q``,
+    rounding, and LAPACK's backward error for the eigenpairs the metric computes).
+
+    **Eigenvalues.**  ``A`` has ``a_{1,2} = m_A ± r_A``, ``r_A = sqrt(h_A² + b_A²)``, ``C`` has
+    ``c_{1,2} = m_C ± r_C``.  If ``η = a_2 - c_1 > 0`` the sorted eigenvalues of
+    ``diag(A, C)`` are ``λ̂ = (a_1, a_2, c_1, c_2)`` and (Li & Li 2005, quadratic residual bound)
+    ``|λ_j(M̃) - λ̂_j| <= ρ = 2||E||²/(η + sqrt(η² + 4||E||²))`` (``||E||_2 <= ||E||_F``), so
+    ``|λ_j(P) - λ̂_j| <= ρ + e`` (Weyl).  With ``s_D = (σ_A ± d_A, σ_C ± d_C)``::
+
+        size >= ||λ̂ - s_D||_2 - 2(ρ + e),
+        ||λ̂ - s_D||² = 2[(m_A - σ_A)² + (r_A - d_A)² + (m_C - σ_C)² + (r_C - d_C)²]
+
+    and where ``η <= 0`` (order unknown) ``size >= |tr P - tr P_d| / 2 - 2e`` (Cauchy-Schwarz).
+
+    **Eigenvectors.**  ``w_j = Vᵀ u_Dj`` (per decision) with halves ``w_{j,A}``, ``w_{j,C}``.  For
+    ``j`` in ``A`` (``j = 1, 2``; ``C`` alike, roles swapped) and ``y_j`` the eigenvectors of ``A``,
+    the projector ``(A - a_2)/(a_1 - a_2)`` on ``y_1`` gives ``|y_{1,2}·w|² = ½(||w_A||² ±
+    t/r_A)``, ``t = p h_A + q b_A``, ``p = w_0² - w_1²``, ``q = 2 w_0 w_1`` (each ``t_j`` one row,
+    its error ``(|p| + |q|) e`` added).  The unit eigenvector ``x = (x_A, x_C)`` of ``M̃`` for
+    ``λ̃_j`` has ``||x_C|| <= ξ = ||E||/(η - ρ)`` (second block row) and ``x_A = α y_j + β y_k``
+    with ``|β| <= ||E|| ξ / |a_k - λ̃_j| <= ||E|| ξ / γ`` (first block row times ``y_k``), where
+    ``γ = min(2r_A, η) - 2(ρ + e)`` is at most ``2r_A - ρ`` and, less ``e``, at most the gap of
+    ``λ̃_j`` to the other eigenvalues of the exact ``P``; so the computed ``P``'s eigenvector is
+    within ``sin θ <= e/γ`` of ``x`` (Davis-Kahan), and ``Qᵀu_Dj`` within ``δ`` of ``w_j``::
+
+        |u_Pj · u_Dj| <= |y_j·w_A| + |β| + ξ ||w_C|| + sin θ + δ    (||w_A|| <= 1)
+
+    credited only where ``γ > τ_e = rtol (λmax + e) + e``: then ``λ_j`` of the computed ``P`` is
+    in no tie group of :func:`covnet.core.metrics.ordered_eigh` (its eigenvector is LAPACK's up
+    to sign) and every denominator above is positive.  ``sin θ`` is taken as ``τ_e/γ >= e/γ``:
+    it reaches ``1`` (no credit) for ``0 < γ <= τ_e`` by itself, and ``γ <= 0`` gives ``+inf``
+    or NaN (``fmin`` then takes ``1``).  Bound: ``size + max((n - Σ_j min(1, ·))/n - δ - 64 n
+    eps, 0)``.
+    """
+    k = _svd_block_consts(P)
+    if k.const is None:
+        R = k.coef @ P._gp()  # type: ignore[attr-defined]
+    else:
+        R = k.coef @ P._g
+        R += k.const[:, None]
+    r = R[2:4] * R[2:4]
+    r += R[4:6] * R[4:6]
+    np.sqrt(r, out=r)  # (r_A, r_C)
+    E = R[7:11]
+    E *= E
+    e2 = _sum(E, 0)  # 4 ||E||_F²
+    eta = r[0] + r[1]
+    np.subtract(R[6], eta, out=eta)  # η (less the rounding, in the row)
+    fallback = not _min(eta) > 0.0
+    et = np.maximum(eta, 0.0) if fallback else eta
+    rho = et * et
+    rho += e2
+    np.sqrt(rho, out=rho)
+    rho += et
+    if fallback:
+        rho += TINY
+    np.divide(e2, rho, out=rho)
+    rho += k.c  # >= 2ρ + 2e + the size's rounding
+    # size: sqrt(2 Σ (m - σ)² + (r - d)²) - 2ρ - 2e; |tr P - tr P_d| / 2 - 2e where η <= 0
+    if fallback:
+        tr = R[0] + R[1]
+        np.abs(tr, out=tr)
+    np.subtract(r, k.d, out=R[2:4])
+    S = R[:4]
+    S *= S
+    size = _sum(S, 0)
+    np.sqrt(size, out=size)
+    size *= math.sqrt(2.0) * (1.0 - k.rel)
+    if fallback:
+        size = np.where(eta > 0.0, size, tr)
+    size -= rho
+    # orientation, per block (A, C) and eigenvalue (larger, smaller): T = |y_j·w_j|² first
+    T = R[11:15].reshape(2, 2, -1)
+    T /= r[:, None]
+    T += k.half_n2
+    np.sqrt(T, out=T)
+    inv = rho * -0.5
+    inv += eta
+    np.maximum(inv, 0.0, out=inv)
+    np.divide(1.0, inv, out=inv)  # 1/(η - ρ), +inf where not positive
+    gam = r + r
+    np.minimum(gam, eta, out=gam)
+    gam -= rho  # γ
+    np.maximum(gam, 0.0, out=gam)
+    xi = e2 * inv
+    xi *= 0.25  # ||E|| ξ
+    xi += k.tie
+    np.divide(xi, gam, out=gam)  # |β| + sin θ
+    T += gam[:, None]
+    np.sqrt(e2, out=e2)
+    e2 *= inv  # 2ξ
+    T += e2 * k.n_other
+    np.fmin(T, 1.0, out=T)
+    orient = _sum(T.reshape(4, -1), 0)
+    orient *= -0.25
+    orient += 1.0 - k.delta
+    np.maximum(orient, 0.0, out=orient)
+    size += orient
+    return size
 
 
 def _svd_consts(setup: _Setup, D: Mat) -> tuple[Mat, float, Mat, Mat]:
@@ -1255,7 +1593,7 @@ METRIC_BOUNDS: dict[str, MetricBound] = {
     "one_norm": MetricBound(_one_norm_bound),
     "inf_norm": MetricBound(_inf_norm_bound),
     "spectral": MetricBound(_spectral_cheap, _spectral_refine),
-    "svd": MetricBound(_svd_cheap, _svd_refine, refine_seed=True),
+    "svd": MetricBound(_svd_cheap, _svd_refine, refine_seed=lambda n: n != 4),
     "logdet": MetricBound(_logdet_bound),
     "kl": MetricBound(_kl_bound),
 }
@@ -1404,7 +1742,10 @@ def fast_search(
 
     # ---- stage 2: exact values in increasing-bound order while they can still tie
     refined = np.zeros(lb.size, dtype=bool) if bound.refine is not None else None
-    if refined is not None and lb.size > (SEED_POOL if bound.refine_seed else SEED_POOL_ABOVE):
+    seed = bound.refine_seed
+    if callable(seed):
+        seed = seed(tab.n)
+    if refined is not None and lb.size > (SEED_POOL if seed else SEED_POOL_ABOVE):
         # a better first candidate: the best refined bound among the best cheap ones (a larger
         # pool for small problems, where the refinement's fixed cost dominates)
         size = SEED_POOL if lb.size > 1024 else min(SMALL_SEED_POOL, lb.size - 1)
@@ -1492,7 +1833,8 @@ def fast_search(
 
 def _single_value(metric: MetricFn, P: Mat, P_d: Mat) -> float:
     """``f(P, P_d)`` for one ``(n, n)`` matrix, exactly as the reference calls the metric."""
-    v = float(np.asarray(metric(P, P_d), dtype=np.float64))
+    f = metric(P, P_d)
+    v = float(f) if type(f) is np.float64 else float(np.asarray(f, dtype=np.float64))
     if not math.isfinite(v):
         raise ValueError("metric returned a non-finite value")
     return v

@@ -157,11 +157,14 @@ def ordered_eigh(
 
 
 def _ordered_eigh_one(
-    A: NDArray[np.float64], rtol: float
+    A: NDArray[np.float64], rtol: float, signs: bool = True
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """:func:`ordered_eigh` of one finite ``(n, n)`` matrix: the same operations as the batched
     path, bit for bit, with the per-eigenvalue bookkeeping in Python floats instead of numpy
-    calls on a few entries (all finite, so Python's ``max`` agrees with ``np.maximum``)."""
+    calls on a few entries (all finite, so Python's ``max`` agrees with ``np.maximum``).
+
+    ``signs=False`` skips step 4 (each eigenvector's sign): for callers that use only
+    ``|u · v|``, which a column's sign does not change (negation is exact)."""
     n = A.shape[0]
     flat = A.ravel().tolist()
     off = flat.copy()
@@ -177,6 +180,8 @@ def _ordered_eigh_one(
         tied = [wl[k] - wl[k + 1] <= tol for k in range(n - 1)]
         if any(tied):
             U = _canonical_groups(U.copy(), tied)  # C order, as the batched path's copy
+    if not signs:
+        return s.copy(), U
     # sign: the largest-magnitude component of every eigenvector is positive
     sign = np.where(U[np.abs(U).argmax(axis=0), _arange(n)] < 0.0, -1.0, 1.0)
     return s.copy(), U * sign
@@ -249,12 +254,53 @@ def svd(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
     n = A.shape[-1]
+    if A.ndim == 2 and B.shape == A.shape and n:
+        one = _svd_one(A, B, n)
+        if one is not None:
+            return one
     s_A, U_A = ordered_eigh(A)
     s_B, U_B = ordered_eigh(B)
     # cos_i = sum_k U_A[k, i] U_B[k, i], summed over k in a fixed order
     cos = _sum_last(np.swapaxes(U_A * U_B, -1, -2))
     orientation = np.maximum((n - _sum_last(np.abs(cos))) / n, 0.0)  # rounding below 0 clipped
     return orientation + np.sqrt(_sum_last((s_A - s_B) ** 2))
+
+
+#: the last desired covariance's :func:`ordered_eigh` in :func:`_svd_one` (a schedule changes it
+#: rarely): ``(bytes, s_B, U_B)`` as Python floats
+_svd_last_B: list[tuple[bytes, list[float], list[list[float]]]] = []
+
+
+def _svd_one(A: NDArray[np.float64], B: NDArray[np.float64], n: int) -> np.float64 | None:
+    """:func:`svd` of one finite ``(n, n)`` pair (``None`` otherwise): the same IEEE operations in
+    the same order as the batched code (``cos_i`` summed over ``k`` ascending, then the sums of
+    ``|cos_i|`` and of ``(s_A - s_B)²`` left to right), in Python floats; the eigenvectors of
+    ``A`` without their sign step (``|cos_i|`` does not depend on it), ``B``'s decomposition kept
+    for the next call with the same bytes."""
+    flat = A.ravel().tolist()
+    if not math.isfinite(sum(flat)):
+        return None
+    key = B.tobytes()
+    last = _svd_last_B[0] if _svd_last_B else None
+    if last is None or last[0] != key:
+        if not math.isfinite(sum(B.ravel().tolist())):
+            return None
+        s_B, U_B = ordered_eigh(B)
+        last = (key, s_B.tolist(), U_B.tolist())
+        _svd_last_B[:] = [last]
+    s_A, U_A = _ordered_eigh_one(A, EIG_TIE_RTOL, signs=False)
+    ua, ub = U_A.tolist(), last[2]
+    acc = 0.0
+    for i in range(n):
+        c = ua[0][i] * ub[0][i]
+        for k in range(1, n):
+            c = c + ua[k][i] * ub[k][i]
+        acc = abs(c) if i == 0 else acc + abs(c)
+    orientation = (n - acc) / n
+    if orientation <= 0.0:  # np.maximum(x, 0.0): 0.0 for x <= 0 (also -0.0), NaN stays
+        orientation = 0.0
+    size = _left_sum([(a - b) * (a - b) for a, b in zip(s_A.tolist(), last[1], strict=True)])
+    return np.float64(orientation + math.sqrt(size))
 
 
 def frobenius(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:

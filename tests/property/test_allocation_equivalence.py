@@ -227,3 +227,93 @@ def test_a_plan_reused_over_decisions_equals_exhaustive(name, pb):
         got = allocate(P_pred, plan, P_d, name)
         assert (got.subset, got.value, got.n_feasible) == (ref.subset, ref.value, ref.n_feasible)
         np.testing.assert_array_equal(got.P, ref.P)
+
+
+# ---- the svd block bound (n = 4): ties and near ties of P_d and of the subsets' P_i ----------
+
+_TIE_STEPS = [0.0, 1e-13, 1e-11, 5e-10, 1e-9, 2e-9, 1e-8, 1e-6, 1e-3]
+
+
+@st.composite
+def tied_diagonal(draw):
+    """A diagonal ``P_d`` with repeated or nearly repeated entries (the spec's two desired
+    covariances are of this kind), in any order of the axes."""
+    a = draw(st.floats(0.05, 50.0))
+    b = draw(st.floats(0.05, 50.0))
+    eps = [draw(st.sampled_from(_TIE_STEPS)) for _ in range(2)]
+    vals = [a, a * (1.0 + eps[0]), b, b * (1.0 + eps[1])]
+    return np.diag([vals[i] for i in draw(st.permutations(range(4)))])
+
+
+@st.composite
+def rotated_tied(draw):
+    """``Q diag(s) Qᵀ`` with repeated or nearly repeated ``s`` and a random rotation ``Q``."""
+    Q, _ = np.linalg.qr(draw(arrays(np.float64, (4, 4), elements=_elems)) + 11.0 * np.eye(4))
+    a = draw(st.floats(0.05, 50.0))
+    s = [a, a * (1.0 + draw(st.sampled_from(_TIE_STEPS))), draw(st.floats(0.05, 50.0)), a]
+    return (Q * s) @ Q.T
+
+
+@st.composite
+def svd_problem(draw):
+    """``n = 4`` problems for the svd bound: random SPD or paper-like ``P_pred``, position or
+    random gains, ``P_d`` random SPD, diagonal with (near) ties or a rotated one with (near) ties;
+    also isotropic ``P_pred`` and gains, so that the subsets' ``P_i`` have (nearly) repeated
+    eigenvalues themselves."""
+    kind = draw(st.sampled_from(["paper", "general", "isotropic"]))
+    if kind == "paper":
+        P_pred, gains, _ = draw(paper_like())
+    elif kind == "general":
+        N = draw(st.integers(1, 6))
+        gains = np.stack(
+            [draw(spd(4, floor=0.0)) / draw(st.sampled_from([1.0, 1e2, 1e4])) for _ in range(N)]
+        )
+        P_pred = draw(spd(4, floor=0.1))
+    else:  # P_pred = diag(p, q, p, q) (+ a tiny perturbation), equal position sensors
+        p, q = draw(st.floats(1.0, 100.0)), draw(st.floats(0.1, 10.0))
+        P_pred = np.diag([p, q, p, q]) + draw(st.sampled_from([0.0, 1e-12, 1e-8])) * np.ones((4, 4))
+        N = draw(st.integers(1, 5))
+        gains = np.stack(
+            [
+                np.diag([g, 0.0, g, 0.0])
+                for g in draw(st.lists(st.floats(0.01, 1.0), min_size=N, max_size=N))
+            ]
+        )
+    P_d = draw(st.one_of(spd(4, floor=0.05), tied_diagonal(), rotated_tied()))
+    return 0.5 * (P_pred + P_pred.T), gains, 0.5 * (P_d + P_d.T)
+
+
+@settings(max_examples=150)
+@given(pb=svd_problem())
+def test_svd_block_bound_never_exceeds_the_exact_value(pb):
+    """``_svd_block`` (the n = 4 cheap bound: eigenvalue enclosures of a 2 + 2 block split and
+    eigenvector-component bounds) <= the exact svd value of every subset, on both stage-1
+    representations, with ties and near ties of ``P_d``'s and of the ``P_i``'s eigenvalues."""
+    P_pred, gains, P_d = pb
+    N = gains.shape[0]
+    plan = prepare(gains)
+    tab = plan.tables
+    Y0 = fast.spd_inverse(P_pred)
+    exact = METRICS["svd"](fast.spd_inverse(Y0 + fast.gain_sums(plan.gains, tab.masks)), P_d)
+    st_ = fast._Setup(P_pred, P_d, Y0, tab)
+    st_general = fast._Setup(
+        P_pred, P_d, Y0, fast.SearchTables(plan.gains, frozenset(), frozenset(), N)
+    )
+    with np.errstate(all="ignore"):
+        lbs = [
+            fast._svd_block(st_.chunk_covariances(), P_d, st_.ctx),
+            fast._svd_block(st_general.subsets(tab.codes), P_d, st_general.ctx),
+        ]
+    for lb in lbs:
+        assert lb.shape == exact.shape
+        assert not np.any(lb > exact), float(np.max(lb - exact))
+
+
+@settings(max_examples=60)
+@given(pb=svd_problem(), c=st.data())
+def test_svd_fast_equals_exhaustive_with_ties(pb, c):
+    """The fast path with the svd block bound picks the plain loop's subset, value and ``P``
+    bits on the tie-heavy problems above, with and without constraints."""
+    P_pred, gains, P_d = pb
+    cons = c.draw(st.one_of(st.just(Constraints()), constraints(gains.shape[0])))
+    _same(P_pred, gains, P_d, "svd", cons)

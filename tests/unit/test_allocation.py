@@ -91,6 +91,21 @@ def test_fast_equals_reference_on_the_paper_scenario(name, gains8):
         assert 1 <= fast.n_evaluated <= 255
 
 
+@pytest.mark.parametrize("N", [8, 12])
+def test_svd_fast_equals_reference_on_paper_problems(N):
+    """svd (the block bound of ``_svd_block``) with a prepared plan, N = 8 and 12 paper-like
+    sensors, scans of both desired phases: the plain loop's subset, value and ``P`` bits, and
+    (the bound being tight there) a single exact evaluation per decision."""
+    gains = paper_like_gains(PAPER_TABLE, N)
+    plan = prepare(gains)
+    for P_pred, P_d in paper_problems(gains, "svd", [3, 5, 28, 50, 51, 73, 95]):
+        fast = allocate(P_pred, plan, P_d, "svd")
+        ref = allocate_exhaustive(P_pred, gains, P_d, "svd")
+        assert (fast.subset, fast.value) == (ref.subset, ref.value)
+        np.testing.assert_array_equal(fast.P, ref.P)
+        assert fast.n_evaluated <= 4
+
+
 def test_allocation_record(gains8):
     a = allocate(P_PRED, gains8, D1, "spectral")
     assert isinstance(a, Allocation)
