@@ -64,6 +64,7 @@ __all__ = [
     "MAX_NAME_LEN",
     "MAX_PAYLOAD_BYTES",
     "MESSAGE_TYPES",
+    "TRUTH_UPFRONT_MAX_SCANS",
     "REASONS",
     "SCHEMA_VERSION",
     "Command",
@@ -179,6 +180,12 @@ def _valid(value: object, what: str) -> str:
 def new_run_id() -> str:
     """A short unique run id (12 hex digits), valid as a key chunk."""
     return uuid.uuid4().hex[:12]
+
+
+#: a run of at most this many scans gets the truth of every scan at once (the world then hears
+#: no command, and sensors keep it for the whole run); a longer one gets it window by window,
+#: paced by the commands (:mod:`covnet.world.node`)
+TRUTH_UPFRONT_MAX_SCANS = 5000
 
 
 def _root(run: str) -> str:

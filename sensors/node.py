@@ -58,6 +58,7 @@ def serve(
     truth_ok: TruthCheck,
     respond: Respond,
     missed_command: str | None = None,
+    keep_truth: bool = False,
 ) -> SensorStats:
     """The protocol every kind of sensor shares (see the module docstring).
 
@@ -69,7 +70,9 @@ def serve(
     the newest one received is stale and ignored; scans whose command never came (a gap before
     the command just received) are filled by the policy, ``keep_last`` (the newest command's
     on/off for this sensor), ``off`` or ``on``, and measured at once (so late: the manager
-    re-filters or drops them)."""
+    re-filters or drops them).  ``keep_truth``: keep every scan's truth for the whole run (the
+    world sends it once, :data:`~covnet.messages.TRUTH_UPFRONT_MAX_SCANS`), else drop what is
+    older than the scan being measured (the world sends it again for a new episode)."""
     stats = SensorStats()
     cmd_sub = bus.subscribe(msg.command_key(run_id))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
@@ -148,8 +151,9 @@ def serve(
                 if cmd.scan in truths:
                     bus.publish(meas_key, msg.encode(respond(cmd, truths[cmd.scan])))
                     stats.measurements_sent += 1
-                    for old in [k for k in truths if k < cmd.scan - 1]:
-                        del truths[old]
+                    if not keep_truth:
+                        for old in [k for k in truths if k < cmd.scan - 1]:
+                            del truths[old]
                 elif len(pending) > 1:  # a newer command came first: this truth is gone
                     stats.missed_truth += 1
                 else:
@@ -225,6 +229,7 @@ def run(
         truth_ok=truth_ok,
         respond=respond_track if decentral else respond,  # type: ignore[arg-type]
         missed_command=sc.network.latency.missed_command if slow else None,
+        keep_truth=model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
     )
 
 

@@ -89,6 +89,30 @@ def test_in_process_network_equals_run(short_paper):
     assert result.stats.lost == 0
 
 
+@pytest.mark.parametrize("upfront_max", [5000, 10])
+def test_truth_up_front_and_window_by_window_give_the_run(short_paper, monkeypatch, upfront_max):
+    """A short run gets all its truth at once (the world hears no command); a longer one
+    (here: a 10-scan limit against 30 scans) window by window, paced by the commands, again for
+    the second metric's episode. Both reproduce ``covnet run``."""
+    from covnet import messages as msg
+
+    monkeypatch.setattr(msg, "TRUTH_UPFRONT_MAX_SCANS", upfront_max)
+    metrics = ["abs_trace", "spectral"]
+    result, stats = run_network(short_paper, metrics)
+    assert result.completed and result.error is None
+    for m in metrics:
+        ref = run_metric(short_paper, m)
+        got = result.episodes[m].as_run(8)
+        np.testing.assert_array_equal(got.enabled, ref.enabled)
+        np.testing.assert_array_equal(got.x_est, ref.x_est)
+    world = stats["world"]
+    if upfront_max >= short_paper.scans:
+        assert world["published"] == short_paper.scans  # once, for both episodes
+    else:
+        assert world["published"] > 2 * short_paper.scans - 2  # windows overlap by a scan
+    assert all(stats[sid].missed_truth == 0 for sid in short_paper.sensor_ids)
+
+
 def test_failed_sensor_is_excluded_and_run_completes(short_paper):
     sc = with_overrides(short_paper, scans=20)
     # S2 is used by spectral at scan 1; stop it after scan 3
