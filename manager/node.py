@@ -5,12 +5,16 @@ per scan ``k``::
 
     1. x⁻, P⁻ = predict(x, P)
     2. D = argmin over feasible subsets of f(P_i, P_d(t_k)); failed sensors are infeasible
-    3. publish Command(k, enabled = D)           (the world answers with Truth(k))
+    3. publish Command(k, enabled = D)  (sensors take Truth(k) the world sent; in lockstep,
+       then scan k-1's Track and Status, built and stamped at step 5: only the recorder and
+       observers read them, the next command is what the sensors wait for)
     4. collect Measurement(k) from each enabled sensor until all arrived, a sensor failed, or
        the deadline passed (lockstep: ``network.scan_timeout_s``; real time: ``t_k +
        deadline_fraction * T``).  Anything malformed, from the wrong key, for another scan or
        from a sensor that was not enabled is counted by reason and dropped, never fused.
-    5. fuse (sequential updates, ascending sensor index); publish Track(k) and Status(k)
+    5. fuse (sequential updates, ascending sensor index); build Track(k) and Status(k) and
+       publish them (real time) or hold them for step 3 of the next scan (lockstep; the last
+       ones, and those of a stopped run, when the loop ends)
 
 The steps are the functions of :mod:`covnet.model`, the same ones ``covnet run`` calls, so a
 lockstep network run reproduces the in-process run bit for bit.  The loop takes its bus, clock
@@ -21,6 +25,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -142,6 +147,7 @@ class _Loop:
         # the recorder must hear everything: wait for its token too (never allocated)
         self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
         self.stats = NetStats()
+        self._deferred: deque[tuple[str, bytes]] = deque()  # see publish(defer=True)
         # slow links (network.latency): a late message goes to on_late (re-filtered or
         # dropped, it says which); a sensor that measured on a stale command is fused too
         self.on_late: Callable[[Any], bool] | None = None
@@ -158,10 +164,20 @@ class _Loop:
 
     # ---- bus helpers --------------------------------------------------------------------
 
-    def publish(self, key: str, message: msg.Message) -> None:
+    def publish(self, key: str, message: msg.Message, *, defer: bool = False) -> None:
+        """Encode and publish now, or (``defer``) at the next :meth:`flush_deferred`."""
         payload = msg.encode(message)
+        if defer:
+            self._deferred.append((key, payload))
+            return
         self.bus.publish(key, payload)
         self.stats.sent(key, len(payload))
+
+    def flush_deferred(self) -> None:
+        while self._deferred:
+            key, payload = self._deferred.popleft()
+            self.bus.publish(key, payload)
+            self.stats.sent(key, len(payload))
 
     def poll_membership(self) -> None:
         """Drain liveliness events and heartbeats (non-blocking)."""
@@ -507,6 +523,7 @@ def run(
                 t_sent = clock.now_ns()
                 cmd = msg.Command(scan=k, t=t_k, enabled=enabled, t_sent_ns=t_sent, episode=e)
                 loop.publish(loop.keys["cmd"], cmd)
+                loop.flush_deferred()  # scan k-1's Track and Status (lockstep)
                 # while the sensors measure: decide scan k+1 assuming every enabled sensor's
                 # measurement arrives (P does not depend on the measured values)
                 gains = None
@@ -530,9 +547,12 @@ def run(
                 loop.stats.scans_done += 1
                 loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop
                 loop.stats.scan_latency_ns.append(clock.now_ns() - t_sent)
+                # in lockstep, scan k's Track and Status go out just after Command(k+1) (only
+                # the recorder and observers read them; the next command is on the critical path)
                 loop.publish(
                     loop.keys["track"],
                     msg.Track(scan=k, t=t_k, x=est.x, P=est.P, t_sent_ns=clock.now_ns(), episode=e),
+                    defer=not realtime,
                 )
                 P_d = model.desired(k)
                 status = msg.Status(
@@ -548,7 +568,7 @@ def run(
                     failed=tuple(sorted(failed - {WORLD_ID})),
                     refiltered=centre.late.take_refiltered() if centre.late is not None else None,
                 )
-                loop.publish(loop.keys["status"], status)
+                loop.publish(loop.keys["status"], status, defer=not realtime)
                 log.record(
                     len(ids), alloc, pred, est, nees(est, truth[k - 1]), decision_s, sorted(got)
                 )
@@ -573,6 +593,7 @@ def run(
                     on_progress(result, k == model.scans)
         result.completed = True
     finally:
+        loop.flush_deferred()
         loop.token.undeclare()
     return result
 
