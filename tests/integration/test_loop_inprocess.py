@@ -65,6 +65,17 @@ def run_network(sc, metrics, *, kill_after_scan=None, victim=None):
     return result, stats
 
 
+def assert_equals_run(result, sc, metrics):
+    """The network's run is ``covnet run``'s, bit for bit, for every metric."""
+    assert result.completed and result.error is None
+    for m in metrics:
+        ref = run_metric(sc, m)
+        got = result.episodes[m].as_run(len(sc.sensor_ids))
+        np.testing.assert_array_equal(got.enabled, ref.enabled)
+        np.testing.assert_array_equal(got.x_est, ref.x_est)
+        np.testing.assert_array_equal(got.P_post, ref.P_post)
+
+
 @pytest.fixture(scope="module")
 def short_paper(paper):
     net = paper.network.model_dump() | {"record": False}
@@ -74,13 +85,7 @@ def short_paper(paper):
 def test_in_process_network_equals_run(short_paper):
     metrics = ["spectral", "svd"]
     result, stats = run_network(short_paper, metrics)
-    assert result.completed and result.error is None
-    for m in metrics:
-        ref = run_metric(short_paper, m)
-        got = result.episodes[m].as_run(8)
-        np.testing.assert_array_equal(got.enabled, ref.enabled)
-        np.testing.assert_array_equal(got.x_est, ref.x_est)
-        np.testing.assert_array_equal(got.P_post, ref.P_post)
+    assert_equals_run(result, short_paper, metrics)
     # obedience: each sensor measured exactly in the scans it was enabled
     for j, sid in enumerate(short_paper.sensor_ids):
         enabled = sum(int(result.episodes[m].as_run(8).enabled[:, j].sum()) for m in metrics)
@@ -99,12 +104,7 @@ def test_truth_up_front_and_window_by_window_give_the_run(short_paper, monkeypat
     monkeypatch.setattr(msg, "TRUTH_UPFRONT_MAX_SCANS", upfront_max)
     metrics = ["abs_trace", "spectral"]
     result, stats = run_network(short_paper, metrics)
-    assert result.completed and result.error is None
-    for m in metrics:
-        ref = run_metric(short_paper, m)
-        got = result.episodes[m].as_run(8)
-        np.testing.assert_array_equal(got.enabled, ref.enabled)
-        np.testing.assert_array_equal(got.x_est, ref.x_est)
+    assert_equals_run(result, short_paper, metrics)
     world = stats["world"]
     if upfront_max >= short_paper.scans:
         assert world["published"] == short_paper.scans  # once, for both episodes
