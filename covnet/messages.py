@@ -64,9 +64,9 @@ __all__ = [
     "MAX_NAME_LEN",
     "MAX_PAYLOAD_BYTES",
     "MESSAGE_TYPES",
-    "TRUTH_UPFRONT_MAX_SCANS",
     "REASONS",
     "SCHEMA_VERSION",
+    "TRUTH_UPFRONT_MAX_SCANS",
     "Command",
     "Heartbeat",
     "LocalTrack",
@@ -882,18 +882,7 @@ _UNPACK_LIMITS: dict[str, Any] = {
 
 
 def _unpack_stream(payload: bytes) -> Any:
-    unpacker = msgpack.Unpacker(
-        raw=False,
-        use_list=True,
-        strict_map_key=True,
-        ext_hook=_ext_hook,
-        max_buffer_size=max(MAX_PAYLOAD_BYTES, 1),
-        max_str_len=_MAX_STR_LEN,
-        max_bin_len=MAX_PAYLOAD_BYTES,  # bin is only valid inside the array ext: bad_type
-        max_array_len=MAX_IDS,
-        max_map_len=_MAX_MAP_LEN,
-        max_ext_len=MAX_PAYLOAD_BYTES,
-    )
+    unpacker = msgpack.Unpacker(max_buffer_size=max(MAX_PAYLOAD_BYTES, 1), **_UNPACK_LIMITS)
     unpacker.feed(payload)
     try:
         obj = unpacker.unpack()

@@ -69,7 +69,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Generic, Literal, TypeVar
 
 import zenoh
@@ -162,12 +162,9 @@ class _ChannelSubscription(Generic[_T]):
     def __init__(self, bus: ZenohBus, keyexpr: str) -> None:
         self._bus = bus
         self.keyexpr = keyexpr
-        self.channel: Channel[_T] = self._new_channel()
+        self.channel: Channel[_T] = Channel()
         with _signals_blocked():
             self._sub: zenoh.Subscriber[None] | None = self._declare(bus._session, keyexpr)
-
-    def _new_channel(self) -> Channel[_T]:
-        return Channel()
 
     def _declare(self, session: zenoh.Session, keyexpr: str) -> zenoh.Subscriber[None]:
         raise NotImplementedError
@@ -244,10 +241,10 @@ class _Waker:
                         target=self._run, name="covnet-waker", daemon=True
                     )
                     self._thread.start()
-            elif (deadline_ns if deadline_ns is not None else float("inf")) < self._planned_ns or (
-                self._planned_ns == float("inf")
+            elif self._planned_ns == float("inf") or (
+                deadline_ns is not None and deadline_ns < self._planned_ns
             ):
-                self._cond.notify()
+                self._cond.notify()  # asleep without a tick, or would wake too late
 
     def unblock(self, sub: _ZenohFifoSubscription) -> None:
         with self._cond:
@@ -304,7 +301,7 @@ class _ZenohFifoSubscription:
         self._bus = bus
         self.keyexpr = keyexpr
         self._key = _wake_key(keyexpr)
-        self._nonce = _new_nonce()
+        self._nonce = os.urandom(16)  # marks this subscription's wake samples
         self._closed = False
         with _signals_blocked():
             self._sub: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]] | None = (
@@ -375,8 +372,6 @@ class _ZenohFifoSubscription:
             return
         self._closed = True
         sub, self._sub = self._sub, None
-        if sub is None:
-            return
         self._wake()  # a loop blocked in recv returns (and sees _closed)
         deadline = time.monotonic() + 2.0
         while True:
@@ -393,10 +388,6 @@ class _ZenohFifoSubscription:
 
 _DELETE = zenoh.SampleKind.DELETE
 _SESSION_LOCAL = zenoh.Locality.SESSION_LOCAL
-
-
-def _new_nonce() -> bytes:
-    return os.urandom(16)
 
 
 class _ZenohLivelinessSubscription(_ChannelSubscription[LivelinessEvent]):
@@ -438,6 +429,7 @@ _Entity = (
     | _ZenohFifoSubscription
     | _ZenohToken
 )
+_E = TypeVar("_E", bound=_Entity)
 
 
 class ZenohBus:
@@ -493,40 +485,32 @@ class ZenohBus:
             raise BusClosed("zenoh bus is closed")
         publisher.put(payload)
 
-    def subscribe(self, keyexpr: str) -> Subscription:
-        check_keyexpr(keyexpr)
+    def _declare(self, make: Callable[[ZenohBus, str], _E], name: str) -> _E:
+        """``make(self, name)`` registered for :meth:`close`, refused once closed."""
         with self._lock:
             self._check_open()
-            sub = _ZenohFifoSubscription(self, keyexpr)
-            self._entities.add(sub)
-        return sub
+            entity = make(self, name)
+            self._entities.add(entity)
+        return entity
+
+    def subscribe(self, keyexpr: str) -> Subscription:
+        check_keyexpr(keyexpr)
+        return self._declare(_ZenohFifoSubscription, keyexpr)
 
     def subscribe_stamped(self, keyexpr: str) -> Subscription:
         """:meth:`subscribe`, with each sample stamped when it arrives (on zenoh's thread, a
         callback feeding a queue) rather than when the loop takes it: for a loop that drains in
         bursts and records receive times (the recorder)."""
         check_keyexpr(keyexpr)
-        with self._lock:
-            self._check_open()
-            sub = _ZenohSubscription(self, keyexpr)
-            self._entities.add(sub)
-        return sub
+        return self._declare(_ZenohSubscription, keyexpr)
 
     def declare_token(self, key: str) -> Token:
         check_key(key)
-        with self._lock:
-            self._check_open()
-            token = _ZenohToken(self, key)
-            self._entities.add(token)
-        return token
+        return self._declare(_ZenohToken, key)
 
     def watch_liveliness(self, keyexpr: str) -> LivelinessSubscription:
         check_keyexpr(keyexpr)
-        with self._lock:
-            self._check_open()
-            watch = _ZenohLivelinessSubscription(self, keyexpr)
-            self._entities.add(watch)
-        return watch
+        return self._declare(_ZenohLivelinessSubscription, keyexpr)
 
     def close(self) -> None:
         """Undeclare everything (waking blocked ``recv`` calls) and close the session.

@@ -39,8 +39,7 @@ from covnet.config import NetworkSpec, Scenario
 from covnet.core.allocation import Allocation
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
-from covnet.core.kalman import _gain_and_covariance as gain_and_covariance
-from covnet.core.kalman import nees
+from covnet.core.kalman import gain_and_covariance, nees
 from covnet.core.oosm import ReFilterBuffer
 from covnet.decentral import Mirror, decide_rule, fuse_tracks, measurement_from_track
 from covnet.model import (

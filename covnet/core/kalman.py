@@ -45,7 +45,7 @@ def _eye(n: int) -> Mat:
     return I
 
 
-def _gain_and_covariance(P: Mat, H: Mat, R: Mat) -> tuple[Mat, Mat]:
+def gain_and_covariance(P: Mat, H: Mat, R: Mat) -> tuple[Mat, Mat]:
     """``K = P Hᵀ S⁻¹`` and the Joseph-form ``P⁺``; neither depends on the measured value."""
     HP = H @ P
     S = HP @ H.T + R
@@ -57,7 +57,7 @@ def _gain_and_covariance(P: Mat, H: Mat, R: Mat) -> tuple[Mat, Mat]:
 
 def update(prior: Gaussian, z: Vec, H: Mat, R: Mat) -> Gaussian:
     """One Kalman update in Joseph form (see the module docstring for the equations)."""
-    K, P = _gain_and_covariance(prior.P, H, R)
+    K, P = gain_and_covariance(prior.P, H, R)
     return Gaussian(prior.x + K @ (z - H @ prior.x), P)
 
 
@@ -65,7 +65,7 @@ def update_covariance(P: Mat, H: Mat, R: Mat) -> Mat:
     """The covariance of :func:`update` alone, bit for bit the same: in a linear Kalman filter
     the posterior covariance does not depend on the measured value, so it can be computed
     before the measurement arrives."""
-    return _gain_and_covariance(P, H, R)[1]
+    return gain_and_covariance(P, H, R)[1]
 
 
 def update_sequential(prior: Gaussian, measurements: Sequence[tuple[Vec, Mat, Mat]]) -> Gaussian:

@@ -24,7 +24,7 @@ from covnet import messages as msg
 from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.config import Scenario
-from covnet.model import build_model, truth_trajectory
+from covnet.model import Model, build_model, truth_trajectory
 from covnet.node_kit import Heartbeat, ManagerWatch, serve_commands
 
 TARGET_IDS = ("T1",)
@@ -37,12 +37,12 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     model = build_model(sc)
     truth = truth_trajectory(model)
     counts: Counter[str] = Counter()
-    key = msg.truth_key(run_id)
+    publish = _TruthPublisher(bus, run_id, model, truth, counts)
     if sc.fusion.mode == "peer":
-        _serve_peers(sc, bus, run_id, clock, stop, truth, counts)
+        _serve_peers(sc, bus, run_id, clock, stop, publish)
         return counts
     if model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS:
-        _serve_upfront(sc, bus, run_id, clock, stop, truth, counts)
+        _serve_upfront(sc, bus, run_id, clock, stop, publish)
         return counts
     window = [0, -1]  # the scans whose truth went out with the last window
     # a sensor that (re)joins mid-run has missed the window: the next command starts a new one
@@ -61,14 +61,7 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
             if ev.alive:
                 window[:] = [0, -1]
         if not window[0] <= k0 < window[1]:
-            hi = min(k0 + TRUTH_WINDOW, model.scans)
-            for k in range(k0, hi + 1):
-                tr = msg.Truth(
-                    scan=k, t=k * model.T, target_ids=TARGET_IDS, states=truth[k - 1][None, :]
-                )
-                bus.publish(key, msg.encode(tr))
-                counts["published"] += 1
-            window[:] = [k0, hi]
+            window[:] = [k0, publish(k0, k0 + TRUTH_WINDOW)]
         return True
 
     try:
@@ -78,19 +71,36 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     return counts
 
 
+class _TruthPublisher:
+    """``publish(k0, hi)`` publishes ``Truth(k)`` for ``k0 <= k <= min(hi, scans)`` and returns
+    the last scan published (counted as ``published``)."""
+
+    def __init__(
+        self, bus: Bus, run_id: str, model: Model, truth: np.ndarray, counts: Counter[str]
+    ) -> None:
+        self.bus, self.model, self.truth, self.counts = bus, model, truth, counts
+        self.key = msg.truth_key(run_id)
+
+    def __call__(self, k0: int, hi: int) -> int:
+        hi = min(hi, self.model.scans)
+        T, truth = self.model.T, self.truth
+        for k in range(k0, hi + 1):
+            tr = msg.Truth(scan=k, t=k * T, target_ids=TARGET_IDS, states=truth[k - 1][None])
+            self.bus.publish(self.key, msg.encode(tr))
+            self.counts["published"] += 1
+        return hi
+
+
 def _serve_upfront(
     sc: Scenario,
     bus: Bus,
     run_id: str,
     clock: Clock,
     stop: threading.Event,
-    truth: np.ndarray,
-    counts: Counter[str],
+    publish: _TruthPublisher,
 ) -> None:
     """A run of at most ``TRUTH_UPFRONT_MAX_SCANS`` scans: every scan's truth once every sensor
     (and the recorder, which records it) is alive, again when a sensor (re)joins."""
-    model = build_model(sc)
-    key = msg.truth_key(run_id)
     live = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
     manager = ManagerWatch(bus, run_id)
     token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
@@ -100,13 +110,6 @@ def _serve_upfront(
         wanted.add(msg.alive_key(run_id, "recorder", "recorder"))
     alive: set[str] = set()
     sent = False
-
-    def publish_all() -> None:
-        for k in range(1, model.scans + 1):
-            tr = msg.Truth(scan=k, t=k * model.T, target_ids=TARGET_IDS, states=truth[k - 1][None])
-            bus.publish(key, msg.encode(tr))
-            counts["published"] += 1
-
     try:
         while not stop.is_set() and not manager.left:
             heartbeat.tick(0)
@@ -119,7 +122,7 @@ def _serve_upfront(
                     (alive.add if ev.alive else alive.discard)(ev.key)
                 ev = live.try_recv()
             if alive >= wanted and (not sent or joined):
-                publish_all()  # first time, or a (re)joined sensor needs it
+                publish(1, publish.model.scans)  # first time, or a (re)joined sensor needs it
                 sent = True
     finally:
         token.undeclare()
@@ -133,13 +136,11 @@ def _serve_peers(
     run_id: str,
     clock: Clock,
     stop: threading.Event,
-    truth: np.ndarray,
-    counts: Counter[str],
+    publish: _TruthPublisher,
 ) -> None:
     """Peer mode (no commands): the first window of truth goes out once every sensor is up,
     the next ones ahead of the scans the peer nodes' statuses show they have reached."""
-    model = build_model(sc)
-    key = msg.truth_key(run_id)
+    model, counts = publish.model, publish.counts
     status_sub = bus.subscribe(msg.peer_keyexpr(run_id, "status"))
     live = bus.watch_liveliness(msg.alive_keyexpr(run_id, "sensor"))
     manager = ManagerWatch(bus, run_id)
@@ -150,12 +151,7 @@ def _serve_peers(
     last_scan = 0
 
     def publish_from(k0: int) -> None:
-        hi = min(k0 + TRUTH_WINDOW, model.scans)
-        for k in range(k0, hi + 1):
-            tr = msg.Truth(scan=k, t=k * model.T, target_ids=TARGET_IDS, states=truth[k - 1][None])
-            bus.publish(key, msg.encode(tr))
-            counts["published"] += 1
-        window[:] = [k0, hi]
+        window[:] = [k0, publish(k0, k0 + TRUTH_WINDOW)]
 
     try:
         while not stop.is_set() and not manager.left:
