@@ -14,7 +14,9 @@ Semantics both implementations share:
   zenoh a full FIFO makes the sender wait). A handle hears its own publications (as a zenoh
   session does).
 - Key expressions follow zenoh: chunks separated by ``/``; ``*`` matches exactly one chunk,
-  ``**`` zero or more chunks (:func:`keyexpr_matches`). Published keys are concrete.
+  ``**`` zero or more chunks, ``$*`` inside a chunk any run of characters, none too (``a$*b``
+  matches the chunks ``ab`` and ``axyb``; :func:`keyexpr_matches`). Published keys are
+  concrete.
 - ``declare_token(key)`` announces liveliness until ``Token.undeclare()`` or ``close()``;
   ``watch_liveliness(keyexpr)`` first reports every currently alive matching token
   (``alive=True``, the "history"), then each appearance and disappearance.
@@ -32,8 +34,10 @@ backward jump of ``continue`` in ``while True:`` inside ``try`` escapes that ``t
 
 from __future__ import annotations
 
+import functools
 import itertools
 import queue
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -111,19 +115,28 @@ class Bus(Protocol):
 _FORBIDDEN = set("?#$ \t\r\n")
 
 
+def _chunk_ok(c: str) -> bool:
+    """``*``, ``**``, or free of ``*?#$`` and whitespace except for ``$*`` sub-chunk
+    wildcards, as zenoh has them: never two in a row and never alone (that is ``*``)."""
+    if c in ("*", "**"):
+        return True
+    if "$*" in c:
+        if c == "$*" or "$*$*" in c:
+            return False
+        c = c.replace("$*", "")
+    return "*" not in c and not _FORBIDDEN.intersection(c)
+
+
 def check_keyexpr(keyexpr: str) -> list[str]:
-    """The chunks of a key expression; ValueError unless every chunk is non-empty and is
-    ``*``, ``**`` or free of ``*?#$`` and whitespace. (zenoh's ``$*`` sub-chunk wildcard is
-    not used by covnet and is rejected here.)"""
+    """The chunks of a key expression; ValueError unless every chunk is non-empty and
+    valid for zenoh (:func:`_chunk_ok`)."""
     if not isinstance(keyexpr, str) or not keyexpr:
         raise ValueError(f"invalid key expression {keyexpr!r}: empty")
     chunks = keyexpr.split("/")
     for c in chunks:
         if not c:
             raise ValueError(f"invalid key expression {keyexpr!r}: empty chunk")
-        if c in ("*", "**"):
-            continue
-        if "*" in c or _FORBIDDEN.intersection(c):
+        if not _chunk_ok(c):
             raise ValueError(f"invalid key expression {keyexpr!r}: bad chunk {c!r}")
     return chunks
 
@@ -131,7 +144,7 @@ def check_keyexpr(keyexpr: str) -> list[str]:
 def check_key(key: str) -> list[str]:
     """The chunks of a concrete key (a key expression without wildcards)."""
     chunks = check_keyexpr(key)
-    if "*" in chunks or "**" in chunks:
+    if "*" in key:
         raise ValueError(f"invalid key {key!r}: wildcards are for subscriptions only")
     return chunks
 
@@ -146,6 +159,9 @@ def _match_chunks(expr: list[str], key: list[str]) -> bool:
             reach = set(range(lo, n + 1))
         elif c == "*":
             reach = {j + 1 for j in reach if j < n}
+        elif "$*" in c:
+            fits = _sub_chunk_pattern(c).fullmatch
+            reach = {j + 1 for j in reach if j < n and fits(key[j])}
         else:
             reach = {j + 1 for j in reach if j < n and key[j] == c}
         if not reach:
@@ -153,9 +169,16 @@ def _match_chunks(expr: list[str], key: list[str]) -> bool:
     return n in reach
 
 
+@functools.lru_cache(maxsize=256)
+def _sub_chunk_pattern(chunk: str) -> re.Pattern[str]:
+    """A chunk with ``$*`` wildcards as a regular expression (``$*``: any run, none too)."""
+    return re.compile(".*".join(re.escape(part) for part in chunk.split("$*")), re.DOTALL)
+
+
 def keyexpr_matches(expr: str, key: str) -> bool:
     """Whether the concrete ``key`` is in the set the key expression ``expr`` denotes
-    (``*``: exactly one chunk, ``**``: zero or more chunks)."""
+    (``*``: exactly one chunk, ``**``: zero or more chunks, ``$*``: any run of characters
+    inside a chunk)."""
     return _match_chunks(check_keyexpr(expr), check_key(key))
 
 

@@ -21,7 +21,8 @@ processes run), then per mode:
   (:mod:`covnet.messages`): central — one command, the enabled sensors' measurements, the fused
   track and status; info/ci — the same with local tracks for measurements; peer — the enabled
   nodes' local tracks and every node's own track and status (``deliveries_per_scan`` counts each
-  local track once per neighbour that receives it).
+  message once per process that receives it: a command goes to the sensors it enables and the
+  recorder, a local track to each neighbour).
 
 Runs are spread over processes (``spawn``; one per core by default) and are deterministic for a
 seed, so the table is too.
@@ -129,7 +130,7 @@ def traffic_per_scan(
                 st = msg.Status(k, float(k), on, 1.0, 1.0, 1.0, 1, 0, fused=on, node_id=sid)
                 out.append((st, len(ids)))  # every other node and the monitor
         else:
-            out.append((msg.Command(k, float(k), on, 1, 0), len(ids) + 1))
+            out.append((msg.Command(k, float(k), on, 1, 0), len(on) + 1))  # + the recorder
             for sid in on:
                 if mode == "central":
                     out.append((msg.Measurement(sid, k, float(k), z, R, 1, 0), 1))

@@ -24,7 +24,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from covnet.bus import Bus, LivelinessSubscription, Sample, Subscription, Token, keyexpr_matches
+from covnet.bus import Bus, LivelinessSubscription, Sample, Subscription, Token
 from covnet.core.delay import LinkState
 
 UP, DOWN = 0, 1  # link directions, as in covnet.latency_sim
@@ -91,7 +91,8 @@ class _DelayedSubscription:
 
 
 class DelayedBus:
-    """``bus`` with ``outgoing`` (key -> link) and ``incoming`` (key expression -> link)
+    """``bus`` with ``outgoing`` (key -> link) and ``incoming`` (key expression, as the
+    subscription names it -> link)
     emulated links (see the module docstring).  A daemon thread publishes held outgoing
     messages when they are due; :meth:`close` publishes nothing more."""
 
@@ -135,9 +136,9 @@ class DelayedBus:
 
     def subscribe(self, keyexpr: str) -> Subscription:
         inner = self.bus.subscribe(keyexpr)
-        for expr, link in self.incoming.items():
-            if expr == keyexpr or keyexpr_matches(keyexpr, expr):
-                return _DelayedSubscription(inner, link, self.speed)
+        link = self.incoming.get(keyexpr)
+        if link is not None:
+            return _DelayedSubscription(inner, link, self.speed)
         return inner
 
     def declare_token(self, key: str) -> Token:
@@ -171,7 +172,7 @@ def for_sensor(bus: Bus, sc: Any, sensor_id: str, run_id: str, speed: float) -> 
             )
         },
         incoming={
-            msg.command_key(run_id): LinkState(
+            msg.command_keyexpr(run_id): LinkState(
                 lat.link(sensor_id, "downlink"), link_stream(sc.seed, j, DOWN)
             )
         },

@@ -37,6 +37,8 @@ bad_type       a value of the wrong type: ints are ints (not bools, not floats),
 bad_shape      wrong array rank, or inconsistent shapes (z vs R, x vs P, states vs ids)
 non_finite     NaN or infinity in a float field or an array
 bad_value      out of bounds (negative scan or stamp) or an invalid / duplicated id
+key_mismatch   the key does not name what the payload says (:func:`decode_command`: a
+               command's enabled set)
 ============== ============================================================================
 
 Constructing a message validates it the same way (raising the same :class:`WireError`), so an
@@ -79,8 +81,10 @@ __all__ = [
     "alive_key",
     "alive_keyexpr",
     "command_key",
+    "command_keyexpr",
     "decode",
     "decode_as",
+    "decode_command",
     "encode",
     "heartbeat_key",
     "heartbeat_keyexpr",
@@ -88,6 +92,7 @@ __all__ = [
     "measurement_keyexpr",
     "new_run_id",
     "parse_alive_key",
+    "parse_command_key",
     "parse_measurement_key",
     "parse_peer_key",
     "peer_keyexpr",
@@ -125,6 +130,7 @@ REASONS = frozenset(
         "bad_shape",
         "non_finite",
         "bad_value",
+        "key_mismatch",
     }
 )
 
@@ -202,9 +208,43 @@ def truth_key(run: str) -> str:
     return f"{_root(run)}/truth"
 
 
-def command_key(run: str) -> str:
-    """``covnet/<run>/cmd``: one broadcast :class:`Command` per scan (manager -> sensors)."""
-    return f"{_root(run)}/cmd"
+_CMD_SEP = "~"  # never in an id (see _BAD_NAME's ids: config ids are [A-Za-z0-9_.-])
+
+
+def command_key(run: str, enabled: Iterable[str]) -> str:
+    """``covnet/<run>/cmd/~S1~S3~``: the key of the :class:`Command` that enables
+    ``enabled`` (in the command's order; ``covnet/<run>/cmd/~`` when it enables none).  One
+    put per scan, and zenoh routes it by its key: to the sensors it enables
+    (:func:`command_keyexpr` ``(run, id)``) and to whoever hears every command, never to a
+    disabled sensor, which is then not even woken (manager -> sensors, recorder)."""
+    ids = [_valid(sid, "sensor id") for sid in enabled]
+    if any(_CMD_SEP in sid for sid in ids):
+        raise ValueError(f"invalid sensor id in {ids!r}: must not contain {_CMD_SEP!r}")
+    return f"{_root(run)}/cmd/{_CMD_SEP}" + "".join(sid + _CMD_SEP for sid in ids)
+
+
+def command_keyexpr(run: str, sensor_id: str | None = None) -> str:
+    """Commands: those that enable ``sensor_id`` (``covnet/<run>/cmd/$*~<id>~$*``, zenoh's
+    sub-chunk wildcard), or every one (``covnet/<run>/cmd/*``: the recorder, a world that
+    paces the truth by the commands, a sensor on slow links, which must see every command to
+    notice one it missed)."""
+    if sensor_id is None:
+        return f"{_root(run)}/cmd/*"
+    return f"{_root(run)}/cmd/$*{_CMD_SEP}{_valid(sensor_id, 'sensor id')}{_CMD_SEP}$*"
+
+
+def parse_command_key(key: str) -> tuple[str, ...]:
+    """The enabled ids a concrete command key names; ValueError for any other key."""
+    parts = key.split("/")
+    if len(parts) != 4 or parts[0] != "covnet" or parts[2] != "cmd":
+        raise ValueError(f"not a command key: {key!r}")
+    _valid(parts[1], "run id")
+    chunk = parts[3]
+    if len(chunk) < 1 or chunk[0] != _CMD_SEP or chunk[-1] != _CMD_SEP:
+        raise ValueError(f"not a command key: {key!r}")
+    if chunk == _CMD_SEP:
+        return ()
+    return tuple(_valid(sid, "sensor id") for sid in chunk[1:-1].split(_CMD_SEP))
 
 
 def measurement_key(run: str, sensor_id: str) -> str:
@@ -562,8 +602,9 @@ class Truth(_Message):
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Command(_Message):
-    """The manager's tasking for scan ``scan`` (time ``t`` [s]), one broadcast: sensors listed
-    in ``enabled`` measure, every other sensor is disabled for this scan. ``modes`` (optional)
+    """The manager's tasking for scan ``scan`` (time ``t`` [s]), one per scan, on the key
+    that names its enabled set (:func:`command_key`): sensors listed in ``enabled`` measure,
+    every other sensor is disabled for this scan (and does not receive it). ``modes`` (optional)
     maps a sensor id to a policy-specific mode name; ``targets`` (optional, mobile scenarios)
     maps a sensor id to the ids of the targets it is to measure (possibly none).
     ``t_sent_ns``: monotonic ns at publish."""
@@ -987,3 +1028,16 @@ def decode_as(payload: bytes, cls: type[_M]) -> _M:
     if type(kind) is not str or kind != cls.KIND:
         raise WireError("wrong_kind", f"expected {cls.KIND!r}, got {kind!r}")
     return _build(cls, obj)
+
+
+def decode_command(key: str, payload: bytes) -> Command:
+    """A :class:`Command` from ``payload`` received on ``key``, strictly: ``key_mismatch``
+    unless ``key`` is :func:`command_key` of its run and the command's enabled set."""
+    cmd = decode_as(payload, Command)
+    try:
+        named = parse_command_key(key)
+    except ValueError:
+        named = None
+    if named != cmd.enabled:
+        raise WireError("key_mismatch", f"{key!r} does not name the enabled {cmd.enabled!r}")
+    return cmd

@@ -81,7 +81,7 @@ def serve_commands(
     then until ``stop`` or the manager leaves: heartbeat, decode each command strictly (a bad
     one counted as ``rejected:<reason>``) and pass it to ``handle``, which returns whether it
     took it (else it counted why).  Heartbeats carry the last scan taken and the rejections."""
-    cmd_sub = bus.subscribe(msg.command_key(run_id))
+    cmd_sub = bus.subscribe(msg.command_keyexpr(run_id))  # every command
     manager = ManagerWatch(bus, run_id)
     token = bus.declare_token(msg.alive_key(run_id, role, node_id))
     heartbeat = Heartbeat(bus, clock, run_id, role, node_id, net.heartbeat_s)
@@ -94,7 +94,7 @@ def serve_commands(
             if s is None:
                 continue
             try:
-                cmd = msg.decode_as(s.payload, msg.Command)
+                cmd = msg.decode_command(s.key, s.payload)
             except msg.WireError as exc:
                 counts[f"rejected:{exc.reason}"] += 1
                 continue

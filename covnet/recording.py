@@ -93,13 +93,14 @@ def key_kind(run_id: str, key: str) -> str | None:
     ``key`` for run ``run_id``, or None for a key they never make."""
     fixed = {
         msg.truth_key(run_id): msg.Truth.KIND,
-        msg.command_key(run_id): msg.Command.KIND,
         msg.track_key(run_id): msg.Track.KIND,
         msg.status_key(run_id): msg.Status.KIND,
     }
     if key in fixed:
         return fixed[key]
     try:
+        if keyexpr_matches(msg.command_keyexpr(run_id), key):
+            return msg.Command.KIND
         if keyexpr_matches(msg.measurement_keyexpr(run_id), key):
             return msg.Measurement.KIND
         if keyexpr_matches(msg.heartbeat_keyexpr(run_id), key):
@@ -314,10 +315,10 @@ class RecordingReader:
     whose writer was killed (no summary, no footer, a half-written last chunk) reads up to its
     last complete record.
 
-    Iterate :meth:`samples`; afterwards ``metadata`` (name -> map), ``complete`` (the footer was
-    reached), ``truncated`` (the file ends inside a record: its writer died while writing it;
-    a file that ends between records, as a killed writer leaves it too, has ``complete`` False
-    and ``truncated`` False), ``corrupt_chunks`` (offsets of
+    Iterate :meth:`samples`; afterwards ``metadata`` (name -> map), ``complete`` (the footer
+    and the closing magic were read), ``truncated`` (the file ends inside a record: its writer
+    died while writing it; a file that ends between records, as a killed writer leaves it too,
+    has ``complete`` False and ``truncated`` False), ``corrupt_chunks`` (offsets of
     chunks skipped because they failed their CRC or did not decompress), ``orphans`` (messages
     of a channel whose record was lost in such a chunk) and ``error`` (why reading stopped
     early on a damaged file, else None) describe what was read."""
@@ -336,11 +337,13 @@ class RecordingReader:
             stream = _Exact(f)
             reader = StreamReader(stream, emit_chunks=True, validate_crcs=False)  # type: ignore[arg-type]
             records = reader.records
+            footer = False
             while True:
                 start = stream.offset
                 try:
                     record = next(records)
-                except StopIteration:
+                except StopIteration:  # after the footer, the closing magic was read too
+                    self.complete = footer
                     return
                 except EndOfFile:
                     self.truncated = stream.end > start  # a record was cut, not just missing
@@ -368,7 +371,7 @@ class RecordingReader:
                     elif isinstance(r, Metadata):
                         self.metadata[r.name] = dict(r.metadata)
                     elif isinstance(r, Footer):
-                        self.complete = True
+                        footer = True
                     elif isinstance(r, Schema):
                         pass
 

@@ -5,7 +5,8 @@ per scan ``k``::
 
     1. x⁻, P⁻ = predict(x, P)
     2. D = argmin over feasible subsets of f(P_i, P_d(t_k)); failed sensors are infeasible
-    3. publish Command(k, enabled = D)  (sensors take Truth(k) the world sent; in lockstep,
+    3. publish Command(k, enabled = D) on the key that names D, so that only the enabled
+       sensors (and the recorder) receive it  (sensors take Truth(k) the world sent; in lockstep,
        then scan k-1's Track and Status, built and stamped at step 5: only the recorder and
        observers read them, the next command is what the sensors wait for)
     4. collect Measurement(k) from each enabled sensor until all arrived, a sensor failed, or
@@ -156,7 +157,7 @@ class _Loop:
         self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))
         self.token = bus.declare_token(msg.alive_key(run_id, "manager", "manager"))
         self.keys = {
-            "cmd": msg.command_key(run_id),
+            "cmd": msg.command_keyexpr(run_id),  # commands are counted under this one
             "track": msg.track_key(run_id),
             "status": msg.status_key(run_id),
         }
@@ -171,6 +172,13 @@ class _Loop:
             return
         self.bus.publish(key, payload)
         self.stats.sent(key, len(payload))
+
+    def publish_command(self, cmd: msg.Command) -> None:
+        """Publish ``cmd`` on its own key (:func:`~covnet.messages.command_key`: zenoh takes
+        it to the enabled sensors only); counted under ``keys["cmd"]``, every command's."""
+        payload = msg.encode(cmd)
+        self.bus.publish(msg.command_key(self.run_id, cmd.enabled), payload)
+        self.stats.sent(self.keys["cmd"], len(payload))
 
     def flush_deferred(self) -> None:
         while self._deferred:
@@ -521,7 +529,7 @@ def run(
                 enabled = tuple(ids[j] for j in alloc.subset)
                 t_sent = clock.now_ns()
                 cmd = msg.Command(scan=k, t=t_k, enabled=enabled, t_sent_ns=t_sent, episode=e)
-                loop.publish(loop.keys["cmd"], cmd)
+                loop.publish_command(cmd)
                 loop.flush_deferred()  # scan k-1's Track and Status (lockstep)
                 # while the sensors measure: decide scan k+1 assuming every enabled sensor's
                 # measurement arrives (P does not depend on the measured values)

@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
                 if delayed is not None:
                     delayed.close()
         print(
-            f"stopped: {stats.enabled_scans} scans enabled, "
+            f"stopped: {stats.commands} commands received, {stats.enabled_scans} scans enabled, "
             f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}"
         )
         return EXIT_OK

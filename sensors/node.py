@@ -1,9 +1,12 @@
 """A sensor's loop: obey the manager's commands, measure the truth, publish.
 
-Per command for scan ``k``: if this sensor is listed in ``enabled`` it waits for the world's
-``Truth(k)``, draws its measurement ``z = H x + v`` from its own noise stream ``(seed, j, k)``
-(:func:`covnet.model.measure`, the same draw ``covnet run`` makes) and publishes
-``Measurement(k)``; if it is not listed it publishes nothing for that scan.  A command whose
+A sensor subscribes to the commands that enable it (the command's key names the enabled set,
+:func:`covnet.messages.command_key`; zenoh delivers a command to the sensors it enables only, so
+a disabled sensor is not woken).  Per command for scan ``k`` that lists it in ``enabled``, it
+waits for the world's ``Truth(k)``, draws its measurement ``z = H x + v`` from its own noise
+stream ``(seed, j, k)`` (:func:`covnet.model.measure`, the same draw ``covnet run`` makes) and
+publishes ``Measurement(k)``; at a scan that does not enable it, it publishes nothing.  On slow
+links it hears every command (to notice one it missed: ``missed_command``).  A command whose
 truth never comes (a sensor restarted after the world sent it) is dropped as soon as a newer
 command arrives, so a sensor never stalls on a scan that has passed.  It sends a heartbeat
 every ``network.heartbeat_s`` (a hung loop stops sending them) and declares its liveliness
@@ -74,7 +77,9 @@ def serve(
     world sends it once, :data:`~covnet.messages.TRUTH_UPFRONT_MAX_SCANS`), else drop what is
     older than the scan being measured (the world sends it again for a new episode)."""
     stats = SensorStats()
-    cmd_sub = bus.subscribe(msg.command_key(run_id))
+    # on slow links every command (a gap in the scans says one was missed), else its own
+    mine = None if missed_command is not None else sensor_id
+    cmd_sub = bus.subscribe(msg.command_keyexpr(run_id, mine))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
     manager = ManagerWatch(bus, run_id)
     token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
@@ -93,7 +98,7 @@ def serve(
         if s is None:
             return False
         try:
-            cmd = msg.decode_as(s.payload, msg.Command)
+            cmd = msg.decode_command(s.key, s.payload)
         except msg.WireError as exc:
             stats.rejected[exc.reason] += 1
             return True

@@ -19,6 +19,8 @@ from covnet.results import load_arrays
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
+SENSORS = tuple(f"S{i}" for i in range(1, 9))  # the paper's
+
 
 def _arr(a) -> msgpack.ExtType:
     a = np.asarray(a, dtype="<f8")
@@ -50,7 +52,7 @@ def bad_payloads(run: str) -> list[tuple[str, bytes, str]]:
     out: list[tuple[str, bytes, str]] = []
     keys = {
         "meas": msg.measurement_key(run, "S1"),
-        "cmd": msg.command_key(run),
+        "cmd": msg.command_key(run, SENSORS),  # every sensor hears it
         "truth": msg.truth_key(run),
         "hb": msg.heartbeat_key(run, "sensor", "S1"),
     }
@@ -98,6 +100,7 @@ def bad_payloads(run: str) -> list[tuple[str, bytes, str]]:
         )
     )
     out.append((keys["hb"], _raw({"v": 1, "k": "hb", "role": "sensor"}), "missing_field"))
+    out.append((keys["cmd"], good_cmd, "key_mismatch"))  # the key names all 8, it enables S1
     return out
 
 
@@ -145,7 +148,7 @@ def test_garbage_on_every_key_is_counted_and_dropped(covnet_proc, tmp_path, pape
         if key in (meas_key, hb_key):
             expect_mgr.setdefault(key, {}).setdefault(reason, 0)
             expect_mgr[key][reason] += rounds
-        elif key == msg.command_key(run_id):
+        elif key == msg.command_key(run_id, SENSORS):
             expect_node[reason] = expect_node.get(reason, 0) + rounds
     assert net["rejected_by_key"] == expect_mgr
     # every sensor hears the command and truth keys; the world of a run this short sends all

@@ -90,6 +90,7 @@ def test_in_process_network_equals_run(short_paper):
     for j, sid in enumerate(short_paper.sensor_ids):
         enabled = sum(int(result.episodes[m].as_run(8).enabled[:, j].sum()) for m in metrics)
         assert stats[sid].measurements_sent == enabled == stats[sid].enabled_scans
+        assert stats[sid].commands == enabled  # the others were never delivered to it
     assert result.stats.rejected == {}
     assert result.stats.lost == 0
 

@@ -122,7 +122,7 @@ def test_replay_reproduces_summary_byte_for_byte(recorded_run):
     meas_sent = sum(s.measurements_sent for n, s in stats.items() if n.startswith("S"))
     assert report.counts["measurement"] == meas_sent
     rec = stats["recorder"]
-    assert rec["kind:cmd"] == sent[msg.command_key(RUN)]
+    assert rec["kind:cmd"] == sent[msg.command_keyexpr(RUN)]
     assert rec["kind:track"] == sent[msg.track_key(RUN)]
     assert rec["kind:truth"] == stats["world"]["published"]
     assert not any(k.startswith("undecodable:") for k in rec)
@@ -291,7 +291,7 @@ def test_recorder_process_records_everything_and_closes_the_file_on_a_signal(
                 published.append((msg.measurement_key(run, "S1"), msg.encode(m)))
             published.append((msg.measurement_key(run, "S2"), b"\x00not a message"))
             cmd = msg.Command(7, 7.0, ("S1",), time.monotonic_ns())
-            published.append((msg.command_key(run), msg.encode(cmd)))
+            published.append((msg.command_key(run, cmd.enabled), msg.encode(cmd)))
             for key, payload in published:
                 bus.publish(key, payload)
             # the recorder's heartbeat names the last command it recorded: wait for scan 7

@@ -263,16 +263,16 @@ def test_access_control_rogue_commands_never_reach_a_sensor(lab, paper):
                 mgr.publish(msg.truth_key(run), msg.encode(_truth(7)))
                 mgr.publish(msg.truth_key(run), msg.encode(_truth(8)))
                 for _ in range(5):
-                    rogue.publish(msg.command_key(run), msg.encode(_cmd(7)))
+                    rogue.publish(msg.command_key(run, SENSORS), msg.encode(_cmd(7)))
                     rogue.publish(msg.truth_key(run), msg.encode(_truth(7)))
                     rogue.publish(msg.measurement_key(run, "S1"), msg.encode(_meas("S1", 7)))
-                    intruder.publish(msg.command_key(run), msg.encode(_cmd(8)))
+                    intruder.publish(msg.command_key(run, SENSORS), msg.encode(_cmd(8)))
                     intruder.publish(msg.measurement_key(run, "S1"), msg.encode(_meas("S1", 8)))
                     time.sleep(0.02)
                 time.sleep(0.5)  # time for anything that slipped through to act
                 # the manager's command for scan 3 arrives and is obeyed
                 mgr.publish(msg.truth_key(run), msg.encode(_truth(3)))
-                mgr.publish(msg.command_key(run), msg.encode(_cmd(3, ("S1",))))
+                mgr.publish(msg.command_key(run, ("S1",)), msg.encode(_cmd(3, ("S1",))))
                 wait_until(
                     lambda: (
                         got.extend(drain(meas, msg.Measurement))
@@ -377,9 +377,11 @@ def test_client_without_a_valid_certificate_cannot_connect(lab, paper):
     rogue = lab / "rogue-pki"
     with router(sc, ep) as mgr:
         with client(sc, ep, "S1") as ok:  # positive control
-            sub = ok.subscribe("covnet/r/cmd")
+            sub = ok.subscribe(msg.command_keyexpr("r", "S1"))
             wait_until(
-                lambda: mgr.publish(msg.command_key("r"), b"hello") or sub.recv(0.1), 10, "S1"
+                lambda: mgr.publish(msg.command_key("r", ["S1"]), b"hello") or sub.recv(0.1),
+                10,
+                "S1",
             )
         # no client certificate (and not even mTLS on the client side)
         cannot_open(sc, ep, "S1", **{
@@ -407,8 +409,8 @@ def test_client_without_a_valid_certificate_cannot_connect(lab, paper):
             heard = intruder.subscribe("covnet/**")
             mine = mgr.subscribe("covnet/**")
             time.sleep(0.2)
-            intruder.publish(msg.command_key("r"), b"rogue")
-            mgr.publish(msg.command_key("r"), b"manager")
+            intruder.publish(msg.command_key("r", ["S1"]), b"rogue")
+            mgr.publish(msg.command_key("r", ["S1"]), b"manager")
             assert mine.recv(5).payload == b"manager"
             time.sleep(0.3)
             assert mine.try_recv() is None  # the intruder's command was dropped

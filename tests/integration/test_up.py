@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 
 import numpy as np
@@ -27,7 +28,7 @@ def reference(tmp_path_factory, paper_path):
 @pytest.fixture(scope="module")
 def lockstep_up(tmp_path_factory, paper_path):
     out = tmp_path_factory.mktemp("up") / "run"
-    p = CovnetProcess(["up", str(paper_path), "--out", str(out)])
+    p = CovnetProcess(["up", str(paper_path), "--out", str(out), "--verbose"])
     try:
         rc = p.wait(timeout=150)
     finally:
@@ -51,7 +52,9 @@ def test_up_equals_run(reference, lockstep_up):
 
 
 def test_sensors_obey_commands(lockstep_up):
-    out, _ = lockstep_up
+    """Per sensor: measurements == commands it received == scans it was enabled (zenoh
+    delivers a command, by its key, to the sensors it enables only)."""
+    out, output = lockstep_up
     summary = json.loads((out / "summary.json").read_text())
     net = json.loads((out / "network.json").read_text())
     for sid in summary["sensor_ids"]:
@@ -59,6 +62,10 @@ def test_sensors_obey_commands(lockstep_up):
         keys = [k for k in net["received"] if k.endswith(f"/sensor/{sid}/meas")]
         received = sum(net["received"][k]["messages"] for k in keys)
         assert received == enabled, sid
+        said = re.search(rf"\[{sid}\] stopped: (\d+) commands received, (\d+) scans enabled, "
+                         rf"(\d+) measurements sent", output)  # fmt: skip
+        assert said is not None, output
+        assert [int(n) for n in said.groups()] == [enabled] * 3, sid
     assert net["rejected"] == {} and net["lost"] == 0
 
 

@@ -140,11 +140,11 @@ def test_in_process_router_and_client(router, run):
         token.undeclare()
         expect_event(watch, LivelinessEvent(alive.key, False), timeout=5)
 
-    blocked = bus.subscribe(m.command_key(run))
+    blocked = bus.subscribe(m.command_keyexpr(run))
     bus.close()  # closing wakes readers, then refuses work
     assert blocked.recv(timeout=None) is None
     with pytest.raises(BusClosed):
-        bus.publish(m.command_key(run), b"x")
+        bus.publish(m.command_key(run, ["s1"]), b"x")
 
 
 def _thread_ids() -> set[int]:
@@ -214,10 +214,11 @@ def test_child_publishes_in_order_answers_commands_and_dies_visibly(router, run)
         assert all(s.key == m.measurement_key(run, "s1") for s in received)
         assert all(s.t_recv_ns >= d.t_sent_ns for s, d in zip(received, decoded, strict=True))
 
-        # commands: the child answers the scans that enable it, and only those
+        # commands (on keys naming their enabled sets, routed by zenoh's `$*` sub-chunk
+        # wildcard): the child answers the scans that enable it, and only those
         for scan, enabled in [(1000, ("s1",)), (1001, ("s2",)), (1002, ("s2", "s1"))]:
             cmd = m.Command(scan, 0.1 * scan, enabled, time.monotonic_ns())
-            bus.publish(m.command_key(run), m.encode(cmd))
+            bus.publish(m.command_key(run, enabled), m.encode(cmd))
         answers = [m.decode_as(meas.recv(timeout=5).payload, m.Measurement) for _ in range(2)]
         assert [a.scan for a in answers] == [1000, 1002]
         assert answers[0].z[0, 0] == 1000.0
@@ -304,7 +305,7 @@ def test_fifo_subscription_timeouts_wakes_and_close(router, run):
         assert got is not None and got.payload == b"" and got.key == key
 
     results: list[object] = []
-    blocked = bus.subscribe(m.command_key(run))
+    blocked = bus.subscribe(m.command_keyexpr(run))
     reader = threading.Thread(target=lambda: results.append(blocked.recv(timeout=None)))
     reader.start()
     time.sleep(0.2)
@@ -323,8 +324,8 @@ def test_fifo_recv_runs_signal_handlers_delivered_to_another_thread(
     """A main thread blocked in a FIFO recv (GIL released, in zenoh) still runs a signal
     handler within about SIGNAL_CHECK_S when the kernel hands the signal to another thread."""
     bus, _ = router
-    sub = bus.subscribe(m.command_key(run))
+    sub = bus.subscribe(m.command_keyexpr(run))
     assert 0.25 < interrupted_from_another_thread(lambda: sub.recv(timeout=None)) < 2.0
-    bus.publish(m.command_key(run), b"after")  # the subscription still works afterwards
+    bus.publish(m.command_key(run, ["s1"]), b"after")  # the subscription still works afterwards
     got = sub.recv(timeout=5)
     assert got is not None and got.payload == b"after"

@@ -6,6 +6,9 @@ import threading
 import time
 
 import pytest
+import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from covnet import messages as m
 from covnet.bus import (
@@ -21,7 +24,8 @@ from covnet.bus import (
 from covnet.clock import SimClock, WallClock
 
 # --------------------------------------------------------------------------------------------
-# key expressions (zenoh semantics: * is one chunk, ** is zero or more chunks)
+# key expressions (zenoh semantics: * is one chunk, ** is zero or more chunks, $* is any run of
+# characters inside a chunk)
 # --------------------------------------------------------------------------------------------
 
 MATCHES = [
@@ -62,6 +66,21 @@ MATCHES = [
     ("covnet/r1/alive/sensor/*", m.alive_key("r1", "sensor", "s1"), True),
     ("covnet/r1/alive/sensor/*", m.alive_key("r1", "manager", "m"), False),
     ("covnet/r1/**", m.status_key("r1"), True),
+    ("a/x$*y", "a/xy", True),
+    ("a/x$*y", "a/x~~y", True),
+    ("a/x$*y", "a/xy/y", False),
+    ("a/$*b", "a/b", True),
+    ("a/$*b", "a/bc", False),
+    ("a/b$*", "a/bc", True),
+    ("a/$*.$*", "a/x.y", True),
+    ("a/$*.$*", "a/xy", False),
+    (m.command_keyexpr("r1", "S1"), m.command_key("r1", ["S1", "S3"]), True),
+    (m.command_keyexpr("r1", "S3"), m.command_key("r1", ["S1", "S3"]), True),
+    (m.command_keyexpr("r1", "S1"), m.command_key("r1", ["S11", "S3"]), False),
+    (m.command_keyexpr("r1", "S1"), m.command_key("r1", ["S3", "xS1"]), False),
+    (m.command_keyexpr("r1", "S1"), m.command_key("r1", []), False),
+    (m.command_keyexpr("r1", "S1"), m.command_key("r2", ["S1"]), False),
+    (m.command_keyexpr("r1"), m.command_key("r1", []), True),
 ]
 
 
@@ -73,18 +92,46 @@ def test_keyexpr_matches(expr, key, expected):
 
 
 @pytest.mark.parametrize(
-    "bad", ["", "/a", "a/", "a//b", "a*", "*a/b", "a/**b", "a/$*", "a?b", "a#", "a b"]
-)
+    "bad",
+    ["", "/a", "a/", "a//b", "a*", "*a/b", "a/**b", "a/$*", "a/$*$*b", "a/b$", "a/$$", "a?b",
+     "a#", "a b", "a/$***"],
+)  # fmt: skip
 def test_invalid_keyexprs(bad):
     with pytest.raises(ValueError, match="invalid key expression"):
         check_keyexpr(bad)
 
 
-@pytest.mark.parametrize("bad", ["a/*", "**", "a/**/b"])
+@pytest.mark.parametrize("bad", ["a/*", "**", "a/**/b", "a/x$*"])
 def test_keys_are_concrete(bad):
     check_keyexpr(bad)
     with pytest.raises(ValueError, match="wildcards"):
         check_key(bad)
+
+
+_LITERAL = st.text("ab~", min_size=1, max_size=3)
+
+
+@st.composite
+def _expr_chunk(draw: st.DrawFn) -> str:
+    kind = draw(st.sampled_from(["lit", "*", "**", "sub"]))
+    if kind != "sub":
+        return draw(_LITERAL) if kind == "lit" else kind
+    parts = draw(st.lists(st.text("ab~", max_size=2), min_size=2, max_size=4))
+    chunk = "$*".join(parts)  # never two $* in a row: a part between them is non-empty
+    if any(not p for p in parts[1:-1]) or chunk == "$*":
+        chunk = "a$*"
+    return chunk
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    expr=st.lists(_expr_chunk(), min_size=1, max_size=4),
+    key=st.lists(_LITERAL, min_size=1, max_size=4),
+)
+def test_keyexpr_matches_agrees_with_zenoh(expr, key):
+    """The in-memory bus routes as zenoh does, ``$*`` sub-chunk wildcards included."""
+    e, k = "/".join(expr), "/".join(key)
+    assert keyexpr_matches(e, k) is zenoh.KeyExpr.autocanonize(e).intersects(zenoh.KeyExpr(k))
 
 
 # --------------------------------------------------------------------------------------------

@@ -40,7 +40,7 @@ def _samples(n: int = 40) -> list[RecordedSample]:
         )
         hb = msg.Heartbeat(role="sensor", node_id="S2", scan=k, t_sent_ns=t + 7)
         for key, m in (
-            (msg.command_key(RUN), cmd),
+            (msg.command_key(RUN, cmd.enabled), cmd),
             (msg.truth_key(RUN), tru),
             (msg.measurement_key(RUN, "S1"), meas),
             (msg.heartbeat_key(RUN, "sensor", "S2"), hb),
@@ -108,7 +108,8 @@ def test_a_file_cut_anywhere_reads_a_prefix_and_stops_cleanly(tmp_path):
     cut = tmp_path / "cut.mcap"
     seen_counts = set()
     cut_records = 0
-    for n in range(0, len(data), 97):
+    # every 97th byte, and each cut inside the closing magic (after a complete footer)
+    for n in [*range(0, len(data), 97), *range(len(data) - 8, len(data))]:
         cut.write_bytes(data[:n])
         reader = RecordingReader(cut)
         got = list(reader.samples())
@@ -190,7 +191,8 @@ def test_writing_after_close_is_an_error(tmp_path):
 
 def test_key_kinds_follow_the_key_builders():
     assert key_kind(RUN, msg.truth_key(RUN)) == "truth"
-    assert key_kind(RUN, msg.command_key(RUN)) == "cmd"
+    assert key_kind(RUN, msg.command_key(RUN, ["S1", "S3"])) == "cmd"
+    assert key_kind(RUN, msg.command_key(RUN, [])) == "cmd"
     assert key_kind(RUN, msg.measurement_key(RUN, "S7")) == "meas"
     assert key_kind(RUN, msg.track_key(RUN)) == "track"
     assert key_kind(RUN, msg.status_key(RUN)) == "status"
@@ -204,7 +206,7 @@ def test_run_keyexpr_matches_every_key_of_the_run_and_nothing_else():
     assert expr == f"covnet/{RUN}/**"
     for key in (
         msg.truth_key(RUN),
-        msg.command_key(RUN),
+        msg.command_key(RUN, ["S1"]),
         msg.measurement_key(RUN, "S1"),
         msg.track_key(RUN),
         msg.status_key(RUN),

@@ -312,7 +312,8 @@ def test_access_control_rules(paper, lab, identity):
     everyone = ("world", "recorder", "S1", "S2", "manager", "intruder")
     for nid in everyone:  # nobody remote may command, fuse or speak for the manager
         for key in (
-            msg.command_key(RUN),
+            msg.command_key(RUN, ["S1", "S2"]),
+            msg.command_key(RUN, []),
             msg.track_key(RUN),
             msg.status_key(RUN),
             msg.heartbeat_key(RUN, "manager", "manager"),
@@ -344,7 +345,11 @@ def test_access_control_rules(paper, lab, identity):
     assert token("world", msg.alive_key(RUN, "world", "world"))
     # every known node reads (and subscribes to) every covnet key, an unknown one nothing
     for nid in ("world", "recorder", "S1", "S2"):
-        for key in (msg.command_key(RUN), msg.truth_key(RUN), msg.measurement_key(RUN, "S2")):
+        for key in (
+            msg.command_key(RUN, ["S1"]),
+            msg.truth_key(RUN),
+            msg.measurement_key(RUN, "S2"),
+        ):
             assert _may(acl, nid, "egress", "put", key)
         assert _allowed(acl, nid, "ingress", "declare_subscriber") == ["covnet/*/**"]
     assert msg.measurement_keyexpr(RUN).startswith("covnet/")

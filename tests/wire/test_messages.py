@@ -601,7 +601,8 @@ REJECT = {
 
 
 def test_every_reason_is_exercised():
-    assert {reason for _, _, reason in REJECT.values()} == REASONS
+    # key_mismatch is about the key a payload came on: test_decode_command_checks_its_key
+    assert {reason for _, _, reason in REJECT.values()} | {"key_mismatch"} == REASONS
 
 
 @pytest.mark.parametrize("case", sorted(REJECT))
@@ -771,7 +772,10 @@ def test_fuzz_structured_payloads_raise_only_wire_error(payload, overrides):
 
 KEYS = [
     (m.truth_key("r1"), "covnet/r1/truth"),
-    (m.command_key("r1"), "covnet/r1/cmd"),
+    (m.command_key("r1", ["s1", "s3"]), "covnet/r1/cmd/~s1~s3~"),
+    (m.command_key("r1", []), "covnet/r1/cmd/~"),
+    (m.command_keyexpr("r1"), "covnet/r1/cmd/*"),
+    (m.command_keyexpr("r1", "s3"), "covnet/r1/cmd/$*~s3~$*"),
     (m.measurement_key("r1", "s3"), "covnet/r1/sensor/s3/meas"),
     (m.measurement_keyexpr("r1"), "covnet/r1/sensor/*/meas"),
     (m.track_key("r1"), "covnet/r1/track"),
@@ -814,6 +818,47 @@ def test_parse_keys():
             m.parse_alive_key(bad)
     with pytest.raises(ValueError):
         m.parse_measurement_key("covnet/r1/sensor/s3/cmd")
+
+
+def test_parse_command_key_inverts_command_key():
+    for enabled in [(), ("s1",), ("s3", "s1", "a.b-c_d")]:
+        assert m.parse_command_key(m.command_key("r1", enabled)) == enabled
+    for bad in [
+        "covnet/r1/cmd",
+        "covnet/r1/cmd/",
+        "covnet/r1/cmd/s1",
+        "covnet/r1/cmd/~s1",
+        "covnet/r1/cmd/~s1~~",
+        "covnet/r1/cmd/~s1~/x",
+        "covnet/r1/track",
+        "other/r1/cmd/~",
+    ]:
+        with pytest.raises(ValueError):
+            m.parse_command_key(bad)
+    with pytest.raises(ValueError, match="must not contain"):
+        m.command_key("r1", ["a~b"])
+    with pytest.raises(ValueError, match="invalid sensor id"):
+        m.command_key("r1", ["a/b"])
+
+
+def test_decode_command_checks_its_key():
+    cmd = m.Command(scan=3, t=3.0, enabled=("s2", "s1"), t_sent_ns=7)
+    payload = encode(cmd)
+    got = m.decode_command(m.command_key("r1", ("s2", "s1")), payload)
+    assert (got.scan, got.enabled) == (3, ("s2", "s1"))
+    for key in [
+        m.command_key("r1", ("s1", "s2")),  # the same set, another order: not its key
+        m.command_key("r1", ("s2",)),
+        m.command_key("r1", ("s2", "s1", "s3")),
+        m.command_key("r1", ()),
+        m.truth_key("r1"),
+    ]:
+        with pytest.raises(WireError) as info:
+            m.decode_command(key, payload)
+        assert info.value.reason == "key_mismatch"
+    with pytest.raises(WireError) as info:  # the payload is judged first
+        m.decode_command(m.truth_key("r1"), b"\xc1")
+    assert info.value.reason == "not_msgpack"
 
 
 def test_new_run_id_is_short_unique_and_valid():

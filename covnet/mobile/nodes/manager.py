@@ -226,7 +226,7 @@ def run(
                 modes={sid: MODE_NAMES[int(d.modes[j])] for j, sid in enumerate(ids) if alive[j]},
                 targets=targets,
             )
-            loop.publish(loop.keys["cmd"], cmd)
+            loop.publish_command(cmd)
             # while the sensors measure: the comparison with the exact solver (as covnet run)
             row: dict[str, Any] = {n: np.nan for n in ("J_lp", "J_post", "J_star", "J_relax")}
             row.update(gap=np.nan, mip_gap=np.nan, conflicts=-1, exact_status=-1, compare_s=0.0)

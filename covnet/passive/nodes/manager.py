@@ -147,7 +147,7 @@ def run(
             enabled = tuple(sid for sid in ids if sid not in failed)
             t_sent = clock.now_ns()
             cmd = msg.Command(scan=k, t=k * SCAN_PERIOD_S, enabled=enabled, t_sent_ns=t_sent)
-            loop.publish(loop.keys["cmd"], cmd)
+            loop.publish_command(cmd)
             deadline = time.monotonic() + cfg.network.scan_timeout_s
             got = loop.collect_lists(k, set(enabled), deadline, stop)
             t_core0 = time.perf_counter_ns()

@@ -22,7 +22,7 @@ from covnet.zenoh_bus import ZenohBus, zenoh_config
 def main(connect: str, run: str, node: str, count: int, lease_ms: int | None) -> int:
     config = zenoh_config("client", connect=[connect], lease_ms=lease_ms)
     with ZenohBus.open(config) as bus:
-        commands = bus.subscribe(m.command_key(run))
+        commands = bus.subscribe(m.command_keyexpr(run, node))  # those that enable it
         bus.declare_token(m.alive_key(run, "sensor", node))
         key = m.measurement_key(run, node)
         R = np.eye(2)
@@ -35,7 +35,7 @@ def main(connect: str, run: str, node: str, count: int, lease_ms: int | None) ->
             # no `while True: ... continue` inside `try` (CPython #108214 lets a signal raised
             # at that jump escape the `except`); recv(None) blocks until a command or a signal
             while (sample := commands.recv(timeout=None)) is not None:
-                cmd = m.decode_as(sample.payload, m.Command)
+                cmd = m.decode_command(sample.key, sample.payload)
                 if node in cmd.enabled:
                     z = np.array([[float(cmd.scan), 0.5]])
                     meas = m.Measurement(node, cmd.scan, cmd.t, z, R, time.monotonic_ns())
