@@ -6,16 +6,17 @@ per scan ``k``::
     1. x⁻, P⁻ = predict(x, P)
     2. D = argmin over feasible subsets of f(P_i, P_d(t_k)); failed sensors are infeasible
     3. publish Command(k, enabled = D) on the key that names D, so that only the enabled
-       sensors (and the recorder) receive it  (sensors take Truth(k) the world sent; in lockstep,
-       then scan k-1's Track and Status, built and stamped at step 5: only the recorder and
-       observers read them, the next command is what the sensors wait for)
+       sensors (and the recorder) receive it (sensors take Truth(k) the world sent); in
+       lockstep, then scan k-1's report (step 6): the next command is what the network waits
+       for, the report only the recorder and observers read
     4. collect Measurement(k) from each enabled sensor until all arrived, a sensor failed, or
        the deadline passed (lockstep: ``network.scan_timeout_s``; real time: ``t_k +
        deadline_fraction * T``).  Anything malformed, from the wrong key, for another scan or
        from a sensor that was not enabled is counted by reason and dropped, never fused.
-    5. fuse (sequential updates, ascending sensor index); build Track(k) and Status(k) and
-       publish them (real time) or hold them for step 3 of the next scan (lockstep; the last
-       ones, and those of a stopped run, when the loop ends)
+    5. fuse (sequential updates, ascending sensor index)
+    6. report scan k: log it (estimates, NEES), publish Track(k) and Status(k), call the
+       status and progress hooks; at once in real time, in lockstep just after Command(k+1)
+       (and at the end of an episode, and when the loop stops)
 
 The steps are the functions of :mod:`covnet.model`, the same ones ``covnet run`` calls, so a
 lockstep network run reproduces the in-process run bit for bit.  The loop takes its bus, clock
@@ -26,7 +27,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -60,6 +60,8 @@ from manager.membership import Membership
 
 WORLD_ID = "world"
 RECORDER_ID = "recorder"
+MEMBERSHIP_POLL_S = 0.005
+"""While measurements keep arriving, the longest time between two membership checks."""
 
 
 class ManagerError(RuntimeError):
@@ -147,7 +149,6 @@ class _Loop:
         # the recorder must hear everything: wait for its token too (never allocated)
         self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
         self.stats = NetStats()
-        self._deferred: deque[tuple[str, bytes]] = deque()  # see publish(defer=True)
         # slow links (network.latency): a late message goes to on_late (re-filtered or
         # dropped, it says which); a sensor that measured on a stale command is fused too
         self.on_late: Callable[[Any], bool] | None = None
@@ -164,12 +165,8 @@ class _Loop:
 
     # ---- bus helpers --------------------------------------------------------------------
 
-    def publish(self, key: str, message: msg.Message, *, defer: bool = False) -> None:
-        """Encode and publish now, or (``defer``) at the next :meth:`flush_deferred`."""
+    def publish(self, key: str, message: msg.Message) -> None:
         payload = msg.encode(message)
-        if defer:
-            self._deferred.append((key, payload))
-            return
         self.bus.publish(key, payload)
         self.stats.sent(key, len(payload))
 
@@ -179,12 +176,6 @@ class _Loop:
         payload = msg.encode(cmd)
         self.bus.publish(msg.command_key(self.run_id, cmd.enabled), payload)
         self.stats.sent(self.keys["cmd"], len(payload))
-
-    def flush_deferred(self) -> None:
-        while self._deferred:
-            key, payload = self._deferred.popleft()
-            self.bus.publish(key, payload)
-            self.stats.sent(key, len(payload))
 
     def poll_membership(self) -> None:
         """Drain liveliness events and heartbeats (non-blocking)."""
@@ -272,8 +263,13 @@ class _Loop:
         """Receive scan ``k``'s measurements (or, in the decentralized modes, local tracks:
         ``kind``) from the ``waiting`` sensors until all arrived, a sensor failed or the
         deadline passed (see module doc); ``usable`` is the scenario kind's test of a
-        message's content. Every kind of manager collects this way."""
+        message's content. Every kind of manager collects this way.
+
+        Membership (a waiting sensor that failed) is checked whenever a wait times out (at
+        least every 0.05 s) and otherwise at most every :data:`MEMBERSHIP_POLL_S`: the scan
+        began with a check, and a failed sensor sends nothing, so a wait then times out."""
         got: dict[str, Any] = {}
+        next_poll = time.monotonic() + MEMBERSHIP_POLL_S
         while waiting:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or stop.is_set():
@@ -282,6 +278,9 @@ class _Loop:
             s = self.meas_sub.recv(timeout=min(0.05, remaining))
             if s is not None:
                 self._take(s, episode, k, waiting, got, usable, kind)
+                if time.monotonic() < next_poll:
+                    continue
+            next_poll = time.monotonic() + MEMBERSHIP_POLL_S
             self.poll_membership()
             dead = {sid for sid in waiting if not self.members.is_up(sid, self.clock.now_ns())}
             if dead:
@@ -488,7 +487,7 @@ def run(
     ids = loop.ids
     net = sc.network
     result = ManagerResult({}, loop.stats)
-    truth = truth_trajectory(model)  # for NEES in the results only; never sent to anyone
+    report = _Reporter(loop, model, result, on_status, on_progress)
     try:
         try:
             loop.wait_ready(stop)
@@ -530,7 +529,7 @@ def run(
                 t_sent = clock.now_ns()
                 cmd = msg.Command(scan=k, t=t_k, enabled=enabled, t_sent_ns=t_sent, episode=e)
                 loop.publish_command(cmd)
-                loop.flush_deferred()  # scan k-1's Track and Status (lockstep)
+                report.run()  # scan k-1's (lockstep)
                 # while the sensors measure: decide scan k+1 assuming every enabled sensor's
                 # measurement arrives (P does not depend on the measured values)
                 gains = None
@@ -553,56 +552,124 @@ def run(
                 loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
                 loop.stats.scans_done += 1
                 loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop
-                loop.stats.scan_latency_ns.append(clock.now_ns() - t_sent)
-                # in lockstep, scan k's Track and Status go out just after Command(k+1) (only
-                # the recorder and observers read them; the next command is on the critical path)
-                loop.publish(
-                    loop.keys["track"],
-                    msg.Track(scan=k, t=t_k, x=est.x, P=est.P, t_sent_ns=clock.now_ns(), episode=e),
-                    defer=not realtime,
+                t_fused = clock.now_ns()
+                loop.stats.scan_latency_ns.append(t_fused - t_sent)
+                refiltered = centre.late.take_refiltered() if centre.late is not None else None
+                report.hold(
+                    _ScanReport(
+                        e,
+                        metric,
+                        k,
+                        t_k,
+                        alloc,
+                        decision_s,
+                        pred,
+                        est,
+                        got,
+                        failed,
+                        refiltered,
+                        t_fused - t_sent,
+                    )  # fmt: skip
                 )
-                P_d = model.desired(k)
-                status = msg.Status(
-                    scan=k,
-                    t=t_k,
-                    enabled=enabled,
-                    trace_P=float(np.trace(est.P)),
-                    trace_Pd=float(np.trace(P_d)),
-                    value=float(alloc.value),
-                    t_sent_ns=clock.now_ns(),
-                    episode=e,
-                    fused=tuple(sorted(got, key=ids.index)),
-                    failed=tuple(sorted(failed - {WORLD_ID})),
-                    refiltered=centre.late.take_refiltered() if centre.late is not None else None,
-                )
-                loop.publish(loop.keys["status"], status, defer=not realtime)
-                log.record(
-                    len(ids), alloc, pred, est, nees(est, truth[k - 1]), decision_s, sorted(got)
-                )
-                if on_status is not None:
-                    on_status(
-                        {
-                            "metric": metric,
-                            "episode": e,
-                            "scan": k,
-                            "scans": model.scans,
-                            "enabled": list(enabled),
-                            "fused": sorted(got),
-                            "failed": sorted(failed - {WORLD_ID}),
-                            "trace_P": status.trace_P,
-                            "trace_Pd": status.trace_Pd,
-                            "latency_ms": (clock.now_ns() - t_sent) / 1e6,
-                            "messages": loop.traffic()[0],
-                            "bytes": loop.traffic()[1],
-                        }
-                    )
-                if on_progress is not None:
-                    on_progress(result, k == model.scans)
+                if realtime:
+                    report.run()
+            report.run()  # the episode's last scan
         result.completed = True
     finally:
-        loop.flush_deferred()
+        report.run()  # a stopped loop's last scan
         loop.token.undeclare()
     return result
+
+
+@dataclass(frozen=True)
+class _ScanReport:
+    """What scan ``k`` of episode ``episode`` leaves to report (step 6 of the module doc)."""
+
+    episode: int
+    metric: str
+    k: int
+    t: float
+    alloc: Allocation
+    decision_s: float
+    pred: Gaussian
+    est: Gaussian
+    got: dict[str, Any]
+    failed: frozenset[str]
+    refiltered: tuple[str, ...] | None
+    latency_ns: int  # command published -> scan fused
+
+
+class _Reporter:
+    """Step 6 of the scan (module doc): :meth:`hold` keeps scan ``k``'s report, :meth:`run`
+    makes it: the episode's log row (with NEES against the truth, which only the results
+    use), ``Track(k)`` and ``Status(k)`` on the bus, and the ``on_status`` and
+    ``on_progress`` hooks.  None of it is on the path to the next command."""
+
+    def __init__(
+        self,
+        loop: _Loop,
+        model: Model,
+        result: ManagerResult,
+        on_status: StatusFn | None,
+        on_progress: Callable[[ManagerResult, bool], None] | None,
+    ) -> None:
+        self.loop, self.model, self.result = loop, model, result
+        self.on_status, self.on_progress = on_status, on_progress
+        self.truth = truth_trajectory(model)  # never sent to anyone
+        self._held: _ScanReport | None = None
+
+    def hold(self, r: _ScanReport) -> None:
+        self._held = r
+
+    def run(self) -> None:
+        """Report the held scan, if any."""
+        r, self._held = self._held, None
+        if r is None:
+            return
+        loop, ids, clock, k = self.loop, self.loop.ids, self.loop.clock, r.k
+        est = r.est
+        track = msg.Track(
+            scan=k, t=r.t, x=est.x, P=est.P, t_sent_ns=clock.now_ns(), episode=r.episode
+        )
+        loop.publish(loop.keys["track"], track)
+        enabled = tuple(ids[j] for j in r.alloc.subset)
+        status = msg.Status(
+            scan=k,
+            t=r.t,
+            enabled=enabled,
+            trace_P=float(np.trace(est.P)),
+            trace_Pd=float(np.trace(self.model.desired(k))),
+            value=float(r.alloc.value),
+            t_sent_ns=clock.now_ns(),
+            episode=r.episode,
+            fused=tuple(sorted(r.got, key=ids.index)),
+            failed=tuple(sorted(r.failed - {WORLD_ID})),
+            refiltered=r.refiltered,
+        )
+        loop.publish(loop.keys["status"], status)
+        log = self.result.episodes[r.metric]
+        nees_k = nees(est, self.truth[k - 1])
+        log.record(len(ids), r.alloc, r.pred, est, nees_k, r.decision_s, sorted(r.got))
+        if self.on_status is not None:
+            messages, n_bytes = loop.traffic()
+            self.on_status(
+                {
+                    "metric": r.metric,
+                    "episode": r.episode,
+                    "scan": k,
+                    "scans": self.model.scans,
+                    "enabled": list(enabled),
+                    "fused": sorted(r.got),
+                    "failed": sorted(r.failed - {WORLD_ID}),
+                    "trace_P": status.trace_P,
+                    "trace_Pd": status.trace_Pd,
+                    "latency_ms": r.latency_ns / 1e6,
+                    "messages": messages,
+                    "bytes": n_bytes,
+                }
+            )
+        if self.on_progress is not None:
+            self.on_progress(self.result, k == self.model.scans)
 
 
 @dataclass(frozen=True)
