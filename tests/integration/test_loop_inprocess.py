@@ -52,6 +52,9 @@ def run_network(sc, metrics, *, kill_after_scan=None, victim=None):
     def on_status(st):
         if kill_after_scan is not None and st["scan"] == kill_after_scan:
             node_stops[victim].set()
+            # wait until it has stopped: a sensor no scan enables sees its stop event only at its
+            # next heartbeat wait (nothing else wakes it), and this run is faster than that
+            next(th for th in threads if th.name == victim).join(10)
 
     mbus = InMemoryBus(hub, name="manager")
     try:
