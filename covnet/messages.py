@@ -220,7 +220,12 @@ def command_key(run: str, enabled: Iterable[str]) -> str:
     ids = [_valid(sid, "sensor id") for sid in enabled]
     if any(_CMD_SEP in sid for sid in ids):
         raise ValueError(f"invalid sensor id in {ids!r}: must not contain {_CMD_SEP!r}")
-    return f"{_root(run)}/cmd/{_CMD_SEP}" + "".join(sid + _CMD_SEP for sid in ids)
+    return f"{_root(run)}/cmd/{_enabled_chunk(ids)}"
+
+
+def _enabled_chunk(ids: Iterable[str]) -> str:
+    """The last chunk of a command key: ``~S1~S3~`` (``~`` for none)."""
+    return _CMD_SEP + "".join(sid + _CMD_SEP for sid in ids)
 
 
 def command_keyexpr(run: str, sensor_id: str | None = None) -> str:
@@ -1032,12 +1037,17 @@ def decode_as(payload: bytes, cls: type[_M]) -> _M:
 
 def decode_command(key: str, payload: bytes) -> Command:
     """A :class:`Command` from ``payload`` received on ``key``, strictly: ``key_mismatch``
-    unless ``key`` is :func:`command_key` of its run and the command's enabled set."""
+    unless ``key`` is :func:`command_key` of its run and the command's enabled set (compared
+    as strings: the decoded ids are valid already, and this runs for every command)."""
     cmd = decode_as(payload, Command)
-    try:
-        named = parse_command_key(key)
-    except ValueError:
-        named = None
-    if named != cmd.enabled:
+    head, _, chunk = key.rpartition("/")
+    root, _, cmd_chunk = head.rpartition("/")
+    if (
+        cmd_chunk != "cmd"
+        or root.count("/") != 1
+        or not root.startswith("covnet/")
+        or chunk != _enabled_chunk(cmd.enabled)
+        or any(_CMD_SEP in sid for sid in cmd.enabled)  # "~a~b~" would also name ("a~b",)
+    ):
         raise WireError("key_mismatch", f"{key!r} does not name the enabled {cmd.enabled!r}")
     return cmd

@@ -165,17 +165,17 @@ class _Loop:
 
     # ---- bus helpers --------------------------------------------------------------------
 
-    def publish(self, key: str, message: msg.Message) -> None:
+    def publish(self, key: str, message: msg.Message, *, count_as: str | None = None) -> None:
+        """Encode and publish ``message`` on ``key``; counted under ``count_as`` or ``key``."""
         payload = msg.encode(message)
         self.bus.publish(key, payload)
-        self.stats.sent(key, len(payload))
+        self.stats.sent(count_as or key, len(payload))
 
     def publish_command(self, cmd: msg.Command) -> None:
         """Publish ``cmd`` on its own key (:func:`~covnet.messages.command_key`: zenoh takes
         it to the enabled sensors only); counted under ``keys["cmd"]``, every command's."""
-        payload = msg.encode(cmd)
-        self.bus.publish(msg.command_key(self.run_id, cmd.enabled), payload)
-        self.stats.sent(self.keys["cmd"], len(payload))
+        key = msg.command_key(self.run_id, cmd.enabled)
+        self.publish(key, cmd, count_as=self.keys["cmd"])
 
     def poll_membership(self) -> None:
         """Drain liveliness events and heartbeats (non-blocking)."""
@@ -557,19 +557,19 @@ def run(
                 refiltered = centre.late.take_refiltered() if centre.late is not None else None
                 report.hold(
                     _ScanReport(
-                        e,
-                        metric,
-                        k,
-                        t_k,
-                        alloc,
-                        decision_s,
-                        pred,
-                        est,
-                        got,
-                        failed,
-                        refiltered,
-                        t_fused - t_sent,
-                    )  # fmt: skip
+                        episode=e,
+                        metric=metric,
+                        k=k,
+                        t=t_k,
+                        alloc=alloc,
+                        decision_s=decision_s,
+                        pred=pred,
+                        est=est,
+                        got=got,
+                        failed=failed,
+                        refiltered=refiltered,
+                        latency_ns=t_fused - t_sent,
+                    )
                 )
                 if realtime:
                     report.run()
