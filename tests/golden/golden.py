@@ -1,0 +1,152 @@
+"""Result hashes of the shipped configs, run through the CLI: the proof that a refactor changed
+no result.  ``python tests/golden/golden.py OUT.json`` runs every case of :data:`CASES` with the
+``covnet`` on ``sys.path`` and writes ``{case: {file: sha256}}``; ``tests/integration/
+test_golden.py`` runs the same cases and compares them with ``tests/golden/hashes.json`` (made
+on the code before the architecture change, issue 13).
+
+A JSON file is hashed as its bytes; wall-clock keys (:data:`WALL_CLOCK_KEYS`) are removed first
+and the rest re-serialised canonically only where a case says so (those files held timings
+before issue 13 moved them to ``run.json``).  An ``.npz`` is hashed array by array (name, dtype,
+shape, bytes), leaving out :data:`WALL_CLOCK_ARRAYS`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+WALL_CLOCK_KEYS = frozenset(
+    {
+        "decision_time_s",
+        "decision_time_median_s",
+        "time_s",
+        "wall_s",
+        "median_time_s",
+        "created_utc",
+    }
+)
+WALL_CLOCK_ARRAYS = frozenset({"cost_s", "solve_s", "compare_s", "decision_s"})
+
+SMALL_SWEEP = """
+sweep:
+  delay_ms: [0, 200]
+  delay_kind: exponential
+  loss: [0.0, 0.1]
+  modes: [central, ci]
+  account_for_loss: [false]
+  late: [oosm]
+  seeds: 1
+"""
+
+
+def _strip(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _strip(v) for k, v in obj.items() if k not in WALL_CLOCK_KEYS}
+    if isinstance(obj, list):
+        return [_strip(v) for v in obj]
+    return obj
+
+
+def hash_json(path: Path, strip: bool) -> str:
+    if not strip:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    data = _strip(json.loads(path.read_text()))
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def hash_npz(path: Path) -> str:
+    h = hashlib.sha256()
+    with np.load(path, allow_pickle=False) as z:
+        for name in sorted(z.files):
+            if name.split(".")[0] in WALL_CLOCK_ARRAYS:
+                continue
+            a = z[name]
+            h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+# case name -> (covnet argv with {out} and {cfg:<name>} placeholders, {file: strip?})
+CASES: dict[str, tuple[list[str], dict[str, bool]]] = {
+    "run-paper": (["run", "configs/paper.yaml"], {"summary.json": False, "arrays.npz": False}),
+    "run-paper-info": (
+        ["run", "configs/paper.yaml", "--fusion", "info"],
+        {"summary.json": False, "arrays.npz": False},
+    ),
+    "run-paper-ci": (
+        ["run", "configs/paper.yaml", "--fusion", "ci"],
+        {"summary.json": False, "arrays.npz": False},
+    ),
+    "run-paper-peer": (
+        ["run", "configs/paper.yaml", "--fusion", "peer", "--metric", "spectral"],
+        {"summary.json": False, "arrays.npz": False},
+    ),
+    "run-latency": (["run", "configs/latency.yaml"], {"summary.json": False, "arrays.npz": False}),
+    "run-latency-info": (
+        ["run", "configs/latency.yaml", "--fusion", "info"],
+        {"summary.json": False, "arrays.npz": False},
+    ),
+    "run-latency-ci": (
+        ["run", "configs/latency.yaml", "--fusion", "ci"],
+        {"summary.json": False, "arrays.npz": False},
+    ),
+    "run-mobile": (["run", "configs/mobile.yaml"], {"summary.json": True, "arrays.npz": False}),
+    "run-passive": (["run", "configs/passive.yaml"], {"association.json": True}),
+    "mc-mobile": (["mc", "configs/mobile.yaml", "--trials", "3"], {"montecarlo.json": True}),
+    "mc-passive": (["mc", "configs/passive.yaml", "--trials", "2"], {"results.json": True}),
+    "compare": (
+        ["compare", "configs/paper.yaml", "--runs", "2", "--modes", "central,ci,peer-info"],
+        {"compare.json": False},
+    ),
+    "sweep": (["sweep", "{cfg:small_sweep}"], {"sweep.json": False}),
+}
+UP_CASES: dict[str, tuple[list[str], dict[str, bool]]] = {
+    "up-paper": (["up", "configs/paper.yaml"], {"summary.json": False, "arrays.npz": False}),
+    "up-mobile": (["up", "configs/mobile.yaml"], {"summary.json": True, "arrays.npz": False}),
+    "up-passive": (["up", "configs/passive.yaml"], {"association.json": True}),
+}
+
+
+def _configs(work: Path) -> dict[str, str]:
+    text = (ROOT / "configs/latency.yaml").read_text()
+    text = text[: text.index("\nsweep:")] + "\n" + SMALL_SWEEP
+    p = work / "small_sweep.yaml"
+    p.write_text(text)
+    return {"small_sweep": str(p)}
+
+
+def run_case(name: str, argv: list[str], files: dict[str, bool], work: Path) -> dict[str, str]:
+    out = work / name
+    cfgs = _configs(work)
+    args = [cfgs[a[5:-1]] if a.startswith("{cfg:") else a for a in argv]
+    cmd = [sys.executable, "-m", "covnet", *args, "--out", str(out), "--no-figures"]
+    if args[0] == "mc":
+        cmd.remove("--no-figures")
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=os.environ.copy())
+    if proc.returncode != 0:
+        raise RuntimeError(f"{name}: {' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
+    hashes = {}
+    for f, strip in files.items():
+        p = out / f
+        hashes[f] = hash_npz(p) if f.endswith(".npz") else hash_json(p, strip)
+    return hashes
+
+
+def run_all(work: Path, cases: dict[str, tuple[list[str], dict[str, bool]]]) -> dict[str, Any]:
+    return {name: run_case(name, argv, files, work) for name, (argv, files) in cases.items()}
+
+
+if __name__ == "__main__":
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        result = run_all(Path(tmp), {**CASES, **UP_CASES})
+    Path(sys.argv[1]).write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
