@@ -27,7 +27,7 @@ from typing import Any
 from covnet.bus import Bus, LivelinessSubscription, Sample, Subscription, Token
 from covnet.core.delay import LinkState
 
-UP, DOWN = 0, 1  # link directions, as in covnet.latency_sim
+UP, DOWN = 0, 1  # link directions, as in covnet.covariance_control.latency_sim
 
 
 class _Delayed:
@@ -158,7 +158,7 @@ def for_sensor(bus: Bus, sc: Any, sensor_id: str, run_id: str, speed: float) -> 
     """Sensor ``sensor_id``'s view of the emulated network: its commands arrive over its
     downlink, its measurements (or local tracks) leave over its uplink, each link with the
     stream :func:`covnet.core.delay.link_stream` ``(seed, j, direction)`` that
-    :func:`covnet.latency_sim.run_latency` uses too."""
+    :func:`covnet.covariance_control.latency_sim.run_latency` uses too."""
     from covnet import messages as msg
     from covnet.core.delay import link_stream
 

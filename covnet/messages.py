@@ -64,8 +64,11 @@ __all__ = [
     "MAX_ARRAY_ELEMENTS",
     "MAX_IDS",
     "MAX_NAME_LEN",
+    "MANAGER_ID",
     "MAX_PAYLOAD_BYTES",
     "MESSAGE_TYPES",
+    "RECORDER_ID",
+    "RESERVED_IDS",
     "REASONS",
     "SCHEMA_VERSION",
     "TRUTH_UPFRONT_MAX_SCANS",
@@ -77,6 +80,7 @@ __all__ = [
     "Status",
     "Track",
     "Truth",
+    "WORLD_ID",
     "WireError",
     "alive_key",
     "alive_keyexpr",
@@ -183,6 +187,12 @@ def _valid(value: object, what: str) -> str:
     return value
 
 
+MANAGER_ID, WORLD_ID, RECORDER_ID = "manager", "world", "recorder"
+"""Node ids of the processes that are not sensors (each is also its role's name)."""
+RESERVED_IDS = (MANAGER_ID, WORLD_ID, RECORDER_ID)
+"""A sensor may not use one of these ids when security is on (they are zenoh identities)."""
+
+
 def new_run_id() -> str:
     """A short unique run id (12 hex digits), valid as a key chunk."""
     return uuid.uuid4().hex[:12]
@@ -190,7 +200,7 @@ def new_run_id() -> str:
 
 #: a run of at most this many scans gets the truth of every scan at once (the world then hears
 #: no command, and sensors keep it for the whole run); a longer one gets it window by window,
-#: paced by the commands (:mod:`covnet.world.node`)
+#: paced by the commands (:mod:`world.covariance`)
 TRUTH_UPFRONT_MAX_SCANS = 5000
 
 

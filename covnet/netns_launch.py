@@ -55,8 +55,10 @@ from pathlib import Path
 from typing import Any
 
 from covnet.core.delay import DelayDist, LinkSpec
+from covnet.errors import UpError
 from covnet.launch import ProcessSpec
 from covnet.netem.detect import run_ip
+from covnet.rundir import write_json
 
 __all__ = [
     "BASE_NET",
@@ -375,7 +377,6 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
 def note_topology(out: Path, topo: NetnsTopology) -> None:
     """Merge ``topo.describe()`` into ``out/run.json`` under ``netns`` (``out/netns.json``
     when the manager wrote no ``run.json``)."""
-    from covnet.results import write_json
 
     path = out / "run.json"
     if path.is_file():
@@ -388,10 +389,10 @@ def note_topology(out: Path, topo: NetnsTopology) -> None:
 
 def up_in_namespaces(
     up: Callable[..., int],
+    kind: Any,
     sc: Any,
     config_path: str,
     out: Path,
-    metrics: list[str],
     *,
     realtime: bool,
     speed: float,
@@ -400,9 +401,7 @@ def up_in_namespaces(
     """``covnet up --netns``: build the topology, run :func:`covnet.up.up` in it (``up`` is
     that function, passed in to keep the imports one way), remove the topology, note it in
     ``run.json``.  Returns ``up``'s status (130 on Ctrl-C or SIGTERM, also during set-up);
-    a topology that cannot be built is an :class:`covnet.up.UpError`."""
-    from covnet.up import UpError
-
+    a topology that cannot be built is an :class:`covnet.errors.UpError`."""
     reason = unsupported_reason()
     if reason is not None:
         raise UpError(reason)
@@ -423,10 +422,10 @@ def up_in_namespaces(
                     flush=True,
                 )
                 return up(
+                    kind,
                     sc,
                     config_path,
                     out,
-                    metrics,
                     realtime=realtime,
                     speed=speed,
                     topology=topo,

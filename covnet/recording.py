@@ -57,9 +57,10 @@ from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from covnet import __version__
+from covnet import __version__, kinds
 from covnet import messages as msg
 from covnet.bus import keyexpr_matches
+from covnet.config import hash_of
 
 __all__ = [
     "CHUNK_SIZE",
@@ -267,12 +268,7 @@ class RecordingWriter:
 
 def run_metadata(run_id: str, config: Any | None) -> dict[str, dict[str, str]]:
     """The metadata records of a recording: ``covnet.run`` (and ``covnet.config`` when the
-    :class:`~covnet.config.Scenario` is given)."""
-    from covnet.config import config_hash, normalised
-    from covnet.mobile import config as mobile_config
-
-    if isinstance(config, mobile_config.MobileConfig):
-        config_hash, normalised = mobile_config.config_hash, mobile_config.normalised  # type: ignore[assignment]
+    run's config, of any kind, is given: its normalised form and its hash)."""
     run: dict[str, str] = {
         "run_id": run_id,
         "covnet_version": __version__,
@@ -284,10 +280,11 @@ def run_metadata(run_id: str, config: Any | None) -> dict[str, dict[str, str]]:
     }
     out = {META_RUN: run}
     if config is not None:
+        data = kinds.of(config).normalised(config)
         run.update(
-            {"config_hash": config_hash(config), "scenario": config.name, "seed": str(config.seed)}
+            {"config_hash": hash_of(data), "scenario": config.name, "seed": str(config.seed)}
         )
-        out[META_CONFIG] = {"config.json": json.dumps(normalised(config), sort_keys=True)}
+        out[META_CONFIG] = {"config.json": json.dumps(data, sort_keys=True)}
     return out
 
 

@@ -73,7 +73,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from covnet import messages as msg
-from covnet.config import ConfigError, NetworkSpec, Scenario
+from covnet.config import ConfigError, Networked, NetworkSpec
+from covnet.messages import MANAGER_ID, RECORDER_ID, RESERVED_IDS, WORLD_ID
 
 __all__ = [
     "MANAGER_ID",
@@ -85,13 +86,8 @@ __all__ = [
     "file_problems",
     "preflight",
     "read_credentials",
-    "security_problems",
     "zenoh_settings",
 ]
-
-MANAGER_ID, WORLD_ID, RECORDER_ID = "manager", "world", "recorder"
-RESERVED_IDS = (MANAGER_ID, WORLD_ID, RECORDER_ID)
-"""Node ids of the non-sensor processes (a sensor may not use one when security is on)."""
 
 _ROLES = ("manager", "world", "sensor", "recorder")
 _RUN = "RUN0"  # a placeholder run id, replaced by the wildcard '*' in ACL key expressions
@@ -154,41 +150,6 @@ def _pem_problem(path: Path, what: str) -> str | None:
     return None
 
 
-def security_problems(net: NetworkSpec, sensor_ids: Sequence[str]) -> list[tuple[str, str]]:
-    """``(path, message)`` for every problem in the *shape* of ``network.security`` and the
-    endpoints it governs (empty when all is well). Files are not looked at here, so that a
-    run directory's config stays readable where the keys are gone (``covnet run``, replay):
-    :func:`file_problems` checks them when a process starts and before ``covnet up`` starts any
-    (:func:`preflight`)."""
-    sec = net.security
-    problems: list[tuple[str, str]] = []
-    for field in ("router", "connect"):
-        ep = getattr(net, field)
-        if ep is None:
-            continue
-        proto = ep.partition("/")[0]
-        if sec.tls is not None and proto not in ("tcp", "tls"):
-            problems.append(
-                (f"network.{field}", f"with {_SEC}.tls use a tcp/ or tls/ endpoint, got {ep!r}")
-            )
-        if sec.tls is None and proto == "tls":
-            problems.append((f"network.{field}", f"a tls/ endpoint needs {_SEC}.tls"))
-    if sec.access_control and not sec.authenticated:
-        problems.append(
-            (
-                f"{_SEC}.access_control",
-                f"needs node identities: set {_SEC}.credentials_file and/or {_SEC}.tls",
-            )
-        )
-    if sec.authenticated:
-        for i, sid in enumerate(sensor_ids):
-            if sid in RESERVED_IDS:
-                problems.append(
-                    (f"sensors[{i}].id", f"{sid!r} is a reserved node identity with {_SEC}")
-                )
-    return problems
-
-
 def file_problems(net: NetworkSpec) -> list[tuple[str, str]]:
     """``(path, message)`` for each file named by ``network.security`` that is missing or
     unreadable: the credentials file (parsed), the CA certificate, the certificate directory."""
@@ -223,7 +184,7 @@ def file_problems(net: NetworkSpec) -> list[tuple[str, str]]:
     return problems
 
 
-def preflight(sc: Scenario, names: Sequence[str], source: str = "config") -> None:
+def preflight(sc: Networked, names: Sequence[str], source: str = "config") -> None:
     """Check, before any process starts, that every one of ``names`` (process names as
     ``covnet up`` uses them: ``manager``, ``world``, ``recorder``, sensor ids) will find its
     files, password and certificate on this host; one :class:`ConfigError` lists them all."""

@@ -23,20 +23,18 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from covnet.config import Scenario
+from covnet.errors import UpError
 from covnet.launch import ProcessSpec, Supervisor
+from covnet.netns_launch import NetnsTopology, up_in_namespaces
+from covnet.process import run_option_args
+from covnet.rundir import write_json
 from covnet.security import endpoint, preflight
 
-if TYPE_CHECKING:
-    from covnet.netns_launch import NetnsTopology
+__all__ = ["StatusView", "UpError", "free_port", "process_specs", "resolve_router", "up"]
 
 READY_GRACE_S = 15.0  # on top of network.ready_timeout_s: interpreter start-up, imports
-
-
-class UpError(RuntimeError):
-    """The network could not be brought up or did not finish."""
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -55,65 +53,46 @@ def resolve_router(endpoint: str) -> str:
 
 
 def process_specs(
-    sc: Scenario,
+    kind: Any,
+    cfg: Any,
     config_path: str,
     run_id: str,
     router: str,
     out: Path,
-    metrics: list[str],
     *,
-    seed: int | None,
+    options: dict[str, Any],
     realtime: bool,
     speed: float,
-    solver: str | None = None,
 ) -> list[ProcessSpec]:
-    """The processes of one network.  ``sc`` is a covariance-control :class:`Scenario`, a
-    mobile config (``metrics`` then empty; ``solver``, when given, goes to the manager) or a
-    passive config (``metrics`` empty, no ``solver``)."""
+    """The processes of one network of any kind: ``python -m manager``, ``world``,
+    ``recorder`` (when the run is recorded) and one ``sensors`` per sensor, each given the
+    config, the run id and the same run ``options`` (so every process holds the same config)."""
     py = sys.executable
-    common = ["--config", str(config_path), "--run", run_id]
-    if seed is not None:
-        common += ["--seed", str(seed)]
-    if getattr(sc, "fusion", None) is not None and sc.fusion.mode != "central":
-        common += ["--fusion", sc.fusion.mode]
+    common = ["--config", str(config_path), "--run", run_id, *run_option_args(options)]
     if realtime:
         common += ["--realtime", "--speed", str(speed)]
-    connect = endpoint(sc.network, sc.network.connect or router)
+    connect = endpoint(cfg.network, cfg.network.connect or router)
     specs = [
         ProcessSpec(
-            "manager",
-            [py, "-m", "manager", *common, "--listen", router, "--out", str(out)]
-            + [a for m in metrics for a in ("--metric", m)]
-            + (["--solver", solver] if solver else []),
+            "manager", [py, "-m", "manager", *common, "--listen", router, "--out", str(out)]
         ),
-        ProcessSpec("world", [py, "-m", "covnet.world", *common, "--connect", connect]),
+        ProcessSpec("world", [py, "-m", "world", *common, "--connect", connect]),
     ]
-    if sc.network.record:
+    if cfg.network.record:
+        recording = str(out / "recording.mcap")
         specs.append(
             ProcessSpec(
                 "recorder",
-                [
-                    py,
-                    "-m",
-                    "covnet.recorder",
-                    *common,
-                    "--connect",
-                    connect,
-                    "--out",
-                    str(out / "recording.mcap"),
-                ],
+                [py, "-m", "recorder", *common, "--connect", connect, "--out", recording],
             )
         )
-    restart = sc.network.restart == "on-failure"
-    peer = getattr(sc, "fusion", None) is not None and sc.fusion.mode == "peer"
-    peer_metrics = [a for m in metrics for a in ("--metric", m)]
-    for sid in sc.sensor_ids:
+    restart = cfg.network.restart == "on-failure" and kind.sensors_restartable(cfg)
+    for sid in cfg.sensor_ids:
         specs.append(
             ProcessSpec(
                 sid,
-                [py, "-m", "sensors", *common, "--id", sid, "--connect", connect]
-                + (peer_metrics if peer else []),
-                restart=restart and not peer,  # a peer node's state is not restartable
+                [py, "-m", "sensors", *common, "--id", sid, "--connect", connect],
+                restart=restart,
             )
         )
     return specs
@@ -159,17 +138,15 @@ class StatusView:
             print(text, flush=True)
 
     def update(self, st: dict[str, Any]) -> None:
+        """One manager STATUS line (:func:`manager.loop.run_scans`: the kind's ``info`` and the
+        skeleton's counts)."""
         self.last = st
-        if "info" in st:  # a manager that formats its own line (kind: mobile, passive)
-            info = f"{st['info']}  {st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
-        else:
-            info = (
-                f"scan {st['scan']}/{st['scans']}  enabled {','.join(st['enabled']) or '-'}  "
-                f"tr P {st['trace_P']:.1f} / tr Pd {st['trace_Pd']:.1f}  "
-                f"{st['latency_ms']:.2f} ms  {st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
-            )
-            if st["failed"]:
-                info += f"  failed {','.join(st['failed'])}"
+        info = (
+            f"{st['info']}  {st['latency_ms']:.2f} ms  "
+            f"{st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
+        )
+        if st["failed"]:
+            info += f"  failed {','.join(st['failed'])}"
         done = st["episode"] * st["scans"] + st["scan"]
         if self._progress is not None:
             self._progress.update(self._task, completed=done, metric=st["metric"], info=info)
@@ -181,12 +158,12 @@ class StatusView:
 
 
 def up(
-    sc: Scenario,
+    kind: Any,
+    sc: Any,
     config_path: str,
     out: Path,
-    metrics: list[str],
     *,
-    seed: int | None = None,
+    options: dict[str, Any] | None = None,
     realtime: bool = False,
     speed: float = 1.0,
     run_id: str,
@@ -194,43 +171,41 @@ def up(
     on_ready: Callable[[Supervisor], None] | None = None,
     nodes: list[str] | None = None,
     router: str | None = None,
-    solver: str | None = None,
     netns: bool = False,
     topology: NetnsTopology | None = None,
 ) -> int:
-    """Run the network to completion; returns the manager's exit status (130 on Ctrl-C).
+    """Run the network of ``sc`` (a config of the scenario kind ``kind``, with the run
+    ``options`` already applied; they are passed on to every process) to completion; returns
+    the manager's exit status (130 on Ctrl-C).
 
     ``nodes`` limits which processes this host starts (names: ``manager``, ``world``,
     ``recorder``, ``sensors`` for all sensors, or sensor ids); the others are started
     elsewhere (``python -m sensors ... --connect ROUTER``).  ``router`` overrides
-    ``network.router``.  A mobile config (``kind: mobile``) runs with ``metrics=[]`` and
-    ``solver`` (default: the config's); a passive one (``kind: passive``) with ``metrics=[]``.
+    ``network.router``.
 
     ``netns``: each sensor in its own network namespace, linked to the manager's by an emulated
     link (:mod:`covnet.netns_launch`, which calls back with ``topology``); not with ``nodes``
     or ``router``."""
+    options = options or {}
     if netns:
         if nodes is not None or router is not None:
             raise UpError("--netns runs the whole network here: not with --nodes or --router")
-        from covnet.netns_launch import up_in_namespaces
-
         return up_in_namespaces(
-            up, sc, config_path, out, metrics, seed=seed, realtime=realtime, speed=speed,
-            run_id=run_id, verbose=verbose, on_ready=on_ready, solver=solver,
+            up, kind, sc, config_path, out, options=options, realtime=realtime, speed=speed,
+            run_id=run_id, verbose=verbose, on_ready=on_ready,
         )  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     router = resolve_router(endpoint(sc.network, router or sc.network.router))
     specs = process_specs(
+        kind,
         sc,
         config_path,
         run_id,
         router,
         out,
-        metrics,
-        seed=seed,
+        options=options,
         realtime=realtime,
         speed=speed,
-        solver=solver,
     )
     if topology is not None:  # --netns: each process in its namespace, with its endpoint
         specs, router = topology.apply(specs), topology.listen
@@ -243,7 +218,7 @@ def up(
     if not any(sp.name == "manager" for sp in specs):
         return _supervise_without_manager(specs, out, run_id, router)
     ready = threading.Event()
-    view = StatusView(sc.scans, metrics or [solver or getattr(sc, "solver", "")])
+    view = StatusView(sc.scans, kind.episodes(sc))
 
     def on_line(name: str, text: str) -> None:
         if name == "manager" and text.startswith("STATUS "):
@@ -330,6 +305,4 @@ def _note_restarts(out: Path, restarts: dict[str, int]) -> None:
         return
     summary = json.loads(path.read_text())
     summary["restarts"] = {k: v for k, v in restarts.items() if v}
-    from covnet.results import write_json
-
     write_json(path, summary)

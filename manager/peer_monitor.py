@@ -23,13 +23,13 @@ import numpy as np
 from covnet import messages as msg
 from covnet.bus import Bus
 from covnet.clock import Clock
-from covnet.config import Scenario
 from covnet.core.gaussian import Gaussian, is_spd
 from covnet.core.kalman import nees
-from covnet.model import build_model, truth_trajectory
-from covnet.results import write_json, write_run
+from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.model import build_model, truth_trajectory
+from covnet.covariance_control.results import write_json, write_run
+from covnet.covariance_control.simulate import MetricRun, shared_trajectory
 from covnet.runtime_stats import NetStats
-from covnet.simulate import MetricRun, shared_trajectory
 
 
 @dataclass
@@ -219,6 +219,8 @@ def _report(
         return
     st = sts[0]
     n_msgs = sum(stats.recv_msgs.values())
+    trace_P = float(np.mean([s.trace_P for s in sts]))
+    agree = all(s.enabled == st.enabled for s in sts)
     on_status(
         {
             "metric": metric,
@@ -228,12 +230,17 @@ def _report(
             "enabled": list(st.enabled),
             "fused": sorted({n for s in sts for n in s.fused}, key=ids.index),
             "failed": list(st.failed),
-            "trace_P": float(np.mean([s.trace_P for s in sts])),
+            "trace_P": trace_P,
             "trace_Pd": st.trace_Pd,
             "latency_ms": stats.scan_latency_ns[-1] / 1e6 if stats.scan_latency_ns else 0.0,
             "messages": n_msgs,
             "bytes": sum(stats.recv_bytes.values()),
-            "agree": all(s.enabled == st.enabled for s in sts),
+            "agree": agree,
+            "info": (
+                f"scan {k}/{scans}  enabled {','.join(st.enabled) or '-'}  "
+                f"tr P {trace_P:.1f} / tr Pd {st.trace_Pd:.1f} (node mean)"
+                + ("" if agree else "  NODES DISAGREE")
+            ),
         }
     )
 

@@ -11,24 +11,19 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 from covnet import security
 from covnet.bus import Bus
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
 from covnet.process import EXIT_FAIL, EXIT_OK, open_bus
-from manager.node import wait_for_nodes_to_leave
-
-
-class LoopResult(Protocol):
-    completed: bool
-    error: str | None
+from manager.loop import LoopResult, wait_for_nodes_to_leave
 
 
 @dataclass
 class Hooks:
-    """The callbacks a manager loop takes (see :func:`manager.node.run`)."""
+    """The callbacks a manager loop takes (see :func:`manager.loop.run_scans`)."""
 
     on_ready: Callable[[], None]
     on_status: Callable[[dict[str, Any]], None]

@@ -8,9 +8,10 @@ Every node runs, per metric episode and scan ``k`` (lockstep)::
        every node sees the same set: a node that died before publishing its status is out
        for everyone, one that published it is in for everyone.
     2. the decision: the same deterministic function of shared information on every node,
-       :func:`covnet.decentral.decide_rule` over the *covariance mirror* (every node's fused
-       covariance and every local filter's covariance follow from the config and the agreed
-       enabled sets alone), the failed nodes infeasible, a subset scored by its worst live node.
+       :func:`covnet.covariance_control.decentral.decide_rule` over the *covariance mirror* (every
+       node's fused covariance and every local filter's covariance follow from the config and the
+       agreed enabled sets alone), the failed nodes infeasible, a subset scored by its worst live
+       node.
     3. if enabled: measure (truth from the world), update the local filter, publish its
        LocalTrack on its own measurement key.
     4. collect the LocalTracks of its enabled neighbours (the communication graph of
@@ -37,8 +38,10 @@ import numpy as np
 from covnet import messages as msg
 from covnet.bus import Bus, Sample
 from covnet.clock import Clock
-from covnet.config import Scenario
-from covnet.decentral import (
+from covnet.covariance_control.centre import as_local_track, usable_track
+from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.decentral import (
+    LocalFilter,
     Mirror,
     decide_rule,
     fuse_tracks,
@@ -46,10 +49,8 @@ from covnet.decentral import (
     neighbours,
     reach_matrix,
 )
-from covnet.model import build_model, initial_estimate, measure, predict_step
+from covnet.covariance_control.model import build_model, initial_estimate, measure, predict_step
 from covnet.node_kit import Heartbeat, ManagerWatch
-from manager.node import as_local_track, usable_track
-from sensors.node import LocalFilter
 
 
 @dataclass

@@ -27,7 +27,7 @@ def paper_path() -> Path:
 
 @pytest.fixture(scope="session")
 def paper():
-    from covnet.config import load
+    from covnet.covariance_control.config import load
 
     return load(PAPER)
 

@@ -26,9 +26,9 @@ Two implementations return the same :class:`Allocation`:
 including the PSD check of every gain, the support of the reduced form, the per-subset sums of the
 reduced information, the subset masks and, for small ``Ns``, every subset's exact ``J_i``) is
 built once by :func:`prepare` into an :class:`AllocationPlan`; a running filter passes the plan to
-:func:`allocate` at every scan (:class:`covnet.model.Model` holds it), leaving only the
-``P_pred`` / ``P_d`` dependent work per decision.  Passing the gains array still works: a plan is
-then prepared inside the call.
+:func:`allocate` at every scan (:class:`covnet.covariance_control.model.Model` holds it), leaving
+only the ``P_pred`` / ``P_d`` dependent work per decision.  Passing the gains array still works: a
+plan is then prepared inside the call.
 
 **What is checked where.**  :func:`prepare`: gains shape, finiteness, symmetry, positive
 semi-definiteness; constraint indices, exclusive sets, budget.  Every :func:`allocate` call:

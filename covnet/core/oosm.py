@@ -20,10 +20,11 @@ a deterministic function of the prior at the oldest buffered scan and of the mea
 values ``z``.  Re-filtering recomputes that function with the completed set ``M_k``, through the
 same calls (:func:`covnet.core.kalman.predict`, :func:`covnet.core.kalman.update_sequential` with
 the measurements sorted by sensor index) that the in-order path uses
-(:func:`covnet.model.predict_step`, :func:`covnet.model.fuse`).  The same floating-point
-operations on the same operands in the same order give the same bits: the result equals the
-in-order run bit for bit, whatever order the late measurements came in.  (Only the order *within*
-a scan could change the rounding, and the canonical ascending order removes that.)
+(:func:`covnet.covariance_control.model.predict_step`,
+:func:`covnet.covariance_control.model.fuse`).  The same floating-point operations on the same
+operands in the same order give the same bits: the result equals the in-order run bit for bit,
+whatever order the late measurements came in.  (Only the order *within* a scan could change the
+rounding, and the canonical ascending order removes that.)
 
 **Cost.**  An OOSM of lag ``L = m − k`` costs ``L + 1`` scan updates (``|M_s|`` Joseph updates
 each) and ``L`` predictions: ``O(depth · Ns)`` small ``n × n`` matrix products at most, with ``Ns``
@@ -78,7 +79,8 @@ def filter_scan(
     scan: int, prior: Gaussian, measurements: Iterable[Measurement], H: Mat
 ) -> ScanRecord:
     """The record of one scan: ``post = update(prior, M)`` with sequential Joseph updates in
-    ascending sensor index, exactly as :func:`covnet.model.fuse` does it (same calls, same order).
+    ascending sensor index, exactly as :func:`covnet.covariance_control.model.fuse` does it (same
+    calls, same order).
     """
     ordered = tuple(sorted(measurements, key=lambda m: m[0]))
     post = update_sequential(prior, [(z, H, R) for _, z, R in ordered])
@@ -92,8 +94,9 @@ class ReFilterBuffer:
     result is exact).
 
     The pushed records must chain: each one's scan is the previous one's plus one, and its prior is
-    ``predict(previous.post, F, Q)`` (the in-order path's :func:`covnet.model.predict_step`); the
-    prior of the oldest buffered record is taken as given.
+    ``predict(previous.post, F, Q)`` (the in-order path's
+    :func:`covnet.covariance_control.model.predict_step`); the prior of the oldest buffered record
+    is taken as given.
     """
 
     def __init__(self, F: Mat, Q: Mat, H: Mat, depth: int) -> None:
@@ -184,5 +187,5 @@ class ReFilterBuffer:
 
     def predicted(self) -> Gaussian:
         """``x(m+1|m), P(m+1|m) = predict(latest.post, F, Q)``: the prior of the next scan, the same
-        bits as :func:`covnet.model.predict_step` of the latest posterior."""
+        bits as :func:`covnet.covariance_control.model.predict_step` of the latest posterior."""
         return predict(self.latest.post, self.F, self.Q)

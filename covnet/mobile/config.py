@@ -1,9 +1,10 @@
 """The ``mobile`` config (``configs/mobile.yaml``): YAML -> validated, frozen pydantic records.
 
-A file is a mobile config when its top level says ``kind: mobile`` (:func:`peek_kind` reads
-that without validating anything else).  Like :mod:`covnet.config`: scalars are strict, unknown
-keys are errors, and every problem of a stage is reported with its path in one
-:class:`~covnet.config.ConfigError` (``sensors[2].speed_mps: must be >= 0, got -1.0``).
+A file is a mobile config when its top level says ``kind: mobile``.  It goes through the loader
+pipeline every kind shares (:func:`covnet.config.validate`): scalars are strict, unknown keys
+are errors, the network table and its security are checked as for every kind, and every problem
+of a stage is reported with its path in one :class:`~covnet.config.ConfigError`
+(``sensors[2].speed_mps: must be >= 0, got -1.0``).
 
 Names follow spec §2.1/§7 with units in the key where there is one::
 
@@ -24,15 +25,30 @@ Names follow spec §2.1/§7 with units in the key where there is one::
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
-from pydantic import Field, Strict, ValidationError, field_validator
+from pydantic import Field, field_validator
 
-from covnet.config import ConfigError, Float, Int, NetworkSpec, Str, _fmt_error, _Model, hash_of
+from covnet.config import (
+    Bool,
+    ConfigModel,
+    Float,
+    Ident,
+    Int,
+    NetworkSpec,
+    Pair,
+    Quad,
+    Str,
+    duplicate_id_problems,
+    hash_of,
+    non_negative,
+    positive,
+    read_yaml,
+    validate,
+)
+from covnet.config import normalised as _normalised
 from covnet.core.mobile.decision import SOLVERS
 
 __all__ = [
@@ -44,31 +60,15 @@ __all__ = [
     "from_dict",
     "load",
     "normalised",
-    "peek_kind",
     "with_overrides",
 ]
 
 KIND = "mobile"
-Bool = Annotated[bool, Strict()]
-Pair = Annotated[tuple[Float, ...], Field(min_length=2, max_length=2)]
-Quad = Annotated[tuple[Float, ...], Field(min_length=4, max_length=4)]
-Row2 = Annotated[tuple[Float, ...], Field(min_length=2, max_length=2)]
-Ident = Annotated[Str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
+Row2 = Pair
+_ge0, _gt0 = non_negative, positive
 
 
-def _ge0(v: float) -> float:
-    if not v >= 0:
-        raise ValueError(f"must be >= 0, got {v}")
-    return v
-
-
-def _gt0(v: float) -> float:
-    if not v > 0:
-        raise ValueError(f"must be > 0, got {v}")
-    return v
-
-
-class MilpSpec(_Model):
+class MilpSpec(ConfigModel):
     """The exact solver: HiGHS time limit (s), relative gap, linking form."""
 
     time_limit_s: Float = 60.0
@@ -85,7 +85,7 @@ class MilpSpec(_Model):
         return v
 
 
-class WeightsSpec(_Model):
+class WeightsSpec(ConfigModel):
     """Importance weights: accuracy ``alpha``, usage ``beta``, missed detection ``gamma``."""
 
     alpha: Float = 1.0
@@ -95,7 +95,7 @@ class WeightsSpec(_Model):
     _pos = field_validator("alpha", "beta", "gamma")(_gt0)
 
 
-class DetectionSpec(_Model):
+class DetectionSpec(ConfigModel):
     """Bell detection ``Pd = PD / (1 + |(d − c)/a|^{2b})``, ``d`` in units of ``r_pd_m``."""
 
     PD: Float = 0.95
@@ -114,7 +114,7 @@ class DetectionSpec(_Model):
         return v
 
 
-class MobileFilterSpec(_Model):
+class MobileFilterSpec(ConfigModel):
     """Filter start ``x̂0 = x0 + N(0, P0)``, ``P0 = diag(P0_diag)`` [m², m²/s², m², m²/s²]."""
 
     P0_diag: Quad = (25.0, 0.25, 25.0, 0.25)
@@ -127,7 +127,7 @@ class MobileFilterSpec(_Model):
         return v
 
 
-class MobileTargetSpec(_Model):
+class MobileTargetSpec(ConfigModel):
     """One target ``x = [px, vx, py, vy]``: constant velocity with white acceleration
     ``sigma_a_mps2`` by default, or its own ``A`` (4×4) and ``B`` (4×2)."""
 
@@ -140,7 +140,7 @@ class MobileTargetSpec(_Model):
     _q = field_validator("sigma_a_mps2")(_ge0)
 
 
-class MobileSensorSpec(_Model):
+class MobileSensorSpec(ConfigModel):
     """A sensor on a platform: start position, speed, base noise (``sigma0_m``: ``R0 = σ² I``,
     or a full ``R0_m2``), detection scale ``r_pd_m``, usage cost ``b0`` (+ ``b1`` when moving),
     capacity (targets per scan; ``null`` for none)."""
@@ -170,7 +170,7 @@ class MobileSensorSpec(_Model):
         return self.sigma0_m**2 * np.eye(2)
 
 
-class MobileConfig(_Model):
+class MobileConfig(ConfigModel):
     """A whole mobile scenario (spec §8.1 by default values where it gives them)."""
 
     kind: Literal["mobile"]
@@ -230,12 +230,8 @@ def _semantic_problems(cfg: MobileConfig) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
     if cfg.solver not in SOLVERS:
         problems.append(("solver", f"unknown solver {cfg.solver!r}; choose from {sorted(SOLVERS)}"))
-    for what, ids in (("targets", cfg.target_ids), ("sensors", cfg.sensor_ids)):
-        seen: set[str] = set()
-        for i, name in enumerate(ids):
-            if name in seen:
-                problems.append((f"{what}[{i}].id", f"duplicate id {name!r}"))
-            seen.add(name)
+    problems += duplicate_id_problems(cfg.target_ids, "targets", "target")
+    problems += duplicate_id_problems(cfg.sensor_ids, "sensors", "sensor")
     for j, s in enumerate(cfg.sensors):
         if (s.sigma0_m is None) == (s.R0_m2 is None):
             problems.append((f"sensors[{j}]", "give exactly one of 'sigma0_m' or 'R0_m2'"))
@@ -248,63 +244,24 @@ def _semantic_problems(cfg: MobileConfig) -> list[tuple[str, str]]:
     return problems
 
 
-def peek_kind(path: str | Path) -> str | None:
-    """The top-level ``kind`` of a YAML file, or ``None`` (unreadable, not a mapping, absent).
-
-    The CLI uses it to route ``covnet run FILE`` to the mobile runner."""
-    try:
-        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError):
-        return None
-    if isinstance(data, Mapping) and isinstance(data.get("kind"), str):
-        return str(data["kind"])
-    return None
-
-
-def from_dict(data: object, source: str = "<dict>") -> MobileConfig:
-    """Validate a parsed mapping; raise :class:`ConfigError` listing every problem."""
-    if not isinstance(data, Mapping):
-        raise ConfigError(source, [("", "the top level must be a mapping of keys to values")])
-    if data.get("kind") != KIND:
-        got = data.get("kind")
-        raise ConfigError(
-            source,
-            [("kind", f"a mobile config needs 'kind: {KIND}' at the top level, got {got!r}")],
-        )
-    try:
-        cfg = MobileConfig.model_validate(dict(data))
-    except ValidationError as exc:
-        raise ConfigError(source, [_fmt_error(e) for e in exc.errors()]) from None
-    problems = _semantic_problems(cfg)
-    if problems:
-        raise ConfigError(source, problems)
-    return cfg
+def from_dict(
+    data: object, source: str = "<dict>", base_dir: str | Path | None = None
+) -> MobileConfig:
+    """Validate a parsed mapping; raise :class:`~covnet.config.ConfigError` listing every
+    problem (the shared pipeline, :func:`covnet.config.validate`)."""
+    return validate(MobileConfig, data, source, base_dir, _semantic_problems)
 
 
 def load(path: str | Path) -> MobileConfig:
-    """Read and validate a mobile YAML file."""
+    """Read and validate a mobile YAML file (:func:`covnet.kinds.load` reads any kind)."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(str(p), [("", f"not valid YAML: {where}{problem}")]) from None
-    return from_dict(data, str(p))
+    return from_dict(read_yaml(p), str(p), base_dir=p.parent)
 
 
 def normalised(cfg: MobileConfig) -> dict[str, Any]:
     """The config with every default filled in, as plain JSON-able data (``network`` only when
     it differs from the defaults, so that configs without it keep their hash)."""
-    data = cfg.model_dump(mode="json")
-    if cfg.network == NetworkSpec():
-        del data["network"]
-    return data
+    return _normalised(cfg, ("network",))
 
 
 def config_hash(cfg: MobileConfig) -> str:

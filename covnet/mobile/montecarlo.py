@@ -4,7 +4,8 @@ Each seed is one in-process run (:func:`covnet.mobile.simulate.run`) in a worker
 (``concurrent.futures.ProcessPoolExecutor``, *spawn* context, one worker per core by default),
 summarised there (:func:`covnet.mobile.results.summarise`, without the per-decision lists), and
 sent back as a small dict.  The results are ordered by seed whatever order the workers finish
-in, so ``montecarlo.json`` depends only on the config and the seeds (the wall times inside aside).
+in, so ``montecarlo.json`` depends only on the config and the seeds; the wall times (each seed's
+decision times and their medians over seeds) go to ``run.json``.
 
 Aggregates (``aggregate``): for every scalar metric of the per-run summary, the mean, standard
 deviation (ddof = 0), min and max over seeds; the optimality counts are pooled over all decisions
@@ -23,9 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from covnet import __version__
 from covnet.mobile.config import MobileConfig, config_hash, from_dict, normalised
-from covnet.mobile.results import WORSE_TOL, summarise
-from covnet.results import write_json
+from covnet.mobile.results import WORSE_TOL, decision_times, summarise
+from covnet.rundir import RUN_INFO, utc_now, write_json
 
 MC_FILE = "montecarlo.json"
 #: progress(done, total, seed) after each finished seed
@@ -33,7 +35,9 @@ McProgress = Callable[[int, int, int], None]
 
 
 def run_seed(cfg_data: Mapping[str, Any], seed: int, solver: str | None) -> dict[str, Any]:
-    """One seed in a worker: validate, simulate, summarise (top level so it pickles)."""
+    """One seed in a worker: validate, simulate, summarise (top level so it pickles); the
+    summary, with the seed's decision times under ``decision_time_s`` (:func:`split_timing`
+    takes them out)."""
     from covnet.mobile.simulate import run
 
     cfg = from_dict({**cfg_data, "seed": seed}, f"seed {seed}")
@@ -43,7 +47,16 @@ def run_seed(cfg_data: Mapping[str, Any], seed: int, solver: str | None) -> dict
     if opt is not None:
         per = opt.pop("per_decision")
         opt["gaps"] = [g for g in per["gap"] if g is not None]
+    s["decision_time_s"] = decision_times(r)
     return s
+
+
+def split_timing(
+    rows: Sequence[Mapping[str, Any]],
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """``(summaries, decision times)`` of :func:`run_seed`'s rows."""
+    summaries = [{k: v for k, v in r.items() if k != "decision_time_s"} for r in rows]
+    return summaries, [dict(r["decision_time_s"]) for r in rows]
 
 
 def default_workers() -> int:
@@ -120,10 +133,6 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "mode_conflicts_resolved": int(
             sum(r["decisions"]["mode_conflicts_resolved"] for r in rows)
         ),
-        "decision_time_median_s": {
-            part: float(np.median([r["decision_time_s"][part]["median"] for r in rows]))
-            for part in first.get("decision_time_s", {})
-        },
     }
     if all("optimality" in r for r in rows):
         gaps = np.concatenate([np.asarray(r["optimality"]["gaps"], dtype=np.float64) for r in rows])
@@ -145,8 +154,24 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 def write_mc(
     out_dir: Path, cfg: MobileConfig, seeds: Sequence[int], rows: Sequence[Mapping[str, Any]]
 ) -> dict[str, Any]:
-    """Write ``montecarlo.json`` (config hash, seeds, aggregate, per-seed summaries)."""
+    """Write ``montecarlo.json`` (config hash, seeds, aggregate, per-seed summaries: what the
+    config and seeds determine) and ``run.json`` (the wall clock: each seed's decision times
+    and the median over seeds of each part's median)."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    rows, times = split_timing(rows)
+    parts = times[0] if times else {}
+    write_json(
+        out_dir / RUN_INFO,
+        {
+            "created_utc": utc_now(),
+            "covnet_version": __version__,
+            "kind": "mobile-montecarlo",
+            "decision_time_median_s": {
+                part: float(np.median([t[part]["median"] for t in times])) for part in parts
+            },
+            "decision_time_s": dict(zip((str(s) for s in seeds), times, strict=True)),
+        },
+    )
     doc = {
         "kind": "mobile-montecarlo",
         "scenario": cfg.name,

@@ -26,7 +26,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
-from covnet.results import load_arrays  # noqa: E402
+from covnet.rundir import load_arrays  # noqa: E402
 
 FIGURE = "fig_mobile_trajectories.png"
 SENSOR_COLORS = (

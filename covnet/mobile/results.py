@@ -13,23 +13,21 @@
     optimality:     (with compare_exact) decisions, share_lp_post_worse, mean_gap, max_gap,
                     conflicts_resolved, mean_integrality_gap, exact_not_optimal,
                     per_decision: J_lp, J_lp_post, J_star, J_relax, gap, conflicts
-    decision_time_s: cost_tensor, solver, comparison: {mean, median, p95} (wall clock;
-                    comparison: the other solver and the relaxation, with compare_exact)
 
 "Second half" is scans ``K//2 + 1 .. K``.  A missed detection is a (target, scan) without a
 detection, unobserved targets included; "given assigned" counts only the assigned ones.
 Relative gaps are ``(J_LP+post − J*) / |J*|``; a decision counts as worse when its gap exceeds
 1e-9.  The integrality gap is ``(J* − J_relax) / |J*|``.
 
-Everything but ``decision_time_s`` (and ``run.json``) is a function of the config and the seed.
-Files are written to a temporary name and renamed (:func:`covnet.results.write_json`).
+``summary.json`` is a function of the config and the seed alone; the wall-clock facts go to
+``run.json``: ``decision_time_s`` (``cost_tensor``, ``solver``, ``comparison``: ``{mean,
+median, p95}``; comparison: the other solver and the relaxation, with ``compare_exact``),
+creation time, version.  Files are written to a temporary name and renamed
+(:mod:`covnet.rundir`).
 """
 
 from __future__ import annotations
 
-import json
-import os
-import time
 from pathlib import Path
 from typing import Any
 
@@ -38,12 +36,17 @@ import numpy as np
 from covnet import __version__
 from covnet.mobile.config import MobileConfig, config_hash, normalised
 from covnet.mobile.simulate import MobileRun
-from covnet.results import write_json
+from covnet.rundir import (
+    ARRAYS,
+    CONFIG,
+    RUN_INFO,
+    SUMMARY,
+    read_json,
+    utc_now,
+    write_json,
+    write_npz,
+)
 
-SUMMARY = "summary.json"
-ARRAYS = "arrays.npz"
-CONFIG = "config.json"
-RUN_INFO = "run.json"
 WORSE_TOL = 1e-9
 
 
@@ -78,9 +81,8 @@ def _target_block(err2: np.ndarray, missed: np.ndarray, assigned: np.ndarray) ->
     }
 
 
-def summarise(cfg: MobileConfig, run: MobileRun, timing: bool = True) -> dict[str, Any]:
-    """The content of ``summary.json`` for one run (``timing=False`` leaves out the wall times,
-    which are the only part that is not a function of config and seed)."""
+def summarise(cfg: MobileConfig, run: MobileRun) -> dict[str, Any]:
+    """The content of ``summary.json`` for one run: a function of config and seed alone."""
     e = run.x_est[1:] - run.truth[1:]
     err2 = e[..., 0] ** 2 + e[..., 2] ** 2  # (K, M)
     missed = ~run.detected
@@ -138,37 +140,42 @@ def summarise(cfg: MobileConfig, run: MobileRun, timing: bool = True) -> dict[st
                 "conflicts": [int(v) for v in run.conflicts],
             },
         }
-    if timing:
-        t = {"cost_tensor": _stats(run.cost_s), "solver": _stats(run.solve_s)}
-        if done.any():
-            t["comparison"] = _stats(run.compare_s[done])
-        summary["decision_time_s"] = t
     return summary
 
 
-def write_run(out_dir: Path, cfg: MobileConfig, run: MobileRun) -> dict[str, Any]:
-    """Write the run directory; return the summary."""
+def decision_times(run: MobileRun) -> dict[str, dict[str, float]]:
+    """``run.json``'s ``decision_time_s``: the wall times of the decision's parts."""
+    t = {"cost_tensor": _stats(run.cost_s), "solver": _stats(run.solve_s)}
+    done = np.isfinite(run.J_star)
+    if done.any():
+        t["comparison"] = _stats(run.compare_s[done])
+    return t
+
+
+def write_run(
+    out_dir: Path, cfg: MobileConfig, run: MobileRun, run_info: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Write the run directory (``run_info`` replaces ``run.json``'s defaults); return the
+    summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = summarise(cfg, run)
     arrays = run.arrays()
     arrays["target_ids"] = np.array(cfg.target_ids)
     arrays["sensor_ids"] = np.array(cfg.sensor_ids)
-    tmp = out_dir / (ARRAYS + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
-    os.replace(tmp, out_dir / ARRAYS)
+    write_npz(out_dir / ARRAYS, arrays)
     write_json(out_dir / CONFIG, normalised(cfg))
-    write_json(
-        out_dir / RUN_INFO,
-        {
-            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "covnet_version": __version__,
-            "mode": "in-process",
-            "kind": "mobile",
-        },
-    )
+    info: dict[str, Any] = {
+        "created_utc": utc_now(),
+        "covnet_version": __version__,
+        "mode": "in-process",
+        "kind": "mobile",
+        "decision_time_s": decision_times(run),
+    }
+    write_json(out_dir / RUN_INFO, {**info, **(run_info or {})})
     write_json(out_dir / SUMMARY, summary)
     return summary
 
 
 def load_summary(run_dir: Path) -> dict[str, Any]:
-    return json.loads((run_dir / SUMMARY).read_text())  # type: ignore[no-any-return]
+    summary: dict[str, Any] = read_json(run_dir / SUMMARY)
+    return summary

@@ -1,9 +1,10 @@
 """``configs/passive.yaml``: passive association configs -> validated, frozen records.
 
-A passive config is identified by its top-level key ``kind: passive``.  Validation works like
-:mod:`covnet.config` (and reuses its :class:`~covnet.config.ConfigError` and path formatting):
-unknown keys are errors, scalars are strict, and every problem is reported together with its
-path, e.g. ``montecarlo.methods[1]: unknown method 'lp'; choose from [...]``.
+A passive config is identified by its top-level key ``kind: passive``.  It goes through the
+loader pipeline every kind shares (:func:`covnet.config.validate`): unknown keys are errors,
+scalars are strict, the network table and its security are checked as for every kind, and every
+problem is reported together with its path, e.g. ``montecarlo.methods[1]: unknown method 'lp';
+choose from [...]``.
 
 Sections: ``sensors`` (exactly three; the third is the reference of the height test),
 ``targets`` (formation, spacing d, centre, altitude), ``noise`` (σ_α, σ_ε in mrad),
@@ -16,24 +17,28 @@ left out of :func:`normalised`, so configs without them keep their hash.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, Strict, ValidationError, field_validator
+from pydantic import Field, field_validator
 
 from covnet.config import (
-    ConfigError,
+    Bool,
+    ConfigModel,
     Float,
+    Ident,
     Int,
     NetworkSpec,
+    Pair,
     Str,
-    _fmt_error,
-    _Model,
+    duplicate_id_problems,
     hash_of,
+    positive,
     read_yaml,
+    validate,
 )
+from covnet.config import normalised as _normalised
 from covnet.core.passive.methods import METHODS
 from covnet.core.passive.model import AssocParams
 from covnet.passive.scene import FORMATIONS, SceneModel, formation
@@ -43,33 +48,25 @@ __all__ = [
     "PassiveConfig",
     "config_hash",
     "from_dict",
-    "is_passive",
     "load",
     "normalised",
     "with_overrides",
 ]
 
 KIND = "passive"
-Bool = Annotated[bool, Strict()]
 Triple = Annotated[tuple[Float, ...], Field(min_length=3, max_length=3)]
-Pair = Annotated[tuple[Float, ...], Field(min_length=2, max_length=2)]
 FormationName = Literal["horizontal", "cross"]
+_positive = positive
 
 
-def _positive(v: float) -> float:
-    if not v > 0:
-        raise ValueError(f"must be > 0, got {v}")
-    return v
-
-
-class PassiveSensorSpec(_Model):
+class PassiveSensorSpec(ConfigModel):
     """One passive sensor: id and position ``(x, y, z)`` km (x east, y north, z up)."""
 
-    id: Str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    id: Ident
     position_km: Triple
 
 
-class TargetsSpec(_Model):
+class TargetsSpec(ConfigModel):
     """The paper's five targets: ``formation`` with spacing ``d`` around ``center_km``."""
 
     formation: FormationName = "cross"
@@ -80,7 +77,7 @@ class TargetsSpec(_Model):
     _pos = field_validator("spacing_km")(_positive)
 
 
-class NoiseSpec(_Model):
+class NoiseSpec(ConfigModel):
     """Additive Gaussian angle noise, std in mrad (the paper: σ_α = σ_ε = σ_s)."""
 
     sigma_azimuth_mrad: Float = 3.0
@@ -89,7 +86,7 @@ class NoiseSpec(_Model):
     _pos = field_validator("sigma_azimuth_mrad", "sigma_elevation_mrad")(_positive)
 
 
-class ClutterSpec(_Model):
+class ClutterSpec(ConfigModel):
     """The clutter-on setting (spec §3): per (target, sensor) detection probability, Poisson
     false returns per sensor and scan, uniform in ``window_rad`` (azimuth, elevation) around
     the direction of the formation centroid.  ``enabled``: use it for single scans
@@ -122,7 +119,7 @@ class ClutterSpec(_Model):
         return v
 
 
-class LRSpec(_Model):
+class LRSpec(ConfigModel):
     """Lagrangian relaxation (spec §8.3)."""
 
     max_iterations: Int = Field(default=100, ge=1, le=100_000)
@@ -131,11 +128,11 @@ class LRSpec(_Model):
     halve_after: Int = Field(default=5, ge=0)
 
 
-class MILPSpec(_Model):
+class MILPSpec(ConfigModel):
     time_limit_s: Float = Field(default=10.0, gt=0.0)
 
 
-class AssociationSpec(_Model):
+class AssociationSpec(ConfigModel):
     """The association method (a ``METHODS`` name) and the parameters of every method."""
 
     method: Str = "cot"
@@ -148,7 +145,7 @@ class AssociationSpec(_Model):
     milp: MILPSpec = MILPSpec()
 
 
-class MonteCarloSpec(_Model):
+class MonteCarloSpec(ConfigModel):
     """The evaluation grid of spec §9 (every combination is one cell)."""
 
     trials: Int = Field(default=100, ge=1, le=1_000_000)
@@ -160,7 +157,7 @@ class MonteCarloSpec(_Model):
     workers: Int = Field(default=0, ge=0, le=1024)
 
 
-class PassiveConfig(_Model):
+class PassiveConfig(ConfigModel):
     """A whole passive association config (``kind: passive``)."""
 
     kind: Literal["passive"]
@@ -234,11 +231,7 @@ class PassiveConfig(_Model):
 
 def _semantic_problems(cfg: PassiveConfig) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
-    seen: set[str] = set()
-    for i, s in enumerate(cfg.sensors):
-        if s.id in seen:
-            problems.append((f"sensors[{i}].id", f"duplicate sensor id {s.id!r}"))
-        seen.add(s.id)
+    problems += duplicate_id_problems(cfg.sensor_ids, "sensors", "sensor")
     pos = cfg.sensor_positions
     for i in range(3):
         for j in range(i + 1, 3):
@@ -287,56 +280,25 @@ def _semantic_problems(cfg: PassiveConfig) -> list[tuple[str, str]]:
     return problems
 
 
-def from_dict(data: object, source: str = "<dict>") -> PassiveConfig:
-    """Validate a parsed passive config; raise :class:`ConfigError` listing every problem."""
-    if not isinstance(data, Mapping):
-        raise ConfigError(source, [("", "the top level must be a mapping of keys to values")])
-    kind = data.get("kind")
-    if kind != KIND:
-        got = "missing" if kind is None else f"got {kind!r}"
-        raise ConfigError(
-            source, [("kind", f"expected {KIND!r} (a passive association config), {got}")]
-        )
-    try:
-        cfg = PassiveConfig.model_validate(dict(data))
-    except ValidationError as exc:
-        raise ConfigError(source, [_fmt_error(e) for e in exc.errors()]) from None
-    problems = _semantic_problems(cfg)
-    if problems:
-        raise ConfigError(source, problems)
-    return cfg
-
-
-def _read_yaml(path: str | Path) -> tuple[Path, object]:
-    return Path(path), read_yaml(path)
+def from_dict(
+    data: object, source: str = "<dict>", base_dir: str | Path | None = None
+) -> PassiveConfig:
+    """Validate a parsed passive config; raise :class:`~covnet.config.ConfigError` listing
+    every problem (the shared pipeline, :func:`covnet.config.validate`)."""
+    return validate(PassiveConfig, data, source, base_dir, _semantic_problems)
 
 
 def load(path: str | Path) -> PassiveConfig:
-    """Read and validate a passive YAML config."""
-    p, data = _read_yaml(path)
-    return from_dict(data, str(p))
-
-
-def is_passive(path: str | Path) -> bool:
-    """Does the YAML file at ``path`` declare ``kind: passive``? (False when unreadable: the
-    caller's own loader then reports the problem.)"""
-    try:
-        _, data = _read_yaml(path)
-    except ConfigError:
-        return False
-    return isinstance(data, Mapping) and data.get("kind") == KIND
+    """Read and validate a passive YAML config (:func:`covnet.kinds.load` reads any kind)."""
+    p = Path(path)
+    return from_dict(read_yaml(p), str(p), base_dir=p.parent)
 
 
 def normalised(cfg: PassiveConfig) -> dict[str, Any]:
     """The config with every default filled in, as plain JSON-able data (``scans`` only when
     not 1 and ``network`` only when it differs from the defaults: configs without them keep
     their hash)."""
-    data = cfg.model_dump(mode="json")
-    if cfg.scans == 1:
-        del data["scans"]
-    if cfg.network == NetworkSpec():
-        del data["network"]
-    return data
+    return _normalised(cfg, ("scans", "network"))
 
 
 def config_hash(cfg: PassiveConfig) -> str:

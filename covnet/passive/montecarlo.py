@@ -32,6 +32,7 @@ import numpy as np
 from covnet.core.passive.methods import METHODS
 from covnet.passive.config import PassiveConfig, config_hash, normalised
 from covnet.passive.scene import draw, score
+from covnet.rundir import atomic_write, write_json
 
 __all__ = [
     "RESULTS",
@@ -241,7 +242,6 @@ def write_results(
 ) -> dict[str, Any]:
     """Write ``results.json``, ``results.md`` and ``config.json`` (atomically); return the
     results document."""
-    from covnet.results import _atomic_write, write_json
 
     out_dir.mkdir(parents=True, exist_ok=True)
     doc: dict[str, Any] = {
@@ -260,6 +260,6 @@ def write_results(
         f"Times are medians per scan on {facts['machine']['processor']} "
         f"({facts['workers']} worker processes); compare methods by ratios only.\n\n"
     )
-    _atomic_write(out_dir / TABLE, (title + table_markdown(rows)).encode())
+    atomic_write(out_dir / TABLE, (title + table_markdown(rows)).encode())
     write_json(out_dir / RESULTS, doc)
     return doc

@@ -86,7 +86,7 @@ CASES: dict[str, tuple[list[str], dict[str, bool]]] = {
         {"summary.json": False, "arrays.npz": False},
     ),
     "run-paper-peer": (
-        ["run", "configs/paper.yaml", "--fusion", "peer", "--metric", "spectral"],
+        ["run", "configs/paper.yaml", "--fusion", "peer"],
         {"summary.json": False, "arrays.npz": False},
     ),
     "run-latency": (["run", "configs/latency.yaml"], {"summary.json": False, "arrays.npz": False}),

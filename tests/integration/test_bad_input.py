@@ -15,7 +15,7 @@ import yaml
 
 from covnet import messages as msg
 from covnet.cli import main as covnet_main
-from covnet.results import load_arrays
+from covnet.rundir import load_arrays
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 

@@ -14,7 +14,7 @@ import yaml
 from multiproc import CovnetProcess, assert_nothing_left
 
 from covnet.cli import main as covnet_main
-from covnet.results import load_arrays
+from covnet.rundir import load_arrays
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 

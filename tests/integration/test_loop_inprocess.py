@@ -10,11 +10,11 @@ import pytest
 
 from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
-from covnet.config import with_overrides
-from covnet.simulate import run_metric
-from covnet.world import node as world_node
-from manager import node as manager_node
-from sensors import node as sensor_node
+from covnet.covariance_control.config import with_overrides
+from covnet.covariance_control.simulate import run_metric
+from manager import covariance as manager_node
+from sensors import covariance as sensor_node
+from world import covariance as world_node
 
 
 def run_network(sc, metrics, *, kill_after_scan=None, victim=None):

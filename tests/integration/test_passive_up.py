@@ -14,15 +14,15 @@ from multiproc import REPO, assert_nothing_left
 from nodethreads import NodeThreads
 
 from covnet import messages as msg
+from covnet.cli import main
 from covnet.clock import WallClock
 from covnet.passive.associate import scan_record
-from covnet.passive.cli_entry import scene_cmd
 from covnet.passive.config import load, with_overrides
-from covnet.passive.nodes import manager as manager_node
-from covnet.passive.nodes import sensor as sensor_node
-from covnet.passive.nodes import world as world_node
 from covnet.passive.scene import draw
-from sensors.node import serve
+from manager import passive as manager_node
+from sensors import passive as sensor_node
+from sensors.protocol import serve
+from world import passive as world_node
 
 PASSIVE = REPO / "configs" / "passive.yaml"
 # what two runs of the same lists must agree on (wall times excluded)
@@ -105,7 +105,7 @@ def test_in_process_network_equals_run(tmp_path):
         for t, p in zip(mine, r["positions_km"], strict=True):
             assert t.x.tolist() == p and np.all(np.linalg.eigvalsh(t.P) > 0)
     # scan 1 is what `covnet run` associates for the same seed
-    assert scene_cmd(PASSIVE, tmp_path / "scene", seed=11) == 0
+    assert main(["run", str(PASSIVE), "--out", str(tmp_path / "scene"), "--seed", "11"]) == 0
     ref = json.loads((tmp_path / "scene" / "association.json").read_text())
     _assert_same_scan(result.scans[0], ref)
     for sid in cfg.sensor_ids:

@@ -13,11 +13,11 @@ from nodethreads import NodeThreads
 from covnet import messages as msg
 from covnet.bus import InMemoryBus
 from covnet.clock import WallClock
-from covnet.config import from_dict, normalised
-from covnet.simulate_decentral import run_peer
-from covnet.world import node as world_node
+from covnet.covariance_control.config import from_dict, normalised
+from covnet.covariance_control.decentral_sim import run_peer
 from manager import peer_monitor
 from sensors import peer
+from world import covariance as world_node
 
 pytestmark = pytest.mark.timeout(120)
 RUN = "t"

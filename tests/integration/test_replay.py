@@ -21,16 +21,16 @@ from multiproc import CovnetProcess, assert_nothing_left
 from covnet import messages as msg
 from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
-from covnet.config import with_overrides
+from covnet.covariance_control.config import with_overrides
+from covnet.covariance_control.replay import RECORDING, replay_run
+from covnet.covariance_control.results import write_network_run
 from covnet.launch import ProcessSpec, Supervisor
-from covnet.recorder import node as recorder_node
 from covnet.recording import RecordingReader, RecordingWriter, read_metadata, run_metadata
-from covnet.replay import RECORDING, replay_run
-from covnet.results import load_arrays
-from covnet.world import node as world_node
-from manager import node as manager_node
-from manager.report import write_network_run
-from sensors import node as sensor_node
+from covnet.rundir import load_arrays
+from manager import covariance as manager_node
+from recorder import node as recorder_node
+from sensors import covariance as sensor_node
+from world import covariance as world_node
 
 RUN = "t"
 
@@ -192,7 +192,9 @@ def test_flipped_measurement_bytes_are_caught(recorded_run, tmp_path):
             return s.payload
         pos = s.payload.index(raw)  # z's float64 data inside the array ext
         b = bytearray(s.payload)
-        b[pos] ^= 0x01  # the last bit of z[0, 0]'s mantissa: still a valid, finite number
+        # bit 40 of z[0, 0]'s mantissa (little-endian: byte 5): a relative change of 2^-12, still
+        # a valid, finite number.  (The last bit alone can vanish in the RMSE's rounding.)
+        b[pos + 5] ^= 0x01
         return bytes(b)
 
     _rewrite(src / RECORDING, run / RECORDING, flip)
@@ -274,13 +276,13 @@ def _free_endpoint() -> str:
 def test_recorder_process_records_everything_and_closes_the_file_on_a_signal(
     tmp_path, paper_path, sig
 ):
-    """``python -m covnet.recorder`` against a router held by the test: it declares its token,
+    """``python -m recorder`` against a router held by the test: it declares its token,
     records valid and malformed payloads, and on SIGINT/SIGTERM exits 0 with a finished file."""
     from covnet.zenoh_bus import ZenohBus, zenoh_config
 
     endpoint, run = _free_endpoint(), msg.new_run_id()
     out = tmp_path / "rec.mcap"
-    argv = [sys.executable, "-m", "covnet.recorder", "--config", str(paper_path)]
+    argv = [sys.executable, "-m", "recorder", "--config", str(paper_path)]
     argv += ["--run", run, "--connect", endpoint, "--out", str(out)]
     published: list[tuple[str, bytes]] = []
     with ZenohBus.open(zenoh_config("router", listen=[endpoint])) as bus:

@@ -23,8 +23,8 @@ from multiproc import REPO, CovnetProcess
 
 from covnet import messages as msg
 from covnet.cli import main as covnet_main
-from covnet.config import load, normalised
-from covnet.results import load_arrays
+from covnet.covariance_control.config import load, normalised
+from covnet.rundir import load_arrays
 from covnet.security import zenoh_settings
 from covnet.up import free_port
 from covnet.zenoh_bus import ZenohBus, zenoh_config

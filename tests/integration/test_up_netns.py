@@ -23,7 +23,7 @@ from covnet.core.delay import DelayDist, LinkSpec
 from covnet.launch import ProcessSpec
 from covnet.netem.detect import run_ip
 from covnet.netns_launch import NetnsTopology, SensorLink, scaled, unsupported_reason
-from covnet.results import load_arrays
+from covnet.rundir import load_arrays
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
@@ -192,7 +192,7 @@ def test_link_specs_scale_with_speed_and_processes_are_placed():
     topo.links["S1"] = SensorLink("S1", 0, "cvn1s1", "10.77.0.1", "10.77.0.2", *[ideal] * 4)
     specs = [
         ProcessSpec("manager", ["py", "-m", "manager", "--listen", "tcp/127.0.0.1:1"]),
-        ProcessSpec("world", ["py", "-m", "covnet.world", "--connect", "tcp/127.0.0.1:1"]),
+        ProcessSpec("world", ["py", "-m", "world", "--connect", "tcp/127.0.0.1:1"]),
         ProcessSpec("S1", ["py", "-m", "sensors", "--connect", "tcp/127.0.0.1:1"], restart=True),
     ]
     got = {sp.name: sp for sp in topo.apply(specs)}

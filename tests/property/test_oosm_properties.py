@@ -1,5 +1,6 @@
 """Out-of-sequence measurements re-filtered through :class:`ReFilterBuffer` give exactly the
-in-order run of :func:`covnet.model.fuse` / :func:`covnet.model.predict_step`.
+in-order run of :func:`covnet.covariance_control.model.fuse` /
+:func:`covnet.covariance_control.model.predict_step`.
 
 A random multi-scan run of the paper's CV model with random enable patterns; a random subset of
 the measurements misses its scan's deadline and arrives some scans later, the late ones inserted
@@ -21,8 +22,8 @@ from covnet.core.gaussian import Gaussian
 from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_noise
 from covnet.core.oosm import ReFilterBuffer
 from covnet.core.sensing import correlated_noise, position_matrix
-from covnet.experiments.bench_allocation import PAPER_TABLE
-from covnet.model import Model, build_model, fuse, predict_step
+from covnet.covariance_control.bench_allocation import PAPER_TABLE
+from covnet.covariance_control.model import Model, build_model, fuse, predict_step
 
 T, SIGMA_A = 1.0, 0.5
 F = cv_transition(T)
@@ -97,7 +98,7 @@ def test_refilter_equals_in_order_run(model, seed, scans, depth, p_on, p_late):
                 assert out is buf.latest.post  # the new latest posterior, compared below
             assert (out is None) == (k - s >= depth)
 
-    # in order: every measurement that was not dropped, through covnet.model's own path
+    # in order: every measurement that was not dropped, through the model's own path
     full = {k: list(v) for k, v in meas.items()}
     for arrivals in late.values():
         for s, j, z, Rj in arrivals:

@@ -22,7 +22,7 @@ from covnet.core.allocation import (
     subset_covariance,
 )
 from covnet.core.metrics import METRICS
-from covnet.experiments.bench_allocation import PAPER_TABLE, paper_like_gains, paper_problems
+from covnet.covariance_control.bench_allocation import PAPER_TABLE, paper_like_gains, paper_problems
 
 D1 = np.diag([25.0, 1.4, 25.0, 1.4])
 D2 = np.diag([7.0, 0.8, 7.0, 0.8])

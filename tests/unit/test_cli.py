@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from covnet.cli import main
-from covnet.plots import FIGURES
-from covnet.results import load_arrays
+from covnet.covariance_control.plots import FIGURES
+from covnet.rundir import load_arrays
 
 
 @pytest.fixture(scope="module")
@@ -154,9 +154,9 @@ def test_bench_rejects_bad_sensor_list(capsys):
 def test_bench_routes_to_the_scenario_benchmarks(monkeypatch, target):
     import importlib
 
-    mod = importlib.import_module(f"covnet.{target}.cli_entry")
+    mod = importlib.import_module(f"covnet.{target}.commands")
     calls = []
-    monkeypatch.setattr(mod, "bench_cmd", lambda json_out, **kw: calls.append(json_out) or 0)
+    monkeypatch.setattr(mod, "bench_run", lambda json_out, **kw: calls.append(json_out) or 0)
     assert main(["bench", target, "--json"]) == 0
     assert calls == [True]
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from covnet.cli import main
-from covnet.compare import MODES, Trial, compare, scenario_for, summarise
-from covnet.config import from_dict, load, normalised
+from covnet.covariance_control.compare import MODES, Trial, compare, scenario_for, summarise
+from covnet.covariance_control.config import from_dict, load, normalised
 
 
 @pytest.fixture(scope="module")

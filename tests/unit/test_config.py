@@ -7,7 +7,8 @@ import copy
 import pytest
 import yaml
 
-from covnet.config import ConfigError, config_hash, from_dict, load, normalised
+from covnet.config import ConfigError
+from covnet.covariance_control.config import config_hash, from_dict, load, normalised
 
 
 @pytest.fixture()

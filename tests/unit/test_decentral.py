@@ -1,6 +1,7 @@
-"""Decentralized modes in one process (covnet.decentral, covnet.simulate_decentral): the
-information rule reproduces the central filter, the CI allocator is the plain loop, peer nodes
-agree and their covariances are what every node's mirror predicts, runs are deterministic."""
+"""Decentralized modes in one process (covnet.covariance_control.decentral,
+covnet.covariance_control.decentral_sim): the information rule reproduces the central filter, the CI
+allocator is the plain loop, peer nodes agree and their covariances are what every node's mirror
+predicts, runs are deterministic."""
 
 from __future__ import annotations
 
@@ -11,13 +12,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from covnet import kinds
 from covnet.cli import main
-from covnet.config import ConfigError, from_dict, load, normalised, with_run_overrides
+from covnet.config import ConfigError
 from covnet.core.allocation import Constraints
 from covnet.core.fusion import covariance_intersection
 from covnet.core.gaussian import Gaussian
 from covnet.core.metrics import get_metric
-from covnet.decentral import (
+from covnet.covariance_control.config import from_dict, load, normalised
+from covnet.covariance_control.decentral import (
     Mirror,
     decide_rule,
     feasible_subsets,
@@ -25,9 +28,9 @@ from covnet.decentral import (
     neighbours,
     reach_matrix,
 )
-from covnet.model import build_model
-from covnet.simulate import run_metric
-from covnet.simulate_decentral import run_centre, run_mode, run_peer
+from covnet.covariance_control.decentral_sim import run_centre, run_mode, run_peer
+from covnet.covariance_control.model import build_model
+from covnet.covariance_control.simulate import run_metric
 
 
 def _scenario(paper_path, scans=30, seed=None, **fusion):
@@ -51,7 +54,7 @@ def _rel(a, b):
 @pytest.mark.parametrize("metric", ["spectral", "abs_trace", "svd"])
 def test_info_rule_reproduces_the_central_filter(paper_path, metric):
     central = _scenario(paper_path, scans=100)
-    info = with_run_overrides(central, fusion="info")
+    info = kinds.apply_options(kinds.of(central), central, "paper", fusion="info")
     a = run_metric(central, metric)
     b = run_centre(info, metric)
     # the spec's near-ties at scans 1-2: compare the decisions from scan 3 on
@@ -62,7 +65,7 @@ def test_info_rule_reproduces_the_central_filter(paper_path, metric):
 
 def test_info_peer_on_a_full_graph_is_central_at_every_node(paper_path):
     central = _scenario(paper_path, scans=40)
-    peer = with_run_overrides(central, fusion="peer")
+    peer = kinds.apply_options(kinds.of(central), central, "paper", fusion="peer")
     assert peer.fusion.peer.graph == "full" and peer.fusion.rule == "info"
     ref = run_metric(central, "spectral")
     nodes = run_peer(peer, "spectral")
@@ -233,7 +236,6 @@ def test_cli_run_with_each_fusion_mode(paper_path, tmp_path, capsys):
 
 
 def test_cli_rejects_an_unknown_fusion_mode(paper_path, capsys):
-    with pytest.raises(SystemExit) as exc:
-        main(["run", str(paper_path), "--fusion", "gossip"])
-    assert exc.value.code == 2
-    assert "--fusion" in capsys.readouterr().err
+    assert main(["run", str(paper_path), "--fusion", "gossip"]) == 2
+    err = capsys.readouterr().err
+    assert "--fusion: unknown fusion mode 'gossip'" in err and "central" in err

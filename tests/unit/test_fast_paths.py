@@ -1,6 +1,6 @@
 """The throughput shortcuts of ``covnet up`` change costs, never results: the recorder's
 ``peek`` reads what a strict decode reads, a sensor's noise table draws what
-``covnet.model.measure`` draws, bit for bit."""
+``covnet.covariance_control.model.measure`` draws, bit for bit."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from covnet import messages as msg
-from covnet.model import build_model, measure, truth_trajectory
+from covnet.covariance_control.model import build_model, measure, truth_trajectory
 from covnet.recording import peek
-from sensors.node import NoiseTable
+from sensors.covariance import NoiseTable
 
 
 def _paper_messages() -> list[msg.Message]:
@@ -66,8 +66,13 @@ def test_noise_table_is_measure_bit_for_bit(paper):
 
 
 def test_manager_fuses_with_gains_computed_ahead_bit_for_bit(paper):
-    from covnet.model import fuse, fused_covariance, initial_estimate, predict_step
-    from manager.node import _fuse_with_gains, _Gains
+    from covnet.covariance_control.centre import Gains, fuse_with_gains
+    from covnet.covariance_control.model import (
+        fuse,
+        fused_covariance,
+        initial_estimate,
+        predict_step,
+    )
 
     model = build_model(paper)
     ids = model.sensor_ids
@@ -76,7 +81,7 @@ def test_manager_fuses_with_gains_computed_ahead_bit_for_bit(paper):
     for k in range(1, 30):
         pred = predict_step(model, est)
         subset = tuple(sorted(rng.choice(len(ids), size=int(rng.integers(0, 6)), replace=False)))
-        gains = _Gains.of(model, pred.P, subset)
+        gains = Gains.of(model, pred.P, subset)
         expected_P = fused_covariance(model, pred.P, [(j, model.R[j]) for j in subset])
         assert gains.P_post.tobytes() == expected_P.tobytes()
         got = {
@@ -91,11 +96,11 @@ def test_manager_fuses_with_gains_computed_ahead_bit_for_bit(paper):
             for j in reversed(subset)  # arrival order does not matter
         }
         est = fuse(model, pred, [(ids.index(s), m.z[0], m.R) for s, m in got.items()])
-        fast = _fuse_with_gains(gains, model, pred, got, ids)
+        fast = fuse_with_gains(gains, model, pred, got, ids)
         assert fast is not None
         assert fast.x.tobytes() == est.x.tobytes() and fast.P.tobytes() == est.P.tobytes()
         if subset:  # one missing, or another R: not the gains it needs
-            assert _fuse_with_gains(gains, model, pred, dict(list(got.items())[1:]), ids) is None
+            assert fuse_with_gains(gains, model, pred, dict(list(got.items())[1:]), ids) is None
             first = ids[subset[0]]
             other = {
                 **got,
@@ -108,4 +113,4 @@ def test_manager_fuses_with_gains_computed_ahead_bit_for_bit(paper):
                     t_sent_ns=1,
                 ),
             }
-            assert _fuse_with_gains(gains, model, pred, other, ids) is None
+            assert fuse_with_gains(gains, model, pred, other, ids) is None

@@ -242,7 +242,7 @@ def test_candidates_equal_one_at_a_time(objective):
 def test_candidates_paper_like_problem():
     """The bench's problem (paper sensors, a few local scans): candidates == one at a time, and
     a candidate is never larger (det) than the prior alone."""
-    from covnet.experiments.bench_fusion import paper_problem
+    from covnet.covariance_control.bench_fusion import paper_problem
 
     P_prior, P_local = paper_problem(8)
     masks = all_masks(8)

@@ -1,6 +1,6 @@
-"""Latency experiments (covnet.latency_sim, covnet.sweep): ideal links are the plain run, the
-counts add up, out-of-sequence re-filtering equals in-order processing, loss-aware allocation,
-determinism, the sweep's files and the CLI."""
+"""Latency experiments (covnet.covariance_control.latency_sim, covnet.covariance_control.sweep):
+ideal links are the plain run, the counts add up, out-of-sequence re-filtering equals in-order
+processing, loss-aware allocation, determinism, the sweep's files and the CLI."""
 
 from __future__ import annotations
 
@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 
 from covnet.cli import main
-from covnet.config import ConfigError, from_dict, load, normalised
-from covnet.decentral import measurement_from_track
-from covnet.latency_sim import delivery_probabilities, run_latency
-from covnet.model import build_model, truth_trajectory
-from covnet.simulate import run_metric
-from covnet.simulate_decentral import run_centre
-from covnet.sweep import grid, link_for, point_scenario, sweep
+from covnet.config import ConfigError
+from covnet.covariance_control.config import from_dict, load, normalised
+from covnet.covariance_control.decentral import measurement_from_track
+from covnet.covariance_control.decentral_sim import run_centre
+from covnet.covariance_control.latency_sim import delivery_probabilities, run_latency
+from covnet.covariance_control.model import build_model, truth_trajectory
+from covnet.covariance_control.simulate import run_metric
+from covnet.covariance_control.sweep import grid, link_for, point_scenario, sweep
 
 
 def _sc(paper_path, scans=40, mode="central", **latency):
@@ -75,7 +76,13 @@ def test_refiltered_late_measurements_give_the_in_order_filter(paper_path):
     """Every measurement 1.5 periods late (deadline 0.8 T): scan k's measurements arrive before
     scan k+1's deadline and are re-filtered into scan k, so the estimate at scan k+1's deadline
     (nothing on time) is the prediction of the in-order posterior of scan k, bit for bit."""
-    from covnet.model import fuse, initial_estimate, measure, predict_step, truth_trajectory
+    from covnet.covariance_control.model import (
+        fuse,
+        initial_estimate,
+        measure,
+        predict_step,
+        truth_trajectory,
+    )
 
     sc = _sc(paper_path, scans=30, uplink=_link(1.5, kind="constant"), late="oosm")
     run, counts = run_latency(sc, "spectral")
@@ -110,8 +117,8 @@ def test_measurement_recovered_from_a_local_track(paper_path):
 
 def test_loss_aware_allocation_is_the_allocation_with_noisier_sensors(paper_path):
     """Scaling J_j by p_j is allocating as if R_j were R_j / p_j: the two decide alike."""
-    from covnet.latency_sim import loss_aware_model
-    from covnet.model import decide
+    from covnet.covariance_control.latency_sim import loss_aware_model
+    from covnet.covariance_control.model import decide
 
     sc = _sc(paper_path, uplink=_link(0.0, 0.5), downlink=_link(0.0, 0.0))
     p = delivery_probabilities(sc)

@@ -8,7 +8,8 @@ import pytest
 from covnet import messages as msg
 from covnet.bus import InMemoryBus, Sample
 from covnet.clock import SimClock
-from manager.node import _Loop, usable_position, usable_track
+from covnet.covariance_control.centre import usable_position, usable_track
+from manager.loop import Loop as _Loop
 
 RUN = "r1"
 

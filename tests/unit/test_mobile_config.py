@@ -8,8 +8,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from covnet import kinds
 from covnet.config import ConfigError
-from covnet.mobile.config import config_hash, from_dict, load, peek_kind, with_overrides
+from covnet.mobile.config import config_hash, from_dict, load, with_overrides
 
 MOBILE = Path(__file__).resolve().parents[2] / "configs" / "mobile.yaml"
 
@@ -44,12 +45,21 @@ def test_scenario_file_has_the_spec_values():
 
 
 def test_kind_identifies_the_file(tmp_path):
-    assert peek_kind(MOBILE) == "mobile"
-    assert peek_kind(Path(__file__).resolve().parents[2] / "configs" / "paper.yaml") is None
-    assert peek_kind(tmp_path / "missing.yaml") is None
+    """The kind registry decides the kind from one parse of the file; an unreadable file or
+    bad YAML is a ConfigError naming it (not a guess)."""
+    assert kinds.load(MOBILE)[0].name == "mobile"
+    paper = Path(__file__).resolve().parents[2] / "configs" / "paper.yaml"
+    assert kinds.load(paper)[0].name == "covariance_control"
+    with pytest.raises(ConfigError, match="cannot read file"):
+        kinds.load(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("kind: [unclosed\n")
-    assert peek_kind(bad) is None
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        kinds.load(bad)
+    unknown = tmp_path / "unknown.yaml"
+    unknown.write_text("kind: radar\n")
+    with pytest.raises(ConfigError, match="unknown scenario kind 'radar'"):
+        kinds.load(unknown)
 
 
 def test_hash_and_overrides(raw):

@@ -1,4 +1,4 @@
-"""The in-process mobile run end to end: run_cmd, results, figure, determinism in and across
+"""The in-process mobile run end to end: covnet run, results, figure, determinism in and across
 processes, failed sensors, too little capacity, unobservable targets, Monte Carlo, bench."""
 
 from __future__ import annotations
@@ -12,9 +12,12 @@ import numpy as np
 import pytest
 import yaml
 
+from covnet import kinds
+from covnet.cli import main
 from covnet.config import ConfigError
+from covnet.errors import UsageError
 from covnet.mobile import bench
-from covnet.mobile.cli_entry import bench_cmd, mc_cmd, run_cmd
+from covnet.mobile.commands import bench_run, mc_run
 from covnet.mobile.config import from_dict, load
 from covnet.mobile.model import build_model, decide, initial_tracks
 from covnet.mobile.montecarlo import aggregate, run_seeds
@@ -48,6 +51,14 @@ def assert_same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> None:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
+def run_cmd(cfg_path: Path, out: Path, solver: str | None, seed: int | None) -> int:
+    """``covnet run CFG --out OUT [--solver S] [--seed N]``."""
+    argv = ["run", str(cfg_path), "--out", str(out)]
+    argv += ["--solver", solver] if solver else []
+    argv += ["--seed", str(seed)] if seed is not None else []
+    return main(argv)
+
+
 @pytest.mark.parametrize("solver", ["lp", "milp"])
 def test_run_cmd_end_to_end(tmp_path, capsys, solver):
     cfg_path = write_cfg(tmp_path, short(12))
@@ -68,25 +79,29 @@ def test_run_cmd_end_to_end(tmp_path, capsys, solver):
     opt = s["optimality"]
     assert opt["decisions"] == 12 and len(opt["per_decision"]["J_star"]) == 12
     assert opt["max_gap"] >= -1e-9
-    assert set(s["decision_time_s"]) == {"cost_tensor", "solver", "comparison"}
+    assert "decision_time_s" not in s  # wall-clock facts go to run.json
+    info = json.loads((out / "run.json").read_text())
+    assert set(info["decision_time_s"]) == {"cost_tensor", "solver", "comparison"}
+    stored = json.loads((out / "config.json").read_text())  # what the run used, options included
+    assert (stored["solver"], stored["seed"]) == (solver, 3)
     with np.load(out / "arrays.npz") as arr:
         assert arr["modes"].shape == (12, 4) and arr["x_est"].shape == (13, 3, 4)
     text = capsys.readouterr().out
     assert "run directory:" in text and "optimality:" in text and "figure:" in text
-    from covnet.cli import UsageError
-
-    with pytest.raises(UsageError, match="not empty"):
-        run_cmd(cfg_path, out, solver, 3)
+    assert "decision time (median)" in text
+    assert run_cmd(cfg_path, out, solver, 3) == 2
+    assert "not empty" in capsys.readouterr().err
 
 
 def test_run_cmd_bad_config_raises_config_error(tmp_path):
     bad = short(5)
     bad["sensors"][0]["speed_mps"] = -2.0
     with pytest.raises(ConfigError) as info:
-        run_cmd(write_cfg(tmp_path, bad), tmp_path / "o", None, None)
+        kinds.load(write_cfg(tmp_path, bad))
     assert ("sensors[0].speed_mps", "must be >= 0, got -2.0") in info.value.problems
-    with pytest.raises(ConfigError, match="unknown solver"):
-        run_cmd(write_cfg(tmp_path, short(5)), tmp_path / "o2", "simplex", None)
+    kind, cfg = kinds.load(write_cfg(tmp_path, short(5)))
+    with pytest.raises(UsageError, match="--solver: unknown solver"):
+        kinds.apply_options(kind, cfg, "short", solver="simplex")
 
 
 _CHILD = """
@@ -109,7 +124,7 @@ def test_determinism_in_process_and_across_processes(tmp_path):
     subprocess.run([sys.executable, "-c", _CHILD, str(cfg_path), str(out)], check=True, cwd=REPO)
     with np.load(out) as child:
         assert_same(a, {k: child[k] for k in child.files})
-    assert summarise(cfg, run(cfg), timing=False) == summarise(cfg, run(cfg), timing=False)
+    assert summarise(cfg, run(cfg)) == summarise(cfg, run(cfg))  # no wall-clock inside
 
 
 def test_lp_and_milp_share_the_truth_and_the_start():
@@ -176,14 +191,14 @@ def test_montecarlo_pool_equals_in_process(tmp_path, capsys):
         <= (agg["overall"]["missed_detection_rate"]["mean"])
     )
     out = tmp_path / "mc"
-    assert mc_cmd(write_cfg(tmp_path, short(4)), out, 2, True, workers=1) == 0
+    assert mc_run(load(write_cfg(tmp_path, short(4))), out, 2, True, workers=1) == 0
     doc = json.loads((out / "montecarlo.json").read_text())
     assert doc["seeds"] == [0, 1] and len(doc["per_seed"]) == 2
     captured = capsys.readouterr()
     assert "seed   1 done (2/2" in captured.err and "Monte Carlo:" in captured.out
     calls: list[tuple[int, int, int]] = []
     cb = lambda d, n, s: calls.append((d, n, s))  # noqa: E731
-    assert mc_cmd(write_cfg(tmp_path, short(3)), tmp_path / "mc2", 1, cb, workers=1) == 0
+    assert mc_run(load(write_cfg(tmp_path, short(3))), tmp_path / "mc2", 1, cb, workers=1) == 0
     assert calls == [(1, 1, 0)] and capsys.readouterr().err == ""
 
 
@@ -194,10 +209,10 @@ def test_bench_rows_and_command(monkeypatch, capsys):
     assert row["closed_form_ms"] is None and row["lp_post_worse"] in (0, 1)
     original = bench.run
     monkeypatch.setattr(bench, "run", lambda **kw: original(sensors=(4,), targets=(3,), **kw))
-    assert bench_cmd(False, problems=1, repeat=1) == 0
+    assert bench_run(False, problems=1, repeat=1) == 0
     text = capsys.readouterr().out
     assert "goal: whole decision" in text and "goal: closed form" in text
-    assert bench_cmd(True, milp=False, problems=1, repeat=1) == 0
+    assert bench_run(True, milp=False, problems=1, repeat=1) == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert len(lines) == 3 and "goals" in lines[-1] and lines[0]["milp_ms"] is None
 
@@ -205,8 +220,6 @@ def test_bench_rows_and_command(monkeypatch, capsys):
 def test_covnet_cli_routes_mobile_configs(tmp_path, capsys):
     """`covnet run FILE --solver` and `covnet mc` reach the mobile runner; `--metric` on a
     mobile file is a usage error (for `covnet up` too: tests/integration/test_mobile_up.py)."""
-    from covnet.cli import main
-
     cfg_path = write_cfg(tmp_path, short(8))
     assert (
         main(
@@ -218,4 +231,4 @@ def test_covnet_cli_routes_mobile_configs(tmp_path, capsys):
     assert main(["run", str(cfg_path), "--metric", "svd", "--out", str(tmp_path / "x")]) == 2
     capsys.readouterr()
     assert main(["up", str(cfg_path), "--metric", "svd", "--out", str(tmp_path / "u")]) == 2
-    assert "no allocation metric" in capsys.readouterr().err
+    assert "--metric: a mobile scenario does not take this option" in capsys.readouterr().err

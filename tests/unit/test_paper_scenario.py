@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from covnet.config import with_overrides
-from covnet.model import build_model
-from covnet.simulate import run_metric
+from covnet.covariance_control.config import with_overrides
+from covnet.covariance_control.model import build_model
+from covnet.covariance_control.simulate import run_metric
 
 METRICS = ("spectral", "abs_trace", "svd")
 
@@ -85,7 +85,7 @@ def test_model_holds_one_plan_per_constraint_set(paper):
     """build_model prepares the allocation plan once; decide passes it, and run-time failures get
     a plan per constraint set, prepared once and kept in ``model.plans``."""
     from covnet.core.allocation import allocate_exhaustive
-    from covnet.model import decide, predict_cov
+    from covnet.covariance_control.model import decide, predict_cov
 
     model = build_model(paper)
     assert model.plans == {model.constraints: model.plan}

@@ -1,5 +1,5 @@
-"""The command entry points: ``mc_cmd`` end to end (tiny grid, process pool), ``scene_cmd``,
-``bench_cmd``, and their errors."""
+"""The passive commands: ``covnet mc`` end to end (tiny grid, process pool), ``covnet run`` (one
+scene), ``covnet bench passive``, and their errors."""
 
 from __future__ import annotations
 
@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 import yaml
 
-from covnet.config import ConfigError
+from covnet.cli import main
 from covnet.core.passive import METHODS, Association
+from covnet.errors import UsageError
 from covnet.passive import bench
-from covnet.passive.cli_entry import bench_cmd, mc_cmd, scene_cmd
+from covnet.passive.commands import bench_run, mc_run
+from covnet.passive.config import load
 
 REPO = Path(__file__).resolve().parents[2]
 PASSIVE = REPO / "configs" / "passive.yaml"
@@ -55,7 +57,7 @@ def test_mc_cmd_end_to_end(tmp_path, capsys):
     cfg = _tiny(tmp_path)
     seen = []
     out = tmp_path / "mc"
-    assert mc_cmd(cfg, out, None, lambda d, n, label: seen.append((d, n, label))) == 0
+    assert mc_run(load(cfg), out, None, lambda d, n, label: seen.append((d, n, label))) == 0
     assert [s[:2] for s in seen] == [(1, 2), (2, 2)]
     doc = json.loads((out / "results.json").read_text())
     assert doc["trials"] == 2 and doc["workers"] == 2 and doc["cells"] == 2
@@ -88,27 +90,29 @@ def test_mc_trials_override_and_a_user_method(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(METHODS, "null", null)
     cfg = _tiny(tmp_path, workers=1, methods=["null", "cot"], clutter=[False])
     out = tmp_path / "mc"
-    assert mc_cmd(cfg, out, 3, False) == 0
+    assert mc_run(load(cfg), out, 3, False) == 0
     doc = json.loads((out / "results.json").read_text())
     assert doc["trials"] == 3
     null_row = next(r for r in doc["rows"] if r["method"] == "null")
     assert null_row["p"] == 0.0 and null_row["exact_scan_rate"] == 0.0
 
 
-def test_mc_errors(tmp_path):
-    with pytest.raises(ConfigError, match="--trials"):
-        mc_cmd(PASSIVE, tmp_path / "x", 0, False)
-    with pytest.raises(ConfigError, match="kind: expected 'passive'"):
-        mc_cmd(REPO / "configs" / "paper.yaml", tmp_path / "x", 1, False)
+def test_mc_errors(tmp_path, capsys):
+    with pytest.raises(UsageError, match="--trials"):
+        mc_run(load(PASSIVE), tmp_path / "x", 0, False)
+    assert main(["mc", str(REPO / "configs" / "paper.yaml"), "--out", str(tmp_path / "x")]) == 2
+    assert "mc: a Monte Carlo protocol is not defined for a covariance-control scenario" in (
+        capsys.readouterr().err
+    )
     f = tmp_path / "file"
     f.write_text("")
-    with pytest.raises(ConfigError, match="not a directory"):
-        mc_cmd(_tiny(tmp_path), f, 1, False)
+    with pytest.raises(UsageError, match="not a directory"):
+        mc_run(load(_tiny(tmp_path)), f, 1, False)
 
 
 def test_scene_cmd_writes_results_and_figure(tmp_path, capsys):
     out = tmp_path / "scene"
-    assert scene_cmd(PASSIVE, out, 5) == 0
+    assert main(["run", str(PASSIVE), "--out", str(out), "--seed", "5"]) == 0
     doc = json.loads((out / "association.json").read_text())
     assert doc["seed"] == 5 and doc["method"] == "cot"
     assert len(doc["measurements"]) == 3
@@ -118,20 +122,23 @@ def test_scene_cmd_writes_results_and_figure(tmp_path, capsys):
         if ok:
             assert np.linalg.norm(np.array(p) - targets[t]) < 0.1
     assert (out / "scene.png").stat().st_size > 1000
+    assert "time_s" not in doc  # wall-clock facts go to run.json
+    assert json.loads((out / "run.json").read_text())["association_time_s"] > 0
+    assert json.loads((out / "config.json").read_text())["seed"] == 5
     assert "run directory" in capsys.readouterr().out
-    with pytest.raises(ConfigError, match="--seed"):
-        scene_cmd(PASSIVE, out, -1)
+    assert main(["run", str(PASSIVE), "--out", str(tmp_path / "neg"), "--seed", "-1"]) == 2
+    assert "--seed: must be >= 0" in capsys.readouterr().err
 
 
 def test_bench_cmd(monkeypatch, capsys):
     monkeypatch.setattr(bench, "DEFAULT_SCANS", 1)
-    assert bench_cmd(json_out=True) == 0
+    assert bench_run(json_out=True) == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     rows, summary = lines[:-1], lines[-1]["summary"]
     assert {r["method"] for r in rows} == set(METHODS)
     assert summary["scenes"] == 24 and summary["scans_per_scene"] == 1
     assert summary["ratio_lr_over_cot_d_ge_1"] > 0
-    assert bench_cmd(json_out=False) == 0
+    assert bench_run(json_out=False) == 0
     text = capsys.readouterr().out
     assert "goal (cot >= 3x faster than lr for d >= 1 km)" in text
 
@@ -140,14 +147,10 @@ def test_covnet_cli_routes_passive_configs(tmp_path, capsys):
     """`covnet run` draws and associates one scan; `covnet mc` runs the protocol;
     `covnet up` runs it (tests/integration/test_passive_up.py) and refuses the options of
     the other kinds."""
-    from pathlib import Path
-
-    from covnet.cli import main
-
-    cfg = Path(__file__).resolve().parents[2] / "configs" / "passive.yaml"
+    cfg = PASSIVE
     assert main(["run", str(cfg), "--out", str(tmp_path / "scene")]) == 0
     assert (tmp_path / "scene" / "association.json").is_file()
     assert main(["up", str(cfg), "--metric", "trace"]) == 2
-    assert "no allocation metric" in capsys.readouterr().err
+    assert "--metric: a passive scenario does not take this option" in capsys.readouterr().err
     assert main(["up", str(cfg), "--solver", "lp"]) == 2
-    assert "association.method" in capsys.readouterr().err
+    assert "--solver: a passive scenario does not take this option" in capsys.readouterr().err

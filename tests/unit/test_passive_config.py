@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
+from covnet import kinds
 from covnet.config import ConfigError
-from covnet.passive.config import config_hash, from_dict, is_passive, load
+from covnet.passive.config import config_hash, from_dict, load
 
 REPO = Path(__file__).resolve().parents[2]
 PASSIVE = REPO / "configs" / "passive.yaml"
@@ -41,8 +42,8 @@ def test_passive_yaml_has_the_spec_setup():
     assert m.p_detect == 1.0 and m.clutter_rate == 0.0 and m.sigma_azimuth[0] == 5e-3
     p = cfg.assoc_params(cfg.scene_model(clutter=True))
     assert p.clutter_density == pytest.approx(25.0) and not p.complete_only
-    assert is_passive(PASSIVE)
-    assert not is_passive(REPO / "configs" / "paper.yaml")
+    assert kinds.load(PASSIVE)[0].name == "passive"
+    assert kinds.load(REPO / "configs" / "paper.yaml")[0].name == "covariance_control"
 
 
 def test_hash_is_stable_and_sensitive(raw):

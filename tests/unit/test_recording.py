@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 
 from covnet import messages as msg
 from covnet.bus import InMemoryBus, keyexpr_matches
-from covnet.config import config_hash
+from covnet.covariance_control.config import config_hash
 from covnet.recording import (
     META_CONFIG,
     META_RUN,

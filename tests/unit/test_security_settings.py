@@ -11,7 +11,8 @@ import yaml
 
 from covnet import messages as msg
 from covnet.bus import keyexpr_matches
-from covnet.config import ConfigError, config_hash, from_dict, load, normalised
+from covnet.config import ConfigError
+from covnet.covariance_control.config import config_hash, from_dict, load, normalised
 from covnet.security import (
     access_control,
     endpoint,
@@ -88,7 +89,7 @@ def test_relative_paths_resolve_against_the_config_file(paper, lab, tmp_path_fac
     assert sec.tls.verify_name is True
     assert "security" in normalised(sc)["network"]
     # a copy with overrides (what --seed does) keeps the resolved paths
-    from covnet.config import with_overrides
+    from covnet.covariance_control.config import with_overrides
 
     assert with_overrides(sc, seed=5).network.security == sec
 

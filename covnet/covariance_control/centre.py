@@ -1,0 +1,277 @@
+"""The fusion centre of a covariance-control network: its filter, in every fusion mode and
+over ideal or slow links, and its log.
+
+The manager's loop (:mod:`manager.covariance`) and ``covnet replay``
+(:mod:`covnet.covariance_control.replay`) both step :class:`CentreFilter`, so a replay
+recomputes exactly what the manager did; both log into :class:`EpisodeLog` and write the run
+directory from the same :class:`ManagerResult` (:func:`covnet.covariance_control.results.
+write_network_run`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from covnet import messages as msg
+from covnet.core.allocation import Allocation
+from covnet.core.fusion import LocalTrack
+from covnet.core.gaussian import Gaussian, is_spd
+from covnet.core.kalman import gain_and_covariance
+from covnet.core.oosm import ReFilterBuffer
+from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.decentral import (
+    Mirror,
+    decide_rule,
+    fuse_tracks,
+    measurement_from_track,
+)
+from covnet.covariance_control.model import Model, decide, fuse, usable_measurement
+from covnet.covariance_control.simulate import MetricRun
+from covnet.runtime_stats import NetStats
+
+__all__ = [
+    "CentreFilter",
+    "EpisodeLog",
+    "Gains",
+    "LateHandler",
+    "ManagerResult",
+    "as_local_track",
+    "fuse_with_gains",
+    "usable_position",
+    "usable_track",
+]
+
+
+@dataclass
+class EpisodeLog:
+    """Rows of one episode, appended per scan; converted to a :class:`MetricRun` at the end."""
+
+    metric: str
+    enabled: list[np.ndarray] = field(default_factory=list)
+    value: list[float] = field(default_factory=list)
+    x_est: list[np.ndarray] = field(default_factory=list)
+    P_post: list[np.ndarray] = field(default_factory=list)
+    P_pred: list[np.ndarray] = field(default_factory=list)
+    nees: list[float] = field(default_factory=list)
+    decision_s: list[float] = field(default_factory=list)
+    n_evaluated: list[int] = field(default_factory=list)
+    fused_from: list[list[str]] = field(default_factory=list)
+    failures: list[dict[str, Any]] = field(default_factory=list)
+
+    def record(
+        self,
+        n_sensors: int,
+        alloc: Allocation,
+        pred: Gaussian,
+        est: Gaussian,
+        nees_value: float,
+        decision_s: float,
+        fused: list[str],
+    ) -> None:
+        """Append one scan: the allocation, the predicted and fused estimates, NEES, timing."""
+        mask = np.zeros(n_sensors, dtype=bool)
+        mask[list(alloc.subset)] = True
+        self.enabled.append(mask)
+        self.value.append(float(alloc.value))
+        self.x_est.append(est.x)
+        self.P_post.append(est.P)
+        self.P_pred.append(pred.P)
+        self.nees.append(nees_value)
+        self.decision_s.append(decision_s)
+        self.n_evaluated.append(alloc.n_evaluated)
+        self.fused_from.append(fused)
+
+    def as_run(self, n_sensors: int) -> MetricRun:
+        n = len(self.value)
+        return MetricRun(
+            metric=self.metric,
+            enabled=np.array(self.enabled, dtype=bool).reshape(n, n_sensors),
+            value=np.array(self.value, dtype=np.float64),
+            x_est=np.array(self.x_est, dtype=np.float64).reshape(n, 4),
+            P_post=np.array(self.P_post, dtype=np.float64).reshape(n, 4, 4),
+            P_pred=np.array(self.P_pred, dtype=np.float64).reshape(n, 4, 4),
+            nees=np.array(self.nees, dtype=np.float64),
+            decision_s=np.array(self.decision_s, dtype=np.float64),
+            n_evaluated=np.array(self.n_evaluated, dtype=np.int64),
+        )
+
+
+@dataclass
+class ManagerResult:
+    """What the loop has done so far (live while it runs; final when :func:`run` returns)."""
+
+    episodes: dict[str, EpisodeLog]
+    stats: NetStats
+    completed: bool = False
+    error: str | None = None
+
+
+class LateHandler:
+    """One episode's out-of-sequence processing on slow links (``network.latency.late``):
+    ``central``/``info`` keep a :class:`~covnet.core.oosm.ReFilterBuffer` of the last
+    ``oosm_depth`` scans and filter every scan through it (the same updates as
+    :func:`covnet.covariance_control.model.fuse`; a local track enters as the measurement whose
+    information it added), so that a late message is re-filtered from its scan; ``ci`` and
+    ``late: drop`` drop late messages.  The loop counts which (``late_refiltered`` /
+    ``late_dropped``)."""
+
+    def __init__(self, sc: Scenario, model: Model) -> None:
+        lat = sc.network.latency
+        self.mode = sc.fusion.mode
+        self.ids = model.sensor_ids
+        self.inserted = False
+        self.refiltered: list[str] = []  # "<sensor>:<scan>" since the last Status
+        keep = lat.late == "oosm" and self.mode != "ci"
+        self.buffer = ReFilterBuffer(model.F, model.Q, model.H, lat.oosm_depth) if keep else None
+
+    def _measurement(self, m: Any) -> tuple[np.ndarray, np.ndarray]:
+        if self.mode == "central":
+            return m.z[0], m.R
+        t = as_local_track(m)
+        return measurement_from_track(t.post, t.prior)
+
+    def insert(self, m: Any) -> bool:
+        """A late message: True when it was re-filtered into its scan."""
+        if self.buffer is None:
+            return False
+        try:
+            done = self.buffer.insert(m.scan, self.ids.index(m.sensor_id), *self._measurement(m))
+        except ValueError:  # that sensor's message of that scan is in already
+            return False
+        if done is not None:
+            self.inserted = True
+            self.refiltered.append(f"{m.sensor_id}:{m.scan}")
+        return done is not None
+
+    def take_refiltered(self) -> tuple[str, ...]:
+        out, self.refiltered = tuple(self.refiltered), []
+        return out
+
+    def fuse(self, k: int, pred: Gaussian, got: dict[str, Any]) -> Gaussian:
+        assert self.buffer is not None
+        meas = [(self.ids.index(sid), *self._measurement(m)) for sid, m in got.items()]
+        return self.buffer.step(k, meas, prior=pred).post
+
+
+class CentreFilter:
+    """One episode of the fusion centre's filter, in every mode (``central``, ``info``,
+    ``ci``) and over ideal or slow links: the manager's loop and ``covnet replay`` both step
+    it, so a replay recomputes exactly what the manager did.
+
+    ``decide`` allocates scan ``k`` from ``P⁻`` (``ci``: against the local filters'
+    covariances of :class:`~covnet.covariance_control.decentral.Mirror`, the only mode that needs
+    them); ``insert_late`` takes a late message (slow links: :class:`LateHandler`); ``prior`` is
+    scan ``k``'s prior once late messages were re-filtered; ``fuse`` fuses what arrived for scan
+    ``k`` (``sensor id -> Measurement | LocalTrack``)."""
+
+    def __init__(self, sc: Scenario, model: Model) -> None:
+        self.model, self.fusion = model, sc.fusion
+        self.ids = model.sensor_ids
+        self.decentral = sc.fusion.mode in ("info", "ci")
+        self.mirror = Mirror.start(model) if sc.fusion.rule == "ci" else None
+        slow = not sc.network.latency.is_ideal(model.sensor_ids)
+        self.late = LateHandler(sc, model) if slow else None
+
+    def decide(
+        self, P_pred: np.ndarray, k: int, metric: str, unavailable: frozenset[int]
+    ) -> Allocation:
+        if self.mirror is None:
+            return decide(self.model, P_pred, k, metric, unavailable)
+        P_loc = self.mirror.predicted(self.model)[1]
+        return decide_rule(self.fusion, self.model, P_pred, P_loc, k, metric, unavailable)
+
+    def insert_late(self, m: Any) -> bool:
+        """A late message of an earlier scan: True when it was re-filtered into its scan."""
+        return self.late is not None and self.late.insert(m)
+
+    def prior(self, pred: Gaussian) -> Gaussian:
+        """Scan ``k``'s prior: ``pred``, or the re-filtered one after late insertions."""
+        late = self.late
+        if late is not None and late.buffer is not None and late.inserted:
+            late.inserted = False
+            return late.buffer.predicted()
+        return pred
+
+    def fuse(
+        self, k: int, pred: Gaussian, got: dict[str, Any], gains: Gains | None = None
+    ) -> Gaussian:
+        """Scan ``k``'s posterior from ``pred`` and what arrived (``gains``: the central
+        update's covariance work done ahead, used when it fits)."""
+        if self.late is not None and self.late.buffer is not None:
+            return self.late.fuse(k, pred, got)
+        ids = self.ids
+        if self.decentral:
+            tracks = [(ids.index(sid), as_local_track(m)) for sid, m in got.items()]
+            est = fuse_tracks(self.fusion, pred, tracks)
+            if self.mirror is not None:
+                self.mirror.advance(self.fusion, self.model, [j for j, _ in tracks])
+                for j, tr in tracks:  # what the sensor reports is what it has
+                    self.mirror.P_local[j] = tr.post.P
+            return est
+        return fuse_with_gains(gains, self.model, pred, got, ids) or fuse(
+            self.model, pred, [(ids.index(sid), m.z[0], m.R) for sid, m in got.items()]
+        )
+
+
+def usable_position(m: msg.Measurement) -> bool:
+    """A covariance-control measurement the filter may fuse (see ``usable_measurement``)."""
+    return usable_measurement(m.z, m.R)
+
+
+def usable_track(m: msg.LocalTrack) -> bool:
+    """A local track the fusion rules may take: a 4-state estimate with a symmetric positive
+    definite posterior and prior covariance."""
+    return m.x.shape == (4,) and is_spd(m.P) and is_spd(m.P_prior)
+
+
+def as_local_track(m: msg.LocalTrack) -> LocalTrack:
+    return LocalTrack(post=Gaussian(m.x, m.P), prior=Gaussian(m.x_prior, m.P_prior))
+
+
+@dataclass(frozen=True)
+class Gains:
+    """Scan ``k``'s Kalman updates when every enabled sensor's measurement arrives, computed
+    while the sensors measure (neither the gains nor the covariances depend on the measured
+    values): the gain of each sensor of ``subset`` (ascending index, the order of
+    :func:`covnet.covariance_control.model.fuse`) and the posterior covariance, bit for bit those of
+    :func:`covnet.covariance_control.model.fused_covariance` and of
+    :func:`covnet.covariance_control.model.fuse`."""
+
+    subset: tuple[int, ...]
+    R: tuple[bytes, ...]  # each sensor's noise covariance the gains were computed with
+    K: tuple[np.ndarray, ...]
+    P_post: np.ndarray
+
+    @staticmethod
+    def of(model: Model, P_pred: np.ndarray, subset: tuple[int, ...]) -> Gains:
+        order = tuple(sorted(subset))
+        P, gains = P_pred, []
+        for j in order:  # = fused_covariance(model, P_pred, [(j, model.R[j]) ...]), step by step
+            K, P = gain_and_covariance(P, model.H, model.R[j])
+            gains.append(K)
+        return Gains(order, tuple(model.R[j].tobytes() for j in order), tuple(gains), P)
+
+
+def fuse_with_gains(
+    gains: Gains | None, model: Model, pred: Gaussian, got: dict[str, Any], ids: tuple[str, ...]
+) -> Gaussian | None:
+    """:func:`covnet.covariance_control.model.fuse` of ``got`` bit for bit, from the gains computed
+    ahead, when they are the ones it needs (every enabled sensor's measurement arrived, with the
+    noise covariance the gains assumed); None otherwise."""
+    if gains is None or len(got) != len(gains.subset):
+        return None
+    ordered = sorted((ids.index(sid), m) for sid, m in got.items())
+    if tuple(j for j, _ in ordered) != gains.subset or any(
+        m.R.tobytes() != r for (_, m), r in zip(ordered, gains.R, strict=True)
+    ):
+        return None
+    if not ordered:
+        return pred
+    H, x = model.H, pred.x
+    for (_, m), K in zip(ordered, gains.K, strict=True):  # kalman.update's mean, in fuse's order
+        z = m.z[0]
+        x = x + K @ (z - H @ x)
+    return Gaussian(x, gains.P_post)

@@ -1,0 +1,349 @@
+"""The covariance-control kind's commands: ``covnet run``, ``compare``, ``sweep``, ``replay``,
+``bench alloc`` and ``bench fusion`` for its configs, and what ``covnet up`` and ``covnet plot``
+do with its run directories.  :mod:`covnet.covariance_control.kind` registers them; the CLI
+(:mod:`covnet.cli`) parses the arguments and calls them through the kind registry.
+
+Each returns an exit status (0 success, 1 a run failed); a user's mistake raises
+:class:`~covnet.errors.UsageError`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from covnet.covariance_control.config import Scenario, SweepSpec, normalised
+from covnet.errors import UsageError
+from covnet.rundir import CONFIG, SUMMARY, prepare_out, read_json, write_json
+
+EXIT_OK, EXIT_FAIL = 0, 1
+
+
+def run(sc: Scenario, out: Path, *, figures: bool) -> int:
+    """``covnet run``: every metric of ``allocation.metrics`` in this process (the fusion mode
+    of ``fusion``; slow links in simulated time); writes the run directory."""
+    from covnet.covariance_control.decentral_sim import run_mode
+    from covnet.covariance_control.latency_sim import run_latency
+    from covnet.covariance_control.model import build_model
+    from covnet.covariance_control.results import write_run
+    from covnet.covariance_control.simulate import shared_trajectory
+
+    model = build_model(sc)
+    traj = shared_trajectory(model)
+    runs = {}
+    node_runs = {}
+    latency: dict[str, dict[str, int]] = {}
+    slow = not sc.network.latency.is_ideal(sc.sensor_ids)
+    if slow and sc.fusion.mode == "peer":
+        raise UsageError("network.latency: peer mode has no fusion centre; latency runs need one")
+    for m in sc.allocation.metrics:
+        t0 = time.perf_counter()
+        if slow:
+            runs[m], counts = run_latency(sc, m, model)
+            latency[m] = counts.as_dict()
+        else:
+            runs[m], nodes = run_mode(sc, m, model)
+            if nodes is not None:
+                node_runs[m] = nodes
+        r = runs[m]
+        rate = 100.0 * r.enabled.sum() / r.enabled.size
+        print(
+            f"{m:>10}: {sc.scans} scans in {time.perf_counter() - t0:.2f} s, "
+            f"allocation rate {rate:.1f} %"
+        )
+    summary = write_run(
+        out,
+        sc,
+        traj,
+        runs,
+        extra={"latency": latency} if latency else None,
+        run_info={"mode": "in-process"},
+        node_runs=node_runs,
+    )
+    if figures:
+        from covnet.covariance_control.plots import make_figures
+
+        make_figures(out)
+    print_summary(out, summary)
+    return EXIT_OK
+
+
+def print_summary(out: Path, summary: dict[str, Any]) -> None:
+    """The headline numbers of a run directory's ``summary.json``."""
+    print(
+        f"run directory: {out}  (config {summary['config_hash']}, seed {summary['seed']}, "
+        f"fusion {summary.get('fusion', 'central')})"
+    )
+    for m, blk in summary["metrics"].items():
+        peer = summary.get("peer", {}).get(m)
+        if peer is not None:
+            print(
+                f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, position RMSE "
+                f"{peer['rmse_position_mean']:.2f} m (node mean; worst "
+                f"{peer['rmse_position_worst']:.2f}), mean NEES {peer['mean_nees']:.2f}, "
+                f"nodes agree: {'yes' if peer['agreement'] else 'NO'}"
+            )
+            continue
+        print(
+            f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, "
+            f"position RMSE {blk['rmse_position']:.2f} m, mean NEES {blk['mean_nees']:.2f}"
+        )
+
+
+def after_up(sc: Scenario, out: Path, *, figures: bool) -> None:
+    """After ``covnet up``: the figures and the summary of the scans done."""
+    if not (out / SUMMARY).is_file():
+        return
+    summary = read_json(out / SUMMARY)
+    if figures and summary["metrics"]:
+        from covnet.covariance_control.plots import make_figures
+
+        make_figures(out)
+    print_summary(out, summary)
+
+
+def up_problem(sc: Scenario, *, realtime: bool, netns: bool) -> str | None:
+    """Why ``covnet up`` cannot run ``sc`` this way (None: it can)."""
+    if not sc.network.latency.is_ideal(sc.sensor_ids):
+        if sc.fusion.mode == "peer":
+            return "network.latency: peer mode has no fusion centre to be late for"
+        if not realtime and not netns:
+            return (
+                "network.latency describes slow or lossy links: run covnet up with --realtime "
+                "(a lockstep run waits for every message), or covnet run / covnet sweep, which "
+                "simulate the links in simulated time"
+            )
+    return None
+
+
+def plot(run_dir: Path) -> list[Path]:
+    """Redraw the figures of a run, ``covnet compare`` or ``covnet sweep`` directory."""
+    for stem in ("compare", "sweep"):
+        table = run_dir / f"{stem}.json"
+        if table.is_file():
+            from covnet.covariance_control import compare as compare_module
+            from covnet.covariance_control import sweep as sweep_module
+
+            module = compare_module if stem == "compare" else sweep_module
+            try:
+                doc = read_json(table)
+                rows = doc["rows"]
+            except (ValueError, KeyError) as exc:
+                raise UsageError(f"{table}: not a {stem} table ({exc})") from None
+            title = f"{doc.get('scenario', '')}: covnet {stem}, metric {doc.get('metric', '?')}"
+            return [module.make_figure(run_dir, rows, title)]
+    missing = [f for f in (SUMMARY, "arrays.npz") if not (run_dir / f).is_file()]
+    if missing:
+        raise UsageError(f"{run_dir}: not a complete run directory (missing {', '.join(missing)})")
+    from covnet.covariance_control.plots import make_figures
+
+    return make_figures(run_dir)
+
+
+def _metric(sc: Scenario, requested: list[str] | None, default: str) -> str:
+    from covnet.core.metrics import METRICS
+
+    metric = (requested or [default])[-1]
+    if metric not in METRICS:
+        raise UsageError(f"--metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
+    return metric
+
+
+def compare(args: argparse.Namespace, sc: Scenario) -> int:
+    """``covnet compare``: the fusion structures side by side over a Monte Carlo batch."""
+    from covnet.batch import progress_printer
+    from covnet.covariance_control import compare as cmp
+
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    for m in modes:
+        if m not in cmp.MODES:
+            raise UsageError(f"--modes: unknown mode {m!r}; choose from {', '.join(cmp.MODES)}")
+    if not modes:
+        raise UsageError("--modes: name at least one mode")
+    metric = _metric(sc, args.metric, sc.allocation.metrics[0])
+    if args.runs < 2:
+        raise UsageError(f"--runs: at least 2 runs for a NEES band, got {args.runs}")
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers: must be >= 1, got {args.workers}")
+    out = prepare_out(args.out, f"{sc.name}-compare", args.force)
+    total = len(modes) * args.runs
+    print(
+        f"comparing {', '.join(modes)} on {sc.name}: metric {metric}, {args.runs} seeds from "
+        f"{sc.seed}, {total} runs",
+        flush=True,
+    )
+    rows = cmp.compare(
+        sc,
+        modes,
+        metric,
+        args.runs,
+        graph=args.graph,
+        workers=args.workers,
+        progress=progress_printer("compare"),
+    )
+    meta = {
+        "scenario": sc.name,
+        "metric": metric,
+        "runs": args.runs,
+        "first_seed": sc.seed,
+        "graph": args.graph or sc.fusion.peer.graph,
+    }
+    title = (
+        f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds, "
+        f"peer graph {meta['graph']}"
+    )
+    return _batch_results(cmp, args, sc, out, rows, meta, title)
+
+
+def _batch_results(
+    module: Any,
+    args: argparse.Namespace,
+    sc: Scenario,
+    out: Path,
+    rows: Any,
+    meta: Any,
+    title: str,
+) -> int:
+    """The end of ``covnet compare`` / ``sweep``: the table files, the config (which says the
+    directory's kind, for ``covnet plot``), the figure, the printout."""
+    module.write_table(out, rows, meta)
+    write_json(out / CONFIG, normalised(sc))
+    if not args.no_figures:
+        module.make_figure(out, rows, title)
+    if args.json:
+        for r in rows:
+            print(json.dumps(r))
+    else:
+        print(module.format_table(rows))
+    print(f"results: {out}")
+    return EXIT_OK
+
+
+def sweep(args: argparse.Namespace, sc: Scenario) -> int:
+    """``covnet sweep``: the latency grid of the config's ``sweep`` section."""
+    from covnet.batch import progress_printer
+    from covnet.covariance_control import sweep as sw
+
+    if sc.fusion.mode == "peer":
+        raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
+    spec = sc.sweep or SweepSpec()
+    metric = _metric(sc, args.metric, spec.metric or sc.allocation.metrics[0])
+    for name in ("seeds", "workers"):
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise UsageError(f"--{name}: must be >= 1, got {v}")
+    seeds = args.seeds or spec.seeds
+    points = sw.grid(spec)
+    out = prepare_out(args.out, f"{sc.name}-sweep", args.force)
+    print(
+        f"sweeping {sc.name}: {len(points)} grid points x {seeds} seeds = "
+        f"{len(points) * seeds} runs, metric {metric}"
+        + ("" if sc.sweep else " (no sweep section in the config: the default grid)"),
+        flush=True,
+    )
+    rows = sw.sweep(
+        sc, metric=metric, seeds=seeds, workers=args.workers, progress=progress_printer("sweep")
+    )
+    meta = {
+        "scenario": sc.name,
+        "metric": metric,
+        "seeds": seeds,
+        "first_seed": sc.seed,
+        "delay_kind": spec.delay_kind,
+        "deadline_fraction": sc.network.deadline_fraction,
+        "period_s": sc.period_s,
+    }
+    title = (
+        f"{sc.name}: delay and loss ({spec.delay_kind} delays, both directions), "
+        f"metric {metric}, {seeds} seeds, deadline {sc.network.deadline_fraction:g} T"
+    )
+    return _batch_results(sw, args, sc, out, rows, meta, title)
+
+
+def replay(args: argparse.Namespace, sc: Scenario) -> int:
+    """``covnet replay RUN_DIR``: re-fuse the recording; check ``summary.json``."""
+    from covnet.covariance_control.replay import ReplayError, replay_run
+
+    run_dir = Path(args.run_dir)
+    missing = [
+        f
+        for f in ("config.json", "run.json", "summary.json", "recording.mcap")
+        if not (run_dir / f).is_file()
+    ]
+    if missing:
+        raise UsageError(
+            f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
+        )
+    try:
+        report = replay_run(run_dir, Path(args.out) if args.out else None)
+    except ReplayError as exc:
+        print(f"covnet: error: {exc}", file=sys.stderr)
+        return EXIT_FAIL
+    if report.identical:
+        print(f"replayed {run_dir}: summary.json reproduced exactly ({report.out_dir})")
+        return EXIT_OK
+    print(f"replayed {run_dir}: summary.json DIFFERS ({report.out_dir}):", file=sys.stderr)
+    for d in report.differences[:20]:
+        print(f"  {d}", file=sys.stderr)
+    return EXIT_FAIL
+
+
+def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:
+    """``covnet bench fusion``: the batched covariance-intersection candidates."""
+    from covnet.covariance_control import bench_fusion as bf
+
+    rows = bf.run_bench(args.sensors or [8, 12, 16], repeat=max(args.repeat, 3))
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+    else:
+        print(bf.format_table(rows))
+    return EXIT_OK
+
+
+def bench_alloc(args: argparse.Namespace, sc: Scenario | None) -> int:
+    """``covnet bench [alloc]``: allocation decisions per metric and N against the plain loop."""
+    from covnet.covariance_control import bench_allocation
+    from covnet.covariance_control.config import load
+
+    sensors = args.sensors or [8, 12, 16, 20]
+    sc = sc if sc is not None else load(args.config)
+    metrics = [_metric(sc, [m], m) for m in args.metric] if args.metric else None
+    table = [(s.sigma_x_m, s.sigma_y_m, s.rho) for s in sc.sensors]
+
+    def progress(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    rows = bench_allocation.run(
+        table,
+        sensors,
+        metrics,
+        n_problems=args.problems,
+        repeat=args.repeat,
+        progress=None if args.json else progress,
+    )
+    if args.json:
+        keys = ("metric", "n_sensors", "median_s", "baseline_median_s", "peak_mb")
+        for row in rows:
+            print(json.dumps({k: row[k] for k in keys} | {"agree": row["agree"]}))
+    else:
+        print(
+            "fast: per-decision allocate(P_pred, plan, P_d, metric) with plan = prepare(gains) "
+            "built once per (N, metric), outside the timing"
+        )
+        print(
+            f"{'metric':>10} {'N':>3} {'fast (ms)':>11} {'plain (ms)':>11} {'speedup':>8} "
+            f"{'peak MB':>8}  agree"
+        )
+        for r in rows:
+            print(
+                f"{r['metric']:>10} {r['n_sensors']:>3} {1e3 * r['median_s']:>11.3f} "
+                f"{1e3 * r['baseline_median_s']:>11.3f} "
+                f"{r['baseline_median_s'] / r['median_s']:>7.1f}x {r['peak_mb']:>8.1f}  "
+                f"{'yes' if r['agree'] else 'NO'}"
+            )
+    return EXIT_OK if all(r["agree"] for r in rows) else EXIT_FAIL

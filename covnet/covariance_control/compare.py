@@ -1,0 +1,290 @@
+"""``covnet compare``: the fusion structures side by side over a Monte Carlo batch.
+
+For each fusion mode (``central``, ``info``, ``ci``, ``ci-fast``, ``peer-info``, ``peer-ci``; the
+peer graph is the config's ``fusion.peer.graph`` unless ``--graph`` says otherwise) and each of
+``R`` seeds, the in-process run of :mod:`covnet.covariance_control.decentral_sim` (the loops the
+network processes run), then per mode:
+
+- ``allocation_rate``: mean over runs of ``η = (1/(N Ns)) Σ_k N_k``;
+- ``rmse_position``: sqrt of the mean over runs, scans and (peer) nodes of the squared position
+  error;
+- NEES: per scan the mean over runs ``ε̄_k`` (peer: each run's node-average), from scan
+  ``skip+1`` on; ``R ε̄_k ~ χ²(R n)`` for a consistent filter, so the two-sided 95 % band is
+  ``[χ²_{0.025}(R n) / R, χ²_{0.975}(R n) / R]``.  Reported: the fraction of scans inside that
+  band, the grand mean over runs and scans with its 95 % confidence interval (Student t over the
+  ``R`` run averages: scans within one run are correlated, runs are independent), and a verdict:
+  ``consistent`` (the interval contains ``n = 4``), ``conservative`` (entirely below: the
+  filter claims more uncertainty than it has, as covariance intersection does by design) or
+  ``optimistic`` (entirely above: over-confident, the dangerous side);
+- ``messages_per_scan`` / ``bytes_per_scan``: what the structure publishes per scan (truth
+  and heartbeats excluded), counted by encoding the very messages of the wire schema
+  (:mod:`covnet.messages`): central — one command, the enabled sensors' measurements, the fused
+  track and status; info/ci — the same with local tracks for measurements; peer — the enabled
+  nodes' local tracks and every node's own track and status (``deliveries_per_scan`` counts each
+  message once per process that receives it: a command goes to the sensors it enables and the
+  recorder, a local track to each neighbour).
+
+Runs are spread over processes (``spawn``; one per core by default) and are deterministic for a
+seed, so the table is too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+from scipy.stats import t as student_t
+
+from covnet import messages as msg
+from covnet.batch import parallel_map, write_rows
+from covnet.covariance_control.config import Scenario, from_dict, normalised
+from covnet.covariance_control.decentral import neighbours
+from covnet.covariance_control.simulate import MetricRun
+
+MODES = ("central", "info", "ci", "ci-fast", "peer-info", "peer-ci")
+DEFAULT_MODES = ("central", "info", "ci", "peer-info", "peer-ci")
+
+
+def scenario_for(
+    sc: Scenario, mode: str, graph: str | None = None, seed: int | None = None
+) -> Scenario:
+    """``sc`` with the fusion structure of ``mode`` (and ``graph`` for the peer modes)."""
+    if mode not in MODES:
+        raise ValueError(f"unknown fusion mode {mode!r}; choose from {list(MODES)}")
+    data = normalised(sc)
+    fusion = dict(data["fusion"])
+    peer = dict(fusion["peer"])
+    if mode.startswith("peer-"):
+        fusion["mode"] = "peer"
+        peer["rule"] = mode.split("-", 1)[1]
+    elif mode == "ci-fast":
+        fusion.update(mode="ci", ci_objective="fast")
+    else:
+        fusion["mode"] = mode
+    if graph is not None:
+        peer["graph"] = graph
+    fusion["peer"] = peer
+    data["fusion"] = fusion
+    if seed is not None:
+        data["seed"] = seed
+    return from_dict(data, f"{sc.name} ({mode})")
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One run's numbers: per scan NEES (node-averaged in peer mode), squared position error
+    (node-averaged), sensors enabled."""
+
+    mode: str
+    seed: int
+    nees: np.ndarray  # (N,)
+    pos_err2: np.ndarray  # (N,)
+    enabled: np.ndarray  # (N, Ns) bool
+
+
+def run_trial(args: tuple[dict[str, Any], str, str | None, int, str]) -> Trial:
+    """One (mode, seed) run; a top-level function so that worker processes can import it."""
+    from covnet.covariance_control.decentral_sim import run_mode
+    from covnet.covariance_control.model import build_model, truth_trajectory
+
+    data, mode, graph, seed, metric = args
+    sc = scenario_for(from_dict(data), mode, graph, seed)
+    model = build_model(sc)
+    truth = truth_trajectory(model)
+    run, nodes = run_mode(sc, metric, model)
+    runs: list[MetricRun] = list(nodes.values()) if nodes else [run]
+    err = np.stack([r.x_est - truth for r in runs])  # (nodes, N, 4)
+    return Trial(
+        mode,
+        seed,
+        nees=np.mean([r.nees for r in runs], axis=0),
+        pos_err2=np.mean(err[..., 0] ** 2 + err[..., 2] ** 2, axis=0),
+        enabled=run.enabled,
+    )
+
+
+def traffic_per_scan(
+    sc: Scenario, mode: str, enabled: np.ndarray, graph: str | None
+) -> dict[str, float]:
+    """Messages, bytes and deliveries published per scan by ``mode`` for the enabled sets
+    ``enabled`` ``(N, Ns)`` (see the module docstring), from the encoded wire messages."""
+    ids = sc.sensor_ids
+    x, P = np.zeros(4), np.eye(4)
+    z, R = np.zeros((1, 2)), np.eye(2)
+    msgs = byts = deliveries = 0
+    peer = mode.startswith("peer-")
+    nbrs = neighbours(scenario_for(sc, mode, graph).fusion, ids) if peer else {}
+    for k, row in enumerate(enabled, start=1):
+        on = tuple(ids[j] for j in np.flatnonzero(row))
+        out: list[tuple[msg.Message, int]] = []  # (message, receivers)
+        if peer:
+            for j in np.flatnonzero(row):
+                lt = msg.LocalTrack(ids[j], k, float(k), x, P, x, P, 1, 0)
+                out.append((lt, len(nbrs[int(j)])))
+            for sid in ids:
+                out.append((msg.Track(k, float(k), x, P, 1, 0, node_id=sid), 1))
+                st = msg.Status(k, float(k), on, 1.0, 1.0, 1.0, 1, 0, fused=on, node_id=sid)
+                out.append((st, len(ids)))  # every other node and the monitor
+        else:
+            out.append((msg.Command(k, float(k), on, 1, 0), len(on) + 1))  # + the recorder
+            for sid in on:
+                if mode == "central":
+                    out.append((msg.Measurement(sid, k, float(k), z, R, 1, 0), 1))
+                else:
+                    out.append((msg.LocalTrack(sid, k, float(k), x, P, x, P, 1, 0), 1))
+            out.append((msg.Track(k, float(k), x, P, 1, 0), 1))
+            out.append((msg.Status(k, float(k), on, 1.0, 1.0, 1.0, 1, 0, fused=on), 1))
+        for m, receivers in out:
+            msgs += 1
+            byts += len(msg.encode(m))
+            deliveries += receivers
+    n = max(len(enabled), 1)
+    return {
+        "messages_per_scan": msgs / n,
+        "bytes_per_scan": byts / n,
+        "deliveries_per_scan": deliveries / n,
+    }
+
+
+def summarise(
+    sc: Scenario, mode: str, trials: Sequence[Trial], graph: str | None, skip: int = 10
+) -> dict[str, Any]:
+    """One row of the comparison table (see the module docstring)."""
+    R = len(trials)
+    nees = np.stack([t.nees for t in trials])[:, skip:]
+    per_scan = nees.mean(axis=0)
+    lo, hi = (float(v) for v in chi2.ppf([0.025, 0.975], 4 * R) / R)
+    grand = float(per_scan.mean())
+    # the grand mean's 95 % confidence interval from the R independent run averages (scans
+    # within a run are correlated, so they are not counted as independent samples)
+    run_means = nees.mean(axis=1)
+    half = float(student_t.ppf(0.975, R - 1) * run_means.std(ddof=1) / np.sqrt(R))
+    glo, ghi = grand - half, grand + half
+    verdict = "consistent" if glo <= 4.0 <= ghi else ("conservative" if ghi < 4.0 else "optimistic")
+    enabled = np.stack([t.enabled for t in trials])
+    row: dict[str, Any] = {
+        "mode": mode,
+        "graph": graph or sc.fusion.peer.graph if mode.startswith("peer-") else None,
+        "runs": R,
+        "allocation_rate": float(enabled.mean()),
+        "sensors_per_scan": float(enabled.sum(axis=2).mean()),
+        "rmse_position": float(np.sqrt(np.mean([t.pos_err2 for t in trials]))),
+        "mean_nees": grand,
+        "nees_band_95": [lo, hi],
+        "nees_mean_ci_95": [glo, ghi],
+        "nees_inside_fraction": float(np.mean((per_scan >= lo) & (per_scan <= hi))),
+        "nees_verdict": verdict,
+    }
+    row.update(traffic_per_scan(sc, mode, trials[0].enabled, graph))
+    return row
+
+
+def compare(
+    sc: Scenario,
+    modes: Sequence[str],
+    metric: str,
+    runs: int,
+    *,
+    graph: str | None = None,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[dict[str, Any]]:
+    """The comparison table: one row per mode, over seeds ``sc.seed .. sc.seed + runs - 1``."""
+    for m in modes:
+        scenario_for(sc, m, graph)  # validates every mode (and the graph) before any work
+    data = normalised(sc)
+    tasks = [(data, m, graph, sc.seed + r, metric) for m in modes for r in range(runs)]
+    trials = parallel_map(run_trial, tasks, workers, progress)
+    return [summarise(sc, m, [t for t in trials if t.mode == m], graph) for m in modes]
+
+
+COLUMNS = (
+    "mode",
+    "graph",
+    "runs",
+    "allocation_rate",
+    "sensors_per_scan",
+    "rmse_position",
+    "mean_nees",
+    "nees_inside_fraction",
+    "nees_verdict",
+    "messages_per_scan",
+    "bytes_per_scan",
+    "deliveries_per_scan",
+)
+
+
+def write_table(out: Path, rows: Sequence[dict[str, Any]], meta: dict[str, Any]) -> None:
+    """``compare.json`` (rows and how they were made) and ``compare.csv``."""
+    write_rows(out, "compare", rows, meta, COLUMNS)
+
+
+def format_table(rows: Sequence[dict[str, Any]]) -> str:
+    head = (
+        f"{'mode':>10} {'rate %':>7} {'RMSE m':>7} {'NEES':>6} {'in band':>8} {'verdict':>12} "
+        f"{'msgs/scan':>9} {'B/scan':>8}"
+    )
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(
+            f"{r['mode']:>10} {100 * r['allocation_rate']:7.1f} {r['rmse_position']:7.2f} "
+            f"{r['mean_nees']:6.2f} {100 * r['nees_inside_fraction']:7.0f}% "
+            f"{r['nees_verdict']:>12} "
+            f"{r['messages_per_scan']:9.1f} {r['bytes_per_scan']:8.0f}"
+        )
+    lo, hi = rows[0]["nees_band_95"]
+    lines.append(
+        f"NEES: 'in band' = scans whose run-average is inside the 95 % chi-square band "
+        f"[{lo:.2f}, {hi:.2f}] of {rows[0]['runs']} runs; 'verdict' = where the grand mean's 95 % "
+        "confidence interval lies against 4 (the state dimension)"
+    )
+    return "\n".join(lines)
+
+
+def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
+    """``compare.png``: allocation rate, position RMSE, mean NEES (with the 95 % band) and
+    bytes per scan, one bar per mode."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    modes = [r["mode"] for r in rows]
+    fig, axes = plt.subplots(1, 4, figsize=(15, 4.2))
+    colors = plt.cm.tab10(np.arange(len(rows)))
+    panels = (
+        ("allocation rate [%]", [100 * r["allocation_rate"] for r in rows]),
+        ("position RMSE [m]", [r["rmse_position"] for r in rows]),
+        ("mean NEES (4 states)", [r["mean_nees"] for r in rows]),
+        ("bytes published per scan", [r["bytes_per_scan"] for r in rows]),
+    )
+    for ax, (label, vals) in zip(axes, panels, strict=True):
+        ax.bar(modes, vals, color=colors)
+        ax.set_title(label)
+        ax.tick_params(axis="x", rotation=35)
+        ax.grid(axis="y", alpha=0.3)
+    ci = np.array([r["nees_mean_ci_95"] for r in rows]).T
+    mean = np.array([r["mean_nees"] for r in rows])
+    axes[2].errorbar(
+        modes,
+        mean,
+        yerr=[mean - ci[0], ci[1] - mean],
+        fmt="none",
+        ecolor="k",
+        capsize=4,
+        label="95 % CI of the mean",
+    )
+    lo, hi = rows[0]["nees_band_95"]
+    axes[2].axhspan(lo, hi, color="0.6", alpha=0.35, label="95 % χ² band (per scan)")
+    axes[2].axhline(4.0, color="k", lw=0.8, ls="--")
+    axes[2].legend(loc="upper right", fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = out / "compare.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,197 @@
+"""The linear-Gaussian model of a scenario, and the per-scan steps every runner shares.
+
+:func:`build_model` turns a validated :class:`~covnet.config.Scenario` into arrays.  The scan
+steps (:func:`truth_trajectory`, :func:`initial_estimate`, :func:`decide`, :func:`measure`,
+:func:`fuse`) are what the in-process simulator calls, and what the world, sensor and manager
+processes call too: the distributed layer adds transport and nothing else.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from covnet.core import streams
+from covnet.core.allocation import Allocation, AllocationPlan, Constraints, allocate, prepare
+from covnet.core.gaussian import Gaussian, Mat, Vec
+from covnet.core.kalman import predict, predict_covariance, update_covariance, update_sequential
+from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_noise
+from covnet.core.sensing import correlated_noise, information_gain, position_matrix
+from covnet.core.sensing import measure as draw_measurement
+from covnet.core.truth import linear_gaussian_trajectory
+from covnet.covariance_control.config import Scenario
+
+
+@dataclass(frozen=True)
+class Model:
+    """Arrays of one scenario: motion ``F, G, Q``, sensors ``H, R_j, J_j``, schedule ``P_d``.
+
+    ``plan``: the allocation plan of ``gains`` under the configured ``constraints``
+    (:func:`covnet.core.allocation.prepare`: the gains validated and the gain-only subset tables
+    built once, in :func:`build_model`); :func:`decide` passes it at every scan.  ``plans``: the
+    plans per constraint set, ``constraints -> plan``, holding ``plan`` and, added by
+    :meth:`plan_for` the first time a set of run-time failures (``unavailable``) produces it,
+    one plan per further constraint set (a handful in practice: at most one per distinct set of
+    failed sensors).
+    """
+
+    sensor_ids: tuple[str, ...]
+    T: float
+    F: Mat
+    G: Mat
+    Q: Mat
+    sigma_a: float
+    H: Mat
+    R: Mat  # (Ns, 2, 2)
+    gains: Mat  # (Ns, 4, 4): J_j = Hᵀ R_j⁻¹ H
+    P0: Mat
+    x0: Vec  # true initial state at t = 0
+    desired_from: tuple[int, ...]
+    desired_P: Mat  # (n_phases, 4, 4)
+    constraints: Constraints
+    tie_rtol: float
+    seed: int
+    scans: int
+    plan: AllocationPlan
+    plans: dict[Constraints, AllocationPlan] = field(
+        default_factory=dict, compare=False, repr=False
+    )
+
+    def __post_init__(self) -> None:
+        self.plans.setdefault(self.plan.constraints, self.plan)
+
+    def plan_for(self, constraints: Constraints) -> AllocationPlan:
+        """The plan for ``constraints``: from :attr:`plans`, prepared (once) if new."""
+        plan = self.plans.get(constraints)
+        if plan is None:
+            plan = self.plans[constraints] = prepare(self.gains, constraints)
+        return plan
+
+    def desired(self, scan: int) -> Mat:
+        """``P_d(t_k)``: the last schedule entry whose ``from_scan <= scan``."""
+        i = int(np.searchsorted(np.asarray(self.desired_from), scan, side="right")) - 1
+        return self.desired_P[max(i, 0)]
+
+    def index(self, sensor_id: str) -> int:
+        return self.sensor_ids.index(sensor_id)
+
+
+def build_model(sc: Scenario) -> Model:
+    T = sc.period_s
+    ids = sc.sensor_ids
+    H = position_matrix(2)
+    R = np.stack([correlated_noise(s.sigma_x_m, s.sigma_y_m, s.rho) for s in sc.sensors])
+    al = sc.allocation
+    constraints = Constraints(
+        excluded=frozenset(ids.index(s) for s in al.excluded),
+        required=frozenset(ids.index(s) for s in al.required),
+        max_active=al.max_active,
+    )
+    gains = np.stack([information_gain(H, Rj) for Rj in R])
+    px, py = sc.target.initial_position_m
+    vx, vy = sc.target.initial_velocity_mps
+    return Model(
+        sensor_ids=ids,
+        T=T,
+        F=cv_transition(T, 2),
+        G=dwna_noise_gain(T, 2),
+        Q=dwna_process_noise(T, sc.target.accel_noise_std_mps2, 2),
+        sigma_a=sc.target.accel_noise_std_mps2,
+        H=H,
+        R=R,
+        gains=gains,
+        P0=np.diag(np.asarray(sc.filter.P0_diag, dtype=np.float64)),
+        x0=np.array([px, vx, py, vy], dtype=np.float64),
+        desired_from=tuple(d.from_scan for d in sc.desired),
+        desired_P=np.stack([d.as_matrix() for d in sc.desired]),
+        constraints=constraints,
+        tie_rtol=al.tie_rtol,
+        seed=sc.seed,
+        scans=sc.scans,
+        plan=prepare(gains, constraints),
+    )
+
+
+def truth_trajectory(model: Model) -> Mat:
+    """True states at scans ``1..N`` (``(N, 4)``), from the seed's TRUTH stream."""
+    rng = streams.stream(model.seed, streams.TRUTH)
+    return linear_gaussian_trajectory(model.x0, model.F, model.G, model.sigma_a, model.scans, rng)
+
+
+def initial_estimate(model: Model, mode: str = "perturbed") -> Gaussian:
+    """``N(x̂0, P0)`` with ``x̂0 = x0 + e``, ``e ~ N(0, P0)`` (or ``x̂0 = x0`` for ``truth``)."""
+    if mode == "truth":
+        return Gaussian(model.x0.copy(), model.P0.copy())
+    rng = streams.stream(model.seed, streams.INITIAL)
+    e = np.linalg.cholesky(model.P0) @ rng.standard_normal(model.x0.shape[0])
+    return Gaussian(model.x0 + e, model.P0.copy())
+
+
+def predict_step(model: Model, posterior: Gaussian) -> Gaussian:
+    """One period ahead: ``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q``."""
+    return predict(posterior, model.F, model.Q)
+
+
+def predict_cov(model: Model, P: Mat) -> Mat:
+    """The covariance of :func:`predict_step` alone (bit for bit the same)."""
+    return predict_covariance(P, model.F, model.Q)
+
+
+def decide(
+    model: Model,
+    P_pred: Mat,
+    scan: int,
+    metric: str,
+    unavailable: frozenset[int] = frozenset(),
+) -> Allocation:
+    """Covariance control for scan ``k``: argmin over feasible subsets of ``f(P_i, P_d(t_k))``.
+
+    ``unavailable`` (failed sensors seen at run time) joins the configured exclusions; the plan
+    for the resulting constraints comes from :meth:`Model.plan_for` (prepared once per set).
+    """
+    plan = model.plan
+    if unavailable:
+        c = model.constraints
+        c = Constraints(
+            excluded=c.excluded | (unavailable - c.required),
+            required=c.required - unavailable,
+            max_active=c.max_active,
+        )
+        plan = model.plan_for(c)
+    return allocate(P_pred, plan, model.desired(scan), metric, tie_rtol=model.tie_rtol)
+
+
+def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:
+    """Sensor ``j``'s measurement at scan ``k``: ``z = H x + v``, ``v`` from stream (j, k)."""
+    rng = streams.sensor_stream(model.seed, sensor_index, scan)
+    return draw_measurement(model.H, model.R[sensor_index], true_state, rng)
+
+
+def fused_covariance(model: Model, P_pred: Mat, noises: Sequence[tuple[int, Mat]]) -> Mat:
+    """The posterior covariance :func:`fuse` will produce from ``(sensor_index, R)``, without
+    the measurements: bit for bit the same (the same updates, in the same order)."""
+    P = P_pred
+    for _, R in sorted(noises, key=lambda m: m[0]):
+        P = update_covariance(P, model.H, R)
+    return P
+
+
+def usable_measurement(z: Mat, R: Mat) -> bool:
+    """A measurement the filter may fuse: one position ``z`` ``(1, 2)`` with a symmetric
+    positive-definite ``R`` ``(2, 2)`` (finiteness is the wire schema's job)."""
+    return bool(
+        z.shape == (1, 2)
+        and R.shape == (2, 2)
+        and R[0, 1] == R[1, 0]
+        and R[0, 0] > 0
+        and R[0, 0] * R[1, 1] - R[0, 1] ** 2 > 0
+    )
+
+
+def fuse(model: Model, prior: Gaussian, measurements: Sequence[tuple[int, Vec, Mat]]) -> Gaussian:
+    """Sequential Joseph-form updates with ``(sensor_index, z, R)``, in ascending sensor index
+    (a canonical order, so the result does not depend on arrival order)."""
+    ordered = sorted(measurements, key=lambda m: m[0])
+    return update_sequential(prior, [(z, model.H, R) for _, z, R in ordered])

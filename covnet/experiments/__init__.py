@@ -1,1 +1,0 @@
-"""Experiments built on the core: benchmarks, Monte Carlo runs, sweeps."""

@@ -1,0 +1,232 @@
+"""The mobile kind's commands (registered by :mod:`covnet.mobile.kind`):
+
+* ``covnet run configs/mobile.yaml [--solver lp|milp] [--seed S]``  -> :func:`run`
+* ``covnet mc configs/mobile.yaml [--trials 20] [--out DIR]``       -> :func:`mc`
+* ``covnet bench mobile [--json]``                                  -> :func:`bench`
+* after ``covnet up configs/mobile.yaml``                           -> :func:`after_up`
+
+Each returns an exit status and prints like the other commands; a user's mistake raises
+:class:`~covnet.errors.UsageError` (exit status 2).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from covnet.errors import UsageError
+from covnet.mobile.config import MobileConfig
+from covnet.rundir import RUN_INFO, prepare_out, read_json
+
+EXIT_OK = 0
+
+
+def _pct(x: float) -> str:
+    return f"{100.0 * x:.1f} %"
+
+
+def print_summary(out: Path, s: dict[str, Any]) -> None:
+    """The run's headline numbers (the ``covnet run`` style)."""
+    print(
+        f"run directory: {out}  (config {s['config_hash']}, seed {s['seed']}, solver {s['solver']})"
+    )
+    for tid, b in s["targets"].items():
+        print(
+            f"  {tid:>6}: position RMSE {b['rmse_position_m']:6.2f} m "
+            f"(2nd half {b['rmse_position_second_half_m']:5.2f} m), "
+            f"missed {_pct(b['missed_detection_rate'])} "
+            f"(2nd half {_pct(b['missed_detection_rate_second_half'])}), "
+            f"unobserved {b['unobserved_scans']} scans"
+        )
+    ov = s["overall"]
+    print(
+        f"  overall: RMSE {ov['rmse_position_m']:.2f} m (2nd half "
+        f"{ov['rmse_position_second_half_m']:.2f} m), missed {_pct(ov['missed_detection_rate'])} "
+        f"(2nd half {_pct(ov['missed_detection_rate_second_half'])}), usage cost "
+        f"{s['usage_cost_total']:.1f}, platform travel {s['platform_travel_m']['total']:.0f} m"
+    )
+    opt = s.get("optimality")
+    if opt is not None:
+        worse = round(opt["share_lp_post_worse"] * opt["decisions"])
+        print(
+            f"  optimality: LP + post-step worse than the MILP in {worse}/{opt['decisions']} "
+            f"decisions, mean gap {100 * opt['mean_gap']:.4f} %, max gap "
+            f"{100 * opt['max_gap']:.2f} %, {opt['conflicts_resolved']} mode conflicts resolved"
+        )
+    info = out / RUN_INFO
+    t = read_json(info).get("decision_time_s") if info.is_file() else None
+    if t:
+        parts = ", ".join(f"{k} {1e3 * v['median']:.2f} ms" for k, v in t.items())
+        print(f"  decision time (median): {parts}")
+
+
+def run(cfg: MobileConfig, out_dir: Path, *, figures: bool = True) -> int:
+    """``covnet run configs/mobile.yaml [--solver NAME] [--seed S] [--out DIR]``: one in-process
+    run; writes the run directory and the figure."""
+    from covnet.mobile.results import write_run
+    from covnet.mobile.simulate import run as simulate
+
+    t0 = time.perf_counter()
+    r = simulate(cfg)
+    extra = " (with the exact comparison)" if cfg.compare_exact else ""
+    print(f"{r.solver:>10}: {cfg.scans} scans in {time.perf_counter() - t0:.2f} s{extra}")
+    summary = write_run(out_dir, cfg, r)
+    print_summary(out_dir, summary)
+    if figures:
+        from covnet.mobile.plots import make_figure
+
+        print(f"figure: {make_figure(out_dir)}")
+    return EXIT_OK
+
+
+def after_up(cfg: MobileConfig, out: Path, *, figures: bool) -> None:
+    """After ``covnet up``: the figure and the summary of the scans done."""
+    from covnet.mobile.results import load_summary
+
+    if not (out / "summary.json").is_file():
+        return
+    if figures:
+        from covnet.mobile.plots import make_figure
+
+        print(f"figure: {make_figure(out)}")
+    print_summary(out, load_summary(out))
+
+
+def mc(args: Any, cfg: MobileConfig) -> int:
+    """``covnet mc configs/mobile.yaml [--trials N] [--out DIR] [--force]``."""
+    seeds = args.trials if args.trials is not None else 20
+    return mc_run(cfg, args.out, seeds, force=args.force)
+
+
+def mc_run(
+    cfg: MobileConfig,
+    out: str | Path | None,
+    seeds: int = 20,
+    progress: bool | Callable[[int, int, int], None] = True,
+    *,
+    workers: int | None = None,
+    force: bool = False,
+) -> int:
+    """``covnet mc configs/mobile.yaml [--seeds 20] [--out DIR]``: seeds ``0..seeds-1`` in
+    parallel worker processes (spawn; one per core by default); writes ``montecarlo.json``.
+
+    ``progress``: ``True`` prints a line per finished seed on stderr, ``False`` nothing, or a
+    callable ``(done, total, seed)`` of the caller's.
+    """
+    from covnet.mobile.montecarlo import MC_FILE, default_workers, run_seeds, write_mc
+
+    if seeds < 1:
+        raise UsageError(f"--trials: must be >= 1, got {seeds}")
+    out_dir = prepare_out(out, f"{cfg.name}-mc", force)
+    seed_list = list(range(seeds))
+    n_workers = min(workers or default_workers(), seeds)
+    t0 = time.perf_counter()
+
+    def report(done: int, total: int, seed: int) -> None:
+        el = time.perf_counter() - t0
+        print(f"  seed {seed:>3} done ({done}/{total}, {el:.1f} s)", file=sys.stderr, flush=True)
+
+    if progress is True:
+        print(
+            f"{cfg.name}: {seeds} seeds x {cfg.scans} scans, solver {cfg.solver}, "
+            f"{n_workers} worker process(es)",
+            file=sys.stderr,
+            flush=True,
+        )
+    callback = progress if callable(progress) else (report if progress else None)
+    rows = run_seeds(cfg, seed_list, None, n_workers, callback)
+    doc = write_mc(out_dir, cfg, seed_list, rows)
+    agg = doc["aggregate"]
+    print(
+        f"Monte Carlo: {out_dir / MC_FILE}  (config {doc['config_hash']}, seeds 0..{seeds - 1}, "
+        f"{time.perf_counter() - t0:.1f} s)"
+    )
+    print(
+        f"  {'target':>8} {'RMSE m':>8} {'2nd half':>9} {'missed':>8} {'2nd half':>9}"
+        "  (means over seeds)"
+    )
+    for tid, b in [*agg["targets"].items(), ("overall", agg["overall"])]:
+        print(
+            f"  {tid:>8} {b['rmse_position_m']['mean']:>8.2f} "
+            f"{b['rmse_position_second_half_m']['mean']:>9.2f} "
+            f"{_pct(b['missed_detection_rate']['mean']):>8} "
+            f"{_pct(b['missed_detection_rate_second_half']['mean']):>9}"
+        )
+    print(
+        f"  usage cost {agg['usage_cost_total']['mean']:.1f}, platform travel "
+        f"{agg['platform_travel_m']['total']['mean']:.0f} m (means)"
+    )
+    opt = agg.get("optimality")
+    if opt is not None:
+        print(
+            f"  optimality: LP + post-step worse than the MILP in "
+            f"{opt['decisions_lp_post_worse']}/{opt['decisions']} decisions "
+            f"({_pct(opt['share_lp_post_worse'])}), mean gap {100 * opt['mean_gap']:.4f} %, "
+            f"max gap {100 * opt['max_gap']:.2f} %, {opt['conflicts_resolved']} conflicts resolved"
+        )
+    return EXIT_OK
+
+
+def bench(args: Any, cfg: Any = None) -> int:
+    """``covnet bench mobile [--json]``."""
+    return bench_run(args.json)
+
+
+def bench_run(
+    json_out: bool,
+    *,
+    milp: bool = True,
+    problems: int = 3,
+    repeat: int = 7,
+) -> int:
+    """``covnet bench mobile [--json]``: one decision's cost tensor and solvers over
+    N ∈ {4, 10, 25, 50} × M ∈ {3, 10, 30, 100}, capacity none and ⌈1.5 M/N⌉ (medians, ms)."""
+    from covnet.mobile import bench
+
+    def progress(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    rows = bench.run(
+        problems=problems, repeat=repeat, milp=milp, progress=None if json_out else progress
+    )
+    goals = bench.goals(rows)
+    if json_out:
+        for row in rows:
+            print(json.dumps(row))
+        print(json.dumps({"goals": goals}))
+        return EXIT_OK
+
+    def ms(v: float | None) -> str:
+        return "-" if v is None else f"{v:.3f}"
+
+    print(
+        f"{'N':>3} {'M':>4} {'cap':>4} {'cost':>8} {'lp':>8} {'decision':>9} {'closed':>8} "
+        f"{'highs-ds':>9} {'milp':>9} {'worse':>6}   (medians, ms)"
+    )
+    for r in rows:
+        cap = "-" if r["capacity"] is None else str(r["capacity"])
+        worse = f"{r['lp_post_worse']}/{r['problems']}" if "lp_post_worse" in r else "-"
+        print(
+            f"{r['N']:>3} {r['M']:>4} {cap:>4} {ms(r['cost_ms']):>8} {ms(r['lp_ms']):>8} "
+            f"{ms(r['decision_ms']):>9} {ms(r['closed_form_ms']):>8} {ms(r['lp_highs_ms']):>9} "
+            f"{ms(r['milp_ms']):>9} {worse:>6}"
+        )
+    size = goals.get("size", "?")
+    if "decision_with_capacity_ms" in goals:
+        ok = "met" if goals["decision_goal_met"] else "NOT met"
+        print(
+            f"goal: whole decision (cost tensor + LP, capacity) at {size}: "
+            f"{goals['decision_with_capacity_ms']:.2f} ms < {bench.GOAL_DECISION_MS:.0f} ms: {ok}"
+        )
+    if "closed_form_ms" in goals:
+        ok = "met" if goals["closed_form_goal_met"] else "NOT met"
+        print(
+            f"goal: closed form at {size}: {goals['closed_form_ms']:.3f} ms "
+            f"< {bench.GOAL_CLOSED_FORM_MS:.0f} ms: {ok} (with the cost tensor: "
+            f"{goals['decision_no_capacity_ms']:.2f} ms)"
+        )
+    return EXIT_OK

@@ -1,0 +1,106 @@
+"""Run directories: where a command writes, and how, for every scenario kind.
+
+- :func:`prepare_out`: the ``--out`` rule every command follows (a new folder under ``runs/``
+  when none is given; an existing non-empty directory only with ``--force``);
+- :func:`write_json`, :func:`write_npz`: written to a temporary name and renamed, so a reader
+  never sees half a file;
+- :func:`read_json`, :func:`load_arrays`: the matching readers.
+
+The file names every kind shares are constants here: ``config.json`` (the normalised config the
+run used), ``run.json`` (wall-clock facts: creation time, version, timings, process layout:
+what a replay cannot and need not reproduce), ``summary.json`` and ``arrays.npz`` (what the
+config and seed determine).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from covnet.errors import UsageError
+
+__all__ = [
+    "ARRAYS",
+    "CONFIG",
+    "RUN_INFO",
+    "SUMMARY",
+    "atomic_write",
+    "load_arrays",
+    "new_run_dir",
+    "prepare_out",
+    "read_json",
+    "utc_now",
+    "write_json",
+    "write_npz",
+]
+
+SUMMARY = "summary.json"
+ARRAYS = "arrays.npz"
+CONFIG = "config.json"
+RUN_INFO = "run.json"
+
+
+def new_run_dir(name: str, base: Path = Path("runs")) -> Path:
+    """``runs/<name>-<YYYYmmdd-HHMMSS>`` (``-2``, ``-3``, ... when taken)."""
+    first = base / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out, i = first, 1
+    while out.exists():
+        i += 1
+        out = first.with_name(f"{first.name}-{i}")
+    return out
+
+
+def prepare_out(out: str | Path | None, name: str, force: bool) -> Path:
+    """The directory a command writes to: ``out``, or :func:`new_run_dir` of ``name`` when
+    ``None``.  An existing file, or a non-empty directory without ``force``, is a
+    :class:`~covnet.errors.UsageError` naming ``--out``."""
+    if out is None:
+        return new_run_dir(name)
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"--out {out}: exists and is not a directory")
+    if p.is_dir() and any(p.iterdir()) and not force:
+        raise UsageError(
+            f"--out {out}: directory is not empty; choose another or pass --force to overwrite"
+        )
+    return p
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same directory."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """``obj`` as indented JSON (plus a newline), atomically."""
+    atomic_write(path, (json.dumps(obj, indent=2) + "\n").encode())
+
+
+def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """A compressed ``.npz`` of ``arrays``, atomically."""
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
+    os.replace(tmp, path)
+
+
+def read_json(path: Path) -> Any:
+    return json.loads(Path(path).read_text())
+
+
+def load_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, read into memory (the file is closed on return)."""
+    with np.load(path) as data:
+        return {k: data[k] for k in data.files}
+
+
+def utc_now() -> str:
+    """The current UTC time as ``YYYY-mm-ddTHH:MM:SSZ`` (``run.json``'s ``created_utc``)."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())

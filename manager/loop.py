@@ -1,0 +1,523 @@
+"""THE manager scan skeleton every scenario kind's manager runs, with its maths plugged in.
+
+Per episode ``e`` (the kind's :attr:`ScanLogic.episodes`: one per allocation metric for
+covariance control, one for the others) and scan ``k = 1..scans``::
+
+    1. (real time) wait for scan k's time, t_origin + (k - 1) T
+    2. the sensors alive: liveliness tokens and heartbeats (:class:`manager.membership.
+       Membership`); failures and rejoins since the last scan go to the kind
+    3. the kind decides: enabled set (and its per-sensor modes / targets)       logic.decide
+    4. Command(k) on the key that names the enabled set (zenoh takes it to those sensors and
+       the recorder only); in lockstep, then scan k-1's report (step 7): the next command is
+       what the network waits for, the report only the recorder and observers read
+    5. the kind's work that can be done while the sensors measure                logic.ahead
+    6. collect scan k's messages from the enabled sensors until all arrived, a sensor failed,
+       or the deadline passed (lockstep: ``network.scan_timeout_s``; real time: ``t_k +
+       deadline_fraction T``).  Anything malformed, from the wrong key, for another scan, from
+       a sensor that was not enabled, or that the kind finds unusable (logic.usable) is counted
+       by reason and dropped, never fused; a late message of an earlier scan goes to the kind
+       (logic.on_late: re-filtered or dropped, counted either way)
+    7. the kind fuses what arrived (logic.fuse) and reports the scan (logic.report): its
+       Track(s) and Status(k) go on the bus, the status and progress hooks are called; at once
+       in real time, in lockstep just after Command(k+1) (and at an episode's end, and when the
+       loop stops)
+
+The loop takes its bus, clock and stop event from the caller: a test runs it in a thread over
+``InMemoryBus``.  What a kind plugs in is the :class:`ScanLogic` protocol
+(:mod:`manager.covariance`, :mod:`manager.mobile`, :mod:`manager.passive`).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from covnet import messages as msg
+from covnet.bus import Bus, Sample
+from covnet.clock import Clock
+from covnet.config import NetworkSpec
+from covnet.runtime_stats import NetStats
+from manager.membership import Membership
+
+__all__ = [
+    "Decision",
+    "Loop",
+    "ManagerError",
+    "ScanLogic",
+    "ScanReport",
+    "run_scans",
+    "wait_for_nodes_to_leave",
+]
+
+WORLD_ID, RECORDER_ID = msg.WORLD_ID, msg.RECORDER_ID
+MEMBERSHIP_POLL_S = 0.005
+"""While measurements keep arriving, the longest time between two membership checks."""
+
+
+class ManagerError(RuntimeError):
+    """The network could not run (nodes never came up, the stop was requested, ...)."""
+
+
+class LoopResult(Protocol):
+    """What every kind's result holds for the skeleton (and the process around it)."""
+
+    stats: NetStats
+    completed: bool
+    error: str | None
+
+
+@dataclass(frozen=True)
+class Decision:
+    """Step 3: whom scan ``k``'s command enables, with the per-sensor fields some kinds add
+    (``modes``, ``targets``: see :class:`covnet.messages.Command`)."""
+
+    enabled: tuple[str, ...]
+    modes: dict[str, str] | None = None
+    targets: dict[str, tuple[str, ...]] | None = None
+
+
+@dataclass(frozen=True)
+class ScanReport:
+    """Step 7: what the kind reports of a fused scan: the messages to publish (``tracks`` on
+    the track key, ``status`` on the status key) and ``status_info``, the kind's part of the
+    status hook's dict (it must hold ``info``: the scan in one line, for the live view)."""
+
+    tracks: Sequence[msg.Track]
+    status: msg.Status
+    status_info: dict[str, Any]
+
+
+class ScanLogic(Protocol):
+    """The maths a kind plugs into :func:`run_scans` (see the module docstring)."""
+
+    result: Any
+    """The kind's result record (a :class:`LoopResult`), filled as the scans go."""
+    episodes: Sequence[str]
+    scans: int
+    period_s: float
+    message_type: type[msg.Measurement] | type[msg.LocalTrack]
+    """What the sensors send for a scan."""
+    accept_unsolicited: bool
+    """Fuse a message of a sensor that was not enabled (it measured on a stale command)."""
+
+    def start_episode(self, e: int) -> None: ...
+
+    def membership(self, e: int, k: int, events: list[dict[str, Any]]) -> None:
+        """Failures and rejoins seen at scan ``k`` (``sensor``, ``scan``, ``event``, and for a
+        failure ``detected_ns``)."""
+        ...
+
+    def decide(self, e: int, k: int, failed: frozenset[str]) -> Decision: ...
+
+    def ahead(self, e: int, k: int) -> None:
+        """Work for the scan that does not need its messages (done while they travel)."""
+        ...
+
+    def usable(self, m: Any) -> bool:
+        """The kind's test of a message's content (the wire schema checked its form)."""
+        ...
+
+    def on_late(self, m: Any) -> bool | None:
+        """A late message of an earlier scan of this episode: True re-filtered, False dropped,
+        None not for this kind (counted ``late`` and rejected)."""
+        ...
+
+    def fuse(self, e: int, k: int, got: dict[str, Any]) -> Any:
+        """Fuse what arrived for scan ``k``; returns what :meth:`report` needs."""
+        ...
+
+    def report(self, e: int, k: int, fused: Any, failed: frozenset[str]) -> ScanReport:
+        """Log scan ``k`` in the result and make its messages (off the critical path)."""
+        ...
+
+
+StatusFn = Callable[[dict[str, Any]], None]
+
+
+class Loop:
+    """The manager's bus side: membership, publishing, collecting; only the skeleton (and the
+    peer observer's own loop) drive it."""
+
+    def __init__(
+        self, net: NetworkSpec, sensor_ids: tuple[str, ...], bus: Bus, run_id: str, clock: Clock
+    ) -> None:
+        self.net, self.bus, self.run_id, self.clock = net, bus, run_id, clock
+        self.ids = sensor_ids
+        self.members = Membership(
+            expected=(*self.ids, WORLD_ID), failure_timeout_ns=int(net.failure_timeout_s * 1e9)
+        )
+        # the recorder must hear everything: wait for its token too (never allocated)
+        self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
+        self.stats = NetStats()
+        # slow links: a late message goes to on_late (re-filtered or dropped, it says which);
+        # a sensor that measured on a stale command is fused too
+        self.on_late: Callable[[Any], bool | None] | None = None
+        self.accept_unsolicited = False
+        self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
+        self.hb_sub = bus.subscribe(msg.heartbeat_keyexpr(run_id))
+        self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))
+        self.token = bus.declare_token(msg.alive_key(run_id, "manager", msg.MANAGER_ID))
+        self.keys = {
+            "cmd": msg.command_keyexpr(run_id),  # commands are counted under this one
+            "track": msg.track_key(run_id),
+            "status": msg.status_key(run_id),
+        }
+
+    # ---- bus helpers --------------------------------------------------------------------
+
+    def publish(self, key: str, message: msg.Message, *, count_as: str | None = None) -> None:
+        """Encode and publish ``message`` on ``key``; counted under ``count_as`` or ``key``."""
+        payload = msg.encode(message)
+        self.bus.publish(key, payload)
+        self.stats.sent(count_as or key, len(payload))
+
+    def publish_command(self, cmd: msg.Command) -> None:
+        """Publish ``cmd`` on its own key (:func:`~covnet.messages.command_key`: zenoh takes
+        it to the enabled sensors only); counted under ``keys["cmd"]``, every command's."""
+        key = msg.command_key(self.run_id, cmd.enabled)
+        self.publish(key, cmd, count_as=self.keys["cmd"])
+
+    def poll_membership(self) -> None:
+        """Drain liveliness events and heartbeats (non-blocking)."""
+        now = self.clock.now_ns()
+        while (ev := self.live_sub.try_recv()) is not None:
+            try:
+                role, node = msg.parse_alive_key(ev.key)
+            except ValueError:
+                self.stats.reject(ev.key, "bad_key")
+                continue
+            if role in ("sensor", "world", "recorder"):
+                self.members.token(node, ev.alive, now)
+        while (s := self.hb_sub.try_recv()) is not None:
+            self.stats.received(s.key, len(s.payload))
+            try:
+                hb = msg.decode_as(s.payload, msg.Heartbeat)
+            except msg.WireError as exc:
+                self.stats.reject(s.key, exc.reason)
+                continue
+            if msg.heartbeat_key(self.run_id, hb.role, hb.node_id) != s.key:
+                self.stats.reject(s.key, "key_mismatch")
+                continue
+            if hb.node_id in self.members.expected:
+                self.members.heartbeat(hb.node_id, now)
+            if hb.rejected:
+                self.stats.node_rejected[hb.node_id] = dict(hb.rejected)
+
+    def membership_changes(
+        self, k: int, previous: frozenset[str]
+    ) -> tuple[frozenset[str], list[dict[str, Any]]]:
+        """The failed set at scan ``k`` and the failure/rejoin events since ``previous``
+        (a failure carries when it was first seen, ``detected_ns``)."""
+        self.poll_membership()
+        failed = self.members.failed(self.clock.now_ns())
+        events: list[dict[str, Any]] = []
+        for sid in sorted((failed ^ previous) - {WORLD_ID}):
+            event: dict[str, Any] = {
+                "sensor": sid,
+                "scan": k,
+                "event": "failed" if sid in failed else "rejoined",
+            }
+            if sid in failed:
+                event["detected_ns"] = self.members.down_since_ns(sid)
+            events.append(event)
+        return failed, events
+
+    def traffic(self) -> tuple[int, int]:
+        """Messages and bytes this manager has sent and received so far."""
+        st = self.stats
+        return (
+            sum(st.recv_msgs.values()) + sum(st.sent_msgs.values()),
+            sum(st.recv_bytes.values()) + sum(st.sent_bytes.values()),
+        )
+
+    def wait_ready(self, stop: threading.Event) -> None:
+        deadline = time.monotonic() + self.net.ready_timeout_s
+        while True:
+            self.poll_membership()
+            missing = [n for n in self.wait_for if n not in self.members.alive_tokens]
+            missing = missing or self.members.missing_tokens()
+            if not missing:
+                return
+            if stop.is_set():
+                raise ManagerError("stopped before the network was ready")
+            if time.monotonic() > deadline:
+                raise ManagerError(f"nodes not alive after {self.net.ready_timeout_s} s: {missing}")
+            ev = self.live_sub.recv(timeout=0.05)
+            if ev is not None:
+                role, node = msg.parse_alive_key(ev.key)
+                if role in ("sensor", "world", "recorder"):
+                    self.members.token(node, ev.alive, self.clock.now_ns())
+
+    # ---- step 6 -------------------------------------------------------------------------
+
+    def collect(
+        self,
+        episode: int,
+        k: int,
+        waiting: set[str],
+        deadline: float,
+        stop: threading.Event,
+        usable: Callable[[Any], bool],
+        kind: type[msg.Measurement] | type[msg.LocalTrack] = msg.Measurement,
+    ) -> dict[str, Any]:
+        """Receive scan ``k``'s messages (measurements, or local tracks: ``kind``) from the
+        ``waiting`` sensors until all arrived, a sensor failed or the deadline passed (step 6
+        of the module docstring); ``usable`` is the kind's test of a message's content.
+
+        Membership (a waiting sensor that failed) is checked whenever a wait times out (at
+        least every 0.05 s) and otherwise at most every :data:`MEMBERSHIP_POLL_S`: the scan
+        began with a check, and a failed sensor sends nothing, so a wait then times out."""
+        got: dict[str, Any] = {}
+        next_poll = time.monotonic() + MEMBERSHIP_POLL_S
+        while waiting:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or stop.is_set():
+                self.stats.lost += len(waiting)
+                break
+            s = self.meas_sub.recv(timeout=min(0.05, remaining))
+            if s is not None:
+                self._take(s, episode, k, waiting, got, usable, kind)
+                if time.monotonic() < next_poll:
+                    continue
+            next_poll = time.monotonic() + MEMBERSHIP_POLL_S
+            self.poll_membership()
+            dead = {sid for sid in waiting if not self.members.is_up(sid, self.clock.now_ns())}
+            if dead:
+                self.stats.lost += len(dead)
+                waiting -= dead
+        # anything else already queued for this scan (duplicates, strays) is judged now
+        while (s := self.meas_sub.try_recv()) is not None:
+            self._take(s, episode, k, set(), got, usable, kind)
+        return got
+
+    def _take(
+        self,
+        s: Sample,
+        episode: int,
+        k: int,
+        waiting: set[str],
+        got: dict[str, Any],
+        usable: Callable[[Any], bool],
+        kind: type[msg.Measurement] | type[msg.LocalTrack] = msg.Measurement,
+    ) -> None:
+        self.stats.received(s.key, len(s.payload))
+        try:
+            m = msg.decode_as(s.payload, kind)
+            key_sensor = msg.parse_measurement_key(s.key)
+        except msg.WireError as exc:
+            self.stats.reject(s.key, exc.reason)
+            return
+        except ValueError:
+            self.stats.reject(s.key, "bad_key")
+            return
+        if key_sensor != m.sensor_id:
+            self.stats.reject(s.key, "key_mismatch")
+        elif (m.episode, m.scan) < (episode, k):
+            self.stats.late += 1
+            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+            done = (
+                self.on_late(m)
+                if self.on_late is not None and m.episode == episode and usable(m)
+                else None
+            )
+            if done is None:
+                self.stats.reject(s.key, "late")
+            elif done:
+                self.stats.late_refiltered += 1
+            else:
+                self.stats.late_dropped += 1
+        elif (m.episode, m.scan) != (episode, k):
+            self.stats.reject(s.key, "wrong_scan")
+        elif m.sensor_id in got:
+            self.stats.reject(s.key, "duplicate")
+        elif m.sensor_id not in waiting and not self.accept_unsolicited:
+            self.stats.reject(s.key, "not_enabled")
+        elif not usable(m):
+            self.stats.reject(s.key, "bad_measurement")
+        else:
+            self.stats.unsolicited += m.sensor_id not in waiting
+            got[m.sensor_id] = m
+            waiting.discard(m.sensor_id)
+            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+
+
+@dataclass
+class _Held:
+    """A fused scan waiting for its report (step 7)."""
+
+    episode: int
+    k: int
+    fused: Any
+    failed: frozenset[str]
+    latency_ns: int  # command published -> scan fused
+
+
+@dataclass
+class _Reporter:
+    """Step 7: :meth:`hold` keeps a fused scan, :meth:`run` reports it (the kind's log row and
+    messages, then the hooks).  None of it is on the path to the next command."""
+
+    logic: ScanLogic
+    loop: Loop
+    on_status: StatusFn | None
+    on_progress: Callable[[Any, bool], None] | None
+    _held: _Held | None = field(default=None)
+
+    def hold(self, held: _Held) -> None:
+        self._held = held
+
+    def run(self) -> None:
+        h, self._held = self._held, None
+        if h is None:
+            return
+        loop, logic = self.loop, self.logic
+        out = logic.report(h.episode, h.k, h.fused, h.failed)
+        for track in out.tracks:
+            loop.publish(loop.keys["track"], track)
+        loop.publish(loop.keys["status"], out.status)
+        if self.on_status is not None:
+            messages, n_bytes = loop.traffic()
+            self.on_status(
+                {
+                    "metric": logic.episodes[h.episode],
+                    "episode": h.episode,
+                    "scan": h.k,
+                    "scans": logic.scans,
+                    "enabled": list(out.status.enabled),
+                    "fused": sorted(out.status.fused or ()),
+                    "failed": sorted(h.failed - {WORLD_ID}),
+                    "latency_ms": h.latency_ns / 1e6,
+                    "messages": messages,
+                    "bytes": n_bytes,
+                    **out.status_info,
+                }
+            )
+        if self.on_progress is not None:
+            self.on_progress(logic.result, h.k == logic.scans)
+
+
+def run_scans(
+    logic: ScanLogic,
+    loop: Loop,
+    stop: threading.Event,
+    *,
+    realtime: bool = False,
+    on_ready: Callable[[], None] | None = None,
+    on_status: StatusFn | None = None,
+    on_progress: Callable[[Any, bool], None] | None = None,
+) -> Any:
+    """Run every episode of ``logic`` over ``loop``'s bus (module docstring); returns the
+    kind's result: also when stopped (``completed=False``) or when the network never came up
+    or could not go on (``error`` set).  ``on_progress(result, episode_done)`` is called after
+    every scan's report."""
+    result, clock, net = logic.result, loop.clock, loop.net
+    report = _Reporter(logic, loop, on_status, on_progress)
+    try:
+        try:
+            loop.wait_ready(stop)
+        except ManagerError as exc:
+            result.error = str(exc)
+            return result
+        if on_ready is not None:
+            on_ready()
+        t_loop = time.perf_counter_ns()
+        for e in range(len(logic.episodes)):
+            logic.start_episode(e)
+            loop.on_late = logic.on_late
+            loop.accept_unsolicited = logic.accept_unsolicited
+            t_origin = clock.now()
+            failed_prev: frozenset[str] = frozenset()
+            for k in range(1, logic.scans + 1):
+                if stop.is_set():
+                    return result
+                if realtime:
+                    pace(clock, t_origin + (k - 1) * logic.period_s, stop)
+                t_core0 = time.perf_counter_ns()
+                failed, events = loop.membership_changes(k, failed_prev)
+                if events:
+                    logic.membership(e, k, events)
+                failed_prev = failed
+                decision = logic.decide(e, k, failed)
+                core_ns = time.perf_counter_ns() - t_core0
+                t_sent = clock.now_ns()
+                cmd = msg.Command(
+                    scan=k,
+                    t=k * logic.period_s,
+                    enabled=decision.enabled,
+                    t_sent_ns=t_sent,
+                    episode=e,
+                    modes=decision.modes,
+                    targets=decision.targets,
+                )
+                loop.publish_command(cmd)
+                report.run()  # scan k-1's (lockstep)
+                logic.ahead(e, k)
+                if realtime:
+                    deadline = time.monotonic() + net.deadline_fraction * logic.period_s / speed(
+                        clock
+                    )
+                else:
+                    deadline = time.monotonic() + net.scan_timeout_s
+                got = loop.collect(
+                    e, k, set(decision.enabled), deadline, stop, logic.usable, logic.message_type
+                )
+                t_core1 = time.perf_counter_ns()
+                fused = logic.fuse(e, k, got)
+                loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
+                loop.stats.scans_done += 1
+                loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop
+                t_fused = clock.now_ns()
+                loop.stats.scan_latency_ns.append(t_fused - t_sent)
+                report.hold(_Held(e, k, fused, failed, t_fused - t_sent))
+                if realtime:
+                    report.run()
+            report.run()  # the episode's last scan
+        result.completed = True
+    except ManagerError as exc:
+        result.error = str(exc)
+    finally:
+        report.run()  # a stopped loop's last scan
+        loop.token.undeclare()
+    return result
+
+
+def wait_for_nodes_to_leave(bus: Bus, run_id: str, timeout_s: float, stop: threading.Event) -> None:
+    """After the run: wait (bounded) until no other node of the run is alive."""
+    watch = bus.watch_liveliness(msg.alive_keyexpr(run_id))
+    alive: set[str] = set()
+    deadline = time.monotonic() + timeout_s
+    first = True
+    while time.monotonic() < deadline and not stop.is_set():
+        ev = watch.recv(timeout=0.05)
+        if ev is not None:
+            if ev.alive:
+                alive.add(ev.key)
+            else:
+                alive.discard(ev.key)
+            first = False
+            continue
+        if not alive and not first:
+            break
+        first = False
+    watch.close()
+
+
+def pace(clock: Clock, t: float, stop: threading.Event) -> None:
+    """Wait until scenario time ``t`` on a wall clock, waking for ``stop``; a simulated
+    clock just jumps."""
+    if not hasattr(clock, "speed"):
+        clock.sleep_until(t)
+        return
+    while not stop.is_set():
+        remaining = (t - clock.now()) / speed(clock)
+        if remaining <= 0:
+            return
+        stop.wait(min(remaining, 0.05))
+
+
+def speed(clock: Clock) -> float:
+    """A wall clock's speed factor (1 for a clock that has none)."""
+    return float(getattr(clock, "speed", 1.0))

@@ -1,0 +1,105 @@
+"""The recorder's loop: write every publication of the run to the recording as it arrives.
+
+It subscribes to ``covnet/<run>/**`` *before* declaring its liveliness token, and the manager
+waits for that token before its first command, so the recording misses nothing of the scan
+loop.  Every sample is written as received (:class:`covnet.recording.RecordingWriter`), also
+when its payload does not decode.  The recorder does not decode strictly (the replay does, and
+skips what does not): it reads each payload's kind and ``t_sent_ns`` with one plain msgpack
+unpack (:func:`covnet.recording.peek`, a tenth of a strict decode) and counts a payload that is
+not a map of a known kind and schema version as ``undecodable:<reason>``.  It is not on the
+scan loop's critical path, so it drains its queue in bursts: after a message arrives it waits
+:data:`BATCH_S` and then writes everything queued (every sample keeps the receive stamp its
+transport thread gave it), one wake-up per burst instead of one per message.  Like the world
+and the sensors it sends a heartbeat every ``network.heartbeat_s`` (``scan``: the last
+commanded scan it recorded).
+
+It ends when ``stop`` is set or when the manager it has seen leaves (the run is over), and then
+winds down: it keeps recording until nothing has arrived for :data:`QUIET_S` (messages still in
+flight: zenoh may deliver the manager's token loss before its last data) and, when stopped by
+a signal while the manager is still up, for up to ``linger_s`` so that the manager's last scan
+lands in the recording too.  The caller closes the writer.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter
+
+from covnet import messages as msg
+from covnet.bus import Bus, Sample
+from covnet.clock import Clock
+from covnet.config import Networked
+from covnet.node_kit import Heartbeat, ManagerWatch
+from covnet.recording import RecordingWriter, peek
+
+ROLE = NODE_ID = msg.RECORDER_ID
+QUIET_S = 0.2
+"""Wind-down: stop once nothing has arrived for this long."""
+LINGER_S = 1.0
+"""Wind-down: longest time to keep recording after the stop (while the manager is up)."""
+BATCH_S = 0.005
+"""After a message wakes the loop: how long to let the burst gather before writing it."""
+
+
+def run(
+    sc: Networked,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    writer: RecordingWriter,
+    *,
+    linger_s: float = LINGER_S,
+) -> Counter[str]:
+    """Record until the run is over (see module doc); returns counters: ``recorded``,
+    ``undecodable:<reason>`` and ``kind:<kind>`` per message kind recorded."""
+    counts: Counter[str] = Counter()
+    sub = getattr(bus, "subscribe_stamped", bus.subscribe)(msg.run_keyexpr(run_id))
+    manager = ManagerWatch(bus, run_id)
+    token = bus.declare_token(msg.alive_key(run_id, ROLE, NODE_ID))
+    heartbeat = Heartbeat(bus, clock, run_id, ROLE, NODE_ID, sc.network.heartbeat_s)
+    last_scan = 0
+
+    write = writer.write
+    cmd_kind = msg.Command.KIND
+
+    def record(s: Sample) -> None:
+        nonlocal last_scan
+        kind, t_sent, scan = peek(s.payload)
+        counts[kind] += 1
+        if kind == cmd_kind and scan is not None:
+            last_scan = scan
+        write(s.key, s.payload, s.t_recv_ns, t_sent)
+
+    try:
+        while not stop.is_set():
+            heartbeat.tick(last_scan)
+            s = sub.recv(timeout=sc.network.heartbeat_s / 2)
+            if s is not None:
+                time.sleep(BATCH_S)  # let the burst gather: one wake-up for all of it
+                while s is not None:
+                    record(s)
+                    s = sub.try_recv()
+            writer.maybe_flush()
+            if manager.left:
+                break  # the manager left: the run is over
+        # wind down: what is in flight, and the manager's last scan when stopped by a signal
+        deadline = time.monotonic() + linger_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            s = sub.recv(timeout=min(QUIET_S, remaining))
+            manager.poll()
+            if s is not None:
+                record(s)
+            elif not manager.up:
+                break
+    finally:
+        token.undeclare()
+        sub.close()
+        manager.close()
+    writer.flush()
+    out: Counter[str] = Counter()
+    for kind, n in counts.items():
+        out[kind if kind.startswith("undecodable:") else f"kind:{kind}"] += n
+    out["recorded"] = counts.total()
+    return out

@@ -1,0 +1,159 @@
+"""A covariance-control sensor: measure the truth when commanded, publish the measurement.
+
+Per ``Command(k)`` that enables it (the protocol every sensor shares,
+:func:`sensors.protocol.serve`), it draws its measurement ``z = H x + v`` from its own noise
+stream ``(seed, j, k)`` (:func:`covnet.covariance_control.model.measure`, the same draw
+``covnet run`` makes) and publishes ``Measurement(k)``; under a fusion rule whose sensors run
+local filters (``fusion.mode: info | ci``) it publishes its :class:`~covnet.messages.LocalTrack`
+instead.  The measurement noise of every scan is drawn at start-up (:class:`NoiseTable`): that
+takes work off the scan's critical path and changes no result.  With ``fusion.mode: peer`` the
+process is a peer node instead (:mod:`sensors.peer`).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+
+from covnet import messages as msg
+from covnet.bus import Bus
+from covnet.clock import Clock, WallClock
+from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.decentral import LocalFilter, local_track
+from covnet.covariance_control.model import Model, build_model, measure
+from covnet.latency_bus import for_sensor
+from covnet.process import EXIT_OK, open_client
+from sensors import peer
+from sensors.protocol import SensorStats, process_main, serve
+
+
+def main(args: Any, sc: Scenario, stop: threading.Event) -> int:
+    """``python -m sensors --config PAPER.yaml --id S3 ...``: a sensor (or, in peer mode, a
+    peer node); ``network.latency`` emulated in this process in real time unless a real
+    emulated path does it (``--no-app-latency``, set by ``covnet up --netns``)."""
+    if sc.fusion.mode == "peer":
+        return _peer(args, sc, stop)
+    wrap = None
+    if args.realtime and not args.no_app_latency and not sc.network.latency.is_ideal(sc.sensor_ids):
+
+        def wrap(bus: Bus) -> Any:
+            return for_sensor(bus, sc, args.id, args.run, args.speed)
+
+    return process_main(args, sc, stop, run, wrap)
+
+
+def _peer(args: Any, sc: Scenario, stop: threading.Event) -> int:
+    """``fusion.mode: peer``: this sensor is a peer node (decides and fuses with its
+    neighbours); the episodes are the config's metrics."""
+    if args.realtime:
+        raise ValueError("--realtime: peer mode runs in lockstep only")
+    with open_client(args, sc.network, "sensor", args.id, stop) as bus:
+        stats = peer.run(
+            sc, args.id, list(sc.allocation.metrics), bus, args.run, WallClock(args.speed), stop
+        )
+    print(
+        f"stopped: {stats.scans} scans, {stats.tracks_sent} tracks sent, "
+        f"{stats.tracks_fused} fused, rejected {dict(stats.rejected)}"
+    )
+    return EXIT_OK
+
+
+def run(
+    sc: Scenario,
+    sensor_id: str,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+) -> SensorStats:
+    """A covariance-control position sensor; serves commands until ``stop`` is set.
+
+    In the decentralized centre modes (``fusion.mode: info | ci``) it runs its own local Kalman
+    filter and publishes a :class:`~covnet.messages.LocalTrack` instead of the measurement: the
+    filter predicts every scan (lazily, scan by scan up to the commanded one: the same
+    arithmetic as predicting at every scan) and updates at the scans it is enabled; a new
+    episode restarts it from the initial estimate."""
+    model = build_model(sc)
+    j = model.index(sensor_id)
+    R = model.R[j]
+    local = LocalFilter(model, sc.filter.initial_estimate)
+    noisy = NoiseTable(model, j)
+
+    def truth_ok(tr: msg.Truth) -> bool:
+        return tr.states.shape[0] >= 1 and tr.states.shape[1] == 4
+
+    def respond_track(cmd: msg.Command, tr: msg.Truth) -> msg.LocalTrack:
+        prior = local.predict_to(cmd.episode, cmd.scan)
+        track = local_track(model, j, prior, noisy(cmd.scan, tr.states[0]))
+        local.set(track.post)
+        return msg.LocalTrack(
+            sensor_id=sensor_id,
+            scan=cmd.scan,
+            t=cmd.t,
+            x=track.post.x,
+            P=track.post.P,
+            x_prior=prior.x,
+            P_prior=prior.P,
+            t_sent_ns=clock.now_ns(),
+            episode=cmd.episode,
+        )
+
+    def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement:
+        z = noisy(cmd.scan, tr.states[0])
+        return msg.Measurement(
+            sensor_id=sensor_id,
+            scan=cmd.scan,
+            t=cmd.t,
+            z=z[None, :],
+            R=R,
+            t_sent_ns=clock.now_ns(),
+            episode=cmd.episode,
+        )
+
+    decentral = sc.fusion.mode in ("info", "ci")
+    slow = not sc.network.latency.is_ideal(sc.sensor_ids)
+    return serve(
+        sensor_id,
+        bus,
+        run_id,
+        clock,
+        stop,
+        sc.network,
+        truth_ok=truth_ok,
+        respond=respond_track if decentral else respond,  # type: ignore[arg-type]
+        missed_command=sc.network.latency.missed_command if slow else None,
+        keep_truth=model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
+    )
+
+
+class NoiseTable:
+    """``noisy(k, x)`` is :func:`covnet.covariance_control.model.measure` ``(model, j, k, x)`` bit
+    for bit, with the noise of every scan drawn ahead, at start-up (up to :attr:`MAX_SCANS`): the
+    noise stream ``(seed, j, k)`` does not depend on the truth, and building a generator per scan
+    is most of a measurement's cost on the scan's critical path.  The measurement is
+    ``H x + v``: ``v`` is taken as ``measure(model, j, k, 0)`` (``0 + v`` is ``v`` exactly
+    unless ``v`` holds a zero, then that scan is drawn as before), and a start-up check falls
+    back to :func:`measure` for every scan if the model is not of that form."""
+
+    MAX_SCANS = 20_000
+
+    def __init__(self, model: Model, j: int) -> None:
+        self.model, self.j, self.H = model, j, model.H
+        zero = np.zeros(model.H.shape[1])
+        table: dict[int, np.ndarray] = {}
+        for k in range(1, min(model.scans, self.MAX_SCANS) + 1):
+            v = measure(model, j, k, zero)
+            if np.all(v != 0.0):
+                table[k] = v
+        x = np.arange(1.0, model.H.shape[1] + 1.0) * 1000.0 + 0.123
+        if 1 in table and not np.array_equal(model.H @ x + table[1], measure(model, j, 1, x)):
+            table = {}  # not H x + v: draw every scan
+        self.table = table
+
+    def __call__(self, scan: int, x: np.ndarray) -> np.ndarray:
+        v = self.table.get(scan)
+        if v is None:
+            return measure(self.model, self.j, scan, x)
+        return self.H @ x + v

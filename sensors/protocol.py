@@ -1,0 +1,191 @@
+"""The protocol every kind of sensor process shares: commands in, truth in, measurements out.
+
+A sensor subscribes to the commands that enable it (the command's key names the enabled set,
+:func:`covnet.messages.command_key`; zenoh delivers a command to the sensors it enables only, so
+a disabled sensor is not woken).  Per command for scan ``k`` that lists it in ``enabled``, it
+waits for the world's ``Truth(k)``, makes its measurement message from that truth (the kind's
+``respond``: :mod:`sensors.covariance`, :mod:`sensors.mobile`, :mod:`sensors.passive`) and
+publishes it; at a scan that does not enable it, it publishes nothing.  On slow links it hears
+every command (to notice one it missed: ``missed_command``).  A command whose truth never comes
+(a sensor restarted after the world sent it) is dropped as soon as a newer command arrives, so a
+sensor never stalls on a scan that has passed.  It sends a heartbeat every
+``network.heartbeat_s`` (a hung loop stops sending them) and declares its liveliness token once
+its subscriptions exist.  Malformed messages are counted by reason and dropped.  It ends on
+``stop`` or when the manager it has seen leaves (its liveliness token goes: the run is over, or
+the manager died).
+
+:func:`process_main` is what every sensor role module's ``main`` does around :func:`serve`.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from covnet import messages as msg
+from covnet.bus import Bus, Sample
+from covnet.clock import Clock, WallClock
+from covnet.config import NetworkSpec
+from covnet.node_kit import Heartbeat, ManagerWatch
+from covnet.process import EXIT_OK, open_client
+
+
+@dataclass
+class SensorStats:
+    commands: int = 0
+    enabled_scans: int = 0
+    measurements_sent: int = 0
+    missed_truth: int = 0  # commanded scans whose truth never came (e.g. just after a restart)
+    missed_commands: int = 0  # scans whose command never came (slow links)
+    rejected: Counter[str] = field(default_factory=Counter)
+
+
+TruthCheck = Callable[[msg.Truth], bool]
+Respond = Callable[[msg.Command, msg.Truth], msg.Measurement]
+
+
+def serve(
+    sensor_id: str,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    net: NetworkSpec,
+    *,
+    truth_ok: TruthCheck,
+    respond: Respond,
+    missed_command: str | None = None,
+    keep_truth: bool = False,
+) -> SensorStats:
+    """The protocol every kind of sensor shares (see the module docstring).
+
+    ``truth_ok(truth)`` says whether a decoded ``Truth`` is usable by this sensor (else it is
+    counted as ``bad_shape``); ``respond(command, truth)`` makes the measurement message for
+    an enabled command once its scan's truth is in hand.  Returns the sensor's counters.
+
+    ``missed_command`` (slow links, ``network.latency.missed_command``): a command older than
+    the newest one received is stale and ignored; scans whose command never came (a gap before
+    the command just received) are filled by the policy, ``keep_last`` (the newest command's
+    on/off for this sensor), ``off`` or ``on``, and measured at once (so late: the manager
+    re-filters or drops them).  ``keep_truth``: keep every scan's truth for the whole run (the
+    world sends it once, :data:`~covnet.messages.TRUTH_UPFRONT_MAX_SCANS`), else drop what is
+    older than the scan being measured (the world sends it again for a new episode)."""
+    stats = SensorStats()
+    # on slow links every command (a gap in the scans says one was missed), else its own
+    mine = None if missed_command is not None else sensor_id
+    cmd_sub = bus.subscribe(msg.command_keyexpr(run_id, mine))
+    truth_sub = bus.subscribe(msg.truth_key(run_id))
+    manager = ManagerWatch(bus, run_id)
+    token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
+    meas_key = msg.measurement_key(run_id, sensor_id)
+    heartbeat = Heartbeat(bus, clock, run_id, "sensor", sensor_id, net.heartbeat_s)
+    wait_s = net.heartbeat_s / 2
+    truths: dict[int, msg.Truth] = {}
+    pending: deque[msg.Command] = deque()  # enabled commands not yet answered, oldest first
+    last_scan = 0
+    newest = (-1, 0)  # (episode, scan) of the newest command received
+    last_on = False
+
+    def accept(s: Sample | None) -> bool:
+        """Decode one command; queue it if this sensor is enabled. False when ``s`` is None."""
+        nonlocal last_scan
+        if s is None:
+            return False
+        try:
+            cmd = msg.decode_command(s.key, s.payload)
+        except msg.WireError as exc:
+            stats.rejected[exc.reason] += 1
+            return True
+        nonlocal newest, last_on
+        stats.commands += 1
+        if missed_command is not None:
+            if (cmd.episode, cmd.scan) <= newest:
+                stats.rejected["stale_command"] += 1
+                return True
+            first = newest[1] + 1 if cmd.episode == newest[0] else 1
+            for m in range(first, cmd.scan):  # commands that never came: the fallback
+                stats.missed_commands += 1
+                if {"keep_last": last_on, "off": False, "on": True}[missed_command]:
+                    t_m = cmd.t * m / cmd.scan  # t = scan * period
+                    pending.append(
+                        msg.Command(m, t_m, (sensor_id,), cmd.t_sent_ns, episode=cmd.episode)
+                    )
+            newest, last_on = (cmd.episode, cmd.scan), sensor_id in cmd.enabled
+        last_scan = cmd.scan
+        if sensor_id in cmd.enabled:
+            stats.enabled_scans += 1
+            pending.append(cmd)
+        return True
+
+    def take_truth(timeout: float | None) -> bool:
+        s = truth_sub.recv(timeout) if timeout is not None else truth_sub.try_recv()
+        if s is None:
+            return False
+        try:
+            tr = msg.decode_as(s.payload, msg.Truth)
+        except msg.WireError as exc:
+            stats.rejected[exc.reason] += 1
+            return True
+        if not truth_ok(tr):
+            stats.rejected["bad_shape"] += 1
+            return True
+        truths[tr.scan] = tr
+        return True
+
+    try:
+        while not stop.is_set():
+            heartbeat.tick(last_scan, stats.rejected)
+            if manager.left:
+                break
+            if pending:  # waiting for a commanded scan's truth
+                take_truth(wait_s)
+            else:
+                accept(cmd_sub.recv(timeout=wait_s))
+            while accept(cmd_sub.try_recv()):
+                pass
+            while take_truth(None):
+                pass
+            while pending:
+                cmd = pending[0]
+                if cmd.scan in truths:
+                    bus.publish(meas_key, msg.encode(respond(cmd, truths[cmd.scan])))
+                    stats.measurements_sent += 1
+                    if not keep_truth:
+                        for old in [k for k in truths if k < cmd.scan - 1]:
+                            del truths[old]
+                elif len(pending) > 1:  # a newer command came first: this truth is gone
+                    stats.missed_truth += 1
+                else:
+                    break
+                pending.popleft()
+    finally:
+        token.undeclare()
+        manager.close()
+    return stats
+
+
+def process_main(
+    args: Any,
+    cfg: Any,
+    stop: threading.Event,
+    run: Callable[[Any, str, Bus, str, Clock, threading.Event], SensorStats],
+    wrap: Callable[[Bus], Any] | None = None,
+) -> int:
+    """A sensor process around its loop: open the client session, run ``run(cfg, id, bus,
+    run_id, clock, stop)`` (over ``wrap(bus)`` when given: a bus that emulates the links, say;
+    closed afterwards), print the counters, exit 0."""
+    with open_client(args, cfg.network, "sensor", args.id, stop) as bus:
+        wrapped = wrap(bus) if wrap is not None else None
+        try:
+            stats = run(cfg, args.id, wrapped or bus, args.run, WallClock(args.speed), stop)
+        finally:
+            if wrapped is not None:
+                wrapped.close()
+    print(
+        f"stopped: {stats.commands} commands received, {stats.enabled_scans} scans enabled, "
+        f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}"
+    )
+    return EXIT_OK

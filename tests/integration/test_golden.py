@@ -1,0 +1,62 @@
+"""Results the refactors may not change: every shipped config through the CLI, hashed
+(``tests/golden/golden.py``), against ``tests/golden/hashes.json``, recorded on the code before
+the architecture change of issue 13.  ``covnet run`` and ``covnet up`` of the paper scenario,
+the decentralized and slow-link variants, mobile and passive, their Monte Carlo, ``compare``
+and a small ``sweep``: byte for byte (wall-clock fields, which issue 13 moved to ``run.json``,
+left out of the old files' hashes)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+GOLDEN = Path(__file__).resolve().parents[1] / "golden"
+sys.path.insert(0, str(GOLDEN))
+
+import golden  # noqa: E402
+
+EXPECTED = json.loads((GOLDEN / "hashes.json").read_text())
+
+
+@pytest.mark.parametrize("case", sorted(golden.CASES))
+def test_in_process_results_unchanged(case, tmp_path):
+    argv, files = golden.CASES[case]
+    assert golden.run_case(case, argv, files, tmp_path) == EXPECTED[case]
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("case", sorted(golden.UP_CASES))
+def test_network_results_unchanged(case, tmp_path):
+    argv, files = golden.UP_CASES[case]
+    assert golden.run_case(case, argv, files, tmp_path) == EXPECTED[case]
+
+
+def _keys(obj: object) -> set[str]:
+    if isinstance(obj, dict):
+        return set(obj) | {k for v in obj.values() for k in _keys(v)}
+    if isinstance(obj, list):
+        return {k for v in obj for k in _keys(v)}
+    return set()
+
+
+@pytest.mark.parametrize(
+    "case,result,info_key",
+    [
+        ("run-mobile", "summary.json", "decision_time_s"),
+        ("run-passive", "association.json", "association_time_s"),
+        ("mc-mobile", "montecarlo.json", "decision_time_median_s"),
+    ],
+)
+def test_wall_clock_facts_are_not_in_the_results(case, result, info_key, tmp_path):
+    """Issue 13, defect 4: a mobile summary (a passive association, a mobile Monte Carlo) holds
+    only what the config and seeds determine; the decision (association) times are in
+    run.json."""
+    argv, files = golden.CASES[case]
+    golden.run_case(case, argv, files, tmp_path)
+    doc = json.loads((tmp_path / case / result).read_text())
+    assert not _keys(doc) & golden.WALL_CLOCK_KEYS, _keys(doc) & golden.WALL_CLOCK_KEYS
+    assert info_key in json.loads((tmp_path / case / "run.json").read_text())
