@@ -4,7 +4,10 @@ that opened a zenoh session hangs), results in task order, a progress callback."
 
 from __future__ import annotations
 
+import csv
+import json
 import os
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
@@ -41,7 +44,6 @@ def parallel_map(
 
 def progress_printer(label: str, every_s: float = 1.0) -> Callable[[int, int], None]:
     """A progress callback printing ``[label] done/n runs`` at most every ``every_s``."""
-    import time
 
     shown = [0.0]
 
@@ -62,8 +64,6 @@ def write_rows(
     columns: Sequence[str],
 ) -> None:
     """``<stem>.json`` (``meta`` and every row in full) and ``<stem>.csv`` (``columns``)."""
-    import csv
-    import json
 
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{stem}.json").write_text(json.dumps({**meta, "rows": list(rows)}, indent=2) + "\n")

@@ -18,8 +18,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from covnet import __version__
+from covnet import __version__, kinds
+from covnet.config import ConfigError, hash_of
 from covnet.errors import UpError, UsageError
+from covnet.messages import RESERVED_IDS, new_run_id, run_keyexpr
+from covnet.rundir import CONFIG, prepare_out, read_json
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -44,8 +47,6 @@ def _options(args: argparse.Namespace, *names: str) -> dict[str, Any]:
 
 def _load(args: argparse.Namespace, *options: str) -> tuple[Any, Any]:
     """``(kind, config)`` of ``args.config`` with the given run ``options`` applied."""
-    from covnet import kinds
-
     kind, cfg = kinds.load(args.config)
     return kind, kinds.apply_options(kind, cfg, args.config, **_options(args, *options))
 
@@ -54,38 +55,27 @@ RUN_OPTIONS = ("seed", "metric", "fusion", "solver")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from covnet.rundir import prepare_out
-
     kind, cfg = _load(args, *RUN_OPTIONS)
     out = prepare_out(args.out, cfg.name, args.force)
     return int(kind.run(cfg, out, figures=not args.no_figures))
 
 
 def cmd_mc(args: argparse.Namespace) -> int:
-    from covnet import kinds
-
     kind, cfg = _load(args)
     return kinds.command(kind, "mc", "a Monte Carlo protocol")(args, cfg)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from covnet import kinds
-
     kind, cfg = _load(args, "seed")
     return kinds.command(kind, "compare", "comparing fusion structures")(args, cfg)
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from covnet import kinds
-
     kind, cfg = _load(args, "seed")
     return kinds.command(kind, "sweep", "the network-latency sweep")(args, cfg)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from covnet import kinds
-    from covnet.rundir import CONFIG, read_json
-
     run_dir = Path(args.run_dir)
     if not (run_dir / CONFIG).is_file():
         raise UsageError(f"{run_dir}: not a recorded network run directory (no {CONFIG})")
@@ -98,9 +88,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from covnet.messages import new_run_id, run_keyexpr
+    # the launcher's modules, for the command that launches (start-up time of the others)
     from covnet.process import default_run_id
-    from covnet.rundir import prepare_out
     from covnet.up import up
 
     kind, cfg = _load(args, *RUN_OPTIONS)
@@ -110,7 +99,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     if problem is not None:
         raise UsageError(problem)
     if args.netns:
-        from covnet.netns_launch import unsupported_reason
+        from covnet.netns_launch import unsupported_reason  # only for --netns (start-up time)
 
         if args.nodes or args.router:
             raise UsageError(
@@ -157,11 +146,8 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    import yaml
+    import yaml  # the check's printout only (start-up time of the other commands)
 
-    from covnet import kinds
-    from covnet.config import hash_of
-    from covnet.messages import RESERVED_IDS
     from covnet.security import preflight
 
     kind, cfg = kinds.load(args.config)
@@ -174,9 +160,6 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from covnet import kinds
-    from covnet.rundir import CONFIG, read_json
-
     run_dir = Path(args.run_dir)
     if not (run_dir / CONFIG).is_file():
         raise UsageError(
@@ -189,7 +172,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_up(args: argparse.Namespace) -> int:
-    import tempfile
+    import tempfile  # only the benchmark needs these (start-up time of the other commands)
 
     from covnet.bench_up import run as bench_up_run
 
@@ -216,8 +199,6 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from covnet import kinds
-
     if args.target == "up":
         return cmd_bench_up(args)
     kind = kinds.get(BENCHES[args.target])
@@ -334,9 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("config", help="scenario YAML, e.g. configs/paper.yaml")
     cp.add_argument(
         "--modes",
-        default="central,info,ci,peer-info,peer-ci",
-        help="comma-separated from central, info, ci, ci-fast, peer-info, peer-ci "
-        "(default: %(default)s)",
+        help="comma-separated fusion structures: a fusion rule at a centre (central, info, ci), "
+        "ci-fast, or peer-<rule> (peer-info, peer-ci); default: all but ci-fast",
     )
     cp.add_argument("--runs", type=int, default=20, help="seeds per mode (default: %(default)s)")
     cp.add_argument(
@@ -416,8 +396,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from covnet.config import ConfigError
-
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -22,10 +22,11 @@ import itertools
 import threading
 import time
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, cast
 
+from covnet import messages as msg
 from covnet.bus import Bus, LivelinessSubscription, Sample, Subscription, Token
-from covnet.core.delay import LinkState
+from covnet.core.delay import LinkState, link_stream
 
 UP, DOWN = 0, 1  # link directions, as in covnet.covariance_control.latency_sim
 
@@ -129,7 +130,7 @@ class DelayedBus:
             while not self._closed:
                 now = time.monotonic_ns()
                 while (item := self._held.pop_due(now)) is not None:
-                    key, payload = item  # type: ignore[misc]
+                    key, payload = cast(tuple[str, bytes], item)
                     self.bus.publish(key, payload)
                 nxt = self._held.next_due()
                 self._cond.wait(None if nxt is None else max(nxt - now, 0) * 1e-9)
@@ -159,8 +160,6 @@ def for_sensor(bus: Bus, sc: Any, sensor_id: str, run_id: str, speed: float) -> 
     downlink, its measurements (or local tracks) leave over its uplink, each link with the
     stream :func:`covnet.core.delay.link_stream` ``(seed, j, direction)`` that
     :func:`covnet.covariance_control.latency_sim.run_latency` uses too."""
-    from covnet import messages as msg
-    from covnet.core.delay import link_stream
 
     j = sc.sensor_ids.index(sensor_id)
     lat = sc.network.latency

@@ -392,7 +392,7 @@ def _coerce(kind: str, name: str, v: object, strict: bool) -> Any:
             and _GOOD_NAMES.issuperset(v)  # type: ignore[arg-type]
             and (strict or all(type(x) is str for x in v))  # type: ignore[attr-defined]
         ):
-            out = tuple(v)  # type: ignore[arg-type]
+            out: tuple[str, ...] = tuple(v)  # type: ignore[arg-type]
             if len(set(out)) == len(out):
                 return out
     return _coerce_slow(kind, name, v, strict)
@@ -862,7 +862,7 @@ def encode(msg: Message) -> bytes:
         if value is None:  # optional and unset: omitted
             continue
         d[name] = value
-    return msgpack.packb(d, default=_default, use_bin_type=True)  # type: ignore[no-any-return]
+    return msgpack.packb(d, default=_default, use_bin_type=True)
 
 
 _INNER_LIMITS: dict[str, Any] = {

@@ -57,8 +57,11 @@ from typing import Any
 from covnet.core.delay import DelayDist, LinkSpec
 from covnet.errors import UpError
 from covnet.launch import ProcessSpec
+from covnet.netem import emulated_link, netem_available, tun_available
 from covnet.netem.detect import run_ip
+from covnet.netem.link import choose_mode
 from covnet.rundir import write_json
+from covnet.security import endpoint
 
 __all__ = [
     "BASE_NET",
@@ -84,7 +87,6 @@ _APP_LEVEL_HINT = (
 def unsupported_reason() -> str | None:
     """Why ``--netns`` cannot run here (a readable sentence), or ``None`` when it can: it needs
     root, iproute2 (``ip``) and TUN devices (``/dev/net/tun``) or the kernel's ``netem``."""
-    from covnet.netem import netem_available, tun_available
 
     if os.geteuid() != 0:
         why = "network namespaces need root"
@@ -298,9 +300,6 @@ def netns_topology(
     ``speed`` divides the link delays (a real-time run's ``--speed``; 1 in lockstep); ``mode`` goes
     to :func:`covnet.netem.emulated_link`; ``tag`` (default: this pid) makes the names unique.
     Raises ``RuntimeError`` when a namespace or link cannot be made (nothing is left then)."""
-    from covnet.netem import emulated_link
-    from covnet.netem.link import choose_mode
-    from covnet.security import endpoint
 
     tag = str(os.getpid()) if tag is None else tag
     net = sc.network

@@ -117,13 +117,17 @@ def open_bus(
     # use this module too (start-up time)
     from covnet.zenoh_bus import ZenohBus, zenoh_config
 
-    cfg_args = dict(listen=list(listen), connect=list(connect), lease_ms=lease_ms)
     deadline = time.monotonic() + timeout_s
     while True:
         try:
-            return ZenohBus.open(
-                zenoh_config(mode, extra_json5=extra_json5, **cfg_args), express=express
-            )  # type: ignore[arg-type]
+            config = zenoh_config(
+                mode,  # type: ignore[arg-type]  # "router" or "client", checked by zenoh_config
+                listen=list(listen),
+                connect=list(connect),
+                lease_ms=lease_ms,
+                extra_json5=extra_json5,
+            )
+            return ZenohBus.open(config, express=express)
         except Exception as exc:  # zenoh raises its own ZError
             if time.monotonic() > deadline or stop.is_set():
                 raise ConnectionError(

@@ -112,6 +112,7 @@ class StatusView:
 
     def __enter__(self) -> StatusView:
         if self.tty:
+            # rich only for a terminal (start-up time of the plain-lines case)
             from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
             self._progress = Progress(

@@ -70,7 +70,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from typing import Generic, Literal, TypeVar
+from typing import Any, Generic, Literal, TypeVar
 
 import zenoh
 
@@ -183,7 +183,7 @@ class _ChannelSubscription(Generic[_T]):
         sub, self._sub = self._sub, None
         if sub is not None:
             try:
-                sub.undeclare()  # type: ignore[no-untyped-call]
+                sub.undeclare()
             except zenoh.ZError:  # the session is already closed
                 pass
         self.channel.close()
@@ -373,10 +373,12 @@ class _ZenohFifoSubscription:
         self._closed = True
         sub, self._sub = self._sub, None
         self._wake()  # a loop blocked in recv returns (and sees _closed)
+        if sub is None:
+            return
         deadline = time.monotonic() + 2.0
         while True:
             try:
-                sub.undeclare()  # type: ignore[no-untyped-call]
+                sub.undeclare()
                 return
             except zenoh.ZError:  # the session is already closed
                 return
@@ -418,17 +420,12 @@ class _ZenohToken:
         token, self._token = self._token, None
         if token is not None:
             try:
-                token.undeclare()  # type: ignore[no-untyped-call]
+                token.undeclare()
             except zenoh.ZError:
                 pass
 
 
-_Entity = (
-    _ChannelSubscription[Sample]
-    | _ChannelSubscription[LivelinessEvent]
-    | _ZenohFifoSubscription
-    | _ZenohToken
-)
+_Entity = _ChannelSubscription[Any] | _ZenohFifoSubscription | _ZenohToken
 _E = TypeVar("_E", bound=_Entity)
 
 
@@ -527,11 +524,11 @@ class ZenohBus:
                 entity._undeclare()
             for publisher in publishers:
                 try:
-                    publisher.undeclare()  # type: ignore[no-untyped-call]
+                    publisher.undeclare()
                 except zenoh.ZError:
                     pass
         finally:
-            self._session.close()  # type: ignore[no-untyped-call]
+            self._session.close()
 
     def __enter__(self) -> ZenohBus:
         return self

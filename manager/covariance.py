@@ -49,6 +49,7 @@ from covnet.covariance_control.centre import (
     usable_track,
 )
 from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import (
     Model,
     build_model,
@@ -129,7 +130,7 @@ class CovarianceLogic:
         self.ids = self.model.sensor_ids
         self.episodes = metrics
         self.scans, self.period_s = self.model.scans, self.model.T
-        self.tracks = sc.fusion.mode in ("info", "ci")  # local tracks, not measurements
+        self.tracks = rule_for(sc.fusion).tracks  # local tracks, not measurements
         self.message_type: type[msg.Measurement] | type[msg.LocalTrack] = (
             msg.LocalTrack if self.tracks else msg.Measurement
         )

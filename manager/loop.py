@@ -93,15 +93,29 @@ class ScanReport:
 class ScanLogic(Protocol):
     """The maths a kind plugs into :func:`run_scans` (see the module docstring)."""
 
-    result: Any
-    """The kind's result record (a :class:`LoopResult`), filled as the scans go."""
-    episodes: Sequence[str]
-    scans: int
-    period_s: float
-    message_type: type[msg.Measurement] | type[msg.LocalTrack]
-    """What the sensors send for a scan."""
-    accept_unsolicited: bool
-    """Fuse a message of a sensor that was not enabled (it measured on a stale command)."""
+    @property
+    def result(self) -> Any:
+        """The kind's result record (a :class:`LoopResult`), filled as the scans go."""
+        ...
+
+    @property
+    def episodes(self) -> Sequence[str]: ...
+
+    @property
+    def scans(self) -> int: ...
+
+    @property
+    def period_s(self) -> float: ...
+
+    @property
+    def message_type(self) -> type[msg.Measurement] | type[msg.LocalTrack]:
+        """What the sensors send for a scan."""
+        ...
+
+    @property
+    def accept_unsolicited(self) -> bool:
+        """Fuse a message of a sensor that was not enabled (it measured on a stale command)."""
+        ...
 
     def start_episode(self, e: int) -> None: ...
 

@@ -225,9 +225,9 @@ class MobileLogic:
             j = int(d.assign[i])
             usage += self.b[j, d.modes[j]]
             pd[i] = true_pd(model, j, self.X[k, i], pos[j])
-            m = got.get(ids[j])
-            if m is not None and m.target_ids is not None and tids[i] in m.target_ids:
-                z = np.array(m.z[m.target_ids.index(tids[i])])
+            meas = got.get(ids[j])
+            if meas is not None and meas.target_ids is not None and tids[i] in meas.target_ids:
+                z = np.array(meas.z[meas.target_ids.index(tids[i])])
                 post = update_track(model, self.xp[i], self.Pp[i], z, j, pos[j], qdot[j])
                 xn[i], Pn[i] = post.x, post.P
                 detected[i] = True

@@ -144,7 +144,8 @@ class PassiveLogic:
         covariances: np.ndarray | None = None
         dt: float | None = None
         if not missing:
-            scan = PassiveScan(self.model.sensors, tuple(np.array(got[s].z) for s in ids))
+            z1, z2, z3 = (np.array(got[s].z) for s in ids)
+            scan = PassiveScan(self.model.sensors, (z1, z2, z3))
             truth = draw(self.model, self.cfg.seed, k - 1)  # for scoring only; never sent
             rec, positions, covariances = scan_record(
                 scan, self.params, self.method, truth, warm=k == 1

@@ -118,7 +118,11 @@ def run(
             return
         try:
             node, what = msg.parse_peer_key(s.key)
-            m = msg.decode_as(s.payload, msg.Track if what == "track" else msg.Status)
+            m: msg.Track | msg.Status = (
+                msg.decode_as(s.payload, msg.Track)
+                if what == "track"
+                else msg.decode_as(s.payload, msg.Status)
+            )
         except msg.WireError as exc:
             stats.reject(s.key, exc.reason)
             return
@@ -135,7 +139,10 @@ def run(
             stats.reject(s.key, "bad_measurement")
             return
         log = result.nodes[m.episode].setdefault(node, NodeLog())
-        (log.tracks if isinstance(m, msg.Track) else log.statuses)[m.scan] = m  # type: ignore[index]
+        if isinstance(m, msg.Track):
+            log.tracks[m.scan] = m
+        else:
+            log.statuses[m.scan] = m
 
     def scan_done(e: int, k: int) -> bool:
         logs = result.nodes[e]

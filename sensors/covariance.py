@@ -13,6 +13,7 @@ process is a peer node instead (:mod:`sensors.peer`).
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,8 @@ from covnet import messages as msg
 from covnet.bus import Bus
 from covnet.clock import Clock, WallClock
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.decentral import LocalFilter, local_track
+from covnet.covariance_control.decentral import LocalFilter
+from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import Model, build_model, measure
 from covnet.latency_bus import for_sensor
 from covnet.process import EXIT_OK, open_client
@@ -70,12 +72,14 @@ def run(
 ) -> SensorStats:
     """A covariance-control position sensor; serves commands until ``stop`` is set.
 
-    In the decentralized centre modes (``fusion.mode: info | ci``) it runs its own local Kalman
-    filter and publishes a :class:`~covnet.messages.LocalTrack` instead of the measurement: the
-    filter predicts every scan (lazily, scan by scan up to the commanded one: the same
-    arithmetic as predicting at every scan) and updates at the scans it is enabled; a new
-    episode restarts it from the initial estimate."""
+    Under a track rule (:attr:`~covnet.covariance_control.fusion_rules.FusionRule.tracks`:
+    ``info``, ``ci``) it runs its own local Kalman filter and publishes a
+    :class:`~covnet.messages.LocalTrack` instead of the measurement: the filter predicts every
+    scan (lazily, scan by scan up to the commanded one: the same arithmetic as predicting at
+    every scan) and updates at the scans it is enabled; a new episode restarts it from the
+    initial estimate."""
     model = build_model(sc)
+    rule = rule_for(sc.fusion)
     j = model.index(sensor_id)
     R = model.R[j]
     local = LocalFilter(model, sc.filter.initial_estimate)
@@ -86,7 +90,7 @@ def run(
 
     def respond_track(cmd: msg.Command, tr: msg.Truth) -> msg.LocalTrack:
         prior = local.predict_to(cmd.episode, cmd.scan)
-        track = local_track(model, j, prior, noisy(cmd.scan, tr.states[0]))
+        track = rule.local(model, j, prior, noisy(cmd.scan, tr.states[0]))
         local.set(track.post)
         return msg.LocalTrack(
             sensor_id=sensor_id,
@@ -112,8 +116,10 @@ def run(
             episode=cmd.episode,
         )
 
-    decentral = sc.fusion.mode in ("info", "ci")
     slow = not sc.network.latency.is_ideal(sc.sensor_ids)
+    respond_any: Callable[[msg.Command, msg.Truth], msg.Measurement | msg.LocalTrack] = (
+        respond_track if rule.tracks else respond
+    )
     return serve(
         sensor_id,
         bus,
@@ -122,7 +128,7 @@ def run(
         stop,
         sc.network,
         truth_ok=truth_ok,
-        respond=respond_track if decentral else respond,  # type: ignore[arg-type]
+        respond=respond_any,
         missed_command=sc.network.latency.missed_command if slow else None,
         keep_truth=model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
     )

@@ -32,23 +32,24 @@ import time
 from collections import Counter
 from collections.abc import Callable, Collection, Container, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 from covnet import messages as msg
 from covnet.bus import Bus, Sample
 from covnet.clock import Clock
+from covnet.core.fusion import LocalTrack
 from covnet.covariance_control.centre import as_local_track, usable_track
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.decentral import (
     LocalFilter,
     Mirror,
     decide_rule,
-    fuse_tracks,
-    local_track,
     neighbours,
     reach_matrix,
 )
+from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import build_model, initial_estimate, measure, predict_step
 from covnet.node_kit import Heartbeat, ManagerWatch
 
@@ -176,6 +177,10 @@ class _Inbox:
         self.live_sub.close()
 
 
+def _has_truth(inbox: _Inbox, k: int) -> bool:
+    return k in inbox.truth
+
+
 def run(
     sc: Scenario,
     node_id: str,
@@ -187,7 +192,7 @@ def run(
 ) -> PeerStats:
     """Serve every metric's episode as peer node ``node_id`` (see the module docstring)."""
     model = build_model(sc)
-    fusion, net = sc.fusion, sc.network
+    fusion, net, rule = sc.fusion, sc.network, rule_for(sc.fusion)
     ids = model.sensor_ids
     me = ids.index(node_id)
     nbrs = neighbours(fusion, ids)[me]
@@ -233,7 +238,7 @@ def run(
                 unavailable = frozenset(int(j) for j in np.flatnonzero(~live))
                 P_nodes, P_loc = mirror.predicted(model)
                 alloc = decide_rule(
-                    fusion,
+                    rule,
                     model,
                     P_nodes[live],
                     P_loc,
@@ -245,16 +250,16 @@ def run(
                 enabled = tuple(ids[j] for j in alloc.subset)
                 t_k = k * model.T
                 pred = predict_step(model, fused)
-                heard = []
+                heard: list[tuple[int, LocalTrack]] = []
                 if node_id in enabled:
                     if inbox.wait(
-                        lambda k=k: k in inbox.truth,
+                        partial(_has_truth, inbox, k),
                         time.monotonic() + net.scan_timeout_s,
                         stop,
                         beat,
                     ):
                         prior = local.predict_to(e, k)
-                        tr = local_track(model, me, prior, measure(model, me, k, inbox.truth[k]))
+                        tr = rule.local(model, me, prior, measure(model, me, k, inbox.truth[k]))
                         local.set(tr.post)
                         bus.publish(
                             keys["meas"],
@@ -280,8 +285,8 @@ def run(
                     m = inbox.tracks.pop((n, e, k), None)
                     if m is not None:
                         heard.append((ids.index(n), as_local_track(m)))
-                fused = fuse_tracks(fusion, pred, heard)
-                mirror.advance(fusion, model, alloc.subset)
+                fused = rule.fuse(model, pred, heard)
+                mirror.advance(rule, model, alloc.subset)
                 stats.tracks_fused += len(heard)
                 stats.scans += 1
                 last[0] = k

@@ -44,7 +44,7 @@ class SensorStats:
 
 
 TruthCheck = Callable[[msg.Truth], bool]
-Respond = Callable[[msg.Command, msg.Truth], msg.Measurement]
+Respond = Callable[[msg.Command, msg.Truth], msg.Measurement | msg.LocalTrack]
 
 
 def serve(

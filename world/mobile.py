@@ -51,13 +51,14 @@ def run(
     pos = model.sensors.position.copy()
     counts: Counter[str] = Counter()
     key = msg.truth_key(run_id)
-    state = {"pos": pos, "last": 0}
+    last = 0
 
     def handle(cmd: msg.Command) -> bool:
-        if cmd.scan == state["last"]:
+        nonlocal pos, last
+        if cmd.scan == last:
             counts["duplicate"] += 1
             return False
-        if cmd.scan != state["last"] + 1 or cmd.scan > model.scans:
+        if cmd.scan != last + 1 or cmd.scan > model.scans:
             counts["rejected:bad_scan"] += 1
             return False
         modes = modes_of(cmd, model.sensor_ids)
@@ -65,18 +66,18 @@ def run(
             counts["rejected:bad_mode"] += 1
             return False
         k = cmd.scan
-        state["pos"], qdot = move_platforms(model, state["pos"], modes)
+        pos, qdot = move_platforms(model, pos, modes)
         tr = msg.Truth(
             scan=k,
             t=k * model.T,
             target_ids=model.target_ids,
             states=X[k],
             sensor_ids=model.sensor_ids,
-            platforms=np.hstack([state["pos"], qdot]),
+            platforms=np.hstack([pos, qdot]),
         )
         bus.publish(key, msg.encode(tr))
         counts["published"] += 1
-        state["last"] = k
+        last = k
         return True
 
     serve_commands(bus, run_id, clock, stop, cfg.network, ROLE, NODE_ID, counts, handle)

@@ -26,12 +26,14 @@ Run: ``python -m covnet.covariance_control.bench_allocation``.
 
 from __future__ import annotations
 
+import argparse
 import functools
 import math
 import sys
 import time
 import tracemalloc
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -167,7 +169,7 @@ def plain_baseline(P_pred: Mat, gains: Mat, P_d: Mat, metric: str) -> tuple[int,
     codes = np.arange(1, 2**N)
     masks = ((codes[:, None] >> np.arange(N)) & 1).astype(bool)
     J = (masks.astype(np.float64) @ gains.reshape(N, n * n)).reshape(-1, n, n)
-    P = np.linalg.inv(np.linalg.inv(P_pred) + J)
+    P = np.asarray(np.linalg.inv(np.linalg.inv(P_pred) + J), dtype=np.float64)
     M = P - P_d
     if metric == "spectral":
         f = np.abs(np.linalg.eigvalsh(M)).max(axis=-1)
@@ -248,7 +250,7 @@ def run(
     n_problems: int = 5,
     repeat: int = 3,
     progress: Callable[[str], None] | None = None,
-) -> list[dict[str, object]]:
+) -> list[dict[str, Any]]:
     """Time :func:`covnet.core.allocation.allocate` against :func:`plain_baseline`.
 
     Rows ``{"metric", "n_sensors", "median_s", "baseline_median_s", "speedup", "peak_mb",
@@ -317,7 +319,6 @@ def _format_row(row: dict[str, object]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    import argparse
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sensors", type=int, nargs="+", default=[8, 12, 16, 20])

@@ -18,6 +18,7 @@ Run: ``python -m covnet.covariance_control.bench_fusion``.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from collections.abc import Sequence
@@ -88,7 +89,7 @@ def scipy_loop(
     for i, row in enumerate(masks):
         Y = Y_all[np.concatenate([[True], row])]
         n = Y.shape[0]
-        res = minimize(
+        res = minimize(  # type: ignore[call-overload]  # scipy-stubs: constraints as dicts
             _objective,
             np.full(n, 1.0 / n),
             args=(Y, objective),
@@ -180,7 +181,6 @@ def format_table(rows: Sequence[dict[str, object]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    import argparse
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sensors", type=int, nargs="+", default=[8, 12, 16])

@@ -22,13 +22,9 @@ from covnet.core.gaussian import Gaussian, is_spd
 from covnet.core.kalman import gain_and_covariance
 from covnet.core.oosm import ReFilterBuffer
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.decentral import (
-    Mirror,
-    decide_rule,
-    fuse_tracks,
-    measurement_from_track,
-)
-from covnet.covariance_control.model import Model, decide, fuse, usable_measurement
+from covnet.covariance_control.decentral import Mirror, decide_rule
+from covnet.covariance_control.fusion_rules import FusionRule, rule_for
+from covnet.covariance_control.model import Model, decide, usable_measurement
 from covnet.covariance_control.simulate import MetricRun
 from covnet.runtime_stats import NetStats
 
@@ -109,29 +105,34 @@ class ManagerResult:
     error: str | None = None
 
 
+def payload(rule: FusionRule, m: Any) -> Any:
+    """What rule ``rule`` fuses of a received message: a local track, or ``(z, R)``."""
+    return as_local_track(m) if rule.tracks else (m.z[0], m.R)
+
+
 class LateHandler:
-    """One episode's out-of-sequence processing on slow links (``network.latency.late``):
-    ``central``/``info`` keep a :class:`~covnet.core.oosm.ReFilterBuffer` of the last
-    ``oosm_depth`` scans and filter every scan through it (the same updates as
-    :func:`covnet.covariance_control.model.fuse`; a local track enters as the measurement whose
-    information it added), so that a late message is re-filtered from its scan; ``ci`` and
-    ``late: drop`` drop late messages.  The loop counts which (``late_refiltered`` /
-    ``late_dropped``)."""
+    """One episode's out-of-sequence processing on slow links (``network.latency.late``): a
+    rule with an exact out-of-sequence update (:meth:`~covnet.covariance_control.fusion_rules.
+    FusionRule.late_measurement`: ``central``, ``info``) keeps a
+    :class:`~covnet.core.oosm.ReFilterBuffer` of the last ``oosm_depth`` scans and filters every
+    scan through it (the same updates as :func:`covnet.covariance_control.model.fuse`; a local
+    track enters as the measurement whose information it added), so that a late message is
+    re-filtered from its scan; ``ci`` and ``late: drop`` drop late messages.  The loop counts
+    which (``late_refiltered`` / ``late_dropped``)."""
 
     def __init__(self, sc: Scenario, model: Model) -> None:
         lat = sc.network.latency
-        self.mode = sc.fusion.mode
+        self.rule = rule_for(sc.fusion)
         self.ids = model.sensor_ids
         self.inserted = False
         self.refiltered: list[str] = []  # "<sensor>:<scan>" since the last Status
-        keep = lat.late == "oosm" and self.mode != "ci"
+        keep = lat.late == "oosm" and self.rule.refilters_late
         self.buffer = ReFilterBuffer(model.F, model.Q, model.H, lat.oosm_depth) if keep else None
 
     def _measurement(self, m: Any) -> tuple[np.ndarray, np.ndarray]:
-        if self.mode == "central":
-            return m.z[0], m.R
-        t = as_local_track(m)
-        return measurement_from_track(t.post, t.prior)
+        zr = self.rule.late_measurement(payload(self.rule, m))
+        assert zr is not None
+        return zr
 
     def insert(self, m: Any) -> bool:
         """A late message: True when it was re-filtered into its scan."""
@@ -168,10 +169,11 @@ class CentreFilter:
     ``k`` (``sensor id -> Measurement | LocalTrack``)."""
 
     def __init__(self, sc: Scenario, model: Model) -> None:
-        self.model, self.fusion = model, sc.fusion
+        self.model = model
+        self.rule = rule_for(sc.fusion)
         self.ids = model.sensor_ids
-        self.decentral = sc.fusion.mode in ("info", "ci")
-        self.mirror = Mirror.start(model) if sc.fusion.rule == "ci" else None
+        # only a rule outside the information form decides from the local filters' covariances
+        self.mirror = None if self.rule.information_form else Mirror.start(model)
         slow = not sc.network.latency.is_ideal(model.sensor_ids)
         self.late = LateHandler(sc, model) if slow else None
 
@@ -181,7 +183,7 @@ class CentreFilter:
         if self.mirror is None:
             return decide(self.model, P_pred, k, metric, unavailable)
         P_loc = self.mirror.predicted(self.model)[1]
-        return decide_rule(self.fusion, self.model, P_pred, P_loc, k, metric, unavailable)
+        return decide_rule(self.rule, self.model, P_pred, P_loc, k, metric, unavailable)
 
     def insert_late(self, m: Any) -> bool:
         """A late message of an earlier scan: True when it was re-filtered into its scan."""
@@ -202,18 +204,16 @@ class CentreFilter:
         update's covariance work done ahead, used when it fits)."""
         if self.late is not None and self.late.buffer is not None:
             return self.late.fuse(k, pred, got)
-        ids = self.ids
-        if self.decentral:
-            tracks = [(ids.index(sid), as_local_track(m)) for sid, m in got.items()]
-            est = fuse_tracks(self.fusion, pred, tracks)
-            if self.mirror is not None:
-                self.mirror.advance(self.fusion, self.model, [j for j, _ in tracks])
-                for j, tr in tracks:  # what the sensor reports is what it has
-                    self.mirror.P_local[j] = tr.post.P
-            return est
-        return fuse_with_gains(gains, self.model, pred, got, ids) or fuse(
-            self.model, pred, [(ids.index(sid), m.z[0], m.R) for sid, m in got.items()]
-        )
+        ids, rule = self.ids, self.rule
+        if not rule.tracks and (fast := fuse_with_gains(gains, self.model, pred, got, ids)):
+            return fast
+        received = [(ids.index(sid), payload(rule, m)) for sid, m in got.items()]
+        est = rule.fuse(self.model, pred, received)
+        if self.mirror is not None:
+            self.mirror.advance(rule, self.model, [j for j, _ in received])
+            for j, tr in received:  # what the sensor reports is what it has
+                self.mirror.P_local[j] = tr.post.P
+        return est
 
 
 def usable_position(m: msg.Measurement) -> bool:

@@ -16,9 +16,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-from covnet.covariance_control.config import Scenario, SweepSpec, normalised
+from covnet.batch import progress_printer
+from covnet.core.metrics import METRICS
+from covnet.covariance_control.config import Scenario, SweepSpec, load, normalised
+from covnet.covariance_control.decentral_sim import run_mode
+from covnet.covariance_control.latency_sim import run_latency
+from covnet.covariance_control.model import build_model
+from covnet.covariance_control.results import write_run
+from covnet.covariance_control.simulate import shared_trajectory
 from covnet.errors import UsageError
 from covnet.rundir import CONFIG, SUMMARY, prepare_out, read_json, write_json
+
+# The figures (matplotlib), the batch tables (scipy.stats), the replay (the MCAP reader) and the
+# benchmarks are imported by the commands that use them: start-up time of ``covnet run``.
 
 EXIT_OK, EXIT_FAIL = 0, 1
 
@@ -26,12 +36,6 @@ EXIT_OK, EXIT_FAIL = 0, 1
 def run(sc: Scenario, out: Path, *, figures: bool) -> int:
     """``covnet run``: every metric of ``allocation.metrics`` in this process (the fusion mode
     of ``fusion``; slow links in simulated time); writes the run directory."""
-    from covnet.covariance_control.decentral_sim import run_mode
-    from covnet.covariance_control.latency_sim import run_latency
-    from covnet.covariance_control.model import build_model
-    from covnet.covariance_control.results import write_run
-    from covnet.covariance_control.simulate import shared_trajectory
-
     model = build_model(sc)
     traj = shared_trajectory(model)
     runs = {}
@@ -65,7 +69,7 @@ def run(sc: Scenario, out: Path, *, figures: bool) -> int:
         node_runs=node_runs,
     )
     if figures:
-        from covnet.covariance_control.plots import make_figures
+        from covnet.covariance_control.plots import make_figures  # matplotlib: start-up
 
         make_figures(out)
     print_summary(out, summary)
@@ -100,7 +104,7 @@ def after_up(sc: Scenario, out: Path, *, figures: bool) -> None:
         return
     summary = read_json(out / SUMMARY)
     if figures and summary["metrics"]:
-        from covnet.covariance_control.plots import make_figures
+        from covnet.covariance_control.plots import make_figures  # matplotlib: start-up
 
         make_figures(out)
     print_summary(out, summary)
@@ -125,6 +129,7 @@ def plot(run_dir: Path) -> list[Path]:
     for stem in ("compare", "sweep"):
         table = run_dir / f"{stem}.json"
         if table.is_file():
+            # start-up: the table modules only for their directories
             from covnet.covariance_control import compare as compare_module
             from covnet.covariance_control import sweep as sweep_module
 
@@ -139,14 +144,12 @@ def plot(run_dir: Path) -> list[Path]:
     missing = [f for f in (SUMMARY, "arrays.npz") if not (run_dir / f).is_file()]
     if missing:
         raise UsageError(f"{run_dir}: not a complete run directory (missing {', '.join(missing)})")
-    from covnet.covariance_control.plots import make_figures
+    from covnet.covariance_control.plots import make_figures  # matplotlib: start-up
 
     return make_figures(run_dir)
 
 
 def _metric(sc: Scenario, requested: list[str] | None, default: str) -> str:
-    from covnet.core.metrics import METRICS
-
     metric = (requested or [default])[-1]
     if metric not in METRICS:
         raise UsageError(f"--metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
@@ -155,13 +158,13 @@ def _metric(sc: Scenario, requested: list[str] | None, default: str) -> str:
 
 def compare(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet compare``: the fusion structures side by side over a Monte Carlo batch."""
-    from covnet.batch import progress_printer
-    from covnet.covariance_control import compare as cmp
+    from covnet.covariance_control import compare as cmp  # scipy.stats: start-up of the rest
 
-    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    given = args.modes if args.modes is not None else ",".join(cmp.default_modes())
+    modes = [m.strip() for m in given.split(",") if m.strip()]
     for m in modes:
-        if m not in cmp.MODES:
-            raise UsageError(f"--modes: unknown mode {m!r}; choose from {', '.join(cmp.MODES)}")
+        if m not in cmp.modes():
+            raise UsageError(f"--modes: unknown mode {m!r}; choose from {', '.join(cmp.modes())}")
     if not modes:
         raise UsageError("--modes: name at least one mode")
     metric = _metric(sc, args.metric, sc.allocation.metrics[0])
@@ -225,8 +228,7 @@ def _batch_results(
 
 def sweep(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet sweep``: the latency grid of the config's ``sweep`` section."""
-    from covnet.batch import progress_printer
-    from covnet.covariance_control import sweep as sw
+    from covnet.covariance_control import sweep as sw  # start-up time of the other commands
 
     if sc.fusion.mode == "peer":
         raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
@@ -266,6 +268,7 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
 
 def replay(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet replay RUN_DIR``: re-fuse the recording; check ``summary.json``."""
+    # the MCAP reader: start-up time of the other commands
     from covnet.covariance_control.replay import ReplayError, replay_run
 
     run_dir = Path(args.run_dir)
@@ -294,7 +297,7 @@ def replay(args: argparse.Namespace, sc: Scenario) -> int:
 
 def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:
     """``covnet bench fusion``: the batched covariance-intersection candidates."""
-    from covnet.covariance_control import bench_fusion as bf
+    from covnet.covariance_control import bench_fusion as bf  # start-up of the other commands
 
     rows = bf.run_bench(args.sensors or [8, 12, 16], repeat=max(args.repeat, 3))
     if args.json:
@@ -307,8 +310,7 @@ def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:
 
 def bench_alloc(args: argparse.Namespace, sc: Scenario | None) -> int:
     """``covnet bench [alloc]``: allocation decisions per metric and N against the plain loop."""
-    from covnet.covariance_control import bench_allocation
-    from covnet.covariance_control.config import load
+    from covnet.covariance_control import bench_allocation  # start-up of the other commands
 
     sensors = args.sensors or [8, 12, 16, 20]
     sc = sc if sc is not None else load(args.config)

@@ -43,18 +43,30 @@ from covnet import messages as msg
 from covnet.batch import parallel_map, write_rows
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 from covnet.covariance_control.decentral import neighbours
+from covnet.covariance_control.decentral_sim import run_mode
+from covnet.covariance_control.fusion_rules import FUSION_RULES, rule_for, track_rules
+from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.simulate import MetricRun
 
-MODES = ("central", "info", "ci", "ci-fast", "peer-info", "peer-ci")
-DEFAULT_MODES = ("central", "info", "ci", "peer-info", "peer-ci")
+
+def modes() -> tuple[str, ...]:
+    """What ``covnet compare`` compares: every rule of the registry at a fusion centre,
+    covariance intersection with the closed-form weights (``ci-fast``), every track rule in a
+    peer network (``peer-<rule>``)."""
+    return (*FUSION_RULES, "ci-fast", *(f"peer-{r}" for r in track_rules()))
+
+
+def default_modes() -> tuple[str, ...]:
+    """``covnet compare``'s default: every mode but ``ci-fast``."""
+    return tuple(m for m in modes() if m != "ci-fast")
 
 
 def scenario_for(
     sc: Scenario, mode: str, graph: str | None = None, seed: int | None = None
 ) -> Scenario:
     """``sc`` with the fusion structure of ``mode`` (and ``graph`` for the peer modes)."""
-    if mode not in MODES:
-        raise ValueError(f"unknown fusion mode {mode!r}; choose from {list(MODES)}")
+    if mode not in modes():
+        raise ValueError(f"unknown fusion mode {mode!r}; choose from {list(modes())}")
     data = normalised(sc)
     fusion = dict(data["fusion"])
     peer = dict(fusion["peer"])
@@ -88,9 +100,6 @@ class Trial:
 
 def run_trial(args: tuple[dict[str, Any], str, str | None, int, str]) -> Trial:
     """One (mode, seed) run; a top-level function so that worker processes can import it."""
-    from covnet.covariance_control.decentral_sim import run_mode
-    from covnet.covariance_control.model import build_model, truth_trajectory
-
     data, mode, graph, seed, metric = args
     sc = scenario_for(from_dict(data), mode, graph, seed)
     model = build_model(sc)
@@ -117,7 +126,9 @@ def traffic_per_scan(
     z, R = np.zeros((1, 2)), np.eye(2)
     msgs = byts = deliveries = 0
     peer = mode.startswith("peer-")
-    nbrs = neighbours(scenario_for(sc, mode, graph).fusion, ids) if peer else {}
+    fusion = scenario_for(sc, mode, graph).fusion
+    nbrs = neighbours(fusion, ids) if peer else {}
+    tracks = rule_for(fusion).tracks
     for k, row in enumerate(enabled, start=1):
         on = tuple(ids[j] for j in np.flatnonzero(row))
         out: list[tuple[msg.Message, int]] = []  # (message, receivers)
@@ -132,10 +143,10 @@ def traffic_per_scan(
         else:
             out.append((msg.Command(k, float(k), on, 1, 0), len(on) + 1))  # + the recorder
             for sid in on:
-                if mode == "central":
-                    out.append((msg.Measurement(sid, k, float(k), z, R, 1, 0), 1))
-                else:
+                if tracks:
                     out.append((msg.LocalTrack(sid, k, float(k), x, P, x, P, 1, 0), 1))
+                else:
+                    out.append((msg.Measurement(sid, k, float(k), z, R, 1, 0), 1))
             out.append((msg.Track(k, float(k), x, P, 1, 0), 1))
             out.append((msg.Status(k, float(k), on, 1.0, 1.0, 1.0, 1, 0, fused=on), 1))
         for m, receivers in out:
@@ -157,7 +168,7 @@ def summarise(
     R = len(trials)
     nees = np.stack([t.nees for t in trials])[:, skip:]
     per_scan = nees.mean(axis=0)
-    lo, hi = (float(v) for v in chi2.ppf([0.025, 0.975], 4 * R) / R)
+    lo, hi = (float(v) for v in np.asarray(chi2.ppf([0.025, 0.975], 4 * R)) / R)
     grand = float(per_scan.mean())
     # the grand mean's 95 % confidence interval from the R independent run averages (scans
     # within a run are correlated, so they are not counted as independent samples)
@@ -248,7 +259,7 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
 def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     """``compare.png``: allocation rate, position RMSE, mean NEES (with the 95 % band) and
     bytes per scan, one bar per mode."""
-    import matplotlib
+    import matplotlib  # the figure only: start-up of the runs (and of the workers)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -33,6 +33,8 @@ from covnet.config import (
     validate,
 )
 from covnet.config import normalised as _normalised
+from covnet.core.metrics import METRICS
+from covnet.covariance_control.fusion_rules import FUSION_RULES, fusion_modes, track_rules
 
 __all__ = [
     "KIND",
@@ -124,10 +126,7 @@ class AllocationSpec(ConfigModel):
     account_for_loss: Bool = False
 
 
-FUSION_MODES = ("central", "info", "ci", "peer")
-PEER_RULES = ("info", "ci")
 PEER_GRAPHS = ("full", "ring", "star", "custom")
-CI_OBJECTIVES = ("det", "trace", "fast")
 
 
 class PeerSpec(ConfigModel):
@@ -135,7 +134,7 @@ class PeerSpec(ConfigModel):
     undirected ``edges`` by sensor id; ``star`` has ``hub`` at its centre, default the first
     sensor) and how each node fuses what it receives (``rule``)."""
 
-    rule: Literal["info", "ci"] = "info"
+    rule: Str = "info"
     graph: Literal["full", "ring", "star", "custom"] = "full"
     hub: Str | None = None
     edges: tuple[tuple[Str, Str], ...] = ()
@@ -149,7 +148,7 @@ class FusionSpec(ConfigModel):
     ``ci_objective``: what the covariance-intersection weights minimise (``det``, ``trace``)
     or ``fast`` (closed-form weights ``w_i ∝ 1 / tr P_i``)."""
 
-    mode: Literal["central", "info", "ci", "peer"] = "central"
+    mode: Str = "central"
     ci_objective: Literal["det", "trace", "fast"] = "det"
     peer: PeerSpec = PeerSpec()
 
@@ -171,7 +170,7 @@ class SweepSpec(ConfigModel):
     delay_ms: tuple[Float, ...] = (0.0, 100.0, 200.0, 400.0)
     delay_kind: Literal["constant", "exponential", "uniform"] = "exponential"
     loss: tuple[Float, ...] = (0.0, 0.1, 0.2)
-    modes: tuple[Literal["central", "info", "ci"], ...] = ("central", "ci")
+    modes: tuple[Str, ...] = ("central", "ci")
     account_for_loss: tuple[Bool, ...] = (False, True)
     late: tuple[Literal["oosm", "drop"], ...] = ("oosm",)
     seeds: Int = Field(default=4, ge=1, le=10_000)
@@ -224,8 +223,6 @@ class Scenario(ConfigModel):
 
 
 def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
-    from covnet.core.metrics import METRICS
-
     problems: list[tuple[str, str]] = []
     ids = sc.sensor_ids
     seen: set[str] = set()
@@ -262,6 +259,7 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     both = set(al.required) & set(al.excluded)
     if both:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
+    problems += _fusion_problems(sc)
     problems += _peer_problems(sc.fusion.peer, ids)
     if sc.sweep is not None and sc.sweep.metric is not None and sc.sweep.metric not in METRICS:
         problems.append(
@@ -276,6 +274,34 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
             )
         if al.max_active > len(ids):
             problems.append(("allocation.max_active", f"more than the {len(ids)} sensors"))
+    return problems
+
+
+def _fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """Fusion modes and rules by the registry's names (:data:`FUSION_RULES`)."""
+    problems: list[tuple[str, str]] = []
+    f = sc.fusion
+    if f.mode not in fusion_modes():
+        problems.append(
+            ("fusion.mode", f"unknown fusion mode {f.mode!r}; choose from {list(fusion_modes())}")
+        )
+    if f.peer.rule not in track_rules():
+        problems.append(
+            (
+                "fusion.peer.rule",
+                f"{f.peer.rule!r} is not a rule that fuses local tracks; choose from "
+                f"{list(track_rules())}",
+            )
+        )
+    if sc.sweep is not None:
+        for i, m in enumerate(sc.sweep.modes):
+            if m not in FUSION_RULES:
+                problems.append(
+                    (
+                        f"sweep.modes[{i}]",
+                        f"unknown fusion rule {m!r}; choose from {list(FUSION_RULES)}",
+                    )
+                )
     return problems
 
 

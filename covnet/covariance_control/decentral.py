@@ -1,19 +1,22 @@
-"""Decentralized fusion: the per-scan steps of the ``info``, ``ci`` and ``peer`` modes.
+"""Decentralized fusion: the per-scan steps of the track rules and of the ``peer`` mode.
 
 What changes against the central filter (spec: only the computation of ``P_i`` changes):
 
-- every sensor runs its own **local Kalman filter** on its own measurements: it predicts every
-  scan and updates at the scans it is enabled; it publishes its local track, the posterior
-  ``N(x_j(k|k), P_j(k|k))`` together with its own prediction ``N(x_j(k|k-1), P_j(k|k-1))``
-  (:class:`covnet.core.fusion.LocalTrack`), instead of the raw measurement;
-- a fusion node combines the tracks with a **rule** (:data:`RULES`): ``info``, information-matrix
+- every sensor runs its own **local Kalman filter** on its own measurements (:class:`LocalFilter`):
+  it predicts every scan and updates at the scans it is enabled; it publishes its local track,
+  the posterior ``N(x_j(k|k), P_j(k|k))`` together with its own prediction
+  ``N(x_j(k|k-1), P_j(k|k-1))`` (:class:`covnet.core.fusion.LocalTrack`), instead of the raw
+  measurement;
+- a fusion node combines the tracks with a **rule** of the registry
+  (:data:`~covnet.covariance_control.fusion_rules.FUSION_RULES`): ``info``, information-matrix
   fusion with each track's own prior removed (exact: equals the central filter), or ``ci``,
   covariance intersection of the node's predicted track and the received local tracks
   (consistent under any unknown correlation, conservative);
 - the **allocator** evaluates each candidate subset ``D_i`` with the covariance the rule would
-  produce: for ``info`` that is the central ``P_i = (P⁻⁻¹ + J_i)⁻¹`` (the new information of a
-  track is exactly ``Hᵀ R_j⁻¹ H``), for ``ci`` the batched CI of ``{P_f⁻} ∪ {P_j⁺ : j ∈ D_i}``,
-  ``P_j⁺ = (P_j⁻⁻¹ + J_j)⁻¹`` the local posterior sensor ``j`` would reach.
+  produce (:func:`decide_rule`): in the information form that is the central
+  ``P_i = (P⁻⁻¹ + J_i)⁻¹`` (the new information of a track is exactly ``Hᵀ R_j⁻¹ H``), for
+  ``ci`` the batched CI of ``{P_f⁻} ∪ {P_j⁺ : j ∈ D_i}``, ``P_j⁺ = (P_j⁻⁻¹ + J_j)⁻¹`` the local
+  posterior sensor ``j`` would reach.
 
 The covariances a decision needs never depend on measured values, so every node can mirror them
 from shared information (the config and the history of enabled sets): :class:`Mirror` holds the
@@ -32,56 +35,22 @@ import numpy as np
 
 from covnet.core._allocation_fast import tie_select
 from covnet.core.allocation import Allocation, Constraints
-from covnet.core.fusion import (
-    LocalTrack,
-    ci_candidates,
-    covariance_intersection,
-    information_fusion,
-)
-from covnet.core.gaussian import Gaussian, Mat, Vec, symmetrise
-from covnet.core.kalman import update, update_covariance
+from covnet.core.gaussian import Gaussian, Mat, symmetrise
+from covnet.core.kalman import update_covariance
 from covnet.core.metrics import get_metric
 from covnet.covariance_control.config import FusionSpec
+from covnet.covariance_control.fusion_rules import FusionRule
 from covnet.covariance_control.model import (
     Model,
     decide,
-    fused_covariance,
     initial_estimate,
     predict_cov,
     predict_step,
 )
 
-RULES = ("info", "ci")
-"""Track-fusion rules (``central`` is the raw-measurement filter of
-:mod:`covnet.covariance_control.model`)."""
-
-
 # --------------------------------------------------------------------------------------------
 # local filters
 # --------------------------------------------------------------------------------------------
-
-
-def local_update(model: Model, j: int, prior: Gaussian, z: Vec) -> Gaussian:
-    """Sensor ``j``'s local Kalman update with its own measurement (Joseph form)."""
-    return update(prior, z, model.H, model.R[j])
-
-
-def local_track(model: Model, j: int, prior: Gaussian, z: Vec) -> LocalTrack:
-    """The local track sensor ``j`` publishes at a scan it measured."""
-    return LocalTrack(post=local_update(model, j, prior, z), prior=prior)
-
-
-def measurement_from_track(post: Gaussian, prior: Gaussian) -> tuple[np.ndarray, np.ndarray]:
-    """The position measurement ``(z, R)`` whose information a local track added:
-    ``R = (H ΔY Hᵀ)⁻¹``, ``z = R H Δy`` with ``ΔY = P⁺⁻¹ − P⁻⁻¹``, ``Δy = P⁺⁻¹ x⁺ − P⁻⁻¹ x⁻``
-    and ``H`` the position selector (rows 0 and 2 of the state)."""
-    Yp, Ym = np.linalg.inv(post.P), np.linalg.inv(prior.P)
-    dY = Yp - Ym
-    dy = Yp @ post.x - Ym @ prior.x
-    idx = [0, 2]
-    R = np.linalg.inv(dY[np.ix_(idx, idx)])
-    R = 0.5 * (R + R.T)
-    return R @ dy[idx], R
 
 
 class LocalFilter:
@@ -112,39 +81,6 @@ class LocalFilter:
 # --------------------------------------------------------------------------------------------
 # fusion and allocation under a rule
 # --------------------------------------------------------------------------------------------
-
-
-def fuse_tracks(
-    fusion: FusionSpec, prior: Gaussian, tracks: Sequence[tuple[int, LocalTrack]]
-) -> Gaussian:
-    """The fusion node's posterior from its prediction ``prior`` and the local tracks
-    ``(sensor_index, track)`` of this scan, in ascending sensor index (a canonical order).
-
-    ``info``: :func:`covnet.core.fusion.information_fusion`;
-    ``ci``: ``CI({prior} ∪ {track posteriors})`` with ``fusion.ci_objective``; no track: ``prior``.
-    """
-    ordered = [t for _, t in sorted(tracks, key=lambda jt: jt[0])]
-    if not ordered:
-        return prior
-    if fusion.rule == "info":
-        return information_fusion(prior, ordered)
-    if fusion.rule == "ci":
-        return covariance_intersection([prior, *(t.post for t in ordered)], fusion.ci_objective)
-    raise ValueError(f"fusion rule {fusion.rule!r} does not fuse tracks; expected one of {RULES}")
-
-
-def fused_cov(
-    fusion: FusionSpec, model: Model, P_prior: Mat, P_local_post: Mat, subset: Sequence[int]
-) -> Mat:
-    """The covariance :func:`fuse_tracks` reaches when the tracks of ``subset`` arrive (it does
-    not depend on the measured values): the mirror's update of a fusion point."""
-    if not subset:
-        return P_prior
-    if fusion.rule == "ci":
-        mask = np.zeros((1, P_local_post.shape[0]), dtype=bool)
-        mask[0, list(subset)] = True
-        return ci_candidates(P_prior, P_local_post, mask, fusion.ci_objective)[0]
-    return fused_covariance(model, P_prior, [(j, model.R[j]) for j in subset])
 
 
 @lru_cache(maxsize=64)
@@ -188,20 +124,8 @@ def local_posterior_covs(model: Model, P_local_prior: Mat) -> Mat:
     )
 
 
-def candidates(
-    fusion: FusionSpec, model: Model, P_prior: Mat, P_local_post: Mat, masks: np.ndarray
-) -> Mat:
-    """``(M, n, n)``: the covariance the rule gives a fusion point with prediction ``P_prior``
-    when the tracks of each row of ``masks`` reach it.  ``info``/``central``: the information
-    form ``(P⁻⁻¹ + Σ_j m_ij J_j)⁻¹`` (batched, Cholesky); ``ci``: the batched CI."""
-    if fusion.rule == "ci":
-        return ci_candidates(P_prior, P_local_post, masks, fusion.ci_objective)
-    J = np.einsum("mj,jab->mab", masks.astype(np.float64), model.gains)
-    return symmetrise(np.linalg.inv(np.linalg.inv(P_prior) + J))  # batched LAPACK
-
-
 def decide_rule(
-    fusion: FusionSpec,
+    rule: FusionRule,
     model: Model,
     P_prior: Mat,
     P_local_prior: Mat | None,
@@ -214,10 +138,11 @@ def decide_rule(
     """Covariance control under the fusion rule: argmin over the feasible subsets of
     ``f(P_i, P_d(t_k))`` with ``P_i`` the covariance the rule produces from subset ``D_i``.
 
-    One fusion point (``P_prior`` ``(n, n)``, a centre that hears every track):
-    ``central`` / ``info`` use the fast exact allocator on ``P_i = (P⁻⁻¹ + J_i)⁻¹``
-    (:func:`covnet.covariance_control.model.decide`); ``ci`` all feasible subsets' CI covariances in
-    one batch (:func:`covnet.core.fusion.ci_candidates`), the metric batched, then the tie rule of
+    One fusion point (``P_prior`` ``(n, n)``, a centre that hears every track): a rule in the
+    information form (``central``, ``info``) uses the fast exact allocator on
+    ``P_i = (P⁻⁻¹ + J_i)⁻¹`` (:func:`covnet.covariance_control.model.decide`); any other (``ci``)
+    all feasible subsets' covariances in one batch (the rule's :meth:`~covnet.covariance_control.
+    fusion_rules.FusionRule.candidates`), the metric batched, then the tie rule of
     :mod:`covnet.core.allocation` (fewest sensors, then lowest ids).
 
     Several fusion points (peer mode: ``P_prior`` ``(K, n, n)``, one per node, and ``reach``
@@ -225,15 +150,17 @@ def decide_rule(
     ``max_k f(P_ik, P_d)``, ``P_ik`` from the tracks of ``D_i ∩ reach_k``.  The reported
     ``P`` is the worst node's.
 
-    ``delivery`` (``ci``; ``allocation.account_for_loss``): each sensor's probability ``p_j`` that
-    its track arrives in time; a candidate then uses the *expected* local information
-    ``Y_j⁻ + p_j (Y_j⁺ − Y_j⁻)`` (for ``central``/``info`` the caller scales the gains:
-    :func:`covnet.covariance_control.latency_sim.loss_aware_model`)."""
+    ``delivery`` (a rule not in the information form; ``allocation.account_for_loss``): each
+    sensor's probability ``p_j`` that its track arrives in time; a candidate then uses the
+    *expected* local information ``Y_j⁻ + p_j (Y_j⁺ − Y_j⁻)`` (in the information form the
+    caller scales the gains: :func:`covnet.covariance_control.latency_sim.loss_aware_model`)."""
     P_prior = np.asarray(P_prior, dtype=np.float64)
-    if P_prior.ndim == 2 and fusion.rule != "ci":
+    if P_prior.ndim == 2 and rule.information_form:
         return decide(model, P_prior, scan, metric, unavailable)
     if P_local_prior is None:
-        raise ValueError("the ci rule and peer nodes decide from the local filters' covariances")
+        raise ValueError(
+            f"the {rule.name} rule and peer nodes decide from the local filters' covariances"
+        )
     points = P_prior[None] if P_prior.ndim == 2 else P_prior
     if reach is None:
         reach = np.ones((points.shape[0], len(model.sensor_ids)), dtype=bool)
@@ -248,7 +175,7 @@ def decide_rule(
     # every fusion point's candidates in one stack, the metric in one batched call
     cands = np.stack(
         [
-            candidates(fusion, model, P_k, P_local_post, masks & reach[k])
+            rule.candidates(model, P_k, P_local_post, masks & reach[k])
             for k, P_k in enumerate(points)
         ]
     )  # (K, M, n, n)
@@ -296,7 +223,7 @@ class Mirror:
         P_fus = np.array([predict_cov(model, P) for P in self.P_fused])
         return P_fus.reshape(self.P_fused.shape), P_loc
 
-    def advance(self, fusion: FusionSpec, model: Model, delivered: Sequence[int]) -> None:
+    def advance(self, rule: FusionRule, model: Model, delivered: Sequence[int]) -> None:
         """Move to the next scan's posteriors: every local filter predicts, those in
         ``delivered`` update; each fusion point fuses the delivered tracks it hears."""
         P_fus_pred, P_loc_pred = self.predicted(model)
@@ -305,7 +232,7 @@ class Mirror:
             post[j] = update_covariance(P_loc_pred[j], model.H, model.R[j])
         for k in range(self.reach.shape[0]):
             heard = [j for j in sorted(delivered) if self.reach[k, j]]
-            self.P_fused[k] = fused_cov(fusion, model, P_fus_pred[k], post, heard)
+            self.P_fused[k] = rule.fused_covariance(model, P_fus_pred[k], post, heard)
         self.P_local = post
 
 
@@ -349,8 +276,8 @@ def neighbours(fusion: FusionSpec, ids: Sequence[str]) -> dict[int, tuple[int, .
         for a in range(n):
             link(hub, a)
     elif graph == "custom":
-        for a, b in fusion.peer.edges:
-            link(ids.index(a), ids.index(b))
+        for u, v in fusion.peer.edges:
+            link(ids.index(u), ids.index(v))
     else:  # pragma: no cover - the config validates the name
         raise ValueError(f"unknown peer graph {graph!r}")
     return {i: tuple(sorted(v)) for i, v in adj.items()}

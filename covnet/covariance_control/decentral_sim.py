@@ -22,19 +22,10 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
-from covnet.core.gaussian import Gaussian
-from covnet.core.kalman import nees
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.decentral import (
-    Mirror,
-    decide_rule,
-    fuse_tracks,
-    local_track,
-    neighbours,
-    reach_matrix,
-)
+from covnet.covariance_control.decentral import Mirror, decide_rule, neighbours, reach_matrix
+from covnet.covariance_control.fusion_rules import rule_for
+from covnet.covariance_control.latency_sim import run_latency
 from covnet.covariance_control.model import (
     Model,
     build_model,
@@ -43,73 +34,38 @@ from covnet.covariance_control.model import (
     predict_step,
     truth_trajectory,
 )
-from covnet.covariance_control.simulate import MetricRun
-
-
-class RunRows:
-    """Per-scan rows of one estimate stream (a centre, or one peer node)."""
-
-    def __init__(self, N: int, Ns: int) -> None:
-        self.enabled = np.zeros((N, Ns), dtype=bool)
-        self.value = np.empty(N)
-        self.x_est = np.empty((N, 4))
-        self.P_post = np.empty((N, 4, 4))
-        self.P_pred = np.empty((N, 4, 4))
-        self.nees = np.empty(N)
-        self.decision_s = np.empty(N)
-        self.n_eval = np.empty(N, dtype=np.int64)
-
-    def put(self, i: int, subset, value, pred: Gaussian, est: Gaussian, truth, dt, n_eval) -> None:
-    # type: ignore[no-untyped-def]
-        self.enabled[i, list(subset)] = True
-        self.value[i] = value
-        self.x_est[i], self.P_post[i], self.P_pred[i] = est.x, est.P, pred.P
-        self.nees[i] = nees(est, truth)
-        self.decision_s[i] = dt
-        self.n_eval[i] = n_eval
-
-    def run(self, metric: str) -> MetricRun:
-        return MetricRun(
-            metric,
-            self.enabled,
-            self.value,
-            self.x_est,
-            self.P_post,
-            self.P_pred,
-            self.nees,
-            self.decision_s,
-            self.n_eval,
-        )
+from covnet.covariance_control.simulate import MetricRun, RunRows, run_metric
 
 
 def run_centre(sc: Scenario, metric: str, model: Model | None = None) -> MetricRun:
-    """A fusion centre fusing local tracks with ``sc.fusion``'s rule (``info`` or ``ci``)."""
+    """A fusion centre fusing local tracks with ``sc.fusion``'s track rule (``info``, ``ci``)."""
     model = model or build_model(sc)
-    fusion = sc.fusion
+    rule = rule_for(sc.fusion)
     truth = truth_trajectory(model)
     N, Ns = model.scans, len(model.sensor_ids)
     rows = RunRows(N, Ns)
     est = initial_estimate(model, sc.filter.initial_estimate)
     local = [est] * Ns
-    mirror = Mirror.start(model) if fusion.rule == "ci" else None  # only CI decides from it
+    # only a rule outside the information form decides from the local filters' covariances
+    mirror = None if rule.information_form else Mirror.start(model)
     for i in range(N):
         k = i + 1
         pred = predict_step(model, est)
         local_pred = [predict_step(model, g) for g in local]
         P_loc = mirror.predicted(model)[1] if mirror is not None else None
         t0 = time.perf_counter()
-        alloc = decide_rule(fusion, model, pred.P, P_loc, k, metric)
+        alloc = decide_rule(rule, model, pred.P, P_loc, k, metric)
         dt = time.perf_counter() - t0
         tracks = [
-            (j, local_track(model, j, local_pred[j], measure(model, j, k, truth[i])))
+            (j, rule.local(model, j, local_pred[j], measure(model, j, k, truth[i])))
             for j in alloc.subset
         ]
         local = list(local_pred)
         for j, tr in tracks:
             local[j] = tr.post
-        est = fuse_tracks(fusion, pred, tracks)
+        est = rule.fuse(model, pred, tracks)
         if mirror is not None:
-            mirror.advance(fusion, model, alloc.subset)
+            mirror.advance(rule, model, alloc.subset)
         rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
     return rows.run(metric)
 
@@ -117,31 +73,27 @@ def run_centre(sc: Scenario, metric: str, model: Model | None = None) -> MetricR
 def run_mode(
     sc: Scenario, metric: str, model: Model | None = None
 ) -> tuple[MetricRun, dict[str, MetricRun] | None]:
-    """The run of ``sc.fusion.mode``: ``(run, None)`` for a fusion centre (``central``, ``info``,
-    ``ci``); in ``peer`` mode ``(run of the first node, every node's run)``.  With slow or lossy
-    links (``network.latency`` not ideal) a centre's run is
-    :func:`covnet.covariance_control.latency_sim. run_latency` (simulated time; its counts: call
-    that function directly)."""
-    from covnet.covariance_control.simulate import run_metric
-
+    """The run of ``sc.fusion.mode``: ``(run, None)`` for a fusion centre (the plain loop
+    :func:`~covnet.covariance_control.simulate.run_metric` for a rule that fuses raw
+    measurements, :func:`run_centre` for a track rule); in ``peer`` mode ``(run of the first
+    node, every node's run)``.  With slow or lossy links (``network.latency`` not ideal) a
+    centre's run is :func:`covnet.covariance_control.latency_sim.run_latency` (simulated time;
+    its counts: call that function directly)."""
     model = model or build_model(sc)
-    mode = sc.fusion.mode
     if not sc.network.latency.is_ideal(model.sensor_ids):
-        from covnet.covariance_control.latency_sim import run_latency
-
         return run_latency(sc, metric, model)[0], None
-    if mode == "central":
-        return run_metric(sc, metric, model), None
-    if mode == "peer":
+    if sc.fusion.mode == "peer":
         nodes = run_peer(sc, metric, model)
         return nodes[model.sensor_ids[0]], nodes
+    if not rule_for(sc.fusion).tracks:
+        return run_metric(sc, metric, model), None
     return run_centre(sc, metric, model), None
 
 
 def run_peer(sc: Scenario, metric: str, model: Model | None = None) -> dict[str, MetricRun]:
     """Every peer node's run (keyed by sensor id); all share the agreed enabled sets."""
     model = model or build_model(sc)
-    fusion = sc.fusion
+    fusion, rule = sc.fusion, rule_for(sc.fusion)
     truth = truth_trajectory(model)
     N, Ns = model.scans, len(model.sensor_ids)
     nbrs = neighbours(fusion, model.sensor_ids)
@@ -154,20 +106,20 @@ def run_peer(sc: Scenario, metric: str, model: Model | None = None) -> dict[str,
         k = i + 1
         P_nodes, P_loc = mirror.predicted(model)
         t0 = time.perf_counter()
-        alloc = decide_rule(fusion, model, P_nodes, P_loc, k, metric, reach=mirror.reach)
+        alloc = decide_rule(rule, model, P_nodes, P_loc, k, metric, reach=mirror.reach)
         dt = time.perf_counter() - t0
         local_pred = [predict_step(model, g) for g in local]
         tracks = {
-            j: local_track(model, j, local_pred[j], measure(model, j, k, truth[i]))
+            j: rule.local(model, j, local_pred[j], measure(model, j, k, truth[i]))
             for j in alloc.subset
         }
         for n in range(Ns):
             pred = predict_step(model, fused[n])
             heard = [(j, tracks[j]) for j in (n, *nbrs[n]) if j in tracks]
-            fused[n] = fuse_tracks(fusion, pred, heard)
+            fused[n] = rule.fuse(model, pred, heard)
             rows[n].put(
                 i, alloc.subset, alloc.value, pred, fused[n], truth[i], dt, alloc.n_evaluated
             )
         local = [tracks[j].post if j in tracks else local_pred[j] for j in range(Ns)]
-        mirror.advance(fusion, model, alloc.subset)
+        mirror.advance(rule, model, alloc.subset)
     return {sid: r.run(metric) for sid, r in zip(model.sensor_ids, rows, strict=True)}

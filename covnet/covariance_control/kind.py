@@ -4,32 +4,26 @@ registry (:mod:`covnet.kinds`) knows of it.
 Its process roles are ``manager.covariance`` (the fusion centre, or the observer of a peer
 network), ``sensors.covariance`` (a sensor, or a peer node) and ``world.covariance``.  Its run
 options are ``--seed``, ``--metric`` (the episodes: ``allocation.metrics``) and ``--fusion``
-(``fusion.mode``); each is a change of the config, so ``config.json`` records it.
-
-This module stays light (a node process imports it to load its config): the commands import
-what they run when they run.
+(``fusion.mode``); each is a change of the config, so ``config.json`` records it.  Its commands
+are in :mod:`covnet.covariance_control.commands`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from covnet.core.metrics import METRICS
 from covnet.covariance_control import config
+from covnet.covariance_control.fusion_rules import fusion_modes
+from covnet.kindkit import lazy, seed_option
 
 __all__ = ["KIND"]
 
-
-def _seed(data: dict[str, Any], value: int) -> None:
-    if value < 0:
-        raise ValueError(f"must be >= 0, got {value}")
-    data["seed"] = value
+_COMMANDS = "covnet.covariance_control.commands"
 
 
 def _metrics(data: dict[str, Any], names: list[str]) -> None:
-    from covnet.core.metrics import METRICS
-
     for m in names:
         if m not in METRICS:
             raise ValueError(f"unknown metric {m!r}; choose from {sorted(METRICS)}")
@@ -37,22 +31,9 @@ def _metrics(data: dict[str, Any], names: list[str]) -> None:
 
 
 def _fusion(data: dict[str, Any], mode: str) -> None:
-    if mode not in config.FUSION_MODES:
-        raise ValueError(f"unknown fusion mode {mode!r}; choose from {list(config.FUSION_MODES)}")
+    if mode not in fusion_modes():
+        raise ValueError(f"unknown fusion mode {mode!r}; choose from {list(fusion_modes())}")
     data["fusion"] = {**data["fusion"], "mode": mode}
-
-
-def _command(name: str) -> Callable[..., int]:
-    """``commands.<name>``, imported when the command runs (start-up time of every node)."""
-
-    def call(*args: Any, **kwargs: Any) -> int:
-        from covnet.covariance_control import commands
-
-        result: int = getattr(commands, name)(*args, **kwargs)
-        return result
-
-    call.__name__ = name
-    return call
 
 
 class CovarianceControl:
@@ -63,14 +44,18 @@ class CovarianceControl:
         "sensor": "sensors.covariance",
         "world": "world.covariance",
     }
-    options = {"seed": _seed, "metric": _metrics, "fusion": _fusion}
+    options = {"seed": seed_option, "metric": _metrics, "fusion": _fusion}
     commands = {
-        "compare": _command("compare"),
-        "sweep": _command("sweep"),
-        "replay": _command("replay"),
-        "bench:alloc": _command("bench_alloc"),
-        "bench:fusion": _command("bench_fusion"),
+        "compare": lazy(_COMMANDS, "compare"),
+        "sweep": lazy(_COMMANDS, "sweep"),
+        "replay": lazy(_COMMANDS, "replay"),
+        "bench:alloc": lazy(_COMMANDS, "bench_alloc"),
+        "bench:fusion": lazy(_COMMANDS, "bench_fusion"),
     }
+    run = staticmethod(lazy(_COMMANDS, "run"))
+    after_up = staticmethod(lazy(_COMMANDS, "after_up"))
+    up_problem = staticmethod(lazy(_COMMANDS, "up_problem"))
+    plot = staticmethod(lazy(_COMMANDS, "plot"))
 
     def from_dict(self, data: object, source: str, base_dir: str | Path | None) -> Any:
         return config.from_dict(data, source, base_dir)
@@ -81,28 +66,8 @@ class CovarianceControl:
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)
 
-    def run(self, cfg: Any, out: Path, *, figures: bool) -> int:
-        from covnet.covariance_control import commands
-
-        return commands.run(cfg, out, figures=figures)
-
-    def after_up(self, cfg: Any, out: Path, *, figures: bool) -> None:
-        from covnet.covariance_control import commands
-
-        commands.after_up(cfg, out, figures=figures)
-
-    def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
-        from covnet.covariance_control import commands
-
-        return commands.up_problem(cfg, realtime=realtime, netns=netns)
-
     def sensors_restartable(self, cfg: Any) -> bool:
         return bool(cfg.fusion.mode != "peer")  # a peer node's state is not restartable
-
-    def plot(self, run_dir: Path) -> list[Path]:
-        from covnet.covariance_control import commands
-
-        return commands.plot(run_dir)
 
 
 KIND = CovarianceControl()

@@ -48,18 +48,11 @@ from typing import Any
 
 import numpy as np
 
-from covnet.core.allocation import prepare
 from covnet.core.delay import LinkSpec, LinkState, link_stream
 from covnet.core.oosm import ReFilterBuffer
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.decentral import (
-    Mirror,
-    decide_rule,
-    fuse_tracks,
-    local_track,
-    measurement_from_track,
-)
-from covnet.covariance_control.decentral_sim import RunRows
+from covnet.covariance_control.decentral import Mirror, decide_rule
+from covnet.covariance_control.fusion_rules import FusionRule, rule_for
 from covnet.covariance_control.model import (
     Model,
     build_model,
@@ -69,7 +62,7 @@ from covnet.covariance_control.model import (
     predict_step,
     truth_trajectory,
 )
-from covnet.covariance_control.simulate import MetricRun
+from covnet.covariance_control.simulate import MetricRun, RunRows
 from covnet.latency_bus import DOWN, UP
 
 PROBABILITY_DRAWS = 20_000
@@ -129,23 +122,25 @@ def loss_aware_model(model: Model, p: np.ndarray) -> Model:
     """``model`` whose allocation uses the expected gains ``p_j J_j`` (a sensor that never
     delivers gets a tiny gain, so the plan stays valid)."""
     gains = np.maximum(p, 1e-12)[:, None, None] * model.gains
-    return replace(model, gains=gains, plan=prepare(gains, model.constraints), plans={})
+    return replace(model, gains=gains, plans={})
 
 
-def _as_measurement(mode: str, payload: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``(z, R)`` of a received message: a measurement as is, a local track's information."""
-    if mode == "central":
-        return payload  # type: ignore[no-any-return]
-    return measurement_from_track(payload.post, payload.prior)
+def _as_measurement(rule: FusionRule, payload: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``(z, R)`` the buffer filters for a received message (a rule that re-filters late
+    messages: a measurement as is, a local track's information)."""
+    zr = rule.late_measurement(payload)
+    assert zr is not None
+    return zr
 
 
 def run_latency(
     sc: Scenario, metric: str, model: Model | None = None
 ) -> tuple[MetricRun, LatencyCounts]:
-    """The scan loop of the module docstring for ``sc.fusion.mode`` in central, info or ci."""
-    mode = sc.fusion.mode
-    if mode == "peer":
+    """The scan loop of the module docstring for the fusion centre of ``sc.fusion.mode`` (any
+    rule of the registry)."""
+    if sc.fusion.mode == "peer":
         raise ValueError("fusion.mode: peer has no fusion centre; latency runs need one")
+    rule = rule_for(sc.fusion)
     model = model or build_model(sc)
     lat = sc.network.latency
     T, delta = model.T, sc.network.deadline_fraction
@@ -156,7 +151,7 @@ def run_latency(
     down = [LinkState(s, link_stream(sc.seed, j, DOWN)) for j, s in enumerate(down_specs)]
     p_deliver = delivery_probabilities(sc) if sc.allocation.account_for_loss else None
     alloc_model = model
-    if p_deliver is not None and mode != "ci":
+    if p_deliver is not None and rule.information_form:
         alloc_model = loss_aware_model(model, p_deliver)
     counts = LatencyCounts()
     est = initial_estimate(model, sc.filter.initial_estimate)
@@ -173,7 +168,7 @@ def run_latency(
     def send(j: int, scan: int, at: float) -> None:
         """Sensor ``j`` measures scan ``scan`` at time ``at`` and sends it up its link."""
         z = measure(model, j, scan, truth[scan - 1])
-        payload = (z, model.R[j]) if mode == "central" else sensors[j].track(model, j, scan, z)
+        payload = sensors[j].message(rule, model, j, scan, z)
         counts.measured += 1
         sent_for[scan] += 1
         a = up[j].on_send(at)
@@ -187,11 +182,11 @@ def run_latency(
         k = i + 1
         t_k = k * T
         t0 = time.perf_counter()
-        if mode == "ci":
-            P_loc = mirror.predicted(model)[1]
-            alloc = decide_rule(sc.fusion, model, pred.P, P_loc, k, metric, delivery=p_deliver)
-        else:
+        if rule.information_form:
             alloc = decide(alloc_model, pred.P, k, metric)
+        else:
+            P_loc = mirror.predicted(model)[1]
+            alloc = decide_rule(rule, model, pred.P, P_loc, k, metric, delivery=p_deliver)
         dt = time.perf_counter() - t0
         counts.commanded += len(alloc.subset)
         for j in range(Ns):  # Command(k) goes out on every downlink at t_k
@@ -220,26 +215,26 @@ def run_latency(
             _, _, scan, j, payload = heapq.heappop(pending)
             (on_time.append((j, payload)) if scan == k else late.append((scan, j, payload)))
         for scan, j, payload in late:
-            if mode == "ci" or lat.late == "drop":
+            if not rule.refilters_late or lat.late == "drop":
                 counts.late_dropped += 1
-            elif buffer.insert(scan, j, *_as_measurement(mode, payload)) is None:
+            elif buffer.insert(scan, j, *_as_measurement(rule, payload)) is None:
                 counts.late_dropped += 1  # older than the buffer
             else:
                 counts.late_refiltered += 1
-        if late and mode != "ci":
+        if late and rule.refilters_late:
             pred = buffer.predicted()  # scan k's prior, after re-filtering
         counts.on_time += len(on_time)
         on_time_for[k] = len(on_time)
         counts.per_scan_fused.append(len(on_time))
         on_time.sort(key=lambda m: m[0])
-        if mode == "ci":
-            est = fuse_tracks(sc.fusion, pred, on_time)
-            mirror.advance(sc.fusion, model, [j for j, _ in on_time])
+        if rule.refilters_late:  # every scan through the buffer, so late ones can be re-filtered
+            meas = [(j, *_as_measurement(rule, payload)) for j, payload in on_time]
+            est = buffer.step(k, meas, prior=pred).post
+        else:
+            est = rule.fuse(model, pred, on_time)
+            mirror.advance(rule, model, [j for j, _ in on_time])
             for j, tr in on_time:
                 mirror.P_local[j] = tr.post.P
-        else:
-            meas = [(j, *_as_measurement(mode, payload)) for j, payload in on_time]
-            est = buffer.step(k, meas, prior=pred).post
         rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
         pred = predict_step(model, est)
     counts.late_dropped += len(pending)  # still in flight at the end: never fused
@@ -256,11 +251,15 @@ class _Sensor:
         self.scan = self.newest = 0
         self.last_on = False
 
-    def track(self, model: Model, j: int, scan: int, z: np.ndarray) -> Any:
+    def message(self, rule: FusionRule, model: Model, j: int, scan: int, z: np.ndarray) -> Any:
+        """What sensor ``j`` sends for scan ``scan``, having measured ``z``: the rule's local
+        step (a track rule's local filter predicts up to the scan, then updates)."""
+        if not rule.tracks:
+            return rule.local(model, j, self.local, z)
         g = self.local
         while self.scan < scan:
             g = predict_step(model, g)
             self.scan += 1
-        tr = local_track(model, j, g, z)
+        tr = rule.local(model, j, g, z)
         self.local = tr.post
         return tr

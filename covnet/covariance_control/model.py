@@ -28,13 +28,13 @@ from covnet.covariance_control.config import Scenario
 class Model:
     """Arrays of one scenario: motion ``F, G, Q``, sensors ``H, R_j, J_j``, schedule ``P_d``.
 
-    ``plan``: the allocation plan of ``gains`` under the configured ``constraints``
+    :attr:`plan`: the allocation plan of ``gains`` under the configured ``constraints``
     (:func:`covnet.core.allocation.prepare`: the gains validated and the gain-only subset tables
-    built once, in :func:`build_model`); :func:`decide` passes it at every scan.  ``plans``: the
-    plans per constraint set, ``constraints -> plan``, holding ``plan`` and, added by
-    :meth:`plan_for` the first time a set of run-time failures (``unavailable``) produces it,
-    one plan per further constraint set (a handful in practice: at most one per distinct set of
-    failed sensors).
+    built once, when the first decision needs them: a process that never decides, a sensor or
+    the world, never builds them); :func:`decide` passes it at every scan.  ``plans``: the plans
+    per constraint set, ``constraints -> plan``, filled by :meth:`plan_for` the first time a
+    constraint set is decided under (the configured one, and one per distinct set of run-time
+    failures, ``unavailable``: a handful in practice).
     """
 
     sensor_ids: tuple[str, ...]
@@ -54,13 +54,14 @@ class Model:
     tie_rtol: float
     seed: int
     scans: int
-    plan: AllocationPlan
     plans: dict[Constraints, AllocationPlan] = field(
         default_factory=dict, compare=False, repr=False
     )
 
-    def __post_init__(self) -> None:
-        self.plans.setdefault(self.plan.constraints, self.plan)
+    @property
+    def plan(self) -> AllocationPlan:
+        """The plan of the configured constraints (prepared on first use)."""
+        return self.plan_for(self.constraints)
 
     def plan_for(self, constraints: Constraints) -> AllocationPlan:
         """The plan for ``constraints``: from :attr:`plans`, prepared (once) if new."""
@@ -110,7 +111,6 @@ def build_model(sc: Scenario) -> Model:
         tie_rtol=al.tie_rtol,
         seed=sc.seed,
         scans=sc.scans,
-        plan=prepare(gains, constraints),
     )
 
 

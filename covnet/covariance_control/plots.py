@@ -59,7 +59,7 @@ def make_figures(run_dir: Path) -> list[Path]:
     ids = [str(s) for s in arrays["sensor_ids"]]
     t_scan = np.arange(1, len(arrays["t"]) + 1)
     switches = summary.get("desired_switch_scans", [1])
-    colors = plt.get_cmap("tab10").colors
+    colors = [plt.get_cmap("tab10")(i) for i in range(10)]
     paths = [run_dir / f for f in FIGURES]
 
     # 1. measurement-uncertainty ellipses

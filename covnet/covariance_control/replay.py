@@ -19,7 +19,7 @@ that does not decode is counted by reason and skipped, never used):
 In the decentralized centre modes (``fusion.mode: info | ci``) the sensors' keys carry
 :class:`~covnet.messages.LocalTrack` s instead of measurements, and the steps below are the
 manager's for those modes (:func:`covnet.covariance_control.decentral.decide_rule` over the local
-filters' covariance mirror, :func:`covnet.covariance_control.decentral.fuse_tracks`).  A peer-mode
+filters' covariance mirror, the rule's fusion).  A peer-mode
 run has no centre to replay (a :class:`ReplayError` says so).
 
 Per episode ``e`` (metric ``m = episodes[e]``) and scan ``k = 1, 2, ...`` while a Status of
@@ -67,6 +67,7 @@ from covnet.covariance_control.centre import (
     usable_track,
 )
 from covnet.covariance_control.config import Scenario, config_hash, from_dict
+from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import (
     build_model,
     initial_estimate,
@@ -151,7 +152,7 @@ class _Recorded:
 def _load_recording(
     samples: Iterator[RecordedSample], run_id: str, decentral: bool = False
 ) -> _Recorded:
-    """``decentral``: the sensors' keys carry local tracks (``fusion.mode: info | ci``)."""
+    """``decentral``: the sensors' keys carry local tracks (a track rule: ``info``, ``ci``)."""
     rec = _Recorded()
     for s in samples:
         rec.count("samples")
@@ -225,7 +226,7 @@ def replay_run(run_dir: Path, out: Path | None = None) -> ReplayReport:
     if meta_run.get("config_hash", h) != h:
         diffs.add("metadata", f"recording: config hash {meta_run['config_hash']}, config.json: {h}")
     reader = RecordingReader(run_dir / RECORDING)
-    rec = _load_recording(reader.samples(), run_id, sc.fusion.mode in ("info", "ci"))
+    rec = _load_recording(reader.samples(), run_id, rule_for(sc.fusion).tracks)
     if not reader.complete:
         notes.append(
             "recording has no footer (the recorder did not close it: killed?); read up to "

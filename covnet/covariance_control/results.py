@@ -26,6 +26,7 @@ from covnet import __version__
 from covnet.core.allocation import allocation_rate
 from covnet.covariance_control.centre import ManagerResult
 from covnet.covariance_control.config import Scenario, config_hash, normalised
+from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.simulate import MetricRun, Trajectory, shared_trajectory
 from covnet.rundir import (
@@ -170,11 +171,8 @@ def write_run(
 def fusion_label(sc: Scenario) -> str:
     """The fusion structure in one word: ``central``, ``info``, ``ci`` (with its objective:
     ``ci-det``), or ``peer-<rule>-<graph>``."""
-    f = sc.fusion
-    if f.mode == "peer":
-        rule = f"ci-{f.ci_objective}" if f.peer.rule == "ci" else f.peer.rule
-        return f"peer-{rule}-{f.peer.graph}"
-    return f"ci-{f.ci_objective}" if f.mode == "ci" else f.mode
+    f, label = sc.fusion, rule_for(sc.fusion).label()
+    return f"peer-{label}-{f.peer.graph}" if f.mode == "peer" else label
 
 
 def load_summary(run_dir: Path) -> dict[str, Any]:

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from covnet.core.gaussian import Gaussian
 from covnet.core.kalman import nees
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import (
@@ -66,31 +67,65 @@ def shared_trajectory(model: Model) -> Trajectory:
     )
 
 
+class RunRows:
+    """Per-scan rows of one estimate stream (a centre, or one peer node)."""
+
+    def __init__(self, N: int, Ns: int) -> None:
+        self.enabled = np.zeros((N, Ns), dtype=bool)
+        self.value = np.empty(N)
+        self.x_est = np.empty((N, 4))
+        self.P_post = np.empty((N, 4, 4))
+        self.P_pred = np.empty((N, 4, 4))
+        self.nees = np.empty(N)
+        self.decision_s = np.empty(N)
+        self.n_eval = np.empty(N, dtype=np.int64)
+
+    def put(
+        self,
+        i: int,
+        subset: tuple[int, ...],
+        value: float,
+        pred: Gaussian,
+        est: Gaussian,
+        truth: np.ndarray,
+        dt: float,
+        n_eval: int,
+    ) -> None:
+        self.enabled[i, list(subset)] = True
+        self.value[i] = value
+        self.x_est[i], self.P_post[i], self.P_pred[i] = est.x, est.P, pred.P
+        self.nees[i] = nees(est, truth)
+        self.decision_s[i] = dt
+        self.n_eval[i] = n_eval
+
+    def run(self, metric: str) -> MetricRun:
+        return MetricRun(
+            metric,
+            self.enabled,
+            self.value,
+            self.x_est,
+            self.P_post,
+            self.P_pred,
+            self.nees,
+            self.decision_s,
+            self.n_eval,
+        )
+
+
 def run_metric(sc: Scenario, metric: str, model: Model | None = None) -> MetricRun:
     """Run the scan loop of ``sc`` with allocation metric ``metric``."""
     model = model or build_model(sc)
     truth = truth_trajectory(model)
     N, Ns = model.scans, len(model.sensor_ids)
-    enabled = np.zeros((N, Ns), dtype=bool)
-    value = np.empty(N)
-    x_est = np.empty((N, 4))
-    P_post = np.empty((N, 4, 4))
-    P_pred = np.empty((N, 4, 4))
-    eps = np.empty(N)
-    dt = np.empty(N)
-    n_eval = np.empty(N, dtype=np.int64)
+    rows = RunRows(N, Ns)
     est = initial_estimate(model, sc.filter.initial_estimate)
     for i in range(N):
         k = i + 1
         pred = predict_step(model, est)
         t0 = time.perf_counter()
         alloc = decide(model, pred.P, k, metric)
-        dt[i] = time.perf_counter() - t0
+        dt = time.perf_counter() - t0
         meas = [(j, measure(model, j, k, truth[i]), model.R[j]) for j in alloc.subset]
         est = fuse(model, pred, meas)
-        enabled[i, list(alloc.subset)] = True
-        value[i] = alloc.value
-        x_est[i], P_post[i], P_pred[i] = est.x, est.P, pred.P
-        eps[i] = nees(est, truth[i])
-        n_eval[i] = alloc.n_evaluated
-    return MetricRun(metric, enabled, value, x_est, P_post, P_pred, eps, dt, n_eval)
+        rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
+    return rows.run(metric)

@@ -31,6 +31,8 @@ import numpy as np
 
 from covnet.batch import parallel_map, write_rows
 from covnet.covariance_control.config import Scenario, SweepSpec, from_dict, normalised
+from covnet.covariance_control.latency_sim import run_latency
+from covnet.covariance_control.model import build_model, truth_trajectory
 
 POINT_KEYS = ("delay_ms", "loss", "mode", "account_for_loss", "late_policy")
 COLUMNS = (
@@ -94,9 +96,6 @@ def grid(spec: SweepSpec) -> list[dict[str, Any]]:
 
 def run_point(task: tuple[dict[str, Any], dict[str, Any], int, str]) -> dict[str, Any]:
     """One run at one grid point (a module-level function: the pool's workers import it)."""
-    from covnet.covariance_control.latency_sim import run_latency
-    from covnet.covariance_control.model import build_model, truth_trajectory
-
     data, point, seed, metric = task
     sc = point_scenario(from_dict(data), point, seed)
     model = build_model(sc)
@@ -167,7 +166,7 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     """``sweep.png``: one row of panels per quantity, one column per fusion mode; x the mean
     one-way delay, one colour per loss level, solid ignoring loss in the allocation, dashed
     accounting for it (``late: oosm`` rows; a ``drop`` policy is drawn dotted)."""
-    import matplotlib
+    import matplotlib  # the figure only: start-up of the runs (and of the workers)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -20,7 +20,13 @@ from typing import Any
 
 from covnet.errors import UsageError
 from covnet.mobile.config import MobileConfig
+from covnet.mobile.montecarlo import MC_FILE, default_workers, run_seeds, write_mc
+from covnet.mobile.results import load_summary, write_run
+from covnet.mobile.simulate import run as simulate
 from covnet.rundir import RUN_INFO, prepare_out, read_json
+
+# The figure (matplotlib) and the benchmark are imported by the commands that use them:
+# start-up time of the others.
 
 EXIT_OK = 0
 
@@ -67,9 +73,6 @@ def print_summary(out: Path, s: dict[str, Any]) -> None:
 def run(cfg: MobileConfig, out_dir: Path, *, figures: bool = True) -> int:
     """``covnet run configs/mobile.yaml [--solver NAME] [--seed S] [--out DIR]``: one in-process
     run; writes the run directory and the figure."""
-    from covnet.mobile.results import write_run
-    from covnet.mobile.simulate import run as simulate
-
     t0 = time.perf_counter()
     r = simulate(cfg)
     extra = " (with the exact comparison)" if cfg.compare_exact else ""
@@ -77,7 +80,7 @@ def run(cfg: MobileConfig, out_dir: Path, *, figures: bool = True) -> int:
     summary = write_run(out_dir, cfg, r)
     print_summary(out_dir, summary)
     if figures:
-        from covnet.mobile.plots import make_figure
+        from covnet.mobile.plots import make_figure  # matplotlib: start-up
 
         print(f"figure: {make_figure(out_dir)}")
     return EXIT_OK
@@ -85,12 +88,10 @@ def run(cfg: MobileConfig, out_dir: Path, *, figures: bool = True) -> int:
 
 def after_up(cfg: MobileConfig, out: Path, *, figures: bool) -> None:
     """After ``covnet up``: the figure and the summary of the scans done."""
-    from covnet.mobile.results import load_summary
-
     if not (out / "summary.json").is_file():
         return
     if figures:
-        from covnet.mobile.plots import make_figure
+        from covnet.mobile.plots import make_figure  # matplotlib: start-up
 
         print(f"figure: {make_figure(out)}")
     print_summary(out, load_summary(out))
@@ -117,8 +118,6 @@ def mc_run(
     ``progress``: ``True`` prints a line per finished seed on stderr, ``False`` nothing, or a
     callable ``(done, total, seed)`` of the caller's.
     """
-    from covnet.mobile.montecarlo import MC_FILE, default_workers, run_seeds, write_mc
-
     if seeds < 1:
         raise UsageError(f"--trials: must be >= 1, got {seeds}")
     out_dir = prepare_out(out, f"{cfg.name}-mc", force)
@@ -185,7 +184,7 @@ def bench_run(
 ) -> int:
     """``covnet bench mobile [--json]``: one decision's cost tensor and solvers over
     N ∈ {4, 10, 25, 50} × M ∈ {3, 10, 30, 100}, capacity none and ⌈1.5 M/N⌉ (medians, ms)."""
-    from covnet.mobile import bench
+    from covnet.mobile import bench  # start-up time of the other commands
 
     def progress(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
@@ -230,3 +229,10 @@ def bench_run(
             f"{goals['decision_no_capacity_ms']:.2f} ms)"
         )
     return EXIT_OK
+
+
+def plot(run_dir: Path) -> list[Path]:
+    """``covnet plot`` of a mobile run directory: its figure."""
+    from covnet.mobile.plots import make_figure  # matplotlib: start-up of the other commands
+
+    return [make_figure(run_dir)]

@@ -27,6 +27,7 @@ import numpy as np
 from covnet import __version__
 from covnet.mobile.config import MobileConfig, config_hash, from_dict, normalised
 from covnet.mobile.results import WORSE_TOL, decision_times, summarise
+from covnet.mobile.simulate import run
 from covnet.rundir import RUN_INFO, utc_now, write_json
 
 MC_FILE = "montecarlo.json"
@@ -38,8 +39,6 @@ def run_seed(cfg_data: Mapping[str, Any], seed: int, solver: str | None) -> dict
     """One seed in a worker: validate, simulate, summarise (top level so it pickles); the
     summary, with the seed's decision times under ``decision_time_s`` (:func:`split_timing`
     takes them out)."""
-    from covnet.mobile.simulate import run
-
     cfg = from_dict({**cfg_data, "seed": seed}, f"seed {seed}")
     r = run(cfg, solver)
     s = summarise(cfg, r)

@@ -24,7 +24,10 @@ import numpy as np
 
 from covnet import __version__
 from covnet.errors import UsageError
-from covnet.passive.config import PassiveConfig
+from covnet.passive.associate import header, scan_record
+from covnet.passive.config import PassiveConfig, normalised
+from covnet.passive.montecarlo import run_grid, write_results
+from covnet.passive.scene import draw
 from covnet.rundir import RUN_INFO, prepare_out, read_json, utc_now, write_json
 
 __all__ = ["after_up", "bench", "mc", "run"]
@@ -51,8 +54,7 @@ def mc_run(
 ) -> int:
     """Run the Monte Carlo protocol of the config's ``montecarlo`` grid (``trials`` overrides
     ``montecarlo.trials``) and write the results and figures to ``out``."""
-    from covnet.passive.montecarlo import run_grid, write_results
-    from covnet.passive.plots import mc_figures
+    from covnet.passive.plots import mc_figures  # matplotlib: start-up of the other commands
 
     if trials is not None and not (isinstance(trials, int) and trials >= 1):
         raise UsageError(f"--trials: must be an integer >= 1, got {trials}")
@@ -69,7 +71,7 @@ def mc_run(
         f"monte carlo: {cells} cells x {n} trials, methods {', '.join(cfg.montecarlo.methods)}",
         flush=True,
     )
-    rows, facts = run_grid(cfg, trials=trials, progress=cb)  # type: ignore[arg-type]
+    rows, facts = run_grid(cfg, trials=trials, progress=cb)
     doc = write_results(out_dir, cfg, rows, facts)
     figs = mc_figures(out_dir)
     _print_mc_summary(doc)
@@ -108,7 +110,7 @@ def bench(args: Any, cfg: Any = None) -> int:
 
 def bench_run(json_out: bool = False) -> int:
     """Benchmark every registered method on the spec's scenes; print a table (or JSON rows)."""
-    from covnet.passive.bench import GOAL_RATIO, SPACINGS, run
+    from covnet.passive.bench import GOAL_RATIO, SPACINGS, run  # start-up of the others
 
     res = run(progress=None if json_out else (lambda m: print(m, file=sys.stderr, flush=True)))
     rows, summ = res["rows"], res["summary"]
@@ -172,11 +174,6 @@ def run(cfg: PassiveConfig, out_dir: Path, *, figures: bool = True) -> int:
     triangulate the triples; write ``association.json`` (what config and seed determine),
     ``config.json``, ``run.json`` (the association's wall time) and ``scene.png``.  (This scan
     is scan 1 of ``covnet up`` with the same seed: trial 0.)"""
-    from covnet.passive.associate import header, scan_record
-    from covnet.passive.config import normalised
-    from covnet.passive.plots import scene_figure
-    from covnet.passive.scene import draw
-
     seed = cfg.seed
     model = cfg.scene_model()
     params = cfg.assoc_params(model)
@@ -211,6 +208,8 @@ def run(cfg: PassiveConfig, out_dir: Path, *, figures: bool = True) -> int:
         print(f"  triple {t}: ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) km  {tag}")
     print(f"run directory: {out_dir}  (config {doc['config_hash']}, seed {seed})")
     if figures:
+        from covnet.passive.plots import scene_figure  # matplotlib: start-up of the others
+
         print(f"figure: {scene_figure(out_dir)}")
     return EXIT_OK
 
@@ -229,7 +228,14 @@ def after_up(cfg: PassiveConfig, out: Path, *, figures: bool) -> None:
         f"{sm['output'] - sm['correct']} wrong triple(s)"
     )
     if figures and "correct" in doc:  # a scored scan (the manager redraws the truth)
-        from covnet.passive.plots import scene_figure
+        from covnet.passive.plots import scene_figure  # matplotlib: start-up
 
         print(f"figure: {scene_figure(out)}")
     print(f"run directory: {out}  (config {doc['config_hash']}, seed {doc['seed']})")
+
+
+def plot(run_dir: Path) -> list[Path]:
+    """``covnet plot`` of a passive run directory: its scene figure."""
+    from covnet.passive.plots import scene_figure  # matplotlib: start-up of the other commands
+
+    return [scene_figure(run_dir)]

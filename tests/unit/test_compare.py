@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from covnet.cli import main
-from covnet.covariance_control.compare import MODES, Trial, compare, scenario_for, summarise
+from covnet.covariance_control.compare import Trial, compare, modes, scenario_for, summarise
 from covnet.covariance_control.config import from_dict, load, normalised
 
 
@@ -23,7 +23,7 @@ def short(paper_path):
 
 @pytest.fixture(scope="module")
 def rows(short):
-    return {r["mode"]: r for r in compare(short, MODES, "abs_trace", 5, graph="ring", workers=1)}
+    return {r["mode"]: r for r in compare(short, modes(), "abs_trace", 5, graph="ring", workers=1)}
 
 
 def test_info_row_equals_central(rows):

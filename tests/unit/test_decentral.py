@@ -29,6 +29,7 @@ from covnet.covariance_control.decentral import (
     reach_matrix,
 )
 from covnet.covariance_control.decentral_sim import run_centre, run_mode, run_peer
+from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.simulate import run_metric
 
@@ -115,11 +116,11 @@ def test_ci_decision_equals_the_plain_loop(paper_path, objective, constraints):
     for k in range(1, 8):
         P_prior = model.F @ P @ model.F.T + model.Q
         _, P_loc = mirror.predicted(model)
-        alloc = decide_rule(sc.fusion, model, P_prior, P_loc, k, "spectral")
+        alloc = decide_rule(rule_for(sc.fusion), model, P_prior, P_loc, k, "spectral")
         plain = _plain_ci_decision(model, sc.fusion, P_prior, P_loc, k, "spectral", constraints)
         assert alloc.subset == plain, k
         delivered = sorted(rng.choice(8, size=3, replace=False).tolist())
-        mirror.advance(sc.fusion, model, delivered)
+        mirror.advance(rule_for(sc.fusion), model, delivered)
         P = alloc.P
 
 
@@ -149,7 +150,7 @@ def test_peer_nodes_covariances_are_what_the_mirror_predicts(paper_path, rule):
     mirror = Mirror.start(model, reach_matrix(sc.fusion, model.sensor_ids))
     enabled = next(iter(nodes.values())).enabled
     for i in range(sc.scans):
-        mirror.advance(sc.fusion, model, np.flatnonzero(enabled[i]).tolist())
+        mirror.advance(rule_for(sc.fusion), model, np.flatnonzero(enabled[i]).tolist())
         for n, sid in enumerate(model.sensor_ids):
             assert _rel(mirror.P_fused[n], nodes[sid].P_post[i]) < 1e-9, (sid, i + 1)
 

@@ -13,8 +13,8 @@ import pytest
 from covnet.cli import main
 from covnet.config import ConfigError
 from covnet.covariance_control.config import from_dict, load, normalised
-from covnet.covariance_control.decentral import measurement_from_track
 from covnet.covariance_control.decentral_sim import run_centre
+from covnet.covariance_control.fusion_rules import measurement_from_track
 from covnet.covariance_control.latency_sim import delivery_probabilities, run_latency
 from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.simulate import run_metric

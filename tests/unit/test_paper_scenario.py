@@ -82,13 +82,16 @@ def test_filter_is_consistent_on_average(runs):
 
 
 def test_model_holds_one_plan_per_constraint_set(paper):
-    """build_model prepares the allocation plan once; decide passes it, and run-time failures get
-    a plan per constraint set, prepared once and kept in ``model.plans``."""
+    """The allocation plan is prepared once, when the first decision needs it (a sensor or the
+    world, which never decide, never build it); decide passes it, and run-time failures get a
+    plan per constraint set, prepared once and kept in ``model.plans``."""
     from covnet.core.allocation import allocate_exhaustive
     from covnet.covariance_control.model import decide, predict_cov
 
     model = build_model(paper)
-    assert model.plans == {model.constraints: model.plan}
+    assert model.plans == {}  # nothing built yet
+    plan = model.plan
+    assert model.plans == {model.constraints: plan} and model.plan is plan
     assert model.plan.constraints == model.constraints
     P_pred = predict_cov(model, predict_cov(model, model.P0))
     for _ in range(3):  # a few scans in, away from the near-degenerate first ones
