@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
-__all__ = ["lazy", "seed_option"]
+__all__ = ["KindBase", "lazy", "seed_option"]
 
 
 def seed_option(data: dict[str, Any], value: int) -> None:
@@ -19,6 +20,27 @@ def seed_option(data: dict[str, Any], value: int) -> None:
     if value < 0:
         raise ValueError(f"must be >= 0, got {value}")
     data["seed"] = value
+
+
+class KindBase:
+    """What most kinds' entries do alike: the config through the kind's config module
+    (``config``: its ``from_dict`` and ``normalised``), any clock and emulation in ``covnet up``,
+    restartable sensors.  A kind overrides what differs."""
+
+    config: Any
+
+    def from_dict(self, data: object, source: str, base_dir: str | Path | None) -> Any:
+        return self.config.from_dict(data, source, base_dir)
+
+    def normalised(self, cfg: Any) -> dict[str, Any]:
+        result: dict[str, Any] = self.config.normalised(cfg)
+        return result
+
+    def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
+        return None
+
+    def sensors_restartable(self, cfg: Any) -> bool:
+        return True
 
 
 def lazy(module: str, name: str) -> Callable[..., Any]:

@@ -27,16 +27,13 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
+from functools import partial
 from typing import Any
 
 import numpy as np
 
 from covnet import messages as msg
-from covnet.bus import Bus
-from covnet.clock import Clock
 from covnet.core.allocation import Allocation
 from covnet.core.gaussian import Gaussian
 from covnet.core.kalman import nees
@@ -60,18 +57,9 @@ from covnet.covariance_control.model import (
     truth_trajectory,
 )
 from covnet.covariance_control.results import write_network_run
-from manager import peer_monitor
-from manager.loop import (
-    WORLD_ID,
-    Decision,
-    Loop,
-    ManagerError,
-    ScanReport,
-    StatusFn,
-    run_scans,
-)
-from manager.process import Hooks, router_endpoint, serve
-from manager.process import run_info as base_run_info
+from manager import loop, peer_monitor
+from manager.loop import WORLD_ID, Decision, Loop, ManagerError, ScanReport
+from manager.process import main_around
 
 __all__ = ["CovarianceLogic", "main", "run"]
 
@@ -123,12 +111,12 @@ class _Fused:
 class CovarianceLogic:
     """The fusion centre's steps (module docstring) for :func:`manager.loop.run_scans`."""
 
-    def __init__(self, sc: Scenario, metrics: list[str], loop: Loop) -> None:
+    def __init__(self, sc: Scenario, loop: Loop) -> None:
         if sc.fusion.mode == "peer":
             raise ManagerError("peer mode has no fusion manager: run manager.peer_monitor")
         self.sc, self.model = sc, build_model(sc)
         self.ids = self.model.sensor_ids
-        self.episodes = metrics
+        self.episodes = list(sc.allocation.metrics)
         self.scans, self.period_s = self.model.scans, self.model.T
         self.tracks = rule_for(sc.fusion).tracks  # local tracks, not measurements
         self.message_type: type[msg.Measurement] | type[msg.LocalTrack] = (
@@ -226,62 +214,20 @@ class CovarianceLogic:
         )
 
 
-def run(
-    sc: Scenario,
-    metrics: list[str],
-    bus: Bus,
-    run_id: str,
-    clock: Clock,
-    stop: threading.Event,
-    *,
-    realtime: bool = False,
-    on_ready: Callable[[], None] | None = None,
-    on_status: StatusFn | None = None,
-    on_progress: Callable[[ManagerResult, bool], None] | None = None,
-) -> ManagerResult:
-    """Run every metric's episode over the bus; returns what was done (also when stopped,
-    with ``completed=False``, or when the network never came up, with ``error`` set).
-    ``on_progress(result, episode_done)`` is called after every scan."""
-    loop = Loop(sc.network, sc.sensor_ids, bus, run_id, clock)
-    logic = CovarianceLogic(sc, metrics, loop)
-    result: ManagerResult = run_scans(
-        logic,
-        loop,
-        stop,
-        realtime=realtime,
-        on_ready=on_ready,
-        on_status=on_status,
-        on_progress=on_progress,
-    )
-    return result
+run = partial(loop.run, CovarianceLogic)
+"""``run(sc, bus, run_id, clock, stop, *, realtime, on_ready, on_status, on_progress)``: every
+metric's episode (``allocation.metrics``) over the bus (:func:`manager.loop.run`); returns the
+:class:`~covnet.covariance_control.centre.ManagerResult`."""
 
 
 def main(args: Any, sc: Scenario, stop: threading.Event) -> int:
     """``python -m manager --config PAPER.yaml ...``: the process around :func:`run` (or, in
     peer mode, around the observer :func:`manager.peer_monitor.run`)."""
-    metrics = list(sc.allocation.metrics)
-    endpoint = router_endpoint(sc.network, args.listen)
-    out = Path(args.out)
-    run_info = {"episodes": metrics, **base_run_info(args, endpoint)}
-
+    info = {"episodes": list(sc.allocation.metrics)}
     if sc.fusion.mode == "peer":  # no fusion centre: this process only routes and watches
         if args.realtime:
             raise ValueError("--realtime: peer mode runs in lockstep only")
-
-        def run_peer(bus: Bus, clock: Clock, hooks: Hooks) -> Any:
-            return peer_monitor.run(sc, metrics, bus, args.run, clock, stop, **hooks.kwargs())
-
-        def write_peer(result: Any) -> Any:
-            return peer_monitor.write_peer_run(out, sc, result, run_info)
-
-        return serve(args, sc.network, sc.sensor_ids, stop, endpoint, run_peer, write_peer)
-
-    def run_loop(bus: Bus, clock: Clock, hooks: Hooks) -> ManagerResult:
-        return run(
-            sc, metrics, bus, args.run, clock, stop, realtime=args.realtime, **hooks.kwargs()
+        return main_around(
+            args, sc, stop, peer_monitor.run, peer_monitor.write_peer_run, run_info_extra=info
         )
-
-    def write(result: ManagerResult) -> Any:
-        return write_network_run(out, sc, result, run_info)
-
-    return serve(args, sc.network, sc.sensor_ids, stop, endpoint, run_loop, write)
+    return main_around(args, sc, stop, run, write_network_run, run_info_extra=info)

@@ -498,6 +498,34 @@ def run_scans(
     return result
 
 
+def run(
+    make_logic: Callable[[Any, Loop], ScanLogic],
+    cfg: Any,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    *,
+    realtime: bool = False,
+    on_ready: Callable[[], None] | None = None,
+    on_status: StatusFn | None = None,
+    on_progress: Callable[[Any, bool], None] | None = None,
+) -> Any:
+    """A kind's manager over ``bus``: ``make_logic(cfg, loop)`` (the kind's :class:`ScanLogic`)
+    in :func:`run_scans`; returns the kind's result (also when stopped, with
+    ``completed=False``, or when the network never came up, with ``error`` set)."""
+    loop = Loop(cfg.network, cfg.sensor_ids, bus, run_id, clock)
+    return run_scans(
+        make_logic(cfg, loop),
+        loop,
+        stop,
+        realtime=realtime,
+        on_ready=on_ready,
+        on_status=on_status,
+        on_progress=on_progress,
+    )
+
+
 def wait_for_nodes_to_leave(bus: Bus, run_id: str, timeout_s: float, stop: threading.Event) -> None:
     """After the run: wait (bounded) until no other node of the run is alive."""
     watch = bus.watch_liveliness(msg.alive_keyexpr(run_id))

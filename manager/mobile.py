@@ -24,16 +24,14 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from covnet import messages as msg
-from covnet.bus import Bus
-from covnet.clock import Clock
 from covnet.core.mobile.decision import compare, decide_milp, relaxation
 from covnet.core.mobile.models import MODE_NAMES, predict_tracks, usage_cost
 from covnet.mobile.config import MobileConfig
@@ -49,11 +47,11 @@ from covnet.mobile.model import (
 )
 from covnet.mobile.results import write_run
 from covnet.mobile.simulate import MobileRun
-from covnet.rundir import RUN_INFO, utc_now, write_json
+from covnet.rundir import RUN_INFO, write_json
 from covnet.runtime_stats import NetStats
-from manager.loop import WORLD_ID, Decision, Loop, ManagerError, ScanReport, StatusFn, run_scans
-from manager.process import Hooks, router_endpoint, serve
-from manager.process import run_info as base_run_info
+from manager import loop
+from manager.loop import WORLD_ID, Decision, Loop, ManagerError, ScanReport
+from manager.process import main_around, network_run_info
 
 __all__ = ["MobileLogic", "MobileResult", "main", "run", "write_network_run"]
 
@@ -292,31 +290,9 @@ class MobileLogic:
         )
 
 
-def run(
-    cfg: MobileConfig,
-    bus: Bus,
-    run_id: str,
-    clock: Clock,
-    stop: threading.Event,
-    *,
-    realtime: bool = False,
-    on_ready: Callable[[], None] | None = None,
-    on_status: StatusFn | None = None,
-    on_progress: Callable[[MobileResult, bool], None] | None = None,
-) -> MobileResult:
-    """Run the scans over the bus; returns what was done (also when stopped, with
-    ``completed=False``, or when the network never came up, with ``error`` set)."""
-    loop = Loop(cfg.network, cfg.sensor_ids, bus, run_id, clock)
-    result: MobileResult = run_scans(
-        MobileLogic(cfg, loop),
-        loop,
-        stop,
-        realtime=realtime,
-        on_ready=on_ready,
-        on_status=on_status,
-        on_progress=on_progress,
-    )
-    return result
+run = partial(loop.run, MobileLogic)
+"""``run(cfg, bus, run_id, clock, stop, *, realtime, on_ready, on_status, on_progress)``: the
+scans over the bus (:func:`manager.loop.run`); returns the :class:`MobileResult`."""
 
 
 def write_network_run(
@@ -326,19 +302,7 @@ def write_network_run(
     ``network.json`` and the network's ``run.json``; None before the first scan."""
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "network.json", result.stats.as_dict())
-    info: dict[str, Any] = {
-        "created_utc": utc_now(),
-        "mode": "network",
-        "kind": "mobile",
-        "solver": result.solver,
-        "completed": result.completed,
-        "scans_completed": result.scans_done,
-        "failures": [{k: v for k, v in ev.items() if k != "detected_ns"} for ev in result.failures],
-        "failure_detected_ns": [ev for ev in result.failures if "detected_ns" in ev],
-        **(run_info or {}),
-    }
-    if result.error:
-        info["error"] = result.error
+    info = network_run_info("mobile", result, result.scans_done, run_info, solver=result.solver)
     if not result.scans_done:
         write_json(out / RUN_INFO, info)
         return None
@@ -347,20 +311,4 @@ def write_network_run(
 
 def main(args: Any, cfg: MobileConfig, stop: threading.Event) -> int:
     """``python -m manager --config MOBILE.yaml ...``: the process around :func:`run`."""
-    endpoint = router_endpoint(cfg.network, args.listen)
-    out = Path(args.out)
-    run_info = base_run_info(args, endpoint)
-
-    def run_loop(bus: Bus, clock: Clock, hooks: Hooks) -> MobileResult:
-        return run(cfg, bus, args.run, clock, stop, realtime=args.realtime, **hooks.kwargs())
-
-    return serve(
-        args,
-        cfg.network,
-        cfg.sensor_ids,
-        stop,
-        endpoint,
-        run_loop,
-        lambda result: write_network_run(out, cfg, result, run_info),
-        write_every_s=2.0,
-    )
+    return main_around(args, cfg, stop, run, write_network_run, write_every_s=2.0)

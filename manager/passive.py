@@ -24,26 +24,23 @@ target); it never sends it.  Each scan's association time is a wall-clock fact: 
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from covnet import __version__
 from covnet import messages as msg
-from covnet.bus import Bus
-from covnet.clock import Clock
 from covnet.core.passive.model import PassiveScan
 from covnet.passive.associate import header, scan_record
 from covnet.passive.config import PassiveConfig, normalised
 from covnet.passive.scene import draw
-from covnet.rundir import CONFIG, RUN_INFO, utc_now, write_json
+from covnet.rundir import CONFIG, RUN_INFO, write_json
 from covnet.runtime_stats import NetStats
-from manager.loop import WORLD_ID, Decision, Loop, ScanReport, StatusFn, run_scans
-from manager.process import Hooks, router_endpoint, serve
-from manager.process import run_info as base_run_info
+from manager import loop
+from manager.loop import WORLD_ID, Decision, Loop, ScanReport
+from manager.process import main_around, network_run_info
 
 __all__ = ["MAX_LIST", "PassiveLogic", "PassiveResult", "main", "run", "write_network_run"]
 
@@ -206,31 +203,9 @@ class PassiveLogic:
         )
 
 
-def run(
-    cfg: PassiveConfig,
-    bus: Bus,
-    run_id: str,
-    clock: Clock,
-    stop: threading.Event,
-    *,
-    realtime: bool = False,
-    on_ready: Callable[[], None] | None = None,
-    on_status: StatusFn | None = None,
-    on_progress: Callable[[PassiveResult, bool], None] | None = None,
-) -> PassiveResult:
-    """Run the scans over the bus; returns what was done (also when stopped, with
-    ``completed=False``, or when the network never came up, with ``error`` set)."""
-    loop = Loop(cfg.network, cfg.sensor_ids, bus, run_id, clock)
-    result: PassiveResult = run_scans(
-        PassiveLogic(cfg, loop),
-        loop,
-        stop,
-        realtime=realtime,
-        on_ready=on_ready,
-        on_status=on_status,
-        on_progress=on_progress,
-    )
-    return result
+run = partial(loop.run, PassiveLogic)
+"""``run(cfg, bus, run_id, clock, stop, *, realtime, on_ready, on_status, on_progress)``: the
+scans over the bus (:func:`manager.loop.run`); returns the :class:`PassiveResult`."""
 
 
 def association_doc(cfg: PassiveConfig, result: PassiveResult) -> dict[str, Any]:
@@ -263,41 +238,18 @@ def write_network_run(
     write_json(out / "network.json", result.stats.as_dict())
     write_json(out / CONFIG, normalised(cfg))
     write_json(out / "association.json", association_doc(cfg, result))
-    info: dict[str, Any] = {
-        "created_utc": utc_now(),
-        "covnet_version": __version__,
-        "mode": "network",
-        "kind": "passive",
-        "method": result.method,
-        "completed": result.completed,
-        "scans_completed": result.scans_done,
-        "scans_unassociated": result.unassociated,
-        "association_time_s": result.association_time_s,
-        "failures": [{k: v for k, v in ev.items() if k != "detected_ns"} for ev in result.failures],
-        "failure_detected_ns": [ev for ev in result.failures if "detected_ns" in ev],
-        **(run_info or {}),
-    }
-    if result.error:
-        info["error"] = result.error
+    info = network_run_info(
+        "passive",
+        result,
+        result.scans_done,
+        run_info,
+        method=result.method,
+        scans_unassociated=result.unassociated,
+        association_time_s=result.association_time_s,
+    )
     write_json(out / RUN_INFO, info)
 
 
 def main(args: Any, cfg: PassiveConfig, stop: threading.Event) -> int:
     """``python -m manager --config PASSIVE.yaml ...``: the process around :func:`run`."""
-    endpoint = router_endpoint(cfg.network, args.listen)
-    out = Path(args.out)
-    run_info = base_run_info(args, endpoint)
-
-    def run_loop(bus: Bus, clock: Clock, hooks: Hooks) -> PassiveResult:
-        return run(cfg, bus, args.run, clock, stop, realtime=args.realtime, **hooks.kwargs())
-
-    return serve(
-        args,
-        cfg.network,
-        cfg.sensor_ids,
-        stop,
-        endpoint,
-        run_loop,
-        lambda result: write_network_run(out, cfg, result, run_info),
-        write_every_s=2.0,
-    )
+    return main_around(args, cfg, stop, run, write_network_run, write_every_s=2.0)

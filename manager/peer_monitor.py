@@ -78,18 +78,23 @@ class PeerResult:
 
 def run(
     sc: Scenario,
-    metrics: list[str],
     bus: Bus,
     run_id: str,
     clock: Clock,
     stop: threading.Event,
     *,
+    realtime: bool = False,
     on_ready: Callable[[], None] | None = None,
     on_status: Callable[[dict[str, Any]], None] | None = None,
     on_progress: Callable[[PeerResult, bool], None] | None = None,
 ) -> PeerResult:
     """Watch the peer nodes until every live node has reported the last scan of the last
-    episode (``completed``), or ``stop``, or no report for ``network.scan_timeout_s``."""
+    episode (``completed``), or ``stop``, or no report for ``network.scan_timeout_s``; the
+    episodes are the config's metrics (peer mode runs in lockstep only: ``realtime`` must be
+    false)."""
+    if realtime:
+        raise ValueError("--realtime: peer mode runs in lockstep only")
+    metrics = list(sc.allocation.metrics)
     model = build_model(sc)
     ids = model.sensor_ids
     net = sc.network

@@ -11,13 +11,15 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-from covnet import security
+from covnet import __version__, security
 from covnet.bus import Bus
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
 from covnet.process import EXIT_FAIL, EXIT_OK, open_bus
+from covnet.rundir import utc_now
 from manager.loop import LoopResult, wait_for_nodes_to_leave
 
 
@@ -46,6 +48,69 @@ def run_info(args: Any, endpoint: str) -> dict[str, Any]:
         "speed": args.speed,
         "router": endpoint,
     }
+
+
+RunFn = Callable[..., LoopResult]
+"""A manager loop: ``run(cfg, bus, run_id, clock, stop, *, realtime, on_ready, on_status,
+on_progress)`` (:func:`manager.loop.run` with a kind's logic, or the peer observer)."""
+WriteFn = Callable[[Path, Any, Any, dict[str, Any]], object]
+"""A kind's run-directory writer: ``write(out, cfg, result, run_info)``."""
+
+
+def main_around(
+    args: Any,
+    cfg: Any,
+    stop: threading.Event,
+    run: RunFn,
+    write: WriteFn,
+    *,
+    run_info_extra: dict[str, Any] | None = None,
+    write_every_s: float = 1.0,
+) -> int:
+    """``python -m manager``'s body for any kind: :func:`serve` the loop ``run`` of ``cfg``
+    on the router endpoint of ``--listen`` (or the config), writing the run directory
+    ``--out`` with ``write`` (``run.json`` gets :func:`run_info` and ``run_info_extra``)."""
+    endpoint = router_endpoint(cfg.network, args.listen)
+    out = Path(args.out)
+    info = {**(run_info_extra or {}), **run_info(args, endpoint)}
+
+    def run_loop(bus: Bus, clock: Clock, hooks: Hooks) -> LoopResult:
+        return run(cfg, bus, args.run, clock, stop, realtime=args.realtime, **hooks.kwargs())
+
+    return serve(
+        args,
+        cfg.network,
+        cfg.sensor_ids,
+        stop,
+        endpoint,
+        run_loop,
+        lambda result: write(out, cfg, result, info),
+        write_every_s=write_every_s,
+    )
+
+
+def network_run_info(
+    kind: str, result: Any, scans_done: int, run_info: dict[str, Any] | None, **facts: Any
+) -> dict[str, Any]:
+    """``run.json`` of a network run whose ``result`` logs its failures in one list: the kind,
+    whether it completed, the scans done, the failure and rejoin events (their detection times
+    apart, being wall-clock), the error if any, the kind's ``facts`` and the process's
+    ``run_info``."""
+    info: dict[str, Any] = {
+        "created_utc": utc_now(),
+        "covnet_version": __version__,
+        "mode": "network",
+        "kind": kind,
+        **facts,
+        "completed": result.completed,
+        "scans_completed": scans_done,
+        "failures": [{k: v for k, v in ev.items() if k != "detected_ns"} for ev in result.failures],
+        "failure_detected_ns": [ev for ev in result.failures if "detected_ns" in ev],
+        **(run_info or {}),
+    }
+    if result.error:
+        info["error"] = result.error
+    return info
 
 
 def router_endpoint(net: NetworkSpec, listen: str | None) -> str:

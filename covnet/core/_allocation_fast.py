@@ -82,7 +82,7 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple, TypedDict, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -151,6 +151,8 @@ def spd_inverse(A: NDArray[np.float64]) -> NDArray[np.float64]:
 def _spd_inverse_one(A: Mat) -> Mat:
     """:func:`spd_inverse` of one ``(n, n)`` float64 matrix (the same operations: ``potrf``,
     ``potri``, lower triangle copied to the upper one), with little Python overhead."""
+    inv: Mat  # LAPACK on float64: float64 results (scipy-stubs type them Any)
+    info: int
     c, info = _dpotrf(A, lower=1)
     if info == 0:
         inv, info = _dpotri(c, lower=1)
@@ -307,6 +309,41 @@ class SearchTables:
         "checked_d",
     )
 
+    gains: Mat
+    N: int
+    n: int
+    free: list[int]
+    req: list[int]
+    m: int
+    kmin: int
+    kmax: int
+    n_feasible: int
+    plain: bool
+    s: NDArray[np.intp]
+    r: int
+    S_free: Mat
+    S_req: Mat | None
+    active_trace: float
+    J_mid: Mat
+    chunk: bool
+    # single chunk only (else None)
+    codes: NDArray[np.int64] | None
+    S_sub: Mat | None
+    masks: NDArray[np.bool_] | None
+    subsets: list[tuple[int, ...]] | None
+    J: Mat | None
+    Q: Mat | None
+    # several chunks only (else None)
+    S_lo: Mat | None
+    pc_lo: NDArray[np.int64] | None
+    S_hi: Mat | None
+    pc_hi: NDArray[np.int64] | None
+    diag_rows: NDArray[np.intp]
+    s_index: slice | NDArray[np.intp]
+    d_cache: dict[bytes, _DConstants]
+    S_req_list: list[float] | None
+    checked_d: dict[bytes, Mat]
+
     def __init__(
         self, gains: Mat, excluded: frozenset[int], required: frozenset[int], max_active: int
     ) -> None:
@@ -323,7 +360,8 @@ class SearchTables:
         self.n_feasible = sum(math.comb(m, k) for k in range(self.kmin, self.kmax + 1))
         self.plain = not req and m == N  # free == all sensors, in order
         active = gains[[j for j in range(N) if j not in excluded]] if excluded else gains
-        s = active.reshape(-1, n).any(axis=0).nonzero()[0]
+        # any over axis 0 of a 2-D array is 1-D (numpy's stubs also allow a scalar)
+        s = cast(NDArray[np.bool_], active.reshape(-1, n).any(axis=0)).nonzero()[0]
         r = s.size
         S = gains[:, s[:, None], s].reshape(N, r * r)
         self.s, self.r = s, r
@@ -334,7 +372,7 @@ class SearchTables:
         self.s_index = slice(int(s[0]), int(s[-1]) + 1, step) if even else s
         self.S_free = S if self.plain else S[free]
         self.S_req = S[req].sum(axis=0) if req else None
-        self.S_req_list = self.S_req.tolist() if req else None
+        self.S_req_list = self.S_req.tolist() if self.S_req is not None else None
         self.active_trace = float(np.einsum("jii->", active))
         #: half the active gains' sum: ``Y0 + J_mid`` is the reference of :func:`_svd_block`
         self.J_mid = 0.5 * active.sum(axis=0)
@@ -426,7 +464,7 @@ class _DConstants:
         self._inv: tuple[Mat, float] | None = None
         self._logdet: float | None = None
         #: derived per-``P_d`` constants of individual bounds
-        self.memo: dict[str, object] = {}
+        self.memo: _DMemo = {}
 
     def eig(self) -> tuple[Mat, Mat]:
         if self._eig is None:
@@ -447,6 +485,35 @@ class _DConstants:
 
 #: desired covariances whose constants a plan keeps (:meth:`SearchTables.d_constants`)
 D_CACHE_SIZE = 8
+
+
+class _DMemo(TypedDict, total=False):
+    """:attr:`_DConstants.memo`: per-``P_d`` constants of individual bounds, by key."""
+
+    svd_blk: tuple[Mat, float, float, Mat]  # _svd_d_consts
+    svd: tuple[Mat, float, NDArray[np.intp], NDArray[np.intp]]  # _svd_consts
+
+
+class _SetupMemo(TypedDict, total=False):
+    """:attr:`_Setup.memo`: per-decision constants of individual bounds, by key."""
+
+    TK_P: Mat  # _Setup.TK_with
+    TK_M: Mat
+    gp: Mat  # _Setup.gp_coeffs
+    frob_sym: tuple[Mat, float]  # _ChunkStage1P.diff_full_sym_scaled
+    svd_blk: _SvdBlock  # _svd_block_consts
+    svd_blk_c: _SvdBlock
+    logdet: tuple[float, Mat, float, float]  # _logdet_bound
+    kl: tuple[Mat, float, Mat, float]  # _kl_bound
+
+
+#: a flattened ``2 x 2`` matrix in Python floats (``_Setup._base`` for ``r = 2``)
+_Base4 = tuple[float, float, float, float]
+#: ``_Setup._py``: ``(Kᵀ[0], Kᵀ[1], P[s0, :], P[s1, :], vec(P), a, b, c)`` with ``C⁻¹ = [[a, b],
+#: [b, c]]``, Python floats (``r = 2 < n``)
+_PyForm = tuple[
+    list[float], list[float], list[float], list[float], list[float], float, float, float
+]
 
 
 class _Setup:
@@ -492,13 +559,37 @@ class _Setup:
         "dc",
     )
 
+    n: int
+    r: int
+    s: NDArray[np.intp]
+    P: Mat
+    Y0: Mat
+    P_d: Mat
+    _Zc: Mat | None
+    _KT: Mat | None
+    _KJ: Mat | None
+    _T: Mat | None
+    _T_diag: Mat | None
+    _P_inf: Mat | None
+    _M_inf: Mat | None
+    _P_inf_diag: Mat | None
+    _M_inf_diag: Mat | None
+    _T_K: Mat | None
+    _base: _Base4 | Mat
+    _py: _PyForm | None  # r = 2 < n only
+    S_free: Mat
+    ctx: BoundContext
+    memo: _SetupMemo
+    tab: SearchTables
+    dc: _DConstants
+
     def __init__(self, P: Mat, P_d: Mat, Y0: Mat, tab: SearchTables) -> None:
         n, r, s = tab.n, tab.r, tab.s
         self.n, self.r, self.s = n, r, s
         self.P, self.Y0, self.P_d, self.tab = P, Y0, P_d, tab
         self.S_free = tab.S_free
         self.dc = dc = tab.d_constants(P_d)
-        self.memo: dict[str, object] = {}
+        self.memo = {}
         self._T = self._T_diag = self._P_inf = self._M_inf = None
         self._P_inf_diag = self._M_inf_diag = self._KJ = self._T_K = None
         pl = P.ravel().tolist()
@@ -558,7 +649,8 @@ class _Setup:
     def Zc(self) -> Mat:
         """``C⁻¹ = P[s, s]⁻¹`` ``(r, r)``."""
         if self._Zc is None:
-            a, b, c = self._py[5:]  # type: ignore[index]
+            assert self._py is not None  # _Zc is computed up front unless r = 2 < n
+            a, b, c = self._py[5:]
             self._Zc = np.array(((a, b), (b, c)))
         return self._Zc
 
@@ -566,7 +658,8 @@ class _Setup:
     def KT(self) -> Mat:
         """``Kᵀ = C⁻¹ P[s, :]`` ``(r, n)``."""
         if self._KT is None:
-            kt0, kt1 = self._py[:2]  # type: ignore[index]
+            assert self._py is not None  # _KT is computed up front unless r = 2 < n
+            kt0, kt1 = self._py[:2]
             self._KT = np.array((kt0, kt1))
         return self._KT
 
@@ -574,7 +667,8 @@ class _Setup:
     def KJ(self) -> Mat:
         """``K`` (``K J`` for ``r = 2``, the adjugate's sign pattern folded in) ``(n, r)``."""
         if self._KJ is None:
-            kt0, kt1 = self._py[:2]  # type: ignore[index]
+            assert self._py is not None  # _KJ is computed up front unless r = 2 < n
+            kt0, kt1 = self._py[:2]
             self._KJ = np.array([(-y, x) for x, y in zip(kt0, kt1, strict=True)])
         return self._KJ
 
@@ -606,29 +700,31 @@ class _Setup:
         """``K ⊗ K`` ``(n*n, 4)`` (``r = 2 < n``): ``P_i = P + T_K vec(Z_i⁻¹ - C)`` flattened, since
         ``P∞ = P - K C Kᵀ`` (:meth:`_ChunkStage1P.full`)."""
         if self._T_K is None:
-            kt0, kt1 = self._py[:2]  # type: ignore[index]
+            assert self._py is not None  # r = 2 < n
+            kt0, kt1 = self._py[:2]
             K = np.array((kt0, kt1)).T
             n = self.n
             self._T_K = (K[:, None, :, None] * K[None, :, None, :]).reshape(n * n, 4)
         return self._T_K
 
-    def TK_with(self, which: str) -> Mat:
+    def TK_with(self, which: Literal["P", "M"]) -> Mat:
         """``[T_K, vec(P)]`` (``which="P"``) or ``[T_K, vec(P - P_d)]`` (``"M"``) ``(n*n, 5)``:
         times ``[vec(Z_i⁻¹ - C); 1]`` (:meth:`_ChunkStage1P._gp`) they give ``P_i`` or
         ``P_i - P_d`` flattened.  Built as ``v[ia] * v[ib]`` from one vector
         ``v = [K entries, vec(P or P - P_d), 1]`` and constant index tables (:func:`_tk_index`):
         entry ``((a, b), (c, d))`` is ``K_ac K_bd``, column 4 is ``vec(·) · 1``."""
-        key = "TK_" + which
+        key: Literal["TK_P", "TK_M"] = "TK_P" if which == "P" else "TK_M"
         A = self.memo.get(key)
         if A is None:
             if which == "P":
-                kt0, kt1, _, _, pl = self._py[:5]  # type: ignore[misc]
+                assert self._py is not None  # r = 2 < n
+                kt0, kt1, _, _, pl = self._py[:5]
                 v = np.array([x for xy in zip(kt0, kt1, strict=True) for x in xy] + pl + [1.0])
             else:
                 v = self.TK_vec_M()
             ia, ib = _tk_index(self.n)
             A = self.memo[key] = v[ia] * v[ib]
-        return A  # type: ignore[return-value]
+        return A
 
     def gp_coeffs(self) -> Mat:
         """``(5, 6)`` coefficients on the rows of ``Q`` (:meth:`chunk_covariances`) of
@@ -638,7 +734,8 @@ class _Setup:
         if A is None:
             b0, b1, b2, b3 = self._base4()
             d0, d1, d2, d3, d4, _ = self.det_row()
-            pl = self._py[4]  # type: ignore[index]
+            assert self._py is not None  # r = 2 < n
+            pl = self._py[4]
             n = self.n
             i0, i1 = self.s.tolist()
             c0, c1, c2, c3 = pl[i0 * n + i0], pl[i0 * n + i1], pl[i1 * n + i0], pl[i1 * n + i1]
@@ -653,13 +750,14 @@ class _Setup:
                 d0, d1, d2, d3, d4, 1.0,
             )).reshape(5, 6)
             # fmt: on
-        return A  # type: ignore[return-value]
+        return A
 
     def TK_vec_M(self) -> Mat:
         """``[K entries (row-major), vec(P - P_d), 1]`` (``r = 2 < n``): the factors of
         :meth:`TK_with` and :meth:`TK_sym_M`."""
         n = self.n
-        kt0, kt1 = self._py[:2]  # type: ignore[index]
+        assert self._py is not None  # r = 2 < n
+        kt0, kt1 = self._py[:2]
         v = np.empty(2 * n + n * n + 1)
         v[: 2 * n : 2] = kt0
         v[1 : 2 * n : 2] = kt1
@@ -718,12 +816,14 @@ class _Setup:
         """Stage-1 ``P_i`` of every feasible subset of a single-chunk plan (``tab.S_sub``): a
         :class:`_ChunkStage1P` when the plan has the ``Q`` table and ``r = 2 < n``."""
         if self.tab.Q is None or self._py is None:
+            assert self.tab.S_sub is not None  # a single-chunk plan
             return self.covariances(self.tab.S_sub + self.base[:, None])
         return _ChunkStage1P(self)
 
-    def _base4(self) -> tuple[float, float, float, float]:
+    def _base4(self) -> _Base4:
         b = self._base
-        return b if isinstance(b, tuple) else tuple(b.tolist())  # type: ignore[return-value]
+        # r = 2: the array has four entries (tolist's length is unknown to the type system)
+        return b if isinstance(b, tuple) else cast(_Base4, tuple(b.tolist()))
 
     def det_row(self, b: tuple[float, ...] | None = None) -> list[float]:
         """Coefficients of ``det(b + S_i)`` on the rows of ``Q`` (:meth:`chunk_covariances`),
@@ -741,7 +841,8 @@ class _Setup:
         that ``A_a · Q_i = det Z_i · (P_i - P_d)_aa`` (no division and no addition per subset).
         Returns the rows and ``max_a |o_a|`` (the folded products round relative to it: after the
         division by ``det Z_i`` an error of a few ``eps · κ · max|o_a|``, :data:`FOLD_ERR`)."""
-        kt0, kt1, p0, p1, pl = self._py[:5]  # type: ignore[misc]
+        assert self._py is not None  # r = 2 < n
+        kt0, kt1, p0, p1, pl = self._py[:5]
         b0, b1, b2, b3 = self._base4()
         drow = self.det_row()
         d_diag = self.dc.diag_list if diff else None
@@ -769,10 +870,10 @@ class _Setup:
             return Stage1P(self, Z, det, Z / det)
         return Stage1P(self, Z, None, _spd_inverse_soa(Z, self.r))
 
-    def take(self, S1: Stage1P, rows: NDArray[np.intp], codes: NDArray[np.int64]) -> Stage1P:
-        """Stage-1 ``P_i`` of the subsets ``codes[rows]``, where ``S1`` holds all of ``codes``:
-        the same representation restricted to those columns for a single-chunk
-        :class:`_ChunkStage1P`, else :meth:`subsets`."""
+    def take(self, S1: Stage1P | None, rows: NDArray[np.intp], codes: NDArray[np.int64]) -> Stage1P:
+        """Stage-1 ``P_i`` of the subsets ``codes[rows]``, where ``S1`` holds all of ``codes``
+        (``None`` for a plan of several chunks): the same representation restricted to those
+        columns for a single-chunk :class:`_ChunkStage1P`, else :meth:`subsets`."""
         if isinstance(S1, _ChunkStage1P):
             return S1.take(rows)
         return self.subsets(codes[rows])
@@ -783,8 +884,9 @@ class _Setup:
         return self.covariances(self.base[:, None] + self.S_free.T @ bits)
 
 
-_sum = np.add.reduce
-_max = np.maximum.reduce
+# the ufuncs' reduce methods, typed for the float64 arrays they get here (the stubs say Any)
+_sum: Callable[..., Mat] = np.add.reduce
+_max: Callable[..., Mat] = np.maximum.reduce
 
 
 @functools.lru_cache(maxsize=16)
@@ -817,7 +919,7 @@ def _tk_sym_index(n: int) -> tuple[NDArray[np.intp], NDArray[np.intp], Mat]:
     return out
 
 
-_min = np.minimum.reduce
+_min: Callable[..., Mat] = np.minimum.reduce
 _ADJ2_SIGN = np.array([[-1.0], [1.0]])  # Jᵀ Kᵀ = [-Kᵀ[1], Kᵀ[0]]
 
 
@@ -834,10 +936,18 @@ class Stage1P:
 
     __slots__ = ("n", "size", "setup", "Z", "det", "_g", "_full")
 
+    n: int
+    size: int
+    setup: _Setup
+    Z: Mat
+    det: Mat | None  # r = 2 only
+    _g: Mat
+    _full: Mat | None
+
     def __init__(self, setup: _Setup, Z: Mat, det: Mat | None, g: Mat) -> None:
         self.n, self.size, self.setup = setup.n, Z.shape[1], setup
         self.Z, self.det, self._g = Z, det, g
-        self._full: Mat | None = None
+        self._full = None
 
     def diag(self) -> Mat:
         X = self.setup.T_diag @ self._g
@@ -877,8 +987,11 @@ class _ChunkStage1P(Stage1P):
 
     __slots__ = ("Q", "_Zd", "_g_lazy", "_gp_lazy")
 
+    Q: Mat
+
     def __init__(self, setup: _Setup, rows: NDArray[np.intp] | None = None) -> None:
         Q = setup.tab.Q
+        assert Q is not None  # built only for plans with the Q table (chunk_covariances)
         self.Q = Q if rows is None else Q[:, rows]
         self.n, self.size, self.setup = setup.n, self.Q.shape[1], setup
         self._Zd: Mat | None = None
@@ -907,16 +1020,17 @@ class _ChunkStage1P(Stage1P):
             self._Zd = B @ self.Q
         return self._Zd
 
-    @property  # type: ignore[override]
-    def Z(self) -> Mat:
+    @property
+    def Z(self) -> Mat:  # type: ignore[override]
         return self._zd()[:4]
 
-    @property  # type: ignore[override]
-    def det(self) -> Mat:
-        return self._zd()[4]
+    @property
+    def det(self) -> Mat:  # type: ignore[override]
+        d: Mat = self._zd()[4]
+        return d
 
-    @property  # type: ignore[override]
-    def _g(self) -> Mat:
+    @property
+    def _g(self) -> Mat:  # type: ignore[override]
         if self._g_lazy is None:
             Zd = self._zd()
             self._g_lazy = Zd[:4] / Zd[4]
@@ -954,7 +1068,7 @@ class _ChunkStage1P(Stage1P):
             # |P - P_d| <= λmax + sum|P_d| = scale entrywise
             o_max = st.ctx.scale + st.ctx.lam_max
             c = st.memo["frob_sym"] = (C, FOLD_ERR * self.n * EPS * st.ctx.kappa * o_max)
-        C, fold = c  # type: ignore[misc]
+        C, fold = c
         return C @ self.Q, fold
 
     def full(self) -> Mat:
@@ -1233,17 +1347,17 @@ def _svd_d_consts(dc: _DConstants) -> tuple[Mat, float, float, Mat]:
         s = s_D.tolist()
         d = np.array([[0.5 * (s[0] - s[1])], [0.5 * (s[2] - s[3])]])
         k = dc.memo["svd_blk"] = (U_D, 0.5 * (s[0] + s[1]), 0.5 * (s[2] + s[3]), d)
-    return k  # type: ignore[return-value]
+    return k
 
 
 def _svd_block_consts(P: Stage1P) -> _SvdBlock:
     """The constants of :func:`_svd_block` for one decision (kept in ``setup.memo``)."""
     st = P.setup
     chunk = isinstance(P, _ChunkStage1P)
-    key = "svd_blk_c" if chunk else "svd_blk"
+    key: Literal["svd_blk_c", "svd_blk"] = "svd_blk_c" if chunk else "svd_blk"
     k = st.memo.get(key)
     if k is not None:
-        return k  # type: ignore[return-value]
+        return k
     n, ctx = 4, st.ctx
     # V: eigenvectors of the reference Y0 + J_mid (the information of half of every active
     # gain), ascending information = descending covariance.  Any V is valid; this one makes
@@ -1360,7 +1474,8 @@ def _svd_block(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     """
     k = _svd_block_consts(P)
     if k.const is None:
-        R = k.coef @ P._gp()  # type: ignore[attr-defined]
+        assert isinstance(P, _ChunkStage1P)  # the constants of the chunk form have no const
+        R = k.coef @ P._gp()
     else:
         R = k.coef @ P._g
         R += k.const[:, None]
@@ -1425,13 +1540,13 @@ def _svd_block(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     return size
 
 
-def _svd_consts(setup: _Setup, D: Mat) -> tuple[Mat, float, Mat, Mat]:
+def _svd_consts(setup: _Setup, D: Mat) -> tuple[Mat, float, NDArray[np.intp], NDArray[np.intp]]:
     memo = setup.dc.memo
     if "svd" not in memo:
         s_D = setup.dc.eig()[0]
         pi, pj = _pairs(setup.n)
         memo["svd"] = (s_D, float(s_D.sum()), pi, pj)
-    return memo["svd"]  # type: ignore[return-value]
+    return memo["svd"]
 
 
 def _D_inverse(setup: _Setup, D: Mat) -> tuple[Mat, float]:
@@ -1460,7 +1575,7 @@ def _svd_refine(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     need = 4.0 * e + 2.0 * EIG_TIE_RTOL * (np.abs(w).max(axis=1, keepdims=True) + e)
     dist = np.where(gap > need, np.sqrt(2.0) * e / (gap - e), 1.0)
     cos = np.abs(np.einsum("bki,ki->bi", U, U_D[:, ::-1]))
-    orient = (n - np.minimum(cos + dist, 1.0).sum(axis=1)) / n - 64.0 * n * EPS
+    orient: Mat = (n - np.minimum(cos + dist, 1.0).sum(axis=1)) / n - 64.0 * n * EPS
     return size + np.maximum(orient, 0.0)
 
 
@@ -1535,7 +1650,7 @@ def _logdet_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
         rel = ERR_FACTOR * n * n * EPS * (ctx.kappa + kappa_D + kappa_W)
         mag = 1.0 + abs(ld_W) + abs(ld_vv) + abs(c) + float(r)
         st.memo["logdet"] = (c, V.reshape(r * r), slack + rel * mag, rel)
-    c, Vf, slack, rel = st.memo["logdet"]  # type: ignore[misc]
+    c, Vf, slack, rel = st.memo["logdet"]
     if isinstance(P, _ChunkStage1P):
         # det(Z_i + V) and det Z_i in one product (det_row of C⁻¹ + V and of C⁻¹ on Q); the
         # metric is >= 0, so a negative value needs no deflation of its own and val·(1 - rel)
@@ -1548,11 +1663,13 @@ def _logdet_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
         R = Cm.reshape(2, 6) @ P.Q
         x = R[0]
         x /= np.sqrt(R[1])
-        lb = np.log(x, out=x)
+        lb: Mat = np.log(x, out=x)
         lb *= 1.0 - rel
         lb += c * (1.0 - rel) - slack
         return lb
+    val: Mat
     if st.r == 2:
+        assert P.det is not None  # Stage1P has det Z_i when r = 2
         ZV = P.Z + Vf[:, None]
         val = c + np.log((ZV[0] * ZV[3] - ZV[1] * ZV[2]) / np.sqrt(P.det))
     else:
@@ -1573,7 +1690,7 @@ def _kl_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
         d_ss = D[s][:, s].reshape(s.size * s.size)
         c2 = float((st.Y0 * D).sum()) - float(d_ss @ st.Zc.reshape(s.size * s.size))
         st.memo["kl"] = (D_inv_f @ st.T, float(D_inv_f @ st.P_inf), d_ss, c2)
-    w1, c1, d_ss, c2 = st.memo["kl"]  # type: ignore[misc]
+    w1, c1, d_ss, c2 = st.memo["kl"]
     t1 = w1 @ P._g + c1
     t2 = d_ss @ P.Z + c2
     val = 0.25 * (t1 + t2 - 2 * P.n)
@@ -1623,7 +1740,8 @@ def _logdet_soa(Z: Mat, r: int) -> Mat:
     if r == 0:
         return np.zeros(Z.shape[1])
     L = _chol_soa(Z.reshape(r, r, -1))
-    return 2.0 * np.log(np.prod([L[i][i] for i in range(r)], axis=0))
+    ld: Mat = 2.0 * np.log(np.prod([L[i][i] for i in range(r)], axis=0))
+    return ld
 
 
 def _spd_inverse_soa(Z: Mat, r: int) -> Mat:
@@ -1692,11 +1810,18 @@ class _Exact:
         self.table = tab.J is not None and codes is tab.codes
 
     def masks(self, rows: NDArray[np.intp]) -> NDArray[np.bool_]:
-        return self.tab.masks[rows] if self.table else self.tab.code_masks(self.codes[rows])
+        if self.table:
+            assert self.tab.masks is not None  # the plan's own codes: a single-chunk plan
+            return self.tab.masks[rows]
+        return self.tab.code_masks(self.codes[rows])
 
     def covariances(self, rows: NDArray[np.intp], masks: NDArray[np.bool_]) -> Mat:
         """``P_i = (P⁻¹ + J_i)⁻¹`` exactly as :func:`~covnet.core.allocation.subset_covariance`."""
-        J = self.tab.J[rows] if self.table else gain_sums(self.tab.gains, masks)
+        if self.table:
+            assert self.tab.J is not None  # self.table says so
+            J = self.tab.J[rows]
+        else:
+            J = gain_sums(self.tab.gains, masks)
         return spd_inverse(self.Y0 + J)
 
     def values(self, P: Mat) -> NDArray[np.float64]:
@@ -1728,6 +1853,7 @@ def fast_search(
         st = _Setup(P_pred, P_d, Y0, tab)
         S1: Stage1P | None = None
         if tab.chunk:
+            assert tab.codes is not None  # a single-chunk plan
             codes = tab.codes
             S1 = st.chunk_covariances()
             lb = bound.cheap(S1, P_d, st.ctx)
@@ -1750,6 +1876,7 @@ def fast_search(
         # pool for small problems, where the refinement's fixed cost dominates)
         size = SEED_POOL if lb.size > 1024 else min(SMALL_SEED_POOL, lb.size - 1)
         pool = np.argpartition(lb, size)[:size]
+        assert bound.refine is not None  # refined is kept exactly when there is a refine bound
         with np.errstate(all="ignore"):
             lb2 = bound.refine(st.take(S1, pool, codes), P_d, st.ctx)
         lb[pool] = np.fmax(lb[pool], lb2)
@@ -1758,6 +1885,7 @@ def fast_search(
     # the plan's exact J_i (the reference's sums, looked up) when the rows are the plan's codes
     table = tab.J is not None and codes is tab.codes
     if table:
+        assert tab.J is not None  # table says so
         P_best = _spd_inverse_one(Y0 + tab.J[best])
     else:
         ex = _Exact(Y0, P_d, metric, tab, codes)
@@ -1769,6 +1897,7 @@ def fast_search(
     tau = _threshold(U, L, tie_rtol, margin)
     lb[best] = np.inf  # evaluated
     if table and not _min(lb) <= tau:  # the common case: one exact evaluation settles it
+        assert tab.subsets is not None  # a plan with the J table is single-chunk
         return SearchResult(tab.subsets[best], U, P_best, n_feasible, 1)
     cand = (lb <= tau).nonzero()[0]
     if table:
@@ -1793,6 +1922,7 @@ def fast_search(
 
     cand = cand[np.argsort(lb[cand], kind="stable")]
     if refined is not None:
+        assert bound.refine is not None  # refined is kept exactly when there is a refine bound
         # refine the bounds in cheap-bound order, evaluating each block's best refined few
         # exactly at once so that tau falls early; blocks grow from REFINE_BLOCK (a small first
         # block when tau is still loose, large ones for throughput)
@@ -1822,6 +1952,7 @@ def fast_search(
         pos += block
         block = min(4 * block, EXACT_BLOCK)
     if len(ev_v) == 1 and table and not margin:  # the refined bounds pruned every candidate
+        assert tab.subsets is not None  # a plan with the J table is single-chunk
         return SearchResult(tab.subsets[best], U, P_best, n_feasible, 1)
     all_masks, all_P, all_v = (np.concatenate(x) for x in (ev_masks, ev_P, ev_v))
     if margin:
@@ -1833,7 +1964,8 @@ def fast_search(
 
 def _single_value(metric: MetricFn, P: Mat, P_d: Mat) -> float:
     """``f(P, P_d)`` for one ``(n, n)`` matrix, exactly as the reference calls the metric."""
-    f = metric(P, P_d)
+    # a metric returns a float64 scalar for one matrix (the built-in ones do), typed as an array
+    f: NDArray[np.float64] | np.float64 = metric(P, P_d)
     v = float(f) if type(f) is np.float64 else float(np.asarray(f, dtype=np.float64))
     if not math.isfinite(v):
         raise ValueError("metric returned a non-finite value")
@@ -1867,6 +1999,8 @@ def _stage1(
     ``c`` bits of a code vary within a chunk, the high bits are fixed per chunk."""
     c = CHUNK_BITS
     kmin, kmax, pc_lo, pc_hi = tab.kmin, tab.kmax, tab.pc_lo, tab.pc_hi
+    assert pc_lo is not None and pc_hi is not None  # a plan of several chunks
+    assert tab.S_lo is not None and tab.S_hi is not None
     Z_lo = tab.S_lo + st.base[:, None]
     Z_hi = tab.S_hi
     codes_parts, lb_parts = [], []
@@ -1901,8 +2035,10 @@ def _batched_exhaustive(
     calls the metric, so a metric whose batched and single results differ in the last bits still
     selects the reference's subset."""
     if tab.chunk:
+        assert tab.codes is not None
         codes = tab.codes
     else:  # code = h << CHUNK_BITS | t: row h, column t
+        assert tab.pc_lo is not None and tab.pc_hi is not None
         pcs = tab.pc_lo[None, :] + tab.pc_hi[:, None]
         codes = ((pcs >= tab.kmin) & (pcs <= tab.kmax)).reshape(-1).nonzero()[0]
     ex = _Exact(Y0, P_d, metric, tab, codes)

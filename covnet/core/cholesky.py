@@ -44,6 +44,8 @@ def cho_factor(A: Mat) -> Mat:
     A = _float_matrix(A, "matrix")
     if A.ndim != 2 or A.shape[0] != A.shape[1] or A.shape[0] == 0:
         raise ValueError(f"expected a non-empty square matrix, got shape {A.shape}")
+    c: Mat  # LAPACK's dpotrf on a float64 matrix returns a float64 matrix (the stubs say Any)
+    info: int
     c, info = _potrf(A, lower=0, clean=0, overwrite_a=0)
     if info > 0:
         raise np.linalg.LinAlgError(
@@ -59,6 +61,8 @@ def cho_solve(c: Mat, B: Mat) -> Mat:
     B = _float_matrix(B, "right-hand side")
     if B.shape[0] != c.shape[0]:
         raise ValueError(f"incompatible dimensions ({c.shape} and {B.shape})")
+    x: Mat  # dpotrs on float64 arguments: float64 (the stubs say Any)
+    info: int
     x, info = _potrs(c, B, lower=0, overwrite_b=0)
     if info != 0:  # pragma: no cover - only for arguments this module never passes
         raise ValueError(f"LAPACK potrs: illegal value in argument {-info}")

@@ -34,7 +34,7 @@ delays ``d_i`` depend on neither ``loss`` nor ``reorder``.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -123,6 +123,7 @@ class DelayDist:
     def sample(self, rng: np.random.Generator, n: int) -> NDArray[np.float64]:
         """``n`` delays (seconds, ``>= 0``).  Draws from ``rng``: none for ``constant``;
         ``n`` uniforms, normals or exponentials; ``n`` integers for ``empirical``."""
+        d: NDArray[np.float64]
         if self.kind == "constant":
             d = np.full(n, self.value_s)
         elif self.kind == "uniform":
@@ -202,7 +203,7 @@ class LinkSpec:
     def __post_init__(self) -> None:
         if not isinstance(self.delay, DelayDist):
             raise ValueError(f"LinkSpec.delay must be a DelayDist; got {type(self.delay).__name__}")
-        checks = (
+        checks: tuple[tuple[str, Callable[[float], bool], str], ...] = (
             ("jitter_s", lambda v: 0.0 <= v < math.inf, "finite and >= 0 seconds"),
             ("loss", lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
             ("reorder", lambda v: 0.0 <= v <= 1.0, "in [0, 1]"),

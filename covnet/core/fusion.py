@@ -60,6 +60,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -177,7 +178,8 @@ def _cholesky(A: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.b
     """Batched lower Cholesky factors of ``A (..., d, d)`` and which ones exist (a failed one is
     returned as the identity, flagged ``False``)."""
     try:
-        return np.linalg.cholesky(A), np.ones(A.shape[:-2], dtype=bool)
+        # float64 in, float64 out (numpy's stubs promise only some floating type)
+        return cast(Mat, np.linalg.cholesky(A)), np.ones(A.shape[:-2], dtype=bool)
     except np.linalg.LinAlgError:
         flat = A.reshape(-1, *A.shape[-2:])
         L = np.empty_like(flat)
@@ -241,7 +243,9 @@ def _checked_spd_stack(A: NDArray[np.float64], name: str) -> NDArray[np.float64]
     return symmetrise(A)
 
 
-def _checked_mask(mask: object, shape: tuple[int, int], name: str, shape_text: str) -> NDArray:
+def _checked_mask(
+    mask: object, shape: tuple[int, int], name: str, shape_text: str
+) -> NDArray[np.bool_]:
     m = np.asarray(mask)
     if m.dtype != np.bool_:
         raise ValueError(f"{name} must be a boolean array {shape_text}, got dtype {m.dtype}")
@@ -255,7 +259,9 @@ def _checked_mask(mask: object, shape: tuple[int, int], name: str, shape_text: s
 # --------------------------------------------------------------------------------------------
 
 
-def ci_weights(Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str = "det") -> NDArray:
+def ci_weights(
+    Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str = "det"
+) -> NDArray[np.float64]:
     """Batched covariance-intersection weights.
 
     ``Y``: ``(M, n, d, d)`` information matrices (inverse covariances) of up to ``n``
@@ -296,7 +302,9 @@ def ci_weights(Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str =
     return _weights(Ys, m, objective)
 
 
-def _weights(Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str) -> NDArray:
+def _weights(
+    Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str
+) -> NDArray[np.float64]:
     """:func:`ci_weights` on checked input.  ``Y`` is ``(M, n, d, d)``, or ``(1, n, d, d)``
     shared by every problem (then only the masks differ: :func:`ci_candidates`); masked-out
     entries are zero.  Chunking and packing: module docstring."""
@@ -309,7 +317,8 @@ def _weights(Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str) ->
             rows, cols = np.nonzero(mask)
             tr[rows, cols] = np.trace(_spd_inverse(Y[rows, cols]), 0, -2, -1)
         inv_tr = np.where(mask, 1.0 / tr, 0.0)
-        return inv_tr / inv_tr.sum(axis=1, keepdims=True)
+        w_fast: NDArray[np.float64] = inv_tr / inv_tr.sum(axis=1, keepdims=True)
+        return w_fast
     # Problems sorted by their number of components and each one's components packed to the
     # front (in index order): a chunk's arrays are only as wide as its largest problem.
     counts = mask.sum(axis=1)
@@ -324,13 +333,13 @@ def _weights(Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str) ->
     return w
 
 
-def _newton(Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str) -> NDArray:
+def _newton(Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str) -> NDArray[np.float64]:
     """The active-set Newton method of the module docstring on one chunk of problems:
     ``Y (m, n, d, d)``, ``mask (m, n)``; returns ``w (m, n)``."""
     m, n = mask.shape
     d = Y.shape[-1]
     Yf = Y.reshape(m, n, d * d)
-    w = mask / mask.sum(axis=1, keepdims=True)
+    w: NDArray[np.float64] = mask / mask.sum(axis=1, keepdims=True)
     free = mask.copy()
     act = np.flatnonzero(mask.sum(axis=1) > 1)  # one component: w = [1], nothing to optimise
     diag = np.arange(n)
@@ -395,12 +404,12 @@ def _newton(Y: NDArray[np.float64], mask: NDArray[np.bool_], objective: str) -> 
 
 
 def _step_length(
-    Yw: NDArray,
-    Yv: NDArray,
-    phi: NDArray,
-    dec: NDArray,
-    amax: NDArray,
-    conv: NDArray,
+    Yw: NDArray[np.float64],
+    Yv: NDArray[np.float64],
+    phi: NDArray[np.float64],
+    dec: NDArray[np.float64],
+    amax: NDArray[np.float64],
+    conv: NDArray[np.bool_],
     objective: str,
 ) -> NDArray[np.float64]:
     """Step length per problem: ``α_max`` when converged (the last, quadratic-region step) or
@@ -418,7 +427,7 @@ def _step_length(
     return alpha
 
 
-def _fuse(Y: NDArray, w: NDArray) -> NDArray[np.float64]:
+def _fuse(Y: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float64]:
     """``P = inv(Σ_i w_i Y_i)`` per problem; ``Y (M|1, n, d, d)``, ``w (M, n)``."""
     d = Y.shape[-1]
     Yw = (w[:, None, :] @ Y.reshape(Y.shape[0], Y.shape[1], d * d))[:, 0].reshape(-1, d, d)

@@ -23,11 +23,18 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Mapping
+from typing import TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 MetricFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
+
+#: ``np.float64`` typed as the metrics' return type.  For one ``(n, n)`` pair a metric returns a
+#: float64 scalar (numpy's 0-d value, as its own reductions give), which numpy's stubs do not
+#: count as an ``NDArray``; the cast is of the constructor, once, so a call costs nothing extra.
+_scalar = cast("Callable[[float], NDArray[np.float64]]", np.float64)
+_G = TypeVar("_G", bound=np.generic)
 
 #: Eigenvalues within ``EIG_TIE_RTOL * max|λ|`` of each other form one tie group (svd convention).
 EIG_TIE_RTOL = 1e-9
@@ -39,7 +46,7 @@ def _sum_last(x: NDArray[np.float64]) -> NDArray[np.float64]:
     A 1-d ``x`` (one matrix's value) is added in Python floats, the same IEEE additions in the
     same order without a numpy call per term."""
     if x.ndim == 1:
-        return np.float64(_left_sum(x.tolist()))  # type: ignore[return-value]
+        return _scalar(_left_sum(x.tolist()))
     acc = x[..., 0]
     for k in range(1, x.shape[-1]):
         acc = acc + x[..., k]
@@ -77,7 +84,8 @@ def _one_pair(A: object, B: object) -> list[list[float]] | None:
         and A.dtype == np.float64
         and B.dtype == np.float64
     ):
-        return (A - B).tolist()  # type: ignore[no-any-return]
+        rows: list[list[float]] = (A - B).tolist()
+        return rows
     return None
 
 
@@ -85,7 +93,7 @@ def _diff(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]
     return np.asarray(A, dtype=np.float64) - np.asarray(B, dtype=np.float64)
 
 
-def _diag(M: NDArray[np.float64]) -> NDArray[np.float64]:
+def _diag(M: NDArray[_G]) -> NDArray[_G]:
     return np.diagonal(M, axis1=-2, axis2=-1)
 
 
@@ -101,15 +109,16 @@ def spectral(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float
     """
     w = np.linalg.eigvalsh(_diff(A, B))
     if w.ndim == 1 and w.size:  # one matrix: the same maximum in Python floats
-        return np.float64(_max_nan([w[-1].item(), -w[0].item()]) + 0.0)  # type: ignore[return-value]
-    return np.maximum(w[..., -1], -w[..., 0]) + 0.0  # + 0.0 turns -0.0 into 0.0
+        return _scalar(_max_nan([w[-1].item(), -w[0].item()]) + 0.0)
+    f: NDArray[np.float64] = np.maximum(w[..., -1], -w[..., 0]) + 0.0  # -0.0 becomes 0.0
+    return f
 
 
 def abs_trace(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Absolute trace: ``f = sum_i |A_ii - B_ii|`` (only the diagonal of ``A - B``)."""
     rows = _one_pair(A, B)
     if rows is not None:
-        return np.float64(_left_sum([abs(r[i]) for i, r in enumerate(rows)]))  # type: ignore[return-value]
+        return _scalar(_left_sum([abs(r[i]) for i, r in enumerate(rows)]))
     return _sum_last(np.abs(_diag(_diff(A, B))))
 
 
@@ -253,7 +262,7 @@ def svd(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
-    n = A.shape[-1]
+    n: int = A.shape[-1]
     if A.ndim == 2 and B.shape == A.shape and n:
         one = _svd_one(A, B, n)
         if one is not None:
@@ -271,7 +280,7 @@ def svd(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
 _svd_last_B: list[tuple[bytes, list[float], list[list[float]]]] = []
 
 
-def _svd_one(A: NDArray[np.float64], B: NDArray[np.float64], n: int) -> np.float64 | None:
+def _svd_one(A: NDArray[np.float64], B: NDArray[np.float64], n: int) -> NDArray[np.float64] | None:
     """:func:`svd` of one finite ``(n, n)`` pair (``None`` otherwise): the same IEEE operations in
     the same order as the batched code (``cos_i`` summed over ``k`` ascending, then the sums of
     ``|cos_i|`` and of ``(s_A - s_B)²`` left to right), in Python floats; the eigenvectors of
@@ -300,14 +309,14 @@ def _svd_one(A: NDArray[np.float64], B: NDArray[np.float64], n: int) -> np.float
     if orientation <= 0.0:  # np.maximum(x, 0.0): 0.0 for x <= 0 (also -0.0), NaN stays
         orientation = 0.0
     size = _left_sum([(a - b) * (a - b) for a, b in zip(s_A.tolist(), last[1], strict=True)])
-    return np.float64(orientation + math.sqrt(size))
+    return _scalar(orientation + math.sqrt(size))
 
 
 def frobenius(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Frobenius norm of the difference: ``f = ||A - B||_F = sqrt(sum_ij (A - B)_ij²)``."""
     rows = _one_pair(A, B)
     if rows is not None:
-        return np.float64(math.sqrt(_left_sum([_left_sum([x * x for x in r]) for r in rows])))
+        return _scalar(math.sqrt(_left_sum([_left_sum([x * x for x in r]) for r in rows])))
     M = _diff(A, B)
     return np.sqrt(_sum_last(_sum_last(M * M)))
 
@@ -316,19 +325,19 @@ def one_norm(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float
     """Induced 1-norm of the difference: ``f = max_j sum_i |(A - B)_ij|`` (largest column sum)."""
     rows = _one_pair(A, B)
     if rows is not None:
-        return np.float64(
-            _max_nan([_left_sum([abs(x) for x in c]) for c in zip(*rows, strict=True)])
-        )
+        return _scalar(_max_nan([_left_sum([abs(x) for x in c]) for c in zip(*rows, strict=True)]))
     absM = np.abs(_diff(A, B))
-    return np.max(_sum_last(np.swapaxes(absM, -1, -2)), axis=-1)
+    f: NDArray[np.float64] = np.max(_sum_last(np.swapaxes(absM, -1, -2)), axis=-1)
+    return f
 
 
 def inf_norm(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """Induced inf-norm of the difference: ``f = max_i sum_j |(A - B)_ij|`` (largest row sum)."""
     rows = _one_pair(A, B)
     if rows is not None:
-        return np.float64(_max_nan([_left_sum([abs(x) for x in r]) for r in rows]))
-    return np.max(_sum_last(np.abs(_diff(A, B))), axis=-1)
+        return _scalar(_max_nan([_left_sum([abs(x) for x in r]) for r in rows]))
+    f: NDArray[np.float64] = np.max(_sum_last(np.abs(_diff(A, B))), axis=-1)
+    return f
 
 
 def trace_diff(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -342,7 +351,7 @@ def trace_diff(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.flo
     if A.ndim == 2 and A.shape == B.shape and A.size:
         d = A.shape[0] + 1
         a, b = A.ravel().tolist()[::d], B.ravel().tolist()[::d]
-        return np.float64(abs(_left_sum(a) - _left_sum(b)))
+        return _scalar(abs(_left_sum(a) - _left_sum(b)))
     return np.abs(_sum_last(_diag(A)) - _sum_last(_diag(B)))
 
 
@@ -367,7 +376,7 @@ def logdet(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64
         L = np.linalg.cholesky(np.array((0.5 * (A + B), A, B)))
         logs = np.log(np.diagonal(L, axis1=-2, axis2=-1)).tolist()
         ld_m, ld_a, ld_b = (2.0 * _left_sum(x) for x in logs)
-        return np.maximum(np.float64(ld_m - 0.5 * (ld_a + ld_b)), 0.0)  # type: ignore[no-any-return]
+        return np.maximum(_scalar(ld_m - 0.5 * (ld_a + ld_b)), 0.0)
     f = _chol_logdet(0.5 * (A + B)) - 0.5 * (_chol_logdet(A) + _chol_logdet(B))
     return np.maximum(f, 0.0)
 
@@ -382,13 +391,13 @@ def kl(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     """
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
-    n = A.shape[-1]
+    n: int = A.shape[-1]
     if A.ndim == 2 and B.shape == A.shape and n:
         # one pair: each LAPACK step once, on a stack of 2, the sums in Python floats
         L = np.linalg.cholesky(np.array((A, B)))
         XY = np.linalg.solve(L[::-1], L)  # (L_B⁻¹ L_A, L_A⁻¹ L_B)
-        t_ba, t_ab = (_left_sum([_left_sum(r) for r in X]) for X in (XY * XY).tolist())
-        return np.maximum(np.float64(0.25 * ((t_ba + t_ab) - 2 * n)), 0.0)  # type: ignore[no-any-return]
+        tr_ba, tr_ab = (_left_sum([_left_sum(r) for r in X]) for X in (XY * XY).tolist())
+        return np.maximum(_scalar(0.25 * ((tr_ba + tr_ab) - 2 * n)), 0.0)
     L_A = np.linalg.cholesky(A)
     L_B = np.linalg.cholesky(B)
     L_A, L_B = np.broadcast_arrays(L_A, L_B)

@@ -8,6 +8,8 @@ A position sensor on the state ``[x, vx, y, vy]`` measures ``z = H x + v``, ``v 
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from scipy import linalg
 
@@ -36,7 +38,8 @@ def information_gain(H: Mat, R: Mat) -> Mat:
         RinvH = linalg.cho_solve(linalg.cho_factor(R), H)
         J = H.T @ RinvH
     else:
-        RinvH = np.linalg.solve(R, np.broadcast_to(H, R.shape[:-1] + H.shape[-1:]))
+        # float64 in, float64 out (numpy's stubs promise only some floating type)
+        RinvH = cast(Mat, np.linalg.solve(R, np.broadcast_to(H, R.shape[:-1] + H.shape[-1:])))
         J = np.swapaxes(H, -1, -2) @ RinvH
     return 0.5 * (J + np.swapaxes(J, -1, -2))
 

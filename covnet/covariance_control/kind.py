@@ -10,13 +10,12 @@ are in :mod:`covnet.covariance_control.commands`.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 from covnet.core.metrics import METRICS
 from covnet.covariance_control import config
 from covnet.covariance_control.fusion_rules import fusion_modes
-from covnet.kindkit import lazy, seed_option
+from covnet.kindkit import KindBase, lazy, seed_option
 
 __all__ = ["KIND"]
 
@@ -36,7 +35,8 @@ def _fusion(data: dict[str, Any], mode: str) -> None:
     data["fusion"] = {**data["fusion"], "mode": mode}
 
 
-class CovarianceControl:
+class CovarianceControl(KindBase):
+    config = config
     name = config.KIND
     title = "covariance-control"
     roles = {
@@ -56,12 +56,6 @@ class CovarianceControl:
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     up_problem = staticmethod(lazy(_COMMANDS, "up_problem"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
-
-    def from_dict(self, data: object, source: str, base_dir: str | Path | None) -> Any:
-        return config.from_dict(data, source, base_dir)
-
-    def normalised(self, cfg: Any) -> dict[str, Any]:
-        return config.normalised(cfg)
 
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)

@@ -8,10 +8,9 @@ Process roles: ``manager.mobile``, ``sensors.mobile``, ``world.mobile``.  Run op
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
-from covnet.kindkit import lazy, seed_option
+from covnet.kindkit import KindBase, lazy, seed_option
 from covnet.mobile import config
 
 __all__ = ["KIND"]
@@ -25,7 +24,8 @@ def _solver(data: dict[str, Any], value: str) -> None:
     data["solver"] = value
 
 
-class Mobile:
+class Mobile(KindBase):
+    config = config
     name = config.KIND
     title = "mobile"
     roles = {"manager": "manager.mobile", "sensor": "sensors.mobile", "world": "world.mobile"}
@@ -35,20 +35,8 @@ class Mobile:
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
 
-    def from_dict(self, data: object, source: str, base_dir: str | Path | None) -> Any:
-        return config.from_dict(data, source, base_dir)
-
-    def normalised(self, cfg: Any) -> dict[str, Any]:
-        return config.normalised(cfg)
-
     def episodes(self, cfg: Any) -> list[str]:
         return [str(cfg.solver)]
-
-    def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
-        return None
-
-    def sensors_restartable(self, cfg: Any) -> bool:
-        return True
 
 
 KIND = Mobile()

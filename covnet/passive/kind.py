@@ -8,10 +8,9 @@ Process roles: ``manager.passive``, ``sensors.passive``, ``world.passive``.  Run
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
-from covnet.kindkit import lazy, seed_option
+from covnet.kindkit import KindBase, lazy, seed_option
 from covnet.passive import config
 
 __all__ = ["KIND"]
@@ -19,7 +18,8 @@ __all__ = ["KIND"]
 _COMMANDS = "covnet.passive.commands"
 
 
-class Passive:
+class Passive(KindBase):
+    config = config
     name = config.KIND
     title = "passive"
     roles = {"manager": "manager.passive", "sensor": "sensors.passive", "world": "world.passive"}
@@ -29,20 +29,8 @@ class Passive:
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
 
-    def from_dict(self, data: object, source: str, base_dir: str | Path | None) -> Any:
-        return config.from_dict(data, source, base_dir)
-
-    def normalised(self, cfg: Any) -> dict[str, Any]:
-        return config.normalised(cfg)
-
     def episodes(self, cfg: Any) -> list[str]:
         return [str(cfg.association.method)]
-
-    def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
-        return None
-
-    def sensors_restartable(self, cfg: Any) -> bool:
-        return True
 
 
 KIND = Passive()

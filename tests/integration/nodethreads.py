@@ -50,3 +50,10 @@ class NodeThreads:
             th.join(timeout=timeout_s)
         for ev in self.stops.values():
             ev.set()
+
+
+def with_metrics(sc: Any, metrics: list[str]) -> Any:
+    """``sc`` whose episodes are ``metrics`` (``--metric``: a change of the config)."""
+    from covnet import kinds
+
+    return kinds.apply_options(kinds.of(sc), sc, "test", metric=list(metrics))

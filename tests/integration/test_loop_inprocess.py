@@ -7,6 +7,7 @@ import threading
 
 import numpy as np
 import pytest
+from nodethreads import with_metrics
 
 from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
@@ -58,7 +59,9 @@ def run_network(sc, metrics, *, kill_after_scan=None, victim=None):
 
     mbus = InMemoryBus(hub, name="manager")
     try:
-        result = manager_node.run(sc, metrics, mbus, "t", WallClock(), stop, on_status=on_status)
+        result = manager_node.run(
+            with_metrics(sc, metrics), mbus, "t", WallClock(), stop, on_status=on_status
+        )
     finally:
         for ev in node_stops.values():
             ev.set()

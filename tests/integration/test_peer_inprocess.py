@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from nodethreads import NodeThreads
+from nodethreads import NodeThreads, with_metrics
 
 from covnet import messages as msg
 from covnet.bus import InMemoryBus
@@ -48,7 +48,12 @@ def _network(sc, metrics, *, extra=None, stop_node=None):
     mbus = nodes.bus("monitor")
     try:
         result = peer_monitor.run(
-            sc, metrics, mbus, RUN, WallClock(), threading.Event(), on_status=on_status
+            with_metrics(sc, metrics),
+            mbus,
+            RUN,
+            WallClock(),
+            threading.Event(),
+            on_status=on_status,
         )
     finally:
         mbus.close()  # the monitor's token goes: the nodes finish on their own

@@ -17,6 +17,7 @@ import time
 import numpy as np
 import pytest
 from multiproc import CovnetProcess, assert_nothing_left
+from nodethreads import with_metrics
 
 from covnet import messages as msg
 from covnet.bus import InMemoryBus, InMemoryHub
@@ -79,7 +80,12 @@ def run_recorded_network(sc, metrics, out, *, kill_after_scan=None, victim=None)
         mbus = InMemoryBus(hub, name="manager")
         try:
             result = manager_node.run(
-                sc, metrics, mbus, RUN, WallClock(), threading.Event(), on_status=on_status
+                with_metrics(sc, metrics),
+                mbus,
+                RUN,
+                WallClock(),
+                threading.Event(),
+                on_status=on_status,
             )
         finally:
             mbus.close()

@@ -57,9 +57,9 @@ def test_every_kind_provides_its_parts(name):
     assert set(kind.roles) == {"manager", "sensor", "world"}
     for role, module in kind.roles.items():
         mod = importlib.import_module(module)
-        assert callable(getattr(mod, "run")), module
+        assert callable(mod.run), module
         if role != "world":
-            assert callable(getattr(mod, "main")), module
+            assert callable(mod.main), module
     _, cfg = kinds.load(CONFIGS[name])
     assert kind.episodes(cfg)
     assert kinds.config_hash(cfg) == kinds.config_hash(

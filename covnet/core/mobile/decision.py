@@ -39,12 +39,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, Protocol, cast
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
-from scipy.optimize import Bounds, LinearConstraint, linprog, milp
+from scipy.optimize import Bounds, LinearConstraint, OptimizeResult, linprog, milp
 
 from covnet.core.gaussian import Mat, Vec
 from covnet.core.mobile.models import MODE_NORM, N_MODES, STAY, IntVec
@@ -53,6 +53,27 @@ EPS_MOTION = 1e-6
 Linking = Literal["strong", "weak"]
 _INTEGRAL_TOL = 1e-7
 _NAN = float("nan")
+
+
+class _SparseLinprog(Protocol):
+    """``scipy.optimize.linprog`` as this module calls it.  HiGHS takes sparse ``A_ub`` and
+    ``A_eq``; scipy-stubs' overloads list dense arrays only, hence the cast of :data:`_linprog`
+    (the same function object: nothing changes at run time)."""
+
+    def __call__(
+        self,
+        c: Vec,
+        *,
+        A_ub: sparse.csr_array | None,
+        b_ub: Vec | None,
+        A_eq: sparse.csr_array,
+        b_eq: Vec,
+        bounds: tuple[float, float],
+        method: Literal["highs-ds"],
+    ) -> OptimizeResult: ...
+
+
+_linprog = cast(_SparseLinprog, linprog)
 
 
 class SolverError(RuntimeError):
@@ -235,7 +256,7 @@ def build_lp(problem: DecisionProblem, collapse_modes: bool = True) -> LinearPro
 
 def solve_lp(lp: LinearProgram) -> LPSolution:
     """HiGHS dual simplex (a vertex).  ``x`` is read only when the solve succeeded."""
-    res = linprog(
+    res = _linprog(
         lp.c,
         A_ub=lp.A_ub,
         b_ub=lp.b_ub,
@@ -464,11 +485,15 @@ def solve_milp(mp: MixedIntegerProgram, options: SolverOptions) -> MilpSolution:
     gap = getattr(res, "mip_gap", None)
     bound = getattr(res, "mip_dual_bound", None)
     usable = res.x is not None and res.status in (0, 1)
+    fun = _NAN
+    if usable:
+        assert res.fun is not None  # HiGHS reports the objective with every incumbent
+        fun = float(res.fun)
     return MilpSolution(
         int(res.status),
         str(res.message),
         np.asarray(res.x) if usable else None,
-        float(res.fun) if usable else _NAN,
+        fun,
         float(gap) if gap is not None else _NAN,
         float(bound) if bound is not None else _NAN,
     )
@@ -520,7 +545,7 @@ def relaxation(problem: DecisionProblem, linking: Linking = "strong") -> tuple[i
     if problem.M == 0 or problem.N == 0:
         return 0, "trivial", _trivial(problem, "relax").objective
     mp = build_milp(problem, linking)
-    res = linprog(
+    res = _linprog(
         mp.c,
         A_ub=mp.A_ub,
         b_ub=mp.b_ub,

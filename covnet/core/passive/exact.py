@@ -57,7 +57,7 @@ def solve_milp(costs: SDCosts, time_limit_s: float = 10.0) -> MILPResult:
         return MILPResult(e, np.inf, 2, "a measurement lies in no finite tuple: infeasible", nvar)
     res = milp(
         C.reshape(-1)[flat],
-        integrality=np.ones(nvar),
+        integrality=np.ones(nvar, dtype=np.int8),  # milp reads it as uint8 either way
         bounds=Bounds(0.0, 1.0),
         constraints=LinearConstraint(A, 1.0, 1.0),
         options={"time_limit": float(time_limit_s)},

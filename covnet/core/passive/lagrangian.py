@@ -28,8 +28,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
+from covnet.core.gaussian import Mat, Vec
 from covnet.core.passive.model import Association, AssocParams, Index, PassiveScan
 from covnet.core.passive.sd import SDCosts, association_from_tuples, sd_costs
 
@@ -53,20 +55,18 @@ class LRResult:
     message: str
 
 
-def _lsa(M: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def _lsa(M: Mat) -> tuple[Index, Index] | None:
     """``linear_sum_assignment`` or ``None`` when no finite assignment exists."""
     if M.size == 0:
         e = np.zeros(0, dtype=np.intp)
         return e, e
     try:
-        return linear_sum_assignment(M)  # type: ignore[no-any-return]
+        return linear_sum_assignment(M)
     except ValueError:  # "cost matrix is infeasible"
         return None
 
 
-def _relaxed(
-    C: np.ndarray, u: np.ndarray
-) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+def _relaxed(C: Mat, u: Vec) -> tuple[float, Index, Index, Index, NDArray[np.bool_]] | None:
     """Solve the relaxed problem at ``u``: ``L(u)``, the chosen pairs ``(i, j)``, their ``k*``
     and the taken ``(0, 0, k)`` singletons (boolean over ``k = 1…n3``)."""
     N1, N2, _ = C.shape
@@ -94,7 +94,7 @@ def _relaxed(
     return L, pi, pj, ks[pi, pj], take
 
 
-def _recover(C: np.ndarray, pi: np.ndarray, pj: np.ndarray) -> tuple[float, Index] | None:
+def _recover(C: Mat, pi: Index, pj: Index) -> tuple[float, Index] | None:
     """Feasible completion of the relaxed pairs with sensor 3 (true costs); ``None`` if none."""
     n3 = C.shape[2] - 1
     npair = pi.shape[0]
