@@ -1,6 +1,6 @@
-"""The fusion manager process: predict, allocate, command, fuse, publish.
+"""The manager role (``python -m manager``): the network's router and its fusion manager.
 
-The process loop arrives with the runtime (``covnet up``); the steps it will call are
-:func:`covnet.covariance_control.model.decide` and :func:`covnet.covariance_control.model.fuse`, the
-same ones the in-process simulator uses.
+:mod:`manager.loop` is the scan skeleton every kind runs (membership, command, collect, fuse,
+report); :mod:`manager.covariance`, :mod:`manager.mobile` and :mod:`manager.passive` plug in
+their kind's maths; :mod:`manager.peer_monitor` watches a network without a fusion centre.
 """

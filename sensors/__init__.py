@@ -1,5 +1,6 @@
-"""Sensor processes (one per sensor): measure the truth when commanded, publish over the bus.
+"""The sensor role (``python -m sensors --id ID``): one sensor per process.
 
-The process loop arrives with the runtime (``covnet up``); the measurement model it will call is
-:func:`covnet.covariance_control.model.measure`, the same one the in-process simulator uses.
+:mod:`sensors.protocol` is what every sensor does (commands in, truth in, measurements out,
+heartbeats, liveliness); :mod:`sensors.covariance`, :mod:`sensors.mobile` and
+:mod:`sensors.passive` give it their kind's measurement; :mod:`sensors.peer` is a peer node.
 """

@@ -1,1 +1,4 @@
-"""The world process: ground truth, published on the manager's scan tick."""
+"""The world role (``python -m world``): the ground truth of the run, for the sensors.
+
+One module per kind: :mod:`world.covariance`, :mod:`world.mobile`, :mod:`world.passive`.
+"""

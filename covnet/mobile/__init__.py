@@ -1,5 +1,6 @@
 """The ``mobile`` scenario's I/O side: config, in-process run, results, figures, Monte Carlo,
-benchmark and the entry points the CLI calls (:mod:`covnet.mobile.cli`).
+benchmark and the commands (:mod:`covnet.mobile.commands`; the registry entry:
+:mod:`covnet.mobile.kind`).
 
 The numerics live in the pure core, :mod:`covnet.core.mobile`.
 """
