@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -43,14 +44,15 @@ def parallel_map(
 
 
 def progress_printer(label: str, every_s: float = 1.0) -> Callable[[int, int], None]:
-    """A progress callback printing ``[label] done/n runs`` at most every ``every_s``."""
+    """A progress callback printing ``[label] done/n runs`` on stderr at most every ``every_s``
+    (progress is not output: stdout stays for the results, ``--json`` for JSON only)."""
 
     shown = [0.0]
 
     def show(done: int, n: int) -> None:
         now = time.monotonic()
         if done == n or now - shown[0] > every_s:
-            print(f"[{label}] {done}/{n} runs", flush=True)
+            print(f"[{label}] {done}/{n} runs", file=sys.stderr, flush=True)
             shown[0] = now
 
     return show

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from covnet import __version__, kinds
-from covnet.config import ConfigError, hash_of
+from covnet.config import ConfigError, endpoint_problem, hash_of
 from covnet.errors import UpError, UsageError
 from covnet.messages import RESERVED_IDS, new_run_id, run_keyexpr
 from covnet.rundir import CONFIG, prepare_out, read_json
@@ -93,8 +93,14 @@ def cmd_up(args: argparse.Namespace) -> int:
     from covnet.up import up
 
     kind, cfg = _load(args, *RUN_OPTIONS)
-    if args.speed <= 0:
+    if args.speed is not None and not args.realtime:
+        raise UsageError(
+            "--speed: scales the real-time clock, so it does nothing in lockstep; add --realtime"
+        )
+    if args.speed is not None and not args.speed > 0:
         raise UsageError(f"--speed: must be > 0, got {args.speed}")
+    if args.router is not None and (problem := endpoint_problem(args.router)) is not None:
+        raise UsageError(f"--router: {problem}")
     problem = kind.up_problem(cfg, realtime=args.realtime, netns=args.netns)
     if problem is not None:
         raise UsageError(problem)
@@ -131,7 +137,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             out,
             options=_options(args, *RUN_OPTIONS),
             realtime=args.realtime,
-            speed=args.speed,
+            speed=args.speed or 1.0,
             run_id=run_id,
             verbose=args.verbose,
             nodes=nodes,
@@ -199,6 +205,9 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    for name in ("problems", "repeat"):
+        if getattr(args, name) < 1:
+            raise UsageError(f"--{name}: must be >= 1, got {getattr(args, name)}")
     if args.target == "up":
         return cmd_bench_up(args)
     kind = kinds.get(BENCHES[args.target])
@@ -215,6 +224,15 @@ def _int_list(text: str) -> list[int]:
     if not vals or any(v < 1 or v > 24 for v in vals):
         raise argparse.ArgumentTypeError(f"sensor counts must be in 1..24, got {text!r}")
     return vals
+
+
+def _out_options(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--out", help=f"{what} directory (default: a new folder under runs/)")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the contents of a non-empty --out directory (an earlier covnet output)",
+    )
 
 
 def _run_options(p: argparse.ArgumentParser, metric_help: str) -> None:
@@ -245,9 +263,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="run a scenario in one process and write a run directory")
     r.add_argument("config", help="scenario YAML, e.g. configs/paper.yaml")
-    r.add_argument("--out", help="run directory (default: a new folder under runs/)")
+    _out_options(r, "run")
     _run_options(r, "run only this metric (repeatable; default: the config's allocation.metrics)")
-    r.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     r.set_defaults(func=cmd_run)
 
@@ -259,23 +276,23 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="seeds (mobile, default 20) or trials per cell (passive, default: config)",
     )
-    mc.add_argument("--out", help="results directory (default: a new folder under runs/)")
-    mc.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    _out_options(mc, "results")
     mc.set_defaults(func=cmd_mc)
 
     u = sub.add_parser(
         "up", help="run the network: world, one process per sensor, the manager, over zenoh"
     )
     u.add_argument("config", help="scenario YAML, e.g. configs/paper.yaml")
-    u.add_argument("--out", help="run directory (default: a new folder under runs/)")
+    _out_options(u, "run")
     _run_options(u, "run only this metric (repeatable; default: the config's)")
     u.add_argument(
         "--realtime",
         action="store_true",
         help="pace scans by the config's period (default: lockstep, as fast as possible)",
     )
-    u.add_argument("--speed", type=float, default=1.0, help="real-time speed factor (--realtime)")
-    u.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    u.add_argument(
+        "--speed", type=float, help="with --realtime: the clock's speed factor (default 1)"
+    )
     u.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     u.add_argument("--verbose", action="store_true", help="show every process's output")
     u.add_argument(
@@ -305,7 +322,12 @@ def build_parser() -> argparse.ArgumentParser:
         "replay", help="re-fuse a network run's recorded measurements; check summary.json"
     )
     rp.add_argument("run_dir", help="a run directory written by covnet up (with recording.mcap)")
-    rp.add_argument("--out", help="where to write the replayed run (default: RUN_DIR/replay)")
+    rp.add_argument(
+        "--out", help="where to write the replayed run (default: RUN_DIR/replay, replaced)"
+    )
+    rp.add_argument(
+        "--force", action="store_true", help="replace the contents of a non-empty --out"
+    )
     rp.set_defaults(func=cmd_replay)
 
     cp = sub.add_parser(
@@ -329,8 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cp.add_argument("--seed", type=int, help="first seed (default: the config's)")
     cp.add_argument("--workers", type=int, help="processes (default: one per core)")
-    cp.add_argument("--out", help="results directory (default: a new folder under runs/)")
-    cp.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    _out_options(cp, "results")
     cp.add_argument("--no-figures", action="store_true", help="skip compare.png")
     cp.add_argument("--json", action="store_true", help="one JSON row per mode")
     cp.set_defaults(func=cmd_compare)
@@ -344,8 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--metric", action="append", metavar="NAME", help="allocation metric")
     sw.add_argument("--seed", type=int, help="first seed (default: the config's)")
     sw.add_argument("--workers", type=int, help="processes (default: one per core)")
-    sw.add_argument("--out", help="results directory (default: a new folder under runs/)")
-    sw.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    _out_options(sw, "results")
     sw.add_argument("--no-figures", action="store_true", help="skip sweep.png")
     sw.add_argument("--json", action="store_true", help="one JSON row per grid point")
     sw.set_defaults(func=cmd_sweep)

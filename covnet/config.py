@@ -23,12 +23,13 @@ import hashlib
 import json
 import os
 import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, Protocol, TypeVar, get_args
 
 import yaml
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -51,7 +52,7 @@ __all__ = [
     "SecuritySpec",
     "Str",
     "TlsSpec",
-    "duplicate_id_problems",
+    "unique_ids",
     "hash_of",
     "network_problems",
     "normalised",
@@ -70,6 +71,22 @@ Pair = Annotated[tuple[Float, ...], Field(min_length=2, max_length=2)]
 Quad = Annotated[tuple[Float, ...], Field(min_length=4, max_length=4)]
 Ident = Annotated[Str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
 """A sensor, target or scenario id: it becomes part of zenoh keys and file names."""
+
+
+def in_registry(choices: Callable[[], Collection[str]], what: str) -> AfterValidator:
+    """The validator of a field that names an entry of a registry (a metric, a fusion rule, a
+    solver): ``Annotated[Str, in_registry(...)]``, a string checked against ``choices()``
+    (looked up when the config is validated, so an entry a user registers is accepted), in the
+    same stage as the rest of the structure, so that a wrong name is reported together with
+    every other problem."""
+
+    def check(value: str) -> str:
+        names = choices()
+        if value not in names:
+            raise ValueError(f"unknown {what} {value!r}; choose from {list(names)}")
+        return value
+
+    return AfterValidator(check)
 
 
 class ConfigError(ValueError):
@@ -251,9 +268,21 @@ class NetworkSpec(ConfigModel):
     @field_validator("router", "connect")
     @classmethod
     def _endpoint(cls, v: str | None) -> str | None:
-        if v is not None and not re.fullmatch(r"(tcp|udp|tls|quic)/[^/\s]+:\d+", v):
-            raise ValueError(f"expected a zenoh endpoint like tcp/127.0.0.1:7447, got {v!r}")
+        problem = None if v is None else endpoint_problem(v)
+        if problem is not None:
+            raise ValueError(problem)
         return v
+
+
+def endpoint_problem(endpoint: str) -> str | None:
+    """Why ``endpoint`` is not a zenoh endpoint covnet can use (None: it is):
+    ``<tcp|udp|tls|quic>/<host>:<port>``, the port 0..65535."""
+    m = re.fullmatch(r"(tcp|udp|tls|quic)/([^/\s]+):(\d+)", endpoint)
+    if m is None:
+        return f"expected a zenoh endpoint like tcp/127.0.0.1:7447, got {endpoint!r}"
+    if not 0 <= int(m.group(3)) <= 65535:
+        return f"the port must be in 0..65535, got {m.group(3)} in {endpoint!r}"
+    return None
 
 
 class Networked(Protocol):
@@ -318,15 +347,20 @@ def network_problems(cfg: Networked) -> list[tuple[str, str]]:
     return problems + security_problems(net, ids)
 
 
-def duplicate_id_problems(ids: Sequence[str], what: str, noun: str) -> list[tuple[str, str]]:
-    """``(<what>[i].id, duplicate <noun> id ...)`` for every id that appeared before."""
-    seen: set[str] = set()
-    problems: list[tuple[str, str]] = []
-    for i, name in enumerate(ids):
-        if name in seen:
-            problems.append((f"{what}[{i}].id", f"duplicate {noun} id {name!r}"))
-        seen.add(name)
-    return problems
+def unique_ids(noun: str) -> AfterValidator:
+    """The validator of a table of records with an ``id`` (sensors, targets):
+    ``Annotated[tuple[Spec, ...], unique_ids("sensor")]``, run with the structure (so a repeated
+    id is reported together with every other problem) at ``<table>[i].id``."""
+
+    def check(records: tuple[Any, ...]) -> tuple[Any, ...]:
+        seen: set[str] = set()
+        for i, r in enumerate(records):
+            if r.id in seen:
+                raise ValueError(f"@[{i}].id: duplicate {noun} id {r.id!r}")
+            seen.add(r.id)
+        return records
+
+    return AfterValidator(check)
 
 
 # --------------------------------------------------------------------------------------------
@@ -353,6 +387,9 @@ def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
         return path, "missing required key"
     msg = str(err["msg"])
     value = err.get("input")
+    if msg.startswith("Value error, @"):  # a validator that names a place inside its field
+        where, _, text = msg[len("Value error, @") :].partition(": ")
+        return path + where, text
     if msg.startswith("Value error, "):
         return path, msg[len("Value error, ") :]
     if kind == "float_type" and isinstance(value, str) and _looks_numeric(value):
@@ -361,6 +398,21 @@ def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
             "a sign as text: write 1.0e+4 or 10000.0)"
         )
     return path, f"{msg}, got {value!r}"
+
+
+def _root_causes(errors: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
+    """The problems to report: a container's length error is left out when an element of it has
+    its own error (the element is the cause: ``P0_diag[0]`` is not a number, so the tuple also
+    counts one item too few), and so is a repeated line."""
+    formatted = [_fmt_error(e) for e in errors]
+    out: list[tuple[str, str]] = []
+    for err, (path, msg) in zip(errors, formatted, strict=True):
+        derived = err["type"] in ("too_short", "too_long") and any(
+            p.startswith((f"{path}[", f"{path}.")) for p, _ in formatted
+        )
+        if not derived and (path, msg) not in out:
+            out.append((path, msg))
+    return out
 
 
 def _looks_numeric(text: str) -> bool:
@@ -402,13 +454,19 @@ def _resolve_security_paths(data: dict[str, Any], base_dir: Path) -> dict[str, A
 
 
 def read_yaml(path: str | Path) -> object:
-    """Parse a YAML file (``safe_load``); an unreadable file or bad YAML is a
-    :class:`ConfigError` naming the line and column."""
+    """Parse a YAML file (``safe_load``), or a JSON one (a run directory's ``config.json``: JSON
+    is YAML, but YAML 1.1 would read ``1e-09`` as text); an unreadable file or bad YAML (JSON) is
+    a :class:`ConfigError` naming the line and column."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
+    if p.suffix == ".json":
+        try:
+            return json.loads(text)
+        except ValueError as exc:
+            raise ConfigError(str(p), [("", f"not valid JSON: {exc}")]) from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -448,7 +506,7 @@ def validate(
     try:
         cfg = model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(source, [_fmt_error(e) for e in exc.errors()]) from None
+        raise ConfigError(source, _root_causes(exc.errors())) from None
     found = problems(cfg) + network_problems(cfg)  # type: ignore[arg-type]
     if found:
         raise ConfigError(source, found)

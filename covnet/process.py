@@ -100,6 +100,11 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
+REFUSED_FOR_S = 2.0
+"""A client gives up before ``ready_timeout_s`` once the router has been there and refused its
+session (:func:`covnet.security.login_problem`) for this long."""
+
+
 def open_bus(
     mode: str,
     *,
@@ -110,14 +115,23 @@ def open_bus(
     stop: threading.Event,
     extra_json5: dict[str, object] | None = None,
     express: bool = False,
+    diagnose: Callable[[], str | None] | None = None,
 ) -> Any:
     """Open a :class:`~covnet.zenoh_bus.ZenohBus`, retrying a client's connection for up to
-    ``timeout_s`` (so processes may start in any order, as on several hosts)."""
+    ``timeout_s`` (so processes may start in any order, as on several hosts).
+
+    ``diagnose``: asked, at most every 0.5 s, after a failed attempt, why the session does not
+    open; a text means the router is there and refuses it (a wrong password, a certificate it
+    does not accept). After :data:`REFUSED_FOR_S` of refusals, or at ``timeout_s``, the
+    ``ConnectionError`` starts with that text, zenoh's own message in parentheses after it."""
     # imported here: zenoh is for the node processes, not for the launcher and the CLI that
     # use this module too (start-up time)
     from covnet.zenoh_bus import ZenohBus, zenoh_config
 
     deadline = time.monotonic() + timeout_s
+    verdict: str | None = None
+    refused_since: float | None = None
+    next_look = 0.0
     while True:
         try:
             config = zenoh_config(
@@ -129,19 +143,38 @@ def open_bus(
             )
             return ZenohBus.open(config, express=express)
         except Exception as exc:  # zenoh raises its own ZError
-            if time.monotonic() > deadline or stop.is_set():
-                raise ConnectionError(
-                    f"cannot open a zenoh {mode} session ({listen or connect}): {exc}"
-                ) from None
+            now = time.monotonic()
+            give_up = now > deadline or stop.is_set()
+            if diagnose is not None and not stop.is_set() and (give_up or now >= next_look):
+                verdict = diagnose()
+                next_look = time.monotonic() + 0.5
+                if verdict is None:
+                    refused_since = None
+                elif refused_since is None:
+                    refused_since = now
+            if refused_since is not None and now - refused_since >= REFUSED_FOR_S:
+                give_up = True
+            if give_up:
+                where = f"cannot open a zenoh {mode} session ({listen or connect})"
+                if verdict is not None:
+                    raise ConnectionError(f"{verdict}: {where} (zenoh: {exc})") from None
+                raise ConnectionError(f"{where}: {exc}") from None
             stop.wait(0.1)
 
 
 def open_client(args: Any, net: NetworkSpec, role: str, node_id: str, stop: threading.Event) -> Any:
     """The client session of a world, sensor or recorder process: the endpoint from
     ``--connect`` or the config (``tls/`` when TLS is on), this node's security settings,
-    retries while the router is not up yet."""
+    retries while the router is not up yet. With passwords or TLS, a router that refuses this
+    node is named as such: ``authentication failed for <node> (...)`` or ``TLS handshake failed
+    for <node> (...)`` (:func:`covnet.security.login_problem`), within about
+    :data:`REFUSED_FOR_S` rather than at ``ready_timeout_s``."""
     endpoint = security.endpoint(net, args.connect or net.connect or net.router)
     extra = security.zenoh_settings(net, role, node_id, listen=False, source=args.config)
+
+    def diagnose() -> str | None:
+        return security.login_problem(net, node_id, endpoint)
+
     return open_bus(
         "client",
         connect=[endpoint],
@@ -149,6 +182,7 @@ def open_client(args: Any, net: NetworkSpec, role: str, node_id: str, stop: thre
         timeout_s=net.ready_timeout_s,
         stop=stop,
         extra_json5=extra,
+        diagnose=diagnose if net.security.authenticated else None,
     )
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -56,20 +57,65 @@ def new_run_dir(name: str, base: Path = Path("runs")) -> Path:
     return out
 
 
-def prepare_out(out: str | Path | None, name: str, force: bool) -> Path:
+OUTPUT_MARKERS = (
+    CONFIG,
+    RUN_INFO,
+    SUMMARY,
+    "processes.json",
+    "recording.mcap",
+    "association.json",
+    "montecarlo.json",
+    "results.json",
+    "compare.json",
+    "sweep.json",
+    "replay.json",
+)
+"""Files one of covnet's commands writes: a directory holding one is covnet's output, which
+``--force`` may clear."""
+
+
+def prepare_out(out: str | Path | None, name: str, force: bool, option: str = "--out") -> Path:
     """The directory a command writes to: ``out``, or :func:`new_run_dir` of ``name`` when
     ``None``.  An existing file, or a non-empty directory without ``force``, is a
-    :class:`~covnet.errors.UsageError` naming ``--out``."""
+    :class:`~covnet.errors.UsageError` naming ``--out``.  With ``force`` a non-empty directory
+    is emptied first (so nothing of an earlier run stays beside the new one), but only when it
+    is an earlier output of covnet (:data:`OUTPUT_MARKERS`) and neither the working directory
+    nor one of its parents: ``--force`` never deletes anything else."""
     if out is None:
         return new_run_dir(name)
     p = Path(out)
     if p.exists() and not p.is_dir():
-        raise UsageError(f"--out {out}: exists and is not a directory")
-    if p.is_dir() and any(p.iterdir()) and not force:
-        raise UsageError(
-            f"--out {out}: directory is not empty; choose another or pass --force to overwrite"
-        )
+        raise UsageError(f"{option} {out}: exists and is not a directory")
+    if p.is_dir() and any(p.iterdir()):
+        if not force:
+            raise UsageError(
+                f"{option} {out}: directory is not empty; choose another or pass --force to "
+                "replace its contents"
+            )
+        clear_output(p, option)
     return p
+
+
+def clear_output(p: Path, option: str = "--out") -> None:
+    """Delete everything in ``p``, an earlier covnet output directory (see :func:`prepare_out`)."""
+    here = Path.cwd().resolve()
+    target = p.resolve()
+    if target == here or target in here.parents or target == Path.home().resolve():
+        raise UsageError(
+            f"{option} {p} --force: refusing to empty {target}: it holds the working "
+            "directory (or is the home directory)"
+        )
+    if not any((p / m).exists() for m in OUTPUT_MARKERS):
+        raise UsageError(
+            f"{option} {p} --force: refusing to empty {p}: it is not an output of covnet "
+            f"(none of {', '.join(OUTPUT_MARKERS[:4])}, ... in it); choose an empty or new "
+            "directory"
+        )
+    for child in p.iterdir():
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child)
+        else:
+            child.unlink()
 
 
 def atomic_write(path: Path, data: bytes) -> None:

@@ -15,6 +15,7 @@ draws the figures from the run directory.
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import socket
 import sys
@@ -105,6 +106,7 @@ class StatusView:
     scans: int
     metrics: list[str]
     tty: bool = field(default_factory=lambda: sys.stdout.isatty())
+    width: int = field(default_factory=lambda: shutil.get_terminal_size((80, 24)).columns)
     last: dict[str, Any] | None = None
     _progress: Any = None
     _task: Any = None
@@ -113,15 +115,15 @@ class StatusView:
     def __enter__(self) -> StatusView:
         if self.tty:
             # rich only for a terminal (start-up time of the plain-lines case)
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+            from rich.progress import BarColumn, Progress, TextColumn
 
             self._progress = Progress(
-                TextColumn("[bold]{task.fields[metric]:>10}"),
-                BarColumn(),
-                MofNCompleteColumn(),
+                TextColumn("[bold]{task.fields[metric]}"),
+                BarColumn(bar_width=10),
                 TextColumn("{task.fields[info]}"),
                 transient=False,
             )
+            self.width = self._progress.console.width
             self._progress.__enter__()
             self._task = self._progress.add_task(
                 "scan", total=self.scans * len(self.metrics), metric="", info="waiting for READY"
@@ -142,20 +144,32 @@ class StatusView:
         """One manager STATUS line (:func:`manager.loop.run_scans`: the kind's ``info`` and the
         skeleton's counts)."""
         self.last = st
-        info = (
-            f"{st['info']}  {st['latency_ms']:.2f} ms  "
-            f"{st['messages']} msgs {st['bytes'] / 1e3:.0f} kB"
-        )
-        if st["failed"]:
-            info += f"  failed {','.join(st['failed'])}"
         done = st["episode"] * st["scans"] + st["scan"]
         if self._progress is not None:
+            info = status_text(st, self.width - len(st["metric"]) - 12)
             self._progress.update(self._task, completed=done, metric=st["metric"], info=info)
         else:
             now = time.monotonic()
             if now - self._last_plain >= 1.0 or st["scan"] == st["scans"]:
-                print(f"[status] {st['metric']}: {info}", flush=True)
+                head = f"[status] {st['metric']}: "
+                print(head + status_text(st, self.width - len(head)), flush=True)
                 self._last_plain = now
+
+
+def status_text(st: dict[str, Any], width: int) -> str:
+    """A manager STATUS as one line of at most ``width`` characters, abbreviated, never cut: the
+    kind's ``info`` (or its ``info_short`` when that does not fit), then the latency, the
+    traffic and the failed sensors while they fit (the failed ones are kept, at the expense of
+    the traffic)."""
+    failed = f"failed {','.join(st['failed'])}" if st["failed"] else ""
+    latency = f"{st['latency_ms']:.1f} ms"
+    traffic = f"{st['messages']} msg {st['bytes'] / 1e3:.0f} kB"
+    for info in (st["info"], st.get("info_short", st["info"])):
+        for parts in ((info, latency, traffic, failed), (info, latency, failed), (info, failed)):
+            text = "  ".join(p for p in parts if p)
+            if len(text) <= width:
+                return text
+    return "  ".join(p for p in (st.get("info_short", st["info"]), failed) if p)
 
 
 def up(

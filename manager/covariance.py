@@ -207,10 +207,19 @@ class CovarianceLogic:
             f"scan {k}/{model.scans}  enabled {','.join(enabled) or '-'}  "
             f"tr P {status.trace_P:.1f} / tr Pd {status.trace_Pd:.1f}"
         )
+        short = (
+            f"{k}/{model.scans} {len(enabled)}/{len(ids)} on  "
+            f"trP {status.trace_P:.0f}/{status.trace_Pd:.0f}"
+        )
         return ScanReport(
             [track],
             status,
-            {"trace_P": status.trace_P, "trace_Pd": status.trace_Pd, "info": info},
+            {
+                "trace_P": status.trace_P,
+                "trace_Pd": status.trace_Pd,
+                "info": info,
+                "info_short": short,
+            },
         )
 
 

@@ -286,6 +286,10 @@ class MobileLogic:
                 },
                 "trace_P": trace_P,
                 "info": f"scan {k}/{self.scans}  {pairs}  tr P {trace_P:.1f}",
+                "info_short": (
+                    f"{k}/{self.scans} {int(np.count_nonzero(assign >= 0))}/{len(tids)} "
+                    f"assigned, {int(detected.sum())} detected  trP {trace_P:.0f}"
+                ),
             },
         )
 

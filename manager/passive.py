@@ -199,6 +199,7 @@ class PassiveLogic:
                 "associated": row["associated"],
                 "triples": len(tracks),
                 "info": f"scan {k}/{self.scans}  {self.method}: {what}",
+                "info_short": f"{k}/{self.scans} {len(tracks)} triples",
             },
         )
 

@@ -25,7 +25,7 @@ from covnet.covariance_control.model import build_model
 from covnet.covariance_control.results import write_run
 from covnet.covariance_control.simulate import shared_trajectory
 from covnet.errors import UsageError
-from covnet.rundir import CONFIG, SUMMARY, prepare_out, read_json, write_json
+from covnet.rundir import CONFIG, SUMMARY, clear_output, prepare_out, read_json, write_json
 
 # The figures (matplotlib), the batch tables (scipy.stats), the replay (the MCAP reader) and the
 # benchmarks are imported by the commands that use them: start-up time of ``covnet run``.
@@ -112,6 +112,8 @@ def after_up(sc: Scenario, out: Path, *, figures: bool) -> None:
 
 def up_problem(sc: Scenario, *, realtime: bool, netns: bool) -> str | None:
     """Why ``covnet up`` cannot run ``sc`` this way (None: it can)."""
+    if sc.fusion.mode == "peer" and realtime:
+        return "--realtime: fusion.mode peer runs in lockstep only (leave out --realtime)"
     if not sc.network.latency.is_ideal(sc.sensor_ids):
         if sc.fusion.mode == "peer":
             return "network.latency: peer mode has no fusion centre to be late for"
@@ -177,6 +179,7 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     print(
         f"comparing {', '.join(modes)} on {sc.name}: metric {metric}, {args.runs} seeds from "
         f"{sc.seed}, {total} runs",
+        file=sys.stderr,
         flush=True,
     )
     rows = cmp.compare(
@@ -217,12 +220,13 @@ def _batch_results(
     write_json(out / CONFIG, normalised(sc))
     if not args.no_figures:
         module.make_figure(out, rows, title)
-    if args.json:
+    if args.json:  # stdout holds JSON only
         for r in rows:
             print(json.dumps(r))
+        print(f"results: {out}", file=sys.stderr)
     else:
         print(module.format_table(rows))
-    print(f"results: {out}")
+        print(f"results: {out}")
     return EXIT_OK
 
 
@@ -245,6 +249,7 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
         f"sweeping {sc.name}: {len(points)} grid points x {seeds} seeds = "
         f"{len(points) * seeds} runs, metric {metric}"
         + ("" if sc.sweep else " (no sweep section in the config: the default grid)"),
+        file=sys.stderr,
         flush=True,
     )
     rows = sw.sweep(
@@ -269,7 +274,7 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
 def replay(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet replay RUN_DIR``: re-fuse the recording; check ``summary.json``."""
     # the MCAP reader: start-up time of the other commands
-    from covnet.covariance_control.replay import ReplayError, replay_run
+    from covnet.covariance_control.replay import REPLAY_DIR, ReplayError, replay_run
 
     run_dir = Path(args.run_dir)
     missing = [
@@ -281,8 +286,14 @@ def replay(args: argparse.Namespace, sc: Scenario) -> int:
         raise UsageError(
             f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
         )
+    if args.out is not None:
+        out = prepare_out(args.out, "replay", args.force)
+    else:  # the run's own replay directory: replaced
+        out = run_dir / REPLAY_DIR
+        if out.is_dir() and any(out.iterdir()):
+            clear_output(out)
     try:
-        report = replay_run(run_dir, Path(args.out) if args.out else None)
+        report = replay_run(run_dir, out)
     except ReplayError as exc:
         print(f"covnet: error: {exc}", file=sys.stderr)
         return EXIT_FAIL

@@ -9,7 +9,7 @@ network processes run), then per mode:
 - ``rmse_position``: sqrt of the mean over runs, scans and (peer) nodes of the squared position
   error;
 - NEES: per scan the mean over runs ``ε̄_k`` (peer: each run's node-average), from scan
-  ``skip+1`` on; ``R ε̄_k ~ χ²(R n)`` for a consistent filter, so the two-sided 95 % band is
+  ``skip+1`` on (``skip`` = 10, or half the run when it is shorter than 20 scans); ``R ε̄_k ~ χ²(R n)`` for a consistent filter, so the two-sided 95 % band is
   ``[χ²_{0.025}(R n) / R, χ²_{0.975}(R n) / R]``.  Reported: the fraction of scans inside that
   band, the grand mean over runs and scans with its 95 % confidence interval (Student t over the
   ``R`` run averages: scans within one run are correlated, runs are independent), and a verdict:
@@ -166,7 +166,9 @@ def summarise(
 ) -> dict[str, Any]:
     """One row of the comparison table (see the module docstring)."""
     R = len(trials)
-    nees = np.stack([t.nees for t in trials])[:, skip:]
+    all_nees = np.stack([t.nees for t in trials])
+    skip = min(skip, all_nees.shape[1] // 2)  # a short run keeps its second half
+    nees = all_nees[:, skip:]
     per_scan = nees.mean(axis=0)
     lo, hi = (float(v) for v in np.asarray(chi2.ppf([0.025, 0.975], 4 * R)) / R)
     grand = float(per_scan.mean())

@@ -28,13 +28,20 @@ from covnet.config import (
     Quad,
     Str,
     hash_of,
+    in_registry,
     positive,
     read_yaml,
+    unique_ids,
     validate,
 )
 from covnet.config import normalised as _normalised
 from covnet.core.metrics import METRICS
 from covnet.covariance_control.fusion_rules import FUSION_RULES, fusion_modes, track_rules
+
+MetricName = Annotated[Str, in_registry(lambda: sorted(METRICS), "metric")]
+FusionMode = Annotated[Str, in_registry(fusion_modes, "fusion mode")]
+TrackRule = Annotated[Str, in_registry(track_rules, "rule that fuses local tracks")]
+FusionRuleName = Annotated[Str, in_registry(lambda: list(FUSION_RULES), "fusion rule")]
 
 __all__ = [
     "KIND",
@@ -118,7 +125,7 @@ class DesiredSpec(ConfigModel):
 class AllocationSpec(ConfigModel):
     """Covariance-control allocation: metrics by registry name, constraints by sensor id."""
 
-    metrics: tuple[Str, ...] = ("spectral", "abs_trace", "svd")
+    metrics: tuple[MetricName, ...] = ("spectral", "abs_trace", "svd")
     required: tuple[Str, ...] = ()
     excluded: tuple[Str, ...] = ()
     max_active: Int | None = Field(default=None, ge=1)
@@ -134,7 +141,7 @@ class PeerSpec(ConfigModel):
     undirected ``edges`` by sensor id; ``star`` has ``hub`` at its centre, default the first
     sensor) and how each node fuses what it receives (``rule``)."""
 
-    rule: Str = "info"
+    rule: TrackRule = "info"
     graph: Literal["full", "ring", "star", "custom"] = "full"
     hub: Str | None = None
     edges: tuple[tuple[Str, Str], ...] = ()
@@ -148,7 +155,7 @@ class FusionSpec(ConfigModel):
     ``ci_objective``: what the covariance-intersection weights minimise (``det``, ``trace``)
     or ``fast`` (closed-form weights ``w_i ∝ 1 / tr P_i``)."""
 
-    mode: Str = "central"
+    mode: FusionMode = "central"
     ci_objective: Literal["det", "trace", "fast"] = "det"
     peer: PeerSpec = PeerSpec()
 
@@ -170,11 +177,11 @@ class SweepSpec(ConfigModel):
     delay_ms: tuple[Float, ...] = (0.0, 100.0, 200.0, 400.0)
     delay_kind: Literal["constant", "exponential", "uniform"] = "exponential"
     loss: tuple[Float, ...] = (0.0, 0.1, 0.2)
-    modes: tuple[Str, ...] = ("central", "ci")
+    modes: tuple[FusionRuleName, ...] = ("central", "ci")
     account_for_loss: tuple[Bool, ...] = (False, True)
     late: tuple[Literal["oosm", "drop"], ...] = ("oosm",)
     seeds: Int = Field(default=4, ge=1, le=10_000)
-    metric: Str | None = None
+    metric: MetricName | None = None
 
     @field_validator("delay_ms")
     @classmethod
@@ -208,7 +215,7 @@ class Scenario(ConfigModel):
     period_s: Float = 1.0
     target: TargetSpec = TargetSpec()
     filter: FilterSpec = FilterSpec()
-    sensors: tuple[SensorSpec, ...] = Field(min_length=1)
+    sensors: Annotated[tuple[SensorSpec, ...], unique_ids("sensor")] = Field(min_length=1)
     desired: tuple[DesiredSpec, ...] = Field(min_length=1)
     allocation: AllocationSpec = AllocationSpec()
     network: NetworkSpec = NetworkSpec()
@@ -225,11 +232,7 @@ class Scenario(ConfigModel):
 def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
     ids = sc.sensor_ids
-    seen: set[str] = set()
-    for i, sid in enumerate(ids):
-        if sid in seen:
-            problems.append((f"sensors[{i}].id", f"duplicate sensor id {sid!r}"))
-        seen.add(sid)
+    seen = set(ids)
     if sc.desired[0].from_scan != 1:
         problems.append(("desired[0].from_scan", "the first entry must start at scan 1"))
     for i, d in enumerate(sc.desired):
@@ -245,11 +248,6 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
         if i > 0 and d.from_scan <= sc.desired[i - 1].from_scan:
             problems.append((f"desired[{i}].from_scan", "must increase along the schedule"))
     al = sc.allocation
-    for i, m in enumerate(al.metrics):
-        if m not in METRICS:
-            problems.append(
-                (f"allocation.metrics[{i}]", f"unknown metric {m!r}; choose from {sorted(METRICS)}")
-            )
     if not al.metrics:
         problems.append(("allocation.metrics", "name at least one metric"))
     for field in ("required", "excluded"):
@@ -259,12 +257,7 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     both = set(al.required) & set(al.excluded)
     if both:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
-    problems += _fusion_problems(sc)
     problems += _peer_problems(sc.fusion.peer, ids)
-    if sc.sweep is not None and sc.sweep.metric is not None and sc.sweep.metric not in METRICS:
-        problems.append(
-            ("sweep.metric", f"unknown metric {sc.sweep.metric!r}; choose from {sorted(METRICS)}")
-        )
     if set(al.excluded) >= set(ids):
         problems.append(("allocation.excluded", "excludes every sensor"))
     if al.max_active is not None:
@@ -274,34 +267,6 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
             )
         if al.max_active > len(ids):
             problems.append(("allocation.max_active", f"more than the {len(ids)} sensors"))
-    return problems
-
-
-def _fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
-    """Fusion modes and rules by the registry's names (:data:`FUSION_RULES`)."""
-    problems: list[tuple[str, str]] = []
-    f = sc.fusion
-    if f.mode not in fusion_modes():
-        problems.append(
-            ("fusion.mode", f"unknown fusion mode {f.mode!r}; choose from {list(fusion_modes())}")
-        )
-    if f.peer.rule not in track_rules():
-        problems.append(
-            (
-                "fusion.peer.rule",
-                f"{f.peer.rule!r} is not a rule that fuses local tracks; choose from "
-                f"{list(track_rules())}",
-            )
-        )
-    if sc.sweep is not None:
-        for i, m in enumerate(sc.sweep.modes):
-            if m not in FUSION_RULES:
-                problems.append(
-                    (
-                        f"sweep.modes[{i}]",
-                        f"unknown fusion rule {m!r}; choose from {list(FUSION_RULES)}",
-                    )
-                )
     return problems
 
 

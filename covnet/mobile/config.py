@@ -41,11 +41,12 @@ from covnet.config import (
     Pair,
     Quad,
     Str,
-    duplicate_id_problems,
     hash_of,
+    in_registry,
     non_negative,
     positive,
     read_yaml,
+    unique_ids,
     validate,
 )
 from covnet.config import normalised as _normalised
@@ -64,6 +65,7 @@ __all__ = [
 ]
 
 KIND = "mobile"
+SolverName = Annotated[Str, in_registry(lambda: sorted(SOLVERS), "solver")]
 Row2 = Pair
 _ge0, _gt0 = non_negative, positive
 
@@ -178,7 +180,7 @@ class MobileConfig(ConfigModel):
     seed: Int = Field(ge=0)
     scans: Int = Field(ge=1, le=1_000_000)
     scan_period_s: Float = 1.0
-    solver: Str = "lp"
+    solver: SolverName = "lp"
     compare_exact: Bool = False
     milp: MilpSpec = MilpSpec()
     weights: WeightsSpec = WeightsSpec()
@@ -189,8 +191,8 @@ class MobileConfig(ConfigModel):
     pd_include_track_cov: Bool = False
     null_penalty: Float | None = None
     filter: MobileFilterSpec = MobileFilterSpec()
-    targets: tuple[MobileTargetSpec, ...] = Field(min_length=1)
-    sensors: tuple[MobileSensorSpec, ...] = Field(min_length=1)
+    targets: Annotated[tuple[MobileTargetSpec, ...], unique_ids("target")] = Field(min_length=1)
+    sensors: Annotated[tuple[MobileSensorSpec, ...], unique_ids("sensor")] = Field(min_length=1)
     network: NetworkSpec = NetworkSpec()  # covnet up (the same table as covariance control)
 
     _period = field_validator("scan_period_s")(_gt0)
@@ -228,10 +230,6 @@ def _is_spd(A: np.ndarray) -> bool:
 
 def _semantic_problems(cfg: MobileConfig) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
-    if cfg.solver not in SOLVERS:
-        problems.append(("solver", f"unknown solver {cfg.solver!r}; choose from {sorted(SOLVERS)}"))
-    problems += duplicate_id_problems(cfg.target_ids, "targets", "target")
-    problems += duplicate_id_problems(cfg.sensor_ids, "sensors", "sensor")
     for j, s in enumerate(cfg.sensors):
         if (s.sigma0_m is None) == (s.R0_m2 is None):
             problems.append((f"sensors[{j}]", "give exactly one of 'sigma0_m' or 'R0_m2'"))

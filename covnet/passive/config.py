@@ -32,10 +32,11 @@ from covnet.config import (
     NetworkSpec,
     Pair,
     Str,
-    duplicate_id_problems,
     hash_of,
+    in_registry,
     positive,
     read_yaml,
+    unique_ids,
     validate,
 )
 from covnet.config import normalised as _normalised
@@ -56,6 +57,7 @@ __all__ = [
 KIND = "passive"
 Triple = Annotated[tuple[Float, ...], Field(min_length=3, max_length=3)]
 FormationName = Literal["horizontal", "cross"]
+MethodName = Annotated[Str, in_registry(lambda: sorted(METHODS), "method")]
 _positive = positive
 
 
@@ -135,7 +137,7 @@ class MILPSpec(ConfigModel):
 class AssociationSpec(ConfigModel):
     """The association method (a ``METHODS`` name) and the parameters of every method."""
 
-    method: Str = "cot"
+    method: MethodName = "cot"
     gate_sigma: Float = Field(default=3.0, gt=0.0)
     cot_cost: Literal["raw", "normalised"] = "raw"
     azimuth_form: Literal["cot", "sine"] = "cot"
@@ -153,7 +155,7 @@ class MonteCarloSpec(ConfigModel):
     spacings_km: tuple[Float, ...] = (0.5, 1.0, 2.0)
     sigmas_mrad: tuple[Float, ...] = (1.0, 3.0, 5.0)
     clutter: tuple[Bool, ...] = (False, True)
-    methods: tuple[Str, ...] = ("cot", "lr", "milp", "greedy")
+    methods: tuple[MethodName, ...] = ("cot", "lr", "milp", "greedy")
     workers: Int = Field(default=0, ge=0, le=1024)
 
 
@@ -163,7 +165,9 @@ class PassiveConfig(ConfigModel):
     kind: Literal["passive"]
     name: Str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
     seed: Int = Field(ge=0)
-    sensors: tuple[PassiveSensorSpec, ...] = Field(min_length=3, max_length=3)
+    sensors: Annotated[tuple[PassiveSensorSpec, ...], unique_ids("sensor")] = Field(
+        min_length=3, max_length=3
+    )
     targets: TargetsSpec = TargetsSpec()
     noise: NoiseSpec = NoiseSpec()
     clutter: ClutterSpec = ClutterSpec()
@@ -231,7 +235,6 @@ class PassiveConfig(ConfigModel):
 
 def _semantic_problems(cfg: PassiveConfig) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
-    problems += duplicate_id_problems(cfg.sensor_ids, "sensors", "sensor")
     pos = cfg.sensor_positions
     for i in range(3):
         for j in range(i + 1, 3):
@@ -239,20 +242,7 @@ def _semantic_problems(cfg: PassiveConfig) -> list[tuple[str, str]]:
                 problems.append(
                     (f"sensors[{j}].position_km", f"same horizontal position as sensors[{i}]")
                 )
-    choices = sorted(METHODS)
-    if cfg.association.method not in METHODS:
-        problems.append(
-            (
-                "association.method",
-                f"unknown method {cfg.association.method!r}; choose from {choices}",
-            )
-        )
     mc = cfg.montecarlo
-    for i, m in enumerate(mc.methods):
-        if m not in METHODS:
-            problems.append(
-                (f"montecarlo.methods[{i}]", f"unknown method {m!r}; choose from {choices}")
-            )
     for field, values in (
         ("formations", mc.formations),
         ("spacings_km", mc.spacings_km),

@@ -1,0 +1,246 @@
+"""A user's mistakes get a clear answer at once; nothing is overwritten or silently ignored
+(issue 15): ``--out`` and ``--force`` for every command, what a run used is what its
+``config.json`` says, every option validated before anything starts, ``--json`` is JSON, config
+messages show root causes only, all at once."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from covnet.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+PAPER = REPO / "configs" / "paper.yaml"
+MOBILE = REPO / "configs" / "mobile.yaml"
+PASSIVE = REPO / "configs" / "passive.yaml"
+LATENCY = REPO / "configs" / "latency.yaml"
+
+
+def _short(tmp_path: Path, src: Path, name: str, **changes) -> Path:
+    data = yaml.safe_load(src.read_text())
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    p = tmp_path / f"{name}.yaml"
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+@pytest.fixture
+def short_paper(tmp_path):
+    return _short(tmp_path, PAPER, "paper-short", scans=8, allocation={"metrics": ["spectral"]})
+
+
+@pytest.fixture
+def short_mobile(tmp_path):
+    return _short(tmp_path, MOBILE, "mobile-short", scans=5, compare_exact=False)
+
+
+@pytest.fixture
+def tiny_passive(tmp_path):
+    grid = {"trials": 1, "formations": ["cross"], "spacings_km": [1.0], "sigmas_mrad": [3.0]}
+    grid |= {"clutter": [False], "methods": ["cot"], "workers": 1}
+    return _short(tmp_path, PASSIVE, "passive-tiny", montecarlo=grid)
+
+
+@pytest.fixture
+def small_sweep(tmp_path):
+    sweep = {"delay_ms": [0.0, 100.0], "loss": [0.0], "modes": ["central"]}
+    sweep |= {"account_for_loss": [False], "seeds": 1}
+    return _short(tmp_path, LATENCY, "sweep-small", scans=8, sweep=sweep)
+
+
+def _stale(d: Path) -> Path:
+    """``d`` made an earlier covnet output with a file the next run will not write."""
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "config.json").write_text("{}")
+    stale = d / "fig9_from_an_earlier_run.png"
+    stale.write_text("old")
+    (d / "replay").mkdir(exist_ok=True)
+    (d / "replay" / "summary.json").write_text("{}")
+    return stale
+
+
+# --------------------------------------------------------------------------------------------
+# --out and --force
+# --------------------------------------------------------------------------------------------
+
+
+def _commands(paths: dict[str, Path]) -> dict[str, list[str]]:
+    return {
+        "run": ["run", str(paths["paper"]), "--no-figures"],
+        "mc-mobile": ["mc", str(paths["mobile"]), "--trials", "1"],
+        "mc-passive": ["mc", str(paths["passive"])],
+        "compare": ["compare", str(paths["paper"]), "--runs", "2", "--modes", "central"]
+        + ["--workers", "1", "--no-figures"],
+        "sweep": ["sweep", str(paths["sweep"]), "--workers", "1", "--no-figures"],
+    }
+
+
+@pytest.mark.parametrize("command", ["run", "mc-mobile", "mc-passive", "compare", "sweep"])
+def test_out_is_never_overwritten_without_force_and_force_leaves_nothing_stale(
+    command, tmp_path, short_paper, short_mobile, tiny_passive, small_sweep, capsys
+):
+    paths = {"paper": short_paper, "mobile": short_mobile}
+    paths |= {"passive": tiny_passive, "sweep": small_sweep}
+    argv = _commands(paths)[command]
+    out = tmp_path / "out"
+    stale = _stale(out)
+    assert main([*argv, "--out", str(out)]) == 2
+    assert "directory is not empty" in capsys.readouterr().err
+    assert stale.exists()  # untouched
+    assert main([*argv, "--out", str(out), "--force"]) == 0
+    assert not stale.exists() and not (out / "replay").exists()
+    assert (out / "config.json").read_text() != "{}"
+
+
+def test_up_refuses_a_non_empty_out_before_starting_anything(tmp_path, capsys):
+    out = tmp_path / "out"
+    stale = _stale(out)
+    assert main(["up", str(PAPER), "--out", str(out)]) == 2
+    assert "directory is not empty" in capsys.readouterr().err
+    assert stale.exists() and not (out / "processes.json").exists()
+
+
+def test_force_never_empties_a_directory_covnet_did_not_write(tmp_path, short_paper, capsys):
+    mine = tmp_path / "notes"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("precious")
+    argv = ["run", str(short_paper), "--no-figures", "--force"]
+    assert main([*argv, "--out", str(mine)]) == 2
+    assert "not an output of covnet" in capsys.readouterr().err
+    assert (mine / "thesis.tex").read_text() == "precious"
+
+
+def test_force_never_empties_the_working_directory(tmp_path, short_paper, monkeypatch, capsys):
+    _stale(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", str(short_paper), "--no-figures", "--force", "--out", "."]) == 2
+    assert "holds the working directory" in capsys.readouterr().err
+    assert (tmp_path / "config.json").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# what a run used is what its config.json says
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "config,options",
+    [
+        ("paper", ["--seed", "7"]),
+        ("paper", ["--metric", "svd"]),
+        ("paper", ["--fusion", "info"]),
+        ("mobile", ["--solver", "milp"]),
+        ("mobile", ["--seed", "3"]),
+        ("passive", ["--seed", "5"]),
+    ],
+    ids=lambda v: v if isinstance(v, str) else "-".join(v).strip("-"),
+)
+def test_rerunning_from_the_stored_config_reproduces_the_run(
+    config, options, tmp_path, short_paper, short_mobile
+):
+    src = {"paper": short_paper, "mobile": short_mobile, "passive": PASSIVE}[config]
+    first, again = tmp_path / "first", tmp_path / "again"
+    assert main(["run", str(src), *options, "--out", str(first), "--no-figures"]) == 0
+    assert main(["run", str(first / "config.json"), "--out", str(again), "--no-figures"]) == 0
+    result = "association.json" if config == "passive" else "summary.json"
+    assert (first / result).read_bytes() == (again / result).read_bytes()
+    assert (first / "config.json").read_bytes() == (again / "config.json").read_bytes()
+
+
+# --------------------------------------------------------------------------------------------
+# options validated before anything starts
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["up", str(PAPER), "--router", "foo"], "--router: expected a zenoh endpoint"),
+        (["up", str(PAPER), "--router", "tcp/1.2.3.4:99999"], "--router: the port must be"),
+        (["up", str(PAPER), "--fusion", "peer", "--realtime"], "runs in lockstep only"),
+        (["up", str(PAPER), "--speed", "10"], "--speed: scales the real-time clock"),
+        (["up", str(PAPER), "--realtime", "--speed", "0"], "--speed: must be > 0"),
+        (["up", str(PAPER), "--nodes", "S1,S99"], "--nodes: unknown process 'S99'"),
+        (["up", str(PAPER), "--solver", "lp"], "--solver: a covariance-control scenario"),
+        (["up", str(LATENCY)], "network.latency describes slow or lossy links"),
+        (["run", str(PAPER), "--metric", "nope"], "--metric: unknown metric 'nope'"),
+        (["run", str(PAPER), "--fusion", "gossip"], "--fusion: unknown fusion mode"),
+        (["run", str(PASSIVE), "--metric", "spectral"], "--metric: a passive scenario"),
+        (["run", str(MOBILE), "--solver", "simplex"], "--solver: unknown solver"),
+        (["run", str(MOBILE), "--seed", "-1"], "--seed: must be >= 0"),
+        (["mc", str(MOBILE), "--trials", "0"], "--trials: must be >= 1"),
+        (["mc", str(MOBILE), "--trials", "-1"], "--trials: must be >= 1"),
+        (["mc", str(PASSIVE), "--trials", "0"], "--trials: must be an integer >= 1"),
+        (["mc", str(PAPER)], "mc: a Monte Carlo protocol is not defined"),
+        (["bench", "up", "--repeat", "0"], "--repeat: must be >= 1"),
+        (["bench", "--problems", "0"], "--problems: must be >= 1"),
+        (["compare", str(MOBILE)], "compare: comparing fusion structures is not defined"),
+        (["compare", str(PAPER), "--runs", "1"], "--runs: at least 2 runs"),
+        (["sweep", str(PASSIVE)], "sweep: the network-latency sweep is not defined"),
+        (["replay", str(REPO / "configs")], "not a recorded network run directory"),
+    ],
+    ids=lambda v: " ".join(v[:1] + v[2:]) if isinstance(v, list) else None,
+)
+def test_a_bad_option_is_one_line_exit_2_and_nothing_left_behind(
+    argv, message, tmp_path, monkeypatch, capsys
+):
+    monkeypatch.chdir(tmp_path)  # a run directory would appear under ./runs
+    out = tmp_path / "out"
+    has_out = argv[0] in ("up", "run", "mc", "compare", "sweep")
+    assert main([*argv, *(["--out", str(out)] if has_out else [])]) == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists() and not (tmp_path / "runs").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# --json is JSON
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["compare", "sweep"])
+def test_json_output_is_only_json(command, tmp_path, short_paper, small_sweep, capsys):
+    argv = _commands(
+        {"paper": short_paper, "sweep": small_sweep} | dict.fromkeys(("mobile", "passive"), PAPER)
+    )[command]
+    assert main([*argv, "--out", str(tmp_path / "o"), "--json"]) == 0
+    out = capsys.readouterr().out
+    rows = [json.loads(line) for line in out.splitlines()]  # every line parses
+    assert rows and all(isinstance(r, dict) for r in rows)
+
+
+# --------------------------------------------------------------------------------------------
+# config messages: root causes, all at once
+# --------------------------------------------------------------------------------------------
+
+
+def test_config_problems_are_root_causes_all_at_once(tmp_path, capsys):
+    data = yaml.safe_load(PAPER.read_text())
+    data["filter"]["P0_diag"] = ["1.0e4", 100.0, 10000.0, 100.0]  # YAML 1.1 reads 1.0e4 as text
+    data["target"]["accel_noise_std_mps2"] = -0.5
+    data["sensors"][3]["id"] = "S1"
+    data["allocation"]["metrics"] = ["spectral", "nope"]
+    data["fusion"] = {"mode": "gossip"}
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(data))
+    assert main(["check", str(p)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()[1:]
+    paths = [line.strip().split(":")[0] for line in lines]
+    assert paths == [
+        "target.accel_noise_std_mps2",
+        "filter.P0_diag[0]",
+        "sensors[3].id",
+        "allocation.metrics[1]",
+        "fusion.mode",
+    ], lines
+    assert "write 1.0e+4 or 10000.0" in lines[1]
+    assert "duplicate sensor id 'S1'" in lines[2]
