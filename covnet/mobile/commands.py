@@ -139,6 +139,9 @@ def mc_run(
     callback = progress if callable(progress) else (report if progress else None)
     rows = run_seeds(cfg, seed_list, None, n_workers, callback)
     doc = write_mc(out_dir, cfg, seed_list, rows)
+    from covnet.mobile.plots import mc_figure  # matplotlib: start-up of the other commands
+
+    figure = mc_figure(out_dir)
     agg = doc["aggregate"]
     print(
         f"Monte Carlo: {out_dir / MC_FILE}  (config {doc['config_hash']}, seeds 0..{seeds - 1}, "
@@ -167,6 +170,7 @@ def mc_run(
             f"({_pct(opt['share_lp_post_worse'])}), mean gap {100 * opt['mean_gap']:.4f} %, "
             f"max gap {100 * opt['max_gap']:.2f} %, {opt['conflicts_resolved']} conflicts resolved"
         )
+    print(f"figure: {figure}")
     return EXIT_OK
 
 
@@ -232,7 +236,17 @@ def bench_run(
 
 
 def plot(run_dir: Path) -> list[Path]:
-    """``covnet plot`` of a mobile run directory: its figure."""
-    from covnet.mobile.plots import make_figure  # matplotlib: start-up of the other commands
+    """``covnet plot`` of a mobile run directory (its figure) or Monte Carlo directory (the
+    means over seeds with their 95 % intervals)."""
+    # matplotlib: start-up of the other commands
+    from covnet.mobile.plots import make_figure, mc_figure
 
+    if (run_dir / MC_FILE).is_file():
+        return [mc_figure(run_dir)]
+    missing = [f for f in ("summary.json", "arrays.npz") if not (run_dir / f).is_file()]
+    if missing:
+        raise UsageError(
+            f"{run_dir}: not a complete mobile run directory (missing {', '.join(missing)}) "
+            f"nor a Monte Carlo one ({MC_FILE})"
+        )
     return [make_figure(run_dir)]

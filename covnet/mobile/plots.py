@@ -152,3 +152,56 @@ def make_figure(run_dir: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+MC_FIGURE = "fig_mobile_mc.png"
+
+
+def _mean_ci(values: np.ndarray) -> tuple[float, float]:
+    """The mean over seeds and the half-width of its 95 % confidence interval (Student t;
+    0 for a single seed)."""
+    from scipy.stats import t as student_t  # the Monte Carlo figure only: start-up time
+
+    n = values.size
+    mean = float(values.mean())
+    if n < 2:
+        return mean, 0.0
+    half = float(student_t.ppf(0.975, n - 1) * values.std(ddof=1) / np.sqrt(n))
+    return mean, half
+
+
+def mc_figure(out_dir: Path) -> Path:
+    """``fig_mobile_mc.png`` from ``out_dir/montecarlo.json``: per target (and overall) the
+    position RMSE and the missed-detection rate, second half of the run and whole run, as the
+    mean over seeds with its 95 % confidence interval."""
+    doc = json.loads((out_dir / "montecarlo.json").read_text())
+    rows = doc["per_seed"]
+    names = [*rows[0]["target_ids"], "overall"]
+
+    def block(r: dict[str, object], name: str) -> dict[str, float]:
+        b = r["overall"] if name == "overall" else r["targets"][name]  # type: ignore[index]
+        return b  # type: ignore[return-value]
+
+    panels = (
+        ("rmse_position_m", "rmse_position_second_half_m", "position RMSE [m]"),
+        ("missed_detection_rate", "missed_detection_rate_second_half", "missed detections"),
+    )
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
+    x = np.arange(len(names))
+    for ax, (whole, second, label) in zip(axes, panels, strict=True):
+        for dx, key, tag in ((-0.18, whole, "whole run"), (0.18, second, "second half")):
+            stats = [_mean_ci(np.array([block(r, n)[key] for r in rows])) for n in names]
+            means, halves = zip(*stats, strict=True)
+            ax.bar(x + dx, means, 0.36, yerr=halves, capsize=4, label=tag)
+        ax.set_xticks(x, names)
+        ax.set_ylabel(label)
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend()
+    fig.suptitle(
+        f"{doc['scenario']}: Monte Carlo over {len(rows)} seeds, solver {doc['solver']} "
+        "(mean, 95 % confidence interval)"
+    )
+    path = out_dir / MC_FIGURE
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

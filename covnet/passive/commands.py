@@ -235,7 +235,22 @@ def after_up(cfg: PassiveConfig, out: Path, *, figures: bool) -> None:
 
 
 def plot(run_dir: Path) -> list[Path]:
-    """``covnet plot`` of a passive run directory: its scene figure."""
-    from covnet.passive.plots import scene_figure  # matplotlib: start-up of the other commands
+    """``covnet plot`` of a passive run directory (its scene figure) or Monte Carlo directory
+    (its two figures)."""
+    # matplotlib: start-up of the other commands
+    from covnet.passive.plots import mc_figures, scene_figure
 
+    if (run_dir / "results.json").is_file():
+        return mc_figures(run_dir)
+    if not (run_dir / "association.json").is_file():
+        raise UsageError(
+            f"{run_dir}: not a complete passive run directory (missing association.json) nor "
+            "a Monte Carlo one (results.json)"
+        )
+    doc = read_json(run_dir / "association.json")
+    if "correct" not in doc:
+        raise UsageError(
+            f"{run_dir}: no scan of this run was associated (association.json has none): "
+            "there is no scene to draw"
+        )
     return [scene_figure(run_dir)]

@@ -244,3 +244,49 @@ def test_config_problems_are_root_causes_all_at_once(tmp_path, capsys):
     ], lines
     assert "write 1.0e+4 or 10000.0" in lines[1]
     assert "duplicate sensor id 'S1'" in lines[2]
+
+
+# --------------------------------------------------------------------------------------------
+# covnet plot: every kind's directories
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "argv,figures",
+    [
+        (["run", "{paper}"], {"fig1_sensor_ellipses.png", "fig4_allocation_raster.png"}),
+        (["run", "{mobile}"], {"fig_mobile_trajectories.png"}),
+        (["run", str(PASSIVE)], {"scene.png"}),
+        (["mc", "{mobile}", "--trials", "2"], {"fig_mobile_mc.png"}),
+        (["mc", "{passive}"], {"fig_p_vs_d.png", "fig_time.png"}),
+        (
+            ["compare", "{paper}", "--runs", "2", "--modes", "central", "--workers", "1"],
+            {"compare.png"},
+        ),
+        (["sweep", "{sweep}", "--workers", "1"], {"sweep.png"}),
+    ],
+    ids=["run-paper", "run-mobile", "run-passive", "mc-mobile", "mc-passive", "compare", "sweep"],
+)
+def test_plot_redraws_every_kind_of_directory(
+    argv, figures, tmp_path, short_paper, short_mobile, tiny_passive, small_sweep, capsys
+):
+    paths = {"paper": short_paper, "mobile": short_mobile}
+    paths |= {"passive": tiny_passive, "sweep": small_sweep}
+    out = tmp_path / "out"
+    argv = [a.format(**{k: str(v) for k, v in paths.items()}) for a in argv]
+    assert main([*argv, "--out", str(out)]) == 0
+    for f in figures:
+        (out / f).unlink()
+    capsys.readouterr()
+    assert main(["plot", str(out)]) == 0
+    assert {f for f in figures if (out / f).stat().st_size > 1000} == figures
+
+
+def test_plot_says_what_a_directory_lacks(tmp_path, capsys):
+    assert main(["plot", str(tmp_path)]) == 2
+    assert "missing config.json" in capsys.readouterr().err
+    (tmp_path / "config.json").write_text(
+        json.dumps(yaml.safe_load((REPO / "configs" / "mobile.yaml").read_text()))
+    )
+    assert main(["plot", str(tmp_path)]) == 2
+    assert "missing summary.json, arrays.npz" in capsys.readouterr().err
