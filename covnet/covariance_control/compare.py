@@ -9,7 +9,8 @@ network processes run), then per mode:
 - ``rmse_position``: sqrt of the mean over runs, scans and (peer) nodes of the squared position
   error;
 - NEES: per scan the mean over runs ``ε̄_k`` (peer: each run's node-average), from scan
-  ``skip+1`` on (``skip`` = 10, or half the run when it is shorter than 20 scans); ``R ε̄_k ~ χ²(R n)`` for a consistent filter, so the two-sided 95 % band is
+  ``skip+1`` on (``skip`` = 10, or half the run when it is shorter than 20 scans);
+  ``R ε̄_k ~ χ²(R n)`` for a consistent filter, so the two-sided 95 % band is
   ``[χ²_{0.025}(R n) / R, χ²_{0.975}(R n) / R]``.  Reported: the fraction of scans inside that
   band, the grand mean over runs and scans with its 95 % confidence interval (Student t over the
   ``R`` run averages: scans within one run are correlated, runs are independent), and a verdict:
