@@ -17,6 +17,13 @@ the router presents ``cert_dir/manager.pem``, each client ``cert_dir/<node id>.p
 require a certificate signed by ``tls.ca``, so a client without one cannot open a session. The
 certificate's common name is the node's identity for access control.
 
+``covnet check`` and ``covnet up`` call :func:`preflight` before anything starts: the files and
+passwords, and every certificate as zenoh (rustls) will use it (:func:`certificate_problems`:
+X.509 v3, dates, common name, CA chain, extensions, the router's subjectAltName). A client whose
+session does not open asks :func:`login_problem` why (a TCP connection and a TLS handshake of
+its own): ``authentication failed for <node> (...)`` or ``TLS handshake failed for <node>
+(...)``, rather than zenoh's bare "Unable to connect".
+
 What access control enforces (``access_control: true``; on the router only)
 -------------------------------------------------------------------------------
 Zenoh's ACL (``access_control`` in its config) filters the messages the router receives from
@@ -293,8 +300,10 @@ def _load_certs(path: Path) -> tuple[list[x509.Certificate], str | None]:
         certs = x509.load_pem_x509_certificates(path.read_bytes())
     except OSError as exc:
         return [], f"cannot be read: {exc.strerror or exc}"
-    except (ValueError, x509.InvalidVersion) as exc:
-        return [], f"is not a valid PEM certificate ({exc})"
+    except x509.InvalidVersion as exc:
+        return [], f"is X.509 v{exc.parsed_version + 1}; expected v3"
+    except ValueError:  # cryptography's message is its ASN.1 parser's
+        return [], "is not a valid PEM certificate (the PEM body is not an X.509 certificate)"
     return certs, None
 
 
@@ -654,9 +663,9 @@ def _tls_problem(
             what = _ALERTS.get(alert, alert.replace("_", " ").lower())
             return (
                 f"the router rejected {node_id}'s certificate {str(cert)!r}: {what}; "
-                "covnet check, with the router's CA, says what is wrong with it"
+                "covnet check says what is wrong with it"
             )
-        return reason
+        return f"the TLS handshake with the router at {host} failed: {reason.lower()}"
     except OSError:
         return None  # the connection went: nothing to tell
     finally:
@@ -672,8 +681,6 @@ def login_problem(net: NetworkSpec, node_id: str, ep: str, timeout_s: float = 1.
     ``None`` when security is off, when nothing accepts connections at ``ep`` (the router is
     not up, yet) or when nothing can be told. Opens no zenoh session; takes up to about
     ``2 * timeout_s``."""
-    import socket
-
     sec = net.security
     hp = _endpoint_host_port(ep)
     if not sec.authenticated or hp is None:

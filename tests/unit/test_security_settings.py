@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from test_security_certs import CA
 
 from covnet import messages as msg
 from covnet.bus import keyexpr_matches
@@ -22,23 +23,21 @@ from covnet.security import (
     zenoh_settings,
 )
 
-PEM = "-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n"
-KEY = "-----BEGIN PRIVATE KEY-----\nAAAA\n-----END PRIVATE KEY-----\n"
 RUN = "a1b2c3"
 
 
 @pytest.fixture()
 def lab(tmp_path: Path) -> Path:
-    """A directory with a credentials file and fake (header-only) PEM files."""
+    """A directory with a credentials file, a CA and certificates for manager, world, S1 and
+    S2 (real ones: preflight parses them; made as in test_security_certs.py)."""
     (tmp_path / "creds.txt").write_text(
         "world:pw-world\nrecorder:pw-rec\n\nS1: pw1\nS2:pw:2\nintruder:x\n"
     )
     certs = tmp_path / "pki" / "certs"
     certs.mkdir(parents=True)
-    (tmp_path / "pki" / "ca.pem").write_text(PEM)
+    ca = CA(tmp_path / "pki")
     for n in ("manager", "world", "S1", "S2"):
-        (certs / f"{n}.pem").write_text(PEM)
-        (certs / f"{n}.key").write_text(KEY)
+        ca.issue(certs, n)
     return tmp_path
 
 
