@@ -254,6 +254,7 @@ def _validity(cert: x509.Certificate, now: datetime) -> str | None:
 
 def _key_problem(key: object) -> str | None:
     """The public key is one rustls (with ring, as zenoh builds it) can use, or what it is."""
+    # cryptography: start-up of the nodes, which never check certificates
     from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
 
     supported = "zenoh (rustls) takes RSA keys of 2048 to 8192 bits, EC P-256 or P-384, Ed25519"
@@ -274,6 +275,7 @@ def _key_problem(key: object) -> str | None:
 def _signature_problem(cert: x509.Certificate, issuer_key: object) -> str | None:
     """The signature algorithm is one webpki verifies (ECDSA with SHA-256/384, RSA with
     SHA-256/384/512, Ed25519)."""
+    # cryptography: start-up of the nodes, which never check certificates
     from cryptography.hazmat.primitives.asymmetric import ec, rsa
 
     digest = cert.signature_hash_algorithm
@@ -294,6 +296,7 @@ def _signature_problem(cert: x509.Certificate, issuer_key: object) -> str | None
 
 def _load_certs(path: Path) -> tuple[list[x509.Certificate], str | None]:
     """Every certificate in a PEM file, or why there are none."""
+    # cryptography: start-up of the nodes, which never check certificates
     from cryptography import x509
 
     try:
@@ -311,6 +314,7 @@ def _ca_problems(path: Path, now: datetime) -> tuple[list[x509.Certificate], lis
     """The CA certificate(s) in ``path`` and what is wrong with them: X.509 v3, basicConstraints
     CA:TRUE, keyUsage (when present) with keyCertSign, valid now, a key rustls can verify
     signatures with."""
+    # cryptography: start-up of the nodes, which never check certificates
     from cryptography import x509
 
     cas, problem = _load_certs(path)
@@ -359,6 +363,7 @@ def _usages(ku: x509.KeyUsage) -> str:
 
 
 def _eku_names(eku: x509.ExtendedKeyUsage) -> str:
+    # cryptography: start-up of the nodes, which never check certificates
     from cryptography.x509.oid import ExtendedKeyUsageOID as E
 
     known = {
@@ -381,6 +386,7 @@ def _issuer_problem(
 ) -> str | None:
     """``cert`` is signed by one of ``cas``, directly or through the ``intermediates`` that
     follow it in its file (names and signatures checked, and the signature algorithm)."""
+    # cryptography: start-up of the nodes, which never check certificates
     from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 
     pool = list(intermediates)
@@ -428,6 +434,7 @@ def _dns_matches(pattern: str, host: str) -> bool:
 def _san_problem(cert: x509.Certificate, host: str, field: str) -> str | None:
     """The router's certificate names ``host`` (the one clients connect to) in its
     subjectAltName: what rustls checks with ``verify_name`` (it never looks at the CN)."""
+    # cryptography: start-up of the nodes, which never check certificates
     from cryptography import x509
 
     try:
@@ -471,6 +478,7 @@ def _node_problems(
     now: datetime,
 ) -> list[str]:
     """What is wrong with ``name``'s certificate and key in ``tls.cert_dir``."""
+    # cryptography: start-up of the nodes, which never check certificates
     from cryptography import x509
     from cryptography.exceptions import UnsupportedAlgorithm
     from cryptography.hazmat.primitives import serialization
@@ -630,6 +638,7 @@ def _tls_problem(
     client): why it fails, or ``None`` when the router accepted it. In TLS 1.3 the router
     checks the client's certificate after the client's side of the handshake is done, so a
     rejection shows as an alert on the first read."""
+    # start-up: ssl only to diagnose a refused TLS login
     import ssl
 
     cert = Path(tls.cert_dir) / f"{node_id}.pem"

@@ -1,0 +1,490 @@
+"""Lower bounds of every registered metric over a Loewner interval of covariances.
+
+A node of a branch and bound over sensor subsets (:mod:`covnet.core.search`) has an *included*
+set ``I`` and an *undecided* set ``U``; every completion ``D`` (``I ⊆ D ⊆ I ∪ U``) satisfies,
+because every gain ``J_j = H_jᵀ R_j⁻¹ H_j ⪰ 0`` and inversion is Loewner-antitone::
+
+    A = P(I ∪ U)  ⪯  P(D)  ⪯  P(I) = B,        P(S) = (P_pred⁻¹ + Σ_{j∈S} J_j)⁻¹.
+
+This module gives, for every metric of :data:`covnet.core.metrics.METRICS`, a valid lower bound
+of ``min { f(P, P_d) : A ⪯ P ⪯ B }``, batched over many intervals (``A``, ``B`` ``(m, n, n)``).
+Each bound is split into a per-endpoint **summary** (e.g. the eigenvalues of ``X - P_d``) and a
+**combination** of the two endpoints' summaries, so a search that shares one endpoint between a
+node and its child (the include child keeps ``A``, the exclude child keeps ``B``) computes one
+summary per child; the *degenerate* interval ``[B, B]`` (the subset ``I`` itself) costs nothing
+more than ``B``'s summary.
+
+The facts used (``λ_i`` ascending eigenvalues, ``X ⪯ Y`` the Loewner order):
+
+- **Weyl monotonicity**: ``X ⪯ Y  ⇒  λ_i(X) <= λ_i(Y)`` for every ``i``;
+- **congruence**: ``X ⪯ Y  ⇒  Lᵀ X L ⪯ Lᵀ Y L`` for any ``L``;
+- **entries of an interval**: for ``A ⪯ P ⪯ B`` with ``Δ = B - A``: ``A_ii <= P_ii <= B_ii`` and,
+  since ``P - A`` and ``B - P`` are PSD and ``⪯ Δ`` (2 x 2 principal minors),
+  ``|P_ij - A_ij| <= sqrt(Δ_ii Δ_jj)`` and ``|P_ij - B_ij| <= sqrt(Δ_ii Δ_jj)``.
+
+**Floating point.**  ``A``, ``B`` and the completion's ``P`` are computed, not exact; a bound must
+stay below the metric *as computed* on the computed ``P``.  :class:`IntervalContext` carries
+``err``, an entrywise bound on ``|X_computed - X_exact|`` for every covariance involved (the
+endpoints and the completion alike), and the spectral limits valid for all of them; every bound
+widens its enclosures by the error they can carry (``||E||_2 <= ||E||_F <= n·err`` for an
+entrywise-``err`` symmetric ``E``) and deflates by a relative rounding allowance of its own
+arithmetic and of the metric's.  :func:`search_context` builds the context with the error model of
+:mod:`covnet.core._allocation_fast` (``ERR_FACTOR · n² · eps · κ · λmax``, a worst-case model with
+a generous constant, not a certified interval computation); the property tests check
+``bound <= computed value`` on sampled completions.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import lapack
+
+from covnet.core.gaussian import Mat
+from covnet.core.metrics import EIG_TIE_RTOL, ordered_eigh
+
+__all__ = [
+    "ERR_FACTOR",
+    "INTERVAL_BOUNDS",
+    "DesiredConstants",
+    "IntervalBound",
+    "IntervalContext",
+    "interval_lower_bound",
+    "search_context",
+]
+
+EPS = float(np.finfo(np.float64).eps)
+TINY = float(np.finfo(np.float64).tiny)
+#: the error model's constant, as :data:`covnet.core._allocation_fast.ERR_FACTOR`
+ERR_FACTOR = 64.0
+#: relative rounding allowance per unit of dimension, of a bound's own arithmetic and the metric's
+ROUND = 64.0
+
+
+class IntervalContext(NamedTuple):
+    """What a bound may assume about the covariances behind its computed inputs:
+
+    - ``|X_computed - X_exact| <= err`` entrywise, for both endpoints and for the completion's
+      ``P`` the metric is computed on;
+    - ``lam_min <= λ(X) <= lam_max`` for every such exact ``X``;
+    - ``kappa >= lam_max / lam_min``;
+    - ``scale >= max(lam_max, sum |P_d|)``, the magnitude of the metric's inputs.
+    """
+
+    err: float
+    lam_min: float
+    lam_max: float
+    kappa: float
+    scale: float
+
+
+def search_context(
+    P_pred: Mat, info_trace: float, P_d: Mat, n_terms: int = 0, gain_abs_max: float = 0.0
+) -> IntervalContext:
+    """The error model of a subset search (:mod:`covnet.core._allocation_fast`, same constant).
+
+    Every ``P(S)`` lies between ``(P_pred⁻¹ + J_all)⁻¹`` and ``P_pred``, so
+    ``λmax <= tr P_pred`` and ``λmin >= 1 / tr(P_pred⁻¹ + J_all)`` (``info_trace``, the trace of
+    the largest information), ``κ = tr(P_pred) · info_trace >= cond P(S)``; the entrywise error of
+    any computed ``P(S)`` (reduced form, or the reference's Cholesky inverses) is taken as
+    ``ERR_FACTOR · n² · eps · κ · λmax``, plus, for information sums of up to ``n_terms`` gains
+    added in another order than the reference's, ``λmax² · n · n_terms · eps · gain_abs_max``
+    (``|ΔJ| <= n_terms · eps · Σ|J_j|`` entrywise moves ``P`` by at most ``λmax² ||ΔJ||_2``).
+    """
+    n = P_pred.shape[0]
+    lam_max = float(np.trace(P_pred))
+    kappa = lam_max * info_trace
+    err = ERR_FACTOR * n * n * EPS * kappa * lam_max
+    err += lam_max * lam_max * n * n_terms * EPS * gain_abs_max
+    scale = lam_max + float(np.abs(P_d).sum())
+    return IntervalContext(err, 1.0 / info_trace, lam_max, kappa, scale)
+
+
+class DesiredConstants:
+    """Constants of one desired covariance ``P_d`` the bounds use, computed on first use:
+    ``diag``, ``trace``, :meth:`eig_desc` (eigenvalues, descending), :meth:`eigvecs`,
+    :meth:`chol_inv`
+    (``L⁻¹`` with ``P_d = L Lᵀ``, and ``κ_D = tr(P_d) tr(P_d⁻¹) >= cond P_d``)."""
+
+    __slots__ = ("D", "n", "diag", "trace", "_eig", "_vec", "_chol")
+
+    def __init__(self, P_d: Mat) -> None:
+        self.D = np.array(P_d, dtype=np.float64)
+        self.n = int(self.D.shape[0])
+        self.diag = self.D.diagonal().copy()
+        self.trace = float(self.diag.sum())
+        self._eig: Mat | None = None
+        self._vec: Mat | None = None
+        self._chol: tuple[Mat, float] | None = None
+
+    def eig_desc(self) -> Mat:
+        if self._eig is None:
+            self._eig = np.asarray(np.linalg.eigvalsh(self.D)[::-1], dtype=np.float64).copy()
+        return self._eig
+
+    def eigvecs(self) -> Mat:
+        """The eigenvectors of :func:`covnet.core.metrics.ordered_eigh` (the svd metric's
+        convention for ``P_d``), column ``i`` for the ``i``-th largest eigenvalue."""
+        if self._vec is None:
+            self._vec = np.asarray(ordered_eigh(self.D)[1], dtype=np.float64)
+        return self._vec
+
+    def chol_inv(self) -> tuple[Mat, float]:
+        """``L⁻¹`` (LAPACK ``trtri`` on the triangular factor) and ``κ_D``; raises
+        ``numpy.linalg.LinAlgError`` unless ``P_d`` is positive definite."""
+        if self._chol is None:
+            L = np.linalg.cholesky(self.D)
+            L_inv, info = lapack.dtrtri(L, lower=1)  # the triangular inverse (L⁻¹ is the map)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"P_d's Cholesky factor is singular (info {info})")
+            L_inv = np.tril(np.asarray(L_inv))
+            self._chol = (L_inv, self.trace * float((L_inv * L_inv).sum()))
+        return self._chol
+
+
+SummaryFn = Callable[[Mat, DesiredConstants], Mat]
+CombineFn = Callable[[Mat, Mat, DesiredConstants, IntervalContext], NDArray[np.float64]]
+
+
+@dataclass(frozen=True, slots=True)
+class IntervalBound:
+    """A metric's interval bound: ``summary(X, dc)`` ``(m, q)`` of endpoints ``X`` ``(m, n, n)``,
+    and ``combine(s_A, s_B, dc, ctx)`` ``(m,)``, a lower bound of the metric over ``[A, B]``."""
+
+    summary: SummaryFn
+    combine: CombineFn
+
+
+def _f64(x: object) -> Mat:
+    return np.asarray(x, dtype=np.float64)
+
+
+def _deflate(v: Mat, n: int, ctx: IntervalContext, shift: float) -> Mat:
+    """``v (1 - ROUND n eps) - shift - ROUND n eps · scale``, clipped at 0 (every registered
+    metric is computed ``>= 0``): an absolute error ``shift`` the caller derived, plus the
+    rounding of the bound and of the metric relative to the value and to the input scale."""
+    rel = ROUND * n * EPS
+    out = v * (1.0 - rel)
+    out -= shift + rel * ctx.scale
+    return np.maximum(out, 0.0)
+
+
+# ---- spectral: ||P - P_d||_2 ----------------------------------------------------------------
+
+
+def _eig_minus_d(X: Mat, dc: DesiredConstants) -> Mat:
+    """Eigenvalues of ``X - P_d``, ascending ``(m, n)``."""
+    return _f64(np.linalg.eigvalsh(X - dc.D))
+
+
+def _spectral_combine(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> NDArray[np.float64]:
+    """``||P - P_d||_2 >= max(λmax(A - P_d), -λmin(B - P_d), 0)`` on ``A ⪯ P ⪯ B``.
+
+    Proof: ``||M||_2 = max(λmax(M), -λmin(M))`` for symmetric ``M``.  ``P ⪰ A`` gives
+    ``P - P_d ⪰ A - P_d``, so ``λmax(P - P_d) >= λmax(A - P_d)`` (Weyl); ``P ⪯ B`` gives
+    ``λmin(P - P_d) <= λmin(B - P_d)``.  Errors: each eigenvalue moves by at most ``||E||_2 <=
+    n err`` with an endpoint's error, the metric by at most ``n err`` with the completion's."""
+    v = np.maximum(sA[:, -1], -sB[:, 0])
+    return _deflate(v, dc.n, ctx, 2.0 * dc.n * ctx.err)
+
+
+# ---- abs_trace and trace_diff: the diagonal -------------------------------------------------
+
+
+def _diag_minus_d(X: Mat, dc: DesiredConstants) -> Mat:
+    """``X_ii - P_d,ii`` ``(m, n)``."""
+    return np.diagonal(X, axis1=-2, axis2=-1) - dc.diag
+
+
+def _abs_trace_combine(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> NDArray[np.float64]:
+    """``sum_i |P_ii - d_ii| >= sum_i dist(d_ii, [A_ii, B_ii])`` on ``A ⪯ P ⪯ B``, as
+    ``A_ii <= P_ii <= B_ii`` (diagonal of an interval).  ``dist`` is written
+    ``max(A_ii - d_ii, d_ii - B_ii, 0)``, valid even if rounding inverts an interval.  Errors:
+    ``n err`` from each endpoint's diagonal, ``n err`` from the completion's."""
+    v = np.maximum(np.maximum(sA, -sB), 0.0).sum(axis=1)
+    return _deflate(v, dc.n, ctx, 2.0 * dc.n * ctx.err)
+
+
+def _trace_minus_d(X: Mat, dc: DesiredConstants) -> Mat:
+    """``tr X - tr P_d`` ``(m, 1)``."""
+    return _f64((np.trace(X, axis1=-2, axis2=-1) - dc.trace)[:, None])
+
+
+def _trace_diff_combine(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> NDArray[np.float64]:
+    """``|tr P - tr P_d| >= dist(tr P_d, [tr A, tr B])``: the trace is Loewner-monotone
+    (``tr A <= tr P <= tr B``).  Errors as :func:`_abs_trace_combine`."""
+    v = np.maximum(np.maximum(sA[:, 0], -sB[:, 0]), 0.0)
+    return _deflate(v, dc.n, ctx, 2.0 * dc.n * ctx.err)
+
+
+# ---- frobenius, one_norm, inf_norm: eigenvalue intervals and entry intervals ----------------
+
+
+def _eig_and_entries(X: Mat, dc: DesiredConstants) -> Mat:
+    """``[eigenvalues of X - P_d (ascending), entries of X (row-major)]`` ``(m, n + n²)``."""
+    m, n = X.shape[0], dc.n
+    out = np.empty((m, n + n * n))
+    out[:, :n] = np.linalg.eigvalsh(X - dc.D)
+    out[:, n:] = X.reshape(m, n * n)
+    return out
+
+
+def _entry_distances(sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext) -> Mat:
+    """``|P_ij - (P_d)_ij|`` lower bounds ``(m, n, n)`` for the computed completion ``P``.
+
+    Exact ``P`` in ``[A, B]``: ``P_ii ∈ [A_ii, B_ii]`` and ``P_ij ∈ [max(A_ij, B_ij) - ρ_ij,
+    min(A_ij, B_ij) + ρ_ij]``, ``ρ_ij = sqrt(Δ_ii Δ_jj)`` (module docstring; on the diagonal
+    ``ρ_ii = Δ_ii`` gives the same interval).  With computed endpoints the exact ``Δ_ii`` is at
+    most the computed one ``+ 2 err``, each centre is off by ``err``, and the computed completion's
+    entry by another ``err``: the intervals are widened by ``2 err`` after inflating ``Δ``."""
+    n, e = dc.n, ctx.err
+    A = sA[:, n:].reshape(-1, n, n)
+    B = sB[:, n:].reshape(-1, n, n)
+    dlt = np.maximum(np.diagonal(B, axis1=1, axis2=2) - np.diagonal(A, axis1=1, axis2=2), 0.0)
+    dlt += 2.0 * e
+    rho = np.sqrt(dlt[:, :, None] * dlt[:, None, :])
+    lo = np.maximum(A, B) - rho
+    hi = np.minimum(A, B) + rho
+    d = np.arange(n)
+    lo[:, d, d] = np.diagonal(A, axis1=1, axis2=2)
+    hi[:, d, d] = np.diagonal(B, axis1=1, axis2=2)
+    lo -= 2.0 * e
+    hi += 2.0 * e
+    return _f64(np.maximum(np.maximum(lo - dc.D, dc.D - hi), 0.0))
+
+
+def _eig_distances(sA: Mat, sB: Mat, n: int) -> Mat:
+    """``|λ_i(P - P_d)|`` lower bounds ``(m, n)``: ``λ_i(A - P_d) <= λ_i(P - P_d) <= λ_i(B -
+    P_d)`` (Weyl), so ``|λ_i| >= max(λ_i(A - P_d), -λ_i(B - P_d), 0)``."""
+    return np.maximum(np.maximum(sA[:, :n], -sB[:, :n]), 0.0)
+
+
+def _frobenius_combine(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> NDArray[np.float64]:
+    """``||P - P_d||_F`` is at least
+
+    - ``sqrt(sum_i dist_i²)`` with ``dist_i`` the eigenvalue distances (``||M||_F² = sum_i
+      λ_i(M)²``, :func:`_eig_distances`); errors: the sorted eigenvalue vector of an endpoint moves
+      by at most ``||E||_F <= n err`` in 2-norm (Mirsky), twice, and the metric by ``n err`` with
+      the completion's error: ``3 n err``;
+    - ``sqrt(sum_ij dist_ij²)`` with the entry distances of :func:`_entry_distances` (their
+      errors already included)."""
+    n = dc.n
+    ev = _eig_distances(sA, sB, n)
+    v_eig = _deflate(np.sqrt((ev * ev).sum(axis=1)), n, ctx, 3.0 * n * ctx.err)
+    en = _entry_distances(sA, sB, dc, ctx)
+    v_ent = _deflate(np.sqrt((en * en).sum(axis=(1, 2))), n, ctx, 0.0)
+    return np.maximum(v_eig, v_ent)
+
+
+def _induced_combine(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> NDArray[np.float64]:
+    """``||P - P_d||_1`` (= ``||P - P_d||_inf`` for symmetric matrices) is at least
+
+    - ``max_j sum_i dist_ij`` with the entry distances of :func:`_entry_distances`;
+    - the spectral bound (``||M||_2 <= sqrt(||M||_1 ||M||_inf) = ||M||_1`` for symmetric ``M``),
+      errors as :func:`_spectral_combine`."""
+    n = dc.n
+    v_sp = _deflate(np.maximum(sA[:, n - 1], -sB[:, 0]), n, ctx, 2.0 * n * ctx.err)
+    en = _entry_distances(sA, sB, dc, ctx)
+    v_ent = _deflate(en.sum(axis=1).max(axis=1), n, ctx, 0.0)
+    return np.maximum(v_sp, v_ent)
+
+
+# ---- logdet and kl: generalized eigenvalues of (P, P_d) -------------------------------------
+
+
+def _gen_eig(X: Mat, dc: DesiredConstants) -> Mat:
+    """Eigenvalues of ``L⁻¹ X L⁻ᵀ`` (``P_d = L Lᵀ``), ascending ``(m, n)``: the generalized
+    eigenvalues ``x_i`` of the pencil ``(X, P_d)``."""
+    L_inv, _ = dc.chol_inv()
+    return _f64(np.linalg.eigvalsh(L_inv @ X @ L_inv.T))
+
+
+def _gen_eig_clip(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> tuple[Mat, float] | None:
+    """The point of each widened interval ``[x_i(A), x_i(B)]`` closest to 1, ``(m, n)``, and the
+    rounding allowance of the metric's Cholesky log-determinants / solves relative to the
+    condition numbers; ``None`` when the error model is too coarse to say anything.
+
+    ``A ⪯ P ⪯ B`` gives ``L⁻¹AL⁻ᵀ ⪯ L⁻¹PL⁻ᵀ ⪯ L⁻¹BL⁻ᵀ`` (congruence), so ``x_i(A) <= x_i(P) <=
+    x_i(B)`` (Weyl).  Errors: ``P_exact ⪰ lam_min I`` and ``||E||_2 <= n err`` give
+    ``(1 - ρ) P_exact ⪯ P_computed ⪯ (1 + ρ) P_exact``, ``ρ = n err / lam_min``, for each endpoint
+    and for the completion (so ``x_i`` moves by a relative ``ρ`` each); computing ``L⁻¹ X L⁻ᵀ``
+    and its eigenvalues adds a relative ``ROUND n² eps κ_D`` and an absolute ``ROUND n eps
+    max x``."""
+    n = dc.n
+    _, kappa_D = dc.chol_inv()
+    rho = n * ctx.err / ctx.lam_min
+    w = 2.0 * rho + ROUND * n * n * EPS * (kappa_D + 1.0)
+    if not w < 0.5:
+        return None
+    top = np.abs(sB).max(axis=1, keepdims=True) * (ROUND * n * EPS)
+    lo = sA * (1.0 - w) - top
+    hi = sB * (1.0 + w) + top
+    x = np.minimum(np.maximum(1.0, lo), hi)
+    # the metric's rounding: Cholesky backward error (relative c n² eps per factor, times the
+    # condition number in the eigenvalues), n of them per log-determinant or solve
+    kap = ctx.kappa + kappa_D
+    return x, ROUND * n * n * n * EPS * kap
+
+
+def _logdet_combine(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> NDArray[np.float64]:
+    """``log det((P + P_d)/2) - ½ log det P - ½ log det P_d = sum_i φ(x_i)``, ``x_i`` the
+    generalized eigenvalues of ``(P, P_d)``, ``φ(x) = log((1 + x)/2) - ½ log x``:
+    ``φ'(x) = (x - 1) / (2x(1 + x))``, so ``φ`` decreases on ``(0, 1]``, increases on ``[1, ∞)``,
+    ``φ(1) = 0``.  Hence ``f >= sum_i φ(clip(1, [x_i(A), x_i(B)]))``
+    (:func:`_gen_eig_clip`).  Deflated by the rounding of the metric's three Cholesky
+    log-determinants, relative to ``n`` plus their magnitudes."""
+    got = _gen_eig_clip(sA, sB, dc, ctx)
+    m = sA.shape[0]
+    if got is None:
+        return np.zeros(m)
+    x, rel = got
+    v = (np.log1p(x) - math.log(2.0) - 0.5 * np.log(x)).sum(axis=1)
+    mag = dc.n * (1.0 + abs(math.log(ctx.lam_max)) + abs(math.log(ctx.lam_min)))
+    mag += dc.n * (1.0 + abs(math.log(max(dc.eig_desc()[0], TINY))))
+    mag += dc.n * abs(math.log(max(dc.eig_desc()[-1], TINY)))
+    return _deflate(v, dc.n, ctx, rel * mag)
+
+
+def _kl_combine(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> NDArray[np.float64]:
+    """``¼[tr(P_d⁻¹P) + tr(P⁻¹P_d) - 2n] = ¼ sum_i ψ(x_i)``, ``ψ(x) = x + 1/x - 2``, which
+    decreases on ``(0, 1]`` and increases on ``[1, ∞)`` with ``ψ(1) = 0``; hence ``f >= ¼ sum_i
+    ψ(clip(1, [x_i(A), x_i(B)]))`` (:func:`_gen_eig_clip`).  Deflated by the rounding of the
+    metric's two traces, relative to their magnitude ``tr(P_d⁻¹) λmax + tr(P_d) / λmin``."""
+    got = _gen_eig_clip(sA, sB, dc, ctx)
+    m = sA.shape[0]
+    if got is None:
+        return np.zeros(m)
+    x, rel = got
+    v = 0.25 * (x + 1.0 / x - 2.0).sum(axis=1)
+    _, kappa_D = dc.chol_inv()
+    tr_inv = kappa_D / dc.trace
+    mag = tr_inv * ctx.lam_max + dc.trace / ctx.lam_min + 2.0 * dc.n
+    return _deflate(v, dc.n, ctx, rel * mag)
+
+
+# ---- svd: size and orientation ------------------------------------------------------------
+
+
+def _eigh_desc(X: Mat, dc: DesiredConstants) -> Mat:
+    """``[eigenvalues of X descending (n), eigenvectors (n x n, column i for value i)]``
+    ``(m, n + n²)``."""
+    m, n = X.shape[0], dc.n
+    w, U = np.linalg.eigh(X)
+    out = np.empty((m, n + n * n))
+    out[:, :n] = w[:, ::-1]
+    out[:, n:] = U[:, :, ::-1].reshape(m, n * n)
+    return out
+
+
+def _svd_combine(
+    sA: Mat, sB: Mat, dc: DesiredConstants, ctx: IntervalContext
+) -> NDArray[np.float64]:
+    """The svd metric is ``orientation + ||s_P - s_D||_2``; a lower bound of each term, valid for
+    every ``P`` of the interval, is a lower bound of their sum.
+
+    **Size.**  The descending eigenvalues obey ``s_i(A) <= s_i(P) <= s_i(B)`` (Weyl), so
+    ``||s_P - s_D||_2 >= sqrt(sum_i dist(s_D,i, [s_i(A), s_i(B)])²)``; errors: ``n err`` (Mirsky)
+    for each endpoint and for the completion.
+
+    **Orientation** ``(n - sum_i |u_Pi · u_Di|) / n`` (computed clipped at 0), from ``B``'s
+    eigenvectors: every completion's computed ``P`` is within ``e = tr(B - A) + 4 n err + ROUND
+    n eps scale`` of the computed ``B`` in 2-norm (``0 ⪯ B - P ⪯ B - A``, ``||·||_2 <= tr`` for
+    PSD, the errors, LAPACK's backward error).  An eigenvalue of ``B`` separated from its
+    neighbours by ``gap > 4e + 2 rtol (max|s| + e)`` (``rtol`` the eigenvalue tie tolerance of
+    :func:`covnet.core.metrics.ordered_eigh`) keeps its rank in ``P`` and is in no tie group
+    there, so ``P``'s eigenvector is LAPACK's and, by Davis-Kahan, within ``sqrt 2 · e / (gap -
+    e)`` of ``B``'s (up to sign): ``|u_Pi · u_Di| <= |u_Bi · u_Di| + sqrt 2 e / (gap - e)``.  An
+    eigenvector without such a gap is credited nothing (``|u_Pi · u_Di| <= 1``).  On a narrow
+    interval (deep in a search, or a single subset) this credits most of the term."""
+    n = dc.n
+    s = dc.eig_desc()
+    lo, hi = sA[:, :n], sB[:, :n]
+    dist = np.maximum(np.maximum(lo - s, s - hi), 0.0)
+    size = _deflate(np.sqrt((dist * dist).sum(axis=1)), n, ctx, 3.0 * n * ctx.err)
+    U_D = dc.eigvecs()
+    m = sB.shape[0]
+    U = sB[:, n:].reshape(m, n, n)
+    e = np.maximum(hi.sum(axis=1) - lo.sum(axis=1), 0.0)
+    e += 4.0 * n * ctx.err + ROUND * n * EPS * ctx.scale
+    e = e[:, None]
+    gap = np.full((m, n), np.inf)
+    if n > 1:
+        step = hi[:, :-1] - hi[:, 1:]  # descending: gaps to the next
+        gap[:, :-1] = step
+        gap[:, 1:] = np.minimum(gap[:, 1:], step)
+    need = 4.0 * e + 2.0 * EIG_TIE_RTOL * (np.abs(hi).max(axis=1, keepdims=True) + e)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slack = np.where(gap > need, math.sqrt(2.0) * e / (gap - e), 1.0)
+    cos = np.abs(np.einsum("mki,ki->mi", U, U_D))
+    orient = (n - np.minimum(cos + slack, 1.0).sum(axis=1)) / n - ROUND * n * EPS
+    return _f64(size + np.maximum(orient, 0.0))
+
+
+#: metric name -> its interval bound (every metric of :data:`covnet.core.metrics.METRICS`)
+INTERVAL_BOUNDS: dict[str, IntervalBound] = {
+    "spectral": IntervalBound(_eig_minus_d, _spectral_combine),
+    "abs_trace": IntervalBound(_diag_minus_d, _abs_trace_combine),
+    "trace_diff": IntervalBound(_trace_minus_d, _trace_diff_combine),
+    "frobenius": IntervalBound(_eig_and_entries, _frobenius_combine),
+    "one_norm": IntervalBound(_eig_and_entries, _induced_combine),
+    "inf_norm": IntervalBound(_eig_and_entries, _induced_combine),
+    "logdet": IntervalBound(_gen_eig, _logdet_combine),
+    "kl": IntervalBound(_gen_eig, _kl_combine),
+    "svd": IntervalBound(_eigh_desc, _svd_combine),
+}
+
+
+def interval_lower_bound(
+    metric: str,
+    A: Mat,
+    B: Mat,
+    P_d: Mat | DesiredConstants,
+    ctx: IntervalContext,
+) -> NDArray[np.float64]:
+    """A lower bound of ``min { metric(P, P_d) : A ⪯ P ⪯ B }`` for every interval of the batch
+    (``A``, ``B`` ``(m, n, n)`` or one ``(n, n)`` pair, giving ``(m,)`` or a 0-d array), valid for
+    the metric as computed on any ``P`` within ``ctx.err`` of the interval.
+
+    ``metric``: a name of :data:`INTERVAL_BOUNDS`; ``P_d``: the desired covariance or its
+    :class:`DesiredConstants` (reused across calls)."""
+    try:
+        bound = INTERVAL_BOUNDS[metric]
+    except KeyError:
+        raise KeyError(
+            f"no interval bound for metric {metric!r}; known: {', '.join(sorted(INTERVAL_BOUNDS))}"
+        ) from None
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    if A.shape != B.shape or A.ndim not in (2, 3) or A.shape[-1] != A.shape[-2]:
+        raise ValueError(f"A and B must both be (m, n, n) or (n, n), got {A.shape} and {B.shape}")
+    one = A.ndim == 2
+    if one:
+        A, B = A[None], B[None]
+    dc = P_d if isinstance(P_d, DesiredConstants) else DesiredConstants(np.asarray(P_d))
+    if dc.D.shape != A.shape[1:]:
+        raise ValueError(f"P_d must be {A.shape[1:]} like A and B, got {dc.D.shape}")
+    with np.errstate(all="ignore"):
+        v = bound.combine(bound.summary(A, dc), bound.summary(B, dc), dc, ctx)
+    v = np.where(np.isnan(v), 0.0, v)
+    return v[0] if one else v

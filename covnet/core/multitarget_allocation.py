@@ -1,0 +1,674 @@
+"""Multi-target covariance control: which target each sensor dwells on, or off (spec:
+``multitarget.md`` §3).
+
+An assignment ``a = (a_0..a_{N-1})``, ``a_j ∈ {OFF, 0..T-1}``, gives each target ``t``::
+
+    P_t(a) = ((P_t⁻)⁻¹ + Σ_{j : a_j = t} J_{j,t})⁻¹
+
+with the per-(sensor, target) information ``J_{j,t}`` (``(N, T, n, n)``, the caller's, already
+scaled by the detection probability), and the decision is::
+
+    a* = argmin_{a feasible}  F(a),    F(a) = Σ_t w_t · f(P_t(a), P_d,t).
+
+**Feasible**: ``a_j = t`` only where ``feasible[j, t]`` (coverage); excluded sensors off;
+required sensors on (any feasible target); at most ``max_active`` sensors on, at most
+``max_per_target`` on each target; at least one sensor on (as the single-target problem, whose
+subsets are non-empty).  The entries ``J[j, t]`` of infeasible pairs are ignored.
+
+**Arithmetic** (both allocators, bit for bit): per target ``J_t = 0; J_t = J_t + J[j, t]`` over
+its sensors in ascending index order, ``P_t = spd_inverse(spd_inverse(P_t⁻) + J_t)``
+(:func:`covnet.core.allocation.subset_covariance`), ``v_t = f(P_t, P_d,t)``, and ``F = 0;
+F = F + w_t · v_t`` over ``t = 0..T-1``.  Inputs are validated and symmetrised as the
+single-target allocator does (per target).
+
+**Tie rule**: among the assignments with ``F <= F* + tie_rtol · max(|F*|, tiny)``, the fewest
+sensors on, then the lexicographically smallest vector ``(a_0..a_{N-1})`` under the order
+``target 0 < target 1 < ... < target T-1 < OFF``.  For ``T = 1`` this is exactly the
+single-target rule (among subsets of one size, the lexicographically smallest ascending index
+tuple is the one that has the lowest index where two differ, i.e. *on* before *off*; note that
+the order ``OFF < target 0 < ...`` the spec names would pick the opposite for ``T = 1``).
+
+Two implementations return the same :class:`Assignment`:
+
+- :func:`allocate_assignments_exhaustive`: the plain reference, a loop over every assignment of
+  ``{OFF} ∪ feasible targets`` per sensor, one information-form solve and one metric call per
+  target each;
+- :func:`allocate_assignments`: exact and fast, from the structure of ``F``.  Once the sensor
+  sets ``S_t = {j : a_j = t}`` are fixed ``F = Σ_t w_t g_t(S_t)`` separates over targets.  For
+  every target a table of *lower bounds* ``L_t(S) <= g_t(S)`` of every subset of its feasible
+  sensors (the reduced information form and the degenerate-interval bounds of
+  :mod:`covnet.core.interval_bounds`, batched: no metric call), then a dynamic programme over the
+  set ``R`` of sensors still free (``H_t(R) = min_{S ⊆ R} w_t L_t(S) + H_{t+1}(R - S)``, a
+  min-plus subset convolution, ``O(3^N)``; the last stage holds the constraints on the sensors
+  left off), gives a lower bound of every completion of a partial assignment.  The bound's
+  optimum is evaluated exactly (the incumbent ``U``), every assignment whose bound does not
+  exceed ``τ = U + tie_rtol · max(|U|, tiny)`` is enumerated (each step of the enumeration keeps
+  only prefixes with a completion below ``τ``), evaluated exactly per (target, set), and the tie
+  rule runs on the reference's values.  As ``0 <= F* <= U`` and every bound is below the value it
+  bounds (nonnegative terms: the sums' rounding is covered by a relative ``16 T eps`` on ``τ``),
+  no member of the reference's tie set is missed.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from numbers import Integral
+
+import numpy as np
+from numpy.typing import NDArray
+
+from covnet.core._allocation_fast import gain_sums, spd_inverse, tie_threshold
+from covnet.core.allocation import (
+    Constraints,
+    InfeasibleAllocation,
+    _check_rtol,
+    _checked_pd,
+    _prepare,
+    _resolve_metric,
+    _spd_error,
+    subset_covariance,
+)
+from covnet.core.gaussian import Mat
+from covnet.core.metrics import MetricFn
+from covnet.core.search import _Problem
+
+__all__ = [
+    "OFF",
+    "Assignment",
+    "MultiConstraints",
+    "allocate_assignments",
+    "allocate_assignments_exhaustive",
+]
+
+#: ``a_j = OFF``: sensor ``j`` dwells on no target
+OFF = -1
+TINY = float(np.finfo(np.float64).tiny)
+EPS = float(np.finfo(np.float64).eps)
+#: the fast allocator keeps tables of ``2^N`` entries: at most this many allowed sensors
+MAX_SENSORS = 22
+#: the subset convolution enumerates its (subset, rest) pairs in chunks of about this many, or
+#: from one cached table of all ``3^m`` pairs up to this many sensors
+PAIR_CHUNK = 1 << 17
+PAIR_TABLE_BITS = 12
+
+
+@dataclass(frozen=True, slots=True)
+class MultiConstraints:
+    """Which assignments are feasible (besides coverage, ``feasible``):
+
+    - ``excluded``: sensors always off; ``required``: sensors always on (any feasible target);
+    - ``max_active``: at most this many sensors on in total (``None``: no budget);
+    - ``max_per_target``: at most this many on each target (an int for every target, or one per
+      target; ``None``: no limit).
+    """
+
+    excluded: frozenset[int] = frozenset()
+    required: frozenset[int] = frozenset()
+    max_active: int | None = None
+    max_per_target: int | tuple[int, ...] | None = None
+
+
+NO_CONSTRAINTS = MultiConstraints()
+
+
+@dataclass(frozen=True, slots=True)
+class Assignment:
+    """The chosen assignment of one multi-target decision.
+
+    ``assignment``: ``a_j`` per sensor (a target index or :data:`OFF`); ``sets``: each target's
+    sensors, ascending; ``value``: ``F = Σ_t w_t v_t`` (the module's arithmetic); ``values``: the
+    per-target ``v_t = f(P_t, P_d,t)``; ``P``: ``(T, n, n)`` the targets' covariances;
+    ``n_candidates``: assignments whose ``F`` was computed exactly; ``n_evaluated``: exact
+    per-target evaluations (one solve and one metric call each); ``n_feasible``: the number of
+    feasible assignments (the reference counts them; ``None`` for the fast path).
+    """
+
+    assignment: tuple[int, ...]
+    sets: tuple[tuple[int, ...], ...]
+    value: float
+    values: tuple[float, ...]
+    P: NDArray[np.float64]
+    n_candidates: int
+    n_evaluated: int
+    n_feasible: int | None
+
+    @property
+    def n_active(self) -> int:
+        return sum(a != OFF for a in self.assignment)
+
+
+# --------------------------------------------------------------------------------------------
+# validation, shared by both allocators
+# --------------------------------------------------------------------------------------------
+
+
+class _Inputs:
+    """Validated inputs: ``P_pred``, ``P_d`` ``(T, n, n)`` symmetrised; ``J`` ``(N, T, n, n)``
+    symmetrised, zero on infeasible pairs; ``w`` the weights (Python floats); ``feasible``
+    ``(N, T)``; ``f`` the metric; ``options[j]``: the values ``a_j`` may take, in tie order
+    (targets ascending, then ``OFF``); ``K`` the budget; ``caps`` per-target limits."""
+
+    def __init__(
+        self,
+        P_pred: Mat,
+        J: Mat,
+        P_d: Mat,
+        metric: str | MetricFn,
+        weights: Sequence[float] | Mat | None,
+        feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None,
+        constraints: MultiConstraints,
+        tie_rtol: float,
+    ) -> None:
+        Pp = np.asarray(P_pred, dtype=np.float64)
+        if Pp.ndim != 3 or Pp.shape[1] != Pp.shape[2] or Pp.shape[0] == 0 or Pp.shape[1] == 0:
+            raise ValueError(f"P_pred must be (T, n, n) (one per target), got shape {Pp.shape}")
+        T, n = Pp.shape[0], Pp.shape[1]
+        Dd = np.asarray(P_d, dtype=np.float64)
+        if Dd.shape != (T, n, n):
+            raise ValueError(f"P_d must be ({T}, {n}, {n}) like P_pred, got shape {Dd.shape}")
+        Jj = np.asarray(J, dtype=np.float64)
+        if Jj.ndim != 4 or Jj.shape[1:] != (T, n, n):
+            raise ValueError(f"J must be (N, {T}, {n}, {n}) (one J_jt per pair), got {Jj.shape}")
+        N = Jj.shape[0]
+        if feasible is None:
+            feas = np.ones((N, T), dtype=bool)
+        else:
+            feas = np.asarray(feasible)
+            if feas.shape != (N, T) or feas.dtype != np.bool_:
+                raise ValueError(f"feasible must be a ({N}, {T}) boolean array, got {feas.shape}")
+        if weights is None:
+            w = np.ones(T)
+        else:
+            w = np.asarray(weights, dtype=np.float64)
+            if w.shape != (T,) or not (np.isfinite(w).all() and (w > 0).all()):
+                raise ValueError(f"weights must be {T} finite positive numbers, got {weights!r}")
+        self.f, self.name = _resolve_metric(metric)
+        _check_rtol(tie_rtol)
+        if not isinstance(constraints, MultiConstraints):
+            raise TypeError(f"constraints must be a MultiConstraints, got {type(constraints)}")
+        Jz = np.where(feas[:, :, None, None], Jj, 0.0)
+        P_list, D_list, G_list = [], [], []
+        for t in range(T):
+            P_t, D_t = _checked_pd(Pp[t], Dd[t])
+            # per target: the single-target validation (shape, finiteness, symmetry, PSD)
+            G_t = _prepare(Jz[:, t], Constraints(), tables=False).gains if N else Jz[:, t]
+            P_list.append(P_t)
+            D_list.append(D_t)
+            G_list.append(G_t)
+        self.P_pred = np.array(P_list)
+        self.D = np.array(D_list)
+        self.J = np.stack(G_list, axis=1) if N else Jz
+        self.w = [float(x) for x in w]
+        self.feasible = feas
+        self.N, self.T, self.n = N, T, n
+        self.tie_rtol = float(tie_rtol)
+        c = constraints
+        for label, idx in (("excluded", c.excluded), ("required", c.required)):
+            bad = sorted(
+                str(j)
+                for j in idx
+                if not isinstance(j, Integral) or isinstance(j, bool) or not 0 <= j < N
+            )
+            if bad:
+                raise ValueError(
+                    f"{label} sensor indices must be integers in [0, {N}), got {', '.join(bad)}"
+                )
+        both = c.excluded & c.required
+        if both:
+            raise ValueError(f"sensors {sorted(both)} are both excluded and required")
+        K = c.max_active
+        if K is not None:
+            if not isinstance(K, Integral) or isinstance(K, bool) or K < 1:
+                raise ValueError(f"max_active must be an integer >= 1 or None, got {K!r}")
+            if K < len(c.required):
+                raise ValueError(
+                    f"max_active={K} is smaller than the {len(c.required)} required sensors "
+                    f"{sorted(c.required)}"
+                )
+        self.K = N if K is None else int(K)
+        cap = c.max_per_target
+        caps: list[object]
+        if cap is None:
+            caps = [N] * T
+        elif isinstance(cap, Integral) and not isinstance(cap, bool):
+            caps = [int(cap)] * T
+        elif isinstance(cap, tuple | list):
+            caps = list(cap)
+        else:
+            caps = []
+        if len(caps) != T or any(
+            not isinstance(x, Integral) or isinstance(x, bool) or x < 0 for x in caps
+        ):
+            raise ValueError(
+                f"max_per_target must be an integer >= 0, {T} of them, or None, got {cap!r}"
+            )
+        self.caps = [int(x) for x in caps if isinstance(x, Integral)]
+        self.excluded, self.required = c.excluded, c.required
+        self.options: list[list[int]] = []
+        for j in range(N):
+            targets = [] if j in c.excluded else [t for t in range(T) if feas[j, t]]
+            if j in c.required:
+                if not targets:
+                    raise InfeasibleAllocation(f"required sensor {j} has no feasible target")
+                self.options.append(targets)
+            else:
+                self.options.append(targets + [OFF])
+        if N == 0:
+            raise InfeasibleAllocation("no sensors: J is empty, so no assignment has one on")
+        if all(opts == [OFF] for opts in self.options):
+            raise InfeasibleAllocation("no sensor has a feasible target (excluded or no coverage)")
+
+    def target_value(self, t: int, sensors: Sequence[int]) -> tuple[float, Mat]:
+        """``v_t`` and ``P_t`` of target ``t`` with ``sensors`` (ascending): the reference's
+        arithmetic, one solve and one metric call."""
+        Jt = np.zeros((self.n, self.n))
+        for j in sensors:
+            Jt = Jt + self.J[j, t]
+        P_t = subset_covariance(self.P_pred[t], Jt)
+        v = float(np.asarray(self.f(P_t, self.D[t]), dtype=np.float64))
+        if not math.isfinite(v):
+            raise ValueError(f"metric returned a non-finite value for target {t}, {tuple(sensors)}")
+        return v, P_t
+
+    def total(self, values: Sequence[float]) -> float:
+        """``F = 0; F = F + w_t v_t`` over the targets in order."""
+        F = 0.0
+        for t in range(self.T):
+            F = F + self.w[t] * values[t]
+        return F
+
+    def tie_key(self, a: Sequence[int]) -> tuple[int, tuple[int, ...]]:
+        """Sort key of the tie rule: sensors on, then the vector with ``OFF`` after every
+        target."""
+        return (sum(x != OFF for x in a), tuple(self.T if x == OFF else x for x in a))
+
+
+def _result(
+    inp: _Inputs,
+    a: Sequence[int],
+    values: Sequence[float],
+    P: Sequence[Mat],
+    n_candidates: int,
+    n_evaluated: int,
+    n_feasible: int | None,
+) -> Assignment:
+    sets = tuple(tuple(j for j in range(inp.N) if a[j] == t) for t in range(inp.T))
+    return Assignment(
+        tuple(int(x) for x in a),
+        sets,
+        inp.total(values),
+        tuple(float(v) for v in values),
+        np.array(P),
+        n_candidates,
+        n_evaluated,
+        n_feasible,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# the plain reference
+# --------------------------------------------------------------------------------------------
+
+
+def allocate_assignments_exhaustive(
+    P_pred: Mat,
+    J: Mat,
+    P_d: Mat,
+    metric: str | MetricFn,
+    weights: Sequence[float] | Mat | None = None,
+    feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None = None,
+    constraints: MultiConstraints = NO_CONSTRAINTS,
+    tie_rtol: float = 1e-9,
+) -> Assignment:
+    """The plain reference: every assignment (each sensor off or on one of its feasible
+    targets) in turn, the feasible ones scored with the module's arithmetic (``T`` solves and
+    metric calls each), then the tie rule.  ``(T+1)^N`` assignments: for small problems and
+    tests; :func:`allocate_assignments` returns the same."""
+    inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol)
+    best: list[tuple[float, tuple[int, ...], list[float], list[Mat]]] = []
+    n_feasible = 0
+    try:
+        for a in itertools.product(*inp.options):
+            on = [x for x in a if x != OFF]
+            if not on or len(on) > inp.K:
+                continue
+            counts = [on.count(t) for t in range(inp.T)]
+            if any(counts[t] > inp.caps[t] for t in range(inp.T)):
+                continue
+            values, Ps = [], []
+            for t in range(inp.T):
+                v, P_t = inp.target_value(t, [j for j in range(inp.N) if a[j] == t])
+                values.append(v)
+                Ps.append(P_t)
+            n_feasible += 1
+            best.append((inp.total(values), a, values, Ps))
+    except np.linalg.LinAlgError as exc:
+        raise _spd_error(exc) from exc
+    if not best:
+        raise InfeasibleAllocation("no assignment satisfies the constraints")
+    F_star = min(F for F, _, _, _ in best)
+    thr = tie_threshold(F_star, inp.tie_rtol)
+    F, a, values, Ps = min((b for b in best if b[0] <= thr), key=lambda b: inp.tie_key(b[1]))
+    n_eval = n_feasible * inp.T
+    return _result(inp, a, values, Ps, n_feasible, n_eval, n_feasible)
+
+
+# --------------------------------------------------------------------------------------------
+# the fast exact allocator
+# --------------------------------------------------------------------------------------------
+
+
+def _popcount(x: NDArray[np.int64]) -> NDArray[np.int64]:
+    c = np.zeros(x.shape, dtype=np.int64)
+    y = x.copy()
+    while y.any():
+        c += y & 1
+        y >>= 1
+    return c
+
+
+def _submasks(mask: int, m: int) -> NDArray[np.int64]:
+    """Every subset of the bit set ``mask`` (bits below ``m``), as an ascending array."""
+    bits = [b for b in range(m) if mask >> b & 1]
+    out = np.zeros(1 << len(bits), dtype=np.int64)
+    for i, b in enumerate(bits):
+        half = 1 << i
+        out[half : 2 * half] = out[:half] | (1 << b)
+    return out
+
+
+class _Target:
+    """One target's table over the subsets of its feasible sensors: ``subs`` the subsets (bit
+    ``b`` = allowed sensor ``b``) with at most ``cap`` sensors, ``lb`` lower bounds of
+    ``g_t(S)`` (the reference's value) from the reduced form and the degenerate-interval
+    bounds, and the exact values computed on demand (``value``)."""
+
+    def __init__(self, inp: _Inputs, t: int, allowed: list[int], tab: _Problem | None) -> None:
+        self.inp, self.t, self.allowed = inp, t, allowed
+        m = len(allowed)
+        fmask = 0
+        for b, j in enumerate(allowed):
+            if inp.feasible[j, t]:
+                fmask |= 1 << b
+        subs = _submasks(fmask, m)
+        if inp.caps[t] < m:
+            subs = subs[_popcount(subs) <= inp.caps[t]]
+        self.subs = subs
+        self.exact: dict[int, tuple[float, Mat]] = {}
+        self.lb = self._bounds(tab, subs, m)
+
+    def _bounds(self, prob: _Problem | None, subs: NDArray[np.int64], m: int) -> Mat:
+        if prob is None or prob.bound is None:  # no interval bound: the exact values
+            masks = self._masks(subs)
+            return self._evaluate(subs, masks)
+        G = prob.G
+        s = prob.s
+        rr = prob.r * prob.r
+        S_rows = np.zeros((m, rr))
+        for b, j in enumerate(self.allowed):
+            if rr:
+                S_rows[b] = G[j][np.ix_(s, s)].reshape(rr)
+        bits = ((subs[:, None] >> np.arange(m)) & 1).astype(np.float64)
+        out = np.empty(subs.size)
+        step = 1 << 14
+        for lo in range(0, subs.size, step):
+            Z = prob.base[None] + bits[lo : lo + step] @ S_rows
+            sB = prob.summary(Z)
+            out[lo : lo + step] = prob.combine(sB, sB)
+        return out
+
+    def _masks(self, subs: NDArray[np.int64]) -> NDArray[np.bool_]:
+        m = len(self.allowed)
+        bits = ((subs[:, None] >> np.arange(m)) & 1).astype(bool)
+        masks = np.zeros((subs.size, self.inp.N), dtype=bool)
+        masks[:, self.allowed] = bits
+        return masks
+
+    def _evaluate(self, subs: NDArray[np.int64], masks: NDArray[np.bool_]) -> Mat:
+        """Exact values (the reference's arithmetic) of the subsets, kept in ``exact``."""
+        inp, t = self.inp, self.t
+        Y0 = spd_inverse(inp.P_pred[t])
+        out = np.empty(subs.size)
+        step = 4096
+        for lo in range(0, subs.size, step):
+            mk = masks[lo : lo + step]
+            P = spd_inverse(Y0 + gain_sums(inp.J[:, t], mk))
+            if inp.name is None:  # a user's metric: called as the reference calls it
+                v = np.array([float(np.asarray(inp.f(P_i, inp.D[t]))) for P_i in P])
+            else:  # registered metrics are batch-invariant
+                v = np.asarray(inp.f(P, inp.D[t]), dtype=np.float64).reshape(-1)
+            if not np.isfinite(v).all():
+                raise ValueError(f"metric returned a non-finite value for target {t}")
+            for i, code in enumerate(subs[lo : lo + step].tolist()):
+                self.exact[code] = (float(v[i]), P[i])
+            out[lo : lo + mk.shape[0]] = v
+        return out
+
+    def values(self, codes: list[int]) -> None:
+        """Make sure the exact values of ``codes`` are known."""
+        todo = sorted({c for c in codes if c not in self.exact})
+        if todo:
+            arr = np.array(todo, dtype=np.int64)
+            self._evaluate(arr, self._masks(arr))
+
+
+def _convolve(f_subs: NDArray[np.int64], f_val: Mat, g: Mat, m: int) -> Mat:
+    """The min-plus subset convolution ``h(R) = min_{S ⊆ R} f(S) + g(R - S)`` over all bit sets
+    ``R`` of ``m`` bits, with ``f`` given on the subsets ``f_subs`` (``+inf`` elsewhere): every
+    pair (``S``, ``Q``) with ``S ∩ Q = ∅`` once, in chunks (``np.minimum.at``)."""
+    size = 1 << m
+    h = np.full(size, np.inf)
+    if m <= PAIR_TABLE_BITS:  # every disjoint pair at once, from a cached table
+        S_all, Q_all, R_all = _pair_table(m)
+        f_full = np.full(size, np.inf)
+        f_full[f_subs] = f_val
+        np.minimum.at(h, R_all, f_full[S_all] + g[Q_all])
+        return h
+    finite = np.isfinite(f_val)
+    f_subs, f_val = f_subs[finite], f_val[finite]
+    if f_subs.size == 0:
+        return h
+    # for each S, the rests Q ⊆ complement(S): chunks of S by popcount keep memory bounded
+    comp_bits = m - _popcount(f_subs)
+    order = np.argsort(comp_bits, kind="stable")
+    f_subs, f_val, comp_bits = f_subs[order], f_val[order], comp_bits[order]
+    full = size - 1
+    lo = 0
+    while lo < f_subs.size:
+        k = int(comp_bits[lo])
+        per = 1 << k
+        hi = lo
+        while hi < f_subs.size and comp_bits[hi] == k and (hi - lo + 1) * per <= PAIR_CHUNK:
+            hi += 1
+        hi = max(hi, lo + 1)
+        S = f_subs[lo:hi]
+        # submasks of each complement: all Q with Q & S == 0, via the sub-bit enumeration
+        comp = full ^ S
+        Q = _submask_rows(comp, m, k)
+        vals = f_val[lo:hi, None] + g[Q]
+        np.minimum.at(h, (S[:, None] | Q).reshape(-1), vals.reshape(-1))
+        lo = hi
+    return h
+
+
+@functools.lru_cache(maxsize=4)
+def _pair_table(m: int) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+    """Every pair of disjoint bit sets ``(S, Q)`` of ``m`` bits and ``R = S | Q`` (``3^m`` of
+    them: each bit in neither, in ``Q`` or in ``S``), read-only."""
+    S = np.zeros(1, dtype=np.int32)
+    Q = np.zeros(1, dtype=np.int32)
+    for b in range(m):
+        bit = np.int32(1 << b)
+        S = np.concatenate((S, S, S | bit))
+        Q = np.concatenate((Q, Q | bit, Q))
+    R = S | Q
+    for x in (S, Q, R):
+        x.flags.writeable = False
+    return S, Q, R
+
+
+def _submask_rows(masks: NDArray[np.int64], m: int, k: int) -> NDArray[np.int64]:
+    """``(len(masks), 2^k)``: every submask of each mask, all masks having ``k`` bits set."""
+    rows = masks.size
+    out = np.zeros((rows, 1 << k), dtype=np.int64)
+    rem = masks.copy()
+    for i in range(k):
+        low = rem & -rem  # the lowest remaining bit of each mask
+        rem = rem ^ low
+        half = 1 << i
+        out[:, half : 2 * half] = out[:, :half] | low[:, None]
+    return out
+
+
+def allocate_assignments(
+    P_pred: Mat,
+    J: Mat,
+    P_d: Mat,
+    metric: str | MetricFn,
+    weights: Sequence[float] | Mat | None = None,
+    feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None = None,
+    constraints: MultiConstraints = NO_CONSTRAINTS,
+    tie_rtol: float = 1e-9,
+) -> Assignment:
+    """The fast exact allocator (module docstring): the same :class:`Assignment` as
+    :func:`allocate_assignments_exhaustive` (assignment, value and ``P`` bits), with tables of
+    ``2^N`` entries per target and a dynamic programme of ``O(T 3^N)`` steps over the allowed
+    sensors (at most ``MAX_SENSORS``).  A metric without an interval bound gets exact tables
+    (one metric call per subset and target), still exact."""
+    inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol)
+    N, T = inp.N, inp.T
+    allowed = [j for j in range(N) if inp.options[j] != [OFF]]
+    m = len(allowed)
+    if m > MAX_SENSORS:
+        raise ValueError(
+            f"allocate_assignments keeps tables of 2^N entries: at most {MAX_SENSORS} sensors "
+            f"that can be on, got {m}"
+        )
+    full = (1 << m) - 1
+    req_mask = 0
+    for b, j in enumerate(allowed):
+        if j in inp.required:
+            req_mask |= 1 << b
+    try:
+        targets = []
+        for t in range(T):
+            prob = None
+            if inp.name is not None:
+                excl = frozenset(j for j in range(N) if j not in allowed or not inp.feasible[j, t])
+                if len(excl) < N:
+                    prob = _Problem(
+                        inp.P_pred[t], inp.J[:, t], inp.D[t], inp.f, Constraints(excl), tie_rtol
+                    )
+            targets.append(_Target(inp, t, allowed, prob))
+        # the last stage: the sensors left off, R; feasible iff no required one, within the
+        # budget, and at least one sensor on
+        R = np.arange(1 << m, dtype=np.int64)
+        used = m - _popcount(R)
+        ok = ((R & req_mask) == 0) & (used <= inp.K) & (R != full)
+        H: list[Mat] = [np.where(ok, 0.0, np.inf)]  # H[T - t] for t = T..1
+        for t in range(T - 1, 0, -1):
+            tg = targets[t]
+            H.insert(0, _convolve(tg.subs, inp.w[t] * tg.lb, H[0], m))
+        # H[0] is H_1 (targets 1..T-1 and the last stage), H[t - 1] is H_t
+        Hs = {t: H[t - 1] for t in range(1, T + 1)}
+        tg0 = targets[0]
+        root = inp.w[0] * tg0.lb + Hs[1][full ^ tg0.subs]
+        if not np.isfinite(root).any():
+            raise InfeasibleAllocation("no assignment satisfies the constraints")
+        # the incumbent: the bound's optimum, evaluated exactly
+        sets = _backtrack(targets, Hs, inp, full, int(np.argmin(root)))
+        U = _exact_total(targets, inp, [sets])[0]
+        tau = U + inp.tie_rtol * max(abs(U), TINY)
+        tau_b = tau * (1.0 + 16.0 * T * EPS) + TINY
+        cands = _enumerate(targets, Hs, inp, full, root, tau_b)
+        F = _exact_total(targets, inp, cands)
+    except np.linalg.LinAlgError as exc:
+        raise _spd_error(exc) from exc
+    thr = tie_threshold(float(F.min()), inp.tie_rtol)
+    best = None
+    best_key = None
+    for i in np.flatnonzero(F <= thr).tolist():
+        a = _vector(cands[i], allowed, N)
+        key = inp.tie_key(a)
+        if best_key is None or key < best_key:
+            best, best_key = i, key
+    assert best is not None
+    chosen = cands[best]
+    a = _vector(chosen, allowed, N)
+    values = [targets[t].exact[chosen[t]][0] for t in range(T)]
+    Ps = [targets[t].exact[chosen[t]][1] for t in range(T)]
+    n_eval = sum(len(tg.exact) for tg in targets)
+    return _result(inp, a, values, Ps, len(cands), n_eval, None)
+
+
+def _vector(sets: Sequence[int], allowed: list[int], N: int) -> list[int]:
+    a = [OFF] * N
+    for t, code in enumerate(sets):
+        for b, j in enumerate(allowed):
+            if code >> b & 1:
+                a[j] = t
+    return a
+
+
+def _backtrack(
+    targets: list[_Target], Hs: dict[int, Mat], inp: _Inputs, full: int, i0: int
+) -> list[int]:
+    """The sets of the bound's optimum, from the root choice ``i0`` of target 0 on."""
+    sets = [int(targets[0].subs[i0])]
+    R = full ^ sets[0]
+    for t in range(1, inp.T):
+        tg = targets[t]
+        sub = tg.subs[(tg.subs & ~R) == 0]
+        lbs = tg.lb[(tg.subs & ~R) == 0]
+        v = inp.w[t] * lbs + Hs[t + 1][R ^ sub]
+        k = int(np.argmin(v))
+        sets.append(int(sub[k]))
+        R ^= int(sub[k])
+    return sets
+
+
+def _enumerate(
+    targets: list[_Target],
+    Hs: dict[int, Mat],
+    inp: _Inputs,
+    full: int,
+    root: Mat,
+    tau: float,
+) -> list[list[int]]:
+    """Every assignment (as per-target set codes) whose bound is at most ``tau``: target by
+    target, keeping the prefixes whose least completion (``H``) stays within ``tau``."""
+    keep = np.flatnonzero(root <= tau)
+    tg0 = targets[0]
+    partial = [
+        ([int(tg0.subs[i])], full ^ int(tg0.subs[i]), inp.w[0] * float(tg0.lb[i]))
+        for i in keep.tolist()
+    ]
+    for t in range(1, inp.T):
+        tg = targets[t]
+        nxt = []
+        for sets, R, acc in partial:
+            sel = (tg.subs & ~R) == 0
+            sub, lbs = tg.subs[sel], tg.lb[sel]
+            part = acc + inp.w[t] * lbs
+            v = part + Hs[t + 1][R ^ sub]
+            for k in np.flatnonzero(v <= tau).tolist():
+                code = int(sub[k])
+                nxt.append((sets + [code], R ^ code, float(part[k])))
+        partial = nxt
+    return [sets for sets, _, _ in partial]
+
+
+def _exact_total(targets: list[_Target], inp: _Inputs, cands: list[list[int]]) -> Mat:
+    """``F`` of each candidate with the reference's arithmetic (per-target values exact, summed
+    ``F = 0; F = F + w_t v_t``)."""
+    for t, tg in enumerate(targets):
+        tg.values([c[t] for c in cands])
+    F = np.zeros(len(cands))
+    for t, tg in enumerate(targets):
+        v = np.array([tg.exact[c[t]][0] for c in cands])
+        F = F + inp.w[t] * v
+    return F
