@@ -109,6 +109,24 @@ class Kind(Protocol):
         """Redraw the figures of one of this kind's run directories."""
         ...
 
+    def rebuild(
+        self,
+        cfg: Any,
+        run_id: str,
+        episodes: list[str],
+        recording: Path,
+        out: Path,
+        run_info: dict[str, Any] | None = None,
+    ) -> Any:
+        """A network run's whole directory rebuilt from its recording alone into ``out``, with
+        the manager's own code and writer (``run_info`` merged into its ``run.json``): every
+        episode up to its last scan fully recorded, also when the recording was cut (a killed
+        recorder or manager).  Returns the :class:`covnet.replay_kit.ReplayReport` (what
+        differs from what the manager recorded, notes on the recording); raises
+        :class:`covnet.replay_kit.ReplayError` for a run that cannot be replayed at all (peer
+        mode)."""
+        ...
+
 
 def get(name: str) -> Kind:
     """The kind registered as ``name``; an unknown one is a :class:`ConfigError` at ``kind``."""

@@ -1,152 +1,44 @@
 """The mobile manager: the mobile kind's maths in the scan skeleton (:mod:`manager.loop`).
 
-What it plugs in, per scan ``k`` (the steps of :func:`covnet.mobile.simulate.run`, with the same
-functions)::
-
-    decide   predict every track to k (predict_tracks); the sensors alive are the skeleton's:
-             a failed sensor leaves the problem (decide(..., alive=mask) gives its targets to
-             others or leaves them unobserved, and its platform stays); Command(k): enabled =
-             the alive sensors, the mode and the targets of each
-    ahead    (compare_exact) the exact solver and the relaxation, while the sensors measure
-    usable   a measurement must carry its platform state and detections of commanded targets
-             only
-    fuse     each observed target updates with its detection (update_track, R from the
-             sensor's reported position and velocity); the platforms for the next decision are
-             the ones the sensors reported, a silent one dead-reckoned from its commanded mode
-             (move_platforms, as the world moves it)
-    report   the scan's rows; Track(k) per target, Status(k)
-
-The truth is computed here for the results only (errors, the true Pd of each chosen pair) and
-never sent.
+The maths of each step (decide, ahead, usable, fuse, report) is
+:class:`covnet.mobile.network.MobileSteps`, which ``covnet replay`` steps too; this module plugs
+it into the skeleton and says what the live view shows.  The truth is computed for the results
+only (errors, the true Pd of each chosen pair) and never sent.
 """
 
 from __future__ import annotations
 
 import threading
-import time
-from dataclasses import dataclass, field
 from functools import partial
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from covnet import messages as msg
-from covnet.core.mobile.decision import compare, decide_milp, relaxation
-from covnet.core.mobile.models import MODE_NAMES, predict_tracks, usage_cost
 from covnet.mobile.config import MobileConfig
-from covnet.mobile.model import (
-    build_model,
-    decide,
-    initial_tracks,
-    lp_reference,
-    move_platforms,
-    true_pd,
-    truth,
-    update_track,
-)
-from covnet.mobile.results import write_run
-from covnet.mobile.simulate import MobileRun
-from covnet.rundir import RUN_INFO, write_json
-from covnet.runtime_stats import NetStats
+from covnet.mobile.network import MobileResult, MobileSteps, write_network_run
+from covnet.network_run import ScanImpossible
 from manager import loop
-from manager.loop import WORLD_ID, Decision, Loop, ManagerError, ScanReport
-from manager.process import main_around, network_run_info
+from manager.loop import Decision, Loop, ManagerError, ScanReport
+from manager.process import main_around
 
 __all__ = ["MobileLogic", "MobileResult", "main", "run", "write_network_run"]
 
 
-@dataclass
-class MobileResult:
-    """What the loop has done so far (live while it runs; final when :func:`run` returns)."""
-
-    solver: str
-    seed: int
-    rows: dict[str, list[Any]] = field(default_factory=dict)
-    failures: list[dict[str, Any]] = field(default_factory=list)
-    stats: NetStats = field(default_factory=NetStats)
-    completed: bool = False
-    error: str | None = None
-    x0: np.ndarray | None = None
-    P0: np.ndarray | None = None
-    pos0: np.ndarray | None = None
-    truth: np.ndarray | None = None
-
-    @property
-    def scans_done(self) -> int:
-        return len(self.rows.get("modes", ()))
-
-    def as_run(self) -> MobileRun:
-        """The scans done as a :class:`MobileRun` (``covnet run``'s arrays)."""
-        assert self.x0 is not None and self.P0 is not None and self.pos0 is not None
-        assert self.truth is not None
-        n = self.scans_done
-        r = self.rows
-
-        def arr(name: str, dtype: Any = np.float64) -> np.ndarray:
-            return np.array(r[name], dtype=dtype)
-
-        def with_start(name: str, start: np.ndarray) -> np.ndarray:
-            return np.array([start, *r[name]], dtype=np.float64)
-
-        return MobileRun(
-            solver=self.solver,
-            seed=self.seed,
-            truth=self.truth[: n + 1],
-            x_est=with_start("x_est", self.x0),
-            P_post=with_start("P_post", self.P0),
-            platforms=with_start("platforms", self.pos0),
-            modes=arr("modes", np.int64).reshape(n, len(self.pos0)),
-            assign=arr("assign", np.int64).reshape(n, len(self.x0)),
-            detected=arr("detected", bool).reshape(n, len(self.x0)),
-            pd_true=arr("pd_true").reshape(n, len(self.x0)),
-            usage=arr("usage"),
-            objective=arr("objective"),
-            status=arr("status", np.int64),
-            fractional=arr("fractional", bool),
-            J_lp=arr("J_lp"),
-            J_post=arr("J_post"),
-            J_star=arr("J_star"),
-            J_relax=arr("J_relax"),
-            gap=arr("gap"),
-            conflicts=arr("conflicts", np.int64),
-            mip_gap=arr("mip_gap"),
-            exact_status=arr("exact_status", np.int64),
-            cost_s=arr("cost_s"),
-            solve_s=arr("solve_s"),
-            compare_s=arr("compare_s"),
-        )
-
-
-_COMPARISON = "J_lp J_post J_star J_relax gap conflicts mip_gap exact_status compare_s".split()
-_ROWS = (
-    "x_est P_post platforms modes assign detected pd_true usage objective status fractional "
-    "J_lp J_post J_star J_relax gap conflicts mip_gap exact_status cost_s solve_s compare_s"
-).split()
-
-
 class MobileLogic:
-    """The mobile manager's steps (module docstring) for :func:`manager.loop.run_scans`."""
+    """The mobile manager's steps (:class:`~covnet.mobile.network.MobileSteps`) for
+    :func:`manager.loop.run_scans`."""
 
     message_type = msg.Measurement
     accept_unsolicited = False
 
     def __init__(self, cfg: MobileConfig, loop: Loop) -> None:
-        self.model = model = build_model(cfg)
-        self.ids, self.tids = loop.ids, model.target_ids
+        self.steps = MobileSteps(cfg, loop.stats)
+        self.ids, self.tids = loop.ids, self.steps.tids
         self.clock = loop.clock
-        self.solver = model.solver
-        self.episodes = [self.solver]
-        self.scans, self.period_s = model.scans, model.T
-        self.X = truth(model)  # for the results only; never sent by the manager
-        self.x, self.P = initial_tracks(model)
-        self.pos = model.sensors.position.copy()
-        self.b = usage_cost(model.sensors.b0, model.sensors.b1)
-        self.result = MobileResult(
-            self.solver, model.seed, {n: [] for n in _ROWS}, stats=loop.stats
-        )
-        r = self.result
-        r.x0, r.P0, r.pos0, r.truth = self.x.copy(), self.P.copy(), self.pos.copy(), self.X
+        self.episodes = [self.steps.solver]
+        self.scans, self.period_s = self.steps.model.scans, self.steps.model.T
+        self.result = self.steps.result
 
     def start_episode(self, e: int) -> None:
         pass
@@ -155,123 +47,28 @@ class MobileLogic:
         self.result.failures.extend(events)
 
     def decide(self, e: int, k: int, failed: frozenset[str]) -> Decision:
-        model, ids, tids = self.model, self.ids, self.tids
-        self.xp, self.Pp = predict_tracks(self.x, self.P, model.targets)
-        alive = np.array([sid not in failed for sid in ids])
-        if not alive.any():
-            raise ManagerError(f"scan {k}: every sensor has failed")
-        self.step = step = decide(
-            model, self.xp, self.Pp, self.pos, alive=alive, solver=self.solver
-        )
-        d = step.decision
-        self.commanded = {
-            sid: tuple(tids[i] for i in np.flatnonzero(d.assign == j))
-            for j, sid in enumerate(ids)
-            if alive[j]
-        }
-        return Decision(
-            enabled=tuple(sid for sid, a in zip(ids, alive, strict=True) if a),
-            modes={sid: MODE_NAMES[int(d.modes[j])] for j, sid in enumerate(ids) if alive[j]},
-            targets=self.commanded,
-        )
+        try:
+            d = self.steps.decide(failed)
+        except ScanImpossible as exc:
+            raise ManagerError(f"scan {k}: {exc}") from None
+        return Decision(enabled=d.enabled, modes=d.modes, targets=d.targets)
 
     def ahead(self, e: int, k: int) -> None:
-        """The comparison with the exact solver (as ``covnet run`` makes it)."""
-        step, d = self.step, self.step.decision
-        row: dict[str, Any] = {n: np.nan for n in ("J_lp", "J_post", "J_star", "J_relax")}
-        row.update(gap=np.nan, mip_gap=np.nan, conflicts=-1, exact_status=-1, compare_s=0.0)
-        row["J_lp"] = d.J_lp
-        if d.solver != "milp":
-            row["conflicts"], row["J_post"] = d.conflicts, d.objective
-        if self.model.compare_exact:
-            t0 = time.perf_counter()
-            ref = lp_reference(step.problem, step)
-            exact = d if d.solver == "milp" else decide_milp(step.problem, self.model.options)
-            _, _, jr = relaxation(step.problem, self.model.options.linking)
-            row["compare_s"] = time.perf_counter() - t0
-            c = compare(ref, exact, jr)
-            row.update(J_lp=c.J_lp, J_post=c.J_post, J_star=c.J_star, J_relax=jr)
-            row.update(gap=c.gap, conflicts=c.conflicts, mip_gap=c.mip_gap)
-            row["exact_status"] = c.exact_status
-        self.row = row
+        self.steps.ahead()
 
     def usable(self, m: msg.Measurement) -> bool:
-        return (
-            m.platform is not None
-            and m.target_ids is not None
-            and m.z.shape[1] == 2
-            and set(m.target_ids) <= set(self.commanded.get(m.sensor_id, ()))
-        )
+        return self.steps.usable(m)
 
     def on_late(self, m: Any) -> bool | None:
         return None
 
     def fuse(self, e: int, k: int, got: dict[str, msg.Measurement]) -> dict[str, Any]:
-        model, ids, tids, d = self.model, self.ids, self.tids, self.step.decision
-        # platforms: as reported; a silent one dead-reckoned from its commanded mode
-        pos_dr, qdot = move_platforms(model, self.pos, d.modes)
-        pos = pos_dr.copy()
-        for sid, m in got.items():
-            j = ids.index(sid)
-            assert m.platform is not None
-            pos[j], qdot[j] = m.platform[:2], m.platform[2:]
-        xn, Pn = self.xp.copy(), self.Pp.copy()
-        detected = np.zeros(model.M, dtype=bool)
-        pd = np.full(model.M, np.nan)
-        usage = 0.0
-        for i in np.flatnonzero(d.assign >= 0):
-            j = int(d.assign[i])
-            usage += self.b[j, d.modes[j]]
-            pd[i] = true_pd(model, j, self.X[k, i], pos[j])
-            meas = got.get(ids[j])
-            if meas is not None and meas.target_ids is not None and tids[i] in meas.target_ids:
-                z = np.array(meas.z[meas.target_ids.index(tids[i])])
-                post = update_track(model, self.xp[i], self.Pp[i], z, j, pos[j], qdot[j])
-                xn[i], Pn[i] = post.x, post.P
-                detected[i] = True
-        self.x, self.P, self.pos = xn, Pn, pos
-        return {
-            "x_est": xn,
-            "P_post": Pn,
-            "platforms": pos.copy(),
-            "modes": d.modes,
-            "assign": d.assign,
-            "detected": detected,
-            "pd_true": pd,
-            "usage": usage,
-            "objective": d.objective,
-            "status": d.status,
-            "fractional": d.fractional,
-            "cost_s": self.step.cost_s,
-            "solve_s": self.step.solve_s,
-            **{name: self.row[name] for name in _COMPARISON},
-            "_enabled": tuple(sid for sid in ids if sid in self.commanded),
-            "_fused": tuple(sid for sid in ids if sid in got),
-        }
+        return self.steps.fuse(k, got)
 
     def report(self, e: int, k: int, fused: dict[str, Any], failed: frozenset[str]) -> ScanReport:
-        ids, tids, now = self.ids, self.tids, self.clock.now_ns
-        t = k * self.model.T
-        x, P = fused["x_est"], fused["P_post"]
-        tracks = [
-            msg.Track(scan=k, t=t, x=x[i], P=P[i], t_sent_ns=now(), target_id=tid)
-            for i, tid in enumerate(tids)
-        ]
-        trace_P = float(np.trace(P, axis1=1, axis2=2).sum())
-        objective = float(fused["objective"])
-        status = msg.Status(
-            scan=k,
-            t=t,
-            enabled=fused["_enabled"],
-            trace_P=trace_P,
-            trace_Pd=0.0,
-            value=objective if np.isfinite(objective) else 0.0,
-            t_sent_ns=now(),
-            fused=fused["_fused"],
-            failed=tuple(sorted(failed - {WORLD_ID})),
-        )
-        for name in _ROWS:
-            self.result.rows[name].append(fused[name])
+        ids, tids = self.ids, self.tids
+        tracks, status = self.steps.report(k, fused, failed, self.clock.now_ns)
+        trace_P = status.trace_P
         detected, assign = fused["detected"], fused["assign"]
         pairs = " ".join(
             f"{tid}:{ids[a] if a >= 0 else '-'}{'+' if detected[i] else ''}"
@@ -297,20 +94,6 @@ class MobileLogic:
 run = partial(loop.run, MobileLogic)
 """``run(cfg, bus, run_id, clock, stop, *, realtime, on_ready, on_status, on_progress)``: the
 scans over the bus (:func:`manager.loop.run`); returns the :class:`MobileResult`."""
-
-
-def write_network_run(
-    out: Path, cfg: MobileConfig, result: MobileResult, run_info: dict[str, Any] | None = None
-) -> dict[str, Any] | None:
-    """``covnet run``'s files for the scans done (summary.json, arrays.npz, config.json) plus
-    ``network.json`` and the network's ``run.json``; None before the first scan."""
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "network.json", result.stats.as_dict())
-    info = network_run_info("mobile", result, result.scans_done, run_info, solver=result.solver)
-    if not result.scans_done:
-        write_json(out / RUN_INFO, info)
-        return None
-    return write_run(out, cfg, result.as_run(), run_info=info)
 
 
 def main(args: Any, cfg: MobileConfig, stop: threading.Event) -> int:

@@ -5,7 +5,8 @@ Its process roles are ``manager.covariance`` (the fusion centre, or the observer
 network), ``sensors.covariance`` (a sensor, or a peer node) and ``world.covariance``.  Its run
 options are ``--seed``, ``--metric`` (the episodes: ``allocation.metrics``) and ``--fusion``
 (``fusion.mode``); each is a change of the config, so ``config.json`` records it.  Its commands
-are in :mod:`covnet.covariance_control.commands`.
+are in :mod:`covnet.covariance_control.commands`, bar ``covnet replay`` and the rebuild of a
+network run from its recording (:mod:`covnet.covariance_control.replay`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from covnet.kindkit import KindBase, lazy, seed_option
 __all__ = ["KIND"]
 
 _COMMANDS = "covnet.covariance_control.commands"
+_REPLAY = "covnet.covariance_control.replay"
 
 
 def _metrics(data: dict[str, Any], names: list[str]) -> None:
@@ -48,7 +50,7 @@ class CovarianceControl(KindBase):
     commands = {
         "compare": lazy(_COMMANDS, "compare"),
         "sweep": lazy(_COMMANDS, "sweep"),
-        "replay": lazy(_COMMANDS, "replay"),
+        "replay": lazy(_REPLAY, "command"),
         "bench:alloc": lazy(_COMMANDS, "bench_alloc"),
         "bench:fusion": lazy(_COMMANDS, "bench_fusion"),
     }
@@ -56,6 +58,7 @@ class CovarianceControl(KindBase):
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     up_problem = staticmethod(lazy(_COMMANDS, "up_problem"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
+    rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
 
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)

@@ -3,7 +3,9 @@ the kind registry (:mod:`covnet.kinds`) knows of it.
 
 Process roles: ``manager.mobile``, ``sensors.mobile``, ``world.mobile``.  Run options:
 ``--seed`` and ``--solver`` (each a change of the config).  Commands (in
-:mod:`covnet.mobile.commands`): ``covnet mc`` (seeds in parallel) and ``covnet bench mobile``.
+:mod:`covnet.mobile.commands`): ``covnet mc`` (seeds in parallel) and ``covnet bench mobile``;
+``covnet replay`` and the rebuild of a network run from its recording are
+:mod:`covnet.mobile.replay`'s.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from covnet.mobile import config
 __all__ = ["KIND"]
 
 _COMMANDS = "covnet.mobile.commands"
+_REPLAY = "covnet.mobile.replay"
 
 
 def _solver(data: dict[str, Any], value: str) -> None:
@@ -30,10 +33,15 @@ class Mobile(KindBase):
     title = "mobile"
     roles = {"manager": "manager.mobile", "sensor": "sensors.mobile", "world": "world.mobile"}
     options = {"seed": seed_option, "solver": _solver}
-    commands = {"mc": lazy(_COMMANDS, "mc"), "bench:mobile": lazy(_COMMANDS, "bench")}
+    commands = {
+        "mc": lazy(_COMMANDS, "mc"),
+        "replay": lazy(_REPLAY, "command"),
+        "bench:mobile": lazy(_COMMANDS, "bench"),
+    }
     run = staticmethod(lazy(_COMMANDS, "run"))
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
+    rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
 
     def episodes(self, cfg: Any) -> list[str]:
         return [str(cfg.solver)]

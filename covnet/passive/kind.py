@@ -3,7 +3,8 @@ sensors, issue 6): what the kind registry (:mod:`covnet.kinds`) knows of it.
 
 Process roles: ``manager.passive``, ``sensors.passive``, ``world.passive``.  Run option:
 ``--seed`` (a change of the config).  Commands (in :mod:`covnet.passive.commands`):
-``covnet mc`` (the §9 protocol) and ``covnet bench passive``.
+``covnet mc`` (the §9 protocol) and ``covnet bench passive``; ``covnet replay`` and the rebuild
+of a network run from its recording are :mod:`covnet.passive.replay`'s.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from covnet.passive import config
 __all__ = ["KIND"]
 
 _COMMANDS = "covnet.passive.commands"
+_REPLAY = "covnet.passive.replay"
 
 
 class Passive(KindBase):
@@ -24,10 +26,15 @@ class Passive(KindBase):
     title = "passive"
     roles = {"manager": "manager.passive", "sensor": "sensors.passive", "world": "world.passive"}
     options = {"seed": seed_option}
-    commands = {"mc": lazy(_COMMANDS, "mc"), "bench:passive": lazy(_COMMANDS, "bench")}
+    commands = {
+        "mc": lazy(_COMMANDS, "mc"),
+        "replay": lazy(_REPLAY, "command"),
+        "bench:passive": lazy(_COMMANDS, "bench"),
+    }
     run = staticmethod(lazy(_COMMANDS, "run"))
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
+    rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
 
     def episodes(self, cfg: Any) -> list[str]:
         return [str(cfg.association.method)]

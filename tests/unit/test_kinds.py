@@ -135,7 +135,7 @@ def test_options_are_changes_of_the_config():
 def test_a_command_a_kind_does_not_have_says_which_kinds_have_it():
     kind = kinds.get("passive")
     with pytest.raises(UsageError) as info:
-        kinds.command(kind, "replay", "replaying a recorded network run")
+        kinds.command(kind, "compare", "comparing fusion structures")
     assert "not defined for a passive scenario" in str(info.value)
     assert "covariance_control" in str(info.value)
 
