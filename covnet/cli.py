@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -22,7 +24,7 @@ from covnet import __version__, kinds
 from covnet.config import ConfigError, endpoint_problem, hash_of
 from covnet.errors import UpError, UsageError
 from covnet.messages import RESERVED_IDS, new_run_id, run_keyexpr
-from covnet.rundir import CONFIG, prepare_out, read_json
+from covnet.rundir import CONFIG, RUN_INFO, prepare_out, read_json, record_end
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -40,6 +42,10 @@ def _err(msg: str) -> None:
     print(f"covnet: error: {msg}", file=sys.stderr)
 
 
+def _note(msg: str) -> None:
+    print(f"covnet: {msg}", file=sys.stderr)
+
+
 def _options(args: argparse.Namespace, *names: str) -> dict[str, Any]:
     """The run options among ``names`` that the command line gave."""
     return {n: getattr(args, n, None) for n in names}
@@ -55,9 +61,24 @@ RUN_OPTIONS = ("seed", "metric", "fusion", "solver")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    """``covnet run``: the results are written once, when every scan is done (then
+    ``run.json`` says ``completed``), the figures after them; a Ctrl-C before the results
+    leaves nothing, one while drawing leaves the complete results."""
     kind, cfg = _load(args, *RUN_OPTIONS)
     out = prepare_out(args.out, cfg.name, args.force)
-    return int(kind.run(cfg, out, figures=not args.no_figures))
+    try:
+        status = int(kind.run(cfg, out, figures=not args.no_figures))
+    except KeyboardInterrupt:
+        if (out / RUN_INFO).is_file():
+            record_end(out, "completed", "every scan done (figures interrupted)")
+            _note(f"interrupted while drawing the figures: {out} holds the complete results "
+                  f"(covnet plot {out} draws them)")  # fmt: skip
+        else:
+            _note("interrupted before the results were written: nothing written")
+        raise
+    if status == EXIT_OK:
+        record_end(out, "completed", "every scan done")
+    return status
 
 
 def cmd_mc(args: argparse.Namespace) -> int:
@@ -415,9 +436,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops a command as Ctrl-C does
     try:
         return int(args.func(args))
     except ConfigError as exc:

@@ -10,6 +10,12 @@ The file names every kind shares are constants here: ``config.json`` (the normal
 run used), ``run.json`` (wall-clock facts: creation time, version, timings, process layout:
 what a replay cannot and need not reproduce), ``summary.json`` and ``arrays.npz`` (what the
 config and seed determine).
+
+How a run or batch ended is in ``run.json`` (:func:`record_end`), for every command and kind:
+``status`` (:data:`STATUSES`: ``completed``, ``interrupted`` by Ctrl-C or SIGTERM, ``failed``),
+``ended`` (why, in words) and the command's counts (``scans_completed`` per episode for a run,
+``runs_completed`` / ``runs_total`` for a batch).  A directory without a ``status`` is still
+being written (or was written by an older covnet).
 """
 
 from __future__ import annotations
@@ -24,18 +30,22 @@ from typing import Any
 
 import numpy as np
 
+from covnet import __version__
 from covnet.errors import UsageError
 
 __all__ = [
     "ARRAYS",
     "CONFIG",
+    "LIVE",
     "RUN_INFO",
+    "STATUSES",
     "SUMMARY",
     "atomic_write",
     "load_arrays",
     "new_run_dir",
     "prepare_out",
     "read_json",
+    "record_end",
     "utc_now",
     "write_json",
     "write_npz",
@@ -45,6 +55,10 @@ SUMMARY = "summary.json"
 ARRAYS = "arrays.npz"
 CONFIG = "config.json"
 RUN_INFO = "run.json"
+LIVE = "live.json"
+"""A network run's live snapshot (the manager's last STATUS), while it runs; the results
+(``summary.json``, ``arrays.npz``, ...) are written once, when the run ends."""
+STATUSES = ("completed", "interrupted", "failed")
 
 
 def new_run_dir(name: str, base: Path = Path("runs")) -> Path:
@@ -60,6 +74,7 @@ def new_run_dir(name: str, base: Path = Path("runs")) -> Path:
 OUTPUT_MARKERS = (
     CONFIG,
     RUN_INFO,
+    LIVE,
     SUMMARY,
     "processes.json",
     "recording.mcap",
@@ -145,6 +160,25 @@ def load_arrays(path: Path) -> dict[str, np.ndarray]:
     """Every array of an ``.npz`` file, read into memory (the file is closed on return)."""
     with np.load(path) as data:
         return {k: data[k] for k in data.files}
+
+
+def record_end(out: Path, status: str, ended: str, **facts: Any) -> None:
+    """Merge how the run ended into ``out/run.json`` (created if missing): ``status`` (one of
+    :data:`STATUSES`), ``ended`` (why) and ``facts``; atomically."""
+    if status not in STATUSES:
+        raise ValueError(f"status: one of {STATUSES}, got {status!r}")
+    path = Path(out) / RUN_INFO
+    info: dict[str, Any] = {}
+    if path.is_file():
+        try:
+            info = json.loads(path.read_text())
+        except ValueError:
+            info = {}
+    if not info:
+        info = {"created_utc": utc_now(), "covnet_version": __version__}
+    info.update({"status": status, "ended": ended, **facts})
+    Path(out).mkdir(parents=True, exist_ok=True)
+    write_json(path, info)
 
 
 def utc_now() -> str:

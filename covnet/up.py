@@ -30,7 +30,7 @@ from covnet.errors import UpError
 from covnet.launch import ProcessSpec, Supervisor
 from covnet.netns_launch import NetnsTopology, up_in_namespaces
 from covnet.process import run_option_args
-from covnet.rundir import write_json
+from covnet.rundir import LIVE, RUN_INFO, STATUSES, record_end, write_json
 from covnet.security import endpoint, preflight
 
 __all__ = ["StatusView", "UpError", "free_port", "process_specs", "resolve_router", "up"]
@@ -234,6 +234,10 @@ def up(
         return _supervise_without_manager(specs, out, run_id, router)
     ready = threading.Event()
     view = StatusView(sc.scans, kind.episodes(sc))
+    restartable = {sp.name for sp in specs if sp.restart}
+
+    def restarts(name: str) -> bool:
+        return name in restartable
 
     def on_line(name: str, text: str) -> None:
         if name == "manager" and text.startswith("STATUS "):
@@ -251,6 +255,12 @@ def up(
         raise KeyboardInterrupt
 
     view.line(f"[launcher] run {run_id}: router {router}, run directory {out}")
+    facts = {  # what a rebuild from the recording cannot know (settle)
+        "run_id": run_id,
+        "clock": "realtime" if realtime else "lockstep",
+        "speed": speed if realtime else None,
+        "router": router,
+    }
     previous = signal.signal(signal.SIGTERM, raise_interrupt)
     status = 0
     try:
@@ -260,6 +270,13 @@ def up(
                 rcs = sup.poll()
                 if rcs.get("manager") is not None:
                     raise UpError(f"the manager exited with status {rcs['manager']} before READY")
+                gone = {k: v for k, v in rcs.items() if v not in (None, 0) and not restarts(k)}
+                if gone:  # a node that cannot start (a refused login, a bad file): fail now
+                    name, rc = next(iter(gone.items()))
+                    raise UpError(
+                        f"{name} exited with status {rc} before the network was READY (its error "
+                        "is above); nothing was run"
+                    )
                 if time.monotonic() > deadline:
                     raise UpError("the network did not become READY in time")
             if on_ready is not None:
@@ -280,18 +297,73 @@ def up(
         _note_restarts(out, sup.restarts)
         others = {k: v for k, v in final.items() if k != "manager" and v not in (0, None)}
         if status != 0:
-            raise UpError(
-                f"the manager failed (exit status {status}); the run directory {out} holds what "
-                "was recorded up to then"
-            )
+            why = f"the manager exited with status {status}"
+            ended = settle(kind, sc, out, facts, "failed", why)
+            raise UpError(f"the manager failed (exit status {status}); {ended}")
         if others and not sc.network.restart == "on-failure":
             view.line(f"[launcher] note: processes that did not exit cleanly: {others}")
         return 0
     except KeyboardInterrupt:
-        print("covnet up: interrupted; every process stopped", file=sys.stderr)
+        ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")
+        print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str, why: str) -> str:
+    """After the network stopped: make sure ``out`` is a valid run directory and say what it
+    holds.  The manager writes it when its loop ends (with ``run.json``'s ``status``); when it
+    could not (killed, crashed, or stopped before READY), the directory is rebuilt from the
+    recording by the kind's replay (``kind.rebuild``: every scan recorded complete) and marked
+    ``status`` because of ``why``."""
+    info = _run_info(out)
+    if info.get("status") in STATUSES:
+        return f"{out} holds the scans done ({info['status']}: {_scans(info)})"
+    recording = out / "recording.mcap"
+    if not recording.is_file() or recording.stat().st_size == 0:
+        if not out.is_dir() or not any(p.name != "processes.json" for p in out.iterdir()):
+            return f"nothing was recorded ({out} holds only the process list)"
+        record_end(out, status, f"{why}; no recording to rebuild the results from")
+        return f"no recording: {out} holds no results"
+    try:
+        report = kind.rebuild(
+            sc,
+            run_info["run_id"],
+            kind.episodes(sc),
+            recording,
+            out,
+            {**run_info, "mode": "network"},
+        )
+    except Exception as exc:  # noqa: BLE001 (whatever the recording holds, say it and go on)
+        record_end(out, status, f"{why}; rebuilding from the recording failed: {exc}")
+        return f"the recording could not be rebuilt ({exc}); {out} holds no results"
+    (out / LIVE).unlink(missing_ok=True)
+    scans = _scans(_run_info(out))
+    record_end(
+        out,
+        status,
+        f"{why}; the results were rebuilt from the recording (covnet replay's code)",
+        rebuilt_from_recording=True,
+        rebuild_notes=list(getattr(report, "notes", [])),
+    )
+    return f"rebuilt {out} from the recording up to the last complete scan ({scans})"
+
+
+def _scans(info: dict[str, Any]) -> str:
+    """``run.json``'s scans completed in words: ``"spectral 12, trace 0"`` or ``"12 scans"``."""
+    done = info.get("scans_completed")
+    if isinstance(done, dict):
+        return ", ".join(f"{k} {v}" for k, v in done.items()) or "no scan"
+    return f"{done} scans" if done is not None else "scans unknown"
+
+
+def _run_info(out: Path) -> dict[str, Any]:
+    try:
+        info = json.loads((out / RUN_INFO).read_text())
+    except (OSError, ValueError):
+        return {}
+    return info if isinstance(info, dict) else {}
 
 
 def _supervise_without_manager(

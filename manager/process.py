@@ -14,12 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from covnet import __version__, security
+from covnet import security
 from covnet.bus import Bus
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
 from covnet.process import EXIT_FAIL, EXIT_OK, open_bus
-from covnet.rundir import utc_now
+from covnet.rundir import LIVE, record_end, utc_now, write_json
 from manager.loop import LoopResult, wait_for_nodes_to_leave
 
 
@@ -89,30 +89,6 @@ def main_around(
     )
 
 
-def network_run_info(
-    kind: str, result: Any, scans_done: int, run_info: dict[str, Any] | None, **facts: Any
-) -> dict[str, Any]:
-    """``run.json`` of a network run whose ``result`` logs its failures in one list: the kind,
-    whether it completed, the scans done, the failure and rejoin events (their detection times
-    apart, being wall-clock), the error if any, the kind's ``facts`` and the process's
-    ``run_info``."""
-    info: dict[str, Any] = {
-        "created_utc": utc_now(),
-        "covnet_version": __version__,
-        "mode": "network",
-        "kind": kind,
-        **facts,
-        "completed": result.completed,
-        "scans_completed": scans_done,
-        "failures": [{k: v for k, v in ev.items() if k != "detected_ns"} for ev in result.failures],
-        "failure_detected_ns": [ev for ev in result.failures if "detected_ns" in ev],
-        **(run_info or {}),
-    }
-    if result.error:
-        info["error"] = result.error
-    return info
-
-
 def router_endpoint(net: NetworkSpec, listen: str | None) -> str:
     endpoint = security.endpoint(net, listen or net.router)
     if endpoint.endswith(":0"):
@@ -131,29 +107,32 @@ def serve(
     *,
     write_every_s: float = 1.0,
 ) -> int:
-    """Open the router session, run ``run_loop(bus, clock, hooks)``, write with ``write(result)``
-    (after each episode, at most every ``write_every_s`` — less often when a write is slow, so
-    that writing stays under a tenth of the time — and at the end); exit 0, or 1 on an error."""
-    last_write = [time.monotonic()]
+    """Open the router session, run ``run_loop(bus, clock, hooks)``, and write the run
+    directory with ``write(result)`` once, when the loop has ended (completed, stopped by
+    SIGINT/SIGTERM, or failed), then how it ended (:func:`covnet.rundir.record_end`).  While
+    it runs, the last STATUS goes to ``live.json`` (:data:`covnet.rundir.LIVE`) at most every
+    ``write_every_s``; that file is removed once the results are written.  Exit 0, or 1 on
+    an error."""
+    out = Path(args.out)
+    last_write = [0.0]
     last_status = [0.0]
+    latest: list[dict[str, Any]] = []
 
     def on_ready() -> None:
         print("READY", flush=True)
 
     def on_status(st: dict[str, Any]) -> None:
         now = time.monotonic()
+        latest[:] = [st]
         if now - last_status[0] >= 0.05 or st["scan"] == st["scans"]:
             print("STATUS " + json.dumps(st), flush=True)
             last_status[0] = now
 
-    gap_s = [write_every_s]  # at least write_every_s, and ten times the last write's cost
-
     def on_progress(result: Any, episode_done: bool) -> None:
-        if episode_done or time.monotonic() - last_write[0] >= gap_s[0]:
-            t0 = time.monotonic()
-            write(result)
-            last_write[0] = time.monotonic()
-            gap_s[0] = max(write_every_s, 10.0 * (last_write[0] - t0))
+        now = time.monotonic()
+        if latest and (episode_done or now - last_write[0] >= write_every_s):
+            write_json(out / LIVE, {"status": "running", "updated_utc": utc_now(), **latest[0]})
+            last_write[0] = now
 
     extra = security.zenoh_settings(
         net, "manager", "manager", listen=True, sensor_ids=sensor_ids, source=args.config
@@ -172,8 +151,22 @@ def serve(
         # up until they have, so that none is cut off mid-publish
         wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
     write(result)
+    record_end(out, *ending(result, stop))
+    (out / LIVE).unlink(missing_ok=True)
     if result.error:
         print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
         return EXIT_FAIL
     print(f"DONE completed={result.completed} out={args.out}", flush=True)
     return EXIT_OK
+
+
+def ending(result: Any, stop: threading.Event) -> tuple[str, str]:
+    """``(status, why)`` of a loop's ``result``: ``failed`` with its error, ``completed`` when
+    every scan was done, ``interrupted`` when a signal stopped it, else ``failed``."""
+    if result.error:
+        return "failed", str(result.error)
+    if result.completed:
+        return "completed", "every scan done"
+    if stop.is_set():
+        return "interrupted", "stopped by SIGINT or SIGTERM (Ctrl-C in the launcher)"
+    return "failed", "the loop ended before its last scan"

@@ -13,10 +13,11 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batch import progress_printer
+from covnet.batch import BatchInterrupted, end_batch, progress_printer
 from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario, SweepSpec, load, normalised
 from covnet.covariance_control.decentral_sim import run_mode
@@ -25,7 +26,7 @@ from covnet.covariance_control.model import build_model
 from covnet.covariance_control.results import write_run
 from covnet.covariance_control.simulate import shared_trajectory
 from covnet.errors import UsageError
-from covnet.rundir import CONFIG, SUMMARY, clear_output, prepare_out, read_json, write_json
+from covnet.rundir import CONFIG, SUMMARY, prepare_out, read_json, write_json
 
 # The figures (matplotlib), the batch tables (scipy.stats), the replay (the MCAP reader) and the
 # benchmarks are imported by the commands that use them: start-up time of ``covnet run``.
@@ -182,15 +183,6 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
         file=sys.stderr,
         flush=True,
     )
-    rows = cmp.compare(
-        sc,
-        modes,
-        metric,
-        args.runs,
-        graph=args.graph,
-        workers=args.workers,
-        progress=progress_printer("compare"),
-    )
     meta = {
         "scenario": sc.name,
         "metric": metric,
@@ -202,7 +194,19 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
         f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds, "
         f"peer graph {meta['graph']}"
     )
-    return _batch_results(cmp, args, sc, out, rows, meta, title)
+
+    def work() -> Any:
+        return cmp.compare(
+            sc,
+            modes,
+            metric,
+            args.runs,
+            graph=args.graph,
+            workers=args.workers,
+            progress=progress_printer("compare"),
+        )
+
+    return _batch_results(cmp, args, sc, out, work, total, "mode", meta, title)
 
 
 def _batch_results(
@@ -210,14 +214,27 @@ def _batch_results(
     args: argparse.Namespace,
     sc: Scenario,
     out: Path,
-    rows: Any,
+    work: Callable[[], Any],
+    total: int,
+    what: str,
     meta: Any,
     title: str,
 ) -> int:
-    """The end of ``covnet compare`` / ``sweep``: the table files, the config (which says the
-    directory's kind, for ``covnet plot``), the figure, the printout."""
+    """Run ``covnet compare`` / ``sweep``'s ``work`` (its table's rows, from ``total`` runs)
+    and write: the table files, the config (which says the directory's kind, for ``covnet
+    plot``), ``run.json``'s status, the figure, the printout.  Interrupted: the complete rows
+    (each a ``what``) are written, no figure, and the interruption goes on (exit 130)."""
+    try:
+        rows = work()
+    except BatchInterrupted as stop:
+        if stop.partial:
+            module.write_table(out, stop.partial, meta)
+            write_json(out / CONFIG, normalised(sc))
+        end_batch(out, total, what, stop, len(stop.partial or ()))
+        raise
     module.write_table(out, rows, meta)
     write_json(out / CONFIG, normalised(sc))
+    end_batch(out, total, what)
     if not args.no_figures:
         module.make_figure(out, rows, title)
     if args.json:  # stdout holds JSON only
@@ -252,9 +269,6 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
         file=sys.stderr,
         flush=True,
     )
-    rows = sw.sweep(
-        sc, metric=metric, seeds=seeds, workers=args.workers, progress=progress_printer("sweep")
-    )
     meta = {
         "scenario": sc.name,
         "metric": metric,
@@ -268,42 +282,14 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
         f"{sc.name}: delay and loss ({spec.delay_kind} delays, both directions), "
         f"metric {metric}, {seeds} seeds, deadline {sc.network.deadline_fraction:g} T"
     )
-    return _batch_results(sw, args, sc, out, rows, meta, title)
 
-
-def replay(args: argparse.Namespace, sc: Scenario) -> int:
-    """``covnet replay RUN_DIR``: re-fuse the recording; check ``summary.json``."""
-    # the MCAP reader: start-up time of the other commands
-    from covnet.covariance_control.replay import REPLAY_DIR, ReplayError, replay_run
-
-    run_dir = Path(args.run_dir)
-    missing = [
-        f
-        for f in ("config.json", "run.json", "summary.json", "recording.mcap")
-        if not (run_dir / f).is_file()
-    ]
-    if missing:
-        raise UsageError(
-            f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
+    def work() -> Any:
+        return sw.sweep(
+            sc, metric=metric, seeds=seeds, workers=args.workers, progress=progress_printer("sweep")
         )
-    if args.out is not None:
-        out = prepare_out(args.out, "replay", args.force)
-    else:  # the run's own replay directory: replaced
-        out = run_dir / REPLAY_DIR
-        if out.is_dir() and any(out.iterdir()):
-            clear_output(out)
-    try:
-        report = replay_run(run_dir, out)
-    except ReplayError as exc:
-        print(f"covnet: error: {exc}", file=sys.stderr)
-        return EXIT_FAIL
-    if report.identical:
-        print(f"replayed {run_dir}: summary.json reproduced exactly ({report.out_dir})")
-        return EXIT_OK
-    print(f"replayed {run_dir}: summary.json DIFFERS ({report.out_dir}):", file=sys.stderr)
-    for d in report.differences[:20]:
-        print(f"  {d}", file=sys.stderr)
-    return EXIT_FAIL
+
+    total = len(points) * seeds
+    return _batch_results(sw, args, sc, out, work, total, "grid point", meta, title)
 
 
 def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:

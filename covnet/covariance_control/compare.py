@@ -31,7 +31,7 @@ seed, so the table is too.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,7 +41,7 @@ from scipy.stats import chi2
 from scipy.stats import t as student_t
 
 from covnet import messages as msg
-from covnet.batch import parallel_map, write_rows
+from covnet.batch import BatchInterrupted, Progress, parallel_map, write_rows
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 from covnet.covariance_control.decentral import neighbours
 from covnet.covariance_control.decentral_sim import run_mode
@@ -205,14 +205,23 @@ def compare(
     *,
     graph: str | None = None,
     workers: int | None = None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Progress | None = None,
 ) -> list[dict[str, Any]]:
     """The comparison table: one row per mode, over seeds ``sc.seed .. sc.seed + runs - 1``."""
     for m in modes:
         scenario_for(sc, m, graph)  # validates every mode (and the graph) before any work
     data = normalised(sc)
     tasks = [(data, m, graph, sc.seed + r, metric) for m in modes for r in range(runs)]
-    trials = parallel_map(run_trial, tasks, workers, progress)
+    try:
+        trials = parallel_map(run_trial, tasks, workers, progress)
+    except BatchInterrupted as stop:  # the modes with every seed
+        done = [stop.done[i] for i in sorted(stop.done)]
+        stop.partial = [
+            summarise(sc, m, [t for t in done if t.mode == m], graph)
+            for m in modes
+            if sum(t.mode == m for t in done) == runs
+        ]
+        raise
     return [summarise(sc, m, [t for t in trials if t.mode == m], graph) for m in modes]
 
 

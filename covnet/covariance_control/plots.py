@@ -51,7 +51,8 @@ def _switch_lines(ax: plt.Axes, switches: list[int], color: str = "0.5") -> None
 
 
 def make_figures(run_dir: Path) -> list[Path]:
-    """Draw the four figures into ``run_dir``; returns their paths."""
+    """Draw the four figures into ``run_dir``; returns their paths.  A run that ended early
+    (interrupted, failed) is drawn for the scans it has, on the axes of the whole run."""
     cfg = json.loads((run_dir / "config.json").read_text())
     summary = json.loads((run_dir / "summary.json").read_text())
     arrays = load_arrays(run_dir / "arrays.npz")
@@ -83,7 +84,8 @@ def make_figures(run_dir: Path) -> list[Path]:
         blk = summary["metrics"][m]
         counts = blk["sensors_per_scan"]
         lbl = f"{m} (rate {100 * blk['allocation_rate']:.1f} %)"
-        ax.step(t_scan, counts, where="mid", color=colors[i % 10], lw=1.8, label=lbl)
+        ax.step(t_scan[: len(counts)], counts, where="mid", color=colors[i % 10], lw=1.8, label=lbl)
+    ax.set_xlim(0.5, len(t_scan) + 0.5)
     _switch_lines(ax, switches)
     ax.set_xlabel("scan k")
     ax.set_ylabel("sensors allocated N_k")
@@ -100,7 +102,8 @@ def make_figures(run_dir: Path) -> list[Path]:
     for d, ax in enumerate(axes.ravel()):
         name, what, unit = _DIAG_LABELS[d]
         for i, m in enumerate(metrics):
-            ax.plot(t_scan, arrays[f"P_post.{m}"][:, d, d], color=colors[i % 10], lw=1.5, label=m)
+            P = arrays[f"P_post.{m}"]
+            ax.plot(t_scan[: len(P)], P[:, d, d], color=colors[i % 10], lw=1.5, label=m)
         ax.step(t_scan, P_d[:, d, d], where="mid", color="k", ls="--", lw=1.5, label="desired")
         ax.set_yscale("log")
         ax.set_title(f"{name}: {what} variance")
@@ -133,8 +136,9 @@ def make_figures(run_dir: Path) -> list[Path]:
             vmin=0,
             vmax=1,
             interpolation="nearest",
-            extent=(0.5, len(t_scan) + 0.5, len(ids) - 0.5, -0.5),
+            extent=(0.5, en.shape[1] + 0.5, len(ids) - 0.5, -0.5),
         )
+        ax.set_xlim(0.5, len(t_scan) + 0.5)
         ax.set_yticks(range(len(ids)), ids)
         ax.set_ylabel("sensor")
         rate = 100 * summary["metrics"][m]["allocation_rate"]

@@ -200,6 +200,7 @@ def write_network_run(
     }
     info: dict[str, Any] = {
         "mode": "network",
+        "scans_completed": extra["scans_completed"],
         "failure_detected_ns": {
             m: [ev for ev in log.failures if "detected_ns" in ev]
             for m, log in result.episodes.items()

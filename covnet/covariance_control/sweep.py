@@ -23,13 +23,13 @@ Runs go to a ``spawn`` process pool (one per core); ``sweep.csv``, ``sweep.json`
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from covnet.batch import parallel_map, write_rows
+from covnet.batch import BatchInterrupted, Progress, parallel_map, write_rows
 from covnet.covariance_control.config import Scenario, SweepSpec, from_dict, normalised
 from covnet.covariance_control.latency_sim import run_latency
 from covnet.covariance_control.model import build_model, truth_trajectory
@@ -124,7 +124,7 @@ def sweep(
     metric: str | None = None,
     seeds: int | None = None,
     workers: int | None = None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Progress | None = None,
 ) -> list[dict[str, Any]]:
     """The sweep table: one row per grid point (see the module docstring)."""
     if sc.fusion.mode == "peer":
@@ -135,10 +135,25 @@ def sweep(
     points = grid(spec)
     data = normalised(sc)
     tasks = [(data, p, sc.seed + r, metric) for p in points for r in range(n_seeds)]
-    runs = parallel_map(run_point, tasks, workers, progress)
+    try:
+        runs = parallel_map(run_point, tasks, workers, progress)
+    except BatchInterrupted as stop:
+        stop.partial = _rows(points, n_seeds, stop.done)  # the grid points with every seed
+        raise
+    return _rows(points, n_seeds, dict(enumerate(runs)))
+
+
+def _rows(
+    points: Sequence[dict[str, Any]], n_seeds: int, runs: dict[int, dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """One row per grid point all of whose ``n_seeds`` runs are in ``runs`` (task index ->
+    run; point ``i``'s seeds are the tasks ``i n_seeds .. (i + 1) n_seeds - 1``)."""
     rows = []
     for i, p in enumerate(points):
-        rs = runs[i * n_seeds : (i + 1) * n_seeds]
+        idx = range(i * n_seeds, (i + 1) * n_seeds)
+        if not all(j in runs for j in idx):
+            continue
+        rs = [runs[j] for j in idx]
         row: dict[str, Any] = {**p, "seeds": n_seeds}
         row["rmse_position"] = float(np.sqrt(np.mean([r["pos_err2"] for r in rs])))
         for k in COLUMNS[len(POINT_KEYS) + 2 :]:

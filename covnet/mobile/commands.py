@@ -18,9 +18,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from covnet.batch import BatchInterrupted, default_workers, end_batch
 from covnet.errors import UsageError
 from covnet.mobile.config import MobileConfig
-from covnet.mobile.montecarlo import MC_FILE, default_workers, run_seeds, write_mc
+from covnet.mobile.montecarlo import MC_FILE, run_seeds, write_mc
 from covnet.mobile.results import load_summary, write_run
 from covnet.mobile.simulate import run as simulate
 from covnet.rundir import RUN_INFO, prepare_out, read_json
@@ -137,8 +138,16 @@ def mc_run(
             flush=True,
         )
     callback = progress if callable(progress) else (report if progress else None)
-    rows = run_seeds(cfg, seed_list, None, n_workers, callback)
+    try:
+        rows = run_seeds(cfg, seed_list, None, n_workers, callback)
+    except BatchInterrupted as stop:  # the seeds done are written, then exit 130
+        if stop.partial:
+            done_seeds, done_rows = zip(*stop.partial, strict=True)
+            write_mc(out_dir, cfg, list(done_seeds), list(done_rows))
+        end_batch(out_dir, seeds, "seed", stop, len(stop.partial or ()))
+        raise
     doc = write_mc(out_dir, cfg, seed_list, rows)
+    end_batch(out_dir, seeds, "seed")
     from covnet.mobile.plots import mc_figure  # matplotlib: start-up of the other commands
 
     figure = mc_figure(out_dir)

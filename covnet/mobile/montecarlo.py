@@ -1,7 +1,7 @@
 """The Monte Carlo evaluation of the mobile scenario: the same config over seeds 0..n−1.
 
 Each seed is one in-process run (:func:`covnet.mobile.simulate.run`) in a worker process
-(``concurrent.futures.ProcessPoolExecutor``, *spawn* context, one worker per core by default),
+(:func:`covnet.batch.parallel_map`: *spawn* context, one worker per core by default),
 summarised there (:func:`covnet.mobile.results.summarise`, without the per-decision lists), and
 sent back as a small dict.  The results are ordered by seed whatever order the workers finish
 in, so ``montecarlo.json`` depends only on the config and the seeds; the wall times (each seed's
@@ -15,16 +15,14 @@ gap, conflicts resolved).
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from covnet import __version__
+from covnet.batch import BatchInterrupted, parallel_map
 from covnet.mobile.config import MobileConfig, config_hash, from_dict, normalised
 from covnet.mobile.results import WORSE_TOL, decision_times, summarise
 from covnet.mobile.simulate import run
@@ -58,8 +56,8 @@ def split_timing(
     return summaries, [dict(r["decision_time_s"]) for r in rows]
 
 
-def default_workers() -> int:
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1)
+def _run_seed_task(task: tuple[Mapping[str, Any], int, str | None]) -> dict[str, Any]:
+    return run_seed(*task)
 
 
 def run_seeds(
@@ -72,27 +70,20 @@ def run_seeds(
     """Summaries of ``cfg`` run with each seed, in the order of ``seeds``.
 
     ``workers`` processes (default: the cores this process may use); ``workers=1`` runs in this
-    process, without a pool.
+    process, without a pool.  Ctrl-C: :class:`covnet.batch.BatchInterrupted`.
     """
     data = normalised(cfg)
     seeds = list(seeds)
-    n = min(workers or default_workers(), max(1, len(seeds)))
-    out: dict[int, dict[str, Any]] = {}
-    if n == 1:
-        for s in seeds:
-            out[s] = run_seed(data, s, solver)
-            if progress is not None:
-                progress(len(out), len(seeds), s)
-    else:
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=n, mp_context=ctx) as pool:
-            futures = {pool.submit(run_seed, data, s, solver): s for s in seeds}
-            for fut in as_completed(futures):
-                s = futures[fut]
-                out[s] = fut.result()
-                if progress is not None:
-                    progress(len(out), len(seeds), s)
-    return [out[s] for s in seeds]
+
+    def on_done(done: int, n: int, i: int) -> None:
+        if progress is not None:
+            progress(done, n, seeds[i])
+
+    try:
+        return parallel_map(_run_seed_task, [(data, s, solver) for s in seeds], workers, on_done)
+    except BatchInterrupted as stop:  # the seeds done, in seed order
+        stop.partial = [(seeds[i], stop.done[i]) for i in sorted(stop.done)]
+        raise
 
 
 def _stats(values: Iterable[float]) -> dict[str, float]:

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from covnet import __version__
+from covnet.batch import BatchInterrupted, end_batch
 from covnet.errors import UsageError
 from covnet.passive.associate import header, scan_record
 from covnet.passive.config import PassiveConfig, normalised
@@ -71,8 +72,16 @@ def mc_run(
         f"monte carlo: {cells} cells x {n} trials, methods {', '.join(cfg.montecarlo.methods)}",
         flush=True,
     )
-    rows, facts = run_grid(cfg, trials=trials, progress=cb)
+    try:
+        rows, facts = run_grid(cfg, trials=trials, progress=cb)
+    except BatchInterrupted as stop:  # the cells done are written, then exit 130
+        kept = len(stop.partial[0]) // len(cfg.montecarlo.methods) if stop.partial else 0
+        if kept:
+            write_results(out_dir, cfg, *stop.partial)
+        end_batch(out_dir, cells, "cell", stop, kept)
+        raise
     doc = write_results(out_dir, cfg, rows, facts)
+    end_batch(out_dir, cells, "cell")
     figs = mc_figures(out_dir)
     _print_mc_summary(doc)
     print(f"results: {out_dir / 'results.json'}, {out_dir / 'results.md'}")

@@ -2,8 +2,8 @@
 config's grid, ``trials`` scans each, every method on the same scans.
 
 Scans come from ``default_rng([seed, trial])`` (common random numbers: the same stream in every
-cell, :mod:`covnet.passive.scene`).  Cells run in parallel on a ``ProcessPoolExecutor`` (spawn
-context); a cell's scans and methods run in one process, methods interleaved scan by scan, so
+cell, :mod:`covnet.passive.scene`).  Cells run in parallel on :func:`covnet.batch.parallel_map`
+(spawn context); a cell's scans and methods run in one process, methods interleaved scan by scan, so
 their timings see the same machine state.
 
 Metrics, summed over a cell's runs (§9): ``p = Σ|Z ∩ G| / Σ|G|``, ``precision = Σ|Z ∩ G| / Σ|Z|``,
@@ -17,18 +17,17 @@ excluded); for the cot method the mean candidate counts after the azimuth and el
 from __future__ import annotations
 
 import math
-import multiprocessing
 import os
 import platform
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from covnet.batch import BatchInterrupted, parallel_map
 from covnet.core.passive.methods import METHODS
 from covnet.passive.config import PassiveConfig, config_hash, normalised
 from covnet.passive.scene import draw, score
@@ -147,12 +146,8 @@ def _mean(v: list[float] | None) -> float | None:
     return float(np.mean(v)) if v else None
 
 
-def _run_cell_job(
-    cfg: PassiveConfig, index: int, cell: Cell, trials: int, methods: tuple[str, ...]
-) -> tuple[int, list[dict[str, Any]], float]:
-    t0 = time.perf_counter()
-    rows = run_cell(cfg, cell, trials, methods)
-    return index, rows, time.perf_counter() - t0
+def _run_cell_job(task: tuple[PassiveConfig, Cell, int, tuple[str, ...]]) -> list[dict[str, Any]]:
+    return run_cell(*task)
 
 
 def resolve_workers(requested: int, n_jobs: int) -> int:
@@ -173,30 +168,31 @@ def run_grid(
     cells = grid(cfg)
     methods = tuple(cfg.montecarlo.methods)
     n_workers = resolve_workers(cfg.montecarlo.workers if workers is None else workers, len(cells))
-    results: dict[int, list[dict[str, Any]]] = {}
     t0 = time.perf_counter()
-    if n_workers == 1:
-        for i, cell in enumerate(cells):
-            _, rows, dt = _run_cell_job(cfg, i, cell, n_trials, methods)
-            results[i] = rows
-            if progress:
-                progress(len(results), len(cells), f"{cell.label} ({dt:.1f} s)")
-    else:
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx) as pool:
-            futures = [
-                pool.submit(_run_cell_job, cfg, i, cell, n_trials, methods)
-                for i, cell in enumerate(cells)
-            ]
-            for fut in as_completed(futures):
-                i, rows, dt = fut.result()
-                results[i] = rows
-                if progress:
-                    progress(len(results), len(cells), f"{cells[i].label} ({dt:.1f} s)")
-    rows = [r for i in range(len(cells)) for r in results[i]]
-    facts = {
+
+    def on_done(n_done: int, n: int, i: int) -> None:
+        if progress:
+            progress(n_done, n, f"{cells[i].label} ({time.perf_counter() - t0:.0f} s so far)")
+
+    tasks = [(cfg, cell, n_trials, methods) for cell in cells]
+    try:
+        results = parallel_map(_run_cell_job, tasks, n_workers, on_done)
+    except BatchInterrupted as stop:  # the cells done, in grid order
+        rows = [r for i in sorted(stop.done) for r in stop.done[i]]
+        facts = _facts(n_trials, len(cells), methods, n_workers, t0)
+        stop.partial = (rows, facts) if rows else None
+        raise
+    rows = [r for cell_rows in results for r in cell_rows]
+    return rows, _facts(n_trials, len(cells), methods, n_workers, t0)
+
+
+def _facts(
+    n_trials: int, n_cells: int, methods: tuple[str, ...], n_workers: int, t0: float
+) -> dict[str, Any]:
+    """The run facts of :func:`run_grid`: what ran, on what, how long."""
+    return {
         "trials": n_trials,
-        "cells": len(cells),
+        "cells": n_cells,
         "methods": list(methods),
         "workers": n_workers,
         "wall_s": time.perf_counter() - t0,
@@ -208,7 +204,6 @@ def run_grid(
             "numpy": np.__version__,
         },
     }
-    return rows, facts
 
 
 def _fmt(v: Any, spec: str) -> str:

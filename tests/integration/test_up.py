@@ -132,17 +132,30 @@ def test_crashed_manager_ends_the_run_with_a_message(covnet_proc, tmp_path, pape
         ]
     )
     assert p.wait_for("[manager] READY", timeout=60), p.output()
-    # past the manager's first periodic write (about once a second)
+    # past the manager's first live snapshot (about once a second): results are not written
+    # while the run goes on, only live.json
     assert p.wait_for(
         lambda s: (
-            s.startswith("[status]") and " scan 1/" not in s and (out / "summary.json").is_file()
+            s.startswith("[status]") and " scan 1/" not in s and (out / "live.json").is_file()
         ),
         timeout=30,
     ), p.output()
+    assert not (out / "summary.json").exists()
     pids = json.loads((out / "processes.json").read_text())
     os.kill(pids["manager"], signal.SIGKILL)
-    assert p.wait(timeout=20) == 1, p.output()
+    assert p.wait(timeout=30) == 1, p.output()
     assert "the manager failed (exit status -9)" in p.output()
+    assert "from the recording up to the last complete scan" in p.output()
     assert_nothing_left(out)
-    summary = json.loads((out / "summary.json").read_text())  # intact, up to its last write
-    assert summary["completed"] is False and 0 < summary["scans_completed"]["spectral"] < 100
+    # the launcher rebuilt the directory from the recording (covnet replay's code), marked failed
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "failed" and info["rebuilt_from_recording"] is True
+    assert "exited with status -9" in info["ended"]
+    summary = json.loads((out / "summary.json").read_text())
+    done = summary["scans_completed"]["spectral"]
+    assert summary["completed"] is False and 0 < done < 100
+    assert info["scans_completed"] == {"spectral": done}
+    assert not (out / "live.json").exists()
+    rp = covnet_proc(["replay", str(out)])
+    assert rp.wait(timeout=120) == 0, rp.output()
+    assert "identical" in rp.output()

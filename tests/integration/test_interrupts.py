@@ -1,0 +1,132 @@
+"""Ctrl-C (SIGINT to the process group, as a terminal sends it, or to the command alone) and
+SIGTERM at random moments, for every long command: the command exits 130 within seconds, prints
+no traceback, leaves no process behind (every descendant it ever had is gone), and leaves a
+valid directory: ``run.json`` says how it ended, and an interrupted network run replays.
+
+The moments are seeded (``random.Random``): a failure names its seed and delay, and the same
+test run repeats it.  Two interruptions per command here; ``-m slow`` runs ten."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from multiproc import REPO, CovnetProcess
+
+from covnet.rundir import STATUSES
+
+pytestmark = [pytest.mark.integration]
+
+PAPER = str(REPO / "configs" / "paper.yaml")
+HOW = ("group-sigint", "sigint", "sigterm")
+
+# command -> (argv before --out, a line that says the work has begun, the delay range after it)
+COMMANDS = {
+    "run": (["run", PAPER], "scans in", (0.0, 1.5)),
+    "sweep": (["sweep", PAPER], "sweeping", (0.3, 3.0)),
+    "compare": (["compare", PAPER], "comparing", (0.3, 3.0)),
+    "mc-mobile": (["mc", str(REPO / "configs" / "mobile.yaml")], "seeds x", (0.3, 3.0)),
+    "mc-passive": (["mc", str(REPO / "configs" / "passive.yaml")], "monte carlo:", (0.3, 3.0)),
+    "up": (["up", PAPER, "--realtime", "--speed", "10"], "[status]", (0.2, 2.0)),
+}
+
+
+def _procs() -> dict[int, tuple[int, str]]:
+    out = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                fields = Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            out[int(d)] = (int(fields[1]), fields[0])  # ppid, state
+    return out
+
+
+class Descendants:
+    """Every process that was ever a descendant of ``root`` (polled every 20 ms)."""
+
+    def __init__(self, root: int) -> None:
+        self.root, self.seen = root, set[int]()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+        self._thread.start()
+
+    def _poll(self) -> None:
+        while not self._stop.is_set():
+            ps = _procs()
+            front = {self.root}
+            while front:
+                kids = {p for p, (pp, _) in ps.items() if pp in front} - self.seen
+                self.seen |= kids
+                front = kids
+            self._stop.wait(0.02)
+
+    def alive(self) -> list[int]:
+        self._stop.set()
+        self._thread.join()
+        ps = _procs()
+        return sorted(p for p in self.seen if p in ps and ps[p][1] != "Z")
+
+
+def _interrupt(tmp_path: Path, name: str, seed: int) -> None:
+    argv, marker, (lo, hi) = COMMANDS[name]
+    rng = random.Random(f"{name}-{seed}")
+    how, delay = rng.choice(HOW), rng.uniform(lo, hi)
+    where = f"{name}, seed {seed}: {how} {delay:.2f} s after {marker!r}"
+    out = tmp_path / f"{name}-{seed}"
+    p = CovnetProcess([*argv, "--out", str(out)])
+    tree = Descendants(p.proc.pid)
+    try:
+        assert p.wait_for(marker, timeout=60) is not None, f"{where}: never began\n{p.output()}"
+        time.sleep(delay)  # the random moment itself (the condition was waited for above)
+        t0 = time.monotonic()
+        if p.proc.poll() is None:
+            if how == "group-sigint":
+                os.killpg(p.proc.pid, signal.SIGINT)
+            else:
+                p.proc.send_signal(signal.SIGINT if how == "sigint" else signal.SIGTERM)
+        rc = p.wait(timeout=20)
+        took = time.monotonic() - t0
+    finally:
+        p.stop()
+    left = tree.alive()
+    text = p.output()
+    assert rc in (130, 0), f"{where}: exit {rc}\n{text}"
+    assert took < 10.0, f"{where}: took {took:.1f} s to stop"
+    assert "Traceback" not in text, f"{where}: a traceback\n{text}"
+    assert not left, f"{where}: processes left: {left}"
+    info_path = out / "run.json"
+    if info_path.is_file():
+        info = json.loads(info_path.read_text())
+        assert info.get("status") in STATUSES, f"{where}: run.json {info}"
+        if rc == 0:
+            assert info["status"] == "completed"
+    if name == "up" and (out / "summary.json").is_file():
+        rp = CovnetProcess(["replay", str(out)])
+        try:
+            assert rp.wait(timeout=120) == 0, f"{where}: replay\n{rp.output()}"
+        finally:
+            rp.stop()
+        assert "identical" in rp.output()
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_interrupted_at_random_moments(tmp_path, name):
+    for seed in range(2):
+        _interrupt(tmp_path, name, seed)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_interrupted_at_random_moments_many_times(tmp_path, name):
+    for seed in range(2, 12):
+        _interrupt(tmp_path, name, seed)

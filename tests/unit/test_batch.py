@@ -1,0 +1,132 @@
+"""covnet.batch.parallel_map: the same results as a plain loop, in task order; a worker's error
+raised in the parent; a dead worker reported; Ctrl-C stops every worker and keeps what was
+done.  Real worker processes (``python -m covnet.batch_worker``)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from covnet.batch import BatchInterrupted, WorkerDied, end_batch, parallel_map
+from covnet.rundir import read_json
+
+
+def square(x: int) -> int:
+    return x * x
+
+
+def slow_square(x: int) -> int:
+    time.sleep(0.05 * (x % 3))  # finish out of order
+    return x * x
+
+
+def fails_on_three(x: int) -> int:
+    if x == 3:
+        raise ValueError(f"task {x} is bad")
+    return x
+
+
+def dies_on_two(x: int) -> int:
+    if x == 2:
+        os._exit(7)
+    return x
+
+
+def sleeps(x: int) -> int:
+    if x >= 2:
+        time.sleep(60)
+    return x
+
+
+def _workers_of(pid: int) -> list[int]:
+    """Live ``covnet.batch_worker`` processes whose parent is ``pid``."""
+    out = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{d}/stat").read_text()
+            cmd = Path(f"/proc/{d}/cmdline").read_bytes()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if int(fields[1]) == pid and fields[0] != "Z" and b"covnet.batch_worker" in cmd:
+            out.append(int(d))
+    return out
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_results_in_task_order_whatever_the_completion_order(workers):
+    seen = []
+    got = parallel_map(slow_square, list(range(7)), workers, lambda d, n, i: seen.append((d, n, i)))
+    assert got == [x * x for x in range(7)]
+    assert [d for d, _, _ in seen] == list(range(1, 8))
+    assert sorted(i for _, _, i in seen) == list(range(7))
+    assert all(n == 7 for _, n, _ in seen)
+    assert _workers_of(os.getpid()) == []
+
+
+def test_no_tasks():
+    assert parallel_map(square, [], 2) == []
+
+
+def test_a_workers_exception_is_raised_in_the_parent_with_its_type():
+    with pytest.raises(ValueError, match="task 3 is bad") as info:
+        parallel_map(fails_on_three, list(range(6)), 2)
+    assert any("in a worker process" in n for n in getattr(info.value, "__notes__", []))
+    assert _workers_of(os.getpid()) == []
+
+
+def test_a_worker_that_dies_is_reported():
+    with pytest.raises(WorkerDied, match="exit code 7|ended"):
+        parallel_map(dies_on_two, list(range(5)), 2)
+    assert _workers_of(os.getpid()) == []
+
+
+def test_ctrl_c_stops_every_worker_and_keeps_what_was_done():
+    timer = threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(BatchInterrupted) as info:
+            parallel_map(sleeps, list(range(6)), 2)
+    finally:
+        timer.cancel()
+    assert time.monotonic() - t0 < 10.0
+    assert info.value.done == {0: 0, 1: 1}
+    assert info.value.total == 6
+    assert isinstance(info.value, KeyboardInterrupt)  # the CLI's exit 130
+    assert _workers_of(os.getpid()) == []
+
+
+def test_in_process_ctrl_c_keeps_what_was_done_too():
+    def interrupting(x: int) -> int:
+        if x == 2:
+            raise KeyboardInterrupt
+        return x
+
+    with pytest.raises(BatchInterrupted) as info:
+        parallel_map(interrupting, list(range(5)), 1)
+    assert info.value.done == {0: 0, 1: 1}
+
+
+def test_end_batch_records_the_status(tmp_path, capsys):
+    end_batch(tmp_path / "done", 4, "seed")
+    info = read_json(tmp_path / "done" / "run.json")
+    assert (info["status"], info["runs_completed"], info["runs_total"]) == ("completed", 4, 4)
+
+    stop: BatchInterrupted[int] = BatchInterrupted({0: 1, 2: 3}, 5)
+    end_batch(tmp_path / "cut", 5, "seed", stop, kept=2)
+    info = read_json(tmp_path / "cut" / "run.json")
+    assert info["status"] == "interrupted"
+    assert (info["runs_completed"], info["runs_total"]) == (2, 5)
+    assert "holds the 2 complete seed(s)" in capsys.readouterr().err
+
+    end_batch(tmp_path / "nothing", 5, "seed", BatchInterrupted({}, 5), kept=0)
+    assert not (tmp_path / "nothing").exists()
+    assert "nothing written" in capsys.readouterr().err
