@@ -31,6 +31,8 @@ EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 BENCHES = {
     "alloc": "covariance_control",
     "fusion": "covariance_control",
+    "search": "covariance_control",
+    "multitarget": "covariance_control",
     "mobile": "mobile",
     "passive": "passive",
 }
@@ -401,8 +403,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser(
         "bench",
-        help="benchmark: the allocator (default), the network ('up'), 'fusion', 'mobile' or "
-        "'passive'",
+        help="benchmark: the allocator (default), the network ('up'), 'fusion', 'search', "
+        "'multitarget', 'mobile' or 'passive'",
     )
     b.add_argument(
         "target",
@@ -411,7 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
         default="alloc",
         help="alloc: allocation decisions per metric and N; up: covnet up in lockstep; "
         "mobile: cost tensor and LP/MILP; passive: association methods; fusion: the batched "
-        "covariance-intersection candidates of every subset against a scipy loop",
+        "covariance-intersection candidates of every subset against a scipy loop; search: "
+        "branch and bound / bounded / greedy against the exhaustive search (N up to 1000); "
+        "multitarget: the assignment allocator over T targets against plain enumeration",
     )
     b.add_argument(
         "--sensors",
@@ -425,6 +429,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         metavar="NAME",
         help="only this metric (repeatable; default: every registered metric)",
+    )
+    b.add_argument(
+        "--search",
+        action="append",
+        metavar="NAME",
+        help="search: only this search (exact, bounded, greedy; repeatable)",
     )
     b.add_argument("--config", default="configs/paper.yaml", help="sensor table and scenario")
     b.add_argument("--problems", type=int, default=5, help="decision problems per N (scans)")

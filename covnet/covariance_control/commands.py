@@ -305,6 +305,56 @@ def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:
     return EXIT_OK
 
 
+def bench_search(args: argparse.Namespace, sc: Scenario | None) -> int:
+    """``covnet bench search``: branch and bound, bounded and greedy against the exhaustive
+    search (bit-identical where both run) and plain greedy, per metric and N."""
+    from covnet.covariance_control import bench_search as bs  # start-up of the other commands
+
+    metrics = [_metric(load(args.config), [m], m) for m in args.metric] if args.metric else None
+    searches = args.search or list(bs.SEARCHES)
+    for s in searches:
+        if s not in bs.SEARCHES:
+            raise UsageError(f"--search: unknown search {s!r}; choose from {list(bs.SEARCHES)}")
+    if not args.json:
+        print(bs.header(), flush=True)
+    rows = bs.run(
+        args.sensors or [8, 12, 16, 20, 24, 32],
+        metrics,
+        searches,
+        args.problems,
+        args.repeat,
+        progress=None if args.json else (lambda line: print(line, flush=True)),
+    )
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+    agree = all(r["agree_exhaustive"] in (None, True) for r in rows)
+    if not agree:
+        print("covnet: error: a search disagreed with the exhaustive one", file=sys.stderr)
+    return EXIT_OK if agree else EXIT_FAIL
+
+
+def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
+    """``covnet bench multitarget``: the multi-target assignment allocator against the plain
+    enumeration of every assignment (where that runs), per metric and N."""
+    from covnet.covariance_control import bench_search as bs  # start-up of the other commands
+
+    metrics = [_metric(load(args.config), [m], m) for m in args.metric] if args.metric else None
+    if not args.json:
+        print(" ".join(k for k, _ in bs.MT_COLUMNS), flush=True)
+    rows = bs.run_multitarget(
+        args.sensors or [8, 12, 16],
+        metrics or ("spectral", "abs_trace", "svd", "kl"),
+        args.problems,
+        args.repeat,
+        progress=None if args.json else (lambda line: print(line, flush=True)),
+    )
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+    return EXIT_OK
+
+
 def bench_alloc(args: argparse.Namespace, sc: Scenario | None) -> int:
     """``covnet bench [alloc]``: allocation decisions per metric and N against the plain loop."""
     from covnet.covariance_control import bench_allocation  # start-up of the other commands

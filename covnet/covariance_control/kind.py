@@ -53,6 +53,8 @@ class CovarianceControl(KindBase):
         "replay": lazy(_REPLAY, "command"),
         "bench:alloc": lazy(_COMMANDS, "bench_alloc"),
         "bench:fusion": lazy(_COMMANDS, "bench_fusion"),
+        "bench:search": lazy(_COMMANDS, "bench_search"),
+        "bench:multitarget": lazy(_COMMANDS, "bench_multitarget"),
     }
     run = staticmethod(lazy(_COMMANDS, "run"))
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
