@@ -61,6 +61,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "CAP_MEAS_DIM",
+    "CAP_ROWS",
+    "CAP_SENSORS",
+    "CAP_STATE_DIM",
+    "CAP_TARGETS",
     "MAX_ARRAY_ELEMENTS",
     "MAX_IDS",
     "MAX_NAME_LEN",
@@ -92,6 +97,7 @@ __all__ = [
     "encode",
     "heartbeat_key",
     "heartbeat_keyexpr",
+    "largest_payload",
     "measurement_key",
     "measurement_keyexpr",
     "new_run_id",
@@ -110,14 +116,76 @@ __all__ = [
 
 SCHEMA_VERSION = 1
 
-MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
-"""Largest payload :func:`decode` looks at."""
 MAX_ARRAY_ELEMENTS = 1 << 20
 """Largest number of elements in one array (8 MiB of float64)."""
 MAX_IDS = 4096
 """Longest id tuple (``target_ids``, ``enabled``) and largest ``modes`` map."""
 MAX_NAME_LEN = 64
 """Longest id (run, role, node, sensor, target) and ``modes`` value."""
+
+#: the largest network the payload size cap is computed for: hundreds of sensors, with margin
+CAP_SENSORS = 1024
+CAP_TARGETS = 1024
+#: rows of one measurement list (a mobile sensor seeing every target; passive lists hold <= 256)
+CAP_ROWS = 1024
+#: state and measurement dimensions (the kinds use 4 or 3, and 2)
+CAP_STATE_DIM, CAP_MEAS_DIM = 6, 3
+
+
+def largest_payload(
+    sensors: int,
+    targets: int,
+    rows: int,
+    state_dim: int = CAP_STATE_DIM,
+    meas_dim: int = CAP_MEAS_DIM,
+) -> int:
+    """An upper bound, in bytes, on the encoding of every message a run with ``sensors`` sensors
+    and ``targets`` targets can send (a measurement list of at most ``rows`` rows, states of
+    ``state_dim``, measurements of ``meas_dim``), every id at :data:`MAX_NAME_LEN` ASCII
+    characters: the largest of the per-kind bounds below, from the msgpack sizes of the schemas'
+    fields (``tests/unit/test_size_cap.py`` encodes each kind's largest message and checks it).
+
+    msgpack sizes used: an int or a float64 at most 9 bytes; a str of L <= 255 bytes 2 + L (an
+    id: 66, a field name: at most 13); an array or map header at most 5; an ndarray (the ext
+    type) at most 27 + 8 * elements (ext32 header 6, inner ``[dtype, shape, bin]`` 21).
+    Per kind, beyond its scalars: Truth ``target_ids`` (M), ``states`` (M x n), ``sensor_ids``
+    (N), ``platforms`` (N x 4); Command ``enabled`` (N), ``modes`` (N pairs of ids),
+    ``targets`` (N keys and at most M target ids in all: a target goes to one sensor);
+    Measurement ``z`` (rows x dz), ``R``, ``target_ids`` (rows), ``platform``; Status
+    ``enabled``, ``fused``, ``failed`` (N each), ``refiltered`` (at most :data:`MAX_IDS`);
+    Heartbeat at most 64 reasons counted; Track and LocalTrack a few n-vectors and n x n
+    matrices."""
+    head = 5 + 3 + 9  # the map header, "v", "k" and the kind
+    num, name, key = 9, 2 + MAX_NAME_LEN, 13
+
+    def arr(n: int) -> int:
+        return 27 + 8 * n
+
+    def names(n: int) -> int:
+        return 5 + name * n
+
+    n, dz = state_dim, meas_dim
+    modes = 5 + 2 * name * sensors
+    assigned = 5 + (name + 5) * sensors + name * targets  # Command.targets
+    bounds = {
+        "truth": 2 * num + names(targets) + arr(targets * n) + names(sensors) + arr(4 * sensors),
+        "cmd": 4 * num + names(sensors) + modes + assigned,
+        "meas": name + 4 * num + arr(rows * dz) + arr(dz * dz) + names(rows) + arr(4),
+        "track": 4 * num + arr(n) + arr(n * n) + 2 * name,
+        "status": 7 * num + 3 * names(sensors) + name + names(MAX_IDS),
+        "ltrack": name + 4 * num + 2 * arr(n) + 2 * arr(n * n),
+        "hb": 2 * name + 2 * num + 5 + 64 * (name + num),
+    }
+    fields_ = {"truth": 6, "cmd": 7, "meas": 9, "track": 8, "status": 12, "ltrack": 9, "hb": 5}
+    return max(head + key * fields_[k] + b for k, b in bounds.items())
+
+
+MAX_PAYLOAD_BYTES = 1 << (2 * largest_payload(CAP_SENSORS, CAP_TARGETS, CAP_ROWS) - 1).bit_length()
+"""THE payload size cap (1 MiB): the smallest power of two at least twice
+:func:`largest_payload` of a network of :data:`CAP_SENSORS` sensors and :data:`CAP_TARGETS`
+targets (~0.48 MB, a Status naming 3 x 1024 sensors and 4096 re-filtered messages).  A bus
+drops a payload over it before copying it (:mod:`covnet.bus`, :mod:`covnet.zenoh_bus`: counted
+``oversize``), and :func:`decode` refuses one (``too_large``)."""
 
 REASONS = frozenset(
     {
@@ -651,7 +719,11 @@ class Measurement(_Message):
     Optional (mobile scenarios): ``target_ids`` names the target of each row of ``z``, and
     ``platform`` ``(4,)`` is the sensor's own ``[qx, qy, q̇x, q̇y]`` when it measured (``R`` is
     then its base noise ``R0``: the geometric noise of each detection is the receiver's to
-    model)."""
+    model).
+
+    ``seq``: how many messages the sensor has sent for the manager in this run, this one
+    included (1, 2, ...; set by every sensor process): a gap in the ``seq`` received is a
+    message sent and never arrived, which is what ``lost`` counts (:mod:`manager.loop`)."""
 
     KIND: ClassVar[str] = "meas"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -664,6 +736,7 @@ class Measurement(_Message):
         "episode": "count",
         "target_ids": "names",
         "platform": "vec",
+        "seq": "count",
     }
     sensor_id: str
     scan: int
@@ -674,6 +747,7 @@ class Measurement(_Message):
     episode: int = 0
     target_ids: tuple[str, ...] | None = None
     platform: NDArray[np.float64] | None = None
+    seq: int | None = None
 
     def _check(self) -> None:
         dz = self.R.shape[0]
@@ -767,7 +841,8 @@ class LocalTrack(_Message):
     """Decentralized modes: sensor ``sensor_id``'s local-filter track for scan ``scan`` (time
     ``t`` [s]), published instead of its measurement at a scan it was enabled: the posterior
     ``N(x, P)`` and the local filter's own prediction ``N(x_prior, P_prior)`` for that scan (the
-    information-matrix fusion removes it; see :mod:`covnet.core.fusion`)."""
+    information-matrix fusion removes it; see :mod:`covnet.core.fusion`).  ``seq`` as in
+    :class:`Measurement`."""
 
     KIND: ClassVar[str] = "ltrack"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -780,6 +855,7 @@ class LocalTrack(_Message):
         "P_prior": "mat",
         "t_sent_ns": "stamp",
         "episode": "count",
+        "seq": "count",
     }
     sensor_id: str
     scan: int
@@ -790,6 +866,7 @@ class LocalTrack(_Message):
     P_prior: NDArray[np.float64]
     t_sent_ns: int
     episode: int = 0
+    seq: int | None = None
 
     def _check(self) -> None:
         n = self.x.shape[0]
@@ -808,7 +885,9 @@ class Heartbeat(_Message):
     """A node's application-level heartbeat: the last scan it handled (a hung loop stops
     sending these although its zenoh session still keeps its liveliness token alive), and
     optionally its running count of rejected messages by reason (so the manager's
-    ``network.json`` can report every node's rejections)."""
+    ``network.json`` can report every node's rejections).  A sensor's also carry ``sent``, how
+    many messages it has sent for the manager (the ``seq`` of its last one), and it sends one
+    more as it leaves: so the manager knows of the last ones too when they are lost."""
 
     KIND: ClassVar[str] = "hb"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -817,12 +896,14 @@ class Heartbeat(_Message):
         "scan": "count",
         "t_sent_ns": "stamp",
         "rejected": "counts",
+        "sent": "count",
     }
     role: str
     node_id: str
     scan: int
     t_sent_ns: int
     rejected: dict[str, int] | None = None
+    sent: int | None = None
 
 
 Message = Truth | Command | Measurement | Track | Status | Heartbeat | LocalTrack

@@ -28,19 +28,29 @@ class Heartbeat:
         self._period_ns = int(period_s * 1e9)
         self._next_ns = 0
 
-    def tick(self, scan: int, rejected: Mapping[str, int] | None = None) -> None:
-        now = self._clock.now_ns()
-        if now < self._next_ns:
+    def tick(
+        self,
+        scan: int,
+        rejected: Mapping[str, int] | None = None,
+        *,
+        sent: int | None = None,
+        now: bool = False,
+    ) -> None:
+        """Publish a heartbeat if one is due (``now``: at once, as a node leaves); ``sent``:
+        a sensor's count of messages sent for the manager."""
+        t = self._clock.now_ns()
+        if t < self._next_ns and not now:
             return
         hb = msg.Heartbeat(
             role=self._role,
             node_id=self._node_id,
             scan=scan,
-            t_sent_ns=now,
+            t_sent_ns=t,
             rejected=dict(rejected) if rejected else None,
+            sent=sent,
         )
         self._bus.publish(self._key, msg.encode(hb))
-        self._next_ns = now + self._period_ns
+        self._next_ns = t + self._period_ns
 
 
 class ManagerWatch:

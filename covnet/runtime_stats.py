@@ -5,7 +5,23 @@ per-scan latency.  Written to ``network.json`` by the manager.
 ``rejected_by_node`` are the other nodes' (world, sensors: commands, truth), as last reported in
 their heartbeats.  Reasons are :data:`covnet.messages.REASONS` plus the manager's semantic ones:
 ``key_mismatch``, ``late``, ``wrong_scan``, ``duplicate``, ``not_enabled``, ``bad_measurement``,
-``bad_key``.
+``bad_key``, ``bad_seq``.
+
+What became of each sensor's messages (``sensors`` in ``network.json``, and the totals), the
+same words as ``covnet run``'s latency counts (:mod:`covnet.covariance_control.latency_sim`):
+
+- ``sent``: how many the sensor sent (the highest ``seq`` received, or the count in its last
+  heartbeat when that is higher: :class:`SeqCount`);
+- ``on_time``: arrived by their scan's deadline and taken for it;
+- ``late``: arrived after their scan's deadline (``late_refiltered``: re-filtered into their
+  scan; ``late_dropped``: dropped; ``late`` alone: the kind has no use for late ones);
+- ``rejected``: arrived but refused (another scan, a duplicate, unusable, ...: by reason in
+  ``rejected``);
+- ``lost``: sent and not received before the run ended (a gap in ``seq``, or beyond the last
+  one received), so ``sent = on_time + late + rejected + lost`` per sensor;
+- ``missing_at_deadline`` (totals only): awaited at a deadline and not there then: those that
+  came later are ``late``, the rest ``lost`` or never sent (a command that did not arrive, a
+  sensor that failed).
 """
 
 from __future__ import annotations
@@ -15,6 +31,62 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+SEQ_AHEAD = 100_000
+"""A ``seq`` more than this beyond the highest one received is refused (``bad_seq``): a forged
+number must not make the counter's memory grow."""
+
+
+@dataclass
+class SeqCount:
+    """Which of one sensor's numbered messages arrived: ``seq`` 1, 2, ... per process; a
+    restarted sensor process counts from 1 again (:meth:`restart` folds the old counts)."""
+
+    high: int = 0
+    reported: int = 0  # the sensor's own count (its heartbeats' ``sent``)
+    arrived: int = 0
+    sent_before: int = 0
+    arrived_before: int = 0
+    seen: bytearray = field(default_factory=bytearray)  # bit i: seq i + 1 arrived
+
+    def add(self, seq: int) -> str | None:
+        """Note ``seq``'s arrival; None, or why it is refused (``duplicate``, ``bad_seq``).
+        A second ``seq`` 1 is a restarted process counting again (:meth:`restart`)."""
+        if seq == 1 and self.seen and self.seen[0] & 1:
+            self.restart()
+        i = seq - 1
+        if i < 0 or seq > self.high + SEQ_AHEAD:
+            return "bad_seq"
+        byte, bit = divmod(i, 8)
+        if byte >= len(self.seen):
+            self.seen.extend(bytes(byte + 1 - len(self.seen)))
+        if self.seen[byte] >> bit & 1:
+            return "duplicate"
+        self.seen[byte] |= 1 << bit
+        self.arrived += 1
+        self.high = max(self.high, seq)
+        return None
+
+    def restart(self) -> None:
+        """The sensor's process restarted: its next ``seq`` starts a new stretch."""
+        self.sent_before += max(self.high, self.reported)
+        self.arrived_before += self.arrived
+        self.high = self.reported = self.arrived = 0
+        self.seen = bytearray()
+
+    def report(self, sent: int) -> None:
+        """The sensor says it has sent ``sent`` so far (a heartbeat): the last ones count
+        as sent even when none of them arrives."""
+        if sent <= SEQ_AHEAD + self.high:
+            self.reported = max(self.reported, sent)
+
+    @property
+    def sent(self) -> int:
+        return self.sent_before + max(self.high, self.reported)
+
+    @property
+    def lost(self) -> int:
+        return self.sent - self.arrived_before - self.arrived
 
 
 @dataclass
@@ -33,10 +105,17 @@ class NetStats:
     loop_wall_ns: int = 0  # READY -> last scan fused, all episodes
     scans_done: int = 0
     late: int = 0
-    lost: int = 0
     late_refiltered: int = 0  # late, re-filtered from their scan (network.latency.late: oosm)
     late_dropped: int = 0  # late and dropped (policy drop, older than the buffer, CI)
     unsolicited: int = 0  # fused from a sensor that measured on a stale command
+    missing_at_deadline: int = 0  # awaited and not there at the deadline (late or lost later)
+    seq: dict[str, SeqCount] = field(default_factory=dict)  # per sensor: what arrived
+    outcome: defaultdict[str, Counter[str]] = field(
+        default_factory=lambda: defaultdict(Counter)
+    )  # per sensor: on_time, late, late_refiltered, late_dropped, rejected
+    membership: defaultdict[str, Counter[str]] = field(
+        default_factory=lambda: defaultdict(Counter)
+    )  # per node: failed, rejoined (events seen by the manager)
     node_rejected: dict[str, dict[str, int]] = field(default_factory=dict)  # from heartbeats
 
     def sent(self, key: str, n_bytes: int) -> None:
@@ -50,6 +129,45 @@ class NetStats:
     def reject(self, key: str, reason: str) -> None:
         self.rejected[reason] += 1
         self.rejected_by_key[key][reason] += 1
+
+    def arrived(self, sensor: str, seq: int | None) -> str | None:
+        """A well-formed message of ``sensor`` numbered ``seq`` arrived; None, or why its
+        number is refused (then it is rejected, uncounted)."""
+        if seq is None:
+            return None
+        return self.seq.setdefault(sensor, SeqCount()).add(seq)
+
+    def reported(self, sensor: str, sent: int) -> None:
+        """``sensor``'s heartbeat says it has sent ``sent`` messages (:meth:`SeqCount.report`)."""
+        self.seq.setdefault(sensor, SeqCount()).report(sent)
+
+    def membership_counts(self) -> dict[str, dict[str, int]]:
+        """Per node that failed at least once: how often it ``failed`` and ``rejoined``."""
+        return {
+            n: {"failed": c["failed"], "rejoined": c["rejoined"]}
+            for n, c in sorted(self.membership.items())
+        }
+
+    @property
+    def lost(self) -> int:
+        """Messages sent and never arrived (so far), over every sensor."""
+        return sum(c.lost for c in self.seq.values())
+
+    def sensors(self) -> dict[str, dict[str, int]]:
+        """Per sensor: ``sent``, ``on_time``, ``late`` (and how), ``rejected``, ``lost``."""
+        out = {}
+        for sid in sorted(set(self.seq) | set(self.outcome)):
+            c, o = self.seq.get(sid), self.outcome.get(sid, Counter())
+            out[sid] = {
+                "sent": c.sent if c else 0,
+                "on_time": o["on_time"],
+                "late": o["late"],
+                "late_refiltered": o["late_refiltered"],
+                "late_dropped": o["late_dropped"],
+                "rejected": o["rejected"],
+                "lost": c.lost if c else 0,
+            }
+        return out
 
     def as_dict(self) -> dict[str, Any]:
         def pct(xs: list[int]) -> dict[str, float | None]:
@@ -87,4 +205,7 @@ class NetStats:
             "late_refiltered": self.late_refiltered,
             "late_dropped": self.late_dropped,
             "unsolicited": self.unsolicited,
+            "missing_at_deadline": self.missing_at_deadline,
+            "sensors": self.sensors(),
+            "membership": self.membership_counts(),
         }

@@ -217,6 +217,8 @@ class Loop:
                 continue
             if hb.node_id in self.members.expected:
                 self.members.heartbeat(hb.node_id, now)
+                if hb.sent is not None and hb.role == "sensor":
+                    self.stats.reported(hb.node_id, hb.sent)
             if hb.rejected:
                 self.stats.node_rejected[hb.node_id] = dict(hb.rejected)
 
@@ -236,8 +238,21 @@ class Loop:
             }
             if sid in failed:
                 event["detected_ns"] = self.members.down_since_ns(sid)
+            self.stats.membership[sid][event["event"]] += 1
             events.append(event)
         return failed, events
+
+    def linger(self, timeout_s: float, stop: threading.Event) -> None:
+        """After the run (our token gone): keep reading heartbeats, whose ``sent`` counts say
+        how many messages each sensor sent in the end, until every sensor has left, ``stop``
+        or ``timeout_s``.  Measurements arriving now are not taken: the run is over."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not stop.is_set():
+            self.poll_membership()
+            if not any(s in self.members.alive_tokens for s in self.ids):
+                self.poll_membership()  # a heartbeat sent just before its token went
+                return
+            stop.wait(0.02)
 
     def traffic(self) -> tuple[int, int]:
         """Messages and bytes this manager has sent and received so far."""
@@ -289,7 +304,7 @@ class Loop:
         while waiting:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or stop.is_set():
-                self.stats.lost += len(waiting)
+                self.stats.missing_at_deadline += len(waiting)
                 break
             s = self.meas_sub.recv(timeout=min(0.05, remaining))
             if s is not None:
@@ -300,7 +315,7 @@ class Loop:
             self.poll_membership()
             dead = {sid for sid in waiting if not self.members.is_up(sid, self.clock.now_ns())}
             if dead:
-                self.stats.lost += len(dead)
+                self.stats.missing_at_deadline += len(dead)
                 waiting -= dead
         # anything else already queued for this scan (duplicates, strays) is judged now
         while (s := self.meas_sub.try_recv()) is not None:
@@ -329,8 +344,14 @@ class Loop:
             return
         if key_sensor != m.sensor_id:
             self.stats.reject(s.key, "key_mismatch")
-        elif (m.episode, m.scan) < (episode, k):
+            return
+        if (bad := self.stats.arrived(m.sensor_id, m.seq)) is not None:
+            self.stats.reject(s.key, bad)
+            return
+        outcome = self.stats.outcome[m.sensor_id]
+        if (m.episode, m.scan) < (episode, k):
             self.stats.late += 1
+            outcome["late"] += 1
             self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
             done = (
                 self.on_late(m)
@@ -341,21 +362,29 @@ class Loop:
                 self.stats.reject(s.key, "late")
             elif done:
                 self.stats.late_refiltered += 1
+                outcome["late_refiltered"] += 1
             else:
                 self.stats.late_dropped += 1
-        elif (m.episode, m.scan) != (episode, k):
-            self.stats.reject(s.key, "wrong_scan")
+                outcome["late_dropped"] += 1
+            return
+        reason = None
+        if (m.episode, m.scan) != (episode, k):
+            reason = "wrong_scan"
         elif m.sensor_id in got:
-            self.stats.reject(s.key, "duplicate")
+            reason = "duplicate"
         elif m.sensor_id not in waiting and not self.accept_unsolicited:
-            self.stats.reject(s.key, "not_enabled")
+            reason = "not_enabled"
         elif not usable(m):
-            self.stats.reject(s.key, "bad_measurement")
-        else:
-            self.stats.unsolicited += m.sensor_id not in waiting
-            got[m.sensor_id] = m
-            waiting.discard(m.sensor_id)
-            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+            reason = "bad_measurement"
+        if reason is not None:
+            self.stats.reject(s.key, reason)
+            outcome["rejected"] += 1
+            return
+        self.stats.unsolicited += m.sensor_id not in waiting
+        outcome["on_time"] += 1
+        got[m.sensor_id] = m
+        waiting.discard(m.sensor_id)
+        self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
 
 
 @dataclass
@@ -422,11 +451,13 @@ def run_scans(
     on_ready: Callable[[], None] | None = None,
     on_status: StatusFn | None = None,
     on_progress: Callable[[Any, bool], None] | None = None,
+    linger_s: float = 0.0,
 ) -> Any:
     """Run every episode of ``logic`` over ``loop``'s bus (module docstring); returns the
     kind's result: also when stopped (``completed=False``) or when the network never came up
     or could not go on (``error`` set).  ``on_progress(result, episode_done)`` is called after
-    every scan's report."""
+    every scan's report.  ``linger_s``: afterwards, up to that long for the sensors' last
+    counts (:meth:`Loop.linger`)."""
     result, clock, net = logic.result, loop.clock, loop.net
     report = _Reporter(logic, loop, on_status, on_progress)
     try:
@@ -495,6 +526,8 @@ def run_scans(
     finally:
         report.run()  # a stopped loop's last scan
         loop.token.undeclare()
+        if linger_s > 0:
+            loop.linger(linger_s, stop)
     return result
 
 
@@ -510,6 +543,7 @@ def run(
     on_ready: Callable[[], None] | None = None,
     on_status: StatusFn | None = None,
     on_progress: Callable[[Any, bool], None] | None = None,
+    linger_s: float = 0.0,
 ) -> Any:
     """A kind's manager over ``bus``: ``make_logic(cfg, loop)`` (the kind's :class:`ScanLogic`)
     in :func:`run_scans`; returns the kind's result (also when stopped, with
@@ -523,6 +557,7 @@ def run(
         on_ready=on_ready,
         on_status=on_status,
         on_progress=on_progress,
+        linger_s=linger_s,
     )
 
 

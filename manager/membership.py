@@ -1,9 +1,20 @@
 """Which nodes are alive: liveliness tokens plus an application heartbeat.
 
-A node is *failed* when its liveliness token disappears (a dead process: zenoh notices within
-milliseconds on loopback) or when its last heartbeat is older than ``failure_timeout_ns`` (a
-hung loop keeps its session, hence its token, alive).  A failed node *rejoins* when its token is
-back and a fresh heartbeat has arrived.
+A node is *up* at time ``t`` when its last heartbeat arrived within ``failure_timeout_ns`` and
+either its liveliness token is alive or that heartbeat arrived after the token went.  So it is
+*failed* when
+
+- its token disappeared and nothing was heard from it since (a dead process: zenoh notices
+  within milliseconds on loopback), or
+- its last heartbeat is older than ``failure_timeout_ns`` (a hung loop keeps its session, hence
+  its token, alive; or a link that loses or holds back everything for that long),
+
+and it *rejoins* as soon as it is heard again: a heartbeat after its token went proves the
+process alive (a lossy or slow link can end a zenoh session, and with it the token, while the
+node runs on and reconnects), so loss on a link is never taken for death for good.  How long a
+link may stall before its node counts as failed is ``failure_timeout_ns`` (``network.
+failure_timeout_s``; see the README: it must exceed the heartbeat period plus the link's worst
+delay, and over TCP a lossy link's retransmission back-off).
 """
 
 from __future__ import annotations
@@ -28,20 +39,25 @@ class Membership:
             self.token_lost_ns[node_id] = now_ns
 
     def down_since_ns(self, node_id: str) -> int | None:
-        """When the node was first seen down: its token's loss, or its heartbeat's deadline."""
-        if node_id not in self.alive_tokens:
-            return self.token_lost_ns.get(node_id)
+        """When the node was first seen down: its token's loss (nothing heard since), or its
+        heartbeat's deadline."""
         last = self.last_heartbeat_ns.get(node_id)
+        gone = self.token_lost_ns.get(node_id)
+        if node_id not in self.alive_tokens and (last is None or gone is None or last <= gone):
+            return gone
         return None if last is None else last + self.failure_timeout_ns
 
     def heartbeat(self, node_id: str, now_ns: int) -> None:
         self.last_heartbeat_ns[node_id] = now_ns
 
     def is_up(self, node_id: str, now_ns: int) -> bool:
-        if node_id not in self.alive_tokens:
-            return False
         last = self.last_heartbeat_ns.get(node_id)
-        return last is not None and now_ns - last <= self.failure_timeout_ns
+        if last is None or now_ns - last > self.failure_timeout_ns:
+            return False
+        if node_id in self.alive_tokens:
+            return True
+        gone = self.token_lost_ns.get(node_id)
+        return gone is not None and last > gone  # heard after its token went: alive
 
     def failed(self, now_ns: int) -> frozenset[str]:
         return frozenset(n for n in self.expected if not self.is_up(n, now_ns))

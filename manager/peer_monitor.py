@@ -87,11 +87,14 @@ def run(
     on_ready: Callable[[], None] | None = None,
     on_status: Callable[[dict[str, Any]], None] | None = None,
     on_progress: Callable[[PeerResult, bool], None] | None = None,
+    linger_s: float = 0.0,
 ) -> PeerResult:
     """Watch the peer nodes until every live node has reported the last scan of the last
     episode (``completed``), or ``stop``, or no report for ``network.scan_timeout_s``; the
     episodes are the config's metrics (peer mode runs in lockstep only: ``realtime`` must be
-    false)."""
+    false).  ``linger_s`` is the skeleton's (:func:`manager.loop.run_scans`); the peers send no
+    counts to wait for."""
+    del linger_s
     if realtime:
         raise ValueError("--realtime: peer mode runs in lockstep only")
     metrics = list(sc.allocation.metrics)

@@ -22,6 +22,10 @@ from covnet.process import EXIT_FAIL, EXIT_OK, open_bus
 from covnet.rundir import LIVE, record_end, utc_now, write_json
 from manager.loop import LoopResult, wait_for_nodes_to_leave
 
+LINGER_S = 5.0
+"""After the run, how long the manager waits for the sensors' last counts (they leave within
+milliseconds of seeing its token go)."""
+
 
 @dataclass
 class Hooks:
@@ -75,7 +79,10 @@ def main_around(
     info = {**(run_info_extra or {}), **run_info(args, endpoint)}
 
     def run_loop(bus: Bus, clock: Clock, hooks: Hooks) -> LoopResult:
-        return run(cfg, bus, args.run, clock, stop, realtime=args.realtime, **hooks.kwargs())
+        return run(
+            cfg, bus, args.run, clock, stop, realtime=args.realtime, linger_s=LINGER_S,
+            **hooks.kwargs(),
+        )  # fmt: skip
 
     return serve(
         args,
@@ -151,7 +158,7 @@ def serve(
         # up until they have, so that none is cut off mid-publish
         wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
     write(result)
-    record_end(out, *ending(result, stop))
+    record_end(out, *ending(result, stop), membership=result.stats.membership_counts())
     (out / LIVE).unlink(missing_ok=True)
     if result.error:
         print(f"manager: error: {result.error}", file=sys.stderr, flush=True)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import threading
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from covnet import messages as msg
@@ -137,7 +137,7 @@ def serve(
 
     try:
         while not stop.is_set():
-            heartbeat.tick(last_scan, stats.rejected)
+            heartbeat.tick(last_scan, stats.rejected, sent=stats.measurements_sent)
             if manager.left:
                 break
             if pending:  # waiting for a commanded scan's truth
@@ -151,7 +151,8 @@ def serve(
             while pending:
                 cmd = pending[0]
                 if cmd.scan in truths:
-                    bus.publish(meas_key, msg.encode(respond(cmd, truths[cmd.scan])))
+                    out = replace(respond(cmd, truths[cmd.scan]), seq=stats.measurements_sent + 1)
+                    bus.publish(meas_key, msg.encode(out))
                     stats.measurements_sent += 1
                     if not keep_truth:
                         for old in [k for k in truths if k < cmd.scan - 1]:
@@ -161,7 +162,8 @@ def serve(
                 else:
                     break
                 pending.popleft()
-    finally:
+    finally:  # the last count, for the manager (its last messages may be lost) and the record
+        heartbeat.tick(last_scan, stats.rejected, sent=stats.measurements_sent, now=True)
         token.undeclare()
         manager.close()
     return stats

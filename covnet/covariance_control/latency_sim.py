@@ -237,7 +237,7 @@ def run_latency(
                 mirror.P_local[j] = tr.post.P
         rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
         pred = predict_step(model, est)
-    counts.late_dropped += len(pending)  # still in flight at the end: never fused
+    counts.lost += len(pending)  # still in flight at the end: never arrived (as in covnet up)
     counts.deadline_misses = int(np.sum(sent_for > on_time_for))
     return rows.run(metric), counts
 
