@@ -25,7 +25,7 @@ def seed_option(data: dict[str, Any], value: int) -> None:
 class KindBase:
     """What most kinds' entries do alike: the config through the kind's config module
     (``config``: its ``from_dict`` and ``normalised``), any clock and emulation in ``covnet up``,
-    restartable sensors.  A kind overrides what differs."""
+    restartable sensors and recorder.  A kind overrides what differs."""
 
     config: Any
 
@@ -39,8 +39,10 @@ class KindBase:
     def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
         return None
 
-    def sensors_restartable(self, cfg: Any) -> bool:
-        return True
+    def restartable(self, cfg: Any) -> frozenset[str]:
+        """The sensors and the recorder (which continues in a new segment); a world that
+        moves with the commands keeps state a restart would lose."""
+        return frozenset({"sensor", "recorder"})
 
 
 def lazy(module: str, name: str) -> Callable[..., Any]:

@@ -101,8 +101,9 @@ class Kind(Protocol):
         """Why ``covnet up`` cannot run ``cfg`` with this clock or emulation (None: it can)."""
         ...
 
-    def sensors_restartable(self, cfg: Any) -> bool:
-        """Whether a failed sensor process may be restarted (``network.restart``)."""
+    def restartable(self, cfg: Any) -> frozenset[str]:
+        """The roles (``sensor``, ``world``, ``recorder``) whose failed process may be restarted
+        under ``network.restart: on-failure``."""
         ...
 
     def plot(self, run_dir: Path) -> list[Path]:

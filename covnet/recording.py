@@ -306,6 +306,30 @@ class _Exact:
         return data
 
 
+def segment_paths(path: Path | str) -> list[Path]:
+    """The files of one recording, in order: ``path`` (``recording.mcap``), then the segments a
+    restarted recorder wrote (``recording.2.mcap``, ``recording.3.mcap``, ...)."""
+    path = Path(path)
+    out = [path] if path.exists() else []
+    n = 2
+    while (seg := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
+        out.append(seg)
+        n += 1
+    return out
+
+
+def next_segment(path: Path | str) -> Path:
+    """Where a recorder writes: ``path``, or when it exists (the recorder was restarted: never
+    overwrite what was recorded) the next free segment name (:func:`segment_paths`)."""
+    path = Path(path)
+    if not path.exists():
+        return path
+    n = 2
+    while (seg := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
+        n += 1
+    return seg
+
+
 @dataclass
 class RecordingReader:
     """Read a recording front to back with MCAP's stream reader (no index needed), so a file
@@ -318,7 +342,13 @@ class RecordingReader:
     has ``complete`` False and ``truncated`` False), ``corrupt_chunks`` (offsets of
     chunks skipped because they failed their CRC or did not decompress), ``orphans`` (messages
     of a channel whose record was lost in such a chunk) and ``error`` (why reading stopped
-    early on a damaged file, else None) describe what was read."""
+    early on a damaged file, else None) describe what was read.
+
+    A recording a restarted recorder continued in further segments (:func:`segment_paths`) is
+    read segment after segment: ``segments`` counts them, ``complete`` and ``truncated`` are
+    the last one's, ``corrupt_chunks`` the offsets within their segment, and
+    ``incomplete_segments`` the earlier ones that end without a footer (their recorder was
+    killed: what came in until its restart is missing)."""
 
     path: Path
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
@@ -327,10 +357,23 @@ class RecordingReader:
     corrupt_chunks: list[int] = field(default_factory=list)
     orphans: int = 0
     error: str | None = None
+    segments: int = 0
+    incomplete_segments: list[str] = field(default_factory=list)
 
     def samples(self) -> Iterator[RecordedSample]:
+        paths = segment_paths(self.path) or [self.path]  # a missing file raises, as before
+        for i, path in enumerate(paths):
+            self.segments = i + 1
+            self.complete = self.truncated = False
+            yield from self._segment(path)
+            if self.error is not None:
+                return
+            if i < len(paths) - 1 and not self.complete:
+                self.incomplete_segments.append(path.name)
+
+    def _segment(self, path: Path) -> Iterator[RecordedSample]:
         channels: dict[int, str] = {}
-        with open(self.path, "rb") as f:
+        with open(path, "rb") as f:
             stream = _Exact(f)
             reader = StreamReader(stream, emit_chunks=True, validate_crcs=False)  # type: ignore[arg-type]
             records = reader.records

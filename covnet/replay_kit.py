@@ -195,6 +195,17 @@ def recording_notes(reader: RecordingReader, counts: dict[str, int]) -> list[str
     """What a read recording says of itself (no footer: its recorder was killed; corrupt chunks;
     messages of a lost channel; why reading stopped) and the payloads skipped."""
     notes: list[str] = []
+    if reader.segments > 1:
+        notes.append(
+            f"recording in {reader.segments} segments (the recorder was restarted "
+            f"{reader.segments - 1} time(s)); "
+            + (
+                f"{', '.join(reader.incomplete_segments)} end without a footer: what arrived "
+                "until its restart is missing"
+                if reader.incomplete_segments
+                else "every earlier segment is complete"
+            )
+        )
     if not reader.complete:
         notes.append(
             "recording has no footer (the recorder did not close it: killed?); read up to "

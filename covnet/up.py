@@ -73,11 +73,14 @@ def process_specs(
     if realtime:
         common += ["--realtime", "--speed", str(speed)]
     connect = endpoint(cfg.network, cfg.network.connect or router)
+    roles = kind.restartable(cfg) if cfg.network.restart == "on-failure" else frozenset()
     specs = [
         ProcessSpec(
             "manager", [py, "-m", "manager", *common, "--listen", router, "--out", str(out)]
         ),
-        ProcessSpec("world", [py, "-m", "world", *common, "--connect", connect]),
+        ProcessSpec(
+            "world", [py, "-m", "world", *common, "--connect", connect], restart="world" in roles
+        ),
     ]
     if cfg.network.record:
         recording = str(out / "recording.mcap")
@@ -85,15 +88,15 @@ def process_specs(
             ProcessSpec(
                 "recorder",
                 [py, "-m", "recorder", *common, "--connect", connect, "--out", recording],
+                restart="recorder" in roles,
             )
         )
-    restart = cfg.network.restart == "on-failure" and kind.sensors_restartable(cfg)
     for sid in cfg.sensor_ids:
         specs.append(
             ProcessSpec(
                 sid,
                 [py, "-m", "sensors", *common, "--id", sid, "--connect", connect],
-                restart=restart,
+                restart="sensor" in roles,
             )
         )
     return specs

@@ -2,7 +2,9 @@
 
 The recorder: writes every message of the run to an MCAP file (layout:
 :mod:`covnet.recording`).  Exits 0 when the run is over or on SIGINT/SIGTERM, after writing
-the file's summary and footer.  It is the same for every scenario kind.
+the file's summary and footer.  It is the same for every scenario kind.  Restarted (``network.
+restart: on-failure``), it continues in the next segment, ``FILE.2.mcap``, ... (the replay reads
+them in order).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from covnet.process import (
     resolve_run,
     stop_on_signals,
 )
-from covnet.recording import RecordingWriter, run_metadata
+from covnet.recording import RecordingWriter, next_segment, run_metadata
 from recorder import node
 
 
@@ -34,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
         stop = stop_on_signals()
         _, cfg = load_config(args)
         resolve_run(args, cfg)
-        out = Path(args.out)
+        out = next_segment(Path(args.out))  # a restarted recorder never overwrites
         out.parent.mkdir(parents=True, exist_ok=True)
         with open_client(args, cfg.network, node.ROLE, node.NODE_ID, stop) as bus:
             with RecordingWriter(out, run_id=args.run, metadata=run_metadata(args.run, cfg)) as w:

@@ -65,8 +65,11 @@ class CovarianceControl(KindBase):
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)
 
-    def sensors_restartable(self, cfg: Any) -> bool:
-        return bool(cfg.fusion.mode != "peer")  # a peer node's state is not restartable
+    def restartable(self, cfg: Any) -> frozenset[str]:
+        # the world's truth is a function of the seed alone: it publishes it again on start;
+        # a peer node's state is not restartable
+        roles = {"world", "recorder"} | ({"sensor"} if cfg.fusion.mode != "peer" else set())
+        return frozenset(roles)
 
 
 KIND = CovarianceControl()

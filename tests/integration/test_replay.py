@@ -322,3 +322,45 @@ def test_recorder_process_records_everything_and_closes_the_file_on_a_signal(
     assert [g for g in got if "/hb/" not in g[0]] == published
     meta = read_metadata(out)["covnet.run"]
     assert meta["run_id"] == run and meta["seed"] == "2026"
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_a_recorder_killed_with_sigkill_loses_at_most_its_flush_interval(tmp_path, paper_path):
+    """``kill -9`` of the recorder: the file has no footer, but every message it had recorded
+    more than :data:`~covnet.recording.FLUSH_INTERVAL_S` (plus a heartbeat) before the kill is
+    in it, readable, in order."""
+    from covnet.recording import FLUSH_INTERVAL_S
+    from covnet.zenoh_bus import ZenohBus, zenoh_config
+
+    endpoint, run = _free_endpoint(), msg.new_run_id()
+    out = tmp_path / "rec.mcap"
+    argv = [sys.executable, "-m", "recorder", "--config", str(paper_path)]
+    argv += ["--run", run, "--connect", endpoint, "--out", str(out)]
+    published: list[tuple[str, bytes]] = []
+    with ZenohBus.open(zenoh_config("router", listen=[endpoint])) as bus:
+        watch = bus.watch_liveliness(msg.alive_key(run, "recorder", "recorder"))
+        hb = bus.subscribe(msg.heartbeat_key(run, "recorder", "recorder"))
+        with Supervisor([ProcessSpec("recorder", argv)], on_line=lambda n, s: None) as sup:
+            ev = watch.recv(timeout=30)
+            assert ev is not None and ev.alive, sup.output("recorder")
+            for k in range(1, 41):
+                cmd = msg.Command(k, float(k), ("S1",), time.monotonic_ns())
+                published.append((msg.command_key(run, cmd.enabled), msg.encode(cmd)))
+                bus.publish(*published[-1])
+            deadline = time.monotonic() + 10
+            seen = 0
+            while seen != 40 and time.monotonic() < deadline:  # it has recorded scan 40
+                s = hb.recv(timeout=0.5)
+                if s is not None:
+                    seen = msg.decode_as(s.payload, msg.Heartbeat).scan
+            assert seen == 40, sup.output("recorder")
+            # the bound itself, not a wait for a condition: what is older than this is on disk
+            time.sleep(FLUSH_INTERVAL_S + 0.5)
+            os.killpg(sup.pids["recorder"], signal.SIGKILL)
+            assert sup.wait("recorder", timeout=10) == -signal.SIGKILL
+    reader = RecordingReader(out)
+    got = [(s.key, s.payload) for s in reader.samples()]
+    assert not reader.complete  # no footer: it was killed
+    assert reader.corrupt_chunks == [] and reader.error is None
+    assert [g for g in got if "/hb/" not in g[0]] == published

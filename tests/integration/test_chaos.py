@@ -1,0 +1,145 @@
+"""Chaos: a real-time ``covnet up`` with ``network.restart: on-failure`` while random sensors,
+the world and the recorder are killed with SIGKILL at random (seeded) moments.  The run
+completes; no sensor is allocated between its death (plus the detection bound) and its
+restart; every restart is in ``run.json``; the directory is valid, and replays exactly unless
+the recorder itself was killed (then the replay names the gap and exits 1)."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+import yaml
+from multiproc import CovnetProcess, assert_nothing_left
+
+from covnet import messages as msg
+from covnet.recording import read_recording
+
+pytestmark = [pytest.mark.integration]
+
+DETECT_S = 0.3
+"""A killed sensor's token is gone within milliseconds on loopback; the manager checks
+membership at every scan (0.1 s at --speed 10): from then on it must not allocate it."""
+
+
+class PidWatch:
+    """The launcher's processes.json, polled: every pid each process had, first seen when."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.history: dict[str, list[tuple[int, int]]] = {}  # name -> [(pid, seen_ns)]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+        self._thread.start()
+
+    def _poll(self) -> None:
+        while not self._stop.is_set():
+            try:
+                pids = json.loads(self.path.read_text())
+            except (OSError, ValueError):
+                pids = {}
+            now = time.monotonic_ns()
+            for name, pid in pids.items():
+                seen = self.history.setdefault(name, [])
+                if not seen or seen[-1][0] != pid:
+                    seen.append((pid, now))
+            self._stop.wait(0.01)
+
+    def current(self, name: str) -> int:
+        return self.history[name][-1][0]
+
+    def restarted_after(self, name: str, t_ns: int) -> int | None:
+        """When a pid of ``name`` first seen after ``t_ns`` was seen (None: never)."""
+        return next((seen for _, seen in self.history.get(name, []) if seen > t_ns), None)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize(
+    "seed", [2026, *[pytest.param(s, marks=pytest.mark.slow) for s in range(1, 9)]]
+)
+def test_chaos_run_completes_and_never_allocates_a_dead_sensor(tmp_path, paper_path, seed):
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = 120
+    data["allocation"]["metrics"] = ["spectral"]
+    data.setdefault("network", {})["restart"] = "on-failure"
+    cfg = tmp_path / "chaos.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "run"
+    ids = [s["id"] for s in data["sensors"]]
+    rng = random.Random(seed)
+    victims = [*(rng.choice(ids) for _ in range(4)), "world", "recorder"]
+    rng.shuffle(victims)
+    at = sorted(rng.uniform(0.5, 9.0) for _ in victims)  # seconds after READY (run: ~12 s)
+
+    p = CovnetProcess(["up", str(cfg), "--realtime", "--speed", "10", "--out", str(out)])
+    kills: list[tuple[str, int, int]] = []  # (name, pid, t_kill_ns)
+    watch = None
+    try:
+        assert p.wait_for("[manager] READY", timeout=60), p.output()
+        t0 = time.monotonic()
+        watch = PidWatch(out / "processes.json")
+        for name, t in zip(victims, at, strict=True):
+            time.sleep(max(0.0, t0 + t - time.monotonic()))  # the seeded moment
+            pid = watch.current(name)
+            if kills and kills[-1][:2] == (name, pid):
+                continue  # not restarted yet: one kill per incarnation
+            os.kill(pid, signal.SIGKILL)
+            kills.append((name, pid, time.monotonic_ns()))
+        rc = p.wait(timeout=120)
+    finally:
+        if watch is not None:
+            watch.close()
+        p.stop()
+    text = p.output()
+    print("kills:", [(n, round((t - kills[0][2]) / 1e9, 2)) for n, _, t in kills])
+    assert rc == 0, text
+    assert "Traceback" not in text, text
+    assert_nothing_left(out)
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "completed", info
+    assert info["restarts"] == dict(Counter(name for name, _, _ in kills)), (info, kills)
+    for f in ("summary.json", "arrays.npz", "config.json", "network.json"):
+        assert (out / f).is_file(), f
+
+    # no sensor enabled by a command sent after its death was seen and before it came back
+    commands = []
+    for s in read_recording(out / "recording.mcap"):  # every segment
+        if "/cmd/" in s.key:
+            try:
+                commands.append(msg.decode_command(s.key, s.payload))
+            except msg.WireError:
+                continue
+    assert commands
+    for name, _, t_kill in kills:
+        if name not in ids:
+            continue
+        back = watch.restarted_after(name, t_kill) or time.monotonic_ns()
+        bad = [
+            c.scan
+            for c in commands
+            if t_kill + DETECT_S * 1e9 <= c.t_sent_ns <= back and name in c.enabled
+        ]
+        assert not bad, f"{name} killed, allocated in scans {bad}"
+
+    rp = CovnetProcess(["replay", str(out)])
+    try:
+        rrc = rp.wait(timeout=120)
+    finally:
+        rp.stop()
+    assert "Traceback" not in rp.output()
+    if "recorder" in {n for n, _, _ in kills}:
+        assert rrc in (0, 1), rp.output()
+        assert (out / "recording.2.mcap").is_file()
+    else:
+        assert rrc == 0 and "identical" in rp.output(), rp.output()
