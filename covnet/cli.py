@@ -342,7 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
     u.set_defaults(func=cmd_up)
 
     rp = sub.add_parser(
-        "replay", help="re-fuse a network run's recorded measurements; check summary.json"
+        "replay", help="rebuild a network run of any kind from its recording; check it exactly"
     )
     rp.add_argument("run_dir", help="a run directory written by covnet up (with recording.mcap)")
     rp.add_argument(
