@@ -22,12 +22,10 @@ from covnet import messages as msg
 from covnet.bus import Bus
 from covnet.clock import Clock, WallClock
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.decentral import LocalFilter
 from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import Model, build_model, measure
 from covnet.latency_bus import for_sensor
 from covnet.process import EXIT_OK, open_client
-from sensors import peer
 from sensors.protocol import SensorStats, process_main, serve
 
 
@@ -49,6 +47,8 @@ def main(args: Any, sc: Scenario, stop: threading.Event) -> int:
 def _peer(args: Any, sc: Scenario, stop: threading.Event) -> int:
     """``fusion.mode: peer``: this sensor is a peer node (decides and fuses with its
     neighbours); the episodes are the config's metrics."""
+    from sensors import peer  # the allocator and the fusion: start-up of a measuring sensor
+
     if args.realtime:
         raise ValueError("--realtime: peer mode runs in lockstep only")
     with open_client(args, sc.network, "sensor", args.id, stop) as bus:
@@ -82,7 +82,10 @@ def run(
     rule = rule_for(sc.fusion)
     j = model.index(sensor_id)
     R = model.R[j]
-    local = LocalFilter(model, sc.filter.initial_estimate)
+    if rule.tracks:  # its own filter: the decentralized modes only (start-up of the others)
+        from covnet.covariance_control.decentral import LocalFilter
+
+        local = LocalFilter(model, sc.filter.initial_estimate)
     noisy = NoiseTable(model, j)
 
     def truth_ok(tr: msg.Truth) -> bool:

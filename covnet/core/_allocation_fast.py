@@ -86,10 +86,12 @@ from typing import Literal, NamedTuple, TypedDict, cast
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import lapack
 
 from covnet.core.gaussian import Mat
+from covnet.core.lapack import flapack
 from covnet.core.metrics import EIG_TIE_RTOL, METRICS, MetricFn, ordered_eigh
+
+lapack = flapack()  # scipy.linalg.lapack's routines, without scipy.linalg's import
 
 EPS = float(np.finfo(np.float64).eps)
 TINY = float(np.finfo(np.float64).tiny)

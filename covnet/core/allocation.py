@@ -58,6 +58,7 @@ from covnet.core._allocation_fast import (
     spd_inverse,
     tie_threshold,
 )
+from covnet.core.constraints import Constraints
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import METRICS, MetricFn, get_metric
 
@@ -75,20 +76,6 @@ __all__ = [
     "prepare",
     "subset_covariance",
 ]
-
-
-@dataclass(frozen=True, slots=True)
-class Constraints:
-    """Which subsets are feasible.
-
-    - ``excluded``: failed / unavailable sensors (0-based), in no feasible subset;
-    - ``required``: pinned sensors, in every feasible subset;
-    - ``max_active``: budget, at most K sensors per subset (``None``: no budget).
-    """
-
-    excluded: frozenset[int] = frozenset()
-    required: frozenset[int] = frozenset()
-    max_active: int | None = None
 
 
 @dataclass(frozen=True, slots=True)

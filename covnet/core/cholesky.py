@@ -15,14 +15,18 @@ definite ``numpy.linalg.LinAlgError``.
 from __future__ import annotations
 
 import math
+from types import ModuleType
 
 import numpy as np
-from scipy.linalg import lapack
 
 from covnet.core.gaussian import Mat
+from covnet.core.lapack import flapack
 
-_potrf = lapack.dpotrf
-_potrs = lapack.dpotrs
+
+def _lapack() -> ModuleType:
+    """scipy's LAPACK wrappers (:mod:`covnet.core.lapack`: loaded on first use, without
+    importing scipy.linalg)."""
+    return flapack()
 
 
 def _float_matrix(A: Mat, what: str) -> Mat:
@@ -46,7 +50,7 @@ def cho_factor(A: Mat) -> Mat:
         raise ValueError(f"expected a non-empty square matrix, got shape {A.shape}")
     c: Mat  # LAPACK's dpotrf on a float64 matrix returns a float64 matrix (the stubs say Any)
     info: int
-    c, info = _potrf(A, lower=0, clean=0, overwrite_a=0)
+    c, info = _lapack().dpotrf(A, lower=0, clean=0, overwrite_a=0)
     if info > 0:
         raise np.linalg.LinAlgError(
             f"{info}-th leading minor of the array is not positive definite"
@@ -63,7 +67,7 @@ def cho_solve(c: Mat, B: Mat) -> Mat:
         raise ValueError(f"incompatible dimensions ({c.shape} and {B.shape})")
     x: Mat  # dpotrs on float64 arguments: float64 (the stubs say Any)
     info: int
-    x, info = _potrs(c, B, lower=0, overwrite_b=0)
+    x, info = _lapack().dpotrs(c, B, lower=0, overwrite_b=0)
     if info != 0:  # pragma: no cover - only for arguments this module never passes
         raise ValueError(f"LAPACK potrs: illegal value in argument {-info}")
     return x

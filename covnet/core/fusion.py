@@ -64,8 +64,8 @@ from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import linalg
 
+from covnet.core.cholesky import cho_factor, cho_solve
 from covnet.core.gaussian import Gaussian, Mat, Vec, symmetrise
 
 __all__ = [
@@ -123,10 +123,10 @@ class LocalTrack:
 def _information(g: Gaussian, name: str) -> tuple[Mat, Vec]:
     """``(P⁻¹, P⁻¹ x)`` of ``g`` by Cholesky solves; a non-SPD ``P`` is a ``ValueError``."""
     try:
-        c = linalg.cho_factor(g.P)
+        c = cho_factor(g.P)
     except (np.linalg.LinAlgError, ValueError) as exc:
         raise ValueError(f"{name}.P must be symmetric positive definite and finite: {exc}") from exc
-    return linalg.cho_solve(c, np.eye(g.dim)), linalg.cho_solve(c, g.x)
+    return cho_solve(c, np.eye(g.dim)), cho_solve(c, g.x)
 
 
 def information_fusion(prior: Gaussian, tracks: Sequence[LocalTrack]) -> Gaussian:
@@ -160,13 +160,13 @@ def information_fusion(prior: Gaussian, tracks: Sequence[LocalTrack]) -> Gaussia
         Y = Y + (Yp - Ym)
         y = y + (yp - ym)
     try:
-        cY = linalg.cho_factor(symmetrise(Y))
+        cY = cho_factor(symmetrise(Y))
     except np.linalg.LinAlgError as exc:
         raise ValueError(
             "the fused information Y is not positive definite (a track's posterior holds less "
             f"information than its prior?): {exc}"
         ) from exc
-    return Gaussian(linalg.cho_solve(cY, y), symmetrise(linalg.cho_solve(cY, np.eye(n))))
+    return Gaussian(cho_solve(cY, y), symmetrise(cho_solve(cY, np.eye(n))))
 
 
 # --------------------------------------------------------------------------------------------

@@ -43,10 +43,12 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import lapack
 
 from covnet.core.gaussian import Mat
+from covnet.core.lapack import flapack
 from covnet.core.metrics import EIG_TIE_RTOL, ordered_eigh
+
+lapack = flapack()  # scipy.linalg.lapack's routines, without scipy.linalg's import
 
 __all__ = [
     "ERR_FACTOR",

@@ -82,7 +82,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import lapack
 
 from covnet.core._allocation_fast import (
     _spd_inverse_soa,
@@ -109,7 +108,10 @@ from covnet.core.interval_bounds import (
     IntervalBound,
     search_context,
 )
+from covnet.core.lapack import flapack
 from covnet.core.metrics import MetricFn
+
+lapack = flapack()  # scipy.linalg.lapack's routines, without scipy.linalg's import
 
 __all__ = [
     "STATUS",

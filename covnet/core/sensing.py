@@ -11,8 +11,8 @@ from __future__ import annotations
 from typing import cast
 
 import numpy as np
-from scipy import linalg
 
+from covnet.core.cholesky import cho_factor, cho_solve
 from covnet.core.gaussian import Mat, Vec
 
 
@@ -35,7 +35,7 @@ def information_gain(H: Mat, R: Mat) -> Mat:
     Batched over leading axes of ``R`` (and ``H``) when given.
     """
     if R.ndim == 2:
-        RinvH = linalg.cho_solve(linalg.cho_factor(R), H)
+        RinvH = cho_solve(cho_factor(R), H)
         J = H.T @ RinvH
     else:
         # float64 in, float64 out (numpy's stubs promise only some floating type)

@@ -122,7 +122,7 @@ def loss_aware_model(model: Model, p: np.ndarray) -> Model:
     """``model`` whose allocation uses the expected gains ``p_j J_j`` (a sensor that never
     delivers gets a tiny gain, so the plan stays valid)."""
     gains = np.maximum(p, 1e-12)[:, None, None] * model.gains
-    return replace(model, gains=gains, plans={})
+    return replace(model, gains_given=gains, plans={}, _derived={})
 
 
 def _as_measurement(rule: FusionRule, payload: Any) -> tuple[np.ndarray, np.ndarray]:

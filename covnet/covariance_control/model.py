@@ -10,11 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from covnet.core import streams
-from covnet.core.allocation import Allocation, AllocationPlan, Constraints, allocate, prepare
+from covnet.core.constraints import Constraints
 from covnet.core.gaussian import Gaussian, Mat, Vec
 from covnet.core.kalman import predict, predict_covariance, update_covariance, update_sequential
 from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_noise
@@ -23,10 +24,14 @@ from covnet.core.sensing import measure as draw_measurement
 from covnet.core.truth import linear_gaussian_trajectory
 from covnet.covariance_control.config import Scenario
 
+if TYPE_CHECKING:
+    from covnet.core.allocation import Allocation, AllocationPlan
+
 
 @dataclass(frozen=True)
 class Model:
-    """Arrays of one scenario: motion ``F, G, Q``, sensors ``H, R_j, J_j``, schedule ``P_d``.
+    """Arrays of one scenario: motion ``F, G, Q``, sensors ``H, R_j`` (and :attr:`gains`
+    ``J_j``), schedule ``P_d``.
 
     :attr:`plan`: the allocation plan of ``gains`` under the configured ``constraints``
     (:func:`covnet.core.allocation.prepare`: the gains validated and the gain-only subset tables
@@ -45,7 +50,6 @@ class Model:
     sigma_a: float
     H: Mat
     R: Mat  # (Ns, 2, 2)
-    gains: Mat  # (Ns, 4, 4): J_j = Hᵀ R_j⁻¹ H
     P0: Mat
     x0: Vec  # true initial state at t = 0
     desired_from: tuple[int, ...]
@@ -57,6 +61,19 @@ class Model:
     plans: dict[Constraints, AllocationPlan] = field(
         default_factory=dict, compare=False, repr=False
     )
+    gains_given: Mat | None = None  # (Ns, 4, 4) supplied (a loss-aware model), else derived
+    _derived: dict[str, Mat] = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def gains(self) -> Mat:
+        """``(Ns, 4, 4)``: ``J_j = Hᵀ R_j⁻¹ H`` (or :attr:`gains_given`), computed on first use
+        (start-up: the world and a measuring sensor never need them, nor scipy.linalg)."""
+        if self.gains_given is not None:
+            return self.gains_given
+        g = self._derived.get("gains")
+        if g is None:
+            g = self._derived["gains"] = np.stack([information_gain(self.H, Rj) for Rj in self.R])
+        return g
 
     @property
     def plan(self) -> AllocationPlan:
@@ -67,6 +84,9 @@ class Model:
         """The plan for ``constraints``: from :attr:`plans`, prepared (once) if new."""
         plan = self.plans.get(constraints)
         if plan is None:
+            # the allocator (and scipy.linalg): start-up of the processes that never decide
+            from covnet.core.allocation import prepare
+
             plan = self.plans[constraints] = prepare(self.gains, constraints)
         return plan
 
@@ -90,7 +110,6 @@ def build_model(sc: Scenario) -> Model:
         required=frozenset(ids.index(s) for s in al.required),
         max_active=al.max_active,
     )
-    gains = np.stack([information_gain(H, Rj) for Rj in R])
     px, py = sc.target.initial_position_m
     vx, vy = sc.target.initial_velocity_mps
     return Model(
@@ -102,7 +121,6 @@ def build_model(sc: Scenario) -> Model:
         sigma_a=sc.target.accel_noise_std_mps2,
         H=H,
         R=R,
-        gains=gains,
         P0=np.diag(np.asarray(sc.filter.P0_diag, dtype=np.float64)),
         x0=np.array([px, vx, py, vy], dtype=np.float64),
         desired_from=tuple(d.from_scan for d in sc.desired),
@@ -160,6 +178,8 @@ def decide(
             max_active=c.max_active,
         )
         plan = model.plan_for(c)
+    from covnet.core.allocation import allocate  # start-up of the processes that never decide
+
     return allocate(P_pred, plan, model.desired(scan), metric, tie_rtol=model.tie_rtol)
 
 
