@@ -24,6 +24,13 @@ Semantics both implementations share:
   closed and drained, ``None`` at once. A blocked ``recv`` wakes at least every
   :data:`SIGNAL_CHECK_S` (0.1 s), so the main thread runs a signal handler within 0.1 s even
   when the kernel hands the signal to another thread.
+- The size cap: a received payload over the handle's ``max_payload`` (default
+  :data:`covnet.messages.MAX_PAYLOAD_BYTES`) is never handed to the loop. It is dropped before
+  it is copied (its length is read where it lies) and counted on the *receiving* handle by
+  (concrete key, reason ``"oversize"``): :meth:`InMemoryBus.dropped` /
+  ``ZenohBus.dropped``, or :func:`dropped` for any bus. Publishing one is not an error (a
+  third party can always send one); every receiver drops it. Zenoh drops the largest ones
+  itself, uncounted (``covnet.zenoh_bus``).
 
 Loop shape (CPython 3.11/3.12, python/cpython#108214): a signal's exception raised at the
 backward jump of ``continue`` in ``while True:`` inside ``try`` escapes that ``try``'s
@@ -40,23 +47,31 @@ import queue
 import re
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass
 from typing import Generic, Protocol, TypeVar
+
+from covnet.messages import MAX_PAYLOAD_BYTES
 
 __all__ = [
     "SIGNAL_CHECK_S",
     "Bus",
     "BusClosed",
     "Channel",
+    "DropCounter",
+    "DropCounting",
     "InMemoryBus",
     "InMemoryHub",
     "LivelinessEvent",
     "LivelinessSubscription",
+    "MAX_DROP_KEYS",
+    "OVERSIZE",
     "Sample",
     "Subscription",
     "Token",
     "check_key",
     "check_keyexpr",
+    "dropped",
     "keyexpr_matches",
 ]
 
@@ -106,6 +121,67 @@ class Bus(Protocol):
     def declare_token(self, key: str) -> Token: ...
     def watch_liveliness(self, keyexpr: str) -> LivelinessSubscription: ...
     def close(self) -> None: ...
+
+
+class DropCounting(Protocol):
+    """A bus that counts the payloads it dropped before its loops saw them (both of ours)."""
+
+    def dropped(self) -> dict[str, dict[str, int]]: ...
+
+
+# --------------------------------------------------------------------------------------------
+# dropped payloads
+# --------------------------------------------------------------------------------------------
+
+OVERSIZE = "oversize"
+"""The drop reason of a payload over the size cap."""
+MAX_DROP_KEYS = 256
+"""Distinct concrete keys a :class:`DropCounter` keeps; drops on further keys are counted under
+the key expression of the subscription that dropped them (a flood of made-up keys cannot grow
+the counter without bound)."""
+
+
+class DropCounter:
+    """Payloads dropped by one bus handle, by (key, reason). Thread-safe (zenoh's threads and
+    the loops add to it); at most :data:`MAX_DROP_KEYS` concrete keys plus one entry per
+    subscription's key expression."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts: dict[str, Counter[str]] = {}
+
+    def add(self, key: str, reason: str, keyexpr: str) -> None:
+        """Count one drop of a payload received on ``key`` by the subscription ``keyexpr``."""
+        with self._lock:
+            counts = self._counts.get(key)
+            if counts is None:
+                if len(self._counts) >= MAX_DROP_KEYS:
+                    key = keyexpr
+                counts = self._counts.setdefault(key, Counter())
+            counts[reason] += 1
+
+    def snapshot(self) -> dict[str, dict[str, int]]:
+        """``{key: {reason: count}}`` so far (a copy; keys in first-drop order)."""
+        with self._lock:
+            return {k: dict(v) for k, v in self._counts.items()}
+
+
+def dropped(bus: object) -> dict[str, dict[str, int]]:
+    """What ``bus`` dropped before its loops saw it, ``{key: {reason: count}}``: its
+    ``dropped()`` (:class:`InMemoryBus`, ``ZenohBus``); for a wrapper without one (such as
+    ``covnet.latency_bus.DelayedBus``) the ``bus`` it wraps; ``{}`` for a bus that drops
+    nothing."""
+    seen: set[int] = set()
+    while id(bus) not in seen:
+        seen.add(id(bus))
+        method = getattr(bus, "dropped", None)
+        if callable(method):
+            out: dict[str, dict[str, int]] = method()
+            return out
+        bus = getattr(bus, "bus", None)
+        if bus is None:
+            break
+    return {}
 
 
 # --------------------------------------------------------------------------------------------
@@ -331,11 +407,21 @@ class InMemoryHub:
         self._tokens: dict[str, list[_MemToken]] = {}
 
     def _deliver(self, key: str, chunks: list[str], payload: bytes) -> None:
+        """Hand ``payload`` to every matching subscription, or count it dropped (``oversize``)
+        on the receiving handle when it is over that handle's cap; copied once, and only
+        when some subscription takes it."""
+        n = len(payload)
         with self._lock:  # the lock orders concurrent publishers: one FIFO order for everyone
             t = time.monotonic_ns()
+            data: bytes | None = None
             for sub in self._subs:
                 if _match_chunks(sub.chunks, chunks):
-                    sub.channel.put(Sample(key, payload, t))
+                    if n > sub._bus.max_payload:
+                        sub._bus._drops.add(key, OVERSIZE, sub.keyexpr)
+                        continue
+                    if data is None:
+                        data = bytes(payload)
+                    sub.channel.put(Sample(key, data, t))
 
     def _add_sub(self, sub: _MemSubscription) -> None:
         with self._lock:
@@ -385,14 +471,26 @@ class InMemoryBus:
     talk to each other (like zenoh sessions on one router); ``InMemoryBus()`` gets its own hub.
 
     Closing a handle closes its subscriptions and undeclares its tokens (watchers see
-    ``alive=False``), as a zenoh session's close does.
+    ``alive=False``), as a zenoh session's close does.  ``max_payload``: this handle's size
+    cap (module docstring): a payload over it is never delivered to this handle's
+    subscriptions, and counted in :meth:`dropped`.
     """
 
     _ids = itertools.count()
 
-    def __init__(self, hub: InMemoryHub | None = None, *, name: str | None = None) -> None:
+    def __init__(
+        self,
+        hub: InMemoryHub | None = None,
+        *,
+        name: str | None = None,
+        max_payload: int = MAX_PAYLOAD_BYTES,
+    ) -> None:
+        if isinstance(max_payload, bool) or not isinstance(max_payload, int) or max_payload < 0:
+            raise ValueError(f"max_payload must be an int >= 0, got {max_payload!r}")
         self._hub = hub if hub is not None else InMemoryHub()
         self.name = name if name is not None else f"mem{next(self._ids)}"
+        self.max_payload = max_payload
+        self._drops = DropCounter()
         self._lock = threading.Lock()
         self._closed = False
         self._subs: set[_MemSubscription] = set()
@@ -409,7 +507,12 @@ class InMemoryBus:
 
     def publish(self, key: str, payload: bytes) -> None:
         self._check_open()
-        self._hub._deliver(key, check_key(key), bytes(payload))
+        self._hub._deliver(key, check_key(key), payload)
+
+    def dropped(self) -> dict[str, dict[str, int]]:
+        """The payloads this handle's subscriptions dropped, ``{key: {reason: count}}``
+        (reason ``"oversize"``; see :class:`DropCounter` for the bound on keys)."""
+        return self._drops.snapshot()
 
     def subscribe(self, keyexpr: str) -> Subscription:
         with self._lock:

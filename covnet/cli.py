@@ -233,6 +233,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name}: must be >= 1, got {getattr(args, name)}")
     if args.target == "up":
         return cmd_bench_up(args)
+    if args.target == "soak":
+        # start-up: the soak's module (numpy, the recording reader) only for this benchmark
+        from covnet import bench_soak
+
+        return bench_soak.main(args)
     kind = kinds.get(BENCHES[args.target])
     return kinds.command(kind, f"bench:{args.target}", f"the {args.target} benchmark")(args, None)
 
@@ -409,13 +414,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "target",
         nargs="?",
-        choices=["alloc", "up", *[t for t in BENCHES if t != "alloc"]],
+        choices=["alloc", "up", "soak", *[t for t in BENCHES if t != "alloc"]],
         default="alloc",
         help="alloc: allocation decisions per metric and N; up: covnet up in lockstep; "
         "mobile: cost tensor and LP/MILP; passive: association methods; fusion: the batched "
         "covariance-intersection candidates of every subset against a scipy loop; search: "
         "branch and bound / bounded / greedy against the exhaustive search (N up to 1000); "
-        "multitarget: the assignment allocator over T targets against plain enumeration",
+        "multitarget: the assignment allocator over T targets against plain enumeration; "
+        "soak: a long lockstep and a long real-time covnet up, memory, descriptors and "
+        "latency of every process over time",
     )
     b.add_argument(
         "--sensors",
@@ -442,6 +449,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--repeat", type=int, default=3, help="timed repeats per problem (alloc) or whole runs (up)"
     )
     b.add_argument("--json", action="store_true", help="one JSON row per (metric, N)")
+    soak = b.add_argument_group("soak")
+    soak.add_argument("--scans", type=int, default=20_000, help="lockstep scans (0: none)")
+    soak.add_argument(
+        "--realtime-s", type=float, default=600.0, help="seconds of the real-time run (0: none)"
+    )
+    soak.add_argument("--speed", type=float, default=10.0, help="the real-time run's speed")
+    soak.add_argument("--interval", type=float, default=2.0, help="seconds between samples")
+    soak.add_argument("--windows", type=int, default=10, help="latency windows per run")
+    soak.add_argument("--work", default=None, help="keep the soak's run directories here")
     b.set_defaults(func=cmd_bench)
     return p
 

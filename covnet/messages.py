@@ -62,6 +62,7 @@ from numpy.typing import NDArray
 
 __all__ = [
     "CAP_MEAS_DIM",
+    "CAP_REASONS",
     "CAP_ROWS",
     "CAP_SENSORS",
     "CAP_STATE_DIM",
@@ -105,6 +106,7 @@ __all__ = [
     "parse_command_key",
     "parse_measurement_key",
     "parse_peer_key",
+    "payload_bounds",
     "peer_keyexpr",
     "peer_status_key",
     "peer_track_key",
@@ -123,69 +125,16 @@ MAX_IDS = 4096
 MAX_NAME_LEN = 64
 """Longest id (run, role, node, sensor, target) and ``modes`` value."""
 
-#: the largest network the payload size cap is computed for: hundreds of sensors, with margin
+#: the largest network the payload size cap (:data:`MAX_PAYLOAD_BYTES`) is computed for:
+#: hundreds of sensors, with margin
 CAP_SENSORS = 1024
 CAP_TARGETS = 1024
 #: rows of one measurement list (a mobile sensor seeing every target; passive lists hold <= 256)
 CAP_ROWS = 1024
 #: state and measurement dimensions (the kinds use 4 or 3, and 2)
 CAP_STATE_DIM, CAP_MEAS_DIM = 6, 3
-
-
-def largest_payload(
-    sensors: int,
-    targets: int,
-    rows: int,
-    state_dim: int = CAP_STATE_DIM,
-    meas_dim: int = CAP_MEAS_DIM,
-) -> int:
-    """An upper bound, in bytes, on the encoding of every message a run with ``sensors`` sensors
-    and ``targets`` targets can send (a measurement list of at most ``rows`` rows, states of
-    ``state_dim``, measurements of ``meas_dim``), every id at :data:`MAX_NAME_LEN` ASCII
-    characters: the largest of the per-kind bounds below, from the msgpack sizes of the schemas'
-    fields (``tests/unit/test_size_cap.py`` encodes each kind's largest message and checks it).
-
-    msgpack sizes used: an int or a float64 at most 9 bytes; a str of L <= 255 bytes 2 + L (an
-    id: 66, a field name: at most 13); an array or map header at most 5; an ndarray (the ext
-    type) at most 27 + 8 * elements (ext32 header 6, inner ``[dtype, shape, bin]`` 21).
-    Per kind, beyond its scalars: Truth ``target_ids`` (M), ``states`` (M x n), ``sensor_ids``
-    (N), ``platforms`` (N x 4); Command ``enabled`` (N), ``modes`` (N pairs of ids),
-    ``targets`` (N keys and at most M target ids in all: a target goes to one sensor);
-    Measurement ``z`` (rows x dz), ``R``, ``target_ids`` (rows), ``platform``; Status
-    ``enabled``, ``fused``, ``failed`` (N each), ``refiltered`` (at most :data:`MAX_IDS`);
-    Heartbeat at most 64 reasons counted; Track and LocalTrack a few n-vectors and n x n
-    matrices."""
-    head = 5 + 3 + 9  # the map header, "v", "k" and the kind
-    num, name, key = 9, 2 + MAX_NAME_LEN, 13
-
-    def arr(n: int) -> int:
-        return 27 + 8 * n
-
-    def names(n: int) -> int:
-        return 5 + name * n
-
-    n, dz = state_dim, meas_dim
-    modes = 5 + 2 * name * sensors
-    assigned = 5 + (name + 5) * sensors + name * targets  # Command.targets
-    bounds = {
-        "truth": 2 * num + names(targets) + arr(targets * n) + names(sensors) + arr(4 * sensors),
-        "cmd": 4 * num + names(sensors) + modes + assigned,
-        "meas": name + 4 * num + arr(rows * dz) + arr(dz * dz) + names(rows) + arr(4),
-        "track": 4 * num + arr(n) + arr(n * n) + 2 * name,
-        "status": 7 * num + 3 * names(sensors) + name + names(MAX_IDS),
-        "ltrack": name + 4 * num + 2 * arr(n) + 2 * arr(n * n),
-        "hb": 2 * name + 2 * num + 5 + 64 * (name + num),
-    }
-    fields_ = {"truth": 6, "cmd": 7, "meas": 9, "track": 8, "status": 12, "ltrack": 9, "hb": 5}
-    return max(head + key * fields_[k] + b for k, b in bounds.items())
-
-
-MAX_PAYLOAD_BYTES = 1 << (2 * largest_payload(CAP_SENSORS, CAP_TARGETS, CAP_ROWS) - 1).bit_length()
-"""THE payload size cap (1 MiB): the smallest power of two at least twice
-:func:`largest_payload` of a network of :data:`CAP_SENSORS` sensors and :data:`CAP_TARGETS`
-targets (~0.48 MB, a Status naming 3 x 1024 sensors and 4096 re-filtered messages).  A bus
-drops a payload over it before copying it (:mod:`covnet.bus`, :mod:`covnet.zenoh_bus`: counted
-``oversize``), and :func:`decode` refuses one (``too_large``)."""
+#: reasons a heartbeat's ``rejected`` counts at most
+CAP_REASONS = 64
 
 REASONS = frozenset(
     {
@@ -917,6 +866,109 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     LocalTrack,
 )
 _BY_KIND: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
+
+
+# --------------------------------------------------------------------------------------------
+# the payload size cap, from the schemas
+# --------------------------------------------------------------------------------------------
+
+
+def payload_bounds(
+    sensors: int,
+    targets: int,
+    rows: int,
+    state_dim: int = CAP_STATE_DIM,
+    meas_dim: int = CAP_MEAS_DIM,
+) -> dict[str, int]:
+    """Per message kind, an upper bound in bytes on the encoding of any message of that kind a
+    run with ``sensors`` sensors and ``targets`` targets sends (a measurement list of at most
+    ``rows`` rows, states of ``state_dim``, measurements of ``meas_dim``, every id at
+    :data:`MAX_NAME_LEN` ASCII characters), summed field by field over the schema (each class's
+    field kinds, so a new scalar or id field is counted by itself; a new list, map or array
+    field needs its size below, or this raises ``KeyError`` at import).
+
+    msgpack sizes used: an int or a float64 at most 9 bytes; a field name 1 + its length; an id
+    2 + :data:`MAX_NAME_LEN`; an array or map header at most 5; an ndarray (the ext type) at
+    most 27 + 8 per element (ext32 header 6, inner ``[dtype, shape, bin]`` 21); the map header
+    with ``"v"`` and ``"k"`` 8 + the kind's length.  Sizes: Truth ``target_ids`` M, ``states``
+    M x n, ``sensor_ids`` N, ``platforms`` N x 4; Command ``enabled`` N, ``modes`` N pairs,
+    ``targets`` N keys and M target ids in all (a target goes to one sensor); Measurement ``z``
+    rows x dz, ``R`` dz x dz, ``target_ids`` rows, ``platform`` 4; Status ``enabled``,
+    ``fused``, ``failed`` N each, ``refiltered`` :data:`MAX_IDS`; Track and LocalTrack n and
+    n x n; Heartbeat :data:`CAP_REASONS` reasons (``tests/unit/test_size_cap.py`` encodes
+    each kind's largest message and checks the bound and its tightness)."""
+    n, dz = state_dim, meas_dim
+    size: dict[tuple[str, str], Any] = {
+        ("truth", "target_ids"): targets,
+        ("truth", "states"): targets * n,
+        ("truth", "sensor_ids"): sensors,
+        ("truth", "platforms"): 4 * sensors,
+        ("cmd", "enabled"): sensors,
+        ("cmd", "modes"): sensors,
+        ("cmd", "targets"): (sensors, targets),
+        ("meas", "z"): rows * dz,
+        ("meas", "R"): dz * dz,
+        ("meas", "target_ids"): rows,
+        ("meas", "platform"): 4,
+        ("track", "x"): n,
+        ("track", "P"): n * n,
+        ("status", "enabled"): sensors,
+        ("status", "fused"): sensors,
+        ("status", "failed"): sensors,
+        ("status", "refiltered"): MAX_IDS,
+        ("ltrack", "x"): n,
+        ("ltrack", "P"): n * n,
+        ("ltrack", "x_prior"): n,
+        ("ltrack", "P_prior"): n * n,
+        ("hb", "rejected"): CAP_REASONS,
+    }
+    name, num, head = 2 + MAX_NAME_LEN, 9, 5
+
+    def value(kind: str, field_name: str, field_kind: str) -> int:
+        if field_kind in ("count", "stamp", "float"):
+            return num
+        if field_kind == "name":
+            return name
+        k = size[(kind, field_name)]
+        if field_kind == "names":
+            return head + name * k
+        if field_kind in ("vec", "mat"):
+            return 27 + 8 * k
+        if field_kind == "modes":
+            return head + 2 * name * k
+        if field_kind == "counts":
+            return head + (name + num) * k
+        if field_kind == "targets":
+            holders, held = k
+            return head + (name + head) * holders + name * held
+        raise KeyError(field_kind)
+
+    return {
+        cls.KIND: 8
+        + len(cls.KIND)
+        + sum(1 + len(f) + value(cls.KIND, f, fk) for f, fk in cls._KINDS.items())
+        for cls in MESSAGE_TYPES
+    }
+
+
+def largest_payload(
+    sensors: int,
+    targets: int,
+    rows: int,
+    state_dim: int = CAP_STATE_DIM,
+    meas_dim: int = CAP_MEAS_DIM,
+) -> int:
+    """The largest of :func:`payload_bounds`: no message of such a run is longer."""
+    return max(payload_bounds(sensors, targets, rows, state_dim, meas_dim).values())
+
+
+MAX_PAYLOAD_BYTES = 1 << (2 * largest_payload(CAP_SENSORS, CAP_TARGETS, CAP_ROWS) - 1).bit_length()
+"""THE payload size cap (1 MiB): the smallest power of two at least twice
+:func:`largest_payload` of a network of :data:`CAP_SENSORS` sensors and :data:`CAP_TARGETS`
+targets (~0.48 MB: a Status naming 3 x 1024 sensors and 4096 re-filtered messages; the
+largest Command, Truth and Measurement are ~0.34, ~0.22 and ~0.09 MB).  A bus drops a payload
+over it before copying it (:mod:`covnet.bus`, :mod:`covnet.zenoh_bus`: counted ``oversize``),
+and :func:`decode` refuses one (``too_large``)."""
 _M = TypeVar("_M", bound=_Message)
 
 

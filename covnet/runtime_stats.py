@@ -117,6 +117,9 @@ class NetStats:
         default_factory=lambda: defaultdict(Counter)
     )  # per node: failed, rejoined (events seen by the manager)
     node_rejected: dict[str, dict[str, int]] = field(default_factory=dict)  # from heartbeats
+    # over the bus only: what the manager's bus dropped before decoding ({key: {reason: n}},
+    # reason "oversize": covnet.bus); None in process (no bus, and not in network.json)
+    dropped: dict[str, dict[str, int]] | None = None
 
     def sent(self, key: str, n_bytes: int) -> None:
         self.sent_msgs[key] += 1
@@ -208,4 +211,5 @@ class NetStats:
             "missing_at_deadline": self.missing_at_deadline,
             "sensors": self.sensors(),
             "membership": self.membership_counts(),
+            **({} if self.dropped is None else {"dropped": self.dropped}),
         }

@@ -59,6 +59,26 @@ measured with the probes behind ``tests/integration/test_zenoh_bus.py``):
 - Never fork after ``zenoh.open`` (the child hangs on its first put): spawn processes with
   ``subprocess``. Always close the session (this class is a context manager), or the
   interpreter may hang at exit.
+- The size cap (:data:`covnet.messages.MAX_PAYLOAD_BYTES`), in two places.  (1) zenoh's own
+  ``transport/link/rx/max_message_size`` (default 1 GiB) bounds the *defragmentation buffer*
+  of each link: a message larger than that (payload, key and headers; anything over one
+  batch, 64 KiB, travels in fragments) is dropped by the receiving link, counted nowhere, and
+  never reaches a subscriber; a router drops it before routing it on.  Only that message goes:
+  zenoh's code says "Defrag errors don't close transport", and a probe confirms it (a client
+  sending 1 MiB + 100 B, 3 MiB and 12 MiB payloads to a router capped at 1 MiB: those three
+  dropped, the 100 B .. 1 MiB - 4 KiB ones before and after delivered, its liveliness token
+  up until it closed).  zenoh has no per-message size limit below the link (no option on a
+  subscriber or a key).  But by default zenoh 1.x moves payloads over 3 KiB between processes
+  of one host through shared memory (``transport/shared_memory/transport_optimization``): those
+  are never fragmented, so the cap does not see them (the probe's 3 MiB payload got through
+  while shared memory was on).  :func:`zenoh_config` therefore sets the cap and turns shared
+  memory off (a link uses it only when both ends have it, so a third party cannot turn it back
+  on; covnet's payloads are far below 3 KiB anyway).  (2) Every subscription reads
+  ``len(sample.payload)`` (``ZBytes.__len__``: the sum of its slices' lengths, no copy) and
+  drops a payload over :attr:`ZenohBus.max_payload` before ``to_bytes`` copies it, counting it
+  in :meth:`ZenohBus.dropped`: the ones between the cap and zenoh's (which allows
+  :data:`KEY_HEADROOM_BYTES` more, for the key and headers of a legitimate message) and, on a
+  session whose zenoh cap is higher, any.
 """
 
 from __future__ import annotations
@@ -75,9 +95,11 @@ from typing import Any, Generic, Literal, TypeVar
 import zenoh
 
 from covnet.bus import (
+    OVERSIZE,
     SIGNAL_CHECK_S,
     BusClosed,
     Channel,
+    DropCounter,
     LivelinessEvent,
     LivelinessSubscription,
     Sample,
@@ -86,8 +108,13 @@ from covnet.bus import (
     check_key,
     check_keyexpr,
 )
+from covnet.messages import MAX_PAYLOAD_BYTES
 
-__all__ = ["Mode", "ZenohBus", "zenoh_config"]
+__all__ = ["KEY_HEADROOM_BYTES", "Mode", "ZenohBus", "zenoh_config"]
+
+KEY_HEADROOM_BYTES = 128 * 1024
+"""What zenoh's message size cap allows beyond the payload cap: the key and zenoh's headers (the
+longest legitimate key, a command naming 1024 enabled ids of 64 characters, is ~66 kB)."""
 
 _T = TypeVar("_T")
 
@@ -101,6 +128,7 @@ def zenoh_config(
     lease_ms: int | None = None,
     multicast_scouting: bool = False,
     extra_json5: Mapping[str, object] | None = None,
+    max_payload: int = MAX_PAYLOAD_BYTES,
 ) -> zenoh.Config:
     """A ``zenoh.Config`` for one covnet process.
 
@@ -115,6 +143,9 @@ def zenoh_config(
       other); when off, ``scouting/delay`` is 0 so that ``open`` does not wait 500 ms.
     - ``extra_json5``: more ``path -> value`` settings (JSON-serialisable values), applied last
       (e.g. access control or TLS for multi-host runs).
+    - ``max_payload``: the size cap; every link of the session drops a message over
+      ``max_payload + KEY_HEADROOM_BYTES`` (``transport/link/rx/max_message_size``), and
+      shared memory is off so that the cap sees every message (module docstring).
     """
     if mode not in ("router", "client", "peer"):
         raise ValueError(f"mode must be 'router', 'client' or 'peer', got {mode!r}")
@@ -125,11 +156,15 @@ def zenoh_config(
             raise ValueError(f"invalid zenoh endpoint {ep!r} (expected e.g. 'tcp/127.0.0.1:7447')")
     if lease_ms is not None and (isinstance(lease_ms, bool) or lease_ms <= 0):
         raise ValueError(f"lease_ms must be a positive int, got {lease_ms!r}")
+    if isinstance(max_payload, bool) or not isinstance(max_payload, int) or max_payload <= 0:
+        raise ValueError(f"max_payload must be a positive int, got {max_payload!r}")
     settings: dict[str, object] = {
         "mode": mode,
         "listen/endpoints": list(listen),
         "connect/endpoints": list(connect),
         "scouting/multicast/enabled": bool(multicast_scouting),
+        "transport/link/rx/max_message_size": max_payload + KEY_HEADROOM_BYTES,
+        "transport/shared_memory/enabled": False,
     }
     if not multicast_scouting:
         settings["scouting/delay"] = 0
@@ -192,9 +227,14 @@ class _ChannelSubscription(Generic[_T]):
 class _ZenohSubscription(_ChannelSubscription[Sample]):
     def _declare(self, session: zenoh.Session, keyexpr: str) -> zenoh.Subscriber[None]:
         put = self.channel.put
+        cap, drops = self._bus.max_payload, self._bus._drops
 
         def on_sample(sample: zenoh.Sample) -> None:  # zenoh's thread: enqueue only
-            put(Sample(str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns()))
+            payload = sample.payload
+            if len(payload) > cap:  # counted, never copied
+                drops.add(str(sample.key_expr), OVERSIZE, keyexpr)
+                return
+            put(Sample(str(sample.key_expr), payload.to_bytes(), time.monotonic_ns()))
 
         return session.declare_subscriber(keyexpr, zenoh.handlers.Callback(on_sample))
 
@@ -295,11 +335,13 @@ class _ZenohFifoSubscription:
 
     ``Sample.t_recv_ns`` is stamped when the loop takes the sample.  Timeouts and signal checks
     come from the bus's :class:`_Waker`; a remote ``DELETE`` (not a wake sample) is handed out
-    as a sample with an empty payload, which every decoder rejects, as before."""
+    as a sample with an empty payload, which every decoder rejects, as before.  A payload over
+    the bus's cap is counted in :meth:`ZenohBus.dropped` and skipped, never copied."""
 
     def __init__(self, bus: ZenohBus, keyexpr: str) -> None:
         self._bus = bus
         self.keyexpr = keyexpr
+        self._cap, self._drops = bus.max_payload, bus._drops
         self._key = _wake_key(keyexpr)
         self._nonce = os.urandom(16)  # marks this subscription's wake samples
         self._closed = False
@@ -311,12 +353,17 @@ class _ZenohFifoSubscription:
         self._try_recv = self._sub.try_recv
 
     def _sample(self, s: zenoh.Sample) -> Sample | None:
-        """The covnet sample for ``s``, or None for one of our wake samples."""
+        """The covnet sample for ``s``, or None for one of our wake samples and for a payload
+        over the cap (counted ``oversize``, never copied)."""
         if s.kind == _DELETE:
             att = s.attachment
             if att is not None and att.to_bytes() == self._nonce:
                 return None
-        return Sample(str(s.key_expr), s.payload.to_bytes(), time.monotonic_ns())
+        payload = s.payload
+        if len(payload) > self._cap:
+            self._drops.add(str(s.key_expr), OVERSIZE, self.keyexpr)
+            return None
+        return Sample(str(s.key_expr), payload.to_bytes(), time.monotonic_ns())
 
     def try_recv(self) -> Sample | None:
         while not self._closed:
@@ -431,11 +478,21 @@ _E = TypeVar("_E", bound=_Entity)
 
 class ZenohBus:
     """A :class:`~covnet.bus.Bus` on one zenoh session. Open it with :meth:`open` (a context
-    manager that always closes the session). Thread-safe: several threads may publish."""
+    manager that always closes the session). Thread-safe: several threads may publish.
 
-    def __init__(self, session: zenoh.Session, *, express: bool = False) -> None:
+    ``max_payload``: the size cap of this handle's subscriptions (a received payload over it is
+    dropped uncopied and counted in :meth:`dropped`); the session's own zenoh cap is the
+    config's (:func:`zenoh_config`)."""
+
+    def __init__(
+        self, session: zenoh.Session, *, express: bool = False, max_payload: int = MAX_PAYLOAD_BYTES
+    ) -> None:
+        if isinstance(max_payload, bool) or not isinstance(max_payload, int) or max_payload < 0:
+            raise ValueError(f"max_payload must be an int >= 0, got {max_payload!r}")
         self._session = session
         self._express = express
+        self.max_payload = max_payload
+        self._drops = DropCounter()
         self._lock = threading.Lock()
         self._closed = False
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -443,12 +500,22 @@ class ZenohBus:
         self._waker = _Waker()
 
     @classmethod
-    def open(cls, config: zenoh.Config, *, express: bool = False) -> ZenohBus:
+    def open(
+        cls, config: zenoh.Config, *, express: bool = False, max_payload: int = MAX_PAYLOAD_BYTES
+    ) -> ZenohBus:
         """Open a session. ``express=True`` sends each put at once instead of batching (lower
-        latency, more packets); congestion control is always ``BLOCK``."""
+        latency, more packets); congestion control is always ``BLOCK``.  ``max_payload``: the
+        subscriptions' size cap (class docstring)."""
         with _signals_blocked():
             session = zenoh.open(config)
-        return cls(session, express=express)
+        return cls(session, express=express, max_payload=max_payload)
+
+    def dropped(self) -> dict[str, dict[str, int]]:
+        """The payloads this session's subscriptions dropped before their loops saw them,
+        ``{key: {reason: count}}`` (reason ``"oversize"``; at most
+        :data:`~covnet.bus.MAX_DROP_KEYS` concrete keys, then by subscription key
+        expression).  What zenoh's own cap dropped is not in it (zenoh counts nothing)."""
+        return self._drops.snapshot()
 
     @property
     def session(self) -> zenoh.Session:

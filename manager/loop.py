@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from covnet import messages as msg
-from covnet.bus import Bus, Sample
+from covnet.bus import Bus, Sample, dropped
 from covnet.clock import Clock
 from covnet.config import NetworkSpec
 from covnet.runtime_stats import NetStats
@@ -528,6 +528,7 @@ def run_scans(
         loop.token.undeclare()
         if linger_s > 0:
             loop.linger(linger_s, stop)
+        loop.stats.dropped = dropped(loop.bus)
     return result
 
 
