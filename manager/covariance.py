@@ -200,9 +200,7 @@ class CovarianceLogic:
         )
         log = self.result.episodes[self.episodes[e]]
         nees_k = nees(est, self.truth[k - 1])
-        log.record(
-            len(ids), fused.alloc, fused.pred, est, nees_k, fused.decision_s, sorted(fused.got)
-        )
+        log.record(len(ids), fused.alloc, fused.pred, est, nees_k, fused.decision_s)
         info = (
             f"scan {k}/{model.scans}  enabled {','.join(enabled) or '-'}  "
             f"tr P {status.trace_P:.1f} / tr Pd {status.trace_Pd:.1f}"

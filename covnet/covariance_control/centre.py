@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from covnet import messages as msg
+from covnet.columns import Column
 from covnet.core.allocation import Allocation
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
@@ -43,18 +44,19 @@ __all__ = [
 
 @dataclass
 class EpisodeLog:
-    """Rows of one episode, appended per scan; converted to a :class:`MetricRun` at the end."""
+    """Rows of one episode, appended per scan; converted to a :class:`MetricRun` at the end.
+    Kept in :class:`~covnet.columns.Column` blocks (a long run's memory is its rows' bytes:
+    ``covnet bench soak``); ``len(log.value)`` is the number of scans logged."""
 
     metric: str
-    enabled: list[np.ndarray] = field(default_factory=list)
-    value: list[float] = field(default_factory=list)
-    x_est: list[np.ndarray] = field(default_factory=list)
-    P_post: list[np.ndarray] = field(default_factory=list)
-    P_pred: list[np.ndarray] = field(default_factory=list)
-    nees: list[float] = field(default_factory=list)
-    decision_s: list[float] = field(default_factory=list)
-    n_evaluated: list[int] = field(default_factory=list)
-    fused_from: list[list[str]] = field(default_factory=list)
+    enabled: Column | None = None  # (N,) bool per scan, made at the first row (N known then)
+    value: Column = field(default_factory=Column)
+    x_est: Column = field(default_factory=lambda: Column((4,)))
+    P_post: Column = field(default_factory=lambda: Column((4, 4)))
+    P_pred: Column = field(default_factory=lambda: Column((4, 4)))
+    nees: Column = field(default_factory=Column)
+    decision_s: Column = field(default_factory=Column)
+    n_evaluated: Column = field(default_factory=lambda: Column((), np.int64))
     failures: list[dict[str, Any]] = field(default_factory=list)
 
     def record(
@@ -65,9 +67,10 @@ class EpisodeLog:
         est: Gaussian,
         nees_value: float,
         decision_s: float,
-        fused: list[str],
     ) -> None:
         """Append one scan: the allocation, the predicted and fused estimates, NEES, timing."""
+        if self.enabled is None:
+            self.enabled = Column((n_sensors,), bool)
         mask = np.zeros(n_sensors, dtype=bool)
         mask[list(alloc.subset)] = True
         self.enabled.append(mask)
@@ -78,20 +81,21 @@ class EpisodeLog:
         self.nees.append(nees_value)
         self.decision_s.append(decision_s)
         self.n_evaluated.append(alloc.n_evaluated)
-        self.fused_from.append(fused)
 
     def as_run(self, n_sensors: int) -> MetricRun:
-        n = len(self.value)
+        enabled = (
+            self.enabled.array() if self.enabled is not None else np.zeros((0, n_sensors), bool)
+        )
         return MetricRun(
             metric=self.metric,
-            enabled=np.array(self.enabled, dtype=bool).reshape(n, n_sensors),
-            value=np.array(self.value, dtype=np.float64),
-            x_est=np.array(self.x_est, dtype=np.float64).reshape(n, 4),
-            P_post=np.array(self.P_post, dtype=np.float64).reshape(n, 4, 4),
-            P_pred=np.array(self.P_pred, dtype=np.float64).reshape(n, 4, 4),
-            nees=np.array(self.nees, dtype=np.float64),
-            decision_s=np.array(self.decision_s, dtype=np.float64),
-            n_evaluated=np.array(self.n_evaluated, dtype=np.int64),
+            enabled=enabled,
+            value=self.value.array(),
+            x_est=self.x_est.array(),
+            P_post=self.P_post.array(),
+            P_pred=self.P_pred.array(),
+            nees=self.nees.array(),
+            decision_s=self.decision_s.array(),
+            n_evaluated=self.n_evaluated.array(),
         )
 
 

@@ -236,9 +236,7 @@ def _recompute(
                     f"{where} scan {k}: replayed estimate differs from the "
                     f"recorded Track (max |dx| = {dx:.6g})",
                 )
-            log.record(
-                len(ids), alloc, pred, est, nees(est, truth[k - 1]), decision_s, sorted(st.fused)
-            )
+            log.record(len(ids), alloc, pred, est, nees(est, truth[k - 1]), decision_s)
         if len(log.value) < model.scans:
             completed = False
     result.completed = completed

@@ -159,3 +159,25 @@ def test_crashed_manager_ends_the_run_with_a_message(covnet_proc, tmp_path, pape
     rp = covnet_proc(["replay", str(out)])
     assert rp.wait(timeout=120) == 0, rp.output()
     assert "identical" in rp.output()
+
+
+def test_force_replaces_an_earlier_run_directory(covnet_proc, tmp_path, paper_path):
+    """``covnet up --out DIR --force`` on a directory an earlier covnet run wrote: the new run's
+    files only, nothing of the old one left (an old figure, an old replay/)."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text("{}")
+    (out / "fig9_from_an_earlier_run.png").write_text("old")
+    (out / "replay").mkdir()
+    (out / "replay" / "summary.json").write_text("{}")
+    argv = ["up", str(paper_path), "--out", str(out), "--metric", "spectral", "--no-figures"]
+    refused = covnet_proc(argv)
+    assert refused.wait(timeout=30) == 2, refused.output()
+    assert "directory is not empty" in refused.output()
+    assert (out / "fig9_from_an_earlier_run.png").exists()
+    p = covnet_proc([*argv, "--force"])
+    assert p.wait(timeout=150) == 0, p.output()
+    assert_nothing_left(out)
+    assert not (out / "fig9_from_an_earlier_run.png").exists() and not (out / "replay").exists()
+    assert json.loads((out / "config.json").read_text())["allocation"]["metrics"] == ["spectral"]
+    assert json.loads((out / "run.json").read_text())["status"] == "completed"

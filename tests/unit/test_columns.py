@@ -1,0 +1,39 @@
+"""``covnet.columns.Column`` holds exactly what a list of rows would (bit for bit)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from covnet.columns import BLOCK, Column
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.sampled_from([0, 1, BLOCK - 1, BLOCK, BLOCK + 1, 2 * BLOCK + 7]),
+    shape=st.sampled_from([(), (3,), (4, 4)]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_a_column_stacks_its_rows_as_np_array_would(n, shape, seed):
+    rng = np.random.default_rng(seed)
+    rows = [rng.standard_normal(shape) for _ in range(n)]
+    col = Column(shape)
+    for r in rows:
+        col.append(r)
+    want = np.array(rows, dtype=np.float64).reshape(n, *shape)
+    got = col.array()
+    assert got.shape == want.shape and got.dtype == want.dtype
+    assert got.tobytes() == want.tobytes()
+    assert len(col) == n and bool(col) == (n > 0)
+    assert all(np.array_equal(a, b) for a, b in zip(col, rows, strict=True))
+
+
+def test_bool_and_int_columns_cast_like_np_array():
+    masks = Column((3,), bool)
+    ints = Column((), np.int64)
+    for i in range(5):
+        masks.append(np.array([i % 2 == 0, True, False]))
+        ints.append(i * 7)
+    assert masks.array().tolist() == [[i % 2 == 0, True, False] for i in range(5)]
+    assert ints.array().dtype == np.int64 and ints.array().tolist() == [0, 7, 14, 21, 28]
