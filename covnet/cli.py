@@ -242,6 +242,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name}: must be >= 1, got {getattr(args, name)}")
     if args.target == "up":
         return cmd_bench_up(args)
+    if args.target == "cluster":
+        from covnet import bench_cluster  # dask: only for this benchmark (start-up)
+
+        if args.config == "configs/paper.yaml":  # the default: the sweep's own config
+            args.config = "configs/latency.yaml"
+        return bench_cluster.main(args)
     if args.target == "soak":
         # start-up: the soak's module (numpy, the recording reader) only for this benchmark
         from covnet import bench_soak
@@ -458,7 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "target",
         nargs="?",
-        choices=["alloc", "up", "soak", *[t for t in BENCHES if t != "alloc"]],
+        choices=["alloc", "up", "soak", "cluster", *[t for t in BENCHES if t != "alloc"]],
         default="alloc",
         help="alloc: allocation decisions per metric and N; up: covnet up in lockstep; "
         "mobile: cost tensor and LP/MILP; passive: association methods; fusion: the batched "
@@ -466,7 +472,9 @@ def build_parser() -> argparse.ArgumentParser:
         "branch and bound / bounded / greedy against the exhaustive search (N up to 1000); "
         "multitarget: the assignment allocator over T targets against plain enumeration; "
         "soak: a long lockstep and a long real-time covnet up, memory, descriptors and "
-        "latency of every process over time",
+        "latency of every process over time; cluster: a sweep's trials per second on the local "
+        "pool and on a local 2-worker Dask cluster, alternated, and each one's per-task "
+        "overhead",
     )
     b.add_argument(
         "--sensors",

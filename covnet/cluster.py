@@ -129,8 +129,9 @@ def _dask_command() -> list[str]:
 
 class LocalCluster:
     """A ``dask scheduler`` and ``workers`` ``dask worker`` processes (``threads`` threads
-    each, no nanny) on 127.0.0.1, free ports; ``address`` once started.  A context manager:
-    everything is stopped by PID (SIGTERM, then SIGKILL) on the way out."""
+    each, no nanny) on 127.0.0.1, free ports; ``address`` once started.  They import the covnet
+    of this process (its folder first on their ``PYTHONPATH``).  A context manager: everything
+    is stopped by PID (SIGTERM, then SIGKILL) on the way out."""
 
     def __init__(self, workers: int = 2, threads: int = 1, start_timeout_s: float = 60.0) -> None:
         self.workers = workers
@@ -142,7 +143,10 @@ class LocalCluster:
 
     def _spawn(self, args: list[str], log: str) -> subprocess.Popen[bytes]:
         out = open(Path(self._tmp.name) / log, "wb")  # noqa: SIM115 (closed with the process)
-        env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
+        # the processes import this process's covnet (a machine may have another installed)
+        root = str(Path(__file__).resolve().parents[1])
+        path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
+        env = {**os.environ, "PYTHONPATH": path}
         proc = subprocess.Popen(
             [*_dask_command(), *args],
             stdout=out,

@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -249,3 +250,36 @@ def test_passive_trials_in_chunks_equal_the_whole_cell(tmp_path):
     wall = "median_time_s"
     strip = lambda rows: [{k: v for k, v in r.items() if k != wall} for r in rows]  # noqa: E731
     assert strip(cell_rows(cell, parts, methods)) == strip(whole)
+
+
+def test_cli_ci_width_adds_seeds_until_narrow_and_says_so(tmp_path, capsys):
+    import yaml
+
+    from covnet.cli import main
+
+    repo = Path(__file__).resolve().parents[2]
+    data = yaml.safe_load((repo / "configs" / "latency.yaml").read_text())
+    data["scans"] = 12
+    data["sweep"] = {"delay_ms": [0, 350], "loss": [0.0], "modes": ["central"],
+                     "account_for_loss": [False], "seeds": 2}  # fmt: skip
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "o"
+    argv = ["sweep", str(cfg), "--out", str(out), "--workers", "1", "--no-figures", "--json"]
+    assert main([*argv, "--ci-width", "0.001", "--max-seeds", "4"]) == 0
+    captured = capsys.readouterr()
+    rows = [json.loads(line) for line in captured.out.splitlines()]
+    assert [r["seeds"] for r in rows] == [4, 4]  # never narrow enough: the cap
+    assert "2 more seed(s) each" in captured.err
+    doc = json.loads((out / "sweep.json").read_text())
+    assert (doc["ci_width"], doc["max_seeds"], doc["rounds"]) == (0.001, 4, 2)
+    for r in rows:  # the table's interval is the one the rule looked at
+        assert r["rmse_steady_ci_hi"] - r["rmse_steady_ci_lo"] >= 0.001
+    # a wide enough width stops at the first round; the trials are there already
+    out2 = tmp_path / "o2"
+    argv2 = ["sweep", str(cfg), "--out", str(out2), "--workers", "1", "--no-figures"]
+    assert main([*argv2, "--ci-width", "1e9"]) == 0
+    assert json.loads((out2 / "sweep.json").read_text())["rounds"] == 1
+    assert main(["plot", str(out), "--point", "delay_ms=350"]) == 0
+    assert (out / "curves.png").stat().st_size > 10_000
+    assert main(["plot", str(out), "--point", "nope"]) == 2
