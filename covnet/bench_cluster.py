@@ -57,7 +57,10 @@ def run(config: Path, seeds: int = 4, repeat: int = 3) -> dict[str, Any]:
     noop_batch = Batch("noop", noop, lambda p, s: None, [f"p{i}" for i in range(NOOP_TASKS)])
     rows: list[dict[str, Any]] = []
     with LocalCluster(workers=WORKERS, threads=1) as cluster:
-        backends = {"local": {"workers": WORKERS}, "dask": {"cluster": cluster.address}}
+        backends: dict[str, dict[str, Any]] = {
+            "local": {"workers": WORKERS},
+            "dask": {"cluster": cluster.address},
+        }
         _timed(b, 1, **backends["dask"])  # the workers' first imports, outside the timing
         for r in range(repeat):
             order = ("local", "dask") if r % 2 == 0 else ("dask", "local")
