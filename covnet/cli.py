@@ -247,6 +247,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         if args.config == "configs/paper.yaml":  # the default: the sweep's own config
             args.config = "configs/latency.yaml"
+        if args.repeat == 3:  # --repeat's default is the allocator's; alternations here
+            args.repeat = 4
         return bench_cluster.main(args)
     if args.target == "soak":
         # start-up: the soak's module (numpy, the recording reader) only for this benchmark

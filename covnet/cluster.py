@@ -146,7 +146,12 @@ class LocalCluster:
         # the processes import this process's covnet (a machine may have another installed)
         root = str(Path(__file__).resolve().parents[1])
         path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
-        env = {**os.environ, "PYTHONPATH": path}
+        # no statistical profiler in the workers: it samples their threads every 10 ms
+        env = {
+            **os.environ,
+            "PYTHONPATH": path,
+            "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False",
+        }
         proc = subprocess.Popen(
             [*_dask_command(), *args],
             stdout=out,
