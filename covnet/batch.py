@@ -53,9 +53,10 @@ Progress = Callable[[int, int, int], None]
 
 
 class BatchInterrupted(KeyboardInterrupt, Generic[R]):
-    """The batch was interrupted; ``done`` maps each finished task's index to its result."""
+    """The batch was interrupted; ``done`` maps each finished task's index (the batch layer's:
+    its ``(point, seed)``) to its result."""
 
-    def __init__(self, done: dict[int, R], total: int) -> None:
+    def __init__(self, done: dict[Any, R], total: int) -> None:
         super().__init__(f"interrupted after {len(done)} of {total} runs")
         self.done = done
         self.total = total
@@ -98,46 +99,66 @@ def parallel_map(
     per task; ``1`` runs in this process). ``fn`` must be a module-level function (the workers
     import it).  Raises :class:`BatchInterrupted` on Ctrl-C, after every worker is gone."""
     n = len(tasks)
-    workers = min(workers or default_workers(), max(n, 1))
     done: dict[int, R] = {}
+    try:
+        for i, ok, value in imap_unordered(fn, tasks, workers):
+            if not ok:
+                raise value
+            done[i] = value
+            if progress:
+                progress(len(done), n, i)
+    except KeyboardInterrupt:
+        raise BatchInterrupted(done, n) from None
+    return [done[i] for i in range(n)]
+
+
+def imap_unordered(
+    fn: Callable[[T], R], tasks: Sequence[T], workers: int | None = None
+) -> Iterator[tuple[int, bool, Any]]:
+    """``(index, True, fn(tasks[index]))`` for each task in completion order, or ``(index,
+    False, exception)`` for one that raised (the others go on; the exception carries the
+    worker's traceback as a note).  ``workers`` processes as :func:`parallel_map`; ``1`` runs
+    in this process.  Every worker is stopped and reaped when the iteration ends, also by an
+    exception (Ctrl-C) or by the caller leaving the loop (close the generator, or let it go)."""
+    n = len(tasks)
+    workers = min(workers or default_workers(), max(n, 1))
     if workers <= 1:
-        try:
-            for i, t in enumerate(tasks):
-                done[i] = fn(t)
-                if progress:
-                    progress(len(done), n, i)
-        except KeyboardInterrupt:
-            raise BatchInterrupted(done, n) from None
-        return [done[i] for i in range(n)]
+        for i, t in enumerate(tasks):
+            try:
+                value = fn(t)
+            except Exception as exc:  # noqa: BLE001 (reported to the caller, as a worker's)
+                yield i, False, exc
+                continue
+            yield i, True, value
+        return
     pool: list[_Worker] = []
+    finished = False
     try:
         _start(pool, fn, workers)
         todo: Iterator[tuple[int, T]] = iter(enumerate(tasks))
         for w in pool:
             _hand_out(w, todo)
-        while len(done) < n:
+        received = 0
+        while received < n:
             busy = [w for w in pool if w.task is not None]
             ready = wait([w.conn for w in busy] + [w.sentinel for w in busy], timeout=0.2)
             for w in busy:
                 if w.conn in ready:
-                    i, r = _receive(w)
-                    done[i] = r
-                    if progress:
-                        progress(len(done), n, i)
+                    i, ok, value = _receive(w)
+                    received += 1
                     _hand_out(w, todo)
+                    yield i, ok, value
                 elif w.sentinel in ready:
                     raise WorkerDied(
                         f"a worker process (pid {w.proc.pid}) ended with exit code "
                         f"{w.proc.wait()} while running task {w.task}"
                     )
-    except KeyboardInterrupt:
-        _stop(pool)
-        raise BatchInterrupted(done, n) from None
-    except BaseException:
-        _stop(pool)
-        raise
-    _finish(pool)
-    return [done[i] for i in range(n)]
+        finished = True
+    finally:
+        if finished:
+            _finish(pool)
+        else:
+            _stop(pool)
 
 
 def _start(pool: list[_Worker], fn: Callable[..., Any], workers: int) -> None:
@@ -168,7 +189,7 @@ def _hand_out(w: _Worker, todo: Iterator[tuple[int, Any]]) -> None:
         w.conn.send(nxt)
 
 
-def _receive(w: _Worker) -> tuple[int, Any]:
+def _receive(w: _Worker) -> tuple[int, bool, Any]:
     try:
         i, ok, value, tb = w.conn.recv()
     except EOFError:
@@ -177,8 +198,7 @@ def _receive(w: _Worker) -> tuple[int, Any]:
         ) from None
     if not ok:
         value.add_note(f"in a worker process (pid {w.proc.pid}), task {i}:\n{tb}")
-        raise value
-    return int(i), value
+    return int(i), bool(ok), value
 
 
 def _finish(pool: list[_Worker]) -> None:
@@ -216,17 +236,27 @@ def _stop(pool: list[_Worker]) -> None:
 
 
 def end_batch(
-    out: Path, total: int, what: str, stop: BatchInterrupted[Any] | None = None, kept: int = 0
+    out: Path,
+    total: int,
+    what: str,
+    stop: BatchInterrupted[Any] | None = None,
+    kept: int = 0,
+    **facts: Any,
 ) -> None:
     """Record how a batch of ``total`` runs ended in ``out/run.json``
-    (:func:`covnet.rundir.record_end`).  After an interruption ``stop``, when ``kept`` complete
-    ``what`` s (grid points, seeds, ...) were written, say so on stderr; when none were,
-    write nothing (not even the directory) and say that."""
+    (:func:`covnet.rundir.record_end`, with ``facts``).  After an interruption ``stop``, when
+    ``kept`` complete ``what`` s (grid points, seeds, ...) were written, say so on stderr; when
+    none were and ``out`` does not exist, write nothing (not even the directory) and say that;
+    a directory that holds finished trials (``out/trials``) is resumed by the same command."""
     if stop is None:
-        record_end(out, "completed", "every run done", runs_completed=total, runs_total=total)
+        record_end(
+            out, "completed", "every run done", runs_completed=total, runs_total=total, **facts
+        )
         return
     n = len(stop.done)
-    if kept == 0:
+    resumable = (out / "trials").is_dir()
+    again = f"; the same command with --out {out} resumes" if resumable else ""
+    if kept == 0 and not out.is_dir():
         print(
             f"interrupted after {n} of {total} runs, before the first complete {what}: "
             "nothing written",
@@ -239,10 +269,18 @@ def end_batch(
         f"interrupted (Ctrl-C or SIGTERM) after {n} of {total} runs",
         runs_completed=n,
         runs_total=total,
+        **facts,
     )
+    if kept == 0:
+        print(
+            f"interrupted after {n} of {total} runs, before the first complete {what}: "
+            f"{out} holds the finished trials only{again}",
+            file=sys.stderr,
+        )
+        return
     print(
         f"interrupted after {n} of {total} runs: {out} holds the {kept} complete {what}(s); "
-        "figures skipped (partial)",
+        f"figures skipped (partial){again}",
         file=sys.stderr,
     )
 

@@ -195,7 +195,16 @@ def cmd_plot(args: argparse.Namespace) -> int:
             f"{run_dir}: not a complete run directory (missing {CONFIG}, which names its kind)"
         )
     kind, _ = kinds.from_dict(read_json(run_dir / CONFIG), str(run_dir / CONFIG))
-    for p in kind.plot(run_dir):
+    if args.point is not None:
+        try:
+            figures = kind.plot(run_dir, point=args.point)  # type: ignore[call-arg]
+        except TypeError as exc:  # a kind whose plot takes no point
+            if "point" not in str(exc):
+                raise
+            raise UsageError(f"--point: a {kind.title} directory has no per-point curves") from None
+    else:
+        figures = kind.plot(run_dir)
+    for p in figures:
         print(p)
     return EXIT_OK
 
@@ -233,6 +242,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name}: must be >= 1, got {getattr(args, name)}")
     if args.target == "up":
         return cmd_bench_up(args)
+    if args.target == "cluster":
+        from covnet import bench_cluster  # dask: only for this benchmark (start-up)
+
+        if args.config == "configs/paper.yaml":  # the default: the sweep's own config
+            args.config = "configs/latency.yaml"
+        if args.repeat == 3:  # --repeat's default is the allocator's; alternations here
+            args.repeat = 4
+        return bench_cluster.main(args)
     if args.target == "soak":
         # start-up: the soak's module (numpy, the recording reader) only for this benchmark
         from covnet import bench_soak
@@ -252,6 +269,31 @@ def _int_list(text: str) -> list[int]:
     if not vals or any(v < 1 or v > 24 for v in vals):
         raise argparse.ArgumentTypeError(f"sensor counts must be in 1..24, got {text!r}")
     return vals
+
+
+def _batch_options(p: argparse.ArgumentParser, seeds: str) -> None:
+    """The batch layer's options (:mod:`covnet.trials`), the same for sweep, mc and compare."""
+    p.add_argument(
+        "--cluster",
+        metavar="ADDRESS",
+        help="run the trials on the Dask distributed scheduler at ADDRESS (tcp://host:port; "
+        "workers need covnet installed; pip install 'covnet[cluster]'); default: this "
+        "machine's cores",
+    )
+    p.add_argument(
+        "--ci-width",
+        type=float,
+        metavar="X",
+        help=f"add {seeds} in batches until every point's 95 %% confidence interval on the "
+        "headline metric (sweep, compare: RMSE after the burn-in, m; mobile mc: overall "
+        "RMSE, m; passive mc: the share of targets associated, p) is narrower than X",
+    )
+    p.add_argument(
+        "--max-seeds",
+        type=int,
+        metavar="N",
+        help="with --ci-width: at most N per point (default 100)",
+    )
 
 
 def _out_options(p: argparse.ArgumentParser, what: str) -> None:
@@ -304,6 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="seeds (mobile, default 20) or trials per cell (passive, default: config)",
     )
+    mc.add_argument("--workers", type=int, help="processes (default: one per core)")
+    _batch_options(mc, "seeds (passive: trials)")
     _out_options(mc, "results")
     mc.set_defaults(func=cmd_mc)
 
@@ -379,6 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cp.add_argument("--seed", type=int, help="first seed (default: the config's)")
     cp.add_argument("--workers", type=int, help="processes (default: one per core)")
+    _batch_options(cp, "seeds")
     _out_options(cp, "results")
     cp.add_argument("--no-figures", action="store_true", help="skip compare.png")
     cp.add_argument("--json", action="store_true", help="one JSON row per mode")
@@ -393,6 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--metric", action="append", metavar="NAME", help="allocation metric")
     sw.add_argument("--seed", type=int, help="first seed (default: the config's)")
     sw.add_argument("--workers", type=int, help="processes (default: one per core)")
+    _batch_options(sw, "seeds")
     _out_options(sw, "results")
     sw.add_argument("--no-figures", action="store_true", help="skip sweep.png")
     sw.add_argument("--json", action="store_true", help="one JSON row per grid point")
@@ -404,6 +450,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     pl = sub.add_parser("plot", help="(re)draw the figures of a run directory from its files")
     pl.add_argument("run_dir")
+    pl.add_argument(
+        "--point",
+        metavar="TEXT",
+        help="sweep, compare: draw curves.png (per-scan RMSE and NEES with 95 %% bands) for "
+        "every point whose key contains TEXT, e.g. delay_ms=350,loss=0,mode=central",
+    )
     pl.set_defaults(func=cmd_plot)
 
     b = sub.add_parser(
@@ -414,7 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "target",
         nargs="?",
-        choices=["alloc", "up", "soak", *[t for t in BENCHES if t != "alloc"]],
+        choices=["alloc", "up", "soak", "cluster", *[t for t in BENCHES if t != "alloc"]],
         default="alloc",
         help="alloc: allocation decisions per metric and N; up: covnet up in lockstep; "
         "mobile: cost tensor and LP/MILP; passive: association methods; fusion: the batched "
@@ -422,7 +474,9 @@ def build_parser() -> argparse.ArgumentParser:
         "branch and bound / bounded / greedy against the exhaustive search (N up to 1000); "
         "multitarget: the assignment allocator over T targets against plain enumeration; "
         "soak: a long lockstep and a long real-time covnet up, memory, descriptors and "
-        "latency of every process over time",
+        "latency of every process over time; cluster: a sweep's trials per second on the local "
+        "pool and on a local 2-worker Dask cluster, alternated, and each one's per-task "
+        "overhead",
     )
     b.add_argument(
         "--sensors",

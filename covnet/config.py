@@ -232,6 +232,16 @@ class LatencySpec(ConfigModel):
         return all(self.link(s, d).is_ideal for s in sensor_ids for d in ("uplink", "downlink"))
 
 
+class EvaluationSpec(ConfigModel):
+    """How the batch commands (``covnet sweep``, ``compare``, ``mc``) summarise a run's errors:
+    the first ``burn_in_scans`` scans are the transient (the filter leaving its prior; on a slow
+    network the first deadlines with nothing arrived yet), reported on their own; the RMSE and
+    NEES *after* them are the steady state.  Default 10: the NEES has always skipped 10 scans,
+    and the latency sweep's per-scan curves settle within them (README, "Network latency")."""
+
+    burn_in_scans: Int = Field(default=10, ge=0, le=1_000_000)
+
+
 class NetworkSpec(ConfigModel):
     """How ``covnet up`` wires the processes over zenoh (see README, "Running a network").
 

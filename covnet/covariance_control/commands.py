@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batch import BatchInterrupted, end_batch, progress_printer
+from covnet.batch import BatchInterrupted, end_batch
 from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario, SweepSpec, load, normalised
 from covnet.covariance_control.decentral_sim import run_mode
@@ -26,7 +26,11 @@ from covnet.covariance_control.model import build_model
 from covnet.covariance_control.results import write_run
 from covnet.covariance_control.simulate import shared_trajectory
 from covnet.errors import UsageError
-from covnet.rundir import CONFIG, SUMMARY, prepare_out, read_json, write_json
+from covnet.rundir import CONFIG, SUMMARY, load_arrays, read_json, write_json, write_npz
+from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
+
+CURVES = "curves.npz"
+"""The per-scan RMSE and NEES curves of every point of a sweep or compare, with their bands."""
 
 # The figures (matplotlib), the batch tables (scipy.stats), the replay (the MCAP reader) and the
 # benchmarks are imported by the commands that use them: start-up time of ``covnet run``.
@@ -127,8 +131,10 @@ def up_problem(sc: Scenario, *, realtime: bool, netns: bool) -> str | None:
     return None
 
 
-def plot(run_dir: Path) -> list[Path]:
-    """Redraw the figures of a run, ``covnet compare`` or ``covnet sweep`` directory."""
+def plot(run_dir: Path, point: str | None = None) -> list[Path]:
+    """Redraw the figures of a run, ``covnet compare`` or ``covnet sweep`` directory: a batch's
+    table figure and its per-scan curves (``curves.png``: the default points, or with
+    ``point`` every point whose key contains it, e.g. ``delay_ms=350,loss=0,mode=central``)."""
     for stem in ("compare", "sweep"):
         table = run_dir / f"{stem}.json"
         if table.is_file():
@@ -143,7 +149,24 @@ def plot(run_dir: Path) -> list[Path]:
             except (ValueError, KeyError) as exc:
                 raise UsageError(f"{table}: not a {stem} table ({exc})") from None
             title = f"{doc.get('scenario', '')}: covnet {stem}, metric {doc.get('metric', '?')}"
-            return [module.make_figure(run_dir, rows, title)]
+            figures = [module.make_figure(run_dir, rows, title)]
+            if (run_dir / CURVES).is_file():
+                curves = load_arrays(run_dir / CURVES)
+                keys = [str(k) for k in curves["points"]]
+                select = (
+                    module.default_curves(rows)
+                    if point is None
+                    else [i for i, k in enumerate(keys) if point in k]
+                )
+                if not select:
+                    raise UsageError(
+                        f"--point {point}: no point of {run_dir} matches; its points: "
+                        + "; ".join(keys)
+                    )
+                figures.append(module.curves_figure(run_dir, curves, select))
+            elif point is not None:
+                raise UsageError(f"--point: {run_dir} has no per-scan curves ({CURVES})")
+            return figures
     missing = [f for f in (SUMMARY, "arrays.npz") if not (run_dir / f).is_file()]
     if missing:
         raise UsageError(f"{run_dir}: not a complete run directory (missing {', '.join(missing)})")
@@ -157,6 +180,13 @@ def _metric(sc: Scenario, requested: list[str] | None, default: str) -> str:
     if metric not in METRICS:
         raise UsageError(f"--metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
     return metric
+
+
+def _batch_out(args: argparse.Namespace, name: str, command: str, key: str) -> Path:
+    """The batch's directory (a new one, or its own to resume) with ``batch.json`` in it."""
+    out, _ = prepare_batch_out(args.out, name, args.force, command, key)
+    write_batch_info(out, command, key, {})
+    return out
 
 
 def compare(args: argparse.Namespace, sc: Scenario) -> int:
@@ -173,9 +203,9 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     metric = _metric(sc, args.metric, sc.allocation.metrics[0])
     if args.runs < 2:
         raise UsageError(f"--runs: at least 2 runs for a NEES band, got {args.runs}")
-    if args.workers is not None and args.workers < 1:
-        raise UsageError(f"--workers: must be >= 1, got {args.workers}")
-    out = prepare_out(args.out, f"{sc.name}-compare", args.force)
+    opts = batch_options(args, args.runs)
+    key = cmp.trial_key(sc, metric, args.graph)
+    out = _batch_out(args, f"{sc.name}-compare", "compare", key)
     total = len(modes) * args.runs
     print(
         f"comparing {', '.join(modes)} on {sc.name}: metric {metric}, {args.runs} seeds from "
@@ -196,17 +226,27 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     )
 
     def work() -> Any:
-        return cmp.compare(
+        return cmp.compare_outcome(
             sc,
             modes,
             metric,
             args.runs,
             graph=args.graph,
-            workers=args.workers,
-            progress=progress_printer("compare"),
+            progress=BatchProgress("compare", where=opts.where),
+            out=out,
+            **_trial_options(opts),
         )
 
-    return _batch_results(cmp, args, sc, out, work, total, "mode", meta, title)
+    return _batch_results(cmp, args, sc, out, work, total, "mode", meta, title, key)
+
+
+def _trial_options(opts: Any) -> dict[str, Any]:
+    return {
+        "workers": opts.workers,
+        "cluster": opts.cluster,
+        "ci_width": opts.ci_width,
+        "max_seeds": opts.max_seeds,
+    }
 
 
 def _batch_results(
@@ -219,24 +259,45 @@ def _batch_results(
     what: str,
     meta: Any,
     title: str,
+    key: str,
 ) -> int:
-    """Run ``covnet compare`` / ``sweep``'s ``work`` (its table's rows, from ``total`` runs)
-    and write: the table files, the config (which says the directory's kind, for ``covnet
-    plot``), ``run.json``'s status, the figure, the printout.  Interrupted: the complete rows
-    (each a ``what``) are written, no figure, and the interruption goes on (exit 130)."""
+    """Run ``covnet compare`` / ``sweep``'s ``work`` (its table's rows and the trials'
+    :class:`~covnet.trials.Outcome`, from ``total`` runs) and write: the table files, the
+    per-scan curves (``curves.npz``), the config (which says the directory's kind, for ``covnet
+    plot``), ``run.json``'s status, the figures, the printout.  Interrupted: the complete rows
+    (each a ``what``) are written, no figure, and the interruption goes on (exit 130); the
+    trials stay in ``out/trials`` for the same command to resume."""
+    meta = {
+        **meta,
+        "burn_in_scans": sc.evaluation.burn_in_scans,
+        "trial_hash": key,
+    }
     try:
-        rows = work()
+        rows, outcome = work()
     except BatchInterrupted as stop:
         if stop.partial:
             module.write_table(out, stop.partial, meta)
             write_json(out / CONFIG, normalised(sc))
         end_batch(out, total, what, stop, len(stop.partial or ()))
         raise
+    meta = {**meta, **outcome.ci_facts()}
     module.write_table(out, rows, meta)
+    curves = module.curves(outcome.results)
+    write_npz(out / CURVES, curves)
     write_json(out / CONFIG, normalised(sc))
-    end_batch(out, total, what)
+    end_batch(
+        out,
+        outcome.total,
+        what,
+        runs_run=outcome.ran,
+        runs_skipped=outcome.skipped,
+        wall_s=outcome.wall_s,
+        trials_per_s=outcome.ran / outcome.wall_s if outcome.wall_s > 0 else None,
+        **outcome.backend,
+    )
     if not args.no_figures:
         module.make_figure(out, rows, title)
+        module.curves_figure(out, curves, module.default_curves(rows))
     if args.json:  # stdout holds JSON only
         for r in rows:
             print(json.dumps(r))
@@ -255,20 +316,22 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
         raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
     spec = sc.sweep or SweepSpec()
     metric = _metric(sc, args.metric, spec.metric or sc.allocation.metrics[0])
-    for name in ("seeds", "workers"):
-        v = getattr(args, name)
-        if v is not None and v < 1:
-            raise UsageError(f"--{name}: must be >= 1, got {v}")
+    if args.seeds is not None and args.seeds < 1:
+        raise UsageError(f"--seeds: must be >= 1, got {args.seeds}")
     seeds = args.seeds or spec.seeds
+    opts = batch_options(args, seeds)
     points = sw.grid(spec)
-    out = prepare_out(args.out, f"{sc.name}-sweep", args.force)
+    key = sw.trial_key(sc, metric)
+    out = _batch_out(args, f"{sc.name}-sweep", "sweep", key)
     print(
         f"sweeping {sc.name}: {len(points)} grid points x {seeds} seeds = "
         f"{len(points) * seeds} runs, metric {metric}"
-        + ("" if sc.sweep else " (no sweep section in the config: the default grid)"),
+        + ("" if sc.sweep else " (no sweep section in the config: the default grid)")
+        + (f", seeds added until every 95 % interval is narrower than {opts.ci_width:g} m "
+           f"(cap {opts.max_seeds})" if opts.ci_width else ""),
         file=sys.stderr,
         flush=True,
-    )
+    )  # fmt: skip
     meta = {
         "scenario": sc.name,
         "metric": metric,
@@ -280,16 +343,21 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
     }
     title = (
         f"{sc.name}: delay and loss ({spec.delay_kind} delays, both directions), "
-        f"metric {metric}, {seeds} seeds, deadline {sc.network.deadline_fraction:g} T"
+        f"metric {metric}, deadline {sc.network.deadline_fraction:g} T"
     )
 
     def work() -> Any:
-        return sw.sweep(
-            sc, metric=metric, seeds=seeds, workers=args.workers, progress=progress_printer("sweep")
+        return sw.sweep_outcome(
+            sc,
+            metric=metric,
+            seeds=seeds,
+            progress=BatchProgress("sweep", where=opts.where),
+            out=out,
+            **_trial_options(opts),
         )
 
     total = len(points) * seeds
-    return _batch_results(sw, args, sc, out, work, total, "grid point", meta, title)
+    return _batch_results(sw, args, sc, out, work, total, "grid point", meta, title, key)
 
 
 def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:

@@ -41,13 +41,24 @@ from scipy.stats import chi2
 from scipy.stats import t as student_t
 
 from covnet import messages as msg
-from covnet.batch import BatchInterrupted, Progress, parallel_map, write_rows
+from covnet.batch import BatchInterrupted, write_rows
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 from covnet.covariance_control.decentral import neighbours
 from covnet.covariance_control.decentral_sim import run_mode
 from covnet.covariance_control.fusion_rules import FUSION_RULES, rule_for, track_rules
 from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.simulate import MetricRun
+from covnet.covariance_control.sweep import _pm
+from covnet.covariance_control.sweep import curves_figure as sweep_curves_figure
+from covnet.stats import add_stats, burn_in_of, ci_half_width, curves_of, error_stats, seed_stats
+from covnet.trials import (
+    Batch,
+    BatchProgress,
+    Outcome,
+    complete_points,
+    run_trials,
+    trial_hash,
+)
 
 
 def modes() -> tuple[str, ...]:
@@ -98,6 +109,26 @@ class Trial:
     pos_err2: np.ndarray  # (N,)
     enabled: np.ndarray  # (N, Ns) bool
 
+    def as_dict(self) -> dict[str, Any]:
+        """The trial as JSON-able data (what the batch layer stores and sends)."""
+        return {
+            "mode": self.mode,
+            "seed": self.seed,
+            "nees_scan": np.asarray(self.nees, dtype=np.float64).tolist(),
+            "pos_err2_scan": np.asarray(self.pos_err2, dtype=np.float64).tolist(),
+            "enabled_scan": ["".join("1" if b else "0" for b in row) for row in self.enabled],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Trial:
+        return cls(
+            str(d["mode"]),
+            int(d["seed"]),
+            nees=np.asarray(d["nees_scan"], dtype=np.float64),
+            pos_err2=np.asarray(d["pos_err2_scan"], dtype=np.float64),
+            enabled=np.asarray([[c == "1" for c in row] for row in d["enabled_scan"]], dtype=bool),
+        )
+
 
 def run_trial(args: tuple[dict[str, Any], str, str | None, int, str]) -> Trial:
     """One (mode, seed) run; a top-level function so that worker processes can import it."""
@@ -115,6 +146,12 @@ def run_trial(args: tuple[dict[str, Any], str, str | None, int, str]) -> Trial:
         pos_err2=np.mean(err[..., 0] ** 2 + err[..., 2] ** 2, axis=0),
         enabled=run.enabled,
     )
+
+
+def run_seeds(task: tuple[dict[str, Any], str, str | None, list[int], str]) -> list[dict[str, Any]]:
+    """The runs of one mode with each of ``seeds``, as data (a task of :mod:`covnet.trials`)."""
+    data, mode, graph, seeds, metric = task
+    return [run_trial((data, mode, graph, s, metric)).as_dict() for s in seeds]
 
 
 def traffic_per_scan(
@@ -163,7 +200,12 @@ def traffic_per_scan(
 
 
 def summarise(
-    sc: Scenario, mode: str, trials: Sequence[Trial], graph: str | None, skip: int = 10
+    sc: Scenario,
+    mode: str,
+    trials: Sequence[Trial],
+    graph: str | None,
+    skip: int = 10,
+    burn_in: int | None = None,
 ) -> dict[str, Any]:
     """One row of the comparison table (see the module docstring)."""
     R = len(trials)
@@ -194,7 +236,24 @@ def summarise(
         "nees_verdict": verdict,
     }
     row.update(traffic_per_scan(sc, mode, trials[0].enabled, graph))
+    # the statistics over seeds (after the columns above, which keep their values)
+    error_stats(
+        row,
+        np.stack([t.pos_err2 for t in trials]),
+        all_nees,
+        sc.evaluation.burn_in_scans if burn_in is None else burn_in,
+    )
+    add_stats(row, "allocation_rate", [float(t.enabled.mean()) for t in trials])
     return row
+
+
+def trial_key(sc: Scenario, metric: str, graph: str | None) -> str:
+    """The hash that keys the comparison's trials: the config without its seed and evaluation
+    settings, the metric and the peer graph (a mode is a point: adding modes resumes)."""
+    data = normalised(sc)
+    data.pop("seed", None)
+    data.pop("evaluation", None)
+    return trial_hash("compare", {"config": data, "metric": metric, "graph": graph})
 
 
 def compare(
@@ -205,24 +264,91 @@ def compare(
     *,
     graph: str | None = None,
     workers: int | None = None,
-    progress: Progress | None = None,
+    progress: BatchProgress | None = None,
+    out: Path | None = None,
+    cluster: str | None = None,
 ) -> list[dict[str, Any]]:
     """The comparison table: one row per mode, over seeds ``sc.seed .. sc.seed + runs - 1``."""
+    return compare_outcome(
+        sc, modes, metric, runs, graph=graph, workers=workers, progress=progress, out=out,
+        cluster=cluster,
+    )[0]  # fmt: skip
+
+
+def compare_outcome(
+    sc: Scenario,
+    modes: Sequence[str],
+    metric: str,
+    runs: int,
+    *,
+    graph: str | None = None,
+    workers: int | None = None,
+    progress: BatchProgress | None = None,
+    out: Path | None = None,
+    cluster: str | None = None,
+    ci_width: float | None = None,
+    max_seeds: int | None = None,
+) -> tuple[list[dict[str, Any]], Outcome]:
+    """``(rows, outcome)``: the table and its trials (per mode in seed order), written to
+    ``out`` as they finish and skipped when there (:func:`covnet.trials.run_trials`)."""
     for m in modes:
         scenario_for(sc, m, graph)  # validates every mode (and the graph) before any work
     data = normalised(sc)
-    tasks = [(data, m, graph, sc.seed + r, metric) for m in modes for r in range(runs)]
-    try:
-        trials = parallel_map(run_trial, tasks, workers, progress)
-    except BatchInterrupted as stop:  # the modes with every seed
-        done = [stop.done[i] for i in sorted(stop.done)]
-        stop.partial = [
-            summarise(sc, m, [t for t in done if t.mode == m], graph)
+    burn = sc.evaluation.burn_in_scans
+
+    def headline(mode: str, results: list[dict[str, Any]]) -> float:
+        E = np.asarray([r["pos_err2_scan"] for r in results], dtype=np.float64)
+        b = burn_in_of(burn, E.shape[1])
+        return ci_half_width(seed_stats(np.sqrt(E[:, b:].mean(axis=1))))
+
+    b = Batch(
+        "compare",
+        run_seeds,
+        lambda mode, seeds: (data, mode, graph, seeds, metric),
+        list(modes),
+        first_seed=sc.seed,
+        headline=headline,
+        headline_name="steady-state RMSE (m)",
+    )
+
+    def rows_of(results: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
+        return [
+            summarise(sc, m, [Trial.from_dict(t) for t in results[m]], graph, burn_in=burn)
             for m in modes
-            if sum(t.mode == m for t in done) == runs
+            if m in results
         ]
+
+    try:
+        outcome = run_trials(
+            b,
+            runs,
+            out=out,
+            key=trial_key(sc, metric, graph) if out is not None else None,
+            workers=workers,
+            cluster=cluster,
+            progress=progress,
+            ci_width=ci_width,
+            max_seeds=max_seeds,
+        )
+    except BatchInterrupted as stop:  # the modes with every seed
+        stop.partial = rows_of(complete_points(b, stop.done, runs))
         raise
-    return [summarise(sc, m, [t for t in trials if t.mode == m], graph) for m in modes]
+    return rows_of(outcome.results), outcome
+
+
+def curves(results: dict[str, list[dict[str, Any]]]) -> dict[str, np.ndarray]:
+    """The per-scan curves of every mode (:func:`covnet.stats.curves_of`)."""
+    return curves_of(results)
+
+
+def default_curves(rows: Sequence[dict[str, Any]]) -> list[int]:
+    """``curves.png`` shows every mode."""
+    return list(range(len(rows)))
+
+
+def curves_figure(out: Path, data: dict[str, np.ndarray], select: Sequence[int]) -> Path:
+    """``curves.png``: per-scan RMSE and NEES of the modes ``select``, with their bands."""
+    return sweep_curves_figure(out, data, select)
 
 
 COLUMNS = (
@@ -238,6 +364,23 @@ COLUMNS = (
     "messages_per_scan",
     "bytes_per_scan",
     "deliveries_per_scan",
+    "burn_in_scans",
+    "rmse_steady",
+    "rmse_steady_mean",
+    "rmse_steady_std",
+    "rmse_steady_ci_lo",
+    "rmse_steady_ci_hi",
+    "rmse_transient",
+    "rmse_transient_max",
+    "rmse_position_std",
+    "rmse_position_ci_lo",
+    "rmse_position_ci_hi",
+    "nees_steady_mean",
+    "nees_steady_ci_lo",
+    "nees_steady_ci_hi",
+    "allocation_rate_std",
+    "allocation_rate_ci_lo",
+    "allocation_rate_ci_hi",
 )
 
 
@@ -248,13 +391,17 @@ def write_table(out: Path, rows: Sequence[dict[str, Any]], meta: dict[str, Any])
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     head = (
-        f"{'mode':>10} {'rate %':>7} {'RMSE m':>7} {'NEES':>6} {'in band':>8} {'verdict':>12} "
+        f"{'mode':>10} {'runs':>4} {'rate %':>7} {'RMSE m':>7} {'steady RMSE m':>13} "
+        f"{'transient m':>11} {'NEES':>6} {'in band':>8} {'verdict':>12} "
         f"{'msgs/scan':>9} {'B/scan':>8}"
     )
     lines = [head, "-" * len(head)]
     for r in rows:
+        tr = r.get("rmse_transient")
         lines.append(
-            f"{r['mode']:>10} {100 * r['allocation_rate']:7.1f} {r['rmse_position']:7.2f} "
+            f"{r['mode']:>10} {r['runs']:>4} {100 * r['allocation_rate']:7.1f} "
+            f"{r['rmse_position']:7.2f} {_pm(r, 'rmse_steady'):>13} "
+            f"{'-' if tr is None else f'{tr:.2f}':>11} "
             f"{r['mean_nees']:6.2f} {100 * r['nees_inside_fraction']:7.0f}% "
             f"{r['nees_verdict']:>12} "
             f"{r['messages_per_scan']:9.1f} {r['bytes_per_scan']:8.0f}"
@@ -265,6 +412,12 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
         f"[{lo:.2f}, {hi:.2f}] of {rows[0]['runs']} runs; 'verdict' = where the grand mean's 95 % "
         "confidence interval lies against 4 (the state dimension)"
     )
+    if rows[0].get("burn_in_scans") is not None:
+        lines.append(
+            f"RMSE m: every scan; steady: after the first {rows[0]['burn_in_scans']} scans "
+            "(evaluation.burn_in_scans), mean over seeds ± the half-width of its 95 % t "
+            "interval; transient: those first scans (pooled)"
+        )
     return "\n".join(lines)
 
 
@@ -279,9 +432,10 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     modes = [r["mode"] for r in rows]
     fig, axes = plt.subplots(1, 4, figsize=(15, 4.2))
     colors = plt.cm.tab10(np.arange(len(rows)))
+    steady = [r.get("rmse_steady_mean", r["rmse_position"]) for r in rows]
     panels = (
         ("allocation rate [%]", [100 * r["allocation_rate"] for r in rows]),
-        ("position RMSE [m]", [r["rmse_position"] for r in rows]),
+        (f"position RMSE after {rows[0].get('burn_in_scans', 0)} scans [m]", steady),
         ("mean NEES (4 states)", [r["mean_nees"] for r in rows]),
         ("bytes published per scan", [r["bytes_per_scan"] for r in rows]),
     )
@@ -290,6 +444,12 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
         ax.set_title(label)
         ax.tick_params(axis="x", rotation=35)
         ax.grid(axis="y", alpha=0.3)
+    for ax, key, scale in ((axes[0], "allocation_rate", 100.0), (axes[1], "rmse_steady", 1.0)):
+        if all(r.get(f"{key}_ci_lo") is not None for r in rows):
+            m = np.array([r[f"{key}_mean"] for r in rows]) * scale
+            lo_ = np.array([r[f"{key}_ci_lo"] for r in rows]) * scale
+            hi_ = np.array([r[f"{key}_ci_hi"] for r in rows]) * scale
+            ax.errorbar(modes, m, yerr=[m - lo_, hi_ - m], fmt="none", ecolor="k", capsize=4)
     ci = np.array([r["nees_mean_ci_95"] for r in rows]).T
     mean = np.array([r["mean_nees"] for r in rows])
     axes[2].errorbar(

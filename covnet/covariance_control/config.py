@@ -20,6 +20,7 @@ from pydantic import Field, field_validator
 from covnet.config import (
     Bool,
     ConfigModel,
+    EvaluationSpec,
     Float,
     Ident,
     Int,
@@ -221,6 +222,7 @@ class Scenario(ConfigModel):
     network: NetworkSpec = NetworkSpec()
     fusion: FusionSpec = FusionSpec()
     sweep: SweepSpec | None = None
+    evaluation: EvaluationSpec = EvaluationSpec()
 
     _period = field_validator("period_s")(_positive)
 
@@ -305,8 +307,9 @@ def load(path: str | Path) -> Scenario:
 
 def normalised(sc: Scenario) -> dict[str, Any]:
     """The config with every default filled in, as plain JSON-able data (except
-    ``network.security`` while it is all off, so that configs without it keep their hash)."""
-    return _normalised(sc, ("network.security",))
+    ``network.security`` while it is all off and ``evaluation`` while it is the default, so
+    that configs without them keep their hash)."""
+    return _normalised(sc, ("network.security", "evaluation"))
 
 
 def config_hash(sc: Scenario) -> str:

@@ -21,15 +21,23 @@ from typing import Any
 from covnet.batch import BatchInterrupted, default_workers, end_batch
 from covnet.errors import UsageError
 from covnet.mobile.config import MobileConfig
-from covnet.mobile.montecarlo import MC_FILE, run_seeds, write_mc
+from covnet.mobile.montecarlo import MC_FILE, mc_outcome, trial_key, write_mc
 from covnet.mobile.results import load_summary, write_run
 from covnet.mobile.simulate import run as simulate
-from covnet.rundir import RUN_INFO, prepare_out, read_json
+from covnet.rundir import RUN_INFO, read_json
+from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 
 # The figure (matplotlib) and the benchmark are imported by the commands that use them:
 # start-up time of the others.
 
 EXIT_OK = 0
+
+
+def _pm(st: dict[str, Any]) -> str:
+    """``mean±half-width`` of an aggregate's statistics (the mean alone with one seed)."""
+    if st.get("ci_lo") is None:
+        return f"{st['mean']:.2f}"
+    return f"{st['mean']:.2f}±{(st['ci_hi'] - st['ci_lo']) / 2:.2f}"
 
 
 def _pct(x: float) -> str:
@@ -99,9 +107,22 @@ def after_up(cfg: MobileConfig, out: Path, *, figures: bool) -> None:
 
 
 def mc(args: Any, cfg: MobileConfig) -> int:
-    """``covnet mc configs/mobile.yaml [--trials N] [--out DIR] [--force]``."""
+    """``covnet mc configs/mobile.yaml [--trials N] [--out DIR] [--force] [--workers W]
+    [--cluster ADDRESS] [--ci-width X [--max-seeds N]]``."""
     seeds = args.trials if args.trials is not None else 20
-    return mc_run(cfg, args.out, seeds, force=args.force)
+    if seeds < 1:
+        raise UsageError(f"--trials: must be >= 1, got {seeds}")
+    opts = batch_options(args, seeds)
+    return mc_run(
+        cfg,
+        args.out,
+        seeds,
+        force=args.force,
+        workers=opts.workers,
+        cluster=opts.cluster,
+        ci_width=opts.ci_width,
+        max_seeds=opts.max_seeds,
+    )
 
 
 def mc_run(
@@ -112,58 +133,84 @@ def mc_run(
     *,
     workers: int | None = None,
     force: bool = False,
+    cluster: str | None = None,
+    ci_width: float | None = None,
+    max_seeds: int | None = None,
 ) -> int:
-    """``covnet mc configs/mobile.yaml [--seeds 20] [--out DIR]``: seeds ``0..seeds-1`` in
-    parallel worker processes (spawn; one per core by default); writes ``montecarlo.json``.
+    """``covnet mc configs/mobile.yaml [--trials 20] [--out DIR]``: seeds ``0..seeds-1`` in
+    parallel worker processes (one per core by default) or on a Dask cluster; each seed
+    written to ``OUT/trials`` as it finishes (the same command resumes); writes
+    ``montecarlo.json``.
 
-    ``progress``: ``True`` prints a line per finished seed on stderr, ``False`` nothing, or a
-    callable ``(done, total, seed)`` of the caller's.
+    ``progress``: ``True`` shows one live progress line on stderr, ``False`` nothing, or a
+    callable ``(done, total, seed)`` of the caller's, called after each seed run here.
     """
     if seeds < 1:
         raise UsageError(f"--trials: must be >= 1, got {seeds}")
-    out_dir = prepare_out(out, f"{cfg.name}-mc", force)
-    seed_list = list(range(seeds))
+    key = trial_key(cfg)
+    out_dir, _ = prepare_batch_out(out, f"{cfg.name}-mc", force, "mc", key)
+    write_batch_info(out_dir, "mc", key, {})
     n_workers = min(workers or default_workers(), seeds)
     t0 = time.perf_counter()
-
-    def report(done: int, total: int, seed: int) -> None:
-        el = time.perf_counter() - t0
-        print(f"  seed {seed:>3} done ({done}/{total}, {el:.1f} s)", file=sys.stderr, flush=True)
-
     if progress is True:
+        where = f"the Dask cluster {cluster}" if cluster else f"{n_workers} worker process(es)"
         print(
-            f"{cfg.name}: {seeds} seeds x {cfg.scans} scans, solver {cfg.solver}, "
-            f"{n_workers} worker process(es)",
+            f"{cfg.name}: {seeds} seeds x {cfg.scans} scans, solver {cfg.solver}, {where}",
             file=sys.stderr,
             flush=True,
         )
-    callback = progress if callable(progress) else (report if progress else None)
+    done = [0]
+
+    def on_seed(seed: int) -> None:
+        done[0] += 1
+        if callable(progress):
+            progress(done[0], seeds, seed)
+
     try:
-        rows = run_seeds(cfg, seed_list, None, n_workers, callback)
+        seed_list, rows, outcome = mc_outcome(
+            cfg,
+            seeds,
+            out=out_dir,
+            workers=None if cluster else n_workers,
+            cluster=cluster,
+            progress=BatchProgress("mc", where=f" on {cluster}" if cluster else "")
+            if progress is True
+            else None,
+            ci_width=ci_width,
+            max_seeds=max_seeds,
+            on_seed=on_seed if callable(progress) else None,
+        )
     except BatchInterrupted as stop:  # the seeds done are written, then exit 130
         if stop.partial:
             done_seeds, done_rows = zip(*stop.partial, strict=True)
             write_mc(out_dir, cfg, list(done_seeds), list(done_rows))
         end_batch(out_dir, seeds, "seed", stop, len(stop.partial or ()))
         raise
-    doc = write_mc(out_dir, cfg, seed_list, rows)
-    end_batch(out_dir, seeds, "seed")
+    doc = write_mc(out_dir, cfg, seed_list, rows, outcome.ci_facts())
+    end_batch(
+        out_dir,
+        outcome.total,
+        "seed",
+        runs_run=outcome.ran,
+        runs_skipped=outcome.skipped,
+        **outcome.backend,
+    )
     from covnet.mobile.plots import mc_figure  # matplotlib: start-up of the other commands
 
     figure = mc_figure(out_dir)
     agg = doc["aggregate"]
     print(
-        f"Monte Carlo: {out_dir / MC_FILE}  (config {doc['config_hash']}, seeds 0..{seeds - 1}, "
-        f"{time.perf_counter() - t0:.1f} s)"
+        f"Monte Carlo: {out_dir / MC_FILE}  (config {doc['config_hash']}, seeds "
+        f"0..{len(seed_list) - 1}, {time.perf_counter() - t0:.1f} s)"
     )
     print(
-        f"  {'target':>8} {'RMSE m':>8} {'2nd half':>9} {'missed':>8} {'2nd half':>9}"
-        "  (means over seeds)"
+        f"  {'target':>8} {'RMSE m':>12} {'2nd half':>12} {'missed':>8} {'2nd half':>9}"
+        "  (means over seeds ± 95 % half-width)"
     )
     for tid, b in [*agg["targets"].items(), ("overall", agg["overall"])]:
         print(
-            f"  {tid:>8} {b['rmse_position_m']['mean']:>8.2f} "
-            f"{b['rmse_position_second_half_m']['mean']:>9.2f} "
+            f"  {tid:>8} {_pm(b['rmse_position_m']):>12} "
+            f"{_pm(b['rmse_position_second_half_m']):>12} "
             f"{_pct(b['missed_detection_rate']['mean']):>8} "
             f"{_pct(b['missed_detection_rate_second_half']['mean']):>9}"
         )

@@ -27,6 +27,8 @@ from covnet.mobile.config import MobileConfig, config_hash, from_dict, normalise
 from covnet.mobile.results import WORSE_TOL, decision_times, summarise
 from covnet.mobile.simulate import run
 from covnet.rundir import RUN_INFO, utc_now, write_json
+from covnet.stats import ci_half_width, seed_stats
+from covnet.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 
 MC_FILE = "montecarlo.json"
 #: progress(done, total, seed) after each finished seed
@@ -60,6 +62,83 @@ def _run_seed_task(task: tuple[Mapping[str, Any], int, str | None]) -> dict[str,
     return run_seed(*task)
 
 
+def _run_seed_list(task: tuple[Mapping[str, Any], list[int], str | None]) -> list[dict[str, Any]]:
+    """The seeds of one task of the batch layer (:mod:`covnet.trials`)."""
+    data, seeds, solver = task
+    return [run_seed(data, s, solver) for s in seeds]
+
+
+POINT = "seeds"
+"""The one point of a mobile Monte Carlo (its trials are the seeds)."""
+
+
+def trial_key(cfg: MobileConfig, solver: str | None = None) -> str:
+    """The hash that keys the Monte Carlo's trials: the config without its seed (each trial
+    sets its own), and the solver."""
+    data = normalised(cfg)
+    data.pop("seed", None)
+    return trial_hash("mc", {"config": data, "solver": solver})
+
+
+def mc_outcome(
+    cfg: MobileConfig,
+    n: int,
+    *,
+    solver: str | None = None,
+    out: Path | None = None,
+    workers: int | None = None,
+    cluster: str | None = None,
+    progress: BatchProgress | None = None,
+    ci_width: float | None = None,
+    max_seeds: int | None = None,
+    on_seed: Callable[[int], None] | None = None,
+) -> tuple[list[int], list[dict[str, Any]], Outcome]:
+    """``(seeds, summaries, outcome)``: seeds ``0, 1, ...`` (``n``, more with ``ci_width``:
+    until the 95 % interval of the overall RMSE is narrower), each trial written to ``out`` as
+    it finishes and skipped when there.  Ctrl-C: :class:`BatchInterrupted` with the seeds
+    done (in seed order) as ``partial``: ``[(seed, summary), ...]``."""
+    data = normalised(cfg)
+
+    def headline(point: str, rows: list[dict[str, Any]]) -> float:
+        return ci_half_width(seed_stats(r["overall"]["rmse_position_m"] for r in rows))
+
+    b = Batch(
+        "mc",
+        _run_seed_list,
+        lambda point, seeds: (data, seeds, solver),
+        [POINT],
+        first_seed=0,
+        headline=headline,
+        headline_name="overall RMSE (m)",
+    )
+    try:
+        outcome = run_trials(
+            b,
+            n,
+            out=out,
+            key=trial_key(cfg, solver) if out is not None else None,
+            workers=workers,
+            cluster=cluster,
+            progress=progress,
+            ci_width=ci_width,
+            max_seeds=max_seeds,
+            on_task=None if on_seed is None else (lambda p, seeds: _each(on_seed, seeds)),
+        )
+    except BatchInterrupted as stop:
+        stop.partial = sorted(((s, r) for (_, s), r in stop.done.items()), key=lambda sr: sr[0])
+        # the seeds done from 0 on without a gap (what a Monte Carlo of fewer seeds is)
+        run = [sr for i, sr in enumerate(stop.partial) if sr[0] == i]
+        stop.partial = run
+        raise
+    rows = outcome.results[POINT]
+    return b.seeds(outcome.seeds[POINT]), rows, outcome
+
+
+def _each(fn: Callable[[int], None], seeds: list[int]) -> None:
+    for s in seeds:
+        fn(s)
+
+
 def run_seeds(
     cfg: MobileConfig,
     seeds: Sequence[int],
@@ -86,13 +165,20 @@ def run_seeds(
         raise
 
 
-def _stats(values: Iterable[float]) -> dict[str, float]:
+def _stats(values: Iterable[float]) -> dict[str, Any]:
+    """Mean, standard deviation (ddof 0, as always), min, max over seeds, then the 95 %
+    Student t interval of the mean (``ci_lo``, ``ci_hi``: from the sample standard deviation,
+    ddof 1; None with one seed) and ``n``."""
     v = np.asarray(list(values), dtype=np.float64)
+    t = seed_stats(v)
     return {
         "mean": float(v.mean()),
         "std": float(v.std()),
         "min": float(v.min()),
         "max": float(v.max()),
+        "ci_lo": t["ci_lo"],
+        "ci_hi": t["ci_hi"],
+        "n": t["n"],
     }
 
 
@@ -142,7 +228,11 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 
 def write_mc(
-    out_dir: Path, cfg: MobileConfig, seeds: Sequence[int], rows: Sequence[Mapping[str, Any]]
+    out_dir: Path,
+    cfg: MobileConfig,
+    seeds: Sequence[int],
+    rows: Sequence[Mapping[str, Any]],
+    extra: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write ``montecarlo.json`` (config hash, seeds, aggregate, per-seed summaries: what the
     config and seeds determine) and ``run.json`` (the wall clock: each seed's decision times
@@ -170,6 +260,7 @@ def write_mc(
         "seeds": list(seeds),
         "aggregate": aggregate(rows),
         "per_seed": list(rows),
+        **(extra or {}),
     }
     write_json(out_dir / MC_FILE, doc)
     write_json(out_dir / "config.json", normalised(cfg))

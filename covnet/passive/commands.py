@@ -27,22 +27,31 @@ from covnet.batch import BatchInterrupted, end_batch
 from covnet.errors import UsageError
 from covnet.passive.associate import header, scan_record
 from covnet.passive.config import PassiveConfig, normalised
-from covnet.passive.montecarlo import run_grid, write_results
+from covnet.passive.montecarlo import run_grid_outcome, trial_key, write_results
 from covnet.passive.scene import draw
-from covnet.rundir import RUN_INFO, prepare_out, read_json, utc_now, write_json
+from covnet.rundir import RUN_INFO, read_json, utc_now, write_json
+from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 
 __all__ = ["after_up", "bench", "mc", "run"]
 
 EXIT_OK = 0
 
 
-def _stderr_progress(done: int, total: int, label: str) -> None:
-    print(f"[{done:>{len(str(total))}}/{total}] {label}", file=sys.stderr, flush=True)
-
-
 def mc(args: Any, cfg: PassiveConfig) -> int:
-    """``covnet mc configs/passive.yaml [--trials N] [--out DIR] [--force]``."""
-    return mc_run(cfg, args.out, args.trials, force=args.force)
+    """``covnet mc configs/passive.yaml [--trials N] [--out DIR] [--force] [--workers W]
+    [--cluster ADDRESS] [--ci-width X [--max-seeds N]]``."""
+    n = args.trials if args.trials is not None else cfg.montecarlo.trials
+    opts = batch_options(args, n)
+    return mc_run(
+        cfg,
+        args.out,
+        args.trials,
+        force=args.force,
+        workers=opts.workers,
+        cluster=opts.cluster,
+        ci_width=opts.ci_width,
+        max_seeds=opts.max_seeds,
+    )
 
 
 def mc_run(
@@ -52,15 +61,24 @@ def mc_run(
     progress: bool | Callable[[int, int, str], None] = True,
     *,
     force: bool = False,
+    workers: int | None = None,
+    cluster: str | None = None,
+    ci_width: float | None = None,
+    max_seeds: int | None = None,
 ) -> int:
     """Run the Monte Carlo protocol of the config's ``montecarlo`` grid (``trials`` overrides
-    ``montecarlo.trials``) and write the results and figures to ``out``."""
+    ``montecarlo.trials``) and write the results and figures to ``out``; every cell's trials
+    are written to ``OUT/trials`` as they finish (the same command resumes).  ``progress``:
+    ``True`` one live progress line on stderr, ``False`` nothing, or a callable ``(cells
+    done, cells, label)``."""
     from covnet.passive.plots import mc_figures  # matplotlib: start-up of the other commands
 
     if trials is not None and not (isinstance(trials, int) and trials >= 1):
         raise UsageError(f"--trials: must be an integer >= 1, got {trials}")
-    out_dir = prepare_out(out, f"{cfg.name}-mc", force)
-    cb = _stderr_progress if progress is True else (progress or None)
+    key = trial_key(cfg)
+    out_dir, _ = prepare_batch_out(out, f"{cfg.name}-mc", force, "mc", key)
+    write_batch_info(out_dir, "mc", key, {})
+    cb = progress if callable(progress) else None
     n = trials or cfg.montecarlo.trials
     cells = (
         len(cfg.montecarlo.formations)
@@ -72,16 +90,36 @@ def mc_run(
         f"monte carlo: {cells} cells x {n} trials, methods {', '.join(cfg.montecarlo.methods)}",
         flush=True,
     )
+    line = (
+        BatchProgress("mc", where=f" on {cluster}" if cluster else "") if progress is True else None
+    )
     try:
-        rows, facts = run_grid(cfg, trials=trials, progress=cb)
+        rows, facts, outcome = run_grid_outcome(
+            cfg,
+            trials=trials,
+            workers=workers,
+            progress=cb,
+            out=out_dir,
+            cluster=cluster,
+            batch_progress=line,
+            ci_width=ci_width,
+            max_seeds=max_seeds,
+        )
     except BatchInterrupted as stop:  # the cells done are written, then exit 130
         kept = len(stop.partial[0]) // len(cfg.montecarlo.methods) if stop.partial else 0
         if kept:
             write_results(out_dir, cfg, *stop.partial)
-        end_batch(out_dir, cells, "cell", stop, kept)
+        end_batch(out_dir, cells * n, "cell", stop, kept)
         raise
     doc = write_results(out_dir, cfg, rows, facts)
-    end_batch(out_dir, cells, "cell")
+    end_batch(
+        out_dir,
+        outcome.total,
+        "cell",
+        runs_run=outcome.ran,
+        runs_skipped=outcome.skipped,
+        **outcome.backend,
+    )
     figs = mc_figures(out_dir)
     _print_mc_summary(doc)
     print(f"results: {out_dir / 'results.json'}, {out_dir / 'results.md'}")

@@ -27,11 +27,21 @@ from typing import Any
 
 import numpy as np
 
-from covnet.batch import BatchInterrupted, parallel_map
+from covnet.batch import BatchInterrupted
 from covnet.core.passive.methods import METHODS
 from covnet.passive.config import PassiveConfig, config_hash, normalised
 from covnet.passive.scene import draw, score
 from covnet.rundir import atomic_write, write_json
+from covnet.stats import add_stats, ci_half_width, seed_stats
+from covnet.trials import (
+    Batch,
+    BatchProgress,
+    Outcome,
+    complete_points,
+    point_key,
+    run_trials,
+    trial_hash,
+)
 
 __all__ = [
     "RESULTS",
@@ -80,47 +90,68 @@ def grid(cfg: PassiveConfig) -> list[Cell]:
     ]
 
 
-def run_cell(
-    cfg: PassiveConfig, cell: Cell, trials: int, methods: Sequence[str]
+_EXTRA_KEYS = ("n_azimuth", "n_elevation", "iterations", "n_tuples")
+
+
+def run_cell_trials(
+    cfg: PassiveConfig, cell: Cell, trials: Sequence[int], methods: Sequence[str]
 ) -> list[dict[str, Any]]:
-    """Run ``trials`` scans of one cell with every method; one result row per method."""
+    """The scans ``trials`` of one cell with every method, methods interleaved scan by scan:
+    one record per trial (``n_truth``; per method ``hit``, ``out``, ``exact``, ``failed``,
+    ``cost``, ``time_s`` and the method's counts), what :func:`cell_rows` sums."""
     model = cfg.scene_model(cell.formation, cell.d_km, cell.sigma_mrad, cell.clutter)
     params = cfg.assoc_params(model)
-    names = list(methods)
-    hits = dict.fromkeys(names, 0)
-    n_out = dict.fromkeys(names, 0)
-    exact = dict.fromkeys(names, 0)
-    failed = dict.fromkeys(names, 0)
-    times: dict[str, list[float]] = {m: [] for m in names}
-    costs: dict[str, list[float]] = {m: [] for m in names}
-    extra: dict[str, dict[str, list[float]]] = {m: {} for m in names}
-    n_truth = 0
-    for trial in range(trials):
+    records = []
+    for trial in trials:
         scene = draw(model, cfg.seed, trial)
-        n_truth += int(scene.truth.shape[0])
-        for m in names:
+        per: dict[str, Any] = {}
+        for m in methods:
             t0 = time.perf_counter()
             a = METHODS[m](scene.scan, params)
-            times[m].append(time.perf_counter() - t0)
+            dt = time.perf_counter() - t0
             h, _, z, is_exact = score(scene.truth, a.triples)
-            hits[m] += h
-            n_out[m] += z
-            exact[m] += int(is_exact)
-            failed[m] += int(a.status != 0)
-            costs[m].append(a.cost)
-            for key in ("n_azimuth", "n_elevation", "iterations", "n_tuples"):
-                if key in a.info:
-                    extra[m].setdefault(key, []).append(float(a.info[key]))
+            per[m] = {
+                "hit": int(h),
+                "out": int(z),
+                "exact": bool(is_exact),
+                "failed": int(a.status != 0),
+                "cost": float(a.cost),
+                "time_s": dt,
+                "extra": {k: float(a.info[k]) for k in _EXTRA_KEYS if k in a.info},
+            }
+        records.append({"trial": int(trial), "n_truth": int(scene.truth.shape[0]), "m": per})
+    return records
+
+
+def cell_rows(
+    cell: Cell, records: Sequence[dict[str, Any]], methods: Sequence[str]
+) -> list[dict[str, Any]]:
+    """One result row per method from a cell's trial records (in trial order): the sums and
+    means of §9 (the numbers of one run over every trial), then the statistics over trials
+    (``p_trial_*``: of each trial's share of targets associated; ``exact_scan_*``; 95 %
+    Student t intervals, :func:`covnet.stats.add_stats`)."""
+    names = list(methods)
+    trials = len(records)
+    n_truth = sum(int(r["n_truth"]) for r in records)
     rows = []
     for m in names:
-        ex = extra[m]
+        recs = [r["m"][m] for r in records]
+        hits = sum(int(x["hit"]) for x in recs)
+        n_out = sum(int(x["out"]) for x in recs)
+        exact = sum(int(bool(x["exact"])) for x in recs)
+        failed = sum(int(x["failed"]) for x in recs)
+        ex: dict[str, list[float]] = {}
+        for x in recs:
+            for key in _EXTRA_KEYS:
+                if key in x["extra"]:
+                    ex.setdefault(key, []).append(float(x["extra"][key]))
         row: dict[str, Any] = {
             **asdict(cell),
             "method": m,
-            "p": hits[m] / n_truth if n_truth else None,
-            "precision": hits[m] / n_out[m] if n_out[m] else None,
-            "exact_scan_rate": exact[m] / trials,
-            "median_time_s": float(np.median(times[m])),
+            "p": hits / n_truth if n_truth else None,
+            "precision": hits / n_out if n_out else None,
+            "exact_scan_rate": exact / trials,
+            "median_time_s": float(np.median([x["time_s"] for x in recs])),
             "mean_candidates_azimuth": _mean(ex.get("n_azimuth")),
             "mean_candidates_elevation": _mean(ex.get("n_elevation")),
             "sd_optimal_rate": None,
@@ -128,26 +159,59 @@ def run_cell(
             "mean_tuples": _mean(ex.get("n_tuples")),
             "trials": trials,
             "n_truth": n_truth,
-            "n_correct": hits[m],
-            "n_output": n_out[m],
-            "solver_not_ok": failed[m],
+            "n_correct": hits,
+            "n_output": n_out,
+            "solver_not_ok": failed,
         }
         if "milp" in names and m != "cot" and "n_tuples" in ex:
-            ref = np.asarray(costs["milp"])
-            c = np.asarray(costs[m])
+            ref = np.asarray([r["m"]["milp"]["cost"] for r in records])
+            c = np.asarray([x["cost"] for x in recs])
             row["sd_optimal_rate"] = float(
                 np.mean(c <= ref + OPT_RTOL * np.maximum(1.0, np.abs(ref)))
             )
+        add_stats(row, "p_trial", _p_trials(records, m))
+        add_stats(row, "exact_scan", [float(bool(x["exact"])) for x in recs])
         rows.append(row)
     return rows
+
+
+def _p_trials(records: Sequence[dict[str, Any]], method: str) -> list[float]:
+    """Each trial's share of its targets that ``method`` associated (trials with none left
+    out)."""
+    return [r["m"][method]["hit"] / r["n_truth"] for r in records if r["n_truth"]]
+
+
+def run_cell(
+    cfg: PassiveConfig, cell: Cell, trials: int, methods: Sequence[str]
+) -> list[dict[str, Any]]:
+    """Run ``trials`` scans of one cell with every method; one result row per method."""
+    return cell_rows(cell, run_cell_trials(cfg, cell, range(trials), methods), methods)
 
 
 def _mean(v: list[float] | None) -> float | None:
     return float(np.mean(v)) if v else None
 
 
-def _run_cell_job(task: tuple[PassiveConfig, Cell, int, tuple[str, ...]]) -> list[dict[str, Any]]:
-    return run_cell(*task)
+def _run_trials_job(
+    task: tuple[PassiveConfig, Cell, list[int], tuple[str, ...]],
+) -> list[dict[str, Any]]:
+    """A task of the batch layer (:mod:`covnet.trials`): trials of one cell."""
+    return run_cell_trials(*task)
+
+
+def cell_key(cell: Cell) -> str:
+    """A cell as a point key of the trial store."""
+    return point_key(asdict(cell))
+
+
+def trial_key(cfg: PassiveConfig) -> str:
+    """The hash that keys the protocol's trials: the config without the trial count and the
+    worker count (which change no trial)."""
+    data = normalised(cfg)
+    data["montecarlo"] = {
+        k: v for k, v in data["montecarlo"].items() if k not in ("trials", "workers")
+    }
+    return trial_hash("mc", {"config": data})
 
 
 def resolve_workers(requested: int, n_jobs: int) -> int:
@@ -161,29 +225,83 @@ def run_grid(
     trials: int | None = None,
     workers: int | None = None,
     progress: Progress | None = None,
+    **kw: Any,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """:func:`run_grid_outcome`'s rows and run facts."""
+    rows, facts, _ = run_grid_outcome(cfg, trials, workers, progress, **kw)
+    return rows, facts
+
+
+def run_grid_outcome(
+    cfg: PassiveConfig,
+    trials: int | None = None,
+    workers: int | None = None,
+    progress: Progress | None = None,
+    *,
+    out: Path | None = None,
+    cluster: str | None = None,
+    batch_progress: BatchProgress | None = None,
+    ci_width: float | None = None,
+    max_seeds: int | None = None,
+) -> tuple[list[dict[str, Any]], dict[str, Any], Outcome]:
     """Run every cell; returns the rows (grid order, then the config's method order) and the
-    run facts (trials, workers, wall time, machine)."""
+    run facts (trials, workers, wall time, machine).  A cell's trials are one task (its
+    ``trials`` scans; with ``ci_width`` more batches of them, until every cell's interval of
+    the per-trial share associated is narrower, for every method); each task is written to
+    ``out``'s trial store as it finishes and skipped when there (:mod:`covnet.trials`)."""
     n_trials = cfg.montecarlo.trials if trials is None else trials
     cells = grid(cfg)
     methods = tuple(cfg.montecarlo.methods)
     n_workers = resolve_workers(cfg.montecarlo.workers if workers is None else workers, len(cells))
     t0 = time.perf_counter()
+    by_key = {cell_key(c): c for c in cells}
+    done_cells = [0]
 
-    def on_done(n_done: int, n: int, i: int) -> None:
+    def on_task(key: str, seeds: list[int]) -> None:
+        done_cells[0] += 1
         if progress:
-            progress(n_done, n, f"{cells[i].label} ({time.perf_counter() - t0:.0f} s so far)")
+            progress(
+                done_cells[0],
+                len(cells),
+                f"{by_key[key].label} ({time.perf_counter() - t0:.0f} s so far)",
+            )
 
-    tasks = [(cfg, cell, n_trials, methods) for cell in cells]
+    def headline(key: str, records: list[dict[str, Any]]) -> float:
+        return max(ci_half_width(seed_stats(_p_trials(records, m))) for m in methods)
+
+    b = Batch(
+        "mc",
+        _run_trials_job,
+        lambda key, seeds: (cfg, by_key[key], seeds, methods),
+        list(by_key),
+        first_seed=0,
+        group=max(1, n_trials),
+        headline=headline,
+        headline_name="share of targets associated (p, per trial)",
+    )
     try:
-        results = parallel_map(_run_cell_job, tasks, n_workers, on_done)
+        outcome = run_trials(
+            b,
+            n_trials,
+            out=out,
+            key=trial_key(cfg) if out is not None else None,
+            workers=None if cluster else n_workers,
+            cluster=cluster,
+            progress=batch_progress,
+            ci_width=ci_width,
+            max_seeds=max_seeds,
+            on_task=on_task,
+        )
     except BatchInterrupted as stop:  # the cells done, in grid order
-        rows = [r for i in sorted(stop.done) for r in stop.done[i]]
+        done = complete_points(b, stop.done, n_trials)
+        rows = [r for k, recs in done.items() for r in cell_rows(by_key[k], recs, methods)]
         facts = _facts(n_trials, len(cells), methods, n_workers, t0)
         stop.partial = (rows, facts) if rows else None
         raise
-    rows = [r for cell_rows in results for r in cell_rows]
-    return rows, _facts(n_trials, len(cells), methods, n_workers, t0)
+    rows = [r for k, recs in outcome.results.items() for r in cell_rows(by_key[k], recs, methods)]
+    facts = _facts(n_trials, len(cells), methods, n_workers, t0)
+    facts.update(outcome.ci_facts())
+    return rows, facts, outcome
 
 
 def _facts(
@@ -212,12 +330,21 @@ def _fmt(v: Any, spec: str) -> str:
     return format(v, spec)
 
 
+def _ci(row: dict[str, Any], name: str) -> str:
+    """``mean [lo, hi]`` of a row's statistics over trials (– without them)."""
+    mean, lo, hi = (row.get(f"{name}_{k}") for k in ("mean", "ci_lo", "ci_hi"))
+    if mean is None:
+        return "–"
+    return f"{mean:.3f}" if lo is None else f"{mean:.3f} [{lo:.3f}, {hi:.3f}]"
+
+
 def table_markdown(rows: Sequence[dict[str, Any]]) -> str:
     """The result rows as one Markdown table."""
     head = (
-        "| formation | d (km) | σ (mrad) | clutter | method | p | precision | exact scans | "
-        "median time (ms) | cand. after azimuth | cand. after elevation | S-D optimum |\n"
-        "|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|\n"
+        "| formation | d (km) | σ (mrad) | clutter | method | p | p per trial (95 % CI) | "
+        "precision | exact scans | median time (ms) | cand. after azimuth | "
+        "cand. after elevation | S-D optimum |\n"
+        "|---|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
     lines = []
     for r in rows:
@@ -225,6 +352,7 @@ def table_markdown(rows: Sequence[dict[str, Any]]) -> str:
         lines.append(
             f"| {r['formation']} | {r['d_km']:g} | {r['sigma_mrad']:g} | "
             f"{'on' if r['clutter'] else 'off'} | {r['method']} | {_fmt(r['p'], '.3f')} | "
+            f"{_ci(r, 'p_trial')} | "
             f"{_fmt(r['precision'], '.3f')} | {_fmt(r['exact_scan_rate'], '.2f')} | "
             f"{t_ms:.3f} | {_fmt(r['mean_candidates_azimuth'], '.1f')} | "
             f"{_fmt(r['mean_candidates_elevation'], '.1f')} | {_fmt(r['sd_optimal_rate'], '.2f')} |"

@@ -40,6 +40,12 @@ def _style(method: str, i: int) -> tuple[str, str, str]:
     return plt.get_cmap("tab10").colors[(i + 4) % 10], "D", "-"  # type: ignore[attr-defined]
 
 
+def _half_width(row: dict[str, Any]) -> float:
+    """Half the 95 % interval of a row's per-trial share associated (NaN without one)."""
+    lo, hi = row.get("p_trial_ci_lo"), row.get("p_trial_ci_hi")
+    return float("nan") if lo is None or hi is None else 0.5 * (hi - lo)
+
+
 def mc_figures(out_dir: Path) -> list[Path]:
     """Draw ``fig_p_vs_d.png`` and ``fig_time.png`` from ``out_dir/results.json``."""
     doc = json.loads((out_dir / "results.json").read_text())
@@ -68,7 +74,7 @@ def mc_figures(out_dir: Path) -> list[Path]:
             ax = axes[a, b]
             for i, m in enumerate(methods):
                 sel = sorted(
-                    (r["d_km"], np.nan if r["p"] is None else r["p"])
+                    (r["d_km"], np.nan if r["p"] is None else r["p"], _half_width(r))
                     for r in rows
                     if r["method"] == m
                     and r["formation"] == f
@@ -78,7 +84,9 @@ def mc_figures(out_dir: Path) -> list[Path]:
                 if not sel:
                     continue
                 color, marker, ls = _style(m, i)
-                d, p = zip(*sel, strict=True)
+                d, p, hw = zip(*sel, strict=True)
+                if np.any(np.isfinite(hw)):  # the 95 % interval over trials, as error bars
+                    ax.errorbar(d, p, yerr=hw, fmt="none", ecolor=color, capsize=3, lw=1.0)
                 hollow = m == "milp"
                 ax.plot(
                     d,

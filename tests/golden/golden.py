@@ -34,6 +34,28 @@ WALL_CLOCK_KEYS = frozenset(
     }
 )
 WALL_CLOCK_ARRAYS = frozenset({"cost_s", "solve_s", "compare_s", "decision_s"})
+_STATS = ("mean", "std", "ci_lo", "ci_hi")
+ISSUE_18_KEYS = frozenset(
+    {
+        # the statistics over seeds issue 18 added to the batch tables (sweep, compare, mc),
+        # after the fields that were there, which keep their values
+        *(f"{n}_{s}" for n in ("rmse_position", "rmse_steady", "rmse_transient") for s in _STATS),
+        *(f"{n}_{s}" for n in ("nees_steady", "allocation_rate") for s in _STATS),
+        *(f"{n}_{s}" for n in ("p_trial", "exact_scan") for s in _STATS),
+        "rmse_steady",
+        "rmse_transient",
+        "rmse_transient_max",
+        "burn_in_scans",
+        "point",
+        "trial_hash",
+        "ci_lo",
+        "ci_hi",
+        "n",
+    }
+)
+"""Keys added by issue 18.  A file's hash under its old name is taken with them removed (and
+the file re-serialised as its writer does): equal to the hash recorded before issue 18, it
+proves every old field unchanged; the whole file's hash is under ``<file> (issue 18)``."""
 
 SMALL_SWEEP = """
 sweep:
@@ -55,11 +77,27 @@ def _strip(obj: Any) -> Any:
     return obj
 
 
-def hash_json(path: Path, strip: bool) -> str:
-    if not strip:
+def _drop(obj: Any, keys: frozenset[str]) -> Any:
+    if isinstance(obj, dict):
+        return {k: _drop(v, keys) for k, v in obj.items() if k not in keys}
+    if isinstance(obj, list):
+        return [_drop(v, keys) for v in obj]
+    return obj
+
+
+def hash_json(path: Path, strip: bool, drop: frozenset[str] = frozenset()) -> str:
+    """The file's hash: its bytes; with ``strip`` the wall-clock keys removed and the rest
+    canonical; with ``drop`` those keys removed first and the rest re-serialised as the
+    batch writers write (``indent=2``, a newline)."""
+    if not strip and not drop:
         return hashlib.sha256(path.read_bytes()).hexdigest()
-    data = _strip(json.loads(path.read_text()))
-    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+    data = json.loads(path.read_text())
+    if drop:
+        data = _drop(data, drop)
+    if strip:
+        data = _strip(data)
+        return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+    return hashlib.sha256((json.dumps(data, indent=2) + "\n").encode()).hexdigest()
 
 
 def hash_npz(path: Path) -> str:
@@ -136,7 +174,14 @@ def run_case(name: str, argv: list[str], files: dict[str, bool], work: Path) -> 
     hashes = {}
     for f, strip in files.items():
         p = out / f
-        hashes[f] = hash_npz(p) if f.endswith(".npz") else hash_json(p, strip)
+        if f.endswith(".npz"):
+            hashes[f] = hash_npz(p)
+            continue
+        old = hash_json(p, strip, ISSUE_18_KEYS)
+        full = hash_json(p, strip)
+        hashes[f] = old
+        if old != hash_json(p, strip, frozenset({"\0"})):  # the file has issue 18's keys
+            hashes[f"{f} (issue 18)"] = full
     return hashes
 
 

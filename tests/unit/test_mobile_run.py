@@ -195,7 +195,7 @@ def test_montecarlo_pool_equals_in_process(tmp_path, capsys):
     doc = json.loads((out / "montecarlo.json").read_text())
     assert doc["seeds"] == [0, 1] and len(doc["per_seed"]) == 2
     captured = capsys.readouterr()
-    assert "seed   1 done (2/2" in captured.err and "Monte Carlo:" in captured.out
+    assert "[mc] 2/2 trials" in captured.err and "Monte Carlo:" in captured.out
     calls: list[tuple[int, int, int]] = []
     cb = lambda d, n, s: calls.append((d, n, s))  # noqa: E731
     assert mc_run(load(write_cfg(tmp_path, short(3))), tmp_path / "mc2", 1, cb, workers=1) == 0

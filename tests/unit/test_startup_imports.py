@@ -64,3 +64,27 @@ def test_the_world_a_sensor_and_the_recorder_need_no_lapack():
     assert not {m for m in mods if m.startswith("scipy.linalg")}, sorted(
         m for m in mods if m.startswith("scipy")
     )
+
+
+def test_the_local_batch_path_imports_no_dask(tmp_path):
+    """Issue 18: ``--cluster`` is the only way into dask; a sweep on the local pool (and the
+    batch layer, the API) never imports it."""
+    import yaml
+
+    data = yaml.safe_load((REPO / "configs" / "latency.yaml").read_text())
+    data["scans"] = 12
+    data["sweep"] = {"delay_ms": [0, 200], "loss": [0.0], "modes": ["central"],
+                     "account_for_loss": [False], "seeds": 2}  # fmt: skip
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    mods = _modules_after(
+        "import covnet.api, covnet.trials\n"
+        "from covnet.cli import main\n"
+        f"assert main(['sweep', {str(cfg)!r}, '--no-figures', '--workers', '2', '--out', "
+        f"{str(tmp_path / 'o')!r}]) == 0"
+    )
+    assert "covnet.trials" in mods
+    assert not {m for m in mods if m.split(".")[0] in ("dask", "distributed")}, sorted(
+        m for m in mods if m.startswith(("dask", "distributed"))
+    )
+    assert "covnet.cluster" not in mods

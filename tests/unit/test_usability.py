@@ -261,9 +261,9 @@ def test_config_problems_are_root_causes_all_at_once(tmp_path, capsys):
         (["mc", "{passive}"], {"fig_p_vs_d.png", "fig_time.png"}),
         (
             ["compare", "{paper}", "--runs", "2", "--modes", "central", "--workers", "1"],
-            {"compare.png"},
+            {"compare.png", "curves.png"},
         ),
-        (["sweep", "{sweep}", "--workers", "1"], {"sweep.png"}),
+        (["sweep", "{sweep}", "--workers", "1"], {"sweep.png", "curves.png"}),
     ],
     ids=["run-paper", "run-mobile", "run-passive", "mc-mobile", "mc-passive", "compare", "sweep"],
 )

@@ -1,0 +1,159 @@
+"""Statistics over seeds, the same for every batch command (``covnet sweep``, ``compare``,
+``mc``): the mean, the sample standard deviation and the 95 % confidence interval of the mean
+(Student t with ``n - 1`` degrees of freedom: seeds are independent replications, a run's scans
+are not), and per-scan curves with their bands.
+
+With one seed there is no spread: the standard deviation and the interval are ``None``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "CI_LEVEL",
+    "add_stats",
+    "ci_half_width",
+    "curves_of",
+    "error_stats",
+    "per_scan_bands",
+    "seed_stats",
+    "t_quantile",
+]
+
+CI_LEVEL = 0.95
+
+
+def t_quantile(dof: int, level: float = CI_LEVEL) -> float:
+    """The two-sided Student t quantile ``t_{(1 + level) / 2}(dof)``."""
+    from scipy.stats import t as student_t  # scipy.stats: only the tables need it (start-up)
+
+    return float(student_t.ppf(0.5 + level / 2.0, dof))
+
+
+def seed_stats(values: Iterable[float]) -> dict[str, Any]:
+    """``{"n", "mean", "std", "ci_lo", "ci_hi"}`` of independent per-seed values: ``std`` the
+    sample standard deviation (ddof 1), ``[ci_lo, ci_hi]`` the 95 % Student t interval of the
+    mean; ``None`` where undefined (one value; NaN values are left out)."""
+    v = np.asarray([x for x in values if x is not None], dtype=np.float64)
+    v = v[np.isfinite(v)]
+    n = int(v.size)
+    if n == 0:
+        return {"n": 0, "mean": None, "std": None, "ci_lo": None, "ci_hi": None}
+    mean = float(v.mean())
+    if n < 2:
+        return {"n": 1, "mean": mean, "std": None, "ci_lo": None, "ci_hi": None}
+    std = float(v.std(ddof=1))
+    half = t_quantile(n - 1) * std / math.sqrt(n)
+    return {"n": n, "mean": mean, "std": std, "ci_lo": mean - half, "ci_hi": mean + half}
+
+
+def ci_half_width(stats: Mapping[str, Any]) -> float:
+    """Half the width of a :func:`seed_stats` interval (infinite when there is none)."""
+    if stats.get("ci_lo") is None or stats.get("ci_hi") is None:
+        return math.inf
+    return 0.5 * (float(stats["ci_hi"]) - float(stats["ci_lo"]))
+
+
+def add_stats(row: dict[str, Any], name: str, values: Iterable[float]) -> dict[str, Any]:
+    """Add ``<name>_mean``, ``<name>_std``, ``<name>_ci_lo`` and ``<name>_ci_hi`` (the
+    :func:`seed_stats` of ``values``) to ``row``; returns the stats."""
+    s = seed_stats(values)
+    for k in ("mean", "std", "ci_lo", "ci_hi"):
+        row[f"{name}_{k}"] = s[k]
+    return s
+
+
+def per_scan_bands(err2: np.ndarray, nees: np.ndarray, state_dim: int = 4) -> dict[str, np.ndarray]:
+    """Per-scan curves over ``R`` seeds from ``err2`` and ``nees`` ``(R, N)``: the RMSE
+    ``sqrt(mean_s e²_{s,k})`` with the square roots of the t interval of the mean squared error
+    (``rmse_lo``, ``rmse_hi``; the lower end clipped at 0); the mean NEES with its t interval
+    (``nees_lo``, ``nees_hi``) and the 95 % chi-square band of a consistent filter's R-seed
+    average (``nees_band``: ``[lo, hi]``, the same at every scan)."""
+    from scipy.stats import chi2  # scipy.stats: only the tables need it (start-up)
+
+    err2 = np.asarray(err2, dtype=np.float64)
+    nees = np.asarray(nees, dtype=np.float64)
+    R = err2.shape[0]
+    out: dict[str, np.ndarray] = {}
+    mse = err2.mean(axis=0)
+    mn = nees.mean(axis=0)
+    if R >= 2:
+        tq = t_quantile(R - 1)
+        h_mse = tq * err2.std(axis=0, ddof=1) / math.sqrt(R)
+        h_nees = tq * nees.std(axis=0, ddof=1) / math.sqrt(R)
+    else:
+        h_mse = np.full_like(mse, np.nan)
+        h_nees = np.full_like(mn, np.nan)
+    out["rmse"] = np.sqrt(mse)
+    out["rmse_lo"] = np.sqrt(np.clip(mse - h_mse, 0.0, None))
+    out["rmse_hi"] = np.sqrt(mse + h_mse)
+    out["nees"] = mn
+    out["nees_lo"] = mn - h_nees
+    out["nees_hi"] = mn + h_nees
+    out["nees_band"] = np.asarray(chi2.ppf([0.025, 0.975], state_dim * R)) / R
+    return out
+
+
+def burn_in_of(burn_in: int, scans: int) -> int:
+    """The burn-in used for runs of ``scans`` scans: ``burn_in``, at most half the run (a short
+    run keeps its second half)."""
+    return max(0, min(burn_in, scans // 2))
+
+
+def error_stats(
+    row: dict[str, Any], err2: np.ndarray, nees: np.ndarray, burn_in: int
+) -> dict[str, Any]:
+    """Add to ``row`` the error statistics over ``R`` seeds of per-scan squared position errors
+    ``err2`` and NEES ``nees`` ``(R, N)``, with the first ``b`` = :func:`burn_in_of` scans the
+    transient:
+
+    - ``burn_in_scans`` (``b``);
+    - ``rmse_position_mean/std/ci_lo/ci_hi``: of the per-seed RMSE over the whole run;
+    - ``rmse_steady``: the root of the mean over seeds of the per-seed mean squared error after
+      the burn-in (as ``rmse_position`` is over the whole run), and the statistics of the
+      per-seed RMSE after it (``rmse_steady_mean`` ...): the headline;
+    - ``rmse_transient`` (the same over the first ``b`` scans; None when ``b`` is 0),
+      its statistics and ``rmse_transient_max`` (the worst seed's);
+    - ``nees_steady_mean/std/ci_lo/ci_hi``: of the per-seed mean NEES after the burn-in.
+    """
+    err2 = np.asarray(err2, dtype=np.float64)
+    nees = np.asarray(nees, dtype=np.float64)
+    b = burn_in_of(burn_in, err2.shape[1])
+    row["burn_in_scans"] = b
+    add_stats(row, "rmse_position", np.sqrt(err2.mean(axis=1)))
+    steady = err2[:, b:].mean(axis=1)
+    row["rmse_steady"] = float(np.sqrt(steady.mean()))
+    add_stats(row, "rmse_steady", np.sqrt(steady))
+    if b:
+        transient = err2[:, :b].mean(axis=1)
+        row["rmse_transient"] = float(np.sqrt(transient.mean()))
+        add_stats(row, "rmse_transient", np.sqrt(transient))
+        row["rmse_transient_max"] = float(np.sqrt(transient.max()))
+    else:
+        row["rmse_transient"] = row["rmse_transient_max"] = None
+        add_stats(row, "rmse_transient", [])
+    add_stats(row, "nees_steady", nees[:, b:].mean(axis=1))
+    return row
+
+
+def curves_of(results: Mapping[str, Sequence[Mapping[str, Any]]]) -> dict[str, np.ndarray]:
+    """The per-scan curves (:func:`per_scan_bands`) of every point of a batch's ``results``
+    (point key -> its runs, each with ``pos_err2_scan`` and ``nees_scan``), stacked
+    ``(points, scans)``, with ``points`` (their keys) and ``seeds`` (per point)."""
+    keys = [k for k, rs in results.items() if rs]
+    bands = [
+        per_scan_bands(
+            np.asarray([r["pos_err2_scan"] for r in results[k]], dtype=np.float64),
+            np.asarray([r["nees_scan"] for r in results[k]], dtype=np.float64),
+        )
+        for k in keys
+    ]
+    out = {name: np.stack([b[name] for b in bands]) for name in (bands[0] if bands else {})}
+    out["points"] = np.asarray(keys, dtype=str)
+    out["seeds"] = np.asarray([len(results[k]) for k in keys], dtype=np.int64)
+    return out

@@ -1,0 +1,148 @@
+"""``--cluster`` (issue 18): a real ``dask scheduler`` and two ``dask worker`` processes on
+127.0.0.1 (free ports, each in its own session, stopped by PID: nothing is left running), and
+``covnet sweep``, ``compare`` and ``mc`` (both kinds) on them give the local pool's results bit
+for bit."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from multiproc import REPO, CovnetProcess
+
+pytest.importorskip("distributed")
+
+from covnet.cluster import LocalCluster  # noqa: E402
+
+pytestmark = [pytest.mark.integration]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with LocalCluster(workers=2, threads=1) as c:
+        pids = list(c.pids)
+        assert len(pids) == 3 and all(_alive(p) for p in pids)
+        yield c
+    deadline = time.monotonic() + 10
+    while any(_alive(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [p for p in pids if _alive(p)], "dask processes left running"
+
+
+def _run(args: list[str], timeout: float = 240) -> str:
+    p = CovnetProcess(args)
+    try:
+        rc = p.wait(timeout=timeout)
+    finally:
+        p.stop()
+    assert rc == 0, p.output()
+    return p.output()
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("cfg")
+    lat = yaml.safe_load((REPO / "configs" / "latency.yaml").read_text())
+    lat["scans"] = 25
+    lat["sweep"] = {
+        "delay_ms": [0, 350],
+        "loss": [0.0, 0.2],
+        "modes": ["central", "ci"],
+        "account_for_loss": [False],
+        "seeds": 2,
+    }
+    (d / "sweep.yaml").write_text(yaml.safe_dump(lat))
+    paper = yaml.safe_load((REPO / "configs" / "paper.yaml").read_text())
+    paper["scans"] = 25
+    (d / "paper.yaml").write_text(yaml.safe_dump(paper))
+    mob = yaml.safe_load((REPO / "configs" / "mobile.yaml").read_text())
+    mob["scans"] = 15
+    (d / "mobile.yaml").write_text(yaml.safe_dump(mob))
+    pas = yaml.safe_load((REPO / "configs" / "passive.yaml").read_text())
+    pas["montecarlo"].update(
+        {"trials": 3, "formations": ["cross"], "spacings_km": [1.0], "sigmas_mrad": [3.0]}
+    )
+    (d / "passive.yaml").write_text(yaml.safe_dump(pas))
+    return {k: d / f"{k}.yaml" for k in ("sweep", "paper", "mobile", "passive")}
+
+
+def _strip(obj):
+    """Without the wall-clock fields (a passive cell's median time, a run's wall time)."""
+    wall = {"median_time_s", "wall_s", "created_utc", "decision_time_s", "workers"}
+    if isinstance(obj, dict):
+        return {k: _strip(v) for k, v in obj.items() if k not in wall}
+    if isinstance(obj, list):
+        return [_strip(v) for v in obj]
+    return obj
+
+
+CASES = {
+    "sweep": (["sweep", "{sweep}", "--no-figures"], "sweep.json", False),
+    "compare": (
+        ["compare", "{paper}", "--runs", "2", "--modes", "central,ci,peer-info", "--no-figures"],
+        "compare.json",
+        False,
+    ),
+    "mc-mobile": (["mc", "{mobile}", "--trials", "2"], "montecarlo.json", False),
+    "mc-passive": (["mc", "{passive}"], "results.json", True),
+}
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_a_cluster_gives_the_local_results_bit_for_bit(case, cluster, small, tmp_path):
+    argv, table, wall = CASES[case]
+    args = [a.format(**{k: str(v) for k, v in small.items()}) for a in argv]
+    _run([*args, "--out", str(tmp_path / "local"), "--workers", "2"])
+    text = _run([*args, "--out", str(tmp_path / "dask"), "--cluster", cluster.address])
+    assert f"on {cluster.address}" in text  # the progress line says where
+    local = tmp_path / "local" / table
+    dask = tmp_path / "dask" / table
+    if wall:  # the passive table holds per-scan wall times
+        assert _strip(json.loads(local.read_text())) == _strip(json.loads(dask.read_text()))
+    else:
+        assert local.read_bytes() == dask.read_bytes()
+    info = json.loads((tmp_path / "dask" / "run.json").read_text())
+    assert info["backend"] == "dask" and info["workers"] == 2
+    # and the trials themselves, file by file
+    loc = sorted((tmp_path / "local" / "trials").rglob("*.json"))
+    das = sorted((tmp_path / "dask" / "trials").rglob("*.json"))
+    assert [p.relative_to(tmp_path / "local") for p in loc] == [
+        p.relative_to(tmp_path / "dask") for p in das
+    ]
+    if not wall and case != "mc-mobile":  # (a mobile seed's record holds its decision times)
+        for a, b in zip(loc, das, strict=True):
+            assert a.read_bytes() == b.read_bytes(), a
+
+
+def test_an_unreachable_scheduler_is_a_usage_error(small, tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a free port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    p = CovnetProcess(
+        ["sweep", str(small["sweep"]), "--out", str(tmp_path / "x"), "--cluster",
+         f"tcp://127.0.0.1:{port}"],
+        prefix=None,
+    )  # fmt: skip
+    env_timeout = float(os.environ.get("COVNET_TEST_TIMEOUT", "60"))
+    try:
+        rc = p.wait(timeout=env_timeout)
+    finally:
+        p.stop()
+    assert rc == 2, p.output()
+    assert "cannot reach a Dask scheduler" in p.output()
+    assert "Traceback" not in p.output()

@@ -1,0 +1,285 @@
+"""The batch layer (issue 18, :mod:`covnet.trials`): trials stored as they finish and skipped
+on a re-run, the directory rules, seeds added until the intervals are narrow, failures that do
+not stop the others, the progress line, and the statistics (:mod:`covnet.stats`)."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from covnet.batch import BatchInterrupted
+from covnet.errors import UsageError
+from covnet.stats import add_stats, error_stats, per_scan_bands, seed_stats
+from covnet.trials import (
+    Batch,
+    BatchProgress,
+    TrialStore,
+    batch_options,
+    point_key,
+    prepare_batch_out,
+    run_trials,
+    write_batch_info,
+)
+
+
+def noisy(task):
+    """A task: per seed a value with a spread that depends on the point."""
+    point, seeds = task
+    scale = {"narrow": 0.1, "wide": 3.0}[point]
+    return [{"seed": s, "x": float(np.random.default_rng(s).normal(0.0, scale))} for s in seeds]
+
+
+def fails_on_seed_2(task):
+    point, seeds = task
+    if 2 in seeds:
+        raise ValueError("seed 2 is bad")
+    return [{"seed": s} for s in seeds]
+
+
+def interrupts_on_seed_3(task):
+    point, seeds = task
+    if 3 in seeds:
+        raise KeyboardInterrupt
+    return [{"seed": s} for s in seeds]
+
+
+def _batch(fn=noisy, points=("narrow", "wide"), group=1):
+    return Batch(
+        "test",
+        fn,
+        lambda p, seeds: (p, seeds),
+        list(points),
+        first_seed=0,
+        group=group,
+        headline=lambda p, rs: 0.5 * ((s := seed_stats(r["x"] for r in rs))["ci_hi"] - s["ci_lo"]),
+        headline_name="x",
+    )
+
+
+def test_trials_are_stored_and_skipped_on_a_rerun(tmp_path):
+    notes = []
+    first = run_trials(_batch(), 3, out=tmp_path, key="k", workers=1, note=notes.append)
+    assert (first.ran, first.skipped) == (6, 0)
+    files = sorted(p.relative_to(tmp_path) for p in (tmp_path / "trials").rglob("*.json"))
+    assert [str(f) for f in files] == [
+        f"trials/k/{p}/{s}.json" for p in ("narrow", "wide") for s in range(3)
+    ]
+    again = run_trials(_batch(), 4, out=tmp_path, key="k", workers=1, note=notes.append)
+    assert (again.ran, again.skipped) == (2, 6)
+    assert notes == [f"resuming {tmp_path}: 6 of 8 trials already done, skipped"]
+    assert again.results["wide"][:3] == first.results["wide"]
+    # the store reads back what was written, exactly
+    assert TrialStore(tmp_path, "k").load()[("wide", 3)] == again.results["wide"][3]
+
+
+def test_grouped_tasks_are_one_file_each(tmp_path):
+    out = run_trials(_batch(group=5), 7, out=tmp_path, key="g", workers=1)
+    names = sorted(p.name for p in (tmp_path / "trials" / "g" / "wide").iterdir())
+    assert names == ["0-4.json", "5-6.json"]
+    assert [r["seed"] for r in out.results["wide"]] == list(range(7))
+
+
+def test_seeds_are_added_until_every_interval_is_narrow(tmp_path):
+    notes = []
+    out = run_trials(
+        _batch(), 3, workers=1, ci_width=0.5, max_seeds=40, ci_batch=4, note=notes.append
+    )
+    assert out.seeds["narrow"] == 3  # narrow from the start
+    assert (
+        3 < out.seeds["wide"] <= 40
+        and (out.seeds["wide"] - 3) % 4 == 0
+        or (out.seeds["wide"] == 40)
+    )
+    s = seed_stats(r["x"] for r in out.results["wide"])
+    assert s["ci_hi"] - s["ci_lo"] < 0.5 or out.seeds["wide"] == 40
+    assert out.rounds > 1 and any("more seed(s) each" in n for n in notes)
+    # the same rounds when resumed from a store that holds part of them
+    part = run_trials(_batch(), 3, out=tmp_path, key="c", workers=1, note=notes.append)
+    assert part.ran == 6
+    again = run_trials(
+        _batch(), 3, out=tmp_path, key="c", workers=1, ci_width=0.5, max_seeds=40, ci_batch=4,
+        note=notes.append,
+    )  # fmt: skip
+    assert again.seeds == out.seeds and again.results == out.results
+
+
+def test_a_failed_task_does_not_stop_the_others(tmp_path):
+    with pytest.raises(ValueError, match="seed 2 is bad") as info:
+        run_trials(_batch(fails_on_seed_2, ("a", "b")), 4, out=tmp_path, key="f", workers=2)
+    assert any("2 of 8 task(s) failed" in n for n in info.value.__notes__)
+    stored = TrialStore(tmp_path, "f").load()
+    assert sorted(stored) == [(p, s) for p in ("a", "b") for s in (0, 1, 3)]
+
+
+def test_an_interruption_carries_every_trial_done(tmp_path):
+    with pytest.raises(BatchInterrupted) as info:
+        run_trials(_batch(interrupts_on_seed_3, ("a",)), 5, out=tmp_path, key="i", workers=1)
+    assert sorted(info.value.done) == [("a", 0), ("a", 1), ("a", 2)]
+    assert sorted(TrialStore(tmp_path, "i").load()) == sorted(info.value.done)
+
+
+def test_the_directory_rules(tmp_path):
+    out, resuming = prepare_batch_out(tmp_path / "new", "x", False, "sweep", "h1")
+    assert not resuming
+    write_batch_info(out, "sweep", "h1", {})
+    (out / "sweep.json").write_text("{}")
+    assert prepare_batch_out(out, "x", False, "sweep", "h1") == (out, True)
+    with pytest.raises(UsageError, match="holds the trials of another batch"):
+        prepare_batch_out(out, "x", False, "sweep", "h2")
+    with pytest.raises(UsageError, match="another batch"):
+        prepare_batch_out(out, "x", False, "compare", "h1")
+    assert prepare_batch_out(out, "x", True, "sweep", "h2") == (out, False)
+    assert not any(out.iterdir())  # --force emptied it
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "a.txt").write_text("mine")
+    with pytest.raises(UsageError, match="not empty"):
+        prepare_batch_out(other, "x", False, "sweep", "h1")
+
+
+def test_batch_options_are_checked():
+    class A:
+        cluster = None
+        ci_width = None
+        max_seeds = None
+        workers = None
+
+    a = A()
+    assert batch_options(a, 4).max_seeds is None
+    a.ci_width = 1.0
+    assert batch_options(a, 4).max_seeds == 100
+    for attr, value, msg in (
+        ("ci_width", -1.0, "--ci-width"),
+        ("max_seeds", 2, "--max-seeds"),
+        ("cluster", "no address", "--cluster"),
+    ):
+        b = A()
+        b.ci_width = 1.0
+        setattr(b, attr, value)
+        with pytest.raises(UsageError, match=msg):
+            batch_options(b, 4)
+    c = A()
+    c.cluster, c.workers = "tcp://127.0.0.1:8786", 2
+    with pytest.raises(UsageError, match="--workers"):
+        batch_options(c, 4)
+
+
+def test_the_progress_line():
+    buf = io.StringIO()
+    p = BatchProgress("sweep", stream=buf, every_s_log=0.0, where=" on tcp://h:1")
+    p.add(10, 4)
+    p.update(force=True)
+    p.update(ran=3)
+    p.update(failed=1)
+    p.close()
+    lines = buf.getvalue().splitlines()
+    assert lines[0].startswith("[sweep] 4/10 trials (4 skipped), ")
+    assert "7/10 trials (4 skipped)" in lines[1] and "ETA" in lines[1]
+    assert lines[-1].endswith("1 failed on tcp://h:1")
+    assert all("/s, ETA " in line for line in lines)
+
+
+def test_point_keys_are_file_names():
+    key = point_key({"delay_ms": 350.0, "loss": 0.1, "mode": "ci", "aware": False, "x": "a/b"})
+    assert key == "delay_ms=350,loss=0.1,mode=ci,aware=false,x=a_b"
+
+
+def test_seed_stats_is_the_student_t_interval():
+    v = [5.5, 6.9, 21.5, 6.0]  # the issue's four seeds
+    s = seed_stats(v)
+    lo, hi = sps.t.interval(0.95, 3, loc=np.mean(v), scale=sps.sem(v))
+    assert (s["n"], s["mean"]) == (4, pytest.approx(np.mean(v)))
+    assert s["std"] == pytest.approx(np.std(v, ddof=1))
+    assert (s["ci_lo"], s["ci_hi"]) == (pytest.approx(lo), pytest.approx(hi))
+    one = seed_stats([3.0])
+    assert one["mean"] == 3.0 and one["std"] is None and one["ci_lo"] is None
+    row = {}
+    add_stats(row, "x", [1.0, math.nan, 3.0])
+    assert row["x_mean"] == 2.0  # NaN left out
+
+
+def test_error_stats_burn_in_and_transient():
+    R, N = 4, 100
+    e2 = np.full((R, N), 36.0)
+    e2[2, 0] = 205.0**2  # one transient scan of one seed, as in the issue
+    nees = np.full((R, N), 4.0)
+    row = error_stats({}, e2, nees, burn_in=10)
+    assert row["burn_in_scans"] == 10
+    assert row["rmse_steady"] == pytest.approx(6.0) and row["rmse_steady_std"] == 0.0
+    assert row["rmse_transient_max"] > 60 and row["rmse_transient"] > row["rmse_steady"]
+    assert row["nees_steady_mean"] == 4.0
+    short = error_stats({}, e2[:, :8], nees[:, :8], burn_in=10)
+    assert short["burn_in_scans"] == 4  # a short run keeps its second half
+    none = error_stats({}, e2, nees, burn_in=0)
+    assert none["rmse_transient"] is None and none["rmse_steady"] == pytest.approx(
+        np.sqrt(e2.mean(axis=1).mean())
+    )
+
+
+def test_per_scan_bands():
+    rng = np.random.default_rng(1)
+    e2 = rng.chisquare(2, (30, 50)) * 10.0
+    nees = rng.chisquare(4, (30, 50))
+    b = per_scan_bands(e2, nees)
+    assert b["rmse"].shape == (50,)
+    assert np.all(b["rmse_lo"] <= b["rmse"]) and np.all(b["rmse"] <= b["rmse_hi"])
+    assert np.all(b["nees_lo"] < b["nees"]) and np.all(b["nees"] < b["nees_hi"])
+    assert b["nees_band"][0] < 4.0 < b["nees_band"][1]
+
+
+def test_passive_trials_in_chunks_equal_the_whole_cell(tmp_path):
+    from test_passive_cli import _tiny
+
+    from covnet.passive.config import load
+    from covnet.passive.montecarlo import cell_rows, grid, run_cell, run_cell_trials
+
+    cfg = load(_tiny(tmp_path))
+    cell = grid(cfg)[0]
+    methods = tuple(cfg.montecarlo.methods)
+    whole = run_cell(cfg, cell, 5, methods)
+    parts = run_cell_trials(cfg, cell, [0, 1], methods) + run_cell_trials(
+        cfg, cell, [2, 3, 4], methods
+    )
+    parts = json.loads(json.dumps(parts))  # as read back from the store
+    wall = "median_time_s"
+    strip = lambda rows: [{k: v for k, v in r.items() if k != wall} for r in rows]  # noqa: E731
+    assert strip(cell_rows(cell, parts, methods)) == strip(whole)
+
+
+def test_cli_ci_width_adds_seeds_until_narrow_and_says_so(tmp_path, capsys):
+    import yaml
+
+    from covnet.cli import main
+
+    repo = Path(__file__).resolve().parents[2]
+    data = yaml.safe_load((repo / "configs" / "latency.yaml").read_text())
+    data["scans"] = 12
+    data["sweep"] = {"delay_ms": [0, 350], "loss": [0.0], "modes": ["central"],
+                     "account_for_loss": [False], "seeds": 2}  # fmt: skip
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "o"
+    argv = ["sweep", str(cfg), "--out", str(out), "--workers", "1", "--no-figures", "--json"]
+    assert main([*argv, "--ci-width", "0.001", "--max-seeds", "4"]) == 0
+    captured = capsys.readouterr()
+    rows = [json.loads(line) for line in captured.out.splitlines()]
+    assert [r["seeds"] for r in rows] == [4, 4]  # never narrow enough: the cap
+    assert "2 more seed(s) each" in captured.err
+    doc = json.loads((out / "sweep.json").read_text())
+    assert (doc["ci_width"], doc["max_seeds"], doc["rounds"]) == (0.001, 4, 2)
+    for r in rows:  # the table's interval is the one the rule looked at
+        assert r["rmse_steady_ci_hi"] - r["rmse_steady_ci_lo"] >= 0.001
+    # a wide enough width stops at the first round; the trials are there already
+    out2 = tmp_path / "o2"
+    argv2 = ["sweep", str(cfg), "--out", str(out2), "--workers", "1", "--no-figures"]
+    assert main([*argv2, "--ci-width", "1e9"]) == 0
+    assert json.loads((out2 / "sweep.json").read_text())["rounds"] == 1
+    assert main(["plot", str(out), "--point", "delay_ms=350"]) == 0
+    assert (out / "curves.png").stat().st_size > 10_000
+    assert main(["plot", str(out), "--point", "nope"]) == 2
