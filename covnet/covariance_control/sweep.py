@@ -16,8 +16,16 @@ point, averaged over the seeds:
   ``lost`` (never arrived), ``commands_missed``, ``fused`` (measurements or tracks fused, on
   time or re-filtered) and ``measured``.
 
-Runs go to a ``spawn`` process pool (one per core); ``sweep.csv``, ``sweep.json`` and
-``sweep.png`` are written to the output directory.
+Then the statistics over seeds (:func:`covnet.stats.error_stats`): the RMSE after
+``evaluation.burn_in_scans`` (``rmse_steady``, the headline) and of the burn-in scans
+(``rmse_transient``), each with its mean, standard deviation and 95 % Student t interval over
+the per-seed values, and the same for the NEES after the burn-in and the allocation rate.
+
+The runs are trials of the batch layer (:mod:`covnet.trials`): on the local process pool or a
+Dask cluster, each written to ``OUT/trials`` as it finishes (the same command resumes), more
+seeds for the wide points with ``--ci-width``; ``sweep.csv``, ``sweep.json``, ``curves.npz``
+(per-scan RMSE and NEES with their bands, every point), ``sweep.png`` and ``curves.png`` are
+written to the output directory.
 """
 
 from __future__ import annotations

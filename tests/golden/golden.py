@@ -53,12 +53,12 @@ ISSUE_18_KEYS = frozenset(
         "n",
     }
 )
-"""Keys added by issue 18.  A file's hash under its old name is taken with them removed (and
-the file re-serialised as its writer does): equal to the hash recorded before issue 18, it
-proves every old field unchanged; the whole file's hash is under ``<file> (issue 18)``."""
-ISSUE_18_CASES = frozenset({"compare", "mc-mobile", "mc-passive", "sweep"})
-"""The batch commands' cases, whose tables issue 18 extended (a run's own files may hold keys
-of the same names, such as ``n``, that were always there)."""
+"""Keys added by issue 18 (to :data:`BATCH_TABLES` only).  A table's hash under its old name is
+taken with them removed (and the file re-serialised as its writer does): equal to the hash
+recorded before issue 18, it proves every old field unchanged; the whole file's hash is under
+``<file> (issue 18)``."""
+BATCH_TABLES = frozenset({"sweep.json", "compare.json", "montecarlo.json", "results.json"})
+"""The files issue 18 added keys to (the batch commands' tables)."""
 
 SMALL_SWEEP = """
 sweep:
@@ -180,14 +180,11 @@ def run_case(name: str, argv: list[str], files: dict[str, bool], work: Path) -> 
         if f.endswith(".npz"):
             hashes[f] = hash_npz(p)
             continue
-        if name not in ISSUE_18_CASES:  # a run's own files: issue 18 added nothing to them
+        if f not in BATCH_TABLES:
             hashes[f] = hash_json(p, strip)
             continue
-        old = hash_json(p, strip, ISSUE_18_KEYS)
-        full = hash_json(p, strip)
-        hashes[f] = old
-        if old != hash_json(p, strip, frozenset({"\0"})):  # the file has issue 18's keys
-            hashes[f"{f} (issue 18)"] = full
+        hashes[f] = hash_json(p, strip, ISSUE_18_KEYS)
+        hashes[f"{f} (issue 18)"] = hash_json(p, strip)
     return hashes
 
 
