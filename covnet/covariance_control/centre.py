@@ -54,6 +54,8 @@ class EpisodeLog:
     nees: list[float] = field(default_factory=list)
     decision_s: list[float] = field(default_factory=list)
     n_evaluated: list[int] = field(default_factory=list)
+    lower_bound: list[float | None] = field(default_factory=list)
+    gap: list[float | None] = field(default_factory=list)
     fused_from: list[list[str]] = field(default_factory=list)
     failures: list[dict[str, Any]] = field(default_factory=list)
 
@@ -78,6 +80,8 @@ class EpisodeLog:
         self.nees.append(nees_value)
         self.decision_s.append(decision_s)
         self.n_evaluated.append(alloc.n_evaluated)
+        self.lower_bound.append(alloc.lower_bound)
+        self.gap.append(alloc.gap)
         self.fused_from.append(fused)
 
     def as_run(self, n_sensors: int) -> MetricRun:
@@ -92,7 +96,16 @@ class EpisodeLog:
             nees=np.array(self.nees, dtype=np.float64),
             decision_s=np.array(self.decision_s, dtype=np.float64),
             n_evaluated=np.array(self.n_evaluated, dtype=np.int64),
+            lower_bound=_reported(self.lower_bound),
+            gap=_reported(self.gap),
         )
+
+
+def _reported(values: list[float | None]) -> np.ndarray | None:
+    """Per-scan values a search reported (NaN where it did not), or None if it never did."""
+    if all(v is None for v in values):
+        return None
+    return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
 
 
 @dataclass
