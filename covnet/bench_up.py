@@ -116,12 +116,15 @@ def run_sizes(
     *,
     repeat: int = 3,
     per_process: int | None = None,
-    scans: int = SIZED_SCANS,
+    scans: int | None = None,
     quiet: bool = False,
 ) -> list[dict[str, Any]]:
-    """Per size and repeat: covnet up of the kind's bench network of that size, then the probe
-    of the same pattern; one row each (module docstring)."""
+    """Per size and repeat: covnet up of the kind's bench network of that size (``scans``
+    scans, default :data:`SIZED_SCANS`), then the probe of the same pattern; one row each
+    (module docstring)."""
     from covnet.zenoh_probe import command_bytes, measurement_bytes  # bench only (start-up)
+
+    scans = SIZED_SCANS if scans is None else scans
 
     make = kinds.command(kind, "bench:up-config", "a bench network of N sensors")
     rows = []

@@ -130,8 +130,9 @@ class DesiredSpec(ConfigModel):
 #: ``allocation.search``: how the subset is found (README, "Allocation search")
 SEARCHES = ("auto", "exact", "bounded", "greedy")
 #: ``search: auto`` is ``exact`` up to this many candidate sensors (allowed, not excluded),
-#: ``bounded`` beyond (``covnet bench search``: exact N = 32 takes 0.04-2.2 s a decision)
-AUTO_EXACT_MAX = 32
+#: ``bounded`` beyond (``covnet bench search``: an exact decision at N = 24 takes 0.01-0.2 s,
+#: at N = 32 a median of 0.04-2.2 s by metric but up to minutes at a near tie)
+AUTO_EXACT_MAX = 24
 #: ``search: bounded``'s defaults: the relative gap, and (``auto`` beyond ``AUTO_EXACT_MAX``)
 #: the node limit, deterministic where a time limit is not
 BOUNDED_GAP = 0.01

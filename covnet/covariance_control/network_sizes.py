@@ -55,7 +55,6 @@ def bench_config(sc: Scenario, n_sensors: int, scans: int = 100) -> dict[str, An
     data["allocation"] = {
         "metrics": [sc.allocation.metrics[0]],
         "required": [s["id"] for s in sensors],
-        "search": "greedy" if n_sensors > 32 else "exact",
     }
     data.pop("sweep", None)
     return data

@@ -62,3 +62,19 @@ def test_large_up_lost_nothing_and_showed_the_gap(lockstep_up):
     shown = [line for line in output.splitlines() if line.startswith("[status] ")]
     assert shown and all(re.search(r"gap [0-9.e+-]+ ?%", line) for line in shown), shown
     assert_nothing_left(out)
+
+
+def test_bench_up_sizes_against_the_probe(monkeypatch, capsys, paper_path):
+    from covnet import bench_up
+
+    monkeypatch.setattr(bench_up, "SIZED_SCANS", 40)
+    rc = covnet_main(
+        ["bench", "up", "--sensors", "4,20", "--repeat", "1", "--json", "--config", str(paper_path)]
+    )
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert rc == 0 and [r["n_sensors"] for r in rows] == [4, 20]
+    assert [r["sensors_per_process"] for r in rows] == [1, bench_up.default_sensors_per_process(20)]
+    for r in rows:
+        assert r["scans"] == 40 and r["scans_per_s"] > 0 and r["probe_scans_per_s"] > 0
+        assert r["ratio"] == r["scans_per_s"] / r["probe_scans_per_s"]
+        assert 0 < r["probe_p50_ms"] <= r["probe_p99_ms"]
