@@ -309,6 +309,8 @@ def _phase(
             except (OSError, ValueError):
                 pass  # not written yet, or being rewritten
             for proc_name, pid in pids.items():
+                if not isinstance(pid, int):  # "hosts": which process hosts each sensor
+                    continue
                 got = sample_process(int(pid))
                 if got is None:
                     continue

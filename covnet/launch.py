@@ -23,7 +23,8 @@ stop them all for sure::
   :func:`sigterm_raises_keyboard_interrupt` in the main thread first.
 - ``pids_file`` (JSON ``{name: pid}``; pid == process group id) is written as soon as the
   children start and rewritten on every restart, so an outside tool can clean up after a
-  supervisor that was itself SIGKILLed.
+  supervisor that was itself SIGKILLed; ``pids_extra`` adds entries that are not processes
+  (``covnet up``: ``"hosts"``, which process hosts each sensor: skip non-integer values).
 """
 
 from __future__ import annotations
@@ -90,6 +91,7 @@ class Supervisor:
         *,
         on_line: Callable[[str, str], None] | None = None,
         pids_file: Path | None = None,
+        pids_extra: dict[str, object] | None = None,
         sigint_timeout: float = 5.0,
         sigterm_timeout: float = 5.0,
         max_lines: int = 10_000,
@@ -103,6 +105,10 @@ class Supervisor:
         self._specs = {s.name: s for s in specs}
         self._on_line = on_line if on_line is not None else _print_line
         self._pids_file = Path(pids_file) if pids_file is not None else None
+        self._pids_extra = dict(pids_extra or {})
+        clash = set(self._pids_extra) & set(self._specs)
+        if clash:
+            raise ValueError(f"pids_extra names processes: {sorted(clash)}")
         self._max_lines = max_lines
         self.sigint_timeout = sigint_timeout
         self.sigterm_timeout = sigterm_timeout
@@ -189,7 +195,8 @@ class Supervisor:
     def _write_pids(self) -> None:
         if self._pids_file is None:
             return
-        pids = {name: run.proc.pid for name, run in self._runs.items()}
+        pids: dict[str, object] = {name: run.proc.pid for name, run in self._runs.items()}
+        pids.update(self._pids_extra)
         tmp = self._pids_file.with_name(self._pids_file.name + ".tmp")
         tmp.write_text(json.dumps(pids, indent=1) + "\n")
         os.replace(tmp, self._pids_file)

@@ -15,13 +15,14 @@ draws the figures from the run directory.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import signal
 import socket
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,9 +34,47 @@ from covnet.process import run_option_args
 from covnet.rundir import LIVE, RUN_INFO, STATUSES, record_end, write_json
 from covnet.security import endpoint, preflight
 
-__all__ = ["StatusView", "UpError", "free_port", "process_specs", "resolve_router", "up"]
+__all__ = [
+    "HOST_PREFIX",
+    "StatusView",
+    "UpError",
+    "default_sensors_per_process",
+    "free_port",
+    "process_specs",
+    "resolve_router",
+    "sensor_hosts",
+    "up",
+]
 
 READY_GRACE_S = 15.0  # on top of network.ready_timeout_s: interpreter start-up, imports
+#: on top of that, per sensor: a large network's interpreters start on few cores
+READY_GRACE_PER_SENSOR_S = 0.25
+#: networks of at most this many sensors get one process per sensor by default
+ONE_PER_PROCESS_MAX = 16
+#: a process that hosts several sensors is named ``sensors@<i>`` ('@' is not allowed in a
+#: sensor id, so the name is never one)
+HOST_PREFIX = "sensors@"
+
+
+def default_sensors_per_process(n_sensors: int, cores: int | None = None) -> int:
+    """``covnet up``'s default ``--sensors-per-process``: 1 for at most ``ONE_PER_PROCESS_MAX``
+    sensors, else as many as gives about two sensor processes per core."""
+    if n_sensors <= ONE_PER_PROCESS_MAX:
+        return 1
+    cores = cores or os.cpu_count() or 1
+    return max(1, -(-n_sensors // (2 * cores)))
+
+
+def sensor_hosts(sensor_ids: Sequence[str], per_process: int) -> list[tuple[str, list[str]]]:
+    """The sensor processes: ``(process name, hosted sensor ids)``, the ids in config order in
+    groups of ``per_process``; a process of one sensor is named after it, a host of several
+    ``sensors@1``, ``sensors@2``, ..."""
+    if per_process < 1:
+        raise ValueError(f"sensors per process must be >= 1, got {per_process}")
+    groups = [list(sensor_ids[i : i + per_process]) for i in range(0, len(sensor_ids), per_process)]
+    if per_process == 1:
+        return [(g[0], g) for g in groups]
+    return [(f"{HOST_PREFIX}{i + 1}", g) for i, g in enumerate(groups)]
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -64,10 +103,14 @@ def process_specs(
     options: dict[str, Any],
     realtime: bool,
     speed: float,
+    sensors_per_process: int = 1,
+    sensor_ids: Sequence[str] | None = None,
 ) -> list[ProcessSpec]:
     """The processes of one network of any kind: ``python -m manager``, ``world``,
-    ``recorder`` (when the run is recorded) and one ``sensors`` per sensor, each given the
-    config, the run id and the same run ``options`` (so every process holds the same config)."""
+    ``recorder`` (when the run is recorded) and the ``sensors`` processes, each given the
+    config, the run id and the same run ``options`` (so every process holds the same config).
+    The sensors (``sensor_ids``, default all, in config order) go ``sensors_per_process`` to a
+    process (:func:`sensor_hosts`)."""
     py = sys.executable
     common = ["--config", str(config_path), "--run", run_id, *run_option_args(options)]
     if realtime:
@@ -91,14 +134,12 @@ def process_specs(
                 restart="recorder" in roles,
             )
         )
-    for sid in cfg.sensor_ids:
-        specs.append(
-            ProcessSpec(
-                sid,
-                [py, "-m", "sensors", *common, "--id", sid, "--connect", connect],
-                restart="sensor" in roles,
-            )
-        )
+    ids = list(cfg.sensor_ids if sensor_ids is None else sensor_ids)
+    for name, hosted in sensor_hosts(ids, sensors_per_process):
+        argv = [py, "-m", "sensors", *common]
+        for sid in hosted:
+            argv += ["--id", sid]
+        specs.append(ProcessSpec(name, [*argv, "--connect", connect], restart="sensor" in roles))
     return specs
 
 
@@ -191,6 +232,7 @@ def up(
     router: str | None = None,
     netns: bool = False,
     topology: NetnsTopology | None = None,
+    sensors_per_process: int | None = None,
 ) -> int:
     """Run the network of ``sc`` (a config of the scenario kind ``kind``, with the run
     ``options`` already applied; they are passed on to every process) to completion; returns
@@ -203,17 +245,32 @@ def up(
 
     ``netns``: each sensor in its own network namespace, linked to the manager's by an emulated
     link (:mod:`covnet.netns_launch`, which calls back with ``topology``); not with ``nodes``
-    or ``router``."""
+    or ``router``, and one sensor per process.
+
+    ``sensors_per_process``: how many sensors one sensor process hosts (:mod:`sensors.host`;
+    default :func:`default_sensors_per_process`); ``processes.json`` then also says which
+    process hosts each sensor (``"hosts"``)."""
     options = options or {}
+    if sensors_per_process is not None and sensors_per_process < 1:
+        raise UpError(f"--sensors-per-process: must be >= 1, got {sensors_per_process}")
     if netns:
         if nodes is not None or router is not None:
             raise UpError("--netns runs the whole network here: not with --nodes or --router")
+        if sensors_per_process not in (None, 1):
+            raise UpError("--netns puts each sensor in its own namespace: one sensor per process")
         return up_in_namespaces(
             up, kind, sc, config_path, out, options=options, realtime=realtime, speed=speed,
-            run_id=run_id, verbose=verbose, on_ready=on_ready,
+            run_id=run_id, verbose=verbose, on_ready=on_ready, sensors_per_process=1,
         )  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     router = resolve_router(endpoint(sc.network, router or sc.network.router))
+    wanted = set(nodes) if nodes is not None else None
+    ids = list(sc.sensor_ids)  # the sensors started here, in config order
+    if wanted is not None and "sensors" not in wanted:
+        ids = [sid for sid in ids if sid in wanted]
+    if sensors_per_process is None:
+        sensors_per_process = default_sensors_per_process(len(ids))
+    groups = sensor_hosts(ids, sensors_per_process)
     specs = process_specs(
         kind,
         sc,
@@ -224,17 +281,19 @@ def up(
         options=options,
         realtime=realtime,
         speed=speed,
+        sensors_per_process=sensors_per_process,
+        sensor_ids=ids,
     )
     if topology is not None:  # --netns: each process in its namespace, with its endpoint
         specs, router = topology.apply(specs), topology.listen
-    if nodes is not None:
-        wanted = set(nodes)
-        if "sensors" in wanted:
-            wanted |= set(sc.sensor_ids)
-        specs = [sp for sp in specs if sp.name in wanted]
-    preflight(sc, [sp.name for sp in specs], str(config_path))  # keys, passwords: on this host
+    if wanted is not None:
+        sensor_procs = {name for name, _ in groups}
+        specs = [sp for sp in specs if sp.name in wanted or sp.name in sensor_procs]
+    hosts = {sid: name for name, hosted in groups if len(hosted) > 1 for sid in hosted}
+    nodes_here = [sp.name for sp in specs if not sp.name.startswith(HOST_PREFIX)] + list(hosts)
+    preflight(sc, nodes_here, str(config_path))  # keys, passwords: on this host
     if not any(sp.name == "manager" for sp in specs):
-        return _supervise_without_manager(specs, out, run_id, router)
+        return _supervise_without_manager(specs, out, run_id, router, hosts)
     ready = threading.Event()
     view = StatusView(sc.scans, kind.episodes(sc))
     restartable = {sp.name for sp in specs if sp.restart}
@@ -267,8 +326,14 @@ def up(
     previous = signal.signal(signal.SIGTERM, raise_interrupt)
     status = 0
     try:
-        with view, Supervisor(specs, on_line=on_line, pids_file=out / "processes.json") as sup:
-            deadline = time.monotonic() + sc.network.ready_timeout_s + READY_GRACE_S
+        with (
+            view,
+            Supervisor(
+                specs, on_line=on_line, pids_file=out / "processes.json", pids_extra=_hosts(hosts)
+            ) as sup,
+        ):
+            grace = READY_GRACE_S + READY_GRACE_PER_SENSOR_S * len(ids)
+            deadline = time.monotonic() + sc.network.ready_timeout_s + grace
             while not ready.wait(0.1):
                 rcs = sup.poll()
                 if rcs.get("manager") is not None:
@@ -369,8 +434,14 @@ def _run_info(out: Path) -> dict[str, Any]:
     return info if isinstance(info, dict) else {}
 
 
+def _hosts(hosts: dict[str, str]) -> dict[str, Any] | None:
+    """``processes.json``'s ``"hosts"`` entry (sensor id -> its process), when a process hosts
+    several sensors."""
+    return {"hosts": hosts} if hosts else None
+
+
 def _supervise_without_manager(
-    specs: list[ProcessSpec], out: Path, run_id: str, router: str
+    specs: list[ProcessSpec], out: Path, run_id: str, router: str, hosts: dict[str, str]
 ) -> int:
     """Nodes only (the manager runs on another host): run until they all leave (they do when
     the manager's run ends) or Ctrl-C."""
@@ -378,7 +449,7 @@ def _supervise_without_manager(
         f"[launcher] run {run_id}: nodes {[s.name for s in specs]} -> router {router}", flush=True
     )
     try:
-        with Supervisor(specs, pids_file=out / "processes.json") as sup:
+        with Supervisor(specs, pids_file=out / "processes.json", pids_extra=_hosts(hosts)) as sup:
             while any(rc is None for rc in sup.poll().values()):
                 time.sleep(0.1)
             final = sup.stop()

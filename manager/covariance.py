@@ -25,6 +25,7 @@ watches (:mod:`manager.peer_monitor`).
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -209,16 +210,15 @@ class CovarianceLogic:
             f"{k}/{model.scans} {len(enabled)}/{len(ids)} on  "
             f"trP {status.trace_P:.0f}/{status.trace_Pd:.0f}"
         )
-        return ScanReport(
-            [track],
-            status,
-            {
-                "trace_P": status.trace_P,
-                "trace_Pd": status.trace_Pd,
-                "info": info,
-                "info_short": short,
-            },
-        )
+        live: dict[str, Any] = {"trace_P": status.trace_P, "trace_Pd": status.trace_Pd}
+        alloc = fused.alloc
+        if alloc.lower_bound is not None and alloc.gap is not None:
+            # a bounded or greedy search: what it certified for this scan
+            lb = alloc.lower_bound if math.isfinite(alloc.lower_bound) else None
+            live |= {"value": status.value, "lower_bound": lb, "gap": alloc.gap}
+            info += f"  f {status.value:.4g} (gap {100 * alloc.gap:.3g} %)"
+            short += f"  gap {100 * alloc.gap:.3g}%"
+        return ScanReport([track], status, live | {"info": info, "info_short": short})
 
 
 run = partial(loop.run, CovarianceLogic)

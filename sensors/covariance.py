@@ -26,6 +26,7 @@ from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import Model, build_model, measure
 from covnet.latency_bus import for_sensor
 from covnet.process import EXIT_OK, open_client
+from sensors.host import say
 from sensors.protocol import SensorStats, process_main, serve
 
 
@@ -55,9 +56,10 @@ def _peer(args: Any, sc: Scenario, stop: threading.Event) -> int:
         stats = peer.run(
             sc, args.id, list(sc.allocation.metrics), bus, args.run, WallClock(args.speed), stop
         )
-    print(
+    say(
+        args,
         f"stopped: {stats.scans} scans, {stats.tracks_sent} tracks sent, "
-        f"{stats.tracks_fused} fused, rejected {dict(stats.rejected)}"
+        f"{stats.tracks_fused} fused, rejected {dict(stats.rejected)}",
     )
     return EXIT_OK
 

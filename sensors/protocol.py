@@ -31,6 +31,7 @@ from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
 from covnet.node_kit import Heartbeat, ManagerWatch
 from covnet.process import EXIT_OK, open_client
+from sensors.host import say
 
 
 @dataclass
@@ -186,8 +187,9 @@ def process_main(
         finally:
             if wrapped is not None:
                 wrapped.close()
-    print(
+    say(
+        args,
         f"stopped: {stats.commands} commands received, {stats.enabled_scans} scans enabled, "
-        f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}"
+        f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}",
     )
     return EXIT_OK

@@ -85,7 +85,9 @@ class Allocation:
     ``subset``: chosen sensor indices, ascending (0-based); ``value``: ``f(P_i, P_d)`` of it;
     ``P``: its ``P_i = (P_pred⁻¹ + J_i)⁻¹``; ``n_feasible``: number of feasible subsets;
     ``n_evaluated``: subsets whose metric was evaluated exactly (``== n_feasible`` for the plain
-    reference).
+    reference).  ``lower_bound``, ``gap``: what a search that may stop short of the optimum
+    (:mod:`covnet.core.search`'s bounded and greedy modes) certifies, a lower bound of the
+    optimum and ``(value - lower_bound) / |value|``; ``None`` from an exact search.
     """
 
     subset: tuple[int, ...]
@@ -93,6 +95,8 @@ class Allocation:
     P: NDArray[np.float64]
     n_feasible: int
     n_evaluated: int
+    lower_bound: float | None = None
+    gap: float | None = None
 
 
 class InfeasibleAllocation(ValueError):

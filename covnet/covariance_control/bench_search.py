@@ -52,6 +52,9 @@ EXACT_CONTROL_MAX = 20
 GREEDY_CONTROL_MAX = 100
 #: a search whose first (untimed, memory-traced) call takes longer is timed once per problem
 LONG_S = 2.0
+#: ``covnet bench search``'s time cap of one exact decision (a capped decision is counted as
+#: not exact in ``n_exact`` and timed at the cap: the row's times are then lower bounds)
+EXACT_CAP_S = 60.0
 SEARCHES = ("exact", "bounded", "greedy")
 NO_CONSTRAINTS = Constraints()
 
@@ -190,8 +193,10 @@ def run(
     exact_max: int = 40,
     plain_max: int = 100,
     progress: Callable[[str], None] | None = None,
+    on_row: Callable[[Row], None] | None = None,
 ) -> list[Row]:
-    """Time the searches per (search, metric, N) on :func:`decision_problems`.
+    """Time the searches per (search, metric, N) on :func:`decision_problems`; ``progress``
+    gets each row as a table line, ``on_row`` the row itself, as soon as it is measured.
 
     Rows: ``search``, ``metric``, ``n_sensors``, ``n_problems``, ``repeat``, ``median_s``,
     ``worst_s`` (per decision), ``peak_mb``, ``gap_median``, ``gap_worst`` (the certified
@@ -279,6 +284,9 @@ def run(
                 "gap_worst": float(np.max(gaps)),
                 "n_nodes_median": float(np.median([r.n_nodes for r in res0])),
                 "n_exact": sum(r.status == 0 for r in res0),
+                "exact_cap_s": exact_cap_s if search == "exact" else None,
+                "bounded_limit_s": limit if search == "bounded" else None,
+                "rel_gap": rel_gap if search == "bounded" else None,
                 "value_ratio_median": float(np.median(ratio)),
                 "value_ratio_worst": float(np.max(ratio)),
                 "exhaustive_median_s": float(np.median(ex_t)) if ex_t else None,
@@ -297,6 +305,8 @@ def run(
             rows.append(row)
             if progress is not None:
                 progress(format_row(row))
+            if on_row is not None:
+                on_row(row)
     return rows
 
 

@@ -57,6 +57,10 @@ class EpisodeLog:
     nees: Column = field(default_factory=Column)
     decision_s: Column = field(default_factory=Column)
     n_evaluated: Column = field(default_factory=lambda: Column((), np.int64))
+    # what a bounded/greedy search reported per scan (NaN where it did not): allocation.search
+    lower_bound: Column = field(default_factory=Column)
+    gap: Column = field(default_factory=Column)
+    reported: set[str] = field(default_factory=set)  # which of the two any scan reported
     failures: list[dict[str, Any]] = field(default_factory=list)
 
     def record(
@@ -81,6 +85,10 @@ class EpisodeLog:
         self.nees.append(nees_value)
         self.decision_s.append(decision_s)
         self.n_evaluated.append(alloc.n_evaluated)
+        for name, v in (("lower_bound", alloc.lower_bound), ("gap", alloc.gap)):
+            getattr(self, name).append(np.nan if v is None else v)
+            if v is not None:
+                self.reported.add(name)
 
     def as_run(self, n_sensors: int) -> MetricRun:
         enabled = (
@@ -96,6 +104,8 @@ class EpisodeLog:
             nees=self.nees.array(),
             decision_s=self.decision_s.array(),
             n_evaluated=self.n_evaluated.array(),
+            lower_bound=self.lower_bound.array() if "lower_bound" in self.reported else None,
+            gap=self.gap.array() if "gap" in self.reported else None,
         )
 
 

@@ -391,11 +391,10 @@ def bench_search(args: argparse.Namespace, sc: Scenario | None) -> int:
         searches,
         args.problems,
         args.repeat,
+        exact_cap_s=bs.EXACT_CAP_S if args.exact_cap is None else args.exact_cap,
         progress=None if args.json else (lambda line: print(line, flush=True)),
+        on_row=(lambda row: print(json.dumps(row), flush=True)) if args.json else None,
     )
-    if args.json:
-        for row in rows:
-            print(json.dumps(row))
     agree = all(r["agree_exhaustive"] in (None, True) for r in rows)
     if not agree:
         print("covnet: error: a search disagreed with the exhaustive one", file=sys.stderr)

@@ -37,7 +37,12 @@ from covnet.config import (
 )
 from covnet.config import normalised as _normalised
 from covnet.core.metrics import METRICS
-from covnet.covariance_control.fusion_rules import FUSION_RULES, fusion_modes, track_rules
+from covnet.covariance_control.fusion_rules import (
+    FUSION_RULES,
+    fusion_modes,
+    rule_for,
+    track_rules,
+)
 
 MetricName = Annotated[Str, in_registry(lambda: sorted(METRICS), "metric")]
 FusionMode = Annotated[Str, in_registry(fusion_modes, "fusion mode")]
@@ -123,8 +128,28 @@ class DesiredSpec(ConfigModel):
         return np.asarray(self.matrix, dtype=np.float64)
 
 
+#: ``allocation.search``: how the subset is found (README, "Allocation search")
+SEARCHES = ("auto", "exact", "bounded", "greedy")
+#: ``search: auto`` is ``exact`` up to this many candidate sensors (allowed, not excluded),
+#: ``bounded`` beyond (``covnet bench search``: an exact decision at N = 24 takes 0.01-0.2 s,
+#: at N = 32 a median of 0.04-2.2 s by metric but up to minutes at a near tie)
+AUTO_EXACT_MAX = 24
+#: ``search: bounded``'s defaults: the relative gap, and (``auto`` beyond ``AUTO_EXACT_MAX``)
+#: the node limit, deterministic where a time limit is not
+BOUNDED_GAP = 0.01
+AUTO_NODE_LIMIT = 200_000
+#: the options that only ``bounded`` (and ``auto``, for its bounded part) uses
+BOUNDED_OPTIONS = ("gap", "time_limit_s", "node_limit")
+
+
 class AllocationSpec(ConfigModel):
-    """Covariance-control allocation: metrics by registry name, constraints by sensor id."""
+    """Covariance-control allocation: metrics by registry name, constraints by sensor id, and
+    the search (:data:`SEARCHES`): ``exact`` (the exhaustive search's subset, value and ``P``
+    bit for bit: the batched fast path for small networks, branch and bound beyond), ``bounded``
+    (branch and bound stopped at the relative ``gap``, ``time_limit_s`` or ``node_limit``; it
+    reports a certified lower bound and gap), ``greedy`` (forward/backward greedy and swaps, with
+    the root lower bound), ``auto`` (the default: ``exact`` up to ``AUTO_EXACT_MAX`` candidate
+    sensors, ``bounded`` beyond)."""
 
     metrics: tuple[MetricName, ...] = ("spectral", "abs_trace", "svd")
     required: tuple[Str, ...] = ()
@@ -132,6 +157,29 @@ class AllocationSpec(ConfigModel):
     max_active: Int | None = Field(default=None, ge=1)
     tie_rtol: Float = Field(default=1e-9, ge=0.0, le=1e-3)
     account_for_loss: Bool = False
+    search: Literal["auto", "exact", "bounded", "greedy"] = "auto"
+    gap: Float | None = None
+    time_limit_s: Float | None = None
+    node_limit: Int | None = None
+
+    @field_validator("gap")
+    @classmethod
+    def _gap(cls, v: float | None) -> float | None:
+        if v is not None and not 0.0 <= v < 1.0:
+            raise ValueError(f"must be in [0, 1) (a relative gap: 0.01 is 1 %), got {v}")
+        return v
+
+    @field_validator("time_limit_s")
+    @classmethod
+    def _time_limit(cls, v: float | None) -> float | None:
+        return None if v is None else _positive(v)
+
+    @field_validator("node_limit")
+    @classmethod
+    def _node_limit(cls, v: int | None) -> int | None:
+        if v is not None and v < 1:
+            raise ValueError(f"must be >= 1, got {v}")
+        return v
 
 
 PEER_GRAPHS = ("full", "ring", "star", "custom")
@@ -259,6 +307,7 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     both = set(al.required) & set(al.excluded)
     if both:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
+    problems += _search_problems(sc)
     problems += _peer_problems(sc.fusion.peer, ids)
     if set(al.excluded) >= set(ids):
         problems.append(("allocation.excluded", "excludes every sensor"))
@@ -269,6 +318,27 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
             )
         if al.max_active > len(ids):
             problems.append(("allocation.max_active", f"more than the {len(ids)} sensors"))
+    return problems
+
+
+def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
+    al = sc.allocation
+    problems: list[tuple[str, str]] = []
+    if al.search in ("exact", "greedy"):
+        for opt in BOUNDED_OPTIONS:
+            if getattr(al, opt) is not None:
+                why = f"only used with search: bounded or auto, not {al.search}"
+                problems.append((f"allocation.{opt}", why))
+    if al.search in ("bounded", "greedy") and (
+        sc.fusion.mode == "peer" or not rule_for(sc.fusion).information_form
+    ):
+        problems.append(
+            (
+                "allocation.search",
+                f"{al.search} needs a fusion centre in the information form (fusion.mode "
+                f"central or info); {sc.fusion.mode} decides over every subset",
+            )
+        )
     return problems
 
 
@@ -307,9 +377,14 @@ def load(path: str | Path) -> Scenario:
 
 def normalised(sc: Scenario) -> dict[str, Any]:
     """The config with every default filled in, as plain JSON-able data (except
-    ``network.security`` while it is all off and ``evaluation`` while it is the default, so
-    that configs without them keep their hash)."""
-    return _normalised(sc, ("network.security", "evaluation"))
+    ``network.security`` while it is all off, ``evaluation`` while it is the default and the
+    allocation fields added later while at their defaults, so that configs without them keep
+    their hash)."""
+    return _normalised(sc, ("network.security", "evaluation", *(f"allocation.{f}" for f in _ADDED)))
+
+
+#: allocation fields added after configs were first hashed (left out while at their default)
+_ADDED = ("search", *BOUNDED_OPTIONS)
 
 
 def config_hash(sc: Scenario) -> str:

@@ -66,7 +66,18 @@ def run_centre(sc: Scenario, metric: str, model: Model | None = None) -> MetricR
         est = rule.fuse(model, pred, tracks)
         if mirror is not None:
             mirror.advance(rule, model, alloc.subset)
-        rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
+        rows.put(
+            i,
+            alloc.subset,
+            alloc.value,
+            pred,
+            est,
+            truth[i],
+            dt,
+            alloc.n_evaluated,
+            lower_bound=alloc.lower_bound,
+            gap=alloc.gap,
+        )
     return rows.run(metric)
 
 

@@ -22,6 +22,7 @@ __all__ = ["KIND"]
 
 _COMMANDS = "covnet.covariance_control.commands"
 _REPLAY = "covnet.covariance_control.replay"
+_SIZES = "covnet.covariance_control.network_sizes"
 
 
 def _metrics(data: dict[str, Any], names: list[str]) -> None:
@@ -55,6 +56,8 @@ class CovarianceControl(KindBase):
         "bench:fusion": lazy(_COMMANDS, "bench_fusion"),
         "bench:search": lazy(_COMMANDS, "bench_search"),
         "bench:multitarget": lazy(_COMMANDS, "bench_multitarget"),
+        # (cfg, n_sensors, scans) -> config data: the network covnet bench up --sensors runs
+        "bench:up-config": lazy(_SIZES, "bench_config"),
     }
     run = staticmethod(lazy(_COMMANDS, "run"))
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))

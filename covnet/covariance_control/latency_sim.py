@@ -235,7 +235,18 @@ def run_latency(
             mirror.advance(rule, model, [j for j, _ in on_time])
             for j, tr in on_time:
                 mirror.P_local[j] = tr.post.P
-        rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
+        rows.put(
+            i,
+            alloc.subset,
+            alloc.value,
+            pred,
+            est,
+            truth[i],
+            dt,
+            alloc.n_evaluated,
+            lower_bound=alloc.lower_bound,
+            gap=alloc.gap,
+        )
         pred = predict_step(model, est)
     counts.lost += len(pending)  # still in flight at the end: never arrived (as in covnet up)
     counts.deadline_misses = int(np.sum(sent_for > on_time_for))

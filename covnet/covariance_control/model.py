@@ -8,6 +8,7 @@ processes call too: the distributed layer adds transport and nothing else.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -22,10 +23,52 @@ from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_nois
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 from covnet.core.sensing import measure as draw_measurement
 from covnet.core.truth import linear_gaussian_trajectory
-from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.config import (
+    AUTO_EXACT_MAX,
+    AUTO_NODE_LIMIT,
+    BOUNDED_GAP,
+    Scenario,
+)
 
 if TYPE_CHECKING:
     from covnet.core.allocation import Allocation, AllocationPlan
+
+
+#: ``exact`` decisions over at most this many candidate sensors take the batched fast path
+#: (:func:`covnet.core.allocation.allocate`, every subset bounded at once), branch and bound
+#: (:func:`covnet.core.search.allocate_bnb`) beyond: the same subset, value and ``P`` bits, the
+#: faster of the two from about 18-20 sensors on (measured on the bench problems of ``covnet
+#: bench search``: at N = 20 branch and bound is faster for 4 of 5 metrics, at 16 for none)
+FAST_PATH_MAX = 18
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """``allocation.search`` and its options (:class:`~covnet.covariance_control.config.\
+AllocationSpec`): ``mode`` ``exact | bounded | greedy | auto``; ``bounded`` stops at the
+    relative ``gap`` (default ``BOUNDED_GAP``), ``time_limit_s`` or ``node_limit`` (when neither
+    limit is given: ``AUTO_NODE_LIMIT`` nodes, so that the decision is deterministic).
+    ``auto``: ``exact`` up to ``AUTO_EXACT_MAX`` candidate sensors, ``bounded`` beyond, decided
+    once for the configured network (:meth:`resolved`)."""
+
+    mode: str = "auto"
+    gap: float | None = None
+    time_limit_s: float | None = None
+    node_limit: int | None = None
+
+    def resolved(self, n_candidates: int) -> str:
+        """The search ``auto`` stands for with ``n_candidates`` sensors (else ``mode``)."""
+        if self.mode != "auto":
+            return self.mode
+        return "exact" if n_candidates <= AUTO_EXACT_MAX else "bounded"
+
+    def bounded_options(self) -> tuple[float, float | None, int | None]:
+        """``(rel_gap, time_limit_s, node_limit)`` of a bounded decision."""
+        gap = BOUNDED_GAP if self.gap is None else self.gap
+        nodes = self.node_limit
+        if nodes is None and self.time_limit_s is None:
+            nodes = AUTO_NODE_LIMIT
+        return gap, self.time_limit_s, nodes
 
 
 @dataclass(frozen=True)
@@ -36,7 +79,10 @@ class Model:
     :attr:`plan`: the allocation plan of ``gains`` under the configured ``constraints``
     (:func:`covnet.core.allocation.prepare`: the gains validated and the gain-only subset tables
     built once, when the first decision needs them: a process that never decides, a sensor or
-    the world, never builds them); :func:`decide` passes it at every scan.  ``plans``: the plans
+    the world, never builds them); :func:`decide` passes it at every scan (``exact`` over at
+    most ``FAST_PATH_MAX`` candidates; the other searches take the gains).  ``search``: how
+    :func:`decide` searches (:class:`SearchSettings`, ``auto`` resolved for the configured
+    network: :attr:`search_mode`).  ``plans``: the plans
     per constraint set, ``constraints -> plan``, filled by :meth:`plan_for` the first time a
     constraint set is decided under (the configured one, and one per distinct set of run-time
     failures, ``unavailable``: a handful in practice).
@@ -58,6 +104,7 @@ class Model:
     tie_rtol: float
     seed: int
     scans: int
+    search: SearchSettings = SearchSettings()
     plans: dict[Constraints, AllocationPlan] = field(
         default_factory=dict, compare=False, repr=False
     )
@@ -74,6 +121,18 @@ class Model:
         if g is None:
             g = self._derived["gains"] = np.stack([information_gain(self.H, Rj) for Rj in self.R])
         return g
+
+    @property
+    def search_mode(self) -> str:
+        """``exact``, ``bounded`` or ``greedy``: ``search`` with ``auto`` resolved for the
+        configured candidates (the sensors not excluded)."""
+        n = len(self.sensor_ids) - len(self.constraints.excluded)
+        return self.search.resolved(n)
+
+    @property
+    def reports_gap(self) -> bool:
+        """Decisions report a certified lower bound and gap (``bounded``, ``greedy``)."""
+        return self.search_mode != "exact"
 
     @property
     def plan(self) -> AllocationPlan:
@@ -129,6 +188,7 @@ def build_model(sc: Scenario) -> Model:
         tie_rtol=al.tie_rtol,
         seed=sc.seed,
         scans=sc.scans,
+        search=SearchSettings(al.search, al.gap, al.time_limit_s, al.node_limit),
     )
 
 
@@ -164,23 +224,64 @@ def decide(
     metric: str,
     unavailable: frozenset[int] = frozenset(),
 ) -> Allocation:
-    """Covariance control for scan ``k``: argmin over feasible subsets of ``f(P_i, P_d(t_k))``.
+    """Covariance control for scan ``k``: argmin over feasible subsets of ``f(P_i, P_d(t_k))``,
+    searched as ``model.search`` says (:attr:`Model.search_mode`).
 
-    ``unavailable`` (failed sensors seen at run time) joins the configured exclusions; the plan
-    for the resulting constraints comes from :meth:`Model.plan_for` (prepared once per set).
+    ``unavailable`` (failed sensors seen at run time) joins the configured exclusions.
+    ``exact``: up to ``FAST_PATH_MAX`` candidates the fast path with the plan for the resulting
+    constraints (:meth:`Model.plan_for`, prepared once per set), branch and bound beyond, both
+    the exhaustive search's result bit for bit.  ``bounded`` / ``greedy``: the best subset found,
+    with its certified ``lower_bound`` and ``gap`` (:mod:`covnet.core.search`).
     """
-    plan = model.plan
+    c = model.constraints
     if unavailable:
-        c = model.constraints
         c = Constraints(
             excluded=c.excluded | (unavailable - c.required),
             required=c.required - unavailable,
             max_active=c.max_active,
         )
-        plan = model.plan_for(c)
-    from covnet.core.allocation import allocate  # start-up of the processes that never decide
+    mode = model.search_mode
+    P_d = model.desired(scan)
+    if mode == "exact" and len(model.sensor_ids) - len(c.excluded) <= FAST_PATH_MAX:
+        # the allocator (and scipy.linalg): start-up of the processes that never decide
+        from covnet.core.allocation import allocate
 
-    return allocate(P_pred, plan, model.desired(scan), metric, tie_rtol=model.tie_rtol)
+        plan = model.plan if c == model.constraints else model.plan_for(c)
+        return allocate(P_pred, plan, P_d, metric, tie_rtol=model.tie_rtol)
+    from covnet.core.allocation import Allocation
+    from covnet.core.search import allocate_bnb, allocate_greedy
+
+    if mode == "greedy":
+        res = allocate_greedy(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
+    elif mode == "bounded":
+        gap, limit_s, nodes = model.search.bounded_options()
+        res = allocate_bnb(
+            P_pred,
+            model.gains,
+            P_d,
+            metric,
+            c,
+            model.tie_rtol,
+            rel_gap=gap,
+            time_limit_s=limit_s,
+            node_limit=nodes,
+        )
+    else:
+        res = allocate_bnb(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
+    n_feasible = feasible_count(len(model.sensor_ids), c)
+    if mode == "exact":
+        return Allocation(res.subset, res.value, res.P, n_feasible, res.n_evaluated)
+    return Allocation(
+        res.subset, res.value, res.P, n_feasible, res.n_evaluated, res.lower_bound, res.gap
+    )
+
+
+def feasible_count(n_sensors: int, c: Constraints) -> int:
+    """The number of non-empty subsets of ``n_sensors`` sensors that ``c`` allows."""
+    free = n_sensors - len(c.excluded) - len(c.required)
+    r = len(c.required)
+    K = n_sensors if c.max_active is None else c.max_active
+    return sum(math.comb(free, k - r) for k in range(max(r, 1), min(K, free + r) + 1))
 
 
 def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:

@@ -74,7 +74,10 @@ def make_figures(run_dir: Path) -> list[Path]:
     ax.set_ylabel("y error (m)")
     ax.set_title("Sensor measurement uncertainty: {e : eᵀ R⁻¹ e ≤ 1}")
     ax.grid(alpha=0.3)
-    ax.legend(ncols=2, fontsize=9, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    cols = max(2, -(-len(ids) // 16))  # a large network: more, smaller legend columns
+    ax.legend(
+        ncols=cols, fontsize=9 if cols == 2 else 7, loc="upper left", bbox_to_anchor=(1.01, 1.0)
+    )
     fig.savefig(paths[0], dpi=120)
     plt.close(fig)
 
@@ -117,11 +120,13 @@ def make_figures(run_dir: Path) -> list[Path]:
     fig.savefig(paths[2], dpi=120)
     plt.close(fig)
 
-    # 4. allocation raster
+    # 4. allocation raster (a large network: 5 inches a metric, every k-th sensor labelled)
+    row_in = 0.32 if len(ids) <= 16 else 5.0 / len(ids)
+    tick = max(1, -(-len(ids) // 16))
     fig, axes = plt.subplots(
         len(metrics),
         1,
-        figsize=(10, 1.2 + 0.32 * len(ids) * len(metrics)),
+        figsize=(10, 1.2 + row_in * len(ids) * len(metrics)),
         squeeze=False,
         layout="constrained",
         sharex=True,
@@ -139,7 +144,7 @@ def make_figures(run_dir: Path) -> list[Path]:
             extent=(0.5, en.shape[1] + 0.5, len(ids) - 0.5, -0.5),
         )
         ax.set_xlim(0.5, len(t_scan) + 0.5)
-        ax.set_yticks(range(len(ids)), ids)
+        ax.set_yticks(range(0, len(ids), tick), ids[::tick])
         ax.set_ylabel("sensor")
         rate = 100 * summary["metrics"][m]["allocation_rate"]
         ax.set_title(f"{m}: sensors allocated (filled) per scan, rate {rate:.1f} %")

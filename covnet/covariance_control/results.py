@@ -3,9 +3,12 @@
 Layout of a run directory::
 
     summary.json    per metric (keyed by registry name under "metrics"): allocation_rate,
-                    sensors_per_scan, subsets, P_diag, rmse_position, ...; config hash, seed
+                    sensors_per_scan, subsets, P_diag, value, rmse_position, ... (a bounded or
+                    greedy search: lower_bound, gap per scan, gap_median, gap_worst); config
+                    hash, seed
     arrays.npz      per-scan arrays for notebooks: t, truth, P_d, sensor_ids and, per metric m,
-                    x_est.m, P_post.m, P_pred.m, enabled.m, value.m, nees.m
+                    x_est.m, P_post.m, P_pred.m, enabled.m, value.m, nees.m (and, when a
+                    bounded or greedy search decided, lower_bound.m, gap.m)
     config.json     the normalised config the run used (every default filled in)
     run.json        wall-clock facts: creation time, version, mode, decision times, process
                     layout (what a replay cannot and need not reproduce)
@@ -62,6 +65,13 @@ def metric_summary(
         "usage": {sid: int(u) for sid, u in zip(sensor_ids, usage, strict=True)},
         "subsets_evaluated_median": float(np.median(run.n_evaluated)),
     }
+    if run.lower_bound is not None and run.gap is not None:
+        # a bounded or greedy search: what it certified at every scan (null: not reported)
+        out["lower_bound"] = _finite_or_none(run.lower_bound)
+        out["gap"] = _finite_or_none(run.gap)
+        gaps = run.gap[np.isfinite(run.gap)]
+        out["gap_median"] = float(np.median(gaps)) if gaps.size else None
+        out["gap_worst"] = float(gaps.max()) if gaps.size else None
     if switch_scan is not None and 1 < switch_scan <= len(counts):
         cut = switch_scan - 1
         out["usage_before_switch"] = dict(
@@ -71,6 +81,10 @@ def metric_summary(
             zip(sensor_ids, run.enabled[cut:].sum(axis=0).astype(int).tolist(), strict=True)
         )
     return out
+
+
+def _finite_or_none(a: np.ndarray) -> list[float | None]:
+    return [float(v) if np.isfinite(v) else None for v in a.tolist()]
 
 
 def peer_summary(
@@ -156,6 +170,9 @@ def write_run(
         arrays[f"enabled.{m}"] = r.enabled
         arrays[f"value.{m}"] = r.value
         arrays[f"nees.{m}"] = r.nees
+        if r.lower_bound is not None and r.gap is not None:
+            arrays[f"lower_bound.{m}"] = r.lower_bound
+            arrays[f"gap.{m}"] = r.gap
     for m, nodes in (node_runs or {}).items():
         for sid, r in nodes.items():
             arrays[f"x_est.{m}.{sid}"] = r.x_est

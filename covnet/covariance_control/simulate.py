@@ -47,6 +47,9 @@ class MetricRun:
     nees: np.ndarray  # (N,)
     decision_s: np.ndarray  # (N,) wall time of each allocation decision
     n_evaluated: np.ndarray  # (N,) subsets evaluated exactly by the allocator
+    # (N,) what a bounded or greedy search certifies (NaN: not reported); None: an exact search
+    lower_bound: np.ndarray | None = None
+    gap: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -79,6 +82,9 @@ class RunRows:
         self.nees = np.empty(N)
         self.decision_s = np.empty(N)
         self.n_eval = np.empty(N, dtype=np.int64)
+        self.lower_bound = np.full(N, np.nan)
+        self.gap = np.full(N, np.nan)
+        self.bounded = False  # some scan reported a lower bound
 
     def put(
         self,
@@ -90,7 +96,13 @@ class RunRows:
         truth: np.ndarray,
         dt: float,
         n_eval: int,
+        *,
+        lower_bound: float | None = None,
+        gap: float | None = None,
     ) -> None:
+        """Row ``i``; ``lower_bound`` / ``gap``: what the search certified, if it did."""
+        if lower_bound is not None and gap is not None:
+            self.lower_bound[i], self.gap[i], self.bounded = lower_bound, gap, True
         self.enabled[i, list(subset)] = True
         self.value[i] = value
         self.x_est[i], self.P_post[i], self.P_pred[i] = est.x, est.P, pred.P
@@ -109,6 +121,8 @@ class RunRows:
             self.nees,
             self.decision_s,
             self.n_eval,
+            self.lower_bound if self.bounded else None,
+            self.gap if self.bounded else None,
         )
 
 
@@ -127,5 +141,16 @@ def run_metric(sc: Scenario, metric: str, model: Model | None = None) -> MetricR
         dt = time.perf_counter() - t0
         meas = [(j, measure(model, j, k, truth[i]), model.R[j]) for j in alloc.subset]
         est = fuse(model, pred, meas)
-        rows.put(i, alloc.subset, alloc.value, pred, est, truth[i], dt, alloc.n_evaluated)
+        rows.put(
+            i,
+            alloc.subset,
+            alloc.value,
+            pred,
+            est,
+            truth[i],
+            dt,
+            alloc.n_evaluated,
+            lower_bound=alloc.lower_bound,
+            gap=alloc.gap,
+        )
     return rows.run(metric)

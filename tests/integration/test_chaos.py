@@ -47,6 +47,8 @@ class PidWatch:
                 pids = {}
             now = time.monotonic_ns()
             for name, pid in pids.items():
+                if not isinstance(pid, int):  # "hosts": sensor -> its process
+                    continue
                 seen = self.history.setdefault(name, [])
                 if not seen or seen[-1][0] != pid:
                     seen.append((pid, now))

@@ -1,0 +1,95 @@
+"""Several sensors in one process (``python -m sensors --id S1 --id S2 ...``,
+``covnet up --sensors-per-process K``).
+
+One process per sensor does not scale on a few cores (each is an interpreter, a zenoh session and
+its threads, woken every scan), so a process may host several sensors.  Each hosted sensor is
+exactly what it would be alone: its own thread runs the kind's sensor ``main`` (its own zenoh
+client session with its own security identity, its own subscriptions, liveliness token and
+heartbeat, :func:`sensors.protocol.serve`), so the manager sees the same protocol and the same
+keys as from one process per sensor.  They share the interpreter, the signal handling (SIGINT or
+SIGTERM stops them all) and the fate of the process: killing it takes out all its sensors, which
+the manager then sees fail one by one, as it would separate processes.
+
+A hosted sensor that fails (its session cannot open, its loop raises) stops the others and the
+process exits with the worst status (1 a failure, 2 a user's mistake), so that a supervisor sees
+the host fail and can restart it whole.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+from covnet.config import ConfigError
+from covnet.errors import UsageError
+from covnet.process import EXIT_FAIL, EXIT_OK, EXIT_USAGE
+
+__all__ = ["host", "say"]
+
+SensorMain = Callable[[Any, Any, threading.Event], int]
+
+#: the main thread's longest wait (signal handlers run in the main thread, between waits)
+_SLICE_S = 0.1
+
+
+_say_lock = threading.Lock()
+
+
+def say(args: Any, text: str) -> None:
+    """One line of a sensor on stdout, whole (the hosted sensors' threads share it), prefixed
+    with the sensor's id when it is hosted (``"S3: stopped: ..."``)."""
+    prefix = f"{args.id}: " if getattr(args, "hosted", False) else ""
+    with _say_lock:
+        sys.stdout.write(f"{prefix}{text}\n")
+        sys.stdout.flush()
+
+
+def host(ids: list[str], main: SensorMain, args: Any, cfg: Any, stop: threading.Event) -> int:
+    """Run ``main(args_j, cfg, stop)`` for every sensor id of ``ids`` in its own thread
+    (``args_j``: ``args`` with ``id`` set to it), until all have returned; returns the worst exit
+    status.  ``stop`` (set by the process's signal handlers) stops them all, and so does any
+    hosted sensor that fails."""
+    codes: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def one(sid: str) -> None:
+        a = argparse.Namespace(**vars(args))
+        a.id, a.hosted = sid, True
+        code = EXIT_FAIL
+        try:
+            code = int(main(a, cfg, stop))
+        except (ConfigError, UsageError) as exc:
+            print(f"sensors: {sid}: error: {exc}", file=sys.stderr, flush=True)
+            code = EXIT_USAGE
+        except (ValueError, ConnectionError) as exc:
+            print(f"sensors: {sid}: error: {exc}", file=sys.stderr, flush=True)
+        except Exception:  # noqa: BLE001 (a hosted sensor's crash must not go unsaid)
+            print(f"sensors: {sid}: crashed:", file=sys.stderr, flush=True)
+            traceback.print_exc()
+        finally:
+            with lock:
+                codes[sid] = code
+            if code != EXIT_OK:
+                stop.set()  # the host fails as a whole
+
+    # the hosted sensors' threads must not take SIGINT/SIGTERM: the main thread does
+    threads = [threading.Thread(target=one, args=(sid,), name=f"sensor-{sid}") for sid in ids]
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        for th in threads:
+            th.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+    for th in threads:
+        while th.is_alive():
+            th.join(_SLICE_S)
+    worst = max(codes.values(), default=EXIT_OK)
+    if worst != EXIT_OK:
+        failed = sorted(s for s, c in codes.items() if c != EXIT_OK)
+        print(f"sensors: hosted sensors failed: {failed}", file=sys.stderr, flush=True)
+    return worst

@@ -1,0 +1,80 @@
+"""``configs/large.yaml`` (issue 17): 64 sensors on the paper's target, ``covnet run`` and
+``covnet up`` in lockstep give the same results, the search's certified gaps included."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from multiproc import CovnetProcess, assert_nothing_left
+
+from covnet.cli import main as covnet_main
+from covnet.rundir import load_arrays
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
+
+LARGE = Path(__file__).resolve().parents[2] / "configs" / "large.yaml"
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "run"
+    assert covnet_main(["run", str(LARGE), "--out", str(out), "--no-figures"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def lockstep_up(tmp_path_factory):
+    out = tmp_path_factory.mktemp("up") / "run"
+    p = CovnetProcess(["up", str(LARGE), "--out", str(out), "--no-figures", "--verbose"])
+    try:
+        rc = p.wait(timeout=240)
+    finally:
+        p.stop()
+    assert rc == 0, p.output()
+    return out, p.output()
+
+
+def test_large_up_equals_run(reference, lockstep_up):
+    out, _ = lockstep_up
+    ref = json.loads((reference / "summary.json").read_text())
+    got = json.loads((out / "summary.json").read_text())
+    assert got["completed"] is True and len(got["sensor_ids"]) == 64
+    assert got["metrics"] == ref["metrics"]  # subsets, values, lower bounds, gaps: all of it
+    a_ref, a_got = load_arrays(reference / "arrays.npz"), load_arrays(out / "arrays.npz")
+    for m in ref["metrics"]:
+        for name in ("x_est", "P_post", "enabled", "value", "lower_bound", "gap"):
+            assert np.array_equal(a_got[f"{name}.{m}"], a_ref[f"{name}.{m}"]), (m, name)
+        blk = got["metrics"][m]
+        assert len(blk["gap"]) == 100 and all(0.0 <= g <= 1.0 for g in blk["gap"])
+        assert all(lb <= v for lb, v in zip(blk["lower_bound"], blk["value"], strict=True))
+
+
+def test_large_up_lost_nothing_and_showed_the_gap(lockstep_up):
+    out, output = lockstep_up
+    net = json.loads((out / "network.json").read_text())
+    assert net["rejected"] == {} and net["lost"] == 0
+    # the live view shows each scan's certified gap (the manager's status: value, lower_bound,
+    # gap, as live.json holds them while the run goes on)
+    shown = [line for line in output.splitlines() if line.startswith("[status] ")]
+    assert shown and all(re.search(r"gap [0-9.e+-]+ ?%", line) for line in shown), shown
+    assert_nothing_left(out)
+
+
+def test_bench_up_sizes_against_the_probe(monkeypatch, capsys, paper_path):
+    from covnet import bench_up
+
+    monkeypatch.setattr(bench_up, "SIZED_SCANS", 40)
+    rc = covnet_main(
+        ["bench", "up", "--sensors", "4,20", "--repeat", "1", "--json", "--config", str(paper_path)]
+    )
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert rc == 0 and [r["n_sensors"] for r in rows] == [4, 20]
+    assert [r["sensors_per_process"] for r in rows] == [1, bench_up.default_sensors_per_process(20)]
+    for r in rows:
+        assert r["scans"] == 40 and r["scans_per_s"] > 0 and r["probe_scans_per_s"] > 0
+        assert r["ratio"] == r["scans_per_s"] / r["probe_scans_per_s"]
+        assert 0 < r["probe_p50_ms"] <= r["probe_p99_ms"]
