@@ -232,8 +232,6 @@ class TargetsLogic:
     """The many-target fusion centre's steps for :func:`manager.loop.run_scans` (module
     docstring)."""
 
-    accept_unsolicited = False
-
     def __init__(self, sc: Scenario, loop: Loop) -> None:
         # start-up: the many-target steps only for configs with targets
         from covnet.covariance_control import targets
@@ -247,6 +245,14 @@ class TargetsLogic:
         )
         self.sc, self.tm = sc, targets.build(sc)
         self.ids = self.tm.sensor_ids
+        lat = sc.network.latency
+        self.slow = not lat.is_ideal(self.ids)  # late messages re-filtered (or dropped)
+        self.accept_unsolicited = False
+        self._history = (
+            (lambda: targets.History(self.tm, lat.oosm_depth, self.tracks))
+            if self.slow and lat.late == "oosm"
+            else (lambda: None)
+        )
         self.episodes = list(sc.allocation.metrics)
         self.scans, self.period_s = self.tm.scans, self.tm.T
         self.clock = loop.clock
@@ -256,7 +262,7 @@ class TargetsLogic:
 
     def start_episode(self, e: int) -> None:
         self.metric = self.episodes[e]
-        self.centre = self._centre(self.tm)
+        self.centre = self._centre(self.tm, self._history())
         self.log = self.result.episodes[self.metric] = self._log.start(
             self.metric, self.tm, self.truth
         )
@@ -279,14 +285,14 @@ class TargetsLogic:
         return self.centre.usable(m)
 
     def on_late(self, m: Any) -> bool | None:
-        return None
+        return self.centre.insert_late(m) if self.slow else None
 
     def fuse(self, e: int, k: int, got: dict[str, Any]) -> Any:
-        posts, dwells = self.centre.fuse(self.plan, got)
-        return self.plan, posts, dwells, got
+        prior, posts, dwells = self.centre.fuse(self.plan, got)
+        return self.plan, prior, posts, dwells, got, self.centre.take_refiltered()
 
     def report(self, e: int, k: int, fused: Any, failed: frozenset[str]) -> ScanReport:
-        plan, posts, dwells, got = fused
+        plan, prior, posts, dwells, got, refiltered = fused
         ids, tm, now = self.ids, self.tm, self.clock.now_ns
         t = k * tm.T
         tracks = [
@@ -307,8 +313,9 @@ class TargetsLogic:
             episode=e,
             fused=tuple(sorted(got, key=ids.index)),
             failed=tuple(sorted(failed - {WORLD_ID})),
+            refiltered=refiltered,
         )
-        self.result.episodes[self.episodes[e]].record(plan, posts, dwells, sorted(got))
+        self.result.episodes[self.episodes[e]].record(plan, prior, posts, dwells, sorted(got))
         per = "  ".join(
             f"{tid}:{len(plan.decision.on_target(i))}" for i, tid in enumerate(tm.target_ids)
         )

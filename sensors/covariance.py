@@ -150,6 +150,8 @@ def run_targets(
         sc.network,
         truth_ok=truth_ok,
         respond=respond,
+        # slow links: every command (a stale one is ignored), a missed one is a scan off
+        missed_command="off" if not sc.network.latency.is_ideal(sc.sensor_ids) else None,
         keep_truth=tm.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
         command_ok=command_ok,
     )

@@ -89,18 +89,31 @@ def run_targets(sc: Scenario, out: Path, *, figures: bool) -> int:
     from covnet.covariance_control.simulate import run_targets as simulate_targets
 
     tm = targets.build(sc)
-    if not sc.network.latency.is_ideal(sc.sensor_ids):
-        raise UsageError("network.latency: not yet available with 'targets:'")
+    slow = not sc.network.latency.is_ideal(sc.sensor_ids)
     runs = {}
+    latency: dict[str, dict[str, int]] = {}
     for m in sc.allocation.metrics:
         t0 = time.perf_counter()
-        runs[m] = simulate_targets(sc, m, tm)
+        if slow:
+            from covnet.covariance_control.latency_sim import run_targets_latency  # start-up
+
+            runs[m], counts = run_targets_latency(sc, m, tm)
+            latency[m] = counts.as_dict()
+        else:
+            runs[m] = simulate_targets(sc, m, tm)
         r = runs[m]
         print(
             f"{m:>10}: {sc.scans} scans x {len(tm.targets)} targets in "
             f"{time.perf_counter() - t0:.2f} s, allocation rate {100.0 * r.enabled.mean():.1f} %"
         )
-    summary = write_targets_run(out, sc, tm, runs, run_info={"mode": "in-process"})
+    summary = write_targets_run(
+        out,
+        sc,
+        tm,
+        runs,
+        extra={"latency": latency} if latency else None,
+        run_info={"mode": "in-process"},
+    )
     if figures:
         from covnet.covariance_control.plots import make_figures  # matplotlib: start-up
 

@@ -614,6 +614,16 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
                 "not available with 'targets:' (the many-target allocator scores pd · J only)",
             )
         )
+    lat = sc.network.latency
+    if "missed_command" in lat.model_fields_set and lat.missed_command != "off":
+        problems.append(
+            (
+                "network.latency.missed_command",
+                f"{lat.missed_command} is not available with 'targets:': a sensor whose command "
+                "never came does not know which target to dwell on, nor the clutter window; "
+                "it dwells on nothing (off, the only choice with targets)",
+            )
+        )
     return problems
 
 
@@ -746,7 +756,8 @@ def normalised(sc: Scenario) -> dict[str, Any]:
 
     A config without ``targets:`` leaves out every key the many-target scenario added (they
     hold their defaults: the semantic checks see to it), so that its hash is what it was; one
-    with ``targets:`` leaves out the one-target ``target`` and ``desired`` it does not use."""
+    with ``targets:`` leaves out the one-target ``target`` and ``desired`` it does not use, and
+    says ``network.latency.missed_command: off``, what it does."""
     if not sc.multitarget:
         data = _normalised(sc, _PAPER_OMITS)
         for s in data["sensors"]:
@@ -755,6 +766,8 @@ def normalised(sc: Scenario) -> dict[str, Any]:
         return data
     data = _normalised(sc, ("network.security",))
     del data["target"], data["desired"]
+    # with targets a missed command is always a scan off (the only choice: see the checks)
+    data["network"]["latency"]["missed_command"] = "off"
     return data
 
 

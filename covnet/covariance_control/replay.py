@@ -291,7 +291,11 @@ def _recompute_targets(
             continue
         log = result.episodes[metric] = TargetEpisodeLog.start(metric, tm, truth)
         where = f"episode {e} ({metric})"
-        centre = TargetsCentre(tm)  # the manager's own steps
+        lat = sc.network.latency
+        history = None
+        if not lat.is_ideal(ids) and lat.late == "oosm":
+            history = targets.History(tm, lat.oosm_depth, sc.fusion.mode == "info")
+        centre = TargetsCentre(tm, history)  # the manager's own steps
         failed_prev: frozenset[str] = frozenset()
         for k in range(1, tm.scans + 1):
             st = rec.status.get((e, k))
@@ -346,7 +350,16 @@ def _recompute_targets(
                     )
                     continue
                 got[sid] = m
-            posts, dwells = centre.fuse(plan, got)
+            for token in st.refiltered or ():  # the late ones the manager re-filtered
+                sid, _, scan = token.rpartition(":")
+                m = rec.meas.get((e, int(scan), sid)) if scan.isdigit() else None
+                if m is None or not centre.insert_late(m):
+                    diffs.add(
+                        "refiltered",
+                        f"{where} scan {k}: the manager re-filtered {token} but the replay "
+                        "cannot (no valid recorded message, or not insertable)",
+                    )
+            prior, posts, dwells = centre.fuse(plan, got)
             trace_P = float(sum(np.trace(g.P) for g in posts))
             if trace_P != st.trace_P:
                 diffs.add(
@@ -362,7 +375,7 @@ def _recompute_targets(
                         f"{where} scan {k}: the replayed estimate of {tid} differs from its "
                         f"recorded Track (max |dx| = {float(np.max(np.abs(tr.x - g.x))):.6g})",
                     )
-            log.record(plan, posts, dwells, sorted(st.fused))
+            log.record(plan, prior, posts, dwells, sorted(st.fused))
         if len(log.value) < tm.scans:
             completed = False
     result.completed = completed

@@ -83,6 +83,7 @@ if TYPE_CHECKING:
 __all__ = [
     "OFF",
     "Dwell",
+    "History",
     "LocalTargets",
     "TargetDecision",
     "TargetModel",
@@ -706,6 +707,89 @@ def fuse_tracks(
             [Dwell(j, -1, not np.array_equal(tr.post.P, tr.prior.P), None, 0) for j, tr in mine]
         )
     return posts, dwells
+
+
+# --------------------------------------------------------------------------------------------
+# slow links: late returns re-filtered from their scan
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Entry:
+    """One buffered scan: the prior it was fused from, its decision and clutter windows, what
+    was fused (sensor index -> returns, or a local track under info), the posterior."""
+
+    scan: int
+    prior: list[Gaussian]
+    decision: TargetDecision
+    windows: dict[int, ClutterWindow | None]
+    got: dict[int, Any]
+    post: list[Gaussian]
+
+
+class History:
+    """The last ``depth`` scans of the many-target centre (``network.latency.late: oosm``),
+    so that a dwell's returns (or its local track) that arrive after their scan's deadline are
+    added to that scan and every later scan is fused again from its re-predicted prior, with
+    the decisions and clutter windows as they were made (the sensors dwelt as commanded then).
+    A late message of a scan older than the buffer, of a sensor that did not dwell then, or a
+    second one of a sensor and scan, cannot be re-filtered (the caller drops it and counts it).
+    The same calls, in the same order, as the in-order path: with every message on time it is
+    that path."""
+
+    def __init__(self, tm: TargetsModel, depth: int, tracks: bool) -> None:
+        self.tm, self.depth, self.tracks = tm, depth, tracks
+        self.entries: list[_Entry] = []
+        self.changed = False
+
+    def _fuse(self, e: _Entry) -> list[Gaussian]:
+        if self.tracks:
+            return fuse_tracks(self.tm, e.prior, e.decision, e.got)[0]
+        return fuse(self.tm, e.prior, e.decision, e.got, e.windows)[0]
+
+    def step(
+        self,
+        scan: int,
+        prior: list[Gaussian],
+        decision: TargetDecision,
+        windows: dict[int, ClutterWindow | None],
+        got: Mapping[int, Any],
+    ) -> tuple[list[Gaussian], list[list[Dwell]]]:
+        """Fuse scan ``scan`` (as :func:`fuse` / :func:`fuse_tracks`) and keep it."""
+        if self.tracks:
+            posts, dwells = fuse_tracks(self.tm, prior, decision, got)
+        else:
+            posts, dwells = fuse(self.tm, prior, decision, got, windows)
+        self.entries.append(_Entry(scan, list(prior), decision, dict(windows), dict(got), posts))
+        del self.entries[: -self.depth]
+        return posts, dwells
+
+    def insert(self, scan: int, j: int, payload: Any) -> bool:
+        """A late message of sensor ``j`` for scan ``scan``: True when it was re-filtered."""
+        at = next((i for i, e in enumerate(self.entries) if e.scan == scan), None)
+        if at is None:
+            return False
+        e = self.entries[at]
+        if j in e.got or e.decision.assignment[j] == OFF:
+            return False
+        e.got[j] = payload
+        e.post = self._fuse(e)
+        for prev, nxt in zip(self.entries[at:], self.entries[at + 1 :], strict=False):
+            nxt.prior = predict_all(self.tm, prev.post)
+            nxt.post = self._fuse(nxt)
+        self.changed = True
+        return True
+
+    def assignment(self, scan: int, j: int) -> int | None:
+        """Sensor ``j``'s assignment at buffered scan ``scan`` (``None``: not buffered)."""
+        e = next((e for e in self.entries if e.scan == scan), None)
+        return None if e is None else e.decision.assignment[j]
+
+    def predicted(self) -> list[Gaussian]:
+        """The prediction from the newest buffered scan (scan ``k``'s prior after late
+        messages were re-filtered)."""
+        self.changed = False
+        return predict_all(self.tm, self.entries[-1].post)
 
 
 def usable_returns(tm: TargetsModel, j: int, z: Mat, R: Mat) -> bool:

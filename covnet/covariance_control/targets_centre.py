@@ -51,10 +51,40 @@ class ScanPlan:
 class TargetsCentre:
     """One episode of the many-target centre (module docstring)."""
 
-    def __init__(self, tm: TargetsModel) -> None:
+    def __init__(self, tm: TargetsModel, history: targets.History | None = None) -> None:
         self.tm = tm
         self.ids = tm.sensor_ids
         self.est = targets.initial_estimates(tm)
+        self.history = history
+        self.refiltered: list[str] = []  # "<sensor>:<scan>" since the last Status
+
+    def insert_late(self, m: Any) -> bool:
+        """Slow links: a late message (returns, or a local track) of an earlier scan: True
+        when it was re-filtered into its scan (:class:`covnet.covariance_control.targets.
+        History`)."""
+        if self.history is None or m.sensor_id not in self.ids:
+            return False
+        j = self.ids.index(m.sensor_id)
+        if isinstance(m, msg.LocalTrack):  # a track of the target the sensor dwelt on then
+            a = self.history.assignment(m.scan, j)
+            if a is None or a < 0 or self.tm.target_ids[a] != m.target_id:
+                return False
+        done = self.history.insert(m.scan, j, self._payload(m))
+        if done:
+            self.refiltered.append(f"{m.sensor_id}:{m.scan}")
+        return done
+
+    def take_refiltered(self) -> tuple[str, ...] | None:
+        if self.history is None:
+            return None
+        out, self.refiltered = tuple(self.refiltered), []
+        return out
+
+    @staticmethod
+    def _payload(m: Any) -> Any:
+        if isinstance(m, msg.LocalTrack):
+            return LocalTrack(post=Gaussian(m.x, m.P), prior=Gaussian(m.x_prior, m.P_prior))
+        return m.z
 
     def decide(self, k: int, metric: str, unavailable: frozenset[int]) -> ScanPlan:
         preds = targets.predict_all(self.tm, self.est)
@@ -95,30 +125,31 @@ class TargetsCentre:
             return False
         if not (m.x.shape == (4,) and is_spd(m.P) and is_spd(m.P_prior)):
             return False
-        if plan is None:
+        if plan is None or m.scan != plan.k:  # a late one: checked when it is inserted
             return True
         a = plan.decision.assignment[self.ids.index(m.sensor_id)]
         return a >= 0 and self.tm.target_ids[a] == m.target_id
 
     def fuse(
         self, plan: ScanPlan, got: Mapping[str, Any]
-    ) -> tuple[list[Gaussian], list[list[Dwell]]]:
-        """Every target's posterior from what arrived (``sensor id -> Measurement``, or under
-        ``info`` ``-> LocalTrack``; a sensor that dwelt and sent nothing leaves its target's
-        prediction as it was)."""
-        if any(isinstance(m, msg.LocalTrack) for m in got.values()):
-            tracks = {
-                self.ids.index(sid): LocalTrack(
-                    post=Gaussian(m.x, m.P), prior=Gaussian(m.x_prior, m.P_prior)
-                )
-                for sid, m in got.items()
-            }
-            posts, dwells = targets.fuse_tracks(self.tm, plan.preds, plan.decision, tracks)
+    ) -> tuple[list[Gaussian], list[Gaussian], list[list[Dwell]]]:
+        """``(prior, posteriors, dwells)`` of scan ``plan.k`` from what arrived (``sensor id ->
+        Measurement``, or under ``info`` ``-> LocalTrack``; a sensor that dwelt and sent nothing
+        leaves its target's prediction as it was); on slow links the prior is the re-filtered
+        one when late messages came in."""
+        payloads = {self.ids.index(sid): self._payload(m) for sid, m in got.items()}
+        prior = plan.preds
+        h = self.history
+        if h is not None:
+            if h.changed:
+                prior = h.predicted()
+            posts, dwells = h.step(plan.k, prior, plan.decision, plan.windows, payloads)
+        elif any(isinstance(m, msg.LocalTrack) for m in got.values()):
+            posts, dwells = targets.fuse_tracks(self.tm, prior, plan.decision, payloads)
         else:
-            returns = {self.ids.index(sid): m.z for sid, m in got.items()}
-            posts, dwells = targets.fuse(self.tm, plan.preds, plan.decision, returns, plan.windows)
+            posts, dwells = targets.fuse(self.tm, prior, plan.decision, payloads, plan.windows)
         self.est = posts
-        return posts, dwells
+        return prior, posts, dwells
 
 
 @dataclass
@@ -143,14 +174,13 @@ class TargetEpisodeLog:
     def record(
         self,
         plan: ScanPlan,
+        prior: list[Gaussian],
         posts: list[Gaussian],
         dwells: list[list[Dwell]],
         fused: list[str],
     ) -> None:
         i = plan.k - 1
-        self.rows.put(
-            i, plan.decision, plan.preds, posts, dwells, self.truth[:, i], plan.decision_s
-        )
+        self.rows.put(i, plan.decision, prior, posts, dwells, self.truth[:, i], plan.decision_s)
         self.value.append(float(plan.decision.value))
         self.fused_from.append(fused)
 
