@@ -450,6 +450,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME",
         help="search: only this search (exact, bounded, greedy; repeatable)",
     )
+    b.add_argument(
+        "--targets",
+        type=_int_list,
+        metavar="T,T,...",
+        help="multitarget: numbers of targets (default 3, the spec's scenario; up to 8)",
+    )
     b.add_argument("--config", default="configs/paper.yaml", help="sensor table and scenario")
     b.add_argument("--problems", type=int, default=5, help="decision problems per N (scans)")
     b.add_argument(

@@ -237,6 +237,11 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet compare``: the fusion structures side by side over a Monte Carlo batch."""
     from covnet.covariance_control import compare as cmp  # scipy.stats: start-up of the rest
 
+    if sc.multitarget:
+        raise UsageError(
+            "compare: the fusion structures are compared on the one-target scenario; with "
+            "'targets:' run covnet mc once per fusion.mode (central, info)"
+        )
     given = args.modes if args.modes is not None else ",".join(cmp.default_modes())
     modes = [m.strip() for m in given.split(",") if m.strip()]
     for m in modes:
@@ -325,6 +330,11 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet sweep``: the latency grid of the config's ``sweep`` section."""
     from covnet.covariance_control import sweep as sw  # start-up time of the other commands
 
+    if sc.multitarget:
+        raise UsageError(
+            "sweep: the latency grid runs the one-target scenario; with 'targets:' give "
+            "network.latency in the config and use covnet run or covnet mc"
+        )
     if sc.fusion.mode == "peer":
         raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
     spec = sc.sweep or SweepSpec()
@@ -458,12 +468,18 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
     metrics = [_metric(load(args.config), [m], m) for m in args.metric] if args.metric else None
     if not args.json:
         print(" ".join(k for k, _ in bs.MT_COLUMNS), flush=True)
+    targets = getattr(args, "targets", None) or [3]
+    if any(not 1 <= t <= len(bs.MT_TARGETS) + len(bs.MT_MORE_TARGETS) for t in targets):
+        raise UsageError(
+            f"--targets: 1 to {len(bs.MT_TARGETS) + len(bs.MT_MORE_TARGETS)}, got {targets}"
+        )
     rows = bs.run_multitarget(
         args.sensors or [8, 12, 16],
         metrics or ("spectral", "abs_trace", "svd", "kl"),
         args.problems,
         args.repeat,
         progress=None if args.json else (lambda line: print(line, flush=True)),
+        target_counts=targets,
     )
     if args.json:
         for row in rows:

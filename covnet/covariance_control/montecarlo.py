@@ -11,7 +11,8 @@ depends on the config and the seeds only; the wall times go to ``run.json``.
 Aggregates, per metric and scalar (and per target): the mean over seeds, the standard deviation
 (ddof = 1), the 95 % confidence interval of the mean ``mean ± t_{0.975, N−1} s / √N`` (Student;
 one seed: no interval), min and max; per scan the mean OSPA and ``tr P_t`` with the same
-interval; and the filter's consistency over the whole batch: the mean NEES over every seed and
+interval; per target the seeds whose track was lost (ever further from the truth than the OSPA
+cut-off); and the filter's consistency over the whole batch: the mean NEES over every seed and
 scan against the 95 % χ² band of ``N · K`` values (approximate: a run's errors are correlated
 from scan to scan), likewise the NIS against the band of its summed degrees of freedom.
 """
@@ -155,16 +156,33 @@ def interval(values: Sequence[float]) -> dict[str, Any]:
 
     v = np.asarray([x for x in values if x is not None], dtype=np.float64)
     if v.size == 0:
-        return {"mean": None, "std": None, "ci95": None, "min": None, "max": None, "n": 0}
+        return {
+            "mean": None,
+            "std": None,
+            "ci95": None,
+            "median": None,
+            "min": None,
+            "max": None,
+            "n": 0,
+        }
     mean = float(v.mean())
     if v.size < 2:
-        return {"mean": mean, "std": None, "ci95": None, "min": mean, "max": mean, "n": 1}
+        return {
+            "mean": mean,
+            "std": None,
+            "ci95": None,
+            "median": mean,
+            "min": mean,
+            "max": mean,
+            "n": 1,
+        }
     sd = float(v.std(ddof=1))
     half = float(stats.t.ppf(0.975, v.size - 1)) * sd / math.sqrt(v.size)
     return {
         "mean": mean,
         "std": sd,
         "ci95": [mean - half, mean + half],
+        "median": float(np.median(v)),
         "min": float(v.min()),
         "max": float(v.max()),
         "n": int(v.size),
@@ -187,8 +205,9 @@ def _series(rows: Sequence[Sequence[float]]) -> dict[str, list[float]]:
     }
 
 
-def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """Per metric (module docstring)."""
+def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) -> dict[str, Any]:
+    """Per metric (module docstring); with ``cutoff_m`` (the OSPA cut-off) each target's
+    ``lost``: the seeds whose track was ever further than it from the truth."""
     from covnet.core.consistency import chi2_band, mean_chi2_band  # start-up: scipy.stats
 
     out: dict[str, Any] = {}
@@ -217,6 +236,15 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                     "mean": sum(t["nis_sum"] for t in tt) / nis_n if nis_n else None,
                     "band_95": list(mean_chi2_band(dof, nis_n)) if nis_n else None,
                     "values": nis_n,
+                }
+            if cutoff_m is not None and "max_position_error" in tt[0]:
+                tb["lost"] = {
+                    "seeds": [
+                        r["seed"]
+                        for r, t in zip(rows, tt, strict=True)
+                        if t["max_position_error"] > cutoff_m
+                    ],
+                    "cutoff_m": cutoff_m,
                 }
             tb["trace_P_per_scan"] = _series([t["trace_P"] for t in tt])
             tb["sensors_per_scan"] = _series([t["sensors_per_scan"] for t in tt])
@@ -257,7 +285,9 @@ def write_mc(
             tg.id: [float(np.trace(tg.desired(k))) for k in range(1, sc.scans + 1)]
             for tg in tm.targets
         },
-        "aggregate": aggregate(clean) if clean else {},
+        "aggregate": aggregate(clean, sc.ospa.cutoff_m if sc.multitarget else None)
+        if clean
+        else {},
         "per_seed": clean,
     }
     write_json(out_dir / MC_FILE, doc)
@@ -284,9 +314,13 @@ def format_table(doc: Mapping[str, Any]) -> str:
         lines.append(head)
         for tid, t in blk["targets"].items():
             nb = t["nees_batch"]
+            lost = t.get("lost")
+            tail = f", lost in {len(lost['seeds'])} seeds {lost['seeds']}" if lost else ""
             lines.append(
-                f"    {tid}: RMSE {ci(t['rmse_position'])} m, NEES {ci(t['mean_nees'])} "
-                f"(batch {nb['mean']:.2f}, 95 % band {nb['band_95'][0]:.2f}-"
-                f"{nb['band_95'][1]:.2f}), sensors/scan {ci(t['sensors_per_scan_mean'])}"
+                f"    {tid}: RMSE {ci(t['rmse_position'])} m (median "
+                f"{t['rmse_position']['median']:.2f}), NEES {ci(t['mean_nees'])} (median "
+                f"{t['mean_nees']['median']:.2f}; batch {nb['mean']:.2f}, 95 % band "
+                f"{nb['band_95'][0]:.2f}-{nb['band_95'][1]:.2f}), sensors/scan "
+                f"{ci(t['sensors_per_scan_mean'])}{tail}"
             )
     return "\n".join(lines)

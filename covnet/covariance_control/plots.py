@@ -390,6 +390,7 @@ def mc_figure(mc_dir: Path) -> Path:
             ax.plot(k, s["mean"], color=col, lw=1.5, label=f"{m}")
             ax.fill_between(k, s["ci95_low"], s["ci95_high"], color=col, alpha=0.2)
         ax.set_ylabel("OSPA (m)")
+        ax.set_ylim(bottom=0.0)
         ax.set_title(f"{doc['scenario']}: means over {n} seeds with 95 % intervals")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=9)
@@ -404,7 +405,7 @@ def mc_figure(mc_dir: Path) -> Path:
         if pd_:
             ax.step(np.arange(1, len(pd_) + 1), pd_, where="mid", color="k", ls="--", lw=1.2,
                     label="tr P_d")  # fmt: skip
-        ax.set_yscale("log")
+            ax.set_ylim(0.0, 3.0 * max(pd_))  # a lost track's seeds widen the interval a lot
         ax.set_ylabel(f"{tid}: trace")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8, loc="upper right")

@@ -130,3 +130,9 @@ def test_a_config_warning_prints_as_one_line(capsys):
     w = ConfigWarning("sensors[0]", "P1 never covers any target")
     cli._show_warning(w, ConfigWarning, "x.py", 1)
     assert capsys.readouterr().err == "covnet: warning: sensors[0]: P1 never covers any target\n"
+
+
+@pytest.mark.parametrize("command", ["compare", "sweep"])
+def test_one_target_batches_refuse_many_targets(short_config, tmp_path, command, capsys):
+    assert main([command, str(short_config), "--out", str(tmp_path / command)]) == 2
+    assert "targets" in capsys.readouterr().err
