@@ -272,3 +272,25 @@ def test_info_with_radars_and_clutter_runs_and_is_close_to_central():
         err = np.hypot(*(r.x_est - truth)[:, :, [0, 2]].transpose(2, 0, 1))
         assert err.max() < 150.0
     assert info.nis_n.sum() == 0 and central.nis_n.sum() > 0
+
+
+def test_detection_modes_scale_the_information():
+    """allocation.detection: expected scales HᵀR⁻¹H by pd, ignore by 1, pda by the PDAF's
+    q₂ (below pd · P_G in clutter)."""
+    Js = {}
+    for mode in ("ignore", "expected", "pda"):
+        data = small(4)
+        data["allocation"]["detection"] = mode
+        tm = targets.build(from_dict(data))
+        preds = targets.predict_all(tm, targets.initial_estimates(tm))
+        Js[mode], feas = targets.information(tm, preds)
+    on = feas[4, 0]
+    assert on
+    ref = Js["ignore"][4, 0]
+    nz = np.abs(ref) > 0
+    ratio_e = Js["expected"][4, 0][nz] / ref[nz]
+    ratio_p = Js["pda"][4, 0][nz] / ref[nz]
+    np.testing.assert_allclose(ratio_e, 0.9)
+    q2 = float(ratio_p[0])
+    assert 0.0 < q2 < 0.9 * 0.99
+    np.testing.assert_allclose(ratio_p, q2)
