@@ -16,12 +16,13 @@ import json
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from covnet import __version__, kinds
-from covnet.config import ConfigError, endpoint_problem, hash_of
+from covnet.config import ConfigError, ConfigWarning, endpoint_problem, hash_of
 from covnet.errors import UpError, UsageError
 from covnet.messages import RESERVED_IDS, new_run_id, run_keyexpr
 from covnet.rundir import CONFIG, RUN_INFO, prepare_out, read_json, record_end
@@ -392,13 +393,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     r.set_defaults(func=cmd_run)
 
-    mc = sub.add_parser("mc", help="Monte Carlo evaluation of a mobile or passive scenario")
-    mc.add_argument("config", help="configs/mobile.yaml or configs/passive.yaml")
+    mc = sub.add_parser("mc", help="Monte Carlo evaluation of a scenario over seeds or trials")
+    mc.add_argument(
+        "config", help="e.g. configs/multitarget.yaml, configs/mobile.yaml, configs/passive.yaml"
+    )
     mc.add_argument(
         "--trials",
         type=int,
         metavar="N",
-        help="seeds (mobile, default 20) or trials per cell (passive, default: config)",
+        help="seeds (covariance control: from the config's, default 20; mobile: 0..N-1, "
+        "default 20) or trials per cell (passive, default: config)",
     )
     mc.add_argument("--workers", type=int, help="processes (default: one per core)")
     _batch_options(mc, "seeds (passive: trials)")
@@ -566,6 +570,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="search: stop an exact decision after S seconds, counted as not exact in n_exact "
         "and timed at the cap (default 60)",
     )
+    b.add_argument(
+        "--targets",
+        type=_int_list,
+        metavar="T,T,...",
+        help="multitarget: numbers of targets (default 3, the spec's scenario; up to 8)",
+    )
     b.add_argument("--config", default="configs/paper.yaml", help="sensor table and scenario")
     b.add_argument("--problems", type=int, default=5, help="decision problems per N (scans)")
     b.add_argument(
@@ -591,6 +601,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _show_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: Any = None,
+    line: str | None = None,
+) -> None:
+    """A config warning as one line (``covnet: warning: <path>: <message>``); others as
+    Python prints them."""
+    if issubclass(category, ConfigWarning):
+        print(f"covnet: warning: {message}", file=sys.stderr)
+        return
+    _python_showwarning(message, category, filename, lineno, file, line)
+
+
+_python_showwarning = warnings.showwarning
+
+
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -598,6 +627,7 @@ def _interrupt(signum: int, frame: object) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    warnings.showwarning = _show_warning
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops a command as Ctrl-C does
     try:

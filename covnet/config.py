@@ -44,6 +44,7 @@ from covnet.messages import RESERVED_IDS
 __all__ = [
     "Bool",
     "ConfigError",
+    "ConfigWarning",
     "Float",
     "Ident",
     "Int",
@@ -97,6 +98,17 @@ class ConfigError(ValueError):
         self.problems = list(problems)
         lines = [f"{path}: {msg}" if path else msg for path, msg in self.problems]
         super().__init__(f"invalid config {source}:\n  " + "\n  ".join(lines))
+
+
+class ConfigWarning(UserWarning):
+    """A config that loads but is probably not what was meant (e.g. a sensor that can never
+    cover any target); ``path`` names where.  The CLI prints it as ``covnet: warning: <path>:
+    <message>``."""
+
+    def __init__(self, path: str, message: str) -> None:
+        super().__init__(f"{path}: {message}")
+        self.path = path
+        self.message = message
 
 
 class ConfigModel(BaseModel):

@@ -373,7 +373,8 @@ def parse_alive_key(key: str) -> tuple[str, str]:
 
 # kinds: "count" int >= 0; "stamp" int ns >= 0; "float" finite float; "name" id str;
 # "names" tuple of unique ids; "vec"/"mat" float64 1-D/2-D finite array; "modes" dict id->id;
-# "counts" dict id->count; "targets" dict id->tuple of unique ids.
+# "counts" dict id->count; "targets" dict id->tuple of unique ids; "vecs" dict id->float64 1-D
+# finite array.
 
 
 def _is_int(v: object, strict: bool) -> bool:
@@ -455,6 +456,8 @@ def _coerce_slow(kind: str, name: str, v: object, strict: bool) -> Any:
         return _coerce_counts(name, v, strict)
     if kind == "targets":
         return _coerce_targets(name, v, strict)
+    if kind == "vecs":
+        return _coerce_vecs(name, v, strict)
     raise AssertionError(kind)  # pragma: no cover
 
 
@@ -484,6 +487,21 @@ def _coerce_targets(name: str, v: object, strict: bool) -> dict[str, tuple[str, 
         raise WireError("too_large", f"{name} has {len(v)} entries > {MAX_IDS}")
     return {
         _coerce("name", f"{name} key", k, strict): _coerce_names(f"{name}[{k!r}]", x, strict)
+        for k, x in v.items()
+    }
+
+
+def _coerce_vecs(name: str, v: object, strict: bool) -> dict[str, NDArray[np.float64]] | None:
+    if v is None:
+        if strict:
+            raise WireError("bad_type", f"{name} must be a map, got nil")
+        return None
+    if not isinstance(v, Mapping) or (strict and type(v) is not dict):
+        raise WireError("bad_type", f"{name} must be a map of str to a float64 vector")
+    if len(v) > MAX_IDS:
+        raise WireError("too_large", f"{name} has {len(v)} entries > {MAX_IDS}")
+    return {
+        _coerce("name", f"{name} key", k, strict): _coerce_array(f"{name}[{k!r}]", x, 1, strict)
         for k, x in v.items()
     }
 
@@ -587,6 +605,11 @@ class _Message:
             if isinstance(a, np.ndarray):
                 if a.shape != b.shape or not np.array_equal(a, b):
                     return False
+            elif isinstance(a, dict) and any(isinstance(x, np.ndarray) for x in a.values()):
+                if a.keys() != b.keys() or not all(
+                    a[k].shape == b[k].shape and np.array_equal(a[k], b[k]) for k in a
+                ):
+                    return False
             elif a != b:
                 return False
         return True
@@ -637,8 +660,11 @@ class Command(_Message):
     """The manager's tasking for scan ``scan`` (time ``t`` [s]), one per scan, on the key
     that names its enabled set (:func:`command_key`): sensors listed in ``enabled`` measure,
     every other sensor is disabled for this scan (and does not receive it). ``modes`` (optional)
-    maps a sensor id to a policy-specific mode name; ``targets`` (optional, mobile scenarios)
-    maps a sensor id to the ids of the targets it is to measure (possibly none).
+    maps a sensor id to a policy-specific mode name; ``targets`` (optional, mobile scenarios
+    and many-target covariance control) maps a sensor id to the ids of the targets it is to
+    measure (possibly none); ``windows`` (optional, many-target covariance control) maps an
+    enabled sensor id to its dwell's clutter window, ``[centre..., half-width...]`` in
+    measurement space (the manager's predicted measurement ± n σ of the innovation).
     ``t_sent_ns``: monotonic ns at publish."""
 
     KIND: ClassVar[str] = "cmd"
@@ -650,6 +676,7 @@ class Command(_Message):
         "episode": "count",
         "modes": "modes",
         "targets": "targets",
+        "windows": "vecs",
     }
     scan: int
     t: float
@@ -658,6 +685,12 @@ class Command(_Message):
     episode: int = 0
     modes: dict[str, str] | None = None
     targets: dict[str, tuple[str, ...]] | None = None
+    windows: dict[str, NDArray[np.float64]] | None = None
+
+    def _check(self) -> None:
+        if self.windows is not None and not set(self.windows) <= set(self.enabled):
+            extra = sorted(set(self.windows) - set(self.enabled))
+            raise WireError("bad_value", f"windows for sensors not enabled: {extra}")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -791,7 +824,8 @@ class LocalTrack(_Message):
     ``t`` [s]), published instead of its measurement at a scan it was enabled: the posterior
     ``N(x, P)`` and the local filter's own prediction ``N(x_prior, P_prior)`` for that scan (the
     information-matrix fusion removes it; see :mod:`covnet.core.fusion`).  ``seq`` as in
-    :class:`Measurement`."""
+    :class:`Measurement`; ``target_id`` (optional, many targets): the target the track is of
+    (the one the sensor dwelt on)."""
 
     KIND: ClassVar[str] = "ltrack"
     _KINDS: ClassVar[dict[str, str]] = {
@@ -805,6 +839,7 @@ class LocalTrack(_Message):
         "t_sent_ns": "stamp",
         "episode": "count",
         "seq": "count",
+        "target_id": "name",
     }
     sensor_id: str
     scan: int
@@ -816,6 +851,7 @@ class LocalTrack(_Message):
     t_sent_ns: int
     episode: int = 0
     seq: int | None = None
+    target_id: str | None = None
 
     def _check(self) -> None:
         n = self.x.shape[0]
@@ -892,7 +928,8 @@ def payload_bounds(
     most 27 + 8 per element (ext32 header 6, inner ``[dtype, shape, bin]`` 21); the map header
     with ``"v"`` and ``"k"`` 8 + the kind's length.  Sizes: Truth ``target_ids`` M, ``states``
     M x n, ``sensor_ids`` N, ``platforms`` N x 4; Command ``enabled`` N, ``modes`` N pairs,
-    ``targets`` N keys and M target ids in all (a target goes to one sensor); Measurement ``z``
+    ``targets`` N keys and M target ids in all (a target goes to one sensor), ``windows`` N
+    vectors of 2 dz; Measurement ``z``
     rows x dz, ``R`` dz x dz, ``target_ids`` rows, ``platform`` 4; Status ``enabled``,
     ``fused``, ``failed`` N each, ``refiltered`` :data:`MAX_IDS`; Track and LocalTrack n and
     n x n; Heartbeat :data:`CAP_REASONS` reasons (``tests/unit/test_size_cap.py`` encodes
@@ -906,6 +943,7 @@ def payload_bounds(
         ("cmd", "enabled"): sensors,
         ("cmd", "modes"): sensors,
         ("cmd", "targets"): (sensors, targets),
+        ("cmd", "windows"): (sensors, 2 * dz),
         ("meas", "z"): rows * dz,
         ("meas", "R"): dz * dz,
         ("meas", "target_ids"): rows,
@@ -941,6 +979,9 @@ def payload_bounds(
         if field_kind == "targets":
             holders, held = k
             return head + (name + head) * holders + name * held
+        if field_kind == "vecs":
+            holders, length = k
+            return head + (name + 27 + 8 * length) * holders
         raise KeyError(field_kind)
 
     return {
@@ -965,8 +1006,9 @@ def largest_payload(
 MAX_PAYLOAD_BYTES = 1 << (2 * largest_payload(CAP_SENSORS, CAP_TARGETS, CAP_ROWS) - 1).bit_length()
 """THE payload size cap (1 MiB): the smallest power of two at least twice
 :func:`largest_payload` of a network of :data:`CAP_SENSORS` sensors and :data:`CAP_TARGETS`
-targets (~0.48 MB: a Status naming 3 x 1024 sensors and 4096 re-filtered messages; the
-largest Command, Truth and Measurement are ~0.34, ~0.22 and ~0.09 MB).  A bus drops a payload
+targets (~0.49 MB: a Command with modes, targets and clutter windows for 1024 sensors; the
+largest Status, naming 3 x 1024 sensors and 4096 re-filtered messages, Truth and Measurement
+are ~0.47, ~0.22 and ~0.09 MB).  A bus drops a payload
 over it before copying it (:mod:`covnet.bus`, :mod:`covnet.zenoh_bus`: counted ``oversize``),
 and :func:`decode` refuses one (``too_large``)."""
 _M = TypeVar("_M", bound=_Message)

@@ -21,6 +21,11 @@ The steps are the functions of :mod:`covnet.covariance_control.model`, the same 
 ``covnet run`` calls, so a lockstep network run reproduces the in-process run bit for bit.  In
 peer mode (``fusion.mode: peer``) there is no fusion centre: this process only routes and
 watches (:mod:`manager.peer_monitor`).
+
+Many targets (a config with ``targets:``): :class:`TargetsLogic`, the steps of
+:class:`covnet.covariance_control.targets_centre.TargetsCentre`: each command names every
+enabled sensor's target and clutter window, each sensor answers with its dwell's returns, the
+centre gates, associates and fuses them per target and publishes one Track per target.
 """
 
 from __future__ import annotations
@@ -221,7 +226,115 @@ class CovarianceLogic:
         return ScanReport([track], status, live | {"info": info, "info_short": short})
 
 
-run = partial(loop.run, CovarianceLogic)
+class TargetsLogic:
+    """The many-target fusion centre's steps for :func:`manager.loop.run_scans` (module
+    docstring)."""
+
+    def __init__(self, sc: Scenario, loop: Loop) -> None:
+        # start-up: the many-target steps only for configs with targets
+        from covnet.covariance_control import targets
+        from covnet.covariance_control.targets_centre import TargetEpisodeLog, TargetsCentre
+
+        if sc.fusion.mode not in ("central", "info"):
+            raise ManagerError(f"fusion.mode {sc.fusion.mode}: not with many targets")
+        self.tracks = sc.fusion.mode == "info"  # local tracks, not returns
+        self.message_type: type[msg.Measurement] | type[msg.LocalTrack] = (
+            msg.LocalTrack if self.tracks else msg.Measurement
+        )
+        self.sc, self.tm = sc, targets.build(sc)
+        self.ids = self.tm.sensor_ids
+        lat = sc.network.latency
+        self.slow = not lat.is_ideal(self.ids)  # late messages re-filtered (or dropped)
+        self.accept_unsolicited = False
+        self._history = (
+            (lambda: targets.History(self.tm, lat.oosm_depth, self.tracks))
+            if self.slow and lat.late == "oosm"
+            else (lambda: None)
+        )
+        self.episodes = list(sc.allocation.metrics)
+        self.scans, self.period_s = self.tm.scans, self.tm.T
+        self.clock = loop.clock
+        self.result = ManagerResult({}, loop.stats)
+        self.truth = targets.truth_trajectories(self.tm)  # for the results only; never sent
+        self._centre, self._log = TargetsCentre, TargetEpisodeLog
+
+    def start_episode(self, e: int) -> None:
+        self.metric = self.episodes[e]
+        self.centre = self._centre(self.tm, self._history())
+        self.log = self.result.episodes[self.metric] = self._log.start(
+            self.metric, self.tm, self.truth
+        )
+
+    def membership(self, e: int, k: int, events: list[dict[str, Any]]) -> None:
+        self.log.failures.extend(events)
+
+    def decide(self, e: int, k: int, failed: frozenset[str]) -> Decision:
+        unavailable = frozenset(self.ids.index(s) for s in failed if s in self.ids)
+        self.plan = self.centre.decide(k, self.metric, unavailable)
+        enabled, tasks, windows = self.centre.command_fields(self.plan)
+        return Decision(enabled, targets=tasks, windows=windows)
+
+    def ahead(self, e: int, k: int) -> None:
+        pass
+
+    def usable(self, m: Any) -> bool:
+        if self.tracks:
+            return self.centre.usable_track(m, self.plan)
+        return self.centre.usable(m)
+
+    def on_late(self, m: Any) -> bool | None:
+        return self.centre.insert_late(m) if self.slow else None
+
+    def fuse(self, e: int, k: int, got: dict[str, Any]) -> Any:
+        prior, posts, dwells = self.centre.fuse(self.plan, got)
+        return self.plan, prior, posts, dwells, got, self.centre.take_refiltered()
+
+    def report(self, e: int, k: int, fused: Any, failed: frozenset[str]) -> ScanReport:
+        plan, prior, posts, dwells, got, refiltered = fused
+        ids, tm, now = self.ids, self.tm, self.clock.now_ns
+        t = k * tm.T
+        tracks = [
+            msg.Track(scan=k, t=t, x=g.x, P=g.P, t_sent_ns=now(), episode=e, target_id=tid)
+            for tid, g in zip(tm.target_ids, posts, strict=True)
+        ]
+        enabled = tuple(ids[j] for j in plan.decision.subset)
+        trace_P = float(sum(np.trace(g.P) for g in posts))
+        trace_Pd = float(sum(np.trace(tg.desired(k)) for tg in tm.targets))
+        status = msg.Status(
+            scan=k,
+            t=t,
+            enabled=enabled,
+            trace_P=trace_P,
+            trace_Pd=trace_Pd,
+            value=float(plan.decision.value),
+            t_sent_ns=now(),
+            episode=e,
+            fused=tuple(sorted(got, key=ids.index)),
+            failed=tuple(sorted(failed - {WORLD_ID})),
+            refiltered=refiltered,
+        )
+        self.result.episodes[self.episodes[e]].record(plan, prior, posts, dwells, sorted(got))
+        per = "  ".join(
+            f"{tid}:{len(plan.decision.on_target(i))}" for i, tid in enumerate(tm.target_ids)
+        )
+        info = (
+            f"scan {k}/{tm.scans}  on {len(enabled)}/{len(ids)} ({per})  "
+            f"tr P {trace_P:.1f} / tr Pd {trace_Pd:.1f}"
+        )
+        short = f"{k}/{tm.scans} {len(enabled)}/{len(ids)} on  trP {trace_P:.0f}/{trace_Pd:.0f}"
+        return ScanReport(
+            tracks,
+            status,
+            {"trace_P": trace_P, "trace_Pd": trace_Pd, "info": info, "info_short": short},
+        )
+
+
+def _logic(sc: Scenario, loop: Loop) -> CovarianceLogic | TargetsLogic:
+    """The fusion centre's steps for ``sc``: many targets or the paper's one."""
+    return TargetsLogic(sc, loop) if sc.multitarget else CovarianceLogic(sc, loop)
+
+
+run = partial(loop.run, _logic)
 """``run(sc, bus, run_id, clock, stop, *, realtime, on_ready, on_status, on_progress)``: every
 metric's episode (``allocation.metrics``) over the bus (:func:`manager.loop.run`); returns the
 :class:`~covnet.covariance_control.centre.ManagerResult`."""

@@ -72,11 +72,12 @@ class LoopResult(Protocol):
 @dataclass(frozen=True)
 class Decision:
     """Step 3: whom scan ``k``'s command enables, with the per-sensor fields some kinds add
-    (``modes``, ``targets``: see :class:`covnet.messages.Command`)."""
+    (``modes``, ``targets``, ``windows``: see :class:`covnet.messages.Command`)."""
 
     enabled: tuple[str, ...]
     modes: dict[str, str] | None = None
     targets: dict[str, tuple[str, ...]] | None = None
+    windows: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -496,6 +497,7 @@ def run_scans(
                     episode=e,
                     modes=decision.modes,
                     targets=decision.targets,
+                    windows=decision.windows,
                 )
                 loop.publish_command(cmd)
                 report.run()  # scan k-1's (lockstep)

@@ -8,6 +8,16 @@ local filters (``fusion.mode: info | ci``) it publishes its :class:`~covnet.mess
 instead.  The measurement noise of every scan is drawn at start-up (:class:`NoiseTable`): that
 takes work off the scan's critical path and changes no result.  With ``fusion.mode: peer`` the
 process is a peer node instead (:mod:`sensors.peer`).
+
+Many targets (a config with ``targets:``, :func:`run_targets`): a command that enables the
+sensor names the target it dwells on and, for a sensor with clutter, the dwell's clutter
+window; the sensor simulates its own model's returns from that target's truth
+(:func:`covnet.covariance_control.targets.dwell`: detection with its ``pd`` inside its coverage,
+Poisson clutter in the window, shuffled, from its noise stream ``(seed, j, k)``) and publishes
+them unlabeled, ``z`` ``(m, dim_z)``; under ``fusion.mode: info`` its own filter's track of
+that target instead (:class:`covnet.covariance_control.targets.LocalTargets`).  A command
+that does not name one known target for it (or whose window is not one of its model's) is
+rejected (``bad_value``) and not answered.
 """
 
 from __future__ import annotations
@@ -64,6 +74,91 @@ def _peer(args: Any, sc: Scenario, stop: threading.Event) -> int:
     return EXIT_OK
 
 
+def run_targets(
+    sc: Scenario,
+    sensor_id: str,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+) -> SensorStats:
+    """A sensor of a many-target scenario (module docstring); serves commands until ``stop``
+    is set."""
+    from covnet.covariance_control import targets  # start-up: configs with targets only
+
+    tm = targets.build(sc)
+    j = tm.sensor_ids.index(sensor_id)
+    model = tm.sensors[j]
+    tids = tm.target_ids
+
+    def truth_ok(tr: msg.Truth) -> bool:
+        return tr.target_ids == tids and tr.states.shape == (len(tids), 4)
+
+    def command_ok(cmd: msg.Command) -> bool:
+        task = (cmd.targets or {}).get(sensor_id)
+        if task is None or len(task) != 1 or task[0] not in tids:
+            return False
+        v = (cmd.windows or {}).get(sensor_id)
+        if (v is None) != (model.clutter_rate == 0.0):
+            return False
+        try:
+            targets.window_from_vec(tm, j, v)
+        except ValueError:
+            return False
+        return True
+
+    info = sc.fusion.mode == "info"  # its own filter of every target, and local tracks
+    local = targets.LocalTargets(tm, j)
+    episode = [-1]
+
+    def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement | msg.LocalTrack:
+        tid = (cmd.targets or {})[sensor_id][0]
+        win = targets.window_from_vec(tm, j, (cmd.windows or {}).get(sensor_id))
+        t = tids.index(tid)
+        Z = targets.dwell(tm, j, cmd.scan, tr.states[t], win)
+        if info:
+            if cmd.episode != episode[0]:  # a new episode: the filters start again
+                episode[0] = cmd.episode
+                local.reset()
+            track, _ = local.track(t, cmd.scan, Z, win)
+            return msg.LocalTrack(
+                sensor_id=sensor_id,
+                scan=cmd.scan,
+                t=cmd.t,
+                x=track.post.x,
+                P=track.post.P,
+                x_prior=track.prior.x,
+                P_prior=track.prior.P,
+                t_sent_ns=clock.now_ns(),
+                episode=cmd.episode,
+                target_id=tid,
+            )
+        return msg.Measurement(
+            sensor_id=sensor_id,
+            scan=cmd.scan,
+            t=cmd.t,
+            z=Z,
+            R=model.R,
+            t_sent_ns=clock.now_ns(),
+            episode=cmd.episode,
+        )
+
+    return serve(
+        sensor_id,
+        bus,
+        run_id,
+        clock,
+        stop,
+        sc.network,
+        truth_ok=truth_ok,
+        respond=respond,
+        # slow links: every command (a stale one is ignored), a missed one is a scan off
+        missed_command="off" if not sc.network.latency.is_ideal(sc.sensor_ids) else None,
+        keep_truth=tm.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
+        command_ok=command_ok,
+    )
+
+
 def run(
     sc: Scenario,
     sensor_id: str,
@@ -79,7 +174,9 @@ def run(
     :class:`~covnet.messages.LocalTrack` instead of the measurement: the filter predicts every
     scan (lazily, scan by scan up to the commanded one: the same arithmetic as predicting at
     every scan) and updates at the scans it is enabled; a new episode restarts it from the
-    initial estimate."""
+    initial estimate.  Many targets: :func:`run_targets`."""
+    if sc.multitarget:
+        return run_targets(sc, sensor_id, bus, run_id, clock, stop)
     model = build_model(sc)
     rule = rule_for(sc.fusion)
     j = model.index(sensor_id)

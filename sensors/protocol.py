@@ -60,6 +60,7 @@ def serve(
     respond: Respond,
     missed_command: str | None = None,
     keep_truth: bool = False,
+    command_ok: Callable[[msg.Command], bool] | None = None,
 ) -> SensorStats:
     """The protocol every kind of sensor shares (see the module docstring).
 
@@ -73,7 +74,9 @@ def serve(
     on/off for this sensor), ``off`` or ``on``, and measured at once (so late: the manager
     re-filters or drops them).  ``keep_truth``: keep every scan's truth for the whole run (the
     world sends it once, :data:`~covnet.messages.TRUTH_UPFRONT_MAX_SCANS`), else drop what is
-    older than the scan being measured (the world sends it again for a new episode)."""
+    older than the scan being measured (the world sends it again for a new episode).
+    ``command_ok(command)``: the kind's test of an enabling command's fields (its task for this
+    sensor); one it fails is counted ``bad_value`` and not answered."""
     stats = SensorStats()
     # on slow links every command (a gap in the scans says one was missed), else its own
     mine = None if missed_command is not None else sensor_id
@@ -117,6 +120,9 @@ def serve(
             newest, last_on = (cmd.episode, cmd.scan), sensor_id in cmd.enabled
         last_scan = cmd.scan
         if sensor_id in cmd.enabled:
+            if command_ok is not None and not command_ok(cmd):
+                stats.rejected["bad_value"] += 1
+                return True
             stats.enabled_scans += 1
             pending.append(cmd)
         return True

@@ -35,9 +35,16 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     """Serve truth until ``stop`` is set; returns counters (``published``, and
     ``rejected:<reason>`` for every malformed or out-of-range command dropped)."""
     model = build_model(sc)
-    truth = truth_trajectory(model)
+    if sc.multitarget:  # every target's truth: (scans, T, 4)
+        # start-up: the many-target model only for configs with targets
+        from covnet.covariance_control import targets
+
+        tm = targets.build(sc)
+        truth, ids = np.swapaxes(targets.truth_trajectories(tm), 0, 1), tm.target_ids
+    else:
+        truth, ids = truth_trajectory(model)[:, None, :], TARGET_IDS
     counts: Counter[str] = Counter()
-    publish = _TruthPublisher(bus, run_id, model, truth, counts)
+    publish = _TruthPublisher(bus, run_id, model, truth, counts, ids)
     if sc.fusion.mode == "peer":
         _serve_peers(sc, bus, run_id, clock, stop, publish)
         return counts
@@ -73,19 +80,27 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
 
 class _TruthPublisher:
     """``publish(k0, hi)`` publishes ``Truth(k)`` for ``k0 <= k <= min(hi, scans)`` and returns
-    the last scan published (counted as ``published``)."""
+    the last scan published (counted as ``published``); ``truth`` is ``(scans, T, 4)``, row
+    ``t`` of a scan the state of target ``target_ids[t]``."""
 
     def __init__(
-        self, bus: Bus, run_id: str, model: Model, truth: np.ndarray, counts: Counter[str]
+        self,
+        bus: Bus,
+        run_id: str,
+        model: Model,
+        truth: np.ndarray,
+        counts: Counter[str],
+        target_ids: tuple[str, ...] = TARGET_IDS,
     ) -> None:
         self.bus, self.model, self.truth, self.counts = bus, model, truth, counts
+        self.target_ids = target_ids
         self.key = msg.truth_key(run_id)
 
     def __call__(self, k0: int, hi: int) -> int:
         hi = min(hi, self.model.scans)
         T, truth = self.model.T, self.truth
         for k in range(k0, hi + 1):
-            tr = msg.Truth(scan=k, t=k * T, target_ids=TARGET_IDS, states=truth[k - 1][None])
+            tr = msg.Truth(scan=k, t=k * T, target_ids=self.target_ids, states=truth[k - 1])
             self.bus.publish(self.key, msg.encode(tr))
             self.counts["published"] += 1
         return hi

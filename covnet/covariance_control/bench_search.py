@@ -382,6 +382,29 @@ MT_TARGETS: tuple[tuple[float, float, float, float], ...] = (
 )
 MT_DESIRED = (400.0, 30.0, 100.0)
 MT_WEIGHTS = (1.0, 2.0, 1.0)
+#: beyond the spec's three (``--targets``): more crossing targets, the same three levels
+MT_MORE_TARGETS: tuple[tuple[float, float, float, float], ...] = (
+    (18e3, -120.0, 3e3, 60.0),
+    (3e3, 30.0, 17e3, -90.0),
+    (12e3, 0.0, 9e3, 25.0),
+    (6e3, 80.0, 12e3, 10.0),
+    (16e3, -40.0, 10e3, -70.0),
+)
+
+
+def mt_targets(T: int) -> tuple[list[tuple[float, float, float, float]], list[float], list[float]]:
+    """The first ``T`` targets (initial states), their desired position variances and weights
+    (the spec's three first, then :data:`MT_MORE_TARGETS`, levels cycled)."""
+    pool = list(MT_TARGETS) + list(MT_MORE_TARGETS)
+    if not 1 <= T <= len(pool):
+        raise ValueError(f"targets: 1 to {len(pool)}, got {T}")
+    return (
+        pool[:T],
+        [MT_DESIRED[t % 3] for t in range(T)],
+        [MT_WEIGHTS[t % 3] for t in range(T)],
+    )
+
+
 MT_PD = 0.9
 
 
@@ -415,7 +438,11 @@ def _mt_information(n_sensors: int, x: Mat) -> tuple[Mat, np.ndarray]:
 
 
 def multitarget_problems(
-    n_sensors: int, metric: str, scans: Sequence[int], control_sensors: int = 12
+    n_sensors: int,
+    metric: str,
+    scans: Sequence[int],
+    control_sensors: int = 12,
+    n_targets: int = 3,
 ) -> list[tuple[Mat, Mat, Mat, Mat, np.ndarray]]:
     """``(P_pred, J, P_d, w, feasible)`` at ``scans`` of the spec's scenario (§6, 3 targets,
     constant velocity, each filter's covariance recursion ``P⁻ = F P Fᵀ + Q``, ``P = P_t(a*)``)
@@ -426,11 +453,12 @@ def multitarget_problems(
     from covnet.core.multitarget_allocation import allocate_assignments
 
     F, Q = cv_transition(1.0), dwna_process_noise(1.0, 0.5)
-    T = len(MT_TARGETS)
-    x = np.array(MT_TARGETS, dtype=np.float64)
+    x0, desired, weights = mt_targets(n_targets)
+    T = len(x0)
+    x = np.array(x0, dtype=np.float64)
     P = np.array([np.diag([1e4, 1e2, 1e4, 1e2])] * T)
-    D = np.array([np.diag([d, d / 15.0, d, d / 15.0]) for d in MT_DESIRED])
-    w = np.array(MT_WEIGHTS)
+    D = np.array([np.diag([d, d / 15.0, d, d / 15.0]) for d in desired])
+    w = np.array(weights)
     nc = min(n_sensors, control_sensors)
     out = []
     for scan in range(1, max(scans) + 1):
@@ -447,6 +475,7 @@ def multitarget_problems(
 MT_COLUMNS = (
     ("metric", "{:<10}"),
     ("n_sensors", "{:>4}"),
+    ("n_targets", "{:>3}"),
     ("n_assignments", "{:>12}"),
     ("median_s", "{:>10.4g}"),
     ("worst_s", "{:>10.4g}"),
@@ -485,6 +514,8 @@ def run_multitarget(
     reference_max: int = 8,
     reference_problems: int | None = None,
     progress: Callable[[str], None] | None = None,
+    target_counts: Sequence[int] = (3,),
+    reference_assignments: int = 4**8,
 ) -> list[Row]:
     """Time :func:`covnet.core.multitarget_allocation.allocate_assignments` per (metric, N) on
     :func:`multitarget_problems` (3 targets; scans spread over 4..40).
@@ -496,7 +527,9 @@ def run_multitarget(
     ``reference_problems``): ``reference_median_s`` (the plain reference
     :func:`~covnet.core.multitarget_allocation.allocate_assignments_exhaustive`),
     ``ratio_reference`` (its median over the fast median) and ``agree_reference`` (same
-    assignment and value bits)."""
+    assignment and value bits).  ``target_counts``: the numbers of targets ``T`` (the
+    ``--targets`` option; the reference runs where also ``(T+1)^N <=
+    reference_assignments``)."""
     # the multi-target bench only: start-up of the others
     from covnet.core.multitarget_allocation import (
         allocate_assignments,
@@ -506,8 +539,8 @@ def run_multitarget(
     names = list(metrics) if metrics is not None else sorted(METRICS)
     scans = sorted({int(round(k)) for k in np.linspace(4, 40, n_problems)})
     rows: list[Row] = []
-    for N, name in itertools.product(sensor_counts, names):
-        problems = multitarget_problems(N, name, scans)
+    for T_, N, name in itertools.product(target_counts, sensor_counts, names):
+        problems = multitarget_problems(N, name, scans, n_targets=T_)
         times: list[float] = []
         peaks: list[float] = []
         results = []
@@ -534,7 +567,7 @@ def run_multitarget(
             "ratio_reference": None,
             "agree_reference": None,
         }
-        if N <= reference_max:
+        if N <= reference_max and (T + 1) ** N <= reference_assignments:
             k = len(problems) if reference_problems is None else reference_problems
             ref_t, agree = [], True
             for (P_pred, J, D, w, feas), res in list(zip(problems, results, strict=True))[:k]:

@@ -111,9 +111,11 @@ class EpisodeLog:
 
 @dataclass
 class ManagerResult:
-    """What the loop has done so far (live while it runs; final when :func:`run` returns)."""
+    """What the loop has done so far (live while it runs; final when :func:`run` returns):
+    per metric its episode's log (many targets: a :class:`~covnet.covariance_control.
+    targets_centre.TargetEpisodeLog`)."""
 
-    episodes: dict[str, EpisodeLog]
+    episodes: dict[str, Any]
     stats: NetStats
     completed: bool = False
     error: str | None = None

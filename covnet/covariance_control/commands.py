@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batch import BatchInterrupted, end_batch
+from covnet.batch import BatchInterrupted, end_batch, progress_printer
 from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario, SweepSpec, load, normalised
 from covnet.covariance_control.decentral_sim import run_mode
@@ -26,7 +26,15 @@ from covnet.covariance_control.model import build_model
 from covnet.covariance_control.results import write_run
 from covnet.covariance_control.simulate import shared_trajectory
 from covnet.errors import UsageError
-from covnet.rundir import CONFIG, SUMMARY, load_arrays, read_json, write_json, write_npz
+from covnet.rundir import (
+    CONFIG,
+    SUMMARY,
+    load_arrays,
+    prepare_out,
+    read_json,
+    write_json,
+    write_npz,
+)
 from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 
 CURVES = "curves.npz"
@@ -41,6 +49,8 @@ EXIT_OK, EXIT_FAIL = 0, 1
 def run(sc: Scenario, out: Path, *, figures: bool) -> int:
     """``covnet run``: every metric of ``allocation.metrics`` in this process (the fusion mode
     of ``fusion``; slow links in simulated time); writes the run directory."""
+    if sc.multitarget:
+        return run_targets(sc, out, figures=figures)
     model = build_model(sc)
     traj = shared_trajectory(model)
     runs = {}
@@ -81,8 +91,54 @@ def run(sc: Scenario, out: Path, *, figures: bool) -> int:
     return EXIT_OK
 
 
+def run_targets(sc: Scenario, out: Path, *, figures: bool) -> int:
+    """``covnet run`` of a config with ``targets:``: every metric's many-target run in this
+    process; writes the run directory (:func:`covnet.covariance_control.results.
+    write_targets_run`) and its figures."""
+    # start-up: the many-target steps and results only for configs with targets
+    from covnet.covariance_control import targets
+    from covnet.covariance_control.results import write_targets_run
+    from covnet.covariance_control.simulate import run_targets as simulate_targets
+
+    tm = targets.build(sc)
+    slow = not sc.network.latency.is_ideal(sc.sensor_ids)
+    runs = {}
+    latency: dict[str, dict[str, int]] = {}
+    for m in sc.allocation.metrics:
+        t0 = time.perf_counter()
+        if slow:
+            from covnet.covariance_control.latency_sim import run_targets_latency  # start-up
+
+            runs[m], counts = run_targets_latency(sc, m, tm)
+            latency[m] = counts.as_dict()
+        else:
+            runs[m] = simulate_targets(sc, m, tm)
+        r = runs[m]
+        print(
+            f"{m:>10}: {sc.scans} scans x {len(tm.targets)} targets in "
+            f"{time.perf_counter() - t0:.2f} s, allocation rate {100.0 * r.enabled.mean():.1f} %"
+        )
+    summary = write_targets_run(
+        out,
+        sc,
+        tm,
+        runs,
+        extra={"latency": latency} if latency else None,
+        run_info={"mode": "in-process"},
+    )
+    if figures:
+        from covnet.covariance_control.plots import make_figures  # matplotlib: start-up
+
+        make_figures(out)
+    print_summary(out, summary)
+    return EXIT_OK
+
+
 def print_summary(out: Path, summary: dict[str, Any]) -> None:
     """The headline numbers of a run directory's ``summary.json``."""
+    if "target_ids" in summary:
+        _print_targets_summary(out, summary)
+        return
     print(
         f"run directory: {out}  (config {summary['config_hash']}, seed {summary['seed']}, "
         f"fusion {summary.get('fusion', 'central')})"
@@ -101,6 +157,27 @@ def print_summary(out: Path, summary: dict[str, Any]) -> None:
             f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, "
             f"position RMSE {blk['rmse_position']:.2f} m, mean NEES {blk['mean_nees']:.2f}"
         )
+
+
+def _print_targets_summary(out: Path, summary: dict[str, Any]) -> None:
+    print(
+        f"run directory: {out}  (config {summary['config_hash']}, seed {summary['seed']}, "
+        f"fusion {summary.get('fusion', 'central')}, association {summary['association']})"
+    )
+    for m, blk in summary["metrics"].items():
+        print(
+            f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, mean OSPA "
+            f"{blk['mean_ospa']:.1f} m, mean GOSPA {blk['mean_gospa']:.1f} m"
+        )
+        for tid, t in blk["targets"].items():
+            lo, hi = t["nees_band_95"]
+            nis = "-" if t["mean_nis"] is None else f"{t['mean_nis']:.2f}"
+            print(
+                f"  {'':>10}  {tid}: position RMSE {t['rmse_position']:7.2f} m, mean NEES "
+                f"{t['mean_nees']:6.2f} (95 % band {lo:.2f}-{hi:.2f}), mean NIS {nis}, "
+                f"{sum(t['sensors_per_scan']) / max(len(t['sensors_per_scan']), 1):.2f} "
+                "sensors per scan"
+            )
 
 
 def after_up(sc: Scenario, out: Path, *, figures: bool) -> None:
@@ -132,9 +209,14 @@ def up_problem(sc: Scenario, *, realtime: bool, netns: bool) -> str | None:
 
 
 def plot(run_dir: Path, point: str | None = None) -> list[Path]:
-    """Redraw the figures of a run, ``covnet compare`` or ``covnet sweep`` directory: a batch's
-    table figure and its per-scan curves (``curves.png``: the default points, or with
-    ``point`` every point whose key contains it, e.g. ``delay_ms=350,loss=0,mode=central``)."""
+    """Redraw the figures of a run, ``covnet mc``, ``covnet compare`` or ``covnet sweep``
+    directory: a batch's table figure and its per-scan curves (``curves.png``: the default
+    points, or with ``point`` every point whose key contains it, e.g.
+    ``delay_ms=350,loss=0,mode=central``)."""
+    if (run_dir / "montecarlo.json").is_file():
+        from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
+
+        return [mc_figure(run_dir)]
     for stem in ("compare", "sweep"):
         table = run_dir / f"{stem}.json"
         if table.is_file():
@@ -193,6 +275,11 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet compare``: the fusion structures side by side over a Monte Carlo batch."""
     from covnet.covariance_control import compare as cmp  # scipy.stats: start-up of the rest
 
+    if sc.multitarget:
+        raise UsageError(
+            "compare: the fusion structures are compared on the one-target scenario; with "
+            "'targets:' run covnet mc once per fusion.mode (central, info)"
+        )
     given = args.modes if args.modes is not None else ",".join(cmp.default_modes())
     modes = [m.strip() for m in given.split(",") if m.strip()]
     for m in modes:
@@ -312,6 +399,11 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet sweep``: the latency grid of the config's ``sweep`` section."""
     from covnet.covariance_control import sweep as sw  # start-up time of the other commands
 
+    if sc.multitarget:
+        raise UsageError(
+            "sweep: the latency grid runs the one-target scenario; with 'targets:' give "
+            "network.latency in the config and use covnet run or covnet mc"
+        )
     if sc.fusion.mode == "peer":
         raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
     spec = sc.sweep or SweepSpec()
@@ -358,6 +450,54 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
 
     total = len(points) * seeds
     return _batch_results(sw, args, sc, out, work, total, "grid point", meta, title, key)
+
+
+def mc(args: argparse.Namespace, sc: Scenario) -> int:
+    """``covnet mc CONFIG [--trials N] [--workers W]``: the config over ``N`` seeds from its
+    own (default 20), every metric, in parallel worker processes; writes ``montecarlo.json``
+    (means with 95 % intervals, every seed's row) and ``montecarlo.png``."""
+    from covnet.covariance_control import montecarlo as mcm  # scipy.stats: start-up of the rest
+
+    n = args.trials if args.trials is not None else 20
+    if n < 1:
+        raise UsageError(f"--trials: must be >= 1, got {n}")
+    workers = getattr(args, "workers", None)
+    if workers is not None and workers < 1:
+        raise UsageError(f"--workers: must be >= 1, got {workers}")
+    if sc.fusion.mode == "peer":
+        raise UsageError("mc: fusion.mode peer is compared by covnet compare, not covnet mc")
+    for opt, val in (("--cluster", args.cluster), ("--ci-width", args.ci_width)):
+        if val is not None:  # this kind's mc is not on the trials layer yet
+            raise UsageError(
+                f"{opt}: covnet mc of a covariance-control config runs on this "
+                "machine's cores only, over --trials seeds"
+            )
+    out = prepare_out(args.out, f"{sc.name}-mc", args.force)
+    seeds = list(range(sc.seed, sc.seed + n))
+    print(
+        f"monte carlo: {sc.name}, {n} seeds from {sc.seed}, metrics "
+        f"{', '.join(sc.allocation.metrics)}",
+        file=sys.stderr,
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    try:
+        rows = mcm.run_seeds(sc, seeds, workers, progress_printer("mc"))
+    except BatchInterrupted as stop:  # the seeds done are written, then exit 130
+        if stop.partial:
+            done_seeds, done_rows = zip(*stop.partial, strict=True)
+            mcm.write_mc(out, sc, list(done_seeds), list(done_rows))
+        end_batch(out, n, "seed", stop, len(stop.partial or ()))
+        raise
+    doc = mcm.write_mc(out, sc, seeds, rows)
+    end_batch(out, n, "seed")
+    from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
+
+    figure = mc_figure(out)
+    print(mcm.format_table(doc))
+    print(f"results: {out / mcm.MC_FILE}  ({time.perf_counter() - t0:.1f} s)")
+    print(f"figure: {figure}")
+    return EXIT_OK
 
 
 def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:
@@ -409,12 +549,18 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
     metrics = [_metric(load(args.config), [m], m) for m in args.metric] if args.metric else None
     if not args.json:
         print(" ".join(k for k, _ in bs.MT_COLUMNS), flush=True)
+    targets = getattr(args, "targets", None) or [3]
+    if any(not 1 <= t <= len(bs.MT_TARGETS) + len(bs.MT_MORE_TARGETS) for t in targets):
+        raise UsageError(
+            f"--targets: 1 to {len(bs.MT_TARGETS) + len(bs.MT_MORE_TARGETS)}, got {targets}"
+        )
     rows = bs.run_multitarget(
         args.sensors or [8, 12, 16],
         metrics or ("spectral", "abs_trace", "svd", "kl"),
         args.problems,
         args.repeat,
         progress=None if args.json else (lambda line: print(line, flush=True)),
+        target_counts=targets,
     )
     if args.json:
         for row in rows:
@@ -429,7 +575,7 @@ def bench_alloc(args: argparse.Namespace, sc: Scenario | None) -> int:
     sensors = args.sensors or [8, 12, 16, 20]
     sc = sc if sc is not None else load(args.config)
     metrics = [_metric(sc, [m], m) for m in args.metric] if args.metric else None
-    table = [(s.sigma_x_m, s.sigma_y_m, s.rho) for s in sc.sensors]
+    table = [s.position_noise for s in sc.sensors]
 
     def progress(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)

@@ -1,5 +1,6 @@
-"""The ``covariance_control`` kind's config (``configs/paper.yaml``, ``configs/latency.yaml``):
-YAML -> validated, frozen records; every problem reported with its path.
+"""The ``covariance_control`` kind's config (``configs/paper.yaml``, ``configs/latency.yaml``,
+``configs/multitarget.yaml``): YAML -> validated, frozen records; every problem reported with
+its path.
 
 A file without a top-level ``kind`` is of this kind.  :func:`from_dict` runs the shared loader
 pipeline (:func:`covnet.config.validate`: security paths resolved, the structure validated,
@@ -7,10 +8,23 @@ then the checks below and the network table's, every problem with its path):
 unique sensor ids, the desired-covariance schedule, allocation constraints, metric names,
 fusion modes by the fusion-rule registry (:data:`~covnet.covariance_control.fusion_rules.
 FUSION_RULES`), the peer graph.
+
+**Many targets** (spec ``multitarget.md``): a config that lists ``targets:`` (each with its
+initial state, optional truth ``manoeuvres``, its own ``desired`` schedule and ``weight``)
+replaces the one ``target:`` and the top-level ``desired:``; its sensors may then be of any
+``model:`` (``position``, the default and the paper's; ``range_bearing``; ``bearing``) with a
+``position_m``, coverage (``max_range_m``, ``fov``), ``pd`` and ``clutter_rate``; the
+``association`` table (``pda`` | ``nearest``, gate, clutter window) and ``ospa`` (cut-off and
+order) go with it.  A config without ``targets:`` is the paper's linear one-target scenario and
+takes none of these (so its normalised form and hash are what they were).  A sensor that can
+never cover any target (on the targets' noise-free trajectories) is a :class:`ConfigWarning`,
+not an error.
 """
 
 from __future__ import annotations
 
+import math
+import warnings
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -20,6 +34,7 @@ from pydantic import Field, field_validator
 from covnet.config import (
     Bool,
     ConfigModel,
+    ConfigWarning,
     EvaluationSpec,
     Float,
     Ident,
@@ -51,7 +66,13 @@ FusionRuleName = Annotated[Str, in_registry(lambda: list(FUSION_RULES), "fusion 
 
 __all__ = [
     "KIND",
+    "AssociationSpec",
+    "ConfigWarning",
+    "FovSpec",
     "FusionSpec",
+    "ManoeuvreSpec",
+    "OspaSpec",
+    "TargetEntry",
     "PeerSpec",
     "Scenario",
     "SensorSpec",
@@ -67,22 +88,105 @@ KIND = "covariance_control"
 _positive = positive
 
 
+SENSOR_MODEL_NAMES = ("position", "range_bearing", "bearing")
+
+
+class FovSpec(ConfigModel):
+    """A sector of bearings (degrees, counter-clockwise from +x): ``|β − center| ≤ half_width``."""
+
+    center_deg: Float
+    half_width_deg: Float
+
+    @field_validator("half_width_deg")
+    @classmethod
+    def _hw(cls, v: float) -> float:
+        if not 0.0 < v <= 180.0:
+            raise ValueError(f"must be in (0, 180] degrees, got {v}")
+        return v
+
+
+def _positive_or_none(v: float | None) -> float | None:
+    return None if v is None else _positive(v)
+
+
 class SensorSpec(ConfigModel):
-    """A linear position sensor: ``R = [[σx², ρσxσy], [ρσxσy, σy²]]``."""
+    """A sensor.  ``model: position`` (the default, the paper's): ``R = [[σx², ρσxσy], [ρσxσy,
+    σy²]]`` from ``sigma_x_m``, ``sigma_y_m``, ``rho``.  With ``targets:`` also
+    ``range_bearing`` (a radar: ``sigma_range_m``, ``sigma_bearing_mrad``) and ``bearing``
+    (passive: ``sigma_bearing_mrad``), each at ``position_m``, and for every model the coverage
+    (``max_range_m``, ``fov``), the detection probability ``pd`` and ``clutter_rate`` (false
+    returns per dwell)."""
 
     id: Ident
-    sigma_x_m: Float
-    sigma_y_m: Float
-    rho: Float
+    model: Literal["position", "range_bearing", "bearing"] = "position"
+    sigma_x_m: Float | None = None
+    sigma_y_m: Float | None = None
+    rho: Float | None = None
+    sigma_range_m: Float | None = None
+    sigma_bearing_mrad: Float | None = None
+    position_m: Pair | None = None
+    max_range_m: Float | None = None
+    fov: FovSpec | None = None
+    pd: Float = 1.0
+    clutter_rate: Float = 0.0
 
-    _pos = field_validator("sigma_x_m", "sigma_y_m")(_positive)
+    _pos = field_validator(
+        "sigma_x_m", "sigma_y_m", "sigma_range_m", "sigma_bearing_mrad", "max_range_m"
+    )(_positive_or_none)
 
     @field_validator("rho")
     @classmethod
-    def _rho(cls, v: float) -> float:
-        if not -1.0 < v < 1.0:
+    def _rho(cls, v: float | None) -> float | None:
+        if v is not None and not -1.0 < v < 1.0:
             raise ValueError(f"must be in (-1, 1), got {v}")
         return v
+
+    @field_validator("pd")
+    @classmethod
+    def _pd(cls, v: float) -> float:
+        if not 0.0 < v <= 1.0:
+            raise ValueError(f"must be a probability in (0, 1], got {v}")
+        return v
+
+    @field_validator("clutter_rate")
+    @classmethod
+    def _clutter(cls, v: float) -> float:
+        if not v >= 0.0:
+            raise ValueError(f"must be >= 0 (false returns per dwell), got {v}")
+        return v
+
+    @property
+    def position_noise(self) -> tuple[float, float, float]:
+        """``(σx, σy, ρ)`` of a position sensor; a placeholder ``(1, 1, 0)`` (an identity
+        ``R``) for the other models, whose noise is their own."""
+        if self.sigma_x_m is None or self.sigma_y_m is None or self.rho is None:
+            return (1.0, 1.0, 0.0)
+        return (self.sigma_x_m, self.sigma_y_m, self.rho)
+
+    @property
+    def extended(self) -> bool:
+        """Anything beyond the paper's always-detecting, everywhere-covering position sensor."""
+        return any(getattr(self, k) != v for k, v in _SENSOR_EXTRAS.items())
+
+
+#: the sensor keys added for many targets, with their defaults (a paper config has none of
+#: them, and its normalised form leaves them out)
+_SENSOR_EXTRAS: dict[str, Any] = {
+    "model": "position",
+    "sigma_range_m": None,
+    "sigma_bearing_mrad": None,
+    "position_m": None,
+    "max_range_m": None,
+    "fov": None,
+    "pd": 1.0,
+    "clutter_rate": 0.0,
+}
+#: the noise parameters each model needs (the others it must not have)
+_MODEL_NOISE: dict[str, tuple[str, ...]] = {
+    "position": ("sigma_x_m", "sigma_y_m", "rho"),
+    "range_bearing": ("sigma_range_m", "sigma_bearing_mrad"),
+    "bearing": ("sigma_bearing_mrad",),
+}
 
 
 class TargetSpec(ConfigModel):
@@ -142,6 +246,100 @@ AUTO_NODE_LIMIT = 200_000
 BOUNDED_OPTIONS = ("gap", "time_limit_s", "node_limit")
 
 
+class TargetDesiredSpec(DesiredSpec):
+    """One entry of a target's desired-covariance schedule; ``weight`` (optional) changes the
+    target's weight ``w_t`` from ``from_scan`` on (a priority change)."""
+
+    weight: Float | None = None
+
+    _w = field_validator("weight")(_positive_or_none)
+
+
+class ManoeuvreSpec(ConfigModel):
+    """A truth-only manoeuvre over the steps from scan ``from_scan`` to scan ``to_scan``
+    (:mod:`covnet.core.manoeuvre`): a coordinated ``turn`` at ``turn_rate_deg_s`` (counter-
+    clockwise positive) or a constant ``acceleration`` ``accel_mps2`` ``[ax, ay]``.  The
+    filters never know: they keep the constant-velocity model."""
+
+    kind: Literal["turn", "acceleration"]
+    from_scan: Int = Field(ge=0)
+    to_scan: Int = Field(ge=1)
+    turn_rate_deg_s: Float | None = None
+    accel_mps2: Pair | None = None
+
+
+class TargetEntry(ConfigModel):
+    """One target of a many-target scenario: state ``[x, vx, y, vy]`` at time 0, its truth's
+    white acceleration noise and manoeuvres, its own desired-covariance schedule and weight
+    ``w_t > 0``, and optionally its own ``P0_diag`` (default ``filter.P0_diag``) and its
+    filter's white acceleration ``filter_accel_noise_std_mps2`` (default: the truth's; a
+    tracker expecting a manoeuvre its constant-velocity model does not have raises it)."""
+
+    id: Ident
+    initial_position_m: Pair
+    initial_velocity_mps: Pair
+    accel_noise_std_mps2: Float = 0.5
+    filter_accel_noise_std_mps2: Float | None = None
+    manoeuvres: tuple[ManoeuvreSpec, ...] = ()
+    desired: tuple[TargetDesiredSpec, ...] = Field(min_length=1)
+    weight: Float = 1.0
+    P0_diag: Quad | None = None
+
+    _w = field_validator("weight")(_positive)
+
+    @field_validator("accel_noise_std_mps2", "filter_accel_noise_std_mps2")
+    @classmethod
+    def _q(cls, v: float | None) -> float | None:
+        if v is not None and not v >= 0:
+            raise ValueError(f"must be >= 0, got {v}")
+        return v
+
+    @field_validator("P0_diag")
+    @classmethod
+    def _p0(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is not None and not all(d > 0 for d in v):
+            raise ValueError(f"every entry must be > 0, got {list(v)}")
+        return v
+
+
+class AssociationSpec(ConfigModel):
+    """How the manager uses a dwell's unlabeled returns (spec §4): ``method`` ``pda`` (the
+    PDAF) or ``nearest`` (the gated return nearest in Mahalanobis distance); the χ² gate's
+    ``gate_probability``; the clutter window, ``± clutter_window_sigma`` standard deviations of
+    the innovation around the predicted measurement.  A sensor without clutter
+    (``clutter_rate: 0``) needs no association: its return, if any, is the target's."""
+
+    method: Literal["pda", "nearest"] = "pda"
+    gate_probability: Float = 0.99
+    clutter_window_sigma: Float = 6.0
+
+    _cw = field_validator("clutter_window_sigma")(_positive)
+
+    @field_validator("gate_probability")
+    @classmethod
+    def _pg(cls, v: float) -> float:
+        if not 0.0 < v < 1.0:
+            raise ValueError(f"must be in (0, 1), got {v}")
+        return v
+
+
+class OspaSpec(ConfigModel):
+    """OSPA and GOSPA of the estimated target positions against the truth, per scan: cut-off
+    ``cutoff_m`` (``c``) and order ``order`` (``p``)."""
+
+    cutoff_m: Float = 1000.0
+    order: Float = 2.0
+
+    _c = field_validator("cutoff_m")(_positive)
+
+    @field_validator("order")
+    @classmethod
+    def _p(cls, v: float) -> float:
+        if not v >= 1.0:
+            raise ValueError(f"must be >= 1, got {v}")
+        return v
+
+
 class AllocationSpec(ConfigModel):
     """Covariance-control allocation: metrics by registry name, constraints by sensor id, and
     the search (:data:`SEARCHES`): ``exact`` (the exhaustive search's subset, value and ``P``
@@ -149,7 +347,12 @@ class AllocationSpec(ConfigModel):
     (branch and bound stopped at the relative ``gap``, ``time_limit_s`` or ``node_limit``; it
     reports a certified lower bound and gap), ``greedy`` (forward/backward greedy and swaps, with
     the root lower bound), ``auto`` (the default: ``exact`` up to ``AUTO_EXACT_MAX`` candidate
-    sensors, ``bounded`` beyond)."""
+    sensors, ``bounded`` beyond).
+
+    Many targets only: ``detection`` (how a dwell's information is scored: ``expected``
+    ``pd · HᵀR⁻¹H``, ``ignore`` ``HᵀR⁻¹H``, ``pda`` the PDAF's information-reduction factor
+    ``q₂`` instead of ``pd``) and ``max_per_target`` (at most this many sensors on one
+    target)."""
 
     metrics: tuple[MetricName, ...] = ("spectral", "abs_trace", "svd")
     required: tuple[Str, ...] = ()
@@ -180,6 +383,9 @@ class AllocationSpec(ConfigModel):
         if v is not None and v < 1:
             raise ValueError(f"must be >= 1, got {v}")
         return v
+
+    detection: Literal["expected", "ignore", "pda"] = "expected"
+    max_per_target: Int | None = Field(default=None, ge=1)
 
 
 PEER_GRAPHS = ("full", "ring", "star", "custom")
@@ -265,12 +471,15 @@ class Scenario(ConfigModel):
     target: TargetSpec = TargetSpec()
     filter: FilterSpec = FilterSpec()
     sensors: Annotated[tuple[SensorSpec, ...], unique_ids("sensor")] = Field(min_length=1)
-    desired: tuple[DesiredSpec, ...] = Field(min_length=1)
+    desired: tuple[DesiredSpec, ...] = ()
     allocation: AllocationSpec = AllocationSpec()
     network: NetworkSpec = NetworkSpec()
     fusion: FusionSpec = FusionSpec()
     sweep: SweepSpec | None = None
     evaluation: EvaluationSpec = EvaluationSpec()
+    targets: Annotated[tuple[TargetEntry, ...], unique_ids("target")] | None = None
+    association: AssociationSpec = AssociationSpec()
+    ospa: OspaSpec = OspaSpec()
 
     _period = field_validator("period_s")(_positive)
 
@@ -278,25 +487,130 @@ class Scenario(ConfigModel):
     def sensor_ids(self) -> tuple[str, ...]:
         return tuple(s.id for s in self.sensors)
 
+    @property
+    def multitarget(self) -> bool:
+        """The config lists ``targets:`` (the many-target scenario of ``multitarget.md``)."""
+        return self.targets is not None
+
+    @property
+    def target_ids(self) -> tuple[str, ...]:
+        """The targets' ids (``T1`` for the one ``target:`` of a paper config)."""
+        return ("T1",) if self.targets is None else tuple(t.id for t in self.targets)
+
+
+def _schedule_problems(path: str, schedule: tuple[DesiredSpec, ...]) -> list[tuple[str, str]]:
+    problems: list[tuple[str, str]] = []
+    if schedule[0].from_scan != 1:
+        problems.append((f"{path}[0].from_scan", "the first entry must start at scan 1"))
+    for i, d in enumerate(schedule):
+        if (d.diag is None) == (d.matrix is None):
+            problems.append((f"{path}[{i}]", "give exactly one of 'diag' or 'matrix'"))
+            continue
+        if d.matrix is not None and len(d.matrix) != 4:
+            problems.append((f"{path}[{i}].matrix", "must be 4x4"))
+            continue
+        M = d.as_matrix()
+        if not np.allclose(M, M.T) or np.linalg.eigvalsh(0.5 * (M + M.T)).min() <= 0:
+            problems.append((f"{path}[{i}]", "must be symmetric positive definite"))
+        if i > 0 and d.from_scan <= schedule[i - 1].from_scan:
+            problems.append((f"{path}[{i}].from_scan", "must increase along the schedule"))
+    return problems
+
+
+def _sensor_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """Each sensor's model against its noise parameters, placement and coverage; without
+    ``targets:`` only the paper's position sensor."""
+    problems: list[tuple[str, str]] = []
+    for i, s in enumerate(sc.sensors):
+        where = f"sensors[{i}]"
+        need = _MODEL_NOISE[s.model]
+        for key in need:
+            if getattr(s, key) is None:
+                problems.append(
+                    (
+                        f"{where}.{key}",
+                        f"missing required key (a {s.model} sensor needs {', '.join(need)})",
+                    )
+                )
+        for model, keys in _MODEL_NOISE.items():
+            for key in keys:
+                if key not in need and getattr(s, key) is not None:
+                    problems.append(
+                        (f"{where}.{key}", f"only for {model} sensors, this one is {s.model}")
+                    )
+        if s.position_m is None and (s.model != "position" or s.max_range_m or s.fov):
+            what = "measures from" if s.model != "position" else "has coverage around"
+            problems.append(
+                (f"{where}.position_m", f"missing required key (a {s.model} sensor {what} it)")
+            )
+        if not sc.multitarget:
+            for key, default in _SENSOR_EXTRAS.items():
+                if getattr(s, key) != default:
+                    problems.append(
+                        (
+                            f"{where}.{key}",
+                            "needs a 'targets:' list (a config with the one 'target:' is the "
+                            "paper's linear scenario: position sensors that always detect, "
+                            "no clutter)",
+                        )
+                    )
+    return problems
+
+
+def _target_problems(sc: Scenario) -> list[tuple[str, str]]:
+    problems: list[tuple[str, str]] = []
+    assert sc.targets is not None
+    if not sc.targets:
+        return [("targets", "list at least one target")]
+    for key in ("target", "desired"):
+        if key in sc.model_fields_set:
+            problems.append(
+                (key, "not with 'targets:' (each target has its own state and 'desired')")
+            )
+    for i, t in enumerate(sc.targets):
+        where = f"targets[{i}]"
+        problems += _schedule_problems(f"{where}.desired", t.desired)
+        spans: list[tuple[int, int, int]] = []
+        for m, man in enumerate(t.manoeuvres):
+            mw = f"{where}.manoeuvres[{m}]"
+            if man.to_scan <= man.from_scan:
+                problems.append((f"{mw}.to_scan", "must be after from_scan"))
+            if man.to_scan > sc.scans:
+                problems.append((f"{mw}.to_scan", f"beyond the run's {sc.scans} scans"))
+            need, other = (
+                ("turn_rate_deg_s", "accel_mps2")
+                if man.kind == "turn"
+                else ("accel_mps2", "turn_rate_deg_s")
+            )
+            if getattr(man, need) is None:
+                problems.append((f"{mw}.{need}", f"missing required key (a {man.kind} needs it)"))
+            if getattr(man, other) is not None:
+                problems.append((f"{mw}.{other}", f"not for a {man.kind}"))
+            for a, b, other_m in spans:
+                if man.from_scan < b and a < man.to_scan:
+                    problems.append((mw, f"overlaps manoeuvres[{other_m}]"))
+            spans.append((man.from_scan, man.to_scan, m))
+    return problems
+
 
 def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
     ids = sc.sensor_ids
     seen = set(ids)
-    if sc.desired[0].from_scan != 1:
-        problems.append(("desired[0].from_scan", "the first entry must start at scan 1"))
-    for i, d in enumerate(sc.desired):
-        if (d.diag is None) == (d.matrix is None):
-            problems.append((f"desired[{i}]", "give exactly one of 'diag' or 'matrix'"))
-            continue
-        if d.matrix is not None and len(d.matrix) != 4:
-            problems.append((f"desired[{i}].matrix", "must be 4x4"))
-            continue
-        M = d.as_matrix()
-        if not np.allclose(M, M.T) or np.linalg.eigvalsh(0.5 * (M + M.T)).min() <= 0:
-            problems.append((f"desired[{i}]", "must be symmetric positive definite"))
-        if i > 0 and d.from_scan <= sc.desired[i - 1].from_scan:
-            problems.append((f"desired[{i}].from_scan", "must increase along the schedule"))
+    if sc.multitarget:
+        problems += _target_problems(sc)
+    elif not sc.desired:
+        problems.append(("desired", "missing required key (the desired-covariance schedule)"))
+    else:
+        problems += _schedule_problems("desired", sc.desired)
+    problems += _sensor_problems(sc)
+    if not sc.multitarget:
+        for key in ("association", "ospa"):
+            if key in sc.model_fields_set:
+                problems.append((key, "only used with 'targets:' (many targets)"))
+        for key in ("detection", "max_per_target"):
+            if key in sc.allocation.model_fields_set:
+                problems.append((f"allocation.{key}", "only used with 'targets:' (many targets)"))
     al = sc.allocation
     if not al.metrics:
         problems.append(("allocation.metrics", "name at least one metric"))
@@ -318,6 +632,50 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
             )
         if al.max_active > len(ids):
             problems.append(("allocation.max_active", f"more than the {len(ids)} sensors"))
+    if sc.multitarget:
+        problems += _multitarget_fusion_problems(sc)
+    return problems
+
+
+def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """What the many-target scenario does not (yet) do, said where it is asked for."""
+    problems: list[tuple[str, str]] = []
+    mode = sc.fusion.mode
+    if mode == "ci":
+        problems.append(
+            (
+                "fusion.mode",
+                "ci is not available with 'targets:': covariance intersection needs each "
+                "sensor's local filter of the target it dwells on and a CI candidate for every "
+                "assignment of (T+1)^N, which the many-target allocator does not have (use "
+                "central or info)",
+            )
+        )
+    elif mode == "peer":
+        problems.append(
+            (
+                "fusion.mode",
+                "peer is not available with 'targets:': the peer nodes' mirror of every node's "
+                "filter is single-target (use central or info)",
+            )
+        )
+    if sc.allocation.account_for_loss:
+        problems.append(
+            (
+                "allocation.account_for_loss",
+                "not available with 'targets:' (the many-target allocator scores pd · J only)",
+            )
+        )
+    lat = sc.network.latency
+    if "missed_command" in lat.model_fields_set and lat.missed_command != "off":
+        problems.append(
+            (
+                "network.latency.missed_command",
+                f"{lat.missed_command} is not available with 'targets:': a sensor whose command "
+                "never came does not know which target to dwell on, nor the clutter window; "
+                "it dwells on nothing (off, the only choice with targets)",
+            )
+        )
     return problems
 
 
@@ -365,8 +723,88 @@ def from_dict(data: object, source: str = "<dict>", base_dir: str | Path | None 
 
     ``base_dir``: relative paths under ``network.security`` are resolved against it (:func:`load`
     passes the config file's directory); without it they stay relative to the working directory.
+    A sensor that never covers any target is a :class:`ConfigWarning` (:func:`reach_warnings`).
     """
-    return validate(Scenario, data, source, base_dir, _semantic_problems)
+    sc = validate(Scenario, data, source, base_dir, _semantic_problems)
+    for path, message in reach_warnings(sc):
+        warnings.warn(ConfigWarning(path, message), stacklevel=2)
+    return sc
+
+
+def nominal_positions(sc: Scenario) -> np.ndarray:
+    """``(T, scans, 2)``: each target's position at scans ``1..scans`` without process noise
+    (its constant velocity and manoeuvres), what :func:`reach_warnings` looks at."""
+    from covnet.core.manoeuvre import manoeuvring_trajectory  # start-up: configs with targets
+
+    assert sc.targets is not None
+    out = np.empty((len(sc.targets), sc.scans, 2))
+    for i, t in enumerate(sc.targets):
+        x0 = [t.initial_position_m[0], t.initial_velocity_mps[0]]
+        x0 += [t.initial_position_m[1], t.initial_velocity_mps[1]]
+        traj = manoeuvring_trajectory(
+            x0, sc.period_s, 0.0, sc.scans, np.random.default_rng(0), segments(t)
+        )
+        out[i] = traj[:, [0, 2]]
+    return out
+
+
+def segments(t: TargetEntry) -> list[Any]:
+    """The target's manoeuvres as the core's segments (:mod:`covnet.core.manoeuvre`)."""
+    from covnet.core.manoeuvre import Acceleration, Turn  # start-up: configs with targets
+
+    out: list[Any] = []
+    for m in t.manoeuvres:
+        if m.kind == "turn":
+            assert m.turn_rate_deg_s is not None
+            out.append(Turn(m.from_scan, m.to_scan, math.radians(m.turn_rate_deg_s)))
+        else:
+            assert m.accel_mps2 is not None
+            out.append(Acceleration(m.from_scan, m.to_scan, *m.accel_mps2))
+    return out
+
+
+def in_coverage(s: SensorSpec, xy: np.ndarray) -> np.ndarray:
+    """Where the positions ``xy`` ``(..., 2)`` are inside sensor ``s``'s coverage (range,
+    sector; not at the sensor itself for the models that measure a bearing)."""
+    if s.position_m is None:
+        return np.ones(xy.shape[:-1], dtype=bool)
+    dx, dy = xy[..., 0] - s.position_m[0], xy[..., 1] - s.position_m[1]
+    r = np.hypot(dx, dy)
+    ok = r <= (math.inf if s.max_range_m is None else s.max_range_m)
+    if s.model != "position":
+        ok &= r > 0.0
+    if s.fov is not None:
+        off = np.angle(np.exp(1j * (np.arctan2(dy, dx) - math.radians(s.fov.center_deg))))
+        ok &= np.abs(off) <= math.radians(s.fov.half_width_deg)
+    return np.asarray(ok)
+
+
+def reach_warnings(sc: Scenario) -> list[tuple[str, str]]:
+    """The sensors that never cover any target at any scan (on the noise-free trajectories of
+    :func:`nominal_positions`): allowed, never allocated, probably a mistake."""
+    if not sc.multitarget or not any(s.max_range_m or s.fov for s in sc.sensors):
+        return []
+    xy = nominal_positions(sc)
+    out = []
+    for i, s in enumerate(sc.sensors):
+        if in_coverage(s, xy).any():
+            continue
+        assert s.position_m is not None
+        d = np.hypot(xy[..., 0] - s.position_m[0], xy[..., 1] - s.position_m[1]).min()
+        reach = f"max_range_m {s.max_range_m:g}" if s.max_range_m else "no range limit"
+        fov = (
+            f", fov {s.fov.center_deg:g} ± {s.fov.half_width_deg:g} deg"
+            if s.fov is not None
+            else ""
+        )
+        out.append(
+            (
+                f"sensors[{i}]",
+                f"{s.id} never covers any target ({reach}{fov}; nearest approach "
+                f"{d / 1e3:.1f} km): it can never be allocated",
+            )
+        )
+    return out
 
 
 def load(path: str | Path) -> Scenario:
@@ -375,12 +813,38 @@ def load(path: str | Path) -> Scenario:
     return from_dict(read_yaml(p), str(p), base_dir=p.parent)
 
 
+_PAPER_OMITS = (
+    "network.security",
+    "targets",
+    "association",
+    "ospa",
+    "allocation.detection",
+    "allocation.max_per_target",
+)
+
+
 def normalised(sc: Scenario) -> dict[str, Any]:
     """The config with every default filled in, as plain JSON-able data (except
     ``network.security`` while it is all off, ``evaluation`` while it is the default and the
     allocation fields added later while at their defaults, so that configs without them keep
-    their hash)."""
-    return _normalised(sc, ("network.security", "evaluation", *(f"allocation.{f}" for f in _ADDED)))
+    their hash).
+
+    A config without ``targets:`` leaves out every key the many-target scenario added (they
+    hold their defaults: the semantic checks see to it), so that its hash is what it was; one
+    with ``targets:`` leaves out the one-target ``target`` and ``desired`` it does not use, and
+    says ``network.latency.missed_command: off``, what it does."""
+    later = ("evaluation", *(f"allocation.{f}" for f in _ADDED))
+    if not sc.multitarget:
+        data = _normalised(sc, (*_PAPER_OMITS, *later))
+        for s in data["sensors"]:
+            for key in _SENSOR_EXTRAS:
+                s.pop(key, None)
+        return data
+    data = _normalised(sc, ("network.security", *later))
+    del data["target"], data["desired"]
+    # with targets a missed command is always a scan off (the only choice: see the checks)
+    data["network"]["latency"]["missed_command"] = "off"
+    return data
 
 
 #: allocation fields added after configs were first hashed (left out while at their default)

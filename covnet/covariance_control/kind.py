@@ -49,6 +49,7 @@ class CovarianceControl(KindBase):
     }
     options = {"seed": seed_option, "metric": _metrics, "fusion": _fusion}
     commands = {
+        "mc": lazy(_COMMANDS, "mc"),
         "compare": lazy(_COMMANDS, "compare"),
         "sweep": lazy(_COMMANDS, "sweep"),
         "replay": lazy(_REPLAY, "command"),

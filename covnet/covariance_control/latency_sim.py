@@ -62,7 +62,7 @@ from covnet.covariance_control.model import (
     predict_step,
     truth_trajectory,
 )
-from covnet.covariance_control.simulate import MetricRun, RunRows
+from covnet.covariance_control.simulate import MetricRun, RunRows, TargetRows, TargetsRun
 from covnet.latency_bus import DOWN, UP
 
 PROBABILITY_DRAWS = 20_000
@@ -274,3 +274,102 @@ class _Sensor:
         tr = rule.local(model, j, g, z)
         self.local = tr.post
         return tr
+
+
+def run_targets_latency(
+    sc: Scenario, metric: str, tm: Any = None
+) -> tuple[TargetsRun, LatencyCounts]:
+    """Many targets (a config with ``targets:``) over the slow links of ``network.latency``,
+    in simulated time: the protocol of the module docstring, with each command naming every
+    enabled sensor's target and clutter window.  A sensor acts on the newest command that
+    reaches it (an older one arriving after it is stale) and dwells as commanded; a scan whose
+    command never reached it is not measured (``missed_command`` is ``off`` with targets: a
+    fallback dwell would have no target and no window).  At ``d_k`` the late returns (or local
+    tracks, ``info``) are re-filtered from their scan (``late: oosm``,
+    :class:`covnet.covariance_control.targets.History`, up to ``oosm_depth`` scans back) or
+    dropped, then scan ``k`` is fused from its (re-filtered) prior with the decision and
+    windows made at ``t_k``.  With ideal links it is :func:`covnet.covariance_control.simulate.
+    run_targets` bit for bit."""
+    # start-up: the many-target steps only for configs with targets
+    from covnet.covariance_control import targets
+
+    tm = tm or targets.build(sc)
+    lat = sc.network.latency
+    T, delta = tm.T, sc.network.deadline_fraction
+    N, K, n_targets = len(tm.sensors), tm.scans, len(tm.targets)
+    truth = targets.truth_trajectories(tm)
+    up_specs, down_specs = link_specs(sc)
+    up = [LinkState(s, link_stream(sc.seed, j, UP)) for j, s in enumerate(up_specs)]
+    down = [LinkState(s, link_stream(sc.seed, j, DOWN)) for j, s in enumerate(down_specs)]
+    info = sc.fusion.mode == "info"
+    local = [targets.LocalTargets(tm, j) for j in range(N)] if info else []
+    history = targets.History(tm, lat.oosm_depth if lat.late == "oosm" else 1, info)
+    counts = LatencyCounts()
+    rows = TargetRows(K, N, n_targets)
+    est = targets.initial_estimates(tm)
+    newest = [0] * N
+    seq = itertools.count()
+    commands: list[tuple[float, int, int, int]] = []  # heap: (arrival, seq, j, scan)
+    pending: list[tuple[float, int, int, int, Any]] = []  # heap: (arrival, seq, scan, j, payload)
+    plans: dict[int, tuple[Any, dict[int, Any]]] = {}  # scan -> (decision, windows)
+    sent_for = np.zeros(K + 1, dtype=np.int64)
+    on_time_for = np.zeros(K + 1, dtype=np.int64)
+    preds = targets.predict_all(tm, est)
+    for i in range(K):
+        k = i + 1
+        t_k = k * T
+        t0 = time.perf_counter()
+        dec = targets.decide(tm, preds, k, metric)
+        dt = time.perf_counter() - t0
+        windows = {j: targets.window(tm, j, preds[dec.assignment[j]]) for j in dec.subset}
+        plans[k] = (dec, windows)
+        counts.commanded += len(dec.subset)
+        for j in range(N):
+            a = down[j].on_send(t_k)
+            if a is not None:
+                heapq.heappush(commands, (a, next(seq), j, k))
+        d_k = t_k + delta * T
+        while commands and commands[0][0] <= d_k:
+            a, _, j, scan = heapq.heappop(commands)
+            if scan <= newest[j]:
+                continue  # overtaken by a newer command: stale
+            counts.commands_missed += scan - newest[j] - 1
+            newest[j] = scan
+            dec_s, win_s = plans[scan]
+            t = dec_s.assignment[j]
+            if t == targets.OFF:
+                continue
+            Z = targets.dwell(tm, j, scan, truth[t, scan - 1], win_s[j])
+            payload: Any = Z
+            if info:
+                payload = local[j].track(t, scan, Z, win_s[j])[0]
+            counts.measured += 1
+            sent_for[scan] += 1
+            arrival = up[j].on_send(a)
+            if arrival is None:
+                counts.lost += 1
+            else:
+                heapq.heappush(pending, (arrival, next(seq), scan, j, payload))
+        on_time: dict[int, Any] = {}
+        late: list[tuple[int, int, Any]] = []
+        while pending and pending[0][0] <= d_k:
+            _, _, scan, j, payload = heapq.heappop(pending)
+            if scan == k:
+                on_time[j] = payload
+            else:
+                late.append((scan, j, payload))
+        for scan, j, payload in late:
+            if lat.late == "oosm" and history.insert(scan, j, payload):
+                counts.late_refiltered += 1
+            else:
+                counts.late_dropped += 1
+        prior = history.predicted() if history.changed else preds
+        counts.on_time += len(on_time)
+        on_time_for[k] = len(on_time)
+        counts.per_scan_fused.append(len(on_time))
+        est, dwells = history.step(k, prior, dec, windows, on_time)
+        rows.put(i, dec, prior, est, dwells, truth[:, i], dt)
+        preds = targets.predict_all(tm, est)
+    counts.lost += len(pending)
+    counts.deadline_misses = int(np.sum(sent_for > on_time_for))
+    return rows.run(metric), counts

@@ -159,31 +159,48 @@ class Model:
 
 
 def build_model(sc: Scenario) -> Model:
+    """The arrays of ``sc``.  A config with ``targets:`` (many targets,
+    :mod:`covnet.covariance_control.targets`) gets the model of its first target and of its
+    position sensors (``H``, ``R``, gains; another model's ``R`` is a placeholder, never
+    used): the part the many-target steps share with the paper's."""
     T = sc.period_s
     ids = sc.sensor_ids
     H = position_matrix(2)
-    R = np.stack([correlated_noise(s.sigma_x_m, s.sigma_y_m, s.rho) for s in sc.sensors])
+    R = np.stack([correlated_noise(*s.position_noise) for s in sc.sensors])
     al = sc.allocation
     constraints = Constraints(
         excluded=frozenset(ids.index(s) for s in al.excluded),
         required=frozenset(ids.index(s) for s in al.required),
         max_active=al.max_active,
     )
-    px, py = sc.target.initial_position_m
-    vx, vy = sc.target.initial_velocity_mps
+    P0_diag = sc.filter.P0_diag
+    if sc.targets is None:
+        tg = sc.target
+        px, py = tg.initial_position_m
+        vx, vy = tg.initial_velocity_mps
+        sigma_a = q = tg.accel_noise_std_mps2
+        desired = sc.desired
+    else:
+        t0 = sc.targets[0]
+        px, py = t0.initial_position_m
+        vx, vy = t0.initial_velocity_mps
+        sigma_a = t0.accel_noise_std_mps2
+        q = sigma_a if t0.filter_accel_noise_std_mps2 is None else t0.filter_accel_noise_std_mps2
+        desired = t0.desired
+        P0_diag = P0_diag if t0.P0_diag is None else t0.P0_diag
     return Model(
         sensor_ids=ids,
         T=T,
         F=cv_transition(T, 2),
         G=dwna_noise_gain(T, 2),
-        Q=dwna_process_noise(T, sc.target.accel_noise_std_mps2, 2),
-        sigma_a=sc.target.accel_noise_std_mps2,
+        Q=dwna_process_noise(T, q, 2),
+        sigma_a=sigma_a,
         H=H,
         R=R,
-        P0=np.diag(np.asarray(sc.filter.P0_diag, dtype=np.float64)),
+        P0=np.diag(np.asarray(P0_diag, dtype=np.float64)),
         x0=np.array([px, vx, py, vy], dtype=np.float64),
-        desired_from=tuple(d.from_scan for d in sc.desired),
-        desired_P=np.stack([d.as_matrix() for d in sc.desired]),
+        desired_from=tuple(d.from_scan for d in desired),
+        desired_P=np.stack([d.as_matrix() for d in desired]),
         constraints=constraints,
         tie_rtol=al.tie_rtol,
         seed=sc.seed,

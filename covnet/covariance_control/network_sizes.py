@@ -29,6 +29,8 @@ def scaled_sensors(sc: Scenario, n_sensors: int) -> list[dict[str, Any]]:
     out = []
     for i in range(n_sensors):
         s, g = base[i % len(base)], 1 + i // len(base)
+        if s.sigma_x_m is None or s.sigma_y_m is None:  # a range/bearing sensor: no family
+            raise ValueError(f"sensor {s.id}: scaled families are of position sensors")
         scale = 1.0 + SITE_STEP * (g - 1)
         out.append(
             {

@@ -46,6 +46,13 @@ scans with a Status.  Not recoverable from a recording: an episode the manager h
 stopped before its first command (a Ctrl-C in that instant) is absent from the replay's
 ``scans_completed`` while the manager listed it with 0 scans.
 
+Many targets (a config with ``targets:``): the same, with the many-target centre's steps
+(:class:`covnet.covariance_control.targets_centre.TargetsCentre`): per scan the assignment is
+recomputed from the predictions and ``Status.failed`` and compared with the recorded Command's
+enabled set, targets and clutter windows and with the Status; each fused sensor's recorded
+returns (``z`` ``(m, dim_z)``, its model's ``R``) are fused per target, and every target's
+recomputed estimate is compared with its recorded Track.
+
 The steps shared by every kind's replay (reading the recording, the metadata check, the notes,
 the byte-for-byte comparison, ``covnet replay`` itself) are :mod:`covnet.replay_kit`'s.
 """
@@ -119,6 +126,22 @@ class CovarianceReplay(KindReplay):
         """The Status, Tracks and the sensors' messages the manager would accept (bar their
         timing): a position measurement (``z`` ``(1, 2)``, ``R`` symmetric positive definite),
         or under a track rule a usable local track."""
+        if cfg.multitarget:
+            # start-up: the many-target steps only for configs with targets
+            from covnet.covariance_control import targets
+            from covnet.covariance_control.targets_centre import TargetsCentre
+
+            centre = TargetsCentre(targets.build(cfg))
+            if cfg.fusion.mode == "info":
+                return load_recording(
+                    samples,
+                    run_id,
+                    message=msg.LocalTrack,
+                    label="local_track",
+                    acceptable=centre.usable_track,
+                    commands=True,
+                )
+            return load_recording(samples, run_id, acceptable=centre.usable, commands=True)
         if rule_for(cfg.fusion).tracks:
             return load_recording(
                 samples,
@@ -132,6 +155,8 @@ class CovarianceReplay(KindReplay):
     def recompute(
         self, cfg: Scenario, episodes: list[str], rec: Recorded, diffs: Differences
     ) -> ManagerResult:
+        if cfg.multitarget:
+            return _recompute_targets(cfg, episodes, rec, diffs)
         return _recompute(cfg, episodes, rec, diffs)
 
     def write(
@@ -238,6 +263,118 @@ def _recompute(
                 )
             log.record(len(ids), alloc, pred, est, nees(est, truth[k - 1]), decision_s)
         if len(log.value) < model.scans:
+            completed = False
+    result.completed = completed
+    return result
+
+
+def _recompute_targets(
+    sc: Scenario, metrics: list[str], rec: Recorded, diffs: Differences
+) -> ManagerResult:
+    """The many-target manager's episode logs, recomputed from the recorded Commands, Status,
+    Measurements and Tracks (module docstring)."""
+    # start-up: the many-target steps only for configs with targets
+    from covnet.covariance_control import targets
+    from covnet.covariance_control.targets_centre import TargetEpisodeLog, TargetsCentre
+
+    tm = targets.build(sc)
+    ids, tids = tm.sensor_ids, tm.target_ids
+    truth = targets.truth_trajectories(tm)
+    result = ManagerResult({}, NetStats())
+    completed = True
+    for e, metric in enumerate(metrics):
+        last = rec.last_scan(e)
+        if last == 0:
+            completed = False
+            continue
+        log = result.episodes[metric] = TargetEpisodeLog.start(metric, tm, truth)
+        where = f"episode {e} ({metric})"
+        lat = sc.network.latency
+        history = None
+        if not lat.is_ideal(ids) and lat.late == "oosm":
+            history = targets.History(tm, lat.oosm_depth, sc.fusion.mode == "info")
+        centre = TargetsCentre(tm, history)  # the manager's own steps
+        failed_prev: frozenset[str] = frozenset()
+        for k in range(1, tm.scans + 1):
+            st = rec.status.get((e, k))
+            if st is None:
+                if k <= last:
+                    diffs.add(
+                        "status",
+                        f"{where}: no Status of scan {k} recorded (scans up to {last} are); "
+                        f"the replay of this episode stops at scan {k - 1}",
+                    )
+                break
+            failed = frozenset(st.failed)
+            log.failures.extend(failure_events(failed_prev, failed, k))
+            failed_prev = failed
+            plan = centre.decide(k, metric, frozenset(ids.index(s) for s in failed if s in ids))
+            enabled, tasks, windows = centre.command_fields(plan)
+            if enabled != st.enabled:
+                diffs.add(
+                    "allocation",
+                    f"{where} scan {k}: replayed allocation {list(enabled)} != recorded "
+                    f"{list(st.enabled)}",
+                )
+            elif float(plan.decision.value) != st.value:
+                diffs.add(
+                    "value",
+                    f"{where} scan {k}: replayed objective {float(plan.decision.value)!r} != "
+                    f"recorded {st.value!r}",
+                )
+            cmd = rec.commands.get((e, k))
+            if cmd is not None and (
+                cmd.targets != tasks
+                or msg.Command(k, 0.0, enabled, 0, windows=windows)
+                != msg.Command(k, 0.0, enabled, 0, windows=cmd.windows)
+            ):
+                diffs.add(
+                    "command",
+                    f"{where} scan {k}: the replayed targets or clutter windows are not the "
+                    "recorded Command's",
+                )
+            got: dict[str, Any] = {}
+            for sid in st.fused:
+                m = rec.meas.get((e, k, sid))
+                if (
+                    m is None
+                    or sid not in ids
+                    or (isinstance(m, msg.LocalTrack) and not centre.usable_track(m, plan))
+                ):
+                    diffs.add(
+                        "measurement",
+                        f"{where} scan {k}: the manager fused {sid} but no valid measurement of "
+                        "it is recorded",
+                    )
+                    continue
+                got[sid] = m
+            for token in st.refiltered or ():  # the late ones the manager re-filtered
+                sid, _, scan = token.rpartition(":")
+                m = rec.meas.get((e, int(scan), sid)) if scan.isdigit() else None
+                if m is None or not centre.insert_late(m):
+                    diffs.add(
+                        "refiltered",
+                        f"{where} scan {k}: the manager re-filtered {token} but the replay "
+                        "cannot (no valid recorded message, or not insertable)",
+                    )
+            prior, posts, dwells = centre.fuse(plan, got)
+            trace_P = float(sum(np.trace(g.P) for g in posts))
+            if trace_P != st.trace_P:
+                diffs.add(
+                    "trace_P",
+                    f"{where} scan {k}: replayed tr P {trace_P!r} != recorded {st.trace_P!r}",
+                )
+            recorded = {tr.target_id: tr for tr in rec.tracks.get((e, k), ())[::-1]}
+            for tid, g in zip(tids, posts, strict=True):
+                tr = recorded.get(tid)
+                if tr is not None and not (np.array_equal(tr.x, g.x) and np.array_equal(tr.P, g.P)):
+                    diffs.add(
+                        "track",
+                        f"{where} scan {k}: the replayed estimate of {tid} differs from its "
+                        f"recorded Track (max |dx| = {float(np.max(np.abs(tr.x - g.x))):.6g})",
+                    )
+            log.record(plan, prior, posts, dwells, sorted(st.fused))
+        if len(log.value) < tm.scans:
             completed = False
     result.completed = completed
     return result

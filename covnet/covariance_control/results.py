@@ -15,13 +15,20 @@ Layout of a run directory::
     fig*.png        the figures (see covnet.covariance_control.plots)
 
 Files are written to a temporary name and renamed, so a reader never sees half a file.
+
+Many targets (a config with ``targets:``, :func:`write_targets_run`): the same files, with per
+metric a ``targets`` block per target (position and velocity RMSE, mean NEES and NIS with their
+95 % χ² bands, sensors per scan, ``f(P_t, P_d,t)`` per scan, ``tr P_t`` and ``tr P_d,t``), OSPA
+and GOSPA per scan, and each sensor's dwell counts per target; ``arrays.npz`` holds the arrays
+of every target (``truth`` ``(T, K, 4)``, per metric ``assignment``, ``x_est``, ``P_post``,
+``nees``, ``ospa``, ...).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,7 +38,12 @@ from covnet.covariance_control.centre import ManagerResult
 from covnet.covariance_control.config import Scenario, config_hash, normalised
 from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import build_model
-from covnet.covariance_control.simulate import MetricRun, Trajectory, shared_trajectory
+from covnet.covariance_control.simulate import (
+    MetricRun,
+    TargetsRun,
+    Trajectory,
+    shared_trajectory,
+)
 from covnet.rundir import (
     ARRAYS,
     CONFIG,
@@ -42,6 +54,9 @@ from covnet.rundir import (
     write_json,
     write_npz,
 )
+
+if TYPE_CHECKING:
+    from covnet.covariance_control.targets import TargetsModel
 
 
 def metric_summary(
@@ -203,10 +218,212 @@ def write_network_run(
     """The manager's run directory (and the replay's): the same files as ``covnet run`` for
     the scans done, plus ``network.json`` (the bus's own record) and the failures seen; safe
     to call repeatedly while the run goes on."""
+    if sc.multitarget:
+        return _write_targets_network_run(out, sc, result, run_info)
     model = build_model(sc)
     traj = shared_trajectory(model)
     n_sensors = len(model.sensor_ids)
     runs = {m: log.as_run(n_sensors) for m, log in result.episodes.items() if log.value}
+    extra, info = _network_facts(result)
+    info.update(run_info or {})
+    summary = write_run(out, sc, traj, runs, extra=extra, run_info=info)
+    write_json(out / "network.json", result.stats.as_dict())
+    return summary
+
+
+# --------------------------------------------------------------------------------------------
+# many targets
+# --------------------------------------------------------------------------------------------
+
+
+def target_trajectory(tm: TargetsModel) -> dict[str, np.ndarray]:
+    """What every metric's run shares: ``t`` ``(K,)``, ``truth`` ``(T, K, 4)`` and ``P_d``
+    ``(T, K, 4, 4)``."""
+    from covnet.covariance_control import targets  # start-up: configs with targets only
+
+    scans = np.arange(1, tm.scans + 1)
+    return {
+        "t": scans * tm.T,
+        "truth": targets.truth_trajectories(tm),
+        "P_d": np.stack([np.stack([tg.desired(int(k)) for k in scans]) for tg in tm.targets]),
+        "weights": np.array([[tg.weight(int(k)) for k in scans] for tg in tm.targets]),
+    }
+
+
+def ospa_series(run: TargetsRun, truth: np.ndarray, c: float, p: float) -> tuple[Any, Any]:
+    """OSPA and GOSPA (``α = 2``) per scan of the estimated positions against the true ones
+    (every target has its track: no initiation, no deletion)."""
+    from covnet.core.ospa import gospa, ospa  # start-up: scipy.optimize for these runs only
+
+    n = run.x_est.shape[1]
+    o, g = np.empty(n), np.empty(n)
+    for k in range(n):
+        X = truth[:, k][:, [0, 2]]
+        Y = run.x_est[:, k][:, [0, 2]]
+        o[k] = ospa(X, Y, c, p)
+        g[k] = gospa(X, Y, c, p).distance
+    return o, g
+
+
+def _band(values: np.ndarray, dof: int) -> list[float]:
+    from covnet.core.consistency import chi2_band  # start-up: scipy.stats for these runs only
+
+    b = chi2_band(dof, max(int(values.size), 1))
+    return [b.low, b.high]
+
+
+def targets_summary(
+    run: TargetsRun, traj: Mapping[str, np.ndarray], tm: TargetsModel
+) -> dict[str, Any]:
+    """The per-metric block of a many-target ``summary.json`` (module docstring)."""
+    from covnet.core.consistency import mean_chi2_band  # start-up: scipy.stats, these runs only
+
+    ids, tids = tm.sensor_ids, tm.target_ids
+    K = run.assignment.shape[0]
+    truth = traj["truth"][:, :K]
+    enabled = run.enabled
+    counts = enabled.sum(axis=1)
+    o, g = ospa_series(run, truth, tm.ospa_c, tm.ospa_p)
+    single = _band(np.ones(1), 4)  # one scan's NEES band
+    per_target: dict[str, Any] = {}
+    for t, tid in enumerate(tids):
+        err = run.x_est[t] - truth[t]
+        nis_n = int(run.nis_n[t].sum())
+        nis_dof = int(run.nis_dof[t].sum())
+        block: dict[str, Any] = {
+            "rmse_position": float(np.sqrt((err[:, 0] ** 2 + err[:, 2] ** 2).mean())),
+            "rmse_velocity": float(np.sqrt((err[:, 1] ** 2 + err[:, 3] ** 2).mean())),
+            "max_position_error": float(np.hypot(err[:, 0], err[:, 2]).max()),
+            "mean_nees": float(run.nees[t].mean()),
+            "nees_band_95": _band(run.nees[t], 4),
+            "nees_share_in_single_band": float(
+                np.mean((run.nees[t] >= single[0]) & (run.nees[t] <= single[1]))
+            ),
+            "mean_nis": float(run.nis_sum[t].sum() / nis_n) if nis_n else None,
+            "nis_band_95": list(mean_chi2_band(nis_dof, nis_n)) if nis_n else None,
+            "nis_updates": nis_n,
+            "nis_mean_dof": nis_dof / nis_n if nis_n else None,
+            "sensors_per_scan": (run.assignment == t).sum(axis=1).astype(int).tolist(),
+            "f": run.values[t].tolist(),
+            "trace_P": np.trace(run.P_post[t], axis1=1, axis2=2).tolist(),
+            "trace_Pd": np.trace(traj["P_d"][t, :K], axis1=1, axis2=2).tolist(),
+            "sensors_on_target_share": float((run.assignment == t).sum() / max(counts.sum(), 1)),
+        }
+        per_target[tid] = block
+    dwell = {
+        sid: {
+            **{tid: int((run.assignment[:, j] == t).sum()) for t, tid in enumerate(tids)},
+            "off": int((run.assignment[:, j] < 0).sum()),
+        }
+        for j, sid in enumerate(ids)
+    }
+    return {
+        "allocation_rate": allocation_rate(counts.tolist(), len(ids)),
+        "sensors_per_scan": counts.astype(int).tolist(),
+        "assignments": [
+            {ids[j]: tids[a] for j, a in enumerate(row) if a >= 0}
+            for row in run.assignment.tolist()
+        ],
+        "value": run.value.tolist(),
+        "usage": {sid: int(u) for sid, u in zip(ids, enabled.sum(axis=0), strict=True)},
+        "dwell_counts": dwell,
+        "targets": per_target,
+        "ospa": o.tolist(),
+        "gospa": g.tolist(),
+        "mean_ospa": float(o.mean()),
+        "mean_gospa": float(g.mean()),
+        "returns_per_dwell": float(run.returns[run.returns >= 0].mean())
+        if (run.returns >= 0).any()
+        else None,
+        "dwells_that_updated": float(run.used.sum() / max(int(enabled.sum()), 1)),
+        "subsets_evaluated_median": float(np.median(run.n_evaluated)),
+    }
+
+
+def write_targets_run(
+    out_dir: Path,
+    sc: Scenario,
+    tm: TargetsModel,
+    runs: Mapping[str, TargetsRun],
+    extra: Mapping[str, Any] | None = None,
+    run_info: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """:func:`write_run` for a many-target scenario (module docstring): ``summary.json``,
+    ``arrays.npz``, ``config.json`` and ``run.json``; returns the summary."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    traj = target_trajectory(tm)
+    summary: dict[str, Any] = {
+        "scenario": sc.name,
+        "config_hash": config_hash(sc),
+        "seed": sc.seed,
+        "scans": sc.scans,
+        "sensor_ids": list(tm.sensor_ids),
+        "target_ids": list(tm.target_ids),
+        "sensor_models": [s.kind for s in tm.sensors],
+        "desired_switch_scans": {tg.id: list(tg.desired_from) for tg in tm.targets},
+        "covnet_version": __version__,
+        "fusion": fusion_label(sc),
+        "association": tm.method,
+        "ospa": {"cutoff_m": tm.ospa_c, "order": tm.ospa_p},
+        "metrics": {m: targets_summary(r, traj, tm) for m, r in runs.items()},
+    }
+    if extra:
+        summary.update(extra)
+    info: dict[str, Any] = {
+        "created_utc": utc_now(),
+        "covnet_version": __version__,
+        "decision_time_median_s": {m: float(np.median(r.decision_s)) for m, r in runs.items()},
+    }
+    info.update(run_info or {})
+    arrays: dict[str, np.ndarray] = {
+        **traj,
+        "sensor_ids": np.array(tm.sensor_ids),
+        "target_ids": np.array(tm.target_ids),
+        "metrics": np.array(list(runs)),
+    }
+    for m, r in runs.items():
+        o, g = ospa_series(r, traj["truth"][:, : r.assignment.shape[0]], tm.ospa_c, tm.ospa_p)
+        arrays[f"assignment.{m}"] = r.assignment
+        arrays[f"enabled.{m}"] = r.enabled
+        arrays[f"value.{m}"] = r.value
+        arrays[f"values.{m}"] = r.values
+        arrays[f"x_est.{m}"] = r.x_est
+        arrays[f"P_post.{m}"] = r.P_post
+        arrays[f"P_pred.{m}"] = r.P_pred
+        arrays[f"nees.{m}"] = r.nees
+        arrays[f"nis_sum.{m}"] = r.nis_sum
+        arrays[f"nis_dof.{m}"] = r.nis_dof
+        arrays[f"nis_n.{m}"] = r.nis_n
+        arrays[f"returns.{m}"] = r.returns
+        arrays[f"used.{m}"] = r.used
+        arrays[f"ospa.{m}"] = o
+        arrays[f"gospa.{m}"] = g
+    write_npz(out_dir / ARRAYS, arrays)
+    write_json(out_dir / CONFIG, normalised(sc))
+    write_json(out_dir / RUN_INFO, info)
+    write_json(out_dir / SUMMARY, summary)
+    return summary
+
+
+def _write_targets_network_run(
+    out: Path, sc: Scenario, result: ManagerResult, run_info: dict[str, Any] | None
+) -> dict[str, Any]:
+    """:func:`write_network_run` of a many-target run (the episodes are
+    :class:`~covnet.covariance_control.targets_centre.TargetEpisodeLog` s)."""
+    from covnet.covariance_control import targets  # start-up: configs with targets only
+
+    tm = targets.build(sc)
+    runs = {m: log.as_run() for m, log in result.episodes.items() if log.value}
+    extra, info = _network_facts(result)
+    info.update(run_info or {})
+    summary = write_targets_run(out, sc, tm, runs, extra=extra, run_info=info)
+    write_json(out / "network.json", result.stats.as_dict())
+    return summary
+
+
+def _network_facts(result: ManagerResult) -> tuple[dict[str, Any], dict[str, Any]]:
+    """What a network run adds to ``summary.json`` (``completed``, scans, failures) and to
+    ``run.json`` (when each failure was seen)."""
     extra: dict[str, Any] = {
         "completed": result.completed,
         "scans_completed": {m: len(log.value) for m, log in result.episodes.items()},
@@ -223,7 +440,4 @@ def write_network_run(
             for m, log in result.episodes.items()
         },
     }
-    info.update(run_info or {})
-    summary = write_run(out, sc, traj, runs, extra=extra, run_info=info)
-    write_json(out / "network.json", result.stats.as_dict())
-    return summary
+    return extra, info

@@ -10,12 +10,19 @@ Per scan ``k = 1..N`` (time ``t_k = k T``)::
 Truth, initial estimate and every measurement come from counter-based streams of the seed
 (:mod:`covnet.core.streams`), so runs with different metrics share their random numbers and a
 multi-process run draws the very same ones.
+
+Many targets (a config with ``targets:``): :func:`run_targets` runs the same loop for ``T``
+targets with the steps of :mod:`covnet.covariance_control.targets` (each sensor dwells on one
+target or is off; returns with misses and clutter; PDA or nearest-neighbour updates) into a
+:class:`TargetsRun`.  On a paper config it gives :func:`run_metric`'s allocations and
+estimates bit for bit (a test).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,6 +39,9 @@ from covnet.covariance_control.model import (
     predict_step,
     truth_trajectory,
 )
+
+if TYPE_CHECKING:
+    from covnet.covariance_control.targets import TargetsModel
 
 
 @dataclass(frozen=True)
@@ -153,4 +163,147 @@ def run_metric(sc: Scenario, metric: str, model: Model | None = None) -> MetricR
             lower_bound=alloc.lower_bound,
             gap=alloc.gap,
         )
+    return rows.run(metric)
+
+
+# --------------------------------------------------------------------------------------------
+# many targets
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TargetsRun:
+    """Per-scan arrays of one many-target run (column ``k-1`` is scan ``k``; ``T`` targets,
+    ``N`` sensors, ``K`` scans): ``assignment`` ``(K, N)`` (target index, ``-1`` off),
+    ``value`` ``(K,)`` ``Σ_t w_t f_t``, ``values`` ``(T, K)`` ``f(P_t(a), P_d,t)``, the
+    estimates ``x_est`` ``(T, K, 4)``, ``P_post``, ``P_pred`` ``(T, K, 4, 4)``, ``nees``
+    ``(T, K)``; per target and scan the NIS of its dwells summed (``nis_sum``), their
+    degrees of freedom (``nis_dof``) and count (``nis_n``); ``returns`` ``(K, N)`` returns per
+    dwell (``-1``: off, or nothing arrived), ``used`` ``(K, N)`` a return moved the estimate;
+    decision times and exact evaluations per scan."""
+
+    metric: str
+    assignment: np.ndarray
+    value: np.ndarray
+    values: np.ndarray
+    x_est: np.ndarray
+    P_post: np.ndarray
+    P_pred: np.ndarray
+    nees: np.ndarray
+    nis_sum: np.ndarray
+    nis_dof: np.ndarray
+    nis_n: np.ndarray
+    returns: np.ndarray
+    used: np.ndarray
+    decision_s: np.ndarray
+    n_evaluated: np.ndarray
+
+    @property
+    def enabled(self) -> np.ndarray:
+        """``(K, N)``: the sensors on (dwelling on some target)."""
+        return np.asarray(self.assignment >= 0)
+
+
+class TargetRows:
+    """Per-scan rows of a many-target run, filled by scan (the in-process runner, the
+    manager's log and the replay all fill one)."""
+
+    def __init__(self, K: int, N: int, T: int) -> None:
+        self.assignment = np.full((K, N), -1, dtype=np.int64)
+        self.value = np.empty(K)
+        self.values = np.empty((T, K))
+        self.x_est = np.empty((T, K, 4))
+        self.P_post = np.empty((T, K, 4, 4))
+        self.P_pred = np.empty((T, K, 4, 4))
+        self.nees = np.empty((T, K))
+        self.nis_sum = np.zeros((T, K))
+        self.nis_dof = np.zeros((T, K), dtype=np.int64)
+        self.nis_n = np.zeros((T, K), dtype=np.int64)
+        self.returns = np.full((K, N), -1, dtype=np.int64)
+        self.used = np.zeros((K, N), dtype=bool)
+        self.decision_s = np.empty(K)
+        self.n_eval = np.empty(K, dtype=np.int64)
+        self.done = 0
+
+    def put(
+        self,
+        i: int,
+        decision: Any,
+        preds: list[Gaussian],
+        posts: list[Gaussian],
+        dwells: list[list[Any]],
+        truth: np.ndarray,
+        dt: float,
+    ) -> None:
+        """Row ``i``: the decision, predictions, posteriors and dwell records of the scan,
+        NEES against ``truth`` ``(T, 4)``."""
+        self.assignment[i] = decision.assignment
+        self.value[i] = decision.value
+        self.values[:, i] = decision.values
+        for t, (pred, est) in enumerate(zip(preds, posts, strict=True)):
+            self.x_est[t, i], self.P_post[t, i], self.P_pred[t, i] = est.x, est.P, pred.P
+            self.nees[t, i] = nees(est, truth[t])
+            for d in dwells[t]:
+                self.returns[i, d.sensor] = d.returns
+                self.used[i, d.sensor] = d.used
+                if d.nis is not None:
+                    self.nis_sum[t, i] += d.nis
+                    self.nis_dof[t, i] += d.dof
+                    self.nis_n[t, i] += 1
+        self.decision_s[i] = dt
+        self.n_eval[i] = decision.n_evaluated
+        self.done = max(self.done, i + 1)
+
+    def run(self, metric: str) -> TargetsRun:
+        n = self.done
+        return TargetsRun(
+            metric,
+            self.assignment[:n],
+            self.value[:n],
+            self.values[:, :n],
+            self.x_est[:, :n],
+            self.P_post[:, :n],
+            self.P_pred[:, :n],
+            self.nees[:, :n],
+            self.nis_sum[:, :n],
+            self.nis_dof[:, :n],
+            self.nis_n[:, :n],
+            self.returns[:n],
+            self.used[:n],
+            self.decision_s[:n],
+            self.n_eval[:n],
+        )
+
+
+def run_targets(sc: Scenario, metric: str, tm: TargetsModel | None = None) -> TargetsRun:
+    """The scan loop of ``sc``'s targets with allocation metric ``metric`` (the steps of
+    :mod:`covnet.covariance_control.targets`, in this process)."""
+    from covnet.covariance_control import targets  # start-up: configs with targets only
+
+    tm = tm or targets.build(sc)
+    truth = targets.truth_trajectories(tm)
+    N, T, K = len(tm.sensors), len(tm.targets), tm.scans
+    rows = TargetRows(K, N, T)
+    est = targets.initial_estimates(tm)
+    info = sc.fusion.mode == "info"  # each sensor's own filters, information fusion
+    local = [targets.LocalTargets(tm, j) for j in range(N)] if info else []
+    for i in range(K):
+        k = i + 1
+        preds = targets.predict_all(tm, est)
+        t0 = time.perf_counter()
+        dec = targets.decide(tm, preds, k, metric)
+        dt = time.perf_counter() - t0
+        windows = {j: targets.window(tm, j, preds[dec.assignment[j]]) for j in dec.subset}
+        returns = {
+            j: targets.dwell(tm, j, k, truth[dec.assignment[j], i], windows[j]) for j in dec.subset
+        }
+        if info:
+            tracks = {
+                j: local[j].track(dec.assignment[j], k, returns[j], windows[j])[0]
+                for j in dec.subset
+            }
+            est, dwells = targets.fuse_tracks(tm, preds, dec, tracks)
+        else:
+            est, dwells = targets.fuse(tm, preds, dec, returns, windows)
+        rows.put(i, dec, preds, est, dwells, truth[:, i], dt)
     return rows.run(metric)

@@ -100,10 +100,10 @@ def test_mc_trials_override_and_a_user_method(tmp_path, monkeypatch, capsys):
 def test_mc_errors(tmp_path, capsys):
     with pytest.raises(UsageError, match="--trials"):
         mc_run(load(PASSIVE), tmp_path / "x", 0, False)
-    assert main(["mc", str(REPO / "configs" / "paper.yaml"), "--out", str(tmp_path / "x")]) == 2
-    assert "mc: a Monte Carlo protocol is not defined for a covariance-control scenario" in (
-        capsys.readouterr().err
-    )
+    assert main(["mc", str(REPO / "configs" / "paper.yaml"), "--trials", "0", "--out",
+                 str(tmp_path / "x")]) == 2  # fmt: skip
+    assert "--trials: must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
     f = tmp_path / "file"
     f.write_text("")
     with pytest.raises(UsageError, match="not a directory"):

@@ -73,6 +73,14 @@ CASES = [
         modes={"S1": "NE", "S2": "stay"},
         targets={"S1": ("T1", "T2"), "S2": ()},
     ),
+    Command(
+        2,
+        2.0,
+        ("S1", "R1", "B1"),
+        6,
+        targets={"S1": ("T2",), "R1": ("T1",), "B1": ("T2",)},
+        windows={"R1": np.array([9000.0, 0.7, 120.0, 0.012]), "B1": np.array([-1.2, 0.006])},
+    ),
     Measurement(
         "S1",
         1,
@@ -112,6 +120,7 @@ CASE_IDS = [
     "truth-platforms",
     "truth-no-platforms",
     "cmd-targets",
+    "cmd-windows",
     "meas-target-ids",
     "meas-no-detections-mobile",
     "track-target",
@@ -879,3 +888,19 @@ if __name__ == "__main__":  # print fresh GOLDEN_HEX and GOLDEN_MOBILE_HEX table
                 print(f'        "{hexed[i : i + 80]}"')
             print("    ),")
         print("}")
+
+
+def test_command_windows_are_checked():
+    """Many targets: a clutter window only for an enabled sensor, finite, a vector."""
+    ok = Command(1, 1.0, ("R1",), 0, targets={"R1": ("T1",)}, windows={"R1": [1.0, 2.0, 3.0, 4.0]})
+    assert decode(encode(ok)) == ok
+    assert ok.windows is not None and ok.windows["R1"].dtype == np.float64
+    for windows, reason in (
+        ({"B1": [1.0, 2.0]}, "bad_value"),
+        ({"R1": [1.0, math.inf]}, "non_finite"),
+        ({"R1": [[1.0, 2.0]]}, "bad_shape"),
+        ({"R1": "wide"}, "bad_type"),
+    ):
+        with pytest.raises(WireError) as info:
+            Command(1, 1.0, ("R1",), 0, windows=windows)
+        assert info.value.reason == reason, windows

@@ -1,0 +1,95 @@
+"""``covnet mc`` of a covariance-control config (issue 16): seeds from the config's, means with
+95 % intervals, the first seed is ``covnet run``'s."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import yaml
+
+from covnet.cli import main
+from covnet.covariance_control.montecarlo import interval
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def short_config(tmp_path_factory) -> Path:
+    data = yaml.safe_load((ROOT / "configs" / "multitarget.yaml").read_text())
+    data["scans"] = 12
+    data["allocation"]["metrics"] = ["abs_trace"]
+    data["targets"][2]["manoeuvres"][0].update(from_scan=4, to_scan=8)
+    for t in data["targets"]:
+        if len(t["desired"]) > 1:
+            t["desired"][1]["from_scan"] = 7
+    p = tmp_path_factory.mktemp("cfg") / "mt-mc.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+def test_interval_is_students():
+    b = interval([1.0, 2.0, 3.0, 4.0])
+    assert b["mean"] == 2.5 and b["n"] == 4
+    half = 3.182446305284263 * b["std"] / 2.0  # t_{0.975, 3}
+    assert b["ci95"] == pytest.approx([2.5 - half, 2.5 + half])
+    assert interval([5.0])["ci95"] is None
+    assert interval([None, 2.0])["n"] == 1
+
+
+def test_mc_of_many_targets(short_config, tmp_path):
+    out = tmp_path / "mc"
+    assert (
+        main(["mc", str(short_config), "--trials", "3", "--workers", "1", "--out", str(out)]) == 0
+    )
+    doc = json.loads((out / "montecarlo.json").read_text())
+    assert doc["seeds"] == [2026, 2027, 2028]
+    assert [r["seed"] for r in doc["per_seed"]] == doc["seeds"]
+    blk = doc["aggregate"]["abs_trace"]
+    for key in ("allocation_rate", "mean_ospa", "mean_gospa"):
+        b = blk[key]
+        assert b["n"] == 3 and b["ci95"][0] <= b["mean"] <= b["ci95"][1]
+    assert len(blk["ospa_per_scan"]["mean"]) == 12
+    for tid in ("T1", "T2", "T3"):
+        t = blk["targets"][tid]
+        assert t["rmse_position"]["ci95"][0] <= t["rmse_position"]["mean"]
+        lo, hi = t["nees_batch"]["band_95"]
+        assert lo < 4 < hi and t["nees_batch"]["values"] == 36
+        assert t["nis_batch"]["values"] > 0
+        assert len(t["trace_P_per_scan"]["mean"]) == 12
+    assert (out / "montecarlo.png").is_file()
+    assert json.loads((out / "run.json").read_text())["status"] == "completed"
+    # trial 0 is covnet run's
+    run = tmp_path / "run"
+    assert main(["run", str(short_config), "--out", str(run), "--no-figures"]) == 0
+    s = json.loads((run / "summary.json").read_text())["metrics"]["abs_trace"]
+    row = doc["per_seed"][0]["metrics"]["abs_trace"]
+    assert row["allocation_rate"] == s["allocation_rate"]
+    assert row["targets"]["T2"]["rmse_position"] == s["targets"]["T2"]["rmse_position"]
+    # covnet plot redraws it
+    (out / "montecarlo.png").unlink()
+    assert main(["plot", str(out)]) == 0 and (out / "montecarlo.png").is_file()
+
+
+def test_mc_of_the_paper(paper_path, tmp_path):
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = 20
+    data["allocation"]["metrics"] = ["spectral"]
+    data["desired"][1]["from_scan"] = 11
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "mc"
+    assert main(["mc", str(cfg), "--trials", "2", "--workers", "1", "--out", str(out)]) == 0
+    doc = json.loads((out / "montecarlo.json").read_text())
+    t = doc["aggregate"]["spectral"]["targets"]["T1"]
+    assert t["rmse_position"]["n"] == 2 and math.isfinite(t["rmse_position"]["mean"])
+    # the allocation does not depend on the seed (a linear filter's covariances do not)
+    rates = [r["metrics"]["spectral"]["allocation_rate"] for r in doc["per_seed"]]
+    assert rates[0] == rates[1]
+
+
+def test_mc_bad_trials(short_config, tmp_path, capsys):
+    assert main(["mc", str(short_config), "--trials", "0", "--out", str(tmp_path / "x")]) == 2
+    assert "--trials" in capsys.readouterr().err
