@@ -1,6 +1,12 @@
 """covnet: a distributed sensor-network simulator for covariance-control sensor allocation.
 
-Importing :mod:`covnet` never imports zenoh; only :mod:`covnet.zenoh_bus` does.
+Importing :mod:`covnet` never imports zenoh; only :mod:`covnet.zenoh_bus` does.  It pins
+OpenBLAS's kernel set before NumPy loads (:mod:`covnet.blas_kernel`), so that the same config
+and seed give the same bits on every x86-64 machine.
 """
+
+from covnet import blas_kernel
+
+blas_kernel.pin()
 
 __version__ = "0.1.0"

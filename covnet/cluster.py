@@ -29,6 +29,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from covnet import blas_kernel
 from covnet.errors import UsageError
 
 try:
@@ -64,6 +65,26 @@ class DaskRunner:
         self.address = address
         self.client = connect(address)
         self._pending: list[Any] = []
+        self.kernels = self._check_kernels()
+
+    def _check_kernels(self) -> dict[str, str | None]:
+        """Each worker's OpenBLAS kernel set (:mod:`covnet.blas_kernel`).  A worker whose
+        kernels differ from this process's can give other last bits: said on stderr, with the
+        cure (a worker started before NumPy could be pinned, without the variable)."""
+        try:
+            kernels: dict[str, str | None] = self.client.run(blas_kernel.kernel)
+        except Exception:  # noqa: BLE001 (a check only; the tasks say what fails)
+            return {}
+        mine = blas_kernel.kernel()
+        other = sorted({k for k in kernels.values() if k != mine}, key=str)
+        if other:
+            print(
+                f"covnet: warning: --cluster {self.address}: workers run OpenBLAS kernels "
+                f"{other}, this machine {mine!r}: results may differ in their last bits from "
+                f"a local run; start the workers with OPENBLAS_CORETYPE={blas_kernel.PINNED}",
+                file=sys.stderr,
+            )
+        return kernels
 
     def imap(self, fn: Callable[[Any], Any], tasks: Sequence[Any]) -> Iterator[Any]:
         return self._imap(fn, tasks)
@@ -113,7 +134,12 @@ class DaskRunner:
             n = len(self.client.scheduler_info(n_workers=-1)["workers"])
         except Exception:  # noqa: BLE001 (a description only)
             n = None
-        return {"backend": "dask", "cluster": self.address, "workers": n}
+        return {
+            "backend": "dask",
+            "cluster": self.address,
+            "workers": n,
+            "blas_kernels": sorted({str(k) for k in self.kernels.values()}),
+        }
 
 
 def _dask_command() -> list[str]:

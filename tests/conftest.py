@@ -7,6 +7,8 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
+import covnet  # noqa: F401  (first: pins OpenBLAS's kernels before any test imports NumPy)
+
 settings.register_profile(
     "ci",
     derandomize=True,
