@@ -360,16 +360,23 @@ def information_reduction_table(
     b = mus * (2.0 * math.pi) ** (0.5 * n) * (1.0 - p * pg) / (p * v_ball)  # (μ,)
 
     def reduction(U: Mat) -> Vec:
-        """Mean over samples of (1 − β_0) − spread/n for the points U (N, k, n), per μ."""
+        """Mean over samples of (1 − β_0) − spread/n for the points U (N, k, n), per μ.
+
+        With e_k = exp(−|u_k|²/2) and d = b_μ + Σ_k e_k, β_k = e_k / d, so every sum over the
+        points is a sum of e_k-weighted terms over d, and those do not depend on μ:
+        Σβ_k = E₁/d, Σβ_k|u_k|² = E₂/d, ū = V/d with E₁ = Σe_k, E₂ = Σe_k|u_k|², V = Σe_k u_k;
+        spread = Σβ_k|u_k|² − |ū|² = E₂/d − |V|²/d².  O(μ N) per call, not O(μ N k n)."""
         if U.shape[1] == 0:
             return np.zeros(mus.size)
-        s2 = np.einsum("skn,skn->sk", U, U)
+        s2 = (U * U).sum(axis=2)  # (N, k)
         e = np.exp(-0.5 * s2)
-        denom = b[:, None] + e.sum(axis=1)[None, :]  # (μ, N)
-        beta = e[None, :, :] / denom[..., None]  # (μ, N, k)
-        ubar = np.einsum("qsk,skn->qsn", beta, U)
-        spread = (beta * s2[None]).sum(axis=2) - np.einsum("qsn,qsn->qs", ubar, ubar)
-        return np.asarray(np.mean(beta.sum(axis=2) - spread / n, axis=1))
+        E1 = e.sum(axis=1)  # (N,)
+        E2 = (e * s2).sum(axis=1)
+        V = (e[:, :, None] * U).sum(axis=1)  # (N, n)
+        V2 = (V * V).sum(axis=1)
+        inv_d = 1.0 / (b[:, None] + E1[None, :])  # (μ, N)
+        spread = E2[None, :] * inv_d - V2[None, :] * inv_d * inv_d
+        return np.asarray(np.mean(E1[None, :] * inv_d - spread / n, axis=1))
 
     q2 = np.zeros(mus.size)
     for m in range(m_max + 1):
