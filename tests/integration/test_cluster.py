@@ -98,10 +98,16 @@ CASES = {
     "mc-mobile": (["mc", "{mobile}", "--trials", "2"], "montecarlo.json", False),
     "mc-passive": (["mc", "{passive}"], "results.json", True),
 }
+DEFAULT_CASES = ("sweep", "mc-passive")
+"""Run by default (the two quickest, two kinds); ``-m slow`` runs the rest too."""
 
 
 @pytest.mark.timeout(600)
-@pytest.mark.parametrize("case", sorted(CASES))
+# two of the batch commands by default, the others under the slow marker (the suite's time)
+@pytest.mark.parametrize(
+    "case",
+    [c if c in DEFAULT_CASES else pytest.param(c, marks=pytest.mark.slow) for c in sorted(CASES)],
+)
 def test_a_cluster_gives_the_local_results_bit_for_bit(case, cluster, small, tmp_path):
     argv, table, wall = CASES[case]
     args = [a.format(**{k: str(v) for k, v in small.items()}) for a in argv]

@@ -35,7 +35,8 @@ def _config(tmp_path, paper_path, mode="central"):
     return path
 
 
-@pytest.mark.parametrize("mode", ["central", "info"])
+# info under the slow marker: the suite's time (info == central is shown in process)
+@pytest.mark.parametrize("mode", ["central", pytest.param("info", marks=pytest.mark.slow)])
 def test_network_run_equals_the_simulated_time_run(tmp_path, paper_path, mode):
     cfg = _config(tmp_path, paper_path, mode)
     ref, out = tmp_path / "ref", tmp_path / "up"

@@ -112,7 +112,8 @@ def test_missed_command_other_than_off_is_refused():
 
 @pytest.mark.integration
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("mode", ["central", "info"])
+# info in real time under the slow marker: the suite's time (its in-process twin is above)
+@pytest.mark.parametrize("mode", ["central", pytest.param("info", marks=pytest.mark.slow)])
 def test_realtime_network_run_equals_the_simulated_time_run(tmp_path, mode):
     from multiproc import CovnetProcess, assert_nothing_left
 
