@@ -18,13 +18,20 @@ winds down: it keeps recording until nothing has arrived for :data:`QUIET_S` (me
 flight: zenoh may deliver the manager's token loss before its last data) and, when stopped by
 a signal while the manager is still up, for up to ``linger_s`` so that the manager's last scan
 lands in the recording too.  The caller closes the writer.
+
+With a :class:`covnet.visual.Visualiser` it also writes the visual channels (what Foxglove
+draws: a scene, the numbers and a log line per scan) into the same file, built here, off the
+scan loop's path, from the messages as they arrive; an error there is counted and never stops
+the recording.
 """
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections import Counter
+from typing import Any
 
 from covnet import messages as msg
 from covnet.bus import Bus, Sample
@@ -32,6 +39,7 @@ from covnet.clock import Clock
 from covnet.config import Networked
 from covnet.node_kit import Heartbeat, ManagerWatch
 from covnet.recording import RecordingWriter, peek
+from covnet.visual import Visualiser
 
 ROLE = NODE_ID = msg.RECORDER_ID
 QUIET_S = 0.2
@@ -51,9 +59,13 @@ def run(
     writer: RecordingWriter,
     *,
     linger_s: float = LINGER_S,
+    visualiser: Visualiser | None = None,
+    live: Any = None,
 ) -> Counter[str]:
     """Record until the run is over (see module doc); returns counters: ``recorded``,
-    ``undecodable:<reason>`` and ``kind:<kind>`` per message kind recorded."""
+    ``undecodable:<reason>`` and ``kind:<kind>`` per message kind recorded, and with a
+    ``visualiser`` ``visual`` (visual messages written: :mod:`covnet.visual`, each also sent
+    to ``live``, a :class:`covnet.live.LiveView`, when given) and ``visual_errors``."""
     counts: Counter[str] = Counter()
     sub = getattr(bus, "subscribe_stamped", bus.subscribe)(msg.run_keyexpr(run_id))
     manager = ManagerWatch(bus, run_id)
@@ -64,6 +76,22 @@ def run(
     write = writer.write
     cmd_kind = msg.Command.KIND
 
+    visual_counts: Counter[str] = Counter()
+
+    def draw(kind: str, s: Sample) -> None:
+        assert visualiser is not None
+        try:
+            out = visualiser.feed(kind, s.key, s.payload, s.t_recv_ns)
+            for vm in out:
+                writer.write_visual(vm)
+                if live is not None:
+                    live.send(vm)
+            visual_counts["visual"] += len(out)
+        except Exception as exc:  # the picture must never cost the recording
+            visual_counts["visual_errors"] += 1
+            if visual_counts["visual_errors"] == 1:
+                print(f"recorder: visual channels: {type(exc).__name__}: {exc}", file=sys.stderr)
+
     def record(s: Sample) -> None:
         nonlocal last_scan
         kind, t_sent, scan = peek(s.payload)
@@ -71,6 +99,8 @@ def run(
         if kind == cmd_kind and scan is not None:
             last_scan = scan
         write(s.key, s.payload, s.t_recv_ns, t_sent)
+        if visualiser is not None:
+            draw(kind, s)
 
     try:
         while not stop.is_set():
@@ -102,4 +132,5 @@ def run(
     for kind, n in counts.items():
         out[kind if kind.startswith("undecodable:") else f"kind:{kind}"] += n
     out["recorded"] = counts.total()
+    out.update(visual_counts)
     return out
