@@ -376,14 +376,14 @@ class RecordingReader:
     whose writer was killed (no summary, no footer, a half-written last chunk) reads up to its
     last complete record.
 
-    Iterate :meth:`samples` (the raw ``msgpack`` channels only: a message of another channel,
-    a visual one, is counted in ``visual`` and skipped); afterwards ``metadata`` (name ->
-    map), ``complete`` (the footer and the closing magic were read), ``truncated`` (the file
-    ends inside a record: its writer died while writing it; a file that ends between
-    records, as a killed writer leaves it too, has ``complete`` False and ``truncated`` False), ``corrupt_chunks`` (offsets of
-    chunks skipped because they failed their CRC or did not decompress), ``orphans`` (messages
-    of a channel whose record was lost in such a chunk) and ``error`` (why reading stopped
-    early on a damaged file, else None) describe what was read.
+    Iterate :meth:`samples` (the raw ``msgpack`` channels only: a message of another channel, a
+    visual one, is counted in ``visual`` and skipped); afterwards ``metadata`` (name -> map),
+    ``complete`` (the footer and the closing magic were read), ``truncated`` (the file ends
+    inside a record: its writer died while writing it; a file that ends between records, as a
+    killed writer leaves it too, has ``complete`` False and ``truncated`` False),
+    ``corrupt_chunks`` (offsets of chunks skipped because they failed their CRC or did not
+    decompress), ``orphans`` (messages of a channel whose record was lost in such a chunk) and
+    ``error`` (why reading stopped early on a damaged file, else None) describe what was read.
 
     A recording a restarted recorder continued in further segments (:func:`segment_paths`) is
     read segment after segment: ``segments`` counts them, ``complete`` and ``truncated`` are
