@@ -77,6 +77,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = prepare_out(args.out, cfg.name, args.force)
     try:
         status = int(kind.run(cfg, out, figures=not args.no_figures))
+        if status == EXIT_OK and args.mcap:
+            # start-up: the Foxglove SDK and the visual channels only for --mcap
+            from covnet.visual import write_run_mcap
+
+            print(f"visual channels for Foxglove: {write_run_mcap(kind, cfg, out)}")
     except KeyboardInterrupt:
         if (out / RUN_INFO).is_file():
             record_end(out, "completed", "every scan done (figures interrupted)")
@@ -155,6 +160,21 @@ def cmd_up(args: argparse.Namespace) -> int:
     for n in nodes or []:
         if n not in known:
             raise UsageError(f"--nodes: unknown process {n!r}; choose from {sorted(known)}")
+    if args.foxglove is not None:
+        from covnet.live import address_problem  # start-up: the SDK only for --foxglove
+
+        if (problem := address_problem(args.foxglove)) is not None:
+            raise UsageError(f"--foxglove: {problem}")
+        if not cfg.network.record:
+            raise UsageError(
+                "--foxglove: the live view is served by the recorder, and this config has "
+                "network.record: false"
+            )
+        if nodes is not None and "recorder" not in nodes:
+            raise UsageError(
+                "--foxglove: the live view is served by the recorder, which --nodes does not "
+                "start here"
+            )
     if args.run is not None:
         try:
             run_keyexpr(args.run)  # validates like every key part
@@ -179,6 +199,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             router=args.router,
             netns=args.netns,
             sensors_per_process=k,
+            foxglove=args.foxglove,
         )
     except UpError as exc:
         _err(str(exc))
@@ -391,6 +412,11 @@ def build_parser() -> argparse.ArgumentParser:
     _out_options(r, "run")
     _run_options(r, "run only this metric (repeatable; default: the config's allocation.metrics)")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    r.add_argument(
+        "--mcap",
+        action="store_true",
+        help="also write run.mcap: the run's scans as Foxglove draws them (scene, numbers, log)",
+    )
     r.set_defaults(func=cmd_run)
 
     mc = sub.add_parser("mc", help="Monte Carlo evaluation of a scenario over seeds or trials")
@@ -452,6 +478,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="each sensor in its own network namespace, linked to the manager's by an "
         "emulated link with network.latency's delays and loss (root; docs/netem.md)",
+    )
+    u.add_argument(
+        "--foxglove",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="HOST:PORT",
+        help="serve the run live over the Foxglove WebSocket protocol (default 127.0.0.1:8765): "
+        "the scene, the numbers and the status lines, as the recording holds them",
     )
     u.set_defaults(func=cmd_up)
 
