@@ -1,7 +1,7 @@
 """``covnet up --foxglove``: a real Foxglove WebSocket client (``websockets``, offering the
 protocol's subprotocols as the Foxglove app does) subscribes to the scene and the numbers while
-a real network runs, and receives the run's scans; the recording's visual channels decode with the official readers
-and agree with ``covnet run --mcap`` of the same lockstep run."""
+a real network runs, and receives the run's scans; the recording's visual channels decode with
+the official readers and agree with ``covnet run --mcap`` of the same lockstep run."""
 
 from __future__ import annotations
 
