@@ -270,3 +270,21 @@ def test_paper_run_mcap_numbers_are_the_run_s(tmp_path):
     np.testing.assert_allclose(
         [d["rmse"] for d in docs], np.sqrt(np.cumsum(err**2) / np.arange(1, 6))
     )
+
+
+def test_layout_is_generated_and_names_real_topics_and_fields():
+    import importlib.util
+    import re
+
+    from covnet.visual import METRICS_SCHEMA, TOPICS
+
+    path = ROOT / "docs" / "foxglove" / "make_layout.py"
+    spec = importlib.util.spec_from_file_location("make_layout", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    committed = (ROOT / "docs" / "foxglove" / "covnet-layout.json").read_text()
+    assert committed == module.text()  # regenerate: python docs/foxglove/make_layout.py
+    topics = set(re.findall(r'"(/covnet/[a-z]+)', committed))
+    assert topics == set(TOPICS)
+    fields = re.findall(r'"/covnet/scan\.([A-Za-z_]+)"', committed)
+    assert fields and set(fields) <= set(METRICS_SCHEMA["properties"])
