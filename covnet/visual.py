@@ -86,9 +86,9 @@ LOG_TOPIC = "/covnet/log"
 TOPICS = (SCENE_TOPIC, METRICS_TOPIC, LOG_TOPIC)
 """The visual topics.  They start with ``/``, which a zenoh key (a raw channel) never does."""
 
-ELLIPSE_POINTS = 48
+ELLIPSE_POINTS = 24
 """Points of a drawn ellipse (a closed line loop)."""
-ARC_POINTS = 48
+ARC_POINTS = 32
 
 Rgba = tuple[float, float, float, float]
 COLOURS: dict[str, Rgba] = {
@@ -237,7 +237,9 @@ class ScanMessages:
 
 
 class KindVisual(Protocol):
-    """A kind's visual module (``covnet/<kind>/visual.py``), made by ``Kind.visual(cfg)``."""
+    """A kind's visual module (``covnet/<kind>/visual.py``), made by ``Kind.visual(cfg)``.
+    It may say ``measurements = True`` to get the scan's measurements decoded (the passive
+    kind draws its lines of sight); the others are not decoded, only timed."""
 
     def view(self, scan: ScanMessages) -> View:
         """The picture of one scan."""
@@ -323,6 +325,21 @@ def _text(p: Sequence[float], text: str, colour: str) -> Any:
     )  # fmt: skip
 
 
+_COVERAGE: dict[tuple[Vec3, Coverage], Any] = {}
+
+
+def _coverage_line(position: Vec3, cov: Coverage) -> Any:
+    """A sensor's coverage outline (cached: most sensors stay where they are)."""
+    key = (position, cov)
+    line = _COVERAGE.get(key)
+    if line is None:
+        if len(_COVERAGE) > 4096:
+            _COVERAGE.clear()
+        pts = _points(_arc(position, cov), position[2])
+        line = _COVERAGE[key] = _line(fm.LinePrimitiveLineType.LineStrip, pts, "coverage", 1.0)
+    return line
+
+
 def _p3(p: Sequence[float]) -> fm.Point3:
     return fm.Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]) if len(p) > 2 else 0.0)
 
@@ -337,11 +354,7 @@ def scene_update(view: View, t_ns: int) -> Any:
     docstring; ids ``truth/<id>``, ``estimate/<id>``, ``sensor/<id>``, ``segment/<id>``)."""
     ts = _timestamp(t_ns)
     size = fm.Vector3(x=view.marker, y=view.marker, z=view.marker)
-    LOOP, STRIP, LIST = (
-        fm.LinePrimitiveLineType.LineLoop,
-        fm.LinePrimitiveLineType.LineStrip,
-        fm.LinePrimitiveLineType.LineList,
-    )
+    LOOP, LIST = fm.LinePrimitiveLineType.LineLoop, fm.LinePrimitiveLineType.LineList
     entities = []
 
     def entity(eid: str, **prims: Any) -> None:
@@ -371,8 +384,7 @@ def scene_update(view: View, t_ns: int) -> Any:
     for s in view.sensors:
         lines = []
         if s.coverage is not None:
-            pts = _points(_arc(s.position, s.coverage), s.position[2])
-            lines.append(_line(STRIP, pts, "coverage", 1.0))
+            lines.append(_coverage_line(s.position, s.coverage))
         if s.state == "on":
             for tid in s.targets:
                 end = truth_at.get(tid, est_at.get(tid))
@@ -451,6 +463,7 @@ class Visualiser:
         self, kind_visual: KindVisual, episodes: Sequence[str], *, timed: bool = True
     ) -> None:
         self.kind_visual = kind_visual
+        self._wants_measurements = bool(getattr(kind_visual, "measurements", False))
         self.timed = timed
         self.episodes = list(episodes)
         self._truth: dict[int, msg.Truth] = {}
@@ -464,11 +477,18 @@ class Visualiser:
         self.undecodable = 0
         self.last_episode = -1
 
-    def feed(self, kind: str, key: str, payload: bytes, t_recv_ns: int) -> list[VisualMessage]:
-        """One received message (``kind``: :func:`covnet.recording.peek`'s)."""
+    def feed(
+        self, kind: str, key: str, payload: bytes, t_recv_ns: int, t_sent_ns: int | None = None
+    ) -> list[VisualMessage]:
+        """One received message (``kind``, ``t_sent_ns``: :func:`covnet.recording.peek`'s).
+        A measurement is decoded only for a kind that draws them (``KindVisual.measurements``);
+        for the others its latency comes from ``t_sent_ns``."""
         self._counts += 1
         self._bytes += len(payload)
         if kind not in _NEEDED:
+            return []
+        if kind == "meas" and t_sent_ns is not None and not self._wants_measurements:
+            self._latency_ms.append((t_recv_ns - t_sent_ns) / 1e6)
             return []
         try:
             m = msg.decode(payload)

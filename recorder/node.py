@@ -78,10 +78,10 @@ def run(
 
     visual_counts: Counter[str] = Counter()
 
-    def draw(kind: str, s: Sample) -> None:
+    def draw(kind: str, s: Sample, t_sent: int | None) -> None:
         assert visualiser is not None
         try:
-            out = visualiser.feed(kind, s.key, s.payload, s.t_recv_ns)
+            out = visualiser.feed(kind, s.key, s.payload, s.t_recv_ns, t_sent)
             for vm in out:
                 writer.write_visual(vm)
                 if live is not None:
@@ -100,7 +100,7 @@ def run(
             last_scan = scan
         write(s.key, s.payload, s.t_recv_ns, t_sent)
         if visualiser is not None:
-            draw(kind, s)
+            draw(kind, s, t_sent)
 
     try:
         while not stop.is_set():

@@ -99,13 +99,14 @@ class Visual:
         states = sensor_states(st, self.ids)
         tasks = scan.command.targets if scan.command is not None else None
         anchor = view.estimates[0].position if view.estimates else (0.0, 0.0, 0.0)
-        unplaced = [s for s in self.sc.sensors if s.position_m is None]
+        n_unplaced = sum(s.position_m is None for s in self.sc.sensors)
+        i = 0
         for s in self.sc.sensors:
             if s.position_m is not None:
                 pos = (float(s.position_m[0]), float(s.position_m[1]), 0.0)
             else:  # a row under the estimate
-                i = unplaced.index(s)
-                pos = (anchor[0] + (i - (len(unplaced) - 1) / 2) * 3 * sd, anchor[1] - 8 * sd, 0.0)
+                pos = (anchor[0] + (i - (n_unplaced - 1) / 2) * 3 * sd, anchor[1] - 8 * sd, 0.0)
+                i += 1
             cov = None
             if s.max_range_m is not None:
                 fov = s.fov

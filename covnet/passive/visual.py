@@ -34,6 +34,8 @@ __all__ = ["Visual", "run_messages"]
 class Visual:
     """The passive kind's :class:`covnet.visual.KindVisual`."""
 
+    measurements = True  # the lines of sight
+
     def __init__(self, cfg: PassiveConfig) -> None:
         self.cfg = cfg
         self.ids = cfg.sensor_ids
