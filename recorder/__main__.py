@@ -62,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
                     counts = node.run(
                         cfg, bus, args.run, WallClock(args.speed), stop, w,
                         visualiser=visualiser, live=live,
+                        live_visualiser=Visualiser(kind.visual(cfg), kind.episodes(cfg)),
                     )  # fmt: skip
         finally:
             if live is not None:
