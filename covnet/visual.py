@@ -38,7 +38,10 @@ Nothing here knows a kind.
 
 The scan's frame is made when the manager's :class:`~covnet.messages.Status` of the scan
 arrives (the manager publishes it last), from what arrived for that scan: its command, the
-truth, the measurements and the tracks; its log time is the Status's receive time.
+truth, the measurements and the tracks; its log time is the Status's receive time.  The
+recorder draws the recording's visual channels after the run, from what it recorded (drawing
+costs CPU, which on a small machine the scan loop would pay), and the live view's while the run
+goes, at a bounded rate (``recorder/node.py``).
 """
 
 from __future__ import annotations
