@@ -2,6 +2,9 @@
 timed; with ``--sensors N,...`` networks of those sizes against a closed-loop zenoh probe of the
 same message pattern, measured in the same run.
 
+``--foxglove``: pairs of runs, without and with ``covnet up --foxglove`` (the live view served
+by the recorder), alternated, and the ratio of their median scans per second.
+
 Per run: scans per second over the manager's loop (READY to the last scan fused, every metric
 episode), the whole wall time including process start-up, per-scan latency (command published
 to scan fused) p50/p99, the manager's core time per scan (predict + allocate + fuse) and its
@@ -38,14 +41,20 @@ SIZED_SCANS = 200
 
 
 def _covnet_row(
-    kind: Any, sc: Any, config_path: str, out: Path, per_process: int | None
+    kind: Any,
+    sc: Any,
+    config_path: str,
+    out: Path,
+    per_process: int | None,
+    foxglove: str | None = None,
 ) -> dict[str, Any]:
     t0 = time.perf_counter()
     sink = io.StringIO()
     with contextlib.redirect_stdout(sink):
         status = up(
-            kind, sc, config_path, out, run_id=new_run_id(), sensors_per_process=per_process
-        )
+            kind, sc, config_path, out, run_id=new_run_id(), sensors_per_process=per_process,
+            foxglove=foxglove,
+        )  # fmt: skip
     wall = time.perf_counter() - t0
     if status != 0:
         raise RuntimeError(f"covnet up failed (status {status}):\n{sink.getvalue()[-2000:]}")
@@ -63,15 +72,32 @@ def _covnet_row(
 
 
 def run(
-    kind: Any, sc: Any, config_path: str, tmp: Path, *, repeat: int = 3, quiet: bool = False
+    kind: Any,
+    sc: Any,
+    config_path: str,
+    tmp: Path,
+    *,
+    repeat: int = 3,
+    quiet: bool = False,
+    foxglove: bool = False,
 ) -> list[dict[str, Any]]:
     """``repeat`` lockstep runs of ``sc`` (a config of the scenario kind ``kind``), one row
-    each (from the manager's ``network.json``)."""
+    each (from the manager's ``network.json``).  ``foxglove``: ``repeat`` pairs instead, each a
+    run without and a run with ``covnet up --foxglove`` (the live server on a free port of
+    127.0.0.1, no client), alternated; each row says which (``foxglove``)."""
     rows = []
+    modes = (False, True) if foxglove else (False,)
     for i in range(repeat):
-        rows.append(_covnet_row(kind, sc, config_path, tmp / f"run{i}", None))
-        if not quiet:
-            print(f"run {i + 1}/{repeat}: {rows[-1]['scans_per_s']:.0f} scans/s", flush=True)
+        for live in modes:
+            address = f"127.0.0.1:{free_port()}" if live else None
+            out = tmp / f"run{i}{'-foxglove' if live else ''}"
+            rows.append(_covnet_row(kind, sc, config_path, out, None, address))
+            rows[-1]["foxglove"] = live
+            if not quiet:
+                what = " with --foxglove" if live else ""
+                print(
+                    f"run {i + 1}/{repeat}{what}: {rows[-1]['scans_per_s']:.0f} scans/s", flush=True
+                )
     return rows
 
 

@@ -77,6 +77,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = prepare_out(args.out, cfg.name, args.force)
     try:
         status = int(kind.run(cfg, out, figures=not args.no_figures))
+        if status == EXIT_OK and args.mcap:
+            # start-up: the Foxglove SDK and the visual channels only for --mcap
+            from covnet.visual import write_run_mcap
+
+            print(f"visual channels for Foxglove: {write_run_mcap(kind, cfg, out)}")
     except KeyboardInterrupt:
         if (out / RUN_INFO).is_file():
             record_end(out, "completed", "every scan done (figures interrupted)")
@@ -155,6 +160,21 @@ def cmd_up(args: argparse.Namespace) -> int:
     for n in nodes or []:
         if n not in known:
             raise UsageError(f"--nodes: unknown process {n!r}; choose from {sorted(known)}")
+    if args.foxglove is not None:
+        from covnet.live import address_problem  # start-up: the SDK only for --foxglove
+
+        if (problem := address_problem(args.foxglove)) is not None:
+            raise UsageError(f"--foxglove: {problem}")
+        if not cfg.network.record:
+            raise UsageError(
+                "--foxglove: the live view is served by the recorder, and this config has "
+                "network.record: false"
+            )
+        if nodes is not None and "recorder" not in nodes:
+            raise UsageError(
+                "--foxglove: the live view is served by the recorder, which --nodes does not "
+                "start here"
+            )
     if args.run is not None:
         try:
             run_keyexpr(args.run)  # validates like every key part
@@ -179,6 +199,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             router=args.router,
             netns=args.netns,
             sensors_per_process=k,
+            foxglove=args.foxglove,
         )
     except UpError as exc:
         _err(str(exc))
@@ -239,8 +260,9 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
             )  # fmt: skip
         else:
             rows = bench_up.run(
-                kind, cfg, args.config, Path(tmp), repeat=args.repeat, quiet=args.json
-            )
+                kind, cfg, args.config, Path(tmp), repeat=args.repeat, quiet=args.json,
+                foxglove=args.foxglove,
+            )  # fmt: skip
     if args.json:
         for row in rows:
             print(json.dumps(row))
@@ -250,17 +272,31 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
         return EXIT_OK
     print(
         f"{'run':>4} {'scans':>6} {'scans/s':>8} {'wall s':>7} {'p50 ms':>7} {'p99 ms':>7} "
-        f"{'core p50 ms':>11} {'core share':>10}"
+        f"{'core p50 ms':>11} {'core share':>10}" + (f" {'foxglove':>8}" if args.foxglove else "")
     )
     for i, r in enumerate(rows):
         print(
             f"{i + 1:>4} {r['scans']:>6} {r['scans_per_s']:>8.0f} {r['wall_s']:>7.2f} "
             f"{r['scan_p50_ms']:>7.2f} {r['scan_p99_ms']:>7.2f} {r['core_p50_ms']:>11.3f} "
-            f"{100 * r['core_share']:>9.1f}%"
+            f"{100 * r['core_share']:>9.1f}%" + (f" {r['foxglove']!s:>8}" if args.foxglove else "")
         )
-    med = sorted(r["scans_per_s"] for r in rows)[len(rows) // 2]
-    print(f"median: {med:.0f} scans/s (loop: READY to last scan fused; wall includes start-up)")
+    if not args.foxglove:
+        med = sorted(r["scans_per_s"] for r in rows)[len(rows) // 2]
+        print(f"median: {med:.0f} scans/s (loop: READY to last scan fused; wall includes start-up)")
+        return EXIT_OK
+    without = _median([r["scans_per_s"] for r in rows if not r["foxglove"]])
+    with_fx = _median([r["scans_per_s"] for r in rows if r["foxglove"]])
+    print(
+        f"median: {without:.0f} scans/s without, {with_fx:.0f} with --foxglove "
+        f"(ratio {with_fx / without:.3f}, {args.repeat} alternated pairs)"
+    )
     return EXIT_OK
+
+
+def _median(values: list[float]) -> float:
+    v = sorted(values)
+    n = len(v)
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
 def _print_sized(rows: list[dict[str, Any]]) -> None:
@@ -295,6 +331,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             )
     if args.exact_cap is not None and not args.exact_cap > 0:
         raise UsageError(f"--exact-cap: must be > 0 seconds, got {args.exact_cap}")
+    if args.foxglove and (args.target != "up" or args.sensors):
+        raise UsageError("--foxglove: only for bench up (the paper network, without --sensors)")
     if args.target == "up":
         return cmd_bench_up(args)
     if args.target == "cluster":
@@ -391,6 +429,11 @@ def build_parser() -> argparse.ArgumentParser:
     _out_options(r, "run")
     _run_options(r, "run only this metric (repeatable; default: the config's allocation.metrics)")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    r.add_argument(
+        "--mcap",
+        action="store_true",
+        help="also write run.mcap: the run's scans as Foxglove draws them (scene, numbers, log)",
+    )
     r.set_defaults(func=cmd_run)
 
     mc = sub.add_parser("mc", help="Monte Carlo evaluation of a scenario over seeds or trials")
@@ -452,6 +495,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="each sensor in its own network namespace, linked to the manager's by an "
         "emulated link with network.latency's delays and loss (root; docs/netem.md)",
+    )
+    u.add_argument(
+        "--foxglove",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="HOST:PORT",
+        help="serve the run live over the Foxglove WebSocket protocol (default 127.0.0.1:8765): "
+        "the scene, the numbers and the status lines, as the recording holds them",
     )
     u.set_defaults(func=cmd_up)
 
@@ -582,6 +633,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--repeat", type=int, default=3, help="timed repeats per problem (alloc) or whole runs (up)"
     )
     b.add_argument("--json", action="store_true", help="one JSON row per (metric, N)")
+    b.add_argument(
+        "--foxglove",
+        action="store_true",
+        help="up: pairs of runs without and with covnet up --foxglove, alternated, and the "
+        "ratio of their median scans/s",
+    )
     b.add_argument(
         "--sensors-per-process",
         type=int,

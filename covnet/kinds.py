@@ -18,7 +18,7 @@ role modules (README, "Architecture").
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -108,6 +108,16 @@ class Kind(Protocol):
 
     def plot(self, run_dir: Path) -> list[Path]:
         """Redraw the figures of one of this kind's run directories."""
+        ...
+
+    def visual(self, cfg: Any) -> Any:
+        """The kind's visual module made for ``cfg`` (``covnet/<kind>/visual.py``'s ``Visual``,
+        a :class:`covnet.visual.KindVisual`): one scan's messages -> what Foxglove draws."""
+        ...
+
+    def run_messages(self, cfg: Any, run_dir: Path) -> Iterable[Any]:
+        """An in-process run directory's scans as the messages a network run would have sent
+        (``covnet run --mcap`` feeds them to :meth:`visual`)."""
         ...
 
     def rebuild(

@@ -29,6 +29,13 @@ Layout of ``recording.mcap``
   (:attr:`covnet.bus.Sample.t_recv_ns`); ``publish_time`` = the message's own ``t_sent_ns``
   when it has one (read by :func:`peek`, without the strict decode), else the receive time;
   ``sequence`` = 1, 2, ... per channel.
+- Visual channels (:mod:`covnet.visual`): topics ``/covnet/scene`` (``foxglove.SceneUpdate``),
+  ``/covnet/scan`` (``covnet.ScanMetrics``, JSON) and ``/covnet/log`` (``foxglove.Log``), one
+  message each per scan, with the schemas the Foxglove SDK gives (protobuf
+  ``FileDescriptorSet`` / JSON Schema), written by the recorder from the messages it received
+  (:meth:`RecordingWriter.write_visual`); ``log_time`` = the receive time of the scan's Status.
+  Their topics start with ``/`` (a key never does) and their encoding is not ``msgpack``:
+  :class:`RecordingReader` skips them, so the replay never sees them.
 - Chunks: zstd-compressed, at most :data:`CHUNK_SIZE` bytes (uncompressed) each, and a chunk is
   also closed and flushed to the OS every :data:`FLUSH_INTERVAL_S` seconds, so a recorder killed
   with SIGKILL leaves a file whose every complete chunk :func:`read_recording` still reads (the
@@ -198,9 +205,11 @@ class RecordingWriter:
             self._file = None
             raise
         self._channels: dict[str, int] = {}
+        self._visual_schemas: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
         self._last_flush_ns = time.monotonic_ns()
         self.messages = 0
+        self.visual_messages = 0
 
     @property
     def closed(self) -> bool:
@@ -231,6 +240,37 @@ class RecordingWriter:
             sequence=seq & 0xFFFFFFFF,
         )
         self.messages += 1
+        self.maybe_flush()
+
+    def write_visual(self, vm: Any) -> None:
+        """Record one visual message (a :class:`covnet.visual.VisualMessage`: topic, schema,
+        message encoding, bytes, log time) on its own channel, registered with the schema the
+        Foxglove SDK gave (``foxglove.SceneUpdate`` / ``foxglove.Log``: protobuf, a serialized
+        ``FileDescriptorSet``; ``covnet.ScanMetrics``: JSON Schema)."""
+        if self._file is None:
+            raise ValueError(f"recording {self.path} is closed")
+        channel = self._channels.get(vm.topic)
+        if channel is None:
+            schema = self._visual_schemas.get(vm.schema.name)
+            if schema is None:
+                schema = self._writer.register_schema(
+                    vm.schema.name, vm.schema.encoding, bytes(vm.schema.data)
+                )
+                self._visual_schemas[vm.schema.name] = schema
+            channel = self._writer.register_channel(
+                topic=vm.topic, message_encoding=vm.encoding, schema_id=schema, metadata={}
+            )
+            self._channels[vm.topic] = channel
+        seq = self._sequence.get(channel, 0) + 1
+        self._sequence[channel] = seq
+        self._writer.add_message(
+            channel_id=channel,
+            log_time=vm.log_time_ns,
+            data=vm.data,
+            publish_time=vm.log_time_ns,
+            sequence=seq & 0xFFFFFFFF,
+        )
+        self.visual_messages += 1
         self.maybe_flush()
 
     def maybe_flush(self) -> None:
@@ -336,13 +376,14 @@ class RecordingReader:
     whose writer was killed (no summary, no footer, a half-written last chunk) reads up to its
     last complete record.
 
-    Iterate :meth:`samples`; afterwards ``metadata`` (name -> map), ``complete`` (the footer
-    and the closing magic were read), ``truncated`` (the file ends inside a record: its writer
-    died while writing it; a file that ends between records, as a killed writer leaves it too,
-    has ``complete`` False and ``truncated`` False), ``corrupt_chunks`` (offsets of
-    chunks skipped because they failed their CRC or did not decompress), ``orphans`` (messages
-    of a channel whose record was lost in such a chunk) and ``error`` (why reading stopped
-    early on a damaged file, else None) describe what was read.
+    Iterate :meth:`samples` (the raw ``msgpack`` channels only: a message of another channel, a
+    visual one, is counted in ``visual`` and skipped); afterwards ``metadata`` (name -> map),
+    ``complete`` (the footer and the closing magic were read), ``truncated`` (the file ends
+    inside a record: its writer died while writing it; a file that ends between records, as a
+    killed writer leaves it too, has ``complete`` False and ``truncated`` False),
+    ``corrupt_chunks`` (offsets of chunks skipped because they failed their CRC or did not
+    decompress), ``orphans`` (messages of a channel whose record was lost in such a chunk) and
+    ``error`` (why reading stopped early on a damaged file, else None) describe what was read.
 
     A recording a restarted recorder continued in further segments (:func:`segment_paths`) is
     read segment after segment: ``segments`` counts them, ``complete`` and ``truncated`` are
@@ -356,6 +397,7 @@ class RecordingReader:
     truncated: bool = False
     corrupt_chunks: list[int] = field(default_factory=list)
     orphans: int = 0
+    visual: int = 0
     error: str | None = None
     segments: int = 0
     incomplete_segments: list[str] = field(default_factory=list)
@@ -373,6 +415,7 @@ class RecordingReader:
 
     def _segment(self, path: Path) -> Iterator[RecordedSample]:
         channels: dict[int, str] = {}
+        visual: set[int] = set()  # channels of another encoding: the visual ones, skipped
         with open(path, "rb") as f:
             stream = _Exact(f)
             reader = StreamReader(stream, emit_chunks=True, validate_crcs=False)  # type: ignore[arg-type]
@@ -403,11 +446,17 @@ class RecordingReader:
                     if isinstance(r, Message):
                         key = channels.get(r.channel_id)
                         if key is None:
-                            self.orphans += 1
+                            if r.channel_id in visual:
+                                self.visual += 1
+                            else:
+                                self.orphans += 1
                         else:
                             yield RecordedSample(key, r.data, r.log_time, r.publish_time)
                     elif isinstance(r, Channel):
-                        channels.setdefault(r.id, r.topic)
+                        if r.message_encoding == MESSAGE_ENCODING:
+                            channels.setdefault(r.id, r.topic)
+                        else:
+                            visual.add(r.id)
                     elif isinstance(r, Metadata):
                         self.metadata[r.name] = dict(r.metadata)
                     elif isinstance(r, Footer):

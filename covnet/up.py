@@ -105,12 +105,14 @@ def process_specs(
     speed: float,
     sensors_per_process: int = 1,
     sensor_ids: Sequence[str] | None = None,
+    foxglove: str | None = None,
 ) -> list[ProcessSpec]:
     """The processes of one network of any kind: ``python -m manager``, ``world``,
     ``recorder`` (when the run is recorded) and the ``sensors`` processes, each given the
     config, the run id and the same run ``options`` (so every process holds the same config).
     The sensors (``sensor_ids``, default all, in config order) go ``sensors_per_process`` to a
-    process (:func:`sensor_hosts`)."""
+    process (:func:`sensor_hosts`).  ``foxglove``: ``HOST:PORT`` on which the recorder also
+    serves the visual channels live (:mod:`covnet.live`)."""
     py = sys.executable
     common = ["--config", str(config_path), "--run", run_id, *run_option_args(options)]
     if realtime:
@@ -127,13 +129,10 @@ def process_specs(
     ]
     if cfg.network.record:
         recording = str(out / "recording.mcap")
-        specs.append(
-            ProcessSpec(
-                "recorder",
-                [py, "-m", "recorder", *common, "--connect", connect, "--out", recording],
-                restart="recorder" in roles,
-            )
-        )
+        argv = [py, "-m", "recorder", *common, "--connect", connect, "--out", recording]
+        if foxglove is not None:
+            argv += ["--foxglove", foxglove]
+        specs.append(ProcessSpec("recorder", argv, restart="recorder" in roles))
     ids = list(cfg.sensor_ids if sensor_ids is None else sensor_ids)
     for name, hosted in sensor_hosts(ids, sensors_per_process):
         argv = [py, "-m", "sensors", *common]
@@ -233,6 +232,7 @@ def up(
     netns: bool = False,
     topology: NetnsTopology | None = None,
     sensors_per_process: int | None = None,
+    foxglove: str | None = None,
 ) -> int:
     """Run the network of ``sc`` (a config of the scenario kind ``kind``, with the run
     ``options`` already applied; they are passed on to every process) to completion; returns
@@ -249,7 +249,10 @@ def up(
 
     ``sensors_per_process``: how many sensors one sensor process hosts (:mod:`sensors.host`;
     default :func:`default_sensors_per_process`); ``processes.json`` then also says which
-    process hosts each sensor (``"hosts"``)."""
+    process hosts each sensor (``"hosts"``).
+
+    ``foxglove``: ``HOST:PORT`` on which the recorder serves the visual channels live over the
+    Foxglove WebSocket protocol (``covnet up --foxglove``; the recording has them anyway)."""
     options = options or {}
     if sensors_per_process is not None and sensors_per_process < 1:
         raise UpError(f"--sensors-per-process: must be >= 1, got {sensors_per_process}")
@@ -261,6 +264,7 @@ def up(
         return up_in_namespaces(
             up, kind, sc, config_path, out, options=options, realtime=realtime, speed=speed,
             run_id=run_id, verbose=verbose, on_ready=on_ready, sensors_per_process=1,
+            foxglove=foxglove,
         )  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     router = resolve_router(endpoint(sc.network, router or sc.network.router))
@@ -283,6 +287,7 @@ def up(
         speed=speed,
         sensors_per_process=sensors_per_process,
         sensor_ids=ids,
+        foxglove=foxglove,
     )
     if topology is not None:  # --netns: each process in its namespace, with its endpoint
         specs, router = topology.apply(specs), topology.listen
@@ -317,6 +322,8 @@ def up(
         raise KeyboardInterrupt
 
     view.line(f"[launcher] run {run_id}: router {router}, run directory {out}")
+    if foxglove is not None and any(sp.name == "recorder" for sp in specs):
+        view.line(f"[launcher] Foxglove live view: ws://{foxglove} (open it in Foxglove)")
     facts = {  # what a rebuild from the recording cannot know (settle)
         "run_id": run_id,
         "clock": "realtime" if realtime else "lockstep",

@@ -18,20 +18,30 @@ winds down: it keeps recording until nothing has arrived for :data:`QUIET_S` (me
 flight: zenoh may deliver the manager's token loss before its last data) and, when stopped by
 a signal while the manager is still up, for up to ``linger_s`` so that the manager's last scan
 lands in the recording too.  The caller closes the writer.
+
+With a :class:`covnet.visual.Visualiser` it also writes the visual channels (what Foxglove
+draws: a scene, the numbers and a log line per scan) into the same file: after the run, from
+what it recorded (:func:`draw_recording`), so that drawing costs the scan loop nothing; with
+``--foxglove`` it also draws while the run goes, for the live view, at most
+:data:`LIVE_MAX_HZ` scans a second (:class:`_LiveFeed`).  An error there is counted and never
+stops the recording.
 """
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections import Counter
+from typing import Any
 
 from covnet import messages as msg
 from covnet.bus import Bus, Sample
 from covnet.clock import Clock
 from covnet.config import Networked
 from covnet.node_kit import Heartbeat, ManagerWatch
-from covnet.recording import RecordingWriter, peek
+from covnet.recording import RecordingReader, RecordingWriter, peek
+from covnet.visual import Visualiser
 
 ROLE = NODE_ID = msg.RECORDER_ID
 QUIET_S = 0.2
@@ -40,6 +50,77 @@ LINGER_S = 1.0
 """Wind-down: longest time to keep recording after the stop (while the manager is up)."""
 BATCH_S = 0.005
 """After a message wakes the loop: how long to let the burst gather before writing it."""
+DRAW_BUDGET_S = 6.0
+"""After the run: the longest time spent drawing the recording's visual channels (the launcher
+stops a recorder 10 s after the manager at the latest; ~0.5 ms a scan: about 10 000 scans)."""
+LIVE_MAX_HZ = 30.0
+"""``--foxglove``: at most this many scans a second are drawn live (the latest one each time;
+a lockstep run makes hundreds a second, which nobody could watch)."""
+
+
+def _warn(counts: Counter[str], exc: Exception) -> None:
+    counts["visual_errors"] += 1
+    if counts["visual_errors"] == 1:
+        print(f"recorder: visual channels: {type(exc).__name__}: {exc}", file=sys.stderr)
+
+
+def draw_recording(
+    writer: RecordingWriter, visualiser: Visualiser, counts: Counter[str], budget_s: float
+) -> None:
+    """Write the visual channels of what ``writer`` recorded (read back from its own file,
+    flushed: the raw channels only) into it, scan by scan, for at most ``budget_s`` seconds
+    (then say how far it got).  An error is counted and ends the drawing, never the recording."""
+    deadline = time.monotonic() + budget_s
+    try:
+        samples = list(RecordingReader(writer.path).samples())
+        for s in samples:
+            if time.monotonic() > deadline:
+                counts["visual_cut"] += 1
+                print(
+                    f"recorder: visual channels drawn for the first {visualiser.frames} scans "
+                    f"only (the {budget_s:.0f} s budget after the run)",
+                    file=sys.stderr,
+                )
+                break
+            kind, t_sent, _ = peek(s.payload)
+            out = visualiser.feed(kind, s.key, s.payload, s.t_recv_ns, t_sent)
+            for vm in out:
+                writer.write_visual(vm)
+            counts["visual"] += len(out)
+    except Exception as exc:  # the picture must never cost the recording
+        _warn(counts, exc)
+
+
+class _LiveFeed:
+    """``--foxglove``: the scans drawn while the run goes, at most :data:`LIVE_MAX_HZ` a second.
+    A scan's command, measurements and tracks are kept raw until its Status; only a scan that
+    is drawn is decoded (the truth always is: it may come once for the whole run)."""
+
+    def __init__(self, visualiser: Visualiser | None, live: Any, counts: Counter[str]) -> None:
+        assert visualiser is not None
+        self.visualiser, self.live, self.counts = visualiser, live, counts
+        self.pending: list[tuple[str, str, bytes, int, int | None]] = []
+        self.next_ns = 0
+
+    def add(self, kind: str, key: str, payload: bytes, t_recv: int, t_sent: int | None) -> None:
+        try:
+            if kind == msg.Truth.KIND:
+                self.visualiser.feed(kind, key, payload, t_recv, t_sent)
+            elif kind == msg.Status.KIND:
+                now = time.monotonic_ns()
+                if now >= self.next_ns:
+                    self.next_ns = now + int(1e9 / LIVE_MAX_HZ)
+                    for args in self.pending:
+                        self.visualiser.feed(*args)
+                    out = self.visualiser.feed(kind, key, payload, t_recv, t_sent)
+                    for vm in out:
+                        self.live.send(vm)
+                    self.counts["live"] += len(out)
+                self.pending.clear()
+            elif kind in (msg.Command.KIND, msg.Measurement.KIND, msg.Track.KIND):
+                self.pending.append((kind, key, payload, t_recv, t_sent))
+        except Exception as exc:  # the picture must never cost the recording
+            _warn(self.counts, exc)
 
 
 def run(
@@ -51,9 +132,17 @@ def run(
     writer: RecordingWriter,
     *,
     linger_s: float = LINGER_S,
+    visualiser: Visualiser | None = None,
+    live: Any = None,
+    live_visualiser: Visualiser | None = None,
+    draw_budget_s: float = DRAW_BUDGET_S,
 ) -> Counter[str]:
     """Record until the run is over (see module doc); returns counters: ``recorded``,
-    ``undecodable:<reason>`` and ``kind:<kind>`` per message kind recorded."""
+    ``undecodable:<reason>`` and ``kind:<kind>`` per message kind recorded; with a
+    ``visualiser``, ``visual`` (visual messages written into the recording after the run:
+    :func:`draw_recording`) and ``visual_errors``; with ``live`` (a
+    :class:`covnet.live.LiveView`) and its ``live_visualiser``, ``live`` (visual messages
+    sent while the run went: :class:`_LiveFeed`)."""
     counts: Counter[str] = Counter()
     sub = getattr(bus, "subscribe_stamped", bus.subscribe)(msg.run_keyexpr(run_id))
     manager = ManagerWatch(bus, run_id)
@@ -64,6 +153,9 @@ def run(
     write = writer.write
     cmd_kind = msg.Command.KIND
 
+    visual_counts: Counter[str] = Counter()
+    feed = _LiveFeed(live_visualiser, live, visual_counts) if live is not None else None
+
     def record(s: Sample) -> None:
         nonlocal last_scan
         kind, t_sent, scan = peek(s.payload)
@@ -71,6 +163,8 @@ def run(
         if kind == cmd_kind and scan is not None:
             last_scan = scan
         write(s.key, s.payload, s.t_recv_ns, t_sent)
+        if feed is not None:
+            feed.add(kind, s.key, s.payload, s.t_recv_ns, t_sent)
 
     try:
         while not stop.is_set():
@@ -98,8 +192,11 @@ def run(
         sub.close()
         manager.close()
     writer.flush()
+    if visualiser is not None:
+        draw_recording(writer, visualiser, visual_counts, draw_budget_s)
     out: Counter[str] = Counter()
     for kind, n in counts.items():
         out[kind if kind.startswith("undecodable:") else f"kind:{kind}"] += n
     out["recorded"] = counts.total()
+    out.update(visual_counts)
     return out

@@ -21,6 +21,7 @@ from covnet.kindkit import KindBase, lazy, seed_option
 __all__ = ["KIND"]
 
 _COMMANDS = "covnet.covariance_control.commands"
+_VISUAL = "covnet.covariance_control.visual"
 _REPLAY = "covnet.covariance_control.replay"
 _SIZES = "covnet.covariance_control.network_sizes"
 
@@ -65,6 +66,8 @@ class CovarianceControl(KindBase):
     up_problem = staticmethod(lazy(_COMMANDS, "up_problem"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
     rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
+    visual = staticmethod(lazy(_VISUAL, "Visual"))
+    run_messages = staticmethod(lazy(_VISUAL, "run_messages"))
 
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)

@@ -18,6 +18,7 @@ from covnet.mobile import config
 __all__ = ["KIND"]
 
 _COMMANDS = "covnet.mobile.commands"
+_VISUAL = "covnet.mobile.visual"
 _REPLAY = "covnet.mobile.replay"
 
 
@@ -42,6 +43,8 @@ class Mobile(KindBase):
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
     rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
+    visual = staticmethod(lazy(_VISUAL, "Visual"))
+    run_messages = staticmethod(lazy(_VISUAL, "run_messages"))
 
     def episodes(self, cfg: Any) -> list[str]:
         return [str(cfg.solver)]

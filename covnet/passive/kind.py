@@ -17,6 +17,7 @@ from covnet.passive import config
 __all__ = ["KIND"]
 
 _COMMANDS = "covnet.passive.commands"
+_VISUAL = "covnet.passive.visual"
 _REPLAY = "covnet.passive.replay"
 
 
@@ -35,6 +36,8 @@ class Passive(KindBase):
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
     rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
+    visual = staticmethod(lazy(_VISUAL, "Visual"))
+    run_messages = staticmethod(lazy(_VISUAL, "run_messages"))
 
     def episodes(self, cfg: Any) -> list[str]:
         return [str(cfg.association.method)]

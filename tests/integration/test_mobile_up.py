@@ -15,6 +15,7 @@ import pytest
 import yaml
 from multiproc import REPO, assert_nothing_left
 from nodethreads import NodeThreads
+from visual_check import assert_visual_channels
 
 from covnet.clock import WallClock
 from covnet.mobile.config import load, with_overrides
@@ -148,6 +149,8 @@ def test_up_equals_run_for_the_same_seed(covnet_proc, tmp_path):
     assert s_up == s_ref
     net = json.loads((out / "network.json").read_text())
     assert net["rejected"] == {}
+    docs = assert_visual_channels(out / "recording.mcap", list(range(1, 16)), "world_m")
+    assert all(len(d["targets"]) == 3 and d["n_active"] >= 1 for d in docs)
 
 
 @pytest.mark.integration

@@ -12,6 +12,7 @@ import pytest
 import yaml
 from multiproc import REPO, assert_nothing_left
 from nodethreads import NodeThreads
+from visual_check import assert_visual_channels
 
 from covnet import messages as msg
 from covnet.cli import main
@@ -240,3 +241,5 @@ def test_up_equals_run_for_the_same_seed(covnet_proc, tmp_path):
     assert net["rejected"] == {}
     assert p.output().count("STATUS") == 0  # the launcher renders STATUS lines, never echoes them
     assert "scan(s), 3 associated" in p.output()
+    docs = assert_visual_channels(out / "recording.mcap", [1, 2, 3], "world_km")
+    assert [len(d["targets"]) for d in docs] == [len(r["triples"]) for r in doc["scans"]]
