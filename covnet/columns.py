@@ -1,18 +1,22 @@
-"""Per-scan rows kept for a run's results, stored compactly.
+"""Per-scan rows kept for a run's results, stored compactly, off the heap once a block is full.
 
 A long network run keeps every scan's row (the allocation, the estimate, its covariance, NEES,
 latencies) until it writes its results once at the end.  Kept as Python lists of small numpy
 arrays and Python numbers that costs about 1 KB per scan of object headers; a :class:`Column`
 stores the same values in blocks of :data:`BLOCK` rows of one dtype, so a scan costs its rows'
-own bytes (8 sensors' mask, a 4-vector and two 4 x 4 matrices: ~330 B) and memory grows by one
-block at a time.  :meth:`Column.array` gives the stacked array, with the values bit for bit as
+own bytes (8 sensors' mask, a 4-vector and two 4 x 4 matrices: ~330 B).  A full block is
+written to the column's spill file (an anonymous temporary file: unlinked at once, so nothing
+is left behind even after a SIGKILL) and dropped, so a process's resident memory stays flat
+however long the run (the soak of ``covnet bench soak``): only the block being filled is in
+memory.  :meth:`Column.array` gives the stacked array, with the values bit for bit as
 ``np.array(list_of_rows, dtype)`` would.
 """
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Iterator
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
@@ -29,16 +33,35 @@ class Column:
 
     def __init__(self, shape: tuple[int, ...] = (), dtype: DTypeLike = np.float64) -> None:
         self.shape, self.dtype = tuple(shape), np.dtype(dtype)
-        self._blocks: list[NDArray[Any]] = []
+        self._block: NDArray[Any] | None = None
+        self._spill: IO[bytes] | None = None
+        self._spilled = 0  # rows in the spill file (whole blocks)
         self._n = 0
 
     def append(self, row: ArrayLike) -> None:
         """Append one row (cast to the column's dtype; its shape must be the column's)."""
         i = self._n % BLOCK
         if i == 0:
-            self._blocks.append(np.empty((BLOCK, *self.shape), dtype=self.dtype))
-        self._blocks[-1][i] = row
+            if self._block is not None:
+                self._write(self._block)
+            self._block = np.empty((BLOCK, *self.shape), dtype=self.dtype)
+        assert self._block is not None
+        self._block[i] = row
         self._n += 1
+
+    def _write(self, block: NDArray[Any]) -> None:
+        if self._spill is None:
+            self._spill = tempfile.TemporaryFile(prefix="covnet-column-")
+        self._spill.seek(0, 2)
+        self._spill.write(np.ascontiguousarray(block).tobytes())
+        self._spilled += BLOCK
+
+    def _read_spilled(self) -> NDArray[Any]:
+        if self._spill is None or self._spilled == 0:
+            return np.empty((0, *self.shape), dtype=self.dtype)
+        self._spill.seek(0)
+        data = self._spill.read(self._spilled * self.dtype.itemsize * _size(self.shape))
+        return np.frombuffer(data, dtype=self.dtype).reshape((self._spilled, *self.shape)).copy()
 
     def __len__(self) -> int:
         return self._n
@@ -47,12 +70,30 @@ class Column:
         return self._n > 0
 
     def __iter__(self) -> Iterator[Any]:
-        for b, block in enumerate(self._blocks):
-            yield from block[: min(BLOCK, self._n - b * BLOCK)]
+        yield from self.array()
 
     def array(self) -> NDArray[Any]:
         """The rows so far as one new ``(len, *shape)`` array."""
-        if not self._blocks:
-            return np.empty((0, *self.shape), dtype=self.dtype)
-        out = np.concatenate(self._blocks)[: self._n]
-        return out.copy() if out.base is not None else out
+        head = self._read_spilled()
+        if self._block is None:
+            return head
+        tail = self._block[: self._n - self._spilled]
+        if not len(head):
+            return tail.copy()
+        return np.concatenate([head, tail])
+
+    def close(self) -> None:
+        """Drop the spill file (also done when the column is garbage-collected)."""
+        if self._spill is not None:
+            self._spill.close()
+            self._spill = None
+
+    def __del__(self) -> None:
+        self.close()
+
+
+def _size(shape: tuple[int, ...]) -> int:
+    n = 1
+    for s in shape:
+        n *= s
+    return n

@@ -84,11 +84,14 @@ __all__ = [
 ]
 
 MESSAGE_ENCODING = "msgpack"
-CHUNK_SIZE = 32 * 1024
+CHUNK_SIZE = 1024 * 1024
 """Largest uncompressed chunk: what a SIGKILLed recorder may lose at most, besides the last
-:data:`FLUSH_INTERVAL_S`."""
-FLUSH_INTERVAL_S = 0.5
-"""Longest time a received message stays only in the recorder's memory."""
+:data:`FLUSH_INTERVAL_S`.  Chunks are closed mostly by time: the writer keeps one chunk index
+(~2-3 KB with a channel per key) per chunk for the file's summary, so fewer, larger chunks keep
+a long run's recorder flat (the soak: 32 KiB chunks grew it 7.9 % over 20 000 scans)."""
+FLUSH_INTERVAL_S = 1.0
+"""Longest time a received message stays only in the recorder's memory (what a recorder killed
+with SIGKILL loses at most)."""
 META_RUN = "covnet.run"
 META_CONFIG = "covnet.config"
 ARRAY_EXT_DOC = (
