@@ -22,7 +22,13 @@ from pathlib import Path
 from typing import Any
 
 from covnet import __version__, kinds
-from covnet.config import ConfigError, ConfigWarning, endpoint_problem, hash_of
+from covnet.config import (
+    ConfigError,
+    ConfigWarning,
+    endpoint_problem,
+    hash_of,
+    scheduler_problem,
+)
 from covnet.errors import UpError, UsageError
 from covnet.messages import RESERVED_IDS, new_run_id, run_keyexpr
 from covnet.rundir import CONFIG, RUN_INFO, prepare_out, read_json, record_end
@@ -364,10 +370,19 @@ def _int_list(text: str) -> list[int]:
     return vals  # each benchmark's largest count: BENCH_SENSORS_MAX, checked in cmd_bench
 
 
+def _cluster_address(text: str) -> str:
+    """``--cluster``: checked while the options are parsed, before any directory is made."""
+    problem = scheduler_problem(text)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"{text}: {problem}")
+    return text
+
+
 def _batch_options(p: argparse.ArgumentParser, seeds: str) -> None:
     """The batch layer's options (:mod:`covnet.trials`), the same for sweep, mc and compare."""
     p.add_argument(
         "--cluster",
+        type=_cluster_address,
         metavar="ADDRESS",
         help="run the trials on the Dask distributed scheduler at ADDRESS (tcp://host:port; "
         "workers need covnet installed; pip install 'covnet[cluster]'); default: this "

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from covnet import blas_kernel
+from covnet.config import scheduler_problem
 from covnet.errors import UsageError
 
 try:
@@ -47,7 +48,9 @@ CONNECT_TIMEOUT_S = 15.0
 
 def connect(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> distributed.Client:
     """A client of the scheduler at ``address`` (``tcp://host:port``); an unreachable one is a
-    :class:`~covnet.errors.UsageError`."""
+    :class:`~covnet.errors.UsageError` (at once when nothing listens there: a refused TCP
+    connection is not retried for ``timeout_s`` as Dask's client would)."""
+    _probe(address, timeout_s)
     try:
         return distributed.Client(
             address, timeout=f"{timeout_s}s", set_as_default=False, direct_to_workers=False
@@ -56,6 +59,12 @@ def connect(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> distributed.C
         raise UsageError(
             f"--cluster {address}: cannot reach a Dask scheduler there ({exc})"
         ) from None
+
+
+def _probe(address: str, timeout_s: float) -> None:
+    problem = scheduler_problem(address, timeout_s)
+    if problem is not None:
+        raise UsageError(f"--cluster {address}: {problem}")
 
 
 class DaskRunner:

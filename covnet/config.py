@@ -23,6 +23,7 @@ import hashlib
 import json
 import os
 import re
+import socket
 from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, Protocol, TypeVar, get_args
@@ -294,6 +295,27 @@ class NetworkSpec(ConfigModel):
         if problem is not None:
             raise ValueError(problem)
         return v
+
+
+def scheduler_problem(address: str, timeout_s: float = 5.0) -> str | None:
+    """What is wrong with a ``--cluster`` address, found at once (None: nothing found).  Its
+    form is ``scheme://host:port``; for ``tcp://`` a plain TCP connection is tried, and a
+    refused one or a host that does not resolve is a problem now, before a batch directory is
+    made (Dask's client would retry a refused connection for its whole timeout).  A connection
+    that only times out, and other schemes, are left to Dask's client.  No dask import here."""
+    scheme, sep, rest = address.partition("://")
+    host, _, port = rest.rpartition(":")
+    if not sep or not scheme or not host or not port.isdigit():
+        return "expected a Dask scheduler address like tcp://127.0.0.1:8786"
+    if scheme != "tcp":
+        return None
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return None
+    except (ConnectionRefusedError, socket.gaierror) as exc:
+        return f"cannot reach a Dask scheduler there ({exc})"
+    except OSError:
+        return None
 
 
 def endpoint_problem(endpoint: str) -> str | None:

@@ -152,3 +152,15 @@ def test_an_unreachable_scheduler_is_a_usage_error(small, tmp_path):
     assert rc == 2, p.output()
     assert "cannot reach a Dask scheduler" in p.output()
     assert "Traceback" not in p.output()
+    assert not (tmp_path / "x").exists()  # refused before anything starts
+
+
+@pytest.mark.parametrize("address", ["127.0.0.1:8786", "tcp://127.0.0.1", "tcp://:8786"])
+def test_a_malformed_scheduler_address_is_refused_at_once(small, tmp_path, capsys, address):
+    from covnet.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["sweep", str(small["sweep"]), "--out", str(tmp_path / "x"), "--cluster", address])
+    assert exc.value.code == 2
+    assert "expected a Dask scheduler address like tcp://" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
