@@ -32,6 +32,7 @@ from typing import Any
 import yaml
 
 from covnet import kinds
+from covnet.errors import UpError
 from covnet.launch import ProcessSpec, Supervisor
 from covnet.messages import new_run_id
 from covnet.up import default_sensors_per_process, free_port, sensor_hosts, up
@@ -50,11 +51,14 @@ def _covnet_row(
 ) -> dict[str, Any]:
     t0 = time.perf_counter()
     sink = io.StringIO()
-    with contextlib.redirect_stdout(sink):
-        status = up(
-            kind, sc, config_path, out, run_id=new_run_id(), sensors_per_process=per_process,
-            foxglove=foxglove,
-        )  # fmt: skip
+    try:
+        with contextlib.redirect_stdout(sink):
+            status = up(
+                kind, sc, config_path, out, run_id=new_run_id(),
+                sensors_per_process=per_process, foxglove=foxglove,
+            )  # fmt: skip
+    except UpError as exc:  # with what the processes said (it went to the sink)
+        raise UpError(f"{exc}; the run's last output:\n{sink.getvalue()[-3000:]}") from None
     wall = time.perf_counter() - t0
     if status != 0:
         raise RuntimeError(f"covnet up failed (status {status}):\n{sink.getvalue()[-2000:]}")

@@ -710,6 +710,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UsageError as exc:
         _err(str(exc))
         return EXIT_USAGE
+    except UpError as exc:  # a network run that failed (bench up, bench soak): its reason
+        _err(str(exc))
+        return EXIT_FAIL
     except KeyboardInterrupt:
         _err("interrupted")
         return EXIT_INTERRUPTED
