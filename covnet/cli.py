@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import statistics
 import sys
 import threading
 import warnings
@@ -290,19 +291,13 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
         med = sorted(r["scans_per_s"] for r in rows)[len(rows) // 2]
         print(f"median: {med:.0f} scans/s (loop: READY to last scan fused; wall includes start-up)")
         return EXIT_OK
-    without = _median([r["scans_per_s"] for r in rows if not r["foxglove"]])
-    with_fx = _median([r["scans_per_s"] for r in rows if r["foxglove"]])
+    without = statistics.median(r["scans_per_s"] for r in rows if not r["foxglove"])
+    with_fx = statistics.median(r["scans_per_s"] for r in rows if r["foxglove"])
     print(
         f"median: {without:.0f} scans/s without, {with_fx:.0f} with --foxglove "
         f"(ratio {with_fx / without:.3f}, {args.repeat} alternated pairs)"
     )
     return EXIT_OK
-
-
-def _median(values: list[float]) -> float:
-    v = sorted(values)
-    n = len(v)
-    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
 def _print_sized(rows: list[dict[str, Any]]) -> None:

@@ -50,7 +50,9 @@ def connect(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> distributed.C
     """A client of the scheduler at ``address`` (``tcp://host:port``); an unreachable one is a
     :class:`~covnet.errors.UsageError` (at once when nothing listens there: a refused TCP
     connection is not retried for ``timeout_s`` as Dask's client would)."""
-    _probe(address, timeout_s)
+    problem = scheduler_problem(address, timeout_s)
+    if problem is not None:
+        raise UsageError(f"--cluster {address}: {problem}")
     try:
         return distributed.Client(
             address, timeout=f"{timeout_s}s", set_as_default=False, direct_to_workers=False
@@ -59,12 +61,6 @@ def connect(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> distributed.C
         raise UsageError(
             f"--cluster {address}: cannot reach a Dask scheduler there ({exc})"
         ) from None
-
-
-def _probe(address: str, timeout_s: float) -> None:
-    problem = scheduler_problem(address, timeout_s)
-    if problem is not None:
-        raise UsageError(f"--cluster {address}: {problem}")
 
 
 class DaskRunner:

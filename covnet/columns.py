@@ -14,6 +14,7 @@ memory.  :meth:`Column.array` gives the stacked array, with the values bit for b
 
 from __future__ import annotations
 
+import math
 import tempfile
 from collections.abc import Iterator
 from typing import IO, Any
@@ -60,7 +61,7 @@ class Column:
         if self._spill is None or self._spilled == 0:
             return np.empty((0, *self.shape), dtype=self.dtype)
         self._spill.seek(0)
-        data = self._spill.read(self._spilled * self.dtype.itemsize * _size(self.shape))
+        data = self._spill.read(self._spilled * self.dtype.itemsize * math.prod(self.shape))
         return np.frombuffer(data, dtype=self.dtype).reshape((self._spilled, *self.shape)).copy()
 
     def __len__(self) -> int:
@@ -90,10 +91,3 @@ class Column:
 
     def __del__(self) -> None:
         self.close()
-
-
-def _size(shape: tuple[int, ...]) -> int:
-    n = 1
-    for s in shape:
-        n *= s
-    return n

@@ -233,17 +233,8 @@ class RecordingWriter:
                 metadata={"kind": kind or ""},
             )
             self._channels[key] = channel
-        seq = self._sequence.get(channel, 0) + 1
-        self._sequence[channel] = seq
-        self._writer.add_message(
-            channel_id=channel,
-            log_time=t_recv_ns,
-            data=bytes(payload),
-            publish_time=t_recv_ns if t_sent_ns is None else t_sent_ns,
-            sequence=seq & 0xFFFFFFFF,
-        )
+        self._add(channel, t_recv_ns, bytes(payload), t_recv_ns if t_sent_ns is None else t_sent_ns)
         self.messages += 1
-        self.maybe_flush()
 
     def write_visual(self, vm: Any) -> None:
         """Record one visual message (a :class:`covnet.visual.VisualMessage`: topic, schema,
@@ -264,16 +255,20 @@ class RecordingWriter:
                 topic=vm.topic, message_encoding=vm.encoding, schema_id=schema, metadata={}
             )
             self._channels[vm.topic] = channel
+        self._add(channel, vm.log_time_ns, vm.data, vm.log_time_ns)
+        self.visual_messages += 1
+
+    def _add(self, channel: int, log_time: int, data: bytes, publish_time: int) -> None:
+        """One message on ``channel``, numbered 1, 2, ... per channel; flushed when due."""
         seq = self._sequence.get(channel, 0) + 1
         self._sequence[channel] = seq
         self._writer.add_message(
             channel_id=channel,
-            log_time=vm.log_time_ns,
-            data=vm.data,
-            publish_time=vm.log_time_ns,
+            log_time=log_time,
+            data=data,
+            publish_time=publish_time,
             sequence=seq & 0xFFFFFFFF,
         )
-        self.visual_messages += 1
         self.maybe_flush()
 
     def maybe_flush(self) -> None:
