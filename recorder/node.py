@@ -53,9 +53,11 @@ BATCH_S = 0.005
 DRAW_BUDGET_S = 6.0
 """After the run: the longest time spent drawing the recording's visual channels (the launcher
 stops a recorder 10 s after the manager at the latest; ~0.5 ms a scan: about 10 000 scans)."""
-LIVE_MAX_HZ = 30.0
+LIVE_MAX_HZ = 10.0
 """``--foxglove``: at most this many scans a second are drawn live (the latest one each time;
-a lockstep run makes hundreds a second, which nobody could watch)."""
+a lockstep run makes hundreds a second, which nobody could watch).  At 30 a second the live
+view cost a lockstep paper run 16 % of its scans/s on 2 cores; at 10, nothing measurable
+(README, "Seeing the network")."""
 
 
 def _warn(counts: Counter[str], exc: Exception) -> None:
