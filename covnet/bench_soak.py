@@ -49,7 +49,7 @@ import numpy as np
 import yaml
 
 from covnet import messages as msg
-from covnet.errors import UsageError
+from covnet.errors import UpError, UsageError
 from covnet.kinds import load
 from covnet.recording import read_recording
 
@@ -299,7 +299,7 @@ def _phase(
         while child.proc.poll() is None:
             now = time.monotonic()
             if now - t_start > timeout_s:
-                raise RuntimeError(f"{name}: covnet up still running after {timeout_s:.0f} s")
+                raise UpError(f"{name}: covnet up still running after {timeout_s:.0f} s")
             la = _load_average()
             if la is not None:
                 load.append((now, la))
@@ -326,11 +326,11 @@ def _phase(
         child.stop()
     if child.proc.returncode != 0:
         tail = "\n".join(text for _, text in child.lines[-30:])
-        raise RuntimeError(f"{name}: covnet up exited {child.proc.returncode}:\n{tail}")
+        raise UpError(f"{name}: covnet up exited {child.proc.returncode}:\n{tail}")
     t_ready = child.first(r"^\[manager\] READY")
     t_end = child.first(rf"^\[status\] .*\b{scans}/{scans}\b") or child.first(r"\[manager\] DONE")
     if t_ready is None or t_end is None:
-        raise RuntimeError(f"{name}: no READY or last scan in the output")
+        raise UpError(f"{name}: no READY or last scan in the output")
     t0, t1 = t_ready - t_start, t_end - t_start
     raw = {n: {"pid": v.pid, "t_s,rss_kb,fds": v.samples} for n, v in series.items()}
     loads = [(t - t_start, v) for t, v in load]

@@ -61,7 +61,7 @@ def _covnet_row(
         raise UpError(f"{exc}; the run's last output:\n{sink.getvalue()[-3000:]}") from None
     wall = time.perf_counter() - t0
     if status != 0:
-        raise RuntimeError(f"covnet up failed (status {status}):\n{sink.getvalue()[-2000:]}")
+        raise UpError(f"covnet up failed (status {status}):\n{sink.getvalue()[-3000:]}")
     net = json.loads((out / "network.json").read_text())
     return {
         "scans": net["scans"],
