@@ -177,3 +177,21 @@ def test_bench_fusion_json_rows(capsys):
     assert {r["objective"] for r in rows} == {"det", "trace", "fast"}
     for r in rows:
         assert r["n_sensors"] == 4 and r["n_subsets"] == 15 and r["median_s"] > 0
+
+
+def test_a_failed_bench_network_run_says_why_without_a_traceback(monkeypatch, capsys):
+    """bench up: a network run that fails ends the command with its reason and the run's
+    output, exit 1 (UpError), not a traceback."""
+    from covnet import bench_up
+    from covnet.errors import UpError
+
+    def failing_up(*args, **kwargs):
+        print("[manager] manager: error: nodes not alive after 30.0 s: ['S1']")
+        raise UpError("the manager exited with status 1 before READY")
+
+    monkeypatch.setattr(bench_up, "up", failing_up)
+    assert main(["bench", "up", "--repeat", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "the manager exited with status 1 before READY" in err
+    assert "nodes not alive after 30.0 s: ['S1']" in err
+    assert "Traceback" not in err
