@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import statistics
 import sys
 import threading
@@ -22,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from covnet import __version__, kinds
+from covnet import __version__, interrupts, kinds
 from covnet.config import (
     ConfigError,
     ConfigWarning,
@@ -89,7 +88,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             from covnet.visual import write_run_mcap
 
             print(f"visual channels for Foxglove: {write_run_mcap(kind, cfg, out)}")
-    except KeyboardInterrupt:
+    except BaseException as exc:
+        if not interrupts.caused(exc):
+            raise
         if (out / RUN_INFO).is_file():
             record_end(out, "completed", "every scan done (figures interrupted)")
             _note(f"interrupted while drawing the figures: {out} holds the complete results "
@@ -687,16 +688,14 @@ def _show_warning(
 _python_showwarning = warnings.showwarning
 
 
-def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
-
-
 def main(argv: Sequence[str] | None = None) -> int:
+    if threading.current_thread() is threading.main_thread():
+        # SIGINT and SIGTERM raise KeyboardInterrupt; one inside a weakref callback is raised
+        # again, not printed and lost
+        interrupts.deliver_late_interrupts()
     parser = build_parser()
     args = parser.parse_args(argv)
     warnings.showwarning = _show_warning
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops a command as Ctrl-C does
     try:
         return int(args.func(args))
     except ConfigError as exc:
@@ -710,6 +709,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_FAIL
     except KeyboardInterrupt:
         _err("interrupted")
+        return EXIT_INTERRUPTED
+    except Exception as exc:
+        if not interrupts.caused(exc):
+            raise
+        _err("interrupted")  # an extension's stand-in for the KeyboardInterrupt it swallowed
         return EXIT_INTERRUPTED
 
 

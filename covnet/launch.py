@@ -40,7 +40,8 @@ import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import FrameType
+
+from covnet import interrupts
 
 __all__ = ["ProcessSpec", "Supervisor", "sigterm_raises_keyboard_interrupt"]
 
@@ -385,8 +386,4 @@ def _wait_group_gone(pgid: int, timeout: float) -> None:
 def sigterm_raises_keyboard_interrupt() -> None:
     """Make SIGTERM to this (parent) process raise KeyboardInterrupt in the main thread, so a
     ``with Supervisor(...)`` block stops its children on SIGTERM as on Ctrl-C."""
-
-    def handler(signum: int, frame: FrameType | None) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGTERM, interrupts.raise_interrupt)

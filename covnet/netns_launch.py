@@ -54,6 +54,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from covnet import interrupts
 from covnet.core.delay import DelayDist, LinkSpec
 from covnet.errors import UpError
 from covnet.launch import ProcessSpec
@@ -369,10 +370,6 @@ def netns_topology(
             stack.close()  # links (forwarders stopped, devices gone), then namespaces
 
 
-def _raise_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt
-
-
 def note_topology(out: Path, topo: NetnsTopology) -> None:
     """Merge ``topo.describe()`` into ``out/run.json`` under ``netns`` (``out/netns.json``
     when the manager wrote no ``run.json``)."""
@@ -406,7 +403,7 @@ def up_in_namespaces(
         raise UpError(reason)
     out.mkdir(parents=True, exist_ok=True)
     main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt) if main else None
+    previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt) if main else None
     topo: NetnsTopology | None = None
     built = False
     try:

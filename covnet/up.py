@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from covnet import interrupts
 from covnet.errors import UpError
 from covnet.launch import ProcessSpec, Supervisor
 from covnet.netns_launch import NetnsTopology, up_in_namespaces
@@ -318,9 +319,6 @@ def up(
         if verbose or name == "manager" or "error" in text.lower() or "Traceback" in text:
             view.line(f"[{name}] {text}")
 
-    def raise_interrupt(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
-
     view.line(f"[launcher] run {run_id}: router {router}, run directory {out}")
     if foxglove is not None and any(sp.name == "recorder" for sp in specs):
         view.line(f"[launcher] Foxglove live view: ws://{foxglove} (open it in Foxglove)")
@@ -330,7 +328,7 @@ def up(
         "speed": speed if realtime else None,
         "router": router,
     }
-    previous = signal.signal(signal.SIGTERM, raise_interrupt)
+    previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt)
     status = 0
     try:
         with (

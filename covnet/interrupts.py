@@ -1,0 +1,81 @@
+"""A Ctrl-C that lands where Python cannot raise it is delivered again, not printed and lost.
+
+Python runs a SIGINT handler between two bytecodes of the main thread.  When those bytecodes
+belong to a weakref callback, a ``__del__`` or a garbage-collector callback (matplotlib's
+figure teardown runs many), the ``KeyboardInterrupt`` cannot propagate: Python prints
+"Exception ignored in ... Traceback ... KeyboardInterrupt" and carries on, so the user sees a
+traceback *and* the command does not stop.
+
+:func:`deliver_late_interrupts` installs a ``sys.unraisablehook`` that keeps every other
+unraisable exception as Python reports it, but for a ``KeyboardInterrupt`` prints nothing and
+raises the interrupt again in the main thread a moment later (``_thread.interrupt_main`` from a
+short-lived thread, after the hook has returned), where the command's own handler turns it
+into "interrupted" and exit 130.
+
+A C extension may also catch the ``KeyboardInterrupt`` in the middle of a call and raise an
+error of its own in its place (matplotlib's pybind11 transforms answer a Ctrl-C while they
+convert an array with ``TypeError: incompatible function arguments``).  The handlers here
+(:func:`raise_interrupt`, for SIGINT and SIGTERM) remember that an interrupt was asked for, so
+the command can tell such an error from a defect: :func:`caused`.
+"""
+
+from __future__ import annotations
+
+import _thread
+import signal
+import sys
+import threading
+from typing import Any
+
+# long enough for the main thread to leave the hook (a few bytecodes), short for a user
+REDELIVER_AFTER_S = 0.02
+
+
+_requested = False
+
+
+def raise_interrupt(signum: int, frame: Any) -> None:
+    """The SIGINT/SIGTERM handler of a command: remember the request, raise KeyboardInterrupt."""
+    global _requested
+    _requested = True
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def requested() -> bool:
+    """Whether a SIGINT or SIGTERM has reached :func:`raise_interrupt` in this process."""
+    return _requested
+
+
+def caused(exc: BaseException) -> bool:
+    """Whether ``exc`` is an interruption: a ``KeyboardInterrupt``, or any error raised after
+    one was requested (an extension's stand-in for the ``KeyboardInterrupt`` it swallowed)."""
+    return isinstance(exc, KeyboardInterrupt) or (_requested and isinstance(exc, Exception))
+
+
+def _redeliver() -> None:
+    threading.Event().wait(REDELIVER_AFTER_S)
+    _thread.interrupt_main(signal.SIGINT)
+
+
+def _hook(unraisable: Any, fallback: Any = None) -> None:
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        threading.Thread(target=_redeliver, name="covnet-interrupt", daemon=True).start()
+        return
+    (fallback or sys.__unraisablehook__)(unraisable)
+
+
+def deliver_late_interrupts() -> None:
+    """Install :func:`raise_interrupt` for SIGINT and SIGTERM (a SIGTERM stops a command as a
+    Ctrl-C does) and the unraisable hook (idempotent; other unraisable exceptions go to the
+    hook in place).  Main thread only."""
+    signal.signal(signal.SIGINT, raise_interrupt)
+    signal.signal(signal.SIGTERM, raise_interrupt)
+    current = sys.unraisablehook
+    if getattr(current, "covnet_interrupts", False):
+        return
+
+    def hook(unraisable: Any) -> None:
+        _hook(unraisable, current)
+
+    hook.covnet_interrupts = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook

@@ -1,0 +1,128 @@
+"""A Ctrl-C raised inside a weakref callback (where Python can only print it and carry on) is
+delivered again in the main thread: no "Exception ignored ... Traceback", and the command stops.
+
+Each case runs in a child process, so the real unraisable-exception machinery and a real
+``_thread.interrupt_main`` are exercised without touching the test runner's own hooks."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+CHILD = textwrap.dedent(
+    """
+    import gc, sys, time, weakref
+    from covnet.interrupts import deliver_late_interrupts
+    if {install}:
+        deliver_late_interrupts()
+        deliver_late_interrupts()  # idempotent
+
+    class Thing:
+        pass
+
+    def callback(_ref):
+        raise KeyboardInterrupt  # what SIGINT's handler does when it lands in a callback
+
+    thing = Thing()
+    ref = weakref.ref(thing, callback)
+    try:
+        del thing  # the callback runs here; its KeyboardInterrupt cannot propagate
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 5.0:
+            time.sleep(0.001)
+        print("NOT INTERRUPTED")
+    except KeyboardInterrupt:
+        print("INTERRUPTED")
+    """
+)
+
+
+def _child(install: bool) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-c", CHILD.format(install=install)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_python_alone_prints_a_traceback_and_loses_the_interrupt() -> None:
+    """The defect the hook fixes (so the test below could fail)."""
+    done = _child(install=False)
+    assert "NOT INTERRUPTED" in done.stdout
+    assert "Traceback" in done.stderr and "KeyboardInterrupt" in done.stderr
+
+
+def test_the_interrupt_is_raised_again_without_a_traceback() -> None:
+    done = _child(install=True)
+    assert done.stdout.strip() == "INTERRUPTED", done.stdout + done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    assert done.stderr == ""
+
+
+def test_other_unraisable_exceptions_are_still_reported() -> None:
+    code = textwrap.dedent(
+        """
+        import weakref
+        from covnet.interrupts import deliver_late_interrupts
+        deliver_late_interrupts()
+        class Thing: pass
+        def callback(_ref): raise ValueError("a real defect")
+        thing = Thing(); ref = weakref.ref(thing, callback); del thing
+        print("went on")
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert "went on" in done.stdout
+    assert "ValueError: a real defect" in done.stderr
+
+
+def test_cli_main_installs_the_hook() -> None:
+    code = (
+        "import sys; from covnet import cli\n"
+        "try:\n    cli.main(['--version'])\nexcept SystemExit:\n    pass\n"
+        "print(getattr(sys.unraisablehook, 'covnet_interrupts', False))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.stdout.strip().endswith("True"), done.stdout + done.stderr
+
+
+def test_an_error_standing_in_for_a_swallowed_interrupt_is_an_interruption() -> None:
+    """matplotlib's pybind11 transforms answer a Ctrl-C mid-call with a TypeError: after a
+    requested interrupt, the command says "interrupted" and exits 130, no traceback; the same
+    error without a request is a defect and is raised."""
+    code = textwrap.dedent(
+        """
+        import argparse, os, signal
+        from covnet import cli
+
+        def body(args):
+            if {signal_first}:
+                try:
+                    os.kill(os.getpid(), signal.SIGINT)
+                    for _ in range(10**7):
+                        pass
+                except KeyboardInterrupt:
+                    pass  # swallowed, as the extension does
+            raise TypeError("incompatible function arguments")
+
+        argparse.ArgumentParser.parse_args = lambda self, argv=None: argparse.Namespace(func=body)
+        try:
+            rc = cli.main([])
+        except TypeError:
+            rc = "raised"
+        print(rc)
+        """
+    )
+    for first, expected in ((True, "130"), (False, "raised")):
+        done = subprocess.run(
+            [sys.executable, "-c", code.format(signal_first=first)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert done.stdout.strip() == expected, done.stdout + done.stderr
+        assert "Traceback" not in done.stderr
+        if first:
+            assert "interrupted" in done.stderr
