@@ -168,7 +168,14 @@ def open_client(args: Any, net: NetworkSpec, role: str, node_id: str, stop: thre
     retries while the router is not up yet. With passwords or TLS, a router that refuses this
     node is named as such: ``authentication failed for <node> (...)`` or ``TLS handshake failed
     for <node> (...)`` (:func:`covnet.security.login_problem`), within about
-    :data:`REFUSED_FOR_S` rather than at ``ready_timeout_s``."""
+    :data:`REFUSED_FOR_S` rather than at ``ready_timeout_s``.
+
+    ``args.shared_bus`` (set by a process hosting several sensors of the same session
+    settings, :mod:`sensors.host`): a :meth:`~covnet.zenoh_bus.ZenohBus.share` of it instead
+    of a session of its own."""
+    shared = getattr(args, "shared_bus", None)
+    if shared is not None:  # a hosted sensor on its host's one session (sensors.host)
+        return shared.share()
     endpoint = security.endpoint(net, args.connect or net.connect or net.router)
     extra = security.zenoh_settings(net, role, node_id, listen=False, source=args.config)
 

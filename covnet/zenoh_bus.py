@@ -485,11 +485,17 @@ class ZenohBus:
     config's (:func:`zenoh_config`)."""
 
     def __init__(
-        self, session: zenoh.Session, *, express: bool = False, max_payload: int = MAX_PAYLOAD_BYTES
+        self,
+        session: zenoh.Session,
+        *,
+        express: bool = False,
+        max_payload: int = MAX_PAYLOAD_BYTES,
+        owns_session: bool = True,
     ) -> None:
         if isinstance(max_payload, bool) or not isinstance(max_payload, int) or max_payload < 0:
             raise ValueError(f"max_payload must be an int >= 0, got {max_payload!r}")
         self._session = session
+        self._owns_session = owns_session
         self._express = express
         self.max_payload = max_payload
         self._drops = DropCounter()
@@ -509,6 +515,23 @@ class ZenohBus:
         with _signals_blocked():
             session = zenoh.open(config)
         return cls(session, express=express, max_payload=max_payload)
+
+    def share(self) -> ZenohBus:
+        """Another handle on this bus's session, for another node of the same process (the
+        sensors a host process runs, :mod:`sensors.host`): its own publishers, subscriptions,
+        liveliness tokens, size cap and drop counts, all undeclared by its :meth:`close`, which
+        leaves the session open (this handle's close closes it).  To the router and to every
+        other node the shared session's tokens and keys are those of separate sessions; what
+        is shared is the one transport, lease and zenoh runtime (N hosted sensors open one
+        session, not N).  Only for nodes whose session settings are the same (no per-node
+        security identity)."""
+        self._check_open()
+        return ZenohBus(
+            self._session,
+            express=self._express,
+            max_payload=self.max_payload,
+            owns_session=False,
+        )
 
     def dropped(self) -> dict[str, dict[str, int]]:
         """The payloads this session's subscriptions dropped before their loops saw them,
@@ -577,8 +600,8 @@ class ZenohBus:
         return self._declare(_ZenohLivelinessSubscription, keyexpr)
 
     def close(self) -> None:
-        """Undeclare everything (waking blocked ``recv`` calls) and close the session.
-        Idempotent."""
+        """Undeclare everything (waking blocked ``recv`` calls) and close the session (unless
+        this handle is a :meth:`share` of it). Idempotent."""
         with self._lock:
             if self._closed:
                 return
@@ -595,7 +618,8 @@ class ZenohBus:
                 except zenoh.ZError:
                     pass
         finally:
-            self._session.close()
+            if self._owns_session:
+                self._session.close()
 
     def __enter__(self) -> ZenohBus:
         return self

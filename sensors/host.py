@@ -3,10 +3,17 @@
 
 One process per sensor does not scale on a few cores (each is an interpreter, a zenoh session and
 its threads, woken every scan), so a process may host several sensors.  Each hosted sensor is
-exactly what it would be alone: its own thread runs the kind's sensor ``main`` (its own zenoh
-client session with its own security identity, its own subscriptions, liveliness token and
-heartbeat, :func:`sensors.protocol.serve`), so the manager sees the same protocol and the same
-keys as from one process per sensor.  They share the interpreter, the signal handling (SIGINT or
+exactly what it would be alone: its own thread runs the kind's sensor ``main`` (its own
+subscriptions, publishers, liveliness token and heartbeat, :func:`sensors.protocol.serve`), so
+the manager sees the same protocol and the same keys as from one process per sensor.
+
+Sessions: when every hosted sensor's zenoh settings are the same (security off, or a shared
+identity), the process opens **one** client session and each sensor works on a
+:meth:`~covnet.zenoh_bus.ZenohBus.share` of it (its own entities, undeclared when it stops).
+64 sensors per process then cost the router one transport, not 64 handshakes, leases and
+transmission pipelines, which is what kept a 256-sensor network from becoming ready in time on
+two cores.  Sensors with identities of their own (per-node passwords or certificates) each
+open their own session, as alone.  They share the interpreter, the signal handling (SIGINT or
 SIGTERM stops them all) and the fate of the process: killing it takes out all its sensors, which
 the manager then sees fail one by one, as it would separate processes.
 
@@ -25,9 +32,10 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
+from covnet import security
 from covnet.config import ConfigError
 from covnet.errors import UsageError
-from covnet.process import EXIT_FAIL, EXIT_OK, EXIT_USAGE
+from covnet.process import EXIT_FAIL, EXIT_OK, EXIT_USAGE, open_client
 
 __all__ = ["host", "say"]
 
@@ -49,11 +57,32 @@ def say(args: Any, text: str) -> None:
         sys.stdout.flush()
 
 
+def one_session(ids: list[str], args: Any, cfg: Any) -> bool:
+    """Whether the hosted sensors ``ids`` can share one session: the same zenoh settings."""
+    net = cfg.network
+    settings = [
+        security.zenoh_settings(net, "sensor", sid, listen=False, source=args.config) for sid in ids
+    ]
+    return all(s == settings[0] for s in settings[1:])
+
+
 def host(ids: list[str], main: SensorMain, args: Any, cfg: Any, stop: threading.Event) -> int:
     """Run ``main(args_j, cfg, stop)`` for every sensor id of ``ids`` in its own thread
-    (``args_j``: ``args`` with ``id`` set to it), until all have returned; returns the worst exit
-    status.  ``stop`` (set by the process's signal handlers) stops them all, and so does any
-    hosted sensor that fails."""
+    (``args_j``: ``args`` with ``id`` set to it, and ``shared_bus`` the process's one session
+    when :func:`one_session`), until all have returned; returns the worst exit status.
+    ``stop`` (set by the process's signal handlers) stops them all, and so does any hosted
+    sensor that fails."""
+    if not one_session(ids, args, cfg):
+        return _run_all(ids, main, args, cfg, stop)
+    first = argparse.Namespace(**vars(args))
+    first.id = ids[0]
+    with open_client(first, cfg.network, "sensor", ids[0], stop) as bus:
+        shared = argparse.Namespace(**vars(args))
+        shared.shared_bus = bus
+        return _run_all(ids, main, shared, cfg, stop)
+
+
+def _run_all(ids: list[str], main: SensorMain, args: Any, cfg: Any, stop: threading.Event) -> int:
     codes: dict[str, int] = {}
     lock = threading.Lock()
 

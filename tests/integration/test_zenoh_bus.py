@@ -147,6 +147,46 @@ def test_in_process_router_and_client(router, run):
         bus.publish(m.command_key(run, ["s1"]), b"x")
 
 
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_shared_session_handles_are_separate_nodes(router, run):
+    """Two sensors on one client session (``share``, as a host process runs them): each
+    handle's token, subscriptions and publications are its own; closing one handle leaves the
+    other and the session working; closing the owner closes the session."""
+    bus, endpoint = router
+    watch = bus.watch_liveliness(m.alive_keyexpr(run))
+    meas = bus.subscribe(m.measurement_keyexpr(run))
+    owner = ZenohBus.open(zenoh_config("client", connect=[endpoint]))
+    a, b = owner.share(), owner.share()
+    a_alive = LivelinessEvent(m.alive_key(run, "sensor", "s1"), True)
+    b_alive = LivelinessEvent(m.alive_key(run, "sensor", "s2"), True)
+    a.declare_token(a_alive.key)
+    b.declare_token(b_alive.key)
+    expect_events(watch, {a_alive, b_alive}, timeout=5)
+    a_cmd = a.subscribe(m.command_key(run, ["s1"]))
+    b_cmd = b.subscribe(m.command_key(run, ["s2"]))
+    got = None
+    for _ in range(50):  # until the router knows the new subscription (declared just now)
+        bus.publish(m.command_key(run, ["s2"]), b"for s2")
+        if (got := b_cmd.recv(timeout=0.1)) is not None:
+            break
+    assert got is not None and got.payload == b"for s2"
+    assert a_cmd.recv(timeout=0.2) is None  # not its key
+
+    a.close()  # s1 stops: its token goes, s2 and the session go on
+    expect_event(watch, LivelinessEvent(a_alive.key, False), timeout=5)
+    assert a_cmd.recv(timeout=None) is None  # its readers were woken
+    with pytest.raises(BusClosed):
+        a.publish(m.measurement_key(run, "s1"), b"x")
+    b.publish(m.measurement_key(run, "s2"), b"still here")
+    assert meas.recv(timeout=5).payload == b"still here"
+
+    owner.close()  # the session itself: s2's token goes with it
+    expect_event(watch, LivelinessEvent(b_alive.key, False), timeout=5)
+    with pytest.raises(BusClosed):
+        owner.share()
+
+
 def _thread_ids() -> set[int]:
     return {int(t) for t in os.listdir("/proc/self/task")}
 

@@ -229,6 +229,21 @@ def test_password_settings(paper, lab):
         zenoh_settings(net, "manager", "manager", listen=True, sensor_ids=("S1", "S3"))
 
 
+def test_a_host_shares_one_session_only_between_sensors_of_the_same_settings(paper, lab):
+    """sensors.host: security off, one session for every hosted sensor; per-node passwords,
+    a session each (each sensor logs in as itself)."""
+    from types import SimpleNamespace
+
+    from sensors.host import one_session
+
+    args = SimpleNamespace(config="t.yaml")
+    off = from_dict(_data(paper), base_dir=lab)
+    assert one_session(["S1", "S2"], args, off)
+    pw = from_dict(_data(paper, credentials_file="creds.txt"), base_dir=lab)
+    assert not one_session(["S1", "S2"], args, pw)
+    assert one_session(["S2"], args, pw)
+
+
 def test_tls_settings_and_endpoints(paper, lab):
     net = _net(paper, lab, tls={"ca": "pki/ca.pem", "cert_dir": "pki/certs", "verify_name": False})
     certs = lab / "pki" / "certs"
