@@ -491,11 +491,13 @@ class ZenohBus:
         express: bool = False,
         max_payload: int = MAX_PAYLOAD_BYTES,
         owns_session: bool = True,
+        fifo: bool = True,
     ) -> None:
         if isinstance(max_payload, bool) or not isinstance(max_payload, int) or max_payload < 0:
             raise ValueError(f"max_payload must be an int >= 0, got {max_payload!r}")
         self._session = session
         self._owns_session = owns_session
+        self._fifo = fifo
         self._express = express
         self.max_payload = max_payload
         self._drops = DropCounter()
@@ -524,13 +526,20 @@ class ZenohBus:
         other node the shared session's tokens and keys are those of separate sessions; what
         is shared is the one transport, lease and zenoh runtime (N hosted sensors open one
         session, not N).  Only for nodes whose session settings are the same (no per-node
-        security identity)."""
+        security identity).
+
+        Its :meth:`subscribe` feeds a queue from zenoh's callback (as :meth:`subscribe_stamped`)
+        rather than a FIFO channel: a FIFO subscription's timeouts are wake samples put on the
+        session, which every matching subscription of the session receives, so N sensors on
+        one session would wake each other N times over (at 256 sensors that halved the scan
+        rate); a queue times out by itself."""
         self._check_open()
         return ZenohBus(
             self._session,
             express=self._express,
             max_payload=self.max_payload,
             owns_session=False,
+            fifo=False,
         )
 
     def dropped(self) -> dict[str, dict[str, int]]:
@@ -582,6 +591,8 @@ class ZenohBus:
 
     def subscribe(self, keyexpr: str) -> Subscription:
         check_keyexpr(keyexpr)
+        if not self._fifo:  # a share of a session (see share)
+            return self._declare(_ZenohSubscription, keyexpr)
         return self._declare(_ZenohFifoSubscription, keyexpr)
 
     def subscribe_stamped(self, keyexpr: str) -> Subscription:
