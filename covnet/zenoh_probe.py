@@ -3,7 +3,8 @@ pub/sub, with nothing else (no allocation, filter, world, recorder, heartbeats o
 
 Per scan: the *commander* (a router session, like the manager) publishes one command of the size
 of covnet's ``Command`` enabling every sensor; each of ``N`` *responders* (one client session
-each, hosted ``K`` per process as ``covnet up`` hosts sensors, each in its own thread) answers
+each, or, hosted ``K > 1`` per process as ``covnet up`` hosts sensors, shares of the process's
+one session, :mod:`sensors.host`; each in its own thread) answers
 with one message of the size of covnet's ``Measurement``; the next command goes out when all
 ``N`` answers are in.  It reports scans per second (first command to last answer) and the
 per-scan latency (command published -> last answer received), as covnet's manager reports its
@@ -129,10 +130,17 @@ def responders(args: argparse.Namespace) -> int:
     stop = threading.Event()
     size = args.measurement_bytes
     errors: list[str] = []
+    try:  # several responders share one session, as covnet's hosted sensors do
+        shared = _open("client", args.connect, stop) if len(args.id) > 1 else None
+    except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
+        print(f"probe: responders: {exc}", file=sys.stderr)
+        return 1
 
     def one(rid: str) -> None:
         try:
-            with _open("client", args.connect, stop) as bus:
+            with (
+                shared.share() if shared is not None else _open("client", args.connect, stop) as bus
+            ):
                 cmds = bus.subscribe(f"probe/{args.run}/cmd")
                 key = f"probe/{args.run}/meas/{rid}"
                 token = bus.declare_token(f"probe/{args.run}/alive/{rid}")
@@ -157,6 +165,9 @@ def responders(args: argparse.Namespace) -> int:
                 th.join(0.1)
     except KeyboardInterrupt:
         stop.set()
+    finally:
+        if shared is not None:
+            shared.close()
     for e in errors:
         print(f"probe: responder {e}", file=sys.stderr)
     return 1 if errors else 0
