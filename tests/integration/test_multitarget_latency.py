@@ -112,8 +112,10 @@ def test_missed_command_other_than_off_is_refused():
 
 @pytest.mark.integration
 @pytest.mark.timeout(300)
-# info in real time under the slow marker: the suite's time (its in-process twin is above)
-@pytest.mark.parametrize("mode", ["central", pytest.param("info", marks=pytest.mark.slow)])
+# real time under the slow marker: the suite's time (its in-process twins are above, and the
+# single-target real-time run over slow links, test_latency_up, stays in the suite)
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["central", "info"])
 def test_realtime_network_run_equals_the_simulated_time_run(tmp_path, mode):
     from multiproc import CovnetProcess, assert_nothing_left
 

@@ -126,7 +126,9 @@ def test_a_stopped_sensor_leaves_the_allocation(short):
 
 @pytest.mark.integration
 @pytest.mark.timeout(240)
-@pytest.mark.parametrize("fusion", ["central", "info"])
+# info over real processes under the slow marker: the suite's time (its in-memory-bus twin,
+# test_info_over_the_bus_equals_run, and the central variant over real processes stay)
+@pytest.mark.parametrize("fusion", ["central", pytest.param("info", marks=pytest.mark.slow)])
 def test_up_equals_run_and_replays(tmp_path, fusion):
     """12 sensor processes over zenoh in lockstep: covnet run's results, and covnet replay
     reproduces the summary from the recording (returns, or local tracks under info)."""

@@ -23,7 +23,7 @@ def short(paper_path):
 
 @pytest.fixture(scope="module")
 def rows(short):
-    return {r["mode"]: r for r in compare(short, modes(), "abs_trace", 3, graph="ring", workers=1)}
+    return {r["mode"]: r for r in compare(short, modes(), "abs_trace", 2, graph="ring", workers=1)}
 
 
 def test_info_row_equals_central(rows):
