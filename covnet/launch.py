@@ -30,10 +30,12 @@ stop them all for sure::
 from __future__ import annotations
 
 import collections
+import importlib
 import json
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 import traceback
@@ -41,7 +43,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from covnet import interrupts
+from covnet import forked, interrupts
 
 __all__ = ["ProcessSpec", "Supervisor", "sigterm_raises_keyboard_interrupt"]
 
@@ -68,12 +70,18 @@ class ProcessSpec:
     argv: list[str]
     env: dict[str, str] | None = None
     restart: bool = False
+    preload: tuple[str, ...] = ()
+    """Modules worth importing once for every child: when given and ``argv`` is
+    ``[sys.executable, "-m", MODULE, ...]``, :meth:`Supervisor.start` imports them in this
+    process and starts the child as a fork of it running MODULE
+    (:func:`covnet.forked.fork_module`: no interpreter start-up, no imports to repeat), if
+    this process has one thread then; otherwise, and for a restart, a new interpreter."""
 
 
 class _Run:
     """One incarnation of a child: its process, reader thread and retained output."""
 
-    def __init__(self, proc: subprocess.Popen[str], max_lines: int) -> None:
+    def __init__(self, proc: subprocess.Popen[str] | forked.ForkedProcess, max_lines: int) -> None:
         self.proc = proc
         self.lines: collections.deque[str] = collections.deque(maxlen=max_lines)
         self.count = 0  # lines seen in total (the deque keeps the last max_lines)
@@ -127,8 +135,11 @@ class Supervisor:
                 raise RuntimeError("supervisor already started")
             self._stopping = False
             try:
-                for name in self._specs:
-                    self._spawn(name)
+                may_fork = self._preload()
+                for name in self._specs:  # every child first, then the readers: the forks
+                    self._runs[name] = self._start(name, may_fork)  # see one thread
+                for name, run in self._runs.items():
+                    self._start_reader(name, run)
             except BaseException:
                 self.stop()
                 raise
@@ -136,22 +147,43 @@ class Supervisor:
                 if self._runs:
                     self._write_pids()
 
+    def _preload(self) -> bool:
+        """Import the specs' ``preload`` modules; whether children may be forked now."""
+        modules = sorted({m for s in self._specs.values() for m in s.preload})
+        if not modules or not forked.forkable():
+            return False
+        for m in modules:
+            importlib.import_module(m)
+        return forked.forkable()  # an import may have started a thread
+
     def _spawn(self, name: str) -> None:
+        """(Re)start ``name`` as a new interpreter, with its reader."""
+        run = self._runs[name] = self._start(name, may_fork=False)
+        self._start_reader(name, run)
+
+    def _start(self, name: str, may_fork: bool) -> _Run:
         spec = self._specs[name]
         env = dict(os.environ)
         env.update(spec.env or {})
         env["PYTHONUNBUFFERED"] = "1"
+        argv = spec.argv
+        fork = may_fork and bool(spec.preload) and argv[:2] == [sys.executable, "-m"]
         # a child inherits the spawning thread's signal mask: make sure SIGINT/SIGTERM reach it
         old_mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
         try:
-            proc = self._popen(spec, env)
+            proc: subprocess.Popen[str] | forked.ForkedProcess
+            if fork:
+                proc = forked.fork_module(argv[2], argv[3:], env, name=name)
+            else:
+                proc = self._popen(spec, env)
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
-        run = _Run(proc, self._max_lines)
+        return _Run(proc, self._max_lines)
+
+    def _start_reader(self, name: str, run: _Run) -> None:
         run.reader = threading.Thread(
             target=self._read, args=(name, run), name=f"supervisor-{name}", daemon=True
         )
-        self._runs[name] = run
         # the reader must never take the parent's SIGINT/SIGTERM (the main thread must, at
         # once); a thread inherits its creator's signal mask, so block them while creating it
         old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
@@ -304,7 +336,7 @@ class Supervisor:
                 self.sigint_timeout if sigint_timeout is None else sigint_timeout,
                 self.sigterm_timeout if sigterm_timeout is None else sigterm_timeout,
             )
-            return {name: run.proc.returncode for name, run in runs.items()}
+            return {name: run.proc.wait() for name, run in runs.items()}
 
     def _terminate(self, runs: list[_Run], sigint_timeout: float, sigterm_timeout: float) -> None:
         try:

@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +47,18 @@ __all__ = [
     "up",
 ]
 
+#: what node processes import, loaded once here and shared by forking (covnet.forked): the
+#: launcher's own imports (numpy, pydantic, the kind's config) are most of the rest
+NODE_PRELOAD = (
+    "zenoh",
+    "covnet.process",
+    "covnet.zenoh_bus",
+    "covnet.recording",
+    "covnet.visual",
+    "covnet.live",
+    "recorder.node",
+    "sensors.host",
+)
 READY_GRACE_S = 15.0  # on top of network.ready_timeout_s: interpreter start-up, imports
 #: on top of that, per sensor: a large network's interpreters start on few cores
 READY_GRACE_PER_SENSOR_S = 0.25
@@ -292,6 +304,9 @@ def up(
     )
     if topology is not None:  # --netns: each process in its namespace, with its endpoint
         specs, router = topology.apply(specs), topology.listen
+    else:  # forks of this launcher with the nodes' modules loaded (start-up time)
+        preload = (*NODE_PRELOAD, *kind.roles.values())
+        specs = [replace(sp, preload=preload) for sp in specs]
     if wanted is not None:
         sensor_procs = {name for name, _ in groups}
         specs = [sp for sp in specs if sp.name in wanted or sp.name in sensor_procs]
@@ -331,11 +346,11 @@ def up(
     previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt)
     status = 0
     try:
-        with (
-            view,
+        with (  # the children first: they may be forks of this process, while it has one thread
             Supervisor(
                 specs, on_line=on_line, pids_file=out / "processes.json", pids_extra=_hosts(hosts)
             ) as sup,
+            view,  # (on a terminal, rich's refresh thread)
         ):
             grace = READY_GRACE_S + READY_GRACE_PER_SENSOR_S * len(ids)
             deadline = time.monotonic() + sc.network.ready_timeout_s + grace

@@ -1,0 +1,149 @@
+"""Node processes forked from the launcher (covnet.forked, Supervisor with ``preload``): each
+child is what ``python -m MODULE ARGS`` would be (its argv, environment, own session and
+process group, stdin closed, output through the pipe, its exit status, death by SIGINT), it
+has the preloaded modules without importing them, and the parent's exit work never runs in it.
+
+The supervisor forks only from a process with one thread, so each case runs in a fresh child
+interpreter (a process with another thread gets new interpreters, which the last test checks)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import threading
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.timeout(60)
+
+CHILD_MODULE = """
+import atexit, os, sys, threading, time
+print("argv", sys.argv[1:], flush=True)
+print("env", os.environ.get("FOO"), os.environ.get("PYTHONUNBUFFERED"), flush=True)
+print("preloaded", "fork_heavy" in sys.modules and sys.modules["fork_heavy"].LOADED_IN, flush=True)
+print("group", os.getpgid(0) == os.getpid() == os.getsid(0), flush=True)
+print("stdin", repr(sys.stdin.read()), flush=True)
+print("name", __name__, open("/proc/self/comm").read().strip(), flush=True)
+here = os.environ["MARKS"]
+atexit.register(lambda: open(os.path.join(here, f"child-atexit-{sys.argv[1]}"), "w").close())
+what = sys.argv[1]
+if what == "fail":
+    raise ValueError("a defect in the child")
+if what == "exit3":
+    sys.exit(3)
+if what == "wait":
+    print("READY", flush=True)
+    time.sleep(30)
+"""
+
+PARENT = """
+import atexit, json, os, sys, tempfile
+sys.path.insert(0, {moddir!r})
+from covnet.launch import ProcessSpec, Supervisor
+from covnet import forked
+here = os.environ["MARKS"]
+atexit.register(lambda: open(os.path.join(here, f"parent-atexit-{{os.getpid()}}"), "w").close())
+keep = tempfile.TemporaryDirectory(dir=here)  # a finalizer the children must not run
+pre = ("fork_heavy",)
+mk = lambda name, *args: ProcessSpec(
+    name, [sys.executable, "-m", "fork_child", *args], env={{"FOO": "bar"}}, preload=pre
+)
+specs = [mk("a", "ok"), mk("b", "fail"), mk("c", "exit3"), mk("d", "wait")]
+lines = []
+with Supervisor(specs, on_line=lambda n, l: lines.append([n, l])) as sup:
+    kinds = {{n: type(r.proc).__name__ for n, r in sup._runs.items()}}
+    ready = sup.wait_for_line("d", "READY", 20)
+    rcs = {{n: sup.wait(n, 20) for n in "abc"}}
+    final = sup.stop()
+print(json.dumps({{"kinds": kinds, "ready": ready, "rcs": rcs, "final": final,
+                  "lines": lines, "parent": os.getpid(), "tmp": os.path.isdir(keep.name)}}))
+"""
+
+
+@pytest.fixture()
+def modules(tmp_path: Path) -> Path:
+    d = tmp_path / "mods"
+    d.mkdir()
+    (d / "fork_child.py").write_text(CHILD_MODULE)
+    (d / "fork_heavy.py").write_text("import os\nLOADED_IN = os.getpid()\n")
+    return d
+
+
+def _parent(tmp_path: Path, modules: Path) -> dict:
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(PARENT.format(moddir=str(modules)))],
+        capture_output=True,
+        text=True,
+        timeout=50,
+        env={**os.environ, "MARKS": str(marks)},
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    out["marks"] = sorted(p.name for p in marks.iterdir())
+    return out
+
+
+def test_forked_children_are_what_python_m_would_be(tmp_path, modules):
+    got = _parent(tmp_path, modules)
+    assert set(got["kinds"].values()) == {"ForkedProcess"}
+    assert got["ready"]
+    lines: dict[str, list[str]] = {}
+    for name, line in got["lines"]:
+        lines.setdefault(name, []).append(line)
+    for name, arg in (("a", "ok"), ("b", "fail"), ("c", "exit3"), ("d", "wait")):
+        out = lines[name]
+        assert out[0] == f"argv ['{arg}']"
+        assert out[1] == "env bar 1"
+        assert out[2] == f"preloaded {got['parent']}"  # imported once, in the parent
+        assert out[3] == "group True"
+        assert out[4] == "stdin ''"
+        assert out[5] == f"name __main__ covnet-{name}"
+    assert got["rcs"] == {"a": 0, "b": 1, "c": 3}
+    assert "ValueError: a defect in the child" in lines["b"]  # its traceback, in its output
+    assert got["final"]["d"] == -2  # an uncaught KeyboardInterrupt: death by SIGINT
+    # the children's own exit work ran; the parent's ran once, in the parent, and the
+    # parent's temporary directory outlived its children
+    assert {"child-atexit-ok", "child-atexit-fail", "child-atexit-exit3"} <= set(got["marks"])
+    assert [m for m in got["marks"] if m.startswith("parent-atexit")] == [
+        f"parent-atexit-{got['parent']}"
+    ]
+    assert got["tmp"] is True
+
+
+def test_a_process_with_threads_starts_new_interpreters(modules, monkeypatch, tmp_path):
+    from covnet.launch import ProcessSpec, Supervisor
+
+    monkeypatch.syspath_prepend(str(modules))
+    monkeypatch.setenv("MARKS", str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", str(modules))
+    spec = ProcessSpec("a", [sys.executable, "-m", "fork_child", "ok"], preload=("fork_heavy",))
+    done = threading.Event()
+    other = threading.Thread(target=done.wait)  # a second thread: no fork
+    other.start()
+    try:
+        with Supervisor([spec], on_line=lambda n, line: None) as sup:
+            assert type(sup._runs["a"].proc).__name__ == "Popen"
+            assert sup.wait("a", 30) == 0
+    finally:
+        done.set()
+        other.join()
+
+
+def test_no_fork_once_a_zenoh_runtime_has_run():
+    """zenoh's runtime threads outlive its sessions; a fork would inherit its state without
+    them (a hang), so a process that has opened a session starts new interpreters."""
+    code = (
+        "from covnet import forked\n"
+        "from covnet.zenoh_bus import ZenohBus, zenoh_config\n"
+        "before = forked.forkable()\n"
+        "ZenohBus.open(zenoh_config('router', listen=['tcp/127.0.0.1:0'])).close()\n"
+        "print(before, forked.forkable())\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=50)
+    assert done.stdout.split() == ["True", "False"], done.stdout + done.stderr
