@@ -66,13 +66,23 @@ def one_session(ids: list[str], args: Any, cfg: Any) -> bool:
     return all(s == settings[0] for s in settings[1:])
 
 
-def host(ids: list[str], main: SensorMain, args: Any, cfg: Any, stop: threading.Event) -> int:
+def host(
+    ids: list[str],
+    main: SensorMain,
+    args: Any,
+    cfg: Any,
+    stop: threading.Event,
+    *,
+    share: bool | None = None,
+) -> int:
     """Run ``main(args_j, cfg, stop)`` for every sensor id of ``ids`` in its own thread
     (``args_j``: ``args`` with ``id`` set to it, and ``shared_bus`` the process's one session
-    when :func:`one_session`), until all have returned; returns the worst exit status.
-    ``stop`` (set by the process's signal handlers) stops them all, and so does any hosted
-    sensor that fails."""
-    if not one_session(ids, args, cfg):
+    when ``share``, by default :func:`one_session`), until all have returned; returns the worst
+    exit status.  ``stop`` (set by the process's signal handlers) stops them all, and so does
+    any hosted sensor that fails."""
+    if share is None:
+        share = one_session(ids, args, cfg)
+    if not share:
         return _run_all(ids, main, args, cfg, stop)
     first = argparse.Namespace(**vars(args))
     first.id = ids[0]

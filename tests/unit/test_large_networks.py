@@ -98,7 +98,7 @@ def test_host_runs_every_sensor_in_its_own_thread_with_its_own_args():
         seen[args.id] = (threading.current_thread().name, args.hosted)
         return 0
 
-    assert host(["a", "b", "c"], main_one, _args(), "cfg", stop) == 0
+    assert host(["a", "b", "c"], main_one, _args(), "cfg", stop, share=False) == 0
     assert set(seen) == {"a", "b", "c"}
     assert len({name for name, _ in seen.values()}) == 3 and all(h for _, h in seen.values())
     assert not stop.is_set()
@@ -113,7 +113,7 @@ def test_a_failing_hosted_sensor_stops_the_host(capsys):
         assert stop_.wait(10)  # the others are stopped by the failure
         return 0
 
-    assert host(["ok1", "bad", "ok2"], main_one, _args(), None, stop) == 1
+    assert host(["ok1", "bad", "ok2"], main_one, _args(), None, stop, share=False) == 1
     err = capsys.readouterr().err
     assert "bad: error: authentication failed for bad" in err
     assert "hosted sensors failed: ['bad']" in err
