@@ -7,6 +7,7 @@ import json
 import os
 import re
 import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -183,3 +184,48 @@ def test_force_replaces_an_earlier_run_directory(covnet_proc, tmp_path, paper_pa
     assert not (out / "fig9_from_an_earlier_run.png").exists() and not (out / "replay").exists()
     assert json.loads((out / "config.json").read_text())["allocation"]["metrics"] == ["spectral"]
     assert json.loads((out / "run.json").read_text())["status"] == "completed"
+
+
+def test_the_nodes_are_forks_of_the_launcher_unless_told_otherwise(tmp_path, paper_path):
+    """``covnet up`` starts its local nodes as forks of the launcher (process name
+    ``covnet-<name>``, the launcher's command line); ``COVNET_FORK=0``: new interpreters
+    (``python -m <role>``).  Either way a Ctrl-C stops them all."""
+    for fork in ("1", "0"):
+        out = tmp_path / f"fork-{fork}"
+        p = CovnetProcess(
+            [
+                "up",
+                str(paper_path),
+                "--out",
+                str(out),
+                "--no-figures",
+                "--realtime",
+                "--speed",
+                "5",
+            ],
+            prefix=["env", f"COVNET_FORK={fork}"],
+        )
+        try:
+            assert p.wait_for("[manager] READY", timeout=60), p.output()
+            pids = json.loads((out / "processes.json").read_text())
+            names = {}
+            for name, pid in pids.items():
+                if isinstance(pid, int):
+                    proc = Path(f"/proc/{pid}")
+                    names[name] = (
+                        (proc / "comm").read_text().strip(),
+                        (proc / "cmdline").read_bytes().split(b"\0"),
+                    )
+            p.proc.send_signal(signal.SIGINT)
+            assert p.wait(timeout=60) == 130, p.output()
+        finally:
+            p.stop()
+        assert_nothing_left(out)
+        assert set(names) == {"manager", "world", "recorder", *(f"S{i}" for i in range(1, 9))}
+        for name, (comm, cmdline) in names.items():
+            role = {"manager": b"manager", "world": b"world", "recorder": b"recorder"}
+            if fork == "1":
+                assert comm == f"covnet-{name}"[:15], (name, comm)
+                assert b"up" in cmdline, (name, cmdline)
+            else:
+                assert cmdline[1:3] == [b"-m", role.get(name, b"sensors")], (name, cmdline)
