@@ -707,13 +707,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UpError as exc:  # a network run that failed (bench up, bench soak): its reason
         _err(str(exc))
         return EXIT_FAIL
-    except KeyboardInterrupt:
-        _err("interrupted")
-        return EXIT_INTERRUPTED
-    except Exception as exc:
+    except BaseException as exc:  # a Ctrl-C, or an extension's stand-in for one it swallowed
         if not interrupts.caused(exc):
             raise
-        _err("interrupted")  # an extension's stand-in for the KeyboardInterrupt it swallowed
+        _err("interrupted")
         return EXIT_INTERRUPTED
 
 

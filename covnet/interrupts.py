@@ -41,11 +41,6 @@ def raise_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
 
 
-def requested() -> bool:
-    """Whether a SIGINT or SIGTERM has reached :func:`raise_interrupt` in this process."""
-    return _requested
-
-
 def caused(exc: BaseException) -> bool:
     """Whether ``exc`` is an interruption: a ``KeyboardInterrupt``, or any error raised after
     one was requested (an extension's stand-in for the ``KeyboardInterrupt`` it swallowed)."""

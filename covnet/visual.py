@@ -68,6 +68,7 @@ __all__ = [
     "METRICS_TOPIC",
     "SCENE_TOPIC",
     "TOPICS",
+    "XY",
     "Coverage",
     "Estimate",
     "KindVisual",
@@ -86,6 +87,8 @@ __all__ = [
 SCENE_TOPIC = "/covnet/scene"
 METRICS_TOPIC = "/covnet/scan"
 LOG_TOPIC = "/covnet/log"
+XY = [0, 2]
+"""The position components of a target state ``[x, vx, y, vy]`` (every kind's)."""
 TOPICS = (SCENE_TOPIC, METRICS_TOPIC, LOG_TOPIC)
 """The visual topics.  They start with ``/``, which a zenoh key (a raw channel) never does."""
 

@@ -50,10 +50,11 @@ def main(argv: list[str] | None = None) -> int:
         out = next_segment(Path(args.out))  # a restarted recorder never overwrites
         out.parent.mkdir(parents=True, exist_ok=True)
         visualiser = Visualiser(kind.visual(cfg), kind.episodes(cfg))
-        live = None
+        live = live_visualiser = None
         if args.foxglove:
             host, port = parse_address(args.foxglove)
             live = LiveView(host, port, name=f"covnet {cfg.name} ({args.run})")
+            live_visualiser = Visualiser(kind.visual(cfg), kind.episodes(cfg))
             print(f"foxglove: live view on ws://{host}:{live.port}")
         try:
             with open_client(args, cfg.network, node.ROLE, node.NODE_ID, stop) as bus:
@@ -61,8 +62,7 @@ def main(argv: list[str] | None = None) -> int:
                 with RecordingWriter(out, run_id=args.run, metadata=meta) as w:
                     counts = node.run(
                         cfg, bus, args.run, WallClock(args.speed), stop, w,
-                        visualiser=visualiser, live=live,
-                        live_visualiser=Visualiser(kind.visual(cfg), kind.episodes(cfg)),
+                        visualiser=visualiser, live=live, live_visualiser=live_visualiser,
                     )  # fmt: skip
         finally:
             if live is not None:

@@ -84,11 +84,8 @@ def host(
         share = one_session(ids, args, cfg)
     if not share:
         return _run_all(ids, main, args, cfg, stop)
-    first = argparse.Namespace(**vars(args))
-    first.id = ids[0]
-    with open_client(first, cfg.network, "sensor", ids[0], stop) as bus:
-        shared = argparse.Namespace(**vars(args))
-        shared.shared_bus = bus
+    with open_client(args, cfg.network, "sensor", ids[0], stop) as bus:
+        shared = argparse.Namespace(**vars(args), shared_bus=bus)
         return _run_all(ids, main, shared, cfg, stop)
 
 

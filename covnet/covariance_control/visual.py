@@ -30,12 +30,9 @@ from covnet.core.consistency import nees
 from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import build_model
-from covnet.visual import Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
+from covnet.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
 
 __all__ = ["Visual", "run_messages"]
-
-XY = [0, 2]
-"""The position components of the state ``[x, vx, y, vy]``."""
 
 
 class Visual:

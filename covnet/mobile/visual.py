@@ -24,11 +24,9 @@ from covnet import messages as msg
 from covnet.core.consistency import nees
 from covnet.core.mobile.models import MODE_NAMES
 from covnet.mobile.config import MobileConfig
-from covnet.visual import Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
+from covnet.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
 
 __all__ = ["Visual", "run_messages"]
-
-XY = [0, 2]
 
 
 class Visual:
