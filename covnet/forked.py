@@ -34,6 +34,7 @@ import sys
 import threading
 import time
 import traceback
+import warnings
 import weakref
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -135,6 +136,9 @@ def _child(
             if name is not None:
                 _set_name(f"covnet-{name}")
             sys.argv = [module, *args]
+            # a fresh interpreter has not imported the module it runs as __main__ (the parent
+            # may have: runpy would warn, and a parent's "error" filter make that fatal)
+            sys.modules.pop(f"{module}.__main__", None)
             runpy.run_module(module, run_name="__main__", alter_sys=True)
             code = 0
         except SystemExit as exc:
@@ -167,6 +171,7 @@ def _become_a_fresh_process(env: dict[str, str], out_fd: int) -> None:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     sys.unraisablehook = sys.__unraisablehook__
+    _default_warnings()
     # the parent's exit work is the parent's: its temporary directories stay its own
     atexit._clear()
     for fin in list(getattr(weakref.finalize, "_registry", {})):
@@ -174,6 +179,19 @@ def _become_a_fresh_process(env: dict[str, str], out_fd: int) -> None:
     sys.stdin = io.TextIOWrapper(io.FileIO(0, "r", closefd=False), encoding="utf-8")
     sys.stdout = _text(1)
     sys.stderr = _text(2, errors="backslashreplace")
+
+
+def _default_warnings() -> None:
+    """The warning filters of a fresh interpreter: its defaults, then its ``-W`` options and
+    ``PYTHONWARNINGS`` (``sys.warnoptions``), not the filters the parent has set since (a test
+    runner's ``error``)."""
+    warnings.resetwarnings()
+    warnings.filterwarnings("default", category=DeprecationWarning, module="__main__")
+    for category in (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning):
+        warnings.filterwarnings("ignore", category=category, append=True)
+    process_options = getattr(warnings, "_processoptions", None)  # what python runs at start-up
+    if process_options is not None:
+        process_options(sys.warnoptions)
 
 
 def _set_name(name: str) -> None:

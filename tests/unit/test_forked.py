@@ -147,3 +147,47 @@ def test_no_fork_once_a_zenoh_runtime_has_run():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=50)
     assert done.stdout.split() == ["True", "False"], done.stdout + done.stderr
+
+
+PKG_MAIN = """
+import warnings
+warnings.warn("a warning of the child", UserWarning)
+if __name__ == "__main__":
+    print("pkg main ran", flush=True)
+"""
+
+PARENT_WITH_STATE = """
+import sys, warnings
+sys.path.insert(0, {moddir!r})
+warnings.simplefilter("error")  # a test runner's filter: not the child's
+warnings.simplefilter("ignore")  # (importing the __main__ below warns here)
+import fork_pkg.__main__  # the parent has imported the module the child runs as __main__
+warnings.simplefilter("error")
+from covnet.launch import ProcessSpec, Supervisor
+lines = []
+spec = ProcessSpec("p", [sys.executable, "-m", "fork_pkg"], preload=("fork_heavy",))
+with Supervisor([spec], on_line=lambda n, l: lines.append(l)) as sup:
+    kind = type(sup._runs["p"].proc).__name__
+    rc = sup.wait("p", 20)
+print(kind, rc, lines)
+"""
+
+
+def test_a_fork_has_a_fresh_interpreters_warnings_and_runs_its_main_afresh(tmp_path, modules):
+    """The parent's warning filters (a test runner's ``error``) and a ``MODULE.__main__`` the
+    parent imported are not the child's: it warns as ``python -m`` would, and runs."""
+    pkg = modules / "fork_pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "__main__.py").write_text(PKG_MAIN)
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(PARENT_WITH_STATE.format(moddir=str(modules)))],
+        capture_output=True,
+        text=True,
+        timeout=50,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    kind, rc, rest = done.stdout.strip().split(" ", 2)
+    assert (kind, rc) == ("ForkedProcess", "0"), done.stdout
+    assert "pkg main ran" in rest
+    assert "UserWarning: a warning of the child" in rest
