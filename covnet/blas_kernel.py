@@ -22,11 +22,10 @@ from __future__ import annotations
 
 import ctypes
 import os
-import platform
 import sys
 from pathlib import Path
 
-__all__ = ["PINNED", "kernel", "pin"]
+__all__ = ["PINNED", "kernel", "one_thread", "pin"]
 
 PINNED = "Haswell"
 """The OpenBLAS kernel set covnet asks for on x86-64 (needs AVX2 and FMA)."""
@@ -44,12 +43,31 @@ def _cpu_flags() -> frozenset[str]:
     return frozenset()
 
 
+def _machine() -> str:
+    """The CPU architecture, lower case (``os.uname``: ``platform`` costs milliseconds)."""
+    if hasattr(os, "uname"):
+        return os.uname().machine.lower()
+    return os.environ.get("PROCESSOR_ARCHITECTURE", "").lower()
+
+
+def one_thread() -> None:
+    """Ask OpenBLAS for one thread (``OPENBLAS_NUM_THREADS=1``) unless the user set a number or
+    NumPy is already loaded.  covnet's matrices are 2 x 2 to 6 x 6 (a thread pool never pays on
+    them) and it runs many processes at once (every sensor, the batch workers), so a pool per
+    process only costs: its start-up is about a third of NumPy's import time (``covnet run``'s
+    start-up), and with dozens of processes on a few cores the pools' spinning threads contend.
+    OpenBLAS computes each output element in one thread, in the same order, whatever the
+    number of threads: the results are the same bits."""
+    if "numpy" not in sys.modules:
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
 def pin() -> bool:
     """Set ``OPENBLAS_CORETYPE`` to :data:`PINNED` when it can still take effect (NumPy not yet
     imported, not set by the user, an x86-64 CPU with AVX2 and FMA); True if it is in force."""
     if "OPENBLAS_CORETYPE" in os.environ:
         return os.environ["OPENBLAS_CORETYPE"] == PINNED
-    if "numpy" in sys.modules or platform.machine().lower() not in ("x86_64", "amd64"):
+    if "numpy" in sys.modules or _machine() not in ("x86_64", "amd64"):
         return False
     if not _NEEDS <= _cpu_flags():
         return False

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 import threading
 import warnings
@@ -292,6 +291,8 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
         med = sorted(r["scans_per_s"] for r in rows)[len(rows) // 2]
         print(f"median: {med:.0f} scans/s (loop: READY to last scan fused; wall includes start-up)")
         return EXIT_OK
+    import statistics  # start-up: only for bench up --foxglove
+
     without = statistics.median(r["scans_per_s"] for r in rows if not r["foxglove"])
     with_fx = statistics.median(r["scans_per_s"] for r in rows if r["foxglove"])
     print(

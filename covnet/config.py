@@ -23,7 +23,6 @@ import hashlib
 import json
 import os
 import re
-import socket
 from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, Protocol, TypeVar, get_args
@@ -309,6 +308,8 @@ def scheduler_problem(address: str, timeout_s: float = 5.0) -> str | None:
         return "expected a Dask scheduler address like tcp://127.0.0.1:8786"
     if scheme != "tcp":
         return None
+    import socket  # start-up: only for --cluster
+
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
             return None

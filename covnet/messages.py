@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import math
 import re
-import uuid
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar, TypeVar
@@ -212,6 +211,8 @@ RESERVED_IDS = (MANAGER_ID, WORLD_ID, RECORDER_ID)
 
 def new_run_id() -> str:
     """A short unique run id (12 hex digits), valid as a key chunk."""
+    import uuid  # start-up: only where a run id is made
+
     return uuid.uuid4().hex[:12]
 
 

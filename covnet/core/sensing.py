@@ -50,5 +50,10 @@ def measure(H: Mat, R: Mat, x: Vec, rng: np.random.Generator) -> Vec:
     The noise is ``L e`` with ``L`` the lower Cholesky factor of ``R`` and ``e ~ N(0, I)``,
     so the draw is the same for the same generator state whatever the caller.
     """
-    L = np.linalg.cholesky(R)
-    return H @ x + L @ rng.standard_normal(R.shape[0])
+    return measure_factored(H, cast(Mat, np.linalg.cholesky(R)), x, rng)
+
+
+def measure_factored(H: Mat, L: Mat, x: Vec, rng: np.random.Generator) -> Vec:
+    """:func:`measure` given ``L``, the lower Cholesky factor of ``R`` (``R = L Lᵀ``): the same
+    bits, for a caller that draws from the same ``R`` at every scan and factors it once."""
+    return H @ x + L @ rng.standard_normal(L.shape[0])

@@ -13,35 +13,28 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batch import BatchInterrupted, end_batch, progress_printer
 from covnet.core.metrics import METRICS
-from covnet.covariance_control.config import Scenario, SweepSpec, load, normalised
+from covnet.covariance_control.config import Scenario, load
 from covnet.covariance_control.decentral_sim import run_mode
-from covnet.covariance_control.latency_sim import run_latency
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.results import write_run
 from covnet.covariance_control.simulate import shared_trajectory
 from covnet.errors import UsageError
 from covnet.rundir import (
-    CONFIG,
     SUMMARY,
     load_arrays,
-    prepare_out,
     read_json,
-    write_json,
-    write_npz,
 )
-from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 
 CURVES = "curves.npz"
 """The per-scan RMSE and NEES curves of every point of a sweep or compare, with their bands."""
 
-# The figures (matplotlib), the batch tables (scipy.stats), the replay (the MCAP reader) and the
-# benchmarks are imported by the commands that use them: start-up time of ``covnet run``.
+# The figures (matplotlib), the batch commands (:mod:`covnet.covariance_control.batch_commands`:
+# ``mc``, ``compare``, ``sweep``), the replay (the MCAP reader) and the benchmarks are imported
+# by the commands that use them: start-up time of ``covnet run``.
 
 EXIT_OK, EXIT_FAIL = 0, 1
 
@@ -62,6 +55,8 @@ def run(sc: Scenario, out: Path, *, figures: bool) -> int:
     for m in sc.allocation.metrics:
         t0 = time.perf_counter()
         if slow:
+            from covnet.covariance_control.latency_sim import run_latency  # start-up: slow links
+
             runs[m], counts = run_latency(sc, m, model)
             latency[m] = counts.as_dict()
         else:
@@ -262,242 +257,6 @@ def _metric(sc: Scenario, requested: list[str] | None, default: str) -> str:
     if metric not in METRICS:
         raise UsageError(f"--metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
     return metric
-
-
-def _batch_out(args: argparse.Namespace, name: str, command: str, key: str) -> Path:
-    """The batch's directory (a new one, or its own to resume) with ``batch.json`` in it."""
-    out, _ = prepare_batch_out(args.out, name, args.force, command, key)
-    write_batch_info(out, command, key, {})
-    return out
-
-
-def compare(args: argparse.Namespace, sc: Scenario) -> int:
-    """``covnet compare``: the fusion structures side by side over a Monte Carlo batch."""
-    from covnet.covariance_control import compare as cmp  # scipy.stats: start-up of the rest
-
-    if sc.multitarget:
-        raise UsageError(
-            "compare: the fusion structures are compared on the one-target scenario; with "
-            "'targets:' run covnet mc once per fusion.mode (central, info)"
-        )
-    given = args.modes if args.modes is not None else ",".join(cmp.default_modes())
-    modes = [m.strip() for m in given.split(",") if m.strip()]
-    for m in modes:
-        if m not in cmp.modes():
-            raise UsageError(f"--modes: unknown mode {m!r}; choose from {', '.join(cmp.modes())}")
-    if not modes:
-        raise UsageError("--modes: name at least one mode")
-    metric = _metric(sc, args.metric, sc.allocation.metrics[0])
-    if args.runs < 2:
-        raise UsageError(f"--runs: at least 2 runs for a NEES band, got {args.runs}")
-    opts = batch_options(args, args.runs)
-    key = cmp.trial_key(sc, metric, args.graph)
-    out = _batch_out(args, f"{sc.name}-compare", "compare", key)
-    total = len(modes) * args.runs
-    print(
-        f"comparing {', '.join(modes)} on {sc.name}: metric {metric}, {args.runs} seeds from "
-        f"{sc.seed}, {total} runs",
-        file=sys.stderr,
-        flush=True,
-    )
-    meta = {
-        "scenario": sc.name,
-        "metric": metric,
-        "runs": args.runs,
-        "first_seed": sc.seed,
-        "graph": args.graph or sc.fusion.peer.graph,
-    }
-    title = (
-        f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds, "
-        f"peer graph {meta['graph']}"
-    )
-
-    def work() -> Any:
-        return cmp.compare_outcome(
-            sc,
-            modes,
-            metric,
-            args.runs,
-            graph=args.graph,
-            progress=BatchProgress("compare", where=opts.where),
-            out=out,
-            **_trial_options(opts),
-        )
-
-    return _batch_results(cmp, args, sc, out, work, total, "mode", meta, title, key)
-
-
-def _trial_options(opts: Any) -> dict[str, Any]:
-    return {
-        "workers": opts.workers,
-        "cluster": opts.cluster,
-        "ci_width": opts.ci_width,
-        "max_seeds": opts.max_seeds,
-    }
-
-
-def _batch_results(
-    module: Any,
-    args: argparse.Namespace,
-    sc: Scenario,
-    out: Path,
-    work: Callable[[], Any],
-    total: int,
-    what: str,
-    meta: Any,
-    title: str,
-    key: str,
-) -> int:
-    """Run ``covnet compare`` / ``sweep``'s ``work`` (its table's rows and the trials'
-    :class:`~covnet.trials.Outcome`, from ``total`` runs) and write: the table files, the
-    per-scan curves (``curves.npz``), the config (which says the directory's kind, for ``covnet
-    plot``), ``run.json``'s status, the figures, the printout.  Interrupted: the complete rows
-    (each a ``what``) are written, no figure, and the interruption goes on (exit 130); the
-    trials stay in ``out/trials`` for the same command to resume."""
-    meta = {
-        **meta,
-        "burn_in_scans": sc.evaluation.burn_in_scans,
-        "trial_hash": key,
-    }
-    try:
-        rows, outcome = work()
-    except BatchInterrupted as stop:
-        if stop.partial:
-            module.write_table(out, stop.partial, meta)
-            write_json(out / CONFIG, normalised(sc))
-        end_batch(out, total, what, stop, len(stop.partial or ()))
-        raise
-    meta = {**meta, **outcome.ci_facts()}
-    module.write_table(out, rows, meta)
-    curves = module.curves(outcome.results)
-    write_npz(out / CURVES, curves)
-    write_json(out / CONFIG, normalised(sc))
-    end_batch(
-        out,
-        outcome.total,
-        what,
-        runs_run=outcome.ran,
-        runs_skipped=outcome.skipped,
-        wall_s=outcome.wall_s,
-        trials_per_s=outcome.ran / outcome.wall_s if outcome.wall_s > 0 else None,
-        **outcome.backend,
-    )
-    if not args.no_figures:
-        module.make_figure(out, rows, title)
-        module.curves_figure(out, curves, module.default_curves(rows))
-    if args.json:  # stdout holds JSON only
-        for r in rows:
-            print(json.dumps(r))
-        print(f"results: {out}", file=sys.stderr)
-    else:
-        print(module.format_table(rows))
-        print(f"results: {out}")
-    return EXIT_OK
-
-
-def sweep(args: argparse.Namespace, sc: Scenario) -> int:
-    """``covnet sweep``: the latency grid of the config's ``sweep`` section."""
-    from covnet.covariance_control import sweep as sw  # start-up time of the other commands
-
-    if sc.multitarget:
-        raise UsageError(
-            "sweep: the latency grid runs the one-target scenario; with 'targets:' give "
-            "network.latency in the config and use covnet run or covnet mc"
-        )
-    if sc.fusion.mode == "peer":
-        raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
-    spec = sc.sweep or SweepSpec()
-    metric = _metric(sc, args.metric, spec.metric or sc.allocation.metrics[0])
-    if args.seeds is not None and args.seeds < 1:
-        raise UsageError(f"--seeds: must be >= 1, got {args.seeds}")
-    seeds = args.seeds or spec.seeds
-    opts = batch_options(args, seeds)
-    points = sw.grid(spec)
-    key = sw.trial_key(sc, metric)
-    out = _batch_out(args, f"{sc.name}-sweep", "sweep", key)
-    print(
-        f"sweeping {sc.name}: {len(points)} grid points x {seeds} seeds = "
-        f"{len(points) * seeds} runs, metric {metric}"
-        + ("" if sc.sweep else " (no sweep section in the config: the default grid)")
-        + (f", seeds added until every 95 % interval is narrower than {opts.ci_width:g} m "
-           f"(cap {opts.max_seeds})" if opts.ci_width else ""),
-        file=sys.stderr,
-        flush=True,
-    )  # fmt: skip
-    meta = {
-        "scenario": sc.name,
-        "metric": metric,
-        "seeds": seeds,
-        "first_seed": sc.seed,
-        "delay_kind": spec.delay_kind,
-        "deadline_fraction": sc.network.deadline_fraction,
-        "period_s": sc.period_s,
-    }
-    title = (
-        f"{sc.name}: delay and loss ({spec.delay_kind} delays, both directions), "
-        f"metric {metric}, deadline {sc.network.deadline_fraction:g} T"
-    )
-
-    def work() -> Any:
-        return sw.sweep_outcome(
-            sc,
-            metric=metric,
-            seeds=seeds,
-            progress=BatchProgress("sweep", where=opts.where),
-            out=out,
-            **_trial_options(opts),
-        )
-
-    total = len(points) * seeds
-    return _batch_results(sw, args, sc, out, work, total, "grid point", meta, title, key)
-
-
-def mc(args: argparse.Namespace, sc: Scenario) -> int:
-    """``covnet mc CONFIG [--trials N] [--workers W]``: the config over ``N`` seeds from its
-    own (default 20), every metric, in parallel worker processes; writes ``montecarlo.json``
-    (means with 95 % intervals, every seed's row) and ``montecarlo.png``."""
-    from covnet.covariance_control import montecarlo as mcm  # scipy.stats: start-up of the rest
-
-    n = args.trials if args.trials is not None else 20
-    if n < 1:
-        raise UsageError(f"--trials: must be >= 1, got {n}")
-    workers = getattr(args, "workers", None)
-    if workers is not None and workers < 1:
-        raise UsageError(f"--workers: must be >= 1, got {workers}")
-    if sc.fusion.mode == "peer":
-        raise UsageError("mc: fusion.mode peer is compared by covnet compare, not covnet mc")
-    for opt, val in (("--cluster", args.cluster), ("--ci-width", args.ci_width)):
-        if val is not None:  # this kind's mc is not on the trials layer yet
-            raise UsageError(
-                f"{opt}: covnet mc of a covariance-control config runs on this "
-                "machine's cores only, over --trials seeds"
-            )
-    out = prepare_out(args.out, f"{sc.name}-mc", args.force)
-    seeds = list(range(sc.seed, sc.seed + n))
-    print(
-        f"monte carlo: {sc.name}, {n} seeds from {sc.seed}, metrics "
-        f"{', '.join(sc.allocation.metrics)}",
-        file=sys.stderr,
-        flush=True,
-    )
-    t0 = time.perf_counter()
-    try:
-        rows = mcm.run_seeds(sc, seeds, workers, progress_printer("mc"))
-    except BatchInterrupted as stop:  # the seeds done are written, then exit 130
-        if stop.partial:
-            done_seeds, done_rows = zip(*stop.partial, strict=True)
-            mcm.write_mc(out, sc, list(done_seeds), list(done_rows))
-        end_batch(out, n, "seed", stop, len(stop.partial or ()))
-        raise
-    doc = mcm.write_mc(out, sc, seeds, rows)
-    end_batch(out, n, "seed")
-    from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
-
-    figure = mc_figure(out)
-    print(mcm.format_table(doc))
-    print(f"results: {out / mcm.MC_FILE}  ({time.perf_counter() - t0:.1f} s)")
-    print(f"figure: {figure}")
-    return EXIT_OK
 
 
 def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:

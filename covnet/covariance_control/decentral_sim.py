@@ -25,7 +25,6 @@ import time
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.decentral import Mirror, decide_rule, neighbours, reach_matrix
 from covnet.covariance_control.fusion_rules import rule_for
-from covnet.covariance_control.latency_sim import run_latency
 from covnet.covariance_control.model import (
     Model,
     build_model,
@@ -92,6 +91,8 @@ def run_mode(
     its counts: call that function directly)."""
     model = model or build_model(sc)
     if not sc.network.latency.is_ideal(model.sensor_ids):
+        from covnet.covariance_control.latency_sim import run_latency  # start-up: slow links
+
         return run_latency(sc, metric, model)[0], None
     if sc.fusion.mode == "peer":
         nodes = run_peer(sc, metric, model)

@@ -5,7 +5,8 @@ Its process roles are ``manager.covariance`` (the fusion centre, or the observer
 network), ``sensors.covariance`` (a sensor, or a peer node) and ``world.covariance``.  Its run
 options are ``--seed``, ``--metric`` (the episodes: ``allocation.metrics``) and ``--fusion``
 (``fusion.mode``); each is a change of the config, so ``config.json`` records it.  Its commands
-are in :mod:`covnet.covariance_control.commands`, bar ``covnet replay`` and the rebuild of a
+are in :mod:`covnet.covariance_control.commands` (``mc``, ``compare`` and ``sweep`` in
+:mod:`covnet.covariance_control.batch_commands`), bar ``covnet replay`` and the rebuild of a
 network run from its recording (:mod:`covnet.covariance_control.replay`).
 """
 
@@ -21,6 +22,7 @@ from covnet.kindkit import KindBase, lazy, seed_option
 __all__ = ["KIND"]
 
 _COMMANDS = "covnet.covariance_control.commands"
+_BATCH = "covnet.covariance_control.batch_commands"
 _VISUAL = "covnet.covariance_control.visual"
 _REPLAY = "covnet.covariance_control.replay"
 _SIZES = "covnet.covariance_control.network_sizes"
@@ -50,9 +52,9 @@ class CovarianceControl(KindBase):
     }
     options = {"seed": seed_option, "metric": _metrics, "fusion": _fusion}
     commands = {
-        "mc": lazy(_COMMANDS, "mc"),
-        "compare": lazy(_COMMANDS, "compare"),
-        "sweep": lazy(_COMMANDS, "sweep"),
+        "mc": lazy(_BATCH, "mc"),
+        "compare": lazy(_BATCH, "compare"),
+        "sweep": lazy(_BATCH, "sweep"),
         "replay": lazy(_REPLAY, "command"),
         "bench:alloc": lazy(_COMMANDS, "bench_alloc"),
         "bench:fusion": lazy(_COMMANDS, "bench_fusion"),

@@ -20,8 +20,12 @@ from covnet.core.constraints import Constraints
 from covnet.core.gaussian import Gaussian, Mat, Vec
 from covnet.core.kalman import predict, predict_covariance, update_covariance, update_sequential
 from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_noise
-from covnet.core.sensing import correlated_noise, information_gain, position_matrix
-from covnet.core.sensing import measure as draw_measurement
+from covnet.core.sensing import (
+    correlated_noise,
+    information_gain,
+    measure_factored,
+    position_matrix,
+)
 from covnet.core.truth import linear_gaussian_trajectory
 from covnet.covariance_control.config import (
     AUTO_EXACT_MAX,
@@ -110,6 +114,15 @@ class Model:
     )
     gains_given: Mat | None = None  # (Ns, 4, 4) supplied (a loss-aware model), else derived
     _derived: dict[str, Mat] = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def noise_factors(self) -> Mat:
+        """``(Ns, 2, 2)``: the lower Cholesky factor ``L_j`` of each ``R_j`` (``R_j = L_j L_jᵀ``),
+        computed once: every scan draws ``v = L_j e`` (:func:`covnet.core.sensing.measure`)."""
+        L = self._derived.get("noise_factors")
+        if L is None:
+            L = self._derived["noise_factors"] = np.stack([np.linalg.cholesky(Rj) for Rj in self.R])
+        return L
 
     @property
     def gains(self) -> Mat:
@@ -304,7 +317,7 @@ def feasible_count(n_sensors: int, c: Constraints) -> int:
 def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:
     """Sensor ``j``'s measurement at scan ``k``: ``z = H x + v``, ``v`` from stream (j, k)."""
     rng = streams.sensor_stream(model.seed, sensor_index, scan)
-    return draw_measurement(model.H, model.R[sensor_index], true_state, rng)
+    return measure_factored(model.H, model.noise_factors[sensor_index], true_state, rng)
 
 
 def fused_covariance(model: Model, P_pred: Mat, noises: Sequence[tuple[int, Mat]]) -> Mat:

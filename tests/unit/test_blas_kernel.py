@@ -48,3 +48,30 @@ def test_the_kernel_in_use_is_recorded_in_run_json(tmp_path):
 
     record_end(tmp_path, "completed", "test")
     assert read_json(tmp_path / "run.json")["blas_kernel"] == blas_kernel.kernel()
+
+
+_THREADS = (
+    "import ctypes, pathlib, numpy; "
+    "libs = pathlib.Path(numpy.__file__).parent.parent / 'numpy.libs'; "
+    "lib = ctypes.CDLL(str(sorted(libs.glob('libscipy_openblas*.so*'))[0])); "
+    "print(lib.scipy_openblas_get_num_threads64_())"
+)
+
+
+def _has_openblas_threads_call() -> bool:
+    try:
+        return _child(_THREADS, OPENBLAS_NUM_THREADS="2") == "2"
+    except (subprocess.CalledProcessError, IndexError):
+        return False
+
+
+def test_importing_covnet_first_gives_openblas_one_thread_unless_the_user_says():
+    if not _has_openblas_threads_call():
+        pytest.skip("NumPy's OpenBLAS does not say its thread count here")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    code = "import covnet; " + _THREADS
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
+    )
+    assert run.stdout.strip() == "1"
+    assert _child(code, OPENBLAS_NUM_THREADS="2") == "2"  # the user's number is kept
