@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import threading
 import warnings
@@ -33,6 +34,9 @@ from covnet.messages import RESERVED_IDS, new_run_id, run_keyexpr
 from covnet.rundir import CONFIG, RUN_INFO, prepare_out, read_json, record_end
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_PIPE = 141
+"""The reader of stdout went away (``covnet check CONFIG | head``): 128 + SIGPIPE, the status
+of a Unix tool that the closed pipe stopped."""
 
 BENCHES = {
     "alloc": "covariance_control",
@@ -689,6 +693,29 @@ def _show_warning(
 _python_showwarning = warnings.showwarning
 
 
+def _stdout_closed() -> bool:
+    """True when stdout is a pipe whose reader has gone (so the ``BrokenPipeError`` was our
+    output's, not some other pipe's): its write end then polls ``POLLERR``.  stdout is then
+    pointed at ``/dev/null``, so that the interpreter's last flush at exit prints nothing."""
+    import select  # start-up: only after a broken pipe
+    import stat
+
+    try:
+        fd = sys.stdout.fileno()
+        if not stat.S_ISFIFO(os.fstat(fd).st_mode):
+            return False
+        poll = select.poll()
+        poll.register(fd, select.POLLOUT)
+        if not any(ev & select.POLLERR for _, ev in poll.poll(0)):
+            return False
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, fd)
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        return False
+    return True
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         # SIGINT and SIGTERM raise KeyboardInterrupt; one inside a weakref callback is raised
@@ -708,6 +735,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UpError as exc:  # a network run that failed (bench up, bench soak): its reason
         _err(str(exc))
         return EXIT_FAIL
+    except BrokenPipeError:
+        if not _stdout_closed():
+            raise
+        return EXIT_PIPE
     except BaseException as exc:  # a Ctrl-C, or an extension's stand-in for one it swallowed
         if not interrupts.caused(exc):
             raise

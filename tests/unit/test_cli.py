@@ -195,3 +195,31 @@ def test_a_failed_bench_network_run_says_why_without_a_traceback(monkeypatch, ca
     assert "the manager exited with status 1 before READY" in err
     assert "nodes not alive after 30.0 s: ['S1']" in err
     assert "Traceback" not in err
+
+
+def test_a_reader_that_closes_the_pipe_stops_covnet_quietly(paper_path):
+    """``covnet check CONFIG | head -1``: no traceback, the status of a tool SIGPIPE stopped
+    (141); a BrokenPipeError that is not stdout's is not taken for it (stdout still open)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "covnet", "check", str(paper_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    first = proc.stdout.readline()
+    proc.stdout.close()  # the reader goes away after one line
+    err = proc.stderr.read().decode()
+    proc.stderr.close()
+    assert proc.wait(timeout=60) == 141, err
+    assert first.startswith(b"kind:") and "Traceback" not in err and "Broken" not in err
+
+
+def test_a_broken_pipe_that_is_not_stdouts_is_not_hidden(monkeypatch, paper_path):
+    import covnet.cli as cli
+
+    def broken(args):
+        raise BrokenPipeError(32, "a child's pipe")
+
+    monkeypatch.setattr(cli, "cmd_check", broken)
+    with pytest.raises(BrokenPipeError):
+        main(["check", str(paper_path)])
