@@ -51,6 +51,17 @@ def test_covnet_run_does_not_import_scipy_linalg(tmp_path):
     )
     assert "scipy.linalg._flapack" in mods
     assert "scipy.linalg" not in mods
+    # nor what only other commands or modes use: the batch machinery (mc, compare, sweep),
+    # the slow-link simulation, numpy.ma (numpy.median's import)
+    for mod in (
+        "covnet.batch",
+        "covnet.trials",
+        "multiprocessing",
+        "covnet.covariance_control.latency_sim",
+        "covnet.covariance_control.batch_commands",
+        "numpy.ma",
+    ):
+        assert mod not in mods, mod
 
 
 def test_the_world_a_sensor_and_the_recorder_need_no_lapack():
