@@ -33,8 +33,23 @@ and one ``(r², n²)`` product.  Their rounding error is covered by the bounds' 
 ``n(n+1)/2`` dimensions, the node's completions only the 3 of ``Z ∈ [Z(I), Z(I ∪ U)]``.  For
 these metrics, convex in ``Z`` or in ``W = Z⁻¹`` (logdet: on the nodes where it is), a few
 projected-gradient steps on that 3-dimensional interval give a tangent-plane lower bound
-(:class:`_Relaxation`), applied to the nodes the interval bound keeps, with many undecided
-sensors; on the paper-like problems it removes 95-99 % of the nodes the interval bound keeps.
+(:class:`_Relaxation`), applied to every node the interval bound keeps (down to one undecided
+sensor: at 32-40 paper-like sensors, refining only nodes with 6 or more undecided left the last
+five levels unpruned, most of the tree); on the paper-like problems it removes 95-99 % of the
+nodes the interval bound keeps.  What it cannot prune (kl, logdet, frobenius at 32-40 sensors):
+nodes whose interval contains the continuous minimiser, whose value is within about ``1e-8`` of
+the discrete optimum on those problems, so no continuous bound can separate them; the tree then
+enumerates their completions near that point (not ties: one or two subsets within ``tie_rtol``,
+but many within ``1e-5``).
+
+**Table of the last levels** (kl, frobenius, logdet; :class:`_Leaves`): the completions of a
+node at depth ``d0 = m - LEAF_LEVELS`` are ``Z(I) + T_t`` over a table of the ``2^LEAF_LEVELS``
+subset sums of the last sensors, and, the metric being strongly convex (kl in ``Z`` on bounded
+sets, frobenius² in ``W``, logdet in ``Z`` where ``y_max(Z_all) < 1 + sqrt 2``), every
+completion that can still be ``<= τ`` lies in a small ball around the continuous minimiser,
+found by a k-d tree query: so the last levels cost one query per node and the candidates in the
+ball, not a subtree.  Those are recorded with a valid bound as the tree's own candidates, and a
+completion outside the ball is above ``τ``, so the exactness argument below is unchanged.
 
 **Exactness.**  The incumbent ``U`` is the smallest exactly evaluated value (greedy's subset
 first); a node is pruned only when its bound exceeds ``τ = U + tie_rtol · max(|U|, tiny)``, which
@@ -339,14 +354,22 @@ class _Problem:
         if self.relax is None or lb.size == 0:
             return lb
         rows = np.flatnonzero(lb <= tau)
-        if self.name == "logdet":  # convex only where x_max(P(I)) <= 1 + sqrt 2
+        zrows = rows[:0]
+        if self.name == "logdet":  # convex in W where x_max(P(I)) <= 1 + sqrt 2, else maybe in Z
             rho = self.n * self.ctx.err / self.ctx.lam_min
             ok = sB[rows, -1] * (1.0 + 4.0 * rho) < LOGDET_CONVEX * (1.0 - 1e-9)
+            zrows = rows[~ok]
             rows = rows[ok]
-        if rows.size == 0:
+            if zrows.size:
+                zrows = zrows[self.relax.z_convex(Z_hi[zrows])]
+        if rows.size == 0 and zrows.size == 0:
             return lb
         out = lb.copy()
-        out[rows] = np.fmax(lb[rows], self.relax.bound(Z_lo[rows], Z_hi[rows], tau))
+        if rows.size:
+            out[rows] = np.fmax(lb[rows], self.relax.bound(Z_lo[rows], Z_hi[rows], tau))
+        if zrows.size:
+            zb = self.relax.bound(Z_lo[zrows], Z_hi[zrows], tau, zform=True)
+            out[zrows] = np.fmax(lb[zrows], zb)
         return out
 
     def combine(self, sA: Mat, sB: Mat) -> Mat:
@@ -687,9 +710,17 @@ Sym2 = tuple[Mat, Mat, Mat]
 
 #: projected-gradient iterations of the relaxation per node (each also gives a lower bound)
 RELAX_ITERS = 16
-#: the relaxation refines only nodes with at least this many undecided sensors (a smaller
-#: subtree is cheaper to explore than to bound)
-RELAX_MIN_REST = 6
+#: the relaxation refines only nodes with at least this many undecided sensors (1: every node;
+#: at 32-40 sensors 6 left two thirds of kl's nodes, in the last five levels, unrefined)
+RELAX_MIN_REST = 1
+#: kl, frobenius and logdet: the last this many levels of the tree come from a table of
+#: ``2^LEAF_LEVELS`` sums (:class:`_Leaves`; 2^18 rows: 6 MB, and a k-d tree)
+LEAF_LEVELS = 18
+#: ... but the tree keeps at least the first min(LEAF_TOP, m // 2) levels (a smaller table for
+#: 20-28 sensors, where the tree alone is fast)
+LEAF_TOP = 10
+#: nodes per table query (the threshold is updated in between)
+LEAF_GROUP = 8
 #: logdet is convex in ``W`` where every generalized eigenvalue is at most ``1 + sqrt 2``
 LOGDET_CONVEX = 1.0 + math.sqrt(2.0)
 
@@ -792,11 +823,23 @@ class _Relaxation:
       ``(I + V1 W)⁻¹ V1 - ½ W⁻¹``; ``f = Σ φ(x_i)`` over the generalized eigenvalues with ``φ``
       convex on ``(0, 1 + sqrt 2]`` (``φ'' = 1/(2x²) - 1/(1 + x)²``), so ``f`` is convex (a
       spectral function of a convex ``φ``, of an affine image of ``W``) on the nodes whose
-      ``x_max(P(I)) <= 1 + sqrt 2``; only those are refined.
+      ``x_max(P(I)) <= 1 + sqrt 2``;
+    - **logdet** in ``Z`` on the other nodes where it is convex in ``Z``
+      (:meth:`z_convex`: ``f = c1 + log det(Z + V1) - ½ log det Z``, the same ``φ`` of the
+      eigenvalues ``y = 1/x`` of ``V1⁻¹ Z``, convex where ``y_max(Z(I ∪ U)) <= 1 + sqrt 2``),
+      gradient ``(Z + V1)⁻¹ - ½ Z⁻¹``: the nodes with few sensors included (a large ``P(I)``,
+      where ``W`` fails), which were most of logdet's tree at 32 sensors.  Nodes where neither
+      holds are not refined.
+
+    The iterations stop once the bound, after the final deflation below, exceeds the threshold
+    (:meth:`_goal`, its pre-image); stopping before the deflation (as before) left every bound
+    that had just reached the threshold deflated back below it.
 
     Rounding: the bound is deflated by the interval bound's model errors for the metric (the
     computed constants and the completion's computed ``P`` are within ``err``) and by a relative
-    ``ROUND n² eps κ`` of every term it adds.
+    ``ROUND n² eps κ`` of every term it adds.  This holds in ``Z`` as in ``W``: ``K[s, :] = I``
+    and ``P∞[s, s] = 0``, so ``W = P(S)[s, s]``, a principal submatrix, and ``cond Z = cond W <=
+    cond P(S) <= κ`` (interlacing); ``Z + V1`` is no worse conditioned than ``I + V1 W``.
     """
 
     METRICS = ("frobenius", "kl", "logdet")
@@ -839,8 +882,19 @@ class _Relaxation:
             self.c1 = ld_W - n * math.log(2.0) - 0.5 * ld_v - 0.5 * ld_D
             self.mag = abs(ld_W) + abs(ld_v) + abs(ld_D) + n
 
-    def _h(self, V: Sym2) -> tuple[Mat, Sym2]:
-        """The convex objective and its gradient at ``V`` (``W`` or ``Z``)."""
+    def _h(self, V: Sym2, zform: bool = False) -> tuple[Mat, Sym2]:
+        """The convex objective and its gradient at ``V`` (``W`` or ``Z``; logdet with
+        ``zform``: in ``Z``)."""
+        if zform:  # logdet in Z: c1 + log det(Z + V1) - ½ log det Z
+            a, b, c = V
+            v0, v1, v2 = self.V1
+            e0, e1, e2 = a + v0, b + v1, c + v2
+            detE = e0 * e2 - e1 * e1
+            detZ = a * c - b * b
+            g = self.c1 + np.log(detE) - 0.5 * np.log(detZ)
+            Ei = (e2 / detE, -e1 / detE, e0 / detE)
+            Zi = _inv2(a, b, c)
+            return g, (Ei[0] - 0.5 * Zi[0], Ei[1] - 0.5 * Zi[1], Ei[2] - 0.5 * Zi[2])
         if self.name == "frobenius":
             M = _flat2(*V) @ self.prob.T
             M += self.M0
@@ -874,15 +928,16 @@ class _Relaxation:
         Wi = _inv2(a, b, c)
         return g, (g00 - 0.5 * Wi[0], g01 - 0.5 * Wi[1], g11 - 0.5 * Wi[2])
 
-    def bound(self, Z_lo: Mat, Z_hi: Mat, tau: float) -> Mat:
+    def bound(self, Z_lo: Mat, Z_hi: Mat, tau: float, zform: bool = False) -> Mat:
         """Lower bounds ``(m,)`` of the metric over the nodes with information ``[Z_lo, Z_hi]``
-        (rows ``(m, 4)``); ``-inf`` where nothing is proven."""
+        (rows ``(m, 4)``); ``-inf`` where nothing is proven.  ``zform`` (logdet only, on rows
+        where :meth:`z_convex` holds): the objective in ``Z``."""
         m = Z_lo.shape[0]
         out = np.full(m, -np.inf)
         if m == 0:
             return out
         with np.errstate(all="ignore"):
-            if self.name == "kl":
+            if self.name == "kl" or zform:
                 lo, hi = _s2(Z_lo), _s2(Z_hi)
             else:
                 lo, hi = _inv2(*_s2(Z_hi)), _inv2(*_s2(Z_lo))
@@ -891,7 +946,7 @@ class _Relaxation:
             idx = np.arange(m)
             X: Sym2 = (np.full(m, 0.5), np.zeros(m), np.full(m, 0.5))
             step = np.ones(m)
-            h_x, G_x = self._hx(lo, R, X, idx)
+            h_x, G_x = self._hx(lo, R, X, zform)
             for _ in range(RELAX_ITERS):
                 lb = h_x - _dot2(G_x, X) + _negsum2(G_x)
                 lb_safe = self._deflate(lb, h_x, G_x)
@@ -910,7 +965,7 @@ class _Relaxation:
                 gn = np.sqrt(_dot2(G_x, G_x))
                 s_ = step / np.where(gn > 0.0, gn, 1.0)
                 Xn = _proj01((X[0] - s_ * G_x[0], X[1] - s_ * G_x[1], X[2] - s_ * G_x[2]))
-                h_n, G_n = self._hx(lo, R, Xn, idx)
+                h_n, G_n = self._hx(lo, R, Xn, zform)
                 ok = h_n < h_x
                 X = _where(ok, Xn, X)
                 G_x = _where(ok, G_n, G_x)
@@ -925,18 +980,77 @@ class _Relaxation:
         g, _ = self._h(V)
         return np.sqrt(g) if self.name == "frobenius" else g
 
-    def _hx(self, lo: Sym2, R: Sym2, X: Sym2, idx: NDArray[np.intp]) -> tuple[Mat, Sym2]:
+    def z_convex(self, Z_hi: Mat) -> NDArray[np.bool_]:
+        """logdet: rows whose interval ``Z ⪯ Z_hi`` keeps ``f`` convex in ``Z``.
+
+        In ``Z`` (``W = Z⁻¹``, ``det W = 1 / det Z``) the objective is ``c1 + log det(I + V1 Z⁻¹)
+        + ½ log det Z = c1 + log det(Z + V1) - ½ log det Z = c1' + Σ φ(y_i)``, ``φ(y) = log(1 + y)
+        - ½ log y`` (the same ``φ``), ``y_i`` the eigenvalues of ``Y = V1^-½ Z V1^-½`` (affine in
+        ``Z``).  ``φ`` is convex on ``(0, 1 + sqrt 2]``, so ``f`` is convex (a spectral function
+        of a convex ``φ``) on ``{Z : 0 ≺ Z, λmax(Y) <= 1 + sqrt 2}``, which holds on the whole
+        interval when it holds at ``Z_hi`` (``Z ⪯ Z_hi`` gives ``Y(Z) ⪯ Y(Z_hi)``).
+        ``λmax(V1⁻¹ Z_hi)`` is computed in closed form; a relative margin ``1e-6 + 4 ρ``
+        (``ρ = n err / λmin``: the computed ``Z_hi`` against the completions') covers its
+        rounding.  (Where neither this nor ``x_max(P(I)) <= 1 + sqrt 2`` holds, nothing is
+        refined.)"""
+        y_max, pd = self.y_max(Z_hi)
+        with np.errstate(all="ignore"):
+            rho = self.prob.n * self.prob.ctx.err / self.prob.ctx.lam_min
+            ok = y_max * (1.0 + 1e-6 + 4.0 * rho) < LOGDET_CONVEX
+        return np.asarray(ok & np.isfinite(y_max) & pd, dtype=bool)
+
+    def y_max(self, Z: Mat) -> tuple[Mat, NDArray[np.bool_]]:
+        """logdet: ``λmax(V1⁻¹ Z)`` of the rows ``Z`` ``(m, 4)`` (closed form, the larger root of
+        ``det(Z - y V1) = 0``; its rounding is at most a relative ``1e-7``: ``sqrt`` of the
+        discriminant's), and whether ``det Z > 0``."""
+        a, b, c = _s2(Z)
+        v0, v1, v2 = self.V1
+        with np.errstate(all="ignore"):
+            qa = v0 * v2 - v1 * v1
+            qb = -(a * v2 + c * v0 - 2.0 * b * v1)
+            qc = a * c - b * b
+            disc = np.sqrt(np.maximum(qb * qb - 4.0 * qa * qc, 0.0))
+            y = (-qb + disc) / (2.0 * qa)
+        return np.asarray(y, dtype=np.float64), np.asarray(qc > 0.0, dtype=bool)
+
+    def _hx(self, lo: Sym2, R: Sym2, X: Sym2, zform: bool) -> tuple[Mat, Sym2]:
         """``h`` and its ``X``-gradient ``R ∇h R`` at ``V = V_lo + R X R``."""
         RXR = _sandwich(R, X)
         V = (lo[0] + RXR[0], lo[1] + RXR[1], lo[2] + RXR[2])
-        g, G = self._h(V)
+        g, G = self._h(V, zform)
         return g, _sandwich(R, G)
 
     def _goal(self, tau: float) -> float:
-        """The threshold in ``h``'s units (frobenius: squared)."""
+        """The threshold in ``h``'s units: the least ``h``-bound whose :meth:`_final` exceeds
+        ``tau`` (the model errors added back; frobenius: squared), slightly raised.  Only the
+        iterations' stopping rule uses it: a node stops once its bound, *after* the deflation of
+        :meth:`_final`, would prune it.  (Stopping at ``tau`` itself left every such bound
+        deflated back below ``tau``, so only bounds far above it could prune.)"""
+        if not math.isfinite(tau):
+            return tau
+        a, c = self._final_affine()
+        if a <= 0.0:
+            return math.inf
+        t = (tau + c) / a
         if self.name == "frobenius":
-            return tau * tau if tau >= 0.0 else -math.inf
-        return tau
+            return t * t * (1.0 + 1e-12) if t >= 0.0 else -math.inf
+        return t + 1e-12 * abs(t)
+
+    def _final_affine(self) -> tuple[float, float]:
+        """``(a, c)`` with :meth:`_final`'s ``v = a x - c``, ``x`` the ``h``-bound (frobenius:
+        its square root)."""
+        prob, ctx, n = self.prob, self.prob.ctx, self.prob.n
+        rel = ROUND * n * EPS
+        if self.name == "frobenius":
+            return 1.0 - rel, 3.0 * n * ctx.err + rel * ctx.scale
+        rho = n * ctx.err / ctx.lam_min
+        if self.name == "kl":
+            tr_inv = self.kappa_D / prob.dc.trace
+            mag = tr_inv * ctx.lam_max + prob.dc.trace / ctx.lam_min + 2.0 * n
+            kap = ROUND * n * n * n * EPS * (ctx.kappa + self.kappa_D)
+            return 1.0 - rel - 3.0 * rho, 3.0 * rho * n + kap * mag
+        kap = ROUND * n * n * n * EPS * (ctx.kappa + 1.0)
+        return 1.0 - rel, 2.0 * n * rho + kap * (self.mag + abs(self.c1))
 
     def _deflate(self, lb: Mat, h: Mat, G: Sym2) -> Mat:
         """``lb`` less the rounding of its terms (relative ``rel`` of ``|h|`` and of the
@@ -945,23 +1059,338 @@ class _Relaxation:
         return np.asarray(lb - self.rel * (np.abs(h) + 4.0 * gn + 1.0), dtype=np.float64)
 
     def _final(self, lb: Mat) -> Mat:
-        """From ``h``'s units to the metric's, less the model errors (the interval bounds')."""
-        prob, ctx, n = self.prob, self.prob.ctx, self.prob.n
-        rel = ROUND * n * EPS
-        if self.name == "frobenius":
-            v = np.sqrt(np.maximum(lb, 0.0))
-            v = v * (1.0 - rel) - (3.0 * n * ctx.err + rel * ctx.scale)
-        elif self.name == "kl":
-            rho = n * ctx.err / ctx.lam_min
-            tr_inv = self.kappa_D / prob.dc.trace
-            mag = tr_inv * ctx.lam_max + prob.dc.trace / ctx.lam_min + 2.0 * n
-            kap = ROUND * n * n * n * EPS * (ctx.kappa + self.kappa_D)
-            v = lb * (1.0 - rel) - (3.0 * rho * (lb + n) + kap * mag)
-        else:
-            rho = n * ctx.err / ctx.lam_min
-            kap = ROUND * n * n * n * EPS * (ctx.kappa + 1.0)
-            v = lb * (1.0 - rel) - (2.0 * n * rho + kap * (self.mag + abs(self.c1)))
+        """From ``h``'s units to the metric's, less the model errors (the interval bounds'):
+        frobenius ``a sqrt(max(lb, 0)) - c``, kl and logdet ``a lb - c`` (:meth:`_final_affine`;
+        kl: ``lb (1 - rel) - (3 ρ (lb + n) + κ' mag)``, logdet ``lb (1 - rel) - (2 n ρ + κ'
+        (mag + |c1|))``, ``ρ = n err / λmin``)."""
+        a, c = self._final_affine()
+        x = np.sqrt(np.maximum(lb, 0.0)) if self.name == "frobenius" else lb
+        v = a * x - c
         return np.where(np.isnan(v), -np.inf, v)
+
+
+class _Leaves:
+    """The last ``u`` levels of a kl, frobenius or logdet tree at once: a table of completions
+    and a ball.
+
+    kl in ``Z`` (:class:`_Relaxation`) is ``h(Z) = ¼ (c0 + <Q, Z⁻¹> + <P_d[s, s], Z>)``, convex
+    on ``Z ≻ 0``, and on the paper-like problems its minimum over subsets is within about
+    ``1e-8`` of its continuous minimum: every node whose interval contains the continuous
+    minimiser survives every continuous bound, and the tree enumerates the completions near it
+    one level at a time.  Instead, below depth ``d0 = m - u`` the completions of a node ``I`` are
+    ``Z(I) + T_t``, ``T_t`` the sums of the subsets ``t`` of the last ``u`` sensors (a table of
+    ``2^u`` rows built once), and those that can still be ``<= τ`` lie in a ball:
+
+    **Strong convexity.**  ``∇²h(Z)[H, H] = ½ tr(Q Z⁻¹ H Z⁻¹ H Z⁻¹) = ½ tr(Q^½ B Bᵀ Q^½)``,
+    ``B = Z⁻¹ H Z^-½``, ``>= ½ λmin(Q) ||B||_F² >= ½ λmin(Q) λmax(Z)⁻³ ||H||_F²``.  So on any
+    convex set where ``λmax(Z) <= Λ``, ``h`` is ``μ = ½ λmin(Q) Λ⁻³``-strongly convex, and for
+    ``Z0`` there (value ``h0``, gradient ``g0``)::
+
+        h(Z) >= h0 + <g0, Z - Z0> + (μ/2) ||Z - Z0||²,   so   h(Z) <= τ'  ⟹
+        ||Z - c|| <= r,  c = Z0 - g0/μ,  r² = 2 (τ' - h0)/μ + ||g0||²/μ²
+
+    (Frobenius norm on symmetric ``2 x 2``: coordinates ``(a, √2 b, c)``).  ``Z0`` is the
+    continuous minimiser (``Z P_d[s, s] Z = Q``, solved in closed form; only ``g0`` depends on
+    how well); ``Λ`` first ``max(λmax(Z_all), λmax(Z0))`` (every completion is ``⪯ Z_all``, and
+    ``λmax`` is convex, so this bounds it on the segments from ``Z0`` too), then, twice,
+    ``max(λmax(Z0), λmax(c) + r)`` of the previous ball: every completion with ``h <= τ'`` is
+    in that ball, where ``λmax <= λmax(c) + r`` (Weyl), and again convexity covers the segments
+    from ``Z0``.  The computed gradient's error ``g_err`` (its two terms cancel at ``Z0``) moves
+    the center by at most ``g_err / μ``: added to ``r``.
+
+    **frobenius** (:class:`_Relaxation`: ``h(W) = ||M0 + K W Kᵀ||_F²``, the square of the
+    metric, ``W = Z⁻¹``) is a quadratic in ``W`` with ``∇²h[H, H] = 2 ||K H Kᵀ||_F² >= 2
+    λmin(KᵀK)² ||H||_F²`` everywhere, so the same inequality, with ``Z0`` replaced by the
+    unconstrained minimiser ``W0 = -(KᵀK)⁻¹ Kᵀ M0 K (KᵀK)⁻¹`` and ``μ = 2 λmin(KᵀK)²``, puts
+    every ``W`` with ``h(W) <= τ'`` in a ball ``||W - c|| <= r``.  For ``c ≻ 0`` and a
+    completion ``Z = W⁻¹ ⪯ Z_all``: ``||Z - c⁻¹||_F = ||W⁻¹ (c - W) c⁻¹||_F <= λmax(Z) r /
+    λmin(c)``, with ``λmax(Z) <= Λ``, first ``λmax(Z_all)``, then (twice) ``λmax(c⁻¹)`` plus the
+    previous radius: the ball in ``Z`` that is queried.
+
+    **logdet** in ``Z`` (:meth:`_Relaxation.z_convex`: ``h = c1 + log det(Z + V1) - ½ log det
+    Z``): ``∇²h[H, H] = ½ ||M||_F² - ||A M Aᵀ||_F²`` with ``M = Z^-½ H Z^-½``, ``A = (Z +
+    V1)^-½ Z^½``, ``||A||_2² = s = y_max / (1 + y_max)`` (``y`` the eigenvalues of ``V1⁻¹ Z``), so
+    ``∇²h >= (½ - s²) / λmax(Z)²``: strongly convex on the convex set ``{λmax(Z) <= Λ,
+    y_max(Z) <= Y}`` when ``Y < 1 + sqrt 2``.  Every completion is in it with ``Λ =
+    max(λmax(Z_all), λmax(V1))``, ``Y = max(1, y_max(Z_all))`` (both monotone in the Loewner
+    order and convex), and so is ``Z0 = V1``, the stationary point (``(Z + V1)⁻¹ = ½ Z⁻¹``,
+    ``y = 1``); then the same ball, refined twice (``λmax <= λmax(c) + r``, ``y_max <=
+    y_max(c) + r / λmin(V1)`` on it).  No ball (the tree goes on) when ``y_max(Z_all) >= 1 +
+    sqrt 2``.
+
+    **Threshold.**  ``τ' = (goal(τ) + rel) / (1 - rel)`` (:meth:`_Relaxation._goal`, the
+    relaxation's rounding ``rel``): a completion whose exact ``h`` exceeds it has a relaxation
+    bound (the degenerate interval ``[Z, Z]``: ``h`` deflated) above ``τ``, so its computed value
+    is above ``τ`` and it is pruned exactly as the tree would prune it; ``h0``, ``g0``, ``r`` and
+    the projections below carry a relative ``1e-6`` of slack for their own rounding.  The
+    completions inside are recorded as candidates with that degenerate relaxation bound (``<=``
+    their computed value); ``t = 0`` (``I`` itself) was recorded when its last sensor was
+    included.  Pruned completions are above ``τ`` (the certified bound takes ``τ``).
+
+    The table's points ``(a, √2 b, c)`` are in a k-d tree (``scipy.spatial.cKDTree``); a node's
+    query is the ball around ``c - Z(I)`` (radius widened by a relative ``1e-6`` of the
+    coordinates for their rounding), then the budget (``|t| <= K - |I|``).
+    """
+
+    METRICS = ("frobenius", "kl", "logdet")
+
+    def __init__(self, prob: _Problem, d0: int) -> None:
+        relax = prob.relax
+        assert relax is not None and relax.name in self.METRICS
+        self.prob, self.relax, self.d0 = prob, relax, d0
+        u = prob.m - d0
+        self.u = u
+        T = np.zeros((1, 4))
+        cnt = np.zeros(1, dtype=np.int64)
+        for j in range(d0, prob.m):
+            T = np.concatenate((T, T + prob.S[j]))
+            cnt = np.concatenate((cnt, cnt + 1))
+        X = np.stack((T[:, 0], math.sqrt(2.0) * T[:, 1], T[:, 3]), axis=1)
+        from scipy.spatial import cKDTree  # here only: the start-up of covnet.core stays light
+
+        self.tree = cKDTree(X, leafsize=32, balanced_tree=False)
+        self.Xmax = float(np.abs(X).max())
+        self.T, self.cnt = T, cnt
+        self.lam_all = _lmax(prob.base + prob.suffix[0])
+        if relax.name == "frobenius":
+            self._frobenius()
+            return
+        if relax.name == "logdet":
+            self._logdet()
+            return
+        # the continuous minimiser: Z Dss Z = Q  ⟺  Z = Dss^-½ (Dss^½ Q Dss^½)^½ Dss^-½
+        Dh = _sqrt2(*relax.Dss)
+        Dhi = _inv2(*Dh)
+        M = _sqrt2(*_sandwich(Dh, relax.Q))
+        Z0 = _sandwich(Dhi, M)
+        self.Z0 = np.array([Z0[0][0], Z0[1][0], Z0[1][0], Z0[2][0]])
+        with np.errstate(all="ignore"):
+            h0, g0 = relax._h(_s2(self.Z0[None]))
+        self.h0 = float(h0[0]) - relax.rel * (abs(float(h0[0])) + 1.0)
+        g = np.array([g0[0][0], g0[1][0], g0[2][0]])
+        self.g0 = g
+        self.gn = float(np.sqrt(g[0] ** 2 + 2.0 * g[1] ** 2 + g[2] ** 2)) * (1.0 + 1e-6)
+        # the computed gradient ¼ (Dss - Z0⁻¹ Q Z0⁻¹) (two terms that cancel at Z0) is within a
+        # relative rel of their sizes
+        Zi = _inv2(*_s2(self.Z0[None]))
+        QZ = _sandwich(Zi, relax.Q)
+        size = float(np.sqrt(_dot2(relax.Dss, relax.Dss))[0] + np.sqrt(_dot2(QZ, QZ))[0])
+        self.g_err = 0.25 * size * (relax.rel + 1e-12)
+        self.lmin_Q = float(_eig2(*relax.Q)[1][0])
+        self.lmax0 = max(self.lam_all, _lmax(self.Z0))
+
+    def _frobenius(self) -> None:
+        """The constants of the frobenius ball (class docstring)."""
+        relax, prob = self.relax, self.prob
+        n = prob.n
+        K = prob.Kmat
+        KtK = K.T @ K
+        KtK = 0.5 * (KtK + KtK.T)
+        A = np.linalg.inv(KtK)
+        M0 = relax.M0.reshape(n, n)
+        W0 = -(A @ (K.T @ M0 @ K) @ A)
+        W0 = 0.5 * (W0 + W0.T)
+        self.W0 = W0.reshape(4)
+        with np.errstate(all="ignore"):
+            h0, g0 = relax._h(_s2(self.W0[None]))
+        self.h0 = float(h0[0]) - relax.rel * (abs(float(h0[0])) + 1.0)
+        g = np.array([g0[0][0], g0[1][0], g0[2][0]])
+        self.g0 = g
+        self.gn = float(np.sqrt(g[0] ** 2 + 2.0 * g[1] ** 2 + g[2] ** 2)) * (1.0 + 1e-6)
+        # the gradient 2 Kᵀ (M0 + K W0 Kᵀ) K: two terms that cancel at W0
+        size = 2.0 * (float(np.linalg.norm(K.T @ M0 @ K)) + float(np.linalg.norm(KtK @ W0 @ KtK)))
+        self.g_err = size * (relax.rel + 1e-12)
+        self.mu = 2.0 * float(np.linalg.eigvalsh(KtK)[0]) ** 2 * (1.0 - 1e-6)
+
+    def ball(self, tau: float) -> tuple[NDArray[np.float64], float] | None:
+        if self.relax.name == "frobenius":
+            return self._frobenius_ball(tau)
+        if self.relax.name == "logdet":
+            return self._logdet_ball(tau)
+        return self._kl_ball(tau)
+
+    def _logdet(self) -> None:
+        """The constants of the logdet ball (class docstring)."""
+        relax, prob = self.relax, self.prob
+        V1 = np.array([relax.V1[0][0], relax.V1[1][0], relax.V1[1][0], relax.V1[2][0]])
+        self.Z0 = V1  # the stationary point: (Z + V1)⁻¹ = ½ Z⁻¹
+        with np.errstate(all="ignore"):
+            h0, g0 = relax._h(_s2(V1[None]), zform=True)
+        self.h0 = float(h0[0]) - relax.rel * (abs(float(h0[0])) + 1.0)
+        g = np.array([g0[0][0], g0[1][0], g0[2][0]])
+        self.g0 = g
+        self.gn = float(np.sqrt(g[0] ** 2 + 2.0 * g[1] ** 2 + g[2] ** 2)) * (1.0 + 1e-6)
+        Vi = _inv2(*_s2(V1[None]))
+        size = float(np.sqrt(_dot2(Vi, Vi))[0])  # (2 V1)⁻¹ - ½ V1⁻¹: two terms of this size
+        self.g_err = size * (relax.rel + 1e-12)
+        self.lam_v = _lmax(V1)
+        a, b, c = float(V1[0]), float(V1[1]), float(V1[3])
+        self.lmin_v = (0.5 * (a + c) - math.hypot(0.5 * (a - c), b)) * (1.0 - 1e-9)
+        Z_all = prob.base + prob.suffix[0]
+        y_all, pd = relax.y_max(Z_all[None])
+        rho = prob.n * prob.ctx.err / prob.ctx.lam_min
+        self.y_all = max(1.0, float(y_all[0]) * (1.0 + 1e-6 + 4.0 * rho))
+        if not (bool(pd[0]) and math.isfinite(self.y_all)):
+            self.y_all = math.inf
+
+    def _logdet_ball(self, tau: float) -> tuple[NDArray[np.float64], float] | None:
+        """The ball of :meth:`ball` for logdet in ``Z`` (class docstring)."""
+        relax = self.relax
+        if not math.isfinite(tau) or not self.lmin_v > 0.0:
+            return None
+        tp = (relax._goal(tau) + relax.rel) / (1.0 - relax.rel)
+        if not math.isfinite(tp):
+            return None
+        lam = max(self.lam_all, self.lam_v)
+        Y = self.y_all
+        best: tuple[NDArray[np.float64], float] | None = None
+        for _ in range(3):
+            if not Y < LOGDET_CONVEX:
+                return best
+            s_ = Y / (1.0 + Y)
+            mu = (0.5 - s_ * s_) / (lam * lam) * (1.0 - 1e-6)
+            if not mu > 0.0:
+                return best
+            gn = self.gn + self.g_err
+            r2 = 2.0 * (tp - self.h0) / mu + (gn / mu) ** 2
+            if r2 < 0.0:
+                return (np.zeros(3), -1.0)
+            r = math.sqrt(r2) * (1.0 + 1e-6) + self.g_err / mu
+            c = self.Z0 - np.array([self.g0[0], self.g0[1], self.g0[1], self.g0[2]]) / mu
+            cx = np.array([c[0], math.sqrt(2.0) * c[1], c[3]])
+            if best is None or r < best[1]:
+                best = (cx, r)
+            # on the ball: λmax <= λmax(c) + r, y_max <= y_max(c) + r / λmin(V1)
+            yc, _ = relax.y_max(c[None])
+            new_lam = max(self.lam_v, _lmax(c) + r * (1.0 + 1e-6))
+            new_y = max(1.0, (float(yc[0]) + r / self.lmin_v) * (1.0 + 1e-6))
+            if not (new_lam < lam or new_y < Y):
+                break
+            lam, Y = min(lam, new_lam), min(Y, new_y)
+        return best
+
+    def _frobenius_ball(self, tau: float) -> tuple[NDArray[np.float64], float] | None:
+        """The ball in ``Z`` of :meth:`ball` for frobenius (class docstring)."""
+        relax = self.relax
+        if not math.isfinite(tau) or not self.mu > 0.0:
+            return None
+        tp = (relax._goal(tau) + relax.rel) / (1.0 - relax.rel)
+        if not math.isfinite(tp):
+            return None
+        mu = self.mu
+        gn = self.gn + self.g_err
+        r2 = 2.0 * (tp - self.h0) / mu + (gn / mu) ** 2
+        if r2 < 0.0:
+            return (np.zeros(3), -1.0)
+        r = math.sqrt(r2) * (1.0 + 1e-6) + self.g_err / mu
+        c = self.W0 - np.array([self.g0[0], self.g0[1], self.g0[1], self.g0[2]]) / mu
+        # λmin(c) from below (the 2 x 2 closed form, rounded down a little)
+        a, b, d = float(c[0]), float(c[1]), float(c[3])
+        lmin_c = (0.5 * (a + d) - math.hypot(0.5 * (a - d), b)) * (1.0 - 1e-9)
+        lmin_c -= 1e-12 * (abs(a) + abs(b) + abs(d))
+        if not lmin_c > 0.0:
+            return None
+        ci = _inv2(np.array([a]), np.array([b]), np.array([d]))
+        zc = np.array([float(ci[0][0]), float(ci[1][0]), float(ci[1][0]), float(ci[2][0])])
+        lam_ci = _lmax(zc)
+        lam = self.lam_all
+        rz = math.inf
+        for _ in range(3):
+            rz = min(rz, lam * r / lmin_c * (1.0 + 1e-6))
+            new = lam_ci + rz
+            if not new < lam:
+                break
+            lam = new
+        cx = np.array([zc[0], math.sqrt(2.0) * zc[1], zc[3]])
+        # the computed c⁻¹ is within a relative 1e-9 of the exact one (slack in the radius)
+        return cx, rz + 1e-9 * float(np.abs(cx).max())
+
+    def _kl_ball(self, tau: float) -> tuple[NDArray[np.float64], float] | None:
+        """Center ``(a, √2 b, c)`` and radius of the ball holding every completion ``Z`` with
+        ``h(Z) <= τ'`` (radius ``-1``: none can; ``None``: no ball, e.g. ``τ = inf`` or
+        ``λmin(Q) <= 0`` from rounding: then the tree goes on below ``d0``)."""
+        relax = self.relax
+        if not math.isfinite(tau) or not self.lmin_Q > 0.0:
+            return None
+        goal = relax._goal(tau)
+        tp = (goal + relax.rel) / (1.0 - relax.rel)
+        if not math.isfinite(tp):
+            return None
+        lam = self.lmax0
+        best: tuple[NDArray[np.float64], float] | None = None
+        for _ in range(3):
+            mu = 0.5 * self.lmin_Q / lam**3 * (1.0 - 1e-6)
+            gap = tp - self.h0
+            gn = self.gn + self.g_err
+            r2 = 2.0 * gap / mu + (gn / mu) ** 2
+            if r2 < 0.0:
+                return (np.zeros(3), -1.0)  # nothing can reach τ'
+            # the computed center is within g_err / μ of the exact one
+            r = math.sqrt(r2) * (1.0 + 1e-6) + self.g_err / mu
+            c = self.Z0 - np.array([self.g0[0], self.g0[1], self.g0[1], self.g0[2]]) / mu
+            cx = np.array([c[0], math.sqrt(2.0) * c[1], c[3]])
+            if best is None or r < best[1]:
+                best = (cx, r)
+            # every completion with h <= τ' is in this ball: λmax <= λmax(c) + r there, and
+            # on the segments from Z0 to it (λmax is convex)
+            new = max(_lmax(self.Z0), _lmax(c) + r * (1.0 + 1e-6))
+            if not new < lam:
+                break
+            lam = new
+        return best
+
+    def leaves(
+        self, Z: Mat, k: NDArray[np.int64], inc: NDArray[np.uint8], tau: float
+    ) -> tuple[NDArray[np.uint8], Mat, int]:
+        """The completions of the nodes (``Z`` ``(c, 4)``, ``k``, packed ``inc``) inside the
+        ball, as packed rows with their bounds; and how many table rows were looked at."""
+        prob = self.prob
+        got = self.ball(tau)
+        empty = (np.zeros((0, inc.shape[1]), dtype=np.uint8), np.zeros(0), 0)
+        if got is None:
+            return empty
+        cx, r = got
+        if r < 0.0:
+            return empty
+        Zx = np.stack((Z[:, 0], math.sqrt(2.0) * Z[:, 1], Z[:, 3]), axis=1)
+        q = cx[None] - Zx  # the ball's center relative to each node
+        # slack for the rounding of q and of the table's coordinates
+        rad = r * (1.0 + 1e-6) + 1e-6 * (np.sqrt((q * q).sum(axis=1)) + self.Xmax)
+        hits = self.tree.query_ball_point(q, rad, eps=0.0, return_sorted=False)
+        n = np.array([len(h) for h in hits], dtype=np.intp)
+        tot = int(n.sum())
+        if tot == 0:
+            return empty
+        node = np.repeat(np.arange(Z.shape[0]), n)
+        t = np.concatenate([np.asarray(h, dtype=np.intp) for h in hits])
+        ok = (t != 0) & (self.cnt[t] <= prob.K - k[node])
+        return self._rows(Z, inc, node[ok], t[ok], tau, tot)
+
+    def _rows(
+        self,
+        Z: Mat,
+        inc: NDArray[np.uint8],
+        node: NDArray[np.intp],
+        t: NDArray[np.intp],
+        tau: float,
+        looked: int,
+    ) -> tuple[NDArray[np.uint8], Mat, int]:
+        if node.size == 0:
+            return np.zeros((0, inc.shape[1]), dtype=np.uint8), np.zeros(0), looked
+        Zt = Z[node] + self.T[t]
+        est = self.relax.bound(Zt, Zt, tau)
+        bits = ((t[:, None] >> np.arange(self.u)) & 1).astype(bool)
+        rows = self.prob.unpack(inc[node])
+        rows[:, self.d0 :] |= bits
+        packed = np.packbits(rows, axis=1, bitorder="little")
+        return packed, est, looked
+
+
+def _lmax(Z: Mat) -> float:
+    """The largest eigenvalue of one row-major ``2 x 2`` ``Z``, rounded up a little."""
+    a, b, c = float(Z[0]), float(0.5 * (Z[1] + Z[2])), float(Z[3])
+    h, q = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
+    return (h + q) * (1.0 + 1e-9) + 1e-300
 
 
 def _take(x: Sym2, rows: NDArray[np.intp]) -> Sym2:
@@ -1078,6 +1507,13 @@ class _Search:
         self.keys: list[float] = []
         self.n_open = 0
         self.n_pops = 0
+        # the table's depth (built when a node first reaches it), -1: none
+        self.leaves: _Leaves | None = None
+        self.d0 = -1
+        if rel_gap == 0.0 and prob.relax is not None and prob.relax.name in _Leaves.METRICS:
+            u = min(LEAF_LEVELS, prob.m - min(LEAF_TOP, prob.m // 2))
+            if u > 0:
+                self.d0 = prob.m - u
         q = 8 * prob.n + prob.n * prob.n  # the widest summary's entries, generously
         per_node = 8 * (prob.r * prob.r + 2 + 2 * q) + (prob.m + 7) // 8
         self.open_cap = max(CHUNK, OPEN_BYTES // per_node)
@@ -1194,6 +1630,8 @@ class _Search:
         if ch.lb.size == 0:
             return
         d = ch.depth
+        if d == self.d0 and self.leaves_expand(ch):
+            return
         last = d + 1 == prob.m
         relax = prob.m - (d + 1) >= RELAX_MIN_REST
         out: list[_Chunk] = []
@@ -1241,6 +1679,33 @@ class _Search:
                 )
         if out:
             self.push(_concat(out))
+
+    def leaves_expand(self, ch: _Chunk) -> bool:
+        """The whole subtrees of ``ch`` (depth ``d0``) from the table (:class:`_Leaves`):
+        their completions inside the ball recorded as candidates; ``False``: no ball, expand
+        as usual."""
+        if self.leaves is None:
+            try:
+                self.leaves = _Leaves(self.prob, self.d0)
+            except (FloatingPointError, ValueError, np.linalg.LinAlgError):
+                self.d0 = -1
+                return False
+        if self.leaves.ball(self.tau) is None:
+            return False
+        # the lowest bounds first, a few nodes at a time: the threshold falls in between
+        order = np.argsort(ch.lb, kind="stable")
+        for lo in range(0, order.size, LEAF_GROUP):
+            sub = ch.take(order[lo : lo + LEAF_GROUP])
+            sub = sub.take(self.prune(sub.lb))
+            if sub.lb.size == 0:
+                continue
+            tau = self.tau
+            inc, est, looked = self.leaves.leaves(sub.Z, sub.k, sub.inc, tau)
+            self.n_nodes += looked
+            # every completion left out is above tau (its bound too)
+            self.L_pruned = min(self.L_pruned, tau)
+            self.record(inc, est)
+        return True
 
     def limited(self) -> int:
         if self.node_limit is not None and self.n_nodes >= self.node_limit:

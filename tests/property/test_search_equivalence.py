@@ -27,20 +27,11 @@ from covnet.core.metrics import METRICS
 from covnet.core.motion import cv_transition, dwna_process_noise
 from covnet.core.search import allocate_bnb, allocate_greedy
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
+from covnet.covariance_control.bench_allocation import PAPER_TABLE
 
 _elems = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
 
-#: the paper's 8 sensors (sx [m], sy [m], rho)
-PAPER = (
-    (21.1, 8.2, 0.82),
-    (20.3, 9.1, -0.74),
-    (8.22, 20.3, 0.78),
-    (9.23, 20.9, -0.61),
-    (31.6, 18.1, -0.65),
-    (19.1, 30.1, 0.74),
-    (42.1, 43.1, 0.87),
-    (41.4, 43.7, -0.94),
-)
+PAPER = PAPER_TABLE  # the paper's 8 sensors (sx [m], sy [m], rho)
 
 
 def paper_gains(N):

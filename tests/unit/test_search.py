@@ -21,17 +21,9 @@ from covnet.core.metrics import METRICS
 from covnet.core.motion import cv_transition, dwna_process_noise
 from covnet.core.search import STATUS, SearchResult, allocate_bnb, allocate_greedy
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
+from covnet.covariance_control.bench_allocation import PAPER_TABLE
 
-PAPER = (
-    (21.1, 8.2, 0.82),
-    (20.3, 9.1, -0.74),
-    (8.22, 20.3, 0.78),
-    (9.23, 20.9, -0.61),
-    (31.6, 18.1, -0.65),
-    (19.1, 30.1, 0.74),
-    (42.1, 43.1, 0.87),
-    (41.4, 43.7, -0.94),
-)
+PAPER = PAPER_TABLE  # the paper's 8 sensors (sx [m], sy [m], rho)
 D1 = np.diag([25.0, 1.4, 25.0, 1.4])
 D2 = np.diag([7.0, 0.8, 7.0, 0.8])
 
