@@ -30,7 +30,6 @@ from covnet.config import (
     scheduler_problem,
 )
 from covnet.errors import UpError, UsageError
-from covnet.messages import RESERVED_IDS, new_run_id, run_keyexpr
 from covnet.rundir import CONFIG, RUN_INFO, prepare_out, read_json, record_end
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -186,6 +185,8 @@ def cmd_up(args: argparse.Namespace) -> int:
                 "--foxglove: the live view is served by the recorder, which --nodes does not "
                 "start here"
             )
+    from covnet.messages import new_run_id, run_keyexpr  # start-up: the network commands'
+
     if args.run is not None:
         try:
             run_keyexpr(args.run)  # validates like every key part
@@ -222,6 +223,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 def cmd_check(args: argparse.Namespace) -> int:
     import yaml  # the check's printout only (start-up time of the other commands)
 
+    from covnet.messages import RESERVED_IDS  # start-up: the check's own
     from covnet.security import preflight
 
     kind, cfg = kinds.load(args.config)

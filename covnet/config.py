@@ -39,8 +39,6 @@ from pydantic import (
     model_validator,
 )
 
-from covnet.messages import RESERVED_IDS
-
 __all__ = [
     "Bool",
     "ConfigError",
@@ -370,6 +368,9 @@ def security_problems(net: NetworkSpec, sensor_ids: Sequence[str]) -> list[tuple
             )
         )
     if sec.authenticated:
+        # start-up: the message module (msgpack, the schemas) only for a secured network
+        from covnet.messages import RESERVED_IDS
+
         for i, sid in enumerate(sensor_ids):
             if sid in RESERVED_IDS:
                 problems.append(

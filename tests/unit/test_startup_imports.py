@@ -52,8 +52,10 @@ def test_covnet_run_does_not_import_scipy_linalg(tmp_path):
     assert "scipy.linalg._flapack" in mods
     assert "scipy.linalg" not in mods
     # nor what only other commands or modes use: the batch machinery (mc, compare, sweep),
-    # the slow-link simulation, numpy.ma (numpy.median's import)
+    # the slow-link simulation, numpy.ma (numpy.median's import), the message schemas
     for mod in (
+        "covnet.messages",
+        "msgpack",
         "covnet.batch",
         "covnet.trials",
         "multiprocessing",
