@@ -27,6 +27,7 @@ from __future__ import annotations
 import atexit
 import io
 import os
+import pickle
 import runpy
 import signal
 import subprocess
@@ -36,11 +37,14 @@ import time
 import traceback
 import warnings
 import weakref
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import IO, NoReturn
+from typing import IO, Any, NoReturn, TypeVar
 
-__all__ = ["ForkedProcess", "fork_module", "forkable"]
+__all__ = ["ForkedProcess", "fork_module", "forkable", "map_in_forks"]
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 def forkable() -> bool:
@@ -63,6 +67,103 @@ def forkable() -> bool:
     except OSError:
         return False
     return all(n == me for n in names)
+
+
+def cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def map_in_forks(fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
+    """``[fn(x) for x in items]``, the items computed at the same time: every item but the last
+    in a fork of this process, the last here, when there is more than one item, more than one
+    core and :func:`forkable`; otherwise one after the other here.  ``fn`` must be a pure
+    function of its item and of what this process holds (so a fork computes what this process
+    would: the same bits), and its result picklable.
+
+    A child sends its pickled result (or its exception) back through a pipe and leaves with
+    ``os._exit`` (nothing of the parent's exit work runs in it).  An exception in a child is
+    raised here (the child's traceback in its message when the exception cannot be pickled).
+    Interrupted (Ctrl-C, SIGTERM) or failing, the children still running are killed and reaped
+    before the exception goes on: none is left behind."""
+    if len(items) < 2 or cores() < 2 or not forkable():
+        return [fn(x) for x in items]
+    _flush()  # nothing buffered before the fork is written twice
+    children: list[tuple[int, int]] = []  # (pid, read end)
+    try:
+        for x in items[:-1]:
+            r, w = os.pipe()
+            pid = os.fork()
+            if pid == 0:  # the child: compute, send, leave
+                for _, earlier in children:
+                    os.close(earlier)
+                os.close(r)
+                _send_result(fn, x, w)
+            os.close(w)
+            children.append((pid, r))
+        last = fn(items[-1])
+        results = []
+        while children:
+            pid, r = children.pop(0)
+            results.append(_receive_result(pid, r))
+    finally:
+        for pid, r in children:  # interrupted or failed: no child left running
+            os.close(r)
+            _kill(pid)
+    return [*results, last]
+
+
+def _kill(pid: int) -> None:
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    os.waitpid(pid, 0)
+
+
+def _send_result(fn: Callable[[T], R], x: T, w: int) -> NoReturn:
+    code = 0
+    try:
+        try:
+            data = pickle.dumps((True, fn(x)), protocol=pickle.HIGHEST_PROTOCOL)
+        except BaseException as exc:  # sent to the parent, raised there
+            code = 1
+            try:
+                data = pickle.dumps((False, exc), protocol=pickle.HIGHEST_PROTOCOL)
+            except Exception:
+                text = "".join(traceback.format_exception(exc))
+                data = pickle.dumps((False, RuntimeError(text)))
+        view = memoryview(data)
+        while view:
+            view = view[os.write(w, view) :]
+    except BaseException:  # the parent is gone (interrupted): nothing to tell
+        code = 1
+    finally:
+        os._exit(code)
+
+
+def _receive_result(pid: int, r: int) -> Any:
+    """The result the child ``pid`` sends through ``r`` (then reaped); the child killed if
+    this is interrupted."""
+    chunks = []
+    try:
+        while chunk := os.read(r, 1 << 20):
+            chunks.append(chunk)
+    except BaseException:
+        _kill(pid)
+        raise
+    finally:
+        os.close(r)
+    os.waitpid(pid, 0)
+    if not chunks:
+        raise RuntimeError(f"a forked worker (pid {pid}) ended without a result")
+    ok, value = pickle.loads(b"".join(chunks))
+    if not ok:
+        raise value
+    return value
 
 
 class ForkedProcess:

@@ -21,8 +21,9 @@ from covnet.covariance_control.config import Scenario, load
 from covnet.covariance_control.decentral_sim import run_mode
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.results import write_run
-from covnet.covariance_control.simulate import shared_trajectory
+from covnet.covariance_control.simulate import MetricRun, shared_trajectory
 from covnet.errors import UsageError
+from covnet.forked import map_in_forks
 from covnet.rundir import (
     SUMMARY,
     load_arrays,
@@ -46,29 +47,34 @@ def run(sc: Scenario, out: Path, *, figures: bool) -> int:
         return run_targets(sc, out, figures=figures)
     model = build_model(sc)
     traj = shared_trajectory(model)
-    runs = {}
-    node_runs = {}
-    latency: dict[str, dict[str, int]] = {}
     slow = not sc.network.latency.is_ideal(sc.sensor_ids)
     if slow and sc.fusion.mode == "peer":
         raise UsageError("network.latency: peer mode has no fusion centre; latency runs need one")
-    for m in sc.allocation.metrics:
+
+    def one(m: str) -> tuple[MetricRun, dict[str, MetricRun] | None, dict[str, int] | None, float]:
+        """Metric ``m``'s run: ``(run, every peer node's run, the link counts, seconds)``."""
         t0 = time.perf_counter()
         if slow:
             from covnet.covariance_control.latency_sim import run_latency  # start-up: slow links
 
-            runs[m], counts = run_latency(sc, m, model)
-            latency[m] = counts.as_dict()
-        else:
-            runs[m], nodes = run_mode(sc, m, model)
-            if nodes is not None:
-                node_runs[m] = nodes
-        r = runs[m]
+            run, counts = run_latency(sc, m, model)
+            return run, None, counts.as_dict(), time.perf_counter() - t0
+        run, nodes = run_mode(sc, m, model)
+        return run, nodes, None, time.perf_counter() - t0
+
+    # the metrics are independent runs of the same model: on the cores at once
+    metrics = list(sc.allocation.metrics)
+    runs = {}
+    node_runs = {}
+    latency: dict[str, dict[str, int]] = {}
+    for m, (r, nodes, counts, seconds) in zip(metrics, map_in_forks(one, metrics), strict=True):
+        runs[m] = r
+        if nodes is not None:
+            node_runs[m] = nodes
+        if counts is not None:
+            latency[m] = counts
         rate = 100.0 * r.enabled.sum() / r.enabled.size
-        print(
-            f"{m:>10}: {sc.scans} scans in {time.perf_counter() - t0:.2f} s, "
-            f"allocation rate {rate:.1f} %"
-        )
+        print(f"{m:>10}: {sc.scans} scans in {seconds:.2f} s, allocation rate {rate:.1f} %")
     summary = write_run(
         out,
         sc,
@@ -97,21 +103,27 @@ def run_targets(sc: Scenario, out: Path, *, figures: bool) -> int:
 
     tm = targets.build(sc)
     slow = not sc.network.latency.is_ideal(sc.sensor_ids)
-    runs = {}
-    latency: dict[str, dict[str, int]] = {}
-    for m in sc.allocation.metrics:
+
+    def one(m: str) -> tuple[Any, dict[str, int] | None, float]:
+        """Metric ``m``'s many-target run: ``(run, the link counts, seconds)``."""
         t0 = time.perf_counter()
         if slow:
             from covnet.covariance_control.latency_sim import run_targets_latency  # start-up
 
-            runs[m], counts = run_targets_latency(sc, m, tm)
-            latency[m] = counts.as_dict()
-        else:
-            runs[m] = simulate_targets(sc, m, tm)
-        r = runs[m]
+            run, counts = run_targets_latency(sc, m, tm)
+            return run, counts.as_dict(), time.perf_counter() - t0
+        return simulate_targets(sc, m, tm), None, time.perf_counter() - t0
+
+    metrics = list(sc.allocation.metrics)
+    runs = {}
+    latency: dict[str, dict[str, int]] = {}
+    for m, (r, counts, seconds) in zip(metrics, map_in_forks(one, metrics), strict=True):
+        runs[m] = r
+        if counts is not None:
+            latency[m] = counts
         print(
             f"{m:>10}: {sc.scans} scans x {len(tm.targets)} targets in "
-            f"{time.perf_counter() - t0:.2f} s, allocation rate {100.0 * r.enabled.mean():.1f} %"
+            f"{seconds:.2f} s, allocation rate {100.0 * r.enabled.mean():.1f} %"
         )
     summary = write_targets_run(
         out,

@@ -21,10 +21,22 @@ import golden  # noqa: E402
 EXPECTED = json.loads((GOLDEN / "hashes.json").read_text())
 
 
+_RUNS: dict[str, tuple[Path, dict[str, str]]] = {}
+"""Each in-process case run once per session: ``case -> (its work directory, its hashes)``
+(the wall-clock test below reads the same run's files)."""
+
+
+def _run_once(case: str, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
+    if case not in _RUNS:
+        work = tmp_path_factory.mktemp(f"golden-{case}")
+        argv, files = golden.CASES[case]
+        _RUNS[case] = (work, golden.run_case(case, argv, files, work))
+    return _RUNS[case]
+
+
 @pytest.mark.parametrize("case", sorted(golden.CASES))
-def test_in_process_results_unchanged(case, tmp_path):
-    argv, files = golden.CASES[case]
-    assert golden.run_case(case, argv, files, tmp_path) == EXPECTED[case]
+def test_in_process_results_unchanged(case, tmp_path_factory):
+    assert _run_once(case, tmp_path_factory)[1] == EXPECTED[case]
 
 
 @pytest.mark.integration
@@ -51,12 +63,11 @@ def _keys(obj: object) -> set[str]:
         ("mc-mobile", "montecarlo.json", "decision_time_median_s"),
     ],
 )
-def test_wall_clock_facts_are_not_in_the_results(case, result, info_key, tmp_path):
+def test_wall_clock_facts_are_not_in_the_results(case, result, info_key, tmp_path_factory):
     """Issue 13, defect 4: a mobile summary (a passive association, a mobile Monte Carlo) holds
     only what the config and seeds determine; the decision (association) times are in
     run.json."""
-    argv, files = golden.CASES[case]
-    golden.run_case(case, argv, files, tmp_path)
-    doc = json.loads((tmp_path / case / result).read_text())
+    work, _ = _run_once(case, tmp_path_factory)
+    doc = json.loads((work / case / result).read_text())
     assert not _keys(doc) & golden.WALL_CLOCK_KEYS, _keys(doc) & golden.WALL_CLOCK_KEYS
-    assert info_key in json.loads((tmp_path / case / "run.json").read_text())
+    assert info_key in json.loads((work / case / "run.json").read_text())

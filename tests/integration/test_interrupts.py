@@ -130,3 +130,34 @@ def test_interrupted_at_random_moments(tmp_path, name):
 def test_interrupted_at_random_moments_many_times(tmp_path, name):
     for seed in range(2, 12):
         _interrupt(tmp_path, name, seed)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("how", HOW)
+def test_covnet_run_interrupted_while_its_metrics_run_in_forks(tmp_path, how):
+    """``covnet run`` computes its metrics in forks of itself: interrupted while they run (a
+    Ctrl-C to the group, SIGINT or SIGTERM to the command alone), it exits 130 at once, writes
+    nothing, prints no traceback, and no fork is left."""
+    out = tmp_path / "run"
+    p = CovnetProcess(["run", str(REPO / "configs" / "large.yaml"), "--out", str(out)])
+    tree = Descendants(p.proc.pid)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(pp == p.proc.pid for pp, _ in _procs().values()):  # the forks are running
+            assert p.proc.poll() is None and time.monotonic() < deadline, p.output()
+            time.sleep(0.02)
+        t0 = time.monotonic()
+        if how == "group-sigint":
+            os.killpg(p.proc.pid, signal.SIGINT)
+        else:
+            p.proc.send_signal(signal.SIGINT if how == "sigint" else signal.SIGTERM)
+        rc = p.wait(timeout=20)
+        took = time.monotonic() - t0
+    finally:
+        p.stop()
+    text = p.output()
+    assert rc == 130, text
+    assert took < 5.0 and "Traceback" not in text, text
+    assert "nothing written" in text, text
+    assert not tree.alive()
+    assert not (out / "summary.json").exists()

@@ -191,3 +191,114 @@ def test_a_fork_has_a_fresh_interpreters_warnings_and_runs_its_main_afresh(tmp_p
     assert (kind, rc) == ("ForkedProcess", "0"), done.stdout
     assert "pkg main ran" in rest
     assert "UserWarning: a warning of the child" in rest
+
+
+MAP_SCRIPT = """
+import json, os, sys, time
+from covnet import forked
+
+def square(x):
+    return x * x, os.getpid()
+
+what = sys.argv[1]
+if what == "map":
+    out = forked.map_in_forks(square, [1, 2, 3, 4])
+    print(json.dumps({"values": [v for v, _ in out], "pids": [p for _, p in out],
+                      "me": os.getpid(), "forkable": forked.forkable()}))
+elif what == "fail":
+    def fail_on_two(x):
+        if x == 2:
+            raise ValueError("item two is bad")
+        return x
+    try:
+        forked.map_in_forks(fail_on_two, [1, 2, 3])
+    except ValueError as exc:
+        print(json.dumps({"raised": str(exc)}))
+elif what == "interrupt":
+    marks = sys.argv[2]
+    def slow_or_interrupted(x):
+        if x == "last":
+            while len(os.listdir(marks)) < 2:  # both children started
+                time.sleep(0.01)
+            raise KeyboardInterrupt
+        open(os.path.join(marks, str(os.getpid())), "w").close()
+        time.sleep(60)
+    try:
+        forked.map_in_forks(slow_or_interrupted, ["a", "b", "last"])
+    except KeyboardInterrupt:
+        pids = [int(p) for p in os.listdir(marks)]
+        alive = []
+        for p in pids:
+            try:
+                os.kill(p, 0)
+                alive.append(p)
+            except ProcessLookupError:
+                pass
+        print(json.dumps({"children": len(pids), "alive": alive}))
+"""
+
+
+def _map_case(tmp_path, *args, env=None):
+    script = tmp_path / "map_case.py"
+    script.write_text(MAP_SCRIPT)
+    out = subprocess.run(
+        [sys.executable, str(script), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, **(env or {})},
+        check=True,
+    )
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_map_in_forks_computes_each_item_in_its_own_fork_in_order(tmp_path):
+    got = _map_case(tmp_path, "map")
+    assert got["values"] == [1, 4, 9, 16]
+    if not got["forkable"] or (os.cpu_count() or 1) < 2:
+        pytest.skip("no fork here (threads, one core)")
+    assert got["pids"][-1] == got["me"]  # the last item here
+    assert len(set(got["pids"][:-1])) == 3 and got["me"] not in got["pids"][:-1]
+
+
+def test_map_in_forks_without_forking_when_told_so(tmp_path):
+    got = _map_case(tmp_path, "map", env={"COVNET_FORK": "0"})
+    assert got["values"] == [1, 4, 9, 16] and set(got["pids"]) == {got["me"]}
+
+
+def test_an_exception_in_a_forked_item_is_raised_in_the_parent(tmp_path):
+    assert _map_case(tmp_path, "fail") == {"raised": "item two is bad"}
+
+
+def test_an_interrupted_map_leaves_no_child_running(tmp_path):
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one core: nothing is forked")
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    got = _map_case(tmp_path, "interrupt", str(marks))
+    assert got == {"children": 2, "alive": []}
+
+
+def test_covnet_run_forks_its_metrics_and_gives_the_one_process_results(tmp_path, paper_path):
+    """Each metric of ``covnet run`` in its own fork: bit for bit what one process computes."""
+    out = {}
+    for fork in ("1", "0"):
+        d = tmp_path / f"run-{fork}"
+        argv = ["run", str(paper_path), "--no-figures", "--out", str(d)]
+        subprocess.run(
+            [sys.executable, "-m", "covnet", *argv],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "COVNET_FORK": fork},
+            check=True,
+        )
+        out[fork] = d
+    import numpy as np
+
+    assert (out["1"] / "summary.json").read_bytes() == (out["0"] / "summary.json").read_bytes()
+    a, b = np.load(out["1"] / "arrays.npz"), np.load(out["0"] / "arrays.npz")
+    assert a.files == b.files
+    for k in a.files:
+        if not k.startswith("decision_s"):  # wall-clock times
+            assert a[k].tobytes() == b[k].tobytes(), k
