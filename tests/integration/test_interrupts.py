@@ -75,6 +75,18 @@ class Descendants:
         return sorted(p for p in self.seen if p in ps and ps[p][1] != "Z")
 
 
+def _stop(p: CovnetProcess, how: str) -> tuple[int, float]:
+    """Interrupt ``p`` the way ``how`` says; its exit status and the seconds it took."""
+    t0 = time.monotonic()
+    if p.proc.poll() is None:
+        if how == "group-sigint":
+            os.killpg(p.proc.pid, signal.SIGINT)
+        else:
+            p.proc.send_signal(signal.SIGINT if how == "sigint" else signal.SIGTERM)
+    rc = p.wait(timeout=20)
+    return rc, time.monotonic() - t0
+
+
 def _interrupt(tmp_path: Path, name: str, seed: int) -> None:
     argv, marker, (lo, hi) = COMMANDS[name]
     rng = random.Random(f"{name}-{seed}")
@@ -86,14 +98,7 @@ def _interrupt(tmp_path: Path, name: str, seed: int) -> None:
     try:
         assert p.wait_for(marker, timeout=60) is not None, f"{where}: never began\n{p.output()}"
         time.sleep(delay)  # the random moment itself (the condition was waited for above)
-        t0 = time.monotonic()
-        if p.proc.poll() is None:
-            if how == "group-sigint":
-                os.killpg(p.proc.pid, signal.SIGINT)
-            else:
-                p.proc.send_signal(signal.SIGINT if how == "sigint" else signal.SIGTERM)
-        rc = p.wait(timeout=20)
-        took = time.monotonic() - t0
+        rc, took = _stop(p, how)
     finally:
         p.stop()
     left = tree.alive()
@@ -146,13 +151,7 @@ def test_covnet_run_interrupted_while_its_metrics_run_in_forks(tmp_path, how):
         while not any(pp == p.proc.pid for pp, _ in _procs().values()):  # the forks are running
             assert p.proc.poll() is None and time.monotonic() < deadline, p.output()
             time.sleep(0.02)
-        t0 = time.monotonic()
-        if how == "group-sigint":
-            os.killpg(p.proc.pid, signal.SIGINT)
-        else:
-            p.proc.send_signal(signal.SIGINT if how == "sigint" else signal.SIGTERM)
-        rc = p.wait(timeout=20)
-        took = time.monotonic() - t0
+        rc, took = _stop(p, how)
     finally:
         p.stop()
     text = p.output()
