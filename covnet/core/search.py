@@ -1149,6 +1149,7 @@ class _Leaves:
         from scipy.spatial import cKDTree  # here only: the start-up of covnet.core stays light
 
         self.tree = cKDTree(X, leafsize=32, balanced_tree=False)
+        self._ball_of: tuple[float, tuple[NDArray[np.float64], float] | None] | None = None
         self.Xmax = float(np.abs(X).max())
         self.T, self.cnt = T, cnt
         self.lam_all = _lmax(prob.base + prob.suffix[0])
@@ -1164,12 +1165,7 @@ class _Leaves:
         M = _sqrt2(*_sandwich(Dh, relax.Q))
         Z0 = _sandwich(Dhi, M)
         self.Z0 = np.array([Z0[0][0], Z0[1][0], Z0[1][0], Z0[2][0]])
-        with np.errstate(all="ignore"):
-            h0, g0 = relax._h(_s2(self.Z0[None]))
-        self.h0 = float(h0[0]) - relax.rel * (abs(float(h0[0])) + 1.0)
-        g = np.array([g0[0][0], g0[1][0], g0[2][0]])
-        self.g0 = g
-        self.gn = float(np.sqrt(g[0] ** 2 + 2.0 * g[1] ** 2 + g[2] ** 2)) * (1.0 + 1e-6)
+        self._anchor(self.Z0)
         # the computed gradient ¼ (Dss - Z0⁻¹ Q Z0⁻¹) (two terms that cancel at Z0) is within a
         # relative rel of their sizes
         Zi = _inv2(*_s2(self.Z0[None]))
@@ -1191,41 +1187,69 @@ class _Leaves:
         W0 = -(A @ (K.T @ M0 @ K) @ A)
         W0 = 0.5 * (W0 + W0.T)
         self.W0 = W0.reshape(4)
-        with np.errstate(all="ignore"):
-            h0, g0 = relax._h(_s2(self.W0[None]))
-        self.h0 = float(h0[0]) - relax.rel * (abs(float(h0[0])) + 1.0)
-        g = np.array([g0[0][0], g0[1][0], g0[2][0]])
-        self.g0 = g
-        self.gn = float(np.sqrt(g[0] ** 2 + 2.0 * g[1] ** 2 + g[2] ** 2)) * (1.0 + 1e-6)
+        self._anchor(self.W0)
         # the gradient 2 Kᵀ (M0 + K W0 Kᵀ) K: two terms that cancel at W0
         size = 2.0 * (float(np.linalg.norm(K.T @ M0 @ K)) + float(np.linalg.norm(KtK @ W0 @ KtK)))
         self.g_err = size * (relax.rel + 1e-12)
         self.mu = 2.0 * float(np.linalg.eigvalsh(KtK)[0]) ** 2 * (1.0 - 1e-6)
 
+    def _anchor(self, V: Mat, zform: bool = False) -> None:
+        """``h0`` (rounded down), ``g0`` (``(a, b, c)``) and ``|g0|`` (rounded up) of the
+        objective at the row-major ``2 x 2`` point ``V``: the anchor of the balls."""
+        relax = self.relax
+        with np.errstate(all="ignore"):
+            h0, g0 = relax._h(_s2(V[None]), zform=zform)
+        self.h0 = float(h0[0]) - relax.rel * (abs(float(h0[0])) + 1.0)
+        g = np.array([g0[0][0], g0[1][0], g0[2][0]])
+        self.g0 = g
+        self.gn = float(np.sqrt(g[0] ** 2 + 2.0 * g[1] ** 2 + g[2] ** 2)) * (1.0 + 1e-6)
+
+    def _threshold(self, tau: float) -> float | None:
+        """``τ'`` of ``τ`` (class docstring), or None where there is none."""
+        if not math.isfinite(tau):
+            return None
+        relax = self.relax
+        tp = (relax._goal(tau) + relax.rel) / (1.0 - relax.rel)
+        return tp if math.isfinite(tp) else None
+
+    def _strong_ball(self, x0: Mat, mu: float, tp: float) -> tuple[Mat, float] | None:
+        """Center (row-major ``2 x 2``) and radius of the ball holding every point with
+        ``h <= tp`` of a ``mu``-strongly convex ``h`` anchored at ``x0`` (:meth:`_anchor`),
+        the computed gradient's error included; None: no point reaches ``tp``."""
+        gn = self.gn + self.g_err
+        r2 = 2.0 * (tp - self.h0) / mu + (gn / mu) ** 2
+        if r2 < 0.0:
+            return None
+        r = math.sqrt(r2) * (1.0 + 1e-6) + self.g_err / mu
+        c = x0 - np.array([self.g0[0], self.g0[1], self.g0[1], self.g0[2]]) / mu
+        return c, r
+
     def ball(self, tau: float) -> tuple[NDArray[np.float64], float] | None:
+        """The ball of the completions that can still reach ``tau`` (center in the table's
+        coordinates, radius; see the per-metric methods); the last one is kept, as ``tau``
+        changes only when the incumbent does."""
+        if self._ball_of is not None and self._ball_of[0] == tau:
+            return self._ball_of[1]
         if self.relax.name == "frobenius":
-            return self._frobenius_ball(tau)
-        if self.relax.name == "logdet":
-            return self._logdet_ball(tau)
-        return self._kl_ball(tau)
+            got = self._frobenius_ball(tau)
+        elif self.relax.name == "logdet":
+            got = self._logdet_ball(tau)
+        else:
+            got = self._kl_ball(tau)
+        self._ball_of = (tau, got)
+        return got
 
     def _logdet(self) -> None:
         """The constants of the logdet ball (class docstring)."""
         relax, prob = self.relax, self.prob
         V1 = np.array([relax.V1[0][0], relax.V1[1][0], relax.V1[1][0], relax.V1[2][0]])
         self.Z0 = V1  # the stationary point: (Z + V1)⁻¹ = ½ Z⁻¹
-        with np.errstate(all="ignore"):
-            h0, g0 = relax._h(_s2(V1[None]), zform=True)
-        self.h0 = float(h0[0]) - relax.rel * (abs(float(h0[0])) + 1.0)
-        g = np.array([g0[0][0], g0[1][0], g0[2][0]])
-        self.g0 = g
-        self.gn = float(np.sqrt(g[0] ** 2 + 2.0 * g[1] ** 2 + g[2] ** 2)) * (1.0 + 1e-6)
+        self._anchor(V1, zform=True)
         Vi = _inv2(*_s2(V1[None]))
         size = float(np.sqrt(_dot2(Vi, Vi))[0])  # (2 V1)⁻¹ - ½ V1⁻¹: two terms of this size
         self.g_err = size * (relax.rel + 1e-12)
         self.lam_v = _lmax(V1)
-        a, b, c = float(V1[0]), float(V1[1]), float(V1[3])
-        self.lmin_v = (0.5 * (a + c) - math.hypot(0.5 * (a - c), b)) * (1.0 - 1e-9)
+        self.lmin_v = _lmin_below(V1)
         Z_all = prob.base + prob.suffix[0]
         y_all, pd = relax.y_max(Z_all[None])
         rho = prob.n * prob.ctx.err / prob.ctx.lam_min
@@ -1236,10 +1260,8 @@ class _Leaves:
     def _logdet_ball(self, tau: float) -> tuple[NDArray[np.float64], float] | None:
         """The ball of :meth:`ball` for logdet in ``Z`` (class docstring)."""
         relax = self.relax
-        if not math.isfinite(tau) or not self.lmin_v > 0.0:
-            return None
-        tp = (relax._goal(tau) + relax.rel) / (1.0 - relax.rel)
-        if not math.isfinite(tp):
+        tp = self._threshold(tau) if self.lmin_v > 0.0 else None
+        if tp is None:
             return None
         lam = max(self.lam_all, self.lam_v)
         Y = self.y_all
@@ -1251,13 +1273,11 @@ class _Leaves:
             mu = (0.5 - s_ * s_) / (lam * lam) * (1.0 - 1e-6)
             if not mu > 0.0:
                 return best
-            gn = self.gn + self.g_err
-            r2 = 2.0 * (tp - self.h0) / mu + (gn / mu) ** 2
-            if r2 < 0.0:
-                return (np.zeros(3), -1.0)
-            r = math.sqrt(r2) * (1.0 + 1e-6) + self.g_err / mu
-            c = self.Z0 - np.array([self.g0[0], self.g0[1], self.g0[1], self.g0[2]]) / mu
-            cx = np.array([c[0], math.sqrt(2.0) * c[1], c[3]])
+            got = self._strong_ball(self.Z0, mu, tp)
+            if got is None:
+                return NO_BALL
+            c, r = got
+            cx = _coords(c)
             if best is None or r < best[1]:
                 best = (cx, r)
             # on the ball: λmax <= λmax(c) + r, y_max <= y_max(c) + r / λmin(V1)
@@ -1271,23 +1291,16 @@ class _Leaves:
 
     def _frobenius_ball(self, tau: float) -> tuple[NDArray[np.float64], float] | None:
         """The ball in ``Z`` of :meth:`ball` for frobenius (class docstring)."""
-        relax = self.relax
-        if not math.isfinite(tau) or not self.mu > 0.0:
+        tp = self._threshold(tau) if self.mu > 0.0 else None
+        if tp is None:
             return None
-        tp = (relax._goal(tau) + relax.rel) / (1.0 - relax.rel)
-        if not math.isfinite(tp):
-            return None
-        mu = self.mu
-        gn = self.gn + self.g_err
-        r2 = 2.0 * (tp - self.h0) / mu + (gn / mu) ** 2
-        if r2 < 0.0:
-            return (np.zeros(3), -1.0)
-        r = math.sqrt(r2) * (1.0 + 1e-6) + self.g_err / mu
-        c = self.W0 - np.array([self.g0[0], self.g0[1], self.g0[1], self.g0[2]]) / mu
+        got = self._strong_ball(self.W0, self.mu, tp)
+        if got is None:
+            return NO_BALL
+        c, r = got
         # λmin(c) from below (the 2 x 2 closed form, rounded down a little)
         a, b, d = float(c[0]), float(c[1]), float(c[3])
-        lmin_c = (0.5 * (a + d) - math.hypot(0.5 * (a - d), b)) * (1.0 - 1e-9)
-        lmin_c -= 1e-12 * (abs(a) + abs(b) + abs(d))
+        lmin_c = _lmin_below(c) - 1e-12 * (abs(a) + abs(b) + abs(d))
         if not lmin_c > 0.0:
             return None
         ci = _inv2(np.array([a]), np.array([b]), np.array([d]))
@@ -1301,7 +1314,7 @@ class _Leaves:
             if not new < lam:
                 break
             lam = new
-        cx = np.array([zc[0], math.sqrt(2.0) * zc[1], zc[3]])
+        cx = _coords(zc)
         # the computed c⁻¹ is within a relative 1e-9 of the exact one (slack in the radius)
         return cx, rz + 1e-9 * float(np.abs(cx).max())
 
@@ -1309,26 +1322,18 @@ class _Leaves:
         """Center ``(a, √2 b, c)`` and radius of the ball holding every completion ``Z`` with
         ``h(Z) <= τ'`` (radius ``-1``: none can; ``None``: no ball, e.g. ``τ = inf`` or
         ``λmin(Q) <= 0`` from rounding: then the tree goes on below ``d0``)."""
-        relax = self.relax
-        if not math.isfinite(tau) or not self.lmin_Q > 0.0:
-            return None
-        goal = relax._goal(tau)
-        tp = (goal + relax.rel) / (1.0 - relax.rel)
-        if not math.isfinite(tp):
+        tp = self._threshold(tau) if self.lmin_Q > 0.0 else None
+        if tp is None:
             return None
         lam = self.lmax0
         best: tuple[NDArray[np.float64], float] | None = None
         for _ in range(3):
             mu = 0.5 * self.lmin_Q / lam**3 * (1.0 - 1e-6)
-            gap = tp - self.h0
-            gn = self.gn + self.g_err
-            r2 = 2.0 * gap / mu + (gn / mu) ** 2
-            if r2 < 0.0:
-                return (np.zeros(3), -1.0)  # nothing can reach τ'
-            # the computed center is within g_err / μ of the exact one
-            r = math.sqrt(r2) * (1.0 + 1e-6) + self.g_err / mu
-            c = self.Z0 - np.array([self.g0[0], self.g0[1], self.g0[1], self.g0[2]]) / mu
-            cx = np.array([c[0], math.sqrt(2.0) * c[1], c[3]])
+            got = self._strong_ball(self.Z0, mu, tp)
+            if got is None:
+                return NO_BALL  # nothing can reach τ'
+            c, r = got
+            cx = _coords(c)
             if best is None or r < best[1]:
                 best = (cx, r)
             # every completion with h <= τ' is in this ball: λmax <= λmax(c) + r there, and
@@ -1384,6 +1389,23 @@ class _Leaves:
         rows[:, self.d0 :] |= bits
         packed = np.packbits(rows, axis=1, bitorder="little")
         return packed, est, looked
+
+
+NO_BALL: tuple[NDArray[np.float64], float] = (np.zeros(3), -1.0)
+"""What :meth:`_Leaves.ball` returns when no completion can reach the threshold."""
+
+
+def _coords(Z: Mat) -> NDArray[np.float64]:
+    """The k-d tree coordinates ``(a, √2 b, c)`` of one row-major ``2 x 2`` ``Z`` (the
+    Frobenius norm of symmetric matrices as the Euclidean one)."""
+    return np.array([Z[0], math.sqrt(2.0) * Z[1], Z[3]])
+
+
+def _lmin_below(Z: Mat) -> float:
+    """The smallest eigenvalue of one row-major symmetric ``2 x 2`` ``Z``, rounded down a
+    little (closed form)."""
+    a, b, c = float(Z[0]), float(Z[1]), float(Z[3])
+    return (0.5 * (a + c) - math.hypot(0.5 * (a - c), b)) * (1.0 - 1e-9)
 
 
 def _lmax(Z: Mat) -> float:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from covnet.batch import BatchInterrupted, end_batch, progress_printer
-from covnet.covariance_control.commands import CURVES, EXIT_OK, _metric
+from covnet.covariance_control.commands import CURVES, EXIT_OK, metric_opt
 from covnet.covariance_control.config import Scenario, SweepSpec, normalised
 from covnet.errors import UsageError
 from covnet.rundir import CONFIG, prepare_out, write_json, write_npz
@@ -48,7 +48,7 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
             raise UsageError(f"--modes: unknown mode {m!r}; choose from {', '.join(cmp.modes())}")
     if not modes:
         raise UsageError("--modes: name at least one mode")
-    metric = _metric(sc, args.metric, sc.allocation.metrics[0])
+    metric = metric_opt(sc, args.metric, sc.allocation.metrics[0])
     if args.runs < 2:
         raise UsageError(f"--runs: at least 2 runs for a NEES band, got {args.runs}")
     opts = batch_options(args, args.runs)
@@ -168,7 +168,7 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
     if sc.fusion.mode == "peer":
         raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
     spec = sc.sweep or SweepSpec()
-    metric = _metric(sc, args.metric, spec.metric or sc.allocation.metrics[0])
+    metric = metric_opt(sc, args.metric, spec.metric or sc.allocation.metrics[0])
     if args.seeds is not None and args.seeds < 1:
         raise UsageError(f"--seeds: must be >= 1, got {args.seeds}")
     seeds = args.seeds or spec.seeds

@@ -264,7 +264,8 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
     return make_figures(run_dir)
 
 
-def _metric(sc: Scenario, requested: list[str] | None, default: str) -> str:
+def metric_opt(sc: Scenario, requested: list[str] | None, default: str) -> str:
+    """The metric a ``--metric`` option names (its last), else ``default``; a known one."""
     metric = (requested or [default])[-1]
     if metric not in METRICS:
         raise UsageError(f"--metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
@@ -289,7 +290,7 @@ def bench_search(args: argparse.Namespace, sc: Scenario | None) -> int:
     search (bit-identical where both run) and plain greedy, per metric and N."""
     from covnet.covariance_control import bench_search as bs  # start-up of the other commands
 
-    metrics = [_metric(load(args.config), [m], m) for m in args.metric] if args.metric else None
+    metrics = [metric_opt(load(args.config), [m], m) for m in args.metric] if args.metric else None
     searches = args.search or list(bs.SEARCHES)
     for s in searches:
         if s not in bs.SEARCHES:
@@ -317,7 +318,7 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
     enumeration of every assignment (where that runs), per metric and N."""
     from covnet.covariance_control import bench_search as bs  # start-up of the other commands
 
-    metrics = [_metric(load(args.config), [m], m) for m in args.metric] if args.metric else None
+    metrics = [metric_opt(load(args.config), [m], m) for m in args.metric] if args.metric else None
     if not args.json:
         print(" ".join(k for k, _ in bs.MT_COLUMNS), flush=True)
     targets = getattr(args, "targets", None) or [3]
@@ -345,7 +346,7 @@ def bench_alloc(args: argparse.Namespace, sc: Scenario | None) -> int:
 
     sensors = args.sensors or [8, 12, 16, 20]
     sc = sc if sc is not None else load(args.config)
-    metrics = [_metric(sc, [m], m) for m in args.metric] if args.metric else None
+    metrics = [metric_opt(sc, [m], m) for m in args.metric] if args.metric else None
     table = [s.position_noise for s in sc.sensors]
 
     def progress(msg: str) -> None:

@@ -26,7 +26,6 @@ of every target (``truth`` ``(T, K, 4)``, per metric ``assignment``, ``x_est``, 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -54,22 +53,11 @@ from covnet.rundir import (
     write_json,
     write_npz,
 )
+from covnet.stats import median
 
 if TYPE_CHECKING:
     from covnet.covariance_control.centre import ManagerResult
     from covnet.covariance_control.targets import TargetsModel
-
-
-def median(values: Any) -> float:
-    """The median of ``values`` as :func:`numpy.median` computes it, bit for bit (the middle
-    element, or ``(a + b) / 2`` of the two middle ones; NaN if any is NaN), without its import
-    of ``numpy.ma`` (start-up time of ``covnet run``)."""
-    s = np.sort(np.asarray(values, dtype=np.float64).ravel())
-    n = s.size
-    if n == 0 or np.isnan(s[-1]):
-        return math.nan
-    mid = n // 2
-    return float(s[mid]) if n % 2 else float((s[mid - 1] + s[mid]) / 2)
 
 
 def metric_summary(

@@ -64,8 +64,7 @@ from covnet.core.manoeuvre import manoeuvring_trajectory
 from covnet.core.metrics import get_metric
 from covnet.core.motion import dwna_process_noise
 from covnet.core.multitarget_allocation import MultiConstraints, allocate_assignments
-from covnet.core.sensing import information_gain, position_matrix
-from covnet.core.sensing import measure as draw_measurement
+from covnet.core.sensing import information_gain, measure_factored, position_matrix
 from covnet.core.sensor_models import (
     BearingModel,
     FieldOfView,
@@ -548,7 +547,7 @@ def dwell(tm: TargetsModel, j: int, scan: int, x_true: Vec, win: ClutterWindow |
     rng = streams.sensor_stream(tm.base.seed, j, scan)
     dz = s.dim_z
     if tm.position[j]:
-        z0 = draw_measurement(tm.base.H, tm.base.R[j], x_true, rng)
+        z0 = measure_factored(tm.base.H, tm.base.noise_factors[j], x_true, rng)
     else:
         e = rng.standard_normal(dz)
         z0 = s.h(x_true) + np.linalg.cholesky(s.R) @ e

@@ -1,4 +1,4 @@
-"""``results.median`` is ``numpy.median`` bit for bit (it only avoids importing numpy.ma), and
+"""``covnet.stats.median`` is ``numpy.median`` bit for bit (it only avoids importing numpy.ma), and
 the model's cached noise factors draw the same measurements as factoring ``R`` every scan."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from covnet.core.sensing import measure
 from covnet.covariance_control.config import load
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.model import measure as model_measure
-from covnet.covariance_control.results import median
+from covnet.stats import median
 
 floats = st.floats(allow_nan=False, allow_infinity=False, width=64)
 

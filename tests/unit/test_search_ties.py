@@ -12,17 +12,15 @@ import math
 
 import numpy as np
 import pytest
+from test_search import paper_run  # (P_pred, P_d) at given scans of the paper's recursion
 
 from covnet.core import search as S
-from covnet.core.allocation import Constraints, allocate, allocate_exhaustive
+from covnet.core.allocation import Constraints, allocate_exhaustive
 from covnet.core.metrics import METRICS
-from covnet.core.motion import cv_transition, dwna_process_noise
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 from covnet.covariance_control.bench_allocation import PAPER_TABLE
 
 PAPER = PAPER_TABLE  # the paper's 8 sensors (sx [m], sy [m], rho)
-D1 = np.diag([25.0, 1.4, 25.0, 1.4])
-D2 = np.diag([7.0, 0.8, 7.0, 0.8])
 
 
 def _gain(j, k=1.0):
@@ -46,26 +44,11 @@ def tie_gains(kind):
     return np.array(G)
 
 
-def _run(gains, metric, scans):
-    """``(P_pred, P_d)`` at ``scans`` of the paper's recursion, each scan's ``P`` the exact
-    search's choice (:func:`~covnet.core.allocation.allocate`, the batched fast path)."""
-    F, Q = cv_transition(1.0), dwna_process_noise(1.0, 0.5)
-    P = np.diag([1e4, 1e2, 1e4, 1e2])
-    out = []
-    for scan in range(1, max(scans) + 1):
-        P_pred = F @ P @ F.T + Q
-        D = D1 if scan <= 50 else D2
-        if scan in scans:
-            out.append((P_pred, D))
-        P = allocate(P_pred, gains, D, metric).P
-    return out
-
-
 @pytest.mark.parametrize("kind", ["dup", "near", "weak"])
 @pytest.mark.parametrize("name", sorted(METRICS))
 def test_bnb_equals_exhaustive_on_tie_heavy_problems(name, kind):
     gains = tie_gains(kind)
-    problems = _run(gains, name, [1, 2, 5, 40, 70])
+    problems = paper_run(gains, name, [1, 2, 5, 40, 70])
     # P_d = P_pred: measuring nothing is best (the zero-gain sensor alone, if any)
     problems.append((problems[2][0], problems[2][0]))
     for P_pred, P_d in problems:
@@ -84,7 +67,7 @@ def test_tie_heavy_problems_do_tie():
     """The constructions above do make ties: with duplicates, several subsets within the tie
     tolerance of the optimum (here on abs_trace at a loose scan)."""
     gains = tie_gains("dup")
-    P_pred, P_d = _run(gains, "abs_trace", [2])[0]
+    P_pred, P_d = paper_run(gains, "abs_trace", [2])[0]
     vals = []
     for size in range(1, gains.shape[0] + 1):
         for D in itertools.combinations(range(gains.shape[0]), size):
@@ -111,7 +94,7 @@ def test_logdet_bound_in_Z_is_below_every_completion():
     rng = np.random.default_rng(7)
     f = METRICS["logdet"]
     n_z = 0
-    for P_pred, P_d in _run(gains[:8], "logdet", [1, 3, 20, 60, 90]):
+    for P_pred, P_d in paper_run(gains[:8], "logdet", [1, 3, 20, 60, 90]):
         prob = S._Problem(P_pred, gains, P_d, "logdet", S.NO_CONSTRAINTS, 1e-9)
         assert prob.relax is not None
         for _ in range(12):
@@ -141,7 +124,7 @@ def test_relaxation_goal_is_the_pre_image_of_the_threshold(name):
     deflation, and one a little below the goal is not: the iterations stop exactly when a node
     is pruned."""
     gains = np.array([_gain(j) for j in range(8)])
-    P_pred, P_d = _run(gains, name, [30])[0]
+    P_pred, P_d = paper_run(gains, name, [30])[0]
     prob = S._Problem(P_pred, gains, P_d, name, S.NO_CONSTRAINTS, 1e-9)
     relax = prob.relax
     assert relax is not None
@@ -171,7 +154,7 @@ def test_table_leaves_return_every_completion_below_the_threshold(kind, name):
     gains = tie_gains(kind) if kind != "paper" else np.array([_gain(j) for j in range(11)])
     f = METRICS[name]
     balls = 0
-    for P_pred, P_d in _run(gains, name, [1, 4, 30, 65]):
+    for P_pred, P_d in paper_run(gains, name, [1, 4, 30, 65]):
         prob = S._Problem(P_pred, gains, P_d, name, S.NO_CONSTRAINTS, 1e-9)
         leaves = S._Leaves(prob, 0)
         rows, values = _all_values(prob, f)
@@ -211,7 +194,7 @@ def test_table_below_a_tree_equals_exhaustive(kind, name, monkeypatch):
     monkeypatch.setattr(S, "LEAF_LEVELS", 4)
     monkeypatch.setattr(S, "LEAF_GROUP", 3)
     gains = tie_gains(kind) if kind != "paper" else np.array([_gain(j) for j in range(12)])
-    for P_pred, P_d in _run(gains, name, [1, 2, 30, 60]):
+    for P_pred, P_d in paper_run(gains, name, [1, 2, 30, 60]):
         for c in (Constraints(), Constraints(frozenset({3}), frozenset({0}), 4)):
             ref = allocate_exhaustive(P_pred, gains, P_d, name, c)
             got = S.allocate_bnb(P_pred, gains, P_d, name, c)
