@@ -1,8 +1,8 @@
 """What every scenario kind's config shares, and the one loader pipeline they all go through.
 
 A scenario file is YAML; its top-level ``kind`` names the kind (:mod:`covnet.kinds`, default
-``covariance_control``) whose pydantic model describes the rest.  Every kind's ``from_dict``
-calls :func:`validate`, so for every kind:
+``covariance_control``) whose record (:mod:`covnet.records`) describes the rest.  Every kind's
+``from_dict`` calls :func:`validate`, so for every kind:
 
 1. relative paths under ``network.security`` are resolved against the config file's folder;
 2. the structure is validated (unknown keys are errors: they are usually typos; scalars are
@@ -28,12 +28,11 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Protocol, TypeVar, get_args
 
 import yaml
-from pydantic import (
+
+from covnet.records import (
     AfterValidator,
-    BaseModel,
-    ConfigDict,
     Field,
-    Strict,
+    Record,
     ValidationError,
     field_validator,
     model_validator,
@@ -61,11 +60,12 @@ __all__ = [
 ]
 
 
-# Scalars are strict (no "0.5" strings, no booleans as numbers); lists become tuples.
-Float = Annotated[float, Strict()]
-Int = Annotated[int, Strict()]
-Str = Annotated[str, Strict()]
-Bool = Annotated[bool, Strict()]
+# Scalars are strict (no "0.5" strings, no booleans as numbers; covnet.records); lists become
+# tuples.  The names say so where a config is declared.
+Float = float
+Int = int
+Str = str
+Bool = bool
 Pair = Annotated[tuple[Float, ...], Field(min_length=2, max_length=2)]
 Quad = Annotated[tuple[Float, ...], Field(min_length=4, max_length=4)]
 Ident = Annotated[Str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
@@ -109,8 +109,9 @@ class ConfigWarning(UserWarning):
         self.message = message
 
 
-class ConfigModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+class ConfigModel(Record):
+    """A part of a config: a validated, frozen record (:mod:`covnet.records`: strict types,
+    unknown keys rejected, every problem with its path)."""
 
 
 def positive(v: float) -> float:
@@ -270,7 +271,7 @@ class NetworkSpec(ConfigModel):
     scan_timeout_s: Float = 10.0
     deadline_fraction: Float = 0.8
     restart: Literal["never", "on-failure"] = "never"
-    record: bool = True
+    record: Bool = True
     security: SecuritySpec = SecuritySpec()
     latency: LatencySpec = LatencySpec()
 
@@ -425,7 +426,7 @@ def _fmt_loc(loc: Sequence[int | str]) -> str:
 
 
 def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
-    path = _fmt_loc([p for p in err["loc"] if not (isinstance(p, str) and "[" in p)])
+    path = _fmt_loc(err["loc"])
     kind = err["type"]
     if kind == "extra_forbidden":
         return path, "unknown key"
@@ -433,30 +434,31 @@ def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
         return path, "missing required key"
     msg = str(err["msg"])
     value = err.get("input")
-    if msg.startswith("Value error, @"):  # a validator that names a place inside its field
-        where, _, text = msg[len("Value error, @") :].partition(": ")
+    if kind == "value_error" and msg.startswith("@"):  # a check naming a place inside its field
+        where, _, text = msg[1:].partition(": ")
         return path + where, text
-    if msg.startswith("Value error, "):
-        return path, msg[len("Value error, ") :]
+    if kind == "value_error":
+        return path, msg
     if kind == "float_type" and isinstance(value, str) and _looks_numeric(value):
-        return path, (
-            f"expected a number, got the string {value!r} (YAML 1.1 reads an exponent without "
-            "a sign as text: write 1.0e+4 or 10000.0)"
-        )
+        if _UNSIGNED_EXPONENT.fullmatch(value.strip()):
+            return path, (
+                f"expected a number, got the string {value!r} (YAML 1.1 reads an exponent "
+                "without a sign as text: write 1.0e+4 or 10000.0)"
+            )
+        return path, f"expected a number, got the string {value!r} (drop the quotes)"
     return path, f"{msg}, got {value!r}"
 
 
+#: a number YAML 1.1 reads as text: an exponent without a sign (``1e4``, ``1.0E4``)
+_UNSIGNED_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE]\d+")
+
+
 def _root_causes(errors: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
-    """The problems to report: a container's length error is left out when an element of it has
-    its own error (the element is the cause: ``P0_diag[0]`` is not a number, so the tuple also
-    counts one item too few), and so is a repeated line."""
-    formatted = [_fmt_error(e) for e in errors]
+    """The problems to report, each once.  (A container's length is checked only once its
+    items are valid, :mod:`covnet.records`, so a bad item is not also a wrong length.)"""
     out: list[tuple[str, str]] = []
-    for err, (path, msg) in zip(errors, formatted, strict=True):
-        derived = err["type"] in ("too_short", "too_long") and any(
-            p.startswith((f"{path}[", f"{path}.")) for p, _ in formatted
-        )
-        if not derived and (path, msg) not in out:
+    for path, msg in map(_fmt_error, errors):
+        if (path, msg) not in out:
             out.append((path, msg))
     return out
 
@@ -522,7 +524,7 @@ def read_yaml(path: str | Path) -> object:
         raise ConfigError(str(p), [("", f"not valid YAML: {where}{problem}")]) from None
 
 
-M = TypeVar("M", bound=BaseModel)
+M = TypeVar("M", bound=Record)
 
 
 def validate(
@@ -553,13 +555,13 @@ def validate(
         cfg = model.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(source, _root_causes(exc.errors())) from None
-    found = problems(cfg) + network_problems(cfg)  # type: ignore[arg-type]
+    found = problems(cfg) + network_problems(cfg)
     if found:
         raise ConfigError(source, found)
     return cfg
 
 
-def normalised(cfg: BaseModel, omit_if_default: Sequence[str] = ()) -> dict[str, Any]:
+def normalised(cfg: Record, omit_if_default: Sequence[str] = ()) -> dict[str, Any]:
     """``cfg`` with every default filled in, as plain JSON-able data, leaving out the fields
     named in ``omit_if_default`` (dotted paths, e.g. ``network.security``) while they hold
     their default: a kind lists there what it added after configs were first hashed, so that

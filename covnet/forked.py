@@ -1,7 +1,7 @@
 """Start a ``python -m MODULE ARGS`` child as a fork of this process: the interpreter start-up
 and the imports this process has done already are not paid again (start-up time of ``covnet
 up``: eleven node processes, each of which would spend about 0.4 s of CPU importing numpy,
-pydantic, zenoh and the kind's modules, on two cores).
+zenoh and the kind's modules, on two cores).
 
 :func:`fork_module` returns a :class:`ForkedProcess`, which :class:`covnet.launch.Supervisor`
 uses as it uses a ``subprocess.Popen``: ``pid`` (the child is the leader of a new session and

@@ -48,7 +48,7 @@ __all__ = [
 ]
 
 #: what node processes import, loaded once here and shared by forking (covnet.forked): the
-#: launcher's own imports (numpy, pydantic, the kind's config) are most of the rest
+#: launcher's own imports (numpy, the kind's config) are most of the rest
 NODE_PRELOAD = (
     "zenoh",
     "covnet.process",

@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
 
 from covnet.config import (
     Bool,
@@ -58,6 +57,7 @@ from covnet.covariance_control.fusion_rules import (
     rule_for,
     track_rules,
 )
+from covnet.records import Field, field_validator
 
 MetricName = Annotated[Str, in_registry(lambda: sorted(METRICS), "metric")]
 FusionMode = Annotated[Str, in_registry(fusion_modes, "fusion mode")]

@@ -1,4 +1,4 @@
-"""The ``mobile`` config (``configs/mobile.yaml``): YAML -> validated, frozen pydantic records.
+"""The ``mobile`` config (``configs/mobile.yaml``): YAML -> validated, frozen records.
 
 A file is a mobile config when its top level says ``kind: mobile``.  It goes through the loader
 pipeline every kind shares (:func:`covnet.config.validate`): scalars are strict, unknown keys
@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
 
 from covnet.config import (
     Bool,
@@ -51,6 +50,7 @@ from covnet.config import (
 )
 from covnet.config import normalised as _normalised
 from covnet.core.mobile.decision import SOLVERS
+from covnet.records import Field, field_validator
 
 __all__ = [
     "KIND",

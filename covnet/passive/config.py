@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
 
 from covnet.config import (
     Bool,
@@ -43,6 +42,7 @@ from covnet.config import normalised as _normalised
 from covnet.core.passive.methods import METHODS
 from covnet.core.passive.model import AssocParams
 from covnet.passive.scene import FORMATIONS, SceneModel, formation
+from covnet.records import Field, field_validator
 
 __all__ = [
     "KIND",

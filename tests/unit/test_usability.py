@@ -247,6 +247,22 @@ def test_config_problems_are_root_causes_all_at_once(tmp_path, capsys):
     assert "duplicate sensor id 'S1'" in lines[2]
 
 
+@pytest.mark.parametrize(
+    "text,hint",
+    [("1e4", "YAML 1.1 reads an exponent"), ("1.5E3", "YAML 1.1"), ("1.0", "drop the quotes")],
+)
+def test_a_number_given_as_text_gets_the_hint_that_fits(tmp_path, capsys, text, hint):
+    data = yaml.safe_load(PAPER.read_text())
+    data["period_s"] = text
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(data))
+    assert main(["check", str(p)]) == 2
+    [line] = capsys.readouterr().err.strip().splitlines()[1:]
+    assert line.strip().startswith(f"period_s: expected a number, got the string '{text}'")
+    assert hint in line
+    assert ("YAML 1.1" in line) != ("drop the quotes" in line)
+
+
 # --------------------------------------------------------------------------------------------
 # covnet plot: every kind's directories
 # --------------------------------------------------------------------------------------------
