@@ -486,11 +486,12 @@ class _Spec:
 
 
 def _collect(cls: type, kind: type) -> list[Any]:
-    """The ``kind`` markers in ``cls``'s namespace and its bases' (bases first)."""
-    out: list[Any] = []
+    """The ``kind`` markers in ``cls``'s namespace and its bases' (bases first; a subclass's
+    marker replaces its base's of the same name)."""
+    found: dict[str, Any] = {}
     for klass in reversed(cls.__mro__):
-        out += [v for v in vars(klass).values() if isinstance(v, kind)]
-    return out
+        found.update((k, v) for k, v in vars(klass).items() if isinstance(v, kind))
+    return list(found.values())
 
 
 @dataclass_transform(kw_only_default=True, frozen_default=True, field_specifiers=(Field,))

@@ -203,9 +203,13 @@ def test_a_subclass_has_its_bases_fields_first_and_their_checks():
     class Child(Base):
         q: int = 0
 
+    class Lenient(Base):
+        _pos = field_validator("p")(lambda v: v)  # replaces the base's check of that name
+
     assert list(Child.model_fields) == ["p", "q"]
     assert problems(Child, p=-1.0, q=1) == [("p", "value_error", -1.0)]
     assert Child.model_fields["q"].annotation is int
+    assert Lenient(p=-1.0).p == -1.0
 
 
 def test_field_infos():
