@@ -265,19 +265,12 @@ def _any(v: Any, loc: Loc, errors: Errors) -> Any:
     return v
 
 
-def _none(v: Any, loc: Loc, errors: Errors) -> Any:
-    if v is not None:
-        return _err(errors, loc, "none_required", "Input should be None", v)
-    return v
-
-
 _SCALARS: dict[Any, Check] = {
     float: _float,
     int: _int,
     str: _str,
     bool: _bool,
     Any: _any,
-    type(None): _none,
 }
 
 
@@ -517,11 +510,6 @@ class Record:
                 delattr(cls, name)
             info.owner, info.name = cls, name
             fields[name] = info
-        for name, info in list(fields.items()):
-            if info.owner is not cls:  # an inherited field: its hint is looked up on cls
-                copy = FieldInfo(info.default, info.default_factory, info.constraints)
-                copy.owner, copy.name = cls, name
-                fields[name] = copy
         cls.model_fields = fields
         cls._spec = None
         cls._hint_cache = None

@@ -140,7 +140,7 @@ def simulate_dwell(
     if window.center.shape != (dz,):
         raise ValueError(f"window: expected a {dz}-dimensional window, got {window.center.shape}")
     am = np.asarray(model.angle_components, dtype=bool)
-    L = np.linalg.cholesky(model.R)
+    L = model.L
     # fixed draw order (module docstring)
     u_detect = rng.random()
     e = rng.standard_normal(dz)

@@ -146,7 +146,9 @@ class SensorModel:
 
     Fields (keyword-only): ``sensor_xy`` (m), ``max_range_m`` (default ∞), ``fov`` (optional
     :class:`FieldOfView`), ``pd`` in ``[0, 1]``, ``clutter_rate`` (false returns per dwell,
-    ``≥ 0``).  ``R`` is built from the model's noise parameters and is read-only.
+    ``≥ 0``).  ``R`` is built from the model's noise parameters, ``L`` is its lower Cholesky
+    factor (``R = L Lᵀ``, factored once: every draw and information matrix uses it); both are
+    read-only.
     Subclasses implement ``h`` and ``jacobian`` and the noise (``_noise``).
     """
 
@@ -161,6 +163,7 @@ class SensorModel:
     pd: float = 1.0
     clutter_rate: float = 0.0
     R: Mat = field(init=False, repr=False, compare=False)
+    L: Mat = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         s = np.asarray(self.sensor_xy, dtype=np.float64)
@@ -190,6 +193,9 @@ class SensorModel:
         R = np.array(self._noise(), dtype=np.float64)
         R.flags.writeable = False
         object.__setattr__(self, "R", R)
+        L = np.linalg.cholesky(R)
+        L.flags.writeable = False
+        object.__setattr__(self, "L", L)
 
     # -- to implement ------------------------------------------------------------------------
 
@@ -365,7 +371,7 @@ def predicted_information(model: SensorModel, x_pred: ArrayLike, pd: float | Non
         raise ValueError(f"pd: expected a finite multiplier >= 0, got {pd!r}")
     H = model.jacobian(x_pred)  # (..., dz, 4)
     dz = model.dim_z
-    L = np.linalg.cholesky(model.R)
+    L = model.L
     Hm = np.moveaxis(H, -2, 0).reshape(dz, -1)  # (dz, N·4)
     W = linalg.solve_triangular(L, Hm, lower=True, check_finite=False)
     W = np.moveaxis(np.asarray(W).reshape((dz,) + H.shape[:-2] + (STATE_DIM,)), 0, -2)

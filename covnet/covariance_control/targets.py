@@ -550,7 +550,7 @@ def dwell(tm: TargetsModel, j: int, scan: int, x_true: Vec, win: ClutterWindow |
         z0 = measure_factored(tm.base.H, tm.base.noise_factors[j], x_true, rng)
     else:
         e = rng.standard_normal(dz)
-        z0 = s.h(x_true) + np.linalg.cholesky(s.R) @ e
+        z0 = s.h(x_true) + s.L @ e
     detected = rng.random() < s.pd and bool(s.in_coverage(x_true))
     rows = [z0[None, :]] if detected else []
     if s.clutter_rate > 0.0:

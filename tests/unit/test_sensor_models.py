@@ -79,6 +79,12 @@ def test_predicted_information_oracle_bearing():
 
 
 @pytest.mark.parametrize("model", _models((10.0, -20.0)), ids=["position", "rb", "bearing"])
+def test_the_noise_factor_is_rs_cholesky_factor_read_only(model):
+    assert model.L.tobytes() == np.linalg.cholesky(model.R).tobytes()
+    assert not model.L.flags.writeable
+
+
+@pytest.mark.parametrize("model", _models((10.0, -20.0)), ids=["position", "rb", "bearing"])
 def test_batched_equals_one_at_a_time(model):
     rng = np.random.default_rng(0)
     X = rng.normal(scale=1000.0, size=(3, 5, 4))
