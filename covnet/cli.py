@@ -744,6 +744,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BaseException as exc:  # a Ctrl-C, or an extension's stand-in for one it swallowed
         if not interrupts.caused(exc):
             raise
+        interrupts.answered()
         _err("interrupted")
         return EXIT_INTERRUPTED
 

@@ -32,6 +32,7 @@ REDELIVER_AFTER_S = 0.02
 
 
 _requested = False
+_answered = False
 
 
 def raise_interrupt(signum: int, frame: Any) -> None:
@@ -47,9 +48,20 @@ def caused(exc: BaseException) -> bool:
     return isinstance(exc, KeyboardInterrupt) or (_requested and isinstance(exc, Exception))
 
 
+def answered() -> None:
+    """The command has answered the interruption (it is ending as "interrupted"): a redelivery
+    still pending must not raise a second ``KeyboardInterrupt`` while the process exits, which
+    would end it by SIGINT instead of with its exit status.  (One interruption can be both
+    unraisable somewhere and seen by the command: an extension that swallowed it raised an
+    error of its own, which :func:`caused` counts.)"""
+    global _answered
+    _answered = True
+
+
 def _redeliver() -> None:
     threading.Event().wait(REDELIVER_AFTER_S)
-    _thread.interrupt_main(signal.SIGINT)
+    if not _answered:
+        _thread.interrupt_main(signal.SIGINT)
 
 
 def _hook(unraisable: Any, fallback: Any = None) -> None:
@@ -63,6 +75,8 @@ def deliver_late_interrupts() -> None:
     """Install :func:`raise_interrupt` for SIGINT and SIGTERM (a SIGTERM stops a command as a
     Ctrl-C does) and the unraisable hook (idempotent; other unraisable exceptions go to the
     hook in place).  Main thread only."""
+    global _answered
+    _answered = False  # a new command (tests run several in one process)
     signal.signal(signal.SIGINT, raise_interrupt)
     signal.signal(signal.SIGTERM, raise_interrupt)
     current = sys.unraisablehook

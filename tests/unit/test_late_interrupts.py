@@ -126,3 +126,45 @@ def test_an_error_standing_in_for_a_swallowed_interrupt_is_an_interruption() -> 
         assert "Traceback" not in done.stderr
         if first:
             assert "interrupted" in done.stderr
+
+
+ANSWERED = textwrap.dedent(
+    """
+    import sys, time, weakref
+    from covnet import interrupts
+    interrupts.deliver_late_interrupts()
+
+    class Thing:
+        pass
+
+    def callback(_ref):
+        raise KeyboardInterrupt  # the interruption, unraisable here: redelivered in 20 ms
+
+    thing = Thing()
+    ref = weakref.ref(thing, callback)
+    del thing
+    # ... and the command saw the same interruption (an extension's stand-in error) and
+    # answers it now, before the redelivery; then it exits, which takes a moment
+    if {answer}:
+        interrupts.answered()
+    time.sleep(0.2)
+    sys.exit(130)
+    """
+)
+
+
+def test_an_answered_interruption_is_not_delivered_again_during_exit() -> None:
+    """Without :func:`covnet.interrupts.answered` the redelivered interrupt lands while the
+    process exits and ends it by SIGINT (status -2) instead of the command's 130."""
+    runs = {
+        answer: subprocess.run(
+            [sys.executable, "-c", ANSWERED.format(answer=answer)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        for answer in (False, True)
+    }
+    assert runs[False].returncode == -2  # the defect, so that the next line can fail
+    assert runs[True].returncode == 130, runs[True].stderr
+    assert runs[True].stderr == ""
