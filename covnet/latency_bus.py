@@ -26,9 +26,7 @@ from typing import Any, cast
 
 from covnet import messages as msg
 from covnet.bus import Bus, LivelinessSubscription, Sample, Subscription, Token
-from covnet.core.delay import LinkState, link_stream
-
-UP, DOWN = 0, 1  # link directions, as in covnet.covariance_control.latency_sim
+from covnet.core.delay import DOWN, UP, LinkState, link_stream
 
 
 class _Delayed:

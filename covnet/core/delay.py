@@ -333,6 +333,10 @@ class LinkState:
         return out
 
 
+UP, DOWN = 0, 1
+"""Link directions: towards the fusion centre (a sensor's uplink) and from it (its downlink)."""
+
+
 def link_stream(seed: int, link_index: int, direction: int) -> np.random.Generator:
     """The generator of link ``link_index`` in direction ``direction`` (e.g. 0 towards the
     manager, 1 from it): key ``(LINK, link_index, direction)``, apart from measurement noise."""

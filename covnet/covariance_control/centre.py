@@ -11,11 +11,10 @@ write_network_run`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.columns import Column
 from covnet.core.allocation import Allocation
 from covnet.core.fusion import LocalTrack
@@ -28,6 +27,9 @@ from covnet.covariance_control.fusion_rules import FusionRule, rule_for
 from covnet.covariance_control.model import Model, decide, usable_measurement
 from covnet.covariance_control.simulate import MetricRun
 from covnet.runtime_stats import NetStats
+
+if TYPE_CHECKING:
+    from covnet import messages as msg
 
 __all__ = [
     "CentreFilter",
@@ -192,14 +194,26 @@ class CentreFilter:
         self.mirror = None if self.rule.information_form else Mirror.start(model)
         slow = not sc.network.latency.is_ideal(model.sensor_ids)
         self.late = LateHandler(sc, model) if slow else None
+        # allocation.account_for_loss on slow links: decide on the expected information
+        self.alloc_model, self.delivery = model, None
+        if slow and sc.allocation.account_for_loss:
+            from covnet.covariance_control.links import delivery_probabilities, loss_aware_model
+
+            p = delivery_probabilities(sc)
+            if self.rule.information_form:
+                self.alloc_model = loss_aware_model(model, p)
+            else:
+                self.delivery = p
 
     def decide(
         self, P_pred: np.ndarray, k: int, metric: str, unavailable: frozenset[int]
     ) -> Allocation:
         if self.mirror is None:
-            return decide(self.model, P_pred, k, metric, unavailable)
+            return decide(self.alloc_model, P_pred, k, metric, unavailable)
         P_loc = self.mirror.predicted(self.model)[1]
-        return decide_rule(self.rule, self.model, P_pred, P_loc, k, metric, unavailable)
+        return decide_rule(
+            self.rule, self.model, P_pred, P_loc, k, metric, unavailable, delivery=self.delivery
+        )
 
     def insert_late(self, m: Any) -> bool:
         """A late message of an earlier scan: True when it was re-filtered into its scan."""

@@ -1,6 +1,8 @@
-"""The in-process scan loops of the decentralized modes (``info``, ``ci``, ``peer``).
+"""The in-process runs of the decentralized modes (``info``, ``ci``, ``peer``).
 
-Centre modes (``info``, ``ci``), per scan ``k``::
+Centre modes (``info``, ``ci``) are the kind's one engine with a track rule
+(:mod:`covnet.covariance_control.engine`, stepped by :mod:`covnet.covariance_control.drive`),
+per scan ``k``::
 
     local filters   x_j⁻, P_j⁻ = predict(x_j, P_j)               every sensor, every scan
     fusion centre   x_f⁻, P_f⁻ = predict(x_f, P_f)
@@ -37,69 +39,22 @@ from covnet.covariance_control.simulate import MetricRun, RunRows, run_metric
 
 
 def run_centre(sc: Scenario, metric: str, model: Model | None = None) -> MetricRun:
-    """A fusion centre fusing local tracks with ``sc.fusion``'s track rule (``info``, ``ci``)."""
-    model = model or build_model(sc)
-    rule = rule_for(sc.fusion)
-    truth = truth_trajectory(model)
-    N, Ns = model.scans, len(model.sensor_ids)
-    rows = RunRows(N, Ns)
-    est = initial_estimate(model, sc.filter.initial_estimate)
-    local = [est] * Ns
-    # only a rule outside the information form decides from the local filters' covariances
-    mirror = None if rule.information_form else Mirror.start(model)
-    for i in range(N):
-        k = i + 1
-        pred = predict_step(model, est)
-        local_pred = [predict_step(model, g) for g in local]
-        P_loc = mirror.predicted(model)[1] if mirror is not None else None
-        t0 = time.perf_counter()
-        alloc = decide_rule(rule, model, pred.P, P_loc, k, metric)
-        dt = time.perf_counter() - t0
-        tracks = [
-            (j, rule.local(model, j, local_pred[j], measure(model, j, k, truth[i])))
-            for j in alloc.subset
-        ]
-        local = list(local_pred)
-        for j, tr in tracks:
-            local[j] = tr.post
-        est = rule.fuse(model, pred, tracks)
-        if mirror is not None:
-            mirror.advance(rule, model, alloc.subset)
-        rows.put(
-            i,
-            alloc.subset,
-            alloc.value,
-            pred,
-            est,
-            truth[i],
-            dt,
-            alloc.n_evaluated,
-            lower_bound=alloc.lower_bound,
-            gap=alloc.gap,
-        )
-    return rows.run(metric)
+    """A fusion centre fusing local tracks with ``sc.fusion``'s track rule (``info``, ``ci``):
+    the kind's engine in this process (:func:`covnet.covariance_control.drive.run`)."""
+    return run_metric(sc, metric, model)
 
 
 def run_mode(
     sc: Scenario, metric: str, model: Model | None = None
 ) -> tuple[MetricRun, dict[str, MetricRun] | None]:
-    """The run of ``sc.fusion.mode``: ``(run, None)`` for a fusion centre (the plain loop
-    :func:`~covnet.covariance_control.simulate.run_metric` for a rule that fuses raw
-    measurements, :func:`run_centre` for a track rule); in ``peer`` mode ``(run of the first
-    node, every node's run)``.  With slow or lossy links (``network.latency`` not ideal) a
-    centre's run is :func:`covnet.covariance_control.latency_sim.run_latency` (simulated time;
-    its counts: call that function directly)."""
+    """The run of ``sc.fusion.mode``: ``(run, None)`` for a fusion centre (any rule of the
+    registry, ideal or slow links: the kind's engine in this process); in ``peer`` mode
+    ``(run of the first node, every node's run)``."""
     model = model or build_model(sc)
-    if not sc.network.latency.is_ideal(model.sensor_ids):
-        from covnet.covariance_control.latency_sim import run_latency  # start-up: slow links
-
-        return run_latency(sc, metric, model)[0], None
     if sc.fusion.mode == "peer":
         nodes = run_peer(sc, metric, model)
         return nodes[model.sensor_ids[0]], nodes
-    if not rule_for(sc.fusion).tracks:
-        return run_metric(sc, metric, model), None
-    return run_centre(sc, metric, model), None
+    return run_metric(sc, metric, model), None
 
 
 def run_peer(sc: Scenario, metric: str, model: Model | None = None) -> dict[str, MetricRun]:

@@ -59,7 +59,6 @@ the byte-for-byte comparison, ``covnet replay`` itself) are :mod:`covnet.replay_
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -67,22 +66,9 @@ from typing import Any
 import numpy as np
 
 from covnet import messages as msg
-from covnet.core.kalman import nees
-from covnet.covariance_control.centre import (
-    CentreFilter,
-    EpisodeLog,
-    ManagerResult,
-    usable_track,
-)
+from covnet.covariance_control.centre import ManagerResult
 from covnet.covariance_control.config import KIND, Scenario
-from covnet.covariance_control.fusion_rules import rule_for
-from covnet.covariance_control.model import (
-    build_model,
-    initial_estimate,
-    predict_step,
-    truth_trajectory,
-    usable_measurement,
-)
+from covnet.covariance_control.engine import Outcome, Plan, ScanEngine
 from covnet.covariance_control.results import write_network_run
 from covnet.recording import RecordedSample
 from covnet.replay_kit import (
@@ -96,7 +82,6 @@ from covnet.replay_kit import (
     failure_events,
     load_recording,
 )
-from covnet.runtime_stats import NetStats
 
 __all__ = [
     "RECORDING",
@@ -123,40 +108,25 @@ class CovarianceReplay(KindReplay):
             )
 
     def load(self, cfg: Scenario, samples: Iterator[RecordedSample], run_id: str) -> Recorded:
-        """The Status, Tracks and the sensors' messages the manager would accept (bar their
-        timing): a position measurement (``z`` ``(1, 2)``, ``R`` symmetric positive definite),
-        or under a track rule a usable local track."""
-        if cfg.multitarget:
-            # start-up: the many-target steps only for configs with targets
-            from covnet.covariance_control import targets
-            from covnet.covariance_control.targets_centre import TargetsCentre
-
-            centre = TargetsCentre(targets.build(cfg))
-            if cfg.fusion.mode == "info":
-                return load_recording(
-                    samples,
-                    run_id,
-                    message=msg.LocalTrack,
-                    label="local_track",
-                    acceptable=centre.usable_track,
-                    commands=True,
-                )
-            return load_recording(samples, run_id, acceptable=centre.usable, commands=True)
-        if rule_for(cfg.fusion).tracks:
+        """The Status, Tracks, Commands and the sensors' messages the manager would accept
+        (the engine's content test, bar the scan's own plan): measurements, or under a track
+        rule local tracks."""
+        engine = ScanEngine(cfg, ["load"])
+        engine.start_episode(0)
+        if engine.tracks:
             return load_recording(
                 samples,
                 run_id,
                 message=msg.LocalTrack,
                 label="local_track",
-                acceptable=usable_track,
+                acceptable=engine.usable,
+                commands=True,
             )
-        return load_recording(samples, run_id, acceptable=lambda m: usable_measurement(m.z, m.R))
+        return load_recording(samples, run_id, acceptable=engine.usable, commands=True)
 
     def recompute(
         self, cfg: Scenario, episodes: list[str], rec: Recorded, diffs: Differences
     ) -> ManagerResult:
-        if cfg.multitarget:
-            return _recompute_targets(cfg, episodes, rec, diffs)
         return _recompute(cfg, episodes, rec, diffs)
 
     def write(
@@ -178,124 +148,20 @@ command = REPLAY.command
 def _recompute(
     sc: Scenario, metrics: list[str], rec: Recorded, diffs: Differences
 ) -> ManagerResult:
-    """The manager's episode logs, recomputed from the recorded Status and Measurements."""
-    model = build_model(sc)
-    ids = model.sensor_ids
-    truth = truth_trajectory(model)
-    result = ManagerResult({}, NetStats())
+    """The manager's episode logs, recomputed by stepping the kind's engine with the recorded
+    Status, Commands and sensors' messages (module docstring)."""
+    engine = ScanEngine(sc, metrics)
+    ids = engine.ids
     completed = True
     for e, metric in enumerate(metrics):
         last = rec.last_scan(e)
         if last == 0:
             completed = False
             continue
-        log = result.episodes[metric] = EpisodeLog(metric)
+        engine.start_episode(e)
         where = f"episode {e} ({metric})"
-        est = initial_estimate(model, sc.filter.initial_estimate)
-        centre = CentreFilter(sc, model)  # the manager's own filter steps
         failed_prev: frozenset[str] = frozenset()
-        for k in range(1, model.scans + 1):
-            st = rec.status.get((e, k))
-            if st is None:
-                if k <= last:
-                    diffs.add(
-                        "status",
-                        f"{where}: no Status of scan {k} recorded (scans up "
-                        f"to {last} are); the replay of this episode stops at scan {k - 1}",
-                    )
-                break
-            pred = predict_step(model, est)
-            failed = frozenset(st.failed)
-            log.failures.extend(failure_events(failed_prev, failed, k))
-            failed_prev = failed
-            unavailable = frozenset(ids.index(s) for s in failed if s in ids)
-            t0 = time.perf_counter()
-            alloc = centre.decide(pred.P, k, metric, unavailable)
-            decision_s = time.perf_counter() - t0
-            enabled = tuple(ids[j] for j in alloc.subset)
-            if enabled != st.enabled:
-                diffs.add(
-                    "allocation",
-                    f"{where} scan {k}: replayed allocation {list(enabled)}"
-                    f" != recorded {list(st.enabled)}",
-                )
-            elif float(alloc.value) != st.value:
-                diffs.add(
-                    "value",
-                    f"{where} scan {k}: replayed objective {float(alloc.value)!r}"
-                    f" != recorded {st.value!r}",
-                )
-            got: dict[str, Any] = {}
-            for sid in st.fused:
-                m = rec.meas.get((e, k, sid))
-                if m is None or sid not in ids:
-                    diffs.add(
-                        "measurement",
-                        f"{where} scan {k}: the manager fused {sid} but no "
-                        "valid measurement of it is recorded",
-                    )
-                    continue
-                got[sid] = m
-            for token in st.refiltered or ():  # the late ones the manager re-filtered
-                sid, _, scan = token.rpartition(":")
-                m = rec.meas.get((e, int(scan), sid)) if scan.isdigit() else None
-                if m is None or not centre.insert_late(m):
-                    diffs.add(
-                        "refiltered",
-                        f"{where} scan {k}: the manager re-filtered {token} but the replay "
-                        "cannot (no valid recorded message, or not insertable)",
-                    )
-            pred = centre.prior(pred)
-            est = centre.fuse(k, pred, got)
-            if float(np.trace(est.P)) != st.trace_P:
-                diffs.add(
-                    "trace_P",
-                    f"{where} scan {k}: replayed tr P {float(np.trace(est.P))!r}"
-                    f" != recorded {st.trace_P!r}",
-                )
-            tr = next(iter(rec.tracks.get((e, k), ())), None)  # the first one received
-            if tr is not None and not (np.array_equal(tr.x, est.x) and np.array_equal(tr.P, est.P)):
-                dx = float(np.max(np.abs(tr.x - est.x)))
-                diffs.add(
-                    "track",
-                    f"{where} scan {k}: replayed estimate differs from the "
-                    f"recorded Track (max |dx| = {dx:.6g})",
-                )
-            log.record(len(ids), alloc, pred, est, nees(est, truth[k - 1]), decision_s)
-        if len(log.value) < model.scans:
-            completed = False
-    result.completed = completed
-    return result
-
-
-def _recompute_targets(
-    sc: Scenario, metrics: list[str], rec: Recorded, diffs: Differences
-) -> ManagerResult:
-    """The many-target manager's episode logs, recomputed from the recorded Commands, Status,
-    Measurements and Tracks (module docstring)."""
-    # start-up: the many-target steps only for configs with targets
-    from covnet.covariance_control import targets
-    from covnet.covariance_control.targets_centre import TargetEpisodeLog, TargetsCentre
-
-    tm = targets.build(sc)
-    ids, tids = tm.sensor_ids, tm.target_ids
-    truth = targets.truth_trajectories(tm)
-    result = ManagerResult({}, NetStats())
-    completed = True
-    for e, metric in enumerate(metrics):
-        last = rec.last_scan(e)
-        if last == 0:
-            completed = False
-            continue
-        log = result.episodes[metric] = TargetEpisodeLog.start(metric, tm, truth)
-        where = f"episode {e} ({metric})"
-        lat = sc.network.latency
-        history = None
-        if not lat.is_ideal(ids) and lat.late == "oosm":
-            history = targets.History(tm, lat.oosm_depth, sc.fusion.mode == "info")
-        centre = TargetsCentre(tm, history)  # the manager's own steps
-        failed_prev: frozenset[str] = frozenset()
-        for k in range(1, tm.scans + 1):
+        for k in range(1, engine.scans + 1):
             st = rec.status.get((e, k))
             if st is None:
                 if k <= last:
@@ -305,76 +171,77 @@ def _recompute_targets(
                         f"the replay of this episode stops at scan {k - 1}",
                     )
                 break
+            at = f"{where} scan {k}"
             failed = frozenset(st.failed)
-            log.failures.extend(failure_events(failed_prev, failed, k))
+            engine.failures(failure_events(failed_prev, failed, k))
             failed_prev = failed
-            plan = centre.decide(k, metric, frozenset(ids.index(s) for s in failed if s in ids))
-            enabled, tasks, windows = centre.command_fields(plan)
-            if enabled != st.enabled:
+            plan = engine.decide(k, engine.unavailable(failed))
+            if plan.enabled != st.enabled:
                 diffs.add(
                     "allocation",
-                    f"{where} scan {k}: replayed allocation {list(enabled)} != recorded "
+                    f"{at}: replayed allocation {list(plan.enabled)} != recorded "
                     f"{list(st.enabled)}",
                 )
-            elif float(plan.decision.value) != st.value:
+            elif float(plan.value) != st.value:
                 diffs.add(
                     "value",
-                    f"{where} scan {k}: replayed objective {float(plan.decision.value)!r} != "
-                    f"recorded {st.value!r}",
+                    f"{at}: replayed objective {float(plan.value)!r} != recorded {st.value!r}",
                 )
-            cmd = rec.commands.get((e, k))
-            if cmd is not None and (
-                cmd.targets != tasks
-                or msg.Command(k, 0.0, enabled, 0, windows=windows)
-                != msg.Command(k, 0.0, enabled, 0, windows=cmd.windows)
-            ):
-                diffs.add(
-                    "command",
-                    f"{where} scan {k}: the replayed targets or clutter windows are not the "
-                    "recorded Command's",
-                )
+            _check_command(at, rec.commands.get((e, k)), plan, diffs)
             got: dict[str, Any] = {}
             for sid in st.fused:
                 m = rec.meas.get((e, k, sid))
-                if (
-                    m is None
-                    or sid not in ids
-                    or (isinstance(m, msg.LocalTrack) and not centre.usable_track(m, plan))
-                ):
+                if m is None or sid not in ids or not engine.usable(m):
                     diffs.add(
                         "measurement",
-                        f"{where} scan {k}: the manager fused {sid} but no valid measurement of "
-                        "it is recorded",
+                        f"{at}: the manager fused {sid} but no valid measurement of it is recorded",
                     )
                     continue
                 got[sid] = m
             for token in st.refiltered or ():  # the late ones the manager re-filtered
                 sid, _, scan = token.rpartition(":")
                 m = rec.meas.get((e, int(scan), sid)) if scan.isdigit() else None
-                if m is None or not centre.insert_late(m):
+                if m is None or not engine.insert_late(m):
                     diffs.add(
                         "refiltered",
-                        f"{where} scan {k}: the manager re-filtered {token} but the replay "
-                        "cannot (no valid recorded message, or not insertable)",
+                        f"{at}: the manager re-filtered {token} but the replay cannot (no "
+                        "valid recorded message, or not insertable)",
                     )
-            prior, posts, dwells = centre.fuse(plan, got)
-            trace_P = float(sum(np.trace(g.P) for g in posts))
-            if trace_P != st.trace_P:
+            out = engine.report(plan, engine.fuse(plan, got), got)
+            if out.trace_P != st.trace_P:
                 diffs.add(
-                    "trace_P",
-                    f"{where} scan {k}: replayed tr P {trace_P!r} != recorded {st.trace_P!r}",
+                    "trace_P", f"{at}: replayed tr P {out.trace_P!r} != recorded {st.trace_P!r}"
                 )
-            recorded = {tr.target_id: tr for tr in rec.tracks.get((e, k), ())[::-1]}
-            for tid, g in zip(tids, posts, strict=True):
-                tr = recorded.get(tid)
-                if tr is not None and not (np.array_equal(tr.x, g.x) and np.array_equal(tr.P, g.P)):
-                    diffs.add(
-                        "track",
-                        f"{where} scan {k}: the replayed estimate of {tid} differs from its "
-                        f"recorded Track (max |dx| = {float(np.max(np.abs(tr.x - g.x))):.6g})",
-                    )
-            log.record(plan, prior, posts, dwells, sorted(st.fused))
-        if len(log.value) < tm.scans:
+            _check_tracks(at, rec.tracks.get((e, k), []), out, diffs)
+        if len(engine.result.episodes[metric].value) < engine.scans:
             completed = False
+    result = engine.result
     result.completed = completed
     return result
+
+
+def _check_command(at: str, cmd: msg.Command | None, plan: Plan, diffs: Differences) -> None:
+    """The recorded Command against the replayed plan: each sensor's target and clutter
+    window (the enabled set is the Status's check)."""
+    if cmd is None:
+        return
+    replayed = msg.Command(plan.k, 0.0, plan.enabled, 0, windows=plan.windows)
+    if cmd.targets != plan.targets or replayed != msg.Command(
+        plan.k, 0.0, plan.enabled, 0, windows=cmd.windows
+    ):
+        diffs.add(
+            "command",
+            f"{at}: the replayed targets or clutter windows are not the recorded Command's",
+        )
+
+
+def _check_tracks(at: str, recorded: list[msg.Track], out: Outcome, diffs: Differences) -> None:
+    """Each replayed estimate against the first recorded Track of its target, bit for bit."""
+    first = {tr.target_id: tr for tr in recorded[::-1]}
+    for tid, g in out.tracks:
+        tr = first.get(tid)
+        if tr is None or (np.array_equal(tr.x, g.x) and np.array_equal(tr.P, g.P)):
+            continue
+        dx = float(np.max(np.abs(tr.x - g.x))) if tr.x.shape == g.x.shape else float("nan")
+        what = "replayed estimate" if tid is None else f"the replayed estimate of {tid}"
+        diffs.add("track", f"{at}: {what} differs from the recorded Track (max |dx| = {dx:.6g})")

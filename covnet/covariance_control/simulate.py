@@ -1,26 +1,19 @@
-"""The in-process simulator: the whole scan loop of one scenario and one metric, no bus.
+"""What an in-process run of the covariance-control kind gives: its per-scan arrays
+(:class:`MetricRun`; many targets :class:`TargetsRun`) and the rows they are filled from.
 
-Per scan ``k = 1..N`` (time ``t_k = k T``)::
-
-    predict  x⁻, P⁻                       (from scan k-1, or from the initial estimate)
-    allocate D_opt = argmin_i f(P_i, P_d(t_k)) over the feasible subsets
-    measure  z_j(k) for j in D_opt          (sensor j's own noise stream (j, k))
-    fuse     sequential Joseph updates, ascending sensor index
+The scan loop itself is the kind's one engine (:class:`covnet.covariance_control.engine.
+ScanEngine`), stepped in this process by :mod:`covnet.covariance_control.drive`; the manager
+process and the replay step the same engine.  :func:`run_metric` and :func:`run_targets` are
+that driver's run of a config (any fusion rule at a centre, ideal or slow links), named as
+the tests and the API know them.
 
 Truth, initial estimate and every measurement come from counter-based streams of the seed
 (:mod:`covnet.core.streams`), so runs with different metrics share their random numbers and a
 multi-process run draws the very same ones.
-
-Many targets (a config with ``targets:``): :func:`run_targets` runs the same loop for ``T``
-targets with the steps of :mod:`covnet.covariance_control.targets` (each sensor dwells on one
-target or is off; returns with misses and clutter; PDA or nearest-neighbour updates) into a
-:class:`TargetsRun`.  On a paper config it gives :func:`run_metric`'s allocations and
-estimates bit for bit (a test).
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -29,16 +22,7 @@ import numpy as np
 from covnet.core.gaussian import Gaussian
 from covnet.core.kalman import nees
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.model import (
-    Model,
-    build_model,
-    decide,
-    fuse,
-    initial_estimate,
-    measure,
-    predict_step,
-    truth_trajectory,
-)
+from covnet.covariance_control.model import Model, truth_trajectory
 
 if TYPE_CHECKING:
     from covnet.covariance_control.targets import TargetsModel
@@ -137,33 +121,12 @@ class RunRows:
 
 
 def run_metric(sc: Scenario, metric: str, model: Model | None = None) -> MetricRun:
-    """Run the scan loop of ``sc`` with allocation metric ``metric``."""
-    model = model or build_model(sc)
-    truth = truth_trajectory(model)
-    N, Ns = model.scans, len(model.sensor_ids)
-    rows = RunRows(N, Ns)
-    est = initial_estimate(model, sc.filter.initial_estimate)
-    for i in range(N):
-        k = i + 1
-        pred = predict_step(model, est)
-        t0 = time.perf_counter()
-        alloc = decide(model, pred.P, k, metric)
-        dt = time.perf_counter() - t0
-        meas = [(j, measure(model, j, k, truth[i]), model.R[j]) for j in alloc.subset]
-        est = fuse(model, pred, meas)
-        rows.put(
-            i,
-            alloc.subset,
-            alloc.value,
-            pred,
-            est,
-            truth[i],
-            dt,
-            alloc.n_evaluated,
-            lower_bound=alloc.lower_bound,
-            gap=alloc.gap,
-        )
-    return rows.run(metric)
+    """``sc`` (one target) with allocation metric ``metric``: the in-process run
+    (:func:`covnet.covariance_control.drive.run`)."""
+    from covnet.covariance_control import drive
+
+    run: MetricRun = drive.run(sc, metric, model).run
+    return run
 
 
 # --------------------------------------------------------------------------------------------
@@ -276,34 +239,9 @@ class TargetRows:
 
 
 def run_targets(sc: Scenario, metric: str, tm: TargetsModel | None = None) -> TargetsRun:
-    """The scan loop of ``sc``'s targets with allocation metric ``metric`` (the steps of
-    :mod:`covnet.covariance_control.targets`, in this process)."""
-    from covnet.covariance_control import targets  # start-up: configs with targets only
+    """``sc``'s targets with allocation metric ``metric``: the in-process run
+    (:func:`covnet.covariance_control.drive.run`)."""
+    from covnet.covariance_control import drive
 
-    tm = tm or targets.build(sc)
-    truth = targets.truth_trajectories(tm)
-    N, T, K = len(tm.sensors), len(tm.targets), tm.scans
-    rows = TargetRows(K, N, T)
-    est = targets.initial_estimates(tm)
-    info = sc.fusion.mode == "info"  # each sensor's own filters, information fusion
-    local = [targets.LocalTargets(tm, j) for j in range(N)] if info else []
-    for i in range(K):
-        k = i + 1
-        preds = targets.predict_all(tm, est)
-        t0 = time.perf_counter()
-        dec = targets.decide(tm, preds, k, metric)
-        dt = time.perf_counter() - t0
-        windows = {j: targets.window(tm, j, preds[dec.assignment[j]]) for j in dec.subset}
-        returns = {
-            j: targets.dwell(tm, j, k, truth[dec.assignment[j], i], windows[j]) for j in dec.subset
-        }
-        if info:
-            tracks = {
-                j: local[j].track(dec.assignment[j], k, returns[j], windows[j])[0]
-                for j in dec.subset
-            }
-            est, dwells = targets.fuse_tracks(tm, preds, dec, tracks)
-        else:
-            est, dwells = targets.fuse(tm, preds, dec, returns, windows)
-        rows.put(i, dec, preds, est, dwells, truth[:, i], dt)
-    return rows.run(metric)
+    run: TargetsRun = drive.run(sc, metric, tm, many=True).run
+    return run

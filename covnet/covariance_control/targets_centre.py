@@ -21,17 +21,19 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.core.detection import ClutterWindow
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
 from covnet.covariance_control import targets
 from covnet.covariance_control.simulate import TargetRows, TargetsRun
 from covnet.covariance_control.targets import Dwell, TargetDecision, TargetsModel
+
+if TYPE_CHECKING:
+    from covnet import messages as msg
 
 __all__ = ["ScanPlan", "TargetEpisodeLog", "TargetsCentre"]
 
@@ -51,8 +53,11 @@ class ScanPlan:
 class TargetsCentre:
     """One episode of the many-target centre (module docstring)."""
 
-    def __init__(self, tm: TargetsModel, history: targets.History | None = None) -> None:
+    def __init__(
+        self, tm: TargetsModel, history: targets.History | None = None, *, tracks: bool = False
+    ) -> None:
         self.tm = tm
+        self.tracks = tracks  # the sensors send local tracks (fusion.mode: info), not returns
         self.ids = tm.sensor_ids
         self.est = targets.initial_estimates(tm)
         self.history = history
@@ -65,7 +70,7 @@ class TargetsCentre:
         if self.history is None or m.sensor_id not in self.ids:
             return False
         j = self.ids.index(m.sensor_id)
-        if isinstance(m, msg.LocalTrack):  # a track of the target the sensor dwelt on then
+        if self.tracks:  # a track of the target the sensor dwelt on then
             a = self.history.assignment(m.scan, j)
             if a is None or a < 0 or self.tm.target_ids[a] != m.target_id:
                 return False
@@ -80,9 +85,8 @@ class TargetsCentre:
         out, self.refiltered = tuple(self.refiltered), []
         return out
 
-    @staticmethod
-    def _payload(m: Any) -> Any:
-        if isinstance(m, msg.LocalTrack):
+    def _payload(self, m: Any) -> Any:
+        if self.tracks:
             return LocalTrack(post=Gaussian(m.x, m.P), prior=Gaussian(m.x_prior, m.P_prior))
         return m.z
 
@@ -144,7 +148,7 @@ class TargetsCentre:
             if h.changed:
                 prior = h.predicted()
             posts, dwells = h.step(plan.k, prior, plan.decision, plan.windows, payloads)
-        elif any(isinstance(m, msg.LocalTrack) for m in got.values()):
+        elif self.tracks:
             posts, dwells = targets.fuse_tracks(self.tm, prior, plan.decision, payloads)
         else:
             posts, dwells = targets.fuse(self.tm, prior, plan.decision, payloads, plan.windows)

@@ -1,0 +1,506 @@
+"""THE scan logic of the covariance-control kind: one engine that every driver steps.
+
+Per episode ``e`` (one per allocation metric) and scan ``k = 1..N``, whoever drives it::
+
+    decide   x⁻, P⁻ = predict(x, P) (every target);  the allocation of scan k from P⁻ and
+             the sensors that failed (one target: argmin over the feasible subsets of
+             f(P_i, P_d(t_k)), P_i the fusion rule's covariance; many targets: the assignment
+             of sensors to targets), and what the command says (enabled set, each one's
+             target and clutter window)                                        ScanEngine.decide
+    ahead    work that does not need the measurements (the Kalman gains, the next decision
+             if everything arrives); used only when what arrives is what it assumed  .ahead
+    usable   the kind's test of a message's content (the wire checked its form)  .usable
+    late     a message of an earlier scan (slow links): re-filtered from its scan (OOSM) or
+             dropped, as the fusion rule allows                               .insert_late
+    fuse     the fusion point's posterior from what arrived                            .fuse
+    report   the episode log's row and the scan's outcome (tracks, status numbers)   .report
+
+The drivers, each a loop over these steps and nothing else:
+
+- ``covnet run``: :mod:`covnet.covariance_control.drive` steps it in this process, the
+  sensors' responses (:class:`SensorSide`) handed over directly, or over the simulated slow
+  links of ``network.latency`` (:mod:`covnet.covariance_control.latency_sim`);
+- ``covnet up``: the manager process (:mod:`manager.covariance`) steps it in
+  :func:`manager.loop.run_scans` over zenoh;
+- ``covnet replay``: :mod:`covnet.covariance_control.replay` steps it with the messages of the
+  recording.
+
+So ``run ≡ up ≡ replay`` holds by construction.  What varies between configs (one target or
+many, the fusion rule, slow links, the search) is an entry the engine consults: the
+``FUSION_RULES`` registry, the targets model, the late handler; never a branch in a driver.
+
+Messages the engine reads are duck-typed: :class:`covnet.messages.Measurement` and
+:class:`~covnet.messages.LocalTrack` over the bus, :class:`Measured` and :class:`Tracked` in
+process (the same field names), so ``covnet run`` never imports the wire schemas.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from covnet.core.allocation import Allocation
+from covnet.core.gaussian import Gaussian
+from covnet.core.kalman import nees
+from covnet.covariance_control.centre import (
+    CentreFilter,
+    EpisodeLog,
+    Gains,
+    ManagerResult,
+    usable_position,
+    usable_track,
+)
+from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.fusion_rules import rule_for
+from covnet.covariance_control.model import (
+    Model,
+    build_model,
+    decide,
+    initial_estimate,
+    measure,
+    predict_cov,
+    predict_step,
+    truth_trajectory,
+)
+from covnet.runtime_stats import NetStats
+
+__all__ = [
+    "Measured",
+    "Outcome",
+    "Plan",
+    "ScanEngine",
+    "SensorSide",
+    "Tracked",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# what travels, in process
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Measured:
+    """A sensor's measurement (returns, with targets) of a scan, in process: the fields of
+    :class:`covnet.messages.Measurement` the engine reads."""
+
+    sensor_id: str
+    scan: int
+    episode: int
+    z: np.ndarray  # (m, dim_z)
+    R: np.ndarray
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """A sensor's local track of a scan, in process: the fields of
+    :class:`covnet.messages.LocalTrack` the engine reads."""
+
+    sensor_id: str
+    scan: int
+    episode: int
+    x: np.ndarray
+    P: np.ndarray
+    x_prior: np.ndarray
+    P_prior: np.ndarray
+    target_id: str | None = None
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Scan ``k``'s decision: the command's fields (``enabled`` sensor ids; with targets each
+    one's target ``{sensor: (target id,)}`` and clutter window ``{sensor: vector}``), the
+    objective ``value``, the sensors' indices ``subset``, how long deciding took, and the
+    centre's own record of the decision (``detail``)."""
+
+    k: int
+    subset: tuple[int, ...]
+    enabled: tuple[str, ...]
+    value: float
+    decision_s: float
+    detail: Any
+    targets: dict[str, tuple[str, ...]] | None = None
+    windows: dict[str, np.ndarray] | None = None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a fused scan reports: ``tracks`` (target id or None, estimate), the enabled set,
+    the objective value, ``tr P`` and ``tr P_d`` (summed over targets), the sensors whose
+    messages were fused, the late ones re-filtered into earlier scans (``None``: no late
+    handling), and what a bounded or greedy search certified (``lower_bound``, ``gap``)."""
+
+    k: int
+    tracks: tuple[tuple[str | None, Gaussian], ...]
+    enabled: tuple[str, ...]
+    value: float
+    trace_P: float
+    trace_Pd: float
+    fused: tuple[str, ...]
+    refiltered: tuple[str, ...] | None
+    lower_bound: float | None = None
+    gap: float | None = None
+    per_target: tuple[tuple[str, int], ...] | None = None  # sensors on each target
+
+    def lines(self, scans: int, n_sensors: int) -> dict[str, Any]:
+        """The live view's numbers and lines of this scan (``info``, ``info_short``)."""
+        k, on = self.k, len(self.enabled)
+        live: dict[str, Any] = {"trace_P": self.trace_P, "trace_Pd": self.trace_Pd}
+        if self.per_target is not None:
+            per = "  ".join(f"{tid}:{n}" for tid, n in self.per_target)
+            info = (
+                f"scan {k}/{scans}  on {on}/{n_sensors} ({per})  "
+                f"tr P {self.trace_P:.1f} / tr Pd {self.trace_Pd:.1f}"
+            )
+        else:
+            info = (
+                f"scan {k}/{scans}  enabled {','.join(self.enabled) or '-'}  "
+                f"tr P {self.trace_P:.1f} / tr Pd {self.trace_Pd:.1f}"
+            )
+        short = f"{k}/{scans} {on}/{n_sensors} on  trP {self.trace_P:.0f}/{self.trace_Pd:.0f}"
+        if self.per_target is None and self.lower_bound is not None and self.gap is not None:
+            lb = self.lower_bound if math.isfinite(self.lower_bound) else None
+            live |= {"value": self.value, "lower_bound": lb, "gap": self.gap}
+            info += f"  f {self.value:.4g} (gap {100 * self.gap:.3g} %)"
+            short += f"  gap {100 * self.gap:.3g}%"
+        return live | {"info": info, "info_short": short}
+
+
+# --------------------------------------------------------------------------------------------
+# the fusion point of one episode: one target, or many
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Speculation:
+    """The allocation of scan ``k``, decided while scan ``k-1``'s measurements were on their
+    way, from the covariance the filter reaches if every enabled sensor's measurement arrives.
+    It is used only when the real predicted covariance is bit for bit that one and the failed
+    set is unchanged, so it never changes a decision, only when it is made."""
+
+    k: int
+    P_pred: np.ndarray
+    unavailable: frozenset[int]
+    alloc: Allocation
+    decision_s: float
+
+    def matches(self, k: int, P_pred: np.ndarray, unavailable: frozenset[int]) -> bool:
+        return (
+            self.k == k and self.unavailable == unavailable and np.array_equal(self.P_pred, P_pred)
+        )
+
+
+class _OneTarget:
+    """One episode of the paper's fusion centre: one target, any fusion rule
+    (:class:`~covnet.covariance_control.centre.CentreFilter`), ideal or slow links."""
+
+    def __init__(self, sc: Scenario, model: Model, metric: str, truth: np.ndarray) -> None:
+        self.sc, self.model, self.metric, self.truth = sc, model, metric, truth
+        self.ids = model.sensor_ids
+        self.rule = rule_for(sc.fusion)
+        self.slow = not sc.network.latency.is_ideal(self.ids)
+        self.est = initial_estimate(model, sc.filter.initial_estimate)
+        self.centre = CentreFilter(sc, model)
+        self.spec: _Speculation | None = None
+        self.gains: Gains | None = None
+        self.log = EpisodeLog(metric)
+
+    def decide(self, k: int, unavailable: frozenset[int]) -> Plan:
+        pred = predict_step(self.model, self.est)
+        spec = self.spec
+        if spec is not None and spec.matches(k, pred.P, unavailable):
+            alloc, decision_s = spec.alloc, spec.decision_s  # decided ahead, exactly
+        else:
+            t0 = time.perf_counter()
+            alloc = self.centre.decide(pred.P, k, self.metric, unavailable)
+            decision_s = time.perf_counter() - t0
+        subset = alloc.subset
+        enabled = tuple(self.ids[j] for j in subset)
+        return Plan(k, subset, enabled, alloc.value, decision_s, (pred, alloc, unavailable))
+
+    def ahead(self, plan: Plan) -> None:
+        """The Kalman gains of every enabled sensor's update and the next scan's decision from
+        the covariance they give (ideal links, a rule that fuses measurements)."""
+        self.gains = None
+        if self.rule.tracks or self.slow:
+            return
+        pred, alloc, unavailable = plan.detail
+        self.gains = Gains.of(self.model, pred.P, alloc.subset)
+        k_next = plan.k + 1
+        self.spec = None
+        if k_next <= self.model.scans:
+            t0 = time.perf_counter()
+            P_next = predict_cov(self.model, self.gains.P_post)
+            nxt = decide(self.model, P_next, k_next, self.metric, unavailable)
+            self.spec = _Speculation(k_next, P_next, unavailable, nxt, time.perf_counter() - t0)
+
+    def usable(self, m: Any) -> bool:
+        return usable_track(m) if self.rule.tracks else usable_position(m)
+
+    def insert_late(self, m: Any) -> bool:
+        return self.centre.insert_late(m)
+
+    def fuse(self, plan: Plan, got: dict[str, Any]) -> Any:
+        pred = self.centre.prior(plan.detail[0])  # re-filtered late messages change the prior
+        gains, self.gains = self.gains, None
+        self.est = self.centre.fuse(plan.k, pred, got, gains)
+        late = self.centre.late
+        refiltered = late.take_refiltered() if late is not None else None
+        return pred, self.est, refiltered
+
+    def report(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
+        pred, est, refiltered = fused
+        alloc, k = plan.detail[1], plan.k
+        self.log.record(
+            len(self.ids), alloc, pred, est, nees(est, self.truth[k - 1]), plan.decision_s
+        )
+        return Outcome(
+            k,
+            ((None, est),),
+            plan.enabled,
+            float(alloc.value),
+            float(np.trace(est.P)),
+            float(np.trace(self.model.desired(k))),
+            tuple(sorted(got, key=self.ids.index)),
+            refiltered,
+            alloc.lower_bound,
+            alloc.gap,
+        )
+
+
+class _ManyTargets:
+    """One episode of the many-target centre (:class:`~covnet.covariance_control.
+    targets_centre.TargetsCentre`): each sensor dwells on one target or is off."""
+
+    def __init__(self, sc: Scenario, tm: Any, metric: str, truth: np.ndarray) -> None:
+        from covnet.covariance_control import targets
+        from covnet.covariance_control.targets_centre import TargetEpisodeLog, TargetsCentre
+
+        self.tm, self.metric = tm, metric
+        self.ids = tm.sensor_ids
+        self.tracks = rule_for(sc.fusion).tracks
+        lat = sc.network.latency
+        history = None
+        if not lat.is_ideal(self.ids) and lat.late == "oosm":
+            history = targets.History(tm, lat.oosm_depth, self.tracks)
+        self.centre = TargetsCentre(tm, history, tracks=self.tracks)
+        self.log = TargetEpisodeLog.start(metric, tm, truth)
+
+    def decide(self, k: int, unavailable: frozenset[int]) -> Plan:
+        sp = self.centre.decide(k, self.metric, unavailable)
+        enabled, tasks, windows = self.centre.command_fields(sp)
+        dec = sp.decision
+        return Plan(k, dec.subset, enabled, dec.value, sp.decision_s, sp, tasks, windows)
+
+    def ahead(self, plan: Plan) -> None:
+        pass
+
+    def usable(self, m: Any, plan: Plan | None) -> bool:
+        if self.tracks:
+            return self.centre.usable_track(m, None if plan is None else plan.detail)
+        return self.centre.usable(m)
+
+    def insert_late(self, m: Any) -> bool:
+        return self.centre.insert_late(m)
+
+    def fuse(self, plan: Plan, got: dict[str, Any]) -> Any:
+        prior, posts, dwells = self.centre.fuse(plan.detail, got)
+        return prior, posts, dwells, self.centre.take_refiltered()
+
+    def report(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
+        prior, posts, dwells, refiltered = fused
+        sp, tm, ids = plan.detail, self.tm, self.ids
+        self.log.record(sp, prior, posts, dwells, sorted(got))
+        k = plan.k
+        return Outcome(
+            k,
+            tuple(zip(tm.target_ids, posts, strict=True)),
+            plan.enabled,
+            float(sp.decision.value),
+            float(sum(np.trace(g.P) for g in posts)),
+            float(sum(np.trace(tg.desired(k)) for tg in tm.targets)),
+            tuple(sorted(got, key=ids.index)),
+            refiltered,
+            per_target=tuple(
+                (tid, len(sp.decision.on_target(i))) for i, tid in enumerate(tm.target_ids)
+            ),
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# the engine
+# --------------------------------------------------------------------------------------------
+
+
+class ScanEngine:
+    """The scan logic of a covariance-control config (module docstring): every episode
+    (``metrics``, default ``allocation.metrics``) of one target or many, under the config's
+    fusion rule and links.  ``result`` holds each episode's log (a
+    :class:`~covnet.covariance_control.centre.ManagerResult`; ``stats`` is the driver's
+    counts, empty in process)."""
+
+    def __init__(
+        self,
+        sc: Scenario,
+        metrics: Sequence[str] | None = None,
+        *,
+        model: Any = None,
+        stats: NetStats | None = None,
+        many: bool | None = None,
+    ) -> None:
+        if sc.fusion.mode == "peer":
+            raise ValueError("peer mode has no fusion centre to step")
+        self.sc = sc
+        self.episodes = list(sc.allocation.metrics if metrics is None else metrics)
+        # the many-target centre (a config with targets:, or any config through its steps)
+        self.many = sc.multitarget if many is None else many
+        if self.many:
+            from covnet.covariance_control import targets  # start-up: configs with targets
+
+            tm = model if model is not None else targets.build(sc)
+            self.model: Any = tm
+            self.truth = targets.truth_trajectories(tm)
+            self.scans, self.period_s = tm.scans, tm.T
+        else:
+            self.model = model if model is not None else build_model(sc)
+            self.truth = truth_trajectory(self.model)
+            self.scans, self.period_s = self.model.scans, self.model.T
+        self.ids: tuple[str, ...] = self.model.sensor_ids
+        self.rule = rule_for(sc.fusion)
+        self.tracks = self.rule.tracks  # sensors send local tracks, not measurements
+        # slow links (network.latency): late messages are re-filtered (or dropped); one
+        # target: a sensor that measured on its missed-command fallback is fused too
+        self.slow = not sc.network.latency.is_ideal(self.ids)
+        self.accept_unsolicited = self.slow and not self.many
+        self.result = ManagerResult({}, stats if stats is not None else NetStats())
+        self.episode: _OneTarget | _ManyTargets | None = None
+        self.plan: Plan | None = None
+
+    def start_episode(self, e: int) -> None:
+        metric = self.episodes[e]
+        if self.many:
+            self.episode = _ManyTargets(self.sc, self.model, metric, self.truth)
+        else:
+            self.episode = _OneTarget(self.sc, self.model, metric, self.truth)
+        self.result.episodes[metric] = self.episode.log
+        self.plan = None
+
+    def _current(self) -> _OneTarget | _ManyTargets:
+        if self.episode is None:
+            raise RuntimeError("start_episode first")
+        return self.episode
+
+    def failures(self, events: list[dict[str, Any]]) -> None:
+        """Failures and rejoins seen at the current scan, for the episode's log."""
+        self._current().log.failures.extend(events)
+
+    def decide(self, k: int, unavailable: frozenset[int] = frozenset()) -> Plan:
+        """Scan ``k``'s plan; ``unavailable``: the sensors (indices) that failed."""
+        self.plan = self._current().decide(k, unavailable)
+        return self.plan
+
+    def unavailable(self, failed: frozenset[str]) -> frozenset[int]:
+        """The indices of the failed sensors (node ids that are not sensors left out)."""
+        return frozenset(self.ids.index(s) for s in failed if s in self.ids)
+
+    def ahead(self, plan: Plan) -> None:
+        self._current().ahead(plan)
+
+    def usable(self, m: Any) -> bool:
+        """The content test of a sensor's message (for the current scan, or a late one)."""
+        ep = self._current()
+        if isinstance(ep, _ManyTargets):
+            return ep.usable(m, self.plan)
+        return ep.usable(m)
+
+    def insert_late(self, m: Any) -> bool:
+        """A late message of an earlier scan of this episode: True when re-filtered."""
+        return self.slow and self._current().insert_late(m)
+
+    def fuse(self, plan: Plan, got: dict[str, Any]) -> Any:
+        """Fuse what arrived for ``plan``'s scan (``sensor id -> message``)."""
+        return self._current().fuse(plan, got)
+
+    def report(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
+        """Log the scan in the episode's log; its outcome."""
+        return self._current().report(plan, fused, got)
+
+    def run_of(self, metric: str) -> Any:
+        """Episode ``metric``'s arrays: a :class:`~covnet.covariance_control.simulate.
+        MetricRun` (many targets: a :class:`~covnet.covariance_control.simulate.TargetsRun`)."""
+        log = self.result.episodes[metric]
+        return log.as_run() if self.many else log.as_run(len(self.ids))
+
+
+# --------------------------------------------------------------------------------------------
+# the sensors' side, in process
+# --------------------------------------------------------------------------------------------
+
+
+class SensorSide:
+    """What sensor ``j`` sends for a scan it measures, as the sensor process computes it
+    (:mod:`sensors.covariance`): one target, its measurement ``z = H x + v`` from its noise
+    stream ``(seed, j, k)``, or under a track rule its own filter's local track (predicted
+    lazily up to the scan, updated with its measurement); many targets, its dwell's returns on
+    the commanded target in the commanded clutter window, or under ``info`` its own filter's
+    track of that target.  A new episode restarts its filters."""
+
+    def __init__(self, engine: ScanEngine, j: int) -> None:
+        self.engine, self.j = engine, j
+        self.sensor_id = engine.ids[j]
+        self.episode = -1
+        self.local: Any = None
+
+    def _start(self, episode: int) -> None:
+        eng = self.engine
+        self.episode = episode
+        if eng.many:
+            from covnet.covariance_control import targets
+
+            self.local = targets.LocalTargets(eng.model, self.j) if eng.tracks else None
+        elif eng.tracks:
+            from covnet.covariance_control.decentral import LocalFilter
+
+            self.local = LocalFilter(eng.model, eng.sc.filter.initial_estimate)
+
+    def respond(self, episode: int, scan: int, plan: Plan | None) -> Measured | Tracked | None:
+        """The message of scan ``scan`` (``plan``: that scan's plan, which names the target
+        and clutter window with many targets; ``None``: measured on a missed command's
+        fallback, one target only); ``None`` when the plan gives it no dwell."""
+        if episode != self.episode:
+            self._start(episode)
+        eng, j, sid = self.engine, self.j, self.sensor_id
+        if eng.many:
+            return self._dwell(episode, scan, plan)
+        model = eng.model
+        z = measure(model, j, scan, eng.truth[scan - 1])
+        if not eng.tracks:
+            return Measured(sid, scan, episode, z[None, :], model.R[j])
+        prior = self.local.predict_to(episode, scan)
+        tr = eng.rule.local(model, j, prior, z)
+        self.local.set(tr.post)
+        return Tracked(sid, scan, episode, tr.post.x, tr.post.P, prior.x, prior.P)
+
+    def _dwell(self, episode: int, scan: int, plan: Plan | None) -> Measured | Tracked | None:
+        from covnet.covariance_control import targets
+
+        eng, j, sid = self.engine, self.j, self.sensor_id
+        if plan is None:
+            return None
+        sp = plan.detail
+        t = sp.decision.assignment[j]
+        if t == targets.OFF:
+            return None
+        tm = eng.model
+        win = sp.windows[j]
+        Z = targets.dwell(tm, j, scan, eng.truth[t, scan - 1], win)
+        if not eng.tracks:
+            return Measured(sid, scan, episode, Z, tm.sensors[j].R)
+        tr = self.local.track(t, scan, Z, win)[0]
+        tid = tm.target_ids[t]
+        return Tracked(sid, scan, episode, tr.post.x, tr.post.P, tr.prior.x, tr.prior.P, tid)

@@ -1,0 +1,212 @@
+"""Slow, lossy links in simulated time: the transport ``covnet run`` steps the scan engine over
+when ``network.latency`` is not ideal (application-level emulation).
+
+The network of ``network.latency`` (per sensor an uplink and a downlink
+:class:`~covnet.core.delay.LinkSpec`, each drawing from its own stream of the seed) between the
+sensors and the fusion centre, with the real-time protocol of ``covnet up --realtime`` (``T`` the
+period, ``δ`` the ``network.deadline_fraction``, ``t_k = k T``, ``d_k = t_k + δ T`` the
+deadline of scan k)::
+
+    at t_k    the centre decides scan k (from what it had fused by d_{k-1}) and sends
+              Command(k) down every link
+    on receipt of Command(k) at a sensor (time a):
+              older than its newest command: stale, ignored;
+              scans it never got a command for (lost or overtaken) are filled by
+              ``missed_command``: keep_last (its newest command's on/off), off or on, measured
+              now (so late; with targets always off: no target, no clutter window);
+              if enabled: it measures scan k (noise stream (j, k)) and sends at a
+    at d_k    the centre: (1) late messages that arrived in (d_{k-1}, d_k] (scans < k) go to
+              the engine (re-filtered from their scan, ``late: oosm``, exact, up to
+              ``oosm_depth`` scans back, or dropped); (2) it fuses scan k's messages that
+              arrived by d_k
+
+So a measurement is on time when its command's delay plus its own delay is at most ``δ T``.
+A message lost by its link never arrives.  The centre fuses what it received, whoever sent it
+(it knows what each sensor did from what arrives: one that measured on its fallback is fused
+too).  With ideal links everything arrives on time and the run is the plain one.
+
+``allocation.account_for_loss``: the decision scales sensor ``j``'s information by its
+probability ``p_j`` of delivering on time (command and measurement both arrive, within ``δ T``
+together; estimated once from ``20 000`` draws of a dedicated stream per link), i.e. it
+allocates on the *expected* information ``Σ p_j J_j`` (``ci``: each local track's expected
+information ``Y⁻ + p_j (Y⁺ − Y⁻)``); the fusion itself uses what arrives
+(:class:`~covnet.covariance_control.centre.CentreFilter`, the same in the manager).
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from covnet.core.delay import DOWN, UP, LinkSpec, LinkState, link_stream
+from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.model import Model
+
+if TYPE_CHECKING:
+    from covnet.covariance_control.engine import Plan, ScanEngine
+
+PROBABILITY_DRAWS = 20_000
+_PROB_STREAM_OFFSET = 1_000  # link indices of the delivery-probability estimate's own streams
+
+
+@dataclass
+class LatencyCounts:
+    """What the links did in one run (summed over scans)."""
+
+    commanded: int = 0  # sensors enabled by the centre's commands
+    commands_missed: int = 0  # (sensor, scan) whose command was late or lost at t_k
+    measured: int = 0  # measurements (or tracks) sensors sent
+    unsolicited: int = 0  # ... by a sensor not enabled for that scan (a stale command)
+    on_time: int = 0  # fused at their own scan's deadline
+    late_refiltered: int = 0  # late, re-filtered from their scan (OOSM)
+    late_dropped: int = 0  # late and dropped (policy drop, too old for the buffer, or CI)
+    lost: int = 0  # never arrived
+    deadline_misses: int = 0  # scans where something sent for them was not fused on time
+    per_scan_fused: list[int] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k != "per_scan_fused"}
+
+
+def link_specs(sc: Scenario) -> tuple[list[LinkSpec], list[LinkSpec]]:
+    """Per sensor (table order) the uplink and downlink specs."""
+    lat = sc.network.latency
+    return (
+        [lat.link(s, "uplink") for s in sc.sensor_ids],
+        [lat.link(s, "downlink") for s in sc.sensor_ids],
+    )
+
+
+def _delays(link: LinkSpec, rng: np.random.Generator) -> np.ndarray:
+    """:data:`PROBABILITY_DRAWS` one-way delays of ``link`` (``inf`` where lost)."""
+    d = link.delay.sample(rng, PROBABILITY_DRAWS)
+    if link.jitter_s > 0:
+        d = d + link.jitter_s * rng.standard_normal(PROBABILITY_DRAWS)
+    lost = rng.random(PROBABILITY_DRAWS) < link.loss
+    return np.where(lost, np.inf, np.maximum(d, 0.0))
+
+
+def delivery_probabilities(sc: Scenario) -> np.ndarray:
+    """``p_j = P(down_j + up_j <= δ T)``, lost messages never arriving (module docstring)."""
+    horizon = sc.network.deadline_fraction * sc.period_s
+    up, down = link_specs(sc)
+    p = []
+    for j, (u, dn) in enumerate(zip(up, down, strict=True)):
+        i = _PROB_STREAM_OFFSET + j
+        total = _delays(dn, link_stream(sc.seed, i, DOWN)) + _delays(u, link_stream(sc.seed, i, UP))
+        p.append(float(np.mean(total <= horizon)))
+    return np.array(p)
+
+
+def loss_aware_model(model: Model, p: np.ndarray) -> Model:
+    """``model`` whose allocation uses the expected gains ``p_j J_j`` (a sensor that never
+    delivers gets a tiny gain, so the plan stays valid)."""
+    gains = np.maximum(p, 1e-12)[:, None, None] * model.gains
+    return replace(model, gains_given=gains, plans={}, _derived={})
+
+
+@dataclass
+class _Receiver:
+    """A sensor's view of the commands: the newest it acted on, and whether it was on."""
+
+    newest: int = 0
+    last_on: bool = False
+
+
+class SlowLinks:
+    """The transport of the module docstring for one episode of ``engine``: what
+    :func:`covnet.covariance_control.drive.run_engine` calls each scan, and the counts."""
+
+    def __init__(self, engine: ScanEngine, episode: int) -> None:
+        from covnet.covariance_control.engine import SensorSide
+
+        sc = engine.sc
+        self.engine, self.episode = engine, episode
+        self.lat = sc.network.latency
+        self.T, self.delta = engine.period_s, sc.network.deadline_fraction
+        up_specs, down_specs = link_specs(sc)
+        self.up = [LinkState(s, link_stream(sc.seed, j, UP)) for j, s in enumerate(up_specs)]
+        self.down = [LinkState(s, link_stream(sc.seed, j, DOWN)) for j, s in enumerate(down_specs)]
+        n = len(engine.ids)
+        self.sensors = [SensorSide(engine, j) for j in range(n)]
+        self.receivers = [_Receiver() for _ in range(n)]
+        self.counts = LatencyCounts()
+        self.seq = itertools.count()
+        self.commands: list[tuple[float, int, int, int]] = []  # heap: (arrival, seq, j, scan)
+        self.pending: list[tuple[float, int, int, int, Any]] = []  # (arrival, seq, scan, j, m)
+        self.plans: dict[int, Plan] = {}
+        self.sent_for = np.zeros(engine.scans + 1, dtype=np.int64)  # messages sent per scan
+        self.on_time_for = np.zeros(engine.scans + 1, dtype=np.int64)
+
+    def _send(self, j: int, scan: int, at: float, plan: Plan | None) -> None:
+        """Sensor ``j`` measures scan ``scan`` at time ``at`` and sends it up its link."""
+        m = self.sensors[j].respond(self.episode, scan, plan)
+        if m is None:
+            return
+        self.counts.measured += 1
+        self.sent_for[scan] += 1
+        a = self.up[j].on_send(at)
+        if a is None:
+            self.counts.lost += 1
+        else:
+            heapq.heappush(self.pending, (a, next(self.seq), scan, j, m))
+
+    def exchange(self, plan: Plan) -> tuple[list[Any], dict[str, Any]]:
+        """Scan ``plan.k``: the command down every link at ``t_k``, the sensors' answers up
+        theirs; at ``d_k``, the late messages (earlier scans) and scan ``k``'s on time."""
+        k, counts = plan.k, self.counts
+        t_k = k * self.T
+        self.plans[k] = plan
+        counts.commanded += len(plan.subset)
+        for j, link in enumerate(self.down):  # Command(k) goes out on every downlink at t_k
+            a = link.on_send(t_k)
+            if a is not None:
+                heapq.heappush(self.commands, (a, next(self.seq), j, k))
+        d_k = t_k + self.delta * self.T
+        # a missed command's fallback; with targets always off (no target, no window)
+        fallback = "off" if self.engine.many else self.lat.missed_command
+        # the sensors act on the commands that reach them by d_k, in time order
+        while self.commands and self.commands[0][0] <= d_k:
+            a, _, j, scan = heapq.heappop(self.commands)
+            rx = self.receivers[j]
+            if scan <= rx.newest:
+                continue  # overtaken by a newer command: stale
+            for m in range(rx.newest + 1, scan):  # commands it never got: its fallback
+                counts.commands_missed += 1
+                if {"keep_last": rx.last_on, "off": False, "on": True}[fallback]:
+                    counts.unsolicited += 1
+                    self._send(j, m, a, None)
+            on = j in self.plans[scan].subset
+            rx.newest, rx.last_on = scan, on
+            if on:
+                self._send(j, scan, a, self.plans[scan])
+        on_time: dict[int, Any] = {}
+        late: list[Any] = []
+        while self.pending and self.pending[0][0] <= d_k:
+            _, _, scan, j, m = heapq.heappop(self.pending)
+            if scan == k:
+                on_time[j] = m
+            else:
+                late.append(m)
+        counts.on_time += len(on_time)
+        self.on_time_for[k] = len(on_time)
+        counts.per_scan_fused.append(len(on_time))
+        ids = self.engine.ids
+        return late, {ids[j]: on_time[j] for j in sorted(on_time)}
+
+    def late(self, refiltered: bool) -> None:
+        """What became of a late message."""
+        if refiltered:
+            self.counts.late_refiltered += 1
+        else:
+            self.counts.late_dropped += 1
+
+    def finish(self) -> LatencyCounts:
+        """The counts, once the episode is over (what is still in flight never arrived)."""
+        self.counts.lost += len(self.pending)
+        self.counts.deadline_misses = int(np.sum(self.sent_for > self.on_time_for))
+        return self.counts
