@@ -4,8 +4,10 @@
 (:mod:`foxglove_jsonschema`, its rules written out) rejects a whole channel for one field typed
 ``["number", "null"]``, and then plots nothing.  Checked here: the checker itself, the schemas
 of the visual channels, the schemas the live view advertises to a real WebSocket client, and
-the numbers messages of a scan that lacks values.  (Each kind's ``covnet run --mcap`` file is
-checked in ``test_visual.py``, the network recordings in the integration tests.)"""
+the numbers messages of a scan that lacks values; and which WebSocket subprotocols the live
+view accepts (what the README says of the viewers that can connect).  (Each kind's
+``covnet run --mcap`` file is checked in ``test_visual.py``, the network recordings in the
+integration tests.)"""
 
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ import pytest
 import yaml
 from foxglove_jsonschema import message_problems, schema_problems
 from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
 
 from covnet import kinds
 from covnet import messages as msg
@@ -112,6 +115,39 @@ def test_live_view_advertises_schemas_foxglove_parses():
     for c in json_channels:
         assert c["schemaEncoding"] == "jsonschema"
         assert schema_problems(json.loads(c["schema"])) == [], c["topic"]
+
+
+async def _subprotocol(port: int, offered: list[str]) -> str | int:
+    """The subprotocol the live view picks among ``offered``, or the HTTP status refusing it."""
+    try:
+        async with connect(f"ws://127.0.0.1:{port}", subprotocols=offered) as ws:
+            return str(ws.subprotocol)
+    except InvalidStatus as exc:
+        return exc.response.status_code
+
+
+def test_live_view_speaks_only_the_sdk_subprotocols():
+    """The SDK's server accepts ``foxglove.sdk.v1`` (and ``foxglove.sdk.v1.1``, preferred) and
+    refuses the older ``foxglove.websocket.v1``: a viewer offering only that cannot connect."""
+    live = LiveView("127.0.0.1", free_port())
+    try:
+        got = {
+            name: asyncio.run(_subprotocol(live.port, offered))
+            for name, offered in {
+                "sdk.v1": ["foxglove.sdk.v1"],
+                "both sdk": ["foxglove.sdk.v1", "foxglove.sdk.v1.1"],
+                "old and sdk.v1": ["foxglove.websocket.v1", "foxglove.sdk.v1"],
+                "old only": ["foxglove.websocket.v1"],
+            }.items()
+        }
+    finally:
+        live.close()
+    assert got == {
+        "sdk.v1": "foxglove.sdk.v1",
+        "both sdk": "foxglove.sdk.v1.1",
+        "old and sdk.v1": "foxglove.sdk.v1",
+        "old only": 400,
+    }
 
 
 # ---- the messages: a value not known is left out ----------------------------------------------
