@@ -115,7 +115,7 @@ COLOURS: dict[str, Rgba] = {
 
 METRICS_SCHEMA: dict[str, Any] = {
     "title": "covnet.ScanMetrics",
-    "description": "One scan of a covnet run: plot-ready numbers (null: not known)",
+    "description": "One scan of a covnet run: plot-ready numbers (a number not known is left out)",
     "type": "object",
     "properties": {
         "episode": {"type": "integer", "description": "episode number (one per metric)"},
@@ -124,28 +124,28 @@ METRICS_SCHEMA: dict[str, Any] = {
         "t": {"type": "number", "description": "scenario time [s]"},
         "n_active": {"type": "integer", "description": "N_k: sensors enabled this scan"},
         "n_failed": {"type": "integer"},
-        "f": {"type": ["number", "null"], "description": "f(P, P_d) (the manager's value)"},
-        "trace_P": {"type": ["number", "null"]},
-        "trace_Pd": {"type": ["number", "null"]},
-        "rmse": {"type": ["number", "null"], "description": "position RMSE so far, episode"},
-        "nees": {"type": ["number", "null"], "description": "mean NEES of the scan's targets"},
+        "f": {"type": "number", "description": "f(P, P_d) (the manager's value)"},
+        "trace_P": {"type": "number"},
+        "trace_Pd": {"type": "number"},
+        "rmse": {"type": "number", "description": "position RMSE so far, episode"},
+        "nees": {"type": "number", "description": "mean NEES of the scan's targets"},
         "messages": {"type": "integer", "description": "messages received since last scan"},
         "bytes": {"type": "integer"},
-        "scan_latency_ms": {"type": ["number", "null"], "description": "command -> status"},
-        "measurement_latency_ms": {"type": ["number", "null"], "description": "mean one-way"},
-        "measurement_latency_max_ms": {"type": ["number", "null"]},
+        "scan_latency_ms": {"type": "number", "description": "command -> status"},
+        "measurement_latency_ms": {"type": "number", "description": "mean one-way"},
+        "measurement_latency_max_ms": {"type": "number"},
         "targets": {
             "type": "array",
             "items": {
                 "type": "object",
                 "properties": {
                     "id": {"type": "string"},
-                    "f": {"type": ["number", "null"]},
-                    "trace_P": {"type": ["number", "null"]},
-                    "trace_Pd": {"type": ["number", "null"]},
-                    "error": {"type": ["number", "null"], "description": "position error"},
-                    "rmse": {"type": ["number", "null"]},
-                    "nees": {"type": ["number", "null"]},
+                    "f": {"type": "number"},
+                    "trace_P": {"type": "number"},
+                    "trace_Pd": {"type": "number"},
+                    "error": {"type": "number", "description": "position error"},
+                    "rmse": {"type": "number"},
+                    "nees": {"type": "number"},
                 },
                 "required": ["id"],
             },
@@ -153,7 +153,10 @@ METRICS_SCHEMA: dict[str, Any] = {
     },
     "required": ["episode", "scan", "t", "n_active", "messages", "targets"],
 }
-"""JSON Schema of ``/covnet/scan`` (schema name ``covnet.ScanMetrics``)."""
+"""JSON Schema of ``/covnet/scan`` (schema name ``covnet.ScanMetrics``).  Every field has ONE
+type and no field is ``null``: Foxglove's JSON-schema parser rejects the whole channel for a
+field typed ``["number", "null"]`` (nothing plots), so a number that is not known is left out
+of the message (:func:`_known`)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -440,6 +443,12 @@ def _num(v: float | None) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
 
 
+def _known(doc: dict[str, Any]) -> dict[str, Any]:
+    """``doc`` without its unknown (None) values: Foxglove takes no ``null`` (see
+    :data:`METRICS_SCHEMA`)."""
+    return {k: v for k, v in doc.items() if v is not None}
+
+
 # --------------------------------------------------------------------------------------------
 # the stream of messages -> frames
 # --------------------------------------------------------------------------------------------
@@ -566,42 +575,46 @@ class Visualiser:
             if est.nees is not None and math.isfinite(est.nees):
                 nees.append(est.nees)
             targets.append(
-                {
-                    "id": est.id,
-                    "f": _num(est.f),
-                    "trace_P": _num(est.trace_P),
-                    "trace_Pd": _num(est.trace_Pd),
-                    "error": _num(est.error),
-                    "rmse": _num(rmse),
-                    "nees": _num(est.nees),
-                }
+                _known(
+                    {
+                        "id": est.id,
+                        "f": _num(est.f),
+                        "trace_P": _num(est.trace_P),
+                        "trace_Pd": _num(est.trace_Pd),
+                        "error": _num(est.error),
+                        "rmse": _num(rmse),
+                        "nees": _num(est.nees),
+                    }
+                )
             )
         s, n = self._sq_all.get(e, (0.0, 0))
         cmd = scan.command
         lat = self._latency_ms
-        doc = {
-            "episode": e,
-            "episode_name": self.episode_name(e),
-            "scan": scan.scan,
-            "t": float(scan.status.t),
-            "n_active": view.n_active,
-            "n_failed": len(scan.status.failed),
-            "f": _num(view.f),
-            "trace_P": _num(view.trace_P),
-            "trace_Pd": _num(view.trace_Pd),
-            "rmse": math.sqrt(s / n) if n else None,
-            "nees": float(np.mean(nees)) if nees else None,
-            "messages": self._counts,
-            "bytes": self._bytes,
-            "scan_latency_ms": (
-                _num((scan.status.t_sent_ns - cmd.t_sent_ns) / 1e6)
-                if cmd is not None and self.timed
-                else None
-            ),
-            "measurement_latency_ms": float(np.mean(lat)) if lat and self.timed else None,
-            "measurement_latency_max_ms": float(max(lat)) if lat and self.timed else None,
-            "targets": targets,
-        }
+        doc = _known(
+            {
+                "episode": e,
+                "episode_name": self.episode_name(e),
+                "scan": scan.scan,
+                "t": float(scan.status.t),
+                "n_active": view.n_active,
+                "n_failed": len(scan.status.failed),
+                "f": _num(view.f),
+                "trace_P": _num(view.trace_P),
+                "trace_Pd": _num(view.trace_Pd),
+                "rmse": _num(math.sqrt(s / n)) if n else None,
+                "nees": _num(float(np.mean(nees))) if nees else None,
+                "messages": self._counts,
+                "bytes": self._bytes,
+                "scan_latency_ms": (
+                    _num((scan.status.t_sent_ns - cmd.t_sent_ns) / 1e6)
+                    if cmd is not None and self.timed
+                    else None
+                ),
+                "measurement_latency_ms": float(np.mean(lat)) if lat and self.timed else None,
+                "measurement_latency_max_ms": float(max(lat)) if lat and self.timed else None,
+                "targets": targets,
+            }
+        )
         self._counts = self._bytes = 0
         self._latency_ms = []
         return json.dumps(doc, separators=(",", ":")).encode()

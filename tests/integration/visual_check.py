@@ -8,6 +8,7 @@ from collections import Counter
 from pathlib import Path
 
 import jsonschema
+from foxglove_jsonschema import message_problems, schema_problems
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
@@ -16,7 +17,8 @@ TOPICS = ("/covnet/scene", "/covnet/scan", "/covnet/log")
 
 def assert_visual_channels(recording: Path, scans: list[int], frame: str) -> list[dict]:
     """Every visual message of ``recording`` decodes (protobuf: mcap-protobuf-support; JSON:
-    its JSON Schema); one of each per scan of ``scans``, in order; scenes in ``frame``.
+    its JSON Schema, which Foxglove's parser accepts, and no null in a message); one of each
+    per scan of ``scans``, in order; scenes in ``frame``.
     Returns the numbers."""
     counts: Counter[str] = Counter()
     docs = []
@@ -29,6 +31,8 @@ def assert_visual_channels(recording: Path, scans: list[int], frame: str) -> lis
                 assert {e.frame_id for e in dec.entities} == {frame}
         f.seek(0)
         for schema, _, m in make_reader(f).iter_messages(topics=[TOPICS[1]]):
+            assert schema_problems(json.loads(schema.data)) == []
+            assert message_problems(m.data) == []
             doc = json.loads(m.data)
             jsonschema.validate(doc, json.loads(schema.data))
             docs.append(doc)
