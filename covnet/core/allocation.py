@@ -1,5 +1,5 @@
 """Covariance-control sensor allocation: pick the subset whose fused covariance is closest to the
-desired one (spec: /shared/spec/covariance_control.md)::
+desired one (``docs/maths/covariance_control.md``)::
 
     D_opt = argmin_{D_i in D_c} f(P_i, P_d),   P_i = (P⁻¹ + J_i)⁻¹,   J_i = sum_{j in D_i} J_j
 

@@ -1,5 +1,5 @@
 """Static association of azimuth/elevation measurements from three passive sensors
-(``../shared/spec/passive_association.md``): the fast cotangent method and its baselines.
+(``docs/maths/passive_association.md``): the fast cotangent method and its baselines.
 
 * :mod:`.model`: records (``PassiveScan``, ``AssocParams``, ``Association``) and angle geometry;
 * :mod:`.cotangent`: azimuth test, elevation (height) test, indicator analysis, the pipeline;
