@@ -33,7 +33,7 @@ class CovarianceLogic:
     :class:`~manager.loop.ScanLogic`: messages in, messages out."""
 
     def __init__(self, sc: Scenario, loop: Loop) -> None:
-        if sc.fusion.mode == "peer":
+        if not sc.fusion.has_centre:
             raise ManagerError("peer mode has no fusion manager: run manager.peer_monitor")
         self.engine = ScanEngine(sc, stats=loop.stats)
         self.ids = self.engine.ids
@@ -113,7 +113,7 @@ def main(args: Any, sc: Scenario, stop: threading.Event) -> int:
     """``python -m manager --config PAPER.yaml ...``: the process around :func:`run` (or, in
     peer mode, around the observer :func:`manager.peer_monitor.run`)."""
     info = {"episodes": list(sc.allocation.metrics)}
-    if sc.fusion.mode == "peer":  # no fusion centre: this process only routes and watches
+    if not sc.fusion.has_centre:  # no fusion centre: this process only routes and watches
         if args.realtime:
             raise ValueError("--realtime: peer mode runs in lockstep only")
         return main_around(

@@ -44,7 +44,7 @@ def main(args: Any, sc: Scenario, stop: threading.Event) -> int:
     """``python -m sensors --config PAPER.yaml --id S3 ...``: a sensor (or, in peer mode, a
     peer node); ``network.latency`` emulated in this process in real time unless a real
     emulated path does it (``--no-app-latency``, set by ``covnet up --netns``)."""
-    if sc.fusion.mode == "peer":
+    if not sc.fusion.has_centre:
         return _peer(args, sc, stop)
     wrap = None
     if args.realtime and not args.no_app_latency and not sc.network.latency.is_ideal(sc.sensor_ids):

@@ -45,7 +45,7 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
         truth, ids = truth_trajectory(model)[:, None, :], TARGET_IDS
     counts: Counter[str] = Counter()
     publish = _TruthPublisher(bus, run_id, model, truth, counts, ids)
-    if sc.fusion.mode == "peer":
+    if not sc.fusion.has_centre:
         _serve_peers(sc, bus, run_id, clock, stop, publish)
         return counts
     if model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS:

@@ -165,7 +165,7 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
             "sweep: the latency grid runs the one-target scenario; with 'targets:' give "
             "network.latency in the config and use covnet run or covnet mc"
         )
-    if sc.fusion.mode == "peer":
+    if not sc.fusion.has_centre:
         raise UsageError("sweep: fusion.mode peer has no fusion centre; sweep the centre modes")
     spec = sc.sweep or SweepSpec()
     metric = metric_opt(sc, args.metric, spec.metric or sc.allocation.metrics[0])
@@ -225,7 +225,7 @@ def mc(args: argparse.Namespace, sc: Scenario) -> int:
     workers = getattr(args, "workers", None)
     if workers is not None and workers < 1:
         raise UsageError(f"--workers: must be >= 1, got {workers}")
-    if sc.fusion.mode == "peer":
+    if not sc.fusion.has_centre:
         raise UsageError("mc: fusion.mode peer is compared by covnet compare, not covnet mc")
     for opt, val in (("--cluster", args.cluster), ("--ci-width", args.ci_width)):
         if val is not None:  # this kind's mc is not on the trials layer yet

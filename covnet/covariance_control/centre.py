@@ -25,7 +25,7 @@ from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.decentral import Mirror, decide_rule
 from covnet.covariance_control.fusion_rules import FusionRule, rule_for
 from covnet.covariance_control.model import Model, decide, usable_measurement
-from covnet.covariance_control.simulate import MetricRun
+from covnet.covariance_control.runs import MetricRun
 from covnet.runtime_stats import NetStats
 
 if TYPE_CHECKING:
@@ -197,6 +197,7 @@ class CentreFilter:
         # allocation.account_for_loss on slow links: decide on the expected information
         self.alloc_model, self.delivery = model, None
         if slow and sc.allocation.account_for_loss:
+            # start-up: the link model only for slow links that account for loss
             from covnet.covariance_control.links import delivery_probabilities, loss_aware_model
 
             p = delivery_probabilities(sc)

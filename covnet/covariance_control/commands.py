@@ -48,7 +48,7 @@ def run(sc: Scenario, out: Path, *, figures: bool) -> int:
     model = build_model(sc)
     traj = shared_trajectory(model)
     slow = not sc.network.latency.is_ideal(sc.sensor_ids)
-    if slow and sc.fusion.mode == "peer":
+    if slow and not sc.fusion.has_centre:
         raise UsageError("network.latency: peer mode has no fusion centre; latency runs need one")
 
     def one(m: str) -> tuple[MetricRun, dict[str, MetricRun] | None, dict[str, int] | None, float]:
@@ -201,10 +201,10 @@ def after_up(sc: Scenario, out: Path, *, figures: bool) -> None:
 
 def up_problem(sc: Scenario, *, realtime: bool, netns: bool) -> str | None:
     """Why ``covnet up`` cannot run ``sc`` this way (None: it can)."""
-    if sc.fusion.mode == "peer" and realtime:
+    if not sc.fusion.has_centre and realtime:
         return "--realtime: fusion.mode peer runs in lockstep only (leave out --realtime)"
     if not sc.network.latency.is_ideal(sc.sensor_ids):
-        if sc.fusion.mode == "peer":
+        if not sc.fusion.has_centre:
             return "network.latency: peer mode has no fusion centre to be late for"
         if not realtime and not netns:
             return (

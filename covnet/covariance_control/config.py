@@ -54,6 +54,8 @@ from covnet.core.metrics import METRICS
 from covnet.covariance_control.fusion_rules import (
     FUSION_RULES,
     fusion_modes,
+    has_centre,
+    refusal,
     rule_for,
     track_rules,
 )
@@ -416,8 +418,14 @@ class FusionSpec(ConfigModel):
 
     @property
     def rule(self) -> str:
-        """The track-fusion rule in effect: ``central``, ``info`` or ``ci``."""
-        return self.peer.rule if self.mode == "peer" else self.mode
+        """The fusion rule in effect (``FUSION_RULES``): ``mode``, or in peer mode
+        ``peer.rule``."""
+        return self.peer.rule if not self.has_centre else self.mode
+
+    @property
+    def has_centre(self) -> bool:
+        """A fusion centre fuses (else the peer nodes do: ``mode: peer``)."""
+        return has_centre(self)
 
 
 class SweepSpec(ConfigModel):
@@ -641,17 +649,9 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
     """What the many-target scenario does not (yet) do, said where it is asked for."""
     problems: list[tuple[str, str]] = []
     mode = sc.fusion.mode
-    if mode == "ci":
-        problems.append(
-            (
-                "fusion.mode",
-                "ci is not available with 'targets:': covariance intersection needs each "
-                "sensor's local filter of the target it dwells on and a CI candidate for every "
-                "assignment of (T+1)^N, which the many-target allocator does not have (use "
-                "central or info)",
-            )
-        )
-    elif mode == "peer":
+    if sc.fusion.has_centre and (why := refusal(rule_for(sc.fusion), "targets")) is not None:
+        problems.append(("fusion.mode", f"{mode} {why}"))
+    elif not sc.fusion.has_centre:
         problems.append(
             (
                 "fusion.mode",
@@ -688,7 +688,7 @@ def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
                 why = f"only used with search: bounded or auto, not {al.search}"
                 problems.append((f"allocation.{opt}", why))
     if al.search in ("bounded", "greedy") and (
-        sc.fusion.mode == "peer" or not rule_for(sc.fusion).information_form
+        not sc.fusion.has_centre or not rule_for(sc.fusion).information_form
     ):
         problems.append(
             (

@@ -51,7 +51,7 @@ def run_mode(
     registry, ideal or slow links: the kind's engine in this process); in ``peer`` mode
     ``(run of the first node, every node's run)``."""
     model = model or build_model(sc)
-    if sc.fusion.mode == "peer":
+    if not sc.fusion.has_centre:
         nodes = run_peer(sc, metric, model)
         return nodes[model.sensor_ids[0]], nodes
     return run_metric(sc, metric, model), None

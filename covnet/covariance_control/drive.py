@@ -10,17 +10,21 @@ with the sensors' answers handed over in this process, per scan ``k``::
     engine.report(plan, engine.fuse(plan, got), got)
 
 The transport is :class:`Direct` (every enabled sensor's message arrives at once) or, when
-``network.latency`` is not ideal, :class:`~covnet.covariance_control.links.SlowLinks` (the same
-protocol in simulated time).  The manager process steps the same engine over zenoh
-(:mod:`manager.covariance`), the replay with the recording's messages
+``network.latency`` is not ideal, :class:`SlowLinks` (the protocol of
+:mod:`covnet.covariance_control.links` in simulated time).  The manager process steps the
+same engine over zenoh (:mod:`manager.covariance`), the replay with the recording's messages
 (:mod:`covnet.covariance_control.replay`): one logic, three drivers.  Peer mode has no fusion
 centre; its nodes' loop is :func:`covnet.covariance_control.decentral_sim.run_peer`.
 """
 
 from __future__ import annotations
 
+import heapq
+import itertools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
 
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.engine import Plan, ScanEngine, SensorSide
@@ -28,7 +32,7 @@ from covnet.covariance_control.engine import Plan, ScanEngine, SensorSide
 if TYPE_CHECKING:
     from covnet.covariance_control.links import LatencyCounts
 
-__all__ = ["Direct", "InProcessRun", "Transport", "run", "run_engine"]
+__all__ = ["Direct", "InProcessRun", "SlowLinks", "Transport", "run", "run_engine"]
 
 
 class Transport(Protocol):
@@ -70,13 +74,119 @@ class Direct:
         return None
 
 
+@dataclass
+class _Receiver:
+    """A sensor's view of the commands: the newest it acted on, and whether it was on."""
+
+    newest: int = 0
+    last_on: bool = False
+
+
+class SlowLinks:
+    """The slow, lossy links of ``network.latency`` in simulated time, for one episode of
+    ``engine`` (the protocol of :mod:`covnet.covariance_control.links`): per scan the command
+    down every link at ``t_k``, the sensors acting on what reaches them (a missed command's
+    fallback too), their answers up their links; at ``d_k`` the late messages and the on-time
+    ones; :meth:`finish`, what the links did."""
+
+    def __init__(self, engine: ScanEngine, episode: int) -> None:
+        # start-up: the link model only for slow links
+        from covnet.core.delay import DOWN, UP, LinkState, link_stream
+        from covnet.covariance_control.links import LatencyCounts, link_specs
+
+        sc = engine.sc
+        self.engine, self.episode = engine, episode
+        self.lat = sc.network.latency
+        self.T, self.delta = engine.period_s, sc.network.deadline_fraction
+        up_specs, down_specs = link_specs(sc)
+        self.up = [LinkState(s, link_stream(sc.seed, j, UP)) for j, s in enumerate(up_specs)]
+        self.down = [LinkState(s, link_stream(sc.seed, j, DOWN)) for j, s in enumerate(down_specs)]
+        n = len(engine.ids)
+        self.sensors = [SensorSide(engine, j) for j in range(n)]
+        self.receivers = [_Receiver() for _ in range(n)]
+        self.counts = LatencyCounts()
+        self.seq = itertools.count()
+        self.commands: list[tuple[float, int, int, int]] = []  # heap: (arrival, seq, j, scan)
+        self.pending: list[tuple[float, int, int, int, Any]] = []  # (arrival, seq, scan, j, m)
+        self.plans: dict[int, Plan] = {}
+        self.sent_for = np.zeros(engine.scans + 1, dtype=np.int64)  # messages sent per scan
+        self.on_time_for = np.zeros(engine.scans + 1, dtype=np.int64)
+
+    def _send(self, j: int, scan: int, at: float, plan: Plan | None) -> None:
+        """Sensor ``j`` measures scan ``scan`` at time ``at`` and sends it up its link."""
+        m = self.sensors[j].respond(self.episode, scan, plan)
+        if m is None:
+            return
+        self.counts.measured += 1
+        self.sent_for[scan] += 1
+        a = self.up[j].on_send(at)
+        if a is None:
+            self.counts.lost += 1
+        else:
+            heapq.heappush(self.pending, (a, next(self.seq), scan, j, m))
+
+    def exchange(self, plan: Plan) -> tuple[list[Any], dict[str, Any]]:
+        """Scan ``plan.k``: the command down every link at ``t_k``, the sensors' answers up
+        theirs; at ``d_k``, the late messages (earlier scans) and scan ``k``'s on time."""
+        k, counts = plan.k, self.counts
+        t_k = k * self.T
+        self.plans[k] = plan
+        counts.commanded += len(plan.subset)
+        for j, link in enumerate(self.down):  # Command(k) goes out on every downlink at t_k
+            a = link.on_send(t_k)
+            if a is not None:
+                heapq.heappush(self.commands, (a, next(self.seq), j, k))
+        d_k = t_k + self.delta * self.T
+        # a missed command's fallback; with targets always off (no target, no window)
+        fallback = "off" if self.engine.many else self.lat.missed_command
+        # the sensors act on the commands that reach them by d_k, in time order
+        while self.commands and self.commands[0][0] <= d_k:
+            a, _, j, scan = heapq.heappop(self.commands)
+            rx = self.receivers[j]
+            if scan <= rx.newest:
+                continue  # overtaken by a newer command: stale
+            for m in range(rx.newest + 1, scan):  # commands it never got: its fallback
+                counts.commands_missed += 1
+                if {"keep_last": rx.last_on, "off": False, "on": True}[fallback]:
+                    counts.unsolicited += 1
+                    self._send(j, m, a, None)
+            on = j in self.plans[scan].subset
+            rx.newest, rx.last_on = scan, on
+            if on:
+                self._send(j, scan, a, self.plans[scan])
+        on_time: dict[int, Any] = {}
+        late: list[Any] = []
+        while self.pending and self.pending[0][0] <= d_k:
+            _, _, scan, j, m = heapq.heappop(self.pending)
+            if scan == k:
+                on_time[j] = m
+            else:
+                late.append(m)
+        counts.on_time += len(on_time)
+        self.on_time_for[k] = len(on_time)
+        counts.per_scan_fused.append(len(on_time))
+        ids = self.engine.ids
+        return late, {ids[j]: on_time[j] for j in sorted(on_time)}
+
+    def late(self, refiltered: bool) -> None:
+        """What became of a late message."""
+        if refiltered:
+            self.counts.late_refiltered += 1
+        else:
+            self.counts.late_dropped += 1
+
+    def finish(self) -> LatencyCounts:
+        """The counts, once the episode is over (what is still in flight never arrived)."""
+        self.counts.lost += len(self.pending)
+        self.counts.deadline_misses = int(np.sum(self.sent_for > self.on_time_for))
+        return self.counts
+
+
 def transport_for(engine: ScanEngine, episode: int, links: bool = False) -> Transport:
     """:class:`Direct`, or the slow links of ``network.latency`` (``links``: simulated even
     when they are ideal, for their counts)."""
     if not (engine.slow or links):
         return Direct(engine, episode)
-    from covnet.covariance_control.links import SlowLinks  # start-up: slow links only
-
     return SlowLinks(engine, episode)
 
 

@@ -278,6 +278,7 @@ class _ManyTargets:
     targets_centre.TargetsCentre`): each sensor dwells on one target or is off."""
 
     def __init__(self, sc: Scenario, tm: Any, metric: str, truth: np.ndarray) -> None:
+        # start-up: the many-target steps only for configs with targets
         from covnet.covariance_control import targets
         from covnet.covariance_control.targets_centre import TargetEpisodeLog, TargetsCentre
 
@@ -353,7 +354,7 @@ class ScanEngine:
         stats: NetStats | None = None,
         many: bool | None = None,
     ) -> None:
-        if sc.fusion.mode == "peer":
+        if not sc.fusion.has_centre:
             raise ValueError("peer mode has no fusion centre to step")
         self.sc = sc
         self.episodes = list(sc.allocation.metrics if metrics is None else metrics)
@@ -460,10 +461,12 @@ class SensorSide:
         eng = self.engine
         self.episode = episode
         if eng.many:
+            # start-up: the many-target steps only for configs with targets
             from covnet.covariance_control import targets
 
             self.local = targets.LocalTargets(eng.model, self.j) if eng.tracks else None
         elif eng.tracks:
+            # start-up: the local filters only under a track rule
             from covnet.covariance_control.decentral import LocalFilter
 
             self.local = LocalFilter(eng.model, eng.sc.filter.initial_estimate)
@@ -487,6 +490,7 @@ class SensorSide:
         return Tracked(sid, scan, episode, tr.post.x, tr.post.P, prior.x, prior.P)
 
     def _dwell(self, episode: int, scan: int, plan: Plan | None) -> Measured | Tracked | None:
+        # start-up: the many-target steps only for configs with targets
         from covnet.covariance_control import targets
 
         eng, j, sid = self.engine, self.j, self.sensor_id

@@ -32,7 +32,7 @@ simulation, the network processes and the replay use it through this registry.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -55,7 +55,11 @@ __all__ = [
     "FusionRule",
     "InformationFusion",
     "measurement_from_track",
+    "PEER",
+    "centre_rules",
     "fusion_modes",
+    "has_centre",
+    "refusal",
     "rule_for",
     "track_rules",
 ]
@@ -99,6 +103,16 @@ class FusionRule(Protocol):
     """The fused covariance of subset ``D_i`` is ``(P⁻⁻¹ + Σ_{j∈D_i} J_j)⁻¹``."""
     refilters_late: ClassVar[bool]
     """A late message can be re-filtered exactly from its scan (:meth:`late_measurement`)."""
+    topologies: ClassVar[frozenset[str]]
+    """Where it may fuse: ``centre`` (one fusion point, ``fusion.mode: <name>``), ``peer``
+    (every node fuses its neighbours' tracks, ``fusion.mode: peer`` with ``peer.rule``)."""
+    many_targets: ClassVar[bool]
+    """It runs a ``targets:`` config (each sensor dwells on one target; the many-target
+    centre fuses returns by PDA or nearest neighbour, or local tracks by information
+    fusion)."""
+    refusals: ClassVar[Mapping[str, str]]
+    """Why it does not do what it does not (``"targets"``), in the words the config uses when
+    it refuses a config asking for it."""
 
     def __init__(self, settings: FusionSettings) -> None: ...
 
@@ -173,6 +187,9 @@ class Central:
     tracks: ClassVar[bool] = False
     information_form: ClassVar[bool] = True
     refilters_late: ClassVar[bool] = True
+    topologies: ClassVar[frozenset[str]] = frozenset({"centre"})
+    many_targets: ClassVar[bool] = True
+    refusals: ClassVar[Mapping[str, str]] = {}
 
     def __init__(self, settings: FusionSettings) -> None:
         pass
@@ -205,9 +222,15 @@ class Central:
 
 
 class _TrackRule:
-    """What the track rules share: the local step (a local Kalman filter's track)."""
+    """What the track rules share: the local step (a local Kalman filter's track), a fusion
+    centre or peer nodes; a rule that does not say otherwise has no many-target form."""
 
     tracks: ClassVar[bool] = True
+    topologies: ClassVar[frozenset[str]] = frozenset({"centre", "peer"})
+    many_targets: ClassVar[bool] = False
+    refusals: ClassVar[Mapping[str, str]] = {
+        "targets": "has no many-target form (with 'targets:' use central or info)"
+    }
 
     def __init__(self, settings: FusionSettings) -> None:
         self.settings = settings
@@ -227,6 +250,8 @@ class InformationFusion(_TrackRule):
     name: ClassVar[str] = "info"
     information_form: ClassVar[bool] = True
     refilters_late: ClassVar[bool] = True
+    many_targets: ClassVar[bool] = True
+    refusals: ClassVar[Mapping[str, str]] = {}
 
     def label(self) -> str:
         return self.name
@@ -261,6 +286,12 @@ class CovarianceIntersection(_TrackRule):
     name: ClassVar[str] = "ci"
     information_form: ClassVar[bool] = False
     refilters_late: ClassVar[bool] = False
+    refusals: ClassVar[Mapping[str, str]] = {
+        "targets": "is not available with 'targets:': covariance intersection needs each "
+        "sensor's local filter of the target it dwells on and a CI candidate for every "
+        "assignment of (T+1)^N, which the many-target allocator does not have (use central "
+        "or info)"
+    }
 
     def label(self) -> str:
         return f"ci-{self.settings.ci_objective}"
@@ -302,16 +333,40 @@ FUSION_RULES: dict[str, type[FusionRule]] = {
 
 
 def track_rules() -> tuple[str, ...]:
-    """The rules that fuse local tracks: the ones a peer node may use (``fusion.peer.rule``)."""
-    return tuple(name for name, rule in FUSION_RULES.items() if rule.tracks)
+    """The rules a peer node may use (``fusion.peer.rule``): those whose topologies include
+    ``peer`` (they fuse local tracks)."""
+    return tuple(name for name, rule in FUSION_RULES.items() if "peer" in rule.topologies)
+
+
+def centre_rules() -> tuple[str, ...]:
+    """The rules a fusion centre may use (``fusion.mode``)."""
+    return tuple(name for name, rule in FUSION_RULES.items() if "centre" in rule.topologies)
+
+
+PEER = "peer"
+"""``fusion.mode: peer``: no fusion centre; the topology of peer nodes (``fusion.peer``)."""
 
 
 def fusion_modes() -> tuple[str, ...]:
     """What ``fusion.mode`` may say: a rule of the registry at a fusion centre, or ``peer``."""
-    return (*FUSION_RULES, "peer")
+    return (*centre_rules(), PEER)
+
+
+def refusal(rule: FusionRule, what: str) -> str | None:
+    """Why ``rule`` does not do ``what`` (``"targets"``: a many-target config), in its own
+    words; None when it does."""
+    if what == "targets" and getattr(rule, "many_targets", False):
+        return None
+    words = getattr(rule, "refusals", {}).get(what)
+    return words or f"declares no support for {what!r}"
+
+
+def has_centre(fusion: Any) -> bool:
+    """A config's ``fusion`` table puts a fusion centre in the network (else peer nodes)."""
+    return bool(fusion.mode != PEER)
 
 
 def rule_for(fusion: Any) -> FusionRule:
     """The rule in effect for a config's ``fusion`` table (in peer mode, ``fusion.peer.rule``),
     with its settings."""
-    return FUSION_RULES[fusion.rule](fusion)
+    return FUSION_RULES[fusion.peer.rule if fusion.mode == PEER else fusion.mode](fusion)

@@ -77,7 +77,7 @@ class CovarianceControl(KindBase):
     def restartable(self, cfg: Any) -> frozenset[str]:
         # the world's truth is a function of the seed alone: it publishes it again on start;
         # a peer node's state is not restartable
-        roles = {"world", "recorder"} | ({"sensor"} if cfg.fusion.mode != "peer" else set())
+        roles = {"world", "recorder"} | ({"sensor"} if cfg.fusion.has_centre else set())
         return frozenset(roles)
 
 

@@ -34,7 +34,7 @@ __all__ = [
 def _counted(
     sc: Scenario, metric: str, model: Any, many: bool | None = None
 ) -> tuple[Any, LatencyCounts]:
-    if sc.fusion.mode == "peer":
+    if not sc.fusion.has_centre:
         raise ValueError("fusion.mode: peer has no fusion centre; latency runs need one")
     out = drive.run(sc, metric, model, links=True, many=many)
     assert out.counts is not None

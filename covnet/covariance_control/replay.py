@@ -100,7 +100,7 @@ class CovarianceReplay(KindReplay):
     kind = KIND
 
     def check(self, cfg: Scenario, run_dir: Path) -> None:
-        if cfg.fusion.mode == "peer":
+        if not cfg.fusion.has_centre:
             raise ReplayError(
                 f"{run_dir} is a peer-mode run: there is no fusion centre to re-fuse (each "
                 "node's own estimates are in its arrays.npz); replay covers central, info and "

@@ -205,7 +205,7 @@ def fusion_label(sc: Scenario) -> str:
     """The fusion structure in one word: ``central``, ``info``, ``ci`` (with its objective:
     ``ci-det``), or ``peer-<rule>-<graph>``."""
     f, label = sc.fusion, rule_for(sc.fusion).label()
-    return f"peer-{label}-{f.peer.graph}" if f.mode == "peer" else label
+    return label if f.has_centre else f"peer-{label}-{f.peer.graph}"
 
 
 def load_summary(run_dir: Path) -> dict[str, Any]:

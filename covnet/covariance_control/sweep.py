@@ -256,7 +256,7 @@ def sweep_outcome(
     """``(rows, outcome)``: the table and the trials it was made from (per point in seed
     order); trials written to ``out`` as they finish and skipped when there (resumable).
     Interrupted: :class:`BatchInterrupted` with the complete rows as ``partial``."""
-    if sc.fusion.mode == "peer":
+    if not sc.fusion.has_centre:
         raise ValueError("fusion.mode: peer has no fusion centre; sweep the centre modes")
     spec = sc.sweep or SweepSpec()
     metric = metric or spec.metric or sc.allocation.metrics[0]

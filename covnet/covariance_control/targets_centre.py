@@ -29,7 +29,7 @@ from covnet.core.detection import ClutterWindow
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
 from covnet.covariance_control import targets
-from covnet.covariance_control.simulate import TargetRows, TargetsRun
+from covnet.covariance_control.runs import TargetRows, TargetsRun
 from covnet.covariance_control.targets import Dwell, TargetDecision, TargetsModel
 
 if TYPE_CHECKING:

@@ -5,9 +5,18 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from covnet.bus import InMemoryBus, InMemoryHub
+from covnet.clock import WallClock
+from covnet.covariance_control.replay import RECORDING
+from covnet.covariance_control.results import write_network_run
+from covnet.recording import RecordingWriter, run_metadata
+from manager import covariance as manager_node
+from recorder import node as recorder_node
+from sensors import covariance as sensor_node
+from world import covariance as world_node
 
 
 class NodeThreads:
@@ -57,3 +66,78 @@ def with_metrics(sc: Any, metrics: list[str]) -> Any:
     from covnet import kinds
 
     return kinds.apply_options(kinds.of(sc), sc, "test", metric=list(metrics))
+
+
+RUN = "t"
+
+
+def run_recorded_network(
+    sc: Any,
+    metrics: list[str],
+    out: Path,
+    *,
+    kill_after_scan: int | None = None,
+    victim: str | None = None,
+) -> tuple[Any, dict[str, Any]]:
+    """The in-process network plus a recorder writing ``out/recording.mcap``; the manager's
+    run directory written as ``python -m manager`` writes it."""
+    out.mkdir(parents=True)
+    hub = InMemoryHub()
+    node_stops: dict[str, threading.Event] = {}
+    threads: list[threading.Thread] = []
+    stats: dict[str, object] = {}
+    errors: list[BaseException] = []
+
+    def start(name, target):
+        ev = threading.Event()
+        node_stops[name] = ev
+        bus = InMemoryBus(hub, name=name)
+
+        def body():
+            try:
+                stats[name] = target(bus, ev)
+            except BaseException as exc:  # surfaced by the test, not lost in a thread
+                errors.append(exc)
+            finally:
+                bus.close()
+
+        th = threading.Thread(target=body, name=name, daemon=True)
+        th.start()
+        threads.append(th)
+
+    writer = RecordingWriter(out / RECORDING, run_id=RUN, metadata=run_metadata(RUN, sc))
+    try:
+        start("recorder", lambda bus, ev: recorder_node.run(sc, bus, RUN, WallClock(), ev, writer))
+        start("world", lambda bus, ev: world_node.run(sc, bus, RUN, WallClock(), ev))
+        for sid in sc.sensor_ids:
+            start(sid, lambda bus, ev, sid=sid: sensor_node.run(sc, sid, bus, RUN, WallClock(), ev))
+
+        def on_status(st):
+            if kill_after_scan is not None and st["scan"] == kill_after_scan:
+                node_stops[victim].set()
+                # wait until it has stopped: a sensor no scan enables sees its stop event only
+                # at its next heartbeat wait (nothing else wakes it); this run is faster
+                next(th for th in threads if th.name == victim).join(10)
+
+        mbus = InMemoryBus(hub, name="manager")
+        try:
+            result = manager_node.run(
+                with_metrics(sc, metrics),
+                mbus,
+                RUN,
+                WallClock(),
+                threading.Event(),
+                on_status=on_status,
+            )
+        finally:
+            mbus.close()
+            for ev in node_stops.values():
+                ev.set()
+            for th in threads:
+                th.join(timeout=10)
+        assert not any(th.is_alive() for th in threads)
+    finally:
+        writer.close()
+    assert not errors, errors
+    write_network_run(out, sc, result, {"episodes": metrics, "run_id": RUN})
+    return result, stats

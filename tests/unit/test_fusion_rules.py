@@ -6,15 +6,14 @@ from __future__ import annotations
 
 import itertools
 import json
-from typing import ClassVar
 
 import numpy as np
 import pytest
+from recipe_entries import Naive
 
 from covnet.cli import main
 from covnet.core.gaussian import Gaussian, symmetrise
 from covnet.core.kalman import update_sequential
-from covnet.covariance_control import fusion_rules
 from covnet.covariance_control.compare import modes
 from covnet.covariance_control.config import load
 from covnet.covariance_control.fusion_rules import (
@@ -138,48 +137,10 @@ def test_registry_names_everywhere(paper_path):
     assert isinstance(rule_for(sc.fusion), Central)
 
 
-class _Naive(fusion_rules._TrackRule):
-    """A user's rule: the local tracks' information added *without* removing their priors (the
-    textbook double-counting mistake), scored as it fuses."""
-
-    name: ClassVar[str] = "naive"
-    information_form: ClassVar[bool] = False
-    refilters_late: ClassVar[bool] = False
-
-    def label(self):
-        return self.name
-
-    def fuse(self, model, prior, received):
-        ordered = [t for _, t in sorted(received, key=lambda jt: jt[0])]
-        if not ordered:
-            return prior
-        Y = np.linalg.inv(prior.P) + sum(np.linalg.inv(t.post.P) for t in ordered)
-        y = np.linalg.solve(prior.P, prior.x) + sum(
-            np.linalg.solve(t.post.P, t.post.x) for t in ordered
-        )
-        P = symmetrise(np.linalg.inv(Y))
-        return Gaussian(P @ y, P)
-
-    def candidates(self, model, P_prior, P_local_post, masks):
-        Yl = np.linalg.inv(P_local_post)
-        Y = np.linalg.inv(P_prior) + np.einsum("mj,jab->mab", masks.astype(float), Yl)
-        return symmetrise(np.linalg.inv(Y))
-
-    def fused_covariance(self, model, P_prior, P_local_post, subset):
-        if not subset:
-            return P_prior
-        mask = np.zeros((1, P_local_post.shape[0]), dtype=bool)
-        mask[0, list(subset)] = True
-        return self.candidates(model, P_prior, P_local_post, mask)[0]
-
-    def late_measurement(self, payload):
-        return None
-
-
 def test_a_new_rule_is_one_registry_line(monkeypatch, tmp_path, paper_path, capsys):
     """Register a rule (its class and one FUSION_RULES line) and it runs from the CLI, in a
     peer network too, and covnet compare offers it: nothing else had to change."""
-    monkeypatch.setitem(FUSION_RULES, "naive", _Naive)
+    monkeypatch.setitem(FUSION_RULES, "naive", Naive)
     out = tmp_path / "naive"
     argv = ["run", str(paper_path), "--fusion", "naive", "--metric", "spectral"]
     assert main([*argv, "--out", str(out), "--no-figures"]) == 0
