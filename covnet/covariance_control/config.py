@@ -637,9 +637,26 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     return problems
 
 
+#: the many-target allocator's limit on the sensors that can be on (its tables have ``2^N``
+#: entries: :data:`covnet.core.multitarget_allocation.MAX_SENSORS`, not imported here for the
+#: start-up time of every node process; a test keeps the two equal)
+MULTITARGET_MAX_SENSORS = 22
+
+
 def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
     """What the many-target scenario does not (yet) do, said where it is asked for."""
     problems: list[tuple[str, str]] = []
+    excluded = set(sc.allocation.excluded)
+    candidates = [s for s in sc.sensor_ids if s not in excluded]
+    if len(candidates) > MULTITARGET_MAX_SENSORS:
+        problems.append(
+            (
+                "sensors",
+                f"with 'targets:' at most {MULTITARGET_MAX_SENSORS} sensors can be allocated "
+                f"(the many-target allocator keeps tables of 2^N entries); {len(candidates)} "
+                "are not in allocation.excluded: exclude some or split the network",
+            )
+        )
     mode = sc.fusion.mode
     if mode == "ci":
         problems.append(

