@@ -676,6 +676,21 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
                 "filter is single-target (use central or info)",
             )
         )
+    al = sc.allocation
+    if al.search in ("bounded", "greedy"):
+        problems.append(
+            (
+                "allocation.search",
+                f"{al.search} is not available with 'targets:': the many-target allocator is "
+                "exact (use exact or auto)",
+            )
+        )
+    elif al.search == "auto":  # (exact: refused by the search checks already)
+        for opt in BOUNDED_OPTIONS:
+            if getattr(al, opt) is not None:
+                problems.append(
+                    (f"allocation.{opt}", "not used with 'targets:' (its allocator is exact)")
+                )
     if sc.allocation.account_for_loss:
         problems.append(
             (

@@ -68,6 +68,26 @@ def test_a_paper_config_keeps_its_own_limit():
     from_dict(_many_sensors(data, MAX_SENSORS + 1), "test.yaml")
 
 
+@pytest.mark.parametrize("search", ["bounded", "greedy"])
+def test_a_search_targets_ignore_is_refused(multi, search):
+    multi["allocation"]["search"] = search
+    [(path, msg)] = _problems(multi)
+    assert path == "allocation.search"
+    assert search in msg and "exact" in msg and "auto" in msg and "targets" in msg
+
+
+@pytest.mark.parametrize("search", ["exact", "auto"])
+def test_the_searches_targets_use_are_accepted(multi, search):
+    multi["allocation"]["search"] = search
+    assert from_dict(multi, "test.yaml").allocation.search == search
+
+
+def test_bounded_options_targets_ignore_are_refused(multi):
+    multi["allocation"]["gap"] = 0.05
+    [(path, msg)] = _problems(multi)
+    assert path == "allocation.gap" and "targets" in msg
+
+
 # --------------------------------------------------------------------------------------------
 # duplicate YAML keys
 # --------------------------------------------------------------------------------------------
