@@ -501,10 +501,62 @@ def _resolve_security_paths(data: dict[str, Any], base_dir: Path) -> dict[str, A
     return {**data, "network": {**net, "security": sec}}
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that notes every key repeated in one mapping (YAML's own loader keeps
+    the last one silently): ``duplicates`` holds ``(key, line, first line)``, 1-based.  Merge
+    keys (``<<: *anchor``) may still be overridden by the mapping's own keys."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self.duplicates: list[tuple[object, int, int]] = []
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        if isinstance(node, yaml.MappingNode):
+            first: dict[object, int] = {}
+            for key_node, _ in node.value:
+                if not isinstance(key_node, yaml.ScalarNode):
+                    continue
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node)
+                line = key_node.start_mark.line + 1
+                if key in first:
+                    self.duplicates.append((key, line, first[key]))
+                else:
+                    first[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+def _load_yaml(text: str) -> object:
+    """``yaml.safe_load`` of ``text``, refusing keys repeated in a mapping (every one of them,
+    with its lines, as one :class:`ConfigError` problem each; the caller names the file)."""
+    loader = _UniqueKeyLoader(text)
+    try:
+        data = loader.get_single_data()
+    finally:
+        loader.dispose()
+    if loader.duplicates:
+        raise _DuplicateKeys(
+            [
+                f"duplicate key {key!r} at line {line} (first at line {first}): a key may "
+                "appear once in a mapping"
+                for key, line, first in loader.duplicates
+            ]
+        )
+    return data
+
+
+class _DuplicateKeys(Exception):
+    def __init__(self, messages: list[str]) -> None:
+        super().__init__("; ".join(messages))
+        self.messages = messages
+
+
 def read_yaml(path: str | Path) -> object:
-    """Parse a YAML file (``safe_load``), or a JSON one (a run directory's ``config.json``: JSON
-    is YAML, but YAML 1.1 would read ``1e-09`` as text); an unreadable file or bad YAML (JSON) is
-    a :class:`ConfigError` naming the line and column."""
+    """Parse a YAML file (``safe_load``; a key repeated in a mapping is an error, not the last
+    one winning), or a JSON one (a run directory's ``config.json``: JSON is YAML, but YAML 1.1
+    would read ``1e-09`` as text); an unreadable file or bad YAML (JSON) is a
+    :class:`ConfigError` naming the line and column."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -516,7 +568,9 @@ def read_yaml(path: str | Path) -> object:
         except ValueError as exc:
             raise ConfigError(str(p), [("", f"not valid JSON: {exc}")]) from None
     try:
-        return yaml.safe_load(text)
+        return _load_yaml(text)
+    except _DuplicateKeys as exc:
+        raise ConfigError(str(p), [("", m) for m in exc.messages]) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from covnet.cli import main
-from covnet.config import ConfigError
+from covnet.config import ConfigError, read_yaml
 from covnet.core.multitarget_allocation import MAX_SENSORS
 from covnet.covariance_control.config import from_dict
 
@@ -91,6 +91,41 @@ def test_bounded_options_targets_ignore_are_refused(multi):
 # --------------------------------------------------------------------------------------------
 # duplicate YAML keys
 # --------------------------------------------------------------------------------------------
+
+
+def test_duplicate_keys_are_refused_with_their_lines(tmp_path, capsys):
+    lines = PAPER.read_text().splitlines()
+    at = lines.index("scans: 100")
+    lines.insert(at + 1, "scans: 50")
+    nested = lines.index("filter:")
+    lines.insert(nested + 1, "  initial_estimate: truth")  # the file's own comes later
+    p = tmp_path / "dup.yaml"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ConfigError) as info:
+        read_yaml(p)
+    msgs = [m for _, m in info.value.problems]
+    assert len(msgs) == 2, msgs
+    assert f"line {at + 2}" in msgs[0] and "'scans'" in msgs[0] and f"line {at + 1}" in msgs[0]
+    assert "'initial_estimate' at line" in msgs[1] and f"line {nested + 4}" in msgs[1]
+    assert f"first at line {nested + 2}" in msgs[1]
+    assert main(["check", str(p)]) == 2
+    assert "duplicate key 'scans'" in capsys.readouterr().err
+
+
+def test_same_keys_in_different_mappings_are_fine(tmp_path):
+    p = tmp_path / "ok.yaml"
+    p.write_text("a: {x: 1, y: 2}\nb: {x: 1, y: 2}\nc: [{id: 1}, {id: 2}]\n")
+    assert read_yaml(p) == {
+        "a": {"x": 1, "y": 2},
+        "b": {"x": 1, "y": 2},
+        "c": [{"id": 1}, {"id": 2}],
+    }
+
+
+def test_merge_keys_still_load(tmp_path):
+    p = tmp_path / "merge.yaml"
+    p.write_text("base: &b {x: 1, y: 2}\nover:\n  <<: *b\n  y: 3\n")
+    assert read_yaml(p) == {"base": {"x": 1, "y": 2}, "over": {"x": 1, "y": 3}}
 
 
 # --------------------------------------------------------------------------------------------
