@@ -532,12 +532,12 @@ def _sensor_problems(sc: Scenario) -> list[tuple[str, str]]:
                         f"missing required key (a {s.model} sensor needs {', '.join(need)})",
                     )
                 )
-        for model, keys in _MODEL_NOISE.items():
-            for key in keys:
-                if key not in need and getattr(s, key) is not None:
-                    problems.append(
-                        (f"{where}.{key}", f"only for {model} sensors, this one is {s.model}")
-                    )
+        for key in dict.fromkeys(k for keys in _MODEL_NOISE.values() for k in keys):
+            if key not in need and getattr(s, key) is not None:
+                models = " or ".join(m for m, keys in _MODEL_NOISE.items() if key in keys)
+                problems.append(
+                    (f"{where}.{key}", f"only for {models} sensors, this one is {s.model}")
+                )
         if s.position_m is None and (s.model != "position" or s.max_range_m or s.fov):
             what = "measures from" if s.model != "position" else "has coverage around"
             problems.append(

@@ -115,11 +115,8 @@ def test_duplicate_keys_are_refused_with_their_lines(tmp_path, capsys):
 def test_same_keys_in_different_mappings_are_fine(tmp_path):
     p = tmp_path / "ok.yaml"
     p.write_text("a: {x: 1, y: 2}\nb: {x: 1, y: 2}\nc: [{id: 1}, {id: 2}]\n")
-    assert read_yaml(p) == {
-        "a": {"x": 1, "y": 2},
-        "b": {"x": 1, "y": 2},
-        "c": [{"id": 1}, {"id": 2}],
-    }
+    want = {"a": {"x": 1, "y": 2}, "b": {"x": 1, "y": 2}, "c": [{"id": 1}, {"id": 2}]}
+    assert read_yaml(p) == want
 
 
 def test_merge_keys_still_load(tmp_path):
@@ -131,6 +128,21 @@ def test_merge_keys_still_load(tmp_path):
 # --------------------------------------------------------------------------------------------
 # messages
 # --------------------------------------------------------------------------------------------
+
+
+def test_a_fixed_length_says_exactly():
+    data = yaml.safe_load(PAPER.read_text())
+    data["desired"][0]["diag"] = [1.0, 2.0, 3.0]
+    [(path, msg)] = _problems(data)
+    assert path == "desired[0].diag"
+    assert "exactly 4 items" in msg and "at least" not in msg, msg
+
+
+def test_a_key_of_another_model_is_one_line(multi):
+    multi["sensors"][0]["sigma_bearing_mrad"] = 2.0  # a position sensor
+    [(path, msg)] = _problems(multi)
+    assert path == "sensors[0].sigma_bearing_mrad"
+    assert "range_bearing" in msg and "bearing" in msg and "position" in msg
 
 
 def test_the_config_knows_the_allocators_limit():
