@@ -10,8 +10,9 @@ A scenario file is YAML; its top-level ``kind`` names the kind (:mod:`covnet.kin
 3. the checks that span several fields run: the kind's own, then :func:`network_problems`
    (the ``network`` table: timeouts, per-sensor links, the shape of ``network.security``).
 
-All problems of a stage are raised together as one :class:`ConfigError` whose lines read
-``sensors[3].rho: must be in (-1, 1)``.
+All problems are raised together as one :class:`ConfigError` whose lines read
+``sensors[3].rho: must be in (-1, 1)``: when the structure has problems, the checks of stage 3
+still run on the config without the refused values (:func:`_later_problems`).
 
 The YAML is the single source of truth for a run; :func:`hash_of` of a kind's normalised config
 (:func:`normalised`: every default filled in) is stamped into every result.
@@ -19,6 +20,7 @@ The YAML is the single source of truth for a run; :func:`hash_of` of a kind's no
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import os
@@ -591,7 +593,7 @@ def validate(
     """The loader pipeline every kind's ``from_dict`` runs (module docstring): resolve the
     security paths against ``base_dir`` (none: they stay relative to the working directory),
     validate the structure with ``model``, then the kind's ``problems`` and
-    :func:`network_problems`; raise one :class:`ConfigError` per stage listing every problem."""
+    :func:`network_problems`; raise one :class:`ConfigError` listing every problem."""
     if not isinstance(data, Mapping):
         raise ConfigError(source, [("", "the top level must be a mapping of keys to values")])
     data = dict(data)
@@ -608,11 +610,53 @@ def validate(
     try:
         cfg = model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(source, _root_causes(exc.errors())) from None
+        found = _root_causes(exc.errors())
+        raise ConfigError(source, found + _later_problems(model, data, exc, problems)) from None
     found = problems(cfg) + network_problems(cfg)
     if found:
         raise ConfigError(source, found)
     return cfg
+
+
+def _later_problems(
+    model: type[M],
+    data: dict[str, Any],
+    exc: ValidationError,
+    problems: Callable[[M], list[tuple[str, str]]],
+) -> list[tuple[str, str]]:
+    """The checks that span fields, run on ``data`` without the values the structure refused
+    (each falls back to its default), so that the whole list comes at once: nothing when a
+    refused value has no default (the config is then incomplete), and nothing said within the
+    record that holds a refused value (a sensor whose ``model`` is refused would otherwise be
+    checked as the default model)."""
+    scopes: list[tuple[int | str, ...]] = []
+    repaired: Any = copy.deepcopy(data)
+    for err in exc.errors():
+        loc = tuple(err["loc"])
+        while loc and isinstance(loc[-1], int):  # an item of a list of values: the list
+            loc = loc[:-1]
+        if not loc:
+            return []
+        holder = repaired
+        for part in loc[:-1]:
+            try:
+                holder = holder[part]
+            except (KeyError, IndexError, TypeError):
+                return []
+        if isinstance(holder, dict):
+            holder.pop(loc[-1], None)
+        items = [i for i, part in enumerate(loc) if isinstance(part, int)]
+        scopes.append(loc[: items[-1] + 1] if items else loc)
+    try:
+        cfg = model.model_validate(repaired)
+    except ValidationError:
+        return []
+    inside = [_fmt_loc(scope) for scope in scopes]
+    return [
+        (path, msg)
+        for path, msg in problems(cfg) + network_problems(cfg)
+        if not any(path == s or path.startswith((f"{s}.", f"{s}[")) for s in inside)
+    ]
 
 
 def normalised(cfg: Record, omit_if_default: Sequence[str] = ()) -> dict[str, Any]:

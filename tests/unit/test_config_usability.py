@@ -145,6 +145,32 @@ def test_a_key_of_another_model_is_one_line(multi):
     assert "range_bearing" in msg and "bearing" in msg and "position" in msg
 
 
+def test_every_problem_at_once_across_the_stages(multi, tmp_path, capsys):
+    multi["allocation"]["required"] = ["ZZ"]
+    multi["allocation"]["excluded"] = [s["id"] for s in multi["sensors"]]
+    multi["allocation"]["max_per_target"] = 0
+    paths = [p for p, _ in _problems(multi)]
+    assert paths == [
+        "allocation.max_per_target",
+        "allocation.required[0]",
+        "allocation.excluded",
+    ], paths
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(multi))
+    assert main(["check", str(p)]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 4
+
+
+def test_a_structural_problem_does_not_also_report_its_own_field():
+    """The later checks run on the config without the broken values: nothing they say about
+    a broken value's place (or inside it) is a second line for the same mistake."""
+    data = yaml.safe_load(PAPER.read_text())
+    data["desired"][0]["diag"] = [1.0, 2.0, 3.0]  # desired[0] then has neither diag nor matrix
+    data["sensors"][0]["sigma_x_m"] = "ten"  # the sensor then lacks sigma_x_m
+    paths = [p for p, _ in _problems(data)]
+    assert paths == ["sensors[0].sigma_x_m", "desired[0].diag"], paths
+
+
 def test_the_config_knows_the_allocators_limit():
     from covnet.covariance_control.config import MULTITARGET_MAX_SENSORS
 
