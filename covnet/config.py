@@ -564,6 +564,8 @@ def read_yaml(path: str | Path) -> object:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(p), [("", f"not UTF-8 text: {exc}")]) from None
     if p.suffix == ".json":
         try:
             return json.loads(text)
