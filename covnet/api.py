@@ -37,6 +37,9 @@ from typing import Any
 
 import numpy as np
 
+import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it says so)
+
+# isort: split
 from covnet import kinds
 from covnet.config import ConfigError
 from covnet.errors import UsageError

@@ -21,6 +21,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it says so)
+
+# isort: split
 from covnet import __version__, interrupts, kinds
 from covnet.config import (
     ConfigError,

@@ -4,6 +4,7 @@ run as it is written."""
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -148,3 +149,44 @@ def _failing_kind(name):
             raise RuntimeError("boom")
 
     return Kind()
+
+
+_SHADOWED = """
+import importlib.machinery, sys
+from pathlib import Path
+
+class Installed:
+    # what an editable install's finder does: covnet's modules from the repository, consulted
+    # after the path (where the folder named covnet/ was found first)
+    @staticmethod
+    def find_spec(name, path=None, target=None):
+        if not name.startswith("covnet."):
+            return None
+        where = Path(REPO, *name.split(".")[:-1])
+        return importlib.machinery.PathFinder.find_spec(name, [str(where)])
+
+sys.meta_path.insert(sys.meta_path.index(importlib.machinery.PathFinder) + 1, Installed)
+sys.path.insert(0, "")
+try:
+    exec(STATEMENT)
+except ImportError as exc:
+    print(exc)
+    sys.exit(3)
+"""
+
+
+@pytest.mark.parametrize("statement", ["from covnet import api", "import covnet.cli"])
+def test_a_folder_named_covnet_says_what_is_wrong(tmp_path, statement):
+    """From the folder that holds a clone named ``covnet/``, Python imports that folder as a
+    namespace package instead of the installed covnet."""
+    (tmp_path / "covnet").mkdir()
+    code = f"REPO = {str(REPO)!r}\nSTATEMENT = {statement!r}\n" + _SHADOWED
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+        timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    msg = proc.stdout
+    assert str(tmp_path / "covnet") in msg and "namespace package" in msg, msg
+    assert "rename" in msg and "__version__" not in msg, msg
