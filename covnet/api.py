@@ -12,9 +12,13 @@ functions returning result objects.
 ``config``: a path to a scenario file, its parsed mapping, or a loaded config.  ``overrides``:
 the run options (``seed``, ``metric``, ``fusion``, ``solver``: as on the command line) and any
 config field, top-level by name (``scans=30``) or nested with ``__`` (``network__
-deadline_fraction=0.3``); :func:`sweep` also takes the ``sweep`` section's fields by name
-(``delay_ms=[0, 350]``).  Every change is re-validated as the config, so a bad value is a
-:class:`~covnet.config.ConfigError` naming its path.
+deadline_fraction=0.3``, a list item by its index: ``sensors__0__rho=0.5``); :func:`sweep` also
+takes the ``sweep`` section's fields by name (``delay_ms=[0, 350]``).  Every change is
+re-validated as the config, so a bad value is a :class:`~covnet.config.ConfigError` naming its
+path; a bad run option a :class:`~covnet.errors.UsageError` naming the argument (``metric: ...``).
+
+:func:`run` without ``out`` runs in a temporary directory that it removes once the results are
+read (``keep=True`` keeps it).
 
 ``to_frame()`` needs pandas (optional: a clear :class:`ImportError` without it); everything else
 is plain Python and numpy.
@@ -24,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import shutil
 import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -32,7 +37,12 @@ from typing import Any
 
 import numpy as np
 
+import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it says so)
+
+# isort: split
 from covnet import kinds
+from covnet.config import ConfigError
+from covnet.errors import UsageError
 from covnet.rundir import ARRAYS, SUMMARY, load_arrays, read_json
 from covnet.stats import per_scan_bands
 from covnet.trials import prepare_batch_out, write_batch_info
@@ -69,23 +79,49 @@ def load(config: Any, **overrides: Any) -> tuple[Any, Any]:
     if overrides:
         data = kind.normalised(cfg)
         for name, value in overrides.items():
-            *parents, leaf = name.split("__")
-            holder = data
-            for part in parents:
-                holder = holder.setdefault(part, {})
-            holder[leaf] = value
+            _override(data, name, value, source)
         cfg = kind.from_dict(data, f"{source} (with {', '.join(overrides)})", None)
     if options:
-        cfg = kinds.apply_options(kind, cfg, source, **options)
+        cfg = kinds.apply_named_options(kind, cfg, source, options, _ARGUMENTS)
     return kind, cfg
+
+
+#: the run options as this module's callers name them (errors say ``metric: ...``, not the
+#: command line's ``--metric: ...``)
+_ARGUMENTS = {name: name for name in kinds.OPTIONS}
+
+
+def _override(data: dict[str, Any], name: str, value: Any, source: str) -> None:
+    """Set the config field ``name`` (``scans``, ``network__deadline_fraction``, a list item
+    by its index: ``sensors__0__rho``) of the normalised config ``data`` to ``value``; a path
+    that leads nowhere is a :class:`~covnet.config.ConfigError` naming the argument."""
+    parts = name.split("__")
+    holder: Any = data
+    for i, part in enumerate(parts):
+        where = "__".join(parts[:i])
+        key: Any = part
+        if isinstance(holder, list):
+            if not part.isdigit() or int(part) >= len(holder):
+                why = f"{where} is a list of {len(holder)}: give an index 0..{len(holder) - 1}"
+                raise ConfigError(source, [(name, f"{why} after it, not {part!r}")])
+            key = int(part)
+        elif not isinstance(holder, dict):
+            raise ConfigError(source, [(name, f"{where} is a value, it has no field {part!r}")])
+        if i == len(parts) - 1:
+            holder[key] = value
+        else:
+            if isinstance(holder, dict) and holder.get(key) is None:
+                holder[key] = {}  # a table absent or left at None: set a field within it
+            holder = holder[key]
 
 
 @dataclass
 class RunResult:
     """One run's results: ``summary`` (``summary.json``, or a passive run's
-    ``association.json``), ``arrays`` (``arrays.npz``: numpy), the directory ``out``."""
+    ``association.json``), ``arrays`` (``arrays.npz``: numpy), the directory ``out`` (None: a
+    temporary one, removed)."""
 
-    out: Path
+    out: Path | None
     summary: dict[str, Any]
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -107,12 +143,35 @@ class RunResult:
 
 
 def run(
-    config: Any, *, out: str | Path | None = None, figures: bool = False, **overrides: Any
+    config: Any,
+    *,
+    out: str | Path | None = None,
+    figures: bool = False,
+    keep: bool = False,
+    **overrides: Any,
 ) -> RunResult:
-    """``covnet run``: the whole scenario in this process into ``out`` (default: a new
-    temporary directory), its printout suppressed; the results read back."""
+    """``covnet run``: the whole scenario in this process into ``out``, its printout
+    suppressed; the results read back.  Without ``out`` the run goes to a temporary directory
+    that is removed once the results are read (``RunResult.out`` is then None), also when the
+    run fails; ``keep=True`` (or ``figures=True``) keeps it, and ``RunResult.out`` names it
+    (the caller removes it)."""
     kind, cfg = load(config, **overrides)
-    target = Path(out) if out is not None else Path(tempfile.mkdtemp(prefix="covnet-run-"))
+    if out is not None:
+        return _run_into(kind, cfg, Path(out), figures)
+    target = Path(tempfile.mkdtemp(prefix="covnet-run-"))
+    kept = keep or figures
+    try:
+        result = _run_into(kind, cfg, target, figures)
+    except BaseException:
+        shutil.rmtree(target, ignore_errors=True)
+        raise
+    if kept:
+        return result
+    shutil.rmtree(target, ignore_errors=True)
+    return RunResult(None, result.summary, result.arrays)
+
+
+def _run_into(kind: Any, cfg: Any, target: Path, figures: bool) -> RunResult:
     with contextlib.redirect_stdout(io.StringIO()):
         kind.run(cfg, target, figures=figures)
     summary_file = target / SUMMARY
@@ -175,9 +234,12 @@ def sweep(
     Dask cluster (``cluster``); with ``out`` every trial is written there and a repeated call
     resumes (as the command)."""
     # start-up: the sweep's modules only for sweep()
+    from covnet.core.metrics import METRICS
     from covnet.covariance_control import sweep as sw
     from covnet.covariance_control.config import SweepSpec
 
+    if metric is not None and metric not in METRICS:
+        raise UsageError(f"metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
     grid_fields = set(SweepSpec.model_fields)
     grid = {k: overrides.pop(k) for k in list(overrides) if k in grid_fields}
     kind, cfg = load(config, **overrides)

@@ -21,16 +21,20 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it says so)
+
+# isort: split
 from covnet import __version__, interrupts, kinds
 from covnet.config import (
     ConfigError,
     ConfigWarning,
     endpoint_problem,
     hash_of,
+    read_yaml,
     scheduler_problem,
 )
 from covnet.errors import UpError, UsageError
-from covnet.rundir import CONFIG, RUN_INFO, prepare_out, read_json, record_end
+from covnet.rundir import CONFIG, RUN_INFO, config_mismatch, prepare_out, read_json, record_end
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 EXIT_PIPE = 141
@@ -241,7 +245,11 @@ def cmd_plot(args: argparse.Namespace) -> int:
         raise UsageError(
             f"{run_dir}: not a complete run directory (missing {CONFIG}, which names its kind)"
         )
-    kind, _ = kinds.from_dict(read_json(run_dir / CONFIG), str(run_dir / CONFIG))
+    # a corrupt config.json is a ConfigError (exit 2), as for replay
+    kind, cfg = kinds.from_dict(read_yaml(run_dir / CONFIG), str(run_dir / CONFIG))
+    stale = config_mismatch(run_dir, kinds.config_hash(cfg))
+    if stale is not None:
+        raise UsageError(stale)
     if args.point is not None:
         try:
             figures = kind.plot(run_dir, point=args.point)  # type: ignore[call-arg]

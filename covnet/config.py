@@ -10,8 +10,9 @@ A scenario file is YAML; its top-level ``kind`` names the kind (:mod:`covnet.kin
 3. the checks that span several fields run: the kind's own, then :func:`network_problems`
    (the ``network`` table: timeouts, per-sensor links, the shape of ``network.security``).
 
-All problems of a stage are raised together as one :class:`ConfigError` whose lines read
-``sensors[3].rho: must be in (-1, 1)``.
+All problems are raised together as one :class:`ConfigError` whose lines read
+``sensors[3].rho: must be in (-1, 1)``: when the structure has problems, the checks of stage 3
+still run on the config without the refused values (:func:`_later_problems`).
 
 The YAML is the single source of truth for a run; :func:`hash_of` of a kind's normalised config
 (:func:`normalised`: every default filled in) is stamped into every result.
@@ -19,6 +20,7 @@ The YAML is the single source of truth for a run; :func:`hash_of` of a kind's no
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import os
@@ -501,22 +503,78 @@ def _resolve_security_paths(data: dict[str, Any], base_dir: Path) -> dict[str, A
     return {**data, "network": {**net, "security": sec}}
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that notes every key repeated in one mapping (YAML's own loader keeps
+    the last one silently): ``duplicates`` holds ``(key, line, first line)``, 1-based.  Merge
+    keys (``<<: *anchor``) may still be overridden by the mapping's own keys."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self.duplicates: list[tuple[object, int, int]] = []
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        if isinstance(node, yaml.MappingNode):
+            first: dict[object, int] = {}
+            for key_node, _ in node.value:
+                if not isinstance(key_node, yaml.ScalarNode):
+                    continue
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node)
+                line = key_node.start_mark.line + 1
+                if key in first:
+                    self.duplicates.append((key, line, first[key]))
+                else:
+                    first[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+def _load_yaml(text: str) -> object:
+    """``yaml.safe_load`` of ``text``, refusing keys repeated in a mapping (every one of them,
+    with its lines, as one :class:`ConfigError` problem each; the caller names the file)."""
+    loader = _UniqueKeyLoader(text)
+    try:
+        data = loader.get_single_data()
+    finally:
+        loader.dispose()
+    if loader.duplicates:
+        raise _DuplicateKeys(
+            [
+                f"duplicate key {key!r} at line {line} (first at line {first}): a key may "
+                "appear once in a mapping"
+                for key, line, first in loader.duplicates
+            ]
+        )
+    return data
+
+
+class _DuplicateKeys(Exception):
+    def __init__(self, messages: list[str]) -> None:
+        super().__init__("; ".join(messages))
+        self.messages = messages
+
+
 def read_yaml(path: str | Path) -> object:
-    """Parse a YAML file (``safe_load``), or a JSON one (a run directory's ``config.json``: JSON
-    is YAML, but YAML 1.1 would read ``1e-09`` as text); an unreadable file or bad YAML (JSON) is
-    a :class:`ConfigError` naming the line and column."""
+    """Parse a YAML file (``safe_load``; a key repeated in a mapping is an error, not the last
+    one winning), or a JSON one (a run directory's ``config.json``: JSON is YAML, but YAML 1.1
+    would read ``1e-09`` as text); an unreadable file or bad YAML (JSON) is a
+    :class:`ConfigError` naming the line and column."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(p), [("", f"not UTF-8 text: {exc}")]) from None
     if p.suffix == ".json":
         try:
             return json.loads(text)
         except ValueError as exc:
             raise ConfigError(str(p), [("", f"not valid JSON: {exc}")]) from None
     try:
-        return yaml.safe_load(text)
+        return _load_yaml(text)
+    except _DuplicateKeys as exc:
+        raise ConfigError(str(p), [("", m) for m in exc.messages]) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
@@ -537,7 +595,7 @@ def validate(
     """The loader pipeline every kind's ``from_dict`` runs (module docstring): resolve the
     security paths against ``base_dir`` (none: they stay relative to the working directory),
     validate the structure with ``model``, then the kind's ``problems`` and
-    :func:`network_problems`; raise one :class:`ConfigError` per stage listing every problem."""
+    :func:`network_problems`; raise one :class:`ConfigError` listing every problem."""
     if not isinstance(data, Mapping):
         raise ConfigError(source, [("", "the top level must be a mapping of keys to values")])
     data = dict(data)
@@ -554,11 +612,53 @@ def validate(
     try:
         cfg = model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(source, _root_causes(exc.errors())) from None
+        found = _root_causes(exc.errors())
+        raise ConfigError(source, found + _later_problems(model, data, exc, problems)) from None
     found = problems(cfg) + network_problems(cfg)
     if found:
         raise ConfigError(source, found)
     return cfg
+
+
+def _later_problems(
+    model: type[M],
+    data: dict[str, Any],
+    exc: ValidationError,
+    problems: Callable[[M], list[tuple[str, str]]],
+) -> list[tuple[str, str]]:
+    """The checks that span fields, run on ``data`` without the values the structure refused
+    (each falls back to its default), so that the whole list comes at once: nothing when a
+    refused value has no default (the config is then incomplete), and nothing said within the
+    record that holds a refused value (a sensor whose ``model`` is refused would otherwise be
+    checked as the default model)."""
+    scopes: list[tuple[int | str, ...]] = []
+    repaired: Any = copy.deepcopy(data)
+    for err in exc.errors():
+        loc = tuple(err["loc"])
+        while loc and isinstance(loc[-1], int):  # an item of a list of values: the list
+            loc = loc[:-1]
+        if not loc:
+            return []
+        holder = repaired
+        for part in loc[:-1]:
+            try:
+                holder = holder[part]
+            except (KeyError, IndexError, TypeError):
+                return []
+        if isinstance(holder, dict):
+            holder.pop(loc[-1], None)
+        items = [i for i, part in enumerate(loc) if isinstance(part, int)]
+        scopes.append(loc[: items[-1] + 1] if items else loc)
+    try:
+        cfg = model.model_validate(repaired)
+    except ValidationError:
+        return []
+    inside = [_fmt_loc(scope) for scope in scopes]
+    return [
+        (path, msg)
+        for path, msg in problems(cfg) + network_problems(cfg)
+        if not any(path == s or path.startswith((f"{s}.", f"{s}[")) for s in inside)
+    ]
 
 
 def normalised(cfg: Record, omit_if_default: Sequence[str] = ()) -> dict[str, Any]:

@@ -5,11 +5,39 @@
 - :class:`UpError`: ``covnet up`` could not bring the network up or it did not finish: exit 1.
 
 A bad config is a :class:`covnet.config.ConfigError` (exit 2), listing every problem.
+
+Importing this module checks that ``covnet`` is this package: from the folder that holds a
+clone of the repository named ``covnet/``, Python takes that folder (it has no
+``__init__.py``) for ``covnet``, a namespace package, while an editable install still finds
+the modules; the first ``from covnet import __version__`` would then fail with a message that
+does not say why.  The entry points (:mod:`covnet.api`, :mod:`covnet.cli`) import this module
+first, so the :class:`ImportError` says what is wrong and how to avoid it.
 """
 
 from __future__ import annotations
 
-__all__ = ["UpError", "UsageError"]
+import sys
+
+__all__ = ["UpError", "UsageError", "shadowed_package"]
+
+
+def shadowed_package() -> str | None:
+    """Why ``covnet`` is not this package (None: it is)."""
+    package = sys.modules.get("covnet")
+    if package is None or getattr(package, "__file__", None) is not None:
+        return None
+    folders = ", ".join(str(p) for p in getattr(package, "__path__", [])) or "a folder"
+    return (
+        f"'covnet' is not the covnet package here: Python took the folder {folders} for it "
+        "(a folder without __init__.py is a namespace package, and the current directory "
+        "comes first on sys.path). This happens in the folder that holds a clone of the "
+        "repository named covnet/: run Python from inside the clone or any other folder, or "
+        "rename the clone's folder"
+    )
+
+
+if (_problem := shadowed_package()) is not None:
+    raise ImportError(_problem)
 
 
 class UsageError(Exception):

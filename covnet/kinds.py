@@ -30,6 +30,7 @@ __all__ = [
     "OPTIONS",
     "REGISTRY",
     "Kind",
+    "apply_named_options",
     "apply_options",
     "config_hash",
     "from_dict",
@@ -191,14 +192,22 @@ def apply_options(kind: Kind, cfg: Any, source: str, **values: Any) -> Any:
     """``cfg`` with the given :data:`OPTIONS` applied (``None`` values are not given), as a
     new validated config.  An option the kind does not take, or a value it refuses, is a
     :class:`~covnet.errors.UsageError` naming the option."""
+    return apply_named_options(kind, cfg, source, values, OPTIONS)
+
+
+def apply_named_options(
+    kind: Kind, cfg: Any, source: str, values: Mapping[str, Any], names: Mapping[str, str]
+) -> Any:
+    """:func:`apply_options`, its errors naming each option as ``names`` spell it (the
+    command line's flags: :data:`OPTIONS`; :mod:`covnet.api` names its arguments)."""
     given = {k: v for k, v in values.items() if v is not None and v != []}
     for name in given:
         if name not in OPTIONS:
             raise ValueError(f"not a run option: {name!r}")
         if name not in kind.options:
-            takes = ", ".join(OPTIONS[o] for o in OPTIONS if o in kind.options) or "none"
+            takes = ", ".join(names[o] for o in OPTIONS if o in kind.options) or "none"
             raise UsageError(
-                f"{OPTIONS[name]}: a {kind.title} scenario does not take this option "
+                f"{names[name]}: a {kind.title} scenario does not take this option "
                 f"(its options: {takes})"
             )
     if not given:
@@ -208,8 +217,8 @@ def apply_options(kind: Kind, cfg: Any, source: str, **values: Any) -> Any:
         try:
             kind.options[name](data, value)
         except ValueError as exc:
-            raise UsageError(f"{OPTIONS[name]}: {exc}") from None
-    return kind.from_dict(data, f"{source} (with {', '.join(OPTIONS[n] for n in given)})", None)
+            raise UsageError(f"{names[name]}: {exc}") from None
+    return kind.from_dict(data, f"{source} (with {', '.join(names[n] for n in given)})", None)
 
 
 def command(kind: Kind, name: str, what: str) -> Callable[..., int]:

@@ -364,6 +364,11 @@ def _within(v: Any, c: Mapping[str, Any], loc: Loc, errors: Errors, raw: Any) ->
         after = "" if isinstance(v, str) else " after validation"
         n = len(v)
         lo, hi = c.get("min_length"), c.get("max_length")
+        if lo is not None and lo == hi and n != lo:  # a fixed length: not "at least"
+            what = noun[1] + ("" if lo == 1 else "s")
+            tail = "" if isinstance(v, str) else f", not {n}"
+            msg = f"{noun[0]} should have exactly {lo} {what}{after}{tail}"
+            return _err(errors, loc, "too_short" if n < lo else "too_long", msg, raw)
         if lo is not None and n < lo:
             what = noun[1] + ("" if lo == 1 else "s")
             tail = "" if isinstance(v, str) else f", not {n}"

@@ -41,6 +41,7 @@ __all__ = [
     "STATUSES",
     "SUMMARY",
     "atomic_write",
+    "config_mismatch",
     "load_arrays",
     "new_run_dir",
     "prepare_out",
@@ -154,6 +155,34 @@ def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
 
 def read_json(path: Path) -> Any:
     return json.loads(Path(path).read_text())
+
+
+#: the result files that carry the hash of the config they were computed from (a run's
+#: summary, a passive run's association, a Monte Carlo batch's table), the first one present
+#: is what :func:`config_mismatch` compares with
+HASHED_RESULTS = (SUMMARY, "association.json", "montecarlo.json", "results.json")
+
+
+def config_mismatch(run_dir: Path, config_hash: str) -> str | None:
+    """Why ``run_dir``'s ``config.json`` (whose hash is ``config_hash``) is not the config its
+    results were computed from (None: it is, or no result file says): ``config.json`` edited
+    after the run, as ``covnet replay`` finds against the recording."""
+    for name in HASHED_RESULTS:
+        path = run_dir / name
+        if not path.is_file():
+            continue
+        try:
+            stored = read_json(path).get("config_hash")
+        except (ValueError, AttributeError):
+            return f"{path}: not a readable result file (not a JSON object)"
+        if stored is not None and stored != config_hash:
+            return (
+                f"{run_dir / CONFIG}: not the config of this run's results (config hash "
+                f"{config_hash}, {name}: {stored}); was it edited after the run? Put back the "
+                "config the run used"
+            )
+        return None
+    return None
 
 
 def load_arrays(path: Path) -> dict[str, np.ndarray]:

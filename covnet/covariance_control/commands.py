@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from covnet.core.metrics import METRICS
-from covnet.covariance_control.config import Scenario, load
+from covnet.covariance_control.config import Scenario, from_dict, load
 from covnet.covariance_control.decentral_sim import run_mode
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.results import write_run
@@ -25,6 +25,7 @@ from covnet.covariance_control.simulate import MetricRun, shared_trajectory
 from covnet.errors import UsageError
 from covnet.forked import map_in_forks
 from covnet.rundir import (
+    CONFIG,
     SUMMARY,
     load_arrays,
     read_json,
@@ -237,6 +238,7 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
                 rows = doc["rows"]
             except (ValueError, KeyError) as exc:
                 raise UsageError(f"{table}: not a {stem} table ({exc})") from None
+            _check_trial_hash(run_dir, stem, doc)
             title = f"{doc.get('scenario', '')}: covnet {stem}, metric {doc.get('metric', '?')}"
             figures = [module.make_figure(run_dir, rows, title)]
             if (run_dir / CURVES).is_file():
@@ -259,9 +261,37 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
     missing = [f for f in (SUMMARY, "arrays.npz") if not (run_dir / f).is_file()]
     if missing:
         raise UsageError(f"{run_dir}: not a complete run directory (missing {', '.join(missing)})")
+    if not read_json(run_dir / SUMMARY).get("metrics"):
+        raise UsageError(
+            f"{run_dir}: no scan of this run was done ({SUMMARY} has no metric's results): "
+            "there is nothing to draw"
+        )
     from covnet.covariance_control.plots import make_figures  # matplotlib: start-up
 
     return make_figures(run_dir)
+
+
+def _check_trial_hash(run_dir: Path, stem: str, doc: dict[str, Any]) -> None:
+    """A ``compare`` or ``sweep`` table's ``trial_hash`` against the one of the directory's
+    ``config.json`` (edited after the batch: refused, as ``covnet plot`` refuses a run's)."""
+    from covnet.covariance_control import compare as compare_module  # start-up: tables only
+    from covnet.covariance_control import sweep as sweep_module
+
+    stored = doc.get("trial_hash")
+    if stored is None:
+        return
+    sc = from_dict(read_json(run_dir / CONFIG), str(run_dir / CONFIG))
+    metric = str(doc.get("metric"))
+    if stem == "sweep":
+        keys = [sweep_module.trial_key(sc, metric)]
+    else:  # the graph it names, or none given (the config's)
+        keys = [compare_module.trial_key(sc, metric, g) for g in (None, doc.get("graph"))]
+    if stored not in keys:
+        raise UsageError(
+            f"{run_dir / CONFIG}: not the config of this {stem}'s results ({stem}.json: trial "
+            f"hash {stored}, config.json: {keys[0]}); was it edited after the {stem}? Put "
+            "back the config it used"
+        )
 
 
 def metric_opt(sc: Scenario, requested: list[str] | None, default: str) -> str:

@@ -540,12 +540,12 @@ def _sensor_problems(sc: Scenario) -> list[tuple[str, str]]:
                         f"missing required key (a {s.model} sensor needs {', '.join(need)})",
                     )
                 )
-        for model, keys in _MODEL_NOISE.items():
-            for key in keys:
-                if key not in need and getattr(s, key) is not None:
-                    problems.append(
-                        (f"{where}.{key}", f"only for {model} sensors, this one is {s.model}")
-                    )
+        for key in dict.fromkeys(k for keys in _MODEL_NOISE.values() for k in keys):
+            if key not in need and getattr(s, key) is not None:
+                models = " or ".join(m for m, keys in _MODEL_NOISE.items() if key in keys)
+                problems.append(
+                    (f"{where}.{key}", f"only for {models} sensors, this one is {s.model}")
+                )
         if s.position_m is None and (s.model != "position" or s.max_range_m or s.fov):
             what = "measures from" if s.model != "position" else "has coverage around"
             problems.append(
@@ -645,9 +645,26 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     return problems
 
 
+#: the many-target allocator's limit on the sensors that can be on (its tables have ``2^N``
+#: entries: :data:`covnet.core.multitarget_allocation.MAX_SENSORS`, not imported here for the
+#: start-up time of every node process; a test keeps the two equal)
+MULTITARGET_MAX_SENSORS = 22
+
+
 def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
     """What the many-target scenario does not (yet) do, said where it is asked for."""
     problems: list[tuple[str, str]] = []
+    excluded = set(sc.allocation.excluded)
+    candidates = [s for s in sc.sensor_ids if s not in excluded]
+    if len(candidates) > MULTITARGET_MAX_SENSORS:
+        problems.append(
+            (
+                "sensors",
+                f"with 'targets:' at most {MULTITARGET_MAX_SENSORS} sensors can be allocated "
+                f"(the many-target allocator keeps tables of 2^N entries); {len(candidates)} "
+                "are not in allocation.excluded: exclude some or split the network",
+            )
+        )
     mode = sc.fusion.mode
     if sc.fusion.has_centre and (why := refusal(rule_for(sc.fusion), "targets")) is not None:
         problems.append(("fusion.mode", f"{mode} {why}"))
@@ -659,6 +676,21 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
                 "filter is single-target (use central or info)",
             )
         )
+    al = sc.allocation
+    if al.search in ("bounded", "greedy"):
+        problems.append(
+            (
+                "allocation.search",
+                f"{al.search} is not available with 'targets:': the many-target allocator is "
+                "exact (use exact or auto)",
+            )
+        )
+    elif al.search == "auto":  # (exact: refused by the search checks already)
+        for opt in BOUNDED_OPTIONS:
+            if getattr(al, opt) is not None:
+                problems.append(
+                    (f"allocation.{opt}", "not used with 'targets:' (its allocator is exact)")
+                )
     if sc.allocation.account_for_loss:
         problems.append(
             (

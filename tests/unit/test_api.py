@@ -4,9 +4,12 @@ run as it is written."""
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +17,7 @@ import pytest
 
 from covnet import api
 from covnet.config import ConfigError
+from covnet.errors import UsageError
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -80,3 +84,109 @@ def test_to_frame_without_pandas_says_what_to_install(paper_path, monkeypatch):
     with pytest.raises(ImportError, match="pip install pandas"):
         r.to_frame()
     assert r.arrays["x"].shape == (3,)  # the arrays are there without it
+
+
+def test_overrides_reach_list_items(paper_path):
+    _, cfg = api.load(paper_path, sensors__0__rho=0.5, desired__1__from_scan=40)
+    assert cfg.sensors[0].rho == 0.5 and cfg.desired[1].from_scan == 40
+    with pytest.raises(ConfigError, match=r"sensors\[0\]\.rho: must be in \(-1, 1\)"):
+        api.load(paper_path, sensors__0__rho=2.0)
+    for bad, where in [
+        ({"sensors__99__rho": 0.5}, "sensors__99__rho"),
+        ({"sensors__x__rho": 0.5}, "sensors__x__rho"),
+        ({"scans__x": 1}, "scans__x"),
+    ]:
+        with pytest.raises(ConfigError, match=where):
+            api.load(paper_path, **bad)
+
+
+def test_api_errors_name_the_argument_not_a_flag(paper_path):
+    with pytest.raises(UsageError) as exc:
+        api.load(paper_path, metric="nope")
+    assert str(exc.value).startswith("metric: unknown metric 'nope'"), exc.value
+    with pytest.raises(UsageError, match="^seed: must be >= 0"):
+        api.load(paper_path, seed=-1)
+    with pytest.raises(UsageError) as exc:
+        api.load(REPO / "configs" / "mobile.yaml", metric="spectral")
+    assert "--" not in str(exc.value) and str(exc.value).startswith("metric: "), exc.value
+    with pytest.raises(UsageError, match="^metric: unknown metric 'nope'"):
+        api.sweep(REPO / "configs" / "latency.yaml", metric="nope", seeds=1, workers=1)
+
+
+def test_run_without_out_leaves_no_temporary_directory(paper_path, tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    r = api.run(paper_path, metric="spectral", scans=4)
+    assert r.summary["scans"] == 4 and r.arrays["nees.spectral"].shape == (4,)
+    assert r.out is None and list(tmp_path.iterdir()) == []
+    kept = api.run(paper_path, metric="spectral", scans=4, keep=True)
+    assert kept.out is not None and kept.out.parent == tmp_path
+    assert (kept.out / "summary.json").is_file()
+    shutil.rmtree(kept.out)
+    # an interrupted or failed run leaves nothing either
+    with pytest.raises(ConfigError):
+        api.run(paper_path, scans=0)
+    monkeypatch.setattr(api.kinds, "get", _failing_kind)
+    with pytest.raises(RuntimeError, match="boom"):
+        api.run(paper_path, scans=4)
+    assert list(tmp_path.iterdir()) == []
+
+
+def _failing_kind(name):
+    class Kind:
+        options: dict = {}
+
+        @staticmethod
+        def from_dict(data, source, base_dir):
+            return data
+
+        @staticmethod
+        def normalised(cfg):
+            return dict(cfg)
+
+        @staticmethod
+        def run(cfg, out, *, figures):
+            (out / "half.json").write_text("{")
+            raise RuntimeError("boom")
+
+    return Kind()
+
+
+_SHADOWED = """
+import importlib.machinery, sys
+from pathlib import Path
+
+class Installed:
+    # what an editable install's finder does: covnet's modules from the repository, consulted
+    # after the path (where the folder named covnet/ was found first)
+    @staticmethod
+    def find_spec(name, path=None, target=None):
+        if not name.startswith("covnet."):
+            return None
+        where = Path(REPO, *name.split(".")[:-1])
+        return importlib.machinery.PathFinder.find_spec(name, [str(where)])
+
+sys.meta_path.insert(sys.meta_path.index(importlib.machinery.PathFinder) + 1, Installed)
+sys.path.insert(0, "")
+try:
+    exec(STATEMENT)
+except ImportError as exc:
+    print(exc)
+    sys.exit(3)
+"""
+
+
+@pytest.mark.parametrize("statement", ["from covnet import api", "import covnet.cli"])
+def test_a_folder_named_covnet_says_what_is_wrong(tmp_path, statement):
+    """From the folder that holds a clone named ``covnet/``, Python imports that folder as a
+    namespace package instead of the installed covnet."""
+    (tmp_path / "covnet").mkdir()
+    code = f"REPO = {str(REPO)!r}\nSTATEMENT = {statement!r}\n" + _SHADOWED
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+        timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    msg = proc.stdout
+    assert str(tmp_path / "covnet") in msg and "namespace package" in msg, msg
+    assert "rename" in msg and "__version__" not in msg, msg

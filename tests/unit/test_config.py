@@ -79,7 +79,7 @@ BAD_CASES = [
         "p0-len",
         lambda d: d["filter"].update(P0_diag=[1, 1, 1]),
         "filter.P0_diag",
-        "at least 4 items",
+        "exactly 4 items",
     ),
     (
         "estimate",

@@ -81,7 +81,7 @@ def test_minimal_config_takes_the_spec_defaults(raw):
     [
         ("no kind", lambda d: d.pop("kind"), "kind", "expected 'passive'"),
         ("wrong kind", lambda d: d.update(kind="paper"), "kind", "got 'paper'"),
-        ("two sensors", lambda d: d["sensors"].pop(), "sensors", "at least 3"),
+        ("two sensors", lambda d: d["sensors"].pop(), "sensors", "exactly 3"),
         (
             "unknown key",
             lambda d: d["association"].update(methd="cot"),
@@ -158,7 +158,7 @@ def test_minimal_config_takes_the_spec_defaults(raw):
             "position",
             lambda d: d["sensors"][0].update(position_km=[0.0, 1.0]),
             "sensors[0].position_km",
-            "at least 3",
+            "exactly 3",
         ),
         (
             "no clutter",

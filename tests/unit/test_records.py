@@ -143,7 +143,7 @@ def test_every_problem_at_once_fields_in_order_then_unknown_keys():
         ({"n": 0}, "Input should be greater than or equal to 1"),
         ({"s": "abcdef"}, "String should have at most 5 characters"),
         ({"s": "AB"}, "String should match pattern '^[a-z]+$'"),
-        ({"pair": [1.0]}, "Tuple should have at least 2 items after validation, not 1"),
+        ({"pair": [1.0]}, "Tuple should have exactly 2 items after validation, not 1"),
     ],
 )
 def test_constraint_messages(data, msg):

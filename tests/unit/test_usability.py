@@ -297,6 +297,13 @@ def test_plot_redraws_every_kind_of_directory(
     capsys.readouterr()
     assert main(["plot", str(out)]) == 0
     assert {f for f in figures if (out / f).stat().st_size > 1000} == figures
+    # a config.json edited after the run is not what the run computed: refused
+    cfg = json.loads((out / "config.json").read_text())
+    (out / "config.json").write_text(json.dumps({**cfg, "name": "edited"}))
+    capsys.readouterr()
+    assert main(["plot", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert " hash " in err and "edited after" in err, err
 
 
 def test_plot_says_what_a_directory_lacks(tmp_path, capsys):
@@ -307,3 +314,58 @@ def test_plot_says_what_a_directory_lacks(tmp_path, capsys):
     )
     assert main(["plot", str(tmp_path)]) == 2
     assert "missing summary.json, arrays.npz" in capsys.readouterr().err
+
+
+def _paper_dir_without_scans(tmp_path: Path, src: Path) -> Path:
+    """What ``covnet up`` leaves when no scan was done (the manager writes no metric's run)."""
+    from covnet.covariance_control import config as cc
+    from covnet.covariance_control.results import write_run, write_targets_run
+
+    sc = cc.load(src)
+    out = tmp_path / f"{sc.name}-no-scans"
+    if sc.multitarget:
+        from covnet.covariance_control import targets
+
+        write_targets_run(out, sc, targets.build(sc), {})
+    else:
+        from covnet.covariance_control.model import build_model
+        from covnet.covariance_control.simulate import shared_trajectory
+
+        write_run(out, sc, shared_trajectory(build_model(sc)), {})
+    return out
+
+
+@pytest.mark.parametrize(
+    "src", [PAPER, REPO / "configs" / "multitarget.yaml"], ids=["paper", "targets"]
+)
+def test_plot_of_a_run_without_scans_says_so(tmp_path, capsys, src):
+    out = _paper_dir_without_scans(tmp_path, src)
+    assert main(["plot", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "no scan" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize(
+    "content", [b'{"name": "paper", "seed": ', b"\xff\xfe not text"], ids=["json", "utf-8"]
+)
+def test_plot_of_a_corrupt_config_json_is_a_message(tmp_path, short_paper, capsys, content):
+    out = tmp_path / "out"
+    assert main(["run", str(short_paper), "--no-figures", "--out", str(out)]) == 0
+    (out / "config.json").write_bytes(content)
+    capsys.readouterr()
+    assert main(["plot", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "config.json" in err and "Traceback" not in err, err
+
+
+def test_plot_refuses_a_config_json_edited_after_the_run(tmp_path, short_paper, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(short_paper), "--no-figures", "--out", str(out)]) == 0
+    cfg = json.loads((out / "config.json").read_text())
+    cfg["sensors"] = cfg["sensors"][1:]
+    (out / "config.json").write_text(json.dumps(cfg))
+    capsys.readouterr()
+    assert main(["plot", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "config hash" in err and "summary.json" in err, err
+    assert not (out / "fig1_sensor_ellipses.png").exists()
