@@ -135,11 +135,20 @@ class Recorded:
     status: dict[tuple[int, int], msg.Status] = field(default_factory=dict)
     tracks: dict[tuple[int, int], list[msg.Track]] = field(default_factory=dict)
     meas: dict[tuple[int, int, str], Any] = field(default_factory=dict)  # or LocalTrack
+    # the later acceptable ones of the same sensor and scan, in the order received (a kind
+    # whose manager tests a message against its scan, e.g. a validation gate, picks among them)
+    others: dict[tuple[int, int, str], list[Any]] = field(default_factory=dict)
     commands: dict[tuple[int, int], msg.Command] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
 
     def count(self, what: str) -> None:
         self.counts[what] = self.counts.get(what, 0) + 1
+
+    def candidates(self, episode: int, scan: int, sensor: str) -> list[Any]:
+        """Every acceptable recorded message of ``sensor`` for ``(episode, scan)``, in the
+        order received."""
+        first = self.meas.get((episode, scan, sensor))
+        return [] if first is None else [first, *self.others.get((episode, scan, sensor), ())]
 
     def last_scan(self, episode: int) -> int:
         """The last scan of ``episode`` with a recorded Status (0: none)."""
@@ -181,6 +190,7 @@ def load_recording(
                     rec.count(f"skipped:invalid_{label}")
                 elif rec.meas.setdefault((m.episode, m.scan, m.sensor_id), m) is not m:
                     rec.count(f"{label}_duplicate")
+                    rec.others.setdefault((m.episode, m.scan, m.sensor_id), []).append(m)
             elif kind == msg.Command.KIND and commands:
                 cmd = msg.decode_command(s.key, s.payload)
                 rec.count("command")

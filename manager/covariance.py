@@ -60,8 +60,9 @@ class CovarianceLogic:
     def ahead(self, e: int, k: int) -> None:
         self.engine.ahead(self.plan)
 
-    def usable(self, m: Any) -> bool:
-        return self.engine.usable(m)
+    def usable(self, m: Any) -> bool | str:
+        verdict = self.engine.verdict(m)
+        return True if verdict is None else verdict
 
     def on_late(self, m: Any) -> bool | None:
         return self.engine.insert_late(m) if self.slow else None

@@ -131,8 +131,9 @@ class ScanLogic(Protocol):
         """Work for the scan that does not need its messages (done while they travel)."""
         ...
 
-    def usable(self, m: Any) -> bool:
-        """The kind's test of a message's content (the wire schema checked its form)."""
+    def usable(self, m: Any) -> bool | str:
+        """The kind's test of a message's content (the wire schema checked its form): True,
+        or False / the reason it is rejected for (``bad_measurement`` when False)."""
         ...
 
     def on_late(self, m: Any) -> bool | None:
@@ -290,7 +291,7 @@ class Loop:
         waiting: set[str],
         deadline: float,
         stop: threading.Event,
-        usable: Callable[[Any], bool],
+        usable: Callable[[Any], bool | str],
         kind: type[msg.Measurement] | type[msg.LocalTrack] = msg.Measurement,
     ) -> dict[str, Any]:
         """Receive scan ``k``'s messages (measurements, or local tracks: ``kind``) from the
@@ -330,7 +331,7 @@ class Loop:
         k: int,
         waiting: set[str],
         got: dict[str, Any],
-        usable: Callable[[Any], bool],
+        usable: Callable[[Any], bool | str],
         kind: type[msg.Measurement] | type[msg.LocalTrack] = msg.Measurement,
     ) -> None:
         self.stats.received(s.key, len(s.payload))
@@ -356,7 +357,7 @@ class Loop:
             self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
             done = (
                 self.on_late(m)
-                if self.on_late is not None and m.episode == episode and usable(m)
+                if self.on_late is not None and m.episode == episode and _passes(usable(m))
                 else None
             )
             if done is None:
@@ -375,8 +376,8 @@ class Loop:
             reason = "duplicate"
         elif m.sensor_id not in waiting and not self.accept_unsolicited:
             reason = "not_enabled"
-        elif not usable(m):
-            reason = "bad_measurement"
+        elif not _passes(verdict := usable(m)):
+            reason = verdict if isinstance(verdict, str) else "bad_measurement"
         if reason is not None:
             self.stats.reject(s.key, reason)
             outcome["rejected"] += 1
@@ -386,6 +387,11 @@ class Loop:
         got[m.sensor_id] = m
         waiting.discard(m.sensor_id)
         self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
+
+
+def _passes(verdict: bool | str) -> bool:
+    """A kind's :meth:`ScanLogic.usable` said yes (a string is a reason for no)."""
+    return not isinstance(verdict, str) and bool(verdict)
 
 
 @dataclass

@@ -6,7 +6,8 @@ with the sensors' answers handed over in this process, per scan ``k``::
     plan        = engine.decide(k)
     late, got   = transport.exchange(plan)     the enabled sensors' messages of scan k (and,
                                                over slow links, late ones of earlier scans)
-    for m in late: transport.late(engine.insert_late(m))
+    for m in late: transport.late(engine.insert_late(m))        (if engine.usable(m))
+    got         = the usable ones (the manager's test, validation gate included)
     engine.report(plan, engine.fuse(plan, got), got)
 
 The transport is :class:`Direct` (every enabled sensor's message arrives at once) or, when
@@ -199,9 +200,10 @@ def run_engine(engine: ScanEngine, links: bool = False) -> list[LatencyCounts | 
         transport = transport_for(engine, e, links)
         for k in range(1, engine.scans + 1):
             plan = engine.decide(k)
-            late, got = transport.exchange(plan)
+            late, arrived = transport.exchange(plan)
             for m in late:
-                transport.late(engine.insert_late(m))
+                transport.late(engine.usable(m) and engine.insert_late(m))
+            got = {sid: m for sid, m in arrived.items() if engine.usable(m)}
             engine.report(plan, engine.fuse(plan, got), got)
         counts.append(transport.finish())
     return counts

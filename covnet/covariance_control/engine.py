@@ -9,7 +9,9 @@ Per episode ``e`` (one per allocation metric) and scan ``k = 1..N``, whoever dri
              target and clutter window)                                        ScanEngine.decide
     ahead    work that does not need the measurements (the Kalman gains, the next decision
              if everything arrives); used only when what arrives is what it assumed  .ahead
-    usable   the kind's test of a message's content (the wire checked its form)  .usable
+    usable   the kind's test of a message's content (the wire checked its form), and of
+             the scan's own messages against the prediction (a validation gate: a forged
+             or corrupted measurement is never fused)                    .usable, .verdict
     late     a message of an earlier scan (slow links): re-filtered from its scan (OOSM) or
              dropped, as the fusion rule allows                               .insert_late
     fuse     the fusion point's posterior from what arrived                            .fuse
@@ -47,6 +49,7 @@ import numpy as np
 from covnet.core.allocation import Allocation
 from covnet.core.gaussian import Gaussian
 from covnet.core.kalman import nees
+from covnet.core.validation_gate import passes_measurement, passes_track
 from covnet.covariance_control.centre import (
     CentreFilter,
     EpisodeLog,
@@ -239,8 +242,20 @@ class _OneTarget:
             nxt = decide(self.model, P_next, k_next, self.metric, unavailable)
             self.spec = _Speculation(k_next, P_next, unavailable, nxt, time.perf_counter() - t0)
 
-    def usable(self, m: Any) -> bool:
-        return usable_track(m) if self.rule.tracks else usable_position(m)
+    def verdict(self, m: Any, plan: Plan | None) -> str | None:
+        """None when ``m`` may be fused; else why not: ``bad_measurement`` (its content), or
+        ``outside_gate`` (a message of the planned scan impossible under the prediction:
+        :mod:`covnet.core.validation_gate`)."""
+        if not (usable_track(m) if self.rule.tracks else usable_position(m)):
+            return "bad_measurement"
+        if plan is None or m.scan != plan.k:
+            return None  # a late one: its content only
+        pred = plan.detail[0]
+        if self.rule.tracks:
+            ok = passes_track(m.x, m.P, pred.x, pred.P)
+        else:
+            ok = passes_measurement(m.z[0], m.R, self.model.H, pred.x, pred.P)
+        return None if ok else "outside_gate"
 
     def insert_late(self, m: Any) -> bool:
         return self.centre.insert_late(m)
@@ -301,10 +316,14 @@ class _ManyTargets:
     def ahead(self, plan: Plan) -> None:
         pass
 
-    def usable(self, m: Any, plan: Plan | None) -> bool:
+    def verdict(self, m: Any, plan: Plan | None) -> str | None:
+        """None when ``m`` may be fused; else ``bad_measurement`` (the returns are gated per
+        target when they are associated)."""
         if self.tracks:
-            return self.centre.usable_track(m, None if plan is None else plan.detail)
-        return self.centre.usable(m)
+            ok = self.centre.usable_track(m, None if plan is None else plan.detail)
+        else:
+            ok = self.centre.usable(m)
+        return None if ok else "bad_measurement"
 
     def insert_late(self, m: Any) -> bool:
         return self.centre.insert_late(m)
@@ -412,12 +431,14 @@ class ScanEngine:
     def ahead(self, plan: Plan) -> None:
         self._current().ahead(plan)
 
+    def verdict(self, m: Any) -> str | None:
+        """Why a sensor's message (of the current scan, or a late one) may not be fused, as a
+        rejection reason (``bad_measurement``, ``outside_gate``); None when it may."""
+        return self._current().verdict(m, self.plan)
+
     def usable(self, m: Any) -> bool:
-        """The content test of a sensor's message (for the current scan, or a late one)."""
-        ep = self._current()
-        if isinstance(ep, _ManyTargets):
-            return ep.usable(m, self.plan)
-        return ep.usable(m)
+        """A sensor's message may be fused (:meth:`verdict`)."""
+        return self._current().verdict(m, self.plan) is None
 
     def insert_late(self, m: Any) -> bool:
         """A late message of an earlier scan of this episode: True when re-filtered."""

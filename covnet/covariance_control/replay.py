@@ -5,54 +5,38 @@ Inputs (from the run directory): ``config.json`` (the normalised config), ``run.
 ``episodes`` list: the metric of each episode index; the ``run_id``) and ``recording.mcap``.
 
 What is taken from the recording, decoded strictly (:func:`covnet.messages.decode_as`; a payload
-that does not decode is counted by reason and skipped, never used):
+that does not decode is counted by reason and skipped, never used): the manager's
+:class:`~covnet.messages.Status` and :class:`~covnet.messages.Command` per ``(episode, scan)``
+(the first one received), its :class:`~covnet.messages.Track` s, and the sensors' messages
+(:class:`~covnet.messages.Measurement`, or under a track rule :class:`~covnet.messages.
+LocalTrack`) whose content the manager would accept, every one per ``(episode, scan, sensor)``
+in the order received.
 
-- the manager's :class:`~covnet.messages.Status` per ``(episode, scan)`` (key
-  ``status_key(run)``; the first one received): ``enabled``, ``fused``, ``failed``, ``value``,
-  ``trace_P``;
-- the sensors' :class:`~covnet.messages.Measurement` per ``(episode, scan, sensor)`` (key
-  ``measurement_key(run, sensor)`` naming the payload's ``sensor_id``; the first one received
-  that the manager would accept: ``z`` ``(1, 2)``, ``R`` ``(2, 2)`` symmetric positive
-  definite);
-- the manager's :class:`~covnet.messages.Track` per ``(episode, scan)`` (a cross-check only).
+The replay is a third driver of the kind's one scan logic (:class:`covnet.covariance_control.
+engine.ScanEngine`, which ``covnet run`` and the manager step too).  Per episode ``e`` (metric
+``episodes[e]``) and scan ``k = 1, 2, ...`` while a Status of ``(e, k)`` was recorded::
 
-In the decentralized centre modes (``fusion.mode: info | ci``) the sensors' keys carry
-:class:`~covnet.messages.LocalTrack` s instead of measurements, and the steps below are the
-manager's for those modes (:func:`covnet.covariance_control.decentral.decide_rule` over the local
-filters' covariance mirror, the rule's fusion).  A peer-mode
-run has no centre to replay (a :class:`ReplayError` says so).
+    failed = Status.failed                      (failure events: its changes between scans)
+    plan   = engine.decide(k, failed)           == Status.enabled, Status.value; == the
+                                                   Command's targets and clutter windows
+    got    = {s: the first recorded message of s for (e, k) that engine.usable passes
+              (its content and the validation gate), s in Status.fused}
+    late   = engine.insert_late(...) for each "<sensor>:<scan>" in Status.refiltered
+    out    = engine.report(plan, engine.fuse(plan, got), got)
+             out.trace_P == Status.trace_P;  each target's estimate == its first recorded
+             Track, bit for bit
 
-Per episode ``e`` (metric ``m = episodes[e]``) and scan ``k = 1, 2, ...`` while a Status of
-``(e, k)`` was recorded, exactly the manager's steps (``manager.covariance``)::
+The result is written by the manager's own writer (:func:`covnet.covariance_control.results.
+write_network_run`) into ``RUN_DIR/replay/`` (or ``out``): the same ``summary.json``,
+``arrays.npz``, ``config.json``; ``run.json`` says ``"mode": "replay"``; ``network.json`` has
+empty counters (a replay has no network); plus ``replay.json``, the :class:`ReplayReport`.  The
+two ``summary.json`` files are then compared byte for byte; every mismatch above is a
+difference too, as is a fused sensor without a usable recorded message, a missing Status, a
+run id or config hash in the recording's metadata that is not the run's.
 
-    x⁻, P⁻ = predict_step(x, P)                                 (x, P: initial_estimate at k=1)
-    U      = {index(s) : s in Status.failed}
-    D      = decide(model, P⁻, k, m, unavailable=U)             (must equal Status.enabled)
-    x, P   = fuse(model, (x⁻, P⁻), [(index(s), z_s, R_s) for s in Status.fused])
-    NEES   = (x - x_true(k))ᵀ inv(P) (x - x_true(k))            (truth_trajectory of the seed)
-
-with the failure events derived from the changes of ``Status.failed`` between scans as the
-manager derives them from its membership view.  The result is written by the manager's own
-writer (:func:`covnet.covariance_control.results.write_network_run`) into ``RUN_DIR/replay/`` (or
-``out``): the same ``summary.json``, ``arrays.npz``, ``config.json``; ``run.json`` says
-``"mode": "replay"``; ``network.json`` has empty counters (a replay has no network); plus
-``replay.json``, the :class:`ReplayReport`.  The two ``summary.json`` files are then compared byte
-for byte.  Also reported as differences: a recomputed allocation, objective value, ``tr P`` or fused
-track that differs from what the manager recorded, a fused sensor without a recorded measurement, a
-missing Status, a run id or config hash in the recording's metadata that is not the run's.
-
-``completed`` is true when every episode has all its scans; ``scans_completed`` counts the
-scans with a Status.  Not recoverable from a recording: an episode the manager had started but
-stopped before its first command (a Ctrl-C in that instant) is absent from the replay's
-``scans_completed`` while the manager listed it with 0 scans.
-
-Many targets (a config with ``targets:``): the same, with the many-target centre's steps
-(:class:`covnet.covariance_control.targets_centre.TargetsCentre`): per scan the assignment is
-recomputed from the predictions and ``Status.failed`` and compared with the recorded Command's
-enabled set, targets and clutter windows and with the Status; each fused sensor's recorded
-returns (``z`` ``(m, dim_z)``, its model's ``R``) are fused per target, and every target's
-recomputed estimate is compared with its recorded Track.
-
+``completed`` is true when every episode has all its scans.  Not recoverable from a
+recording: an episode the manager had started but stopped before its first command (a Ctrl-C
+in that instant).  A peer-mode run has no centre to replay (a :class:`ReplayError` says so).
 The steps shared by every kind's replay (reading the recording, the metadata check, the notes,
 the byte-for-byte comparison, ``covnet replay`` itself) are :mod:`covnet.replay_kit`'s.
 """
@@ -189,9 +173,9 @@ def _recompute(
                 )
             _check_command(at, rec.commands.get((e, k)), plan, diffs)
             got: dict[str, Any] = {}
-            for sid in st.fused:
-                m = rec.meas.get((e, k, sid))
-                if m is None or sid not in ids or not engine.usable(m):
+            for sid in st.fused:  # the first one recorded that the manager's test passes
+                m = next((c for c in rec.candidates(e, k, sid) if engine.usable(c)), None)
+                if m is None or sid not in ids:
                     diffs.add(
                         "measurement",
                         f"{at}: the manager fused {sid} but no valid measurement of it is recorded",

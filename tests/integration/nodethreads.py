@@ -78,9 +78,11 @@ def run_recorded_network(
     *,
     kill_after_scan: int | None = None,
     victim: str | None = None,
+    wrap_bus: dict[str, Callable[[Any], Any]] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """The in-process network plus a recorder writing ``out/recording.mcap``; the manager's
-    run directory written as ``python -m manager`` writes it."""
+    run directory written as ``python -m manager`` writes it.  ``wrap_bus``: node name ->
+    a wrapper of that node's bus (a node that misbehaves on the wire)."""
     out.mkdir(parents=True)
     hub = InMemoryHub()
     node_stops: dict[str, threading.Event] = {}
@@ -92,10 +94,11 @@ def run_recorded_network(
         ev = threading.Event()
         node_stops[name] = ev
         bus = InMemoryBus(hub, name=name)
+        wrap = (wrap_bus or {}).get(name)
 
         def body():
             try:
-                stats[name] = target(bus, ev)
+                stats[name] = target(wrap(bus) if wrap else bus, ev)
             except BaseException as exc:  # surfaced by the test, not lost in a thread
                 errors.append(exc)
             finally:
