@@ -727,7 +727,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     warnings.showwarning = _show_warning
     try:
-        return int(args.func(args))
+        status = int(args.func(args))
+        # the output still buffered is written here, where a reader that has gone is told
+        # from a failure (not at the interpreter's exit: "Exception ignored", status 120)
+        sys.stdout.flush()
+        return status
     except ConfigError as exc:
         print(f"covnet: {exc}", file=sys.stderr)
         return EXIT_USAGE
