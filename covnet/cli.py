@@ -106,7 +106,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_mc(args: argparse.Namespace) -> int:
-    kind, cfg = _load(args)
+    kind, cfg = _load(args, "seed", "metric", "fusion")
     return kinds.command(kind, "mc", "a Monte Carlo protocol")(args, cfg)
 
 
@@ -465,9 +465,35 @@ def build_parser() -> argparse.ArgumentParser:
         help="seeds (covariance control: from the config's, default 20; mobile: 0..N-1, "
         "default 20) or trials per cell (passive, default: config)",
     )
+    mc.add_argument(
+        "--metric",
+        action="append",
+        metavar="NAME",
+        help="covariance control: only this allocation metric (repeatable; default: the "
+        "config's allocation.metrics)",
+    )
+    mc.add_argument(
+        "--seed",
+        type=int,
+        help="first seed (default: the config's; passive: the seed of every trial's stream; "
+        "mobile runs seeds 0..N-1)",
+    )
+    mc.add_argument(
+        "--fusion",
+        metavar="MODE",
+        help="covariance control: the fusion structure, overriding fusion.mode (central, info, "
+        "ci; with targets: central or info)",
+    )
     mc.add_argument("--workers", type=int, help="processes (default: one per core)")
     _batch_options(mc, "seeds (passive: trials)")
     _out_options(mc, "results")
+    mc.add_argument("--no-figures", action="store_true", help="skip the figures")
+    mc.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON Lines on stdout: one JSON object per line (covariance control: per metric "
+        "and target; mobile: per target and overall; passive: per cell and method)",
+    )
     mc.set_defaults(func=cmd_mc)
 
     u = sub.add_parser(

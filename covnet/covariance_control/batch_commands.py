@@ -39,7 +39,7 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     if sc.multitarget:
         raise UsageError(
             "compare: the fusion structures are compared on the one-target scenario; with "
-            "'targets:' run covnet mc once per fusion.mode (central, info)"
+            "'targets:' run covnet mc --fusion central and covnet mc --fusion info"
         )
     given = args.modes if args.modes is not None else ",".join(cmp.default_modes())
     modes = [m.strip() for m in given.split(",") if m.strip()]
@@ -263,10 +263,18 @@ def mc(args: argparse.Namespace, sc: Scenario) -> int:
         wall_s=outcome.wall_s,
         **outcome.backend,
     )
-    from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
+    figure = None
+    if not args.no_figures:
+        from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
 
-    figure = mc_figure(out)
+        figure = mc_figure(out)
+    if args.json:  # stdout holds JSON only
+        for row in mcm.json_rows(doc):
+            print(json.dumps(row))
+        print(f"results: {out / mcm.MC_FILE}", file=sys.stderr)
+        return EXIT_OK
     print(mcm.format_table(doc))
     print(f"results: {out / mcm.MC_FILE}  ({time.perf_counter() - t0:.1f} s)")
-    print(f"figure: {figure}")
+    if figure is not None:
+        print(f"figure: {figure}")
     return EXIT_OK

@@ -318,6 +318,26 @@ def write_mc(
     return doc
 
 
+def json_rows(doc: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """``covnet mc --json``: one row per metric and target, its scalars' intervals (the
+    metric's own, such as the allocation rate, in each of its rows), the batch NEES (and NIS)
+    and the seeds whose track was lost; the per-scan series stay in ``montecarlo.json``."""
+    rows = []
+    for m, blk in doc["aggregate"].items():
+        own = {k: v for k, v in blk.items() if k in _SCALARS}
+        for tid, t in blk["targets"].items():
+            row: dict[str, Any] = {"metric": m, "target": tid, "seeds": list(doc["seeds"])}
+            row.update(own)
+            row.update({k: v for k, v in t.items() if k in _TARGET_SCALARS})
+            for k in ("nees_batch", "nis_batch"):
+                if k in t:
+                    row[k] = t[k]
+            if "lost" in t:
+                row["lost_seeds"] = t["lost"]["seeds"]
+            rows.append(row)
+    return rows
+
+
 def format_table(doc: Mapping[str, Any]) -> str:
     """The headline numbers: per metric and target, means with their 95 % intervals."""
 
