@@ -235,3 +235,72 @@ def test_a_broken_pipe_that_is_not_stdouts_is_not_hidden(monkeypatch, paper_path
     monkeypatch.setattr(cli, "cmd_check", broken)
     with pytest.raises(BrokenPipeError):
         main(["check", str(paper_path)])
+
+
+def _target_block(rmse: float, max_err: float, nees: float) -> dict:
+    return {
+        "rmse_position": rmse,
+        "max_position_error": max_err,
+        "mean_nees": nees,
+        "nees_band_95": [3.6, 4.4],
+        "mean_nis": 2.0,
+        "sensors_per_scan": [2, 2],
+    }
+
+
+def test_run_summary_says_a_track_was_lost_and_the_search_gap(tmp_path, capsys):
+    """covnet run's printout names a target whose track was lost (mc's criterion: ever
+    further from the truth than the OSPA cut-off) and a bounded or greedy search's gap."""
+    from covnet.covariance_control.commands import print_summary
+
+    targets = {
+        "config_hash": "abc",
+        "seed": 1,
+        "association": "gnn",
+        "target_ids": ["T1", "T2"],
+        "ospa": {"cutoff_m": 100.0, "order": 1},
+        "metrics": {
+            "spectral": {
+                "allocation_rate": 0.5,
+                "mean_ospa": 50.0,
+                "mean_gospa": 60.0,
+                "targets": {
+                    "T1": _target_block(234.0, 612.0, 562.0),
+                    "T2": _target_block(12.0, 40.0, 4.1),
+                },
+            }
+        },
+    }
+    print_summary(tmp_path, targets)
+    lines = capsys.readouterr().out.splitlines()
+    t1 = next(line for line in lines if "T1:" in line)
+    t2 = next(line for line in lines if "T2:" in line)
+    assert "track lost" in t1 and "612" in t1 and "100" in t1
+    assert "lost" not in t2
+    single = {
+        "config_hash": "abc",
+        "seed": 1,
+        "metrics": {
+            "spectral": {
+                "allocation_rate": 0.5,
+                "rmse_position": 20.0,
+                "mean_nees": 4.0,
+                "gap_median": 0.0012,
+                "gap_worst": 0.05,
+            },
+            "svd": {"allocation_rate": 0.5, "rmse_position": 20.0, "mean_nees": 4.0},
+            "kl": {
+                "allocation_rate": 0.5,
+                "rmse_position": 20.0,
+                "mean_nees": 4.0,
+                "gap_median": None,
+                "gap_worst": None,
+            },
+        },
+    }
+    print_summary(tmp_path, single)
+    out = capsys.readouterr().out.splitlines()
+    spectral = next(line for line in out if "spectral:" in line)
+    assert "search gap median 0.12 %, worst 5.00 %" in spectral
+    assert "gap" not in next(line for line in out if "svd:" in line)
+    assert "search gap not reported" in next(line for line in out if "kl:" in line)
