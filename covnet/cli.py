@@ -586,7 +586,11 @@ def build_parser() -> argparse.ArgumentParser:
     _batch_options(cp, "seeds")
     _out_options(cp, "results")
     cp.add_argument("--no-figures", action="store_true", help="skip compare.png")
-    cp.add_argument("--json", action="store_true", help="one JSON row per mode")
+    cp.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON Lines on stdout: one JSON object per line, a row per mode",
+    )
     cp.set_defaults(func=cmd_compare)
 
     sw = sub.add_parser(
@@ -601,7 +605,11 @@ def build_parser() -> argparse.ArgumentParser:
     _batch_options(sw, "seeds")
     _out_options(sw, "results")
     sw.add_argument("--no-figures", action="store_true", help="skip sweep.png")
-    sw.add_argument("--json", action="store_true", help="one JSON row per grid point")
+    sw.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON Lines on stdout: one JSON object per line, a row per grid point",
+    )
     sw.set_defaults(func=cmd_sweep)
 
     c = sub.add_parser("check", help="validate a config; print it normalised with its hash")
@@ -676,7 +684,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "--repeat", type=int, default=3, help="timed repeats per problem (alloc) or whole runs (up)"
     )
-    b.add_argument("--json", action="store_true", help="one JSON row per (metric, N)")
+    b.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON Lines on stdout: one JSON object per line, a row per measurement (alloc: "
+        "per metric and N)",
+    )
     b.add_argument(
         "--foxglove",
         action="store_true",

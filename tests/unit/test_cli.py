@@ -304,3 +304,12 @@ def test_run_summary_says_a_track_was_lost_and_the_search_gap(tmp_path, capsys):
     assert "search gap median 0.12 %, worst 5.00 %" in spectral
     assert "gap" not in next(line for line in out if "svd:" in line)
     assert "search gap not reported" in next(line for line in out if "kl:" in line)
+
+
+@pytest.mark.parametrize("command", ["mc", "compare", "sweep", "bench"])
+def test_help_says_json_is_json_lines(command, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([command, "--help"])
+    assert info.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--json JSON Lines" in text, text
