@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -312,4 +313,42 @@ def test_help_says_json_is_json_lines(command, capsys):
         main([command, "--help"])
     assert info.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    assert "--json JSON Lines" in text, text
+    assert re.search(r"--json (\[[^]]*\] )?JSON Lines", text), text
+
+
+def test_covnet_help_names_every_benchmark(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "'soak'" in text and "'cluster'" in text
+
+
+@pytest.mark.parametrize(
+    ("argv", "refused"),
+    [
+        (["bench", "alloc", "--search", "greedy", "--targets", "5"], "--search"),
+        (["bench", "--targets", "5"], "--targets"),
+        (["bench", "fusion", "--problems", "2"], "--problems"),
+        (["bench", "mobile", "--sensors", "8"], "--sensors"),
+        (["bench", "cluster", "--scans", "10"], "--scans"),
+        (["bench", "soak", "--foxglove"], "--foxglove"),
+    ],
+)
+def test_a_bench_option_that_does_not_apply_is_refused(argv, refused, capsys):
+    """Every option given to a benchmark that does not take it: exit 2, a message naming it
+    and the benchmark's own options (it was silently ignored)."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert (
+        f"{refused}: bench {argv[1] if len(argv) > 1 and not argv[1].startswith('-') else 'alloc'}"
+        in err
+    )
+    assert "does not take this option" in err and "Traceback" not in err
+
+
+def test_bench_help_says_which_benchmarks_take_each_option(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--targets T,T,... [multitarget]" in text
+    assert "--scans SCANS [soak]" in text
