@@ -1,8 +1,68 @@
-"""``python -m covnet`` is the ``covnet`` command."""
+"""``python -m covnet`` is the ``covnet`` command, and :func:`entry` the console script's
+(pyproject.toml).
 
+A Ctrl-C or SIGTERM is answered from here on, before the command's imports: importing
+:mod:`covnet.cli` and what a command needs takes a few tenths of a second, and an interruption
+then must end like any other (``covnet: error: interrupted``, exit 130), not with a
+KeyboardInterrupt traceback and death by the signal.
+"""
+
+import atexit
+import os
+import signal
 import sys
 
-from covnet.cli import main
+from covnet import interrupts
+
+EXIT_INTERRUPTED = 130
+
+_status: list[int] = []
+
+
+def _exit_with_the_answer() -> None:
+    """The last exit function: an interrupted command leaves with 130 here.  CPython remembers
+    a KeyboardInterrupt that passed through an ``exec`` or ``eval`` of a string (a dataclass
+    or a named tuple being made while the signal came) even when it was caught, and at the
+    very end of the exit kills its own process with SIGINT (-2) instead of returning the
+    status.  What the exit does before (threads joined, the other exit functions) has run."""
+    if _status == [EXIT_INTERRUPTED]:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError, AttributeError):
+                pass
+        os._exit(EXIT_INTERRUPTED)
+
+
+def entry() -> int:
+    """The ``covnet`` command: :func:`covnet.cli.main` behind handlers installed first."""
+    # SIGINT and SIGTERM raise KeyboardInterrupt; one inside an import's weakref callback is
+    # raised again, not printed and lost
+    interrupts.deliver_late_interrupts()
+    atexit.register(_exit_with_the_answer)  # the first registered runs last
+    status: int | None = None  # None: an error of covnet's own, raised on (a traceback, 1)
+    try:
+        try:
+            from covnet.cli import main
+
+            status = main()
+        except BaseException as exc:  # an interruption that main() did not answer itself
+            if not interrupts.caused(exc):
+                raise
+            interrupts.answered()
+            status = EXIT_INTERRUPTED
+            print("covnet: error: interrupted", file=sys.stderr)
+    except KeyboardInterrupt:  # a second one while the first was being answered
+        status = EXIT_INTERRUPTED
+    finally:
+        # the command has its status: a late signal must not turn the exit into a traceback
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        if status is not None:
+            _status.append(status)
+    assert status is not None
+    return status
+
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry())

@@ -110,7 +110,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_mc(args: argparse.Namespace) -> int:
-    kind, cfg = _load(args)
+    kind, cfg = _load(args, "seed", "metric", "fusion")
     return kinds.command(kind, "mc", "a Monte Carlo protocol")(args, cfg)
 
 
@@ -334,14 +334,73 @@ def _print_sized(rows: list[dict[str, Any]]) -> None:
     )
 
 
+BENCH_TAKES: dict[str, frozenset[str]] = {
+    "alloc": frozenset({"sensors", "metric", "problems", "repeat", "config", "json"}),
+    "up": frozenset({"sensors", "repeat", "config", "json", "foxglove", "sensors_per_process"}),
+    "soak": frozenset(
+        {"config", "metric", "scans", "realtime_s", "speed", "interval", "windows", "work", "json"}
+    ),
+    "cluster": frozenset({"config", "repeat", "json"}),
+    "fusion": frozenset({"sensors", "repeat", "json"}),
+    "search": frozenset(
+        {"sensors", "metric", "search", "exact_cap", "problems", "repeat", "config", "json"}
+    ),
+    "multitarget": frozenset(
+        {"sensors", "metric", "targets", "problems", "repeat", "config", "json"}
+    ),
+    "mobile": frozenset({"json"}),
+    "passive": frozenset({"json"}),
+}
+"""The options each ``covnet bench TARGET`` takes (every other one is refused)."""
+
+BENCH_DEFAULTS: dict[str, Any] = {
+    "sensors": None,
+    "metric": None,
+    "search": None,
+    "exact_cap": None,
+    "targets": None,
+    "config": "configs/paper.yaml",
+    "problems": 5,
+    "repeat": 3,
+    "json": False,
+    "foxglove": False,
+    "sensors_per_process": None,
+    "scans": 20_000,
+    "realtime_s": 600.0,
+    "speed": 10.0,
+    "interval": 2.0,
+    "windows": 10,
+    "work": None,
+}
+"""The value of a ``covnet bench`` option not given (cluster: its own config and repeat)."""
+
+
+def _bench_options(args: argparse.Namespace) -> None:
+    """Refuse an option ``bench args.target`` does not take; fill in the ones not given."""
+    given = [d for d in BENCH_DEFAULTS if hasattr(args, d)]
+    for dest in given:
+        if dest not in BENCH_TAKES[args.target]:
+            takes = ", ".join(f"--{d.replace('_', '-')}" for d in sorted(BENCH_TAKES[args.target]))
+            raise UsageError(
+                f"--{dest.replace('_', '-')}: bench {args.target} does not take this option "
+                f"(its options: {takes})"
+            )
+    if args.target == "cluster":  # the sweep's own config; alternations
+        for dest, value in (("config", "configs/latency.yaml"), ("repeat", 4)):
+            if not hasattr(args, dest):
+                setattr(args, dest, value)
+    for dest, value in BENCH_DEFAULTS.items():
+        if not hasattr(args, dest):
+            setattr(args, dest, value)
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
+    _bench_options(args)
     for name in ("problems", "repeat"):
         if getattr(args, name) < 1:
             raise UsageError(f"--{name}: must be >= 1, got {getattr(args, name)}")
     if args.sensors is not None:
-        top = BENCH_SENSORS_MAX.get(args.target)
-        if top is None:
-            raise UsageError(f"--sensors: bench {args.target} does not take sensor counts")
+        top = BENCH_SENSORS_MAX[args.target]  # (one that takes none: refused above)
         if max(args.sensors) > top:
             raise UsageError(
                 f"--sensors: bench {args.target} takes counts up to {top}, got {max(args.sensors)}"
@@ -355,10 +414,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.target == "cluster":
         from covnet import bench_cluster  # dask: only for this benchmark (start-up)
 
-        if args.config == "configs/paper.yaml":  # the default: the sweep's own config
-            args.config = "configs/latency.yaml"
-        if args.repeat == 3:  # --repeat's default is the allocator's; alternations here
-            args.repeat = 4
         return bench_cluster.main(args)
     if args.target == "soak":
         # start-up: the soak's module (numpy, the recording reader) only for this benchmark
@@ -473,9 +528,35 @@ def build_parser() -> argparse.ArgumentParser:
         help="seeds (covariance control: from the config's, default 20; mobile: 0..N-1, "
         "default 20) or trials per cell (passive, default: config)",
     )
+    mc.add_argument(
+        "--metric",
+        action="append",
+        metavar="NAME",
+        help="covariance control: only this allocation metric (repeatable; default: the "
+        "config's allocation.metrics)",
+    )
+    mc.add_argument(
+        "--seed",
+        type=int,
+        help="first seed (default: the config's; passive: the seed of every trial's stream; "
+        "mobile runs seeds 0..N-1)",
+    )
+    mc.add_argument(
+        "--fusion",
+        metavar="MODE",
+        help="covariance control: the fusion structure, overriding fusion.mode (central, info, "
+        "ci; with targets: central or info)",
+    )
     mc.add_argument("--workers", type=int, help="processes (default: one per core)")
     _batch_options(mc, "seeds (passive: trials)")
     _out_options(mc, "results")
+    mc.add_argument("--no-figures", action="store_true", help="skip the figures")
+    mc.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON Lines on stdout: one JSON object per line (covariance control: per metric "
+        "and target; mobile: per target and overall; passive: per cell and method)",
+    )
     mc.set_defaults(func=cmd_mc)
 
     u = sub.add_parser(
@@ -568,7 +649,11 @@ def build_parser() -> argparse.ArgumentParser:
     _batch_options(cp, "seeds")
     _out_options(cp, "results")
     cp.add_argument("--no-figures", action="store_true", help="skip compare.png")
-    cp.add_argument("--json", action="store_true", help="one JSON row per mode")
+    cp.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON Lines on stdout: one JSON object per line, a row per mode",
+    )
     cp.set_defaults(func=cmd_compare)
 
     sw = sub.add_parser(
@@ -583,7 +668,11 @@ def build_parser() -> argparse.ArgumentParser:
     _batch_options(sw, "seeds")
     _out_options(sw, "results")
     sw.add_argument("--no-figures", action="store_true", help="skip sweep.png")
-    sw.add_argument("--json", action="store_true", help="one JSON row per grid point")
+    sw.add_argument(
+        "--json",
+        action="store_true",
+        help="JSON Lines on stdout: one JSON object per line, a row per grid point",
+    )
     sw.set_defaults(func=cmd_sweep)
 
     c = sub.add_parser("check", help="validate a config; print it normalised with its hash")
@@ -603,12 +692,15 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser(
         "bench",
         help="benchmark: the allocator (default), the network ('up'), 'fusion', 'search', "
-        "'multitarget', 'mobile' or 'passive'",
+        "'multitarget', 'mobile', 'passive', 'soak' or 'cluster'",
+        description="Each option says which benchmarks take it; an option the benchmark does "
+        "not take is refused.",
+        argument_default=argparse.SUPPRESS,  # given or not: cmd_bench checks, then fills in
     )
     b.add_argument(
         "target",
         nargs="?",
-        choices=["alloc", "up", "soak", "cluster", *[t for t in BENCHES if t != "alloc"]],
+        choices=list(BENCH_TAKES),
         default="alloc",
         help="alloc: allocation decisions per metric and N; up: covnet up in lockstep; "
         "mobile: cost tensor and LP/MILP; passive: association methods; fusion: the batched "
@@ -620,66 +712,89 @@ def build_parser() -> argparse.ArgumentParser:
         "pool and on a local 2-worker Dask cluster, alternated, and each one's per-task "
         "overhead",
     )
+
+    def takes(dest: str) -> str:
+        return "[" + ", ".join(t for t, opts in BENCH_TAKES.items() if dest in opts) + "] "
+
     b.add_argument(
         "--sensors",
         type=_int_list,
         metavar="N,N,...",
-        help="sensor counts (default 8,12,16,20; fusion: 8,12,16; search: 8,...,32; beyond 8 "
-        "the paper table cycles with both sigmas scaled by 1 + 0.5 (j // 8)); at most 24 for "
-        "alloc and fusion, 16 for multitarget",
+        help=takes("sensors") + "sensor counts (default 8,12,16,20; fusion: 8,12,16; search: "
+        "8,...,32; beyond 8 the paper table cycles with both sigmas scaled by 1 + 0.5 (j // 8)); "
+        "at most 24 for alloc and fusion, 16 for multitarget",
     )
     b.add_argument(
         "--metric",
         action="append",
         metavar="NAME",
-        help="only this metric (repeatable; default: every registered metric)",
+        help=takes("metric") + "only this metric (repeatable; default: every registered metric)",
     )
     b.add_argument(
         "--search",
         action="append",
         metavar="NAME",
-        help="search: only this search (exact, bounded, greedy; repeatable)",
+        help=takes("search") + "only this search (exact, bounded, greedy; repeatable)",
     )
     b.add_argument(
         "--exact-cap",
         type=float,
         metavar="S",
-        help="search: stop an exact decision after S seconds, counted as not exact in n_exact "
-        "and timed at the cap (default 60)",
+        help=takes("exact_cap") + "stop an exact decision after S seconds, counted as not exact "
+        "in n_exact and timed at the cap (default 60)",
     )
     b.add_argument(
         "--targets",
         type=_int_list,
         metavar="T,T,...",
-        help="multitarget: numbers of targets (default 3, the spec's scenario; up to 8)",
+        help=takes("targets") + "numbers of targets (default 3, the spec's scenario; up to 8)",
     )
-    b.add_argument("--config", default="configs/paper.yaml", help="sensor table and scenario")
-    b.add_argument("--problems", type=int, default=5, help="decision problems per N (scans)")
     b.add_argument(
-        "--repeat", type=int, default=3, help="timed repeats per problem (alloc) or whole runs (up)"
+        "--config",
+        help=takes("config") + "sensor table and scenario (default configs/paper.yaml; "
+        "cluster: configs/latency.yaml)",
     )
-    b.add_argument("--json", action="store_true", help="one JSON row per (metric, N)")
+    b.add_argument(
+        "--problems", type=int, help=takes("problems") + "decision problems per N (default 5)"
+    )
+    b.add_argument(
+        "--repeat",
+        type=int,
+        help=takes("repeat") + "timed repeats per problem (alloc, default 3), whole runs (up), "
+        "alternations (cluster, default 4)",
+    )
+    b.add_argument(
+        "--json",
+        action="store_true",
+        help=takes("json") + "JSON Lines on stdout: one JSON object per line, a row per "
+        "measurement (alloc: per metric and N)",
+    )
     b.add_argument(
         "--foxglove",
         action="store_true",
-        help="up: pairs of runs without and with covnet up --foxglove, alternated, and the "
-        "ratio of their median scans/s",
+        help=takes("foxglove") + "pairs of runs without and with covnet up --foxglove, "
+        "alternated, and the ratio of their median scans/s",
     )
     b.add_argument(
         "--sensors-per-process",
         type=int,
         metavar="K",
-        help="up: sensors per sensor process (default: covnet up's)",
+        help=takes("sensors_per_process") + "sensors per sensor process (default: covnet up's)",
     )
-    soak = b.add_argument_group("soak")
-    soak.add_argument("--scans", type=int, default=20_000, help="lockstep scans (0: none)")
-    soak.add_argument(
-        "--realtime-s", type=float, default=600.0, help="seconds of the real-time run (0: none)"
+    b.add_argument(
+        "--scans", type=int, help=takes("scans") + "lockstep scans (0: none; default 20000)"
     )
-    soak.add_argument("--speed", type=float, default=10.0, help="the real-time run's speed")
-    soak.add_argument("--interval", type=float, default=2.0, help="seconds between samples")
-    soak.add_argument("--windows", type=int, default=10, help="latency windows per run")
-    soak.add_argument("--work", default=None, help="keep the soak's run directories here")
+    b.add_argument(
+        "--realtime-s",
+        type=float,
+        help=takes("realtime_s") + "seconds of the real-time run (0: none; default 600)",
+    )
+    b.add_argument("--speed", type=float, help=takes("speed") + "the real-time run's speed (10)")
+    b.add_argument(
+        "--interval", type=float, help=takes("interval") + "seconds between samples (default 2)"
+    )
+    b.add_argument("--windows", type=int, help=takes("windows") + "latency windows per run (10)")
+    b.add_argument("--work", help=takes("work") + "keep the soak's run directories here")
     b.set_defaults(func=cmd_bench)
     return p
 
@@ -735,7 +850,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     warnings.showwarning = _show_warning
     try:
-        return int(args.func(args))
+        status = int(args.func(args))
+        # the output still buffered is written here, where a reader that has gone is told
+        # from a failure (not at the interpreter's exit: "Exception ignored", status 120)
+        sys.stdout.flush()
+        return status
     except ConfigError as exc:
         print(f"covnet: {exc}", file=sys.stderr)
         return EXIT_USAGE

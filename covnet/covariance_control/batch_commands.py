@@ -17,11 +17,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batch import BatchInterrupted, end_batch, progress_printer
+from covnet.batch import BatchInterrupted, end_batch
 from covnet.covariance_control.commands import CURVES, EXIT_OK, metric_opt
 from covnet.covariance_control.config import Scenario, SweepSpec, normalised
 from covnet.errors import UsageError
-from covnet.rundir import CONFIG, prepare_out, write_json, write_npz
+from covnet.rundir import CONFIG, write_json, write_npz
 from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 
 
@@ -39,7 +39,7 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     if sc.multitarget:
         raise UsageError(
             "compare: the fusion structures are compared on the one-target scenario; with "
-            "'targets:' run covnet mc once per fusion.mode (central, info)"
+            "'targets:' run covnet mc --fusion central and covnet mc --fusion info"
         )
     given = args.modes if args.modes is not None else ",".join(cmp.default_modes())
     modes = [m.strip() for m in given.split(",") if m.strip()]
@@ -215,7 +215,8 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
 
 def mc(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet mc CONFIG [--trials N] [--workers W]``: the config over ``N`` seeds from its
-    own (default 20), every metric, in parallel worker processes; writes ``montecarlo.json``
+    own (default 20), every metric, in parallel worker processes, each seed written to
+    ``OUT/trials`` as it finishes (the same command resumes); writes ``montecarlo.json``
     (means with 95 % intervals, every seed's row) and ``montecarlo.png``."""
     from covnet.covariance_control import montecarlo as mcm  # scipy.stats: start-up of the rest
 
@@ -228,13 +229,13 @@ def mc(args: argparse.Namespace, sc: Scenario) -> int:
     if not sc.fusion.has_centre:
         raise UsageError("mc: fusion.mode peer is compared by covnet compare, not covnet mc")
     for opt, val in (("--cluster", args.cluster), ("--ci-width", args.ci_width)):
-        if val is not None:  # this kind's mc is not on the trials layer yet
+        if val is not None:  # no headline metric for --ci-width; the cluster path untried
             raise UsageError(
                 f"{opt}: covnet mc of a covariance-control config runs on this "
                 "machine's cores only, over --trials seeds"
             )
-    out = prepare_out(args.out, f"{sc.name}-mc", args.force)
-    seeds = list(range(sc.seed, sc.seed + n))
+    key = mcm.trial_key(sc)
+    out = _batch_out(args, f"{sc.name}-mc", "mc", key)
     print(
         f"monte carlo: {sc.name}, {n} seeds from {sc.seed}, metrics "
         f"{', '.join(sc.allocation.metrics)}",
@@ -243,7 +244,9 @@ def mc(args: argparse.Namespace, sc: Scenario) -> int:
     )
     t0 = time.perf_counter()
     try:
-        rows = mcm.run_seeds(sc, seeds, workers, progress_printer("mc"))
+        seeds, rows, outcome = mcm.mc_outcome(
+            sc, n, out=out, workers=workers, progress=BatchProgress("mc")
+        )
     except BatchInterrupted as stop:  # the seeds done are written, then exit 130
         if stop.partial:
             done_seeds, done_rows = zip(*stop.partial, strict=True)
@@ -251,11 +254,27 @@ def mc(args: argparse.Namespace, sc: Scenario) -> int:
         end_batch(out, n, "seed", stop, len(stop.partial or ()))
         raise
     doc = mcm.write_mc(out, sc, seeds, rows)
-    end_batch(out, n, "seed")
-    from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
+    end_batch(
+        out,
+        outcome.total,
+        "seed",
+        runs_run=outcome.ran,
+        runs_skipped=outcome.skipped,
+        wall_s=outcome.wall_s,
+        **outcome.backend,
+    )
+    figure = None
+    if not args.no_figures:
+        from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
 
-    figure = mc_figure(out)
+        figure = mc_figure(out)
+    if args.json:  # stdout holds JSON only
+        for row in mcm.json_rows(doc):
+            print(json.dumps(row))
+        print(f"results: {out / mcm.MC_FILE}", file=sys.stderr)
+        return EXIT_OK
     print(mcm.format_table(doc))
     print(f"results: {out / mcm.MC_FILE}  ({time.perf_counter() - t0:.1f} s)")
-    print(f"figure: {figure}")
+    if figure is not None:
+        print(f"figure: {figure}")
     return EXIT_OK

@@ -164,7 +164,28 @@ def print_summary(out: Path, summary: dict[str, Any]) -> None:
         print(
             f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, "
             f"position RMSE {blk['rmse_position']:.2f} m, mean NEES {blk['mean_nees']:.2f}"
+            + _gap_text(blk)
         )
+
+
+def _gap_text(blk: dict[str, Any]) -> str:
+    """A bounded or greedy search's relative gap (``summary.json``'s ``gap_median`` and
+    ``gap_worst``; null where the search reported none); nothing for an exact search."""
+    if "gap_median" not in blk:
+        return ""
+    med, worst = blk.get("gap_median"), blk.get("gap_worst")
+    if med is None or worst is None:
+        return ", search gap not reported"
+    return f", search gap median {100 * med:.2f} %, worst {100 * worst:.2f} %"
+
+
+def _lost_text(t: dict[str, Any], cutoff_m: float | None) -> str:
+    """``covnet mc``'s criterion of a lost track: ever further from the truth than the OSPA
+    cut-off."""
+    worst = t.get("max_position_error")
+    if cutoff_m is None or worst is None or not worst > cutoff_m:
+        return ""
+    return f", track lost (max error {worst:.0f} m > OSPA cut-off {cutoff_m:g} m)"
 
 
 def _print_targets_summary(out: Path, summary: dict[str, Any]) -> None:
@@ -172,10 +193,11 @@ def _print_targets_summary(out: Path, summary: dict[str, Any]) -> None:
         f"run directory: {out}  (config {summary['config_hash']}, seed {summary['seed']}, "
         f"fusion {summary.get('fusion', 'central')}, association {summary['association']})"
     )
+    cutoff = summary.get("ospa", {}).get("cutoff_m")
     for m, blk in summary["metrics"].items():
         print(
             f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, mean OSPA "
-            f"{blk['mean_ospa']:.1f} m, mean GOSPA {blk['mean_gospa']:.1f} m"
+            f"{blk['mean_ospa']:.1f} m, mean GOSPA {blk['mean_gospa']:.1f} m" + _gap_text(blk)
         )
         for tid, t in blk["targets"].items():
             lo, hi = t["nees_band_95"]
@@ -184,7 +206,7 @@ def _print_targets_summary(out: Path, summary: dict[str, Any]) -> None:
                 f"  {'':>10}  {tid}: position RMSE {t['rmse_position']:7.2f} m, mean NEES "
                 f"{t['mean_nees']:6.2f} (95 % band {lo:.2f}-{hi:.2f}), mean NIS {nis}, "
                 f"{sum(t['sensors_per_scan']) / max(len(t['sensors_per_scan']), 1):.2f} "
-                "sensors per scan"
+                "sensors per scan" + _lost_text(t, cutoff)
             )
 
 

@@ -3,8 +3,9 @@
 
 Each seed is one in-process run of every metric (many targets: :func:`covnet.covariance_control.
 simulate.run_targets`; the paper's kind of config: the run ``covnet run`` makes, any fusion
-mode or slow links) in a worker process (:func:`covnet.batch.parallel_map`), summarised there
-and sent back small: its scalars, and per scan the OSPA, each target's ``tr P`` and its sensors.
+mode or slow links) in a worker process (:func:`covnet.trials.run_trials`: each seed written to
+``OUT/trials`` as it finishes, so the same command resumes), summarised there and sent back
+small: its scalars, and per scan the OSPA, each target's ``tr P`` and its sensors.
 The rows are ordered by seed whatever order the workers finish in, so ``montecarlo.json``
 depends on the config and the seeds only; the wall times go to ``run.json``.
 
@@ -20,20 +21,20 @@ from scan to scan), likewise the NIS against the band of its summed degrees of f
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from covnet import __version__
-from covnet.batch import BatchInterrupted, parallel_map
+from covnet.batch import BatchInterrupted
 from covnet.covariance_control.config import Scenario, config_hash, from_dict, normalised
 from covnet.rundir import CONFIG, RUN_INFO, utc_now, write_json
+from covnet.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 
 MC_FILE = "montecarlo.json"
 MC_KIND = "covariance_control-montecarlo"
-McProgress = Callable[[int, int, int], None]
 
 _TARGET_SCALARS = (
     "rmse_position",
@@ -123,30 +124,52 @@ def _paper_seed(sc: Scenario) -> dict[str, Any]:
     return out
 
 
-def _task(task: tuple[Mapping[str, Any], int]) -> dict[str, Any]:
-    return run_seed(*task)
+def _run_seed_list(task: tuple[Mapping[str, Any], list[int]]) -> list[dict[str, Any]]:
+    """The seeds of one task of the batch layer (:mod:`covnet.trials`)."""
+    data, seeds = task
+    return [run_seed(data, s) for s in seeds]
 
 
-def run_seeds(
-    sc: Scenario,
-    seeds: Sequence[int],
-    workers: int | None = None,
-    progress: McProgress | None = None,
-) -> list[dict[str, Any]]:
-    """Every seed's row, in the order of ``seeds`` (``workers=1``: in this process).  Ctrl-C:
-    :class:`covnet.batch.BatchInterrupted` with the rows done (``partial``: ``(seed, row)``)."""
+POINT = "seeds"
+"""The one point of the Monte Carlo (its trials are the seeds)."""
+
+
+def trial_key(sc: Scenario) -> str:
+    """The hash that keys the Monte Carlo's trials: the config without its seed (each trial
+    sets its own; the config's seed is the first trial's)."""
     data = normalised(sc)
-    seeds = list(seeds)
+    data.pop("seed", None)
+    return trial_hash("mc", {"kind": "covariance_control", "config": data})
 
-    def on_done(done: int, n: int, i: int) -> None:
-        if progress is not None:
-            progress(done, n, seeds[i])
 
+def mc_outcome(
+    sc: Scenario,
+    n: int,
+    *,
+    out: Path | None = None,
+    workers: int | None = None,
+    progress: BatchProgress | None = None,
+) -> tuple[list[int], list[dict[str, Any]], Outcome]:
+    """``(seeds, rows, outcome)`` of ``n`` seeds from the config's, each trial written to
+    ``out`` (``OUT/trials``) as it finishes and skipped when it is there already (the same
+    command resumes).  Ctrl-C: :class:`covnet.batch.BatchInterrupted` whose ``partial`` is
+    the rows of the seeds done from the first on without a gap: ``[(seed, row), ...]``."""
+    data = normalised(sc)
+    b = Batch("mc", _run_seed_list, lambda point, seeds: (data, seeds), [POINT], first_seed=sc.seed)
     try:
-        return parallel_map(_task, [(data, s) for s in seeds], workers, on_done)
+        outcome = run_trials(
+            b,
+            n,
+            out=out,
+            key=trial_key(sc) if out is not None else None,
+            workers=workers,
+            progress=progress,
+        )
     except BatchInterrupted as stop:
-        stop.partial = [(seeds[i], stop.done[i]) for i in sorted(stop.done)]
+        done = sorted(((s, r) for (_, s), r in stop.done.items()), key=lambda sr: sr[0])
+        stop.partial = [sr for i, sr in enumerate(done) if sr[0] == sc.seed + i]
         raise
+    return b.seeds(outcome.seeds[POINT]), outcome.results[POINT], outcome
 
 
 def interval(values: Sequence[float]) -> dict[str, Any]:
@@ -293,6 +316,26 @@ def write_mc(
     write_json(out_dir / MC_FILE, doc)
     write_json(out_dir / CONFIG, normalised(sc))
     return doc
+
+
+def json_rows(doc: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """``covnet mc --json``: one row per metric and target, its scalars' intervals (the
+    metric's own, such as the allocation rate, in each of its rows), the batch NEES (and NIS)
+    and the seeds whose track was lost; the per-scan series stay in ``montecarlo.json``."""
+    rows = []
+    for m, blk in doc["aggregate"].items():
+        own = {k: v for k, v in blk.items() if k in _SCALARS}
+        for tid, t in blk["targets"].items():
+            row: dict[str, Any] = {"metric": m, "target": tid, "seeds": list(doc["seeds"])}
+            row.update(own)
+            row.update({k: v for k, v in t.items() if k in _TARGET_SCALARS})
+            for k in ("nees_batch", "nis_batch"):
+                if k in t:
+                    row[k] = t[k]
+            if "lost" in t:
+                row["lost_seeds"] = t["lost"]["seeds"]
+            rows.append(row)
+    return rows
 
 
 def format_table(doc: Mapping[str, Any]) -> str:

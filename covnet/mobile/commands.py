@@ -112,6 +112,11 @@ def mc(args: Any, cfg: MobileConfig) -> int:
     seeds = args.trials if args.trials is not None else 20
     if seeds < 1:
         raise UsageError(f"--trials: must be >= 1, got {seeds}")
+    if getattr(args, "seed", None) is not None:
+        raise UsageError(
+            "--seed: a mobile Monte Carlo runs seeds 0..N-1 (--trials N), whatever the "
+            "config's seed; covnet run --seed runs one of them"
+        )
     opts = batch_options(args, seeds)
     return mc_run(
         cfg,
@@ -122,6 +127,8 @@ def mc(args: Any, cfg: MobileConfig) -> int:
         cluster=opts.cluster,
         ci_width=opts.ci_width,
         max_seeds=opts.max_seeds,
+        figures=not getattr(args, "no_figures", False),
+        json_out=getattr(args, "json", False),
     )
 
 
@@ -136,6 +143,8 @@ def mc_run(
     cluster: str | None = None,
     ci_width: float | None = None,
     max_seeds: int | None = None,
+    figures: bool = True,
+    json_out: bool = False,
 ) -> int:
     """``covnet mc configs/mobile.yaml [--trials 20] [--out DIR]``: seeds ``0..seeds-1`` in
     parallel worker processes (one per core by default) or on a Dask cluster; each seed
@@ -195,10 +204,17 @@ def mc_run(
         runs_skipped=outcome.skipped,
         **outcome.backend,
     )
-    from covnet.mobile.plots import mc_figure  # matplotlib: start-up of the other commands
+    figure = None
+    if figures:
+        from covnet.mobile.plots import mc_figure  # matplotlib: start-up of the other commands
 
-    figure = mc_figure(out_dir)
+        figure = mc_figure(out_dir)
     agg = doc["aggregate"]
+    if json_out:  # stdout holds JSON only: a row per target, then the overall one
+        for tid, b in [*agg["targets"].items(), ("overall", agg["overall"])]:
+            print(json.dumps({"target": tid, "seeds": len(seed_list), **b}))
+        print(f"results: {out_dir / MC_FILE}", file=sys.stderr)
+        return EXIT_OK
     print(
         f"Monte Carlo: {out_dir / MC_FILE}  (config {doc['config_hash']}, seeds "
         f"0..{len(seed_list) - 1}, {time.perf_counter() - t0:.1f} s)"
@@ -226,7 +242,8 @@ def mc_run(
             f"({_pct(opt['share_lp_post_worse'])}), mean gap {100 * opt['mean_gap']:.4f} %, "
             f"max gap {100 * opt['max_gap']:.2f} %, {opt['conflicts_resolved']} conflicts resolved"
         )
-    print(f"figure: {figure}")
+    if figure is not None:
+        print(f"figure: {figure}")
     return EXIT_OK
 
 

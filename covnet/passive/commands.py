@@ -51,6 +51,8 @@ def mc(args: Any, cfg: PassiveConfig) -> int:
         cluster=opts.cluster,
         ci_width=opts.ci_width,
         max_seeds=opts.max_seeds,
+        figures=not getattr(args, "no_figures", False),
+        json_out=getattr(args, "json", False),
     )
 
 
@@ -65,6 +67,8 @@ def mc_run(
     cluster: str | None = None,
     ci_width: float | None = None,
     max_seeds: int | None = None,
+    figures: bool = True,
+    json_out: bool = False,
 ) -> int:
     """Run the Monte Carlo protocol of the config's ``montecarlo`` grid (``trials`` overrides
     ``montecarlo.trials``) and write the results and figures to ``out``; every cell's trials
@@ -88,6 +92,7 @@ def mc_run(
     )
     print(
         f"monte carlo: {cells} cells x {n} trials, methods {', '.join(cfg.montecarlo.methods)}",
+        file=sys.stderr if json_out else sys.stdout,  # --json: stdout holds JSON only
         flush=True,
     )
     line = (
@@ -120,7 +125,12 @@ def mc_run(
         runs_skipped=outcome.skipped,
         **outcome.backend,
     )
-    figs = mc_figures(out_dir)
+    figs = mc_figures(out_dir) if figures else []
+    if json_out:  # stdout holds JSON only: a row per cell and method
+        for row in doc["rows"]:
+            print(json.dumps(row))
+        print(f"results: {out_dir / 'results.json'}", file=sys.stderr)
+        return EXIT_OK
     _print_mc_summary(doc)
     print(f"results: {out_dir / 'results.json'}, {out_dir / 'results.md'}")
     for f in figs:

@@ -160,3 +160,61 @@ def test_covnet_run_interrupted_while_its_metrics_run_in_forks(tmp_path, how):
     assert "nothing written" in text, text
     assert not tree.alive()
     assert not (out / "summary.json").exists()
+
+
+def _launchers() -> dict[str, list[str]]:
+    """How a user starts covnet: ``python -m covnet`` and the console script (what
+    pyproject.toml's entry point makes of ``covnet``: import the function, exit with it)."""
+    import sys
+    import tomllib
+
+    spec = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]["covnet"]
+    module, func = spec.split(":")
+    script = f"import sys; from {module} import {func}; sys.exit({func}())"
+    return {"-m covnet": [sys.executable, "-m", "covnet"], "script": [sys.executable, "-c", script]}
+
+
+def _covnet_began(pid: int) -> bool:
+    """covnet's own first import has begun: ``covnet/__init__`` loads ctypes (to pin the BLAS
+    kernel) as its first act, which nothing before it in the interpreter's start-up loads.
+    Before that point no code of covnet runs, so no code of covnet can answer a signal."""
+    try:
+        return "_ctypes" in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return True  # gone already: its status says what happened
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("launcher", ["-m covnet", "script"])
+def test_a_ctrl_c_while_covnet_starts_ends_130_without_a_traceback(tmp_path, launcher):
+    """A Ctrl-C or SIGTERM while ``covnet run`` is still importing (its first 0.4 s): exit
+    130 (or 0 if it had finished), never a KeyboardInterrupt traceback or death by the signal
+    (-2).  The moments are seeded, from when covnet's own first import begins."""
+    import subprocess
+
+    argv = _launchers()[launcher]
+    rng = random.Random(f"start-up-{launcher}")
+    for i in range(8):
+        sig = rng.choice((signal.SIGINT, signal.SIGTERM))
+        delay = rng.uniform(0.02, 0.4)
+        where = f"{launcher}, sample {i}: {sig.name} {delay:.3f} s after covnet began"
+        cmd = [*argv, "run", PAPER, "--no-figures", "--out", str(tmp_path / f"run{i}")]
+        proc = subprocess.Popen(
+            cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        try:
+            deadline = time.monotonic() + 30
+            while not _covnet_began(proc.pid):
+                assert time.monotonic() < deadline, f"{where}: covnet never began"
+                time.sleep(0.001)
+            time.sleep(delay)  # the seeded moment itself (the condition was waited for above)
+            proc.send_signal(sig)
+            _, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert proc.returncode in (130, 0), f"{where}: exit {proc.returncode}\n{err}"
+        assert "Traceback" not in err, f"{where}: a traceback\n{err}"
+        if proc.returncode == 130:
+            assert "interrupted" in err, f"{where}: {err}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -197,21 +198,33 @@ def test_a_failed_bench_network_run_says_why_without_a_traceback(monkeypatch, ca
     assert "Traceback" not in err
 
 
-def test_a_reader_that_closes_the_pipe_stops_covnet_quietly(paper_path):
-    """``covnet check CONFIG | head -1``: no traceback, the status of a tool SIGPIPE stopped
-    (141); a BrokenPipeError that is not stdout's is not taken for it (stdout still open)."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "covnet", "check", str(paper_path)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    )
-    assert proc.stdout is not None and proc.stderr is not None
-    first = proc.stdout.readline()
-    proc.stdout.close()  # the reader goes away after one line
-    err = proc.stderr.read().decode()
-    proc.stderr.close()
-    assert proc.wait(timeout=60) == 141, err
-    assert first.startswith(b"kind:") and "Traceback" not in err and "Broken" not in err
+@pytest.mark.parametrize("unbuffered", ["1", ""])
+def test_a_reader_that_closes_the_pipe_stops_covnet_quietly(paper_path, unbuffered):
+    """``covnet check CONFIG | true``: the reader is gone before covnet writes (its end of
+    the pipe closed before covnet starts, so no timing decides it): no traceback, no
+    "Exception ignored", the status of a tool SIGPIPE stopped (141), whether stdout is
+    written through (``PYTHONUNBUFFERED``) or only flushed at the end."""
+    import os
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if unbuffered:
+        env["PYTHONUNBUFFERED"] = unbuffered
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "covnet", "check", str(paper_path)],
+            stdout=write_end,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            timeout=60,
+        )
+    finally:
+        os.close(write_end)
+    err = proc.stderr
+    assert proc.returncode == 141, err
+    assert "Traceback" not in err and "Broken" not in err and "Exception ignored" not in err
 
 
 def test_a_broken_pipe_that_is_not_stdouts_is_not_hidden(monkeypatch, paper_path):
@@ -223,3 +236,119 @@ def test_a_broken_pipe_that_is_not_stdouts_is_not_hidden(monkeypatch, paper_path
     monkeypatch.setattr(cli, "cmd_check", broken)
     with pytest.raises(BrokenPipeError):
         main(["check", str(paper_path)])
+
+
+def _target_block(rmse: float, max_err: float, nees: float) -> dict:
+    return {
+        "rmse_position": rmse,
+        "max_position_error": max_err,
+        "mean_nees": nees,
+        "nees_band_95": [3.6, 4.4],
+        "mean_nis": 2.0,
+        "sensors_per_scan": [2, 2],
+    }
+
+
+def test_run_summary_says_a_track_was_lost_and_the_search_gap(tmp_path, capsys):
+    """covnet run's printout names a target whose track was lost (mc's criterion: ever
+    further from the truth than the OSPA cut-off) and a bounded or greedy search's gap."""
+    from covnet.covariance_control.commands import print_summary
+
+    targets = {
+        "config_hash": "abc",
+        "seed": 1,
+        "association": "gnn",
+        "target_ids": ["T1", "T2"],
+        "ospa": {"cutoff_m": 100.0, "order": 1},
+        "metrics": {
+            "spectral": {
+                "allocation_rate": 0.5,
+                "mean_ospa": 50.0,
+                "mean_gospa": 60.0,
+                "targets": {
+                    "T1": _target_block(234.0, 612.0, 562.0),
+                    "T2": _target_block(12.0, 40.0, 4.1),
+                },
+            }
+        },
+    }
+    print_summary(tmp_path, targets)
+    lines = capsys.readouterr().out.splitlines()
+    t1 = next(line for line in lines if "T1:" in line)
+    t2 = next(line for line in lines if "T2:" in line)
+    assert "track lost" in t1 and "612" in t1 and "100" in t1
+    assert "lost" not in t2
+    single = {
+        "config_hash": "abc",
+        "seed": 1,
+        "metrics": {
+            "spectral": {
+                "allocation_rate": 0.5,
+                "rmse_position": 20.0,
+                "mean_nees": 4.0,
+                "gap_median": 0.0012,
+                "gap_worst": 0.05,
+            },
+            "svd": {"allocation_rate": 0.5, "rmse_position": 20.0, "mean_nees": 4.0},
+            "kl": {
+                "allocation_rate": 0.5,
+                "rmse_position": 20.0,
+                "mean_nees": 4.0,
+                "gap_median": None,
+                "gap_worst": None,
+            },
+        },
+    }
+    print_summary(tmp_path, single)
+    out = capsys.readouterr().out.splitlines()
+    spectral = next(line for line in out if "spectral:" in line)
+    assert "search gap median 0.12 %, worst 5.00 %" in spectral
+    assert "gap" not in next(line for line in out if "svd:" in line)
+    assert "search gap not reported" in next(line for line in out if "kl:" in line)
+
+
+@pytest.mark.parametrize("command", ["mc", "compare", "sweep", "bench"])
+def test_help_says_json_is_json_lines(command, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([command, "--help"])
+    assert info.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert re.search(r"--json (\[[^]]*\] )?JSON Lines", text), text
+
+
+def test_covnet_help_names_every_benchmark(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "'soak'" in text and "'cluster'" in text
+
+
+@pytest.mark.parametrize(
+    ("argv", "refused"),
+    [
+        (["bench", "alloc", "--search", "greedy", "--targets", "5"], "--search"),
+        (["bench", "--targets", "5"], "--targets"),
+        (["bench", "fusion", "--problems", "2"], "--problems"),
+        (["bench", "mobile", "--sensors", "8"], "--sensors"),
+        (["bench", "cluster", "--scans", "10"], "--scans"),
+        (["bench", "soak", "--foxglove"], "--foxglove"),
+    ],
+)
+def test_a_bench_option_that_does_not_apply_is_refused(argv, refused, capsys):
+    """Every option given to a benchmark that does not take it: exit 2, a message naming it
+    and the benchmark's own options (it was silently ignored)."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert (
+        f"{refused}: bench {argv[1] if len(argv) > 1 and not argv[1].startswith('-') else 'alloc'}"
+        in err
+    )
+    assert "does not take this option" in err and "Traceback" not in err
+
+
+def test_bench_help_says_which_benchmarks_take_each_option(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--targets T,T,... [multitarget]" in text
+    assert "--scans SCANS [soak]" in text

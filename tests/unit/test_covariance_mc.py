@@ -93,3 +93,44 @@ def test_mc_of_the_paper(paper_path, tmp_path):
 def test_mc_bad_trials(short_config, tmp_path, capsys):
     assert main(["mc", str(short_config), "--trials", "0", "--out", str(tmp_path / "x")]) == 2
     assert "--trials" in capsys.readouterr().err
+
+
+def test_mc_takes_seed_metric_json_and_no_figures(short_config, tmp_path, capsys):
+    """--seed (the first seed), --metric (only these metrics), --json (JSON Lines on stdout,
+    one row per metric and target) and --no-figures, as sweep and compare take them."""
+    data = yaml.safe_load(short_config.read_text())
+    data["allocation"]["metrics"] = ["abs_trace", "spectral"]
+    cfg = tmp_path / "two.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "mc"
+    argv = ["mc", str(cfg), "--trials", "2", "--workers", "1", "--out", str(out)]
+    assert main([*argv, "--seed", "7", "--metric", "spectral", "--json", "--no-figures"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [(r["metric"], r["target"]) for r in rows] == [
+        ("spectral", t) for t in ("T1", "T2", "T3")
+    ]
+    assert all(r["seeds"] == [7, 8] and r["rmse_position"]["n"] == 2 for r in rows)
+    assert "lost_seeds" in rows[0] and "mean_ospa" in rows[0]
+    doc = json.loads((out / "montecarlo.json").read_text())
+    assert doc["seeds"] == [7, 8] and doc["metrics"] == ["spectral"]
+    assert not (out / "montecarlo.png").exists()
+
+
+def test_mc_options_a_kind_does_not_take_are_refused(tmp_path, capsys):
+    mobile = ROOT / "configs" / "mobile.yaml"
+    assert main(["mc", str(mobile), "--metric", "kl", "--out", str(tmp_path / "a")]) == 2
+    assert "--metric: a mobile scenario does not take this option" in capsys.readouterr().err
+    assert main(["mc", str(mobile), "--seed", "3", "--out", str(tmp_path / "b")]) == 2
+    assert "--seed:" in capsys.readouterr().err
+
+
+def test_compare_of_many_targets_points_to_mc_fusion_which_exists(short_config, tmp_path, capsys):
+    assert main(["compare", str(short_config), "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "covnet mc --fusion central" in err and "covnet mc --fusion info" in err
+    out = tmp_path / "mc"
+    argv = ["mc", str(short_config), "--trials", "1", "--workers", "1", "--no-figures"]
+    assert main([*argv, "--fusion", "info", "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["fusion"]["mode"] == "info"
+    assert main([*argv, "--fusion", "ci", "--out", str(tmp_path / "ci")]) == 2
+    assert "fusion.mode: ci is not available with 'targets:'" in capsys.readouterr().err

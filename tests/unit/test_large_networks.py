@@ -49,7 +49,7 @@ def test_sensor_counts_per_benchmark(capsys):
     assert f"takes counts up to {BENCH_SENSORS_MAX['alloc']}" in capsys.readouterr().err
     assert main(["bench", "multitarget", "--sensors", "17"]) == 2
     assert main(["bench", "mobile", "--sensors", "8"]) == 2
-    assert "does not take sensor counts" in capsys.readouterr().err
+    assert "--sensors: bench mobile does not take this option" in capsys.readouterr().err
     assert main(["bench", "search", "--sensors", "8", "--exact-cap", "0"]) == 2
 
 

@@ -232,3 +232,15 @@ def test_covnet_cli_routes_mobile_configs(tmp_path, capsys):
     capsys.readouterr()
     assert main(["up", str(cfg_path), "--metric", "svd", "--out", str(tmp_path / "u")]) == 2
     assert "--metric: a mobile scenario does not take this option" in capsys.readouterr().err
+
+
+def test_mc_json_lines_and_no_figures(tmp_path, capsys):
+    from covnet.cli import main
+
+    out = tmp_path / "mc"
+    cfg = write_cfg(tmp_path, short(4))
+    argv = ["mc", str(cfg), "--trials", "2", "--workers", "1", "--out", str(out)]
+    assert main([*argv, "--json", "--no-figures"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert rows[-1]["target"] == "overall" and all(r["seeds"] == 2 for r in rows)
+    assert not list(out.glob("*.png"))

@@ -154,3 +154,15 @@ def test_covnet_cli_routes_passive_configs(tmp_path, capsys):
     assert "--metric: a passive scenario does not take this option" in capsys.readouterr().err
     assert main(["up", str(cfg), "--solver", "lp"]) == 2
     assert "--solver: a passive scenario does not take this option" in capsys.readouterr().err
+
+
+def test_mc_json_lines_and_no_figures(tmp_path, capsys):
+    """covnet mc --json: stdout holds JSON Lines only (a row per cell and method);
+    --no-figures draws nothing; --seed is the seed of the trials' streams."""
+    out = tmp_path / "mc"
+    argv = ["mc", str(_tiny(tmp_path)), "--out", str(out), "--json", "--no-figures"]
+    assert main([*argv, "--seed", "5"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert rows and all("method" in r for r in rows)
+    assert not list(out.glob("*.png"))
+    assert json.loads((out / "results.json").read_text())["seed"] == 5
