@@ -206,3 +206,34 @@ def test_interrupted_while_up_starts_its_nodes(tmp_path):
 def test_interrupted_while_up_starts_its_nodes_many_times(tmp_path):
     for seed in range(4, 24):
         _interrupt_start_up(tmp_path, seed)
+
+
+@pytest.mark.timeout(120)
+def test_ctrl_c_before_ready_is_an_interruption_and_replay_says_there_is_nothing(tmp_path):
+    """A Ctrl-C to ``covnet up``'s group once its manager listens, before the network is
+    READY: exit 130, ``run.json`` says ``interrupted`` (not ``failed``), nothing is left, and
+    ``covnet replay`` says that no scan was done (exit 2), not that a file is missing."""
+    out = tmp_path / "run"
+    p = CovnetProcess(["up", PAPER, "--out", str(out)])
+    tree = Descendants(p.proc.pid)
+    try:
+        assert p.wait_for("[manager] LISTENING", timeout=60), p.output()
+        rc, _ = _stop(p, "group-sigint")
+    finally:
+        p.stop()
+    text = p.output()
+    assert "[manager] READY" not in text, f"READY before the Ctrl-C: {text}"
+    assert rc == 130, text
+    assert "Traceback" not in text, text
+    assert not tree.alive()
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "interrupted", info
+    rp = CovnetProcess(["replay", str(out)])
+    try:
+        rrc = rp.wait(timeout=60)
+    finally:
+        rp.stop()
+    said = rp.output()
+    assert rrc == 2, said
+    assert "nothing to replay" in said and "before its first scan" in said, said
+    assert "missing" not in said and "Traceback" not in said, said
