@@ -148,12 +148,9 @@ class Supervisor:
                     self._record(name, may_fork)  # see one thread
                 for name, run in self._runs.items():
                     self._start_reader(name, run)
-            except BaseException:
+            except BaseException:  # (the pids file was written as each child started)
                 self.stop()
                 raise
-            finally:
-                if self._runs:
-                    self._write_pids()
 
     def _preload(self) -> bool:
         """Import the specs' ``preload`` modules; whether children may be forked now."""

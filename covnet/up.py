@@ -351,11 +351,12 @@ def up(
     previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt)
     status = 0
     lost: dict[str, dict[str, Any]] = {}  # VITAL nodes that died and were not restarted
+    sup = Supervisor(
+        specs, on_line=on_line, pids_file=out / "processes.json", pids_extra=_hosts(hosts)
+    )
     try:
         with (  # the children first: they may be forks of this process, while it has one thread
-            Supervisor(
-                specs, on_line=on_line, pids_file=out / "processes.json", pids_extra=_hosts(hosts)
-            ) as sup,
+            sup,
             view,  # (on a terminal, rich's refresh thread)
         ):
             grace = READY_GRACE_S + READY_GRACE_PER_SENSOR_S * len(ids)
@@ -408,6 +409,7 @@ def up(
             view.line(f"[launcher] note: processes that did not exit cleanly: {others}")
         return 0
     except KeyboardInterrupt:
+        sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")
         _note_lost(out, lost)
         print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
@@ -485,14 +487,16 @@ def _supervise_without_manager(
     print(
         f"[launcher] run {run_id}: nodes {[s.name for s in specs]} -> router {router}", flush=True
     )
+    sup = Supervisor(specs, pids_file=out / "processes.json", pids_extra=_hosts(hosts))
     try:
-        with Supervisor(specs, pids_file=out / "processes.json", pids_extra=_hosts(hosts)) as sup:
+        with sup:
             while any(rc is None for rc in sup.poll().values()):
                 time.sleep(0.1)
             final = sup.stop()
         bad = {k: v for k, v in final.items() if v != 0}
         return 1 if bad else 0
     except KeyboardInterrupt:
+        sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         print("covnet up: interrupted; every process stopped", file=sys.stderr)
         return 130
 

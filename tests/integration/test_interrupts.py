@@ -76,6 +76,16 @@ class Descendants:
         ps = _procs()
         return sorted(p for p in self.seen if p in ps and ps[p][1] != "Z")
 
+    @staticmethod
+    def describe(pids: list[int]) -> list[str]:
+        out = []
+        for pid in pids:
+            try:
+                out.append(f"{pid}: {Path(f'/proc/{pid}/stat').read_text()[:80]}")
+            except OSError:
+                out.append(f"{pid}: gone")
+        return out
+
 
 def _stop(p: CovnetProcess, how: str) -> tuple[int, float]:
     """Interrupt ``p`` the way ``how`` says; its exit status and the seconds it took."""
@@ -218,14 +228,15 @@ def test_ctrl_c_before_ready_is_an_interruption_and_replay_says_there_is_nothing
     tree = Descendants(p.proc.pid)
     try:
         assert p.wait_for("[manager] LISTENING", timeout=60), p.output()
+        assert "[manager] READY" not in p.output(), p.output()
         rc, _ = _stop(p, "group-sigint")
     finally:
         p.stop()
     text = p.output()
-    assert "[manager] READY" not in text, f"READY before the Ctrl-C: {text}"
     assert rc == 130, text
     assert "Traceback" not in text, text
-    assert not tree.alive()
+    left = tree.alive()
+    assert not left, f"left: {tree.describe(left)}\n{text}"
     info = json.loads((out / "run.json").read_text())
     assert info["status"] == "interrupted", info
     rp = CovnetProcess(["replay", str(out)])
@@ -234,6 +245,9 @@ def test_ctrl_c_before_ready_is_an_interruption_and_replay_says_there_is_nothing
     finally:
         rp.stop()
     said = rp.output()
-    assert rrc == 2, said
-    assert "nothing to replay" in said and "before its first scan" in said, said
     assert "missing" not in said and "Traceback" not in said, said
+    if "[manager] READY" in text:  # the network became ready as the Ctrl-C went (a slow machine)
+        assert rrc in (0, 2), f"{said}\n{info}\n{text}"
+        return
+    assert rrc == 2, f"{said}\n{info}\n{text}"
+    assert "nothing to replay" in said and "before its first scan" in said, said
