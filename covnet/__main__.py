@@ -43,6 +43,7 @@ def entry() -> int:
     status: int | None = None  # None: an error of covnet's own, raised on (a traceback, 1)
     try:
         try:
+            # imported after the handlers (start-up: an interrupt during the imports is answered)
             from covnet.cli import main
 
             status = main()

@@ -132,8 +132,33 @@ def cmd_replay(args: argparse.Namespace) -> int:
         data = read_json(run_dir / CONFIG)
     except ValueError as exc:
         raise UsageError(f"{run_dir / CONFIG}: not valid JSON ({exc})") from None
+    _replayable(run_dir)
     kind, cfg = kinds.from_dict(data, str(run_dir / CONFIG))
     return kinds.command(kind, "replay", "replaying a recorded network run")(args, cfg)
+
+
+def _replayable(run_dir: Path) -> None:
+    """A run that ended (interrupted or failed) before its first scan has nothing to replay
+    (and often no recording: Ctrl-C before READY): say so, exit 2.  A recorder that died
+    (``run.json``'s ``lost``) is named before the differences it causes."""
+    try:
+        info = read_json(run_dir / RUN_INFO)
+    except (OSError, ValueError):
+        return  # the kind's replay names what is missing
+    if not isinstance(info, dict) or info.get("status") not in ("interrupted", "failed"):
+        return
+    for ev in info.get("lost") or []:  # covnet up: a world or recorder died, not restarted
+        if isinstance(ev, dict) and ev.get("node") == "recorder":
+            _note(f"{run_dir}: {ev.get('ended', 'the recorder died')} (run.json: lost)")
+    done = info.get("scans_completed")
+    if isinstance(done, dict):
+        done = sum(v for v in done.values() if isinstance(v, int))
+    if done != 0:  # some scans, or not known (a directory rebuilt after a crash, or older)
+        return
+    raise UsageError(
+        f"{run_dir}: nothing to replay: the run ended before its first scan (run.json: status "
+        f"{info['status']}, no scan completed, ended: {info.get('ended', '?')})"
+    )
 
 
 def cmd_up(args: argparse.Namespace) -> int:

@@ -260,6 +260,11 @@ def _child(
 
 
 def _become_a_fresh_process(env: dict[str, str], out_fd: int) -> None:
+    # its own handlers first (a fork inherits whatever the parent had, covnet.launch's holding
+    # one), then its own session: a signal to its group always finds them in place
+    signal.pthread_sigmask(signal.SIG_SETMASK, set())
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     os.setsid()
     devnull = os.open(os.devnull, os.O_RDONLY)
     os.dup2(devnull, 0)
@@ -268,9 +273,6 @@ def _become_a_fresh_process(env: dict[str, str], out_fd: int) -> None:
     os.closerange(3, _max_fd())
     os.environ.clear()
     os.environ.update(env)
-    signal.pthread_sigmask(signal.SIG_SETMASK, set())
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     sys.unraisablehook = sys.__unraisablehook__
     _default_warnings()
     # the parent's exit work is the parent's: its temporary directories stay its own

@@ -21,15 +21,21 @@ stop them all for sure::
   straight to SIGKILL. The context manager always calls ``stop()``, also on an exception or
   KeyboardInterrupt in the parent. For SIGTERM to the parent, call
   :func:`sigterm_raises_keyboard_interrupt` in the main thread first.
-- ``pids_file`` (JSON ``{name: pid}``; pid == process group id) is written as soon as the
-  children start and rewritten on every restart, so an outside tool can clean up after a
+- ``pids_file`` (JSON ``{name: pid}``; pid == process group id) is written as soon as each
+  child starts and rewritten on every restart, so an outside tool can clean up after a
   supervisor that was itself SIGKILLed; ``pids_extra`` adds entries that are not processes
   (``covnet up``: ``"hosts"``, which process hosts each sensor: skip non-integer values).
+- A child is recorded (in the supervisor and in ``pids_file``) before a Ctrl-C or SIGTERM that
+  lands while it is being started is acted on: the main thread holds those signals from just
+  before the fork until the child is recorded, then raises them (:func:`_interrupts_held`), so
+  ``stop()`` always knows every child it started.  It signals each child's group, waiting
+  for a child just forked to have made it (:func:`_signal_child`).
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import importlib
 import json
 import os
@@ -39,7 +45,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,6 +59,8 @@ _print_lock = threading.Lock()
 # kernel may hand the parent's SIGINT to another thread; a main thread blocked in one long
 # wait would only notice Ctrl-C when that wait ends.
 _SLICE_S = 0.1
+# Longest wait for a child just forked to become the leader of its own process group.
+_GROUP_WAIT_S = 1.0
 
 
 def _print_line(name: str, line: str) -> None:
@@ -137,15 +145,12 @@ class Supervisor:
             try:
                 may_fork = self._preload()
                 for name in self._specs:  # every child first, then the readers: the forks
-                    self._runs[name] = self._start(name, may_fork)  # see one thread
+                    self._record(name, may_fork)  # see one thread
                 for name, run in self._runs.items():
                     self._start_reader(name, run)
-            except BaseException:
+            except BaseException:  # (the pids file was written as each child started)
                 self.stop()
                 raise
-            finally:
-                if self._runs:
-                    self._write_pids()
 
     def _preload(self) -> bool:
         """Import the specs' ``preload`` modules; whether children may be forked now."""
@@ -156,9 +161,17 @@ class Supervisor:
             importlib.import_module(m)
         return forked.forkable()  # an import may have started a thread
 
+    def _record(self, name: str, may_fork: bool) -> _Run:
+        """Start ``name`` and record it (here and in the pids file) before an interrupt that
+        lands meanwhile is raised: a child is never started without being known to stop()."""
+        with _interrupts_held():
+            run = self._runs[name] = self._start(name, may_fork)
+            self._write_pids()
+        return run
+
     def _spawn(self, name: str) -> None:
         """(Re)start ``name`` as a new interpreter, with its reader."""
-        run = self._runs[name] = self._start(name, may_fork=False)
+        run = self._record(name, may_fork=False)
         self._start_reader(name, run)
 
     def _start(self, name: str, may_fork: bool) -> _Run:
@@ -348,23 +361,24 @@ class Supervisor:
                 if not alive:
                     break
                 for r in alive:
-                    _killpg(r.proc.pid, sig)
+                    _signal_child(r.proc, sig)
                 deadline = time.monotonic() + timeout
                 for r in alive:
                     try:
                         r.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
                     except subprocess.TimeoutExpired:
                         pass
-        finally:  # also after a second Ctrl-C: nothing survives
-            for r in runs:
-                if r.done:
-                    continue
-                if r.proc.poll() is None:
-                    _killpg(r.proc.pid, signal.SIGKILL)
-                    r.proc.wait()
-                if _killpg(r.proc.pid, signal.SIGKILL):  # leftovers in the child's group
-                    _wait_group_gone(r.proc.pid, timeout=2.0)
-                self._finish(r)
+        finally:  # also after a second Ctrl-C: nothing survives (and a third one waits)
+            with _interrupts_held():
+                for r in runs:
+                    if r.done:
+                        continue
+                    if r.proc.poll() is None:
+                        _signal_child(r.proc, signal.SIGKILL)
+                        r.proc.wait()
+                    if _killpg(r.proc.pid, signal.SIGKILL):  # leftovers in the child's group
+                        _wait_group_gone(r.proc.pid, timeout=2.0)
+                    self._finish(r)
 
     def _finish(self, run: _Run) -> None:
         run.proc.wait()
@@ -390,6 +404,52 @@ def _killpg(pgid: int, sig: int) -> bool:
     except (ProcessLookupError, PermissionError):
         return False
     return True
+
+
+def _signal_child(proc: subprocess.Popen[str] | forked.ForkedProcess, sig: int) -> None:
+    """Signal a child's process group (its pid).  A child just forked may not have reached
+    its ``setsid()`` yet (it is still in this process's group, with this process's handlers):
+    wait for its group to exist (bounded), then signal that; failing that, the child alone.
+    Only for a child not yet reaped (its pid cannot have been reused)."""
+    deadline = time.monotonic() + _GROUP_WAIT_S
+    while not _killpg(proc.pid, sig):
+        if proc.poll() is not None:
+            return
+        if time.monotonic() > deadline:
+            try:
+                os.kill(proc.pid, sig)
+            except ProcessLookupError:
+                pass
+            return
+        time.sleep(0.001)
+
+
+_HELD = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def _interrupts_held() -> Iterator[None]:
+    """In the main thread: SIGINT and SIGTERM that arrive inside the block are held, and
+    raised again once it is over (with the handlers of before: a KeyboardInterrupt there), so
+    the block is never cut between a fork and the line that records the child.  A fork made
+    inside inherits the holding handler until it installs its own (covnet.forked, before its
+    ``setsid()``).  Elsewhere (a thread, which Python never interrupts) the block just runs."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+
+    def hold(signum: int, frame: object) -> None:
+        held.append(signum)
+
+    previous = {sig: signal.signal(sig, hold) for sig in _HELD}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        for signum in dict.fromkeys(held):
+            signal.raise_signal(signum)  # its own handler now: KeyboardInterrupt, or the default
 
 
 def _group_members(pgid: int) -> list[int]:

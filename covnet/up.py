@@ -67,6 +67,11 @@ ONE_PER_PROCESS_MAX = 16
 #: a process that hosts several sensors is named ``sensors@<i>`` ('@' is not allowed in a
 #: sensor id, so the name is never one)
 HOST_PREFIX = "sensors@"
+#: the nodes without which a run is not complete, and what is missing once one has died
+VITAL = {
+    "world": "no truth was published after that (the sensors measured what they had)",
+    "recorder": "the recording stops there, so covnet replay cannot reproduce the run",
+}
 
 
 def default_sensors_per_process(n_sensors: int, cores: int | None = None) -> int:
@@ -345,11 +350,13 @@ def up(
     }
     previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt)
     status = 0
+    lost: dict[str, dict[str, Any]] = {}  # VITAL nodes that died and were not restarted
+    sup = Supervisor(
+        specs, on_line=on_line, pids_file=out / "processes.json", pids_extra=_hosts(hosts)
+    )
     try:
         with (  # the children first: they may be forks of this process, while it has one thread
-            Supervisor(
-                specs, on_line=on_line, pids_file=out / "processes.json", pids_extra=_hosts(hosts)
-            ) as sup,
+            sup,
             view,  # (on a terminal, rich's refresh thread)
         ):
             grace = READY_GRACE_S + READY_GRACE_PER_SENSOR_S * len(ids)
@@ -372,6 +379,11 @@ def up(
             restarts_seen = 0
             while True:
                 rcs = sup.poll()
+                for name in (VITAL.keys() & rcs.keys()) - lost.keys():
+                    code = rcs[name]
+                    if code is not None and code != 0:  # died (a restartable one runs again)
+                        lost[name] = _lost(name, code, view.last)
+                        view.line(f"[launcher] {lost[name]['ended']}")
                 n = sum(sup.restarts.values())
                 if n != restarts_seen:
                     restarts_seen = n
@@ -387,12 +399,19 @@ def up(
         if status != 0:
             why = f"the manager exited with status {status}"
             ended = settle(kind, sc, out, facts, "failed", why)
+            _note_lost(out, lost)
             raise UpError(f"the manager failed (exit status {status}); {ended}")
+        if lost:
+            _note_lost(out, lost)
+            why = "; ".join(ev["ended"] for ev in lost.values())
+            raise UpError(f"the run is not complete: {why} (run.json: status failed)")
         if others and not sc.network.restart == "on-failure":
             view.line(f"[launcher] note: processes that did not exit cleanly: {others}")
         return 0
     except KeyboardInterrupt:
+        sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")
+        _note_lost(out, lost)
         print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
         return 130
     finally:
@@ -468,16 +487,68 @@ def _supervise_without_manager(
     print(
         f"[launcher] run {run_id}: nodes {[s.name for s in specs]} -> router {router}", flush=True
     )
+    sup = Supervisor(specs, pids_file=out / "processes.json", pids_extra=_hosts(hosts))
     try:
-        with Supervisor(specs, pids_file=out / "processes.json", pids_extra=_hosts(hosts)) as sup:
+        with sup:
             while any(rc is None for rc in sup.poll().values()):
                 time.sleep(0.1)
             final = sup.stop()
         bad = {k: v for k, v in final.items() if v != 0}
         return 1 if bad else 0
     except KeyboardInterrupt:
+        sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         print("covnet up: interrupted; every process stopped", file=sys.stderr)
         return 130
+
+
+def _lost(name: str, rc: int, last: dict[str, Any] | None) -> dict[str, Any]:
+    """``run.json``'s ``lost`` entry of a :data:`VITAL` node that died with status ``rc`` after
+    the manager's STATUS ``last`` (None: before the first scan)."""
+    scan = None if last is None else last.get("scan")
+    episode = None if last is None else last.get("metric")
+    where = "before the first scan" if scan is None else f"after scan {scan}"
+    if episode and scan is not None:
+        where += f" ({episode})"
+    return {
+        "node": name,
+        "exit_status": rc,
+        "after_scan": scan,
+        "episode": episode,
+        "ended": f"the {name} died (exit status {rc}) {where} and was not restarted: {VITAL[name]}",
+    }
+
+
+def _note_lost(out: Path, lost: dict[str, dict[str, Any]]) -> None:
+    """A run whose world or recorder died (and was not restarted) is not complete, though the
+    manager did every scan: ``run.json`` says ``failed`` and why, lists them under ``lost``,
+    and both it and ``network.json`` count them as failed in ``membership``."""
+    if not lost:
+        return
+    info = _run_info(out)
+    membership = _with_lost(info.get("membership"), lost)
+    net = out / "network.json"
+    if net.is_file():
+        try:
+            stats = json.loads(net.read_text())
+        except ValueError:
+            stats = None
+        if isinstance(stats, dict):
+            stats["membership"] = _with_lost(stats.get("membership"), lost)
+            write_json(net, stats)
+    status = str(info.get("status")) if info.get("status") in STATUSES else "completed"
+    why = "; ".join(ev["ended"] for ev in lost.values())
+    if status == "completed":
+        status, why = "failed", f"every scan done, but {why}"
+    else:
+        why = f"{info.get('ended', status)}; {why}"
+    record_end(out, status, why, lost=list(lost.values()), membership=membership)
+
+
+def _with_lost(membership: Any, lost: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    counts = dict(membership) if isinstance(membership, dict) else {}
+    for name in lost:
+        counts[name] = {**counts.get(name, {}), "failed": counts.get(name, {}).get("failed", 0) + 1}
+    return counts
 
 
 def _note_restarts(out: Path, restarts: dict[str, int]) -> None:

@@ -158,9 +158,10 @@ def serve(
         # up until they have, so that none is cut off mid-publish
         wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
     write(result)
-    record_end(out, *ending(result, stop), membership=result.stats.membership_counts())
+    status, why = ending(result, stop)
+    record_end(out, status, why, membership=result.stats.membership_counts())
     (out / LIVE).unlink(missing_ok=True)
-    if result.error:
+    if result.error and status == "failed":
         print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
         return EXIT_FAIL
     print(f"DONE completed={result.completed} out={args.out}", flush=True)
@@ -168,12 +169,14 @@ def serve(
 
 
 def ending(result: Any, stop: threading.Event) -> tuple[str, str]:
-    """``(status, why)`` of a loop's ``result``: ``failed`` with its error, ``completed`` when
-    every scan was done, ``interrupted`` when a signal stopped it, else ``failed``."""
-    if result.error:
-        return "failed", str(result.error)
-    if result.completed:
+    """``(status, why)`` of a loop's ``result``: ``completed`` when every scan was done,
+    ``interrupted`` when a signal stopped it (also before the network was ready: the loop's
+    error then only says that it was stopped), ``failed`` with its error, else ``failed``."""
+    if result.completed and not result.error:
         return "completed", "every scan done"
     if stop.is_set():
-        return "interrupted", "stopped by SIGINT or SIGTERM (Ctrl-C in the launcher)"
+        why = "stopped by SIGINT or SIGTERM (Ctrl-C in the launcher)"
+        return "interrupted", f"{why}: {result.error}" if result.error else why
+    if result.error:
+        return "failed", str(result.error)
     return "failed", "the loop ended before its last scan"

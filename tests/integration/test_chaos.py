@@ -145,3 +145,52 @@ def test_chaos_run_completes_and_never_allocates_a_dead_sensor(tmp_path, paper_p
         assert (out / "recording.2.mcap").is_file()
     else:
         assert rrc == 0 and "identical" in rp.output(), rp.output()
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("victim", ["world", "recorder"])
+def test_a_dead_world_or_recorder_is_not_a_completed_run(tmp_path, paper_path, victim):
+    """Without ``restart: on-failure``, the world (the truth) or the recorder SIGKILLed once the
+    network is READY and a few scans are done: the manager still does every scan, but the run
+    is not complete: exit 1, ``run.json`` says ``failed``, names the node and the scan under
+    ``lost``, and ``membership`` (there and in ``network.json``) counts its failure."""
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = 40
+    data["allocation"]["metrics"] = ["spectral"]
+    cfg = tmp_path / "short.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "run"
+    p = CovnetProcess(["up", str(cfg), "--realtime", "--speed", "10", "--out", str(out)])
+    try:
+        assert p.wait_for("[manager] READY", timeout=60), p.output()
+        # the plain status lines come once a second: the second one is 10 scans later
+        assert p.wait_for(lambda line: line.startswith("[status]") and " scan " in line, 30)
+        pid = json.loads((out / "processes.json").read_text())[victim]
+        os.kill(pid, signal.SIGKILL)
+        rc = p.wait(timeout=120)
+    finally:
+        p.stop()
+    text = p.output()
+    assert rc == 1, text
+    assert "Traceback" not in text, text
+    assert f"the {victim} died (exit status -9)" in text, text
+    assert_nothing_left(out)
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "failed", info
+    assert info["scans_completed"] == {"spectral": 40}, info  # the manager did every scan
+    (lost,) = info["lost"]
+    assert lost["node"] == victim and lost["exit_status"] == -9, lost
+    assert lost["after_scan"] is not None and 1 <= lost["after_scan"] < 40, lost
+    assert victim in info["ended"], info["ended"]
+    assert info["membership"][victim] == {"failed": 1}, info["membership"]
+    net = json.loads((out / "network.json").read_text())
+    assert net["membership"][victim] == {"failed": 1}, net["membership"]
+    assert (out / "summary.json").is_file()
+    if victim == "recorder":  # the recording stops there: replay differs, and says why first
+        rp = CovnetProcess(["replay", str(out)])
+        try:
+            rrc = rp.wait(timeout=120)
+        finally:
+            rp.stop()
+        said = rp.output()
+        assert rrc == 1 and "the recorder died" in said and "Traceback" not in said, said

@@ -54,6 +54,7 @@ class Descendants:
 
     def __init__(self, root: int) -> None:
         self.root, self.seen = root, set[int]()
+        self.parent: dict[int, int] = {}  # pid -> its parent when first seen
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._poll, daemon=True)
         self._thread.start()
@@ -65,6 +66,7 @@ class Descendants:
             while front:
                 kids = {p for p, (pp, _) in ps.items() if pp in front} - self.seen
                 self.seen |= kids
+                self.parent.update((k, ps[k][0]) for k in kids)
                 front = kids
             self._stop.wait(0.02)
 
@@ -73,6 +75,16 @@ class Descendants:
         self._thread.join()
         ps = _procs()
         return sorted(p for p in self.seen if p in ps and ps[p][1] != "Z")
+
+    @staticmethod
+    def describe(pids: list[int]) -> list[str]:
+        out = []
+        for pid in pids:
+            try:
+                out.append(f"{pid}: {Path(f'/proc/{pid}/stat').read_text()[:80]}")
+            except OSError:
+                out.append(f"{pid}: gone")
+        return out
 
 
 def _stop(p: CovnetProcess, how: str) -> tuple[int, float]:
@@ -218,3 +230,82 @@ def test_a_ctrl_c_while_covnet_starts_ends_130_without_a_traceback(tmp_path, lau
         assert "Traceback" not in err, f"{where}: a traceback\n{err}"
         if proc.returncode == 130:
             assert "interrupted" in err, f"{where}: {err}"
+
+
+def _interrupt_start_up(tmp_path: Path, seed: int) -> None:
+    """A Ctrl-C to ``covnet up``'s group at a seeded moment 0-120 ms after its first node
+    process appears (while it starts the others); every node process it ever had must be in
+    ``processes.json`` and gone when it has exited."""
+    delay = random.Random(f"start-up-{seed}").uniform(0.0, 0.12)
+    where = f"seed {seed}: group SIGINT {delay * 1e3:.0f} ms after the first node process"
+    out = tmp_path / f"start-up-{seed}"
+    p = CovnetProcess(["up", PAPER, "--out", str(out)])
+    tree = Descendants(p.proc.pid)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(pp == p.proc.pid for pp, _ in _procs().values()):  # the first node
+            assert p.proc.poll() is None and time.monotonic() < deadline, p.output()
+            time.sleep(0.005)
+        time.sleep(delay)  # the random moment itself (the condition was waited for above)
+        rc, took = _stop(p, "group-sigint")
+    finally:
+        p.stop()
+    left = tree.alive()
+    text = p.output()
+    assert rc in (130, 0), f"{where}: exit {rc}\n{text}"
+    assert took < 15.0, f"{where}: took {took:.1f} s to stop"
+    assert "Traceback" not in text, f"{where}: a traceback\n{text}"
+    assert not left, f"{where}: processes left: {left}\n{text}"
+    pids_file = out / "processes.json"
+    recorded = json.loads(pids_file.read_text()) if pids_file.is_file() else {}
+    recorded_pids = {v for v in recorded.values() if isinstance(v, int)}
+    started = {pid for pid in tree.seen if tree.parent[pid] == p.proc.pid} - recorded_pids
+    assert not started, f"{where}: started but not in processes.json: {started} ({recorded})"
+
+
+@pytest.mark.timeout(300)
+def test_interrupted_while_up_starts_its_nodes(tmp_path):
+    for seed in range(4):
+        _interrupt_start_up(tmp_path, seed)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_interrupted_while_up_starts_its_nodes_many_times(tmp_path):
+    for seed in range(4, 24):
+        _interrupt_start_up(tmp_path, seed)
+
+
+@pytest.mark.timeout(120)
+def test_ctrl_c_before_ready_is_an_interruption_and_replay_says_there_is_nothing(tmp_path):
+    """A Ctrl-C to ``covnet up``'s group once its manager listens, before the network is
+    READY: exit 130, ``run.json`` says ``interrupted`` (not ``failed``), nothing is left, and
+    ``covnet replay`` says that no scan was done (exit 2), not that a file is missing."""
+    out = tmp_path / "run"
+    p = CovnetProcess(["up", PAPER, "--out", str(out)])
+    tree = Descendants(p.proc.pid)
+    try:
+        assert p.wait_for("[manager] LISTENING", timeout=60), p.output()
+        assert "[manager] READY" not in p.output(), p.output()
+        rc, _ = _stop(p, "group-sigint")
+    finally:
+        p.stop()
+    text = p.output()
+    assert rc == 130, text
+    assert "Traceback" not in text, text
+    left = tree.alive()
+    assert not left, f"left: {tree.describe(left)}\n{text}"
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "interrupted", info
+    rp = CovnetProcess(["replay", str(out)])
+    try:
+        rrc = rp.wait(timeout=60)
+    finally:
+        rp.stop()
+    said = rp.output()
+    assert "missing" not in said and "Traceback" not in said, said
+    if "[manager] READY" in text:  # the network became ready as the Ctrl-C went (a slow machine)
+        assert rrc in (0, 2), f"{said}\n{info}\n{text}"
+        return
+    assert rrc == 2, f"{said}\n{info}\n{text}"
+    assert "nothing to replay" in said and "before its first scan" in said, said

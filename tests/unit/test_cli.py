@@ -352,3 +352,18 @@ def test_bench_help_says_which_benchmarks_take_each_option(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "--targets T,T,... [multitarget]" in text
     assert "--scans SCANS [soak]" in text
+
+
+@pytest.mark.parametrize("done", [{}, {"spectral": 0, "svd": 0}, 0])
+@pytest.mark.parametrize("status", ["interrupted", "failed"])
+def test_replay_of_a_run_that_ended_before_its_first_scan_says_so(tmp_path, capsys, status, done):
+    """Ctrl-C before READY: a run directory with no scan (and, often, no recording): replay
+    says there is nothing to replay (exit 2), whether or not a recording was started."""
+    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "recording.mcap").write_bytes(b"")
+    info = {"status": status, "ended": "stopped before the network was ready"}
+    (tmp_path / "run.json").write_text(json.dumps({**info, "scans_completed": done}))
+    assert main(["replay", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "nothing to replay: the run ended before its first scan" in err, err
+    assert f"status {status}" in err and "stopped before the network was ready" in err, err

@@ -257,3 +257,91 @@ def test_parent_interrupted_or_failing_leaves_nothing_running(tmp_path, how, exp
     assert set(pids) == {"polite", "deaf"}
     for pid in pids.values():
         assert not _running(pid)
+
+
+# a parent whose Ctrl-C lands right after a child was created, before start() has recorded it
+# (the wrapped spawn raises the signal at once: its handler runs before the spawn returns)
+INTERRUPTED_START = textwrap.dedent(
+    """
+    import json, signal, sys
+    from pathlib import Path
+    from covnet import forked, interrupts
+    from covnet.launch import ProcessSpec, Supervisor
+    signal.signal(signal.SIGINT, interrupts.raise_interrupt)
+    how, at, pids_file, started_file = sys.argv[1:5]
+    started = []
+
+    def landing(real):
+        def spawn(*args, **kwargs):
+            proc = real(*args, **kwargs)
+            started.append(proc.pid)
+            Path(started_file).write_text(json.dumps(started))
+            if len(started) == int(at):
+                signal.raise_signal(signal.SIGINT)
+            return proc
+        return spawn
+
+    if how == "fork":
+        forked.fork_module = landing(forked.fork_module)
+    elif how == "popen":
+        Supervisor._popen = staticmethod(landing(Supervisor._popen))
+    else:  # "pids": a Ctrl-C as the pids file is written once every reader runs (if it is)
+        Supervisor._popen = staticmethod(landing(Supervisor._popen))
+        real_write, real_reader, readers = Supervisor._write_pids, Supervisor._start_reader, []
+        def reader(self, name, run):
+            real_reader(self, name, run)
+            readers.append(name)
+        def write(self):
+            real_write(self)
+            if len(readers) == 3 and not getattr(self, "hit", False):
+                self.hit = True
+                signal.raise_signal(signal.SIGINT)
+        Supervisor._write_pids, Supervisor._start_reader = write, reader
+        at = "99"  # the spawns themselves are not interrupted
+    pre = ("json",) if how == "fork" else ()
+    specs = [ProcessSpec(n, [sys.executable, "-m", "child_mod"], preload=pre) for n in "abc"]
+    sup = Supervisor(specs, pids_file=Path(pids_file), on_line=lambda n, l: None,
+                     sigint_timeout=2.0, sigterm_timeout=2.0)
+    try:
+        sup.start()
+    except KeyboardInterrupt:
+        print("INTERRUPTED", json.dumps(sup.pids), flush=True)
+        sys.exit(0)
+    print("STARTED", flush=True)
+    sup.stop()
+    """
+)
+
+
+@pytest.mark.parametrize(
+    ("how", "at"), [(h, n) for h in ("fork", "popen") for n in (1, 2, 3)] + [("pids", 3)]
+)
+def test_a_ctrl_c_between_fork_and_record_leaves_no_child(tmp_path, how, at):
+    """A Ctrl-C that lands just after a child is created, before the supervisor has recorded
+    it (or as it writes the pids file: ``pids``): start() stops on the KeyboardInterrupt, every
+    child it created is in the pids file and stopped (a user saw a sensor of ``covnet up`` left
+    running after such a Ctrl-C)."""
+    (tmp_path / "child_mod.py").write_text(POLITE)
+    pids_file, started_file = tmp_path / "pids.json", tmp_path / "started.json"
+    argv = [PY, "-c", INTERRUPTED_START, how, str(at), str(pids_file), str(started_file)]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    started: list[int] = []
+    try:
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=40, env=env)
+        started = json.loads(started_file.read_text())
+        said = done.stdout + done.stderr
+        if how == "pids":  # interrupted or not, nothing may be left
+            assert done.returncode == 0 and ("INTERRUPTED" in said or "STARTED" in said), said
+        else:
+            assert done.returncode == 0 and "INTERRUPTED" in said, said
+        assert len(started) == at, (started, done.stdout)
+        recorded = json.loads(pids_file.read_text())
+        assert set(started) <= set(recorded.values()), (started, recorded)
+        left = [pid for pid in started if _running(pid)]
+        assert not left, f"children left running: {left}"
+    finally:
+        for pid in started:  # on a failure, nothing stays behind
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
