@@ -17,6 +17,32 @@ for the models that measure a bearing also ``r > 0`` (the bearing is undefined a
 Inside coverage a dwell detects the target with probability ``pd``; ``clutter_rate`` is the
 Poisson mean of false returns per dwell (simulated in :mod:`covnet.core.detection`).
 
+**The registry** :data:`SENSOR_MODELS` maps the config's ``model:`` to its class, and the class
+is the whole entry: everything the config and the runners ask of a model.  To add one, write a
+:class:`SensorModel` subclass (frozen, slotted, keyword-only dataclass, as the three here) and
+add it to :data:`SENSOR_MODELS`:
+
+- ``kind`` (its ``model:`` name), ``dim_z``, ``angle_components`` (which components are
+  wrapped), ``undefined_at_sensor`` (coverage excludes ``r = 0``), ``measures_from_position``
+  (the config requires ``position_m`` even without coverage);
+- ``config_fields``: a frozen, keyword-only dataclass of the config keys the model adds to a
+  sensor (its noise parameters, in the config's units): per key its type, its default if it
+  has one, and its check (``metadata={"check": fn}``, ``fn(v)`` returns ``v`` or raises
+  ``ValueError``, e.g. :func:`check_positive`); the config validates a sensor's keys with a
+  :mod:`covnet.records` record built from it (strict types, every problem with its path).  A
+  sensor's other keys (``id``, ``model``, ``position_m``, ``max_range_m``, ``fov``, ``pd``,
+  ``clutter_rate``) are every model's;
+- ``from_fields(fields, **common)``: the model from those fields (unit conversions here) and
+  the common keys (``sensor_xy``, ``max_range_m``, ``fov``, ``pd``, ``clutter_rate``);
+- its own dataclass fields (in SI units), ``_noise`` (``R`` from them), ``h``, ``jacobian``;
+- ``paper_noise(fields)`` only for a position sensor the paper's linear code runs (``h = [x,
+  y]``, ``H`` constant, ``R`` the paper's correlated ``(σx, σy, ρ)``); the default ``None``
+  runs the extended Kalman filter.
+
+Detection (``pd``), clutter (``clutter_rate``, in the window ``ẑ ± n_σ √diag S`` around the
+predicted measurement), gating and association work on ``h``, ``jacobian``, ``R`` and
+``angle_components`` alone, so every model supports them.
+
 Predicted information of a dwell at the predicted state (spec §3)::
 
     J = p · H(x̂⁻)ᵀ R⁻¹ H(x̂⁻),        p = pd inside coverage (the caller handles infeasibility)
@@ -30,11 +56,10 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar, overload
+from typing import Any, ClassVar, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import linalg
 
 from covnet.core.gaussian import Mat, Vec, symmetrise
 from covnet.core.sensing import correlated_noise
@@ -42,11 +67,16 @@ from covnet.core.sensing import correlated_noise
 __all__ = [
     "SENSOR_MODELS",
     "STATE_DIM",
+    "BearingFields",
     "BearingModel",
     "FieldOfView",
+    "PositionFields",
     "PositionModel",
+    "RangeBearingFields",
     "RangeBearingModel",
     "SensorModel",
+    "check_correlation",
+    "check_positive",
     "innovation",
     "predicted_information",
     "wrap_angle",
@@ -156,6 +186,12 @@ class SensorModel:
     dim_z: ClassVar[int] = 0
     #: which measurement components are angles (wrapped), one flag per component
     angle_components: ClassVar[tuple[bool, ...]] = ()
+    #: ``h`` or ``H`` is undefined at the sensor's position: coverage excludes ``r = 0``
+    undefined_at_sensor: ClassVar[bool] = True
+    #: the model measures relative to ``sensor_xy``: a config's sensor needs ``position_m``
+    measures_from_position: ClassVar[bool] = True
+    #: the config keys this model adds to a sensor (module docstring)
+    config_fields: ClassVar[type[Any]] = object
 
     sensor_xy: tuple[float, float] = (0.0, 0.0)
     max_range_m: float = math.inf
@@ -199,6 +235,20 @@ class SensorModel:
 
     # -- to implement ------------------------------------------------------------------------
 
+    @classmethod
+    def from_fields(cls, fields: Any, **common: Any) -> SensorModel:
+        """The model of a config's sensor: ``fields`` its :attr:`config_fields` instance,
+        ``common`` the keys every model takes (``sensor_xy``, ``max_range_m``, ``fov``, ``pd``,
+        ``clutter_rate``)."""
+        raise NotImplementedError
+
+    @classmethod
+    def paper_noise(cls, fields: Any) -> tuple[float, float, float] | None:
+        """``(σx, σy, ρ)`` when the paper's linear code runs this sensor (a position sensor:
+        ``h = [x, y]``, its constant ``H`` and the correlated ``R`` of these), else ``None``
+        (the extended Kalman filter, ``h``, ``jacobian`` and ``R`` of the model)."""
+        return None
+
     def _noise(self) -> Mat:
         raise NotImplementedError
 
@@ -226,14 +276,70 @@ class SensorModel:
 
     def in_coverage(self, x: ArrayLike) -> BoolArray:
         """True where the target at ``x`` is inside coverage: ``r ≤ max_range_m``, in the sector
-        ``fov`` if any, and ``r > 0`` for models that measure a bearing."""
+        ``fov`` if any, and ``r > 0`` for models undefined at the sensor (those that measure a
+        bearing)."""
         dx, dy, r = self.relative(x)
         ok = r <= self.max_range_m
-        if any(self.angle_components):
+        if self.undefined_at_sensor:
             ok = ok & (r > 0.0)
         if self.fov is not None:
             ok = ok & self.fov.contains(np.arctan2(dy, dx))
         return np.asarray(ok, dtype=bool)
+
+    def whitened_jacobian(self, x: ArrayLike) -> Mat:
+        """``W = L⁻¹ H(x)``, ``(..., dim_z, 4)``, so that ``Hᵀ R⁻¹ H = Wᵀ W``: each row of ``H``
+        over its ``σ`` when ``R`` is diagonal, a triangular solve otherwise."""
+        H = self.jacobian(x)
+        R = self.R
+        d = np.diagonal(R)
+        if np.array_equal(R, np.diag(d)):
+            return np.asarray(H / np.sqrt(d)[:, None])
+        return _whiten(self.L, H)
+
+
+def check_positive(v: float) -> float:
+    """A config key's check (``metadata={"check": check_positive}``): ``v > 0``."""
+    if not v > 0:
+        raise ValueError(f"must be > 0, got {v}")
+    return v
+
+
+def check_correlation(v: float) -> float:
+    """A config key's check: a correlation, ``-1 < v < 1``."""
+    if not -1.0 < v < 1.0:
+        raise ValueError(f"must be in (-1, 1), got {v}")
+    return v
+
+
+def _key(check: Any) -> Any:
+    """A required config key with its check."""
+    return field(metadata={"check": check})
+
+
+@dataclass(frozen=True, kw_only=True)
+class PositionFields:
+    """``model: position``: ``R = [[σx², ρσxσy], [ρσxσy, σy²]]`` from ``sigma_x_m``,
+    ``sigma_y_m`` (m) and ``rho`` in ``(-1, 1)``."""
+
+    sigma_x_m: float = _key(check_positive)
+    sigma_y_m: float = _key(check_positive)
+    rho: float = _key(check_correlation)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RangeBearingFields:
+    """``model: range_bearing``: ``R = diag(σ_r², σ_β²)`` from ``sigma_range_m`` (m) and
+    ``sigma_bearing_mrad`` (mrad)."""
+
+    sigma_range_m: float = _key(check_positive)
+    sigma_bearing_mrad: float = _key(check_positive)
+
+
+@dataclass(frozen=True, kw_only=True)
+class BearingFields:
+    """``model: bearing``: ``R = [[σ_β²]]`` from ``sigma_bearing_mrad`` (mrad)."""
+
+    sigma_bearing_mrad: float = _key(check_positive)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -244,10 +350,21 @@ class PositionModel(SensorModel):
     kind: ClassVar[str] = "position"
     dim_z: ClassVar[int] = 2
     angle_components: ClassVar[tuple[bool, ...]] = (False, False)
+    undefined_at_sensor: ClassVar[bool] = False
+    measures_from_position: ClassVar[bool] = False
+    config_fields: ClassVar[type[Any]] = PositionFields
 
     sigma_x: float
     sigma_y: float
     rho: float = 0.0
+
+    @classmethod
+    def from_fields(cls, fields: Any, **common: Any) -> SensorModel:
+        return cls(sigma_x=fields.sigma_x_m, sigma_y=fields.sigma_y_m, rho=fields.rho, **common)
+
+    @classmethod
+    def paper_noise(cls, fields: Any) -> tuple[float, float, float] | None:
+        return (fields.sigma_x_m, fields.sigma_y_m, fields.rho)
 
     def _noise(self) -> Mat:
         sx = _positive("sigma_x", self.sigma_x)
@@ -276,9 +393,15 @@ class RangeBearingModel(SensorModel):
     kind: ClassVar[str] = "range_bearing"
     dim_z: ClassVar[int] = 2
     angle_components: ClassVar[tuple[bool, ...]] = (False, True)
+    config_fields: ClassVar[type[Any]] = RangeBearingFields
 
     sigma_r: float
     sigma_bearing: float
+
+    @classmethod
+    def from_fields(cls, fields: Any, **common: Any) -> SensorModel:
+        sb = 1e-3 * fields.sigma_bearing_mrad
+        return cls(sigma_r=fields.sigma_range_m, sigma_bearing=sb, **common)
 
     def _noise(self) -> Mat:
         sr = _positive("sigma_r", self.sigma_r)
@@ -312,8 +435,13 @@ class BearingModel(SensorModel):
     kind: ClassVar[str] = "bearing"
     dim_z: ClassVar[int] = 1
     angle_components: ClassVar[tuple[bool, ...]] = (True,)
+    config_fields: ClassVar[type[Any]] = BearingFields
 
     sigma_bearing: float
+
+    @classmethod
+    def from_fields(cls, fields: Any, **common: Any) -> SensorModel:
+        return cls(sigma_bearing=1e-3 * fields.sigma_bearing_mrad, **common)
 
     def _noise(self) -> Mat:
         sb = _positive("sigma_bearing", self.sigma_bearing)
@@ -347,7 +475,18 @@ def _check_off_sensor(r: Vec) -> None:
         raise ValueError("x: the bearing Jacobian is undefined at the sensor's position (r = 0)")
 
 
-#: model name (the config's ``model:``) -> class; ``SENSOR_MODELS[kind](**params)``
+def _whiten(L: Mat, H: Mat) -> Mat:
+    """``L⁻¹ H`` for ``H`` ``(..., dz, 4)`` by one triangular solve (``L`` lower)."""
+    from scipy import linalg  # start-up: the config reads this registry
+
+    dz = L.shape[0]
+    Hm = np.moveaxis(H, -2, 0).reshape(dz, -1)  # (dz, N·4)
+    W = linalg.solve_triangular(L, Hm, lower=True, check_finite=False)
+    return np.moveaxis(np.asarray(W).reshape((dz,) + H.shape[:-2] + (STATE_DIM,)), 0, -2)
+
+
+#: model name (the config's ``model:``) -> class, the registry's entry (module docstring);
+#: ``SENSOR_MODELS[kind](**params)``, or from a config's fields ``.from_fields(fields, ...)``
 SENSOR_MODELS: dict[str, type[SensorModel]] = {
     PositionModel.kind: PositionModel,
     RangeBearingModel.kind: RangeBearingModel,
@@ -370,10 +509,6 @@ def predicted_information(model: SensorModel, x_pred: ArrayLike, pd: float | Non
     if not (math.isfinite(p) and p >= 0.0):
         raise ValueError(f"pd: expected a finite multiplier >= 0, got {pd!r}")
     H = model.jacobian(x_pred)  # (..., dz, 4)
-    dz = model.dim_z
-    L = model.L
-    Hm = np.moveaxis(H, -2, 0).reshape(dz, -1)  # (dz, N·4)
-    W = linalg.solve_triangular(L, Hm, lower=True, check_finite=False)
-    W = np.moveaxis(np.asarray(W).reshape((dz,) + H.shape[:-2] + (STATE_DIM,)), 0, -2)
+    W = _whiten(model.L, H)
     J = p * (np.swapaxes(W, -1, -2) @ W)
     return symmetrise(J)

@@ -12,21 +12,24 @@ FUSION_RULES`), the peer graph.
 **Many targets** (spec ``multitarget.md``): a config that lists ``targets:`` (each with its
 initial state, optional truth ``manoeuvres``, its own ``desired`` schedule and ``weight``)
 replaces the one ``target:`` and the top-level ``desired:``; its sensors may then be of any
-``model:`` (``position``, the default and the paper's; ``range_bearing``; ``bearing``) with a
-``position_m``, coverage (``max_range_m``, ``fov``), ``pd`` and ``clutter_rate``; the
-``association`` table (``pda`` | ``nearest``, gate, clutter window) and ``ospa`` (cut-off and
-order) go with it.  A config without ``targets:`` is the paper's linear one-target scenario and
-takes none of these (so its normalised form and hash are what they were).  A sensor that can
-never cover any target (on the targets' noise-free trajectories) is a :class:`ConfigWarning`,
-not an error.
+``model:`` of the registry (:data:`covnet.core.sensor_models.SENSOR_MODELS`: ``position``, the
+default and the paper's; ``range_bearing``; ``bearing``; any model registered there), each
+with its model's own keys (its noise parameters, validated by the record of the model's
+``config_fields``: :func:`fields_record`), a ``position_m``, coverage (``max_range_m``,
+``fov``), ``pd`` and ``clutter_rate``; the ``association`` table (``pda`` | ``nearest``, gate,
+clutter window) and ``ospa`` (cut-off and order) go with it.  A config without ``targets:``
+is the paper's linear one-target scenario and takes none of these (so its normalised form and
+hash are what they were).  A sensor that can never cover any target (on the targets'
+noise-free trajectories) is a :class:`ConfigWarning`, not an error.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_type_hints
 
 import numpy as np
 
@@ -51,6 +54,7 @@ from covnet.config import (
 )
 from covnet.config import normalised as _normalised
 from covnet.core.metrics import METRICS
+from covnet.core.sensor_models import SENSOR_MODELS
 from covnet.covariance_control.fusion_rules import (
     FUSION_RULES,
     fusion_modes,
@@ -59,12 +63,15 @@ from covnet.covariance_control.fusion_rules import (
     rule_for,
     track_rules,
 )
-from covnet.records import Field, field_validator
+from covnet.records import BAD, Field, Record, field_validator
+from covnet.records import Errors as _Errors
+from covnet.records import Loc as _Loc
 
 MetricName = Annotated[Str, in_registry(lambda: sorted(METRICS), "metric")]
 FusionMode = Annotated[Str, in_registry(fusion_modes, "fusion mode")]
 TrackRule = Annotated[Str, in_registry(track_rules, "rule that fuses local tracks")]
 FusionRuleName = Annotated[Str, in_registry(lambda: list(FUSION_RULES), "fusion rule")]
+SensorModelName = Annotated[Str, in_registry(lambda: list(SENSOR_MODELS), "sensor model")]
 
 __all__ = [
     "KIND",
@@ -90,9 +97,6 @@ KIND = "covariance_control"
 _positive = positive
 
 
-SENSOR_MODEL_NAMES = ("position", "range_bearing", "bearing")
-
-
 class FovSpec(ConfigModel):
     """A sector of bearings (degrees, counter-clockwise from +x): ``|β − center| ≤ half_width``."""
 
@@ -111,37 +115,74 @@ def _positive_or_none(v: float | None) -> float | None:
     return None if v is None else _positive(v)
 
 
+#: the noise keys of the first three models (position, range_bearing, bearing): a sensor's
+#: normalised form lists them all (``null`` where they are not its model's), as it did before
+#: the registry, so that the hashes stay; ``null`` is accepted for them on any sensor
+_NOISE_KEYS = ("sigma_x_m", "sigma_y_m", "rho", "sigma_range_m", "sigma_bearing_mrad")
+
+
+_FIELDS_RECORDS: dict[type, type[ConfigModel]] = {}
+
+
+def fields_record(fields: type) -> type[ConfigModel]:
+    """The record that validates a model's config keys, from its ``config_fields`` dataclass
+    (:mod:`covnet.core.sensor_models`): each field's type and default, and its
+    ``metadata["check"]`` as the field's validator (built once per dataclass)."""
+    rec = _FIELDS_RECORDS.get(fields)
+    if rec is None:
+        rec = _FIELDS_RECORDS[fields] = _record_of(fields)
+    return rec
+
+
+def _record_of(fields: type) -> type[ConfigModel]:
+    hints = get_type_hints(fields)
+    ns: dict[str, Any] = {"__annotations__": {}, "__module__": __name__, "__doc__": fields.__doc__}
+    for f in dataclasses.fields(fields):
+        ns["__annotations__"][f.name] = hints[f.name]
+        if f.default is not dataclasses.MISSING:
+            ns[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            ns[f.name] = Field(default_factory=f.default_factory)
+        check = f.metadata.get("check")
+        if check is not None:
+            ns[f"_check_{f.name}"] = field_validator(f.name)(check)
+    return type(fields.__name__, (ConfigModel,), ns)
+
+
+def _noise_key(name: str) -> Any:
+    def get(self: SensorSpec) -> float | None:
+        return getattr(self.params, name, None)
+
+    return property(get, doc=f"``{name}`` of the sensor's model, ``None`` if it has none.")
+
+
 class SensorSpec(ConfigModel):
-    """A sensor.  ``model: position`` (the default, the paper's): ``R = [[σx², ρσxσy], [ρσxσy,
-    σy²]]`` from ``sigma_x_m``, ``sigma_y_m``, ``rho``.  With ``targets:`` also
-    ``range_bearing`` (a radar: ``sigma_range_m``, ``sigma_bearing_mrad``) and ``bearing``
-    (passive: ``sigma_bearing_mrad``), each at ``position_m``, and for every model the coverage
-    (``max_range_m``, ``fov``), the detection probability ``pd`` and ``clutter_rate`` (false
-    returns per dwell)."""
+    """A sensor: its ``id``, its ``model`` (a name of the registry :data:`covnet.core.
+    sensor_models.SENSOR_MODELS`; ``position``, the default and the paper's: ``R = [[σx²,
+    ρσxσy], [ρσxσy, σy²]]`` from ``sigma_x_m``, ``sigma_y_m``, ``rho``) and that model's own
+    keys, validated by the record of its ``config_fields`` (held in :attr:`params`; as the
+    model's dataclass: :attr:`fields`).  With ``targets:``
+    any model (``range_bearing``: a radar, ``sigma_range_m``, ``sigma_bearing_mrad``;
+    ``bearing``: passive, ``sigma_bearing_mrad``; ...), at ``position_m``, and for every model
+    the coverage (``max_range_m``, ``fov``), the detection probability ``pd`` and
+    ``clutter_rate`` (false returns per dwell).
+
+    The model's keys are checked with the structure (types, values); a key that is not the
+    model's (:attr:`foreign_fields`) and a missing one (:attr:`missing_fields`) with the
+    scenario's checks, so that they are reported with every other problem."""
 
     id: Ident
-    model: Literal["position", "range_bearing", "bearing"] = "position"
-    sigma_x_m: Float | None = None
-    sigma_y_m: Float | None = None
-    rho: Float | None = None
-    sigma_range_m: Float | None = None
-    sigma_bearing_mrad: Float | None = None
+    model: SensorModelName = "position"
     position_m: Pair | None = None
     max_range_m: Float | None = None
     fov: FovSpec | None = None
     pd: Float = 1.0
     clutter_rate: Float = 0.0
+    #: the model's own keys, validated by the record of its ``config_fields``
+    #: (:func:`fields_record`; ``None`` while some are missing)
+    params: Any = None
 
-    _pos = field_validator(
-        "sigma_x_m", "sigma_y_m", "sigma_range_m", "sigma_bearing_mrad", "max_range_m"
-    )(_positive_or_none)
-
-    @field_validator("rho")
-    @classmethod
-    def _rho(cls, v: float | None) -> float | None:
-        if v is not None and not -1.0 < v < 1.0:
-            raise ValueError(f"must be in (-1, 1), got {v}")
-        return v
+    _pos = field_validator("max_range_m")(_positive_or_none)
 
     @field_validator("pd")
     @classmethod
@@ -157,13 +198,87 @@ class SensorSpec(ConfigModel):
             raise ValueError(f"must be >= 0 (false returns per dwell), got {v}")
         return v
 
+    @classmethod
+    def _build(cls, data: Any, loc: _Loc, errors: _Errors, into: Record | None = None) -> Any:
+        """The common keys as a record's; the rest by the model's ``config_fields`` (class
+        docstring)."""
+        common = {k: v for k, v in data.items() if k in cls.model_fields and k != "params"}
+        rest = {
+            k: v
+            for k, v in data.items()
+            if k not in common and not (k in _NOISE_KEYS and v is None)
+        }
+        name = data.get("model", "position")
+        entry = SENSOR_MODELS.get(name) if isinstance(name, str) else None
+        params, missing, foreign, ok = None, (), (), True
+        if entry is not None:
+            fields = fields_record(entry.config_fields)
+            own = {k: v for k, v in rest.items() if k in fields.model_fields}
+            foreign = tuple(k for k in rest if k not in own)
+            found: _Errors = []
+            params = fields._build(own, loc, found)
+            missing = tuple(
+                e["loc"][-1] for e in found if e["type"] == "missing" and e["loc"][:-1] == loc
+            )
+            others = [e for e in found if not (e["type"] == "missing" and e["loc"][:-1] == loc)]
+            errors.extend(others)
+            ok = not others
+            params = None if params is BAD else params
+        obj = super()._build({**common, "params": params}, loc, errors, into)
+        if obj is BAD or not ok:
+            return BAD
+        obj.__dict__["_missing"], obj.__dict__["_foreign"] = missing, foreign
+        return obj
+
+    @property
+    def missing_fields(self) -> tuple[str, ...]:
+        """The model's required keys the sensor does not give."""
+        missing: tuple[str, ...] = self.__dict__.get("_missing", ())
+        return missing
+
+    @property
+    def foreign_fields(self) -> tuple[str, ...]:
+        """The keys the sensor gives that are neither every sensor's nor its model's."""
+        foreign: tuple[str, ...] = self.__dict__.get("_foreign", ())
+        return foreign
+
+    def model_dump(self, mode: Literal["python", "json"] = "python") -> dict[str, Any]:
+        """Flat, as the config gives it: ``id``, ``model``, the first three models' noise keys
+        (``None`` where not the model's), the model's other keys, then the common ones."""
+        out = super().model_dump(mode)
+        params = out.pop("params") or {}
+        head = {"id": out.pop("id"), "model": out.pop("model")}
+        return {**head, **dict.fromkeys(_NOISE_KEYS), **params, **out}
+
+    sigma_x_m = _noise_key("sigma_x_m")
+    sigma_y_m = _noise_key("sigma_y_m")
+    rho = _noise_key("rho")
+    sigma_range_m = _noise_key("sigma_range_m")
+    sigma_bearing_mrad = _noise_key("sigma_bearing_mrad")
+
+    @property
+    def fields(self) -> Any:
+        """The model's keys as its ``config_fields`` dataclass (``None`` while some are
+        missing)."""
+        if self.params is None:
+            return None
+        cls = SENSOR_MODELS[self.model].config_fields
+        return cls(**{f.name: getattr(self.params, f.name) for f in dataclasses.fields(cls)})
+
+    @property
+    def paper_noise(self) -> tuple[float, float, float] | None:
+        """``(σx, σy, ρ)`` of a sensor the paper's linear code runs (a position sensor), else
+        ``None`` (the model's ``paper_noise``)."""
+        if self.params is None:
+            return None
+        return SENSOR_MODELS[self.model].paper_noise(self.fields)
+
     @property
     def position_noise(self) -> tuple[float, float, float]:
         """``(σx, σy, ρ)`` of a position sensor; a placeholder ``(1, 1, 0)`` (an identity
         ``R``) for the other models, whose noise is their own."""
-        if self.sigma_x_m is None or self.sigma_y_m is None or self.rho is None:
-            return (1.0, 1.0, 0.0)
-        return (self.sigma_x_m, self.sigma_y_m, self.rho)
+        noise = self.paper_noise
+        return (1.0, 1.0, 0.0) if noise is None else noise
 
     @property
     def extended(self) -> bool:
@@ -172,22 +287,14 @@ class SensorSpec(ConfigModel):
 
 
 #: the sensor keys added for many targets, with their defaults (a paper config has none of
-#: them, and its normalised form leaves them out)
+#: them, and its normalised form leaves them out, with the other models' noise keys)
 _SENSOR_EXTRAS: dict[str, Any] = {
     "model": "position",
-    "sigma_range_m": None,
-    "sigma_bearing_mrad": None,
     "position_m": None,
     "max_range_m": None,
     "fov": None,
     "pd": 1.0,
     "clutter_rate": 0.0,
-}
-#: the noise parameters each model needs (the others it must not have)
-_MODEL_NOISE: dict[str, tuple[str, ...]] = {
-    "position": ("sigma_x_m", "sigma_y_m", "rho"),
-    "range_bearing": ("sigma_range_m", "sigma_bearing_mrad"),
-    "bearing": ("sigma_bearing_mrad",),
 }
 
 
@@ -526,28 +633,38 @@ def _schedule_problems(path: str, schedule: tuple[DesiredSpec, ...]) -> list[tup
 
 
 def _sensor_problems(sc: Scenario) -> list[tuple[str, str]]:
-    """Each sensor's model against its noise parameters, placement and coverage; without
-    ``targets:`` only the paper's position sensor."""
+    """Each sensor's keys against its model's (missing, or another model's, or nobody's),
+    its placement and coverage; without ``targets:`` only the paper's position sensor."""
     problems: list[tuple[str, str]] = []
     for i, s in enumerate(sc.sensors):
         where = f"sensors[{i}]"
-        need = _MODEL_NOISE[s.model]
-        for key in need:
-            if getattr(s, key) is None:
-                problems.append(
-                    (
-                        f"{where}.{key}",
-                        f"missing required key (a {s.model} sensor needs {', '.join(need)})",
-                    )
+        entry = SENSOR_MODELS[s.model]
+        own = fields_record(entry.config_fields).model_fields
+        need = [k for k, f in own.items() if f.is_required()]
+        for key in s.missing_fields:
+            problems.append(
+                (
+                    f"{where}.{key}",
+                    f"missing required key (a {s.model} sensor needs {', '.join(need)})",
                 )
-        for key in dict.fromkeys(k for keys in _MODEL_NOISE.values() for k in keys):
-            if key not in need and getattr(s, key) is not None:
-                models = " or ".join(m for m, keys in _MODEL_NOISE.items() if key in keys)
-                problems.append(
-                    (f"{where}.{key}", f"only for {models} sensors, this one is {s.model}")
+            )
+        for key in s.foreign_fields:
+            others = [
+                n
+                for n, m in SENSOR_MODELS.items()
+                if key in fields_record(m.config_fields).model_fields
+            ]
+            if others:
+                why = f"not a field of model {s.model} (only for {', '.join(others)} sensors)"
+            else:
+                common = [k for k in SensorSpec.model_fields if k != "params"]
+                why = (
+                    f"unknown key: not a field of model {s.model} (its keys: {', '.join(own)}; "
+                    f"every sensor's: {', '.join(common)})"
                 )
-        if s.position_m is None and (s.model != "position" or s.max_range_m or s.fov):
-            what = "measures from" if s.model != "position" else "has coverage around"
+            problems.append((f"{where}.{key}", why))
+        if s.position_m is None and (entry.measures_from_position or s.max_range_m or s.fov):
+            what = "measures from" if entry.measures_from_position else "has coverage around"
             problems.append(
                 (f"{where}.position_m", f"missing required key (a {s.model} sensor {what} it)")
             )
@@ -803,7 +920,7 @@ def in_coverage(s: SensorSpec, xy: np.ndarray) -> np.ndarray:
     dx, dy = xy[..., 0] - s.position_m[0], xy[..., 1] - s.position_m[1]
     r = np.hypot(dx, dy)
     ok = r <= (math.inf if s.max_range_m is None else s.max_range_m)
-    if s.model != "position":
+    if SENSOR_MODELS[s.model].undefined_at_sensor:
         ok &= r > 0.0
     if s.fov is not None:
         off = np.angle(np.exp(1j * (np.arctan2(dy, dx) - math.radians(s.fov.center_deg))))
@@ -869,7 +986,7 @@ def normalised(sc: Scenario) -> dict[str, Any]:
     if not sc.multitarget:
         data = _normalised(sc, (*_PAPER_OMITS, *later))
         for s in data["sensors"]:
-            for key in _SENSOR_EXTRAS:
+            for key in (*_SENSOR_EXTRAS, "sigma_range_m", "sigma_bearing_mrad"):
                 s.pop(key, None)
         return data
     data = _normalised(sc, ("network.security", *later))

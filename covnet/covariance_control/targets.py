@@ -65,14 +65,7 @@ from covnet.core.metrics import get_metric
 from covnet.core.motion import dwna_process_noise
 from covnet.core.multitarget_allocation import MultiConstraints, allocate_assignments
 from covnet.core.sensing import information_gain, measure_factored, position_matrix
-from covnet.core.sensor_models import (
-    BearingModel,
-    FieldOfView,
-    PositionModel,
-    RangeBearingModel,
-    SensorModel,
-    wrap_angle,
-)
+from covnet.core.sensor_models import SENSOR_MODELS, FieldOfView, SensorModel, wrap_angle
 from covnet.core.truth import linear_gaussian_trajectory
 from covnet.covariance_control.config import Scenario, SensorSpec, segments
 from covnet.covariance_control.model import Model, build_model
@@ -212,6 +205,7 @@ class TargetsModel:
 
 
 def _sensor_model(s: SensorSpec) -> SensorModel:
+    """Sensor ``s``'s model, by its registry entry from the config's fields."""
     common: dict[str, Any] = {
         "sensor_xy": tuple(s.position_m) if s.position_m is not None else (0.0, 0.0),
         "max_range_m": math.inf if s.max_range_m is None else s.max_range_m,
@@ -219,22 +213,14 @@ def _sensor_model(s: SensorSpec) -> SensorModel:
         "pd": s.pd,
         "clutter_rate": s.clutter_rate,
     }
-    if s.model == "position":
-        assert s.sigma_x_m is not None and s.sigma_y_m is not None and s.rho is not None
-        return PositionModel(sigma_x=s.sigma_x_m, sigma_y=s.sigma_y_m, rho=s.rho, **common)
-    assert s.sigma_bearing_mrad is not None
-    sb = 1e-3 * s.sigma_bearing_mrad
-    if s.model == "range_bearing":
-        assert s.sigma_range_m is not None
-        return RangeBearingModel(sigma_r=s.sigma_range_m, sigma_bearing=sb, **common)
-    return BearingModel(sigma_bearing=sb, **common)
+    return SENSOR_MODELS[s.model].from_fields(s.fields, **common)
 
 
 def build(sc: Scenario) -> TargetsModel:
     """The model of ``sc``: its ``targets:``, or the one target of a paper config."""
     T = sc.period_s
     sensors = tuple(_sensor_model(s) for s in sc.sensors)
-    position = tuple(s.model == "position" for s in sc.sensors)
+    position = tuple(s.paper_noise is not None for s in sc.sensors)
     P0_cfg = np.diag(np.asarray(sc.filter.P0_diag, dtype=np.float64))
     targets: list[TargetModel] = []
     if sc.targets is None:
@@ -364,10 +350,10 @@ def information(tm: TargetsModel, preds: Sequence[Gaussian]) -> tuple[Mat, np.nd
     its predicted position, and then ``J_{j,t} = p H_j(x̂_t⁻)ᵀ R_j⁻¹ H_j(x̂_t⁻)`` with ``p``
     by ``allocation.detection``: ``expected`` ``pd``, ``ignore`` 1, ``pda`` the PDAF's
     ``q₂`` at the dwell's mean clutter in the gate (the clutter density over the window of
-    :func:`window`).  A position sensor's ``HᵀR⁻¹H`` is the paper's gain (the same bits); a
-    radar's or bearing sensor's ``R`` is diagonal, so ``J = p WᵀW`` with ``W = diag(σ)⁻¹ H``
-    (:func:`covnet.core.sensor_models.predicted_information`'s value, without a LAPACK call per
-    pair)."""
+    :func:`window`).  A position sensor's ``HᵀR⁻¹H`` is the paper's gain (the same bits);
+    another model's ``J = p WᵀW`` with ``W = L⁻¹ H`` (its ``whitened_jacobian``: ``diag(σ)⁻¹ H``
+    for a diagonal ``R``, a radar's or bearing sensor's, without a LAPACK call per pair;
+    :func:`covnet.core.sensor_models.predicted_information`'s value)."""
     N, T = len(tm.sensors), len(preds)
     J = np.zeros((N, T, 4, 4))
     feas = np.zeros((N, T), dtype=bool)
@@ -389,7 +375,7 @@ def information(tm: TargetsModel, preds: Sequence[Gaussian]) -> tuple[Mat, np.nd
                 J[j, t] = Jj if p[t] == 1.0 else p[t] * Jj
             continue
         idx = np.flatnonzero(cover)
-        W = s.jacobian(X[idx]) / np.sqrt(np.diagonal(s.R))[None, :, None]  # (n, dz, 4)
+        W = s.whitened_jacobian(X[idx])  # (n, dz, 4)
         Jt = p[idx, None, None] * (np.swapaxes(W, -1, -2) @ W)
         J[j, idx] = 0.5 * (Jt + np.swapaxes(Jt, -1, -2))
     return J, feas

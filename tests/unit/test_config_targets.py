@@ -223,3 +223,38 @@ def test_cli_check_prints_the_scenario(capsys):
     assert main(["check", str(MULTI)]) == 0
     out = capsys.readouterr().out
     assert "targets:" in out and "model: range_bearing" in out and "clutter_rate: 0.5" in out
+
+
+def test_a_key_of_another_model_names_the_sensors_model(raw):
+    """The registry (issue 25): a sensor's keys are its model's; another model's key is
+    refused naming the sensor's model and the models it belongs to."""
+    raw["sensors"][0]["sigma_bearing_mrad"] = 1.0  # P1 is a position sensor
+    raw["sensors"][8]["sigma_range_m"] = 20.0  # B1 a bearing one
+    problems = _problems(raw)
+    assert (
+        "sensors[0].sigma_bearing_mrad",
+        "not a field of model position (only for range_bearing, bearing sensors)",
+    ) in problems
+    assert (
+        "sensors[8].sigma_range_m",
+        "not a field of model bearing (only for range_bearing sensors)",
+    ) in problems
+
+
+def test_a_key_of_no_model_is_reported_with_every_other_problem(raw):
+    raw["sensors"][4]["sigma_azimuth_mrad"] = 1.0
+    raw["fusion"] = {"mode": "peer"}
+    problems = dict(_problems(raw))
+    assert problems["sensors[4].sigma_azimuth_mrad"].startswith(
+        "unknown key: not a field of model range_bearing (its keys: sigma_range_m, "
+        "sigma_bearing_mrad; "
+        "every sensor's: id, model, position_m,"
+    )
+    assert "fusion.mode" in problems
+
+
+def test_a_null_noise_key_of_another_model_is_as_if_absent(raw):
+    """A sensor's normalised form lists the first three models' noise keys (null where not its
+    model's), as before the registry: they load back."""
+    raw["sensors"][0]["sigma_range_m"] = None
+    assert config_hash(from_dict(raw)) == config_hash(load(MULTI))

@@ -222,6 +222,40 @@ def test_registry():
     assert m.sensor_xy == (0.0, 1.0) and m.sigma_r == 20.0 and isinstance(m.sigma_r, float)
 
 
+def _example_fields(cls):
+    """A model's config fields with 0.5 for every required key (a valid sigma, rho), each
+    passing its check."""
+    f = cls.config_fields
+    assert dataclasses.is_dataclass(f), f"{cls.kind}: config_fields is not a dataclass"
+    required = [k for k in dataclasses.fields(f) if k.default is dataclasses.MISSING]
+    for k in required:
+        assert k.metadata.get("check", float)(0.5) == 0.5
+    return f(**{k.name: 0.5 for k in required})
+
+
+@pytest.mark.parametrize("kind", sorted(SENSOR_MODELS))
+def test_every_registry_entry_carries_what_the_runners_ask(kind):
+    """Each entry: built from its config fields, its h and H agree, its shapes follow dim_z,
+    its coverage follows undefined_at_sensor, ``W = L⁻¹H`` gives ``HᵀR⁻¹H``."""
+    cls = SENSOR_MODELS[kind]
+    m = cls.from_fields(_example_fields(cls), sensor_xy=(10.0, -20.0), pd=0.5)
+    assert type(m) is cls and m.kind == kind and m.pd == 0.5
+    assert len(m.angle_components) == m.dim_z == m.R.shape[0] == m.R.shape[1]
+    X = np.array([[3010.0, 5.0, 3980.0, -3.0], [-200.0, 0.0, 700.0, 1.0]])
+    assert m.h(X).shape == (2, m.dim_z) and m.jacobian(X).shape == (2, m.dim_z, 4)
+    eps = 1e-4
+    for x in X:
+        fd = np.stack([innovation(m.h(x + eps * e), m.h(x - eps * e), m.angle_components)
+                       / (2 * eps) for e in np.eye(4)], axis=-1)  # fmt: skip
+        np.testing.assert_allclose(m.jacobian(x), fd, rtol=1e-6, atol=1e-9)
+    W = m.whitened_jacobian(X)
+    np.testing.assert_allclose(
+        np.swapaxes(W, -1, -2) @ W, predicted_information(m, X, pd=1.0), rtol=1e-10, atol=1e-14
+    )
+    at_sensor = np.array([10.0, 0.0, -20.0, 0.0])
+    assert bool(m.in_coverage(at_sensor)) is not cls.undefined_at_sensor
+
+
 def test_models_are_frozen_and_R_read_only():
     m = BearingModel(sigma_bearing=1e-3)
     with pytest.raises(dataclasses.FrozenInstanceError):
