@@ -8,7 +8,8 @@ with the sensors' answers handed over in this process, per scan ``k``::
                                                over slow links, late ones of earlier scans)
     for m in late: transport.late(engine.insert_late(m))        (if engine.usable(m))
     got         = the usable ones (the manager's test, validation gate included)
-    engine.report(plan, engine.fuse(plan, got), got)
+    engine.record(plan, engine.fuse(plan, got), got)      (the log row; the outcome's
+                                               messages are the network's)
 
 The transport is :class:`Direct` (every enabled sensor's message arrives at once) or, when
 ``network.latency`` is not ideal, :class:`SlowLinks` (the protocol of
@@ -204,7 +205,7 @@ def run_engine(engine: ScanEngine, links: bool = False) -> list[LatencyCounts | 
             for m in late:
                 transport.late(engine.usable(m) and engine.insert_late(m))
             got = {sid: m for sid, m in arrived.items() if engine.usable(m)}
-            engine.report(plan, engine.fuse(plan, got), got)
+            engine.record(plan, engine.fuse(plan, got), got)
         counts.append(transport.finish())
     return counts
 

@@ -15,7 +15,8 @@ Per episode ``e`` (one per allocation metric) and scan ``k = 1..N``, whoever dri
     late     a message of an earlier scan (slow links): re-filtered from its scan (OOSM) or
              dropped, as the fusion rule allows                               .insert_late
     fuse     the fusion point's posterior from what arrived                            .fuse
-    report   the episode log's row and the scan's outcome (tracks, status numbers)   .report
+    report   the episode log's row (.record) and the scan's outcome (tracks, status
+             numbers: what goes on the bus, what the replay compares)               .report
 
 The drivers, each a loop over these steps and nothing else:
 
@@ -268,12 +269,16 @@ class _OneTarget:
         refiltered = late.take_refiltered() if late is not None else None
         return pred, self.est, refiltered
 
-    def report(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
-        pred, est, refiltered = fused
+    def record(self, plan: Plan, fused: Any, got: dict[str, Any]) -> None:
+        pred, est, _ = fused
         alloc, k = plan.detail[1], plan.k
         self.log.record(
             len(self.ids), alloc, pred, est, nees(est, self.truth[k - 1]), plan.decision_s
         )
+
+    def outcome(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
+        _, est, refiltered = fused
+        alloc, k = plan.detail[1], plan.k
         return Outcome(
             k,
             ((None, est),),
@@ -332,11 +337,13 @@ class _ManyTargets:
         prior, posts, dwells = self.centre.fuse(plan.detail, got)
         return prior, posts, dwells, self.centre.take_refiltered()
 
-    def report(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
-        prior, posts, dwells, refiltered = fused
-        sp, tm, ids = plan.detail, self.tm, self.ids
-        self.log.record(sp, prior, posts, dwells, sorted(got))
-        k = plan.k
+    def record(self, plan: Plan, fused: Any, got: dict[str, Any]) -> None:
+        prior, posts, dwells, _ = fused
+        self.log.record(plan.detail, prior, posts, dwells, sorted(got))
+
+    def outcome(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
+        _, posts, _, refiltered = fused
+        sp, tm, ids, k = plan.detail, self.tm, self.ids, plan.k
         return Outcome(
             k,
             tuple(zip(tm.target_ids, posts, strict=True)),
@@ -448,9 +455,16 @@ class ScanEngine:
         """Fuse what arrived for ``plan``'s scan (``sensor id -> message``)."""
         return self._current().fuse(plan, got)
 
+    def record(self, plan: Plan, fused: Any, got: dict[str, Any]) -> None:
+        """Log the scan in the episode's log."""
+        self._current().record(plan, fused, got)
+
     def report(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
-        """Log the scan in the episode's log; its outcome."""
-        return self._current().report(plan, fused, got)
+        """Log the scan in the episode's log; its outcome (what the bus and the replay
+        compare: tracks, status numbers)."""
+        ep = self._current()
+        ep.record(plan, fused, got)
+        return ep.outcome(plan, fused, got)
 
     def run_of(self, metric: str) -> Any:
         """Episode ``metric``'s arrays: a :class:`~covnet.covariance_control.simulate.
