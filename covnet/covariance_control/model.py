@@ -28,11 +28,11 @@ from covnet.core.sensing import (
 )
 from covnet.core.truth import linear_gaussian_trajectory
 from covnet.covariance_control.config import (
-    AUTO_EXACT_MAX,
     AUTO_NODE_LIMIT,
     BOUNDED_GAP,
     Scenario,
 )
+from covnet.covariance_control.searches import SEARCHES
 
 if TYPE_CHECKING:
     from covnet.core.allocation import Allocation, AllocationPlan
@@ -61,10 +61,9 @@ AllocationSpec`): ``mode`` ``exact | bounded | greedy | auto``; ``bounded`` stop
     node_limit: int | None = None
 
     def resolved(self, n_candidates: int) -> str:
-        """The search ``auto`` stands for with ``n_candidates`` sensors (else ``mode``)."""
-        if self.mode != "auto":
-            return self.mode
-        return "exact" if n_candidates <= AUTO_EXACT_MAX else "bounded"
+        """The search ``auto`` stands for with ``n_candidates`` sensors (else ``mode``): the
+        entry of :data:`~covnet.covariance_control.searches.SEARCHES` that decides."""
+        return SEARCHES[self.mode].resolved(n_candidates).name
 
     def bounded_options(self) -> tuple[float, float | None, int | None]:
         """``(rel_gap, time_limit_s, node_limit)`` of a bounded decision."""
@@ -144,8 +143,9 @@ class Model:
 
     @property
     def reports_gap(self) -> bool:
-        """Decisions report a certified lower bound and gap (``bounded``, ``greedy``)."""
-        return self.search_mode != "exact"
+        """Decisions report a certified lower bound and gap (``bounded``, ``greedy``: the
+        search entry's ``reports_gap``)."""
+        return SEARCHES[self.search_mode].reports_gap
 
     @property
     def plan(self) -> AllocationPlan:
@@ -255,7 +255,8 @@ def decide(
     unavailable: frozenset[int] = frozenset(),
 ) -> Allocation:
     """Covariance control for scan ``k``: argmin over feasible subsets of ``f(P_i, P_d(t_k))``,
-    searched as ``model.search`` says (:attr:`Model.search_mode`).
+    searched by the entry of :data:`~covnet.covariance_control.searches.SEARCHES` that
+    ``model.search`` names (:attr:`Model.search_mode`, ``auto`` resolved).
 
     ``unavailable`` (failed sensors seen at run time) joins the configured exclusions.
     ``exact``: up to ``FAST_PATH_MAX`` candidates the fast path with the plan for the resulting
@@ -270,40 +271,7 @@ def decide(
             required=c.required - unavailable,
             max_active=c.max_active,
         )
-    mode = model.search_mode
-    P_d = model.desired(scan)
-    if mode == "exact" and len(model.sensor_ids) - len(c.excluded) <= FAST_PATH_MAX:
-        # the allocator (and scipy.linalg): start-up of the processes that never decide
-        from covnet.core.allocation import allocate
-
-        plan = model.plan if c == model.constraints else model.plan_for(c)
-        return allocate(P_pred, plan, P_d, metric, tie_rtol=model.tie_rtol)
-    from covnet.core.allocation import Allocation
-    from covnet.core.search import allocate_bnb, allocate_greedy
-
-    if mode == "greedy":
-        res = allocate_greedy(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
-    elif mode == "bounded":
-        gap, limit_s, nodes = model.search.bounded_options()
-        res = allocate_bnb(
-            P_pred,
-            model.gains,
-            P_d,
-            metric,
-            c,
-            model.tie_rtol,
-            rel_gap=gap,
-            time_limit_s=limit_s,
-            node_limit=nodes,
-        )
-    else:
-        res = allocate_bnb(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
-    n_feasible = feasible_count(len(model.sensor_ids), c)
-    if mode == "exact":
-        return Allocation(res.subset, res.value, res.P, n_feasible, res.n_evaluated)
-    return Allocation(
-        res.subset, res.value, res.P, n_feasible, res.n_evaluated, res.lower_bound, res.gap
-    )
+    return SEARCHES[model.search_mode].decide(model, P_pred, model.desired(scan), metric, c)
 
 
 def feasible_count(n_sensors: int, c: Constraints) -> int:
