@@ -446,7 +446,7 @@ def allocate(
     bound: MetricBound | None = None
     invariant = False
     if entry is not None:
-        bound, invariant = capability(entry.subset_bound), entry.batch_invariant
+        bound, invariant = capability(entry.subset_bound, MetricBound), entry.batch_invariant
     try:
         res = fast_search(P, D, f, bound, plan.tables, tie_rtol, invariant)
     except np.linalg.LinAlgError as exc:

@@ -471,7 +471,7 @@ def interval_lower_bound(
     ``interval_bound``; ``P_d``: the desired covariance or its :class:`DesiredConstants` (reused
     across calls)."""
     entry = METRICS.get(metric)
-    bound: IntervalBound | None = capability(entry.interval_bound) if entry else None
+    bound: IntervalBound | None = capability(entry.interval_bound, IntervalBound) if entry else None
     if bound is None:
         known = sorted(k for k, m in METRICS.items() if m.interval_bound is not None)
         raise KeyError(f"no interval bound for metric {metric!r}; known: {', '.join(known)}")

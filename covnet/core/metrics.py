@@ -28,14 +28,10 @@ import importlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, TypeVar, cast
+from typing import Literal, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
-
-if TYPE_CHECKING:
-    from covnet.core._allocation_fast import MetricBound
-    from covnet.core.interval_bounds import IntervalBound
 
 MetricFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
@@ -438,9 +434,13 @@ class Ref:
 _C = TypeVar("_C")
 
 
-def capability(x: _C | Ref | None) -> _C | None:
-    """An entry's capability: ``x`` itself, or what its :class:`Ref` names."""
-    return cast("_C", x.load()) if isinstance(x, Ref) else x
+def capability(x: object, kind: type[_C]) -> _C | None:
+    """An entry's capability (``None``, the object, or what its :class:`Ref` names), checked to
+    be a ``kind`` (the bound classes live in the modules that use them, which import this one)."""
+    got = x.load() if isinstance(x, Ref) else x
+    if got is not None and not isinstance(got, kind):
+        raise TypeError(f"expected a {kind.__name__} or None, got {type(got).__name__}")
+    return got
 
 
 @dataclass(frozen=True)
@@ -478,8 +478,8 @@ class Metric:
 
     name: str
     fn: MetricFn
-    subset_bound: MetricBound | Ref | None = None
-    interval_bound: IntervalBound | Ref | None = None
+    subset_bound: object = None  # a MetricBound, a Ref to one, or None
+    interval_bound: object = None  # an IntervalBound, a Ref to one, or None
     relaxation: Relaxation | None = None
     batch_invariant: bool = False
 

@@ -272,7 +272,7 @@ class _Problem:
         lam = ctx.lam_max
         self.ctx = ctx._replace(err=ctx.err + lam * lam * n * neg)
         self.bound: IntervalBound | None = (
-            capability(entry.interval_bound) if entry is not None else None
+            capability(entry.interval_bound, IntervalBound) if entry is not None else None
         )
         self.n_evaluated = 0
         self.moves = 0

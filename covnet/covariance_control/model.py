@@ -8,7 +8,6 @@ processes call too: the distributed layer adds transport and nothing else.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -32,18 +31,12 @@ from covnet.covariance_control.config import (
     BOUNDED_GAP,
     Scenario,
 )
+from covnet.covariance_control.searches import FAST_PATH_MAX as FAST_PATH_MAX
 from covnet.covariance_control.searches import SEARCHES
+from covnet.covariance_control.searches import feasible_count as feasible_count
 
 if TYPE_CHECKING:
     from covnet.core.allocation import Allocation, AllocationPlan
-
-
-#: ``exact`` decisions over at most this many candidate sensors take the batched fast path
-#: (:func:`covnet.core.allocation.allocate`, every subset bounded at once), branch and bound
-#: (:func:`covnet.core.search.allocate_bnb`) beyond: the same subset, value and ``P`` bits, the
-#: faster of the two from about 18-20 sensors on (measured on the bench problems of ``covnet
-#: bench search``: at N = 20 branch and bound is faster for 4 of 5 metrics, at 16 for none)
-FAST_PATH_MAX = 18
 
 
 @dataclass(frozen=True)
@@ -272,14 +265,6 @@ def decide(
             max_active=c.max_active,
         )
     return SEARCHES[model.search_mode].decide(model, P_pred, model.desired(scan), metric, c)
-
-
-def feasible_count(n_sensors: int, c: Constraints) -> int:
-    """The number of non-empty subsets of ``n_sensors`` sensors that ``c`` allows."""
-    free = n_sensors - len(c.excluded) - len(c.required)
-    r = len(c.required)
-    K = n_sensors if c.max_active is None else c.max_active
-    return sum(math.comb(free, k - r) for k in range(max(r, 1), min(K, free + r) + 1))
 
 
 def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:

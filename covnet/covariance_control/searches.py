@@ -12,18 +12,45 @@ decide, the world and the sensors, load no allocator).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
+
+from covnet.core.constraints import Constraints
+from covnet.core.gaussian import Mat
 
 if TYPE_CHECKING:
-    from covnet.core.allocation import Allocation
-    from covnet.core.constraints import Constraints
-    from covnet.core.gaussian import Mat
-    from covnet.covariance_control.model import Model
+    from covnet.core.allocation import Allocation, AllocationPlan
+
+
+class SearchModel(Protocol):
+    """What a search reads of :class:`covnet.covariance_control.model.Model`."""
+
+    @property
+    def sensor_ids(self) -> tuple[str, ...]: ...
+    @property
+    def constraints(self) -> Constraints: ...
+    @property
+    def tie_rtol(self) -> float: ...
+    @property
+    def gains(self) -> Mat: ...
+    @property
+    def plan(self) -> AllocationPlan: ...
+    @property
+    def search(self) -> Any: ...  # SearchSettings: its bounded_options()
+    def plan_for(self, constraints: Constraints) -> AllocationPlan: ...
+
 
 #: ``search(model, P_pred, P_d, metric, constraints)``: the decision of one scan
-DecideFn = Callable[["Model", "Mat", "Mat", str, "Constraints"], "Allocation"]
+DecideFn = Callable[[SearchModel, Mat, Mat, str, Constraints], "Allocation"]
+
+#: ``exact`` decisions over at most this many candidate sensors take the batched fast path
+#: (:func:`covnet.core.allocation.allocate`, every subset bounded at once), branch and bound
+#: (:func:`covnet.core.search.allocate_bnb`) beyond: the same subset, value and ``P`` bits, the
+#: faster of the two from about 18-20 sensors on (measured on the bench problems of ``covnet
+#: bench search``: at N = 20 branch and bound is faster for 4 of 5 metrics, at 16 for none)
+FAST_PATH_MAX = 18
 
 #: ``search: auto`` is ``exact`` up to this many candidate sensors (allowed, not excluded),
 #: ``bounded`` beyond (``covnet bench search``: an exact decision at N = 24 takes 0.01-0.2 s,
@@ -61,12 +88,19 @@ class Search:
         return self if self.resolve is None else SEARCHES[self.resolve(n_candidates)]
 
 
-def _exact(model: Model, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
+def feasible_count(n_sensors: int, c: Constraints) -> int:
+    """The number of non-empty subsets of ``n_sensors`` sensors that ``c`` allows."""
+    free = n_sensors - len(c.excluded) - len(c.required)
+    r = len(c.required)
+    K = n_sensors if c.max_active is None else c.max_active
+    return sum(math.comb(free, k - r) for k in range(max(r, 1), min(K, free + r) + 1))
+
+
+def _exact(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
     """Up to ``FAST_PATH_MAX`` candidates the fast path with the plan for ``c``
     (:meth:`Model.plan_for`, prepared once per set), branch and bound beyond, both the
-    exhaustive search's result bit for bit."""
-    from covnet.covariance_control.model import FAST_PATH_MAX, feasible_count
-
+    exhaustive search's result bit for bit.  (The allocators are imported at the first
+    decision: start-up of the processes that never decide.)"""
     if len(model.sensor_ids) - len(c.excluded) <= FAST_PATH_MAX:
         # the allocator (and scipy.linalg): start-up of the processes that never decide
         from covnet.core.allocation import allocate
@@ -81,11 +115,11 @@ def _exact(model: Model, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> 
     return Allocation(res.subset, res.value, res.P, n_feasible, res.n_evaluated)
 
 
-def _bounded(model: Model, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
-    """Branch and bound stopped at the options' gap, time or node limit (``bounded_options``)."""
+def _bounded(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
+    """Branch and bound stopped at the options' gap, time or node limit (``bounded_options``).
+    (Imported here: start-up of the processes that never decide.)"""
     from covnet.core.allocation import Allocation
     from covnet.core.search import allocate_bnb
-    from covnet.covariance_control.model import feasible_count
 
     gap, limit_s, nodes = model.search.bounded_options()
     res = allocate_bnb(
@@ -105,11 +139,11 @@ def _bounded(model: Model, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -
     )
 
 
-def _greedy(model: Model, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
-    """Forward/backward greedy and swaps, with the root lower bound."""
+def _greedy(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
+    """Forward/backward greedy and swaps, with the root lower bound.  (Imported here: start-up
+    of the processes that never decide.)"""
     from covnet.core.allocation import Allocation
     from covnet.core.search import allocate_greedy
-    from covnet.covariance_control.model import feasible_count
 
     res = allocate_greedy(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
     n_feasible = feasible_count(len(model.sensor_ids), c)
@@ -122,7 +156,7 @@ def _auto_resolve(n_candidates: int) -> str:
     return "exact" if n_candidates <= AUTO_EXACT_MAX else "bounded"
 
 
-def _auto(model: Model, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
+def _auto(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
     """The decision of the entry ``auto`` stands for with the configured candidates."""
     n = len(model.sensor_ids) - len(model.constraints.excluded)
     return SEARCHES[_auto_resolve(n)].decide(model, P_pred, P_d, metric, c)

@@ -15,8 +15,7 @@ from covnet.config import ConfigError
 from covnet.core.allocation import Allocation, subset_covariance
 from covnet.core.metrics import get_metric
 from covnet.covariance_control.config import load
-from covnet.covariance_control.model import feasible_count
-from covnet.covariance_control.searches import SEARCHES, Search
+from covnet.covariance_control.searches import SEARCHES, Search, feasible_count
 
 
 def forward(model, P_pred, P_d, metric, c):

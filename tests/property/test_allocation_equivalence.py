@@ -151,7 +151,7 @@ def test_bounds_never_exceed_the_exact_value(name, pb):
     codes = np.arange(1, 2**N)
     masks = ((codes[:, None] >> np.arange(N)) & 1).astype(bool)
     exact = METRICS[name](fast.spd_inverse(Y0 + fast.gain_sums(gains, masks)), P_d)
-    bound = capability(METRICS[name].subset_bound)
+    bound = capability(METRICS[name].subset_bound, fast.MetricBound)
     with np.errstate(all="ignore"):
         lbs = [bound.cheap(st_.subsets(codes), P_d, st_.ctx)]
         if bound.refine is not None:
@@ -178,7 +178,7 @@ def test_single_chunk_bounds_never_exceed_the_exact_value(name, pb):
         return
     Y0 = fast.spd_inverse(P_pred)
     exact = METRICS[name](fast.spd_inverse(Y0 + fast.gain_sums(plan.gains, tab.masks)), P_d)
-    bound = capability(METRICS[name].subset_bound)
+    bound = capability(METRICS[name].subset_bound, fast.MetricBound)
     st_ = fast._Setup(P_pred, P_d, Y0, tab)
     with np.errstate(all="ignore"):
         lbs = [bound.cheap(st_.chunk_covariances(), P_d, st_.ctx)]

@@ -150,7 +150,10 @@ def test_a_user_registered_metric_and_bound(monkeypatch, tie_rtol, gains8):
     bound prunes; a bound that knows nothing (NaN) prunes nothing; no bound at all, nothing
     either; all stay exact."""
     for bound, pruned in [
-        (capability(METRICS["abs_trace"].subset_bound), True),  # weights >= 1: abs_trace below
+        (
+            capability(METRICS["abs_trace"].subset_bound, MetricBound),
+            True,
+        ),  # weights >= 1: abs_trace below
         (MetricBound(lambda P, D, ctx: np.full(P.size, np.nan)), False),
         (None, False),
     ]:
