@@ -24,7 +24,8 @@ sensors), ``r = |s|``.  With ``C = P[s, s]``, ``Kᵀ = C⁻¹ P[s, :]`` and ``P�
 so a subset costs one ``r x r`` inverse (closed form ``adj(Z) / det Z`` for the usual ``r = 2``)
 and ``P_i`` is affine in it: one small matrix product per chunk.  All ``Z_i`` of a chunk come
 from the per-subset sums of the sensors' ``S_j`` in the tables plus ``C⁻¹``.  The metric's
-cheap bound (:data:`METRIC_BOUNDS`) runs on these approximate ``P_i``; bounds only pay for the
+cheap bound (its entry's ``subset_bound``, :data:`covnet.core.metrics.METRICS`) runs on these
+approximate ``P_i``; bounds only pay for the
 entries they read (``abs_trace`` reads the diagonal).
 
 **Small problems** (one chunk, ``r = 2 < n``: the paper's 8 sensors) are bound by the fixed cost
@@ -89,7 +90,7 @@ from numpy.typing import NDArray
 
 from covnet.core.gaussian import Mat
 from covnet.core.lapack import flapack
-from covnet.core.metrics import EIG_TIE_RTOL, METRICS, MetricFn, ordered_eigh
+from covnet.core.metrics import EIG_TIE_RTOL, MetricFn, ordered_eigh
 
 lapack = flapack()  # scipy.linalg.lapack's routines, without scipy.linalg's import
 
@@ -113,9 +114,6 @@ SEED_POOL_ABOVE = 2048
 REFINED_PICKS = 4
 #: the first block of refined bounds (then 4x larger each, up to EXACT_BLOCK)
 REFINE_BLOCK = 16
-#: metrics whose batched values equal their one-at-a-time values bit for bit (tested); other
-#: metrics get a pruning margin and a one-at-a-time recheck of near ties
-BATCH_INVARIANT = frozenset(METRICS.values())
 #: stage-1 entrywise error model: err = ERR_FACTOR · n² · eps · κ · λmax(P_pred)
 ERR_FACTOR = 64.0
 #: an offset ``o`` folded into the products of a single-chunk plan's stage 1
@@ -1703,19 +1701,18 @@ def _kl_bound(P: Stage1P, D: Mat, ctx: BoundContext) -> Mat:
     return val - (slack + rel * np.abs(val))
 
 
-#: metric name -> lower bounds used by :func:`fast_search`.  A metric without an entry (or a
-#: user's own function) is searched by the batched exhaustive fallback, still exact.
-METRIC_BOUNDS: dict[str, MetricBound] = {
-    "abs_trace": MetricBound(_abs_trace_bound),
-    "trace_diff": MetricBound(_trace_diff_bound),
-    "frobenius": MetricBound(_frobenius_bound),
-    "one_norm": MetricBound(_one_norm_bound),
-    "inf_norm": MetricBound(_inf_norm_bound),
-    "spectral": MetricBound(_spectral_cheap, _spectral_refine),
-    "svd": MetricBound(_svd_cheap, _svd_refine, refine_seed=lambda n: n != 4),
-    "logdet": MetricBound(_logdet_bound),
-    "kl": MetricBound(_kl_bound),
-}
+# the lower bounds used by :func:`fast_search`, one per built-in metric (its entry's
+# ``subset_bound`` in :data:`covnet.core.metrics.METRICS`).  A metric without one (or a user's
+# own function) is searched by the batched exhaustive fallback, still exact.
+ABS_TRACE_BOUND = MetricBound(_abs_trace_bound)
+TRACE_DIFF_BOUND = MetricBound(_trace_diff_bound)
+FROBENIUS_BOUND = MetricBound(_frobenius_bound)
+ONE_NORM_BOUND = MetricBound(_one_norm_bound)
+INF_NORM_BOUND = MetricBound(_inf_norm_bound)
+SPECTRAL_BOUND = MetricBound(_spectral_cheap, _spectral_refine)
+SVD_BOUND = MetricBound(_svd_cheap, _svd_refine, refine_seed=lambda n: n != 4)
+LOGDET_BOUND = MetricBound(_logdet_bound)
+KL_BOUND = MetricBound(_kl_bound)
 
 
 def _chol_soa(A: Mat) -> list[list[Mat]]:
@@ -1842,6 +1839,7 @@ def fast_search(
     bound: MetricBound | None,
     tab: SearchTables,
     tie_rtol: float,
+    batch_invariant: bool = False,
 ) -> SearchResult:
     """Exact argmin with the tie rule (module docstring); the inputs are already validated and
     ``tab`` holds the gain-only part of the problem."""
@@ -1895,7 +1893,7 @@ def fast_search(
     U = _single_value(metric, P_best, P_d)  # called as the reference calls it
     # a metric not known to be batch-invariant may differ in the last bits between the batched
     # calls below and the reference's single calls: prune with a margin, recheck near ties
-    margin = 0.0 if metric in BATCH_INVARIANT else 1e-6
+    margin = 0.0 if batch_invariant else 1e-6
     tau = _threshold(U, L, tie_rtol, margin)
     lb[best] = np.inf  # evaluated
     if table and not _min(lb) <= tau:  # the common case: one exact evaluation settles it

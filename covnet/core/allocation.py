@@ -50,7 +50,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from covnet.core._allocation_fast import (
-    METRIC_BOUNDS,
     BoundContext,
     MetricBound,
     SearchTables,
@@ -60,10 +59,9 @@ from covnet.core._allocation_fast import (
 )
 from covnet.core.constraints import Constraints
 from covnet.core.gaussian import Mat
-from covnet.core.metrics import METRICS, MetricFn, get_metric
+from covnet.core.metrics import METRICS, Metric, MetricFn, capability, get_entry
 
 __all__ = [
-    "METRIC_BOUNDS",
     "Allocation",
     "AllocationPlan",
     "BoundContext",
@@ -322,12 +320,16 @@ def _prepare(G: Mat, constraints: Constraints, tables: bool) -> AllocationPlan:
     return AllocationPlan(G, constraints, n, K_eff, infeasible, tab)
 
 
-def _resolve_metric(metric: str | MetricFn) -> tuple[MetricFn, str | None]:
-    """The metric function and its registered name (``None`` for a user's function)."""
+def _resolve_metric(metric: str | MetricFn | Metric) -> tuple[MetricFn, Metric | None]:
+    """The metric function and its entry (:data:`covnet.core.metrics.METRICS`, or the
+    :class:`~covnet.core.metrics.Metric` given; ``None`` for a user's plain function)."""
     if isinstance(metric, str):
-        return get_metric(metric), metric
+        entry = get_entry(metric)
+        return entry.fn, entry
+    if isinstance(metric, Metric):
+        return metric.fn, metric
     if callable(metric):
-        return metric, next((k for k, f in METRICS.items() if f is metric), None)
+        return metric, next((m for m in METRICS.values() if m.fn is metric), None)
     raise TypeError(f"metric must be a registered name or a callable, got {type(metric)}")
 
 
@@ -421,9 +423,9 @@ def allocate(
     ``P_pred`` ``(n, n)`` and ``P_d`` ``(n, n)`` finite and symmetric (then symmetrised),
     ``P_pred`` positive definite (by its Cholesky factorisation), the metric and ``tie_rtol``.
 
-    Registered metrics with an entry in :data:`METRIC_BOUNDS` use bound-based pruning (see
-    :mod:`covnet.core._allocation_fast`); any other metric function the batched exhaustive
-    search.
+    Metrics whose entry has a ``subset_bound`` (:class:`covnet.core.metrics.Metric`) use
+    bound-based pruning (see :mod:`covnet.core._allocation_fast`); any other metric function the
+    batched exhaustive search.
     """
     if isinstance(gains, AllocationPlan):
         plan = gains
@@ -437,13 +439,16 @@ def allocate(
         P, D = _checked_pd(P_pred, P_d)
         c = Constraints() if constraints is None else constraints
         plan = _prepare(_gains_array(gains, P.shape[0]), c, tables=True)
-    f, name = _resolve_metric(metric)
+    f, entry = _resolve_metric(metric)
     _check_rtol(tie_rtol)
     if plan.tables is None:
         raise InfeasibleAllocation(plan.infeasible)
-    bound = METRIC_BOUNDS.get(name) if name is not None else None
+    bound: MetricBound | None = None
+    invariant = False
+    if entry is not None:
+        bound, invariant = capability(entry.subset_bound, MetricBound), entry.batch_invariant
     try:
-        res = fast_search(P, D, f, bound, plan.tables, tie_rtol)
+        res = fast_search(P, D, f, bound, plan.tables, tie_rtol, invariant)
     except np.linalg.LinAlgError as exc:
         raise _spd_error(exc) from exc
     return Allocation(res.subset, res.value, res.P, res.n_feasible, res.n_evaluated)

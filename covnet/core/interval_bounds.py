@@ -6,7 +6,8 @@ because every gain ``J_j = H_jᵀ R_j⁻¹ H_j ⪰ 0`` and inversion is Loewner-
 
     A = P(I ∪ U)  ⪯  P(D)  ⪯  P(I) = B,        P(S) = (P_pred⁻¹ + Σ_{j∈S} J_j)⁻¹.
 
-This module gives, for every metric of :data:`covnet.core.metrics.METRICS`, a valid lower bound
+This module gives, for every built-in metric of :data:`covnet.core.metrics.METRICS` (its entry's
+``interval_bound``, ``<NAME>_BOUND`` here), a valid lower bound
 of ``min { f(P, P_d) : A ⪯ P ⪯ B }``, batched over many intervals (``A``, ``B`` ``(m, n, n)``).
 Each bound is split into a per-endpoint **summary** (e.g. the eigenvalues of ``X - P_d``) and a
 **combination** of the two endpoints' summaries, so a search that shares one endpoint between a
@@ -46,13 +47,12 @@ from numpy.typing import NDArray
 
 from covnet.core.gaussian import Mat
 from covnet.core.lapack import flapack
-from covnet.core.metrics import EIG_TIE_RTOL, ordered_eigh
+from covnet.core.metrics import EIG_TIE_RTOL, METRICS, capability, ordered_eigh
 
 lapack = flapack()  # scipy.linalg.lapack's routines, without scipy.linalg's import
 
 __all__ = [
     "ERR_FACTOR",
-    "INTERVAL_BOUNDS",
     "DesiredConstants",
     "IntervalBound",
     "IntervalContext",
@@ -443,18 +443,17 @@ def _svd_combine(
     return _f64(size + np.maximum(orient, 0.0))
 
 
-#: metric name -> its interval bound (every metric of :data:`covnet.core.metrics.METRICS`)
-INTERVAL_BOUNDS: dict[str, IntervalBound] = {
-    "spectral": IntervalBound(_eig_minus_d, _spectral_combine),
-    "abs_trace": IntervalBound(_diag_minus_d, _abs_trace_combine),
-    "trace_diff": IntervalBound(_trace_minus_d, _trace_diff_combine),
-    "frobenius": IntervalBound(_eig_and_entries, _frobenius_combine),
-    "one_norm": IntervalBound(_eig_and_entries, _induced_combine),
-    "inf_norm": IntervalBound(_eig_and_entries, _induced_combine),
-    "logdet": IntervalBound(_gen_eig, _logdet_combine),
-    "kl": IntervalBound(_gen_eig, _kl_combine),
-    "svd": IntervalBound(_eigh_desc, _svd_combine),
-}
+# the interval bound of every built-in metric (its entry's ``interval_bound`` in
+# :data:`covnet.core.metrics.METRICS`)
+SPECTRAL_BOUND = IntervalBound(_eig_minus_d, _spectral_combine)
+ABS_TRACE_BOUND = IntervalBound(_diag_minus_d, _abs_trace_combine)
+TRACE_DIFF_BOUND = IntervalBound(_trace_minus_d, _trace_diff_combine)
+FROBENIUS_BOUND = IntervalBound(_eig_and_entries, _frobenius_combine)
+ONE_NORM_BOUND = IntervalBound(_eig_and_entries, _induced_combine)
+INF_NORM_BOUND = IntervalBound(_eig_and_entries, _induced_combine)
+LOGDET_BOUND = IntervalBound(_gen_eig, _logdet_combine)
+KL_BOUND = IntervalBound(_gen_eig, _kl_combine)
+SVD_BOUND = IntervalBound(_eigh_desc, _svd_combine)
 
 
 def interval_lower_bound(
@@ -468,14 +467,14 @@ def interval_lower_bound(
     (``A``, ``B`` ``(m, n, n)`` or one ``(n, n)`` pair, giving ``(m,)`` or a 0-d array), valid for
     the metric as computed on any ``P`` within ``ctx.err`` of the interval.
 
-    ``metric``: a name of :data:`INTERVAL_BOUNDS`; ``P_d``: the desired covariance or its
-    :class:`DesiredConstants` (reused across calls)."""
-    try:
-        bound = INTERVAL_BOUNDS[metric]
-    except KeyError:
-        raise KeyError(
-            f"no interval bound for metric {metric!r}; known: {', '.join(sorted(INTERVAL_BOUNDS))}"
-        ) from None
+    ``metric``: a name of :data:`covnet.core.metrics.METRICS` whose entry has an
+    ``interval_bound``; ``P_d``: the desired covariance or its :class:`DesiredConstants` (reused
+    across calls)."""
+    entry = METRICS.get(metric)
+    bound: IntervalBound | None = capability(entry.interval_bound, IntervalBound) if entry else None
+    if bound is None:
+        known = sorted(k for k, m in METRICS.items() if m.interval_bound is not None)
+        raise KeyError(f"no interval bound for metric {metric!r}; known: {', '.join(known)}")
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
     if A.shape != B.shape or A.ndim not in (2, 3) or A.shape[-1] != A.shape[-2]:

@@ -6,8 +6,11 @@ returns a ``(...)`` float64 array, so the allocator scores a whole batch of subs
 They satisfy ``f(A, B) >= 0``, ``f(A, A) = 0`` and ``f(A, B) = f(B, A)``; the triangle inequality
 is not required (spec: "Matrix metrics").
 
-To add one: write a plain function with its equation in the docstring and add one line to
-``METRICS``; the property tests iterate over ``sorted(METRICS)``.
+To add one: write a plain function with its equation in the docstring and add one
+:class:`Metric` entry to ``METRICS``; the property tests iterate over ``sorted(METRICS)``.  An
+entry carries everything the rest of the system asks of a metric (its bounds, its relaxation,
+whether it is batch-invariant); a metric without bounds is searched exhaustively (exact) and
+refused by the searches that need a bound (the config names which).
 
 Batch invariance.  Each function computes one matrix's value with exactly the same floating-point
 operations whether it is called on one matrix or on a stack: per-matrix LAPACK calls
@@ -21,9 +24,11 @@ metric need not be batch-invariant: the allocator then re-checks near ties one c
 from __future__ import annotations
 
 import functools
+import importlib
 import math
-from collections.abc import Callable, Mapping
-from typing import TypeVar, cast
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -408,16 +413,107 @@ def kl(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.maximum(0.25 * ((t_ba + t_ab) - 2 * n), 0.0)
 
 
-METRICS: Mapping[str, MetricFn] = {
-    "spectral": spectral,
-    "abs_trace": abs_trace,
-    "svd": svd,
-    "frobenius": frobenius,
-    "one_norm": one_norm,
-    "inf_norm": inf_norm,
-    "trace_diff": trace_diff,
-    "logdet": logdet,
-    "kl": kl,
+# --------------------------------------------------------------------------------------------
+# the registry: one entry per metric, carrying what the searches ask of it
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Ref:
+    """A capability named by module and attribute, imported when first asked for
+    (:func:`capability`): the built-in bounds need LAPACK, which a process that never decides (the
+    world, a measuring sensor) must not load.  A user's entry may hold the object itself."""
+
+    module: str
+    attr: str
+
+    def load(self) -> object:
+        return getattr(importlib.import_module(self.module), self.attr)
+
+
+_C = TypeVar("_C")
+
+
+def capability(x: object, kind: type[_C]) -> _C | None:
+    """An entry's capability (``None``, the object, or what its :class:`Ref` names), checked to
+    be a ``kind`` (the bound classes live in the modules that use them, which import this one)."""
+    got = x.load() if isinstance(x, Ref) else x
+    if got is not None and not isinstance(got, kind):
+        raise TypeError(f"expected a {kind.__name__} or None, got {type(got).__name__}")
+    return got
+
+
+@dataclass(frozen=True)
+class Relaxation:
+    """A convex relaxation of the metric over a branch-and-bound node's reduced ``2 x 2``
+    information (:class:`covnet.core.search._Relaxation`, used where the gains' support has 2
+    coordinates): ``form``, the closed form of the convex objective that module derives
+    (``frobenius``: ``||·||_F²`` in ``W = Z⁻¹``; ``kl``: in ``Z``; ``logdet``: in ``W``, or in
+    ``Z`` where convex there); ``leaves``: the objective is strongly convex, so the last levels
+    of an exact search come from a table queried in a ball (:class:`covnet.core.search._Leaves`).
+    """
+
+    form: Literal["frobenius", "kl", "logdet"]
+    leaves: bool = True
+
+
+@dataclass(frozen=True)
+class Metric:
+    """``f(A, B) >= 0`` over the last two axes of batched symmetric matrices (``f(A, A) = 0``,
+    ``f(A, B) = f(B, A)``), and what the searches may ask of it:
+
+    - ``subset_bound``: a cheap lower bound of ``f`` on the fast path's approximate ``P_i``
+      (:class:`covnet.core._allocation_fast.MetricBound`): prunes the batched exact search;
+      without it every feasible subset is evaluated;
+    - ``interval_bound``: a lower bound over a Loewner interval
+      (:class:`covnet.core.interval_bounds.IntervalBound`): branch and bound; without it branch
+      and bound is an exhaustive search, and ``search: bounded`` (or ``auto`` beyond its exact
+      range) is refused by the config;
+    - ``relaxation``: a convex bound over the information form (:class:`Relaxation`), tighter
+      than the interval bound where it applies;
+    - ``batch_invariant``: ``f`` of a stack equals ``f`` one matrix at a time, bit for bit (see
+      the module docstring); otherwise the searches prune with a margin and recheck near ties.
+
+    An entry is called like its function: ``METRICS["svd"](A, B)``."""
+
+    name: str
+    fn: MetricFn
+    subset_bound: object = None  # a MetricBound, a Ref to one, or None
+    interval_bound: object = None  # an IntervalBound, a Ref to one, or None
+    relaxation: Relaxation | None = None
+    batch_invariant: bool = False
+
+    def __call__(self, A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+        return self.fn(A, B)
+
+
+def _builtin(name: str, fn: MetricFn, relaxation: Relaxation | None = None) -> Metric:
+    """A built-in metric: batch-invariant, with both bounds (named ``<NAME>_BOUND`` in
+    :mod:`covnet.core._allocation_fast` and :mod:`covnet.core.interval_bounds`)."""
+    attr = f"{name.upper()}_BOUND"
+    return Metric(
+        name,
+        fn,
+        subset_bound=Ref("covnet.core._allocation_fast", attr),
+        interval_bound=Ref("covnet.core.interval_bounds", attr),
+        relaxation=relaxation,
+        batch_invariant=True,
+    )
+
+
+METRICS: dict[str, Metric] = {
+    m.name: m
+    for m in (
+        _builtin("spectral", spectral),
+        _builtin("abs_trace", abs_trace),
+        _builtin("svd", svd),
+        _builtin("frobenius", frobenius, Relaxation("frobenius")),
+        _builtin("one_norm", one_norm),
+        _builtin("inf_norm", inf_norm),
+        _builtin("trace_diff", trace_diff),
+        _builtin("logdet", logdet, Relaxation("logdet")),
+        _builtin("kl", kl, Relaxation("kl")),
+    )
 }
 
 
@@ -427,7 +523,13 @@ def metric_names() -> list[str]:
 
 
 def get_metric(name: str) -> MetricFn:
-    """The metric registered under ``name``; ``KeyError`` listing the valid names otherwise."""
+    """The function of the metric registered under ``name``; ``KeyError`` listing the valid
+    names otherwise."""
+    return get_entry(name).fn
+
+
+def get_entry(name: str) -> Metric:
+    """The entry registered under ``name``; ``KeyError`` listing the valid names otherwise."""
     try:
         return METRICS[name]
     except KeyError:

@@ -186,7 +186,7 @@ class _Inputs:
             w = np.asarray(weights, dtype=np.float64)
             if w.shape != (T,) or not (np.isfinite(w).all() and (w > 0).all()):
                 raise ValueError(f"weights must be {T} finite positive numbers, got {weights!r}")
-        self.f, self.name = _resolve_metric(metric)
+        self.f, self.entry = _resolve_metric(metric)
         _check_rtol(tie_rtol)
         if not isinstance(constraints, MultiConstraints):
             raise TypeError(f"constraints must be a MultiConstraints, got {type(constraints)}")
@@ -437,9 +437,10 @@ class _Target:
         for lo in range(0, subs.size, step):
             mk = masks[lo : lo + step]
             P = spd_inverse(Y0 + gain_sums(inp.J[:, t], mk))
-            if inp.name is None:  # a user's metric: called as the reference calls it
+            if inp.entry is None or not inp.entry.batch_invariant:
+                # a user's metric: called as the reference calls it
                 v = np.array([float(np.asarray(inp.f(P_i, inp.D[t]))) for P_i in P])
-            else:  # registered metrics are batch-invariant
+            else:  # a batch-invariant metric: one call for the batch
                 v = np.asarray(inp.f(P, inp.D[t]), dtype=np.float64).reshape(-1)
             if not np.isfinite(v).all():
                 raise ValueError(f"metric returned a non-finite value for target {t}")
@@ -557,7 +558,7 @@ def allocate_assignments(
         targets = []
         for t in range(T):
             prob = None
-            if inp.name is not None:
+            if inp.entry is not None and inp.entry.interval_bound is not None:
                 excl = frozenset(j for j in range(N) if j not in allowed or not inp.feasible[j, t])
                 if len(excl) < N:
                     prob = _Problem(

@@ -117,14 +117,13 @@ from covnet.core.allocation import (
 )
 from covnet.core.gaussian import Mat
 from covnet.core.interval_bounds import (
-    INTERVAL_BOUNDS,
     ROUND,
     DesiredConstants,
     IntervalBound,
     search_context,
 )
 from covnet.core.lapack import flapack
-from covnet.core.metrics import MetricFn
+from covnet.core.metrics import MetricFn, Relaxation, capability
 
 lapack = flapack()  # scipy.linalg.lapack's routines, without scipy.linalg's import
 
@@ -229,7 +228,8 @@ class _Problem:
     ) -> None:
         P, D = _checked_pd(P_pred, P_d)
         plan = _prepare(_gains_array(gains, P.shape[0]), constraints, tables=False)
-        self.f, self.name = _resolve_metric(metric)
+        self.f, entry = _resolve_metric(metric)
+        self.name = entry.name if entry is not None else None
         _check_rtol(tie_rtol)
         if plan.infeasible is not None:
             raise InfeasibleAllocation(plan.infeasible)
@@ -272,14 +272,15 @@ class _Problem:
         lam = ctx.lam_max
         self.ctx = ctx._replace(err=ctx.err + lam * lam * n * neg)
         self.bound: IntervalBound | None = (
-            INTERVAL_BOUNDS.get(self.name) if self.name is not None else None
+            capability(entry.interval_bound, IntervalBound) if entry is not None else None
         )
         self.n_evaluated = 0
         self.moves = 0
         self.relax: _Relaxation | None = None
-        if self.bound is not None and self.name in _Relaxation.METRICS and self.r == 2:
+        relaxation = entry.relaxation if entry is not None else None
+        if self.bound is not None and relaxation is not None and self.r == 2:
             try:
-                self.relax = _Relaxation(self)
+                self.relax = _Relaxation(self, relaxation)
             except np.linalg.LinAlgError:  # P_d not SPD: the metric itself will say so
                 self.relax = None
 
@@ -355,7 +356,7 @@ class _Problem:
             return lb
         rows = np.flatnonzero(lb <= tau)
         zrows = rows[:0]
-        if self.name == "logdet":  # convex in W where x_max(P(I)) <= 1 + sqrt 2, else maybe in Z
+        if self.relax.form == "logdet":  # convex in W where x_max(P(I)) <= 1 + sqrt 2, else in Z
             rho = self.n * self.ctx.err / self.ctx.lam_min
             ok = sB[rows, -1] * (1.0 + 4.0 * rho) < LOGDET_CONVEX * (1.0 - 1e-9)
             zrows = rows[~ok]
@@ -443,9 +444,11 @@ class _Problem:
 
     def root_bound(self) -> float:
         """The bound of the root interval ``[P(req ∪ all free), P(req)]``, raised by the
-        reduced relaxation where it applies (``-inf`` without an interval bound)."""
+        reduced relaxation where it applies; without an interval bound ``0`` for a registered
+        metric (an entry of :data:`covnet.core.metrics.METRICS` is ``>= 0``), ``-inf`` for a
+        user's plain function."""
         if self.bound is None:
-            return -math.inf
+            return 0.0 if self.name is not None else -math.inf
         Z0 = self.base[None]
         Z1 = Z0 + self.suffix[0]
         sA = self.summary(Z1)
@@ -674,7 +677,8 @@ def allocate_greedy(
 ) -> SearchResult:
     """Forward greedy + best-improvement local search (removals, additions, 1-swaps); the subset
     found, its exact value and ``P`` (the reference's arithmetic), and the root interval bound as
-    the certified lower bound (``-inf`` for a metric without an interval bound).
+    the certified lower bound (for a metric without an interval bound: ``0`` if registered,
+    ``-inf`` for a user's plain function).
 
     Cost: ``O(N)`` batched evaluations per forward step and ``O(|D| · N)`` per local-search pass,
     each one ``r x r`` inverse and one metric evaluation of an ``n x n`` matrix."""
@@ -842,19 +846,20 @@ class _Relaxation:
     cond P(S) <= κ`` (interlacing); ``Z + V1`` is no worse conditioned than ``I + V1 W``.
     """
 
-    METRICS = ("frobenius", "kl", "logdet")
-
-    def __init__(self, prob: _Problem) -> None:
+    def __init__(self, prob: _Problem, relaxation: Relaxation) -> None:
         self.prob = prob
-        self.name = str(prob.name)
+        #: the closed form (the metric entry's :class:`~covnet.core.metrics.Relaxation`)
+        self.form = relaxation.form
+        #: strongly convex: the last levels from a table (:class:`_Leaves`)
+        self.leaves = relaxation.leaves
         n, ctx = prob.n, prob.ctx
         D = prob.D
         s = prob.s
         self.rel = ROUND_REL * n * n * EPS * (ctx.kappa + 1.0)
-        if self.name == "frobenius":
+        if self.form == "frobenius":
             self.M0 = prob.P_inf - D.reshape(n * n)
             self.Tt = np.ascontiguousarray(prob.T.T)
-        elif self.name == "kl":
+        elif self.form == "kl":
             L_inv, kappa_D = prob.dc.chol_inv()
             LK = L_inv @ prob.Kmat
             self.Q = _s2((LK.T @ LK).reshape(1, 4))
@@ -895,13 +900,13 @@ class _Relaxation:
             Ei = (e2 / detE, -e1 / detE, e0 / detE)
             Zi = _inv2(a, b, c)
             return g, (Ei[0] - 0.5 * Zi[0], Ei[1] - 0.5 * Zi[1], Ei[2] - 0.5 * Zi[2])
-        if self.name == "frobenius":
+        if self.form == "frobenius":
             M = _flat2(*V) @ self.prob.T
             M += self.M0
             g = np.einsum("mk,mk->m", M, M)
             G4 = M @ self.Tt
             return g, (2.0 * G4[:, 0], G4[:, 1] + G4[:, 2], 2.0 * G4[:, 3])
-        if self.name == "kl":
+        if self.form == "kl":
             Vi = _inv2(*V)
             QVi = _sandwich(Vi, self.Q)  # Z⁻¹ Q Z⁻¹
             t = _dot2(self.Q, Vi) + _dot2(self.Dss, V)
@@ -937,7 +942,7 @@ class _Relaxation:
         if m == 0:
             return out
         with np.errstate(all="ignore"):
-            if self.name == "kl" or zform:
+            if self.form == "kl" or zform:
                 lo, hi = _s2(Z_lo), _s2(Z_hi)
             else:
                 lo, hi = _inv2(*_s2(Z_hi)), _inv2(*_s2(Z_lo))
@@ -976,9 +981,9 @@ class _Relaxation:
     def value(self, Z: Mat) -> Mat:
         """The metric of the covariances of the information rows ``Z`` ``(m, 4)`` from the
         reduced formulas above (greedy's working values)."""
-        V = _s2(Z) if self.name == "kl" else _inv2(*_s2(Z))
+        V = _s2(Z) if self.form == "kl" else _inv2(*_s2(Z))
         g, _ = self._h(V)
-        return np.sqrt(g) if self.name == "frobenius" else g
+        return np.sqrt(g) if self.form == "frobenius" else g
 
     def z_convex(self, Z_hi: Mat) -> NDArray[np.bool_]:
         """logdet: rows whose interval ``Z ⪯ Z_hi`` keeps ``f`` convex in ``Z``.
@@ -1032,7 +1037,7 @@ class _Relaxation:
         if a <= 0.0:
             return math.inf
         t = (tau + c) / a
-        if self.name == "frobenius":
+        if self.form == "frobenius":
             return t * t * (1.0 + 1e-12) if t >= 0.0 else -math.inf
         return t + 1e-12 * abs(t)
 
@@ -1041,10 +1046,10 @@ class _Relaxation:
         its square root)."""
         prob, ctx, n = self.prob, self.prob.ctx, self.prob.n
         rel = ROUND * n * EPS
-        if self.name == "frobenius":
+        if self.form == "frobenius":
             return 1.0 - rel, 3.0 * n * ctx.err + rel * ctx.scale
         rho = n * ctx.err / ctx.lam_min
-        if self.name == "kl":
+        if self.form == "kl":
             tr_inv = self.kappa_D / prob.dc.trace
             mag = tr_inv * ctx.lam_max + prob.dc.trace / ctx.lam_min + 2.0 * n
             kap = ROUND * n * n * n * EPS * (ctx.kappa + self.kappa_D)
@@ -1064,7 +1069,7 @@ class _Relaxation:
         kl: ``lb (1 - rel) - (3 ρ (lb + n) + κ' mag)``, logdet ``lb (1 - rel) - (2 n ρ + κ'
         (mag + |c1|))``, ``ρ = n err / λmin``)."""
         a, c = self._final_affine()
-        x = np.sqrt(np.maximum(lb, 0.0)) if self.name == "frobenius" else lb
+        x = np.sqrt(np.maximum(lb, 0.0)) if self.form == "frobenius" else lb
         v = a * x - c
         return np.where(np.isnan(v), -np.inf, v)
 
@@ -1132,11 +1137,9 @@ class _Leaves:
     coordinates for their rounding), then the budget (``|t| <= K - |I|``).
     """
 
-    METRICS = ("frobenius", "kl", "logdet")
-
     def __init__(self, prob: _Problem, d0: int) -> None:
         relax = prob.relax
-        assert relax is not None and relax.name in self.METRICS
+        assert relax is not None and relax.leaves
         self.prob, self.relax, self.d0 = prob, relax, d0
         u = prob.m - d0
         self.u = u
@@ -1153,10 +1156,10 @@ class _Leaves:
         self.Xmax = float(np.abs(X).max())
         self.T, self.cnt = T, cnt
         self.lam_all = _lmax(prob.base + prob.suffix[0])
-        if relax.name == "frobenius":
+        if relax.form == "frobenius":
             self._frobenius()
             return
-        if relax.name == "logdet":
+        if relax.form == "logdet":
             self._logdet()
             return
         # the continuous minimiser: Z Dss Z = Q  ⟺  Z = Dss^-½ (Dss^½ Q Dss^½)^½ Dss^-½
@@ -1230,9 +1233,9 @@ class _Leaves:
         changes only when the incumbent does."""
         if self._ball_of is not None and self._ball_of[0] == tau:
             return self._ball_of[1]
-        if self.relax.name == "frobenius":
+        if self.relax.form == "frobenius":
             got = self._frobenius_ball(tau)
-        elif self.relax.name == "logdet":
+        elif self.relax.form == "logdet":
             got = self._logdet_ball(tau)
         else:
             got = self._kl_ball(tau)
@@ -1532,7 +1535,7 @@ class _Search:
         # the table's depth (built when a node first reaches it), -1: none
         self.leaves: _Leaves | None = None
         self.d0 = -1
-        if rel_gap == 0.0 and prob.relax is not None and prob.relax.name in _Leaves.METRICS:
+        if rel_gap == 0.0 and prob.relax is not None and prob.relax.leaves:
             u = min(LEAF_LEVELS, prob.m - min(LEAF_TOP, prob.m // 2))
             if u > 0:
                 self.d0 = prob.m - u

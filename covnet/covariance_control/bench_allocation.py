@@ -193,7 +193,7 @@ def plain_baseline(P_pred: Mat, gains: Mat, P_d: Mat, metric: str) -> tuple[int,
         t2 = np.trace(np.linalg.solve(P, np.broadcast_to(P_d, P.shape)), axis1=1, axis2=2)
         f = 0.25 * (t1 + t2 - 2 * n)
     else:
-        f = METRICS[metric](P, P_d)
+        f = METRICS[metric].fn(P, P_d)
     best = _tie_pick(np.asarray(f, dtype=np.float64), masks, 1e-9)
     return tuple(int(j) for j in np.flatnonzero(masks[best]))
 

@@ -111,7 +111,7 @@ def plain_greedy(
     """Forward greedy written the straightforward way: from the required sensors, add the sensor
     whose subset has the smallest exact value (:func:`~covnet.core.allocation.subset_covariance`
     and the metric, one call each) while that improves; returns the subset and its value."""
-    f = METRICS[metric]
+    f = METRICS[metric].fn
     allowed = [j for j in range(gains.shape[0]) if j not in constraints.excluded]
     chosen = sorted(constraints.required)
     K = constraints.max_active if constraints.max_active is not None else len(allowed)

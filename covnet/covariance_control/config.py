@@ -63,11 +63,27 @@ from covnet.covariance_control.fusion_rules import (
     rule_for,
     track_rules,
 )
-from covnet.records import BAD, Field, Record, field_validator
+from covnet.covariance_control.searches import AUTO_EXACT_MAX as AUTO_EXACT_MAX
+from covnet.covariance_control.searches import BOUNDED_OPTIONS as BOUNDED_OPTIONS
+from covnet.covariance_control.searches import SEARCHES
+from covnet.records import BAD, AfterValidator, Field, Record, field_validator
 from covnet.records import Errors as _Errors
 from covnet.records import Loc as _Loc
 
 MetricName = Annotated[Str, in_registry(lambda: sorted(METRICS), "metric")]
+
+
+def _known_search(value: str) -> str:
+    """``allocation.search`` names an entry of :data:`SEARCHES` (looked up when the config is
+    validated, so a search a user registers is accepted)."""
+    if value not in SEARCHES:
+        shown = [repr(k) for k in SEARCHES]
+        text = shown[0] if len(shown) == 1 else ", ".join(shown[:-1]) + " or " + shown[-1]
+        raise ValueError(f"Input should be {text}")
+    return value
+
+
+SearchName = Annotated[Str, AfterValidator(_known_search)]
 FusionMode = Annotated[Str, in_registry(fusion_modes, "fusion mode")]
 TrackRule = Annotated[Str, in_registry(track_rules, "rule that fuses local tracks")]
 FusionRuleName = Annotated[Str, in_registry(lambda: list(FUSION_RULES), "fusion rule")]
@@ -341,18 +357,13 @@ class DesiredSpec(ConfigModel):
         return np.asarray(self.matrix, dtype=np.float64)
 
 
-#: ``allocation.search``: how the subset is found (README, "Allocation search")
-SEARCHES = ("auto", "exact", "bounded", "greedy")
-#: ``search: auto`` is ``exact`` up to this many candidate sensors (allowed, not excluded),
-#: ``bounded`` beyond (``covnet bench search``: an exact decision at N = 24 takes 0.01-0.2 s,
-#: at N = 32 a median of 0.04-2.2 s by metric but up to minutes at a near tie)
-AUTO_EXACT_MAX = 24
+# ``allocation.search``: how the subset is found (README, "Allocation search"), an entry of
+# :data:`covnet.covariance_control.searches.SEARCHES` (``AUTO_EXACT_MAX``, ``BOUNDED_OPTIONS``
+# are there too)
 #: ``search: bounded``'s defaults: the relative gap, and (``auto`` beyond ``AUTO_EXACT_MAX``)
 #: the node limit, deterministic where a time limit is not
 BOUNDED_GAP = 0.01
 AUTO_NODE_LIMIT = 200_000
-#: the options that only ``bounded`` (and ``auto``, for its bounded part) uses
-BOUNDED_OPTIONS = ("gap", "time_limit_s", "node_limit")
 
 
 class TargetDesiredSpec(DesiredSpec):
@@ -469,7 +480,7 @@ class AllocationSpec(ConfigModel):
     max_active: Int | None = Field(default=None, ge=1)
     tie_rtol: Float = Field(default=1e-9, ge=0.0, le=1e-3)
     account_for_loss: Bool = False
-    search: Literal["auto", "exact", "bounded", "greedy"] = "auto"
+    search: SearchName = "auto"
     gap: Float | None = None
     time_limit_s: Float | None = None
     node_limit: Int | None = None
@@ -829,14 +840,18 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
 
 
 def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """What the search entry (:data:`SEARCHES`) cannot do with this config, in its own words."""
     al = sc.allocation
     problems: list[tuple[str, str]] = []
-    if al.search in ("exact", "greedy"):
-        for opt in BOUNDED_OPTIONS:
-            if getattr(al, opt) is not None:
-                why = f"only used with search: bounded or auto, not {al.search}"
-                problems.append((f"allocation.{opt}", why))
-    if al.search in ("bounded", "greedy") and (
+    search = SEARCHES.get(al.search)
+    if search is None:  # reported by the field's check
+        return problems
+    for opt in BOUNDED_OPTIONS:
+        if getattr(al, opt) is not None and opt not in search.options:
+            users = " or ".join(k for k, s in _by_options() if opt in s.options)
+            why = f"only used with search: {users}, not {al.search}"
+            problems.append((f"allocation.{opt}", why))
+    if search.information_form and (
         not sc.fusion.has_centre or not rule_for(sc.fusion).information_form
     ):
         problems.append(
@@ -846,7 +861,27 @@ def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
                 f"central or info); {sc.fusion.mode} decides over every subset",
             )
         )
+    n = len(set(sc.sensor_ids) - set(al.excluded))
+    used = search.resolved(n)
+    as_ = "" if used is search else f" (with {n} candidate sensors: {used.name})"
+    if "interval_bound" in used.needs:
+        for m in al.metrics:
+            entry = METRICS.get(m)
+            if entry is not None and entry.interval_bound is None:
+                problems.append(
+                    (
+                        "allocation.search",
+                        f"{al.search}{as_} is {used.words}: it needs each metric's interval "
+                        f"bound, and metric {m!r} has none (its METRICS entry's interval_bound "
+                        "is None); choose search: exact or greedy for it",
+                    )
+                )
     return problems
+
+
+def _by_options() -> list[tuple[str, Any]]:
+    """The search entries, bounded first (the wording of the options' refusals)."""
+    return sorted(SEARCHES.items(), key=lambda kv: (kv[0] != "bounded", kv[0] == "auto"))
 
 
 def _peer_problems(peer: PeerSpec, ids: tuple[str, ...]) -> list[tuple[str, str]]:

@@ -8,7 +8,6 @@ processes call too: the distributed layer adds transport and nothing else.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -28,22 +27,16 @@ from covnet.core.sensing import (
 )
 from covnet.core.truth import linear_gaussian_trajectory
 from covnet.covariance_control.config import (
-    AUTO_EXACT_MAX,
     AUTO_NODE_LIMIT,
     BOUNDED_GAP,
     Scenario,
 )
+from covnet.covariance_control.searches import FAST_PATH_MAX as FAST_PATH_MAX
+from covnet.covariance_control.searches import SEARCHES
+from covnet.covariance_control.searches import feasible_count as feasible_count
 
 if TYPE_CHECKING:
     from covnet.core.allocation import Allocation, AllocationPlan
-
-
-#: ``exact`` decisions over at most this many candidate sensors take the batched fast path
-#: (:func:`covnet.core.allocation.allocate`, every subset bounded at once), branch and bound
-#: (:func:`covnet.core.search.allocate_bnb`) beyond: the same subset, value and ``P`` bits, the
-#: faster of the two from about 18-20 sensors on (measured on the bench problems of ``covnet
-#: bench search``: at N = 20 branch and bound is faster for 4 of 5 metrics, at 16 for none)
-FAST_PATH_MAX = 18
 
 
 @dataclass(frozen=True)
@@ -61,10 +54,9 @@ AllocationSpec`): ``mode`` ``exact | bounded | greedy | auto``; ``bounded`` stop
     node_limit: int | None = None
 
     def resolved(self, n_candidates: int) -> str:
-        """The search ``auto`` stands for with ``n_candidates`` sensors (else ``mode``)."""
-        if self.mode != "auto":
-            return self.mode
-        return "exact" if n_candidates <= AUTO_EXACT_MAX else "bounded"
+        """The search ``auto`` stands for with ``n_candidates`` sensors (else ``mode``): the
+        entry of :data:`~covnet.covariance_control.searches.SEARCHES` that decides."""
+        return SEARCHES[self.mode].resolved(n_candidates).name
 
     def bounded_options(self) -> tuple[float, float | None, int | None]:
         """``(rel_gap, time_limit_s, node_limit)`` of a bounded decision."""
@@ -144,8 +136,9 @@ class Model:
 
     @property
     def reports_gap(self) -> bool:
-        """Decisions report a certified lower bound and gap (``bounded``, ``greedy``)."""
-        return self.search_mode != "exact"
+        """Decisions report a certified lower bound and gap (``bounded``, ``greedy``: the
+        search entry's ``reports_gap``)."""
+        return SEARCHES[self.search_mode].reports_gap
 
     @property
     def plan(self) -> AllocationPlan:
@@ -255,7 +248,8 @@ def decide(
     unavailable: frozenset[int] = frozenset(),
 ) -> Allocation:
     """Covariance control for scan ``k``: argmin over feasible subsets of ``f(P_i, P_d(t_k))``,
-    searched as ``model.search`` says (:attr:`Model.search_mode`).
+    searched by the entry of :data:`~covnet.covariance_control.searches.SEARCHES` that
+    ``model.search`` names (:attr:`Model.search_mode`, ``auto`` resolved).
 
     ``unavailable`` (failed sensors seen at run time) joins the configured exclusions.
     ``exact``: up to ``FAST_PATH_MAX`` candidates the fast path with the plan for the resulting
@@ -270,48 +264,7 @@ def decide(
             required=c.required - unavailable,
             max_active=c.max_active,
         )
-    mode = model.search_mode
-    P_d = model.desired(scan)
-    if mode == "exact" and len(model.sensor_ids) - len(c.excluded) <= FAST_PATH_MAX:
-        # the allocator (and scipy.linalg): start-up of the processes that never decide
-        from covnet.core.allocation import allocate
-
-        plan = model.plan if c == model.constraints else model.plan_for(c)
-        return allocate(P_pred, plan, P_d, metric, tie_rtol=model.tie_rtol)
-    from covnet.core.allocation import Allocation
-    from covnet.core.search import allocate_bnb, allocate_greedy
-
-    if mode == "greedy":
-        res = allocate_greedy(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
-    elif mode == "bounded":
-        gap, limit_s, nodes = model.search.bounded_options()
-        res = allocate_bnb(
-            P_pred,
-            model.gains,
-            P_d,
-            metric,
-            c,
-            model.tie_rtol,
-            rel_gap=gap,
-            time_limit_s=limit_s,
-            node_limit=nodes,
-        )
-    else:
-        res = allocate_bnb(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
-    n_feasible = feasible_count(len(model.sensor_ids), c)
-    if mode == "exact":
-        return Allocation(res.subset, res.value, res.P, n_feasible, res.n_evaluated)
-    return Allocation(
-        res.subset, res.value, res.P, n_feasible, res.n_evaluated, res.lower_bound, res.gap
-    )
-
-
-def feasible_count(n_sensors: int, c: Constraints) -> int:
-    """The number of non-empty subsets of ``n_sensors`` sensors that ``c`` allows."""
-    free = n_sensors - len(c.excluded) - len(c.required)
-    r = len(c.required)
-    K = n_sensors if c.max_active is None else c.max_active
-    return sum(math.comb(free, k - r) for k in range(max(r, 1), min(K, free + r) + 1))
+    return SEARCHES[model.search_mode].decide(model, P_pred, model.desired(scan), metric, c)
 
 
 def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:

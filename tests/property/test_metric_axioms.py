@@ -1,6 +1,7 @@
 """Every registered metric is a matrix metric on SPD inputs: f >= 0, f(A, A) = 0,
-f(A, B) = f(B, A), and batched evaluation equals one-at-a-time evaluation bit for bit (the
-allocator relies on that)."""
+f(A, B) = f(B, A), and batched evaluation equals one-at-a-time evaluation bit for bit for the
+metrics whose entry says ``batch_invariant`` (the allocator relies on that), to rounding for the
+others."""
 
 from __future__ import annotations
 
@@ -73,4 +74,7 @@ def test_batched_equals_one_at_a_time(name, stack):
     A, B = stack
     batched = METRICS[name](A, B)
     single = np.array([float(METRICS[name](a, B)) for a in A])
-    np.testing.assert_array_equal(batched, single)
+    if METRICS[name].batch_invariant:
+        np.testing.assert_array_equal(batched, single)
+    else:  # a metric not marked batch-invariant: the searches recheck its near ties
+        np.testing.assert_allclose(batched, single, rtol=1e-9, atol=1e-9 * _scale(A[0], B))

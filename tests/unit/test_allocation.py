@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from covnet.core.allocation import (
-    METRIC_BOUNDS,
     Allocation,
     AllocationPlan,
     Constraints,
@@ -21,7 +20,7 @@ from covnet.core.allocation import (
     prepare,
     subset_covariance,
 )
-from covnet.core.metrics import METRICS
+from covnet.core.metrics import METRICS, Metric, capability
 from covnet.covariance_control.bench_allocation import PAPER_TABLE, paper_like_gains, paper_problems
 
 D1 = np.diag([25.0, 1.4, 25.0, 1.4])
@@ -147,14 +146,19 @@ def test_user_metric_function(metric, gains8):
 
 @pytest.mark.parametrize("tie_rtol", [1e-9, 0.0], ids=["default-rtol", "zero-rtol"])
 def test_a_user_registered_metric_and_bound(monkeypatch, tie_rtol, gains8):
-    """The extension story: a metric added to METRICS and a lower bound to METRIC_BOUNDS.  A
-    valid bound prunes; a bound that knows nothing (NaN) prunes nothing; both stay exact."""
-    monkeypatch.setitem(METRICS, "weighted", _weighted_trace)
+    """The extension story: a metric entry added to METRICS with its lower bound.  A valid
+    bound prunes; a bound that knows nothing (NaN) prunes nothing; no bound at all, nothing
+    either; all stay exact."""
     for bound, pruned in [
-        (METRIC_BOUNDS["abs_trace"], True),  # weights >= 1: abs_trace bounds it from below
+        (
+            capability(METRICS["abs_trace"].subset_bound, MetricBound),
+            True,
+        ),  # weights >= 1: abs_trace below
         (MetricBound(lambda P, D, ctx: np.full(P.size, np.nan)), False),
+        (None, False),
     ]:
-        monkeypatch.setitem(METRIC_BOUNDS, "weighted", bound)
+        entry = Metric("weighted", _weighted_trace, subset_bound=bound)
+        monkeypatch.setitem(METRICS, "weighted", entry)
         for P_pred, P_d in paper_problems(gains8, "abs_trace", [20, 70]):
             fast = allocate(P_pred, gains8, P_d, "weighted", tie_rtol=tie_rtol)
             ref = allocate_exhaustive(P_pred, gains8, P_d, "weighted", tie_rtol=tie_rtol)
