@@ -1,0 +1,279 @@
+"""The wire's bytes: :func:`encode` and the strict :func:`decode` of the messages of
+:mod:`covnet.wire.schemas`.  Nothing else in covnet packs a payload.
+
+Encoding
+--------
+A message is a msgpack map ``{"v": SCHEMA_VERSION, "k": KIND, <field>: <value>, ...}`` with the
+fields in declaration order. Floats are msgpack float64, ints are msgpack ints, id tuples are
+msgpack arrays of str. A numpy array is an ``ExtType(1, packb(["<f8", [d0, d1, ...], raw]))``:
+little-endian float64, C order (one ``default=`` hook, one ``ext_hook=``). Optional fields whose
+value is ``None`` are omitted, so adding an optional field later does not change the bytes of
+messages that do not use it (the golden-bytes test in ``tests/wire`` pins the format).
+``episode`` (Command, Measurement, Track, Status; default 0 when building) numbers the
+manager's episodes (one per allocation metric) so that scans of two episodes never mix; it is
+always sent, and a payload without it is ``missing_field``.
+
+Decoding is strict
+------------------
+:func:`decode` / :func:`decode_as` accept exactly what :func:`encode` produces and raise
+:class:`WireError` (never anything else) on any other input. ``WireError.reason`` is one of
+:data:`REASONS`:
+
+============== ============================================================================
+reason         meaning
+============== ============================================================================
+not_msgpack    not valid msgpack, or trailing bytes after the first object
+truncated      valid msgpack prefix that ends early
+too_large      payload, string, array or id list over the caps below
+not_a_map      the top-level object is not a map
+bad_version    ``"v"`` absent, not an int, or not :data:`SCHEMA_VERSION`
+unknown_kind   ``"k"`` is not a known message kind
+wrong_kind     ``decode_as(payload, cls)`` got another (known or unknown) kind
+missing_field  a required field (or ``"k"``) is absent
+unknown_field  a key the message kind does not define (strict: no silent extras)
+bad_type       a value of the wrong type: ints are ints (not bools, not floats), floats are
+               floats (not ints), strings are str, arrays are the float64 ext type
+bad_shape      wrong array rank, or inconsistent shapes (z vs R, x vs P, states vs ids)
+non_finite     NaN or infinity in a float field or an array
+bad_value      out of bounds (negative scan or stamp) or an invalid / duplicated id
+key_mismatch   the key does not name what the payload says (:func:`decode_command`: a
+               command's enabled set)
+============== ============================================================================
+
+Constructing a message validates it the same way (raising the same :class:`WireError`), so an
+invalid message can never be encoded; constructors are lenient only in *converting* values
+(ints and numpy scalars to float for float fields, sequences to tuples, array-likes to
+float64 arrays). Arrays held by messages are read-only.
+"""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar
+
+import msgpack
+import numpy as np
+from numpy.typing import NDArray
+
+from covnet.wire.keys import _CMD_SEP, _enabled_chunk
+from covnet.wire.schemas import (
+    _BY_KIND,
+    MAX_ARRAY_ELEMENTS,
+    MAX_IDS,
+    MAX_PAYLOAD_BYTES,
+    Command,
+    Message,
+    WireError,
+    _coerce,
+    _Message,
+    _spec,
+)
+
+SCHEMA_VERSION = 1
+
+_EXT_NDARRAY = 1
+_WIRE_DTYPE = "<f8"
+_MAX_NDIM = 2
+_MAX_STR_LEN = 1024  # any msgpack str; ids over MAX_NAME_LEN are then bad_value
+_MAX_MAP_LEN = MAX_IDS + 16
+_M = TypeVar("_M", bound=_Message)
+
+
+# --------------------------------------------------------------------------------------------
+# encode / decode
+# --------------------------------------------------------------------------------------------
+
+
+def _default(obj: object) -> msgpack.ExtType:
+    if isinstance(obj, np.ndarray) and obj.dtype == np.float64:
+        a = np.ascontiguousarray(obj, dtype=_WIRE_DTYPE)
+        inner = msgpack.packb([_WIRE_DTYPE, list(a.shape), a.tobytes()], use_bin_type=True)
+        return msgpack.ExtType(_EXT_NDARRAY, inner)
+    raise TypeError(f"cannot encode {type(obj).__name__}")
+
+
+def encode(msg: Message) -> bytes:
+    """``msg`` as msgpack bytes: ``{"v": SCHEMA_VERSION, "k": KIND, ...fields}``."""
+    if not isinstance(msg, _Message):
+        raise TypeError(f"not a message: {type(msg).__name__}")
+    d: dict[str, object] = {"v": SCHEMA_VERSION, "k": msg.KIND}
+    for name, _, _ in _spec(type(msg)).fields:
+        value = getattr(msg, name)
+        if value is None:  # optional and unset: omitted
+            continue
+        d[name] = value
+    return msgpack.packb(d, default=_default, use_bin_type=True)
+
+
+_INNER_LIMITS: dict[str, Any] = {
+    "raw": False,
+    "use_list": True,
+    "strict_map_key": True,
+    "max_str_len": 16,
+    "max_bin_len": MAX_PAYLOAD_BYTES,  # no bin is longer than the payload it is in
+    "max_array_len": _MAX_NDIM + 1,
+    "max_map_len": 0,
+    "max_ext_len": 0,
+}
+_F8 = np.dtype(_WIRE_DTYPE)
+_F8_NATIVE = _F8 == np.dtype(np.float64)
+
+
+def _ext_hook(code: int, data: bytes) -> NDArray[np.float64]:
+    if code != _EXT_NDARRAY:
+        raise WireError("bad_type", f"unknown ext type {code}")
+    try:
+        inner = msgpack.unpackb(data, **_INNER_LIMITS)
+    except Exception as e:  # any malformed inner payload
+        raise WireError("bad_type", f"array ext: {type(e).__name__}") from None
+    if type(inner) is not list or len(inner) != 3:
+        raise WireError("bad_type", "array ext must be [dtype, shape, bytes]")
+    dtype, shape, raw = inner
+    if dtype != _WIRE_DTYPE:
+        raise WireError("bad_type", f"array dtype must be {_WIRE_DTYPE!r}, got {dtype!r}")
+    if (
+        type(shape) is not list
+        or not 1 <= len(shape) <= _MAX_NDIM
+        or not all(type(s) is int and s >= 0 for s in shape)
+    ):
+        raise WireError("bad_shape", f"array shape {shape!r}")
+    if type(raw) is not bytes:
+        raise WireError("bad_type", "array data must be bin")
+    size = shape[0] if len(shape) == 1 else shape[0] * shape[1]
+    if size > MAX_ARRAY_ELEMENTS:
+        raise WireError("too_large", f"array of {size} elements > {MAX_ARRAY_ELEMENTS}")
+    if len(raw) != 8 * size:
+        raise WireError("bad_shape", f"array shape {shape} needs {8 * size} bytes, got {len(raw)}")
+    a = np.frombuffer(raw, dtype=_F8).reshape(shape)  # read-only view of the payload
+    return a if _F8_NATIVE else a.astype(np.float64)
+
+
+def _unpack(payload: bytes) -> dict[str, Any]:
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise WireError("too_large", f"payload of {len(payload)} bytes > {MAX_PAYLOAD_BYTES}")
+    # One call for a well-formed payload; anything msgpack rejects is judged again by the
+    # streaming unpacker below, which tells the reasons apart (same limits, same result).
+    try:
+        obj = msgpack.unpackb(payload, **_UNPACK_LIMITS)
+    except WireError:
+        raise
+    except Exception:
+        obj = _unpack_stream(payload)
+    return _check_top(obj)
+
+
+_UNPACK_LIMITS: dict[str, Any] = {
+    "raw": False,
+    "use_list": True,
+    "strict_map_key": True,
+    "ext_hook": _ext_hook,
+    "max_str_len": _MAX_STR_LEN,
+    "max_bin_len": MAX_PAYLOAD_BYTES,  # bin is only valid inside the array ext: bad_type
+    "max_array_len": MAX_IDS,
+    "max_map_len": _MAX_MAP_LEN,
+    "max_ext_len": MAX_PAYLOAD_BYTES,
+}
+
+
+def _unpack_stream(payload: bytes) -> Any:
+    unpacker = msgpack.Unpacker(max_buffer_size=max(MAX_PAYLOAD_BYTES, 1), **_UNPACK_LIMITS)
+    unpacker.feed(payload)
+    try:
+        obj = unpacker.unpack()
+    except WireError:
+        raise
+    except msgpack.OutOfData:
+        raise WireError("truncated" if len(payload) else "not_msgpack", "incomplete") from None
+    except Exception as e:  # msgpack raises ValueError, FormatError, StackError, Unicode...
+        text = str(e)  # msgpack signals limits and map-key types by ValueError messages
+        if "exceeds max_" in text:
+            reason = "too_large"
+        elif "for map key" in text:
+            reason = "bad_type"
+        else:
+            reason = "not_msgpack"
+        raise WireError(reason, f"{type(e).__name__}: {e}") from None
+    try:
+        unpacker.unpack()
+    except msgpack.OutOfData:
+        pass
+    except Exception:  # anything after the first object is trailing garbage
+        raise WireError("not_msgpack", "trailing bytes after the message") from None
+    else:
+        raise WireError("not_msgpack", "trailing bytes after the message")
+    return obj
+
+
+def _check_top(obj: Any) -> dict[str, Any]:
+    if type(obj) is not dict:
+        raise WireError("not_a_map", f"top level is {type(obj).__name__}")
+    for key in obj:
+        if type(key) is not str:
+            raise WireError("bad_type", f"map key {key!r} is not a str")
+    version = obj.get("v")
+    if type(version) is not int or version != SCHEMA_VERSION:
+        raise WireError("bad_version", f"v={version!r}, expected {SCHEMA_VERSION}")
+    if "k" not in obj:
+        raise WireError("missing_field", "k")
+    return obj
+
+
+_OMITTED = object()
+
+
+def _build(cls: type[_M], obj: dict[str, Any]) -> _M:
+    spec = _spec(cls)
+    if not spec.keys.issuperset(obj):
+        extra = sorted(set(obj) - spec.keys)
+        raise WireError("unknown_field", f"{cls.KIND}: {', '.join(extra)}")
+    msg = object.__new__(cls)
+    setattr_ = object.__setattr__
+    get = obj.get
+    for name, kind, optional in spec.fields:
+        value = get(name, _OMITTED)
+        if value is _OMITTED:
+            if not optional:  # only optional fields (default None) may be omitted
+                raise WireError("missing_field", f"{cls.KIND}.{name}")
+            setattr_(msg, name, None)
+        else:
+            setattr_(msg, name, _coerce(kind, name, value, True))
+    msg._check()
+    return msg
+
+
+def decode(payload: bytes) -> Message:
+    """Decode any message kind; raises :class:`WireError` (and nothing else) on bad bytes."""
+    obj = _unpack(payload)
+    kind = obj["k"]
+    cls = _BY_KIND.get(kind) if type(kind) is str else None
+    if cls is None:
+        raise WireError("unknown_kind", f"k={kind!r}")
+    return _build(cls, obj)
+
+
+def decode_as(payload: bytes, cls: type[_M]) -> _M:
+    """Decode a payload from a key that admits only ``cls``; another kind is ``wrong_kind``."""
+    obj = _unpack(payload)
+    kind = obj["k"]
+    if type(kind) is not str or kind != cls.KIND:
+        raise WireError("wrong_kind", f"expected {cls.KIND!r}, got {kind!r}")
+    return _build(cls, obj)
+
+
+def decode_command(key: str, payload: bytes) -> Command:
+    """A :class:`Command` from ``payload`` received on ``key``, strictly: ``key_mismatch``
+    unless ``key`` is :func:`command_key` of its run and the command's enabled set (compared
+    as strings: the decoded ids are valid already, and this runs for every command)."""
+    cmd = decode_as(payload, Command)
+    head, _, chunk = key.rpartition("/")
+    root, _, cmd_chunk = head.rpartition("/")
+    if (
+        cmd_chunk != "cmd"
+        or root.count("/") != 1
+        or not root.startswith("covnet/")
+        or chunk != _enabled_chunk(cmd.enabled)
+        or any(_CMD_SEP in sid for sid in cmd.enabled)  # "~a~b~" would also name ("a~b",)
+    ):
+        raise WireError("key_mismatch", f"{key!r} does not name the enabled {cmd.enabled!r}")
+    return cmd
