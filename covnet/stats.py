@@ -23,6 +23,7 @@ __all__ = [
     "median",
     "per_scan_bands",
     "seed_stats",
+    "t_half_width",
     "t_quantile",
 ]
 
@@ -48,6 +49,14 @@ def t_quantile(dof: int, level: float = CI_LEVEL) -> float:
     return float(student_t.ppf(0.5 + level / 2.0, dof))
 
 
+def t_half_width(std: Any, n: int, level: float = CI_LEVEL) -> Any:
+    """Half the width of the Student t interval (``level``) of the mean of ``n`` >= 2
+    independent values of sample standard deviation ``std`` (ddof 1): ``t_{(1 + level) / 2}(n -
+    1) · std / √n``; ``std`` a float or an array (one interval per element).  Every t interval
+    of covnet is this one."""
+    return t_quantile(n - 1, level) * std / math.sqrt(n)
+
+
 def seed_stats(values: Iterable[float]) -> dict[str, Any]:
     """``{"n", "mean", "std", "ci_lo", "ci_hi"}`` of independent per-seed values: ``std`` the
     sample standard deviation (ddof 1), ``[ci_lo, ci_hi]`` the 95 % Student t interval of the
@@ -61,7 +70,7 @@ def seed_stats(values: Iterable[float]) -> dict[str, Any]:
     if n < 2:
         return {"n": 1, "mean": mean, "std": None, "ci_lo": None, "ci_hi": None}
     std = float(v.std(ddof=1))
-    half = t_quantile(n - 1) * std / math.sqrt(n)
+    half = t_half_width(std, n)
     return {"n": n, "mean": mean, "std": std, "ci_lo": mean - half, "ci_hi": mean + half}
 
 
@@ -96,9 +105,8 @@ def per_scan_bands(err2: np.ndarray, nees: np.ndarray, state_dim: int = 4) -> di
     mse = err2.mean(axis=0)
     mn = nees.mean(axis=0)
     if R >= 2:
-        tq = t_quantile(R - 1)
-        h_mse = tq * err2.std(axis=0, ddof=1) / math.sqrt(R)
-        h_nees = tq * nees.std(axis=0, ddof=1) / math.sqrt(R)
+        h_mse = t_half_width(err2.std(axis=0, ddof=1), R)
+        h_nees = t_half_width(nees.std(axis=0, ddof=1), R)
     else:
         h_mse = np.full_like(mse, np.nan)
         h_nees = np.full_like(mn, np.nan)

@@ -38,7 +38,6 @@ from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
-from scipy.stats import t as student_t
 
 from covnet import messages as msg
 from covnet.batch import BatchInterrupted, write_rows
@@ -50,7 +49,15 @@ from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.simulate import MetricRun
 from covnet.covariance_control.sweep import _pm
 from covnet.covariance_control.sweep import curves_figure as sweep_curves_figure
-from covnet.stats import add_stats, burn_in_of, ci_half_width, curves_of, error_stats, seed_stats
+from covnet.stats import (
+    add_stats,
+    burn_in_of,
+    ci_half_width,
+    curves_of,
+    error_stats,
+    seed_stats,
+    t_half_width,
+)
 from covnet.trials import (
     Batch,
     BatchProgress,
@@ -218,7 +225,7 @@ def summarise(
     # the grand mean's 95 % confidence interval from the R independent run averages (scans
     # within a run are correlated, so they are not counted as independent samples)
     run_means = nees.mean(axis=1)
-    half = float(student_t.ppf(0.975, R - 1) * run_means.std(ddof=1) / np.sqrt(R))
+    half = float(t_half_width(run_means.std(ddof=1), R))
     glo, ghi = grand - half, grand + half
     verdict = "consistent" if glo <= 4.0 <= ghi else ("conservative" if ghi < 4.0 else "optimistic")
     enabled = np.stack([t.enabled for t in trials])

@@ -20,7 +20,6 @@ from scan to scan), likewise the NIS against the band of its summed degrees of f
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from covnet import __version__
 from covnet.batch import BatchInterrupted
 from covnet.covariance_control.config import Scenario, config_hash, from_dict, normalised
 from covnet.rundir import CONFIG, RUN_INFO, utc_now, write_json
+from covnet.stats import t_half_width
 from covnet.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 
 MC_FILE = "montecarlo.json"
@@ -175,8 +175,6 @@ def mc_outcome(
 def interval(values: Sequence[float]) -> dict[str, Any]:
     """Mean, standard deviation (ddof 1), the 95 % confidence interval of the mean (Student's
     t; ``None`` for one value), min and max."""
-    from scipy import stats  # start-up: the Monte Carlo table only
-
     v = np.asarray([x for x in values if x is not None], dtype=np.float64)
     if v.size == 0:
         return {
@@ -200,7 +198,7 @@ def interval(values: Sequence[float]) -> dict[str, Any]:
             "n": 1,
         }
     sd = float(v.std(ddof=1))
-    half = float(stats.t.ppf(0.975, v.size - 1)) * sd / math.sqrt(v.size)
+    half = float(t_half_width(sd, v.size))
     return {
         "mean": mean,
         "std": sd,
@@ -214,13 +212,11 @@ def interval(values: Sequence[float]) -> dict[str, Any]:
 
 def _series(rows: Sequence[Sequence[float]]) -> dict[str, list[float]]:
     """Per scan: the mean over seeds and its 95 % interval."""
-    from scipy import stats  # start-up: the Monte Carlo table only
-
     a = np.asarray(rows, dtype=np.float64)
     mean = a.mean(axis=0)
     if a.shape[0] < 2:
         return {"mean": mean.tolist(), "ci95_low": mean.tolist(), "ci95_high": mean.tolist()}
-    half = stats.t.ppf(0.975, a.shape[0] - 1) * a.std(axis=0, ddof=1) / math.sqrt(a.shape[0])
+    half = t_half_width(a.std(axis=0, ddof=1), a.shape[0])
     return {
         "mean": mean.tolist(),
         "ci95_low": (mean - half).tolist(),

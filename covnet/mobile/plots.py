@@ -27,6 +27,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
 from covnet.rundir import load_arrays  # noqa: E402
+from covnet.stats import t_half_width  # noqa: E402
 
 FIGURE = "fig_mobile_trajectories.png"
 SENSOR_COLORS = (
@@ -160,13 +161,11 @@ MC_FIGURE = "fig_mobile_mc.png"
 def _mean_ci(values: np.ndarray) -> tuple[float, float]:
     """The mean over seeds and the half-width of its 95 % confidence interval (Student t;
     0 for a single seed)."""
-    from scipy.stats import t as student_t  # the Monte Carlo figure only: start-up time
-
     n = values.size
     mean = float(values.mean())
     if n < 2:
         return mean, 0.0
-    half = float(student_t.ppf(0.975, n - 1) * values.std(ddof=1) / np.sqrt(n))
+    half = float(t_half_width(values.std(ddof=1), n))
     return mean, half
 
 
