@@ -2,7 +2,7 @@
 (pyproject.toml).
 
 A Ctrl-C or SIGTERM is answered from here on, before the command's imports: importing
-:mod:`covnet.cli` and what a command needs takes a few tenths of a second, and an interruption
+:mod:`covnet.cli.app` and what a command needs takes a few tenths of a second, and an interruption
 then must end like any other (``covnet: error: interrupted``, exit 130), not with a
 KeyboardInterrupt traceback and death by the signal.
 """
@@ -12,7 +12,7 @@ import os
 import signal
 import sys
 
-from covnet import interrupts
+from covnet.processes import interrupts
 
 EXIT_INTERRUPTED = 130
 
@@ -35,7 +35,7 @@ def _exit_with_the_answer() -> None:
 
 
 def entry() -> int:
-    """The ``covnet`` command: :func:`covnet.cli.main` behind handlers installed first."""
+    """The ``covnet`` command: :func:`covnet.cli.app.main` behind handlers installed first."""
     # SIGINT and SIGTERM raise KeyboardInterrupt; one inside an import's weakref callback is
     # raised again, not printed and lost
     interrupts.deliver_late_interrupts()
@@ -44,7 +44,7 @@ def entry() -> int:
     try:
         try:
             # imported after the handlers (start-up: an interrupt during the imports is answered)
-            from covnet.cli import main
+            from covnet.cli.app import main
 
             status = main()
         except BaseException as exc:  # an interruption that main() did not answer itself

@@ -152,7 +152,7 @@ class TlsSpec(ConfigModel):
 
 class SecuritySpec(ConfigModel):
     """Zenoh's access control, user/password authentication and mutual TLS (see
-    :mod:`covnet.security` for what exactly is enforced). All off by default.
+    :mod:`covnet.wire.security` for what exactly is enforced). All off by default.
 
     - ``access_control``: the router (the manager's session) lets each node publish only its own
       keys; needs an identity, i.e. ``credentials_file`` and/or ``tls``.
@@ -348,8 +348,8 @@ def security_problems(net: NetworkSpec, sensor_ids: Sequence[str]) -> list[tuple
     """``(path, message)`` for every problem in the *shape* of ``network.security`` and the
     endpoints it governs (empty when all is well). Files are not looked at here, so that a
     run directory's config stays readable where the keys are gone (``covnet run``, replay):
-    :func:`covnet.security.file_problems` checks them when a process starts and before
-    ``covnet up`` starts any (:func:`covnet.security.preflight`)."""
+    :func:`covnet.wire.security.file_problems` checks them when a process starts and before
+    ``covnet up`` starts any (:func:`covnet.wire.security.preflight`)."""
     sec = net.security
     problems: list[tuple[str, str]] = []
     for field in ("router", "connect"):
@@ -372,7 +372,7 @@ def security_problems(net: NetworkSpec, sensor_ids: Sequence[str]) -> list[tuple
         )
     if sec.authenticated:
         # start-up: the message module (msgpack, the schemas) only for a secured network
-        from covnet.messages import RESERVED_IDS
+        from covnet.wire.messages import RESERVED_IDS
 
         for i, sid in enumerate(sensor_ids):
             if sid in RESERVED_IDS:

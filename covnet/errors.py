@@ -10,7 +10,8 @@ Importing this module checks that ``covnet`` is this package: from the folder th
 clone of the repository named ``covnet/``, Python takes that folder (it has no
 ``__init__.py``) for ``covnet``, a namespace package, while an editable install still finds
 the modules; the first ``from covnet import __version__`` would then fail with a message that
-does not say why.  The entry points (:mod:`covnet.api`, :mod:`covnet.cli`) import this module
+does not say why.  The entry points (:mod:`covnet.cli.api`, :mod:`covnet.cli.app`) import this
+module
 first, so the :class:`ImportError` says what is wrong and how to avoid it.
 """
 

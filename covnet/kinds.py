@@ -113,7 +113,7 @@ class Kind(Protocol):
 
     def visual(self, cfg: Any) -> Any:
         """The kind's visual module made for ``cfg`` (``covnet/<kind>/visual.py``'s ``Visual``,
-        a :class:`covnet.visual.KindVisual`): one scan's messages -> what Foxglove draws."""
+        a :class:`covnet.runs.visual.KindVisual`): one scan's messages -> what Foxglove draws."""
         ...
 
     def run_messages(self, cfg: Any, run_dir: Path) -> Iterable[Any]:
@@ -133,9 +133,9 @@ class Kind(Protocol):
         """A network run's whole directory rebuilt from its recording alone into ``out``, with
         the manager's own code and writer (``run_info`` merged into its ``run.json``): every
         episode up to its last scan fully recorded, also when the recording was cut (a killed
-        recorder or manager).  Returns the :class:`covnet.replay_kit.ReplayReport` (what
+        recorder or manager).  Returns the :class:`covnet.runs.replay_kit.ReplayReport` (what
         differs from what the manager recorded, notes on the recording); raises
-        :class:`covnet.replay_kit.ReplayError` for a run that cannot be replayed at all (peer
+        :class:`covnet.runs.replay_kit.ReplayError` for a run that cannot be replayed at all (peer
         mode)."""
         ...
 
@@ -199,7 +199,7 @@ def apply_named_options(
     kind: Kind, cfg: Any, source: str, values: Mapping[str, Any], names: Mapping[str, str]
 ) -> Any:
     """:func:`apply_options`, its errors naming each option as ``names`` spell it (the
-    command line's flags: :data:`OPTIONS`; :mod:`covnet.api` names its arguments)."""
+    command line's flags: :data:`OPTIONS`; :mod:`covnet.cli.api` names its arguments)."""
     given = {k: v for k, v in values.items() if v is not None and v != []}
     for name in given:
         if name not in OPTIONS:

@@ -34,7 +34,7 @@ Records are immutable, compared and hashed by value, and pickle by value.
 :meth:`Record.model_dump` gives them back as plain data (``mode="json"``: tuples as lists).
 
 Built here rather than taken from a validation library: a config is a few dozen small classes,
-and :mod:`covnet.cli` loads one on every command; building a general library's validators cost
+and :mod:`covnet.cli.app` loads one on every command; building a general library's validators cost
 ``covnet run`` about a fifth of its start-up.  This module only compiles a class's validator
 when the class is first validated, and imports nothing beyond ``re`` and ``typing``.
 """

@@ -15,7 +15,13 @@ from __future__ import annotations
 import importlib
 import sys
 
-from covnet.process import common_parser, guarded, load_config, resolve_run, stop_on_signals
+from covnet.processes.process import (
+    common_parser,
+    guarded,
+    load_config,
+    resolve_run,
+    stop_on_signals,
+)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,10 +17,10 @@ import threading
 from functools import partial
 from typing import Any
 
-from covnet import messages as msg
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.engine import Outcome, Plan, ScanEngine
 from covnet.covariance_control.results import write_network_run
+from covnet.wire import messages as msg
 from manager import loop, peer_monitor
 from manager.loop import WORLD_ID, Decision, Loop, ManagerError, ScanReport
 from manager.process import main_around

@@ -35,11 +35,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from covnet import messages as msg
-from covnet.bus import Bus, Sample, dropped
 from covnet.clock import Clock
 from covnet.config import NetworkSpec
-from covnet.runtime_stats import NetStats
+from covnet.processes.runtime_stats import NetStats
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus, Sample, dropped
 from manager.membership import Membership
 
 __all__ = [
@@ -72,7 +72,7 @@ class LoopResult(Protocol):
 @dataclass(frozen=True)
 class Decision:
     """Step 3: whom scan ``k``'s command enables, with the per-sensor fields some kinds add
-    (``modes``, ``targets``, ``windows``: see :class:`covnet.messages.Command`)."""
+    (``modes``, ``targets``, ``windows``: see :class:`covnet.wire.messages.Command`)."""
 
     enabled: tuple[str, ...]
     modes: dict[str, str] | None = None
@@ -191,7 +191,7 @@ class Loop:
         self.stats.sent(count_as or key, len(payload))
 
     def publish_command(self, cmd: msg.Command) -> None:
-        """Publish ``cmd`` on its own key (:func:`~covnet.messages.command_key`: zenoh takes
+        """Publish ``cmd`` on its own key (:func:`~covnet.wire.messages.command_key`: zenoh takes
         it to the enabled sensors only); counted under ``keys["cmd"]``, every command's."""
         key = msg.command_key(self.run_id, cmd.enabled)
         self.publish(key, cmd, count_as=self.keys["cmd"])

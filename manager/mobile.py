@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.mobile.config import MobileConfig
 from covnet.mobile.network import MobileResult, MobileSteps, write_network_run
-from covnet.network_run import ScanImpossible
+from covnet.processes.network_run import ScanImpossible
+from covnet.wire import messages as msg
 from manager import loop
 from manager.loop import Decision, Loop, ManagerError, ScanReport
 from manager.process import main_around

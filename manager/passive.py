@@ -12,7 +12,6 @@ import threading
 from functools import partial
 from typing import Any
 
-from covnet import messages as msg
 from covnet.passive.config import PassiveConfig
 from covnet.passive.network import (
     MAX_LIST,
@@ -22,6 +21,7 @@ from covnet.passive.network import (
     association_doc,
     write_network_run,
 )
+from covnet.wire import messages as msg
 from manager import loop
 from manager.loop import Decision, Loop, ScanReport
 from manager.process import main_around

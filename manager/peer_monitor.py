@@ -20,8 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from covnet import messages as msg
-from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.core.gaussian import Gaussian, is_spd
 from covnet.core.kalman import nees
@@ -29,7 +27,9 @@ from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.results import write_json, write_run
 from covnet.covariance_control.simulate import MetricRun, shared_trajectory
-from covnet.runtime_stats import NetStats
+from covnet.processes.runtime_stats import NetStats
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus
 
 
 @dataclass

@@ -14,12 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from covnet import security
-from covnet.bus import Bus
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
-from covnet.process import EXIT_FAIL, EXIT_OK, open_bus
-from covnet.rundir import LIVE, record_end, utc_now, write_json
+from covnet.processes.process import EXIT_FAIL, EXIT_OK, open_bus
+from covnet.runs.rundir import LIVE, record_end, utc_now, write_json
+from covnet.wire import security
+from covnet.wire.bus import Bus
 from manager.loop import LoopResult, wait_for_nodes_to_leave
 
 LINGER_S = 5.0
@@ -116,8 +116,8 @@ def serve(
 ) -> int:
     """Open the router session, run ``run_loop(bus, clock, hooks)``, and write the run
     directory with ``write(result)`` once, when the loop has ended (completed, stopped by
-    SIGINT/SIGTERM, or failed), then how it ended (:func:`covnet.rundir.record_end`).  While
-    it runs, the last STATUS goes to ``live.json`` (:data:`covnet.rundir.LIVE`) at most every
+    SIGINT/SIGTERM, or failed), then how it ended (:func:`covnet.runs.rundir.record_end`).  While
+    it runs, the last STATUS goes to ``live.json`` (:data:`covnet.runs.rundir.LIVE`) at most every
     ``write_every_s``; that file is removed once the results are written.  Exit 0, or 1 on
     an error."""
     out = Path(args.out)

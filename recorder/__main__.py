@@ -2,10 +2,10 @@
 [--foxglove HOST:PORT]``.
 
 The recorder: writes every message of the run to an MCAP file (layout:
-:mod:`covnet.recording`).  Exits 0 when the run is over or on SIGINT/SIGTERM, after writing
+:mod:`covnet.runs.recording`).  Exits 0 when the run is over or on SIGINT/SIGTERM, after writing
 the file's summary and footer.  It is the same for every scenario kind; the visual channels
-(:mod:`covnet.visual`) come from the kind's visual module (``Kind.visual``), and with
-``--foxglove`` they are also served live (:mod:`covnet.live`).  Restarted (``network.
+(:mod:`covnet.runs.visual`) come from the kind's visual module (``Kind.visual``), and with
+``--foxglove`` they are also served live (:mod:`covnet.runs.live`).  Restarted (``network.
 restart: on-failure``), it continues in the next segment, ``FILE.2.mcap``, ... (the replay reads
 them in order).
 """
@@ -17,8 +17,7 @@ import sys
 from pathlib import Path
 
 from covnet.clock import WallClock
-from covnet.live import LiveView, parse_address
-from covnet.process import (
+from covnet.processes.process import (
     EXIT_OK,
     common_parser,
     guarded,
@@ -27,8 +26,9 @@ from covnet.process import (
     resolve_run,
     stop_on_signals,
 )
-from covnet.recording import RecordingWriter, next_segment, run_metadata
-from covnet.visual import Visualiser
+from covnet.runs.live import LiveView, parse_address
+from covnet.runs.recording import RecordingWriter, next_segment, run_metadata
+from covnet.runs.visual import Visualiser
 from recorder import node
 
 

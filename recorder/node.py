@@ -2,10 +2,10 @@
 
 It subscribes to ``covnet/<run>/**`` *before* declaring its liveliness token, and the manager
 waits for that token before its first command, so the recording misses nothing of the scan
-loop.  Every sample is written as received (:class:`covnet.recording.RecordingWriter`), also
+loop.  Every sample is written as received (:class:`covnet.runs.recording.RecordingWriter`), also
 when its payload does not decode.  The recorder does not decode strictly (the replay does, and
 skips what does not): it reads each payload's kind and ``t_sent_ns`` with one plain msgpack
-unpack (:func:`covnet.recording.peek`, a tenth of a strict decode) and counts a payload that is
+unpack (:func:`covnet.runs.recording.peek`, a tenth of a strict decode) and counts a payload that is
 not a map of a known kind and schema version as ``undecodable:<reason>``.  It is not on the
 scan loop's critical path, so it drains its queue in bursts: after a message arrives it waits
 :data:`BATCH_S` and then writes everything queued (every sample keeps the receive stamp its
@@ -19,7 +19,7 @@ flight: zenoh may deliver the manager's token loss before its last data) and, wh
 a signal while the manager is still up, for up to ``linger_s`` so that the manager's last scan
 lands in the recording too.  The caller closes the writer.
 
-With a :class:`covnet.visual.Visualiser` it also writes the visual channels (what Foxglove
+With a :class:`covnet.runs.visual.Visualiser` it also writes the visual channels (what Foxglove
 draws: a scene, the numbers and a log line per scan) into the same file: after the run, from
 what it recorded (:func:`draw_recording`), so that drawing costs the scan loop nothing; with
 ``--foxglove`` it also draws while the run goes, for the live view, at most
@@ -35,13 +35,13 @@ import time
 from collections import Counter
 from typing import Any
 
-from covnet import messages as msg
-from covnet.bus import Bus, Sample
 from covnet.clock import Clock
 from covnet.config import Networked
-from covnet.node_kit import Heartbeat, ManagerWatch
-from covnet.recording import RecordingReader, RecordingWriter, peek
-from covnet.visual import Visualiser
+from covnet.processes.node_kit import Heartbeat, ManagerWatch
+from covnet.runs.recording import RecordingReader, RecordingWriter, peek
+from covnet.runs.visual import Visualiser
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus, Sample
 
 ROLE = NODE_ID = msg.RECORDER_ID
 QUIET_S = 0.2
@@ -143,7 +143,7 @@ def run(
     ``undecodable:<reason>`` and ``kind:<kind>`` per message kind recorded; with a
     ``visualiser``, ``visual`` (visual messages written into the recording after the run:
     :func:`draw_recording`) and ``visual_errors``; with ``live`` (a
-    :class:`covnet.live.LiveView`) and its ``live_visualiser``, ``live`` (visual messages
+    :class:`covnet.runs.live.LiveView`) and its ``live_visualiser``, ``live`` (visual messages
     sent while the run went: :class:`_LiveFeed`)."""
     counts: Counter[str] = Counter()
     sub = getattr(bus, "subscribe_stamped", bus.subscribe)(msg.run_keyexpr(run_id))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-from covnet.process import (
+from covnet.processes.process import (
     EXIT_USAGE,
     common_parser,
     guarded,

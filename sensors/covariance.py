@@ -4,7 +4,8 @@ Per ``Command(k)`` that enables it (the protocol every sensor shares,
 :func:`sensors.protocol.serve`), it draws its measurement ``z = H x + v`` from its own noise
 stream ``(seed, j, k)`` (:func:`covnet.covariance_control.model.measure`, the same draw
 ``covnet run`` makes) and publishes ``Measurement(k)``; under a fusion rule whose sensors run
-local filters (``fusion.mode: info | ci``) it publishes its :class:`~covnet.messages.LocalTrack`
+local filters (``fusion.mode: info | ci``) it publishes its
+:class:`~covnet.wire.messages.LocalTrack`
 instead.  The measurement noise of every scan is drawn at start-up (:class:`NoiseTable`): that
 takes work off the scan's critical path and changes no result.  With ``fusion.mode: peer`` the
 process is a peer node instead (:mod:`sensors.peer`).
@@ -28,14 +29,14 @@ from typing import Any
 
 import numpy as np
 
-from covnet import messages as msg
-from covnet.bus import Bus
 from covnet.clock import Clock, WallClock
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import Model, build_model, measure
-from covnet.latency_bus import for_sensor
-from covnet.process import EXIT_OK, open_client
+from covnet.processes.process import EXIT_OK, open_client
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus
+from covnet.wire.latency_bus import for_sensor
 from sensors.host import say
 from sensors.protocol import SensorStats, process_main, serve
 
@@ -171,7 +172,7 @@ def run(
 
     Under a track rule (:attr:`~covnet.covariance_control.fusion_rules.FusionRule.tracks`:
     ``info``, ``ci``) it runs its own local Kalman filter and publishes a
-    :class:`~covnet.messages.LocalTrack` instead of the measurement: the filter predicts every
+    :class:`~covnet.wire.messages.LocalTrack` instead of the measurement: the filter predicts every
     scan (lazily, scan by scan up to the commanded one: the same arithmetic as predicting at
     every scan) and updates at the scans it is enabled; a new episode restarts it from the
     initial estimate.  Many targets: :func:`run_targets`."""

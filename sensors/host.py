@@ -9,7 +9,7 @@ the manager sees the same protocol and the same keys as from one process per sen
 
 Sessions: when every hosted sensor's zenoh settings are the same (security off, or a shared
 identity), the process opens **one** client session and each sensor works on a
-:meth:`~covnet.zenoh_bus.ZenohBus.share` of it (its own entities, undeclared when it stops).
+:meth:`~covnet.wire.zenoh_bus.ZenohBus.share` of it (its own entities, undeclared when it stops).
 64 sensors per process then cost the router one transport, not 64 handshakes, leases and
 transmission pipelines, which is what kept a 256-sensor network from becoming ready in time on
 two cores.  Sensors with identities of their own (per-node passwords or certificates) each
@@ -32,10 +32,10 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
-from covnet import security
 from covnet.config import ConfigError
 from covnet.errors import UsageError
-from covnet.process import EXIT_FAIL, EXIT_OK, EXIT_USAGE, open_client
+from covnet.processes.process import EXIT_FAIL, EXIT_OK, EXIT_USAGE, open_client
+from covnet.wire import security
 
 __all__ = ["host", "say"]
 

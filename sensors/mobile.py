@@ -17,11 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from covnet import messages as msg
-from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.mobile.config import MobileConfig
 from covnet.mobile.model import build_model, measure_pair
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus
 from sensors.protocol import SensorStats, process_main, serve
 
 

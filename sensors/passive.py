@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from covnet import messages as msg
-from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.passive.config import PassiveConfig
 from covnet.passive.scene import draw
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus
 from sensors.protocol import SensorStats, process_main, serve
 
 

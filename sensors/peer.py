@@ -36,8 +36,6 @@ from functools import partial
 
 import numpy as np
 
-from covnet import messages as msg
-from covnet.bus import Bus, Sample
 from covnet.clock import Clock
 from covnet.core.fusion import LocalTrack
 from covnet.covariance_control.centre import as_local_track, usable_track
@@ -51,7 +49,9 @@ from covnet.covariance_control.decentral import (
 )
 from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import build_model, initial_estimate, measure, predict_step
-from covnet.node_kit import Heartbeat, ManagerWatch
+from covnet.processes.node_kit import Heartbeat, ManagerWatch
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus, Sample
 
 
 @dataclass

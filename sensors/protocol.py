@@ -1,7 +1,8 @@
 """The protocol every kind of sensor process shares: commands in, truth in, measurements out.
 
 A sensor subscribes to the commands that enable it (the command's key names the enabled set,
-:func:`covnet.messages.command_key`; zenoh delivers a command to the sensors it enables only, so
+:func:`covnet.wire.messages.command_key`; zenoh delivers a command to the sensors it enables only,
+so
 a disabled sensor is not woken).  Per command for scan ``k`` that lists it in ``enabled``, it
 waits for the world's ``Truth(k)``, makes its measurement message from that truth (the kind's
 ``respond``: :mod:`sensors.covariance`, :mod:`sensors.mobile`, :mod:`sensors.passive`) and
@@ -25,12 +26,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from covnet import messages as msg
-from covnet.bus import Bus, Sample
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
-from covnet.node_kit import Heartbeat, ManagerWatch
-from covnet.process import EXIT_OK, open_client
+from covnet.processes.node_kit import Heartbeat, ManagerWatch
+from covnet.processes.process import EXIT_OK, open_client
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus, Sample
 from sensors.host import say
 
 
@@ -73,7 +74,7 @@ def serve(
     the command just received) are filled by the policy, ``keep_last`` (the newest command's
     on/off for this sensor), ``off`` or ``on``, and measured at once (so late: the manager
     re-filters or drops them).  ``keep_truth``: keep every scan's truth for the whole run (the
-    world sends it once, :data:`~covnet.messages.TRUTH_UPFRONT_MAX_SCANS`), else drop what is
+    world sends it once, :data:`~covnet.wire.messages.TRUTH_UPFRONT_MAX_SCANS`), else drop what is
     older than the scan being measured (the world sends it again for a new episode).
     ``command_ok(command)``: the kind's test of an enabling command's fields (its task for this
     sensor); one it fails is counted ``bad_value`` and not answered."""

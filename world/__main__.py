@@ -11,8 +11,7 @@ import importlib
 import sys
 
 from covnet.clock import WallClock
-from covnet.messages import WORLD_ID
-from covnet.process import (
+from covnet.processes.process import (
     EXIT_OK,
     common_parser,
     guarded,
@@ -21,6 +20,7 @@ from covnet.process import (
     resolve_run,
     stop_on_signals,
 )
+from covnet.wire.messages import WORLD_ID
 
 
 def main(argv: list[str] | None = None) -> int:

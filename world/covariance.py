@@ -2,7 +2,8 @@
 
 The trajectory is a pure function of the scenario and its seed
 (:func:`covnet.covariance_control.model.truth_trajectory`) and does not depend on the commands, so
-for a run of at most :data:`~covnet.messages.TRUTH_UPFRONT_MAX_SCANS` scans the world publishes the
+for a run of at most :data:`~covnet.wire.messages.TRUTH_UPFRONT_MAX_SCANS` scans the world publishes
+the
 truth of every scan once, as soon as every sensor (and the recorder, when there is one) is alive,
 and again whenever a sensor (re)joins; it never hears a command (one delivery fewer per scan: the
 paper run goes from ~398 to ~450 scans/s).  The sensors keep that truth for the whole run (every
@@ -20,12 +21,12 @@ from collections import Counter
 
 import numpy as np
 
-from covnet import messages as msg
-from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import Model, build_model, truth_trajectory
-from covnet.node_kit import Heartbeat, ManagerWatch, serve_commands
+from covnet.processes.node_kit import Heartbeat, ManagerWatch, serve_commands
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus
 
 TARGET_IDS = ("T1",)
 TRUTH_WINDOW = 16  # scans of truth published at once, ahead of their commands

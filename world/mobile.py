@@ -15,13 +15,13 @@ from collections import Counter
 
 import numpy as np
 
-from covnet import messages as msg
-from covnet.bus import Bus
 from covnet.clock import Clock
 from covnet.core.mobile.models import MODE_NAMES, STAY
 from covnet.mobile.config import MobileConfig
 from covnet.mobile.model import build_model, move_platforms, truth
-from covnet.node_kit import serve_commands
+from covnet.processes.node_kit import serve_commands
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus
 
 ROLE = NODE_ID = "world"
 MODE_INDEX = {name: i for i, name in enumerate(MODE_NAMES)}

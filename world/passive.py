@@ -8,11 +8,11 @@ from __future__ import annotations
 import threading
 from collections import Counter
 
-from covnet import messages as msg
-from covnet.bus import Bus
 from covnet.clock import Clock
-from covnet.node_kit import serve_commands
 from covnet.passive.config import PassiveConfig
+from covnet.processes.node_kit import serve_commands
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus
 
 ROLE = NODE_ID = "world"
 

@@ -1,7 +1,7 @@
 """Link models: one-way delay, jitter, loss and reordering of the packets on one link direction.
 
 Pure (numpy only, no I/O): the same :class:`LinkSpec` drives the application-level emulation in
-covnet's bus and the real emulated network path of :mod:`covnet.netem`.
+covnet's bus and the real emulated network path of :mod:`covnet.processes.netem`.
 
 Definitions, for packet ``i`` of one link direction sent at ``s_i`` (non-decreasing):
 

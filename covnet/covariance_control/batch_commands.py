@@ -1,5 +1,6 @@
 """The covariance-control kind's batch commands, ``covnet mc``, ``compare`` and ``sweep``: many
-seeded runs (worker processes or a Dask cluster, :mod:`covnet.trials`), their tables with 95 %
+seeded runs (worker processes or a Dask cluster, :mod:`covnet.batches.trials`), their tables with 95
+%
 intervals, curves and figures.  Apart from :mod:`covnet.covariance_control.commands` so that
 ``covnet run`` does not import the batch machinery (start-up time).
 
@@ -17,12 +18,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batch import BatchInterrupted, end_batch
+from covnet.batches.pool import BatchInterrupted, end_batch
+from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.covariance_control.commands import CURVES, EXIT_OK, metric_opt
 from covnet.covariance_control.config import Scenario, SweepSpec, normalised
 from covnet.errors import UsageError
-from covnet.rundir import CONFIG, write_json, write_npz
-from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
+from covnet.runs.rundir import CONFIG, write_json, write_npz
 
 
 def _batch_out(args: argparse.Namespace, name: str, command: str, key: str) -> Path:
@@ -110,7 +111,7 @@ def _batch_results(
     key: str,
 ) -> int:
     """Run ``covnet compare`` / ``sweep``'s ``work`` (its table's rows and the trials'
-    :class:`~covnet.trials.Outcome`, from ``total`` runs) and write: the table files, the
+    :class:`~covnet.batches.trials.Outcome`, from ``total`` runs) and write: the table files, the
     per-scan curves (``curves.npz``), the config (which says the directory's kind, for ``covnet
     plot``), ``run.json``'s status, the figures, the printout.  Interrupted: the complete rows
     (each a ``what``) are written, no figure, and the interruption goes on (exit 130); the

@@ -15,7 +15,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from covnet.columns import Column
 from covnet.core.allocation import Allocation
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
@@ -26,10 +25,11 @@ from covnet.covariance_control.decentral import Mirror, decide_rule
 from covnet.covariance_control.fusion_rules import FusionRule, rule_for
 from covnet.covariance_control.model import Model, decide, usable_measurement
 from covnet.covariance_control.runs import MetricRun
-from covnet.runtime_stats import NetStats
+from covnet.processes.runtime_stats import NetStats
+from covnet.runs.columns import Column
 
 if TYPE_CHECKING:
-    from covnet import messages as msg
+    from covnet.wire import messages as msg
 
 __all__ = [
     "CentreFilter",
@@ -47,7 +47,7 @@ __all__ = [
 @dataclass
 class EpisodeLog:
     """Rows of one episode, appended per scan; converted to a :class:`MetricRun` at the end.
-    Kept in :class:`~covnet.columns.Column` blocks (a long run's memory is its rows' bytes:
+    Kept in :class:`~covnet.runs.columns.Column` blocks (a long run's memory is its rows' bytes:
     ``covnet bench soak``); ``len(log.value)`` is the number of scans logged."""
 
     metric: str

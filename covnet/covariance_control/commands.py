@@ -1,7 +1,7 @@
 """The covariance-control kind's commands: ``covnet run``, ``compare``, ``sweep``, ``replay``,
 ``bench alloc`` and ``bench fusion`` for its configs, and what ``covnet up`` and ``covnet plot``
 do with its run directories.  :mod:`covnet.covariance_control.kind` registers them; the CLI
-(:mod:`covnet.cli`) parses the arguments and calls them through the kind registry.
+(:mod:`covnet.cli.app`) parses the arguments and calls them through the kind registry.
 
 Each returns an exit status (0 success, 1 a run failed); a user's mistake raises
 :class:`~covnet.errors.UsageError`.
@@ -23,8 +23,8 @@ from covnet.covariance_control.model import build_model
 from covnet.covariance_control.results import write_run
 from covnet.covariance_control.simulate import MetricRun, shared_trajectory
 from covnet.errors import UsageError
-from covnet.forked import map_in_forks
-from covnet.rundir import (
+from covnet.processes.forked import map_in_forks
+from covnet.runs.rundir import (
     CONFIG,
     SUMMARY,
     load_arrays,

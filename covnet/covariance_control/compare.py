@@ -19,7 +19,7 @@ network processes run), then per mode:
   ``optimistic`` (entirely above: over-confident, the dangerous side);
 - ``messages_per_scan`` / ``bytes_per_scan``: what the structure publishes per scan (truth
   and heartbeats excluded), counted by encoding the very messages of the wire schema
-  (:mod:`covnet.messages`): central — one command, the enabled sensors' measurements, the fused
+  (:mod:`covnet.wire.messages`): central — one command, the enabled sensors' measurements, the fused
   track and status; info/ci — the same with local tracks for measurements; peer — the enabled
   nodes' local tracks and every node's own track and status (``deliveries_per_scan`` counts each
   message once per process that receives it: a command goes to the sensors it enables and the
@@ -39,17 +39,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from covnet import messages as msg
-from covnet.batch import BatchInterrupted, write_rows
-from covnet.covariance_control.config import Scenario, from_dict, normalised
-from covnet.covariance_control.decentral import neighbours
-from covnet.covariance_control.decentral_sim import run_mode
-from covnet.covariance_control.fusion_rules import FUSION_RULES, rule_for, track_rules
-from covnet.covariance_control.model import build_model, truth_trajectory
-from covnet.covariance_control.simulate import MetricRun
-from covnet.covariance_control.sweep import _pm
-from covnet.covariance_control.sweep import curves_figure as sweep_curves_figure
-from covnet.stats import (
+from covnet.batches.pool import BatchInterrupted, write_rows
+from covnet.batches.stats import (
     add_stats,
     burn_in_of,
     ci_half_width,
@@ -58,7 +49,7 @@ from covnet.stats import (
     seed_stats,
     t_half_width,
 )
-from covnet.trials import (
+from covnet.batches.trials import (
     Batch,
     BatchProgress,
     Outcome,
@@ -66,6 +57,15 @@ from covnet.trials import (
     run_trials,
     trial_hash,
 )
+from covnet.covariance_control.config import Scenario, from_dict, normalised
+from covnet.covariance_control.decentral import neighbours
+from covnet.covariance_control.decentral_sim import run_mode
+from covnet.covariance_control.fusion_rules import FUSION_RULES, rule_for, track_rules
+from covnet.covariance_control.model import build_model, truth_trajectory
+from covnet.covariance_control.simulate import MetricRun
+from covnet.covariance_control.sweep import _pm
+from covnet.covariance_control.sweep import curves_figure as sweep_curves_figure
+from covnet.wire import messages as msg
 
 
 def modes() -> tuple[str, ...]:
@@ -156,7 +156,8 @@ def run_trial(args: tuple[dict[str, Any], str, str | None, int, str]) -> Trial:
 
 
 def run_seeds(task: tuple[dict[str, Any], str, str | None, list[int], str]) -> list[dict[str, Any]]:
-    """The runs of one mode with each of ``seeds``, as data (a task of :mod:`covnet.trials`)."""
+    """The runs of one mode with each of ``seeds``, as data (a task of
+    :mod:`covnet.batches.trials`)."""
     data, mode, graph, seeds, metric = task
     return [run_trial((data, mode, graph, s, metric)).as_dict() for s in seeds]
 
@@ -297,7 +298,7 @@ def compare_outcome(
     max_seeds: int | None = None,
 ) -> tuple[list[dict[str, Any]], Outcome]:
     """``(rows, outcome)``: the table and its trials (per mode in seed order), written to
-    ``out`` as they finish and skipped when there (:func:`covnet.trials.run_trials`)."""
+    ``out`` as they finish and skipped when there (:func:`covnet.batches.trials.run_trials`)."""
     for m in modes:
         scenario_for(sc, m, graph)  # validates every mode (and the graph) before any work
     data = normalised(sc)
@@ -344,7 +345,7 @@ def compare_outcome(
 
 
 def curves(results: dict[str, list[dict[str, Any]]]) -> dict[str, np.ndarray]:
-    """The per-scan curves of every mode (:func:`covnet.stats.curves_of`)."""
+    """The per-scan curves of every mode (:func:`covnet.batches.stats.curves_of`)."""
     return curves_of(results)
 
 

@@ -32,8 +32,8 @@ So ``run ≡ up ≡ replay`` holds by construction.  What varies between configs
 many, the fusion rule, slow links, the search) is an entry the engine consults: the
 ``FUSION_RULES`` registry, the targets model, the late handler; never a branch in a driver.
 
-Messages the engine reads are duck-typed: :class:`covnet.messages.Measurement` and
-:class:`~covnet.messages.LocalTrack` over the bus, :class:`Measured` and :class:`Tracked` in
+Messages the engine reads are duck-typed: :class:`covnet.wire.messages.Measurement` and
+:class:`~covnet.wire.messages.LocalTrack` over the bus, :class:`Measured` and :class:`Tracked` in
 process (the same field names), so ``covnet run`` never imports the wire schemas.
 """
 
@@ -71,7 +71,7 @@ from covnet.covariance_control.model import (
     predict_step,
     truth_trajectory,
 )
-from covnet.runtime_stats import NetStats
+from covnet.processes.runtime_stats import NetStats
 
 __all__ = [
     "Measured",
@@ -91,7 +91,7 @@ __all__ = [
 @dataclass(frozen=True)
 class Measured:
     """A sensor's measurement (returns, with targets) of a scan, in process: the fields of
-    :class:`covnet.messages.Measurement` the engine reads."""
+    :class:`covnet.wire.messages.Measurement` the engine reads."""
 
     sensor_id: str
     scan: int
@@ -103,7 +103,7 @@ class Measured:
 @dataclass(frozen=True)
 class Tracked:
     """A sensor's local track of a scan, in process: the fields of
-    :class:`covnet.messages.LocalTrack` the engine reads."""
+    :class:`covnet.wire.messages.LocalTrack` the engine reads."""
 
     sensor_id: str
     scan: int

@@ -3,7 +3,8 @@
 
 Each seed is one in-process run of every metric (many targets: :func:`covnet.covariance_control.
 simulate.run_targets`; the paper's kind of config: the run ``covnet run`` makes, any fusion
-mode or slow links) in a worker process (:func:`covnet.trials.run_trials`: each seed written to
+mode or slow links) in a worker process (:func:`covnet.batches.trials.run_trials`: each seed written
+to
 ``OUT/trials`` as it finishes, so the same command resumes), summarised there and sent back
 small: its scalars, and per scan the OSPA, each target's ``tr P`` and its sensors.
 The rows are ordered by seed whatever order the workers finish in, so ``montecarlo.json``
@@ -27,11 +28,11 @@ from typing import Any
 import numpy as np
 
 from covnet import __version__
-from covnet.batch import BatchInterrupted
+from covnet.batches.pool import BatchInterrupted
+from covnet.batches.stats import t_half_width
+from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, config_hash, from_dict, normalised
-from covnet.rundir import CONFIG, RUN_INFO, utc_now, write_json
-from covnet.stats import t_half_width
-from covnet.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
+from covnet.runs.rundir import CONFIG, RUN_INFO, utc_now, write_json
 
 MC_FILE = "montecarlo.json"
 MC_KIND = "covariance_control-montecarlo"
@@ -125,7 +126,7 @@ def _paper_seed(sc: Scenario) -> dict[str, Any]:
 
 
 def _run_seed_list(task: tuple[Mapping[str, Any], list[int]]) -> list[dict[str, Any]]:
-    """The seeds of one task of the batch layer (:mod:`covnet.trials`)."""
+    """The seeds of one task of the batch layer (:mod:`covnet.batches.trials`)."""
     data, seeds = task
     return [run_seed(data, s) for s in seeds]
 
@@ -152,7 +153,7 @@ def mc_outcome(
 ) -> tuple[list[int], list[dict[str, Any]], Outcome]:
     """``(seeds, rows, outcome)`` of ``n`` seeds from the config's, each trial written to
     ``out`` (``OUT/trials``) as it finishes and skipped when it is there already (the same
-    command resumes).  Ctrl-C: :class:`covnet.batch.BatchInterrupted` whose ``partial`` is
+    command resumes).  Ctrl-C: :class:`covnet.batches.pool.BatchInterrupted` whose ``partial`` is
     the rows of the seeds done from the first on without a gap: ``[(seed, row), ...]``."""
     data = normalised(sc)
     b = Batch("mc", _run_seed_list, lambda point, seeds: (data, seeds), [POINT], first_seed=sc.seed)

@@ -34,7 +34,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.patches import Wedge  # noqa: E402
 
 from covnet.core.sensing import correlated_noise  # noqa: E402
-from covnet.rundir import load_arrays  # noqa: E402
+from covnet.runs.rundir import load_arrays  # noqa: E402
 
 FIGURES = (
     "fig1_sensor_ellipses.png",

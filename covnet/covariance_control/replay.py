@@ -4,11 +4,13 @@ reproduces the run's ``summary.json`` byte for byte (the proof that the recordin
 Inputs (from the run directory): ``config.json`` (the normalised config), ``run.json`` (the
 ``episodes`` list: the metric of each episode index; the ``run_id``) and ``recording.mcap``.
 
-What is taken from the recording, decoded strictly (:func:`covnet.messages.decode_as`; a payload
+What is taken from the recording, decoded strictly (:func:`covnet.wire.messages.decode_as`; a
+payload
 that does not decode is counted by reason and skipped, never used): the manager's
-:class:`~covnet.messages.Status` and :class:`~covnet.messages.Command` per ``(episode, scan)``
-(the first one received), its :class:`~covnet.messages.Track` s, and the sensors' messages
-(:class:`~covnet.messages.Measurement`, or under a track rule :class:`~covnet.messages.
+:class:`~covnet.wire.messages.Status` and :class:`~covnet.wire.messages.Command` per ``(episode,
+scan)``
+(the first one received), its :class:`~covnet.wire.messages.Track` s, and the sensors' messages
+(:class:`~covnet.wire.messages.Measurement`, or under a track rule :class:`~covnet.wire.messages.
 LocalTrack`) whose content the manager would accept, every one per ``(episode, scan, sensor)``
 in the order received.
 
@@ -38,7 +40,7 @@ run id or config hash in the recording's metadata that is not the run's.
 recording: an episode the manager had started but stopped before its first command (a Ctrl-C
 in that instant).  A peer-mode run has no centre to replay (a :class:`ReplayError` says so).
 The steps shared by every kind's replay (reading the recording, the metadata check, the notes,
-the byte-for-byte comparison, ``covnet replay`` itself) are :mod:`covnet.replay_kit`'s.
+the byte-for-byte comparison, ``covnet replay`` itself) are :mod:`covnet.runs.replay_kit`'s.
 """
 
 from __future__ import annotations
@@ -49,13 +51,12 @@ from typing import Any
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.covariance_control.centre import ManagerResult
 from covnet.covariance_control.config import KIND, Scenario
 from covnet.covariance_control.engine import Outcome, Plan, ScanEngine
 from covnet.covariance_control.results import write_network_run
-from covnet.recording import RecordedSample
-from covnet.replay_kit import (
+from covnet.runs.recording import RecordedSample
+from covnet.runs.replay_kit import (
     RECORDING,
     REPLAY_DIR,
     Differences,
@@ -66,6 +67,7 @@ from covnet.replay_kit import (
     failure_events,
     load_recording,
 )
+from covnet.wire import messages as msg
 
 __all__ = [
     "RECORDING",
@@ -122,7 +124,7 @@ class CovarianceReplay(KindReplay):
 REPLAY = CovarianceReplay()
 rebuild = REPLAY.rebuild
 """``rebuild(cfg, run_id, episodes, recording, out, run_info=None) -> ReplayReport``
-(:meth:`covnet.replay_kit.KindReplay.rebuild`)."""
+(:meth:`covnet.runs.replay_kit.KindReplay.rebuild`)."""
 replay_run = REPLAY.replay_run
 """``replay_run(run_dir, out=None) -> ReplayReport``: replay and compare ``summary.json``."""
 command = REPLAY.command

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from covnet import __version__
+from covnet.batches.stats import median
 from covnet.core.allocation import allocation_rate
 from covnet.covariance_control.config import Scenario, config_hash, normalised
 from covnet.covariance_control.fusion_rules import rule_for
@@ -43,7 +44,7 @@ from covnet.covariance_control.simulate import (
     Trajectory,
     shared_trajectory,
 )
-from covnet.rundir import (
+from covnet.runs.rundir import (
     ARRAYS,
     CONFIG,
     RUN_INFO,
@@ -53,7 +54,6 @@ from covnet.rundir import (
     write_json,
     write_npz,
 )
-from covnet.stats import median
 
 if TYPE_CHECKING:
     from covnet.covariance_control.centre import ManagerResult

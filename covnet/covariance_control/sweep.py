@@ -16,12 +16,13 @@ point, averaged over the seeds:
   ``lost`` (never arrived), ``commands_missed``, ``fused`` (measurements or tracks fused, on
   time or re-filtered) and ``measured``.
 
-Then the statistics over seeds (:func:`covnet.stats.error_stats`): the RMSE after
+Then the statistics over seeds (:func:`covnet.batches.stats.error_stats`): the RMSE after
 ``evaluation.burn_in_scans`` (``rmse_steady``, the headline) and of the burn-in scans
 (``rmse_transient``), each with its mean, standard deviation and 95 % Student t interval over
 the per-seed values, and the same for the NEES after the burn-in and the allocation rate.
 
-The runs are trials of the batch layer (:mod:`covnet.trials`): on the local process pool or a
+The runs are trials of the batch layer (:mod:`covnet.batches.trials`): on the local process pool or
+a
 Dask cluster, each written to ``OUT/trials`` as it finishes (the same command resumes), more
 seeds for the wide points with ``--ci-width``; ``sweep.csv``, ``sweep.json``, ``curves.npz``
 (per-scan RMSE and NEES with their bands, every point), ``sweep.png`` and ``curves.png`` are
@@ -37,12 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from covnet.batch import BatchInterrupted, write_rows
-from covnet.covariance_control.config import Scenario, SweepSpec, from_dict, normalised
-from covnet.covariance_control.latency_sim import run_latency
-from covnet.covariance_control.model import build_model, truth_trajectory
-from covnet.stats import add_stats, ci_half_width, curves_of, error_stats, seed_stats
-from covnet.trials import (
+from covnet.batches.pool import BatchInterrupted, write_rows
+from covnet.batches.stats import add_stats, ci_half_width, curves_of, error_stats, seed_stats
+from covnet.batches.trials import (
     Batch,
     BatchProgress,
     Outcome,
@@ -51,6 +49,9 @@ from covnet.trials import (
     run_trials,
     trial_hash,
 )
+from covnet.covariance_control.config import Scenario, SweepSpec, from_dict, normalised
+from covnet.covariance_control.latency_sim import run_latency
+from covnet.covariance_control.model import build_model, truth_trajectory
 
 POINT_KEYS = ("delay_ms", "loss", "mode", "account_for_loss", "late_policy")
 MEANS = (
@@ -91,7 +92,7 @@ STATS = (
     "allocation_rate_ci_lo",
     "allocation_rate_ci_hi",
 )
-"""The statistics over seeds (:func:`covnet.stats.error_stats`), after the means."""
+"""The statistics over seeds (:func:`covnet.batches.stats.error_stats`), after the means."""
 COLUMNS = (*POINT_KEYS, "seeds", "rmse_position", *MEANS, *STATS, "point")
 
 
@@ -168,13 +169,13 @@ def run_point(task: tuple[dict[str, Any], dict[str, Any], int, str]) -> dict[str
 
 def run_seeds(task: tuple[dict[str, Any], dict[str, Any], list[int], str]) -> list[dict[str, Any]]:
     """The runs of one grid point with each of ``seeds`` (a task of the batch layer,
-    :mod:`covnet.trials`: module level, so that local and cluster workers import it)."""
+    :mod:`covnet.batches.trials`: module level, so that local and cluster workers import it)."""
     data, point, seeds, metric = task
     return [run_point((data, point, seed, metric)) for seed in seeds]
 
 
 def trial_key(sc: Scenario, metric: str) -> str:
-    """The hash that keys the sweep's trials (:func:`covnet.trials.trial_hash`): the config
+    """The hash that keys the sweep's trials (:func:`covnet.batches.trials.trial_hash`): the config
     without its seed, its seed count and its evaluation settings (which change no run), and
     the metric."""
     data = normalised(sc)
@@ -186,7 +187,8 @@ def trial_key(sc: Scenario, metric: str) -> str:
 
 
 def batch(sc: Scenario, metric: str) -> tuple[Batch, dict[str, dict[str, Any]]]:
-    """The sweep as a :class:`covnet.trials.Batch` (headline: the steady-state RMSE), and its
+    """The sweep as a :class:`covnet.batches.trials.Batch` (headline: the steady-state RMSE), and
+    its
     grid points by key."""
     spec = sc.sweep or SweepSpec()
     points = {point_key(p): p for p in grid(spec)}
@@ -288,7 +290,7 @@ def rows_of(
     """One row per grid point of ``results`` (point key -> its runs in seed order), in grid
     order: the means of the runs as before (``rmse_position``: the root of the mean squared
     error over seeds and scans), then the statistics over seeds
-    (:func:`covnet.stats.error_stats`)."""
+    (:func:`covnet.batches.stats.error_stats`)."""
     rows = []
     for key, p in points.items():
         rs = results.get(key)
@@ -311,7 +313,7 @@ def rows_of(
 
 
 def curves(results: dict[str, list[dict[str, Any]]]) -> dict[str, np.ndarray]:
-    """The per-scan curves of every point (:func:`covnet.stats.curves_of`)."""
+    """The per-scan curves of every point (:func:`covnet.batches.stats.curves_of`)."""
     return curves_of(results)
 
 

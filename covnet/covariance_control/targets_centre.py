@@ -10,7 +10,7 @@ sensor simulates its own dwell from the world's truth and that window and sends 
 (``Measurement.z`` ``(m, dim_z)``, unlabeled, ``R`` its noise); the centre gates, associates
 and fuses them per target (:func:`covnet.covariance_control.targets.fuse`).  With
 ``fusion.mode: info`` each sensor sends its own filter's track of the target it dwelt on
-instead (:class:`~covnet.messages.LocalTrack` with its ``target_id``), and the centre fuses
+instead (:class:`~covnet.wire.messages.LocalTrack` with its ``target_id``), and the centre fuses
 the tracks by information-matrix fusion (:func:`covnet.covariance_control.targets.
 fuse_tracks`).  The steps are the ones ``covnet run`` calls, so a lockstep network run is
 ``covnet run`` bit for bit.
@@ -33,7 +33,7 @@ from covnet.covariance_control.runs import TargetRows, TargetsRun
 from covnet.covariance_control.targets import Dwell, TargetDecision, TargetsModel
 
 if TYPE_CHECKING:
-    from covnet import messages as msg
+    from covnet.wire import messages as msg
 
 __all__ = ["ScanPlan", "TargetEpisodeLog", "TargetsCentre"]
 
@@ -101,7 +101,7 @@ class TargetsCentre:
     def command_fields(
         self, plan: ScanPlan
     ) -> tuple[tuple[str, ...], dict[str, tuple[str, ...]], dict[str, np.ndarray] | None]:
-        """``(enabled, targets, windows)`` of scan ``plan.k``'s :class:`~covnet.messages.
+        """``(enabled, targets, windows)`` of scan ``plan.k``'s :class:`~covnet.wire.messages.
         Command`."""
         ids, tids = self.ids, self.tm.target_ids
         dec = plan.decision

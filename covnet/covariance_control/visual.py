@@ -1,4 +1,4 @@
-"""What Foxglove draws of a covariance-control run (:mod:`covnet.visual`), in metres.
+"""What Foxglove draws of a covariance-control run (:mod:`covnet.runs.visual`), in metres.
 
 Per scan: each target's truth and fused estimate (state ``[x, vx, y, vy]``: the position is
 ``(x, y)``, the covariance's x-y block ``P[[0, 2]][:, [0, 2]]``), its 1σ and 2σ ellipses and the
@@ -25,18 +25,18 @@ from pathlib import Path
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.core.consistency import nees
 from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import build_model
-from covnet.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
+from covnet.runs.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
+from covnet.wire import messages as msg
 
 __all__ = ["Visual", "run_messages"]
 
 
 class Visual:
-    """The covariance-control kind's :class:`covnet.visual.KindVisual`."""
+    """The covariance-control kind's :class:`covnet.runs.visual.KindVisual`."""
 
     def __init__(self, sc: Scenario) -> None:
         self.sc = sc

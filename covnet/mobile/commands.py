@@ -18,14 +18,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batch import BatchInterrupted, default_workers, end_batch
+from covnet.batches.pool import BatchInterrupted, default_workers, end_batch
+from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.errors import UsageError
 from covnet.mobile.config import MobileConfig
 from covnet.mobile.montecarlo import MC_FILE, mc_outcome, trial_key, write_mc
 from covnet.mobile.results import load_summary, write_run
 from covnet.mobile.simulate import run as simulate
-from covnet.rundir import RUN_INFO, read_json
-from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
+from covnet.runs.rundir import RUN_INFO, read_json
 
 # The figure (matplotlib) and the benchmark are imported by the commands that use them:
 # start-up time of the others.

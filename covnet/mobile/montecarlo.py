@@ -1,7 +1,7 @@
 """The Monte Carlo evaluation of the mobile scenario: the same config over seeds 0..n−1.
 
 Each seed is one in-process run (:func:`covnet.mobile.simulate.run`) in a worker process
-(:func:`covnet.batch.parallel_map`: *spawn* context, one worker per core by default),
+(:func:`covnet.batches.pool.parallel_map`: *spawn* context, one worker per core by default),
 summarised there (:func:`covnet.mobile.results.summarise`, without the per-decision lists), and
 sent back as a small dict.  The results are ordered by seed whatever order the workers finish
 in, so ``montecarlo.json`` depends only on the config and the seeds; the wall times (each seed's
@@ -22,13 +22,13 @@ from typing import Any
 import numpy as np
 
 from covnet import __version__
-from covnet.batch import BatchInterrupted, parallel_map
+from covnet.batches.pool import BatchInterrupted, parallel_map
+from covnet.batches.stats import ci_half_width, seed_stats
+from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.mobile.config import MobileConfig, config_hash, from_dict, normalised
 from covnet.mobile.results import WORSE_TOL, decision_times, summarise
 from covnet.mobile.simulate import run
-from covnet.rundir import RUN_INFO, utc_now, write_json
-from covnet.stats import ci_half_width, seed_stats
-from covnet.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
+from covnet.runs.rundir import RUN_INFO, utc_now, write_json
 
 MC_FILE = "montecarlo.json"
 #: progress(done, total, seed) after each finished seed
@@ -63,7 +63,7 @@ def _run_seed_task(task: tuple[Mapping[str, Any], int, str | None]) -> dict[str,
 
 
 def _run_seed_list(task: tuple[Mapping[str, Any], list[int], str | None]) -> list[dict[str, Any]]:
-    """The seeds of one task of the batch layer (:mod:`covnet.trials`)."""
+    """The seeds of one task of the batch layer (:mod:`covnet.batches.trials`)."""
     data, seeds, solver = task
     return [run_seed(data, s, solver) for s in seeds]
 
@@ -149,7 +149,7 @@ def run_seeds(
     """Summaries of ``cfg`` run with each seed, in the order of ``seeds``.
 
     ``workers`` processes (default: the cores this process may use); ``workers=1`` runs in this
-    process, without a pool.  Ctrl-C: :class:`covnet.batch.BatchInterrupted`.
+    process, without a pool.  Ctrl-C: :class:`covnet.batches.pool.BatchInterrupted`.
     """
     data = normalised(cfg)
     seeds = list(seeds)

@@ -33,7 +33,6 @@ from typing import Any
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.core.mobile.decision import compare, decide_milp, relaxation
 from covnet.core.mobile.models import MODE_NAMES, predict_tracks, usage_cost
 from covnet.mobile.config import MobileConfig
@@ -49,9 +48,10 @@ from covnet.mobile.model import (
 )
 from covnet.mobile.results import write_run
 from covnet.mobile.simulate import MobileRun
-from covnet.network_run import ScanDecision, ScanImpossible, network_run_info
-from covnet.rundir import RUN_INFO, write_json
-from covnet.runtime_stats import NetStats
+from covnet.processes.network_run import ScanDecision, ScanImpossible, network_run_info
+from covnet.processes.runtime_stats import NetStats
+from covnet.runs.rundir import RUN_INFO, write_json
+from covnet.wire import messages as msg
 
 __all__ = ["MobileResult", "MobileSteps", "write_network_run"]
 
@@ -147,7 +147,7 @@ class MobileSteps:
 
     def decide(self, failed: frozenset[str]) -> ScanDecision:
         """Predict every track and decide over the sensors not in ``failed``: enabled = the
-        alive sensors, with the mode and the targets of each; :class:`~covnet.network_run.
+        alive sensors, with the mode and the targets of each; :class:`~covnet.processes.network_run.
         ScanImpossible` when none is alive."""
         model, ids, tids = self.model, self.ids, self.tids
         alive = np.array([sid not in failed for sid in ids])

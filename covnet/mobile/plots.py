@@ -26,8 +26,8 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
-from covnet.rundir import load_arrays  # noqa: E402
-from covnet.stats import t_half_width  # noqa: E402
+from covnet.batches.stats import t_half_width  # noqa: E402
+from covnet.runs.rundir import load_arrays  # noqa: E402
 
 FIGURE = "fig_mobile_trajectories.png"
 SENSOR_COLORS = (

@@ -23,7 +23,7 @@ Relative gaps are ``(J_LP+post − J*) / |J*|``; a decision counts as worse when
 ``run.json``: ``decision_time_s`` (``cost_tensor``, ``solver``, ``comparison``: ``{mean,
 median, p95}``; comparison: the other solver and the relaxation, with ``compare_exact``),
 creation time, version.  Files are written to a temporary name and renamed
-(:mod:`covnet.rundir`).
+(:mod:`covnet.runs.rundir`).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import numpy as np
 from covnet import __version__
 from covnet.mobile.config import MobileConfig, config_hash, normalised
 from covnet.mobile.simulate import MobileRun
-from covnet.rundir import (
+from covnet.runs.rundir import (
     ARRAYS,
     CONFIG,
     RUN_INFO,

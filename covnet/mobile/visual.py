@@ -1,4 +1,4 @@
-"""What Foxglove draws of a mobile run (:mod:`covnet.visual`), in metres.
+"""What Foxglove draws of a mobile run (:mod:`covnet.runs.visual`), in metres.
 
 Per scan: each target's truth and track (state ``[px, vx, py, vy]``; the covariance's x-y block
 ``P[[0, 2]][:, [0, 2]]`` as 1σ and 2σ ellipses; a mobile scenario has no desired covariance),
@@ -20,17 +20,17 @@ from pathlib import Path
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.core.consistency import nees
 from covnet.core.mobile.models import MODE_NAMES
 from covnet.mobile.config import MobileConfig
-from covnet.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
+from covnet.runs.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
+from covnet.wire import messages as msg
 
 __all__ = ["Visual", "run_messages"]
 
 
 class Visual:
-    """The mobile kind's :class:`covnet.visual.KindVisual`."""
+    """The mobile kind's :class:`covnet.runs.visual.KindVisual`."""
 
     def __init__(self, cfg: MobileConfig) -> None:
         self.cfg = cfg

@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 
 from covnet import __version__
-from covnet.batch import BatchInterrupted, end_batch
+from covnet.batches.pool import BatchInterrupted, end_batch
+from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.errors import UsageError
 from covnet.passive.associate import header, scan_record
 from covnet.passive.config import PassiveConfig, normalised
 from covnet.passive.montecarlo import run_grid_outcome, trial_key, write_results
 from covnet.passive.scene import draw
-from covnet.rundir import RUN_INFO, read_json, utc_now, write_json
-from covnet.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
+from covnet.runs.rundir import RUN_INFO, read_json, utc_now, write_json
 
 __all__ = ["after_up", "bench", "mc", "run"]
 

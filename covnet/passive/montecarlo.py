@@ -2,7 +2,8 @@
 config's grid, ``trials`` scans each, every method on the same scans.
 
 Scans come from ``default_rng([seed, trial])`` (common random numbers: the same stream in every
-cell, :mod:`covnet.passive.scene`).  Cells run in parallel on :func:`covnet.batch.parallel_map`
+cell, :mod:`covnet.passive.scene`).  Cells run in parallel on
+:func:`covnet.batches.pool.parallel_map`
 (spawn context); a cell's scans and methods run in one process, methods interleaved scan by scan, so
 their timings see the same machine state.
 
@@ -27,13 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from covnet.batch import BatchInterrupted
-from covnet.core.passive.methods import METHODS
-from covnet.passive.config import PassiveConfig, config_hash, normalised
-from covnet.passive.scene import draw, score
-from covnet.rundir import atomic_write, write_json
-from covnet.stats import add_stats, ci_half_width, seed_stats
-from covnet.trials import (
+from covnet.batches.pool import BatchInterrupted
+from covnet.batches.stats import add_stats, ci_half_width, seed_stats
+from covnet.batches.trials import (
     Batch,
     BatchProgress,
     Outcome,
@@ -42,6 +39,10 @@ from covnet.trials import (
     run_trials,
     trial_hash,
 )
+from covnet.core.passive.methods import METHODS
+from covnet.passive.config import PassiveConfig, config_hash, normalised
+from covnet.passive.scene import draw, score
+from covnet.runs.rundir import atomic_write, write_json
 
 __all__ = [
     "RESULTS",
@@ -129,7 +130,7 @@ def cell_rows(
     """One result row per method from a cell's trial records (in trial order): the sums and
     means of §9 (the numbers of one run over every trial), then the statistics over trials
     (``p_trial_*``: of each trial's share of targets associated; ``exact_scan_*``; 95 %
-    Student t intervals, :func:`covnet.stats.add_stats`)."""
+    Student t intervals, :func:`covnet.batches.stats.add_stats`)."""
     names = list(methods)
     trials = len(records)
     n_truth = sum(int(r["n_truth"]) for r in records)
@@ -195,7 +196,7 @@ def _mean(v: list[float] | None) -> float | None:
 def _run_trials_job(
     task: tuple[PassiveConfig, Cell, list[int], tuple[str, ...]],
 ) -> list[dict[str, Any]]:
-    """A task of the batch layer (:mod:`covnet.trials`): trials of one cell."""
+    """A task of the batch layer (:mod:`covnet.batches.trials`): trials of one cell."""
     return run_cell_trials(*task)
 
 
@@ -248,7 +249,7 @@ def run_grid_outcome(
     run facts (trials, workers, wall time, machine).  A cell's trials are one task (its
     ``trials`` scans; with ``ci_width`` more batches of them, until every cell's interval of
     the per-trial share associated is narrower, for every method); each task is written to
-    ``out``'s trial store as it finishes and skipped when there (:mod:`covnet.trials`)."""
+    ``out``'s trial store as it finishes and skipped when there (:mod:`covnet.batches.trials`)."""
     n_trials = cfg.montecarlo.trials if trials is None else trials
     cells = grid(cfg)
     methods = tuple(cfg.montecarlo.methods)

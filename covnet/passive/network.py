@@ -34,14 +34,14 @@ from typing import Any
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.core.passive.model import PassiveScan
-from covnet.network_run import ScanDecision, network_run_info
 from covnet.passive.associate import header, scan_record
 from covnet.passive.config import PassiveConfig, normalised
 from covnet.passive.scene import draw
-from covnet.rundir import CONFIG, RUN_INFO, write_json
-from covnet.runtime_stats import NetStats
+from covnet.processes.network_run import ScanDecision, network_run_info
+from covnet.processes.runtime_stats import NetStats
+from covnet.runs.rundir import CONFIG, RUN_INFO, write_json
+from covnet.wire import messages as msg
 
 __all__ = [
     "ASSOCIATION",

@@ -1,4 +1,4 @@
-"""What Foxglove draws of a passive run (:mod:`covnet.visual`), in kilometres, in 3-D.
+"""What Foxglove draws of a passive run (:mod:`covnet.runs.visual`), in kilometres, in 3-D.
 
 Per scan: the true targets (the Truth's positions), the three sensors (on: their list was
 asked for, failed: seen failed), every line of sight of the scan's three lists (from the
@@ -22,17 +22,17 @@ from pathlib import Path
 
 import numpy as np
 
-from covnet import messages as msg
 from covnet.core.consistency import nees
 from covnet.core.passive.model import los_vectors
 from covnet.passive.config import PassiveConfig
-from covnet.visual import Estimate, ScanMessages, Segment, SensorView, View, sensor_states
+from covnet.runs.visual import Estimate, ScanMessages, Segment, SensorView, View, sensor_states
+from covnet.wire import messages as msg
 
 __all__ = ["Visual", "run_messages"]
 
 
 class Visual:
-    """The passive kind's :class:`covnet.visual.KindVisual`."""
+    """The passive kind's :class:`covnet.runs.visual.KindVisual`."""
 
     measurements = True  # the lines of sight
 

@@ -1,7 +1,7 @@
 """The wire's names: ids (run, role, node, sensor, target) and every key expression covnet
 publishes or subscribes to.  Nothing else in covnet formats a key expression; the payloads are
 :mod:`covnet.wire.schemas` and :mod:`covnet.wire.codec`'s (all three re-exported by
-:mod:`covnet.messages`)."""
+:mod:`covnet.wire.messages`)."""
 
 from __future__ import annotations
 

@@ -703,5 +703,6 @@ MAX_PAYLOAD_BYTES = 1 << (2 * largest_payload(CAP_SENSORS, CAP_TARGETS, CAP_ROWS
 targets (~0.49 MB: a Command with modes, targets and clutter windows for 1024 sensors; the
 largest Status, naming 3 x 1024 sensors and 4096 re-filtered messages, Truth and Measurement
 are ~0.47, ~0.22 and ~0.09 MB).  A bus drops a payload
-over it before copying it (:mod:`covnet.bus`, :mod:`covnet.zenoh_bus`: counted ``oversize``),
+over it before copying it (:mod:`covnet.wire.bus`, :mod:`covnet.wire.zenoh_bus`: counted
+``oversize``),
 and :func:`covnet.wire.codec.decode` refuses one (``too_large``)."""

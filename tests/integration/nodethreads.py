@@ -1,4 +1,4 @@
-"""Node loops as threads over one :class:`~covnet.bus.InMemoryHub`: the distributed protocol
+"""Node loops as threads over one :class:`~covnet.wire.bus.InMemoryHub`: the distributed protocol
 without processes (each loop gets its own bus handle and stop event)."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
 from covnet.covariance_control.replay import RECORDING
 from covnet.covariance_control.results import write_network_run
-from covnet.recording import RecordingWriter, run_metadata
+from covnet.runs.recording import RecordingWriter, run_metadata
+from covnet.wire.bus import InMemoryBus, InMemoryHub
 from manager import covariance as manager_node
 from recorder import node as recorder_node
 from sensors import covariance as sensor_node

@@ -13,9 +13,9 @@ import numpy as np
 import yaml
 from nodethreads import run_recorded_network
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.covariance_control.config import load
-from covnet.rundir import load_arrays
+from covnet.runs.rundir import load_arrays
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "configs" / "paper.yaml"

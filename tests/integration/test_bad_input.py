@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import yaml
 
-from covnet import messages as msg
-from covnet.cli import main as covnet_main
-from covnet.rundir import load_arrays
+from covnet.cli.app import main as covnet_main
+from covnet.runs.rundir import load_arrays
+from covnet.wire import messages as msg
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
@@ -105,7 +105,7 @@ def bad_payloads(run: str) -> list[tuple[str, bytes, str]]:
 
 
 def test_garbage_on_every_key_is_counted_and_dropped(covnet_proc, tmp_path, paper_path):
-    from covnet.zenoh_bus import ZenohBus, zenoh_config
+    from covnet.wire.zenoh_bus import ZenohBus, zenoh_config
 
     data = yaml.safe_load(paper_path.read_text())
     data["scans"] = 1500  # long enough in lockstep to inject while it runs (~5 s)

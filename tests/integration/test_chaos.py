@@ -19,8 +19,8 @@ import pytest
 import yaml
 from multiproc import CovnetProcess, assert_nothing_left
 
-from covnet import messages as msg
-from covnet.recording import read_recording
+from covnet.runs.recording import read_recording
+from covnet.wire import messages as msg
 
 pytestmark = [pytest.mark.integration]
 

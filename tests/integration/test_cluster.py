@@ -16,7 +16,7 @@ from multiproc import REPO, CovnetProcess
 
 pytest.importorskip("distributed")
 
-from covnet.cluster import LocalCluster  # noqa: E402
+from covnet.batches.cluster import LocalCluster  # noqa: E402
 
 pytestmark = [pytest.mark.integration]
 
@@ -157,7 +157,7 @@ def test_an_unreachable_scheduler_is_a_usage_error(small, tmp_path):
 
 @pytest.mark.parametrize("address", ["127.0.0.1:8786", "tcp://127.0.0.1", "tcp://:8786"])
 def test_a_malformed_scheduler_address_is_refused_at_once(small, tmp_path, capsys, address):
-    from covnet.cli import main
+    from covnet.cli.app import main
 
     with pytest.raises(SystemExit) as exc:
         main(["sweep", str(small["sweep"]), "--out", str(tmp_path / "x"), "--cluster", address])

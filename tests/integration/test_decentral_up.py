@@ -13,8 +13,8 @@ import pytest
 import yaml
 from multiproc import CovnetProcess, assert_nothing_left
 
-from covnet.cli import main as covnet_main
-from covnet.rundir import load_arrays
+from covnet.cli.app import main as covnet_main
+from covnet.runs.rundir import load_arrays
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 

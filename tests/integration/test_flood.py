@@ -7,7 +7,7 @@ loopback, with no security. From a thread it publishes, as fast as it can, on ev
 run (measurements, commands, truth, heartbeats, tracks, statuses, peer keys) payloads that no
 node may use: random bytes, truncated msgpack, wrong types, wrong versions and kinds, well-formed
 messages with wrong scan numbers, well-formed messages of one node on another node's key, and
-oversized ones (just over :data:`covnet.messages.MAX_PAYLOAD_BYTES`, which every bus drops and
+oversized ones (just over :data:`covnet.wire.messages.MAX_PAYLOAD_BYTES`, which every bus drops and
 counts, and 4 MiB, which zenoh's own cap drops); and it declares and undeclares liveliness
 tokens on the run's liveliness keys (malformed ids, ids of no member, members' ids). What it
 never sends is a well-formed message that a node could not tell from the real one without
@@ -44,12 +44,12 @@ import yaml
 import zenoh
 from multiproc import REPO, CovnetProcess, assert_nothing_left
 
-from covnet import messages as msg
-from covnet.cli import main as covnet_main
+from covnet.cli.app import main as covnet_main
 from covnet.covariance_control.config import load, normalised
-from covnet.recording import read_recording
-from covnet.up import free_port
-from covnet.zenoh_bus import ZenohBus, zenoh_config
+from covnet.processes.up import free_port
+from covnet.runs.recording import read_recording
+from covnet.wire import messages as msg
+from covnet.wire.zenoh_bus import ZenohBus, zenoh_config
 
 pytestmark = [pytest.mark.integration]
 

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from nodethreads import run_recorded_network
 
-from covnet import messages as msg
 from covnet.core.validation_gate import TAIL, passes_measurement, threshold
 from covnet.covariance_control.config import with_overrides
 from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.replay import replay_run
+from covnet.wire import messages as msg
 
 SHIFT = np.array([20_000.0, 0.0])
 

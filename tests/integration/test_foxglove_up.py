@@ -21,8 +21,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from multiproc import REPO, CovnetProcess, assert_nothing_left
 from websockets.asyncio.client import connect
 
-from covnet.cli import main as covnet_main
-from covnet.up import free_port
+from covnet.cli.app import main as covnet_main
+from covnet.processes.up import free_port
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 

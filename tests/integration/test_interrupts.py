@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from multiproc import REPO, CovnetProcess
 
-from covnet.rundir import STATUSES
+from covnet.runs.rundir import STATUSES
 
 pytestmark = [pytest.mark.integration]
 

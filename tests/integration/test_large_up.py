@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from multiproc import CovnetProcess, assert_nothing_left
 
-from covnet.cli import main as covnet_main
-from covnet.rundir import load_arrays
+from covnet.cli.app import main as covnet_main
+from covnet.runs.rundir import load_arrays
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
@@ -65,7 +65,7 @@ def test_large_up_lost_nothing_and_showed_the_gap(lockstep_up):
 
 
 def test_bench_up_sizes_against_the_probe(monkeypatch, capsys, paper_path):
-    from covnet import bench_up
+    from covnet.bench import up as bench_up
 
     monkeypatch.setattr(bench_up, "SIZED_SCANS", 40)
     rc = covnet_main(

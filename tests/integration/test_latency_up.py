@@ -11,8 +11,8 @@ import pytest
 import yaml
 from multiproc import CovnetProcess, assert_nothing_left
 
-from covnet.cli import main as covnet_main
-from covnet.rundir import load_arrays
+from covnet.cli.app import main as covnet_main
+from covnet.runs.rundir import load_arrays
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
@@ -81,8 +81,8 @@ def test_network_run_equals_the_simulated_time_run(tmp_path, paper_path, mode):
 def _from_recording(run_dir):
     """Per sensor: how many it sent (the highest ``seq`` recorded, or its last heartbeat's
     count), and how often a Status names it fused."""
-    from covnet import messages as msg
-    from covnet.recording import read_recording
+    from covnet.runs.recording import read_recording
+    from covnet.wire import messages as msg
 
     sent: dict[str, int] = {}
     fused: dict[str, int] = {}

@@ -13,9 +13,9 @@ from typing import Any
 import pytest
 from nodethreads import with_metrics
 
-from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
 from covnet.covariance_control.config import with_overrides
+from covnet.wire.bus import InMemoryBus, InMemoryHub
 from manager import covariance as manager_node
 from sensors import covariance as sensor_node
 from world import covariance as world_node

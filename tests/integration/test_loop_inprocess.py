@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from nodethreads import with_metrics
 
-from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
 from covnet.covariance_control.config import with_overrides
 from covnet.covariance_control.simulate import run_metric
+from covnet.wire.bus import InMemoryBus, InMemoryHub
 from manager import covariance as manager_node
 from sensors import covariance as sensor_node
 from world import covariance as world_node
@@ -106,7 +106,7 @@ def test_truth_up_front_and_window_by_window_give_the_run(short_paper, monkeypat
     """A short run gets all its truth at once (the world hears no command); a longer one
     (here: a 10-scan limit against 30 scans) window by window, paced by the commands, again for
     the second metric's episode. Both reproduce ``covnet run``."""
-    from covnet import messages as msg
+    from covnet.wire import messages as msg
 
     monkeypatch.setattr(msg, "TRUTH_UPFRONT_MAX_SCANS", upfront_max)
     metrics = ["abs_trace", "spectral"]

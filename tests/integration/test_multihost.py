@@ -15,7 +15,7 @@ import pytest
 import yaml
 from multiproc import CovnetProcess
 
-from covnet.cli import main as covnet_main
+from covnet.cli.app import main as covnet_main
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import yaml
 
-from covnet.cli import main as covnet_main
+from covnet.cli.app import main as covnet_main
 from covnet.covariance_control import targets
 from covnet.covariance_control.config import from_dict
 from covnet.covariance_control.latency_sim import run_targets_latency
 from covnet.covariance_control.simulate import run_targets
-from covnet.rundir import load_arrays
+from covnet.runs.rundir import load_arrays
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -14,10 +14,10 @@ import pytest
 import yaml
 from nodethreads import with_metrics
 
-from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
 from covnet.covariance_control.config import from_dict
 from covnet.covariance_control.simulate import run_targets
+from covnet.wire.bus import InMemoryBus, InMemoryHub
 from manager import covariance as manager_node
 from sensors import covariance as sensor_node
 from world import covariance as world_node
@@ -134,8 +134,8 @@ def test_up_equals_run_and_replays(tmp_path, fusion):
     reproduces the summary from the recording (returns, or local tracks under info)."""
     from multiproc import CovnetProcess, assert_nothing_left
 
-    from covnet.cli import main as covnet_main
-    from covnet.rundir import load_arrays
+    from covnet.cli.app import main as covnet_main
+    from covnet.runs.rundir import load_arrays
 
     data = short_data(12)
     data["allocation"]["metrics"] = ["abs_trace"]

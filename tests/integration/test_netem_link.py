@@ -1,4 +1,5 @@
-"""A real emulated link between two network namespaces (covnet.netem): UDP echoes across it show
+"""A real emulated link between two network namespaces (covnet.processes.netem): UDP echoes across
+it show
 the configured delay, loss and jitter, and nothing is left behind.  Skipped, with the reason,
 where namespaces or TUN devices cannot be made (not root, no iproute2, no /dev/net/tun)."""
 
@@ -18,9 +19,15 @@ import pytest
 from multiproc import pid_alive
 
 from covnet.core.delay import DelayDist, LinkSpec, link_stream, schedule
-from covnet.netem import NamespaceError, emulated_link, namespaces, netem_available, tun_available
-from covnet.netem import link as link_module
-from covnet.netem.detect import run_ip
+from covnet.processes.netem import (
+    NamespaceError,
+    emulated_link,
+    namespaces,
+    netem_available,
+    tun_available,
+)
+from covnet.processes.netem import link as link_module
+from covnet.processes.netem.detect import run_ip
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
@@ -45,7 +52,7 @@ def ns_pair():
 
 
 def _in_ns(ns: str, *args: str) -> list[str]:
-    return ["ip", "netns", "exec", ns, sys.executable, "-m", "covnet.netem.probe", *args]
+    return ["ip", "netns", "exec", ns, sys.executable, "-m", "covnet.processes.netem.probe", *args]
 
 
 def round_trips(info, count: int, interval: float, wait: float = 0.5) -> list[float | None]:
@@ -167,7 +174,7 @@ def test_command_line_holds_the_link_until_interrupted(tmp_path):
         pytest.skip("no TUN devices here (needs /dev/net/tun and root with CAP_NET_ADMIN)")
     cfg = tmp_path / "link.yaml"
     cfg.write_text("a_to_b: {delay: {kind: constant, value_s: 0.01}}\n")
-    cmd = [sys.executable, "-m", "covnet.netem", "--create", "--config", str(cfg)]
+    cmd = [sys.executable, "-m", "covnet.processes.netem", "--create", "--config", str(cfg)]
     info = None
     with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as p:
         try:

@@ -14,12 +14,12 @@ from multiproc import REPO, assert_nothing_left
 from nodethreads import NodeThreads
 from visual_check import assert_visual_channels
 
-from covnet import messages as msg
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.clock import WallClock
 from covnet.passive.associate import scan_record
 from covnet.passive.config import load, with_overrides
 from covnet.passive.scene import draw
+from covnet.wire import messages as msg
 from manager import passive as manager_node
 from sensors import passive as sensor_node
 from sensors.protocol import serve

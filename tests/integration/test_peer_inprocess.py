@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from nodethreads import NodeThreads, with_metrics
 
-from covnet import messages as msg
-from covnet.bus import InMemoryBus
 from covnet.clock import WallClock
 from covnet.covariance_control.config import from_dict, normalised
 from covnet.covariance_control.decentral_sim import run_peer
+from covnet.wire import messages as msg
+from covnet.wire.bus import InMemoryBus
 from manager import peer_monitor
 from sensors import peer
 from world import covariance as world_node

@@ -16,12 +16,12 @@ import yaml
 from nodethreads import run_recorded_network
 from recipe_entries import Naive
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.config import ConfigError
 from covnet.covariance_control.config import from_dict, normalised, with_overrides
 from covnet.covariance_control.fusion_rules import FUSION_RULES
 from covnet.covariance_control.replay import replay_run
-from covnet.rundir import load_arrays
+from covnet.runs.rundir import load_arrays
 
 METRICS = ["spectral", "abs_trace"]
 

@@ -21,7 +21,7 @@ import yaml
 from nodethreads import NodeThreads, with_metrics
 from numpy.typing import ArrayLike
 
-from covnet.cli import main as covnet_main
+from covnet.cli.app import main as covnet_main
 from covnet.clock import WallClock
 from covnet.config import ConfigError
 from covnet.core import sensor_models
@@ -30,8 +30,8 @@ from covnet.core.sensor_models import STATE_DIM, SensorModel, check_positive
 from covnet.covariance_control.config import config_hash, from_dict, normalised
 from covnet.covariance_control.replay import RECORDING
 from covnet.covariance_control.results import write_network_run
-from covnet.recording import RecordingWriter, run_metadata
-from covnet.rundir import load_arrays
+from covnet.runs.recording import RecordingWriter, run_metadata
+from covnet.runs.rundir import load_arrays
 from manager import covariance as manager_node
 from recorder import node as recorder_node
 from sensors import covariance as sensor_node

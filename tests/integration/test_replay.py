@@ -18,12 +18,12 @@ import pytest
 from multiproc import CovnetProcess, assert_nothing_left
 from nodethreads import run_recorded_network
 
-from covnet import messages as msg
 from covnet.covariance_control.config import with_overrides
 from covnet.covariance_control.replay import RECORDING, replay_run
-from covnet.launch import ProcessSpec, Supervisor
-from covnet.recording import RecordingReader, RecordingWriter, read_metadata
-from covnet.rundir import load_arrays
+from covnet.processes.launch import ProcessSpec, Supervisor
+from covnet.runs.recording import RecordingReader, RecordingWriter, read_metadata
+from covnet.runs.rundir import load_arrays
+from covnet.wire import messages as msg
 
 RUN = "t"
 
@@ -186,11 +186,11 @@ def test_replay_of_a_multiprocess_run(tmp_path, paper_path):
     reader = RecordingReader(out / RECORDING)
     n = sum(1 for _ in reader.samples())
     assert reader.complete and n > 0
-    import covnet.cli
+    import covnet.cli.app
 
-    if hasattr(covnet.cli, "cmd_replay"):  # the ``covnet replay`` subcommand
-        assert covnet.cli.main(["replay", str(out)]) == 0
-    else:  # NOTE: until covnet/cli.py has ``replay``, the function it calls
+    if hasattr(covnet.cli.app, "cmd_replay"):  # the ``covnet replay`` subcommand
+        assert covnet.cli.app.main(["replay", str(out)]) == 0
+    else:  # NOTE: until covnet/cli/app.py has ``replay``, the function it calls
         report = replay_run(out)
         assert report.identical, report.differences
     replayed = out / "replay" / "summary.json"
@@ -211,7 +211,7 @@ def test_recorder_process_records_everything_and_closes_the_file_on_a_signal(
 ):
     """``python -m recorder`` against a router held by the test: it declares its token,
     records valid and malformed payloads, and on SIGINT/SIGTERM exits 0 with a finished file."""
-    from covnet.zenoh_bus import ZenohBus, zenoh_config
+    from covnet.wire.zenoh_bus import ZenohBus, zenoh_config
 
     endpoint, run = _free_endpoint(), msg.new_run_id()
     out = tmp_path / "rec.mcap"
@@ -255,10 +255,10 @@ def test_recorder_process_records_everything_and_closes_the_file_on_a_signal(
 @pytest.mark.timeout(60)
 def test_a_recorder_killed_with_sigkill_loses_at_most_its_flush_interval(tmp_path, paper_path):
     """``kill -9`` of the recorder: the file has no footer, but every message it had recorded
-    more than :data:`~covnet.recording.FLUSH_INTERVAL_S` (plus a heartbeat) before the kill is
+    more than :data:`~covnet.runs.recording.FLUSH_INTERVAL_S` (plus a heartbeat) before the kill is
     in it, readable, in order."""
-    from covnet.recording import FLUSH_INTERVAL_S
-    from covnet.zenoh_bus import ZenohBus, zenoh_config
+    from covnet.runs.recording import FLUSH_INTERVAL_S
+    from covnet.wire.zenoh_bus import ZenohBus, zenoh_config
 
     endpoint, run = _free_endpoint(), msg.new_run_id()
     out = tmp_path / "rec.mcap"

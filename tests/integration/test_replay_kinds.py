@@ -11,12 +11,12 @@ import pytest
 import yaml
 from multiproc import REPO, CovnetProcess, assert_nothing_left
 
-import covnet.cli
+import covnet.cli.app
 from covnet import kinds
-from covnet import messages as msg
-from covnet.recording import RecordingReader, RecordingWriter, read_metadata
-from covnet.replay_kit import RECORDING, REPLAY_DIR, REPORT
-from covnet.rundir import load_arrays, read_json
+from covnet.runs.recording import RecordingReader, RecordingWriter, read_metadata
+from covnet.runs.replay_kit import RECORDING, REPLAY_DIR, REPORT
+from covnet.runs.rundir import load_arrays, read_json
+from covnet.wire import messages as msg
 
 CONFIGS = REPO / "configs"
 CASES = {
@@ -69,7 +69,7 @@ def test_replay_of_an_up_run_is_identical(up_runs, kind, capsys):
     result = CASES[kind][2]
     reader = RecordingReader(run / RECORDING)
     assert sum(1 for _ in reader.samples()) > 0 and reader.complete
-    assert covnet.cli.main(["replay", str(run)]) == 0
+    assert covnet.cli.app.main(["replay", str(run)]) == 0
     out = capsys.readouterr().out
     assert "identical" in out and result in out, out
     assert (run / REPLAY_DIR / result).read_bytes() == (run / result).read_bytes()

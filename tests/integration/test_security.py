@@ -21,13 +21,13 @@ import pytest
 import yaml
 from multiproc import REPO, CovnetProcess
 
-from covnet import messages as msg
-from covnet.cli import main as covnet_main
+from covnet.cli.app import main as covnet_main
 from covnet.covariance_control.config import load, normalised
-from covnet.rundir import load_arrays
-from covnet.security import zenoh_settings
-from covnet.up import free_port
-from covnet.zenoh_bus import ZenohBus, zenoh_config
+from covnet.processes.up import free_port
+from covnet.runs.rundir import load_arrays
+from covnet.wire import messages as msg
+from covnet.wire.security import zenoh_settings
+from covnet.wire.zenoh_bus import ZenohBus, zenoh_config
 
 pytestmark = [
     pytest.mark.integration,

@@ -17,9 +17,9 @@ import yaml
 from multiproc import REPO
 from test_security import PASSWORDS, _make_ca, _make_cert, client, router, write_config
 
-from covnet import messages as msg
 from covnet.covariance_control.config import load
-from covnet.up import free_port
+from covnet.processes.up import free_port
+from covnet.wire import messages as msg
 
 pytestmark = [
     pytest.mark.integration,

@@ -14,7 +14,7 @@ import pytest
 import yaml
 from multiproc import assert_nothing_left
 
-from covnet.up import default_sensors_per_process, sensor_hosts
+from covnet.processes.up import default_sensors_per_process, sensor_hosts
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 

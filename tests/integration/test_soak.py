@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from covnet import bench_soak
+from covnet.bench import soak as bench_soak
 
 NODES = {"launcher", "manager", "world", "recorder", *(f"S{i}" for i in range(1, 9))}
 

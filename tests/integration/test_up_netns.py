@@ -1,5 +1,5 @@
 """``covnet up --netns``: every sensor in its own network namespace, joined to the manager's by an
-emulated link (covnet.netns_launch).  A 20 ms uplink shows as ~20 ms one-way measurement
+emulated link (covnet.processes.netns_launch).  A 20 ms uplink shows as ~20 ms one-way measurement
 latency; with ideal links the run equals ``covnet run``; Ctrl-C and a crashed manager still
 remove every namespace, link and forwarder; bad combinations exit 2.  The runs are skipped, with
 the reason, where namespaces or TUN devices cannot be made (not root, no iproute2, no
@@ -18,12 +18,12 @@ import pytest
 import yaml
 from multiproc import CovnetProcess, assert_nothing_left, pid_alive
 
-from covnet.cli import main as covnet_main
+from covnet.cli.app import main as covnet_main
 from covnet.core.delay import DelayDist, LinkSpec
-from covnet.launch import ProcessSpec
-from covnet.netem.detect import run_ip
-from covnet.netns_launch import NetnsTopology, SensorLink, scaled, unsupported_reason
-from covnet.rundir import load_arrays
+from covnet.processes.launch import ProcessSpec
+from covnet.processes.netem.detect import run_ip
+from covnet.processes.netns_launch import NetnsTopology, SensorLink, scaled, unsupported_reason
+from covnet.runs.rundir import load_arrays
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
@@ -175,7 +175,7 @@ def test_bad_combinations_exit_2(tmp_path, paper_path, capsys, monkeypatch):
     assert "--netns" in err and "--nodes" in err and "Traceback" not in err
     assert covnet_main(["up", cfg, "--netns", "--router", "tcp/127.0.0.1:7447"]) == 2
     assert "--router" in capsys.readouterr().err
-    monkeypatch.setattr("covnet.netns_launch.os.geteuid", lambda: 1000)
+    monkeypatch.setattr("covnet.processes.netns_launch.os.geteuid", lambda: 1000)
     assert covnet_main(["up", cfg, "--netns", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
     assert "root" in err and "--realtime" in err and "Traceback" not in err

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from covnet import messages as m
-from covnet.bus import BusClosed, LivelinessEvent
-from covnet.launch import ProcessSpec, Supervisor
-from covnet.zenoh_bus import ZenohBus, zenoh_config
+from covnet.processes.launch import ProcessSpec, Supervisor
+from covnet.wire import messages as m
+from covnet.wire.bus import BusClosed, LivelinessEvent
+from covnet.wire.zenoh_bus import ZenohBus, zenoh_config
 
 NODE = Path(__file__).resolve().parent / "_children" / "zenoh_node.py"
 

@@ -1,4 +1,4 @@
-"""What every network recording's visual channels must hold (:mod:`covnet.visual`): one scene,
+"""What every network recording's visual channels must hold (:mod:`covnet.runs.visual`): one scene,
 one numbers message and one log line per scan, decoded with the official readers."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``covnet.api`` (issue 18): run and sweep as functions returning result objects, numpy
+"""``covnet.cli.api`` (issue 18): run and sweep as functions returning result objects, numpy
 arrays, ``to_frame()`` (pandas optional: a clear error without it), and the README's example,
 run as it is written."""
 
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from covnet import api
+from covnet.cli import api
 from covnet.config import ConfigError
 from covnet.errors import UsageError
 
@@ -175,7 +175,7 @@ except ImportError as exc:
 """
 
 
-@pytest.mark.parametrize("statement", ["from covnet import api", "import covnet.cli"])
+@pytest.mark.parametrize("statement", ["from covnet import api", "import covnet.cli.app"])
 def test_a_folder_named_covnet_says_what_is_wrong(tmp_path, statement):
     """From the folder that holds a clone named ``covnet/``, Python imports that folder as a
     namespace package instead of the installed covnet."""

@@ -1,6 +1,7 @@
-"""covnet.batch.parallel_map: the same results as a plain loop, in task order; a worker's error
+"""covnet.batches.pool.parallel_map: the same results as a plain loop, in task order; a worker's
+error
 raised in the parent; a dead worker reported; Ctrl-C stops every worker and keeps what was
-done.  Real worker processes (``python -m covnet.batch_worker``)."""
+done.  Real worker processes (``python -m covnet.batches.worker``)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from covnet.batch import BatchInterrupted, WorkerDied, end_batch, parallel_map
-from covnet.rundir import read_json
+from covnet.batches.pool import BatchInterrupted, WorkerDied, end_batch, parallel_map
+from covnet.runs.rundir import read_json
 
 
 def square(x: int) -> int:
@@ -44,7 +45,7 @@ def sleeps(x: int) -> int:
 
 
 def _workers_of(pid: int) -> list[int]:
-    """Live ``covnet.batch_worker`` processes whose parent is ``pid``."""
+    """Live ``covnet.batches.worker`` processes whose parent is ``pid``."""
     out = []
     for d in os.listdir("/proc"):
         if not d.isdigit():
@@ -55,7 +56,7 @@ def _workers_of(pid: int) -> list[int]:
         except OSError:
             continue
         fields = stat.rsplit(")", 1)[1].split()
-        if int(fields[1]) == pid and fields[0] != "Z" and b"covnet.batch_worker" in cmd:
+        if int(fields[1]) == pid and fields[0] != "Z" and b"covnet.batches.worker" in cmd:
             out.append(int(d))
     return out
 

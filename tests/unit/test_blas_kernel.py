@@ -44,7 +44,7 @@ def test_too_late_once_numpy_is_loaded():
 
 
 def test_the_kernel_in_use_is_recorded_in_run_json(tmp_path):
-    from covnet.rundir import read_json, record_end
+    from covnet.runs.rundir import read_json, record_end
 
     record_end(tmp_path, "completed", "test")
     assert read_json(tmp_path / "run.json")["blas_kernel"] == blas_kernel.kernel()

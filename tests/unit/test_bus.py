@@ -10,8 +10,9 @@ import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from covnet import messages as m
-from covnet.bus import (
+from covnet.clock import SimClock, WallClock
+from covnet.wire import messages as m
+from covnet.wire.bus import (
     BusClosed,
     Channel,
     InMemoryBus,
@@ -21,7 +22,6 @@ from covnet.bus import (
     check_keyexpr,
     keyexpr_matches,
 )
-from covnet.clock import SimClock, WallClock
 
 # --------------------------------------------------------------------------------------------
 # key expressions (zenoh semantics: * is one chunk, ** is zero or more chunks, $* is any run of

@@ -10,9 +10,9 @@ import sys
 import numpy as np
 import pytest
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.covariance_control.plots import FIGURES
-from covnet.rundir import load_arrays
+from covnet.runs.rundir import load_arrays
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +183,7 @@ def test_bench_fusion_json_rows(capsys):
 def test_a_failed_bench_network_run_says_why_without_a_traceback(monkeypatch, capsys):
     """bench up: a network run that fails ends the command with its reason and the run's
     output, exit 1 (UpError), not a traceback."""
-    from covnet import bench_up
+    from covnet.bench import up as bench_up
     from covnet.errors import UpError
 
     def failing_up(*args, **kwargs):
@@ -228,7 +228,7 @@ def test_a_reader_that_closes_the_pipe_stops_covnet_quietly(paper_path, unbuffer
 
 
 def test_a_broken_pipe_that_is_not_stdouts_is_not_hidden(monkeypatch, paper_path):
-    import covnet.cli as cli
+    import covnet.cli.app as cli
 
     def broken(args):
         raise BrokenPipeError(32, "a child's pipe")

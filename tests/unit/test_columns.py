@@ -1,4 +1,4 @@
-"""``covnet.columns.Column`` holds exactly what a list of rows would (bit for bit)."""
+"""``covnet.runs.columns.Column`` holds exactly what a list of rows would (bit for bit)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from covnet.columns import BLOCK, Column
+from covnet.runs.columns import BLOCK, Column
 
 
 @settings(max_examples=30, deadline=None)

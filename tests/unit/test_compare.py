@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.covariance_control.compare import Trial, compare, modes, scenario_for, summarise
 from covnet.covariance_control.config import from_dict, load, normalised
 

@@ -218,7 +218,7 @@ def test_the_shipped_scenario_has_no_warning():
 
 
 def test_cli_check_prints_the_scenario(capsys):
-    from covnet.cli import main
+    from covnet.cli.app import main
 
     assert main(["check", str(MULTI)]) == 0
     out = capsys.readouterr().out

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.config import ConfigError, read_yaml
 from covnet.core.multitarget_allocation import MAX_SENSORS
 from covnet.covariance_control.config import from_dict

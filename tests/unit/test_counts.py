@@ -1,4 +1,4 @@
-"""What became of each sensor's messages (covnet.runtime_stats): ``sent = on_time + late +
+"""What became of each sensor's messages (covnet.processes.runtime_stats): ``sent = on_time + late +
 rejected + lost``, where lost means sent and never arrived (a gap in ``seq``, or beyond the
 last one received when the sensor's own count says so), never "late"."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from covnet.runtime_stats import SEQ_AHEAD, NetStats, SeqCount
+from covnet.processes.runtime_stats import SEQ_AHEAD, NetStats, SeqCount
 
 
 def test_gaps_are_lost_duplicates_refused():

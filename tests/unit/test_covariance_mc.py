@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.covariance_control.montecarlo import interval
 
 ROOT = Path(__file__).resolve().parents[2]

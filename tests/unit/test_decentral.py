@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from covnet import kinds
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.config import ConfigError
 from covnet.core.allocation import Constraints
 from covnet.core.fusion import covariance_intersection

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from covnet import messages as msg
 from covnet.covariance_control.model import build_model, measure, truth_trajectory
-from covnet.recording import peek
+from covnet.runs.recording import peek
+from covnet.wire import messages as msg
 from sensors.covariance import NoiseTable
 
 

@@ -1,4 +1,5 @@
-"""Node processes forked from the launcher (covnet.forked, Supervisor with ``preload``): each
+"""Node processes forked from the launcher (covnet.processes.forked, Supervisor with ``preload``):
+each
 child is what ``python -m MODULE ARGS`` would be (its argv, environment, own session and
 process group, stdin closed, output through the pipe, its exit status, death by SIGINT), it
 has the preloaded modules without importing them, and the parent's exit work never runs in it.
@@ -43,8 +44,8 @@ if what == "wait":
 PARENT = """
 import atexit, json, os, sys, tempfile
 sys.path.insert(0, {moddir!r})
-from covnet.launch import ProcessSpec, Supervisor
-from covnet import forked
+from covnet.processes.launch import ProcessSpec, Supervisor
+from covnet.processes import forked
 here = os.environ["MARKS"]
 atexit.register(lambda: open(os.path.join(here, f"parent-atexit-{{os.getpid()}}"), "w").close())
 keep = tempfile.TemporaryDirectory(dir=here)  # a finalizer the children must not run
@@ -117,7 +118,7 @@ def test_forked_children_are_what_python_m_would_be(tmp_path, modules):
 
 
 def test_a_process_with_threads_starts_new_interpreters(modules, monkeypatch, tmp_path):
-    from covnet.launch import ProcessSpec, Supervisor
+    from covnet.processes.launch import ProcessSpec, Supervisor
 
     monkeypatch.syspath_prepend(str(modules))
     monkeypatch.setenv("MARKS", str(tmp_path))
@@ -140,7 +141,7 @@ def test_no_fork_once_a_zenoh_runtime_has_run():
     them (a hang), so a process that has opened a session starts new interpreters."""
     code = (
         "from covnet import forked\n"
-        "from covnet.zenoh_bus import ZenohBus, zenoh_config\n"
+        "from covnet.wire.zenoh_bus import ZenohBus, zenoh_config\n"
         "before = forked.forkable()\n"
         "ZenohBus.open(zenoh_config('router', listen=['tcp/127.0.0.1:0'])).close()\n"
         "print(before, forked.forkable())\n"
@@ -163,7 +164,7 @@ warnings.simplefilter("error")  # a test runner's filter: not the child's
 warnings.simplefilter("ignore")  # (importing the __main__ below warns here)
 import fork_pkg.__main__  # the parent has imported the module the child runs as __main__
 warnings.simplefilter("error")
-from covnet.launch import ProcessSpec, Supervisor
+from covnet.processes.launch import ProcessSpec, Supervisor
 lines = []
 spec = ProcessSpec("p", [sys.executable, "-m", "fork_pkg"], preload=("fork_heavy",))
 with Supervisor([spec], on_line=lambda n, l: lines.append(l)) as sup:
@@ -195,7 +196,7 @@ def test_a_fork_has_a_fresh_interpreters_warnings_and_runs_its_main_afresh(tmp_p
 
 MAP_SCRIPT = """
 import json, os, sys, time
-from covnet import forked
+from covnet.processes import forked
 
 def square(x):
     return x * x, os.getpid()

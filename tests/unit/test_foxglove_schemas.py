@@ -24,10 +24,10 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
 from covnet import kinds
-from covnet import messages as msg
-from covnet.live import LiveView
-from covnet.up import free_port
-from covnet.visual import ENCODINGS, METRICS_TOPIC, SCHEMAS, TOPICS, Visualiser
+from covnet.processes.up import free_port
+from covnet.runs.live import LiveView
+from covnet.runs.visual import ENCODINGS, METRICS_TOPIC, SCHEMAS, TOPICS, Visualiser
+from covnet.wire import messages as msg
 
 ROOT = Path(__file__).resolve().parents[2]
 

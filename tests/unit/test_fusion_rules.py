@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from recipe_entries import Naive
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.core.gaussian import Gaussian, symmetrise
 from covnet.core.kalman import update_sequential
 from covnet.covariance_control.compare import modes

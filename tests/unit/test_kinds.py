@@ -16,10 +16,10 @@ import pytest
 import yaml
 
 from covnet import kinds
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.config import ConfigError
 from covnet.errors import UsageError
-from covnet.recording import META_CONFIG, META_RUN, run_metadata
+from covnet.runs.recording import META_CONFIG, META_RUN, run_metadata
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIGS = {

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from covnet.cli import BENCH_SENSORS_MAX, build_parser, main
+from covnet.cli.app import BENCH_SENSORS_MAX, build_parser, main
 from covnet.covariance_control.config import from_dict, load
 from covnet.covariance_control.network_sizes import bench_config, scaled_sensors
-from covnet.up import process_specs, sensor_hosts
+from covnet.processes.up import process_specs, sensor_hosts
 from sensors.host import host
 
 REPO = Path(__file__).resolve().parents[2]

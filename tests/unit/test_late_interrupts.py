@@ -13,7 +13,7 @@ import textwrap
 CHILD = textwrap.dedent(
     """
     import gc, sys, time, weakref
-    from covnet.interrupts import deliver_late_interrupts
+    from covnet.processes.interrupts import deliver_late_interrupts
     if {install}:
         deliver_late_interrupts()
         deliver_late_interrupts()  # idempotent
@@ -65,7 +65,7 @@ def test_other_unraisable_exceptions_are_still_reported() -> None:
     code = textwrap.dedent(
         """
         import weakref
-        from covnet.interrupts import deliver_late_interrupts
+        from covnet.processes.interrupts import deliver_late_interrupts
         deliver_late_interrupts()
         class Thing: pass
         def callback(_ref): raise ValueError("a real defect")
@@ -95,7 +95,7 @@ def test_an_error_standing_in_for_a_swallowed_interrupt_is_an_interruption() -> 
     code = textwrap.dedent(
         """
         import argparse, os, signal
-        from covnet import cli
+        from covnet.cli import app as cli
 
         def body(args):
             if {signal_first}:
@@ -131,7 +131,7 @@ def test_an_error_standing_in_for_a_swallowed_interrupt_is_an_interruption() -> 
 ANSWERED = textwrap.dedent(
     """
     import sys, time, weakref
-    from covnet import interrupts
+    from covnet.processes import interrupts
     interrupts.deliver_late_interrupts()
 
     class Thing:
@@ -154,7 +154,8 @@ ANSWERED = textwrap.dedent(
 
 
 def test_an_answered_interruption_is_not_delivered_again_during_exit() -> None:
-    """Without :func:`covnet.interrupts.answered` the redelivered interrupt lands while the
+    """Without :func:`covnet.processes.interrupts.answered` the redelivered interrupt lands while
+    the
     process exits and ends it by SIGINT (status -2) instead of the command's 130."""
     runs = {
         answer: subprocess.run(

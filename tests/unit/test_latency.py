@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.config import ConfigError
 from covnet.covariance_control.config import from_dict, load, normalised
 from covnet.covariance_control.decentral_sim import run_centre

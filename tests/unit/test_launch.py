@@ -13,7 +13,7 @@ import threading
 
 import pytest
 
-from covnet.launch import ProcessSpec, Supervisor
+from covnet.processes.launch import ProcessSpec, Supervisor
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -210,7 +210,7 @@ PARENT = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    from covnet.launch import ProcessSpec, Supervisor, sigterm_raises_keyboard_interrupt
+    from covnet.processes.launch import ProcessSpec, Supervisor, sigterm_raises_keyboard_interrupt
     sigterm_raises_keyboard_interrupt()
     polite, deaf, pids_file, fail = sys.argv[1], sys.argv[2], Path(sys.argv[3]), sys.argv[4]
     specs = [ProcessSpec("polite", [sys.executable, "-c", polite]),
@@ -265,8 +265,8 @@ INTERRUPTED_START = textwrap.dedent(
     """
     import json, signal, sys
     from pathlib import Path
-    from covnet import forked, interrupts
-    from covnet.launch import ProcessSpec, Supervisor
+    from covnet.processes import forked, interrupts
+    from covnet.processes.launch import ProcessSpec, Supervisor
     signal.signal(signal.SIGINT, interrupts.raise_interrupt)
     how, at, pids_file, started_file = sys.argv[1:5]
     started = []

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from covnet import messages as msg
-from covnet.bus import InMemoryBus, Sample
 from covnet.clock import SimClock
 from covnet.covariance_control.centre import usable_position, usable_track
+from covnet.wire import messages as msg
+from covnet.wire.bus import InMemoryBus, Sample
 from manager.loop import Loop as _Loop
 
 RUN = "r1"

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from covnet import kinds
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.config import ConfigError
 from covnet.errors import UsageError
 from covnet.mobile import bench
@@ -235,7 +235,7 @@ def test_covnet_cli_routes_mobile_configs(tmp_path, capsys):
 
 
 def test_mc_json_lines_and_no_figures(tmp_path, capsys):
-    from covnet.cli import main
+    from covnet.cli.app import main
 
     out = tmp_path / "mc"
     cfg = write_cfg(tmp_path, short(4))

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from covnet.cli import main
-from covnet.rundir import load_arrays
+from covnet.cli.app import main
+from covnet.runs.rundir import load_arrays
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -124,7 +124,7 @@ def test_refused_fusion_modes_name_what_is_missing(short_config, tmp_path, capsy
 
 
 def test_a_config_warning_prints_as_one_line(capsys):
-    from covnet import cli
+    from covnet.cli import app as cli
     from covnet.config import ConfigWarning
 
     w = ConfigWarning("sensors[0]", "P1 never covers any target")

@@ -1,4 +1,5 @@
-"""covnet.netem without a network: capability probes, the LinkSpec -> netem mapping, mode choice,
+"""covnet.processes.netem without a network: capability probes, the LinkSpec -> netem mapping, mode
+choice,
 and the forwarder's scheduling loop on a pipe."""
 
 from __future__ import annotations
@@ -11,8 +12,8 @@ import numpy as np
 import pytest
 
 from covnet.core.delay import DelayDist, LinkSpec, LinkState, link_stream, schedule
-from covnet.netem import detect, link, netem_args
-from covnet.netem.tun_link import Direction, _Stop, forward
+from covnet.processes.netem import detect, link, netem_args
+from covnet.processes.netem.tun_link import Direction, _Stop, forward
 
 
 def test_probes_answer_a_bool():

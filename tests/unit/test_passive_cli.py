@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from covnet.cli import main
+from covnet.cli.app import main
 from covnet.core.passive import METHODS, Association
 from covnet.errors import UsageError
 from covnet.passive import bench

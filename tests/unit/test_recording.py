@@ -10,10 +10,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from covnet import messages as msg
-from covnet.bus import InMemoryBus, keyexpr_matches
 from covnet.covariance_control.config import config_hash
-from covnet.recording import (
+from covnet.runs.recording import (
     META_CONFIG,
     META_RUN,
     RecordedSample,
@@ -24,6 +22,8 @@ from covnet.recording import (
     read_recording,
     run_metadata,
 )
+from covnet.wire import messages as msg
+from covnet.wire.bus import InMemoryBus, keyexpr_matches
 
 RUN = "r1"
 

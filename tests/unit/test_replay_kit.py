@@ -1,4 +1,4 @@
-"""The replay kit (:mod:`covnet.replay_kit`) and each kind's replay: a recorded in-process
+"""The replay kit (:mod:`covnet.runs.replay_kit`) and each kind's replay: a recorded in-process
 network of each kind (world, sensors, recorder and manager loops of the kind's own roles, as
 threads over one InMemoryHub) replays identically, and one tampered measurement or decision in
 its recording is reported as a difference."""
@@ -14,8 +14,6 @@ import pytest
 import yaml
 
 from covnet import kinds
-from covnet import messages as msg
-from covnet.bus import InMemoryBus, InMemoryHub
 from covnet.clock import WallClock
 from covnet.covariance_control import replay as cc_replay
 from covnet.covariance_control.results import write_network_run as cc_write
@@ -23,20 +21,22 @@ from covnet.mobile import replay as mobile_replay
 from covnet.mobile.network import write_network_run as mobile_write
 from covnet.passive import replay as passive_replay
 from covnet.passive.network import write_network_run as passive_write
-from covnet.recording import (
+from covnet.runs.recording import (
     RecordingReader,
     RecordingWriter,
     key_kind,
     read_metadata,
     run_metadata,
 )
-from covnet.replay_kit import (
+from covnet.runs.replay_kit import (
     MAX_LISTED,
     RECORDING,
     Differences,
     compare_file,
     failure_events,
 )
+from covnet.wire import messages as msg
+from covnet.wire.bus import InMemoryBus, InMemoryHub
 from recorder import node as recorder_node
 
 RUN = "rk"

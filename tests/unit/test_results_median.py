@@ -1,4 +1,5 @@
-"""``covnet.stats.median`` is ``numpy.median`` bit for bit (it only avoids importing numpy.ma), and
+"""``covnet.batches.stats.median`` is ``numpy.median`` bit for bit (it only avoids importing
+numpy.ma), and
 the model's cached noise factors draw the same measurements as factoring ``R`` every scan."""
 
 from __future__ import annotations
@@ -9,12 +10,12 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
+from covnet.batches.stats import median
 from covnet.core import streams
 from covnet.core.sensing import measure
 from covnet.covariance_control.config import load
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.model import measure as model_measure
-from covnet.stats import median
 
 # beyond 1e300 the sum of the two middle values can overflow, and numpy's own mean warns
 floats = st.floats(-1e300, 1e300, allow_nan=False, allow_infinity=False, width=64)

@@ -1,5 +1,5 @@
-"""``covnet check`` / :func:`covnet.security.preflight` check the TLS certificates as zenoh
-(rustls, webpki) will use them, and :func:`covnet.security.login_problem` tells why a router
+"""``covnet check`` / :func:`covnet.wire.security.preflight` check the TLS certificates as zenoh
+(rustls, webpki) will use them, and :func:`covnet.wire.security.login_problem` tells why a router
 refuses a client, without zenoh.
 
 The certificates are made here with the ``cryptography`` API, in a temporary directory: a CA
@@ -31,10 +31,10 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from covnet.cli import main as covnet_main
+from covnet.cli.app import main as covnet_main
 from covnet.config import ConfigError
 from covnet.covariance_control.config import load, normalised
-from covnet.security import certificate_problems, login_problem, preflight
+from covnet.wire.security import certificate_problems, login_problem, preflight
 
 NOW = dt.datetime.now(dt.UTC)
 NODES = ("manager", "world", "recorder", "S1", "S2")  # what covnet check checks

@@ -10,11 +10,11 @@ import pytest
 import yaml
 from test_security_certs import CA
 
-from covnet import messages as msg
-from covnet.bus import keyexpr_matches
 from covnet.config import ConfigError
 from covnet.covariance_control.config import config_hash, from_dict, load, normalised
-from covnet.security import (
+from covnet.wire import messages as msg
+from covnet.wire.bus import keyexpr_matches
+from covnet.wire.security import (
     access_control,
     endpoint,
     file_problems,

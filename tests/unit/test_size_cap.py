@@ -1,4 +1,4 @@
-"""The payload size cap (issue 14, "Flood test"): :data:`covnet.messages.MAX_PAYLOAD_BYTES` is
+"""The payload size cap (issue 14, "Flood test"): :data:`covnet.wire.messages.MAX_PAYLOAD_BYTES` is
 large enough for the largest legitimate message of every kind, and every bus drops a payload
 over it before copying it, counting it by (key, reason) on the receiving handle."""
 
@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from covnet import messages as m
-from covnet.bus import MAX_DROP_KEYS, OVERSIZE, DropCounter, InMemoryBus, InMemoryHub, dropped
-from covnet.latency_bus import DelayedBus
-from covnet.up import free_port
-from covnet.zenoh_bus import KEY_HEADROOM_BYTES, ZenohBus, zenoh_config
+from covnet.processes.up import free_port
+from covnet.wire import messages as m
+from covnet.wire.bus import MAX_DROP_KEYS, OVERSIZE, DropCounter, InMemoryBus, InMemoryHub, dropped
+from covnet.wire.latency_bus import DelayedBus
+from covnet.wire.zenoh_bus import KEY_HEADROOM_BYTES, ZenohBus, zenoh_config
 
 # --------------------------------------------------------------------------------------------
 # the cap is computed from the schemas
@@ -23,14 +23,14 @@ from covnet.zenoh_bus import KEY_HEADROOM_BYTES, ZenohBus, zenoh_config
 
 
 def _ids(prefix: str, n: int) -> tuple[str, ...]:
-    """``n`` distinct ids of :data:`~covnet.messages.MAX_NAME_LEN` characters."""
+    """``n`` distinct ids of :data:`~covnet.wire.messages.MAX_NAME_LEN` characters."""
     return tuple(f"{prefix}{i:d}".ljust(m.MAX_NAME_LEN, "x") for i in range(n))
 
 
 def _largest_messages(n_sensors: int, n_targets: int, rows: int) -> list[m.Message]:
     """The largest message of every kind a network of that size sends (ids at the longest,
     every list full, every optional field set, the dimensions of
-    :func:`~covnet.messages.payload_bounds`)."""
+    :func:`~covnet.wire.messages.payload_bounds`)."""
     sids, tids = _ids("S", n_sensors), _ids("T", n_targets)
     n, dz = m.CAP_STATE_DIM, m.CAP_MEAS_DIM
     big = 2**63 - 1

@@ -45,7 +45,7 @@ def test_the_core_lapack_routines_are_scipys_own():
 
 def test_covnet_run_does_not_import_scipy_linalg(tmp_path):
     mods = _modules_after(
-        "from covnet.cli import main\n"
+        "from covnet.cli.app import main\n"
         f"main(['run', {str(PAPER)!r}, '--no-figures', '--out', {str(tmp_path / 'r')!r},"
         " '--metric', 'spectral'])"
     )
@@ -54,10 +54,10 @@ def test_covnet_run_does_not_import_scipy_linalg(tmp_path):
     # nor what only other commands or modes use: the batch machinery (mc, compare, sweep),
     # the slow-link simulation, numpy.ma (numpy.median's import), the message schemas
     for mod in (
-        "covnet.messages",
+        "covnet.wire.messages",
         "msgpack",
-        "covnet.batch",
-        "covnet.trials",
+        "covnet.batches.pool",
+        "covnet.batches.trials",
         "multiprocessing",
         "covnet.covariance_control.latency_sim",
         "covnet.covariance_control.batch_commands",
@@ -73,7 +73,7 @@ def test_covnet_run_does_not_import_scipy_linalg(tmp_path):
 def test_the_world_a_sensor_and_the_recorder_need_no_lapack():
     mods = _modules_after(
         "from covnet import kinds\n"
-        "import sensors.covariance, world.covariance, recorder.node, covnet.recording\n"
+        "import sensors.covariance, world.covariance, recorder.node, covnet.runs.recording\n"
         "from covnet.covariance_control.model import build_model, truth_trajectory\n"
         f"kind, cfg = kinds.load({str(PAPER)!r})\n"
         "truth_trajectory(build_model(cfg))"
@@ -95,13 +95,13 @@ def test_the_local_batch_path_imports_no_dask(tmp_path):
     cfg = tmp_path / "s.yaml"
     cfg.write_text(yaml.safe_dump(data))
     mods = _modules_after(
-        "import covnet.api, covnet.trials\n"
-        "from covnet.cli import main\n"
+        "import covnet.cli.api, covnet.batches.trials\n"
+        "from covnet.cli.app import main\n"
         f"assert main(['sweep', {str(cfg)!r}, '--no-figures', '--workers', '2', '--out', "
         f"{str(tmp_path / 'o')!r}]) == 0"
     )
-    assert "covnet.trials" in mods
+    assert "covnet.batches.trials" in mods
     assert not {m for m in mods if m.split(".")[0] in ("dask", "distributed")}, sorted(
         m for m in mods if m.startswith(("dask", "distributed"))
     )
-    assert "covnet.cluster" not in mods
+    assert "covnet.batches.cluster" not in mods

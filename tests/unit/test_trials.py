@@ -1,6 +1,7 @@
-"""The batch layer (issue 18, :mod:`covnet.trials`): trials stored as they finish and skipped
+"""The batch layer (issue 18, :mod:`covnet.batches.trials`): trials stored as they finish and
+skipped
 on a re-run, the directory rules, seeds added until the intervals are narrow, failures that do
-not stop the others, the progress line, and the statistics (:mod:`covnet.stats`)."""
+not stop the others, the progress line, and the statistics (:mod:`covnet.batches.stats`)."""
 
 from __future__ import annotations
 
@@ -13,10 +14,9 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from covnet.batch import BatchInterrupted
-from covnet.errors import UsageError
-from covnet.stats import add_stats, error_stats, per_scan_bands, seed_stats
-from covnet.trials import (
+from covnet.batches.pool import BatchInterrupted
+from covnet.batches.stats import add_stats, error_stats, per_scan_bands, seed_stats
+from covnet.batches.trials import (
     Batch,
     BatchProgress,
     TrialStore,
@@ -26,6 +26,7 @@ from covnet.trials import (
     run_trials,
     write_batch_info,
 )
+from covnet.errors import UsageError
 
 
 def noisy(task):
@@ -255,7 +256,7 @@ def test_passive_trials_in_chunks_equal_the_whole_cell(tmp_path):
 def test_cli_ci_width_adds_seeds_until_narrow_and_says_so(tmp_path, capsys):
     import yaml
 
-    from covnet.cli import main
+    from covnet.cli.app import main
 
     repo = Path(__file__).resolve().parents[2]
     data = yaml.safe_load((repo / "configs" / "latency.yaml").read_text())

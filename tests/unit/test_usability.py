@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from covnet.cli import main
+from covnet.cli.app import main
 
 REPO = Path(__file__).resolve().parents[2]
 PAPER = REPO / "configs" / "paper.yaml"

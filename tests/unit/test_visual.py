@@ -1,4 +1,5 @@
-"""The visual channels (:mod:`covnet.visual` and each kind's ``visual`` module): oracle values of
+"""The visual channels (:mod:`covnet.runs.visual` and each kind's ``visual`` module): oracle values
+of
 the geometry, colours by sensor state, counts per scan, and every message of a ``covnet run
 --mcap`` file decoded with the official readers (``mcap`` + ``mcap-protobuf-support`` for the
 Foxglove protobuf schemas, ``jsonschema`` for the numbers)."""
@@ -19,10 +20,9 @@ from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
 from covnet import kinds
-from covnet import messages as msg
-from covnet.cli import main as covnet_main
-from covnet.recording import RecordingReader
-from covnet.visual import (
+from covnet.cli.app import main as covnet_main
+from covnet.runs.recording import RecordingReader
+from covnet.runs.visual import (
     COLOURS,
     LOG_TOPIC,
     METRICS_TOPIC,
@@ -38,6 +38,7 @@ from covnet.visual import (
     scene_update,
     sensor_states,
 )
+from covnet.wire import messages as msg
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -260,7 +261,7 @@ def test_paper_run_mcap_numbers_are_the_run_s(tmp_path):
     kind, cfg = _paper(scans=5, allocation={"metrics": ["spectral"]})
     out = tmp_path / "run"
     kind.run(cfg, out, figures=False)
-    from covnet.visual import write_run_mcap
+    from covnet.runs.visual import write_run_mcap
 
     docs = _metrics(write_run_mcap(kind, cfg, out))
     a = np.load(out / "arrays.npz")
@@ -280,7 +281,7 @@ def test_layout_is_generated_and_names_real_topics_and_fields():
     import importlib.util
     import re
 
-    from covnet.visual import METRICS_SCHEMA, TOPICS
+    from covnet.runs.visual import METRICS_SCHEMA, TOPICS
 
     path = ROOT / "docs" / "foxglove" / "make_layout.py"
     spec = importlib.util.spec_from_file_location("make_layout", path)

@@ -1,4 +1,5 @@
-"""The wire schema (covnet.messages): round trips, golden bytes, every rejection reason, fuzz."""
+"""The wire schema (covnet.wire.messages): round trips, golden bytes, every rejection reason,
+fuzz."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from covnet import messages as m
-from covnet.messages import (
+from covnet.wire import messages as m
+from covnet.wire.messages import (
     MAX_ARRAY_ELEMENTS,
     MAX_IDS,
     MAX_PAYLOAD_BYTES,

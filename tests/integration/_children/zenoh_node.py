@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from covnet import messages as m
-from covnet.zenoh_bus import ZenohBus, zenoh_config
+from covnet.wire import messages as m
+from covnet.wire.zenoh_bus import ZenohBus, zenoh_config
 
 
 def main(connect: str, run: str, node: str, count: int, lease_ms: int | None) -> int:

@@ -1,0 +1,200 @@
+"""The closed-loop zenoh probe of ``covnet bench up``: covnet's scan message pattern on bare
+pub/sub, with nothing else (no allocation, filter, world, recorder, heartbeats or checks).
+
+Per scan: the *commander* (a router session, like the manager) publishes one command of the size
+of covnet's ``Command`` enabling every sensor; each of ``N`` *responders* (one client session
+each, or, hosted ``K > 1`` per process as ``covnet up`` hosts sensors, shares of the process's
+one session, :mod:`sensors.host`; each in its own thread) answers
+with one message of the size of covnet's ``Measurement``; the next command goes out when all
+``N`` answers are in.  It reports scans per second (first command to last answer) and the
+per-scan latency (command published -> last answer received), as covnet's manager reports its
+loop (``network.json``: ``scans_per_s``, ``scan_latency``).  The sessions are covnet's own
+(:class:`covnet.wire.zenoh_bus.ZenohBus`: the same zenoh config, FIFO subscriptions read by the
+loop's thread), so the ratio of covnet's figures to the probe's is what covnet's protocol and
+work cost on top of the transport.
+
+``python -m covnet.bench.zenoh_probe commander --listen EP --run R --sensors N --scans S``: prints
+``READY`` once every responder's liveliness token is up, ``RESULT {json}`` at the end.
+``python -m covnet.bench.zenoh_probe responders --connect EP --run R --id 0 --id 1 ...``: serves
+until
+the commander says stop (or leaves).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import struct
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+__all__ = ["command_bytes", "main", "measurement_bytes"]
+
+#: the scan number heads every payload (``0``: stop)
+_HEAD = struct.Struct("<q")
+
+
+def command_bytes(n_sensors: int) -> int:
+    """The size of covnet's encoded ``Command`` enabling ``n_sensors`` sensors (ids as
+    :mod:`covnet.covariance_control.network_sizes` names them)."""
+    from covnet.wire import messages as msg  # the probe's own process: start-up of the responders
+
+    ids = tuple(f"S{1 + i % 8}.{1 + i // 8}" for i in range(n_sensors))
+    return len(msg.encode(msg.Command(100, 100.0, ids, time.monotonic_ns(), episode=0)))
+
+
+def measurement_bytes() -> int:
+    """The size of covnet's encoded covariance-control ``Measurement``."""
+    import numpy as np  # the probe's own process: start-up of the responders
+
+    from covnet.wire import messages as msg
+
+    m = msg.Measurement(
+        sensor_id="S1.1",
+        scan=100,
+        t=100.0,
+        z=np.zeros((1, 2)),
+        R=np.eye(2),
+        t_sent_ns=time.monotonic_ns(),
+        episode=0,
+        seq=100,
+    )
+    return len(msg.encode(m))
+
+
+def _payload(scan: int, size: int) -> bytes:
+    return _HEAD.pack(scan) + bytes(max(size - _HEAD.size, 0))
+
+
+def _open(mode: str, endpoint: str, stop: threading.Event, timeout_s: float = 30.0) -> Any:
+    from covnet.processes.process import open_bus  # zenoh: the probe's processes only (start-up)
+
+    if mode == "router":
+        return open_bus("router", listen=[endpoint], lease_ms=1000, timeout_s=timeout_s, stop=stop)
+    return open_bus("client", connect=[endpoint], lease_ms=1000, timeout_s=timeout_s, stop=stop)
+
+
+def commander(args: argparse.Namespace) -> int:
+    stop = threading.Event()
+    n, run = args.sensors, args.run
+    with _open("router", args.listen, stop) as bus:
+        alive = bus.watch_liveliness(f"probe/{run}/alive/*")
+        replies = bus.subscribe(f"probe/{run}/meas/*")
+        token = bus.declare_token(f"probe/{run}/alive/commander")
+        up: set[str] = set()
+        deadline = time.monotonic() + args.ready_timeout
+        while len(up) < n:
+            ev = alive.recv(timeout=0.1)
+            if ev is not None and not ev.key.endswith("/commander"):
+                (up.add if ev.alive else up.discard)(ev.key)
+            if time.monotonic() > deadline:
+                print(f"probe: only {len(up)} of {n} responders up", file=sys.stderr)
+                return 1
+        time.sleep(0.2)  # the responders' subscriptions reach the router
+        print("READY", flush=True)
+        key = f"probe/{run}/cmd"
+        size = args.command_bytes
+        lat: list[float] = []
+        t_first = time.perf_counter()
+        for k in range(1, args.scans + 1):
+            t0 = time.perf_counter()
+            bus.publish(key, _payload(k, size))
+            got = 0
+            while got < n:
+                s = replies.recv(timeout=args.scan_timeout)
+                if s is None:
+                    print(f"probe: scan {k}: {got} of {n} answers", file=sys.stderr)
+                    return 1
+                if _HEAD.unpack_from(s.payload)[0] == k:
+                    got += 1
+            lat.append(time.perf_counter() - t0)
+        wall = time.perf_counter() - t_first
+        bus.publish(key, _payload(0, size))  # stop
+        token.undeclare()
+        lat.sort()
+        result = {
+            "scans": args.scans,
+            "wall_s": wall,
+            "scans_per_s": args.scans / wall,
+            "p50_ms": 1e3 * lat[len(lat) // 2],
+            "p99_ms": 1e3 * lat[min(len(lat) - 1, int(0.99 * len(lat)))],
+        }
+        print("RESULT " + json.dumps(result), flush=True)
+        time.sleep(0.3)  # let the stop reach the responders before the router goes
+    return 0
+
+
+def responders(args: argparse.Namespace) -> int:
+    stop = threading.Event()
+    size = args.measurement_bytes
+    errors: list[str] = []
+    try:  # several responders share one session, as covnet's hosted sensors do
+        shared = _open("client", args.connect, stop) if len(args.id) > 1 else None
+    except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
+        print(f"probe: responders: {exc}", file=sys.stderr)
+        return 1
+
+    def one(rid: str) -> None:
+        try:
+            with (
+                shared.share() if shared is not None else _open("client", args.connect, stop) as bus
+            ):
+                cmds = bus.subscribe(f"probe/{args.run}/cmd")
+                key = f"probe/{args.run}/meas/{rid}"
+                token = bus.declare_token(f"probe/{args.run}/alive/{rid}")
+                while not stop.is_set():
+                    s = cmds.recv(timeout=0.5)
+                    if s is None:
+                        continue
+                    k = _HEAD.unpack_from(s.payload)[0]
+                    if k == 0:
+                        break
+                    bus.publish(key, _payload(k, size))
+                token.undeclare()
+        except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
+            errors.append(f"{rid}: {exc}")
+
+    threads = [threading.Thread(target=one, args=(rid,), daemon=True) for rid in args.id]
+    for th in threads:
+        th.start()
+    try:
+        for th in threads:
+            while th.is_alive():
+                th.join(0.1)
+    except KeyboardInterrupt:
+        stop.set()
+    finally:
+        if shared is not None:
+            shared.close()
+    for e in errors:
+        print(f"probe: responder {e}", file=sys.stderr)
+    return 1 if errors else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="covnet.bench.zenoh_probe", description=__doc__.splitlines()[0]
+    )
+    sub = p.add_subparsers(dest="role", required=True)
+    c = sub.add_parser("commander")
+    c.add_argument("--listen", required=True)
+    c.add_argument("--run", required=True)
+    c.add_argument("--sensors", type=int, required=True)
+    c.add_argument("--scans", type=int, default=300)
+    c.add_argument("--command-bytes", type=int, default=64)
+    c.add_argument("--ready-timeout", type=float, default=60.0)
+    c.add_argument("--scan-timeout", type=float, default=10.0)
+    r = sub.add_parser("responders")
+    r.add_argument("--connect", required=True)
+    r.add_argument("--run", required=True)
+    r.add_argument("--id", action="append", required=True)
+    r.add_argument("--measurement-bytes", type=int, default=146)
+    args = p.parse_args(argv)
+    return commander(args) if args.role == "commander" else responders(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,115 @@
+"""Small pieces every node loop (world, sensors, recorder) shares: its heartbeat and its watch
+on the manager's liveliness.  Both are driven by the loop itself (``tick``, ``poll``); nothing
+here runs on its own thread."""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+from collections.abc import Callable, Mapping
+
+from covnet.clock import Clock
+from covnet.config import NetworkSpec
+from covnet.wire import messages as msg
+from covnet.wire.bus import Bus
+
+
+class Heartbeat:
+    """Publishes ``Heartbeat(role, node_id, scan, rejected)`` at most every ``period_s``: the
+    application-level sign of life a hung loop stops giving (its zenoh session, hence its
+    liveliness token, would live on)."""
+
+    def __init__(
+        self, bus: Bus, clock: Clock, run_id: str, role: str, node_id: str, period_s: float
+    ) -> None:
+        self._bus, self._clock = bus, clock
+        self._role, self._node_id = role, node_id
+        self._key = msg.heartbeat_key(run_id, role, node_id)
+        self._period_ns = int(period_s * 1e9)
+        self._next_ns = 0
+
+    def tick(
+        self,
+        scan: int,
+        rejected: Mapping[str, int] | None = None,
+        *,
+        sent: int | None = None,
+        now: bool = False,
+    ) -> None:
+        """Publish a heartbeat if one is due (``now``: at once, as a node leaves); ``sent``:
+        a sensor's count of messages sent for the manager."""
+        t = self._clock.now_ns()
+        if t < self._next_ns and not now:
+            return
+        hb = msg.Heartbeat(
+            role=self._role,
+            node_id=self._node_id,
+            scan=scan,
+            t_sent_ns=t,
+            rejected=dict(rejected) if rejected else None,
+            sent=sent,
+        )
+        self._bus.publish(self._key, msg.encode(hb))
+        self._next_ns = t + self._period_ns
+
+
+class ManagerWatch:
+    """Follows the manager's liveliness token. ``left`` once a manager that was seen is gone:
+    the run is over (or the manager died), and the node winds down."""
+
+    def __init__(self, bus: Bus, run_id: str) -> None:
+        self._sub = bus.watch_liveliness(msg.alive_key(run_id, "manager", "manager"))
+        self.seen = False
+        self.up = False
+
+    def poll(self) -> None:
+        while (ev := self._sub.try_recv()) is not None:
+            self.seen = self.seen or ev.alive
+            self.up = ev.alive
+
+    @property
+    def left(self) -> bool:
+        self.poll()
+        return self.seen and not self.up
+
+    def close(self) -> None:
+        self._sub.close()
+
+
+def serve_commands(
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    net: NetworkSpec,
+    role: str,
+    node_id: str,
+    counts: Counter[str],
+    handle: Callable[[msg.Command], bool],
+) -> None:
+    """A node that acts on the manager's commands (the world): subscribe, declare the token,
+    then until ``stop`` or the manager leaves: heartbeat, decode each command strictly (a bad
+    one counted as ``rejected:<reason>``) and pass it to ``handle``, which returns whether it
+    took it (else it counted why).  Heartbeats carry the last scan taken and the rejections."""
+    cmd_sub = bus.subscribe(msg.command_keyexpr(run_id))  # every command
+    manager = ManagerWatch(bus, run_id)
+    token = bus.declare_token(msg.alive_key(run_id, role, node_id))
+    heartbeat = Heartbeat(bus, clock, run_id, role, node_id, net.heartbeat_s)
+    last_scan = 0
+    try:
+        while not stop.is_set() and not manager.left:
+            rejected = {k[9:]: v for k, v in counts.items() if k.startswith("rejected:")}
+            heartbeat.tick(last_scan, rejected)
+            s = cmd_sub.recv(timeout=net.heartbeat_s / 2)
+            if s is None:
+                continue
+            try:
+                cmd = msg.decode_command(s.key, s.payload)
+            except msg.WireError as exc:
+                counts[f"rejected:{exc.reason}"] += 1
+                continue
+            if handle(cmd):
+                last_scan = cmd.scan
+    finally:
+        token.undeclare()
+        manager.close()

@@ -1,0 +1,562 @@
+"""``covnet up``: start the whole network on this machine, show its status, stop it cleanly.
+
+Processes (each its own ``python -m``, its own zenoh session)::
+
+    manager  (router, listens on network.router)  <-- world, S1 ... Sn (clients)
+
+The launcher itself holds no zenoh session: it supervises the children
+(:class:`covnet.processes.launch.Supervisor`: ``processes.json`` written as soon as they start;
+SIGINT,
+then SIGTERM, then SIGKILL on the way out), waits for the manager's ``READY`` line, renders the
+manager's ``STATUS`` lines as a live display (plain lines when not on a terminal), restarts
+sensors under ``network.restart: on-failure``, and, once the manager is done, stops the rest and
+draws the figures from the run directory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from covnet.errors import UpError
+from covnet.processes import interrupts
+from covnet.processes.launch import ProcessSpec, Supervisor
+from covnet.processes.netns_launch import NetnsTopology, up_in_namespaces
+from covnet.processes.process import run_option_args
+from covnet.runs.rundir import LIVE, RUN_INFO, STATUSES, record_end, write_json
+from covnet.wire.security import endpoint, preflight
+
+__all__ = [
+    "HOST_PREFIX",
+    "StatusView",
+    "UpError",
+    "default_sensors_per_process",
+    "free_port",
+    "process_specs",
+    "resolve_router",
+    "sensor_hosts",
+    "up",
+]
+
+#: what node processes import, loaded once here and shared by forking (covnet.processes.forked): the
+#: launcher's own imports (numpy, the kind's config) are most of the rest
+NODE_PRELOAD = (
+    "zenoh",
+    "covnet.processes.process",
+    "covnet.wire.zenoh_bus",
+    "covnet.runs.recording",
+    "covnet.runs.visual",
+    "covnet.runs.live",
+    "recorder.node",
+    "sensors.host",
+)
+READY_GRACE_S = 15.0  # on top of network.ready_timeout_s: interpreter start-up, imports
+#: on top of that, per sensor: a large network's interpreters start on few cores
+READY_GRACE_PER_SENSOR_S = 0.25
+#: networks of at most this many sensors get one process per sensor by default
+ONE_PER_PROCESS_MAX = 16
+#: a process that hosts several sensors is named ``sensors@<i>`` ('@' is not allowed in a
+#: sensor id, so the name is never one)
+HOST_PREFIX = "sensors@"
+#: the nodes without which a run is not complete, and what is missing once one has died
+VITAL = {
+    "world": "no truth was published after that (the sensors measured what they had)",
+    "recorder": "the recording stops there, so covnet replay cannot reproduce the run",
+}
+
+
+def default_sensors_per_process(n_sensors: int, cores: int | None = None) -> int:
+    """``covnet up``'s default ``--sensors-per-process``: 1 for at most ``ONE_PER_PROCESS_MAX``
+    sensors, else as many as gives about two sensor processes per core."""
+    if n_sensors <= ONE_PER_PROCESS_MAX:
+        return 1
+    cores = cores or os.cpu_count() or 1
+    return max(1, -(-n_sensors // (2 * cores)))
+
+
+def sensor_hosts(sensor_ids: Sequence[str], per_process: int) -> list[tuple[str, list[str]]]:
+    """The sensor processes: ``(process name, hosted sensor ids)``, the ids in config order in
+    groups of ``per_process``; a process of one sensor is named after it, a host of several
+    ``sensors@1``, ``sensors@2``, ..."""
+    if per_process < 1:
+        raise ValueError(f"sensors per process must be >= 1, got {per_process}")
+    groups = [list(sensor_ids[i : i + per_process]) for i in range(0, len(sensor_ids), per_process)]
+    if per_process == 1:
+        return [(g[0], g) for g in groups]
+    return [(f"{HOST_PREFIX}{i + 1}", g) for i, g in enumerate(groups)]
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def resolve_router(endpoint: str) -> str:
+    """``tcp/127.0.0.1:0`` -> the same with a free port; a concrete port is kept."""
+    proto, _, hostport = endpoint.partition("/")
+    host, _, port = hostport.rpartition(":")
+    if port == "0":
+        return f"{proto}/{host}:{free_port(host.strip('[]'))}"
+    return endpoint
+
+
+def process_specs(
+    kind: Any,
+    cfg: Any,
+    config_path: str,
+    run_id: str,
+    router: str,
+    out: Path,
+    *,
+    options: dict[str, Any],
+    realtime: bool,
+    speed: float,
+    sensors_per_process: int = 1,
+    sensor_ids: Sequence[str] | None = None,
+    foxglove: str | None = None,
+) -> list[ProcessSpec]:
+    """The processes of one network of any kind: ``python -m manager``, ``world``,
+    ``recorder`` (when the run is recorded) and the ``sensors`` processes, each given the
+    config, the run id and the same run ``options`` (so every process holds the same config).
+    The sensors (``sensor_ids``, default all, in config order) go ``sensors_per_process`` to a
+    process (:func:`sensor_hosts`).  ``foxglove``: ``HOST:PORT`` on which the recorder also
+    serves the visual channels live (:mod:`covnet.runs.live`)."""
+    py = sys.executable
+    common = ["--config", str(config_path), "--run", run_id, *run_option_args(options)]
+    if realtime:
+        common += ["--realtime", "--speed", str(speed)]
+    connect = endpoint(cfg.network, cfg.network.connect or router)
+    roles = kind.restartable(cfg) if cfg.network.restart == "on-failure" else frozenset()
+    specs = [
+        ProcessSpec(
+            "manager", [py, "-m", "manager", *common, "--listen", router, "--out", str(out)]
+        ),
+        ProcessSpec(
+            "world", [py, "-m", "world", *common, "--connect", connect], restart="world" in roles
+        ),
+    ]
+    if cfg.network.record:
+        recording = str(out / "recording.mcap")
+        argv = [py, "-m", "recorder", *common, "--connect", connect, "--out", recording]
+        if foxglove is not None:
+            argv += ["--foxglove", foxglove]
+        specs.append(ProcessSpec("recorder", argv, restart="recorder" in roles))
+    ids = list(cfg.sensor_ids if sensor_ids is None else sensor_ids)
+    for name, hosted in sensor_hosts(ids, sensors_per_process):
+        argv = [py, "-m", "sensors", *common]
+        for sid in hosted:
+            argv += ["--id", sid]
+        specs.append(ProcessSpec(name, [*argv, "--connect", connect], restart="sensor" in roles))
+    return specs
+
+
+@dataclass
+class StatusView:
+    """Renders the manager's STATUS lines: a rich live bar on a terminal, plain lines else."""
+
+    scans: int
+    metrics: list[str]
+    tty: bool = field(default_factory=lambda: sys.stdout.isatty())
+    width: int = field(default_factory=lambda: shutil.get_terminal_size((80, 24)).columns)
+    last: dict[str, Any] | None = None
+    _progress: Any = None
+    _task: Any = None
+    _last_plain: float = 0.0
+
+    def __enter__(self) -> StatusView:
+        if self.tty:
+            # rich only for a terminal (start-up time of the plain-lines case)
+            from rich.progress import BarColumn, Progress, TextColumn
+
+            self._progress = Progress(
+                TextColumn("[bold]{task.fields[metric]}"),
+                BarColumn(bar_width=10),
+                TextColumn("{task.fields[info]}"),
+                transient=False,
+            )
+            self.width = self._progress.console.width
+            self._progress.__enter__()
+            self._task = self._progress.add_task(
+                "scan", total=self.scans * len(self.metrics), metric="", info="waiting for READY"
+            )
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._progress is not None:
+            self._progress.__exit__(None, None, None)
+
+    def line(self, text: str) -> None:
+        if self._progress is not None:
+            self._progress.console.print(text, markup=False, highlight=False)
+        else:
+            print(text, flush=True)
+
+    def update(self, st: dict[str, Any]) -> None:
+        """One manager STATUS line (:func:`manager.loop.run_scans`: the kind's ``info`` and the
+        skeleton's counts)."""
+        self.last = st
+        done = st["episode"] * st["scans"] + st["scan"]
+        if self._progress is not None:
+            info = status_text(st, self.width - len(st["metric"]) - 12)
+            self._progress.update(self._task, completed=done, metric=st["metric"], info=info)
+        else:
+            now = time.monotonic()
+            if now - self._last_plain >= 1.0 or st["scan"] == st["scans"]:
+                head = f"[status] {st['metric']}: "
+                print(head + status_text(st, self.width - len(head)), flush=True)
+                self._last_plain = now
+
+
+def status_text(st: dict[str, Any], width: int) -> str:
+    """A manager STATUS as one line of at most ``width`` characters, abbreviated, never cut: the
+    kind's ``info`` (or its ``info_short`` when that does not fit), then the latency, the
+    traffic and the failed sensors while they fit (the failed ones are kept, at the expense of
+    the traffic)."""
+    failed = f"failed {','.join(st['failed'])}" if st["failed"] else ""
+    latency = f"{st['latency_ms']:.1f} ms"
+    traffic = f"{st['messages']} msg {st['bytes'] / 1e3:.0f} kB"
+    for info in (st["info"], st.get("info_short", st["info"])):
+        for parts in ((info, latency, traffic, failed), (info, latency, failed), (info, failed)):
+            text = "  ".join(p for p in parts if p)
+            if len(text) <= width:
+                return text
+    return "  ".join(p for p in (st.get("info_short", st["info"]), failed) if p)
+
+
+def up(
+    kind: Any,
+    sc: Any,
+    config_path: str,
+    out: Path,
+    *,
+    options: dict[str, Any] | None = None,
+    realtime: bool = False,
+    speed: float = 1.0,
+    run_id: str,
+    verbose: bool = False,
+    on_ready: Callable[[Supervisor], None] | None = None,
+    nodes: list[str] | None = None,
+    router: str | None = None,
+    netns: bool = False,
+    topology: NetnsTopology | None = None,
+    sensors_per_process: int | None = None,
+    foxglove: str | None = None,
+) -> int:
+    """Run the network of ``sc`` (a config of the scenario kind ``kind``, with the run
+    ``options`` already applied; they are passed on to every process) to completion; returns
+    the manager's exit status (130 on Ctrl-C).
+
+    ``nodes`` limits which processes this host starts (names: ``manager``, ``world``,
+    ``recorder``, ``sensors`` for all sensors, or sensor ids); the others are started
+    elsewhere (``python -m sensors ... --connect ROUTER``).  ``router`` overrides
+    ``network.router``.
+
+    ``netns``: each sensor in its own network namespace, linked to the manager's by an emulated
+    link (:mod:`covnet.processes.netns_launch`, which calls back with ``topology``); not with
+    ``nodes``
+    or ``router``, and one sensor per process.
+
+    ``sensors_per_process``: how many sensors one sensor process hosts (:mod:`sensors.host`;
+    default :func:`default_sensors_per_process`); ``processes.json`` then also says which
+    process hosts each sensor (``"hosts"``).
+
+    ``foxglove``: ``HOST:PORT`` on which the recorder serves the visual channels live over the
+    Foxglove WebSocket protocol (``covnet up --foxglove``; the recording has them anyway)."""
+    options = options or {}
+    if sensors_per_process is not None and sensors_per_process < 1:
+        raise UpError(f"--sensors-per-process: must be >= 1, got {sensors_per_process}")
+    if netns:
+        if nodes is not None or router is not None:
+            raise UpError("--netns runs the whole network here: not with --nodes or --router")
+        if sensors_per_process not in (None, 1):
+            raise UpError("--netns puts each sensor in its own namespace: one sensor per process")
+        return up_in_namespaces(
+            up, kind, sc, config_path, out, options=options, realtime=realtime, speed=speed,
+            run_id=run_id, verbose=verbose, on_ready=on_ready, sensors_per_process=1,
+            foxglove=foxglove,
+        )  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    router = resolve_router(endpoint(sc.network, router or sc.network.router))
+    wanted = set(nodes) if nodes is not None else None
+    ids = list(sc.sensor_ids)  # the sensors started here, in config order
+    if wanted is not None and "sensors" not in wanted:
+        ids = [sid for sid in ids if sid in wanted]
+    if sensors_per_process is None:
+        sensors_per_process = default_sensors_per_process(len(ids))
+    groups = sensor_hosts(ids, sensors_per_process)
+    specs = process_specs(
+        kind,
+        sc,
+        config_path,
+        run_id,
+        router,
+        out,
+        options=options,
+        realtime=realtime,
+        speed=speed,
+        sensors_per_process=sensors_per_process,
+        sensor_ids=ids,
+        foxglove=foxglove,
+    )
+    if topology is not None:  # --netns: each process in its namespace, with its endpoint
+        specs, router = topology.apply(specs), topology.listen
+    else:  # forks of this launcher with the nodes' modules loaded (start-up time)
+        preload = (*NODE_PRELOAD, *kind.roles.values())
+        specs = [replace(sp, preload=preload) for sp in specs]
+    if wanted is not None:
+        sensor_procs = {name for name, _ in groups}
+        specs = [sp for sp in specs if sp.name in wanted or sp.name in sensor_procs]
+    hosts = {sid: name for name, hosted in groups if len(hosted) > 1 for sid in hosted}
+    nodes_here = [sp.name for sp in specs if not sp.name.startswith(HOST_PREFIX)] + list(hosts)
+    preflight(sc, nodes_here, str(config_path))  # keys, passwords: on this host
+    if not any(sp.name == "manager" for sp in specs):
+        return _supervise_without_manager(specs, out, run_id, router, hosts)
+    ready = threading.Event()
+    view = StatusView(sc.scans, kind.episodes(sc))
+    restartable = {sp.name for sp in specs if sp.restart}
+
+    def restarts(name: str) -> bool:
+        return name in restartable
+
+    def on_line(name: str, text: str) -> None:
+        if name == "manager" and text.startswith("STATUS "):
+            try:
+                view.update(json.loads(text[7:]))
+            except (ValueError, KeyError):
+                view.line(f"[{name}] {text}")
+            return
+        if name == "manager" and text == "READY":
+            ready.set()
+        if verbose or name == "manager" or "error" in text.lower() or "Traceback" in text:
+            view.line(f"[{name}] {text}")
+
+    view.line(f"[launcher] run {run_id}: router {router}, run directory {out}")
+    if foxglove is not None and any(sp.name == "recorder" for sp in specs):
+        view.line(f"[launcher] Foxglove live view: ws://{foxglove} (open it in Foxglove)")
+    facts = {  # what a rebuild from the recording cannot know (settle)
+        "run_id": run_id,
+        "clock": "realtime" if realtime else "lockstep",
+        "speed": speed if realtime else None,
+        "router": router,
+    }
+    previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt)
+    status = 0
+    lost: dict[str, dict[str, Any]] = {}  # VITAL nodes that died and were not restarted
+    sup = Supervisor(
+        specs, on_line=on_line, pids_file=out / "processes.json", pids_extra=_hosts(hosts)
+    )
+    try:
+        with (  # the children first: they may be forks of this process, while it has one thread
+            sup,
+            view,  # (on a terminal, rich's refresh thread)
+        ):
+            grace = READY_GRACE_S + READY_GRACE_PER_SENSOR_S * len(ids)
+            deadline = time.monotonic() + sc.network.ready_timeout_s + grace
+            while not ready.wait(0.1):
+                rcs = sup.poll()
+                if rcs.get("manager") is not None:
+                    raise UpError(f"the manager exited with status {rcs['manager']} before READY")
+                gone = {k: v for k, v in rcs.items() if v not in (None, 0) and not restarts(k)}
+                if gone:  # a node that cannot start (a refused login, a bad file): fail now
+                    name, rc = next(iter(gone.items()))
+                    raise UpError(
+                        f"{name} exited with status {rc} before the network was READY (its error "
+                        "is above); nothing was run"
+                    )
+                if time.monotonic() > deadline:
+                    raise UpError("the network did not become READY in time")
+            if on_ready is not None:
+                on_ready(sup)
+            restarts_seen = 0
+            while True:
+                rcs = sup.poll()
+                for name in (VITAL.keys() & rcs.keys()) - lost.keys():
+                    code = rcs[name]
+                    if code is not None and code != 0:  # died (a restartable one runs again)
+                        lost[name] = _lost(name, code, view.last)
+                        view.line(f"[launcher] {lost[name]['ended']}")
+                n = sum(sup.restarts.values())
+                if n != restarts_seen:
+                    restarts_seen = n
+                    counts = {k: v for k, v in sup.restarts.items() if v}
+                    view.line(f"[launcher] restarted: {counts}")
+                if rcs["manager"] is not None:
+                    status = int(rcs["manager"])
+                    break
+                time.sleep(0.05)
+            final = sup.stop()
+        _note_restarts(out, sup.restarts)
+        others = {k: v for k, v in final.items() if k != "manager" and v not in (0, None)}
+        if status != 0:
+            why = f"the manager exited with status {status}"
+            ended = settle(kind, sc, out, facts, "failed", why)
+            _note_lost(out, lost)
+            raise UpError(f"the manager failed (exit status {status}); {ended}")
+        if lost:
+            _note_lost(out, lost)
+            why = "; ".join(ev["ended"] for ev in lost.values())
+            raise UpError(f"the run is not complete: {why} (run.json: status failed)")
+        if others and not sc.network.restart == "on-failure":
+            view.line(f"[launcher] note: processes that did not exit cleanly: {others}")
+        return 0
+    except KeyboardInterrupt:
+        sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
+        ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")
+        _note_lost(out, lost)
+        print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str, why: str) -> str:
+    """After the network stopped: make sure ``out`` is a valid run directory and say what it
+    holds.  The manager writes it when its loop ends (with ``run.json``'s ``status``); when it
+    could not (killed, crashed, or stopped before READY), the directory is rebuilt from the
+    recording by the kind's replay (``kind.rebuild``: every scan recorded complete) and marked
+    ``status`` because of ``why``."""
+    info = _run_info(out)
+    if info.get("status") in STATUSES:
+        return f"{out} holds the scans done ({info['status']}: {_scans(info)})"
+    recording = out / "recording.mcap"
+    if not recording.is_file() or recording.stat().st_size == 0:
+        if not out.is_dir() or not any(p.name != "processes.json" for p in out.iterdir()):
+            return f"nothing was recorded ({out} holds only the process list)"
+        record_end(out, status, f"{why}; no recording to rebuild the results from")
+        return f"no recording: {out} holds no results"
+    try:
+        report = kind.rebuild(
+            sc,
+            run_info["run_id"],
+            kind.episodes(sc),
+            recording,
+            out,
+            {**run_info, "mode": "network"},
+        )
+    except Exception as exc:  # noqa: BLE001 (whatever the recording holds, say it and go on)
+        record_end(out, status, f"{why}; rebuilding from the recording failed: {exc}")
+        return f"the recording could not be rebuilt ({exc}); {out} holds no results"
+    (out / LIVE).unlink(missing_ok=True)
+    scans = _scans(_run_info(out))
+    record_end(
+        out,
+        status,
+        f"{why}; the results were rebuilt from the recording (covnet replay's code)",
+        rebuilt_from_recording=True,
+        rebuild_notes=list(getattr(report, "notes", [])),
+    )
+    return f"rebuilt {out} from the recording up to the last complete scan ({scans})"
+
+
+def _scans(info: dict[str, Any]) -> str:
+    """``run.json``'s scans completed in words: ``"spectral 12, trace 0"`` or ``"12 scans"``."""
+    done = info.get("scans_completed")
+    if isinstance(done, dict):
+        return ", ".join(f"{k} {v}" for k, v in done.items()) or "no scan"
+    return f"{done} scans" if done is not None else "scans unknown"
+
+
+def _run_info(out: Path) -> dict[str, Any]:
+    try:
+        info = json.loads((out / RUN_INFO).read_text())
+    except (OSError, ValueError):
+        return {}
+    return info if isinstance(info, dict) else {}
+
+
+def _hosts(hosts: dict[str, str]) -> dict[str, Any] | None:
+    """``processes.json``'s ``"hosts"`` entry (sensor id -> its process), when a process hosts
+    several sensors."""
+    return {"hosts": hosts} if hosts else None
+
+
+def _supervise_without_manager(
+    specs: list[ProcessSpec], out: Path, run_id: str, router: str, hosts: dict[str, str]
+) -> int:
+    """Nodes only (the manager runs on another host): run until they all leave (they do when
+    the manager's run ends) or Ctrl-C."""
+    print(
+        f"[launcher] run {run_id}: nodes {[s.name for s in specs]} -> router {router}", flush=True
+    )
+    sup = Supervisor(specs, pids_file=out / "processes.json", pids_extra=_hosts(hosts))
+    try:
+        with sup:
+            while any(rc is None for rc in sup.poll().values()):
+                time.sleep(0.1)
+            final = sup.stop()
+        bad = {k: v for k, v in final.items() if v != 0}
+        return 1 if bad else 0
+    except KeyboardInterrupt:
+        sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
+        print("covnet up: interrupted; every process stopped", file=sys.stderr)
+        return 130
+
+
+def _lost(name: str, rc: int, last: dict[str, Any] | None) -> dict[str, Any]:
+    """``run.json``'s ``lost`` entry of a :data:`VITAL` node that died with status ``rc`` after
+    the manager's STATUS ``last`` (None: before the first scan)."""
+    scan = None if last is None else last.get("scan")
+    episode = None if last is None else last.get("metric")
+    where = "before the first scan" if scan is None else f"after scan {scan}"
+    if episode and scan is not None:
+        where += f" ({episode})"
+    return {
+        "node": name,
+        "exit_status": rc,
+        "after_scan": scan,
+        "episode": episode,
+        "ended": f"the {name} died (exit status {rc}) {where} and was not restarted: {VITAL[name]}",
+    }
+
+
+def _note_lost(out: Path, lost: dict[str, dict[str, Any]]) -> None:
+    """A run whose world or recorder died (and was not restarted) is not complete, though the
+    manager did every scan: ``run.json`` says ``failed`` and why, lists them under ``lost``,
+    and both it and ``network.json`` count them as failed in ``membership``."""
+    if not lost:
+        return
+    info = _run_info(out)
+    membership = _with_lost(info.get("membership"), lost)
+    net = out / "network.json"
+    if net.is_file():
+        try:
+            stats = json.loads(net.read_text())
+        except ValueError:
+            stats = None
+        if isinstance(stats, dict):
+            stats["membership"] = _with_lost(stats.get("membership"), lost)
+            write_json(net, stats)
+    status = str(info.get("status")) if info.get("status") in STATUSES else "completed"
+    why = "; ".join(ev["ended"] for ev in lost.values())
+    if status == "completed":
+        status, why = "failed", f"every scan done, but {why}"
+    else:
+        why = f"{info.get('ended', status)}; {why}"
+    record_end(out, status, why, lost=list(lost.values()), membership=membership)
+
+
+def _with_lost(membership: Any, lost: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    counts = dict(membership) if isinstance(membership, dict) else {}
+    for name in lost:
+        counts[name] = {**counts.get(name, {}), "failed": counts.get(name, {}).get("failed", 0) + 1}
+    return counts
+
+
+def _note_restarts(out: Path, restarts: dict[str, int]) -> None:
+    path = out / "run.json"
+    if not path.is_file():
+        return
+    summary = json.loads(path.read_text())
+    summary["restarts"] = {k: v for k, v in restarts.items() if v}
+    write_json(path, summary)
