@@ -182,6 +182,13 @@ class Loop:
             "status": msg.status_key(run_id),
         }
 
+    def end(self) -> None:
+        """The run is over on purpose: declare its end (the nodes leave at once; a manager
+        token lost without it is waited for, :class:`covnet.processes.node_kit.
+        ManagerWatch`), then withdraw the manager's token."""
+        self.done_token = self.bus.declare_token(msg.done_key(self.run_id))
+        self.token.undeclare()
+
     # ---- bus helpers --------------------------------------------------------------------
 
     def publish(self, key: str, message: msg.Message, *, count_as: str | None = None) -> None:
@@ -533,7 +540,7 @@ def run_scans(
         result.error = str(exc)
     finally:
         report.run()  # a stopped loop's last scan
-        loop.token.undeclare()
+        loop.end()
         if linger_s > 0:
             loop.linger(linger_s, stop)
         loop.stats.dropped = dropped(loop.bus)

@@ -49,7 +49,7 @@ from covnet.covariance_control.decentral import (
 )
 from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import build_model, initial_estimate, measure, predict_step
-from covnet.processes.node_kit import Heartbeat, ManagerWatch
+from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample
 
@@ -198,7 +198,7 @@ def run(
     nbrs = neighbours(fusion, ids)[me]
     stats = PeerStats()
     inbox = _Inbox(bus, run_id, node_id, [ids[n] for n in nbrs], stats)
-    manager = ManagerWatch(bus, run_id)
+    manager = ManagerWatch(bus, run_id, manager_grace_s(net))
     token = bus.declare_token(msg.alive_key(run_id, "sensor", node_id))
     heartbeat = Heartbeat(bus, clock, run_id, "sensor", node_id, net.heartbeat_s)
     keys = {

@@ -28,7 +28,7 @@ from typing import Any
 
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
-from covnet.processes.node_kit import Heartbeat, ManagerWatch
+from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
 from covnet.processes.process import EXIT_OK, open_client
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample
@@ -83,7 +83,7 @@ def serve(
     mine = None if missed_command is not None else sensor_id
     cmd_sub = bus.subscribe(msg.command_keyexpr(run_id, mine))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
-    manager = ManagerWatch(bus, run_id)
+    manager = ManagerWatch(bus, run_id, manager_grace_s(net))
     token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
     meas_key = msg.measurement_key(run_id, sensor_id)
     heartbeat = Heartbeat(bus, clock, run_id, "sensor", sensor_id, net.heartbeat_s)

@@ -5,6 +5,7 @@ here runs on its own thread."""
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 
@@ -53,24 +54,54 @@ class Heartbeat:
         self._next_ns = t + self._period_ns
 
 
-class ManagerWatch:
-    """Follows the manager's liveliness token. ``left`` once a manager that was seen is gone:
-    the run is over (or the manager died), and the node winds down."""
+MANAGER_GRACE = 3.0
+"""How many failure timeouts (``network.failure_timeout_s``) a node waits for a manager whose
+token went without its end (:class:`ManagerWatch`) before it takes the run for over."""
 
-    def __init__(self, bus: Bus, run_id: str) -> None:
-        self._sub = bus.watch_liveliness(msg.alive_key(run_id, "manager", "manager"))
+
+def manager_grace_s(net: NetworkSpec) -> float:
+    """:data:`MANAGER_GRACE` failure timeouts, in seconds."""
+    return MANAGER_GRACE * net.failure_timeout_s
+
+
+class ManagerWatch:
+    """Follows the manager's liveliness.  ``left`` once the run is over for this node: the
+    manager declared its end (:func:`~covnet.wire.messages.done_key`: finished or stopped on
+    purpose), or a manager that was seen has been gone for ``grace_s`` (a crash).  A manager
+    token that goes and comes back within ``grace_s`` (a lossy or slow link can end the zenoh
+    session that carries it, while both ends run on) is not the end: the node stays, and the
+    manager takes it back when it hears it again."""
+
+    def __init__(self, bus: Bus, run_id: str, grace_s: float = 0.0) -> None:
+        self._sub = bus.watch_liveliness(msg.alive_keyexpr(run_id, "manager"))
+        self.grace_s = grace_s
         self.seen = False
         self.up = False
+        self.done = False
+        self.down_since = 0.0
 
     def poll(self) -> None:
         while (ev := self._sub.try_recv()) is not None:
-            self.seen = self.seen or ev.alive
-            self.up = ev.alive
+            try:
+                node = msg.parse_alive_key(ev.key)[1]
+            except ValueError:
+                continue
+            if node == msg.DONE_ID:
+                self.done = self.done or ev.alive
+            elif node == msg.MANAGER_ID:
+                self.seen = self.seen or ev.alive
+                if self.up and not ev.alive:
+                    self.down_since = time.monotonic()
+                self.up = ev.alive
 
     @property
     def left(self) -> bool:
         self.poll()
-        return self.seen and not self.up
+        if self.done:
+            return True
+        return (
+            self.seen and not self.up and time.monotonic() - self.down_since >= self.grace_s
+        )
 
     def close(self) -> None:
         self._sub.close()
@@ -92,7 +123,7 @@ def serve_commands(
     one counted as ``rejected:<reason>``) and pass it to ``handle``, which returns whether it
     took it (else it counted why).  Heartbeats carry the last scan taken and the rejections."""
     cmd_sub = bus.subscribe(msg.command_keyexpr(run_id))  # every command
-    manager = ManagerWatch(bus, run_id)
+    manager = ManagerWatch(bus, run_id, manager_grace_s(net))
     token = bus.declare_token(msg.alive_key(run_id, role, node_id))
     heartbeat = Heartbeat(bus, clock, run_id, role, node_id, net.heartbeat_s)
     last_scan = 0

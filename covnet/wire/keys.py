@@ -186,6 +186,18 @@ def alive_key(run: str, role: str, node_id: str) -> str:
     return f"{_root(run)}/alive/{_valid(role, 'role')}/{_valid(node_id, 'node id')}"
 
 
+DONE_ID = "done"
+"""The id of the manager's second token, :func:`done_key`."""
+
+
+def done_key(run: str) -> str:
+    """``covnet/<run>/alive/manager/done``: the token a manager declares as it ends the run on
+    purpose (finished, or stopped), just before its own token goes: the nodes then leave at
+    once, while a manager token lost without it (a crash, a link down for a while) is waited
+    for (:class:`covnet.processes.node_kit.ManagerWatch`)."""
+    return alive_key(run, "manager", DONE_ID)
+
+
 def alive_keyexpr(run: str, role: str | None = None) -> str:
     """``covnet/<run>/alive/<role>/*`` (or ``alive/*/*`` for every role): liveliness tokens."""
     return f"{_root(run)}/alive/{'*' if role is None else _valid(role, 'role')}/*"

@@ -20,6 +20,7 @@ from covnet.wire.codec import (
     _ext_hook as _ext_hook,
 )
 from covnet.wire.keys import (
+    DONE_ID,
     MANAGER_ID,
     MAX_NAME_LEN,
     RECORDER_ID,
@@ -30,6 +31,7 @@ from covnet.wire.keys import (
     alive_keyexpr,
     command_key,
     command_keyexpr,
+    done_key,
     heartbeat_key,
     heartbeat_keyexpr,
     measurement_key,
@@ -82,6 +84,7 @@ __all__ = [
     "MAX_ARRAY_ELEMENTS",
     "MAX_IDS",
     "MAX_NAME_LEN",
+    "DONE_ID",
     "MANAGER_ID",
     "MAX_PAYLOAD_BYTES",
     "MESSAGE_TYPES",
@@ -101,6 +104,7 @@ __all__ = [
     "WORLD_ID",
     "WireError",
     "alive_key",
+    "done_key",
     "alive_keyexpr",
     "command_key",
     "command_keyexpr",
