@@ -446,11 +446,13 @@ def capability(x: object, kind: type[_C]) -> _C | None:
 @dataclass(frozen=True)
 class Relaxation:
     """A convex relaxation of the metric over a branch-and-bound node's reduced ``2 x 2``
-    information (:class:`covnet.core.search._Relaxation`, used where the gains' support has 2
+    information (:class:`covnet.core.allocation.search._Relaxation`, used where the gains' support
+    has 2
     coordinates): ``form``, the closed form of the convex objective that module derives
     (``frobenius``: ``||·||_F²`` in ``W = Z⁻¹``; ``kl``: in ``Z``; ``logdet``: in ``W``, or in
     ``Z`` where convex there); ``leaves``: the objective is strongly convex, so the last levels
-    of an exact search come from a table queried in a ball (:class:`covnet.core.search._Leaves`).
+    of an exact search come from a table queried in a ball
+    (:class:`covnet.core.allocation.search._Leaves`).
     """
 
     form: Literal["frobenius", "kl", "logdet"]
@@ -463,10 +465,11 @@ class Metric:
     ``f(A, B) = f(B, A)``), and what the searches may ask of it:
 
     - ``subset_bound``: a cheap lower bound of ``f`` on the fast path's approximate ``P_i``
-      (:class:`covnet.core._allocation_fast.MetricBound`): prunes the batched exact search;
+      (:class:`covnet.core.allocation._fast.MetricBound`): prunes the batched exact search;
       without it every feasible subset is evaluated;
     - ``interval_bound``: a lower bound over a Loewner interval
-      (:class:`covnet.core.interval_bounds.IntervalBound`): branch and bound; without it branch
+      (:class:`covnet.core.allocation.interval_bounds.IntervalBound`): branch and bound; without it
+      branch
       and bound is an exhaustive search, and ``search: bounded`` (or ``auto`` beyond its exact
       range) is refused by the config;
     - ``relaxation``: a convex bound over the information form (:class:`Relaxation`), tighter
@@ -489,13 +492,13 @@ class Metric:
 
 def _builtin(name: str, fn: MetricFn, relaxation: Relaxation | None = None) -> Metric:
     """A built-in metric: batch-invariant, with both bounds (named ``<NAME>_BOUND`` in
-    :mod:`covnet.core._allocation_fast` and :mod:`covnet.core.interval_bounds`)."""
+    :mod:`covnet.core.allocation._fast` and :mod:`covnet.core.allocation.interval_bounds`)."""
     attr = f"{name.upper()}_BOUND"
     return Metric(
         name,
         fn,
-        subset_bound=Ref("covnet.core._allocation_fast", attr),
-        interval_bound=Ref("covnet.core.interval_bounds", attr),
+        subset_bound=Ref("covnet.core.allocation._fast", attr),
+        interval_bound=Ref("covnet.core.allocation.interval_bounds", attr),
         relaxation=relaxation,
         batch_invariant=True,
     )

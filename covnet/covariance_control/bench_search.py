@@ -1,12 +1,14 @@
-"""Benchmark of the searches beyond exhaustive (:mod:`covnet.core.search`) and of the multi-target
-allocator (:mod:`covnet.core.multitarget_allocation`): library functions returning rows.
+"""Benchmark of the searches beyond exhaustive (:mod:`covnet.core.allocation.search`) and of the
+multi-target
+allocator (:mod:`covnet.core.allocation.assignment`): library functions returning rows.
 
 **Problems.**  As :mod:`covnet.covariance_control.bench_allocation` (whose sensor table and
 problem scans it imports): ``n_sensors`` paper-like position sensors (the paper's 8, cycled with
 both sigmas scaled by ``1 + 0.5 (j // 8)``), the predicted covariance ``P⁻ = F P Fᵀ + Q`` at scans
 spread over both desired phases of the paper's covariance recursion.  The recursion is controlled
 by the exact fast allocator (:func:`covnet.core.allocation.allocate`) up to ``EXACT_CONTROL_MAX``
-sensors, by :func:`covnet.core.search.allocate_greedy` beyond (an exact controller would cost as
+sensors, by :func:`covnet.core.allocation.search.allocate_greedy` beyond (an exact controller would
+cost as
 much as the benchmark); that changes which ``P⁻`` are benchmarked, not what is measured.
 
 **Timing.**  Per problem one untimed warm-up call, then ``repeat`` timed calls
@@ -40,10 +42,10 @@ from covnet.core.allocation import (
     prepare,
     subset_covariance,
 )
+from covnet.core.allocation.search import SearchResult, allocate_bnb, allocate_greedy
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import METRICS
 from covnet.core.motion import cv_transition, dwna_process_noise
-from covnet.core.search import SearchResult, allocate_bnb, allocate_greedy
 from covnet.covariance_control import bench_allocation
 
 #: the recursion of the problems is controlled by the exact allocator up to this many sensors,
@@ -447,10 +449,10 @@ def multitarget_problems(
     """``(P_pred, J, P_d, w, feasible)`` at ``scans`` of the spec's scenario (§6, 3 targets,
     constant velocity, each filter's covariance recursion ``P⁻ = F P Fᵀ + Q``, ``P = P_t(a*)``)
     with the first ``n_sensors`` sensors of :data:`MT_SENSORS`; the recursion is decided by
-    :func:`covnet.core.multitarget_allocation.allocate_assignments` with the first
+    :func:`covnet.core.allocation.assignment.allocate_assignments` with the first
     ``min(n_sensors, control_sensors)`` sensors (a 16-sensor controller costs seconds a scan)."""
     # the multi-target bench only: start-up of the others
-    from covnet.core.multitarget_allocation import allocate_assignments
+    from covnet.core.allocation.assignment import allocate_assignments
 
     F, Q = cv_transition(1.0), dwna_process_noise(1.0, 0.5)
     x0, desired, weights = mt_targets(n_targets)
@@ -517,7 +519,7 @@ def run_multitarget(
     target_counts: Sequence[int] = (3,),
     reference_assignments: int = 4**8,
 ) -> list[Row]:
-    """Time :func:`covnet.core.multitarget_allocation.allocate_assignments` per (metric, N) on
+    """Time :func:`covnet.core.allocation.assignment.allocate_assignments` per (metric, N) on
     :func:`multitarget_problems` (3 targets; scans spread over 4..40).
 
     Rows: ``metric``, ``n_sensors``, ``n_targets``, ``n_assignments`` (``(T+1)^N``),
@@ -525,13 +527,13 @@ def run_multitarget(
     exactly), ``n_evaluated_median`` (exact per-target evaluations), and where ``n_sensors <=
     reference_max``, measured on the same problems in the same run (once each, on the first
     ``reference_problems``): ``reference_median_s`` (the plain reference
-    :func:`~covnet.core.multitarget_allocation.allocate_assignments_exhaustive`),
+    :func:`~covnet.core.allocation.assignment.allocate_assignments_exhaustive`),
     ``ratio_reference`` (its median over the fast median) and ``agree_reference`` (same
     assignment and value bits).  ``target_counts``: the numbers of targets ``T`` (the
     ``--targets`` option; the reference runs where also ``(T+1)^N <=
     reference_assignments``)."""
     # the multi-target bench only: start-up of the others
-    from covnet.core.multitarget_allocation import (
+    from covnet.core.allocation.assignment import (
         allocate_assignments,
         allocate_assignments_exhaustive,
     )

@@ -774,7 +774,7 @@ def _semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
 
 
 #: the many-target allocator's limit on the sensors that can be on (its tables have ``2^N``
-#: entries: :data:`covnet.core.multitarget_allocation.MAX_SENSORS`, not imported here for the
+#: entries: :data:`covnet.core.allocation.assignment.MAX_SENSORS`, not imported here for the
 #: start-up time of every node process; a test keeps the two equal)
 MULTITARGET_MAX_SENSORS = 22
 

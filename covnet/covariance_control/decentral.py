@@ -33,8 +33,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from covnet.core._allocation_fast import tie_select
 from covnet.core.allocation import Allocation, Constraints
+from covnet.core.allocation._fast import tie_select
 from covnet.core.gaussian import Gaussian, Mat, symmetrise
 from covnet.core.kalman import update_covariance
 from covnet.core.metrics import get_metric

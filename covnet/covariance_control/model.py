@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from covnet.core import streams
-from covnet.core.constraints import Constraints
+from covnet.core.allocation.constraints import Constraints
 from covnet.core.gaussian import Gaussian, Mat, Vec
 from covnet.core.kalman import predict, predict_covariance, update_covariance, update_sequential
 from covnet.core.motion import cv_transition, dwna_noise_gain, dwna_process_noise
@@ -255,7 +255,7 @@ def decide(
     ``exact``: up to ``FAST_PATH_MAX`` candidates the fast path with the plan for the resulting
     constraints (:meth:`Model.plan_for`, prepared once per set), branch and bound beyond, both
     the exhaustive search's result bit for bit.  ``bounded`` / ``greedy``: the best subset found,
-    with its certified ``lower_bound`` and ``gap`` (:mod:`covnet.core.search`).
+    with its certified ``lower_bound`` and ``gap`` (:mod:`covnet.core.allocation.search`).
     """
     c = model.constraints
     if unavailable:

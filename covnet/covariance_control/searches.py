@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-from covnet.core.constraints import Constraints
+from covnet.core.allocation.constraints import Constraints
 from covnet.core.gaussian import Mat
 
 if TYPE_CHECKING:
@@ -47,7 +47,8 @@ DecideFn = Callable[[SearchModel, Mat, Mat, str, Constraints], "Allocation"]
 
 #: ``exact`` decisions over at most this many candidate sensors take the batched fast path
 #: (:func:`covnet.core.allocation.allocate`, every subset bounded at once), branch and bound
-#: (:func:`covnet.core.search.allocate_bnb`) beyond: the same subset, value and ``P`` bits, the
+#: (:func:`covnet.core.allocation.search.allocate_bnb`) beyond: the same subset, value and ``P``
+#: bits, the
 #: faster of the two from about 18-20 sensors on (measured on the bench problems of ``covnet
 #: bench search``: at N = 20 branch and bound is faster for 4 of 5 metrics, at 16 for none)
 FAST_PATH_MAX = 18
@@ -108,7 +109,7 @@ def _exact(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraint
         plan = model.plan if c == model.constraints else model.plan_for(c)
         return allocate(P_pred, plan, P_d, metric, tie_rtol=model.tie_rtol)
     from covnet.core.allocation import Allocation
-    from covnet.core.search import allocate_bnb
+    from covnet.core.allocation.search import allocate_bnb
 
     res = allocate_bnb(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
     n_feasible = feasible_count(len(model.sensor_ids), c)
@@ -119,7 +120,7 @@ def _bounded(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constrai
     """Branch and bound stopped at the options' gap, time or node limit (``bounded_options``).
     (Imported here: start-up of the processes that never decide.)"""
     from covnet.core.allocation import Allocation
-    from covnet.core.search import allocate_bnb
+    from covnet.core.allocation.search import allocate_bnb
 
     gap, limit_s, nodes = model.search.bounded_options()
     res = allocate_bnb(
@@ -143,7 +144,7 @@ def _greedy(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constrain
     """Forward/backward greedy and swaps, with the root lower bound.  (Imported here: start-up
     of the processes that never decide.)"""
     from covnet.core.allocation import Allocation
-    from covnet.core.search import allocate_greedy
+    from covnet.core.allocation.search import allocate_greedy
 
     res = allocate_greedy(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
     n_feasible = feasible_count(len(model.sensor_ids), c)

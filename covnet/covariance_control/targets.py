@@ -48,13 +48,14 @@ import numpy as np
 
 from covnet.core import streams
 from covnet.core.allocation import InfeasibleAllocation, allocate, prepare
+from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments
+from covnet.core.allocation.constraints import Constraints
 from covnet.core.association import (
     gate_volume,
     information_reduction_table,
     nearest_neighbour_update,
     pda_update,
 )
-from covnet.core.constraints import Constraints
 from covnet.core.detection import ClutterWindow, clutter_window
 from covnet.core.ekf import predict_measurement
 from covnet.core.fusion import LocalTrack, information_fusion
@@ -63,7 +64,6 @@ from covnet.core.kalman import predict, update
 from covnet.core.manoeuvre import manoeuvring_trajectory
 from covnet.core.metrics import get_metric
 from covnet.core.motion import dwna_process_noise
-from covnet.core.multitarget_allocation import MultiConstraints, allocate_assignments
 from covnet.core.sensing import information_gain, measure_factored, position_matrix
 from covnet.core.sensor_models import SENSOR_MODELS, FieldOfView, SensorModel, wrap_angle
 from covnet.core.truth import linear_gaussian_trajectory
@@ -426,7 +426,7 @@ def decide(
     configured exclusions, and a required sensor is required only while it is up and covers
     some target.  ``T = 1`` is today's single-target allocator (:func:`covnet.core.allocation.
     allocate`) on the feasible sensors; ``T > 1`` the exact assignment allocator
-    (:func:`covnet.core.multitarget_allocation.allocate_assignments`).  With no feasible
+    (:func:`covnet.core.allocation.assignment.allocate_assignments`).  With no feasible
     sensor every sensor is off."""
     J, feas = information(tm, preds)
     P_pred = np.array([g.P for g in preds])

@@ -99,9 +99,7 @@ class ManagerWatch:
         self.poll()
         if self.done:
             return True
-        return (
-            self.seen and not self.up and time.monotonic() - self.down_since >= self.grace_s
-        )
+        return self.seen and not self.up and time.monotonic() - self.down_since >= self.grace_s
 
     def close(self) -> None:
         self._sub.close()

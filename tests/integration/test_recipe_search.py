@@ -12,7 +12,7 @@ import pytest
 from recipe_harness import run_all_three, write_config
 
 from covnet.config import ConfigError
-from covnet.core.allocation import Allocation, subset_covariance
+from covnet.core.allocation.exact import Allocation, subset_covariance
 from covnet.core.metrics import get_metric
 from covnet.covariance_control.config import load
 from covnet.covariance_control.searches import SEARCHES, Search, feasible_count

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from covnet.core import _allocation_fast as fast
-from covnet.core.allocation import (
+from covnet.core.allocation import _fast as fast
+from covnet.core.allocation.exact import (
     Constraints,
     InfeasibleAllocation,
     allocate,

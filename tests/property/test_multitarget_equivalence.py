@@ -1,4 +1,4 @@
-"""The fast multi-target allocator (covnet.core.multitarget_allocation.allocate_assignments)
+"""The fast multi-target allocator (covnet.core.allocation.assignment.allocate_assignments)
 returns exactly what the plain loop over all (T+1)^N assignments returns (assignment, value, per
 target values and covariances, bit for bit), for every registered metric, with coverage gaps,
 constraints (excluded, required, max_active, max_per_target), weights and ties (duplicated and
@@ -12,15 +12,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from covnet.core.allocation import Constraints, InfeasibleAllocation, allocate_exhaustive
-from covnet.core.metrics import METRICS
-from covnet.core.motion import cv_transition, dwna_process_noise
-from covnet.core.multitarget_allocation import (
+from covnet.core.allocation.assignment import (
     OFF,
     MultiConstraints,
     allocate_assignments,
     allocate_assignments_exhaustive,
 )
+from covnet.core.allocation.exact import Constraints, InfeasibleAllocation, allocate_exhaustive
+from covnet.core.metrics import METRICS
+from covnet.core.motion import cv_transition, dwna_process_noise
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 
 _elems = st.floats(-10, 10, allow_nan=False, allow_infinity=False)

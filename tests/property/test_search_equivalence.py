@@ -1,4 +1,5 @@
-"""The branch and bound (covnet.core.search.allocate_bnb) picks exactly what the plain loop over
+"""The branch and bound (covnet.core.allocation.search.allocate_bnb) picks exactly what the plain
+loop over
 all subsets picks (same subset, value and P bits) for every registered metric, with constraints,
 with ties (duplicated and zero-gain sensors) and on the paper's near-tie scans 1-2; greedy and
 the bounded mode return a feasible subset no better than the optimum and a lower bound no worse
@@ -15,17 +16,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from covnet.core import search as S
-from covnet.core.allocation import (
+from covnet.core.allocation import search as S
+from covnet.core.allocation.exact import (
     Constraints,
     InfeasibleAllocation,
     allocate,
     allocate_exhaustive,
     subset_covariance,
 )
+from covnet.core.allocation.search import allocate_bnb, allocate_greedy
 from covnet.core.metrics import METRICS
 from covnet.core.motion import cv_transition, dwna_process_noise
-from covnet.core.search import allocate_bnb, allocate_greedy
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 from covnet.covariance_control.bench_allocation import PAPER_TABLE
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from covnet.core.allocation import (
+from covnet.core.allocation.exact import (
     Allocation,
     AllocationPlan,
     Constraints,

@@ -13,9 +13,9 @@ import pytest
 import yaml
 
 from covnet.config import ConfigError
-from covnet.core.allocation import allocate, allocate_exhaustive, prepare
-from covnet.core.constraints import Constraints
-from covnet.core.search import allocate_bnb
+from covnet.core.allocation.constraints import Constraints
+from covnet.core.allocation.exact import allocate, allocate_exhaustive, prepare
+from covnet.core.allocation.search import allocate_bnb
 from covnet.covariance_control.config import (
     AUTO_EXACT_MAX,
     AUTO_NODE_LIMIT,

@@ -12,7 +12,7 @@ import yaml
 
 from covnet.cli.app import main
 from covnet.config import ConfigError, read_yaml
-from covnet.core.multitarget_allocation import MAX_SENSORS
+from covnet.core.allocation.assignment import MAX_SENSORS
 from covnet.covariance_control.config import from_dict
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -15,7 +15,7 @@ import pytest
 from covnet import kinds
 from covnet.cli.app import main
 from covnet.config import ConfigError
-from covnet.core.allocation import Constraints
+from covnet.core.allocation.exact import Constraints
 from covnet.core.fusion import covariance_intersection
 from covnet.core.gaussian import Gaussian
 from covnet.core.metrics import get_metric

@@ -1,4 +1,5 @@
-"""Loewner-interval lower bounds (covnet.core.interval_bounds): oracle values on hand cases where
+"""Loewner-interval lower bounds (covnet.core.allocation.interval_bounds): oracle values on hand
+cases where
 the minimum over the interval is known in closed form, and the safety property (bound <= the
 metric as computed, on completions of actual subsets and on random points of the interval) for
 every registered metric."""
@@ -13,8 +14,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from covnet.core.allocation import subset_covariance
-from covnet.core.interval_bounds import (
+from covnet.core.allocation.exact import subset_covariance
+from covnet.core.allocation.interval_bounds import (
     DesiredConstants,
     IntervalContext,
     interval_lower_bound,

@@ -230,7 +230,7 @@ def test_node_processes_build_only_what_they_use(paper_path):
     code = f"""
 import threading
 from covnet import kinds
-from covnet.core import _allocation_fast
+from covnet.core.allocation import _fast as _allocation_fast
 from covnet.covariance_control.model import build_model, truth_trajectory
 from sensors.covariance import NoiseTable
 built = []

@@ -1,4 +1,4 @@
-"""Multi-target allocation (covnet.core.multitarget_allocation): the documented arithmetic and
+"""Multi-target allocation (covnet.core.allocation.assignment): the documented arithmetic and
 tie rule on hand cases, constraints, coverage, the record, and input validation."""
 
 from __future__ import annotations
@@ -8,16 +8,16 @@ import itertools
 import numpy as np
 import pytest
 
-from covnet.core.allocation import InfeasibleAllocation, subset_covariance
-from covnet.core.metrics import METRICS
-from covnet.core.motion import cv_transition, dwna_process_noise
-from covnet.core.multitarget_allocation import (
+from covnet.core.allocation.assignment import (
     OFF,
     Assignment,
     MultiConstraints,
     allocate_assignments,
     allocate_assignments_exhaustive,
 )
+from covnet.core.allocation.exact import InfeasibleAllocation, subset_covariance
+from covnet.core.metrics import METRICS
+from covnet.core.motion import cv_transition, dwna_process_noise
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 
 SEARCHES = [allocate_assignments_exhaustive, allocate_assignments]

@@ -85,7 +85,7 @@ def test_model_holds_one_plan_per_constraint_set(paper):
     """The allocation plan is prepared once, when the first decision needs it (a sensor or the
     world, which never decide, never build it); decide passes it, and run-time failures get a
     plan per constraint set, prepared once and kept in ``model.plans``."""
-    from covnet.core.allocation import allocate_exhaustive
+    from covnet.core.allocation.exact import allocate_exhaustive
     from covnet.covariance_control.model import decide, predict_cov
 
     model = build_model(paper)

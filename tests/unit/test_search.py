@@ -1,4 +1,5 @@
-"""Branch and bound, bounded mode and greedy (covnet.core.search): the result record, the tie
+"""Branch and bound, bounded mode and greedy (covnet.core.allocation.search): the result record,
+the tie
 rule (identical and zero-gain sensors), constraints, limits, input validation as the reference,
 and the safety of every node bound of the actual tree (reduced form, error model included)."""
 
@@ -10,16 +11,16 @@ import math
 import numpy as np
 import pytest
 
-from covnet.core import search as S
-from covnet.core.allocation import (
+from covnet.core.allocation import search as S
+from covnet.core.allocation.exact import (
     Constraints,
     InfeasibleAllocation,
     allocate,
     allocate_exhaustive,
 )
+from covnet.core.allocation.search import STATUS, SearchResult, allocate_bnb, allocate_greedy
 from covnet.core.metrics import METRICS
 from covnet.core.motion import cv_transition, dwna_process_noise
-from covnet.core.search import STATUS, SearchResult, allocate_bnb, allocate_greedy
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 from covnet.covariance_control.bench_allocation import PAPER_TABLE
 

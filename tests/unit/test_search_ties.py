@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from test_search import paper_run  # (P_pred, P_d) at given scans of the paper's recursion
 
-from covnet.core import search as S
-from covnet.core.allocation import Constraints, allocate_exhaustive
+from covnet.core.allocation import search as S
+from covnet.core.allocation.exact import Constraints, allocate_exhaustive
 from covnet.core.metrics import METRICS
 from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 from covnet.covariance_control.bench_allocation import PAPER_TABLE

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import yaml
 
-from covnet.core.allocation import allocate
+from covnet.core.allocation.assignment import allocate_assignments_exhaustive
+from covnet.core.allocation.exact import allocate
 from covnet.core.ekf import ekf_update
 from covnet.core.gaussian import Gaussian
-from covnet.core.multitarget_allocation import allocate_assignments_exhaustive
 from covnet.covariance_control import targets
 from covnet.covariance_control.config import from_dict, load
 from covnet.covariance_control.model import build_model, measure

@@ -1,6 +1,7 @@
 """Lower bounds of every registered metric over a Loewner interval of covariances.
 
-A node of a branch and bound over sensor subsets (:mod:`covnet.core.search`) has an *included*
+A node of a branch and bound over sensor subsets (:mod:`covnet.core.allocation.search`) has an
+*included*
 set ``I`` and an *undecided* set ``U``; every completion ``D`` (``I ⊆ D ⊆ I ∪ U``) satisfies,
 because every gain ``J_j = H_jᵀ R_j⁻¹ H_j ⪰ 0`` and inversion is Loewner-antitone::
 
@@ -30,7 +31,7 @@ endpoints and the completion alike), and the spectral limits valid for all of th
 widens its enclosures by the error they can carry (``||E||_2 <= ||E||_F <= n·err`` for an
 entrywise-``err`` symmetric ``E``) and deflates by a relative rounding allowance of its own
 arithmetic and of the metric's.  :func:`search_context` builds the context with the error model of
-:mod:`covnet.core._allocation_fast` (``ERR_FACTOR · n² · eps · κ · λmax``, a worst-case model with
+:mod:`covnet.core.allocation._fast` (``ERR_FACTOR · n² · eps · κ · λmax``, a worst-case model with
 a generous constant, not a certified interval computation); the property tests check
 ``bound <= computed value`` on sampled completions.
 """
@@ -62,7 +63,7 @@ __all__ = [
 
 EPS = float(np.finfo(np.float64).eps)
 TINY = float(np.finfo(np.float64).tiny)
-#: the error model's constant, as :data:`covnet.core._allocation_fast.ERR_FACTOR`
+#: the error model's constant, as :data:`covnet.core.allocation._fast.ERR_FACTOR`
 ERR_FACTOR = 64.0
 #: relative rounding allowance per unit of dimension, of a bound's own arithmetic and the metric's
 ROUND = 64.0
@@ -88,7 +89,7 @@ class IntervalContext(NamedTuple):
 def search_context(
     P_pred: Mat, info_trace: float, P_d: Mat, n_terms: int = 0, gain_abs_max: float = 0.0
 ) -> IntervalContext:
-    """The error model of a subset search (:mod:`covnet.core._allocation_fast`, same constant).
+    """The error model of a subset search (:mod:`covnet.core.allocation._fast`, same constant).
 
     Every ``P(S)`` lies between ``(P_pred⁻¹ + J_all)⁻¹`` and ``P_pred``, so
     ``λmax <= tr P_pred`` and ``λmin >= 1 / tr(P_pred⁻¹ + J_all)`` (``info_trace``, the trace of

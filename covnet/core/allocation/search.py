@@ -11,7 +11,8 @@ ascending index tuple).
 **Branch and bound** (:func:`allocate_bnb`).  A node fixes, for the first ``d`` sensors of a
 *branching order*, which are in (the included set ``I``) and which are out; the rest ``U`` are
 undecided.  Every completion ``D`` obeys ``A = P(I ∪ U) ⪯ P(D) ⪯ P(I) = B`` (Loewner), so the
-interval bounds of :mod:`covnet.core.interval_bounds` bound every completion's value from below.
+interval bounds of :mod:`covnet.core.allocation.interval_bounds` bound every completion's value
+from below.
 The include child keeps its parent's ``A`` and gets a new ``B = P(I + j)``, the exclude child
 keeps ``B`` and gets a new ``A = P(I ∪ U - j)``: one new endpoint per child, its summary computed
 for a whole batch of nodes at once.  Each include child *is* a feasible subset (``I + j``, the
@@ -19,7 +20,7 @@ rest left out): a *candidate*, whose value is bounded below by the degenerate in
 ``[B, B]`` (no extra cost).
 
 The covariances are computed in the reduced information form (as
-:mod:`covnet.core._allocation_fast`): with ``s`` the support of the gains (the positions, for
+:mod:`covnet.core.allocation._fast`): with ``s`` the support of the gains (the positions, for
 position sensors), ``C = P_pred[s, s]``, ``Kᵀ = C⁻¹ P_pred[s, :]`` (a Cholesky solve) and
 ``P∞ = P_pred - K P_pred[s, :]``::
 
@@ -27,7 +28,7 @@ position sensors), ``C = P_pred[s, s]``, ``Kᵀ = C⁻¹ P_pred[s, :]`` (a Chole
 
 so a node carries the ``r x r`` information ``Z`` of ``I``, and a child costs one small inverse
 and one ``(r², n²)`` product.  Their rounding error is covered by the bounds' error model
-(:func:`covnet.core.interval_bounds.search_context`).
+(:func:`covnet.core.allocation.interval_bounds.search_context`).
 
 **Relaxation** (frobenius, kl, logdet; ``r = 2``): the Loewner interval ``[A, B]`` has
 ``n(n+1)/2`` dimensions, the node's completions only the 3 of ``Z ∈ [Z(I), Z(I ∪ U)]``.  For
@@ -57,7 +58,7 @@ is at least the reference's tie threshold ``f* + tie_rtol · max(|f*|, tiny)`` (
 every registered metric is computed ``>= 0``).  Hence no subset of the reference's tie set is
 ever pruned, every one is recorded as a candidate with a bound below its value, and all candidates
 whose bound is at most the final ``τ`` are evaluated exactly with the reference's arithmetic
-(``J`` summed in ascending sensor order from ``+0.0``, :func:`covnet.core._allocation_fast.\
+(``J`` summed in ascending sensor order from ``+0.0``, :func:`covnet.core.allocation._fast.\
 gain_sums`; ``P = spd_inverse(spd_inverse(P_pred) + J)``; the metric itself, batch-invariant);
 the tie rule then runs on bit-identical values: the same subset, value and ``P`` as
 :func:`~covnet.core.allocation.allocate_exhaustive`.
@@ -98,13 +99,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from covnet.core._allocation_fast import (
+from covnet.core.allocation._fast import (
     _spd_inverse_soa,
     gain_sums,
     spd_inverse,
     tie_select,
 )
-from covnet.core.allocation import (
+from covnet.core.allocation.exact import (
     Constraints,
     InfeasibleAllocation,
     _check_rtol,
@@ -115,13 +116,13 @@ from covnet.core.allocation import (
     _spd_error,
     allocate,
 )
-from covnet.core.gaussian import Mat
-from covnet.core.interval_bounds import (
+from covnet.core.allocation.interval_bounds import (
     ROUND,
     DesiredConstants,
     IntervalBound,
     search_context,
 )
+from covnet.core.gaussian import Mat
 from covnet.core.lapack import flapack
 from covnet.core.metrics import MetricFn, Relaxation, capability
 

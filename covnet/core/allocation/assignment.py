@@ -37,7 +37,8 @@ Two implementations return the same :class:`Assignment`:
   sets ``S_t = {j : a_j = t}`` are fixed ``F = Σ_t w_t g_t(S_t)`` separates over targets.  For
   every target a table of *lower bounds* ``L_t(S) <= g_t(S)`` of every subset of its feasible
   sensors (the reduced information form and the degenerate-interval bounds of
-  :mod:`covnet.core.interval_bounds`, batched: no metric call), then a dynamic programme over the
+  :mod:`covnet.core.allocation.interval_bounds`, batched: no metric call), then a dynamic programme
+  over the
   set ``R`` of sensors still free (``H_t(R) = min_{S ⊆ R} w_t L_t(S) + H_{t+1}(R - S)``, a
   min-plus subset convolution, ``O(3^N)``; the last stage holds the constraints on the sensors
   left off), gives a lower bound of every completion of a partial assignment.  The bound's
@@ -61,8 +62,8 @@ from numbers import Integral
 import numpy as np
 from numpy.typing import NDArray
 
-from covnet.core._allocation_fast import gain_sums, spd_inverse, tie_threshold
-from covnet.core.allocation import (
+from covnet.core.allocation._fast import gain_sums, spd_inverse, tie_threshold
+from covnet.core.allocation.exact import (
     Constraints,
     InfeasibleAllocation,
     _check_rtol,
@@ -72,9 +73,9 @@ from covnet.core.allocation import (
     _spd_error,
     subset_covariance,
 )
+from covnet.core.allocation.search import _Problem
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import MetricFn
-from covnet.core.search import _Problem
 
 __all__ = [
     "OFF",

@@ -16,7 +16,7 @@ Two implementations return the same :class:`Allocation`:
 
 - :func:`allocate_exhaustive`, the plain reference: a loop over every feasible subset, one
   information-form solve and one metric call each;
-- :func:`allocate`, the fast exact path (:mod:`covnet.core._allocation_fast`): all subsets'
+- :func:`allocate`, the fast exact path (:mod:`covnet.core.allocation._fast`): all subsets'
   reduced information form in batched numpy, per-metric lower bounds that prune only subsets that
   provably cannot reach the tie set, and exact evaluation (the reference's arithmetic) of the rest.
   A metric without a registered bound (e.g. a user's own function) gets a batched exhaustive
@@ -49,7 +49,7 @@ from numbers import Integral
 import numpy as np
 from numpy.typing import NDArray
 
-from covnet.core._allocation_fast import (
+from covnet.core.allocation._fast import (
     BoundContext,
     MetricBound,
     SearchTables,
@@ -57,7 +57,7 @@ from covnet.core._allocation_fast import (
     spd_inverse,
     tie_threshold,
 )
-from covnet.core.constraints import Constraints
+from covnet.core.allocation.constraints import Constraints
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import METRICS, Metric, MetricFn, capability, get_entry
 
@@ -84,7 +84,8 @@ class Allocation:
     ``P``: its ``P_i = (P_pred⁻¹ + J_i)⁻¹``; ``n_feasible``: number of feasible subsets;
     ``n_evaluated``: subsets whose metric was evaluated exactly (``== n_feasible`` for the plain
     reference).  ``lower_bound``, ``gap``: what a search that may stop short of the optimum
-    (:mod:`covnet.core.search`'s bounded and greedy modes) certifies, a lower bound of the
+    (:mod:`covnet.core.allocation.search`'s bounded and greedy modes) certifies, a lower bound of
+    the
     optimum and ``(value - lower_bound) / |value|``; ``None`` from an exact search.
     """
 
@@ -106,7 +107,7 @@ def subset_covariance(P_pred: Mat, gain_sum: Mat) -> Mat:
 
     ``P_pred⁻¹`` and ``(P_pred⁻¹ + J_i)⁻¹`` are each the SPD inverse ``L⁻ᵀ L⁻¹`` built from the
     Cholesky factor ``L`` (LAPACK ``potrf`` + ``potri``,
-    :func:`covnet.core._allocation_fast.spd_inverse`), exactly symmetric.  Batched over
+    :func:`covnet.core.allocation._fast.spd_inverse`), exactly symmetric.  Batched over
     (broadcast) leading axes of both arguments; a matrix gets the same bits alone or in a stack.
     Raises ``numpy.linalg.LinAlgError`` unless both are positive definite.
     """
@@ -144,7 +145,7 @@ class AllocationPlan:
     ``n``: the state dimension; ``max_active``: the effective budget;
     ``infeasible``: why no non-empty subset is feasible (raised by :func:`allocate` as
     :class:`InfeasibleAllocation`), else ``None``; ``tables``: the search's gain-only tables
-    (:class:`covnet.core._allocation_fast.SearchTables`: support of the gains, per-subset sums of
+    (:class:`covnet.core.allocation._fast.SearchTables`: support of the gains, per-subset sums of
     the reduced information, subset masks, exact ``J_i`` of every subset for small ``Ns``).
     """
 
@@ -424,7 +425,7 @@ def allocate(
     ``P_pred`` positive definite (by its Cholesky factorisation), the metric and ``tie_rtol``.
 
     Metrics whose entry has a ``subset_bound`` (:class:`covnet.core.metrics.Metric`) use
-    bound-based pruning (see :mod:`covnet.core._allocation_fast`); any other metric function the
+    bound-based pruning (see :mod:`covnet.core.allocation._fast`); any other metric function the
     batched exhaustive search.
     """
     if isinstance(gains, AllocationPlan):
