@@ -1,7 +1,7 @@
 """The Python API, for notebooks and scripts: what ``covnet run`` and ``covnet sweep`` do, as
 functions returning result objects.
 
->>> from covnet.cli import api
+>>> from covnet import api
 >>> r = api.run("configs/paper.yaml", metric="spectral", scans=30)
 >>> r.summary["metrics"]["spectral"]["rmse_position"]         # doctest: +SKIP
 >>> r.arrays["nees.spectral"].shape                            # numpy arrays

@@ -19,6 +19,13 @@ sys.path.insert(0, str(GOLDEN))
 import golden  # noqa: E402
 
 EXPECTED = json.loads((GOLDEN / "hashes.json").read_text())
+OTHER_HOSTS = json.loads((GOLDEN / "hashes_other_hosts.json").read_text())
+"""Per case, the hashes of the code before the change on another host class (its ``_note``
+says which and why): a case passes with either set."""
+
+
+def accepted(case: str) -> list[dict[str, str]]:
+    return [EXPECTED[case], *OTHER_HOSTS.get(case, [])]
 
 
 _RUNS: dict[str, tuple[Path, dict[str, str]]] = {}
@@ -36,7 +43,7 @@ def _run_once(case: str, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path
 
 @pytest.mark.parametrize("case", sorted(golden.CASES))
 def test_in_process_results_unchanged(case, tmp_path_factory):
-    assert _run_once(case, tmp_path_factory)[1] == EXPECTED[case]
+    assert _run_once(case, tmp_path_factory)[1] in accepted(case)
 
 
 @pytest.mark.integration
@@ -44,7 +51,7 @@ def test_in_process_results_unchanged(case, tmp_path_factory):
 @pytest.mark.parametrize("case", sorted(golden.UP_CASES))
 def test_network_results_unchanged(case, tmp_path):
     argv, files = golden.UP_CASES[case]
-    assert golden.run_case(case, argv, files, tmp_path) == EXPECTED[case]
+    assert golden.run_case(case, argv, files, tmp_path) in accepted(case)
 
 
 def _keys(obj: object) -> set[str]:

@@ -140,7 +140,7 @@ def test_no_fork_once_a_zenoh_runtime_has_run():
     """zenoh's runtime threads outlive its sessions; a fork would inherit its state without
     them (a hang), so a process that has opened a session starts new interpreters."""
     code = (
-        "from covnet import forked\n"
+        "from covnet.processes import forked\n"
         "from covnet.wire.zenoh_bus import ZenohBus, zenoh_config\n"
         "before = forked.forkable()\n"
         "ZenohBus.open(zenoh_config('router', listen=['tcp/127.0.0.1:0'])).close()\n"
