@@ -41,7 +41,7 @@ from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
 from covnet.runs.recording import RecordingReader, RecordingWriter, peek
 from covnet.runs.visual import Visualiser
 from covnet.wire import messages as msg
-from covnet.wire.bus import Bus, Sample
+from covnet.wire.bus import Bus, Sample, dropped
 
 ROLE = NODE_ID = msg.RECORDER_ID
 QUIET_S = 0.2
@@ -158,10 +158,23 @@ def run(
     visual_counts: Counter[str] = Counter()
     feed = _LiveFeed(live_visualiser, live, visual_counts) if live is not None else None
 
+    rejected: Counter[str] = Counter()  # what it could not decode, and its bus's drops
+
+    def rejections() -> Counter[str]:
+        """By reason: the payloads that are no message (recorded all the same) and those its
+        bus dropped before they were seen (oversized); in every heartbeat, so the manager's
+        ``network.json`` counts them under the recorder (``rejected_by_node``)."""
+        out = Counter(rejected)
+        for reasons in dropped(bus).values():
+            out.update(reasons)
+        return out
+
     def record(s: Sample) -> None:
         nonlocal last_scan
         kind, t_sent, scan = peek(s.payload)
         counts[kind] += 1
+        if kind.startswith("undecodable:"):
+            rejected[kind.removeprefix("undecodable:")] += 1
         if kind == cmd_kind and scan is not None:
             last_scan = scan
         write(s.key, s.payload, s.t_recv_ns, t_sent)
@@ -170,7 +183,7 @@ def run(
 
     try:
         while not stop.is_set():
-            heartbeat.tick(last_scan)
+            heartbeat.tick(last_scan, rejections())
             s = sub.recv(timeout=sc.network.heartbeat_s / 2)
             if s is not None:
                 time.sleep(BATCH_S)  # let the burst gather: one wake-up for all of it
