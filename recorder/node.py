@@ -38,7 +38,7 @@ from typing import Any
 from covnet.clock import Clock
 from covnet.config import Networked
 from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
-from covnet.runs.recording import RecordingReader, RecordingWriter, peek
+from covnet.runs.recording import RecordingReader, RecordingWriter, episode_of, peek
 from covnet.runs.visual import Visualiser
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, dropped
@@ -158,16 +158,21 @@ def run(
     visual_counts: Counter[str] = Counter()
     feed = _LiveFeed(live_visualiser, live, visual_counts) if live is not None else None
 
-    rejected: Counter[str] = Counter()  # what it could not decode, and its bus's drops
+    rejected: Counter[str] = Counter()  # what it could not decode, a Status said twice
 
     def rejections() -> Counter[str]:
-        """By reason: the payloads that are no message (recorded all the same) and those its
-        bus dropped before they were seen (oversized); in every heartbeat, so the manager's
-        ``network.json`` counts them under the recorder (``rejected_by_node``)."""
+        """By reason: the payloads that are no message (recorded all the same), a second Status
+        of one key, episode and scan (``repeated_status``: a forged one, or the manager's after
+        a forged one; the replay takes the first), and what its bus dropped before it saw it
+        (oversized); in every heartbeat, so the manager's ``network.json`` counts them under
+        the recorder (``rejected_by_node``)."""
         out = Counter(rejected)
         for reasons in dropped(bus).values():
             out.update(reasons)
         return out
+
+    statuses: set[tuple[str, int | None, int | None]] = set()  # (key, episode, scan) heard
+    status_kind = msg.Status.KIND
 
     def record(s: Sample) -> None:
         nonlocal last_scan
@@ -175,6 +180,11 @@ def run(
         counts[kind] += 1
         if kind.startswith("undecodable:"):
             rejected[kind.removeprefix("undecodable:")] += 1
+        elif kind == status_kind:  # one Status per key, episode and scan: more is not the run's
+            tag = (s.key, episode_of(s.payload), scan)
+            if tag in statuses:
+                rejected["repeated_status"] += 1
+            statuses.add(tag)
         if kind == cmd_kind and scan is not None:
             last_scan = scan
         write(s.key, s.payload, s.t_recv_ns, t_sent)

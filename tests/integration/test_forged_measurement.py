@@ -73,3 +73,34 @@ def test_a_forged_sensor_is_never_fused_and_the_replay_agrees(paper, tmp_path):
     assert err.max() < 100.0  # metres: on the target, not 20 km away
     report = replay_run(out)
     assert report.identical, report.differences
+
+
+class StatusForger(Forger):
+    """A node's bus that, with each measurement it sends, also publishes a forged Status of that
+    scan on the manager's status key (a password holder impersonating the manager)."""
+
+    def publish(self, key, payload):
+        self.bus.publish(key, payload)
+        try:
+            msg.parse_measurement_key(key)
+        except ValueError:
+            return None
+        m = msg.decode_as(payload, msg.Measurement)
+        forged = msg.Status(
+            scan=m.scan, t=m.t, enabled=(), trace_P=0.0, trace_Pd=0.0, value=0.0,
+            t_sent_ns=m.t_sent_ns, episode=m.episode,
+        )  # fmt: skip
+        return self.bus.publish(msg.status_key("t"), msg.encode(forged))
+
+
+def test_forged_statuses_are_counted(paper, tmp_path):
+    """Issue 26: forged manager Status messages were counted nowhere.  The recorder hears every
+    Status and counts a second one of a key, episode and scan (``repeated_status``), which the
+    manager's network.json reports under the recorder."""
+    net = paper.network.model_dump() | {"record": True, "heartbeat_s": 0.05}
+    sc = with_overrides(paper, scans=15, network=net)
+    result, _ = run_recorded_network(
+        sc, ["spectral"], tmp_path / "run", wrap_bus={"S5": StatusForger}
+    )
+    assert result.completed
+    assert result.stats.node_rejected.get("recorder", {}).get("repeated_status", 0) > 0
