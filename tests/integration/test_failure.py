@@ -65,7 +65,9 @@ def test_killed_sensor(covnet_proc, tmp_path, paper_path, restart):
     assert failed, events
     k_fail = failed[0]["scan"]
     subsets = summary["metrics"]["spectral"]["subsets"]
-    assert VICTIM in subsets[k_fail - 3]  # it was in use just before
+    # it was in use just before (within the last few scans: in real time under load a missed
+    # deadline changes P, and with it whether S5 is needed at one given scan)
+    assert any(VICTIM in s for s in subsets[max(0, k_fail - 8) : k_fail - 1]), subsets[:k_fail]
     # the killed sensor never enabled from its failure on (until it rejoins)
     rejoined = [e["scan"] for e in events if e["sensor"] == VICTIM and e["event"] == "rejoined"]
     end = rejoined[0] - 1 if rejoined else len(subsets)
