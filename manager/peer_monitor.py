@@ -208,12 +208,11 @@ def run(
                 e, k = (e + 1, 1) if last else (e, k + 1)
         result.completed = True
     finally:
-        done = bus.declare_token(msg.done_key(run_id))  # the run's end, on purpose
+        _done = bus.declare_token(msg.done_key(run_id))  # the run's end, on purpose (kept)
         token.undeclare()
         for sub in subs:
             sub.close()
         live.close()
-    del done
     return result
 
 

@@ -28,6 +28,7 @@ from typing import Any
 
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
+from covnet.core.delay import measures_on_missed
 from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
 from covnet.processes.process import EXIT_OK, open_client
 from covnet.wire import messages as msg
@@ -113,7 +114,7 @@ def serve(
             first = newest[1] + 1 if cmd.episode == newest[0] else 1
             for m in range(first, cmd.scan):  # commands that never came: the fallback
                 stats.missed_commands += 1
-                if {"keep_last": last_on, "off": False, "on": True}[missed_command]:
+                if measures_on_missed(missed_command, last_on):
                     t_m = cmd.t * m / cmd.scan  # t = scan * period
                     pending.append(
                         msg.Command(m, t_m, (sensor_id,), cmd.t_sent_ns, episode=cmd.episode)

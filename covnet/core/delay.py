@@ -337,6 +337,12 @@ UP, DOWN = 0, 1
 """Link directions: towards the fusion centre (a sensor's uplink) and from it (its downlink)."""
 
 
+def measures_on_missed(policy: str, last_on: bool) -> bool:
+    """``network.latency.missed_command``: whether a sensor measures a scan whose command never
+    reached it, ``keep_last`` (as its newest command said), ``off`` or ``on``."""
+    return {"keep_last": last_on, "off": False, "on": True}[policy]
+
+
 def link_stream(seed: int, link_index: int, direction: int) -> np.random.Generator:
     """The generator of link ``link_index`` in direction ``direction`` (e.g. 0 towards the
     manager, 1 from it): key ``(LINK, link_index, direction)``, apart from measurement noise."""

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from covnet.core.delay import DOWN, UP, LinkState, link_stream, measures_on_missed
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.engine import Plan, ScanEngine, SensorSide
 
@@ -92,8 +93,7 @@ class SlowLinks:
     ones; :meth:`finish`, what the links did."""
 
     def __init__(self, engine: ScanEngine, episode: int) -> None:
-        # start-up: the link model only for slow links
-        from covnet.core.delay import DOWN, UP, LinkState, link_stream
+        # start-up: the link helpers only for slow links
         from covnet.covariance_control.links import LatencyCounts, link_specs
 
         sc = engine.sc
@@ -149,7 +149,7 @@ class SlowLinks:
                 continue  # overtaken by a newer command: stale
             for m in range(rx.newest + 1, scan):  # commands it never got: its fallback
                 counts.commands_missed += 1
-                if {"keep_last": rx.last_on, "off": False, "on": True}[fallback]:
+                if measures_on_missed(fallback, rx.last_on):
                     counts.unsolicited += 1
                     self._send(j, m, a, None)
             on = j in self.plans[scan].subset
