@@ -19,6 +19,7 @@ from typing import Any
 
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.engine import Outcome, Plan, ScanEngine
+from covnet.covariance_control.peer_run import write_peer_run
 from covnet.covariance_control.results import write_network_run
 from covnet.wire import messages as msg
 from manager import loop, peer_monitor
@@ -118,6 +119,6 @@ def main(args: Any, sc: Scenario, stop: threading.Event) -> int:
         if args.realtime:
             raise ValueError("--realtime: peer mode runs in lockstep only")
         return main_around(
-            args, sc, stop, peer_monitor.run, peer_monitor.write_peer_run, run_info_extra=info
+            args, sc, stop, peer_monitor.run, write_peer_run, run_info_extra=info
         )
     return main_around(args, sc, stop, run, write_network_run, run_info_extra=info)

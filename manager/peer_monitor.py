@@ -14,66 +14,18 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from covnet.clock import Clock
-from covnet.core.gaussian import Gaussian, is_spd
-from covnet.core.kalman import nees
+from covnet.core.gaussian import is_spd
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.model import build_model, truth_trajectory
-from covnet.covariance_control.results import write_json, write_run
-from covnet.covariance_control.simulate import MetricRun, shared_trajectory
+from covnet.covariance_control.model import build_model
+from covnet.covariance_control.peer_run import NodeLog, PeerResult
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
-
-
-@dataclass
-class NodeLog:
-    """One node's reports in one episode, by scan."""
-
-    tracks: dict[int, msg.Track] = field(default_factory=dict)
-    statuses: dict[int, msg.Status] = field(default_factory=dict)
-
-    def scans(self) -> int:
-        """Scans 1..n reported completely (track and status), without a gap."""
-        n = 0
-        while n + 1 in self.tracks and n + 1 in self.statuses:
-            n += 1
-        return n
-
-    def as_run(self, metric: str, ids: tuple[str, ...], truth: np.ndarray) -> MetricRun:
-        n = self.scans()
-        enabled = np.zeros((n, len(ids)), dtype=bool)
-        for k in range(1, n + 1):
-            enabled[k - 1, [ids.index(s) for s in self.statuses[k].enabled]] = True
-        x = np.array([self.tracks[k].x for k in range(1, n + 1)]).reshape(n, 4)
-        P = np.array([self.tracks[k].P for k in range(1, n + 1)]).reshape(n, 4, 4)
-        eps = np.array([nees(Gaussian(x[i], P[i]), truth[i]) for i in range(n)])
-        return MetricRun(
-            metric=metric,
-            enabled=enabled,
-            value=np.array([self.statuses[k].value for k in range(1, n + 1)]),
-            x_est=x,
-            P_post=P,
-            P_pred=np.full((n, 4, 4), np.nan),  # a peer node does not report its prediction
-            nees=eps,
-            decision_s=np.zeros(n),
-            n_evaluated=np.zeros(n, dtype=np.int64),
-        )
-
-
-@dataclass
-class PeerResult:
-    metrics: list[str]
-    nodes: dict[int, dict[str, NodeLog]]  # episode -> node -> log
-    stats: NetStats
-    completed: bool = False
-    error: str | None = None
 
 
 def run(
@@ -259,47 +211,3 @@ def _report(
             ),
         }
     )
-
-
-def write_peer_run(
-    out: Path, sc: Scenario, result: PeerResult, run_info: dict[str, Any] | None = None
-) -> dict[str, Any]:
-    """The run directory of a peer-mode network: as ``covnet run --fusion peer`` writes it (the
-    first node's run under ``metrics``, every node's under ``peer``), for the scans reported,
-    plus ``network.json`` and the failures the nodes reported (``failures``: per metric, the
-    first scan at which the live nodes excluded each failed node)."""
-    model = build_model(sc)
-    traj = shared_trajectory(model)
-    truth = truth_trajectory(model)
-    ids = model.sensor_ids
-    node_runs: dict[str, dict[str, MetricRun]] = {}
-    runs: dict[str, MetricRun] = {}
-    failures: dict[str, list[dict[str, Any]]] = {}
-    for e, metric in enumerate(result.metrics):
-        logs = result.nodes.get(e, {})
-        nodes = {n: logs[n].as_run(metric, ids, truth) for n in ids if n in logs}
-        nodes = {n: r for n, r in nodes.items() if len(r.value)}
-        if not nodes:
-            continue
-        node_runs[metric] = nodes
-        # the metrics block: the first node that completed the most scans
-        first = max(nodes, key=lambda n: (len(nodes[n].value), -ids.index(n)))
-        runs[metric] = nodes[first]
-        seen: dict[str, int] = {}
-        for log in logs.values():
-            for k, st in sorted(log.statuses.items()):
-                for n in st.failed:
-                    seen[n] = min(seen.get(n, k), k)
-        failures[metric] = [
-            {"sensor": n, "scan": k, "event": "failed"} for n, k in sorted(seen.items())
-        ]
-    extra: dict[str, Any] = {
-        "completed": result.completed,
-        "scans_completed": {m: len(r.value) for m, r in runs.items()},
-        "failures": failures,
-    }
-    info: dict[str, Any] = {"mode": "network"}
-    info.update(run_info or {})
-    summary = write_run(out, sc, traj, runs, extra=extra, run_info=info, node_runs=node_runs)
-    write_json(out / "network.json", result.stats.as_dict())
-    return summary

@@ -8,10 +8,11 @@ Every node runs, per metric episode and scan ``k`` (lockstep)::
        every node sees the same set: a node that died before publishing its status is out
        for everyone, one that published it is in for everyone.
     2. the decision: the same deterministic function of shared information on every node,
-       :func:`covnet.covariance_control.decentral.decide_rule` over the *covariance mirror* (every
-       node's fused covariance and every local filter's covariance follow from the config and the
-       agreed enabled sets alone), the failed nodes infeasible, a subset scored by its worst live
-       node.
+       the kind's engine (:class:`covnet.covariance_control.engine.ScanEngine` with this node
+       only): :func:`covnet.covariance_control.decentral.decide_rule` over the *covariance
+       mirror* (every node's fused covariance and every local filter's covariance follow from
+       the config and the agreed enabled sets alone), the failed nodes infeasible, a subset
+       scored by its worst live node.
     3. if enabled: measure (truth from the world), update the local filter, publish its
        LocalTrack on its own measurement key.
     4. collect the LocalTracks of its enabled neighbours (the communication graph of
@@ -33,22 +34,16 @@ from collections import Counter
 from collections.abc import Callable, Collection, Container, Sequence
 from dataclasses import dataclass, field
 from functools import partial
+from typing import Any
 
 import numpy as np
 
 from covnet.clock import Clock
-from covnet.core.fusion import LocalTrack
-from covnet.covariance_control.centre import as_local_track, usable_track
+from covnet.covariance_control.centre import usable_track
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.decentral import (
-    LocalFilter,
-    Mirror,
-    decide_rule,
-    neighbours,
-    reach_matrix,
-)
-from covnet.covariance_control.fusion_rules import rule_for
-from covnet.covariance_control.model import build_model, initial_estimate, measure, predict_step
+from covnet.covariance_control.decentral import neighbours
+from covnet.covariance_control.engine import ScanEngine, SensorSide, Tracked
+from covnet.covariance_control.model import build_model
 from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample
@@ -192,10 +187,12 @@ def run(
 ) -> PeerStats:
     """Serve every metric's episode as peer node ``node_id`` (see the module docstring)."""
     model = build_model(sc)
-    fusion, net, rule = sc.fusion, sc.network, rule_for(sc.fusion)
-    ids = model.sensor_ids
+    net, ids = sc.network, model.sensor_ids
     me = ids.index(node_id)
-    nbrs = neighbours(fusion, ids)[me]
+    nbrs = neighbours(sc.fusion, ids)[me]
+    # the kind's scan logic for this node: the shared decision, this node's fusion
+    engine = ScanEngine(sc, metrics, model=model, nodes=(me,))
+    side = SensorSide(engine, me)
     stats = PeerStats()
     inbox = _Inbox(bus, run_id, node_id, [ids[n] for n in nbrs], stats)
     manager = ManagerWatch(bus, run_id, manager_grace_s(net))
@@ -206,7 +203,6 @@ def run(
         "track": msg.peer_track_key(run_id, node_id),
         "status": msg.peer_status_key(run_id, node_id),
     }
-    reach = reach_matrix(fusion, ids)
     last = [0]
 
     def beat() -> None:
@@ -222,10 +218,8 @@ def run(
             return stats
         members = set(ids)
         prev: tuple[int, int] | None = None
-        for e, metric in enumerate(metrics):
-            fused = initial_estimate(model, sc.filter.initial_estimate)
-            local = LocalFilter(model, sc.filter.initial_estimate)
-            mirror = Mirror.start(model, reach)
+        for e in range(len(metrics)):
+            engine.start_episode(e)
             for k in range(1, model.scans + 1):
                 if stop.is_set() or manager.left:
                     return stats
@@ -234,33 +228,18 @@ def run(
                     others = members - {node_id}
                     inbox.each(others, inbox.statuses, pe, pk, net.scan_timeout_s, stop, beat)
                     members = {node_id} | {n for n in others if (n, pe, pk) in inbox.statuses}
-                live = np.array([n in members for n in ids])
-                unavailable = frozenset(int(j) for j in np.flatnonzero(~live))
-                P_nodes, P_loc = mirror.predicted(model)
-                alloc = decide_rule(
-                    rule,
-                    model,
-                    P_nodes[live],
-                    P_loc,
-                    k,
-                    metric,
-                    unavailable,
-                    reach=reach[live],
-                )
-                enabled = tuple(ids[j] for j in alloc.subset)
+                plan = engine.decide(k, engine.unavailable(frozenset(ids) - members))
                 t_k = k * model.T
-                pred = predict_step(model, fused)
-                heard: list[tuple[int, LocalTrack]] = []
-                if node_id in enabled:
+                got: dict[str, Any] = {}
+                if node_id in plan.enabled:
                     if inbox.wait(
                         partial(_has_truth, inbox, k),
                         time.monotonic() + net.scan_timeout_s,
                         stop,
                         beat,
                     ):
-                        prior = local.predict_to(e, k)
-                        tr = rule.local(model, me, prior, measure(model, me, k, inbox.truth[k]))
-                        local.set(tr.post)
+                        tr = side.respond(e, k, plan, truth=inbox.truth[k])
+                        assert isinstance(tr, Tracked)  # peer rules fuse local tracks
                         bus.publish(
                             keys["meas"],
                             msg.encode(
@@ -268,26 +247,26 @@ def run(
                                     sensor_id=node_id,
                                     scan=k,
                                     t=t_k,
-                                    x=tr.post.x,
-                                    P=tr.post.P,
-                                    x_prior=prior.x,
-                                    P_prior=prior.P,
+                                    x=tr.x,
+                                    P=tr.P,
+                                    x_prior=tr.x_prior,
+                                    P_prior=tr.P_prior,
                                     t_sent_ns=clock.now_ns(),
                                     episode=e,
                                 )
                             ),
                         )
                         stats.tracks_sent += 1
-                        heard.append((me, tr))
-                want = [ids[j] for j in alloc.subset if j in nbrs and ids[j] in members]
+                        got[node_id] = tr
+                want = [ids[j] for j in plan.subset if j in nbrs and ids[j] in members]
                 inbox.each(want, inbox.tracks, e, k, net.scan_timeout_s, stop, beat)
                 for n in want:
                     m = inbox.tracks.pop((n, e, k), None)
                     if m is not None:
-                        heard.append((ids.index(n), as_local_track(m)))
-                fused = rule.fuse(model, pred, heard)
-                mirror.advance(rule, model, alloc.subset)
-                stats.tracks_fused += len(heard)
+                        got[n] = m
+                out = engine.report(plan, engine.fuse(plan, got), got)
+                fused = out.tracks[0][1]
+                stats.tracks_fused += len(out.fused)
                 stats.scans += 1
                 last[0] = k
                 now = clock.now_ns()
@@ -311,13 +290,13 @@ def run(
                         msg.Status(
                             scan=k,
                             t=t_k,
-                            enabled=enabled,
-                            trace_P=float(np.trace(fused.P)),
-                            trace_Pd=float(np.trace(model.desired(k))),
-                            value=float(alloc.value),
+                            enabled=plan.enabled,
+                            trace_P=out.trace_P,
+                            trace_Pd=out.trace_Pd,
+                            value=out.value,
                             t_sent_ns=now,
                             episode=e,
-                            fused=tuple(sorted((ids[j] for j, _ in heard), key=ids.index)),
+                            fused=out.fused,
                             failed=tuple(n for n in ids if n not in members),
                             node_id=node_id,
                         )

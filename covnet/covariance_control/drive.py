@@ -15,8 +15,8 @@ The transport is :class:`Direct` (every enabled sensor's message arrives at once
 ``network.latency`` is not ideal, :class:`SlowLinks` (the protocol of
 :mod:`covnet.covariance_control.links` in simulated time).  The manager process steps the
 same engine over zenoh (:mod:`manager.covariance`), the replay with the recording's messages
-(:mod:`covnet.covariance_control.replay`): one logic, three drivers.  Peer mode has no fusion
-centre; its nodes' loop is :func:`covnet.covariance_control.decentral_sim.run_peer`.
+(:mod:`covnet.covariance_control.replay`): one logic, three drivers.  In peer mode (no
+centre) the engine fuses for every node; the transport is the same.
 """
 
 from __future__ import annotations
@@ -218,6 +218,7 @@ class InProcessRun:
 
     run: Any
     counts: LatencyCounts | None
+    nodes: dict[str, Any] | None = None  # peer mode: every node's run (sensor id -> run)
 
 
 def run(
@@ -229,4 +230,5 @@ def run(
     the many-target steps, also a config without ``targets:``)."""
     engine = ScanEngine(sc, [metric], model=model, many=many)
     counts = run_engine(engine, links)[0]
-    return InProcessRun(engine.run_of(metric), counts)
+    nodes = engine.node_runs() if engine.peer else None
+    return InProcessRun(engine.run_of(metric), counts, nodes)

@@ -32,6 +32,15 @@ So ``run ≡ up ≡ replay`` holds by construction.  What varies between configs
 many, the fusion rule, slow links, the search) is an entry the engine consults: the
 ``FUSION_RULES`` registry, the targets model, the late handler; never a branch in a driver.
 
+The fusion rule's topology decides what a fusion point is: a **centre** (one fusion point,
+:class:`_OneTarget` or :class:`_ManyTargets`) or **peer** nodes (``fusion.mode: peer``,
+:class:`_Peers`): no centre; every node decides the same allocation from the covariance mirror
+(:class:`covnet.covariance_control.decentral.Mirror`: every node's fused covariance follows from
+the enabled history alone), scoring a subset by its worst node, then node ``n`` fuses its own
+prediction with the tracks of ``D ∩ ({n} ∪ neighbours(n))``.  In process one engine steps every
+node (``covnet run``); each peer process steps an engine of its own node
+(``ScanEngine(..., nodes=(n,))``, :mod:`sensors.peer`); the replay one per recorded node.
+
 Messages the engine reads are duck-typed: :class:`covnet.wire.messages.Measurement` and
 :class:`~covnet.wire.messages.LocalTrack` over the bus, :class:`Measured` and :class:`Tracked` in
 process (the same field names), so ``covnet run`` never imports the wire schemas.
@@ -56,6 +65,7 @@ from covnet.covariance_control.centre import (
     EpisodeLog,
     Gains,
     ManagerResult,
+    as_local_track,
     usable_position,
     usable_track,
 )
@@ -359,6 +369,102 @@ class _ManyTargets:
         )
 
 
+class _Peers:
+    """One episode of peer mode (module docstring) for the nodes ``nodes`` (sensor indices:
+    every node in process, one in a peer process): the decision from the covariance mirror, the
+    failed nodes infeasible and left out of the score; per node its fused estimate and log."""
+
+    def __init__(
+        self, sc: Scenario, model: Model, metric: str, truth: np.ndarray, nodes: Sequence[int]
+    ) -> None:
+        # start-up: the mirror and the peer graph only in peer mode
+        from covnet.covariance_control.decentral import (
+            Mirror,
+            decide_rule,
+            neighbours,
+            reach_matrix,
+        )
+
+        self.decide_rule = decide_rule
+        self.model, self.metric, self.truth = model, metric, truth
+        self.ids = model.sensor_ids
+        self.rule = rule_for(sc.fusion)
+        self.reach = reach_matrix(sc.fusion, self.ids)
+        self.nbrs = neighbours(sc.fusion, self.ids)
+        self.mirror = Mirror.start(model, self.reach)
+        self.nodes = tuple(nodes)
+        est0 = initial_estimate(model, sc.filter.initial_estimate)
+        self.fused = dict.fromkeys(self.nodes, est0)
+        self.logs = {n: EpisodeLog(metric) for n in self.nodes}
+        self.log = self.logs[self.nodes[0]]
+
+    def decide(self, k: int, unavailable: frozenset[int]) -> Plan:
+        """``D = argmin_i max_{n live} f(P_in, P_d(t_k))`` over the feasible subsets, ``P_in``
+        node n's fused covariance from the tracks of ``D_i ∩ reach_n``
+        (:func:`~covnet.covariance_control.decentral.decide_rule`)."""
+        live = np.array([j not in unavailable for j in range(len(self.ids))])
+        P_nodes, P_loc = self.mirror.predicted(self.model)
+        t0 = time.perf_counter()
+        alloc = self.decide_rule(
+            self.rule,
+            self.model,
+            P_nodes[live],
+            P_loc,
+            k,
+            self.metric,
+            unavailable,
+            reach=self.reach[live],
+        )
+        decision_s = time.perf_counter() - t0
+        enabled = tuple(self.ids[j] for j in alloc.subset)
+        return Plan(k, alloc.subset, enabled, alloc.value, decision_s, (alloc, unavailable))
+
+    def ahead(self, plan: Plan) -> None:
+        pass
+
+    def verdict(self, m: Any, plan: Plan | None) -> str | None:
+        """None when a local track may be fused; else ``bad_measurement`` (its content)."""
+        return None if usable_track(m) else "bad_measurement"
+
+    def insert_late(self, m: Any) -> bool:
+        return False  # a peer node fuses a scan's tracks once
+
+    def fuse(self, plan: Plan, got: dict[str, Any]) -> Any:
+        """Every node's ``x_n = rule(x_n⁻, tracks of got ∩ ({n} ∪ neighbours(n)))``; the
+        mirror then advances with the *decided* subset (what every node knows)."""
+        heard_all = {self.ids.index(sid): as_local_track(m) for sid, m in got.items()}
+        out: dict[int, tuple[Gaussian, Gaussian, tuple[int, ...]]] = {}
+        for n in self.nodes:
+            pred = predict_step(self.model, self.fused[n])
+            heard = [(j, heard_all[j]) for j in (n, *self.nbrs[n]) if j in heard_all]
+            self.fused[n] = self.rule.fuse(self.model, pred, heard)
+            out[n] = (pred, self.fused[n], tuple(j for j, _ in heard))
+        self.mirror.advance(self.rule, self.model, plan.subset)
+        return out
+
+    def record(self, plan: Plan, fused: Any, got: dict[str, Any]) -> None:
+        alloc, k = plan.detail[0], plan.k
+        for n, (pred, est, _) in fused.items():
+            self.logs[n].record(
+                len(self.ids), alloc, pred, est, nees(est, self.truth[k - 1]), plan.decision_s
+            )
+
+    def outcome(self, plan: Plan, fused: Any, got: dict[str, Any]) -> Outcome:
+        """The first node's outcome (a peer process's own)."""
+        _, est, heard = fused[self.nodes[0]]
+        k = plan.k
+        return Outcome(
+            k,
+            ((None, est),),
+            plan.enabled,
+            float(plan.value),
+            float(np.trace(est.P)),
+            float(np.trace(self.model.desired(k))),
+            tuple(self.ids[j] for j in heard),
+            None,
+        )
+
+
 # --------------------------------------------------------------------------------------------
 # the engine
 # --------------------------------------------------------------------------------------------
@@ -379,9 +485,8 @@ class ScanEngine:
         model: Any = None,
         stats: NetStats | None = None,
         many: bool | None = None,
+        nodes: Sequence[int] | None = None,
     ) -> None:
-        if not sc.fusion.has_centre:
-            raise ValueError("peer mode has no fusion centre to step")
         self.sc = sc
         self.episodes = list(sc.allocation.metrics if metrics is None else metrics)
         # the many-target centre (a config with targets:, or any config through its steps)
@@ -399,25 +504,30 @@ class ScanEngine:
             self.scans, self.period_s = self.model.scans, self.model.T
         self.ids: tuple[str, ...] = self.model.sensor_ids
         self.rule = rule_for(sc.fusion)
+        # peer mode: the nodes this engine fuses for (every node unless said)
+        self.peer = not sc.fusion.has_centre
+        self.nodes = tuple(range(len(self.ids)) if nodes is None else nodes)
         self.tracks = self.rule.tracks  # sensors send local tracks, not measurements
         # slow links (network.latency): late messages are re-filtered (or dropped); one
         # target: a sensor that measured on its missed-command fallback is fused too
         self.slow = not sc.network.latency.is_ideal(self.ids)
         self.accept_unsolicited = self.slow and not self.many
         self.result = ManagerResult({}, stats if stats is not None else NetStats())
-        self.episode: _OneTarget | _ManyTargets | None = None
+        self.episode: _OneTarget | _ManyTargets | _Peers | None = None
         self.plan: Plan | None = None
 
     def start_episode(self, e: int) -> None:
         metric = self.episodes[e]
-        if self.many:
+        if self.peer:
+            self.episode = _Peers(self.sc, self.model, metric, self.truth, self.nodes)
+        elif self.many:
             self.episode = _ManyTargets(self.sc, self.model, metric, self.truth)
         else:
             self.episode = _OneTarget(self.sc, self.model, metric, self.truth)
         self.result.episodes[metric] = self.episode.log
         self.plan = None
 
-    def _current(self) -> _OneTarget | _ManyTargets:
+    def _current(self) -> _OneTarget | _ManyTargets | _Peers:
         if self.episode is None:
             raise RuntimeError("start_episode first")
         return self.episode
@@ -472,6 +582,14 @@ class ScanEngine:
         log = self.result.episodes[metric]
         return log.as_run() if self.many else log.as_run(len(self.ids))
 
+    def node_runs(self) -> dict[str, Any]:
+        """Peer mode: the current episode's arrays of every node this engine fuses for
+        (sensor id -> :class:`~covnet.covariance_control.simulate.MetricRun`)."""
+        ep = self._current()
+        if not isinstance(ep, _Peers):
+            raise ValueError("node_runs: only peer mode has nodes")
+        return {self.ids[n]: log.as_run(len(self.ids)) for n, log in ep.logs.items()}
+
 
 # --------------------------------------------------------------------------------------------
 # the sensors' side, in process
@@ -506,17 +624,21 @@ class SensorSide:
 
             self.local = LocalFilter(eng.model, eng.sc.filter.initial_estimate)
 
-    def respond(self, episode: int, scan: int, plan: Plan | None) -> Measured | Tracked | None:
+    def respond(
+        self, episode: int, scan: int, plan: Plan | None, truth: np.ndarray | None = None
+    ) -> Measured | Tracked | None:
         """The message of scan ``scan`` (``plan``: that scan's plan, which names the target
         and clutter window with many targets; ``None``: measured on a missed command's
-        fallback, one target only); ``None`` when the plan gives it no dwell."""
+        fallback, one target only); ``None`` when the plan gives it no dwell.  ``truth``: the
+        target's true state at the scan as the world process published it (one target; default
+        the engine's trajectory, the same numbers)."""
         if episode != self.episode:
             self._start(episode)
         eng, j, sid = self.engine, self.j, self.sensor_id
         if eng.many:
             return self._dwell(episode, scan, plan)
         model = eng.model
-        z = measure(model, j, scan, eng.truth[scan - 1])
+        z = measure(model, j, scan, eng.truth[scan - 1] if truth is None else truth)
         if not eng.tracks:
             return Measured(sid, scan, episode, z[None, :], model.R[j])
         prior = self.local.predict_to(episode, scan)

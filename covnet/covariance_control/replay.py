@@ -38,7 +38,15 @@ run id or config hash in the recording's metadata that is not the run's.
 
 ``completed`` is true when every episode has all its scans.  Not recoverable from a
 recording: an episode the manager had started but stopped before its first command (a Ctrl-C
-in that instant).  A peer-mode run has no centre to replay (a :class:`ReplayError` says so).
+in that instant).
+
+**Peer mode** (no centre) is replayed node by node: for every node ``n`` with recorded
+Statuses (its ``peer/<n>/status`` and ``peer/<n>/track`` keys) an engine of that node alone
+(``ScanEngine(..., nodes=(n,))``, as the node's process stepped it) is stepped with the node's
+Status (``failed``: the members it excluded; ``fused``: the local tracks it heard, taken from
+the sensors' measurement keys); the decision must be the Status's, the fused estimate the
+node's recorded Track bit for bit.  The run directory is written by the observer's own writer
+(:func:`covnet.covariance_control.peer_run.write_peer_run`).
 The steps shared by every kind's replay (reading the recording, the metadata check, the notes,
 the byte-for-byte comparison, ``covnet replay`` itself) are :mod:`covnet.runs.replay_kit`'s.
 """
@@ -46,6 +54,7 @@ the byte-for-byte comparison, ``covnet replay`` itself) are :mod:`covnet.runs.re
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +63,10 @@ import numpy as np
 from covnet.covariance_control.centre import ManagerResult
 from covnet.covariance_control.config import KIND, Scenario
 from covnet.covariance_control.engine import Outcome, Plan, ScanEngine
+from covnet.covariance_control.model import build_model
+from covnet.covariance_control.peer_run import NodeLog, PeerResult, write_peer_run
 from covnet.covariance_control.results import write_network_run
+from covnet.processes.runtime_stats import NetStats
 from covnet.runs.recording import RecordedSample
 from covnet.runs.replay_kit import (
     RECORDING,
@@ -85,20 +97,14 @@ class CovarianceReplay(KindReplay):
 
     kind = KIND
 
-    def check(self, cfg: Scenario, run_dir: Path) -> None:
-        if not cfg.fusion.has_centre:
-            raise ReplayError(
-                f"{run_dir} is a peer-mode run: there is no fusion centre to re-fuse (each "
-                "node's own estimates are in its arrays.npz); replay covers central, info and "
-                "ci runs"
-            )
-
     def load(self, cfg: Scenario, samples: Iterator[RecordedSample], run_id: str) -> Recorded:
         """The Status, Tracks, Commands and the sensors' messages the manager would accept
         (the engine's content test, bar the scan's own plan): measurements, or under a track
-        rule local tracks."""
+        rule local tracks; in peer mode also every node's Statuses and Tracks."""
         engine = ScanEngine(cfg, ["load"])
         engine.start_episode(0)
+        if engine.peer:
+            return _load_peer(samples, run_id, engine)
         if engine.tracks:
             return load_recording(
                 samples,
@@ -112,13 +118,22 @@ class CovarianceReplay(KindReplay):
 
     def recompute(
         self, cfg: Scenario, episodes: list[str], rec: Recorded, diffs: Differences
-    ) -> ManagerResult:
+    ) -> ManagerResult | PeerResult:
+        if isinstance(rec, PeerRecorded):
+            return _recompute_peer(cfg, episodes, rec, diffs)
         return _recompute(cfg, episodes, rec, diffs)
 
     def write(
-        self, out: Path, cfg: Scenario, result: ManagerResult, run_info: dict[str, Any]
+        self,
+        out: Path,
+        cfg: Scenario,
+        result: ManagerResult | PeerResult,
+        run_info: dict[str, Any],
     ) -> None:
-        write_network_run(out, cfg, result, run_info)
+        if isinstance(result, PeerResult):
+            write_peer_run(out, cfg, result, run_info)
+        else:
+            write_network_run(out, cfg, result, run_info)
 
 
 REPLAY = CovarianceReplay()
@@ -231,3 +246,134 @@ def _check_tracks(at: str, recorded: list[msg.Track], out: Outcome, diffs: Diffe
         dx = float(np.max(np.abs(tr.x - g.x))) if tr.x.shape == g.x.shape else float("nan")
         what = "replayed estimate" if tid is None else f"the replayed estimate of {tid}"
         diffs.add("track", f"{at}: {what} differs from the recorded Track (max |dx| = {dx:.6g})")
+
+
+# --------------------------------------------------------------------------------------------
+# peer mode: node by node
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PeerRecorded(Recorded):
+    """A peer-mode recording: the sensors' local tracks (``meas``, ``others``) and every
+    node's Statuses and Tracks, keyed by ``(node, episode, scan)`` (the first one received)."""
+
+    node_status: dict[tuple[str, int, int], msg.Status] = field(default_factory=dict)
+    node_track: dict[tuple[str, int, int], msg.Track] = field(default_factory=dict)
+
+
+def _load_peer(samples: Iterator[RecordedSample], run_id: str, engine: ScanEngine) -> PeerRecorded:
+    """The local tracks the nodes would accept and the nodes' own reports (strictly: a payload
+    that does not decode, or whose ``node_id`` is not its key's, is counted and skipped)."""
+    rest: list[RecordedSample] = []
+    node_keys: list[tuple[str, str, RecordedSample]] = []
+    for s in samples:
+        try:
+            node, what = msg.parse_peer_key(s.key)
+        except ValueError:
+            rest.append(s)
+            continue
+        node_keys.append((node, what, s))
+    base = load_recording(
+        iter(rest), run_id, message=msg.LocalTrack, label="local_track", acceptable=engine.usable
+    )
+    rec = PeerRecorded(**{f: getattr(base, f) for f in Recorded.__dataclass_fields__})
+    for node, what, s in node_keys:
+        rec.count("samples")
+        try:
+            m: msg.Status | msg.Track = (
+                msg.decode_as(s.payload, msg.Status)
+                if what == "status"
+                else msg.decode_as(s.payload, msg.Track)
+            )
+        except msg.WireError as exc:
+            rec.count(f"skipped:{exc.reason}")
+            continue
+        if m.node_id != node:
+            rec.count("skipped:key_mismatch")
+            continue
+        rec.count(f"node_{what}")
+        table: dict[tuple[str, int, int], Any] = (
+            rec.node_status if what == "status" else rec.node_track
+        )
+        table.setdefault((node, m.episode, m.scan), m)
+    return rec
+
+
+def _recompute_peer(
+    sc: Scenario, metrics: list[str], rec: PeerRecorded, diffs: Differences
+) -> PeerResult:
+    """Every recorded node's reports, recomputed by an engine of that node alone (module
+    docstring)."""
+    result = PeerResult(list(metrics), {}, NetStats())
+    scans = build_model(sc).scans
+    completed = True
+    for e, metric in enumerate(metrics):
+        logs: dict[str, NodeLog] = {}
+        nodes = sorted({n for (n, ep, _) in rec.node_status if ep == e})
+        for node in nodes:
+            log = _replay_node(sc, node, e, metric, rec, diffs)
+            if log.statuses:
+                logs[node] = log
+        result.nodes[e] = logs
+        full = [n for n, log in logs.items() if log.scans() == scans]
+        completed = completed and bool(full)
+    result.completed = completed
+    return result
+
+
+def _replay_node(
+    sc: Scenario, node: str, e: int, metric: str, rec: PeerRecorded, diffs: Differences
+) -> NodeLog:
+    """Node ``node``'s episode ``e``: its engine stepped with its recorded Statuses."""
+    engine = ScanEngine(sc, [metric])
+    if node not in engine.ids:
+        diffs.add("status", f"episode {e}: Statuses of {node!r}, which is not a sensor")
+        return NodeLog()
+    engine = ScanEngine(sc, [metric], model=engine.model, nodes=(engine.ids.index(node),))
+    engine.start_episode(0)
+    log = NodeLog()
+    for k in range(1, engine.scans + 1):
+        st = rec.node_status.get((node, e, k))
+        if st is None:
+            break
+        at = f"episode {e} ({metric}) node {node} scan {k}"
+        plan = engine.decide(k, engine.unavailable(frozenset(st.failed)))
+        if plan.enabled != st.enabled:
+            diffs.add(
+                "allocation",
+                f"{at}: replayed allocation {list(plan.enabled)} != recorded {list(st.enabled)}",
+            )
+        elif float(plan.value) != st.value:
+            diffs.add("value", f"{at}: replayed objective {plan.value!r} != recorded {st.value!r}")
+        got: dict[str, Any] = {}
+        for sid in st.fused:
+            m = next((c for c in rec.candidates(e, k, sid) if engine.usable(c)), None)
+            if m is None:
+                diffs.add("measurement", f"{at}: {node} fused {sid}'s track but none is recorded")
+                continue
+            got[sid] = m
+        out = engine.report(plan, engine.fuse(plan, got), got)
+        if out.trace_P != st.trace_P:
+            diffs.add("trace_P", f"{at}: replayed tr P {out.trace_P!r} != recorded {st.trace_P!r}")
+        est = out.tracks[0][1]
+        tr = rec.node_track.get((node, e, k))
+        if tr is not None and not (np.array_equal(tr.x, est.x) and np.array_equal(tr.P, est.P)):
+            diffs.add("track", f"{at}: the replayed estimate differs from the node's Track")
+        log.statuses[k] = msg.Status(
+            scan=k,
+            t=st.t,
+            enabled=plan.enabled,
+            trace_P=out.trace_P,
+            trace_Pd=out.trace_Pd,
+            value=out.value,
+            t_sent_ns=0,
+            episode=e,
+            fused=out.fused,
+            failed=st.failed,
+            node_id=node,
+        )
+        log.tracks[k] = msg.Track(
+            scan=k, t=st.t, x=est.x, P=est.P, t_sent_ns=0, episode=e, node_id=node
+        )
+    return log

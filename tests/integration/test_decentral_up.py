@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
 
 import numpy as np
@@ -14,7 +15,10 @@ import yaml
 from multiproc import CovnetProcess, assert_nothing_left
 
 from covnet.cli.app import main as covnet_main
+from covnet.covariance_control.replay import RECORDING, replay_run
+from covnet.runs.recording import RecordingReader, RecordingWriter, read_metadata
 from covnet.runs.rundir import load_arrays
+from covnet.wire import messages as msg
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
@@ -79,7 +83,36 @@ def test_peer_ring_equals_the_in_process_run_and_nodes_agree(tmp_path, paper_pat
             np.testing.assert_allclose(y[key], x[key], rtol=0, atol=1e-12, err_msg=key)
     names = set(json.loads((out / "processes.json").read_text()))
     assert "manager" in names  # the router and monitor: it neither decides nor fuses
-    assert covnet_main(["replay", str(out)]) == 1  # no centre to re-fuse: a clear refusal
+    # the recording re-fuses node by node (the engine of each node alone) to the same summary
+    assert covnet_main(["replay", str(out)]) == 0
+    assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()
+    report = json.loads((out / "replay" / "replay.json").read_text())
+    assert report["identical"] is True and report["differences"] == [], report
+    assert report["counts"]["node_status"] >= 40 * len(b["sensor_ids"]), report["counts"]
+    # a local track's bits changed in the recording: the nodes that fused it differ
+    tampered = tmp_path / "tampered"
+    shutil.copytree(out, tampered, ignore=shutil.ignore_patterns("replay"))
+    run_id = json.loads((out / "run.json").read_text())["run_id"]
+    samples = list(RecordingReader(out / RECORDING).samples())
+    idx, raw = next(
+        (i, m.x.tobytes())
+        for i, s in enumerate(samples)
+        if s.key.endswith("/meas") and (m := msg.decode_as(s.payload, msg.LocalTrack)).scan == 10
+    )
+    with RecordingWriter(
+        tampered / RECORDING, run_id=run_id, metadata=read_metadata(out / RECORDING)
+    ) as w:
+        for i, s in enumerate(samples):
+            payload = s.payload
+            if i == idx:
+                at = payload.index(raw) + 5  # x[0]'s mantissa: a valid, finite change
+                payload = payload[:at] + bytes([payload[at] ^ 1]) + payload[at + 1 :]
+            w.write(s.key, payload, s.t_recv_ns, s.t_sent_ns)
+    rep = replay_run(tampered)
+    assert not rep.identical
+    assert any(
+        "scan 10: the replayed estimate differs from the node's Track" in d for d in rep.differences
+    ), rep.differences
 
 
 def test_a_killed_peer_is_dropped_from_every_decision(covnet_proc, tmp_path, paper_path):
@@ -115,3 +148,6 @@ def test_a_killed_peer_is_dropped_from_every_decision(covnet_proc, tmp_path, pap
     subsets = summary["metrics"]["abs_trace"]["subsets"]
     assert all(victim not in s for s in subsets[k_fail - 1 :])
     assert_nothing_left(out)
+    # the recording replays the failure too: each node's decisions without the victim
+    assert covnet_main(["replay", str(out)]) == 0
+    assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()
