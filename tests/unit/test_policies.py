@@ -303,6 +303,12 @@ def test_round_robin_order_rounds():
     assert round_robin_order(4, [0, 1, 2, 3], 3, 2) == [(3, 0), (0, 1), (1, 1)]
     with pytest.raises(ValueError, match="scan number must be an integer >= 1"):
         round_robin_order(4, [0, 1], 1, 0)
+    P, G = _problem(N=3)
+    c = Constraints(required=frozenset({0, 1}))
+    for decide in (POLICIES["round_robin"].decide, POLICIES["round_robin"].decide_many):
+        args = (P, G) if decide is POLICIES["round_robin"].decide else (P[None], G[:, None], None)
+        with pytest.raises(ValueError, match="scan number must be an integer >= 1"):
+            decide(*args, c, budget=2, scan=0)  # even with no free slot
 
 
 # --------------------------------------------------------------------------------------------

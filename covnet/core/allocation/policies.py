@@ -280,35 +280,43 @@ class _Single:
 # --------------------------------------------------------------------------------------------
 
 
-def _whitened_eigh(L: Mat, J: Mat) -> tuple[Mat, Mat]:
-    """Eigen-decomposition of ``M = Lᵀ J L`` (batched over ``J``'s leading axes), eigenvalues
-    clipped at 0 (``J`` is PSD: a negative one is rounding)."""
+def _whitened(L: Mat, J: Mat) -> Mat:
+    """``M = Lᵀ J L`` (batched over ``J``'s leading axes), symmetrised."""
     M = np.swapaxes(L, -1, -2) @ J @ L
-    M = 0.5 * (M + np.swapaxes(M, -1, -2))
-    lam, V = np.linalg.eigh(M)
-    return np.maximum(lam, 0.0), V
+    out: Mat = 0.5 * (M + np.swapaxes(M, -1, -2))
+    return out
+
+
+def _whitened_eigvals(L: Mat, J: Mat) -> Mat:
+    """Eigenvalues of ``M = Lᵀ J L``, clipped at 0 (``J`` is PSD: a negative one is
+    rounding)."""
+    out: Mat = np.maximum(np.linalg.eigvalsh(_whitened(L, J)), 0.0)
+    return out
 
 
 def _gain_batch(L: Mat, J: Mat) -> Mat:
     """``log det(P⁻⁻¹ + J) − log det(P⁻⁻¹) = Σ log(1 + λ_i)``."""
-    lam, _ = _whitened_eigh(L, J)
-    out: Mat = np.log1p(lam).sum(axis=-1)
+    out: Mat = np.log1p(_whitened_eigvals(L, J)).sum(axis=-1)
     return out
 
 
 def _uncertainty_batch(P: Mat, L: Mat, J: Mat) -> Mat:
-    """``‖P⁻‖_F − ‖P(D)‖_F`` with ``P(D) = L V diag(1/(1+λ)) Vᵀ Lᵀ``."""
-    lam, V = _whitened_eigh(L, J)
-    W = L @ V
-    Pd = (W / (1.0 + lam)[..., None, :]) @ np.swapaxes(W, -1, -2)
+    """``‖P⁻‖_F − ‖P(D)‖_F`` with ``P(D) = L (I + M)⁻¹ Lᵀ``."""
+    Pd = L @ _inv_i_plus(_whitened(L, J)) @ L.T
     out: Mat = np.linalg.norm(P) - np.linalg.norm(Pd, axis=(-2, -1))
     return out
 
 
 def _kl_batch(P: Mat, L: Mat, J: Mat) -> Mat:
     """``½ Σ_i (λ_i − log(1 + λ_i))``: :func:`expected_kl`."""
-    lam, _ = _whitened_eigh(L, J)
+    lam = _whitened_eigvals(L, J)
     out: Mat = 0.5 * (lam - np.log1p(lam)).sum(axis=-1)
+    return out
+
+
+def _inv_i_plus(M: Mat) -> Mat:
+    """``(I + M)⁻¹`` of PSD ``M`` (eigenvalues of ``I + M`` at least 1: well conditioned)."""
+    out: Mat = np.asarray(np.linalg.inv(np.eye(M.shape[-1]) + M), dtype=np.float64)
     return out
 
 
@@ -380,9 +388,7 @@ def expected_kl_sequential(P_pred: Mat, gains: Mat, order: Sequence[int]) -> flo
     cur, Lc = P, L
     for j in order:
         total += float(_kl_batch(cur, Lc, G[int(j)]))
-        lam, V = _whitened_eigh(Lc, G[int(j)])
-        W = Lc @ V
-        cur = (W / (1.0 + lam)[None, :]) @ W.T
+        cur = Lc @ _inv_i_plus(_whitened(Lc, G[int(j)])) @ Lc.T
         cur, Lc = checked_prior(cur)
     return total
 
@@ -480,7 +486,7 @@ def _decide_round_robin(
     pr = _Single(P_pred, gains, constraints)
     K = pr.budget("round_robin", budget, needed=True)
     m = K - len(pr.req)
-    picked = [j for j, _ in round_robin_order(pr.N, pr.free, m, scan)] if m else []
+    picked = [j for j, _ in round_robin_order(pr.N, pr.free, m, scan)]
     return PolicyDecision(tuple(sorted(pr.req + picked)), None, 0, False)
 
 
@@ -559,22 +565,21 @@ def _decide_reward(
     count = feasible_subset_count(len(pr.free), len(pr.req), K)
     if count > BRUTE_FORCE_MAX:
         return _greedy_reward(pr, batch, K, tie_rtol)
+    # by size, then the extras' combinations in lexicographic order: the order of the tie key
+    # (size, ascending tuple of required ∪ extras), as every subset holds the same required ones
     r = len(pr.req)
-    subsets: list[tuple[int, ...]] = []
+    blocks = []
     for k in range(max(r, 1), min(K, len(pr.free) + r) + 1):
-        for extra in itertools.combinations(pr.free, k - r):
-            subsets.append(tuple(sorted(pr.req + list(extra))))
-    masks = np.zeros((len(subsets), pr.N), dtype=bool)
-    for i, D in enumerate(subsets):
-        masks[i, list(D)] = True
+        extra = np.array(list(itertools.combinations(pr.free, k - r)), dtype=np.int64)
+        mk = np.zeros((extra.shape[0], pr.N), dtype=bool)
+        mk[:, pr.req] = True
+        mk[np.arange(extra.shape[0])[:, None], extra] = True
+        blocks.append(mk)
+    masks = np.concatenate(blocks)
     vals = batch(pr.P, pr.L, pr.sums(masks))
     best = float(vals.max())
-    thr = best - tie_rtol * max(abs(best), TINY)
-    i = min(
-        (i for i in range(len(subsets)) if vals[i] >= thr),
-        key=lambda i: (len(subsets[i]), subsets[i]),
-    )
-    return PolicyDecision(subsets[i], float(vals[i]), len(subsets), True)
+    i = int(np.flatnonzero(vals >= best - tie_rtol * max(abs(best), TINY))[0])
+    return PolicyDecision(tuple(np.flatnonzero(masks[i]).tolist()), float(vals[i]), len(vals), True)
 
 
 def _greedy_reward(

@@ -41,7 +41,6 @@ The forms (``score`` as in one target):
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -242,9 +241,7 @@ def _round_robin(
     pr = _Many(P_pred, J, feasible, _constraints(constraints))
     K = pr.budget("round_robin", budget, needed=True)
     m = K - len(pr.req)
-    turns = dict(round_robin_order(pr.N, pr.free, m, scan)) if m else {}
-    if not m:
-        round_robin_order(pr.N, pr.free, 0, scan)  # the scan number's check
+    turns = dict(round_robin_order(pr.N, pr.free, m, scan))
     for j in pr.req:
         turns[j] = int(scan) - 1
     a = [OFF] * pr.N
@@ -429,23 +426,31 @@ def _decide_reward(
         size *= max(len(o), 1)
     if size > MANY_BRUTE_FORCE_MAX:
         return _greedy_reward(pr, R, K, tie_rtol, name)
-    cands: list[tuple[tuple[int, ...], list[int]]] = []
-    for a in itertools.product(*[o if o else [OFF] for o in options]):
-        on = sum(x != OFF for x in a)
-        if not 1 <= on <= K:
-            continue
-        if any(a.count(t) > pr.caps[t] for t in range(pr.T)):
-            continue
-        cands.append((a, _codes(pr, a)))
-    if not cands:
-        raise infeasible(f"policy {name!r}: no assignment satisfies the constraints")
+    # every assignment at once: row i is the mixed-radix expansion of i over the options
+    opts = [o if o else [OFF] for o in options]
+    A = np.zeros((size, pr.N), dtype=np.int64)
+    rest = np.arange(size)
+    for j in range(pr.N - 1, -1, -1):
+        A[:, j] = np.array(opts[j], dtype=np.int64)[rest % len(opts[j])]
+        rest //= len(opts[j])
+    on = (A != OFF).sum(axis=1)
+    ok = (on >= 1) & (on <= K)
     for t in range(pr.T):
-        R.ensure(t, [c[t] for _, c in cands])
-    vals = [R.total(c) for _, c in cands]
-    best = max(vals)
-    thr = best - tie_rtol * max(abs(best), TINY)
-    i = min((i for i, v in enumerate(vals) if v >= thr), key=lambda i: _tie_key(pr, cands[i][0]))
-    return AssignmentDecision(tuple(cands[i][0]), vals[i], len(cands), True)
+        ok &= (A == t).sum(axis=1) <= pr.caps[t]
+    A = A[ok]
+    if A.shape[0] == 0:
+        raise infeasible(f"policy {name!r}: no assignment satisfies the constraints")
+    bits = np.int64(1) << np.arange(pr.N, dtype=np.int64)
+    vals = np.zeros(A.shape[0])
+    for t in range(pr.T):  # F = 0; F = F + r_t over the targets in order (R.total's sum)
+        codes = ((A == t) * bits).sum(axis=1)
+        uniq, inv = np.unique(codes, return_inverse=True)
+        R.ensure(t, uniq.tolist())
+        vals = vals + np.array([R.known[t][c] for c in uniq.tolist()])[inv]
+    best = float(vals.max())
+    tied = np.flatnonzero(vals >= best - tie_rtol * max(abs(best), TINY)).tolist()
+    i = min(tied, key=lambda i: _tie_key(pr, A[i].tolist()))
+    return AssignmentDecision(tuple(A[i].tolist()), float(vals[i]), A.shape[0], True)
 
 
 def _greedy_reward(
