@@ -41,6 +41,14 @@ position is ``Euclidean(mapping=(0, 2))`` of the state.
 (``YAML().load(text)``; means, covariances and timestamps round-trip exactly): a mapping
 ``episode name -> {"groundtruth_paths": set, "tracks": set}`` (the keys a Stone Soup
 ``MetricManager`` uses by default), every episode of the run or the one asked for.
+
+**Agreement with covnet's own OSPA / GOSPA.**  Stone Soup's ``OSPAMetric`` and ``GOSPAMetric``
+with covnet's ``c`` and ``p`` (the config's ``ospa``) and ``measure=Euclidean(mapping=(0, 2))``
+give, on an export, covnet's per-scan ``ospa`` and ``gospa`` (``arrays.npz``, ``summary.json``)
+to rounding (tests/integration/test_export_stonesoup.py).  One caveat: Stone Soup 1.9.1's OSPA
+chooses its assignment by the cut distances, not their ``p``-th powers, so with ``p != 1``
+and targets closer together than their errors its value can exceed OSPA's definition
+(covnet's); GOSPA agrees always.
 """
 
 from __future__ import annotations
