@@ -281,7 +281,6 @@ def to_stonesoup(
     """One episode of ``run_dir`` (``None``: the run's first, e.g. its first metric) as Stone
     Soup's ``(set[GroundTruthPath], set[Track])`` (module docstring).  Needs the optional
     extra (:class:`StoneSoupMissing` otherwise)."""
-    _stonesoup_types()  # refuse before reading anything
     return _stonesoup_episode(episode_of(read_run(run_dir), episode, run_dir), start)
 
 
@@ -304,9 +303,7 @@ def export(
     directory; ``"-"``: standard output).  Returns the file written (``None`` for stdout)."""
     if fmt not in FORMATS:
         raise UsageError(f"--format {fmt}: choose from {', '.join(FORMATS)}")
-    if fmt == "stonesoup":
-        _stonesoup_types()  # refuse before reading anything
-    chosen = _select(read_run(run_dir), episode, run_dir)
+    chosen = _select(read_run(run_dir), episode, run_dir)  # what is wrong with the run first
     text = write_csv(chosen) if fmt == "csv" else write_stonesoup(chosen)
     if out is not None and str(out) == "-":
         sys.stdout.write(text)
