@@ -12,6 +12,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from covnet.errors import UsageError
+
 __all__ = ["KindBase", "lazy", "seed_option"]
 
 
@@ -28,6 +30,7 @@ class KindBase:
     restartable sensors and recorder.  A kind overrides what differs."""
 
     config: Any
+    title: str
 
     def from_dict(self, data: object, source: str, base_dir: str | Path | None) -> Any:
         return self.config.from_dict(data, source, base_dir)
@@ -38,6 +41,10 @@ class KindBase:
 
     def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
         return None
+
+    def tracks(self, cfg: Any, run_dir: Path) -> list[Any]:
+        """No truths and tracks to export (a kind that has them overrides this)."""
+        raise UsageError(f"{run_dir}: a {self.title} run has no truths and tracks to export")
 
     def restartable(self, cfg: Any) -> frozenset[str]:
         """The sensors and the recorder (which continues in a new segment); a world that

@@ -111,6 +111,12 @@ class Kind(Protocol):
         """Redraw the figures of one of this kind's run directories."""
         ...
 
+    def tracks(self, cfg: Any, run_dir: Path) -> list[Any]:
+        """``covnet export``: the truths and tracks of one of this kind's run directories,
+        per episode (:class:`covnet.runs.export.Episode` s); a kind without tracks raises a
+        :class:`~covnet.errors.UsageError` that says so."""
+        ...
+
     def visual(self, cfg: Any) -> Any:
         """The kind's visual module made for ``cfg`` (``covnet/<kind>/visual.py``'s ``Visual``,
         a :class:`covnet.runs.visual.KindVisual`): one scan's messages -> what Foxglove draws."""

@@ -291,6 +291,16 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    # start-up: the export's readers and writers for this command only
+    from covnet.runs.export import export
+
+    path = export(args.run_dir, args.format, args.out, args.episode)
+    if path is not None:
+        print(path)
+    return EXIT_OK
+
+
 def cmd_bench_up(args: argparse.Namespace) -> int:
     import tempfile  # only the benchmark needs these (start-up time of the other commands)
 
@@ -717,6 +727,26 @@ def build_parser() -> argparse.ArgumentParser:
         "every point whose key contains TEXT, e.g. delay_ms=350,loss=0,mode=central",
     )
     pl.set_defaults(func=cmd_plot)
+
+    ex = sub.add_parser(
+        "export",
+        help="a run directory's truths and tracks as CSV or as Stone Soup objects",
+        description="Every episode's truths and tracks (per scan: time, state x, vx, y, vy and "
+        "the track's covariance) as a CSV (documented columns) or as Stone Soup GroundTruthPath "
+        "and Track objects in Stone Soup's YAML (needs: pip install 'covnet[stonesoup]').",
+    )
+    ex.add_argument("run_dir", help="a run directory of covnet run or covnet up")
+    ex.add_argument("--format", choices=["csv", "stonesoup"], default="csv", help="default csv")
+    ex.add_argument(
+        "--out",
+        metavar="PATH",
+        help="the file to write, '-' for stdout (default: export.csv or export.stonesoup.yaml "
+        "in the run directory)",
+    )
+    ex.add_argument(
+        "--episode", metavar="NAME", help="only this episode, e.g. a metric (default: every one)"
+    )
+    ex.set_defaults(func=cmd_export)
 
     b = sub.add_parser(
         "bench",

@@ -67,6 +67,7 @@ class CovarianceControl(KindBase):
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     up_problem = staticmethod(lazy(_COMMANDS, "up_problem"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
+    tracks = staticmethod(lazy("covnet.covariance_control.results", "tracks"))
     rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
     visual = staticmethod(lazy(_VISUAL, "Visual"))
     run_messages = staticmethod(lazy(_VISUAL, "run_messages"))

@@ -44,6 +44,7 @@ from covnet.covariance_control.simulate import (
     Trajectory,
     shared_trajectory,
 )
+from covnet.runs.export import Episode, StateSeries, read_arrays, require_arrays
 from covnet.runs.rundir import (
     ARRAYS,
     CONFIG,
@@ -442,3 +443,41 @@ def _network_facts(result: ManagerResult) -> tuple[dict[str, Any], dict[str, Any
         },
     }
     return extra, info
+
+
+def tracks(sc: Scenario, run_dir: Path) -> list[Episode]:
+    """``covnet export`` (:mod:`covnet.runs.export`): per metric of the run (``arrays.npz``'s
+    order), every target's truth and fused track over the scans the metric's episode did
+    (scans ``1..K'`` at ``t``); a single target is ``T1``."""
+    a = read_arrays(run_dir, "metrics", "t", "truth")
+    metrics = [str(m) for m in a["metrics"]]
+    need = [f"{f}.{m}" for m in metrics for f in ("x_est", "P_post")]
+    if sc.multitarget:
+        need.append("target_ids")
+    require_arrays(a, run_dir, *need)
+    if sc.multitarget:
+        tids = [str(x) for x in a["target_ids"]]
+        truth, est, cov = a["truth"], {}, {}
+        for m in metrics:
+            est[m], cov[m] = a[f"x_est.{m}"], a[f"P_post.{m}"]
+    else:  # one target: the (K, ...) arrays as a target axis of one
+        tids = ["T1"]
+        truth = a["truth"][None]
+        est = {m: a[f"x_est.{m}"][None] for m in metrics}
+        cov = {m: a[f"P_post.{m}"][None] for m in metrics}
+    t = a["t"]
+    out = []
+    for m in metrics:
+        n = est[m].shape[1]  # a network run stopped early: the scans the episode did
+        scan = np.arange(1, n + 1, dtype=np.int64)
+        out.append(
+            Episode(
+                m,
+                tuple(StateSeries(tid, scan, t[:n], truth[i, :n]) for i, tid in enumerate(tids)),
+                tuple(
+                    StateSeries(tid, scan, t[:n], est[m][i], cov[m][i])
+                    for i, tid in enumerate(tids)
+                ),
+            )
+        )
+    return out

@@ -42,6 +42,7 @@ class Mobile(KindBase):
     run = staticmethod(lazy(_COMMANDS, "run"))
     after_up = staticmethod(lazy(_COMMANDS, "after_up"))
     plot = staticmethod(lazy(_COMMANDS, "plot"))
+    tracks = staticmethod(lazy("covnet.mobile.results", "tracks"))
     rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
     visual = staticmethod(lazy(_VISUAL, "Visual"))
     run_messages = staticmethod(lazy(_VISUAL, "run_messages"))

@@ -36,6 +36,7 @@ import numpy as np
 from covnet import __version__
 from covnet.mobile.config import MobileConfig, config_hash, normalised
 from covnet.mobile.simulate import MobileRun
+from covnet.runs.export import Episode, StateSeries, read_arrays
 from covnet.runs.rundir import (
     ARRAYS,
     CONFIG,
@@ -179,3 +180,20 @@ def write_run(
 def load_summary(run_dir: Path) -> dict[str, Any]:
     summary: dict[str, Any] = read_json(run_dir / SUMMARY)
     return summary
+
+
+def tracks(cfg: MobileConfig, run_dir: Path) -> list[Episode]:
+    """``covnet export`` (:mod:`covnet.runs.export`): the run's one episode (named after its
+    solver), every target's truth and track at rows ``0..K`` (row 0: the start, the initial
+    estimate), ``t = k T``."""
+    a = read_arrays(run_dir, "truth", "x_est", "P_post", "target_ids")
+    n = min(a["x_est"].shape[0], a["truth"].shape[0])
+    scan = np.arange(n, dtype=np.int64)
+    t = scan * float(cfg.scan_period_s)
+    tids = [str(x) for x in a["target_ids"]]
+    truths = tuple(StateSeries(tid, scan, t, a["truth"][:n, i]) for i, tid in enumerate(tids))
+    est = tuple(
+        StateSeries(tid, scan, t, a["x_est"][:n, i], a["P_post"][:n, i])
+        for i, tid in enumerate(tids)
+    )
+    return [Episode(str(cfg.solver), truths, est)]

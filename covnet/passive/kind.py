@@ -9,8 +9,10 @@ of a network run from its recording are :mod:`covnet.passive.replay`'s.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
+from covnet.errors import UsageError
 from covnet.kindkit import KindBase, lazy, seed_option
 from covnet.passive import config
 
@@ -41,6 +43,13 @@ class Passive(KindBase):
 
     def episodes(self, cfg: Any) -> list[str]:
         return [str(cfg.association.method)]
+
+    def tracks(self, cfg: Any, run_dir: Path) -> list[Any]:
+        raise UsageError(
+            f"{run_dir}: a passive run holds one association scene (each sensor's directions, "
+            "the triples chosen and the targets' fixed positions), no truths and tracks over "
+            "time: nothing to export"
+        )
 
 
 KIND = Passive()
