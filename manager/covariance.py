@@ -118,7 +118,5 @@ def main(args: Any, sc: Scenario, stop: threading.Event) -> int:
     if not sc.fusion.has_centre:  # no fusion centre: this process only routes and watches
         if args.realtime:
             raise ValueError("--realtime: peer mode runs in lockstep only")
-        return main_around(
-            args, sc, stop, peer_monitor.run, write_peer_run, run_info_extra=info
-        )
+        return main_around(args, sc, stop, peer_monitor.run, write_peer_run, run_info_extra=info)
     return main_around(args, sc, stop, run, write_network_run, run_info_extra=info)

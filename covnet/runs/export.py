@@ -71,8 +71,8 @@ from covnet.errors import UsageError
 from covnet.runs.rundir import ARRAYS, CONFIG, atomic_write, config_mismatch, load_arrays
 
 if TYPE_CHECKING:  # the optional extra (no type information: Any to mypy)
-    from stonesoup.types.groundtruth import GroundTruthPath  # type: ignore[import-untyped, import-not-found, unused-ignore]
-    from stonesoup.types.track import Track  # type: ignore[import-untyped, import-not-found, unused-ignore]
+    from stonesoup.types.groundtruth import GroundTruthPath
+    from stonesoup.types.track import Track
 
 __all__ = [
     "CSV_COLUMNS",
@@ -234,8 +234,8 @@ def _stonesoup_types() -> Any:
     """Stone Soup's state, track and serialisation modules (start-up: the optional extra,
     imported only here; without it a :class:`StoneSoupMissing` that says how to install it)."""
     try:
-        from stonesoup import serialise  # type: ignore[import-untyped, import-not-found, unused-ignore]
-        from stonesoup.types import groundtruth, state, track  # type: ignore[import-untyped, import-not-found, unused-ignore]
+        from stonesoup import serialise
+        from stonesoup.types import groundtruth, state, track
     except ImportError as exc:
         raise StoneSoupMissing(
             f"--format stonesoup: Stone Soup is not installed ({exc}); install the optional "

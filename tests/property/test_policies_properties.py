@@ -10,8 +10,9 @@ from hypothesis import strategies as st
 
 from covnet.core.allocation.assignment import MultiConstraints
 from covnet.core.allocation.constraints import Constraints
-from covnet.core.allocation.policies import POLICIES, expected_kl, uncertainty_reward
+from covnet.core.allocation.policies import expected_kl, uncertainty_reward
 from covnet.core.allocation.policies_many import OFF
+from covnet.core.allocation.policy_registry import POLICIES
 
 DECIDING = sorted(n for n, p in POLICIES.items() if p.decide is not None)
 

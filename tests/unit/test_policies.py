@@ -16,7 +16,6 @@ from covnet.core.allocation.assignment import MultiConstraints
 from covnet.core.allocation.constraints import Constraints
 from covnet.core.allocation.exact import InfeasibleAllocation
 from covnet.core.allocation.policies import (
-    POLICIES,
     expected_kl,
     expected_kl_sequential,
     information_gain,
@@ -24,6 +23,7 @@ from covnet.core.allocation.policies import (
     uncertainty_reward,
 )
 from covnet.core.allocation.policies_many import OFF, total_reward
+from covnet.core.allocation.policy_registry import POLICIES
 
 DECIDING = sorted(n for n, p in POLICIES.items() if p.decide is not None)
 REWARDS = ["uncertainty_reward", "expected_kl"]

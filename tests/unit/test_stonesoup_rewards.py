@@ -38,12 +38,12 @@ from stonesoup.updater.kalman import ExtendedKalmanUpdater  # noqa: E402
 
 from covnet.core.allocation.constraints import Constraints  # noqa: E402
 from covnet.core.allocation.policies import (  # noqa: E402
-    POLICIES,
     expected_kl,
     expected_kl_sequential,
     uncertainty_reward,
 )
 from covnet.core.allocation.policies_many import OFF, total_reward  # noqa: E402
+from covnet.core.allocation.policy_registry import POLICIES  # noqa: E402
 
 T0 = datetime.datetime(2025, 1, 1)
 DT = datetime.timedelta(seconds=1)

@@ -1,5 +1,5 @@
-"""Allocation policies besides covariance control: the baselines a result is compared against,
-and the ``POLICIES`` registry (issue 27).
+"""Allocation policies besides covariance control: the baselines a result is compared against
+(issue 27); their registry is :mod:`covnet.core.allocation.policy_registry`.
 
 A policy decides, every scan, which sensors measure (one target) or which target each sensor
 dwells on (many targets, :mod:`covnet.core.allocation.policies_many`).  Covariance control
@@ -46,7 +46,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from numbers import Integral
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,15 +54,10 @@ from numpy.typing import NDArray
 from covnet.core.allocation.constraints import Constraints
 from covnet.core.gaussian import Mat
 
-if TYPE_CHECKING:
-    from covnet.core.allocation.policies_many import AssignmentDecision
-
 __all__ = [
     "BRUTE_FORCE_MAX",
     "INFO_GAIN_TOL",
-    "POLICIES",
     "TIE_RTOL",
-    "Policy",
     "PolicyDecision",
     "expected_kl",
     "expected_kl_sequential",
@@ -113,57 +108,7 @@ class DecideFn(Protocol):
     ) -> PolicyDecision: ...
 
 
-class DecideManyFn(Protocol):
-    """``decide_many(P_pred, J, feasible, constraints, *, budget, scan, rng, tie_rtol)``: an
-    assignment of sensors to targets (:mod:`covnet.core.allocation.policies_many`)."""
-
-    def __call__(
-        self,
-        P_pred: Mat,
-        J: Mat,
-        feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None = ...,
-        constraints: Any = ...,
-        *,
-        budget: int | None = ...,
-        scan: int = ...,
-        rng: np.random.Generator | None = ...,
-        tie_rtol: float = ...,
-    ) -> AssignmentDecision: ...
-
-
-#: ``reward(P_pred, gains, subset)`` of one target
 RewardFn = Callable[[Mat, Mat, Sequence[int]], float]
-
-
-@dataclass(frozen=True, slots=True)
-class Policy:
-    """One allocation policy, and what the rest of the system may ask of it:
-
-    - ``summary``: what it does, in one line (help texts and refusals quote it);
-    - ``needs_budget``: it takes a budget ``K`` (see the module docstring for which need one);
-    - ``uses_metric``: it scores by the covariance-control metric (``covariance_control`` only);
-    - ``stochastic``: it draws from the ``rng`` passed in (the caller derives it from seed,
-      episode and scan, so every process draws the same);
-    - ``many_targets``: it has a many-target form, ``decide_many``;
-    - ``delegates_to_search``: the decision is the covariance-control search's
-      (:mod:`covnet.covariance_control.searches`); ``decide`` and ``decide_many`` are ``None``;
-    - ``reward``: the one-target reward the policy maximises, if any."""
-
-    name: str
-    summary: str
-    needs_budget: bool
-    uses_metric: bool
-    stochastic: bool
-    many_targets: bool
-    decide: DecideFn | None
-    decide_many: DecideManyFn | None = None
-    delegates_to_search: bool = False
-    reward: RewardFn | None = None
-
-
-# --------------------------------------------------------------------------------------------
-# validation
-# --------------------------------------------------------------------------------------------
 
 
 def _is_int(x: object) -> bool:
@@ -647,101 +592,3 @@ def _decide_kl(
 # --------------------------------------------------------------------------------------------
 # the registry
 # --------------------------------------------------------------------------------------------
-
-
-def _many(name: str) -> DecideManyFn:
-    """The many-target form of ``name``, loaded from
-    :mod:`covnet.core.allocation.policies_many` at its first call."""
-
-    def decide_many(*args: Any, **kwargs: Any) -> AssignmentDecision:
-        from covnet.core.allocation import policies_many
-
-        fn: DecideManyFn = policies_many.DECIDE_MANY[name]
-        return fn(*args, **kwargs)
-
-    decide_many.__name__ = f"decide_many_{name}"
-    decide_many.__doc__ = f"The many-target form of {name!r} (policies_many.DECIDE_MANY)."
-    return decide_many
-
-
-POLICIES: dict[str, Policy] = {
-    p.name: p
-    for p in (
-        Policy(
-            "covariance_control",
-            "the subset whose covariance is closest to the desired one under the metric (the "
-            "allocator's search)",
-            needs_budget=False,
-            uses_metric=True,
-            stochastic=False,
-            many_targets=True,
-            decide=None,
-            delegates_to_search=True,
-        ),
-        Policy(
-            "all_on",
-            "every available sensor, every scan",
-            needs_budget=False,
-            uses_metric=False,
-            stochastic=False,
-            many_targets=True,
-            decide=_decide_all_on,
-            decide_many=_many("all_on"),
-        ),
-        Policy(
-            "random",
-            "K sensors drawn uniformly (required ones first) from the seeded generator",
-            needs_budget=True,
-            uses_metric=False,
-            stochastic=True,
-            many_targets=True,
-            decide=_decide_random,
-            decide_many=_many("random"),
-        ),
-        Policy(
-            "round_robin",
-            "K sensors in a cyclic order fixed by the scan number",
-            needs_budget=True,
-            uses_metric=False,
-            stochastic=False,
-            many_targets=True,
-            decide=_decide_round_robin,
-            decide_many=_many("round_robin"),
-        ),
-        Policy(
-            "greedy_information",
-            "adds the sensor with the largest log-det information gain until K or no gain",
-            needs_budget=True,
-            uses_metric=False,
-            stochastic=False,
-            many_targets=True,
-            decide=_decide_greedy_information,
-            decide_many=_many("greedy_information"),
-            reward=information_gain,
-        ),
-        Policy(
-            "uncertainty_reward",
-            "at most K sensors maximising Stone Soup's uncertainty reward "
-            "(reduction of the covariance's Frobenius norm)",
-            needs_budget=True,
-            uses_metric=False,
-            stochastic=False,
-            many_targets=True,
-            decide=_decide_uncertainty,
-            decide_many=_many("uncertainty_reward"),
-            reward=uncertainty_reward,
-        ),
-        Policy(
-            "expected_kl",
-            "at most K sensors maximising Stone Soup's expected KL divergence from prediction "
-            "to update",
-            needs_budget=True,
-            uses_metric=False,
-            stochastic=False,
-            many_targets=True,
-            decide=_decide_kl,
-            decide_many=_many("expected_kl"),
-            reward=expected_kl,
-        ),
-    )
-}

@@ -43,17 +43,17 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from covnet.core.allocation.constraints import Constraints
 from covnet.core.allocation.policies import (
     INFO_GAIN_TOL,
     REWARD_BATCH,
     TIE_RTOL,
     TINY,
-    DecideManyFn,
     _gain_batch,
     budget_of,
     checked_indices,
@@ -69,6 +69,27 @@ __all__ = ["MANY_BRUTE_FORCE_MAX", "OFF", "AssignmentDecision", "DECIDE_MANY", "
 OFF = -1
 #: the reward policies enumerate the assignments up to this many candidates (``2^16``)
 MANY_BRUTE_FORCE_MAX = 1 << 16
+
+
+class DecideManyFn(Protocol):
+    """``decide_many(P_pred, J, feasible, constraints, *, budget, scan, rng, tie_rtol)``: an
+    assignment of sensors to targets (:mod:`covnet.core.allocation.policies_many`)."""
+
+    def __call__(
+        self,
+        P_pred: Mat,
+        J: Mat,
+        feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None = ...,
+        constraints: Any = ...,
+        *,
+        budget: int | None = ...,
+        scan: int = ...,
+        rng: np.random.Generator | None = ...,
+        tie_rtol: float = ...,
+    ) -> AssignmentDecision: ...
+
+
+#: ``reward(P_pred, gains, subset)`` of one target
 
 
 @dataclass(frozen=True, slots=True)
@@ -384,8 +405,6 @@ def total_reward(
 ) -> float:
     """``Σ_t r_t(S_t)`` of an assignment, ``r`` the reward ``name`` (``uncertainty_reward`` or
     ``expected_kl``)."""
-    from covnet.core.allocation.constraints import Constraints
-
     pr = _Many(P_pred, J, feasible, Constraints())
     R = _Rewards(pr, REWARD_BATCH[name])
     codes = _codes(pr, assignment)
@@ -524,8 +543,6 @@ def _kl(
 def _constraints(c: Any) -> Any:
     """``None``: no constraints (a plain one-target :class:`Constraints` has the fields)."""
     if c is None:
-        from covnet.core.allocation.constraints import Constraints
-
         return Constraints()
     return c
 
