@@ -12,6 +12,7 @@ import numpy as np
 TRUTH = 0  #: process noise of the target trajectories
 INITIAL = 1  #: the filter's initial estimate
 SENSOR = 2  #: measurement noise: key (SENSOR, sensor_index, scan)
+POLICY = 20  #: a stochastic allocation policy's draws: key (POLICY, scan)
 
 
 def stream(seed: int, *key: int) -> np.random.Generator:
@@ -22,3 +23,9 @@ def stream(seed: int, *key: int) -> np.random.Generator:
 def sensor_stream(seed: int, sensor_index: int, scan: int) -> np.random.Generator:
     """The generator sensor ``sensor_index`` draws its scan-``scan`` measurement noise from."""
     return stream(seed, SENSOR, sensor_index, scan)
+
+
+def policy_stream(seed: int, scan: int) -> np.random.Generator:
+    """The generator a stochastic allocation policy (``random``) draws scan ``scan``'s choice
+    from: the same in every process and episode, whatever was decided before."""
+    return stream(seed, POLICY, scan)
