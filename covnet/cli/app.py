@@ -7,459 +7,83 @@ A user's mistake prints one readable message to stderr, never a traceback.
 No command here knows a scenario kind: each loads the config through :mod:`covnet.kinds`
 (which decides the kind once) and calls what the kind provides; a command a kind does not
 have, or an option it does not take, is refused with a line that says so.
+
+This module holds :func:`main` and the parser (:func:`build_parser`: every subcommand, its
+options and its ``cmd_NAME``); the commands are in :mod:`covnet.cli.commands` and
+:mod:`covnet.cli.bench_commands`, what they share in :mod:`covnet.cli.common`.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import threading
 import warnings
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it says so)
 
 # isort: split
-from covnet import __version__, kinds
-from covnet.config import (
-    ConfigError,
-    ConfigWarning,
-    endpoint_problem,
-    hash_of,
-    read_yaml,
-    scheduler_problem,
+from covnet import __version__
+from covnet.cli.bench_commands import (
+    BENCH_DEFAULTS,
+    BENCH_SENSORS_MAX,
+    BENCH_TAKES,
+    BENCHES,
+    cmd_bench,
+    cmd_bench_up,
 )
+from covnet.cli.commands import (
+    cmd_check,
+    cmd_compare,
+    cmd_export,
+    cmd_mc,
+    cmd_plot,
+    cmd_replay,
+    cmd_run,
+    cmd_sweep,
+    cmd_up,
+)
+from covnet.cli.common import (
+    EXIT_FAIL,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_PIPE,
+    EXIT_USAGE,
+    RUN_OPTIONS,
+    _err,
+)
+from covnet.config import ConfigError, ConfigWarning, scheduler_problem
 from covnet.errors import UpError, UsageError
 from covnet.processes import interrupts
-from covnet.runs.rundir import CONFIG, RUN_INFO, config_mismatch, prepare_out, read_json, record_end
 
-EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
-EXIT_PIPE = 141
-"""The reader of stdout went away (``covnet check CONFIG | head``): 128 + SIGPIPE, the status
-of a Unix tool that the closed pipe stopped."""
-
-BENCHES = {
-    "alloc": "covariance_control",
-    "fusion": "covariance_control",
-    "search": "covariance_control",
-    "multitarget": "covariance_control",
-    "mobile": "mobile",
-    "passive": "passive",
-}
-"""``covnet bench TARGET`` -> the kind whose ``bench:TARGET`` command it runs (``up`` is the
-launcher's own, for a config of any kind)."""
-
-BENCH_SENSORS_MAX = {"alloc": 24, "fusion": 24, "multitarget": 16, "search": 100_000, "up": 1024}
-"""The largest ``--sensors`` count of each benchmark that takes one: ``alloc`` times the plain
-baseline over all 2^N subsets and ``fusion`` a scipy loop over them, ``multitarget``'s sensor
-table has 16 sensors, ``search`` runs its exact search only up to 40 and beyond that bounded
-and greedy (N = 1000 takes seconds a decision), ``up`` starts a network of that size."""
-
-
-def _err(msg: str) -> None:
-    print(f"covnet: error: {msg}", file=sys.stderr)
-
-
-def _note(msg: str) -> None:
-    print(f"covnet: {msg}", file=sys.stderr)
-
-
-def _options(args: argparse.Namespace, *names: str) -> dict[str, Any]:
-    """The run options among ``names`` that the command line gave."""
-    return {n: getattr(args, n, None) for n in names}
-
-
-def _load(args: argparse.Namespace, *options: str) -> tuple[Any, Any]:
-    """``(kind, config)`` of ``args.config`` with the given run ``options`` applied."""
-    kind, cfg = kinds.load(args.config)
-    return kind, kinds.apply_options(kind, cfg, args.config, **_options(args, *options))
-
-
-RUN_OPTIONS = ("seed", "metric", "fusion", "solver")
-
-
-def cmd_run(args: argparse.Namespace) -> int:
-    """``covnet run``: the results are written once, when every scan is done (then
-    ``run.json`` says ``completed``), the figures after them; a Ctrl-C before the results
-    leaves nothing, one while drawing leaves the complete results."""
-    kind, cfg = _load(args, *RUN_OPTIONS)
-    out = prepare_out(args.out, cfg.name, args.force)
-    try:
-        status = int(kind.run(cfg, out, figures=not args.no_figures))
-        if status == EXIT_OK and args.mcap:
-            # start-up: the Foxglove SDK and the visual channels only for --mcap
-            from covnet.runs.visual import write_run_mcap
-
-            print(f"visual channels for Foxglove: {write_run_mcap(kind, cfg, out)}")
-    except BaseException as exc:
-        if not interrupts.caused(exc):
-            raise
-        if (out / RUN_INFO).is_file():
-            record_end(out, "completed", "every scan done (figures interrupted)")
-            _note(f"interrupted while drawing the figures: {out} holds the complete results "
-                  f"(covnet plot {out} draws them)")  # fmt: skip
-        else:
-            _note("interrupted before the results were written: nothing written")
-        raise
-    if status == EXIT_OK:
-        record_end(out, "completed", "every scan done")
-    return status
-
-
-def cmd_mc(args: argparse.Namespace) -> int:
-    kind, cfg = _load(args, "seed", "metric", "fusion")
-    return kinds.command(kind, "mc", "a Monte Carlo protocol")(args, cfg)
-
-
-def cmd_compare(args: argparse.Namespace) -> int:
-    kind, cfg = _load(args, "seed")
-    return kinds.command(kind, "compare", "comparing fusion structures")(args, cfg)
-
-
-def cmd_sweep(args: argparse.Namespace) -> int:
-    kind, cfg = _load(args, "seed")
-    return kinds.command(kind, "sweep", "the network-latency sweep")(args, cfg)
-
-
-def cmd_replay(args: argparse.Namespace) -> int:
-    run_dir = Path(args.run_dir)
-    if not (run_dir / CONFIG).is_file():
-        raise UsageError(f"{run_dir}: not a recorded network run directory (no {CONFIG})")
-    try:
-        data = read_json(run_dir / CONFIG)
-    except ValueError as exc:
-        raise UsageError(f"{run_dir / CONFIG}: not valid JSON ({exc})") from None
-    _replayable(run_dir)
-    kind, cfg = kinds.from_dict(data, str(run_dir / CONFIG))
-    return kinds.command(kind, "replay", "replaying a recorded network run")(args, cfg)
-
-
-def _replayable(run_dir: Path) -> None:
-    """A run that ended (interrupted or failed) before its first scan has nothing to replay
-    (and often no recording: Ctrl-C before READY): say so, exit 2.  A recorder that died
-    (``run.json``'s ``lost``) is named before the differences it causes."""
-    try:
-        info = read_json(run_dir / RUN_INFO)
-    except (OSError, ValueError):
-        return  # the kind's replay names what is missing
-    if not isinstance(info, dict) or info.get("status") not in ("interrupted", "failed"):
-        return
-    for ev in info.get("lost") or []:  # covnet up: a world or recorder died, not restarted
-        if isinstance(ev, dict) and ev.get("node") == "recorder":
-            _note(f"{run_dir}: {ev.get('ended', 'the recorder died')} (run.json: lost)")
-    done = info.get("scans_completed")
-    if isinstance(done, dict):
-        done = sum(v for v in done.values() if isinstance(v, int))
-    if done != 0:  # some scans, or not known (a directory rebuilt after a crash, or older)
-        return
-    raise UsageError(
-        f"{run_dir}: nothing to replay: the run ended before its first scan (run.json: status "
-        f"{info['status']}, no scan completed, ended: {info.get('ended', '?')})"
-    )
-
-
-def cmd_up(args: argparse.Namespace) -> int:
-    # the launcher's modules, for the command that launches (start-up time of the others)
-    from covnet.processes.process import default_run_id
-    from covnet.processes.up import up
-
-    kind, cfg = _load(args, *RUN_OPTIONS)
-    if args.speed is not None and not args.realtime:
-        raise UsageError(
-            "--speed: scales the real-time clock, so it does nothing in lockstep; add --realtime"
-        )
-    if args.speed is not None and not args.speed > 0:
-        raise UsageError(f"--speed: must be > 0, got {args.speed}")
-    if args.router is not None and (problem := endpoint_problem(args.router)) is not None:
-        raise UsageError(f"--router: {problem}")
-    k = args.sensors_per_process
-    if k is not None and k < 1:
-        raise UsageError(f"--sensors-per-process: must be >= 1, got {k}")
-    if k not in (None, 1) and args.netns:
-        raise UsageError("--sensors-per-process: --netns runs each sensor in its own namespace")
-    problem = kind.up_problem(cfg, realtime=args.realtime, netns=args.netns)
-    if problem is not None:
-        raise UsageError(problem)
-    if args.netns:
-        # only for --netns (start-up time)
-        from covnet.processes.netns_launch import unsupported_reason
-
-        if args.nodes or args.router:
-            raise UsageError(
-                "--netns runs the whole network on this machine, each sensor in its own "
-                "namespace: not with --nodes or --router (for several hosts, leave out --netns)"
-            )
-        reason = unsupported_reason()
-        if reason is not None:
-            raise UsageError(reason)
-    nodes = [n.strip() for n in args.nodes.split(",")] if args.nodes else None
-    known = {"manager", "world", "recorder", "sensors", *cfg.sensor_ids}
-    for n in nodes or []:
-        if n not in known:
-            raise UsageError(f"--nodes: unknown process {n!r}; choose from {sorted(known)}")
-    if args.foxglove is not None:
-        from covnet.runs.live import address_problem  # start-up: the SDK only for --foxglove
-
-        if (problem := address_problem(args.foxglove)) is not None:
-            raise UsageError(f"--foxglove: {problem}")
-        if not cfg.network.record:
-            raise UsageError(
-                "--foxglove: the live view is served by the recorder, and this config has "
-                "network.record: false"
-            )
-        if nodes is not None and "recorder" not in nodes:
-            raise UsageError(
-                "--foxglove: the live view is served by the recorder, which --nodes does not "
-                "start here"
-            )
-    from covnet.wire.messages import new_run_id, run_keyexpr  # start-up: the network commands'
-
-    if args.run is not None:
-        try:
-            run_keyexpr(args.run)  # validates like every key part
-        except ValueError as exc:
-            raise UsageError(f"--run: {exc}") from None
-    out = prepare_out(args.out, cfg.name, args.force)
-    # a whole network here: a fresh run id; a part of one (--nodes): the id every process
-    # derives from the config, so the parts started on other hosts agree without being told
-    run_id = args.run or (default_run_id(cfg) if nodes is not None else new_run_id())
-    try:
-        status = up(
-            kind,
-            cfg,
-            args.config,
-            out,
-            options=_options(args, *RUN_OPTIONS),
-            realtime=args.realtime,
-            speed=args.speed or 1.0,
-            run_id=run_id,
-            verbose=args.verbose,
-            nodes=nodes,
-            router=args.router,
-            netns=args.netns,
-            sensors_per_process=k,
-            foxglove=args.foxglove,
-        )
-    except UpError as exc:
-        _err(str(exc))
-        status = EXIT_FAIL
-    kind.after_up(cfg, out, figures=not args.no_figures)
-    return status
-
-
-def cmd_check(args: argparse.Namespace) -> int:
-    import yaml  # the check's printout only (start-up time of the other commands)
-
-    from covnet.wire.messages import RESERVED_IDS  # start-up: the check's own
-    from covnet.wire.security import preflight
-
-    kind, cfg = kinds.load(args.config)
-    data = kind.normalised(cfg)
-    # the files security needs on this host (keys, certificates, passwords), for every node
-    preflight(cfg, [*RESERVED_IDS, *cfg.sensor_ids], args.config)
-    print(yaml.safe_dump(data, sort_keys=False), end="")
-    print(f"# config hash: {hash_of(data)}")
-    return EXIT_OK
-
-
-def cmd_plot(args: argparse.Namespace) -> int:
-    run_dir = Path(args.run_dir)
-    if not (run_dir / CONFIG).is_file():
-        raise UsageError(
-            f"{run_dir}: not a complete run directory (missing {CONFIG}, which names its kind)"
-        )
-    # a corrupt config.json is a ConfigError (exit 2), as for replay
-    kind, cfg = kinds.from_dict(read_yaml(run_dir / CONFIG), str(run_dir / CONFIG))
-    stale = config_mismatch(run_dir, kinds.config_hash(cfg))
-    if stale is not None:
-        raise UsageError(stale)
-    if args.point is not None:
-        try:
-            figures = kind.plot(run_dir, point=args.point)  # type: ignore[call-arg]
-        except TypeError as exc:  # a kind whose plot takes no point
-            if "point" not in str(exc):
-                raise
-            raise UsageError(f"--point: a {kind.title} directory has no per-point curves") from None
-    else:
-        figures = kind.plot(run_dir)
-    for p in figures:
-        print(p)
-    return EXIT_OK
-
-
-def cmd_export(args: argparse.Namespace) -> int:
-    # start-up: the export's readers and writers for this command only
-    from covnet.runs.export import export
-
-    path = export(args.run_dir, args.format, args.out, args.episode)
-    if path is not None:
-        print(path)
-    return EXIT_OK
-
-
-def cmd_bench_up(args: argparse.Namespace) -> int:
-    import tempfile  # only the benchmark needs these (start-up time of the other commands)
-
-    from covnet.bench import up as bench_up
-
-    kind, cfg = _load(args)
-    k = args.sensors_per_process
-    if k is not None and k < 1:
-        raise UsageError(f"--sensors-per-process: must be >= 1, got {k}")
-    with tempfile.TemporaryDirectory(prefix="covnet-bench-up-") as tmp:
-        if args.sensors:
-            rows = bench_up.run_sizes(
-                kind, cfg, args.sensors, Path(tmp), repeat=args.repeat, per_process=k,
-                quiet=args.json,
-            )  # fmt: skip
-        else:
-            rows = bench_up.run(
-                kind, cfg, args.config, Path(tmp), repeat=args.repeat, quiet=args.json,
-                foxglove=args.foxglove,
-            )  # fmt: skip
-    if args.json:
-        for row in rows:
-            print(json.dumps(row))
-        return EXIT_OK
-    if args.sensors:
-        _print_sized(rows)
-        return EXIT_OK
-    print(
-        f"{'run':>4} {'scans':>6} {'scans/s':>8} {'wall s':>7} {'p50 ms':>7} {'p99 ms':>7} "
-        f"{'core p50 ms':>11} {'core share':>10}" + (f" {'foxglove':>8}" if args.foxglove else "")
-    )
-    for i, r in enumerate(rows):
-        print(
-            f"{i + 1:>4} {r['scans']:>6} {r['scans_per_s']:>8.0f} {r['wall_s']:>7.2f} "
-            f"{r['scan_p50_ms']:>7.2f} {r['scan_p99_ms']:>7.2f} {r['core_p50_ms']:>11.3f} "
-            f"{100 * r['core_share']:>9.1f}%" + (f" {r['foxglove']!s:>8}" if args.foxglove else "")
-        )
-    if not args.foxglove:
-        med = sorted(r["scans_per_s"] for r in rows)[len(rows) // 2]
-        print(f"median: {med:.0f} scans/s (loop: READY to last scan fused; wall includes start-up)")
-        return EXIT_OK
-    import statistics  # start-up: only for bench up --foxglove
-
-    without = statistics.median(r["scans_per_s"] for r in rows if not r["foxglove"])
-    with_fx = statistics.median(r["scans_per_s"] for r in rows if r["foxglove"])
-    print(
-        f"median: {without:.0f} scans/s without, {with_fx:.0f} with --foxglove "
-        f"(ratio {with_fx / without:.3f}, {args.repeat} alternated pairs)"
-    )
-    return EXIT_OK
-
-
-def _print_sized(rows: list[dict[str, Any]]) -> None:
-    print(
-        f"{'N':>5} {'K':>3} {'run':>3} {'scans/s':>8} {'p50 ms':>7} {'p99 ms':>7} "
-        f"{'core ms':>8} {'probe/s':>8} {'probe p50':>9} {'probe p99':>9} {'ratio':>6}"
-    )
-    for r in rows:
-        print(
-            f"{r['n_sensors']:>5} {r['sensors_per_process']:>3} {r['run']:>3} "
-            f"{r['scans_per_s']:>8.1f} {r['scan_p50_ms']:>7.2f} {r['scan_p99_ms']:>7.2f} "
-            f"{r['core_p50_ms']:>8.3f} {r['probe_scans_per_s']:>8.1f} {r['probe_p50_ms']:>9.2f} "
-            f"{r['probe_p99_ms']:>9.2f} {r['ratio']:>6.2f}"
-        )
-    print(
-        "covnet: READY to last scan fused, every sensor enabled every scan; probe: the same "
-        "pattern on bare zenoh pub/sub, same sessions and hosting; ratio = covnet / probe"
-    )
-
-
-BENCH_TAKES: dict[str, frozenset[str]] = {
-    "alloc": frozenset({"sensors", "metric", "problems", "repeat", "config", "json"}),
-    "up": frozenset({"sensors", "repeat", "config", "json", "foxglove", "sensors_per_process"}),
-    "soak": frozenset(
-        {"config", "metric", "scans", "realtime_s", "speed", "interval", "windows", "work", "json"}
-    ),
-    "cluster": frozenset({"config", "repeat", "json"}),
-    "fusion": frozenset({"sensors", "repeat", "json"}),
-    "search": frozenset(
-        {"sensors", "metric", "search", "exact_cap", "problems", "repeat", "config", "json"}
-    ),
-    "multitarget": frozenset(
-        {"sensors", "metric", "targets", "problems", "repeat", "config", "json"}
-    ),
-    "mobile": frozenset({"json"}),
-    "passive": frozenset({"json"}),
-}
-"""The options each ``covnet bench TARGET`` takes (every other one is refused)."""
-
-BENCH_DEFAULTS: dict[str, Any] = {
-    "sensors": None,
-    "metric": None,
-    "search": None,
-    "exact_cap": None,
-    "targets": None,
-    "config": "configs/paper.yaml",
-    "problems": 5,
-    "repeat": 3,
-    "json": False,
-    "foxglove": False,
-    "sensors_per_process": None,
-    "scans": 20_000,
-    "realtime_s": 600.0,
-    "speed": 10.0,
-    "interval": 2.0,
-    "windows": 10,
-    "work": None,
-}
-"""The value of a ``covnet bench`` option not given (cluster: its own config and repeat)."""
-
-
-def _bench_options(args: argparse.Namespace) -> None:
-    """Refuse an option ``bench args.target`` does not take; fill in the ones not given."""
-    given = [d for d in BENCH_DEFAULTS if hasattr(args, d)]
-    for dest in given:
-        if dest not in BENCH_TAKES[args.target]:
-            takes = ", ".join(f"--{d.replace('_', '-')}" for d in sorted(BENCH_TAKES[args.target]))
-            raise UsageError(
-                f"--{dest.replace('_', '-')}: bench {args.target} does not take this option "
-                f"(its options: {takes})"
-            )
-    if args.target == "cluster":  # the sweep's own config; alternations
-        for dest, value in (("config", "configs/latency.yaml"), ("repeat", 4)):
-            if not hasattr(args, dest):
-                setattr(args, dest, value)
-    for dest, value in BENCH_DEFAULTS.items():
-        if not hasattr(args, dest):
-            setattr(args, dest, value)
-
-
-def cmd_bench(args: argparse.Namespace) -> int:
-    _bench_options(args)
-    for name in ("problems", "repeat"):
-        if getattr(args, name) < 1:
-            raise UsageError(f"--{name}: must be >= 1, got {getattr(args, name)}")
-    if args.sensors is not None:
-        top = BENCH_SENSORS_MAX[args.target]  # (one that takes none: refused above)
-        if max(args.sensors) > top:
-            raise UsageError(
-                f"--sensors: bench {args.target} takes counts up to {top}, got {max(args.sensors)}"
-            )
-    if args.exact_cap is not None and not args.exact_cap > 0:
-        raise UsageError(f"--exact-cap: must be > 0 seconds, got {args.exact_cap}")
-    if args.foxglove and (args.target != "up" or args.sensors):
-        raise UsageError("--foxglove: only for bench up (the paper network, without --sensors)")
-    if args.target == "up":
-        return cmd_bench_up(args)
-    if args.target == "cluster":
-        # dask: only for this benchmark (start-up)
-        from covnet.bench import cluster as bench_cluster
-
-        return bench_cluster.main(args)
-    if args.target == "soak":
-        # start-up: the soak's module (numpy, the recording reader) only for this benchmark
-        from covnet.bench import soak as bench_soak
-
-        return bench_soak.main(args)
-    kind = kinds.get(BENCHES[args.target])
-    return kinds.command(kind, f"bench:{args.target}", f"the {args.target} benchmark")(args, None)
+__all__ = [
+    "BENCHES",
+    "BENCH_DEFAULTS",
+    "BENCH_SENSORS_MAX",
+    "BENCH_TAKES",
+    "EXIT_FAIL",
+    "EXIT_INTERRUPTED",
+    "EXIT_OK",
+    "EXIT_PIPE",
+    "EXIT_USAGE",
+    "RUN_OPTIONS",
+    "build_parser",
+    "cmd_bench",
+    "cmd_bench_up",
+    "cmd_check",
+    "cmd_compare",
+    "cmd_export",
+    "cmd_mc",
+    "cmd_plot",
+    "cmd_replay",
+    "cmd_run",
+    "cmd_sweep",
+    "cmd_up",
+    "main",
+]
 
 
 def _int_list(text: str) -> list[int]:

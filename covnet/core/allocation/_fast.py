@@ -75,6 +75,20 @@ subset).  Near-degenerate problems (the spec's scans 1-2, where subsets differ b
 **Fallback.**  A metric without a registered bound (a user's own function) is evaluated exactly
 on every feasible subset, in batches; values within a relative 1e-6 of the tie threshold are
 re-evaluated one subset per call, as the reference calls the metric.
+
+**Why one module** (about 2000 lines, the one module of the package over 800).  The tables
+(:class:`SearchTables`), a decision's setup (:class:`_Setup`, its memos, the cached ``P_d``
+constants of :class:`_DConstants`), the stage-1 views (:class:`Stage1P`, :class:`_ChunkStage1P`),
+the metric bounds and the two stages of :func:`fast_search` share private layouts: the
+structure-of-arrays rows and the ``Q`` coefficients of a single-chunk plan, the flat index
+tables, the memo keys a bound fills and reads (``setup.dc.memo["svd"]``, ``st.memo["logdet"]``,
+``P.setup.det_row``).  Cut along any seam, these become an interface between two modules that
+nothing else uses, and a bound's rounding argument (its deflation against the ``err`` of the
+stage-1 product it reads) would span files.  The tuning constants below (``CHUNK_BITS``,
+``EXACT_BLOCK``, ``SEED_POOL``) are read by the tables and by both stages, and the property
+tests set them on this module.  The exact building blocks shared with the reference
+(:func:`spd_inverse`, :func:`gain_sums`, :func:`tie_select`) stay with the search that must
+match them bit for bit.
 """
 
 from __future__ import annotations

@@ -73,7 +73,7 @@ from covnet.core.allocation.exact import (
     _spd_error,
     subset_covariance,
 )
-from covnet.core.allocation.search import _Problem
+from covnet.core.allocation.search_problem import _Problem
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import MetricFn
 

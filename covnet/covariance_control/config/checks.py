@@ -1,0 +1,348 @@
+"""The scenario's checks beyond each record's (:func:`semantic_problems`, run by
+:func:`covnet.config.validate` after the structure): the schedules, each sensor's keys against
+its model's, the targets and their manoeuvres, the allocation constraints, what the search and
+the many-target allocator cannot do, the peer graph; each problem with its path.  And the one
+warning (:func:`reach_warnings`): a sensor that never covers any target."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from covnet.core.metrics import METRICS
+from covnet.core.sensor_models import SENSOR_MODELS
+from covnet.covariance_control.config.fusion import PeerSpec
+from covnet.covariance_control.config.scenario import Scenario
+from covnet.covariance_control.config.sensors import (
+    _SENSOR_EXTRAS,
+    SensorSpec,
+    fields_record,
+    in_coverage,
+)
+from covnet.covariance_control.config.targets import DesiredSpec, segments
+from covnet.covariance_control.fusion_rules import refusal, rule_for
+from covnet.covariance_control.searches import BOUNDED_OPTIONS, SEARCHES
+
+
+def _schedule_problems(path: str, schedule: tuple[DesiredSpec, ...]) -> list[tuple[str, str]]:
+    problems: list[tuple[str, str]] = []
+    if schedule[0].from_scan != 1:
+        problems.append((f"{path}[0].from_scan", "the first entry must start at scan 1"))
+    for i, d in enumerate(schedule):
+        if (d.diag is None) == (d.matrix is None):
+            problems.append((f"{path}[{i}]", "give exactly one of 'diag' or 'matrix'"))
+            continue
+        if d.matrix is not None and len(d.matrix) != 4:
+            problems.append((f"{path}[{i}].matrix", "must be 4x4"))
+            continue
+        M = d.as_matrix()
+        if not np.allclose(M, M.T) or np.linalg.eigvalsh(0.5 * (M + M.T)).min() <= 0:
+            problems.append((f"{path}[{i}]", "must be symmetric positive definite"))
+        if i > 0 and d.from_scan <= schedule[i - 1].from_scan:
+            problems.append((f"{path}[{i}].from_scan", "must increase along the schedule"))
+    return problems
+
+
+def _sensor_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """Each sensor's keys against its model's (missing, or another model's, or nobody's),
+    its placement and coverage; without ``targets:`` only the paper's position sensor."""
+    problems: list[tuple[str, str]] = []
+    for i, s in enumerate(sc.sensors):
+        where = f"sensors[{i}]"
+        entry = SENSOR_MODELS[s.model]
+        own = fields_record(entry.config_fields).model_fields
+        need = [k for k, f in own.items() if f.is_required()]
+        for key in s.missing_fields:
+            problems.append(
+                (
+                    f"{where}.{key}",
+                    f"missing required key (a {s.model} sensor needs {', '.join(need)})",
+                )
+            )
+        for key in s.foreign_fields:
+            others = [
+                n
+                for n, m in SENSOR_MODELS.items()
+                if key in fields_record(m.config_fields).model_fields
+            ]
+            if others:
+                why = f"not a field of model {s.model} (only for {', '.join(others)} sensors)"
+            else:
+                common = [k for k in SensorSpec.model_fields if k != "params"]
+                why = (
+                    f"unknown key: not a field of model {s.model} (its keys: {', '.join(own)}; "
+                    f"every sensor's: {', '.join(common)})"
+                )
+            problems.append((f"{where}.{key}", why))
+        if s.position_m is None and (entry.measures_from_position or s.max_range_m or s.fov):
+            what = "measures from" if entry.measures_from_position else "has coverage around"
+            problems.append(
+                (f"{where}.position_m", f"missing required key (a {s.model} sensor {what} it)")
+            )
+        if not sc.multitarget:
+            for key, default in _SENSOR_EXTRAS.items():
+                if getattr(s, key) != default:
+                    problems.append(
+                        (
+                            f"{where}.{key}",
+                            "needs a 'targets:' list (a config with the one 'target:' is the "
+                            "paper's linear scenario: position sensors that always detect, "
+                            "no clutter)",
+                        )
+                    )
+    return problems
+
+
+def _target_problems(sc: Scenario) -> list[tuple[str, str]]:
+    problems: list[tuple[str, str]] = []
+    assert sc.targets is not None
+    if not sc.targets:
+        return [("targets", "list at least one target")]
+    for key in ("target", "desired"):
+        if key in sc.model_fields_set:
+            problems.append(
+                (key, "not with 'targets:' (each target has its own state and 'desired')")
+            )
+    for i, t in enumerate(sc.targets):
+        where = f"targets[{i}]"
+        problems += _schedule_problems(f"{where}.desired", t.desired)
+        spans: list[tuple[int, int, int]] = []
+        for m, man in enumerate(t.manoeuvres):
+            mw = f"{where}.manoeuvres[{m}]"
+            if man.to_scan <= man.from_scan:
+                problems.append((f"{mw}.to_scan", "must be after from_scan"))
+            if man.to_scan > sc.scans:
+                problems.append((f"{mw}.to_scan", f"beyond the run's {sc.scans} scans"))
+            need, other = (
+                ("turn_rate_deg_s", "accel_mps2")
+                if man.kind == "turn"
+                else ("accel_mps2", "turn_rate_deg_s")
+            )
+            if getattr(man, need) is None:
+                problems.append((f"{mw}.{need}", f"missing required key (a {man.kind} needs it)"))
+            if getattr(man, other) is not None:
+                problems.append((f"{mw}.{other}", f"not for a {man.kind}"))
+            for a, b, other_m in spans:
+                if man.from_scan < b and a < man.to_scan:
+                    problems.append((mw, f"overlaps manoeuvres[{other_m}]"))
+            spans.append((man.from_scan, man.to_scan, m))
+    return problems
+
+
+def semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
+    problems: list[tuple[str, str]] = []
+    ids = sc.sensor_ids
+    seen = set(ids)
+    if sc.multitarget:
+        problems += _target_problems(sc)
+    elif not sc.desired:
+        problems.append(("desired", "missing required key (the desired-covariance schedule)"))
+    else:
+        problems += _schedule_problems("desired", sc.desired)
+    problems += _sensor_problems(sc)
+    if not sc.multitarget:
+        for key in ("association", "ospa"):
+            if key in sc.model_fields_set:
+                problems.append((key, "only used with 'targets:' (many targets)"))
+        for key in ("detection", "max_per_target"):
+            if key in sc.allocation.model_fields_set:
+                problems.append((f"allocation.{key}", "only used with 'targets:' (many targets)"))
+    al = sc.allocation
+    if not al.metrics:
+        problems.append(("allocation.metrics", "name at least one metric"))
+    for field in ("required", "excluded"):
+        for i, sid in enumerate(getattr(al, field)):
+            if sid not in seen:
+                problems.append((f"allocation.{field}[{i}]", f"no sensor with id {sid!r}"))
+    both = set(al.required) & set(al.excluded)
+    if both:
+        problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
+    problems += _search_problems(sc)
+    problems += _peer_problems(sc.fusion.peer, ids)
+    if set(al.excluded) >= set(ids):
+        problems.append(("allocation.excluded", "excludes every sensor"))
+    if al.max_active is not None:
+        if al.max_active < len(set(al.required)):
+            problems.append(
+                ("allocation.max_active", f"smaller than the {len(al.required)} required sensors")
+            )
+        if al.max_active > len(ids):
+            problems.append(("allocation.max_active", f"more than the {len(ids)} sensors"))
+    if sc.multitarget:
+        problems += _multitarget_fusion_problems(sc)
+    return problems
+
+
+#: the many-target allocator's limit on the sensors that can be on (its tables have ``2^N``
+#: entries: :data:`covnet.core.allocation.assignment.MAX_SENSORS`, not imported here for the
+#: start-up time of every node process; a test keeps the two equal)
+MULTITARGET_MAX_SENSORS = 22
+
+
+def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """What the many-target scenario does not (yet) do, said where it is asked for."""
+    problems: list[tuple[str, str]] = []
+    excluded = set(sc.allocation.excluded)
+    candidates = [s for s in sc.sensor_ids if s not in excluded]
+    if len(candidates) > MULTITARGET_MAX_SENSORS:
+        problems.append(
+            (
+                "sensors",
+                f"with 'targets:' at most {MULTITARGET_MAX_SENSORS} sensors can be allocated "
+                f"(the many-target allocator keeps tables of 2^N entries); {len(candidates)} "
+                "are not in allocation.excluded: exclude some or split the network",
+            )
+        )
+    mode = sc.fusion.mode
+    if sc.fusion.has_centre and (why := refusal(rule_for(sc.fusion), "targets")) is not None:
+        problems.append(("fusion.mode", f"{mode} {why}"))
+    elif not sc.fusion.has_centre:
+        problems.append(
+            (
+                "fusion.mode",
+                "peer is not available with 'targets:': the peer nodes' mirror of every node's "
+                "filter is single-target (use central or info)",
+            )
+        )
+    al = sc.allocation
+    if al.search in ("bounded", "greedy"):
+        problems.append(
+            (
+                "allocation.search",
+                f"{al.search} is not available with 'targets:': the many-target allocator is "
+                "exact (use exact or auto)",
+            )
+        )
+    elif al.search == "auto":  # (exact: refused by the search checks already)
+        for opt in BOUNDED_OPTIONS:
+            if getattr(al, opt) is not None:
+                problems.append(
+                    (f"allocation.{opt}", "not used with 'targets:' (its allocator is exact)")
+                )
+    if sc.allocation.account_for_loss:
+        problems.append(
+            (
+                "allocation.account_for_loss",
+                "not available with 'targets:' (the many-target allocator scores pd · J only)",
+            )
+        )
+    lat = sc.network.latency
+    if "missed_command" in lat.model_fields_set and lat.missed_command != "off":
+        problems.append(
+            (
+                "network.latency.missed_command",
+                f"{lat.missed_command} is not available with 'targets:': a sensor whose command "
+                "never came does not know which target to dwell on, nor the clutter window; "
+                "it dwells on nothing (off, the only choice with targets)",
+            )
+        )
+    return problems
+
+
+def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """What the search entry (:data:`SEARCHES`) cannot do with this config, in its own words."""
+    al = sc.allocation
+    problems: list[tuple[str, str]] = []
+    search = SEARCHES.get(al.search)
+    if search is None:  # reported by the field's check
+        return problems
+    for opt in BOUNDED_OPTIONS:
+        if getattr(al, opt) is not None and opt not in search.options:
+            users = " or ".join(k for k, s in _by_options() if opt in s.options)
+            why = f"only used with search: {users}, not {al.search}"
+            problems.append((f"allocation.{opt}", why))
+    if search.information_form and (
+        not sc.fusion.has_centre or not rule_for(sc.fusion).information_form
+    ):
+        problems.append(
+            (
+                "allocation.search",
+                f"{al.search} needs a fusion centre in the information form (fusion.mode "
+                f"central or info); {sc.fusion.mode} decides over every subset",
+            )
+        )
+    n = len(set(sc.sensor_ids) - set(al.excluded))
+    used = search.resolved(n)
+    as_ = "" if used is search else f" (with {n} candidate sensors: {used.name})"
+    if "interval_bound" in used.needs:
+        for m in al.metrics:
+            entry = METRICS.get(m)
+            if entry is not None and entry.interval_bound is None:
+                problems.append(
+                    (
+                        "allocation.search",
+                        f"{al.search}{as_} is {used.words}: it needs each metric's interval "
+                        f"bound, and metric {m!r} has none (its METRICS entry's interval_bound "
+                        "is None); choose search: exact or greedy for it",
+                    )
+                )
+    return problems
+
+
+def _by_options() -> list[tuple[str, Any]]:
+    """The search entries, bounded first (the wording of the options' refusals)."""
+    return sorted(SEARCHES.items(), key=lambda kv: (kv[0] != "bounded", kv[0] == "auto"))
+
+
+def _peer_problems(peer: PeerSpec, ids: tuple[str, ...]) -> list[tuple[str, str]]:
+    problems: list[tuple[str, str]] = []
+    known = set(ids)
+    if peer.hub is not None and peer.hub not in known:
+        problems.append(("fusion.peer.hub", f"no sensor with id {peer.hub!r}"))
+    if peer.graph == "custom" and not peer.edges:
+        problems.append(("fusion.peer.edges", "a custom graph needs at least one edge"))
+    if peer.graph != "custom" and peer.edges:
+        problems.append(("fusion.peer.edges", "edges are only used with graph: custom"))
+    for i, (a, b) in enumerate(peer.edges):
+        for end, sid in enumerate((a, b)):
+            if sid not in known:
+                problems.append((f"fusion.peer.edges[{i}][{end}]", f"no sensor with id {sid!r}"))
+        if a == b:
+            problems.append((f"fusion.peer.edges[{i}]", f"a self-loop on {a!r}"))
+    return problems
+
+
+def nominal_positions(sc: Scenario) -> np.ndarray:
+    """``(T, scans, 2)``: each target's position at scans ``1..scans`` without process noise
+    (its constant velocity and manoeuvres), what :func:`reach_warnings` looks at."""
+    from covnet.core.manoeuvre import manoeuvring_trajectory  # start-up: configs with targets
+
+    assert sc.targets is not None
+    out = np.empty((len(sc.targets), sc.scans, 2))
+    for i, t in enumerate(sc.targets):
+        x0 = [t.initial_position_m[0], t.initial_velocity_mps[0]]
+        x0 += [t.initial_position_m[1], t.initial_velocity_mps[1]]
+        traj = manoeuvring_trajectory(
+            x0, sc.period_s, 0.0, sc.scans, np.random.default_rng(0), segments(t)
+        )
+        out[i] = traj[:, [0, 2]]
+    return out
+
+
+def reach_warnings(sc: Scenario) -> list[tuple[str, str]]:
+    """The sensors that never cover any target at any scan (on the noise-free trajectories of
+    :func:`nominal_positions`): allowed, never allocated, probably a mistake."""
+    if not sc.multitarget or not any(s.max_range_m or s.fov for s in sc.sensors):
+        return []
+    xy = nominal_positions(sc)
+    out = []
+    for i, s in enumerate(sc.sensors):
+        if in_coverage(s, xy).any():
+            continue
+        assert s.position_m is not None
+        d = np.hypot(xy[..., 0] - s.position_m[0], xy[..., 1] - s.position_m[1]).min()
+        reach = f"max_range_m {s.max_range_m:g}" if s.max_range_m else "no range limit"
+        fov = (
+            f", fov {s.fov.center_deg:g} ± {s.fov.half_width_deg:g} deg"
+            if s.fov is not None
+            else ""
+        )
+        out.append(
+            (
+                f"sensors[{i}]",
+                f"{s.id} never covers any target ({reach}{fov}; nearest approach "
+                f"{d / 1e3:.1f} km): it can never be allocated",
+            )
+        )
+    return out
