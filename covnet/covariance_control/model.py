@@ -215,6 +215,8 @@ def build_model(sc: Scenario) -> Model:
         seed=sc.seed,
         scans=sc.scans,
         search=SearchSettings(al.search, al.gap, al.time_limit_s, al.node_limit),
+        policy=al.policy,
+        budget=al.budget,
     )
 
 
@@ -268,35 +270,11 @@ def decide(
             max_active=c.max_active,
         )
     if model.policy != "covariance_control":
+        # start-up: the baseline policies only when one is configured
+        from covnet.covariance_control.policies import decide_by_policy
+
         return decide_by_policy(model, P_pred, scan, metric, c)
     return SEARCHES[model.search_mode].decide(model, P_pred, model.desired(scan), metric, c)
-
-
-def decide_by_policy(
-    model: Model, P_pred: Mat, scan: int, metric: str, c: Constraints
-) -> Allocation:
-    """Scan ``k``'s subset by the baseline policy ``model.policy``
-    (:data:`covnet.core.allocation.policy_registry.POLICIES`: ``all_on``, ``random``,
-    ``round_robin``, ``greedy_information``, ``uncertainty_reward``, ``expected_kl``), which
-    ignores ``P_d``; its ``value`` is still the covariance-control objective
-    ``f(P_i, P_d(t_k))`` of the chosen subset, ``P_i = (P⁻⁻¹ + Σ_{j∈D} J_j)⁻¹``, so that every
-    policy's log reads alike.  A stochastic policy draws from
-    :func:`covnet.core.streams.policy_stream` ``(seed, k)``."""
-    # start-up: the baseline policies only when one is configured
-    from covnet.core.allocation.exact import Allocation, subset_covariance
-    from covnet.core.allocation.policy_registry import POLICIES
-    from covnet.core.metrics import METRICS
-
-    pol = POLICIES[model.policy]
-    assert pol.decide is not None  # covariance_control is the search's
-    rng = streams.policy_stream(model.seed, scan) if pol.stochastic else None
-    d = pol.decide(
-        P_pred, model.gains, c, budget=model.budget, scan=scan, rng=rng, tie_rtol=model.tie_rtol
-    )
-    subset = tuple(d.subset)
-    P = subset_covariance(P_pred, model.gains[list(subset)].sum(axis=0))
-    value = float(METRICS[metric](P, model.desired(scan)))
-    return Allocation(subset, value, P, d.n_evaluated, d.n_evaluated)
 
 
 def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:

@@ -163,6 +163,7 @@ def write_run(
         "fusion": fusion_label(sc),
         "metrics": {m: metric_summary(r, traj, ids, switch) for m, r in runs.items()},
     }
+    summary.update(policy_fields(sc))
     if node_runs:
         summary["peer"] = {m: peer_summary(nodes, traj, ids) for m, nodes in node_runs.items()}
     if extra:
@@ -369,6 +370,7 @@ def write_targets_run(
         "ospa": {"cutoff_m": tm.ospa_c, "order": tm.ospa_p},
         "metrics": {m: targets_summary(r, traj, tm) for m, r in runs.items()},
     }
+    summary.update(policy_fields(sc))
     if extra:
         summary.update(extra)
     info: dict[str, Any] = {
@@ -481,3 +483,12 @@ def tracks(sc: Scenario, run_dir: Path) -> list[Episode]:
             )
         )
     return out
+
+
+def policy_fields(sc: Scenario) -> dict[str, Any]:
+    """The summary's ``policy`` (and ``budget``): the allocation policy when it is not the
+    default covariance control (a default run's summary is what it always was)."""
+    al = sc.allocation
+    if al.policy == "covariance_control":
+        return {}
+    return {"policy": al.policy, "budget": al.budget if al.budget is not None else al.max_active}

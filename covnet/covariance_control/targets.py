@@ -446,7 +446,12 @@ def decide(
         max_per_target=tm.max_per_target,
     )
     if tm.base.policy != "covariance_control":
-        return _decide_by_policy(tm, P_pred, J, P_d, w, scan, metric, feas, mc)
+        # start-up: the baseline policies only when one is configured
+        from covnet.covariance_control.policies import decide_many_by_policy
+
+        return TargetDecision(
+            *decide_many_by_policy(tm, P_pred, J, P_d, w, scan, metric, feas, mc), feas
+        )
     if T == 1:
         return _decide_one(tm, P_pred[0], J[:, 0], P_d[0], w[0], metric, excluded, required, feas)
     try:
@@ -454,46 +459,6 @@ def decide(
     except InfeasibleAllocation:
         return _all_off(tm, preds, P_d, w, metric, feas)
     return TargetDecision(a.assignment, a.value, a.values, a.P, a.n_evaluated, feas)
-
-
-def _decide_by_policy(
-    tm: TargetsModel,
-    P_pred: Mat,
-    J: Mat,
-    P_d: Mat,
-    w: Sequence[float],
-    scan: int,
-    metric: str,
-    feas: np.ndarray,
-    mc: MultiConstraints,
-) -> TargetDecision:
-    """Scan ``k``'s assignment by the baseline policy ``allocation.policy`` (its many-target
-    form, :mod:`covnet.core.allocation.policies_many`), which ignores ``P_d``; the value is
-    still the covariance-control objective ``F = Σ_t w_t f(P_t, P_d,t)`` of the assignment,
-    ``P_t = (P_t⁻⁻¹ + Σ_{a_j = t} J_jt)⁻¹``, so that every policy's log reads alike."""
-    # start-up: the baseline policies only when one is configured
-    from covnet.core.allocation.exact import subset_covariance
-    from covnet.core.allocation.policy_registry import POLICIES
-    from covnet.core.metrics import METRICS
-
-    base = tm.base
-    pol = POLICIES[base.policy]
-    assert pol.decide_many is not None  # covariance_control is the allocator's
-    rng = streams.policy_stream(base.seed, scan) if pol.stochastic else None
-    d = pol.decide_many(
-        P_pred, J, feas, mc, budget=base.budget, scan=scan, rng=rng, tie_rtol=base.tie_rtol
-    )
-    a = tuple(int(x) for x in d.assignment)
-    T = P_pred.shape[0]
-    P = np.array(
-        [
-            subset_covariance(P_pred[t], J[[j for j in range(len(a)) if a[j] == t], t].sum(axis=0))
-            for t in range(T)
-        ]
-    )
-    values = tuple(float(METRICS[metric](P[t], P_d[t])) for t in range(T))
-    value = float(sum(wt * v for wt, v in zip(w, values, strict=True)))
-    return TargetDecision(a, value, values, P, d.n_evaluated, feas)
 
 
 def _decide_one(

@@ -154,7 +154,7 @@ def normalised(sc: Scenario) -> dict[str, Any]:
 
 
 #: allocation fields added after configs were first hashed (left out while at their default)
-_ADDED = ("search", *BOUNDED_OPTIONS)
+_ADDED = ("search", *BOUNDED_OPTIONS, "policy", "budget")
 
 
 def config_hash(sc: Scenario) -> str:

@@ -7,7 +7,7 @@ from typing import Literal
 
 from covnet.config import Bool, ConfigModel, Float, Int, Str
 from covnet.config import positive as _positive
-from covnet.covariance_control.config.fields import MetricName, SearchName
+from covnet.covariance_control.config.fields import MetricName, PolicyName, SearchName
 from covnet.records import Field, field_validator
 
 # ``allocation.search``: how the subset is found (README, "Allocation search"), an entry of
@@ -31,7 +31,13 @@ class AllocationSpec(ConfigModel):
     Many targets only: ``detection`` (how a dwell's information is scored: ``expected``
     ``pd · HᵀR⁻¹H``, ``ignore`` ``HᵀR⁻¹H``, ``pda`` the PDAF's information-reduction factor
     ``q₂`` instead of ``pd``) and ``max_per_target`` (at most this many sensors on one
-    target)."""
+    target).
+
+    ``policy`` (an entry of :data:`covnet.core.allocation.policy_registry.POLICIES`):
+    ``covariance_control`` (the default: the subset closest to ``P_d`` under the metric), or a
+    baseline to compare it with: ``all_on``, ``random``, ``round_robin``,
+    ``greedy_information``, ``uncertainty_reward``, ``expected_kl``; ``budget``: their ``K``
+    sensors per scan (``random`` and ``round_robin`` need one, here or as ``max_active``)."""
 
     metrics: tuple[MetricName, ...] = ("spectral", "abs_trace", "svd")
     required: tuple[Str, ...] = ()
@@ -43,6 +49,8 @@ class AllocationSpec(ConfigModel):
     gap: Float | None = None
     time_limit_s: Float | None = None
     node_limit: Int | None = None
+    policy: PolicyName = "covariance_control"
+    budget: Int | None = Field(default=None, ge=1)
 
     @field_validator("gap")
     @classmethod

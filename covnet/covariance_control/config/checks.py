@@ -159,6 +159,7 @@ def semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     if both:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
     problems += _search_problems(sc)
+    problems += _policy_problems(sc)
     problems += _peer_problems(sc.fusion.peer, ids)
     if set(al.excluded) >= set(ids):
         problems.append(("allocation.excluded", "excludes every sensor"))
@@ -277,6 +278,67 @@ def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
                         "is None); choose search: exact or greedy for it",
                     )
                 )
+    return problems
+
+
+def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """What the allocation policy's entry (:data:`covnet.core.allocation.policy_registry.
+    POLICIES`) cannot do with this config, in its own words."""
+    al = sc.allocation
+    if al.policy == "covariance_control":
+        if al.budget is not None:
+            return [
+                (
+                    "allocation.budget",
+                    "only used by the baseline policies (allocation.policy); covariance "
+                    "control's budget is allocation.max_active",
+                )
+            ]
+        return []
+    # start-up: the baseline policies' registry only for a config that names one
+    from covnet.core.allocation.policy_registry import POLICIES
+
+    pol = POLICIES.get(al.policy)
+    if pol is None:  # reported by the field's check
+        return []
+    problems: list[tuple[str, str]] = []
+    if pol.needs_budget and al.budget is None and al.max_active is None:
+        problems.append(
+            (
+                "allocation.budget",
+                f"policy {al.policy} ({pol.summary}) needs a budget K: set allocation.budget "
+                "(or allocation.max_active)",
+            )
+        )
+    if sc.multitarget and not pol.many_targets:
+        problems.append(("allocation.policy", f"{al.policy} has no many-target form"))
+    if not sc.fusion.has_centre or not rule_for(sc.fusion).information_form:
+        problems.append(
+            (
+                "allocation.policy",
+                f"{al.policy} decides from the sensors' information J_j (a fusion centre in the "
+                f"information form: fusion.mode central or info); {sc.fusion.mode} is not",
+            )
+        )
+    if al.search != "auto":
+        problems.append(
+            ("allocation.search", f"only used by policy covariance_control, not {al.policy}")
+        )
+    for opt in BOUNDED_OPTIONS:
+        if getattr(al, opt) is not None:
+            problems.append(
+                (f"allocation.{opt}", f"only used by policy covariance_control, not {al.policy}")
+            )
+    if al.policy == "all_on" and al.max_active is not None:
+        n = len(set(sc.sensor_ids) - set(al.excluded))
+        if al.max_active < n:
+            problems.append(
+                (
+                    "allocation.max_active",
+                    f"policy all_on turns every available sensor on ({n}), more than "
+                    f"max_active {al.max_active}",
+                )
+            )
     return problems
 
 

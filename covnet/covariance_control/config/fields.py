@@ -27,6 +27,23 @@ def _known_search(value: str) -> str:
 
 
 SearchName = Annotated[Str, AfterValidator(_known_search)]
+
+
+def _known_policy(value: str) -> str:
+    """``allocation.policy`` names an entry of :data:`covnet.core.allocation.policy_registry.
+    POLICIES` (loaded only for a name other than the default)."""
+    if value == "covariance_control":
+        return value
+    # start-up: the baseline policies' registry only for a config that names one
+    from covnet.core.allocation.policy_registry import POLICIES
+
+    if value not in POLICIES:
+        shown = [repr(k) for k in POLICIES]
+        raise ValueError(f"Input should be {', '.join(shown[:-1])} or {shown[-1]}")
+    return value
+
+
+PolicyName = Annotated[Str, AfterValidator(_known_policy)]
 FusionMode = Annotated[Str, in_registry(fusion_modes, "fusion mode")]
 TrackRule = Annotated[Str, in_registry(track_rules, "rule that fuses local tracks")]
 FusionRuleName = Annotated[Str, in_registry(lambda: list(FUSION_RULES), "fusion rule")]
