@@ -242,7 +242,22 @@ class LatencySpec(ConfigModel):
         return (cfg or getattr(self, direction)).spec()
 
     def is_ideal(self, sensor_ids: Sequence[str]) -> bool:
-        return all(self.link(s, d).is_ideal for s in sensor_ids for d in ("uplink", "downlink"))
+        """Every link of ``sensor_ids`` is ideal (each default link's spec built once: this is
+        asked at every run's start)."""
+        default: dict[str, bool] = {}
+        for s in sensor_ids:
+            own = self.sensors.get(s)
+            for d in ("uplink", "downlink"):
+                cfg = getattr(own, d) if own is not None else None
+                if cfg is not None:
+                    ideal = cfg.spec().is_ideal
+                elif d in default:
+                    ideal = default[d]
+                else:
+                    ideal = default[d] = getattr(self, d).spec().is_ideal
+                if not ideal:
+                    return False
+        return True
 
 
 class EvaluationSpec(ConfigModel):

@@ -22,7 +22,7 @@ import numpy as np
 
 from covnet.core.gaussian import Mat, Vec
 
-__all__ = ["TAIL", "passes_measurement", "passes_track", "threshold"]
+__all__ = ["TAIL", "passes_innovation", "passes_measurement", "passes_track", "threshold"]
 
 TAIL = 1e-9
 """The probability that a genuine message fails the gate."""
@@ -56,10 +56,15 @@ def threshold(dof: int, tail: float = TAIL) -> float:
 
 
 def passes_measurement(z: Vec, R: Mat, H: Mat, x_pred: Vec, P_pred: Mat) -> bool:
-    """``νᵀ S⁻¹ ν ≤ γ`` (module docstring); a 2-vector in closed form (it is on every
-    measurement's path: ``d² = (s₂₂ ν₁² − 2 s₁₂ ν₁ ν₂ + s₁₁ ν₂²) / det S``)."""
-    nu = z - H @ x_pred
-    S = H @ P_pred @ H.T + R
+    """``νᵀ S⁻¹ ν ≤ γ`` (module docstring)."""
+    return passes_innovation(z - H @ x_pred, H @ P_pred @ H.T + R)
+
+
+def passes_innovation(nu: Vec, S: Mat) -> bool:
+    """``νᵀ S⁻¹ ν ≤ γ`` for an innovation ``ν`` and its covariance ``S = H P⁻ Hᵀ + R`` (a
+    caller gating several measurements of one prediction computes ``H x⁻`` and ``H P⁻ Hᵀ``
+    once); a 2-vector in closed form (it is on every measurement's path:
+    ``d² = (s₂₂ ν₁² − 2 s₁₂ ν₁ ν₂ + s₁₁ ν₂²) / det S``)."""
     if nu.shape == (2,):
         (a, b), (_, d) = S.tolist()
         n1, n2 = nu.tolist()

@@ -59,7 +59,7 @@ import numpy as np
 from covnet.core.allocation import Allocation
 from covnet.core.gaussian import Gaussian
 from covnet.core.kalman import nees
-from covnet.core.validation_gate import passes_measurement, passes_track
+from covnet.core.validation_gate import passes_innovation, passes_track
 from covnet.covariance_control.centre import (
     CentreFilter,
     EpisodeLog,
@@ -222,6 +222,7 @@ class _OneTarget:
         self.centre = CentreFilter(sc, model)
         self.spec: _Speculation | None = None
         self.gains: Gains | None = None
+        self.gate: tuple[Plan, np.ndarray, np.ndarray] | None = None  # the scan's H x⁻, H P⁻ Hᵀ
         self.log = EpisodeLog(metric)
 
     def decide(self, k: int, unavailable: frozenset[int]) -> Plan:
@@ -265,7 +266,11 @@ class _OneTarget:
         if self.rule.tracks:
             ok = passes_track(m.x, m.P, pred.x, pred.P)
         else:
-            ok = passes_measurement(m.z[0], m.R, self.model.H, pred.x, pred.P)
+            gate = self.gate
+            if gate is None or gate[0] is not plan:  # H x⁻ and H P⁻ Hᵀ once per scan
+                H = self.model.H
+                gate = self.gate = (plan, H @ pred.x, H @ pred.P @ H.T)
+            ok = passes_innovation(m.z[0] - gate[1], gate[2] + m.R)
         return None if ok else "outside_gate"
 
     def insert_late(self, m: Any) -> bool:
