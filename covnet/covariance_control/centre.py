@@ -19,16 +19,16 @@ from covnet.core.allocation import Allocation
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
 from covnet.core.kalman import gain_and_covariance
-from covnet.core.oosm import ReFilterBuffer
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.decentral import Mirror, decide_rule
 from covnet.covariance_control.fusion_rules import FusionRule, rule_for
 from covnet.covariance_control.model import Model, decide, usable_measurement
 from covnet.covariance_control.runs import MetricRun
-from covnet.processes.runtime_stats import NetStats
 from covnet.runs.columns import Column
 
 if TYPE_CHECKING:
+    from covnet.core.oosm import ReFilterBuffer
+    from covnet.processes.runtime_stats import NetStats
     from covnet.wire import messages as msg
 
 __all__ = [
@@ -145,7 +145,12 @@ class LateHandler:
         self.inserted = False
         self.refiltered: list[str] = []  # "<sensor>:<scan>" since the last Status
         keep = lat.late == "oosm" and self.rule.refilters_late
-        self.buffer = ReFilterBuffer(model.F, model.Q, model.H, lat.oosm_depth) if keep else None
+        self.buffer: ReFilterBuffer | None = None
+        if keep:
+            # start-up: the re-filter buffer only for slow links that keep late messages
+            from covnet.core.oosm import ReFilterBuffer
+
+            self.buffer = ReFilterBuffer(model.F, model.Q, model.H, lat.oosm_depth)
 
     def _measurement(self, m: Any) -> tuple[np.ndarray, np.ndarray]:
         zr = self.rule.late_measurement(payload(self.rule, m))

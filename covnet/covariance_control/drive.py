@@ -28,7 +28,6 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from covnet.core.delay import DOWN, UP, LinkState, link_stream, measures_on_missed
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.engine import Plan, ScanEngine, SensorSide
 
@@ -93,8 +92,11 @@ class SlowLinks:
     ones; :meth:`finish`, what the links did."""
 
     def __init__(self, engine: ScanEngine, episode: int) -> None:
-        # start-up: the link helpers only for slow links
+        # start-up: the link model and helpers only for slow links
+        from covnet.core.delay import DOWN, UP, LinkState, link_stream, measures_on_missed
         from covnet.covariance_control.links import LatencyCounts, link_specs
+
+        self.measures_on_missed = measures_on_missed
 
         sc = engine.sc
         self.engine, self.episode = engine, episode
@@ -149,7 +151,7 @@ class SlowLinks:
                 continue  # overtaken by a newer command: stale
             for m in range(rx.newest + 1, scan):  # commands it never got: its fallback
                 counts.commands_missed += 1
-                if measures_on_missed(fallback, rx.last_on):
+                if self.measures_on_missed(fallback, rx.last_on):
                     counts.unsolicited += 1
                     self._send(j, m, a, None)
             on = j in self.plans[scan].subset

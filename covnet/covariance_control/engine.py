@@ -52,7 +52,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -81,7 +81,9 @@ from covnet.covariance_control.model import (
     predict_step,
     truth_trajectory,
 )
-from covnet.processes.runtime_stats import NetStats
+
+if TYPE_CHECKING:
+    from covnet.processes.runtime_stats import NetStats
 
 __all__ = [
     "Measured",
@@ -517,7 +519,12 @@ class ScanEngine:
         # target: a sensor that measured on its missed-command fallback is fused too
         self.slow = not sc.network.latency.is_ideal(self.ids)
         self.accept_unsolicited = self.slow and not self.many
-        self.result = ManagerResult({}, stats if stats is not None else NetStats())
+        if stats is None:
+            # start-up: the network's counters only where a driver has none of its own
+            from covnet.processes.runtime_stats import NetStats
+
+            stats = NetStats()
+        self.result = ManagerResult({}, stats)
         self.episode: _OneTarget | _ManyTargets | _Peers | None = None
         self.plan: Plan | None = None
 

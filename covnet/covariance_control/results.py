@@ -44,7 +44,6 @@ from covnet.covariance_control.simulate import (
     Trajectory,
     shared_trajectory,
 )
-from covnet.runs.export import Episode, StateSeries, read_arrays, require_arrays
 from covnet.runs.rundir import (
     ARRAYS,
     CONFIG,
@@ -59,6 +58,7 @@ from covnet.runs.rundir import (
 if TYPE_CHECKING:
     from covnet.covariance_control.centre import ManagerResult
     from covnet.covariance_control.targets import TargetsModel
+    from covnet.runs.export import Episode
 
 
 def metric_summary(
@@ -451,6 +451,9 @@ def tracks(sc: Scenario, run_dir: Path) -> list[Episode]:
     """``covnet export`` (:mod:`covnet.runs.export`): per metric of the run (``arrays.npz``'s
     order), every target's truth and fused track over the scans the metric's episode did
     (scans ``1..K'`` at ``t``); a single target is ``T1``."""
+    # start-up: the export's readers only for covnet export
+    from covnet.runs.export import Episode, StateSeries, read_arrays, require_arrays
+
     a = read_arrays(run_dir, "metrics", "t", "truth")
     metrics = [str(m) for m in a["metrics"]]
     need = [f"{f}.{m}" for m in metrics for f in ("x_est", "P_post")]

@@ -29,14 +29,13 @@ creation time, version.  Files are written to a temporary name and renamed
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from covnet import __version__
 from covnet.mobile.config import MobileConfig, config_hash, normalised
 from covnet.mobile.simulate import MobileRun
-from covnet.runs.export import Episode, StateSeries, read_arrays
 from covnet.runs.rundir import (
     ARRAYS,
     CONFIG,
@@ -47,6 +46,9 @@ from covnet.runs.rundir import (
     write_json,
     write_npz,
 )
+
+if TYPE_CHECKING:
+    from covnet.runs.export import Episode
 
 WORSE_TOL = 1e-9
 
@@ -186,6 +188,9 @@ def tracks(cfg: MobileConfig, run_dir: Path) -> list[Episode]:
     """``covnet export`` (:mod:`covnet.runs.export`): the run's one episode (named after its
     solver), every target's truth and track at rows ``0..K`` (row 0: the start, the initial
     estimate), ``t = k T``."""
+    # start-up: the export's readers only for covnet export
+    from covnet.runs.export import Episode, StateSeries, read_arrays
+
     a = read_arrays(run_dir, "truth", "x_est", "P_post", "target_ids")
     n = min(a["x_est"].shape[0], a["truth"].shape[0])
     scan = np.arange(n, dtype=np.int64)
