@@ -24,15 +24,14 @@ rejected (``bad_value``) and not answered.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from covnet.clock import Clock, WallClock
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import Model, build_model, measure
+from covnet.covariance_control.sensor_side import Measured, SensorSide, Tracked
 from covnet.processes.process import EXIT_OK, open_client
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
@@ -108,41 +107,13 @@ def run_targets(
             return False
         return True
 
-    info = sc.fusion.mode == "info"  # its own filter of every target, and local tracks
-    local = targets.LocalTargets(tm, j)
-    episode = [-1]
+    # what it sends: the kind's sensor side (the one covnet run hands over in process)
+    side = SensorSide.of_process(sc, tm, j)
 
     def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement | msg.LocalTrack:
-        tid = (cmd.targets or {})[sensor_id][0]
+        t = tids.index((cmd.targets or {})[sensor_id][0])
         win = targets.window_from_vec(tm, j, (cmd.windows or {}).get(sensor_id))
-        t = tids.index(tid)
-        Z = targets.dwell(tm, j, cmd.scan, tr.states[t], win)
-        if info:
-            if cmd.episode != episode[0]:  # a new episode: the filters start again
-                episode[0] = cmd.episode
-                local.reset()
-            track, _ = local.track(t, cmd.scan, Z, win)
-            return msg.LocalTrack(
-                sensor_id=sensor_id,
-                scan=cmd.scan,
-                t=cmd.t,
-                x=track.post.x,
-                P=track.post.P,
-                x_prior=track.prior.x,
-                P_prior=track.prior.P,
-                t_sent_ns=clock.now_ns(),
-                episode=cmd.episode,
-                target_id=tid,
-            )
-        return msg.Measurement(
-            sensor_id=sensor_id,
-            scan=cmd.scan,
-            t=cmd.t,
-            z=Z,
-            R=model.R,
-            t_sent_ns=clock.now_ns(),
-            episode=cmd.episode,
-        )
+        return _wire(side.dwell(cmd.episode, cmd.scan, t, win, tr.states[t]), cmd, clock)
 
     return serve(
         sensor_id,
@@ -179,50 +150,20 @@ def run(
     if sc.multitarget:
         return run_targets(sc, sensor_id, bus, run_id, clock, stop)
     model = build_model(sc)
-    rule = rule_for(sc.fusion)
     j = model.index(sensor_id)
-    R = model.R[j]
-    if rule.tracks:  # its own filter: the decentralized modes only (start-up of the others)
-        from covnet.covariance_control.decentral import LocalFilter
-
-        local = LocalFilter(model, sc.filter.initial_estimate)
-    noisy = NoiseTable(model, j)
+    # what it sends: the kind's sensor side (the one covnet run hands over in process), its
+    # noise drawn ahead
+    side = SensorSide.of_process(sc, model, j, NoiseTable(model, j))
 
     def truth_ok(tr: msg.Truth) -> bool:
         return tr.states.shape[0] >= 1 and tr.states.shape[1] == 4
 
-    def respond_track(cmd: msg.Command, tr: msg.Truth) -> msg.LocalTrack:
-        prior = local.predict_to(cmd.episode, cmd.scan)
-        track = rule.local(model, j, prior, noisy(cmd.scan, tr.states[0]))
-        local.set(track.post)
-        return msg.LocalTrack(
-            sensor_id=sensor_id,
-            scan=cmd.scan,
-            t=cmd.t,
-            x=track.post.x,
-            P=track.post.P,
-            x_prior=prior.x,
-            P_prior=prior.P,
-            t_sent_ns=clock.now_ns(),
-            episode=cmd.episode,
-        )
-
-    def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement:
-        z = noisy(cmd.scan, tr.states[0])
-        return msg.Measurement(
-            sensor_id=sensor_id,
-            scan=cmd.scan,
-            t=cmd.t,
-            z=z[None, :],
-            R=R,
-            t_sent_ns=clock.now_ns(),
-            episode=cmd.episode,
-        )
+    def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement | msg.LocalTrack:
+        m = side.respond(cmd.episode, cmd.scan, None, truth=tr.states[0])
+        assert m is not None  # one target: every command it acts on is a measurement
+        return _wire(m, cmd, clock)
 
     slow = not sc.network.latency.is_ideal(sc.sensor_ids)
-    respond_any: Callable[[msg.Command, msg.Truth], msg.Measurement | msg.LocalTrack] = (
-        respond_track if rule.tracks else respond
-    )
     return serve(
         sensor_id,
         bus,
@@ -231,9 +172,38 @@ def run(
         stop,
         sc.network,
         truth_ok=truth_ok,
-        respond=respond_any,
+        respond=respond,
         missed_command=sc.network.latency.missed_command if slow else None,
         keep_truth=model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
+    )
+
+
+def _wire(
+    m: Measured | Tracked, cmd: msg.Command, clock: Clock
+) -> msg.Measurement | msg.LocalTrack:
+    """The wire message of what the sensor side computed for ``cmd``'s scan (its time and the
+    moment it is sent added)."""
+    if isinstance(m, Tracked):
+        return msg.LocalTrack(
+            sensor_id=m.sensor_id,
+            scan=m.scan,
+            t=cmd.t,
+            x=m.x,
+            P=m.P,
+            x_prior=m.x_prior,
+            P_prior=m.P_prior,
+            t_sent_ns=clock.now_ns(),
+            episode=m.episode,
+            target_id=m.target_id,
+        )
+    return msg.Measurement(
+        sensor_id=m.sensor_id,
+        scan=m.scan,
+        t=cmd.t,
+        z=m.z,
+        R=m.R,
+        t_sent_ns=clock.now_ns(),
+        episode=m.episode,
     )
 
 

@@ -76,11 +76,11 @@ from covnet.covariance_control.model import (
     build_model,
     decide,
     initial_estimate,
-    measure,
     predict_cov,
     predict_step,
     truth_trajectory,
 )
+from covnet.covariance_control.sensor_side import Measured, SensorContext, SensorSide, Tracked
 
 if TYPE_CHECKING:
     from covnet.processes.runtime_stats import NetStats
@@ -90,6 +90,7 @@ __all__ = [
     "Outcome",
     "Plan",
     "ScanEngine",
+    "SensorContext",
     "SensorSide",
     "Tracked",
 ]
@@ -98,33 +99,6 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 # what travels, in process
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Measured:
-    """A sensor's measurement (returns, with targets) of a scan, in process: the fields of
-    :class:`covnet.wire.messages.Measurement` the engine reads."""
-
-    sensor_id: str
-    scan: int
-    episode: int
-    z: np.ndarray  # (m, dim_z)
-    R: np.ndarray
-
-
-@dataclass(frozen=True)
-class Tracked:
-    """A sensor's local track of a scan, in process: the fields of
-    :class:`covnet.wire.messages.LocalTrack` the engine reads."""
-
-    sensor_id: str
-    scan: int
-    episode: int
-    x: np.ndarray
-    P: np.ndarray
-    x_prior: np.ndarray
-    P_prior: np.ndarray
-    target_id: str | None = None
 
 
 @dataclass(frozen=True)
@@ -601,79 +575,3 @@ class ScanEngine:
         if not isinstance(ep, _Peers):
             raise ValueError("node_runs: only peer mode has nodes")
         return {self.ids[n]: log.as_run(len(self.ids)) for n, log in ep.logs.items()}
-
-
-# --------------------------------------------------------------------------------------------
-# the sensors' side, in process
-# --------------------------------------------------------------------------------------------
-
-
-class SensorSide:
-    """What sensor ``j`` sends for a scan it measures, as the sensor process computes it
-    (:mod:`sensors.covariance`): one target, its measurement ``z = H x + v`` from its noise
-    stream ``(seed, j, k)``, or under a track rule its own filter's local track (predicted
-    lazily up to the scan, updated with its measurement); many targets, its dwell's returns on
-    the commanded target in the commanded clutter window, or under ``info`` its own filter's
-    track of that target.  A new episode restarts its filters."""
-
-    def __init__(self, engine: ScanEngine, j: int) -> None:
-        self.engine, self.j = engine, j
-        self.sensor_id = engine.ids[j]
-        self.episode = -1
-        self.local: Any = None
-
-    def _start(self, episode: int) -> None:
-        eng = self.engine
-        self.episode = episode
-        if eng.many:
-            # start-up: the many-target steps only for configs with targets
-            from covnet.covariance_control import targets
-
-            self.local = targets.LocalTargets(eng.model, self.j) if eng.tracks else None
-        elif eng.tracks:
-            # start-up: the local filters only under a track rule
-            from covnet.covariance_control.decentral import LocalFilter
-
-            self.local = LocalFilter(eng.model, eng.sc.filter.initial_estimate)
-
-    def respond(
-        self, episode: int, scan: int, plan: Plan | None, truth: np.ndarray | None = None
-    ) -> Measured | Tracked | None:
-        """The message of scan ``scan`` (``plan``: that scan's plan, which names the target
-        and clutter window with many targets; ``None``: measured on a missed command's
-        fallback, one target only); ``None`` when the plan gives it no dwell.  ``truth``: the
-        target's true state at the scan as the world process published it (one target; default
-        the engine's trajectory, the same numbers)."""
-        if episode != self.episode:
-            self._start(episode)
-        eng, j, sid = self.engine, self.j, self.sensor_id
-        if eng.many:
-            return self._dwell(episode, scan, plan)
-        model = eng.model
-        z = measure(model, j, scan, eng.truth[scan - 1] if truth is None else truth)
-        if not eng.tracks:
-            return Measured(sid, scan, episode, z[None, :], model.R[j])
-        prior = self.local.predict_to(episode, scan)
-        tr = eng.rule.local(model, j, prior, z)
-        self.local.set(tr.post)
-        return Tracked(sid, scan, episode, tr.post.x, tr.post.P, prior.x, prior.P)
-
-    def _dwell(self, episode: int, scan: int, plan: Plan | None) -> Measured | Tracked | None:
-        # start-up: the many-target steps only for configs with targets
-        from covnet.covariance_control import targets
-
-        eng, j, sid = self.engine, self.j, self.sensor_id
-        if plan is None:
-            return None
-        sp = plan.detail
-        t = sp.decision.assignment[j]
-        if t == targets.OFF:
-            return None
-        tm = eng.model
-        win = sp.windows[j]
-        Z = targets.dwell(tm, j, scan, eng.truth[t, scan - 1], win)
-        if not eng.tracks:
-            return Measured(sid, scan, episode, Z, tm.sensors[j].R)
-        tr = self.local.track(t, scan, Z, win)[0]
-        tid = tm.target_ids[t]
-        return Tracked(sid, scan, episode, tr.post.x, tr.post.P, tr.prior.x, tr.prior.P, tid)
