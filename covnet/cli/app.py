@@ -290,15 +290,33 @@ def build_parser() -> argparse.ArgumentParser:
 
     cp = sub.add_parser(
         "compare",
-        help="fusion structures side by side (central, info, ci, peer) over a Monte Carlo batch",
+        help="fusion structures (--modes) or allocation policies (--policies) side by side "
+        "over a Monte Carlo batch",
     )
     cp.add_argument("config", help="scenario YAML, e.g. configs/paper.yaml")
-    cp.add_argument(
+    what = cp.add_mutually_exclusive_group()
+    what.add_argument(
         "--modes",
         help="comma-separated fusion structures: a fusion rule at a centre (central, info, ci), "
         "ci-fast, or peer-<rule> (peer-info, peer-ci); default: all but ci-fast",
     )
-    cp.add_argument("--runs", type=int, default=20, help="seeds per mode (default: %(default)s)")
+    what.add_argument(
+        "--policies",
+        help="comma-separated allocation policies (allocation.policy): covariance_control, "
+        "all_on, random, round_robin, greedy_information, uncertainty_reward, expected_kl; "
+        "one target or targets:, the same seeds for each; writes compare.json, pareto.png, "
+        "curves.png",
+    )
+    cp.add_argument(
+        "--budget",
+        metavar="K|match",
+        help="with --policies: K sensors per scan for every policy that takes a budget; "
+        "'match': K = covariance control's mean sensors per scan (run first); default: the "
+        "config's allocation.budget",
+    )
+    cp.add_argument(
+        "--runs", type=int, default=20, help="seeds per mode or policy (default: %(default)s)"
+    )
     cp.add_argument(
         "--metric", action="append", metavar="NAME", help="allocation metric (default: the first)"
     )
@@ -311,11 +329,15 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--workers", type=int, help="processes (default: one per core)")
     _batch_options(cp, "seeds")
     _out_options(cp, "results")
-    cp.add_argument("--no-figures", action="store_true", help="skip compare.png")
+    cp.add_argument(
+        "--no-figures",
+        action="store_true",
+        help="skip compare.png (--policies: pareto.png and curves.png)",
+    )
     cp.add_argument(
         "--json",
         action="store_true",
-        help="JSON Lines on stdout: one JSON object per line, a row per mode",
+        help="JSON Lines on stdout: one JSON object per line, a row per mode or policy",
     )
     cp.set_defaults(func=cmd_compare)
 

@@ -37,6 +37,10 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet compare``: the fusion structures side by side over a Monte Carlo batch."""
     from covnet.covariance_control import compare as cmp  # scipy.stats: start-up of the rest
 
+    if getattr(args, "policies", None) is not None:
+        return compare_policies(args, sc)
+    if getattr(args, "budget", None) is not None:
+        raise UsageError("--budget: the policies' budget; give it with --policies")
     if sc.multitarget:
         raise UsageError(
             "compare: the fusion structures are compared on the one-target scenario; with "
@@ -89,6 +93,79 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     return _batch_results(cmp, args, sc, out, work, total, "mode", meta, title, key)
 
 
+def compare_policies(args: argparse.Namespace, sc: Scenario) -> int:
+    """``covnet compare --policies``: allocation policies side by side over paired seeds
+    (:mod:`covnet.covariance_control.compare_policies`), one target or ``targets:``."""
+    from covnet.covariance_control import compare_policies as cp  # start-up of the rest
+
+    policies = cp.parse_policies(args.policies)
+    budget = cp.parse_budget(args.budget)
+    if args.graph is not None:
+        raise UsageError(
+            "--graph: the peer modes' graph; --policies run the config's fusion centre"
+        )
+    for opt, val in (("--ci-width", args.ci_width), ("--max-seeds", args.max_seeds)):
+        if val is not None:  # the policies share their seeds (paired): no per-point seed counts
+            raise UsageError(
+                f"{opt}: --policies compares every policy on the same --runs seeds (paired); "
+                "give --runs instead"
+            )
+    metric = metric_opt(sc, args.metric, sc.allocation.metrics[0])
+    if args.runs < 2:
+        raise UsageError(f"--runs: at least 2 runs for the 95 % intervals, got {args.runs}")
+    opts = batch_options(args, args.runs)
+    cp.check(sc, policies, budget)  # every refusal before a directory is made
+    key = cp.trial_key(sc, metric)
+    out = _batch_out(args, f"{sc.name}-compare-policies", "compare", key)
+    extra = 1 if budget == cp.MATCH and cp.REFERENCE not in policies else 0
+    total = (len(policies) + extra) * args.runs
+    print(
+        f"comparing policies {', '.join(policies)} on {sc.name}: metric {metric}, {args.runs} "
+        f"seeds from {sc.seed} (the same for each)"
+        + (", budget matched to covariance control's sensors per scan" if budget == cp.MATCH
+           else f", budget K = {budget}" if budget is not None else ""),
+        file=sys.stderr,
+        flush=True,
+    )  # fmt: skip
+    plan: list[Any] = []
+
+    def work() -> Any:
+        rows, outcome, p = cp.compare_outcome(
+            sc,
+            policies,
+            metric,
+            args.runs,
+            budget=budget,
+            workers=opts.workers,
+            cluster=opts.cluster,
+            progress=BatchProgress("compare", where=opts.where),
+            out=out,
+        )
+        plan.append(p)
+        return rows, outcome
+
+    meta: dict[str, Any] = {
+        "scenario": sc.name,
+        "compared": "policies",
+        "policies": policies,
+        "metric": metric,
+        "runs": args.runs,
+        "first_seed": sc.seed,
+        "budget": budget,
+        "fusion": sc.fusion.mode,
+    }
+    title = f"{sc.name}: allocation policies, metric {metric}, {args.runs} paired seeds"
+
+    def budgets() -> dict[str, Any]:
+        if not plan:  # interrupted before the budgets were known
+            return {}
+        return {"budgets": plan[0].budgets, "budget_match": plan[0].matched}
+
+    return _batch_results(
+        cp, args, sc, out, work, total, "policy", meta, title, key, more_meta=budgets
+    )
+
+
 def _trial_options(opts: Any) -> dict[str, Any]:
     return {
         "workers": opts.workers,
@@ -109,13 +186,15 @@ def _batch_results(
     meta: Any,
     title: str,
     key: str,
+    more_meta: Callable[[], dict[str, Any]] | None = None,
 ) -> int:
     """Run ``covnet compare`` / ``sweep``'s ``work`` (its table's rows and the trials'
     :class:`~covnet.batches.trials.Outcome`, from ``total`` runs) and write: the table files, the
     per-scan curves (``curves.npz``), the config (which says the directory's kind, for ``covnet
     plot``), ``run.json``'s status, the figures, the printout.  Interrupted: the complete rows
     (each a ``what``) are written, no figure, and the interruption goes on (exit 130); the
-    trials stay in ``out/trials`` for the same command to resume."""
+    trials stay in ``out/trials`` for the same command to resume.  ``more_meta()``: what the
+    work found out that the table's meta data should say (``--budget match``'s K)."""
     meta = {
         **meta,
         "burn_in_scans": sc.evaluation.burn_in_scans,
@@ -125,11 +204,12 @@ def _batch_results(
         rows, outcome = work()
     except BatchInterrupted as stop:
         if stop.partial:
+            meta = {**meta, **(more_meta() if more_meta else {})}
             module.write_table(out, stop.partial, meta)
             write_json(out / CONFIG, normalised(sc))
         end_batch(out, total, what, stop, len(stop.partial or ()))
         raise
-    meta = {**meta, **outcome.ci_facts()}
+    meta = {**meta, **outcome.ci_facts(), **(more_meta() if more_meta else {})}
     module.write_table(out, rows, meta)
     curves = module.curves(outcome.results)
     write_npz(out / CURVES, curves)

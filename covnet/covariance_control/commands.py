@@ -261,6 +261,8 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
             except (ValueError, KeyError) as exc:
                 raise UsageError(f"{table}: not a {stem} table ({exc})") from None
             _check_trial_hash(run_dir, stem, doc)
+            if doc.get("compared") == "policies":  # covnet compare --policies
+                from covnet.covariance_control import compare_policies as module
             title = f"{doc.get('scenario', '')}: covnet {stem}, metric {doc.get('metric', '?')}"
             figures = [module.make_figure(run_dir, rows, title)]
             if (run_dir / CURVES).is_file():
@@ -306,6 +308,10 @@ def _check_trial_hash(run_dir: Path, stem: str, doc: dict[str, Any]) -> None:
     metric = str(doc.get("metric"))
     if stem == "sweep":
         keys = [sweep_module.trial_key(sc, metric)]
+    elif doc.get("compared") == "policies":
+        from covnet.covariance_control import compare_policies  # start-up: tables only
+
+        keys = [compare_policies.trial_key(sc, metric)]
     else:  # the graph it names, or none given (the config's)
         keys = [compare_module.trial_key(sc, metric, g) for g in (None, doc.get("graph"))]
     if stored not in keys:

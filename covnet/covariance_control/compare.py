@@ -207,6 +207,37 @@ def traffic_per_scan(
     }
 
 
+def nees_consistency(
+    all_nees: np.ndarray, skip: int, dim: int = 4, per_scan: int = 1
+) -> dict[str, Any]:
+    """The NEES columns of a table row (see the module docstring) from per-seed, per-scan NEES
+    ``all_nees`` ``(R, N)``, from scan ``skip + 1`` on; each value the average of ``per_scan``
+    independent NEES of a ``dim``-state filter (many targets: the targets' average), so a
+    consistent filter's ``R``-seed average of a scan is ``χ²(dim R per_scan) / (R per_scan)``:
+    ``mean_nees``, ``nees_band_95``, ``nees_mean_ci_95``, ``nees_inside_fraction`` and
+    ``nees_verdict`` (``consistent``, ``conservative`` or ``optimistic`` against ``dim``)."""
+    R = all_nees.shape[0]
+    n = R * per_scan
+    nees = all_nees[:, skip:]
+    per_scan_mean = nees.mean(axis=0)
+    lo, hi = (float(v) for v in np.asarray(chi2.ppf([0.025, 0.975], dim * n)) / n)
+    grand = float(per_scan_mean.mean())
+    # the grand mean's 95 % confidence interval from the R independent run averages (scans
+    # within a run are correlated, so they are not counted as independent samples)
+    run_means = nees.mean(axis=1)
+    half = float(t_half_width(run_means.std(ddof=1), R))
+    glo, ghi = grand - half, grand + half
+    d = float(dim)
+    verdict = "consistent" if glo <= d <= ghi else ("conservative" if ghi < d else "optimistic")
+    return {
+        "mean_nees": grand,
+        "nees_band_95": [lo, hi],
+        "nees_mean_ci_95": [glo, ghi],
+        "nees_inside_fraction": float(np.mean((per_scan_mean >= lo) & (per_scan_mean <= hi))),
+        "nees_verdict": verdict,
+    }
+
+
 def summarise(
     sc: Scenario,
     mode: str,
@@ -219,16 +250,6 @@ def summarise(
     R = len(trials)
     all_nees = np.stack([t.nees for t in trials])
     skip = min(skip, all_nees.shape[1] // 2)  # a short run keeps its second half
-    nees = all_nees[:, skip:]
-    per_scan = nees.mean(axis=0)
-    lo, hi = (float(v) for v in np.asarray(chi2.ppf([0.025, 0.975], 4 * R)) / R)
-    grand = float(per_scan.mean())
-    # the grand mean's 95 % confidence interval from the R independent run averages (scans
-    # within a run are correlated, so they are not counted as independent samples)
-    run_means = nees.mean(axis=1)
-    half = float(t_half_width(run_means.std(ddof=1), R))
-    glo, ghi = grand - half, grand + half
-    verdict = "consistent" if glo <= 4.0 <= ghi else ("conservative" if ghi < 4.0 else "optimistic")
     enabled = np.stack([t.enabled for t in trials])
     row: dict[str, Any] = {
         "mode": mode,
@@ -237,11 +258,7 @@ def summarise(
         "allocation_rate": float(enabled.mean()),
         "sensors_per_scan": float(enabled.sum(axis=2).mean()),
         "rmse_position": float(np.sqrt(np.mean([t.pos_err2 for t in trials]))),
-        "mean_nees": grand,
-        "nees_band_95": [lo, hi],
-        "nees_mean_ci_95": [glo, ghi],
-        "nees_inside_fraction": float(np.mean((per_scan >= lo) & (per_scan <= hi))),
-        "nees_verdict": verdict,
+        **nees_consistency(all_nees, skip),
     }
     row.update(traffic_per_scan(sc, mode, trials[0].enabled, graph))
     # the statistics over seeds (after the columns above, which keep their values)

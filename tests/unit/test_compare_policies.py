@@ -1,0 +1,223 @@
+"""``covnet compare --policies``: each row's numbers against direct in-process runs (the
+oracle), the paired seeds, ``--budget match``, the refusals, the files and the CLI end to end."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from covnet.batches.stats import seed_stats
+from covnet.cli.app import main
+from covnet.covariance_control import compare_policies as cp
+from covnet.covariance_control.config import from_dict, load, normalised
+from covnet.covariance_control.model import build_model
+from covnet.covariance_control.simulate import run_metric, run_targets, shared_trajectory
+from covnet.errors import UsageError
+
+MULTI = Path(__file__).resolve().parents[2] / "configs" / "multitarget.yaml"
+POLICIES = ["covariance_control", "all_on", "random"]
+
+
+def _short(path, scans):
+    data = normalised(load(path))
+    data["scans"] = scans
+    for tg in data.get("targets") or ():
+        tg["manoeuvres"] = []  # the turn is beyond a short run
+    return from_dict(data)
+
+
+@pytest.fixture(scope="module")
+def paper30(paper_path):
+    return _short(paper_path, 30)
+
+
+@pytest.fixture(scope="module")
+def matched(paper30):
+    """``--budget match`` over 3 seeds, in this process."""
+    return cp.compare_outcome(paper30, POLICIES, "spectral", 3, budget="match", workers=1)
+
+
+def _with(sc, policy, budget, seed):
+    data = normalised(sc)
+    data["allocation"] = {**data["allocation"], "policy": policy, "budget": budget}
+    data["seed"] = seed
+    return from_dict(data)
+
+
+def test_rows_equal_direct_runs(paper30, matched):
+    """The oracle: each row from the runs covnet run makes, seed by seed."""
+    rows, outcome, plan = matched
+    burn = paper30.evaluation.burn_in_scans  # 10 of 30 scans
+    for row in rows:
+        policy, budget = row["policy"], row["budget"]
+        assert row["runs"] == 3 and row["seeds"] == [paper30.seed + i for i in range(3)]
+        rmse, nees, f, share, sensors = [], [], [], [], []
+        for seed in row["seeds"]:
+            sc = _with(paper30, policy, budget, seed)
+            model = build_model(sc)
+            traj = shared_trajectory(model)
+            run = run_metric(sc, "spectral", model)
+            err = run.x_est - traj.truth
+            e2 = err[:, 0] ** 2 + err[:, 2] ** 2
+            rmse.append(np.sqrt(e2[burn:].mean()))
+            nees.append(run.nees[burn:].mean())
+            f.append(run.value.mean())
+            trP = np.trace(run.P_post, axis1=1, axis2=2)
+            trPd = np.array([np.trace(model.desired(k)) for k in range(1, sc.scans + 1)])
+            share.append(np.mean(trP <= trPd))
+            sensors.append(run.enabled.sum())
+        assert row["rmse_steady_mean"] == pytest.approx(np.mean(rmse), rel=1e-12)
+        s = seed_stats(rmse)
+        assert (row["rmse_steady_ci_lo"], row["rmse_steady_ci_hi"]) == pytest.approx(
+            (s["ci_lo"], s["ci_hi"]), rel=1e-12
+        )
+        assert row["mean_nees"] == pytest.approx(np.mean(nees), rel=1e-12)
+        assert row["mean_f"] == pytest.approx(np.mean(f), rel=1e-12)
+        assert row["share_trP_le_trPd"] == pytest.approx(np.mean(share), rel=1e-12)
+        assert row["sensor_scans"] == pytest.approx(np.mean(sensors))
+        assert row["sensors_per_scan"] == pytest.approx(np.mean(sensors) / sc.scans)
+        # the central structure: a command, a measurement per sensor on, a track, a status
+        assert row["messages_per_scan"] == pytest.approx(3 + row["sensors_per_scan"])
+        assert row["nees_verdict"] in ("consistent", "conservative", "optimistic")
+
+
+def test_budget_match_is_covariance_controls_mean_sensors(matched):
+    rows, _, plan = matched
+    by = {r["policy"]: r for r in rows}
+    K = round(by["covariance_control"]["sensors_per_scan"])
+    assert plan.matched["K"] == K and plan.budgets == {
+        "covariance_control": None,
+        "all_on": None,
+        "random": K,
+    }
+    assert by["random"]["budget"] == K and by["random"]["budget_source"] == "match"
+    assert by["random"]["sensors_per_scan"] == K  # random draws exactly K
+    assert by["all_on"]["sensors_per_scan"] == 8 and by["all_on"]["budget"] is None
+
+
+def test_policies_are_paired_and_the_allocation_ignores_the_seed(matched):
+    """Covariance control and all_on decide from covariances only: the same sensors for every
+    seed (no spread in sensors or f); the seeds differ in the estimates."""
+    rows, outcome, plan = matched
+    for p in ("covariance_control", "all_on"):
+        trials = outcome.results[plan.point(p)]
+        assert len({tuple(t["sensors_scan"]) for t in trials}) == 1
+        assert len({t["pos_err2_scan"][-1] for t in trials}) == 3
+
+
+def test_budget_given_and_refusals(paper30):
+    assert cp.budget_for(paper30, "random", 4) == 4
+    assert cp.budget_for(paper30, "greedy_information", 4) == 4  # a reward policy gets K too
+    assert cp.budget_for(paper30, "all_on", 4) is None
+    with pytest.raises(UsageError, match="round_robin .*needs a budget K.*--budget"):
+        cp.budget_for(paper30, "round_robin", None)
+    with pytest.raises(UsageError, match="unknown policy 'best'"):
+        cp.parse_policies("random,best")
+    with pytest.raises(UsageError, match="random named twice"):
+        cp.parse_policies("random,random")
+    with pytest.raises(UsageError, match="--budget"):
+        cp.parse_budget("0")
+    assert cp.parse_budget(" match") == "match" and cp.parse_budget("3") == 3
+    # a baseline scores the sensors' information: not under covariance intersection
+    data = normalised(paper30)
+    data["fusion"] = {**data["fusion"], "mode": "ci"}
+    with pytest.raises(UsageError, match="--policies: random cannot run"):
+        cp.check(from_dict(data), ["random"], 3)
+
+
+def test_trial_points_resume_when_a_policy_is_added(paper30, tmp_path):
+    first, o1, _ = cp.compare_outcome(paper30, ["all_on"], "abs_trace", 2, workers=1, out=tmp_path)
+    rows, o2, _ = cp.compare_outcome(
+        paper30, ["all_on", "round_robin"], "abs_trace", 2, budget=2, workers=1, out=tmp_path
+    )
+    assert (o1.ran, o2.ran, o2.skipped) == (2, 2, 2)
+    assert rows[0] == first[0]
+    assert cp.point_of("round_robin", 2) == "policy=round_robin,budget=2"
+    assert cp.trial_key(paper30, "abs_trace") == cp.trial_key(
+        _with(paper30, "random", 3, paper30.seed), "abs_trace"
+    )
+
+
+def test_targets_rows_equal_direct_runs():
+    sc = _short(MULTI, 12)
+    rows, outcome, plan = cp.compare_outcome(
+        sc, ["all_on", "round_robin"], "abs_trace", 2, budget=4, workers=1
+    )
+    from covnet.covariance_control import targets
+    from covnet.covariance_control.results import target_trajectory, targets_summary
+
+    for row in rows:
+        ospa, gospa, f, share = [], [], [], []
+        for seed in row["seeds"]:
+            s2 = _with(sc, row["policy"], row["budget"], seed)
+            tm = targets.build(s2)
+            traj = target_trajectory(tm)
+            summ = targets_summary(run_targets(s2, "abs_trace", tm), traj, tm)
+            ospa.append(summ["mean_ospa"])
+            gospa.append(summ["mean_gospa"])
+            f.append(np.mean(summ["value"]))
+            tr = [
+                np.array(b["trace_P"]) <= np.array(b["trace_Pd"]) for b in summ["targets"].values()
+            ]
+            share.append(np.mean(tr))
+        assert row["targets"] == 3
+        assert row["mean_ospa"] == pytest.approx(np.mean(ospa), rel=1e-12)
+        assert row["mean_gospa"] == pytest.approx(np.mean(gospa), rel=1e-12)
+        assert row["mean_f"] == pytest.approx(np.mean(f), rel=1e-12)
+        assert row["share_trP_le_trPd"] == pytest.approx(np.mean(share), rel=1e-12)
+        assert row["messages_per_scan"] == pytest.approx(2 + 3 + row["sensors_per_scan"])
+    assert rows[1]["sensors_per_scan"] == 4
+
+
+def test_cli_refusals(paper_path, tmp_path, capsys):
+    base = ["compare", str(paper_path), "--out", str(tmp_path / "x")]
+    for extra, needle in (
+        (["--policies", "random"], "random (K sensors drawn"),
+        (["--policies", "random", "--modes", "central"], "not allowed with argument"),
+        (["--budget", "3"], "--budget: the policies' budget"),
+        (["--policies", "random", "--budget", "few"], "--budget: a number of sensors"),
+        (["--policies", "all_on", "--ci-width", "1"], "--ci-width: --policies compares"),
+    ):
+        with pytest.raises(SystemExit) if "--modes" in extra else _nothing():
+            assert main([*base, *extra]) == 2
+        assert needle in capsys.readouterr().err, extra
+    assert not (tmp_path / "x").exists()  # refused before any directory is made
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_cli_end_to_end(paper_path, tmp_path):
+    """``python -m covnet compare ... --policies ... --budget match --runs 3``: the files."""
+    cfg = tmp_path / "paper30.yaml"
+    cfg.write_text(paper_path.read_text().replace("scans: 100", "scans: 30"))
+    out = tmp_path / "cmp"
+    argv = [sys.executable, "-m", "covnet", "compare", str(cfg), "--policies"]
+    argv += ["covariance_control,all_on,random", "--budget", "match", "--runs", "3"]
+    argv += ["--workers", "2", "--out", str(out)]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "K*: matched to covariance control" in done.stdout
+    doc = json.loads((out / "compare.json").read_text())
+    assert doc["compared"] == "policies" and doc["budget"] == "match"
+    K = doc["budget_match"]["K"]
+    rows = {r["policy"]: r for r in doc["rows"]}
+    assert list(rows) == ["covariance_control", "all_on", "random"]
+    assert K == round(rows["covariance_control"]["sensors_per_scan"]) == rows["random"]["budget"]
+    assert all(r["runs"] == 3 for r in rows.values())
+    assert (out / "compare.csv").read_text().startswith("policy,budget,")
+    for fig in ("pareto.png", "curves.png"):
+        assert (out / fig).stat().st_size > 10_000, fig
+    (out / "pareto.png").unlink()
+    assert main(["plot", str(out)]) == 0  # redrawn from compare.json and curves.npz
+    assert (out / "pareto.png").is_file()
