@@ -4,7 +4,10 @@
 **Greedy** (:func:`allocate_greedy`): the better of forward selection (add the sensor giving the
 smallest value, while the bound says a superset can still win) and backward elimination (from
 every sensor), then best-improvement local search over removals, additions and 1-swaps, on
-reduced-form values; the final subset is evaluated exactly.  Its certified lower bound is the
+reduced-form values; and, as a second start, the plain heuristic (forward selection while a
+sensor improves, then first-improvement additions, removals and 1-swaps, sensors by index), so
+that greedy is never worse than it; the better final subset (the tie rule on exact values) is
+the result, and the branch and bound's first incumbent.  Its certified lower bound is the
 bound of the root ``[P(required ∪ all allowed), P(required)]`` (with the relaxation where it
 applies).
 """
@@ -39,20 +42,34 @@ BACKWARD_ONE = 64
 FULL_SWAPS = 4096
 SWAP_POOL = 64
 FULL_SCAN_BUDGET = 1 << 17
+#: a move improves when its value is below the current one by this much, relatively
+IMPROVE = 1e-12
+#: the plain first-improvement local search evaluates at most this many moves per call
+PLAIN_BUDGET = 1 << 20
 
 
-def _forward(prob: _Problem) -> tuple[NDArray[np.bool_], float]:
-    """Forward selection from the required set: add the sensor giving the smallest value; stop
-    at the budget, or when the interval bound of (current set, all the rest undecided) exceeds
-    the best value on the path (no superset can do better).  Returns the path's best."""
+def _improves(v: float, ref: float) -> bool:
+    """``v`` is better than ``ref`` by a relative ``IMPROVE`` (anything finite beats ``inf``)."""
+    return v < ref - IMPROVE * abs(ref) if math.isfinite(ref) else math.isfinite(v)
+
+
+def _forward(prob: _Problem) -> tuple[NDArray[np.bool_], float, NDArray[np.bool_], float]:
+    """Forward selection from the required set: add the sensor giving the smallest value (ties:
+    the lowest sensor index); stop at the budget, or when the interval bound of (current set, all
+    the rest undecided) exceeds the best value on the path (no superset can do better).  Returns
+    the path's best, and the *plain* forward selection's subset and value: the path up to the
+    first step that does not improve (by a relative ``IMPROVE``), where the plain heuristic stops
+    (the bound never stops the path before: a step that improves is a superset below the best)."""
     m, K, k0 = prob.m, prob.K, len(prob.req)
     inc = np.zeros(m, dtype=bool)
     Z = prob.base.copy()
     best_val = float(prob.approx_values(Z[None])[0]) if k0 else math.inf
     best_inc = inc.copy()
+    plain: tuple[NDArray[np.bool_], float] | None = None
+    by_id = np.argsort(np.asarray(prob.free, dtype=np.int64), kind="stable")
     k = k0
     while k < K and not inc.all():
-        rest = np.flatnonzero(~inc)
+        rest = by_id[~inc[by_id]]
         if math.isfinite(best_val) and prob.bound is not None:
             sA = prob.summary((Z + prob.S[rest].sum(axis=0))[None])
             sB = prob.summary(Z[None])
@@ -63,12 +80,16 @@ def _forward(prob: _Problem) -> tuple[NDArray[np.bool_], float]:
         i = int(np.argmin(v))
         if not math.isfinite(float(v[i])):
             break
+        if plain is None and not _improves(float(v[i]), best_val):
+            plain = (inc.copy(), best_val)
         inc[rest[i]] = True
         Z = prob.base + prob.S[inc].sum(axis=0)
         k += 1
         if v[i] < best_val:
             best_val, best_inc = float(v[i]), inc.copy()
-    return best_inc, best_val
+    if plain is None:  # every step improved: the path's end
+        plain = (best_inc.copy(), best_val)
+    return best_inc, best_val, plain[0], plain[1]
 
 
 def _backward(prob: _Problem) -> tuple[NDArray[np.bool_], float]:
@@ -182,18 +203,64 @@ def _local_search(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray
     return inc
 
 
-def _greedy_inc(prob: _Problem) -> NDArray[np.bool_] | None:
-    """Greedy's subset as a branching-order row ``(m,)``: the better of the forward and the
-    backward paths, improved by :func:`_local_search` (``None``: no free sensor can be added,
-    only the required set or the zero sensor is possible).  Moves evaluated: ``prob.moves``."""
+def _first_improvement(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray[np.bool_]:
+    """The plain local search: first-improvement over, in this order, additions, removals and
+    1-swaps (out ascending, then in ascending), sensors by index; the first move that improves
+    by a relative ``IMPROVE`` is taken, until none does (or PLAIN_BUDGET moves were evaluated:
+    far beyond what 64 sensors need).  Moves are evaluated in blocks of MOVE_BLOCK in that order,
+    stopping at the first block with an improving move."""
+    k0, K = len(prob.req), prob.K
+    by_id = np.argsort(np.asarray(prob.free, dtype=np.int64), kind="stable")
+    inc = inc.copy()
+    budget = PLAIN_BUDGET
+    while budget > 0:
+        Z = prob.base + prob.S[inc].sum(axis=0)
+        ins, outs = by_id[inc[by_id]], by_id[~inc[by_id]]
+        none_o, none_i = np.full(outs.size, -1), np.full(ins.size, -1)
+        parts: list[tuple[NDArray[np.intp], NDArray[np.intp]]] = []
+        if k0 + ins.size < K:
+            parts.append((none_o, outs))
+        if k0 or ins.size > 1:
+            parts.append((ins, none_i))
+        parts.append((np.repeat(ins, outs.size), np.tile(outs, ins.size)))
+        rem = np.concatenate([p[0] for p in parts])
+        add = np.concatenate([p[1] for p in parts])
+        move: int | None = None
+        for lo in range(0, rem.size, MOVE_BLOCK):
+            v = _move_values(prob, Z, rem[lo : lo + MOVE_BLOCK], add[lo : lo + MOVE_BLOCK])
+            budget -= v.size
+            ok = np.flatnonzero(v < val - IMPROVE * abs(val))
+            if ok.size:
+                move, val = lo + int(ok[0]), float(v[ok[0]])
+                break
+        if move is None:
+            break
+        if rem[move] >= 0:
+            inc[rem[move]] = False
+        if add[move] >= 0:
+            inc[add[move]] = True
+    return inc
+
+
+def _greedy_incs(prob: _Problem) -> list[NDArray[np.bool_]]:
+    """Greedy's subsets as branching-order rows ``(m,)``: the better of the forward and the
+    backward paths improved by :func:`_local_search`, and the plain heuristic's (forward
+    selection while it improves, then :func:`_first_improvement`), so that greedy is never worse
+    than the plain heuristic (empty: no free sensor can be added, only the required set or the
+    zero sensor is possible).  Moves evaluated: ``prob.moves``."""
     if prob.m == 0 or prob.K <= len(prob.req):
-        return None
-    f_inc, f_val = _forward(prob)
+        return []
+    f_inc, f_val, p_inc, p_val = _forward(prob)
     b_inc, b_val = _backward(prob)
     inc, val = (b_inc, b_val) if b_val < f_val else (f_inc, f_val)
-    if not math.isfinite(val) or (not inc.any() and not prob.req):
-        return None
-    return _local_search(prob, inc, val)
+    out = []
+    if math.isfinite(val) and (inc.any() or prob.req):
+        out.append(_local_search(prob, inc, val))
+    if math.isfinite(p_val) and (p_inc.any() or prob.req):
+        p_inc = _first_improvement(prob, p_inc, p_val)
+        if not any(np.array_equal(p_inc, o) for o in out):
+            out.append(p_inc)
+    return out
 
 
 def _greedy_start(prob: _Problem) -> tuple[NDArray[np.bool_], Mat]:
@@ -201,10 +268,10 @@ def _greedy_start(prob: _Problem) -> tuple[NDArray[np.bool_], Mat]:
     it is a choice) as sensor rows ``(c, N)``, with their exact values: every feasible subset the
     tree does not record itself.  At least one row (the first free sensor alone if greedy finds
     nothing finite)."""
-    inc = _greedy_inc(prob)
     rows = []
-    if inc is not None and (inc.any() or not prob.req):
-        rows.append(prob.masks(inc[None])[0])
+    for inc in _greedy_incs(prob):
+        if inc.any() or not prob.req:
+            rows.append(prob.masks(inc[None])[0])
     if prob.req:
         rows.append(prob.masks(np.zeros((1, prob.m), dtype=bool))[0])
     if prob.zero is not None:
@@ -228,7 +295,8 @@ def allocate_greedy(
     constraints: Constraints = NO_CONSTRAINTS,
     tie_rtol: float = 1e-9,
 ) -> SearchResult:
-    """Forward greedy + best-improvement local search (removals, additions, 1-swaps); the subset
+    """Forward greedy + best-improvement local search (removals, additions, 1-swaps), and the
+    plain forward greedy + first-improvement 1-swaps (module docstring); the better subset
     found, its exact value and ``P`` (the reference's arithmetic), and the root interval bound as
     the certified lower bound (for a metric without an interval bound: ``0`` if registered,
     ``-inf`` for a user's plain function).

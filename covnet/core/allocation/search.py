@@ -43,10 +43,13 @@ the tie rule then runs on bit-identical values: the same subset, value and ``P``
 
 **Bounded** (``rel_gap > 0``, a time or node limit): with ``rel_gap > 0`` nodes are explored best
 bound first and depth first in turn, and pruned once their bound exceeds ``U - rel_gap·|U|``; a
-limit stops the search (depth first without ``rel_gap``).  The result is the best subset found,
-with a certified lower bound ``L`` of the optimum (the least bound over the open nodes, the
-pruned ones and the candidates not evaluated, or the root's bound if larger) and
-``gap = (value - L) / max(|value|, tiny)``.
+limit stops the search (depth first without ``rel_gap``).  ``time_limit_s`` bounds the whole
+decision: the exact evaluation of the recorded candidates after the tree (lowest bound first, in
+batches, the clock read in between; a tree stopped by a limit gets one batch) stops when the time
+is spent, status 2, and the candidates not evaluated stay in the certified bound.  The result is
+the best subset found, with a certified lower bound ``L`` of the optimum (the least bound over
+the open nodes, the pruned ones and the candidates not evaluated, or the root's bound if larger)
+and ``gap = (value - L) / max(|value|, tiny)``.
 
 **Greedy** (:func:`~covnet.core.allocation.greedy.allocate_greedy`, this module's name for it
 too) gives the branch and bound its first incumbent.
@@ -112,6 +115,11 @@ LEAF_LEVELS = 18
 LEAF_TOP = 10
 #: nodes per table query (the threshold is updated in between)
 LEAF_GROUP = 8
+#: after the tree, the recorded candidates are evaluated exactly in batches, lowest bound first:
+#: the first batch this many (all that is evaluated when a limit stopped the tree), each next one
+#: twice the last, at most FINISH_MAX (the time limit is checked in between)
+FINISH_FIRST = EVAL_PICKS * 16
+FINISH_MAX = 1024
 
 
 @dataclass(slots=True)
@@ -432,6 +440,34 @@ class _Search:
             self.expand(self.pop())
         return 0
 
+    def finish(self, why: int) -> int:
+        """Evaluate the recorded candidates that can still win or tie (bound <= ``tau``), lowest
+        bound first, in batches; ``tau`` falls with the incumbent in between (a candidate above
+        it cannot be in the tie set: the exactness argument of the module docstring).  After a
+        limit hit in the tree (``why``) only the first, most promising batch; otherwise all of
+        them, unless the time limit is reached between two batches: then ``2``, and the
+        candidates not evaluated stay in :meth:`lower_bound`.  Returns the final status."""
+        inc, est = self.cands.arrays()
+        if est.size == 0:
+            return why
+        order = np.argsort(est, kind="stable")
+        inc, est = inc[order], est[order]
+        lo, size = 0, FINISH_FIRST
+        while lo < est.size and est[lo] <= self.tau:
+            hi = min(lo + size, int(np.searchsorted(est, self.tau, side="right")))
+            self.evaluate_inc(inc[lo:hi])
+            lo = hi
+            if why:
+                break
+            more = lo < est.size and est[lo] <= self.tau
+            if more and self.deadline is not None and self.deadline():
+                why = 2
+                break
+            size = min(2 * size, FINISH_MAX)
+        self.cands.inc, self.cands.est = [inc[lo:]], [est[lo:]]
+        self.cands.size = est.size - lo
+        return why
+
     def lower_bound(self) -> float:
         """The least of the incumbent, the pruned nodes' and candidates' bounds, the open nodes'
         bounds and the pending candidates' bounds: at most the optimum."""
@@ -508,17 +544,7 @@ def allocate_bnb(
     try:
         search = _Search(prob, rel_gap, rel_gap > 0.0, deadline, node_limit)
         search.evaluated(*_greedy_start(prob))
-        why = search.run()
-        inc, est = search.cands.arrays()
-        todo = est <= search.tau
-        if todo.any():
-            order = np.flatnonzero(todo)[np.argsort(est[todo], kind="stable")]
-            if why:  # limited: the most promising few only, the rest stay in the bound
-                order = order[: EVAL_PICKS * 16]
-            search.evaluate_inc(inc[order])
-            left = np.ones(est.size, dtype=bool)
-            left[order] = False
-            search.cands.inc, search.cands.est = [inc[left]], [est[left]]
+        why = search.finish(search.run())
         masks = np.concatenate(search.ev_masks)
         values = np.concatenate(search.ev_vals)
         k = tie_select(values, masks, prob.tie_rtol)
