@@ -618,7 +618,7 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
 
 
 def _colors(n: int) -> Any:
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # the figures only: start-up of the runs (and the workers)
 
     return plt.cm.tab10(np.arange(n) % 10)
 
@@ -673,7 +673,7 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
 def curves_figure(out: Path, data: Mapping[str, np.ndarray], select: Sequence[int]) -> Path:
     """``curves.png``: per scan the RMSE (or OSPA with targets) and the sensors on, per policy
     ``select``, with their 95 % bands over seeds."""
-    import matplotlib
+    import matplotlib  # the figure only: start-up of the runs (and of the workers)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
