@@ -306,31 +306,36 @@ def _recompute_peer(
     """Every recorded node's reports, recomputed by an engine of that node alone (module
     docstring)."""
     result = PeerResult(list(metrics), {}, NetStats())
-    scans = build_model(sc).scans
+    model = build_model(sc)
     completed = True
     for e, metric in enumerate(metrics):
         logs: dict[str, NodeLog] = {}
         nodes = sorted({n for (n, ep, _) in rec.node_status if ep == e})
         for node in nodes:
-            log = _replay_node(sc, node, e, metric, rec, diffs)
+            log = _replay_node(sc, model, node, e, metric, rec, diffs)
             if log.statuses:
                 logs[node] = log
         result.nodes[e] = logs
-        full = [n for n, log in logs.items() if log.scans() == scans]
+        full = [n for n, log in logs.items() if log.scans() == model.scans]
         completed = completed and bool(full)
     result.completed = completed
     return result
 
 
 def _replay_node(
-    sc: Scenario, node: str, e: int, metric: str, rec: PeerRecorded, diffs: Differences
+    sc: Scenario,
+    model: Any,
+    node: str,
+    e: int,
+    metric: str,
+    rec: PeerRecorded,
+    diffs: Differences,
 ) -> NodeLog:
     """Node ``node``'s episode ``e``: its engine stepped with its recorded Statuses."""
-    engine = ScanEngine(sc, [metric])
-    if node not in engine.ids:
+    if node not in model.sensor_ids:
         diffs.add("status", f"episode {e}: Statuses of {node!r}, which is not a sensor")
         return NodeLog()
-    engine = ScanEngine(sc, [metric], model=engine.model, nodes=(engine.ids.index(node),))
+    engine = ScanEngine(sc, [metric], model=model, nodes=(model.sensor_ids.index(node),))
     engine.start_episode(0)
     log = NodeLog()
     for k in range(1, engine.scans + 1):
