@@ -59,6 +59,7 @@ __all__ = [
     "information_reduction_factor",
     "information_reduction_table",
     "nearest_neighbour_update",
+    "pda_combine",
     "pda_update",
     "pda_weights",
 ]
@@ -252,7 +253,29 @@ def pda_update(
     p = model.pd if pd is None else _check_pd(pd)
     rows, nu, d2 = gate(pred, Z, gate_probability)
     beta, beta0 = pda_weights(d2, pred.S, p, clutter_density, gate_probability)
-    if rows.size == 0 or p == 0.0:
+    if p == 0.0:
+        return AssociationResult(prior, pred.S, np.zeros(pred.dim_z), rows, d2, beta, 1.0)
+    return pda_combine(prior, pred, rows, nu, d2, beta, beta0)
+
+
+def pda_combine(
+    prior: Gaussian,
+    pred: MeasurementPrediction,
+    rows: IntVec,
+    nu: Mat,
+    d2: Vec,
+    beta: Vec,
+    beta0: float,
+) -> AssociationResult:
+    """The PDA combined update (module docstring) for given weights: ``ν̄ = Σ_i β_i ν_i``,
+    ``x⁺ = x⁻ + K ν̄``, ``P⁺ = β_0 P⁻ + (1 − β_0) P^c + K (Σ_i β_i ν_i ν_iᵀ − ν̄ ν̄ᵀ) Kᵀ``.
+
+    The one formula for every weighting: :func:`pda_update` passes the PDAF's
+    :func:`pda_weights`, the joint PDA (:mod:`covnet.core.surveillance.jpda`) the marginals of
+    its joint events.  ``rows``, ``nu`` ``(m, dim_z)`` and ``d2`` are the gated returns of
+    :func:`gate`; ``β_0 + Σ β_i = 1``.  No gated return keeps the prior (``β_0 = 1``).
+    """
+    if rows.size == 0:
         return AssociationResult(prior, pred.S, np.zeros(pred.dim_z), rows, d2, beta, 1.0)
     nu_bar = beta @ nu
     K = pred.K
