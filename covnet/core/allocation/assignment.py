@@ -28,6 +28,22 @@ single-target rule (among subsets of one size, the lexicographically smallest as
 tuple is the one that has the lowest index where two differ, i.e. *on* before *off*; note that
 the order ``OFF < target 0 < ...`` the spec names would pick the opposite for ``T = 1``).
 
+**Search cells** (spec ``surveillance.md`` §3-4; optional, ``cells``: a :class:`CellTerms`):
+``C`` extra columns a sensor may be assigned to (``feasible[j, c]``), each scored by the set
+``S_c`` of sensors searching it::
+
+    g_c(S) = λ · u_c · Π_{j∈S} (1 - pd_j)   (>= 0),
+
+which is the spec's term ``-λ u_c (1 - Π_{j∈S}(1 - pd_j))`` plus the constant ``λ u_c``
+(``-λ u_c (1 - Π) = λ u_c Π - λ u_c``): the same minimiser, and every term stays ``>= 0`` (the
+bounds' and the tie threshold's premise).  The decision is then ``argmin Σ_t w_t v_t +
+Σ_c g_c(S_c)``; ``a_j = T + c`` means sensor ``j`` searches cell ``c`` (the result's assignment
+uses indices ``T..T+C-1`` for cells, ``sets`` has ``T + C`` entries, ``values`` the ``T`` targets'
+``v_t`` and ``cell_values`` the ``g_c``).  Arithmetic: ``g = λ · u_c; g = g · miss[j, c]`` over
+``S_c`` ascending, added after the targets: ``F = F + g_c`` for ``c = 0..C-1``.  A cell counts as
+*on* (budget, required sensors, at least one on); ``max_per_target`` limits targets only; tie
+order ``targets < cells < OFF``.  Without cells every result is as before, bit for bit.
+
 Two implementations return the same :class:`Assignment`:
 
 - :func:`allocate_assignments_exhaustive`: the plain reference, a loop over every assignment of
@@ -80,7 +96,9 @@ from covnet.core.metrics import MetricFn
 __all__ = [
     "OFF",
     "Assignment",
+    "CellTerms",
     "MultiConstraints",
+    "TooManySensors",
     "allocate_assignments",
     "allocate_assignments_exhaustive",
 ]
@@ -95,6 +113,10 @@ MAX_SENSORS = 22
 #: from one cached table of all ``3^m`` pairs up to this many sensors
 PAIR_CHUNK = 1 << 17
 PAIR_TABLE_BITS = 12
+
+
+class TooManySensors(ValueError):
+    """The exact assignment search cannot enumerate this many sensors (``MAX_SENSORS``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,6 +138,49 @@ class MultiConstraints:
 NO_CONSTRAINTS = MultiConstraints()
 
 
+@dataclass(frozen=True)
+class CellTerms:
+    """Search cells (module docstring): ``u`` ``(C,)`` the expected undetected targets per cell
+    (``>= 0``), ``weight`` ``λ >= 0`` (in units of the metric), ``miss`` ``(N, C)`` the
+    probability ``1 - pd_j`` that sensor ``j`` searching cell ``c`` misses a target there (in
+    ``[0, 1]``), ``feasible`` ``(N, C)`` which sensor may search which cell (its coverage)."""
+
+    u: NDArray[np.float64]
+    weight: float
+    miss: NDArray[np.float64]
+    feasible: NDArray[np.bool_]
+
+    @property
+    def C(self) -> int:
+        return int(np.asarray(self.u).shape[0])
+
+
+def _checked_cells(cells: CellTerms | None, N: int) -> CellTerms | None:
+    """Validated cells (shapes, ranges), arrays copied; ``None`` or no cell: ``None``."""
+    if cells is None:
+        return None
+    if not isinstance(cells, CellTerms):
+        raise TypeError(f"cells must be a CellTerms or None, got {type(cells)}")
+    u = np.array(cells.u, dtype=np.float64)
+    if u.ndim != 1 or not (np.isfinite(u).all() and (u >= 0).all()):
+        raise ValueError(f"cells.u must be (C,) finite numbers >= 0, got {cells.u!r}")
+    C = u.shape[0]
+    lam = float(cells.weight)
+    if not (math.isfinite(lam) and lam >= 0.0):
+        raise ValueError(f"cells.weight must be a finite number >= 0, got {cells.weight!r}")
+    miss = np.array(cells.miss, dtype=np.float64)
+    if miss.shape != (N, C) or not (np.isfinite(miss).all() and (miss >= 0).all()):
+        raise ValueError(f"cells.miss must be ({N}, {C}) numbers in [0, 1], got {miss.shape}")
+    if (miss > 1).any():
+        raise ValueError(f"cells.miss must be ({N}, {C}) numbers in [0, 1] (1 - pd)")
+    feas = np.asarray(cells.feasible)
+    if feas.shape != (N, C) or feas.dtype != np.bool_:
+        raise ValueError(f"cells.feasible must be a ({N}, {C}) boolean array, got {feas.shape}")
+    if C == 0:
+        return None
+    return CellTerms(u, lam, miss, feas.copy())
+
+
 @dataclass(frozen=True, slots=True)
 class Assignment:
     """The chosen assignment of one multi-target decision.
@@ -125,7 +190,9 @@ class Assignment:
     per-target ``v_t = f(P_t, P_d,t)``; ``P``: ``(T, n, n)`` the targets' covariances;
     ``n_candidates``: assignments whose ``F`` was computed exactly; ``n_evaluated``: exact
     per-target evaluations (one solve and one metric call each); ``n_feasible``: the number of
-    feasible assignments (the reference counts them; ``None`` for the fast path).
+    feasible assignments (the reference counts them; ``None`` for the fast path).  With search
+    cells (:class:`CellTerms`): ``a_j = T + c`` for cell ``c``, ``sets`` has ``T + C`` entries
+    and ``cell_values`` the ``g_c`` (empty without cells).
     """
 
     assignment: tuple[int, ...]
@@ -136,6 +203,7 @@ class Assignment:
     n_candidates: int
     n_evaluated: int
     n_feasible: int | None
+    cell_values: tuple[float, ...] = ()
 
     @property
     def n_active(self) -> int:
@@ -163,6 +231,7 @@ class _Inputs:
         feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None,
         constraints: MultiConstraints,
         tie_rtol: float,
+        cells: CellTerms | None = None,
     ) -> None:
         Pp = np.asarray(P_pred, dtype=np.float64)
         if Pp.ndim != 3 or Pp.shape[1] != Pp.shape[2] or Pp.shape[0] == 0 or Pp.shape[1] == 0:
@@ -206,6 +275,9 @@ class _Inputs:
         self.w = [float(x) for x in w]
         self.feasible = feas
         self.N, self.T, self.n = N, T, n
+        self.cells = _checked_cells(cells, N)
+        self.C = 0 if self.cells is None else self.cells.C
+        cfeas = np.zeros((N, 0), dtype=bool) if self.cells is None else self.cells.feasible
         self.tie_rtol = float(tie_rtol)
         c = constraints
         for label, idx in (("excluded", c.excluded), ("required", c.required)):
@@ -252,6 +324,8 @@ class _Inputs:
         self.options: list[list[int]] = []
         for j in range(N):
             targets = [] if j in c.excluded else [t for t in range(T) if feas[j, t]]
+            if j not in c.excluded:
+                targets += [T + k for k in range(self.C) if cfeas[j, k]]
             if j in c.required:
                 if not targets:
                     raise InfeasibleAllocation(f"required sensor {j} has no feasible target")
@@ -275,17 +349,29 @@ class _Inputs:
             raise ValueError(f"metric returned a non-finite value for target {t}, {tuple(sensors)}")
         return v, P_t
 
-    def total(self, values: Sequence[float]) -> float:
-        """``F = 0; F = F + w_t v_t`` over the targets in order."""
+    def cell_value(self, c: int, sensors: Sequence[int]) -> float:
+        """``g_c = λ · u_c``, then ``g = g · miss[j, c]`` over ``sensors`` (ascending)."""
+        assert self.cells is not None
+        g = self.cells.weight * float(self.cells.u[c])
+        for j in sensors:
+            g = g * float(self.cells.miss[j, c])
+        return g
+
+    def total(self, values: Sequence[float], cell_values: Sequence[float] = ()) -> float:
+        """``F = 0; F = F + w_t v_t`` over the targets in order, then ``F = F + g_c`` over the
+        cells."""
         F = 0.0
         for t in range(self.T):
             F = F + self.w[t] * values[t]
+        for g in cell_values:
+            F = F + g
         return F
 
     def tie_key(self, a: Sequence[int]) -> tuple[int, tuple[int, ...]]:
         """Sort key of the tie rule: sensors on, then the vector with ``OFF`` after every
-        target."""
-        return (sum(x != OFF for x in a), tuple(self.T if x == OFF else x for x in a))
+        target and cell."""
+        off = self.T + self.C
+        return (sum(x != OFF for x in a), tuple(off if x == OFF else x for x in a))
 
 
 def _result(
@@ -296,17 +382,19 @@ def _result(
     n_candidates: int,
     n_evaluated: int,
     n_feasible: int | None,
+    cell_values: Sequence[float] = (),
 ) -> Assignment:
-    sets = tuple(tuple(j for j in range(inp.N) if a[j] == t) for t in range(inp.T))
+    sets = tuple(tuple(j for j in range(inp.N) if a[j] == t) for t in range(inp.T + inp.C))
     return Assignment(
         tuple(int(x) for x in a),
         sets,
-        inp.total(values),
+        inp.total(values, cell_values),
         tuple(float(v) for v in values),
         np.array(P),
         n_candidates,
         n_evaluated,
         n_feasible,
+        tuple(float(g) for g in cell_values),
     )
 
 
@@ -324,13 +412,15 @@ def allocate_assignments_exhaustive(
     feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None = None,
     constraints: MultiConstraints = NO_CONSTRAINTS,
     tie_rtol: float = 1e-9,
+    cells: CellTerms | None = None,
 ) -> Assignment:
     """The plain reference: every assignment (each sensor off or on one of its feasible
-    targets) in turn, the feasible ones scored with the module's arithmetic (``T`` solves and
-    metric calls each), then the tie rule.  ``(T+1)^N`` assignments: for small problems and
-    tests; :func:`allocate_assignments` returns the same."""
-    inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol)
-    best: list[tuple[float, tuple[int, ...], list[float], list[Mat]]] = []
+    targets or cells) in turn, the feasible ones scored with the module's arithmetic (``T``
+    solves and metric calls each, and the cells' products), then the tie rule.
+    ``(T+C+1)^N`` assignments: for small problems and tests; :func:`allocate_assignments`
+    returns the same."""
+    inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
+    best: list[tuple[float, tuple[int, ...], list[float], list[Mat], list[float]]] = []
     n_feasible = 0
     try:
         for a in itertools.product(*inp.options):
@@ -345,17 +435,21 @@ def allocate_assignments_exhaustive(
                 v, P_t = inp.target_value(t, [j for j in range(inp.N) if a[j] == t])
                 values.append(v)
                 Ps.append(P_t)
+            gs = [
+                inp.cell_value(c, [j for j in range(inp.N) if a[j] == inp.T + c])
+                for c in range(inp.C)
+            ]
             n_feasible += 1
-            best.append((inp.total(values), a, values, Ps))
+            best.append((inp.total(values, gs), a, values, Ps, gs))
     except np.linalg.LinAlgError as exc:
         raise _spd_error(exc) from exc
     if not best:
         raise InfeasibleAllocation("no assignment satisfies the constraints")
-    F_star = min(F for F, _, _, _ in best)
+    F_star = min(b[0] for b in best)
     thr = tie_threshold(F_star, inp.tie_rtol)
-    F, a, values, Ps = min((b for b in best if b[0] <= thr), key=lambda b: inp.tie_key(b[1]))
+    F, a, values, Ps, gs = min((b for b in best if b[0] <= thr), key=lambda b: inp.tie_key(b[1]))
     n_eval = n_feasible * inp.T
-    return _result(inp, a, values, Ps, n_feasible, n_eval, n_feasible)
+    return _result(inp, a, values, Ps, n_feasible, n_eval, n_feasible, gs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -458,6 +552,36 @@ class _Target:
             self._evaluate(arr, self._masks(arr))
 
 
+class _Cell:
+    """One search cell's table over the subsets of its feasible sensors, as :class:`_Target`:
+    ``lb`` the products ``λ u_c Π miss`` deflated by a relative ``4 (m + 2) eps`` (below the
+    reference's product whatever its rounding), the exact values (the reference's loop) on
+    demand (``exact[code] = (g, None)``)."""
+
+    def __init__(self, inp: _Inputs, c: int, allowed: list[int]) -> None:
+        assert inp.cells is not None
+        self.inp, self.c, self.allowed = inp, c, allowed
+        m = len(allowed)
+        col = inp.T + c
+        bits = [b for b, j in enumerate(allowed) if col in inp.options[j]]
+        subs = np.zeros(1 << len(bits), dtype=np.int64)
+        val = np.zeros(1 << len(bits))
+        val[0] = inp.cells.weight * float(inp.cells.u[c])
+        for i, b in enumerate(bits):  # the subsets with bit b are those without, times miss
+            half = 1 << i
+            subs[half : 2 * half] = subs[:half] | (1 << b)
+            val[half : 2 * half] = val[:half] * float(inp.cells.miss[allowed[b], c])
+        self.subs = subs
+        self.lb = val * (1.0 - 4.0 * (m + 2) * EPS)
+        self.exact: dict[int, tuple[float, Mat | None]] = {}
+
+    def values(self, codes: list[int]) -> None:
+        for code in codes:
+            if code not in self.exact:
+                sensors = [j for b, j in enumerate(self.allowed) if code >> b & 1]
+                self.exact[code] = (self.inp.cell_value(self.c, sensors), None)
+
+
 def _convolve(f_subs: NDArray[np.int64], f_val: Mat, g: Mat, m: int) -> Mat:
     """The min-plus subset convolution ``h(R) = min_{S ⊆ R} f(S) + g(R - S)`` over all bit sets
     ``R`` of ``m`` bits, with ``f`` given on the subsets ``f_subs`` (``+inf`` elsewhere): every
@@ -535,20 +659,22 @@ def allocate_assignments(
     feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None = None,
     constraints: MultiConstraints = NO_CONSTRAINTS,
     tie_rtol: float = 1e-9,
+    cells: CellTerms | None = None,
 ) -> Assignment:
     """The fast exact allocator (module docstring): the same :class:`Assignment` as
     :func:`allocate_assignments_exhaustive` (assignment, value and ``P`` bits), with tables of
-    ``2^N`` entries per target and a dynamic programme of ``O(T 3^N)`` steps over the allowed
-    sensors (at most ``MAX_SENSORS``).  A metric without an interval bound gets exact tables
-    (one metric call per subset and target), still exact."""
-    inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol)
+    ``2^N`` entries per target (and cell) and a dynamic programme of ``O((T + C) 3^N)`` steps
+    over the allowed sensors (at most ``MAX_SENSORS``: :class:`TooManySensors` beyond).  A
+    metric without an interval bound gets exact tables (one metric call per subset and target),
+    still exact."""
+    inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
     N, T = inp.N, inp.T
     allowed = [j for j in range(N) if inp.options[j] != [OFF]]
     m = len(allowed)
     if m > MAX_SENSORS:
-        raise ValueError(
-            f"allocate_assignments keeps tables of 2^N entries: at most {MAX_SENSORS} sensors "
-            f"that can be on, got {m}"
+        raise TooManySensors(
+            f"the exact assignment search keeps tables of 2^N entries: at most {MAX_SENSORS} "
+            f"sensors that can be on, got {m} (use the bounded or greedy search)"
         )
     full = (1 << m) - 1
     req_mask = 0
@@ -566,28 +692,32 @@ def allocate_assignments(
                         inp.P_pred[t], inp.J[:, t], inp.D[t], inp.f, Constraints(excl), tie_rtol
                     )
             targets.append(_Target(inp, t, allowed, prob))
+        cols: list[_Target | _Cell] = [*targets]
+        cols += [_Cell(inp, c, allowed) for c in range(inp.C)]
+        ws = inp.w + [1.0] * inp.C
+        ncol = len(cols)
         # the last stage: the sensors left off, R; feasible iff no required one, within the
         # budget, and at least one sensor on
         R = np.arange(1 << m, dtype=np.int64)
         used = m - _popcount(R)
         ok = ((R & req_mask) == 0) & (used <= inp.K) & (R != full)
-        H: list[Mat] = [np.where(ok, 0.0, np.inf)]  # H[T - t] for t = T..1
-        for t in range(T - 1, 0, -1):
-            tg = targets[t]
-            H.insert(0, _convolve(tg.subs, inp.w[t] * tg.lb, H[0], m))
-        # H[0] is H_1 (targets 1..T-1 and the last stage), H[t - 1] is H_t
-        Hs = {t: H[t - 1] for t in range(1, T + 1)}
-        tg0 = targets[0]
-        root = inp.w[0] * tg0.lb + Hs[1][full ^ tg0.subs]
+        H: list[Mat] = [np.where(ok, 0.0, np.inf)]  # H[ncol - t] for t = ncol..1
+        for t in range(ncol - 1, 0, -1):
+            tg = cols[t]
+            H.insert(0, _convolve(tg.subs, ws[t] * tg.lb, H[0], m))
+        # H[0] is H_1 (columns 1..ncol-1 and the last stage), H[t - 1] is H_t
+        Hs = {t: H[t - 1] for t in range(1, ncol + 1)}
+        tg0 = cols[0]
+        root = ws[0] * tg0.lb + Hs[1][full ^ tg0.subs]
         if not np.isfinite(root).any():
             raise InfeasibleAllocation("no assignment satisfies the constraints")
         # the incumbent: the bound's optimum, evaluated exactly
-        sets = _backtrack(targets, Hs, inp, full, int(np.argmin(root)))
-        U = _exact_total(targets, inp, [sets])[0]
+        sets = _backtrack(cols, Hs, ws, full, int(np.argmin(root)))
+        U = _exact_total(cols, ws, [sets])[0]
         tau = U + inp.tie_rtol * max(abs(U), TINY)
-        tau_b = tau * (1.0 + 16.0 * T * EPS) + TINY
-        cands = _enumerate(targets, Hs, inp, full, root, tau_b)
-        F = _exact_total(targets, inp, cands)
+        tau_b = tau * (1.0 + 16.0 * ncol * EPS) + TINY
+        cands = _enumerate(cols, Hs, ws, full, root, tau_b)
+        F = _exact_total(cols, ws, cands)
     except np.linalg.LinAlgError as exc:
         raise _spd_error(exc) from exc
     thr = tie_threshold(float(F.min()), inp.tie_rtol)
@@ -603,8 +733,9 @@ def allocate_assignments(
     a = _vector(chosen, allowed, N)
     values = [targets[t].exact[chosen[t]][0] for t in range(T)]
     Ps = [targets[t].exact[chosen[t]][1] for t in range(T)]
+    gs = [cols[T + c].exact[chosen[T + c]][0] for c in range(inp.C)]
     n_eval = sum(len(tg.exact) for tg in targets)
-    return _result(inp, a, values, Ps, len(cands), n_eval, None)
+    return _result(inp, a, values, Ps, len(cands), n_eval, None, gs)
 
 
 def _vector(sets: Sequence[int], allowed: list[int], N: int) -> list[int]:
@@ -617,16 +748,16 @@ def _vector(sets: Sequence[int], allowed: list[int], N: int) -> list[int]:
 
 
 def _backtrack(
-    targets: list[_Target], Hs: dict[int, Mat], inp: _Inputs, full: int, i0: int
+    targets: Sequence[_Target | _Cell], Hs: dict[int, Mat], ws: list[float], full: int, i0: int
 ) -> list[int]:
-    """The sets of the bound's optimum, from the root choice ``i0`` of target 0 on."""
+    """The sets of the bound's optimum, from the root choice ``i0`` of column 0 on."""
     sets = [int(targets[0].subs[i0])]
     R = full ^ sets[0]
-    for t in range(1, inp.T):
+    for t in range(1, len(targets)):
         tg = targets[t]
         sub = tg.subs[(tg.subs & ~R) == 0]
         lbs = tg.lb[(tg.subs & ~R) == 0]
-        v = inp.w[t] * lbs + Hs[t + 1][R ^ sub]
+        v = ws[t] * lbs + Hs[t + 1][R ^ sub]
         k = int(np.argmin(v))
         sets.append(int(sub[k]))
         R ^= int(sub[k])
@@ -634,9 +765,9 @@ def _backtrack(
 
 
 def _enumerate(
-    targets: list[_Target],
+    targets: Sequence[_Target | _Cell],
     Hs: dict[int, Mat],
-    inp: _Inputs,
+    ws: list[float],
     full: int,
     root: Mat,
     tau: float,
@@ -646,16 +777,16 @@ def _enumerate(
     keep = np.flatnonzero(root <= tau)
     tg0 = targets[0]
     partial = [
-        ([int(tg0.subs[i])], full ^ int(tg0.subs[i]), inp.w[0] * float(tg0.lb[i]))
+        ([int(tg0.subs[i])], full ^ int(tg0.subs[i]), ws[0] * float(tg0.lb[i]))
         for i in keep.tolist()
     ]
-    for t in range(1, inp.T):
+    for t in range(1, len(targets)):
         tg = targets[t]
         nxt = []
         for sets, R, acc in partial:
             sel = (tg.subs & ~R) == 0
             sub, lbs = tg.subs[sel], tg.lb[sel]
-            part = acc + inp.w[t] * lbs
+            part = acc + ws[t] * lbs
             v = part + Hs[t + 1][R ^ sub]
             for k in np.flatnonzero(v <= tau).tolist():
                 code = int(sub[k])
@@ -664,13 +795,16 @@ def _enumerate(
     return [sets for sets, _, _ in partial]
 
 
-def _exact_total(targets: list[_Target], inp: _Inputs, cands: list[list[int]]) -> Mat:
+def _exact_total(
+    targets: Sequence[_Target | _Cell], ws: list[float], cands: list[list[int]]
+) -> Mat:
     """``F`` of each candidate with the reference's arithmetic (per-target values exact, summed
-    ``F = 0; F = F + w_t v_t``)."""
+    ``F = 0; F = F + w_t v_t``, then the cells' ``F = F + g_c`` with ``w = 1``: ``1.0 * g`` is
+    ``g``)."""
     for t, tg in enumerate(targets):
         tg.values([c[t] for c in cands])
     F = np.zeros(len(cands))
     for t, tg in enumerate(targets):
         v = np.array([tg.exact[c[t]][0] for c in cands])
-        F = F + inp.w[t] * v
+        F = F + ws[t] * v
     return F
