@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from covnet.core.ospa import gospa, ospa
-from covnet.core.surveillance.continuity import Frame, evaluate_continuity
+from covnet.core.surveillance.continuity import ContinuityFrame, evaluate_continuity
 
 C = 100.0
 
 
 def F(scan, truths, tracks):
     """truths / tracks: {id: (x, y)}."""
-    return Frame(
+    return ContinuityFrame(
         scan,
         np.array(list(truths), dtype=np.intp),
         np.array(list(truths.values()), dtype=float).reshape(-1, 2),
@@ -101,6 +101,6 @@ def test_empty_and_checks() -> None:
     with pytest.raises(ValueError, match="increasing"):
         evaluate_continuity([F(2, {}, {}), F(2, {}, {})], C)
     with pytest.raises(ValueError, match="distinct"):
-        Frame(1, np.array([1, 1]), np.zeros((2, 2)), np.zeros(0), np.zeros((0, 2)))
+        ContinuityFrame(1, np.array([1, 1]), np.zeros((2, 2)), np.zeros(0), np.zeros((0, 2)))
     with pytest.raises(ValueError, match="track_xy"):
-        Frame(1, np.zeros(0), np.zeros((0, 2)), np.array([1]), np.zeros((2, 2)))
+        ContinuityFrame(1, np.zeros(0), np.zeros((0, 2)), np.array([1]), np.zeros((2, 2)))

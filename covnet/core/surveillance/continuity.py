@@ -1,7 +1,7 @@
 """Surveillance metrics beyond GOSPA: cardinality, time to confirm, track breaks, id switches.
 
-Input per scan ``k`` (a :class:`Frame`): the existing true targets (ids, positions) and the
-**confirmed** tracks (ids, estimated positions).  Tentative tracks are not scored.
+Input per scan ``k`` (a :class:`ContinuityFrame`): the existing true targets (ids, positions)
+and the **confirmed** tracks (ids, estimated positions).  Tentative tracks are not scored.
 
 **Association of tracks to truths, per scan**: the GOSPA assignment (:func:`covnet.core.ospa.
 gospa`, ``α = 2``, cut-off ``c``, order ``p``): the optimal pairs with ``d < c``.  A target is
@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 from covnet.core.gaussian import Mat
 from covnet.core.ospa import gospa, ospa
 
-__all__ = ["ContinuityReport", "Frame", "ScanSummary", "evaluate_continuity"]
+__all__ = ["ContinuityFrame", "ContinuityReport", "ScanSummary", "evaluate_continuity"]
 
 IntVec = NDArray[np.intp]
 
@@ -59,7 +59,7 @@ def _xy(name: str, a: ArrayLike, n: int) -> Mat:
 
 
 @dataclass(frozen=True, slots=True)
-class Frame:
+class ContinuityFrame:
     """One scan: ``truth_ids`` with ``truth_xy`` ``(n, 2)``, confirmed ``track_ids`` with
     ``track_xy`` ``(m, 2)``."""
 
@@ -127,7 +127,9 @@ class ContinuityReport:
         return sum(t is None for t in self.time_to_confirm.values())
 
 
-def evaluate_continuity(frames: Sequence[Frame], c: float, p: float = 2.0) -> ContinuityReport:
+def evaluate_continuity(
+    frames: Sequence[ContinuityFrame], c: float, p: float = 2.0
+) -> ContinuityReport:
     """The metrics of the module docstring over ``frames`` (in increasing scan order)."""
     first: dict[int, int] = {}
     ttc: dict[int, int | None] = {}
