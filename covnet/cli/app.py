@@ -427,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N,N,...",
         help=takes("sensors") + "sensor counts (default 8,12,16,20; fusion: 8,12,16; search: "
         "8,...,32; beyond 8 the paper table cycles with both sigmas scaled by 1 + 0.5 (j // 8)); "
-        "at most 24 for alloc and fusion, 16 for multitarget",
+        "at most 24 for alloc and fusion, 16 for multitarget (256 with --search)",
     )
     b.add_argument(
         "--metric",
@@ -452,7 +452,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--targets",
         type=_int_list,
         metavar="T,T,...",
-        help=takes("targets") + "numbers of targets (default 3, the spec's scenario; up to 8)",
+        help=takes("targets") + "numbers of targets (default 3, the spec's scenario; up to 8; "
+        "multitarget --search: default 3,8,16, any)",
     )
     b.add_argument(
         "--config",

@@ -24,7 +24,7 @@ BENCHES = {
 """``covnet bench TARGET`` -> the kind whose ``bench:TARGET`` command it runs (``up`` is the
 launcher's own, for a config of any kind)."""
 
-BENCH_SENSORS_MAX = {"alloc": 24, "fusion": 24, "multitarget": 16, "search": 100_000, "up": 1024}
+BENCH_SENSORS_MAX = {"alloc": 24, "fusion": 24, "multitarget": 256, "search": 100_000, "up": 1024}
 """The largest ``--sensors`` count of each benchmark that takes one: ``alloc`` times the plain
 baseline over all 2^N subsets and ``fusion`` a scipy loop over them, ``multitarget``'s sensor
 table has 16 sensors, ``search`` runs its exact search only up to 40 and beyond that bounded
@@ -113,7 +113,7 @@ BENCH_TAKES: dict[str, frozenset[str]] = {
         {"sensors", "metric", "search", "exact_cap", "problems", "repeat", "config", "json"}
     ),
     "multitarget": frozenset(
-        {"sensors", "metric", "targets", "problems", "repeat", "config", "json"}
+        {"sensors", "metric", "targets", "search", "problems", "repeat", "config", "json"}
     ),
     "mobile": frozenset({"json"}),
     "passive": frozenset({"json"}),

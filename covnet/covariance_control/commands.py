@@ -377,6 +377,13 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
     from covnet.covariance_control import bench_search as bs  # start-up of the other commands
 
     metrics = [metric_opt(load(args.config), [m], m) for m in args.metric] if args.metric else None
+    if args.search:
+        return _bench_multitarget_scale(args, metrics)
+    if args.sensors and max(args.sensors) > 16:
+        raise UsageError(
+            "--sensors: bench multitarget takes up to 16 without --search (its sensor table); "
+            "with --search exact|bounded|greedy generated networks up to 256"
+        )
     if not args.json:
         print(" ".join(k for k, _ in bs.MT_COLUMNS), flush=True)
     targets = getattr(args, "targets", None) or [3]
@@ -395,6 +402,41 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
     if args.json:
         for row in rows:
             print(json.dumps(row))
+    return EXIT_OK
+
+
+def _bench_multitarget_scale(args: argparse.Namespace, metrics: list[str] | None) -> int:
+    """``covnet bench multitarget --search ...``: the searches at scale
+    (:mod:`covnet.covariance_control.bench_multitarget`)."""
+    from covnet.covariance_control import bench_multitarget as bm  # start-up of the others
+
+    targets = getattr(args, "targets", None) or [3, 8, 16]
+    bad = [s for s in args.search if s not in bm.SEARCH_NAMES]
+    if bad:
+        raise UsageError(f"--search: one of {', '.join(bm.SEARCH_NAMES)}, got {bad[0]!r}")
+    if any(t < 1 for t in targets):
+        raise UsageError(f"--targets: at least 1, got {targets}")
+    cols = (
+        *("metric", "n_sensors", "n_targets", "search", "median_s", "gap_median"),
+        *("gap_nothing_median", "n_exact", "ratio_greedy", "excess_exact", "reference_agree"),
+    )
+
+    def show(row: dict[str, Any]) -> None:
+        if args.json:
+            print(json.dumps(row), flush=True)
+        else:
+            print(" ".join(f"{k}={row[k]:.4g}" if isinstance(row[k], float) else f"{k}={row[k]}"
+                           for k in cols), flush=True)  # fmt: skip
+
+    bm.run(
+        args.sensors or [16, 64, 256],
+        targets,
+        metrics or ("kl", "spectral", "abs_trace"),
+        args.search,
+        args.problems,
+        args.repeat,
+        progress=show,
+    )
     return EXIT_OK
 
 

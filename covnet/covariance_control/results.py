@@ -320,7 +320,7 @@ def targets_summary(
         }
         for j, sid in enumerate(ids)
     }
-    return {
+    out: dict[str, Any] = {
         "allocation_rate": allocation_rate(counts.tolist(), len(ids)),
         "sensors_per_scan": counts.astype(int).tolist(),
         "assignments": [
@@ -341,6 +341,14 @@ def targets_summary(
         "dwells_that_updated": float(run.used.sum() / max(int(enabled.sum()), 1)),
         "subsets_evaluated_median": median(run.n_evaluated),
     }
+    if run.lower_bound is not None and run.gap is not None:
+        # a bounded or greedy search: what it certified at every scan (null: not reported)
+        out["lower_bound"] = _finite_or_none(run.lower_bound)
+        out["gap"] = _finite_or_none(run.gap)
+        gaps = run.gap[np.isfinite(run.gap)]
+        out["gap_median"] = median(gaps) if gaps.size else None
+        out["gap_worst"] = float(gaps.max()) if gaps.size else None
+    return out
 
 
 def write_targets_run(
@@ -402,6 +410,9 @@ def write_targets_run(
         arrays[f"used.{m}"] = r.used
         arrays[f"ospa.{m}"] = o
         arrays[f"gospa.{m}"] = g
+        if r.lower_bound is not None and r.gap is not None:
+            arrays[f"lower_bound.{m}"] = r.lower_bound
+            arrays[f"gap.{m}"] = r.gap
     write_npz(out_dir / ARRAYS, arrays)
     write_json(out_dir / CONFIG, normalised(sc))
     write_json(out_dir / RUN_INFO, info)

@@ -132,6 +132,9 @@ class TargetsRun:
     used: np.ndarray
     decision_s: np.ndarray
     n_evaluated: np.ndarray
+    #: a bounded or greedy search's certificate per scan (NaN: not reported); ``None``: exact
+    lower_bound: np.ndarray | None = None
+    gap: np.ndarray | None = None
 
     @property
     def enabled(self) -> np.ndarray:
@@ -158,6 +161,9 @@ class TargetRows:
         self.used = np.zeros((K, N), dtype=bool)
         self.decision_s = np.empty(K)
         self.n_eval = np.empty(K, dtype=np.int64)
+        self.lower_bound = np.full(K, np.nan)
+        self.gap = np.full(K, np.nan)
+        self.bounded = False
         self.done = 0
 
     def put(
@@ -187,6 +193,9 @@ class TargetRows:
                     self.nis_n[t, i] += 1
         self.decision_s[i] = dt
         self.n_eval[i] = decision.n_evaluated
+        lb, gap = getattr(decision, "lower_bound", None), getattr(decision, "gap", None)
+        if lb is not None and gap is not None:
+            self.lower_bound[i], self.gap[i], self.bounded = lb, gap, True
         self.done = max(self.done, i + 1)
 
     def run(self, metric: str) -> TargetsRun:
@@ -207,4 +216,6 @@ class TargetRows:
             self.used[:n],
             self.decision_s[:n],
             self.n_eval[:n],
+            self.lower_bound[:n] if self.bounded else None,
+            self.gap[:n] if self.bounded else None,
         )

@@ -6,6 +6,11 @@ it needs and refuses, in the entry's own words, a combination it cannot serve.  
 write a ``decide(model, P_pred, P_d, metric, constraints) -> Allocation`` and add one
 :class:`Search` entry to ``SEARCHES``.
 
+**Many targets** (a ``targets:`` config): each entry's ``many`` is its decision over the
+assignments of sensors to targets (:class:`ManySearch`: the exact assignment allocator, its
+bounded and greedy searches of :mod:`covnet.core.allocation.assignment_search`), with the most
+allowed sensors it can serve (``max_sensors``: the config refuses more in the entry's words).
+
 The entries import the allocators when they first decide (start-up: the processes that never
 decide, the world and the sensors, load no allocator).
 """
@@ -15,7 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 from covnet.core.allocation.constraints import Constraints
 from covnet.core.gaussian import Mat
@@ -61,6 +66,78 @@ AUTO_EXACT_MAX = 24
 BOUNDED_OPTIONS = ("gap", "time_limit_s", "node_limit")
 
 
+#: the exact assignment allocator's limit (its tables have 2^N entries:
+#: :data:`covnet.core.allocation.assignment.MAX_SENSORS`, not imported here for the start-up
+#: time of every node process; a test keeps the two equal)
+MANY_EXACT_MAX = 22
+
+
+class ManyDecision(NamedTuple):
+    """A many-target decision: per sensor a target or ``-1``, ``F``, per-target values, ``P``
+    ``(T, n, n)``, exact evaluations, and the certificate (``None``: exact)."""
+
+    assignment: tuple[int, ...]
+    value: float
+    values: tuple[float, ...]
+    P: Mat
+    n_evaluated: int
+    lower_bound: float | None
+    gap: float | None
+
+
+#: ``many(settings, P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol)``
+ManyFn = Callable[[Any, Mat, Mat, Mat, str, Any, Any, Any, float], ManyDecision]
+
+
+@dataclass(frozen=True)
+class ManySearch:
+    """A search's many-target form: ``decide`` and the most sensors that can be on that it
+    serves (``None``: any number)."""
+
+    decide: ManyFn
+    max_sensors: int | None = None
+
+
+def _many_exact(
+    settings: Any, P_pred: Mat, J: Mat, P_d: Mat, metric: str, w: Any, feas: Any, mc: Any,
+    tie_rtol: float,
+) -> ManyDecision:  # fmt: skip
+    """The exact assignment allocator (the plain enumeration's assignment, bit for bit)."""
+    # the allocator: start-up of the processes that never decide
+    from covnet.core.allocation.assignment import allocate_assignments
+
+    a = allocate_assignments(P_pred, J, P_d, metric, w, feas, mc, tie_rtol)
+    return ManyDecision(a.assignment, a.value, a.values, a.P, a.n_evaluated, None, None)
+
+
+def _many_bounded(
+    settings: Any, P_pred: Mat, J: Mat, P_d: Mat, metric: str, w: Any, feas: Any, mc: Any,
+    tie_rtol: float,
+) -> ManyDecision:  # fmt: skip
+    """Greedy and the Lagrangian bound, stopped at the options' gap, time or node limit."""
+    # the allocator: start-up of the processes that never decide
+    from covnet.core.allocation.assignment_search import allocate_assignments_bounded
+
+    gap, limit_s, nodes = settings.bounded_options()
+    r = allocate_assignments_bounded(
+        P_pred, J, P_d, metric, w, feas, mc, tie_rtol,
+        rel_gap=gap, time_limit_s=limit_s, node_limit=nodes,
+    )  # fmt: skip
+    return ManyDecision(r.assignment, r.value, r.values, r.P, r.n_evaluated, r.lower_bound, r.gap)
+
+
+def _many_greedy(
+    settings: Any, P_pred: Mat, J: Mat, P_d: Mat, metric: str, w: Any, feas: Any, mc: Any,
+    tie_rtol: float,
+) -> ManyDecision:  # fmt: skip
+    """Forward greedy, moves and 1-swaps, with the Lagrangian bound."""
+    # the allocator: start-up of the processes that never decide
+    from covnet.core.allocation.assignment_search import allocate_assignments_greedy
+
+    r = allocate_assignments_greedy(P_pred, J, P_d, metric, w, feas, mc, tie_rtol)
+    return ManyDecision(r.assignment, r.value, r.values, r.P, r.n_evaluated, r.lower_bound, r.gap)
+
+
 @dataclass(frozen=True)
 class Search:
     """One way to search the subsets, and what it asks of the rest of the configuration:
@@ -73,7 +150,9 @@ class Search:
     - ``reports_gap``: its decisions carry a certified ``lower_bound`` and ``gap``;
     - ``options``: the ``allocation`` options it reads (the config refuses the others);
     - ``resolve``: for a search that stands for others (``auto``), the entry it is with this
-      many candidate sensors (the needs and the decision are then that entry's)."""
+      many candidate sensors (the needs and the decision are then that entry's);
+    - ``many``: its many-target form (:class:`ManySearch`), ``resolve_many`` as ``resolve``
+      for a ``targets:`` config."""
 
     name: str
     decide: DecideFn
@@ -83,10 +162,30 @@ class Search:
     reports_gap: bool = False
     options: tuple[str, ...] = ()
     resolve: Callable[[int], str] | None = None
+    many: ManySearch | None = None
+    resolve_many: Callable[[int], str] | None = None
 
     def resolved(self, n_candidates: int) -> Search:
         """The entry that decides with ``n_candidates`` candidate sensors."""
         return self if self.resolve is None else SEARCHES[self.resolve(n_candidates)]
+
+    def resolved_many(self, n_candidates: int) -> Search:
+        """The entry that decides a many-target scan with ``n_candidates`` sensors."""
+        if self.resolve_many is None:
+            return self
+        return SEARCHES[self.resolve_many(n_candidates)]
+
+
+def decide_many(
+    settings: Any, P_pred: Mat, J: Mat, P_d: Mat, metric: str, w: Any, feas: Any, mc: Any,
+    tie_rtol: float,
+) -> ManyDecision:  # fmt: skip
+    """A many-target scan's decision by the configured entry (``settings``: the model's
+    ``SearchSettings``), ``auto`` resolved with the sensors that can be on this scan."""
+    n = sum(1 for j in range(J.shape[0]) if j not in mc.excluded and bool(feas[j].any()))
+    entry = SEARCHES[settings.mode].resolved_many(n)
+    assert entry.many is not None
+    return entry.many.decide(settings, P_pred, J, P_d, metric, w, feas, mc, tie_rtol)
 
 
 def feasible_count(n_sensors: int, c: Constraints) -> int:
@@ -157,6 +256,10 @@ def _auto_resolve(n_candidates: int) -> str:
     return "exact" if n_candidates <= AUTO_EXACT_MAX else "bounded"
 
 
+def _auto_resolve_many(n_candidates: int) -> str:
+    return "exact" if n_candidates <= MANY_EXACT_MAX else "bounded"
+
+
 def _auto(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
     """The decision of the entry ``auto`` stands for with the configured candidates."""
     n = len(model.sensor_ids) - len(model.constraints.excluded)
@@ -168,6 +271,7 @@ EXACT = Search(
     _exact,
     "the exhaustive search's subset, value and P bit for bit: the batched fast path for small "
     "networks, branch and bound beyond",
+    many=ManySearch(_many_exact, MANY_EXACT_MAX),
 )
 BOUNDED = Search(
     "bounded",
@@ -178,6 +282,7 @@ BOUNDED = Search(
     information_form=True,
     reports_gap=True,
     options=BOUNDED_OPTIONS,
+    many=ManySearch(_many_bounded),
 )
 GREEDY = Search(
     "greedy",
@@ -185,6 +290,7 @@ GREEDY = Search(
     "forward/backward greedy and swaps, with the root lower bound",
     information_form=True,
     reports_gap=True,
+    many=ManySearch(_many_greedy),
 )
 AUTO = Search(
     "auto",
@@ -192,6 +298,8 @@ AUTO = Search(
     f"exact up to {AUTO_EXACT_MAX} candidate sensors, bounded beyond",
     options=BOUNDED_OPTIONS,
     resolve=_auto_resolve,
+    many=ManySearch(_many_exact),
+    resolve_many=_auto_resolve_many,
 )
 
 SEARCHES: dict[str, Search] = {s.name: s for s in (AUTO, EXACT, BOUNDED, GREEDY)}

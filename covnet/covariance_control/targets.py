@@ -48,7 +48,7 @@ import numpy as np
 
 from covnet.core import streams
 from covnet.core.allocation import InfeasibleAllocation, allocate, prepare
-from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments
+from covnet.core.allocation.assignment import MultiConstraints
 from covnet.core.allocation.constraints import Constraints
 from covnet.core.association import (
     gate_volume,
@@ -69,6 +69,7 @@ from covnet.core.sensor_models import SENSOR_MODELS, FieldOfView, SensorModel, w
 from covnet.core.truth import linear_gaussian_trajectory
 from covnet.covariance_control.config import Scenario, SensorSpec, segments
 from covnet.covariance_control.model import Model, build_model
+from covnet.covariance_control.searches import SEARCHES, decide_many
 
 if TYPE_CHECKING:
     from covnet.core.allocation import AllocationPlan
@@ -397,7 +398,8 @@ class TargetDecision:
     """One scan's decision: ``assignment`` (per sensor a target index or :data:`OFF`),
     ``value`` ``F = Σ_t w_t v_t``, ``values`` the per-target ``v_t = f(P_t(a), P_d,t)``,
     ``P`` ``(T, 4, 4)`` the covariances the allocator expects, ``n_evaluated`` exact
-    evaluations, ``feasible`` the coverage it decided under."""
+    evaluations, ``feasible`` the coverage it decided under; ``lower_bound`` and ``gap`` the
+    certificate of a bounded or greedy search (``None``: exact)."""
 
     assignment: tuple[int, ...]
     value: float
@@ -405,6 +407,8 @@ class TargetDecision:
     P: Mat
     n_evaluated: int
     feasible: np.ndarray
+    lower_bound: float | None = None
+    gap: float | None = None
 
     @property
     def subset(self) -> tuple[int, ...]:
@@ -425,9 +429,11 @@ def decide(
     """Scan ``k``'s assignment (module docstring).  ``unavailable`` (failed sensors) join the
     configured exclusions, and a required sensor is required only while it is up and covers
     some target.  ``T = 1`` is today's single-target allocator (:func:`covnet.core.allocation.
-    allocate`) on the feasible sensors; ``T > 1`` the exact assignment allocator
-    (:func:`covnet.core.allocation.assignment.allocate_assignments`).  With no feasible
-    sensor every sensor is off."""
+    allocate`) on the feasible sensors when the search is exact; otherwise (and for ``T > 1``)
+    the configured search's many-target form (:func:`covnet.covariance_control.searches.\
+decide_many`: ``exact`` the assignment allocator, ``bounded``/``greedy`` its searches at
+    scale, ``auto`` exact up to ``MANY_EXACT_MAX`` sensors).  With no feasible sensor every
+    sensor is off."""
     J, feas = information(tm, preds)
     P_pred = np.array([g.P for g in preds])
     P_d = np.array([tg.desired(scan) for tg in tm.targets])
@@ -452,13 +458,17 @@ def decide(
         return TargetDecision(
             *decide_many_by_policy(tm, P_pred, J, P_d, w, scan, metric, feas, mc), feas
         )
-    if T == 1:
+    settings = tm.base.search
+    n_on = N - len(mc.excluded)
+    if T == 1 and SEARCHES[settings.mode].resolved_many(n_on).name == "exact":
         return _decide_one(tm, P_pred[0], J[:, 0], P_d[0], w[0], metric, excluded, required, feas)
     try:
-        a = allocate_assignments(P_pred, J, P_d, metric, w, feas, mc, tm.base.tie_rtol)
+        a = decide_many(settings, P_pred, J, P_d, metric, w, feas, mc, tm.base.tie_rtol)
     except InfeasibleAllocation:
         return _all_off(tm, preds, P_d, w, metric, feas)
-    return TargetDecision(a.assignment, a.value, a.values, a.P, a.n_evaluated, feas)
+    return TargetDecision(
+        a.assignment, a.value, a.values, a.P, a.n_evaluated, feas, a.lower_bound, a.gap
+    )
 
 
 def _decide_one(

@@ -43,15 +43,22 @@ def _many_sensors(data: dict, n: int) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def test_more_sensors_than_the_allocator_takes_is_refused_at_check(multi, tmp_path, capsys):
+def test_more_sensors_than_exact_takes_is_refused_at_check(multi, tmp_path, capsys):
+    """search: exact refuses, in its own words, what it cannot enumerate; auto is bounded
+    beyond (no refusal)."""
+    data = _many_sensors(multi, MAX_SENSORS + 1)
+    data["allocation"]["search"] = "exact"
     p = tmp_path / "big.yaml"
-    p.write_text(yaml.safe_dump(_many_sensors(multi, MAX_SENSORS + 1)))
+    p.write_text(yaml.safe_dump(data))
     assert main(["check", str(p)]) == 2
     err = capsys.readouterr().err
     assert "sensors: " in err and f"at most {MAX_SENSORS}" in err and "Traceback" not in err
+    assert "search exact is the exhaustive search's" in err
+    from_dict(_many_sensors(multi, MAX_SENSORS + 1), "test.yaml")  # auto
 
 
 def test_sensors_excluded_do_not_count_against_the_limit(multi):
+    multi["allocation"]["search"] = "exact"
     data = _many_sensors(multi, MAX_SENSORS + 2)
     assert [p for p, _ in _problems(data)] == ["sensors"]
     data["allocation"]["excluded"] = ["S0", "S1"]
@@ -69,11 +76,9 @@ def test_a_paper_config_keeps_its_own_limit():
 
 
 @pytest.mark.parametrize("search", ["bounded", "greedy"])
-def test_a_search_targets_ignore_is_refused(multi, search):
+def test_targets_take_the_searches_at_scale(multi, search):
     multi["allocation"]["search"] = search
-    [(path, msg)] = _problems(multi)
-    assert path == "allocation.search"
-    assert search in msg and "exact" in msg and "auto" in msg and "targets" in msg
+    assert from_dict(multi, "test.yaml").allocation.search == search
 
 
 @pytest.mark.parametrize("search", ["exact", "auto"])
@@ -82,10 +87,13 @@ def test_the_searches_targets_use_are_accepted(multi, search):
     assert from_dict(multi, "test.yaml").allocation.search == search
 
 
-def test_bounded_options_targets_ignore_are_refused(multi):
+def test_bounded_options_are_taken_by_the_searches_that_use_them(multi):
+    """auto's bounded part and bounded read gap; exact refuses it in its own words."""
     multi["allocation"]["gap"] = 0.05
+    from_dict(multi, "test.yaml")
+    multi["allocation"]["search"] = "exact"
     [(path, msg)] = _problems(multi)
-    assert path == "allocation.gap" and "targets" in msg
+    assert path == "allocation.gap" and "only used with search" in msg
 
 
 # --------------------------------------------------------------------------------------------

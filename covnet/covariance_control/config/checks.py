@@ -22,7 +22,7 @@ from covnet.covariance_control.config.sensors import (
 )
 from covnet.covariance_control.config.targets import DesiredSpec, segments
 from covnet.covariance_control.fusion_rules import refusal, rule_for
-from covnet.covariance_control.searches import BOUNDED_OPTIONS, SEARCHES
+from covnet.covariance_control.searches import BOUNDED_OPTIONS, MANY_EXACT_MAX, SEARCHES
 
 
 def _schedule_problems(path: str, schedule: tuple[DesiredSpec, ...]) -> list[tuple[str, str]]:
@@ -175,10 +175,9 @@ def semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
     return problems
 
 
-#: the many-target allocator's limit on the sensors that can be on (its tables have ``2^N``
-#: entries: :data:`covnet.core.allocation.assignment.MAX_SENSORS`, not imported here for the
-#: start-up time of every node process; a test keeps the two equal)
-MULTITARGET_MAX_SENSORS = 22
+#: the exact many-target search's limit on the sensors that can be on (``search: exact``
+#: refuses more; ``auto`` is ``bounded`` beyond)
+MULTITARGET_MAX_SENSORS = MANY_EXACT_MAX
 
 
 def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
@@ -186,15 +185,24 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
     excluded = set(sc.allocation.excluded)
     candidates = [s for s in sc.sensor_ids if s not in excluded]
-    if len(candidates) > MULTITARGET_MAX_SENSORS:
+    search = SEARCHES.get(sc.allocation.search)
+    used = None if search is None else search.resolved_many(len(candidates))
+    if used is not None and used.many is None:
         problems.append(
-            (
-                "sensors",
-                f"with 'targets:' at most {MULTITARGET_MAX_SENSORS} sensors can be allocated "
-                f"(the many-target allocator keeps tables of 2^N entries); {len(candidates)} "
-                "are not in allocation.excluded: exclude some or split the network",
-            )
+            ("allocation.search", f"{used.name} ({used.words}) has no many-target form")
         )
+    elif used is not None and used.many is not None:
+        top = used.many.max_sensors
+        if top is not None and len(candidates) > top:
+            problems.append(
+                (
+                    "sensors",
+                    f"with 'targets:' search {used.name} is {used.words}; over assignments it "
+                    f"enumerates tables of 2^N entries, at most {top} sensors that can be on, "
+                    f"and {len(candidates)} are not in allocation.excluded: use search bounded, "
+                    "greedy or auto, or exclude some",
+                )
+            )
     mode = sc.fusion.mode
     if sc.fusion.has_centre and (why := refusal(rule_for(sc.fusion), "targets")) is not None:
         problems.append(("fusion.mode", f"{mode} {why}"))
@@ -206,21 +214,6 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
                 "filter is single-target (use central or info)",
             )
         )
-    al = sc.allocation
-    if al.search in ("bounded", "greedy"):
-        problems.append(
-            (
-                "allocation.search",
-                f"{al.search} is not available with 'targets:': the many-target allocator is "
-                "exact (use exact or auto)",
-            )
-        )
-    elif al.search == "auto":  # (exact: refused by the search checks already)
-        for opt in BOUNDED_OPTIONS:
-            if getattr(al, opt) is not None:
-                problems.append(
-                    (f"allocation.{opt}", "not used with 'targets:' (its allocator is exact)")
-                )
     if sc.allocation.account_for_loss:
         problems.append(
             (

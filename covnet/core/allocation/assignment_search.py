@@ -1,0 +1,717 @@
+"""Many targets at scale: greedy and bounded searches of the assignment problem of
+:mod:`covnet.core.allocation.assignment`, with a certified lower bound and gap.
+
+The problem (that module's docstring): each sensor ``j`` takes one *column* ``c`` (a target
+``t < T`` or a search cell ``T + c``, :class:`~covnet.core.allocation.assignment.CellTerms`) or
+``OFF``; a column's term depends only on its set ``S_c``::
+
+    F(a) = Σ_c w_c g_c(S_c),   g_t(S) = f(P_t(S), P_d,t),   g_{T+c}(S) = λ u_c Π_{j∈S} miss_jc,
+
+(``w = 1`` for cells) under coverage, exclusions, required sensors, the budget ``max_active``
+and the per-target caps.  Exact search enumerates ``(T+C+1)^N`` assignments (or ``2^N``-entry
+tables); here:
+
+**Greedy** (:func:`allocate_assignments_greedy`).  Working values from the reduced
+information form of each target (:class:`covnet.core.allocation.search_problem._Problem`:
+``Z_t = C_t⁻¹ + Σ_{j∈S} S_jt``, ``P = P∞ + K Z⁻¹ Kᵀ``).  *Forward*: the required sensors first
+(each time the (sensor, column) pair that raises ``F`` least), then the pair that lowers ``F``
+most, while one does (at least one sensor on).  *Local search* (best improvement, a strict
+relative improvement ``IMPROVE``): every *move* (one sensor to another column or off: two
+columns change, ``ΔF = Δ_rem + Δ_add``) and every *1-swap* (two sensors on different columns,
+or one on and one off, exchange columns: ``ΔF = M[j, k] + M[k, j]`` with ``M[j, k]`` the change
+of ``j``'s column when ``k`` replaces ``j``); the tables of the columns a step changes are
+recomputed, the others kept.  This is the plain forward greedy with 1-swaps; the bounded search
+only adds to it, so it is never worse.  The final assignment is evaluated exactly (the
+reference's arithmetic).
+
+**Lower bound** (Lagrangian relaxation of "each sensor on at most one column", over counts).
+For every column ``c`` and size ``k`` a bound ``h_c(k) <= min { w_c g_c(S) : S ⊆ F_c, |S| = k }``
+(``F_c`` the sensors allowed on ``c``):
+
+- a target: with ``Q = C⁻¹ + Σ_{j∈F_c} S_j`` (positive definite) and ``μ_j^max``, ``μ_j^min``
+  the extreme eigenvalues of ``Q^{-1/2} S_j Q^{-1/2}`` (``S_j ⪰ 0``), every ``|S| = k`` has
+  ``β_k Q ⪯ Σ_{j∈S} S_j ⪯ α_k Q`` with ``α_k`` the sum of the ``k`` largest ``μ^max`` and
+  ``β_k`` of the ``k`` smallest ``μ^min`` (``S_j ⪯ μ_j^max Q``; a sum of ``k`` of them is at most
+  the ``k`` largest); so ``Z(S) ∈ [C⁻¹ + β_k Q, C⁻¹ + α_k Q]`` and, inversion being antitone,
+  ``P(S)`` lies in the Loewner interval ``[P(C⁻¹ + α_k Q), P(C⁻¹ + β_k Q)]`` and also above
+  ``P(F_c)``: the interval bounds of :mod:`covnet.core.allocation.interval_bounds` (and the
+  reduced relaxation where it applies) bound ``g_t(S)`` from below (``α``, ``β`` widened by a
+  relative ``1e-9`` against the eigenvalues' rounding);
+- a cell: ``λ u_c`` times the product of the ``k`` smallest ``miss_jc`` (deflated by a relative
+  ``4 (k + 2) eps``).
+
+With prices ``π_j >= 0`` and ``n_c`` the most sensors column ``c`` can take, the dual function::
+
+    L(π) = min { Σ_c h_c(k_c) + π_c(k_c) : 0 <= k_c <= n_c, Σ_c k_c <= K' } - Σ_j π_j,
+
+``π_c(k)`` the sum of the ``k`` smallest prices on ``F_c`` and ``K'`` the budget (or the sensors
+that can be on), is a dynamic programme over the columns (``O((T + C) K'^2)``).  **Proof that
+``L(π) <= F*``**: take any feasible assignment with sets ``S_c``, ``k_c = |S_c|``; then
+``Σ k_c <= K'`` and ``k_c <= n_c``; ``F = Σ_c w_c g_c(S_c) >= Σ_c h_c(k_c)``; since the sets
+are disjoint and ``π >= 0``, ``Σ_c π(S_c) <= Σ_j π_j``, and ``π(S_c) >= π_c(k_c)``, so ``F >=
+Σ_c [h_c(k_c) + π_c(k_c)] - Σ_j π_j >= L(π)``.  The required sensors and "at least one on" are
+dropped (a relaxation).  ``π`` = 0 is the count bound (every target as if it could have any
+``k`` of its feasible sensors, the sensors only limited in number); subgradient steps
+(``g_j = (columns using j in the minimiser) - 1``, Polyak step towards the incumbent) raise it
+where targets compete for the same sensors.  The reported bound is the best ``L`` seen, less a
+rounding allowance, at most the value.
+
+**Bounded** (:func:`allocate_assignments_bounded`): greedy, then dual steps until the relative
+gap is at most ``rel_gap`` (or the node or time limit); a *node* is one dual step.  When the gap
+is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact tables are then
+small), the exact allocator decides: status 0, the reference's assignment.
+
+**Gaps.**  ``gap = (value - L) / max(|value|, tiny)``; and, relative to the distance from doing
+nothing, ``gap_nothing = (value - L) / max(F(nothing) - value, tiny)``, with ``F(nothing)`` every
+sensor off: as ``L <= F* <= value``, ``(value - F*) / (F(nothing) - F*) <= gap_nothing``, a
+certified bound of the suboptimality relative to what the sensors can gain (meaningful when
+``F*`` is near 0, where the first gap says nothing).
+
+**Clocks**: only with ``time_limit_s`` (``time.perf_counter`` or ``clock``); it bounds the
+whole decision (greedy's passes, the dual steps, the exact evaluation is ``T`` solves).
+``node_limit`` is the deterministic alternative.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from covnet.core.allocation.assignment import (
+    MAX_SENSORS,
+    NO_CONSTRAINTS,
+    OFF,
+    CellTerms,
+    MultiConstraints,
+    _Inputs,
+    allocate_assignments,
+)
+from covnet.core.allocation.exact import Constraints, InfeasibleAllocation, _spd_error
+from covnet.core.allocation.search_problem import _Problem
+from covnet.core.gaussian import Mat
+from covnet.core.metrics import MetricFn
+
+__all__ = [
+    "AssignmentSearch",
+    "allocate_assignments_bounded",
+    "allocate_assignments_greedy",
+]
+
+TINY = float(np.finfo(np.float64).tiny)
+EPS = float(np.finfo(np.float64).eps)
+#: a local-search step must improve ``F`` by this much, relatively
+IMPROVE = 1e-12
+#: local search: at most this many passes per sensor
+PASSES_PER_SENSOR = 4
+#: dual steps of greedy's bound (bounded: until its gap, node or time limit)
+GREEDY_DUAL_STEPS = 20
+#: the bounded search's dual steps when no limit is given
+DUAL_STEPS = 400
+#: bounded: with the gap still open, the exact allocator decides up to this many allowed sensors
+EXACT_FALLBACK = 12
+
+STATUS: dict[int, str] = {
+    0: "optimal: the exact allocator decided (the reference's assignment)",
+    1: "node limit reached: best assignment found, with a certified lower bound",
+    2: "time limit reached: best assignment found, with a certified lower bound",
+    3: "relative gap reached: the assignment is within rel_gap of the optimum",
+    4: "greedy local optimum, with a certified lower bound",
+    5: "dual steps exhausted: best assignment found, with a certified lower bound",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class AssignmentSearch:
+    """A greedy or bounded decision: the fields of
+    :class:`~covnet.core.allocation.assignment.Assignment` (``assignment``: per sensor a target
+    ``t``, a cell ``T + c`` or ``OFF``; ``sets`` per column; ``value``, ``values``,
+    ``cell_values``, ``P`` exact with the reference's arithmetic) and the certificate:
+    ``lower_bound <= F*``, ``gap`` (relative to the value), ``value_nothing`` (every sensor
+    off), ``gap_nothing`` (relative to ``value_nothing - value``), ``n_nodes`` (moves evaluated
+    and dual steps), ``n_evaluated`` (exact per-target evaluations), ``exact``, ``status`` (a
+    key of :data:`STATUS`) and ``message``."""
+
+    assignment: tuple[int, ...]
+    sets: tuple[tuple[int, ...], ...]
+    value: float
+    values: tuple[float, ...]
+    cell_values: tuple[float, ...]
+    P: NDArray[np.float64]
+    lower_bound: float
+    gap: float
+    value_nothing: float
+    gap_nothing: float
+    n_nodes: int
+    n_evaluated: int
+    exact: bool
+    status: int
+    message: str
+
+    @property
+    def n_active(self) -> int:
+        return sum(a != OFF for a in self.assignment)
+
+
+def _gap(value: float, lower: float) -> float:
+    return max(value - lower, 0.0) / max(abs(value), TINY)
+
+
+def _gap_nothing(value: float, lower: float, nothing: float) -> float:
+    return max(value - lower, 0.0) / max(nothing - value, TINY)
+
+
+# --------------------------------------------------------------------------------------------
+# the columns: working values
+# --------------------------------------------------------------------------------------------
+
+
+class _TargetCol:
+    """A target's working values in the reduced form: ``S`` ``(N, r*r)`` every sensor's
+    reduced gain (zero where not allowed or zero gain), ``base`` ``C⁻¹``."""
+
+    def __init__(self, inp: _Inputs, t: int, allow: NDArray[np.bool_]) -> None:
+        N = inp.N
+        excl = frozenset(j for j in range(N) if not allow[j])
+        self.prob: _Problem | None = None
+        self.none = len(excl) >= N
+        self.prob = _Problem(
+            inp.P_pred[t],
+            inp.J[:, t],
+            inp.D[t],
+            inp.f,
+            Constraints(frozenset() if self.none else excl),
+            inp.tie_rtol,
+        )
+        prob = self.prob
+        rr = prob.r * prob.r
+        self.S = np.zeros((N, rr))
+        if not self.none and prob.m:
+            self.S[prob.free] = prob.S
+        self.base = prob.Cinv.reshape(rr).copy()
+        self.moves = 0
+
+    def z(self, members: Sequence[int]) -> Mat:
+        out: Mat = self.base + self.S[list(members)].sum(axis=0)
+        return out
+
+    def vals(self, Z: Mat) -> Mat:
+        assert self.prob is not None
+        self.moves += Z.shape[0]
+        return self.prob.approx_values(Z)
+
+    def val(self, members: Sequence[int]) -> float:
+        return float(self.vals(self.z(members)[None])[0])
+
+    def add(self, members: Sequence[int], cands: NDArray[np.intp]) -> Mat:
+        return self.vals(self.z(members)[None] + self.S[cands])
+
+    def rem(self, members: Sequence[int]) -> Mat:
+        return self.vals(self.z(members)[None] - self.S[list(members)])
+
+    def swap(self, members: Sequence[int], cands: NDArray[np.intp]) -> Mat:
+        Zr = self.z(members)[None] - self.S[list(members)]
+        Zs = Zr[:, None, :] + self.S[cands][None, :, :]
+        return self.vals(Zs.reshape(-1, Zr.shape[1])).reshape(len(members), cands.size)
+
+
+class _CellCol:
+    """A cell's working values: ``λ u_c Π miss``."""
+
+    def __init__(self, inp: _Inputs, c: int) -> None:
+        assert inp.cells is not None
+        self.scale = inp.cells.weight * float(inp.cells.u[c])
+        self.miss = inp.cells.miss[:, c].astype(np.float64)
+        self.moves = 0
+
+    def _prod(self, members: Sequence[int]) -> float:
+        return float(np.prod(self.miss[list(members)])) if len(members) else 1.0
+
+    def val(self, members: Sequence[int]) -> float:
+        return self.scale * self._prod(members)
+
+    def add(self, members: Sequence[int], cands: NDArray[np.intp]) -> Mat:
+        self.moves += cands.size
+        return self.scale * self._prod(members) * self.miss[cands]
+
+    def rem(self, members: Sequence[int]) -> Mat:
+        self.moves += len(members)
+        m = self.miss[list(members)]
+        out = np.empty(m.size)
+        for i in range(m.size):
+            out[i] = np.prod(np.delete(m, i))
+        return self.scale * out
+
+    def swap(self, members: Sequence[int], cands: NDArray[np.intp]) -> Mat:
+        return self.rem(members)[:, None] * self.miss[cands][None, :]
+
+
+class _Columns:
+    """The validated problem as the searches see it: columns (targets then cells), weights,
+    ``allow`` ``(ncol, N)`` which sensor may take which column, caps, budget, required."""
+
+    def __init__(self, inp: _Inputs) -> None:
+        self.inp = inp
+        N, T, C = inp.N, inp.T, inp.C
+        ncol = T + C
+        allow = np.zeros((ncol, N), dtype=bool)
+        for j, opts in enumerate(inp.options):
+            for o in opts:
+                if o != OFF:
+                    allow[o, j] = True
+        self.allow = allow
+        self.N, self.T, self.C, self.ncol = N, T, C, ncol
+        self.cols: list[_TargetCol | _CellCol] = [_TargetCol(inp, t, allow[t]) for t in range(T)]
+        self.cols += [_CellCol(inp, c) for c in range(C)]
+        self.w = np.array(inp.w + [1.0] * C)
+        self.caps = np.array(inp.caps + [N] * C)
+        self.K = inp.K
+        self.required = np.zeros(N, dtype=bool)
+        self.required[sorted(inp.required)] = True
+
+    @property
+    def moves(self) -> int:
+        return sum(c.moves for c in self.cols)
+
+    def exact(self, a: Sequence[int]) -> tuple[float, list[float], list[Mat], list[float]]:
+        """``F``, the targets' ``v_t`` and ``P_t``, the cells' ``g_c``: the reference's
+        arithmetic."""
+        inp = self.inp
+        values, Ps = [], []
+        for t in range(self.T):
+            v, P_t = inp.target_value(t, [j for j in range(self.N) if a[j] == t])
+            values.append(v)
+            Ps.append(P_t)
+        gs = [
+            inp.cell_value(c, [j for j in range(self.N) if a[j] == self.T + c])
+            for c in range(self.C)
+        ]
+        return inp.total(values, gs), values, Ps, gs
+
+
+# --------------------------------------------------------------------------------------------
+# greedy: forward and local search
+# --------------------------------------------------------------------------------------------
+
+
+class _State:
+    """An assignment with its working column values and the move tables (module docstring):
+    ``A[c, j]`` the change of column ``c`` when ``j`` joins it (``inf``: not allowed, or ``j``
+    on it), ``R[j]`` the change of ``j``'s column when ``j`` leaves it, ``M[j, k]`` the change
+    of ``j``'s column when ``k`` replaces ``j`` there (all weighted)."""
+
+    def __init__(self, cols: _Columns) -> None:
+        self.cs = cols
+        N, ncol = cols.N, cols.ncol
+        self.a = np.full(N, OFF, dtype=np.int64)
+        self.sets: list[list[int]] = [[] for _ in range(ncol)]
+        self.v = np.array([c.val([]) for c in cols.cols])
+        self.A = np.full((ncol, N), np.inf)
+        self.R = np.zeros(N)
+        self.M = np.zeros((N, N))
+        self.M[:, cols.required] = np.inf  # an off sensor's row: a required one cannot leave
+        for c in range(ncol):
+            self._refresh_add(c)
+
+    @property
+    def F(self) -> float:
+        return float(np.dot(self.cs.w, self.v))
+
+    def _refresh_add(self, c: int) -> None:
+        cs = self.cs
+        cand = np.flatnonzero(cs.allow[c] & (self.a != c))
+        self.A[c] = np.inf
+        if cand.size:
+            self.A[c, cand] = cs.w[c] * (cs.cols[c].add(self.sets[c], cand) - self.v[c])
+
+    def _refresh_members(self, c: int) -> None:
+        cs = self.cs
+        mem = self.sets[c]
+        if not mem:
+            return
+        mem_a = np.array(mem)
+        self.R[mem_a] = cs.w[c] * (cs.cols[c].rem(mem) - self.v[c])
+        cand = np.flatnonzero(cs.allow[c] & (self.a != c))
+        self.M[mem_a] = np.inf
+        if cand.size:
+            sw = cs.w[c] * (cs.cols[c].swap(mem, cand) - self.v[c])
+            self.M[np.ix_(mem_a, cand)] = sw
+
+    def put(self, j: int, c: int) -> None:
+        """Sensor ``j`` to column ``c`` (or ``OFF``), tables of the changed columns updated."""
+        old = int(self.a[j])
+        self.a[j] = c
+        changed = [x for x in (old, c) if x != OFF]
+        if old != OFF:
+            self.sets[old].remove(j)
+        if c != OFF:
+            self.sets[c].append(j)
+            self.sets[c].sort()
+        else:
+            self.R[j] = 0.0
+            self.M[j] = 0.0
+            self.M[j, self.cs.required] = np.inf
+        for x in changed:
+            self.v[x] = self.cs.cols[x].val(self.sets[x])
+        for x in changed:
+            self._refresh_add(x)
+            self._refresh_members(x)
+
+    def n_on(self) -> int:
+        return int((self.a != OFF).sum())
+
+    def counts(self) -> NDArray[np.int64]:
+        return np.array([len(s) for s in self.sets])
+
+
+def _forward(st: _State) -> None:
+    """Required sensors first (the pair raising ``F`` least), then the pair lowering ``F``
+    most while one does (at least one sensor on)."""
+    cs = st.cs
+    while True:
+        req_off = cs.required & (st.a == OFF)
+        if not req_off.any():
+            break
+        open_ = st.counts() < cs.caps
+        A = np.where(open_[:, None] & req_off[None, :], st.A, np.inf)
+        c, j = np.unravel_index(int(np.argmin(A)), A.shape)
+        if not math.isfinite(float(A[c, j])):
+            raise InfeasibleAllocation("the required sensors do not fit the per-target limits")
+        st.put(int(j), int(c))
+    while st.n_on() < cs.K:
+        open_ = st.counts() < cs.caps
+        A = np.where(open_[:, None] & (st.a == OFF)[None, :], st.A, np.inf)
+        k = int(np.argmin(A))
+        c, j = np.unravel_index(k, A.shape)
+        d = float(A[c, j])
+        if not math.isfinite(d):
+            break
+        F = st.F
+        if st.n_on() and not d < -IMPROVE * max(abs(F), TINY):
+            break
+        st.put(int(j), int(c))
+    if st.n_on() == 0:
+        raise InfeasibleAllocation("no assignment satisfies the constraints")
+
+
+def _local_search(st: _State, deadline: Callable[[], bool] | None) -> None:
+    """Best-improvement moves and 1-swaps (module docstring)."""
+    cs = st.cs
+    N = cs.N
+    idx = np.arange(N)
+    for _ in range(PASSES_PER_SENSOR * N + 1):
+        if deadline is not None and deadline():
+            return
+        F = st.F
+        thr = -IMPROVE * max(abs(F), TINY)
+        on = st.a != OFF
+        n_on = int(on.sum())
+        counts = st.counts()
+        open_ = counts < cs.caps
+        # moves: j to column c (from its own or from off); to off
+        mv = st.R[None, :] + np.where(open_[:, None], st.A, np.inf)
+        if n_on >= cs.K:
+            mv[:, ~on] = np.inf
+        c1, j1 = np.unravel_index(int(np.argmin(mv)), mv.shape)
+        best = float(mv[c1, j1])
+        move: tuple[str, int, int] = ("move", int(j1), int(c1))
+        off = np.where(on & ~cs.required, st.R, np.inf)
+        if n_on <= 1:
+            off[:] = np.inf
+        j2 = int(np.argmin(off))
+        if off[j2] < best:
+            best, move = float(off[j2]), ("off", j2, OFF)
+        # swaps: j and k on different columns (at most one off)
+        sw = st.M + st.M.T
+        same = st.a[:, None] == st.a[None, :]
+        sw[same] = np.inf
+        sw[idx, idx] = np.inf
+        k3 = int(np.argmin(sw))
+        j3, k3b = divmod(k3, N)
+        if sw[j3, k3b] < best:
+            best, move = float(sw[j3, k3b]), ("swap", j3, k3b)
+        if not best < thr:
+            return
+        kind, j, x = move
+        if kind == "swap":
+            aj, ak = int(st.a[j]), int(st.a[x])
+            st.put(j, OFF)
+            st.put(x, aj)
+            st.put(j, ak)
+        else:
+            st.put(j, x)
+
+
+# --------------------------------------------------------------------------------------------
+# the lower bound
+# --------------------------------------------------------------------------------------------
+
+
+class _Dual:
+    """The Lagrangian count bound (module docstring): ``h[c]`` ``(n_c + 1,)`` per column,
+    ``opts[c]`` its allowed sensors, ``Kp`` the count limit."""
+
+    def __init__(self, cs: _Columns) -> None:
+        self.cs = cs
+        inp = cs.inp
+        n_any = int(cs.allow.any(axis=0).sum())
+        self.Kp = min(cs.K, n_any)
+        self.opts = [np.flatnonzero(cs.allow[c]) for c in range(cs.ncol)]
+        self.h: list[Mat] = []
+        for c, col in enumerate(cs.cols):
+            nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
+            if isinstance(col, _TargetCol):
+                hc = self._target(col, self.opts[c], nc)
+            else:
+                m = np.sort(col.miss[self.opts[c]])[:nc]
+                prods = np.concatenate(([1.0], np.cumprod(m)))
+                k = np.arange(nc + 1)
+                hc = col.scale * prods * (1.0 - 4.0 * (k + 2) * EPS)
+            self.h.append(np.maximum(cs.w[c] * hc, 0.0))
+        del inp
+
+    @staticmethod
+    def _target(col: _TargetCol, opts: NDArray[np.intp], nc: int) -> Mat:
+        prob = col.prob
+        assert prob is not None
+        if col.none or prob.bound is None or prob.r == 0:
+            if prob.bound is None:  # no interval bound: a registered metric is >= 0
+                return np.zeros(nc + 1)
+            Z0 = col.base[None]
+            s0 = prob.summary(Z0)
+            return np.full(nc + 1, float(prob.combine(s0, s0)[0]))
+        r = prob.r
+        Sj = col.S[opts].reshape(-1, r, r)
+        Q = col.base.reshape(r, r) + Sj.sum(axis=0)
+        Q = 0.5 * (Q + Q.T)
+        L = np.linalg.cholesky(Q)
+        Li = np.linalg.inv(L)
+        G = Li[None] @ Sj @ Li.T[None]
+        G = 0.5 * (G + np.swapaxes(G, 1, 2))
+        ev = np.linalg.eigvalsh(G)
+        mu_max = np.maximum(ev[:, -1], 0.0)
+        mu_min = np.maximum(ev[:, 0], 0.0)
+        k = np.arange(nc + 1)
+        alpha = np.concatenate(([0.0], np.cumsum(np.sort(mu_max)[::-1])[:nc])) * (1 + 1e-9)
+        beta = np.concatenate(([0.0], np.cumsum(np.sort(mu_min))[:nc])) * (1 - 1e-9)
+        Qf = Q.reshape(r * r)
+        Z_hi = col.base[None] + alpha[:, None] * Qf[None]
+        Z_lo = col.base[None] + beta[:, None] * Qf[None]
+        Z_all = (col.base + col.S[opts].sum(axis=0))[None]
+        sA = prob.summary(Z_hi)
+        sB = prob.summary(Z_lo)
+        lb = prob.combine(sA, sB)
+        sAll = prob.summary(Z_all)
+        lb = np.fmax(lb, prob.combine(np.repeat(sAll, nc + 1, axis=0), sB))
+        lb = prob.refine(Z_lo, Z_hi, lb, sB, math.inf)
+        lb[0] = float(prob.combine(sB[:1], sB[:1])[0])  # k = 0: the degenerate interval
+        del k
+        return np.where(np.isfinite(lb), lb, 0.0)
+
+    def value(self, pi: Mat) -> tuple[float, list[int]]:
+        """``L(π)`` (less a rounding allowance) and the minimiser's counts."""
+        Kp = self.Kp
+        G = np.zeros(Kp + 1)
+        choice: list[NDArray[np.intp]] = []
+        for c in range(self.cs.ncol):
+            hc = self.h[c]
+            nc = hc.size - 1
+            pc = np.concatenate(([0.0], np.cumsum(np.sort(pi[self.opts[c]])[:nc])))
+            cost = hc + pc
+            s = np.arange(Kp + 1)[:, None] - np.arange(nc + 1)[None, :]
+            cand = np.where(s >= 0, G[np.maximum(s, 0)] + cost[None, :], np.inf)
+            k = np.argmin(cand, axis=1)
+            choice.append(k)
+            G = cand[np.arange(Kp + 1), k]
+        s_best = int(np.argmin(G))
+        total = float(G[s_best])
+        counts: list[int] = []
+        left = s_best
+        for c in range(self.cs.ncol - 1, -1, -1):
+            kc = int(choice[c][left])
+            counts.append(kc)
+            left -= kc
+        counts.reverse()
+        psum = float(pi.sum())
+        hmax = sum(float(h.max()) for h in self.h)
+        allow = 64.0 * (self.cs.N + self.cs.ncol + 2) * EPS * (psum + hmax + abs(total))
+        return total - psum - allow, counts
+
+    def subgradient(self, pi: Mat, counts: list[int]) -> Mat:
+        use = np.zeros(self.cs.N)
+        for c, k in enumerate(counts):
+            if k:
+                o = self.opts[c]
+                order = np.lexsort((o, pi[o]))[:k]
+                use[o[order]] += 1.0
+        return use - 1.0
+
+
+def _dual_bound(
+    dual: _Dual,
+    upper: float,
+    steps: int,
+    target_gap: float,
+    deadline: Callable[[], bool] | None,
+) -> tuple[float, int]:
+    """The best ``L(π)`` over ``steps`` subgradient steps from ``π = 0`` (Polyak steps towards
+    ``upper``, ``θ`` halved after 5 steps without progress); stops early at ``target_gap``."""
+    pi = np.zeros(dual.cs.N)
+    best, counts = dual.value(pi)
+    n = 1
+    theta, stall = 1.0, 0
+    while n < steps and _gap(upper, best) > target_gap and theta > 1e-4:
+        if deadline is not None and deadline():
+            break
+        g = dual.subgradient(pi, counts)
+        g = np.where((pi <= 0) & (g < 0), 0.0, g)
+        nrm = float(g @ g)
+        if nrm == 0.0:
+            break
+        step = theta * max(upper - best, 1e-12 * max(abs(upper), TINY)) / nrm
+        pi = np.maximum(pi + step * g, 0.0)
+        val, counts = dual.value(pi)
+        n += 1
+        if val > best:
+            best, stall = val, 0
+        else:
+            stall += 1
+            if stall >= 5:
+                theta, stall = theta / 2.0, 0
+    return best, n
+
+
+# --------------------------------------------------------------------------------------------
+# the entry points
+# --------------------------------------------------------------------------------------------
+
+
+def _deadline(
+    time_limit_s: float | None, clock: Callable[[], float] | None
+) -> Callable[[], bool] | None:
+    if time_limit_s is None:
+        return None
+    if not time_limit_s >= 0:
+        raise ValueError(f"time_limit_s must be >= 0 or None, got {time_limit_s}")
+    if clock is None:
+        # only with a time limit (start-up: the core needs no clock otherwise)
+        import time
+
+        clock = time.perf_counter
+    tick = clock
+    t_end = tick() + time_limit_s
+
+    def deadline() -> bool:
+        return tick() >= t_end
+
+    return deadline
+
+
+def _search(
+    inp: _Inputs,
+    rel_gap: float,
+    steps: int,
+    deadline: Callable[[], bool] | None,
+    status_done: int,
+    fallback: bool,
+) -> AssignmentSearch:
+    try:
+        cs = _Columns(inp)
+        st = _State(cs)
+        _forward(st)
+        _local_search(st, deadline)
+        a = [int(x) for x in st.a]
+        F, values, Ps, gs = cs.exact(a)
+        dual = _Dual(cs)
+        L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
+        nothing = cs.exact([OFF] * cs.N)[0]
+    except np.linalg.LinAlgError as exc:
+        raise _spd_error(exc) from exc
+    L = min(L, F)
+    n_nodes = cs.moves + n_steps
+    gap = _gap(F, L)
+    m = int(cs.allow.any(axis=0).sum())
+    if fallback and gap > rel_gap and m <= min(EXACT_FALLBACK, MAX_SENSORS):
+        if deadline is None or not deadline():
+            ex = allocate_assignments(
+                inp.P_pred, inp.J, inp.D, inp.f, inp.w, inp.feasible,
+                _constraints(inp), inp.tie_rtol, inp.cells,
+            )  # fmt: skip
+            return AssignmentSearch(
+                ex.assignment, ex.sets, ex.value, ex.values, ex.cell_values, ex.P, ex.value,
+                0.0, nothing, 0.0, n_nodes, ex.n_evaluated, True, 0, STATUS[0],
+            )  # fmt: skip
+    if status_done == 4:
+        status = 4
+    elif gap <= rel_gap:
+        status = 3
+    elif deadline is not None and deadline():
+        status = 2
+    elif n_steps >= steps:
+        status = 1 if steps < DUAL_STEPS else 5
+    else:
+        status = 5
+    sets = tuple(tuple(j for j in range(cs.N) if a[j] == c) for c in range(cs.ncol))
+    return AssignmentSearch(
+        tuple(a), sets, F, tuple(values), tuple(gs), np.array(Ps), L, gap, nothing,
+        _gap_nothing(F, L, nothing), n_nodes, inp.T, False, status, STATUS[status],
+    )  # fmt: skip
+
+
+def _constraints(inp: _Inputs) -> MultiConstraints:
+    return MultiConstraints(
+        inp.excluded, inp.required, inp.K, tuple(inp.caps) if inp.caps else None
+    )
+
+
+def allocate_assignments_greedy(
+    P_pred: Mat,
+    J: Mat,
+    P_d: Mat,
+    metric: str | MetricFn,
+    weights: Sequence[float] | Mat | None = None,
+    feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None = None,
+    constraints: MultiConstraints = NO_CONSTRAINTS,
+    tie_rtol: float = 1e-9,
+    *,
+    cells: CellTerms | None = None,
+) -> AssignmentSearch:
+    """Forward greedy and best-improvement moves and 1-swaps (module docstring), the value
+    exact, with the Lagrangian count bound after ``GREEDY_DUAL_STEPS`` dual steps (status 4).
+    Arguments as :func:`~covnet.core.allocation.assignment.allocate_assignments`."""
+    inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
+    return _search(inp, 0.0, GREEDY_DUAL_STEPS, None, 4, False)
+
+
+def allocate_assignments_bounded(
+    P_pred: Mat,
+    J: Mat,
+    P_d: Mat,
+    metric: str | MetricFn,
+    weights: Sequence[float] | Mat | None = None,
+    feasible: NDArray[np.bool_] | Sequence[Sequence[bool]] | None = None,
+    constraints: MultiConstraints = NO_CONSTRAINTS,
+    tie_rtol: float = 1e-9,
+    *,
+    cells: CellTerms | None = None,
+    rel_gap: float = 0.01,
+    time_limit_s: float | None = None,
+    node_limit: int | None = None,
+    clock: Callable[[], float] | None = None,
+) -> AssignmentSearch:
+    """Greedy, then dual steps until the certified relative gap is at most ``rel_gap``, the
+    ``node_limit`` (dual steps) or ``time_limit_s`` (the whole decision; ``clock`` seconds,
+    default ``time.perf_counter``); with the gap still open and at most ``EXACT_FALLBACK``
+    allowed sensors, the exact allocator (status 0).  Never worse than
+    :func:`allocate_assignments_greedy` (the same start)."""
+    if not (math.isfinite(rel_gap) and 0.0 <= rel_gap < 1.0):
+        raise ValueError(f"rel_gap must be in [0, 1), got {rel_gap}")
+    if node_limit is not None and (not isinstance(node_limit, int) or node_limit < 1):
+        raise ValueError(f"node_limit must be an integer >= 1 or None, got {node_limit!r}")
+    deadline = _deadline(time_limit_s, clock)
+    inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
+    steps = DUAL_STEPS if node_limit is None else min(node_limit, DUAL_STEPS)
+    return _search(inp, rel_gap, steps, deadline, 3, True)

@@ -1,0 +1,211 @@
+"""Many targets at scale (covnet.core.allocation.assignment_search) and search cells: the
+certified bound never exceeds the exhaustive optimum, the searches' values are exact and
+never worse than a plain forward greedy with 1-swaps, cells agree with the reference."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from covnet.core.allocation.assignment import (
+    OFF,
+    CellTerms,
+    MultiConstraints,
+    TooManySensors,
+    allocate_assignments,
+    allocate_assignments_exhaustive,
+)
+from covnet.core.allocation.assignment_search import (
+    allocate_assignments_bounded,
+    allocate_assignments_greedy,
+)
+from covnet.core.allocation.exact import subset_covariance
+from covnet.core.metrics import METRICS
+from covnet.core.motion import cv_transition, dwna_process_noise
+from covnet.core.sensing import correlated_noise, information_gain, position_matrix
+
+
+def _problem(N, T, seed):
+    rng = np.random.default_rng(seed)
+    H = position_matrix()
+    J = np.zeros((N, T, 4, 4))
+    for j in range(N):
+        for t in range(T):
+            sx, sy = rng.uniform(5.0, 40.0, 2)
+            J[j, t] = 0.9 * information_gain(H, correlated_noise(sx, sy, rng.uniform(-0.8, 0.8)))
+    F, Q = cv_transition(1.0), dwna_process_noise(1.0, 0.5)
+    P = np.array([F @ np.diag([60.0, 6.0, 60.0, 6.0]) * (1 + t) @ F.T + Q for t in range(T)])
+    D = np.array([np.diag([d, d / 15, d, d / 15]) for d in rng.uniform(5.0, 30.0, T)])
+    w = rng.uniform(0.5, 2.0, T)
+    feas = rng.uniform(size=(N, T)) < 0.8
+    feas[:, 0] = True
+    return P, J, D, w, feas
+
+
+def _cells(N, C, seed):
+    rng = np.random.default_rng([seed, 7])
+    return CellTerms(
+        rng.uniform(0.0, 2.0, C),
+        3.0,
+        rng.uniform(0.05, 0.9, (N, C)),
+        rng.uniform(size=(N, C)) < 0.7,
+    )
+
+
+def _F(P, J, D, w, metric, a, cells=None):
+    """F by hand: targets' w_t f, then the cells' λ u_c Π miss."""
+    T = P.shape[0]
+    F = 0.0
+    for t in range(T):
+        Jt = np.zeros((4, 4))
+        for j, x in enumerate(a):
+            if x == t:
+                Jt = Jt + J[j, t]
+        F = F + w[t] * float(METRICS[metric](subset_covariance(P[t], Jt), D[t]))
+    if cells is not None:
+        for c in range(cells.C):
+            g = cells.weight * cells.u[c]
+            for j, x in enumerate(a):
+                if x == T + c:
+                    g = g * cells.miss[j, c]
+            F = F + g
+    return F
+
+
+def _plain_greedy(P, J, D, w, feas, metric, cells=None):
+    """A plain forward greedy (best improving pair while one improves, at least one on) with
+    best-improvement moves and 1-swaps, on exact values."""
+    N, T = feas.shape
+    C = 0 if cells is None else cells.C
+    allow = [[t for t in range(T) if feas[j, t]] + [T + c for c in range(C) if cells.feasible[j, c]]
+             for j in range(N)]  # fmt: skip
+
+    def val(a):
+        return _F(P, J, D, w, metric, a, cells)
+
+    a = [OFF] * N
+    cur = val(a)
+    while True:
+        best = None
+        for j in range(N):
+            if a[j] == OFF:
+                for c in allow[j]:
+                    b = list(a)
+                    b[j] = c
+                    v = val(b)
+                    if best is None or v < best[0]:
+                        best = (v, b)
+        if best is None or (any(x != OFF for x in a) and not best[0] < cur):
+            break
+        cur, a = best
+    while True:
+        best = None
+        for j in range(N):
+            for c in allow[j] + [OFF]:
+                if c != a[j]:
+                    b = list(a)
+                    b[j] = c
+                    if any(x != OFF for x in b):
+                        v = val(b)
+                        if best is None or v < best[0]:
+                            best = (v, b)
+            for k in range(j + 1, N):
+                if a[j] != a[k] and (a[k] in allow[j] + [OFF]) and (a[j] in allow[k] + [OFF]):
+                    b = list(a)
+                    b[j], b[k] = a[k], a[j]
+                    v = val(b)
+                    if best is None or v < best[0]:
+                        best = (v, b)
+        if best is None or not best[0] < cur - 1e-12 * abs(cur):
+            return cur
+        cur, a = best
+
+
+@pytest.mark.parametrize("metric", ["kl", "spectral", "abs_trace", "logdet"])
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("with_cells", [False, True])
+def test_bound_below_the_exhaustive_optimum_and_values_exact(metric, seed, with_cells):
+    N, T = 5, 2
+    P, J, D, w, feas = _problem(N, T, seed)
+    cells = _cells(N, 2, seed) if with_cells else None
+    ref = allocate_assignments_exhaustive(P, J, D, metric, w, feas, cells=cells)
+    for search in (allocate_assignments_greedy, allocate_assignments_bounded):
+        res = search(P, J, D, metric, w, feas, cells=cells)
+        assert res.lower_bound <= ref.value
+        assert res.value >= ref.value * (1 - 1e-12)
+        assert res.value == _F(P, J, D, w, metric, res.assignment, cells)
+        assert 0.0 <= res.gap and res.value_nothing == _F(P, J, D, w, metric, [OFF] * N, cells)
+    # bounded at this size falls back on the exact allocator: the reference's assignment
+    b = allocate_assignments_bounded(P, J, D, metric, w, feas, cells=cells, rel_gap=0.0)
+    assert (b.assignment, b.value) == (ref.assignment, ref.value) and b.exact
+
+
+@pytest.mark.parametrize("metric", ["kl", "spectral", "frobenius"])
+@pytest.mark.parametrize("seed", range(3))
+def test_never_worse_than_plain_forward_greedy_with_swaps(metric, seed):
+    P, J, D, w, feas = _problem(7, 3, 10 + seed)
+    cells = _cells(7, 1, seed) if seed == 2 else None
+    plain = _plain_greedy(P, J, D, w, feas, metric, cells)
+    for search in (allocate_assignments_greedy, allocate_assignments_bounded):
+        res = search(P, J, D, metric, w, feas, cells=cells)
+        assert res.value <= plain * (1 + 1e-9)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_cells_exact_agrees_with_the_reference(seed):
+    P, J, D, w, feas = _problem(5, 2, seed)
+    cells = _cells(5, 2, seed)
+    for metric in ("kl", "abs_trace"):
+        ref = allocate_assignments_exhaustive(P, J, D, metric, w, feas, cells=cells)
+        fast = allocate_assignments(P, J, D, metric, w, feas, cells=cells)
+        assert (fast.assignment, fast.value, fast.cell_values) == (
+            ref.assignment, ref.value, ref.cell_values,
+        )  # fmt: skip
+        assert len(ref.sets) == 4
+        assert ref.value == _F(P, J, D, w, metric, ref.assignment, cells)
+        best = min(
+            _F(P, J, D, w, metric, a, cells)
+            for a in itertools.product([OFF, 0, 1, 2, 3], repeat=5)
+            if any(x != OFF for x in a)
+            and all(
+                x == OFF or (x < 2 and feas[j, x]) or (x >= 2 and cells.feasible[j, x - 2])
+                for j, x in enumerate(a)
+            )  # fmt: skip
+        )
+        assert ref.value <= best * (1 + 1e-9)
+
+
+def test_no_cells_is_todays_result():
+    P, J, D, w, feas = _problem(5, 3, 4)
+    a = allocate_assignments(P, J, D, "kl", w, feas)
+    b = allocate_assignments(P, J, D, "kl", w, feas, cells=None)
+    assert (a.assignment, a.value, a.cell_values) == (b.assignment, b.value, ())
+
+
+def test_constraints_hold():
+    P, J, D, w, feas = _problem(9, 3, 2)
+    mc = MultiConstraints(excluded=frozenset({0}), required=frozenset({1}), max_active=3,
+                          max_per_target=1)  # fmt: skip
+    for search in (allocate_assignments_greedy, allocate_assignments_bounded):
+        r = search(P, J, D, "kl", w, feas, mc)
+        assert r.assignment[0] == OFF and r.assignment[1] != OFF
+        assert r.n_active <= 3 and all(len(r.sets[t]) <= 1 for t in range(3))
+
+
+def test_exact_refuses_what_it_cannot_enumerate_and_bounded_serves_it():
+    P, J, D, w, feas = _problem(24, 2, 5)
+    with pytest.raises(TooManySensors, match="at most 22"):
+        allocate_assignments(P, J, D, "kl", w, feas)
+    r = allocate_assignments_bounded(P, J, D, "kl", w, feas, node_limit=5)
+    assert r.lower_bound <= r.value and r.n_active >= 1
+
+
+def test_time_limit_bounds_the_decision():
+    P, J, D, w, feas = _problem(30, 4, 6)
+    ticks = iter(range(1000))
+    r = allocate_assignments_bounded(
+        P, J, D, "kl", w, feas, rel_gap=0.0, time_limit_s=3.0, clock=lambda: float(next(ticks))
+    )
+    assert r.status in (2, 3) and r.lower_bound <= r.value
