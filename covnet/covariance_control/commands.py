@@ -44,6 +44,8 @@ EXIT_OK, EXIT_FAIL = 0, 1
 def run(sc: Scenario, out: Path, *, figures: bool) -> int:
     """``covnet run``: every metric of ``allocation.metrics`` in this process (the fusion mode
     of ``fusion``; slow links in simulated time); writes the run directory."""
+    if sc.surveillance is not None:
+        return run_surveillance(sc, out, figures=figures)
     if sc.multitarget:
         return run_targets(sc, out, figures=figures)
     model = build_model(sc)
@@ -142,8 +144,43 @@ def run_targets(sc: Scenario, out: Path, *, figures: bool) -> int:
     return EXIT_OK
 
 
+def run_surveillance(sc: Scenario, out: Path, *, figures: bool) -> int:
+    """``covnet run`` of a config with ``surveillance:``: every metric's run through the
+    engine in this process; writes the run directory (:mod:`covnet.covariance_control.
+    surveillance_results`) and its figures."""
+    # start-up: the surveillance world and results only for configs with surveillance
+    from covnet.covariance_control import drive, surveillance
+    from covnet.covariance_control.surveillance_results import write_surveillance_run
+
+    sm = surveillance.build(sc)
+
+    def one(m: str) -> tuple[Any, float]:
+        t0 = time.perf_counter()
+        return drive.run(sc, m, sm).run, time.perf_counter() - t0
+
+    metrics = list(sc.allocation.metrics)
+    runs = {}
+    for m, (r, seconds) in zip(metrics, map_in_forks(one, metrics), strict=True):
+        runs[m] = r
+        print(
+            f"{m:>10}: {sc.scans} scans, {len(sm.truth_ids)} targets in {seconds:.2f} s, "
+            f"{r.n_tracks_started} tracks started, search share "
+            f"{100.0 * r.search_dwells.sum() / max(1, r.enabled.sum()):.1f} %"
+        )
+    summary = write_surveillance_run(out, sc, sm, runs, run_info={"mode": "in-process"})
+    if figures:
+        from covnet.covariance_control.plots import make_figures  # matplotlib: start-up
+
+        make_figures(out)
+    print_summary(out, summary)
+    return EXIT_OK
+
+
 def print_summary(out: Path, summary: dict[str, Any]) -> None:
     """The headline numbers of a run directory's ``summary.json``."""
+    if "truth_ids" in summary:
+        _print_surveillance_summary(out, summary)
+        return
     if "target_ids" in summary:
         _print_targets_summary(out, summary)
         return
@@ -165,6 +202,21 @@ def print_summary(out: Path, summary: dict[str, Any]) -> None:
             f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, "
             f"position RMSE {blk['rmse_position']:.2f} m, mean NEES {blk['mean_nees']:.2f}"
             + _gap_text(blk)
+        )
+
+
+def _print_surveillance_summary(out: Path, summary: dict[str, Any]) -> None:
+    print(
+        f"run directory: {out}  (config {summary['config_hash']}, seed {summary['seed']}, "
+        f"search weight {summary['search_weight']:g}, {summary['association']})"
+    )
+    for m, b in summary["metrics"].items():
+        ttc = b["time_to_confirm_mean"]
+        print(
+            f"  {m:>10}: GOSPA {b['gospa_mean']:.1f} m (mean), OSPA {b['ospa_mean']:.1f} m, "
+            f"time to confirm {'-' if ttc is None else f'{ttc:.1f}'} scans, missed "
+            f"{b['missed_targets']}, false tracks {b['false_tracks']}, breaks "
+            f"{b['track_breaks']}, search {100 * b['search_share']:.0f} % of dwells"
         )
 
 

@@ -48,7 +48,6 @@ process (the same field names), so ``covnet run`` never imports the wire schemas
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -80,9 +79,11 @@ from covnet.covariance_control.model import (
     predict_step,
     truth_trajectory,
 )
+from covnet.covariance_control.scan_records import Outcome, Plan
 from covnet.covariance_control.sensor_side import Measured, SensorContext, SensorSide, Tracked
 
 if TYPE_CHECKING:
+    from covnet.covariance_control.surveillance_episode import SurveillanceEpisode
     from covnet.processes.runtime_stats import NetStats
 
 __all__ = [
@@ -94,71 +95,6 @@ __all__ = [
     "SensorSide",
     "Tracked",
 ]
-
-
-# --------------------------------------------------------------------------------------------
-# what travels, in process
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Plan:
-    """Scan ``k``'s decision: the command's fields (``enabled`` sensor ids; with targets each
-    one's target ``{sensor: (target id,)}`` and clutter window ``{sensor: vector}``), the
-    objective ``value``, the sensors' indices ``subset``, how long deciding took, and the
-    centre's own record of the decision (``detail``)."""
-
-    k: int
-    subset: tuple[int, ...]
-    enabled: tuple[str, ...]
-    value: float
-    decision_s: float
-    detail: Any
-    targets: dict[str, tuple[str, ...]] | None = None
-    windows: dict[str, np.ndarray] | None = None
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """What a fused scan reports: ``tracks`` (target id or None, estimate), the enabled set,
-    the objective value, ``tr P`` and ``tr P_d`` (summed over targets), the sensors whose
-    messages were fused, the late ones re-filtered into earlier scans (``None``: no late
-    handling), and what a bounded or greedy search certified (``lower_bound``, ``gap``)."""
-
-    k: int
-    tracks: tuple[tuple[str | None, Gaussian], ...]
-    enabled: tuple[str, ...]
-    value: float
-    trace_P: float
-    trace_Pd: float
-    fused: tuple[str, ...]
-    refiltered: tuple[str, ...] | None
-    lower_bound: float | None = None
-    gap: float | None = None
-    per_target: tuple[tuple[str, int], ...] | None = None  # sensors on each target
-
-    def lines(self, scans: int, n_sensors: int) -> dict[str, Any]:
-        """The live view's numbers and lines of this scan (``info``, ``info_short``)."""
-        k, on = self.k, len(self.enabled)
-        live: dict[str, Any] = {"trace_P": self.trace_P, "trace_Pd": self.trace_Pd}
-        if self.per_target is not None:
-            per = "  ".join(f"{tid}:{n}" for tid, n in self.per_target)
-            info = (
-                f"scan {k}/{scans}  on {on}/{n_sensors} ({per})  "
-                f"tr P {self.trace_P:.1f} / tr Pd {self.trace_Pd:.1f}"
-            )
-        else:
-            info = (
-                f"scan {k}/{scans}  enabled {','.join(self.enabled) or '-'}  "
-                f"tr P {self.trace_P:.1f} / tr Pd {self.trace_Pd:.1f}"
-            )
-        short = f"{k}/{scans} {on}/{n_sensors} on  trP {self.trace_P:.0f}/{self.trace_Pd:.0f}"
-        if self.per_target is None and self.lower_bound is not None and self.gap is not None:
-            lb = self.lower_bound if math.isfinite(self.lower_bound) else None
-            live |= {"value": self.value, "lower_bound": lb, "gap": self.gap}
-            info += f"  f {self.value:.4g} (gap {100 * self.gap:.3g} %)"
-            short += f"  gap {100 * self.gap:.3g}%"
-        return live | {"info": info, "info_short": short}
 
 
 # --------------------------------------------------------------------------------------------
@@ -472,11 +408,21 @@ class ScanEngine:
         self.episodes = list(sc.allocation.metrics if metrics is None else metrics)
         # the many-target centre (a config with targets:, or any config through its steps)
         self.many = sc.multitarget if many is None else many
-        if self.many:
+        # targets that appear and leave, the manager's own tracks and the search
+        self.surveil = sc.surveillance is not None
+        if self.surveil:
+            # start-up: the surveillance world only for configs with surveillance
+            from covnet.covariance_control import surveillance
+
+            sm = model if model is not None else surveillance.build(sc)
+            self.model: Any = sm
+            self.truth = sm.truth
+            self.scans, self.period_s = sm.scans, sm.T
+        elif self.many:
             from covnet.covariance_control import targets  # start-up: configs with targets
 
             tm = model if model is not None else targets.build(sc)
-            self.model: Any = tm
+            self.model = tm
             self.truth = targets.truth_trajectories(tm)
             self.scans, self.period_s = tm.scans, tm.T
         else:
@@ -499,12 +445,17 @@ class ScanEngine:
 
             stats = NetStats()
         self.result = ManagerResult({}, stats)
-        self.episode: _OneTarget | _ManyTargets | _Peers | None = None
+        self.episode: _OneTarget | _ManyTargets | _Peers | SurveillanceEpisode | None = None
         self.plan: Plan | None = None
 
     def start_episode(self, e: int) -> None:
         metric = self.episodes[e]
-        if self.peer:
+        if self.surveil:
+            # start-up: the surveillance centre only for configs with surveillance
+            from covnet.covariance_control.surveillance_episode import SurveillanceEpisode
+
+            self.episode = SurveillanceEpisode(self.model, metric)
+        elif self.peer:
             self.episode = _Peers(self.sc, self.model, metric, self.truth, self.nodes)
         elif self.many:
             self.episode = _ManyTargets(self.sc, self.model, metric, self.truth)
@@ -513,7 +464,7 @@ class ScanEngine:
         self.result.episodes[metric] = self.episode.log
         self.plan = None
 
-    def _current(self) -> _OneTarget | _ManyTargets | _Peers:
+    def _current(self) -> _OneTarget | _ManyTargets | _Peers | SurveillanceEpisode:
         if self.episode is None:
             raise RuntimeError("start_episode first")
         return self.episode
@@ -566,7 +517,7 @@ class ScanEngine:
         """Episode ``metric``'s arrays: a :class:`~covnet.covariance_control.simulate.
         MetricRun` (many targets: a :class:`~covnet.covariance_control.simulate.TargetsRun`)."""
         log = self.result.episodes[metric]
-        return log.as_run() if self.many else log.as_run(len(self.ids))
+        return log.as_run() if self.many or self.surveil else log.as_run(len(self.ids))
 
     def node_runs(self) -> dict[str, Any]:
         """Peer mode: the current episode's arrays of every node this engine fuses for

@@ -183,7 +183,7 @@ def build_model(sc: Scenario) -> Model:
         max_active=al.max_active,
     )
     P0_diag = sc.filter.P0_diag
-    if sc.targets is None:
+    if not sc.targets:  # the paper's target (or surveillance with births only: a default)
         tg = sc.target
         px, py = tg.initial_position_m
         vx, vy = tg.initial_velocity_mps
@@ -209,7 +209,8 @@ def build_model(sc: Scenario) -> Model:
         P0=np.diag(np.asarray(P0_diag, dtype=np.float64)),
         x0=np.array([px, vx, py, vy], dtype=np.float64),
         desired_from=tuple(d.from_scan for d in desired),
-        desired_P=np.stack([d.as_matrix() for d in desired]),
+        # surveillance's truth-only targets have no schedule (the tracks' is its own)
+        desired_P=np.stack([d.as_matrix() for d in desired]) if desired else np.zeros((0, 4, 4)),
         constraints=constraints,
         tie_rtol=al.tie_rtol,
         seed=sc.seed,

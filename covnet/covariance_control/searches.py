@@ -22,6 +22,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
+import numpy as np
+
 from covnet.core.allocation.constraints import Constraints
 from covnet.core.gaussian import Mat
 
@@ -85,8 +87,10 @@ class ManyDecision(NamedTuple):
     gap: float | None
 
 
-#: ``many(settings, P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol)``
-ManyFn = Callable[[Any, Mat, Mat, Mat, str, Any, Any, Any, float], ManyDecision]
+#: ``many(settings, P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)``
+#: (``cells``: the search cells of a surveillance scan, a :class:`~covnet.core.allocation.
+#: assignment.CellTerms`, or None)
+ManyFn = Callable[[Any, Mat, Mat, Mat, str, Any, Any, Any, float, Any], ManyDecision]
 
 
 @dataclass(frozen=True)
@@ -100,19 +104,19 @@ class ManySearch:
 
 def _many_exact(
     settings: Any, P_pred: Mat, J: Mat, P_d: Mat, metric: str, w: Any, feas: Any, mc: Any,
-    tie_rtol: float,
+    tie_rtol: float, cells: Any = None,
 ) -> ManyDecision:  # fmt: skip
     """The exact assignment allocator (the plain enumeration's assignment, bit for bit)."""
     # the allocator: start-up of the processes that never decide
     from covnet.core.allocation.assignment import allocate_assignments
 
-    a = allocate_assignments(P_pred, J, P_d, metric, w, feas, mc, tie_rtol)
+    a = allocate_assignments(P_pred, J, P_d, metric, w, feas, mc, tie_rtol, cells=cells)
     return ManyDecision(a.assignment, a.value, a.values, a.P, a.n_evaluated, None, None)
 
 
 def _many_bounded(
     settings: Any, P_pred: Mat, J: Mat, P_d: Mat, metric: str, w: Any, feas: Any, mc: Any,
-    tie_rtol: float,
+    tie_rtol: float, cells: Any = None,
 ) -> ManyDecision:  # fmt: skip
     """Greedy and the Lagrangian bound, stopped at the options' gap, time or node limit."""
     # the allocator: start-up of the processes that never decide
@@ -121,20 +125,20 @@ def _many_bounded(
     gap, limit_s, nodes = settings.bounded_options()
     r = allocate_assignments_bounded(
         P_pred, J, P_d, metric, w, feas, mc, tie_rtol,
-        rel_gap=gap, time_limit_s=limit_s, node_limit=nodes,
+        cells=cells, rel_gap=gap, time_limit_s=limit_s, node_limit=nodes,
     )  # fmt: skip
     return ManyDecision(r.assignment, r.value, r.values, r.P, r.n_evaluated, r.lower_bound, r.gap)
 
 
 def _many_greedy(
     settings: Any, P_pred: Mat, J: Mat, P_d: Mat, metric: str, w: Any, feas: Any, mc: Any,
-    tie_rtol: float,
+    tie_rtol: float, cells: Any = None,
 ) -> ManyDecision:  # fmt: skip
     """Forward greedy, moves and 1-swaps, with the Lagrangian bound."""
     # the allocator: start-up of the processes that never decide
     from covnet.core.allocation.assignment_search import allocate_assignments_greedy
 
-    r = allocate_assignments_greedy(P_pred, J, P_d, metric, w, feas, mc, tie_rtol)
+    r = allocate_assignments_greedy(P_pred, J, P_d, metric, w, feas, mc, tie_rtol, cells=cells)
     return ManyDecision(r.assignment, r.value, r.values, r.P, r.n_evaluated, r.lower_bound, r.gap)
 
 
@@ -178,14 +182,18 @@ class Search:
 
 def decide_many(
     settings: Any, P_pred: Mat, J: Mat, P_d: Mat, metric: str, w: Any, feas: Any, mc: Any,
-    tie_rtol: float,
+    tie_rtol: float, cells: Any = None,
 ) -> ManyDecision:  # fmt: skip
     """A many-target scan's decision by the configured entry (``settings``: the model's
-    ``SearchSettings``), ``auto`` resolved with the sensors that can be on this scan."""
-    n = sum(1 for j in range(J.shape[0]) if j not in mc.excluded and bool(feas[j].any()))
+    ``SearchSettings``), ``auto`` resolved with the sensors that can be on this scan
+    (``cells``: a surveillance scan's search cells, or None)."""
+    can = feas.any(axis=1) if feas.shape[1] else np.zeros(feas.shape[0], dtype=bool)
+    if cells is not None and cells.feasible.size:
+        can = can | cells.feasible.any(axis=1)
+    n = sum(1 for j in range(feas.shape[0]) if j not in mc.excluded and bool(can[j]))
     entry = SEARCHES[settings.mode].resolved_many(n)
     assert entry.many is not None
-    return entry.many.decide(settings, P_pred, J, P_d, metric, w, feas, mc, tie_rtol)
+    return entry.many.decide(settings, P_pred, J, P_d, metric, w, feas, mc, tie_rtol, cells)
 
 
 def feasible_count(n_sensors: int, c: Constraints) -> int:

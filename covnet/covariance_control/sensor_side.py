@@ -110,10 +110,16 @@ class SensorSide:
         return Tracked(sid, scan, episode, tr.post.x, tr.post.P, prior.x, prior.P)
 
     def _dwell(self, episode: int, scan: int, plan: Any) -> Measured | Tracked | None:
-        """Many targets, in process: the plan's target and clutter window for this sensor."""
+        """Many targets, in process: the plan's target and clutter window for this sensor
+        (surveillance: its track or search cell's window, every target's truth)."""
         if plan is None:
             return None
         sp = plan.detail
+        if self.engine.surveil:
+            win = sp.windows.get(self.j)
+            if win is None:  # off
+                return None
+            return self.survey(episode, scan, win, self.engine.truth[:, scan - 1])
         t = sp.decision.assignment[self.j]
         if t < 0:  # off
             return None
@@ -140,6 +146,20 @@ class SensorSide:
         return Tracked(sid, scan, episode, tr.post.x, tr.post.P, tr.prior.x, tr.prior.P, tid)
 
 
+    def survey(self, episode: int, scan: int, win: Any, states: np.ndarray) -> Measured:
+        """Surveillance: its dwell's returns in window ``win`` at scan ``scan``, every
+        target's true state ``states`` ``(n, 4)`` (NaN rows: absent)
+        (:func:`covnet.covariance_control.surveillance.dwell`)."""
+        # start-up: the surveillance world only for configs with surveillance
+        from covnet.covariance_control import surveillance
+
+        if episode != self.episode:
+            self.episode = episode
+        sm = self.engine.model
+        Z = surveillance.dwell(sm, self.j, scan, states, win)
+        return Measured(self.sensor_id, scan, episode, Z, sm.tm.sensors[self.j].R)
+
+
 @dataclass(frozen=True)
 class SensorContext:
     """What a sensor's side reads of the engine, for a sensor in its own process (no engine):
@@ -154,8 +174,12 @@ class SensorContext:
     tracks: bool
     many: bool
     truth: Any = None
+    surveil: bool = False
 
     @classmethod
     def of(cls, sc: Scenario, model: Any) -> SensorContext:
         rule = rule_for(sc.fusion)
-        return cls(sc, model, model.sensor_ids, rule, rule.tracks, sc.multitarget)
+        return cls(
+            sc, model, model.sensor_ids, rule, rule.tracks, sc.multitarget,
+            surveil=sc.surveillance is not None,
+        )

@@ -261,7 +261,10 @@ def build(sc: Scenario) -> TargetsModel:
                     P0=P0,
                     segments=tuple(segments(t)),
                     desired_from=tuple(d.from_scan for d in t.desired),
-                    desired_P=np.stack([d.as_matrix() for d in t.desired]),
+                    # surveillance: the targets are truth only, without a schedule
+                    desired_P=np.stack([d.as_matrix() for d in t.desired])
+                    if t.desired
+                    else np.zeros((0, 4, 4)),
                     weights=tuple(weights),
                 )
             )

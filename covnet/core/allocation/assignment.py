@@ -234,8 +234,11 @@ class _Inputs:
         cells: CellTerms | None = None,
     ) -> None:
         Pp = np.asarray(P_pred, dtype=np.float64)
-        if Pp.ndim != 3 or Pp.shape[1] != Pp.shape[2] or Pp.shape[0] == 0 or Pp.shape[1] == 0:
+        if Pp.ndim != 3 or Pp.shape[1] != Pp.shape[2] or Pp.shape[1] == 0:
             raise ValueError(f"P_pred must be (T, n, n) (one per target), got shape {Pp.shape}")
+        # no target (a surveillance scan before its first track): only search cells
+        if Pp.shape[0] == 0 and (cells is None or np.asarray(cells.u).shape[0] == 0):
+            raise ValueError("P_pred: no target and no search cell, nothing to allocate")
         T, n = Pp.shape[0], Pp.shape[1]
         Dd = np.asarray(P_d, dtype=np.float64)
         if Dd.shape != (T, n, n):
@@ -269,9 +272,9 @@ class _Inputs:
             P_list.append(P_t)
             D_list.append(D_t)
             G_list.append(G_t)
-        self.P_pred = np.array(P_list)
-        self.D = np.array(D_list)
-        self.J = np.stack(G_list, axis=1) if N else Jz
+        self.P_pred = np.array(P_list).reshape(T, n, n)
+        self.D = np.array(D_list).reshape(T, n, n)
+        self.J = np.stack(G_list, axis=1) if N and T else Jz
         self.w = [float(x) for x in w]
         self.feasible = feas
         self.N, self.T, self.n = N, T, n

@@ -321,6 +321,15 @@ class TrackManager:
             self._store(t)
         return new
 
+    def cue(self, estimate: Gaussian, scan: int) -> Track:
+        """A confirmed track from a cue (a target known before the first scan: its initial
+        estimate), with the next id."""
+        t = Track(
+            self.next_id, TrackState.CONFIRMED, estimate, (True,), 0, 0, int(scan), int(scan)
+        )
+        self.next_id += 1
+        return self._store(t)
+
     def set_estimate(self, track_id: int, estimate: Gaussian) -> Track:
         """Replace a live track's estimate (e.g. by its prediction to the scan's time)."""
         return self._store(replace(self._live[track_id], estimate=estimate))
@@ -328,6 +337,11 @@ class TrackManager:
     def record_dwell(self, track_id: int, posterior: Gaussian, hit: bool, scan: int) -> Track:
         """:func:`record_dwell` on a live track; a deleted track moves to :attr:`deleted`."""
         return self._store(record_dwell(self._live[track_id], posterior, hit, scan, self.rules))
+
+    def delete(self, track_id: int, scan: int, reason: str) -> Track:
+        """Delete a live track for ``reason`` (e.g. ``"duplicate"``); it moves to
+        :attr:`deleted`."""
+        return self._store(_delete(self._live[track_id], scan, reason))
 
     def check_covariance(self, scan: int) -> tuple[Track, ...]:
         """:func:`check_covariance` on every live track; returns those it deleted."""

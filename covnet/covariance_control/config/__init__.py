@@ -121,6 +121,7 @@ def load(path: str | Path) -> Scenario:
 
 _PAPER_OMITS = (
     "network.security",
+    "surveillance",
     "targets",
     "association",
     "ospa",
@@ -148,6 +149,11 @@ def normalised(sc: Scenario) -> dict[str, Any]:
         return data
     data = _normalised(sc, ("network.security", *later))
     del data["target"], data["desired"]
+    if sc.surveillance is None:  # the surveillance keys (added later) leave the hash as it was
+        del data["surveillance"]
+        for t in data["targets"]:
+            for key in ("appears_at_scan", "leaves_at_scan", "cued"):
+                t.pop(key, None)
     # with targets a missed command is always a scan off (the only choice: see the checks)
     data["network"]["latency"]["missed_command"] = "off"
     return data

@@ -20,6 +20,7 @@ from covnet.covariance_control.config.sensors import (
     fields_record,
     in_coverage,
 )
+from covnet.covariance_control.config.surveillance_checks import surveillance_problems
 from covnet.covariance_control.config.targets import DesiredSpec, segments
 from covnet.covariance_control.fusion_rules import refusal, rule_for
 from covnet.covariance_control.searches import BOUNDED_OPTIONS, MANY_EXACT_MAX, SEARCHES
@@ -97,7 +98,7 @@ def _sensor_problems(sc: Scenario) -> list[tuple[str, str]]:
 def _target_problems(sc: Scenario) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
     assert sc.targets is not None
-    if not sc.targets:
+    if not sc.targets and sc.surveillance is None:
         return [("targets", "list at least one target")]
     for key in ("target", "desired"):
         if key in sc.model_fields_set:
@@ -106,7 +107,8 @@ def _target_problems(sc: Scenario) -> list[tuple[str, str]]:
             )
     for i, t in enumerate(sc.targets):
         where = f"targets[{i}]"
-        problems += _schedule_problems(f"{where}.desired", t.desired)
+        if t.desired:  # missing: surveillance_problems says whether it is needed
+            problems += _schedule_problems(f"{where}.desired", t.desired)
         spans: list[tuple[int, int, int]] = []
         for m, man in enumerate(t.manoeuvres):
             mw = f"{where}.manoeuvres[{m}]"
@@ -160,6 +162,7 @@ def semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
     problems += _search_problems(sc)
     problems += _policy_problems(sc)
+    problems += surveillance_problems(sc)
     problems += _peer_problems(sc.fusion.peer, ids)
     if set(al.excluded) >= set(ids):
         problems.append(("allocation.excluded", "excludes every sensor"))

@@ -20,6 +20,7 @@ from covnet.covariance_control.config.allocation import AllocationSpec
 from covnet.covariance_control.config.fields import FusionRuleName, MetricName
 from covnet.covariance_control.config.fusion import FusionSpec
 from covnet.covariance_control.config.sensors import SensorSpec
+from covnet.covariance_control.config.surveillance import SurveillanceSpec
 from covnet.covariance_control.config.targets import (
     AssociationSpec,
     DesiredSpec,
@@ -91,6 +92,7 @@ class Scenario(ConfigModel):
     targets: Annotated[tuple[TargetEntry, ...], unique_ids("target")] | None = None
     association: AssociationSpec = AssociationSpec()
     ospa: OspaSpec = OspaSpec()
+    surveillance: SurveillanceSpec | None = None
 
     _period = field_validator("period_s")(_positive)
 

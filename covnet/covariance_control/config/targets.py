@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 
-from covnet.config import ConfigModel, Float, Ident, Int, Pair, Quad
+from covnet.config import Bool, ConfigModel, Float, Ident, Int, Pair, Quad
 from covnet.config import positive as _positive
 from covnet.covariance_control.config.fields import positive_or_none
 from covnet.records import Field, field_validator
@@ -94,9 +94,16 @@ class TargetEntry(ConfigModel):
     accel_noise_std_mps2: Float = 0.5
     filter_accel_noise_std_mps2: Float | None = None
     manoeuvres: tuple[ManoeuvreSpec, ...] = ()
-    desired: tuple[TargetDesiredSpec, ...] = Field(min_length=1)
+    desired: tuple[TargetDesiredSpec, ...] = ()
     weight: Float = 1.0
     P0_diag: Quad | None = None
+    # with surveillance: (truth only) the scans it exists at: appears_at_scan ..
+    # leaves_at_scan - 1; its initial state is its state at its appearance
+    appears_at_scan: Int = Field(default=1, ge=1)
+    leaves_at_scan: Int | None = Field(default=None, ge=2)
+    # with surveillance: known to the manager before scan 1 (a confirmed track from its cue,
+    # the filter's initial estimate)
+    cued: Bool = False
 
     _w = field_validator("weight")(_positive)
 
@@ -117,12 +124,13 @@ class TargetEntry(ConfigModel):
 
 class AssociationSpec(ConfigModel):
     """How the manager uses a dwell's unlabeled returns (spec §4): ``method`` ``pda`` (the
-    PDAF) or ``nearest`` (the gated return nearest in Mahalanobis distance); the χ² gate's
-    ``gate_probability``; the clutter window, ``± clutter_window_sigma`` standard deviations of
-    the innovation around the predicted measurement.  A sensor without clutter
+    PDAF), ``nearest`` (the gated return nearest in Mahalanobis distance) or, with
+    ``surveillance:``, ``jpda`` (returns shared by the tracks whose gates they fall in); the χ²
+    gate's ``gate_probability``; the clutter window, ``± clutter_window_sigma`` standard
+    deviations of the innovation around the predicted measurement.  A sensor without clutter
     (``clutter_rate: 0``) needs no association: its return, if any, is the target's."""
 
-    method: Literal["pda", "nearest"] = "pda"
+    method: Literal["pda", "nearest", "jpda"] = "pda"
     gate_probability: Float = 0.99
     clutter_window_sigma: Float = 6.0
 

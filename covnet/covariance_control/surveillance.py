@@ -1,0 +1,274 @@
+"""The surveillance world of a covariance-control config with ``surveillance:`` (spec
+``surveillance.md`` §1, §3): targets that appear and leave, births, the search cells, and a
+dwell that returns every existing target inside its window.
+
+**Truth.**  A configured target with ``appears_at_scan = a`` starts from its
+``initial_position_m`` / ``initial_velocity_mps`` at time ``(a - 1) T`` and moves as a
+many-target truth does (its TRUTH stream, its manoeuvres); it exists at scans ``a ..
+leaves_at_scan - 1`` (to the end without ``leaves_at_scan``).  With ``a = 1`` its trajectory is
+today's bit for bit.  Births (``surveillance.births``): the birth process of
+:mod:`covnet.core.surveillance.births` from the stream ``(seed, BIRTHS)``, each born target
+leaving at the first scan it is outside the area.  ``truth`` is ``(n, scans, 4)`` with NaN
+where a target does not exist; ``exists`` the mask.  Everything is a function of the config
+and its seed, so every process (the world, each sensor, the manager, a replay) builds the same
+world.
+
+**A dwell** of sensor ``j`` at scan ``k`` in window ``w`` (a box in its measurement space:
+around a track's predicted measurement, or the box of its measurements over a search cell)
+returns, from the stream ``(seed, SENSOR, j, k)``: for every existing target in ascending index
+whose noise-free measurement is inside ``w`` and which the sensor covers, one noisy measurement
+detected with ``pd``; ``Poisson(clutter_rate)`` false returns uniform in ``w``; shuffled.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from covnet.core import streams
+from covnet.core.detection import ClutterWindow
+from covnet.core.gaussian import Mat, Vec
+from covnet.core.manoeuvre import Acceleration, Turn, manoeuvring_trajectory
+from covnet.core.sensor_models import SensorModel, wrap_angle
+from covnet.core.surveillance.births import BirthProcess, BirthRegion, simulate_truth
+from covnet.core.surveillance.search_cells import SearchGrid
+from covnet.covariance_control import targets
+from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.config.surveillance import SurveillanceSpec
+from covnet.covariance_control.targets import TargetsModel
+
+__all__ = ["SurveillanceModel", "build", "cell_window", "dwell", "track_window"]
+
+#: the stream domain of the birth process: key ``(BIRTHS,)``
+BIRTHS = 30
+
+
+@dataclass(frozen=True)
+class SurveillanceModel:
+    """A surveillance scenario: the sensors' :class:`~covnet.covariance_control.targets.
+    TargetsModel` (its targets are not the manager's: it knows none), the block's settings,
+    the truth of every target that ever exists (configured first, then births in order of
+    birth) and the search ``grid`` (None without ``search``; its ``boxes()`` ``(C, 4)``
+    ``[x0, x1, y0, y1]``)."""
+
+    tm: TargetsModel
+    spec: SurveillanceSpec
+    truth_ids: tuple[str, ...]
+    truth: Mat  # (n, scans, 4), NaN where absent
+    exists: np.ndarray  # (n, scans) bool
+    grid: SearchGrid | None
+    cued: tuple[bool, ...] = ()  # per configured target: known before scan 1
+
+    @property
+    def sensor_ids(self) -> tuple[str, ...]:
+        return self.tm.sensor_ids
+
+    @property
+    def scans(self) -> int:
+        return self.tm.scans
+
+    @property
+    def T(self) -> float:
+        return self.tm.T
+
+    @property
+    def n_cells(self) -> int:
+        return 0 if self.grid is None else self.grid.n_cells
+
+    @property
+    def cells(self) -> Mat:
+        """The cells' boxes ``(C, 4)``: ``[x0, x1, y0, y1]``."""
+        return np.zeros((0, 4)) if self.grid is None else self.grid.boxes()
+
+    def present(self, scan: int) -> np.ndarray:
+        """The indices of the targets that exist at ``scan``."""
+        return np.flatnonzero(self.exists[:, scan - 1])
+
+
+def _segments(sc: Scenario, i: int, shift: int) -> list[object]:
+    assert sc.targets is not None
+    out: list[object] = []
+    for m in sc.targets[i].manoeuvres:
+        a, b = m.from_scan - shift, m.to_scan - shift
+        if m.kind == "turn":
+            assert m.turn_rate_deg_s is not None
+            out.append(Turn(a, b, math.radians(m.turn_rate_deg_s)))
+        else:
+            assert m.accel_mps2 is not None
+            out.append(Acceleration(a, b, *m.accel_mps2))
+    return out
+
+
+def _configured(sc: Scenario, tm: TargetsModel) -> tuple[list[str], list[Mat], list[Vec]]:
+    """The configured targets' truth rows and existence (module docstring)."""
+    assert sc.targets is not None
+    ids, rows, alive = [], [], []
+    K = tm.scans
+    for t, (entry, tg) in enumerate(zip(sc.targets, tm.targets, strict=True)):
+        a = entry.appears_at_scan
+        key = (streams.TRUTH,) if t == 0 else (streams.TRUTH, t)
+        rng = streams.stream(tm.base.seed, *key)
+        n = K - a + 1
+        traj = manoeuvring_trajectory(
+            tg.x0,
+            tm.T,
+            tg.sigma_a,
+            n,
+            rng,
+            _segments(sc, t, a - 1),  # type: ignore[arg-type]
+        )
+        row = np.full((K, 4), np.nan)
+        row[a - 1 :] = traj
+        end = K if entry.leaves_at_scan is None else entry.leaves_at_scan - 1
+        ex = np.zeros(K, dtype=bool)
+        ex[a - 1 : end] = True
+        row[~ex] = np.nan
+        ids.append(entry.id)
+        rows.append(row)
+        alive.append(ex)
+    return ids, rows, alive
+
+
+def _born(sc: Scenario, spec: SurveillanceSpec, K: int) -> tuple[list[str], list[Mat], list[Vec]]:
+    """The birth process's targets (:func:`covnet.core.surveillance.births.simulate_truth`
+    from the stream ``(seed, BIRTHS)``), as truth rows ``B1, B2, ...``."""
+    b = spec.births
+    if b is None or b.rate == 0.0:
+        return [], [], []
+    (x0, y0), (x1, y1) = spec.area.min_m, spec.area.max_m
+    proc = BirthProcess(
+        b.rate,
+        tuple(
+            BirthRegion(
+                r.min_m[0], r.max_m[0], r.min_m[1], r.max_m[1], *r.speed_mps, *r.heading_deg
+            )
+            for r in b.regions
+        ),
+        (x0, x1, y0, y1),
+        sc.period_s,
+        b.accel_noise_std_mps2,
+    )
+    hist = simulate_truth((), K, streams.stream(sc.seed, BIRTHS), proc)
+    ids, rows, alive = [], [], []
+    for i, t in enumerate(hist.targets):
+        row = np.full((K, 4), np.nan)
+        row[t.first_scan - 1 : t.leaves_at_scan - 1] = t.states
+        ex = np.zeros(K, dtype=bool)
+        ex[t.first_scan - 1 : t.leaves_at_scan - 1] = True
+        ids.append(f"B{i + 1}")
+        rows.append(row)
+        alive.append(ex)
+    return ids, rows, alive
+
+
+def build(sc: Scenario) -> SurveillanceModel:
+    """The surveillance model of ``sc`` (a config with ``surveillance:``)."""
+    spec = sc.surveillance
+    assert spec is not None and sc.targets is not None
+    tm = targets.build(sc)
+    ids, rows, alive = _configured(sc, tm)
+    b_ids, b_rows, b_alive = _born(sc, spec, tm.scans)
+    ids += b_ids
+    rows += b_rows
+    alive += b_alive
+    truth = np.stack(rows) if rows else np.zeros((0, tm.scans, 4))
+    exists = np.stack(alive) if alive else np.zeros((0, tm.scans), dtype=bool)
+    cued = tuple(t.cued for t in sc.targets)
+    return SurveillanceModel(tm, spec, tuple(ids), truth, exists, spec.grid(), cued)
+
+
+# --------------------------------------------------------------------------------------------
+# windows and the dwell
+# --------------------------------------------------------------------------------------------
+
+
+def track_window(sm: SurveillanceModel, j: int, pred_x: Vec, S: Mat) -> ClutterWindow:
+    """Sensor ``j``'s window on a track predicted at ``pred_x`` with innovation covariance
+    ``S``: ``h(x̂⁻) ± n_σ √diag S`` (angles at most ±π)."""
+    s = sm.tm.sensors[j]
+    half = sm.tm.window_sigma * np.sqrt(np.diag(S))
+    am = np.asarray(s.angle_components, dtype=bool)
+    half = np.where(am, np.minimum(half, math.pi), half)
+    return ClutterWindow(np.asarray(s.h(pred_x), dtype=np.float64), half, s.angle_components)
+
+
+def cell_window(sm: SurveillanceModel, j: int, c: int) -> ClutterWindow:
+    """Sensor ``j``'s window on search cell ``c``: the box of its noise-free measurements over
+    the cell (position: the cell itself; range and bearing: the range and the bearing interval
+    the cell spans, from its corners and, where the cell straddles them, its nearest point and
+    the axis directions; a cell around the sensor spans every bearing)."""
+    s = sm.tm.sensors[j]
+    x0, x1, y0, y1 = sm.cells[c]
+    sx, sy = s.sensor_xy
+    if not any(s.angle_components):  # a position sensor: z = [x, y]
+        return ClutterWindow(
+            np.array([(x0 + x1) / 2, (y0 + y1) / 2]),
+            np.array([(x1 - x0) / 2, (y1 - y0) / 2]),
+            s.angle_components,
+        )
+    corners = np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]]) - (sx, sy)
+    near = np.array([min(max(sx, x0), x1) - sx, min(max(sy, y0), y1) - sy])
+    r_far = float(np.hypot(corners[:, 0], corners[:, 1]).max())
+    r_near = float(np.hypot(*near))
+    inside = x0 <= sx <= x1 and y0 <= sy <= y1
+    if inside:
+        b_c, b_h = 0.0, math.pi
+    else:
+        b = np.arctan2(corners[:, 1], corners[:, 0])
+        ref = math.atan2((y0 + y1) / 2 - sy, (x0 + x1) / 2 - sx)  # the cell centre's bearing
+        off = wrap_angle(b - ref)
+        lo_b, hi_b = float(off.min()), float(off.max())
+        b_c = float(wrap_angle(ref + (lo_b + hi_b) / 2))
+        b_h = max((hi_b - lo_b) / 2, 1e-9)
+    parts_c, parts_h = [], []
+    if s.dim_z == 2:
+        parts_c.append((r_near + r_far) / 2)
+        parts_h.append(max((r_far - r_near) / 2, 1e-9))
+    parts_c.append(b_c)
+    parts_h.append(b_h)
+    return ClutterWindow(np.array(parts_c), np.array(parts_h), s.angle_components)
+
+
+def window_vec(w: ClutterWindow) -> Vec:
+    """A window as the wire carries it: ``[centre..., half-width...]``."""
+    return np.concatenate([w.center, w.half_width])
+
+
+def window_from_vec(s: SensorModel, v: Vec) -> ClutterWindow:
+    """:func:`window_vec`'s inverse for a sensor of model ``s`` (``ValueError`` if it is not
+    one)."""
+    if v.shape != (2 * s.dim_z,):
+        raise ValueError(f"a window has {2 * s.dim_z} numbers, got {v.shape}")
+    return ClutterWindow(v[: s.dim_z], v[s.dim_z :], s.angle_components)
+
+
+def dwell(sm: SurveillanceModel, j: int, scan: int, states: Mat, win: ClutterWindow) -> Mat:
+    """Sensor ``j``'s returns ``(m, dim_z)`` at ``scan`` in window ``win``; ``states``
+    ``(n, 4)`` every target's true state at the scan (NaN rows: absent), as the world publishes
+    it (module docstring for the draws)."""
+    s = sm.tm.sensors[j]
+    rng = streams.sensor_stream(sm.tm.base.seed, j, scan)
+    dz = s.dim_z
+    rows: list[Mat] = []
+    X = np.asarray(states, dtype=np.float64)
+    present = np.flatnonzero(np.all(np.isfinite(X), axis=1))
+    if present.size:
+        P = X[present]
+        seen = s.in_coverage(P) & win.contains(s.h(P))
+        for i in np.flatnonzero(seen).tolist():
+            z = s.h(P[i]) + s.L @ rng.standard_normal(dz)
+            if rng.random() < s.pd:
+                rows.append(z[None, :])
+    if s.clutter_rate > 0.0:
+        n = int(rng.poisson(s.clutter_rate))
+        U = rng.random((n, dz))
+        rows.append(win.center + (2.0 * U - 1.0) * win.half_width)
+    Z = np.concatenate(rows, axis=0) if rows else np.zeros((0, dz))
+    am = np.asarray(s.angle_components, dtype=bool)
+    if am.any() and Z.shape[0]:
+        Z = np.where(am, wrap_angle(Z), Z)
+    if Z.shape[0] > 1:
+        Z = Z[rng.permutation(Z.shape[0])]
+    return np.ascontiguousarray(Z)

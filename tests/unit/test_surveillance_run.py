@@ -1,0 +1,303 @@
+"""Surveillance through the one engine (``surveillance:`` configs): the config's refusals, the
+truth, the spec's reductions (surveillance.md §6), the allocator over tracks and cells, and
+``covnet run`` end to end."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import numpy as np
+import pytest
+
+from covnet.config import ConfigError
+from covnet.core.allocation.assignment import (
+    CellTerms,
+    allocate_assignments,
+    allocate_assignments_exhaustive,
+)
+from covnet.covariance_control import drive, surveillance, targets
+from covnet.covariance_control.config import from_dict, load
+from covnet.covariance_control.surveillance_centre import SurveillanceCentre
+
+SENSORS = [
+    {
+        "id": "P1",
+        "position_m": [5000.0, 5000.0],
+        "sigma_x_m": 20.0,
+        "sigma_y_m": 10.0,
+        "rho": 0.3,
+        "max_range_m": 30000.0,
+        "pd": 1.0,
+        "clutter_rate": 0.0,
+    },
+    {
+        "id": "P2",
+        "position_m": [15000.0, 15000.0],
+        "sigma_x_m": 10.0,
+        "sigma_y_m": 20.0,
+        "rho": -0.3,
+        "max_range_m": 30000.0,
+        "pd": 1.0,
+        "clutter_rate": 0.0,
+    },
+    {
+        "id": "R1",
+        "model": "range_bearing",
+        "position_m": [0.0, 0.0],
+        "sigma_range_m": 20.0,
+        "sigma_bearing_mrad": 2.0,
+        "max_range_m": 40000.0,
+        "pd": 1.0,
+        "clutter_rate": 0.0,
+    },
+    {
+        "id": "B1",
+        "model": "bearing",
+        "position_m": [10000.0, 0.0],
+        "sigma_bearing_mrad": 1.0,
+        "max_range_m": 40000.0,
+        "pd": 1.0,
+        "clutter_rate": 0.0,
+    },
+]
+
+
+def base(**over) -> dict:
+    d = {
+        "name": "surv-test",
+        "seed": 7,
+        "scans": 16,
+        "targets": [
+            {
+                "id": "A",
+                "initial_position_m": [3000.0, 3000.0],
+                "initial_velocity_mps": [100.0, 0.0],
+            },
+            {
+                "id": "B",
+                "initial_position_m": [15000.0, 6000.0],
+                "initial_velocity_mps": [0.0, 80.0],
+                "appears_at_scan": 4,
+            },
+            {
+                "id": "C",
+                "initial_position_m": [6000.0, 16000.0],
+                "initial_velocity_mps": [-50.0, -50.0],
+                "appears_at_scan": 2,
+                "leaves_at_scan": 12,
+            },
+        ],
+        "sensors": copy.deepcopy(SENSORS),
+        "association": {"method": "jpda"},
+        "surveillance": {
+            "area": {"min_m": [0.0, 0.0], "max_m": [20000.0, 20000.0]},
+            "tracks": {
+                "confirm": {"m": 2, "n": 3},
+                "delete_after_misses": 3,
+                "initiation": {"velocity_std_mps": 150.0},
+            },
+            "search": {
+                "cells": {"nx": 2, "ny": 2},
+                "u0": 0.5,
+                "birth_intensity": 0.02,
+                "weight": 30.0,
+            },
+            "desired": {
+                "confirmed": {"diag": [400.0, 100.0, 400.0, 100.0]},
+                "tentative": {"diag": [900.0, 400.0, 900.0, 400.0]},
+            },
+        },
+        "allocation": {"metrics": ["spectral"], "search": "greedy"},
+    }
+    d.update(over)
+    return d
+
+
+def problems(d: dict) -> list[tuple[str, str]]:
+    with pytest.raises(ConfigError) as e:
+        from_dict(d)
+    return e.value.problems
+
+
+def test_every_example_config_loads_and_surveillance_yaml_is_one():
+    sc = load("configs/surveillance.yaml")
+    assert sc.surveillance is not None and sc.association.method == "jpda"
+    sm = surveillance.build(sc)
+    assert len(sm.truth_ids) >= 4 and sm.n_cells == 16
+    # four or more targets enter at different scans, one leaves
+    first = sm.exists.argmax(axis=1)
+    assert len(set(first.tolist())) >= 4
+    assert (~sm.exists[:, -1]).any()
+
+
+@pytest.mark.parametrize(
+    ("change", "path", "words"),
+    [
+        (
+            lambda d: (
+                d["surveillance"]["search"]["cells"].update(nx=8, ny=8)
+                or d.update(sensors=[dict(SENSORS[0], max_range_m=3000.0), SENSORS[3]])
+            ),
+            "surveillance.search.cells",
+            "outside every range-measuring sensor's coverage",
+        ),
+        (
+            lambda d: d["surveillance"].update(
+                births={
+                    "rate": 0.1,
+                    "regions": [{"min_m": [-500.0, 0.0], "max_m": [100.0, 2000.0]}],
+                }
+            ),
+            "surveillance.births.regions[0]",
+            "outside the area",
+        ),
+        (
+            lambda d: d["surveillance"]["tracks"]["confirm"].update(m=4, n=3),
+            "surveillance.tracks.confirm.m",
+            "<= n",
+        ),
+        (
+            lambda d: d["targets"][0].update(desired=[{"from_scan": 1, "diag": [1, 1, 1, 1]}]),
+            "targets[0].desired",
+            "truth only",
+        ),
+        (lambda d: d.update(fusion={"mode": "info"}), "fusion.mode", "central"),
+        (lambda d: d["targets"][1].update(cued=True), "targets[1].cued", "scan 1"),
+        (
+            lambda d: d["targets"][1].update(leaves_at_scan=3),
+            "targets[1].leaves_at_scan",
+            "after appears_at_scan",
+        ),
+        (
+            lambda d: d["surveillance"]["desired"]["tentative"].update(diag=[1, -1, 1, 1]),
+            "surveillance.desired.tentative",
+            "positive definite",
+        ),
+        (lambda d: d.update(sensors=[SENSORS[3]]), "sensors", "bearings alone"),
+    ],
+)
+def test_bad_values_are_refused_with_their_path(change, path, words):
+    d = base()
+    change(d)
+    got = problems(d)
+    assert any(p == path and words in m for p, m in got), got
+
+
+def test_jpda_and_appearing_targets_need_surveillance():
+    d = base()
+    del d["surveillance"]
+    for t in d["targets"]:
+        t["desired"] = [{"from_scan": 1, "diag": [100.0, 4.0, 100.0, 4.0]}]
+    got = problems(d)
+    assert any(p == "association.method" and "jpda needs" in m for p, m in got)
+    assert any(p == "targets[1].appears_at_scan" for p, m in got)
+
+
+def test_a_target_present_from_scan_1_has_the_many_target_truth_bit_for_bit():
+    sc = from_dict(base())
+    sm = surveillance.build(sc)
+    tm = targets.build(sc)
+    many = targets.truth_trajectories(tm)
+    assert np.array_equal(sm.truth[0], many[0])  # A: appears at scan 1
+    # C: exists at scans 2..11 only, starting from its configured state at scan 1's time
+    assert sm.exists[2].tolist() == [1 <= k <= 10 for k in range(16)]
+    assert np.isnan(sm.truth[2, 0]).all() and np.isnan(sm.truth[2, 11]).all()
+    assert np.allclose(sm.truth[2, 1, [0, 2]], [6000.0 - 50.0, 16000.0 - 50.0], atol=5.0)
+
+
+def test_no_search_no_clutter_one_cued_target_never_searches_nor_starts_a_track():
+    """Spec §6: λ = 0, one target known at scan 1, no clutter."""
+    d = base()
+    d["targets"] = [dict(d["targets"][0], cued=True)]
+    d["filter"] = {"initial_estimate": "truth"}  # known: the cue is the truth, with P0
+    d["surveillance"]["search"]["weight"] = 0.0
+    run = drive.run(from_dict(d), "spectral").run
+    assert run.search_dwells.sum() == 0 and run.track_dwells.sum() > 0
+    assert run.n_tracks_started == 0
+    assert all(len(rows) == 1 and rows[0][0] == 1 for rows in run.tracks)
+    assert (run.n_confirmed == 1).all() and run.n_false_tracks == 0
+
+
+def test_pd_1_no_clutter_separated_targets_all_confirmed_without_false_tracks():
+    """Spec §6: every target confirmed within n dwells of its first detection, no false
+    track."""
+    run = drive.run(from_dict(base()), "spectral").run
+    assert np.isfinite(run.time_to_confirm).all(), run.time_to_confirm
+    assert run.n_false_tracks == 0 and run.breaks == 0
+    assert run.n_tracks_started == 3  # one per target, never a second
+
+
+def test_the_run_is_a_function_of_the_config_and_seed():
+    sc = from_dict(base())
+    a, b = drive.run(sc, "spectral").run, drive.run(sc, "spectral").run
+    for f in ("gospa", "value", "u", "search_dwells"):
+        assert np.array_equal(getattr(a, f), getattr(b, f))
+
+
+def test_the_cells_mass_follows_growth_and_search():
+    sc = from_dict(base())
+    sm = surveillance.build(sc)
+    c = SurveillanceCentre(sm)
+    plan = c.decide(1, "spectral", frozenset())
+    assert plan.tracks == () and plan.subset  # no track yet: only search
+    searched = {plan.modes[j] for j in plan.subset}
+    assert searched <= set(range(4))  # cells are columns T.. = 0.. with no track
+    c.fuse(plan, {})  # nothing arrived: no search happened
+    assert np.allclose(c.u, 0.5)
+    # scan 2: the mass grew by the birth intensity; every dwell of scan 2 arrives empty
+    plan = c.decide(2, "spectral", frozenset())
+    assert np.allclose(plan.u, 0.52)
+    empty = {sc_id: _Empty(sc_id) for sc_id in (sm.sensor_ids[j] for j in plan.subset)}
+    c.fuse(plan, empty)
+    miss = {c_: 1.0 for c_ in range(4)}
+    for j in plan.subset:
+        miss[plan.modes[j]] *= 1.0 - sm.tm.sensors[j].pd  # pd = 1: a searched cell is empty
+    assert np.allclose(c.u, [0.52 * miss[c_] for c_ in range(4)])
+
+
+class _Empty:
+    def __init__(self, sid):
+        self.sensor_id, self.z = sid, np.zeros((0, 2))
+
+
+@pytest.mark.parametrize("metric", ["spectral", "kl"])
+def test_the_allocator_with_no_track_and_only_cells_equals_the_reference(metric):
+    rng = np.random.default_rng(3)
+    N, C = 5, 3
+    cells = CellTerms(
+        rng.random(C) + 0.1, 4.0, 1.0 - rng.uniform(0.5, 0.95, (N, C)), rng.random((N, C)) < 0.8
+    )
+    z = np.zeros((0, 4, 4))
+    args = (z, np.zeros((N, 0, 4, 4)), z, metric, [], np.zeros((N, 0), dtype=bool))
+    a = allocate_assignments(*args, cells=cells)
+    b = allocate_assignments_exhaustive(*args, cells=cells)
+    assert a.assignment == b.assignment and a.value == b.value
+
+
+def test_covnet_run_writes_the_surveillance_summary(tmp_path, capsys):
+    from covnet.cli.app import main
+
+    cfg = tmp_path / "s.yaml"
+    import yaml
+
+    cfg.write_text(yaml.safe_dump(base()))
+    out = tmp_path / "run"
+    assert main(["run", str(cfg), "--out", str(out), "--no-figures"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    blk = s["metrics"]["spectral"]
+    assert s["truth_ids"] == ["A", "B", "C"]
+    for key in (
+        "gospa_mean",
+        "gospa_missed",
+        "time_to_confirm",
+        "track_breaks",
+        "id_switches",
+        "search_share",
+        "false_tracks",
+    ):
+        assert key in blk
+    assert all(v is None or v >= 0 for v in blk["time_to_confirm"].values())
+    assert math.isfinite(blk["gospa_mean"])
+    assert "GOSPA" in capsys.readouterr().out
