@@ -6,7 +6,10 @@
   either None or the message the strict path (:func:`_unpack` + :func:`_build`) decodes it
   to, and None whenever the strict path refuses it;
 - :meth:`_Message.evolve` equals :func:`dataclasses.replace`; :func:`_all_finite` equals
-  numpy's element-wise test."""
+  numpy's element-wise test;
+- a process's shared decode of commands and truths (:func:`sensors.protocol.decode_command`,
+  :func:`~sensors.protocol.decode_truth`) gives what a decode of its own gives, refusals
+  included."""
 
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ from hypothesis.extra.numpy import arrays
 from covnet.wire import codec
 from covnet.wire import messages as m
 from covnet.wire.schemas import _all_finite
+from sensors import protocol
 from tests.wire.test_messages import GOLDEN_PAYLOADS, any_message, msgpack_values
 
 
@@ -189,3 +193,32 @@ def test_evolve_checks_like_the_constructor():
 def test_all_finite_is_numpys(a):
     assert _all_finite(a) == bool(np.isfinite(a).all())
     assert _all_finite(a.reshape(1, -1)) == bool(np.isfinite(a).all())
+
+
+def test_a_process_decodes_a_command_once_for_its_sensors():
+    ids = ("S1", "S2", "S3")
+    cmd = m.Command(4, 0.4, ids, 9)
+    key, payload = m.command_key("r1", ids), m.encode(cmd)
+    first = protocol.decode_command(key, payload)
+    assert first == cmd
+    assert protocol.decode_command(key, bytes(payload)) is first  # shared, not decoded again
+    other = m.Command(5, 0.5, ids, 10)
+    assert protocol.decode_command(key, m.encode(other)) == other
+    for bad_key, bad_payload, reason in [
+        (m.command_key("r1", ("S1",)), payload, "key_mismatch"),
+        (key, payload[:-1], "truncated"),
+    ]:
+        for _ in range(2):  # the kept refusal is raised again, with its reason
+            with pytest.raises(m.WireError) as exc:
+                protocol.decode_command(bad_key, bad_payload)
+            assert exc.value.reason == reason
+
+
+def test_a_process_decodes_a_truth_once_for_its_sensors():
+    tr = m.Truth(3, 0.3, ("T1",), np.ones((1, 4)))
+    key, payload = m.truth_key("r1"), m.encode(tr)
+    first = protocol.decode_truth(key, payload)
+    assert first == tr and protocol.decode_truth(key, bytes(payload)) is first
+    with pytest.raises(m.WireError) as exc:
+        protocol.decode_truth(key, m.encode(m.Status(1, 0.1, (), 1.0, 1.0, 1.0, 2)))
+    assert exc.value.reason == "wrong_kind"
