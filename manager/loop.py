@@ -40,6 +40,7 @@ from covnet.config import NetworkSpec
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, dropped
+from covnet.wire.profiling import Stages, profiled
 from manager.membership import Membership
 
 __all__ = [
@@ -168,6 +169,8 @@ class Loop:
         # the recorder must hear everything: wait for its token too (never allocated)
         self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
         self.stats = NetStats()
+        #: the scan loop's time by stage (``covnet bench up --profile``; off by default)
+        self.stages = Stages()
         # slow links: a late message goes to on_late (re-filtered or dropped, it says which);
         # a sensor that measured on a stale command is fused too
         self.on_late: Callable[[Any], bool | None] | None = None
@@ -309,6 +312,7 @@ class Loop:
         least every 0.05 s) and otherwise at most every :data:`MEMBERSHIP_POLL_S`: the scan
         began with a check, and a failed sensor sends nothing, so a wait then times out."""
         got: dict[str, Any] = {}
+        lap = self.stages.lap
         next_poll = time.monotonic() + MEMBERSHIP_POLL_S
         while waiting:
             remaining = deadline - time.monotonic()
@@ -316,8 +320,10 @@ class Loop:
                 self.stats.missing_at_deadline += len(waiting)
                 break
             s = self.meas_sub.recv(timeout=min(0.05, remaining))
+            lap("collect: wait")
             if s is not None:
                 self._take(s, episode, k, waiting, got, usable, kind)
+                lap("collect: take")
                 if time.monotonic() < next_poll:
                     continue
             next_poll = time.monotonic() + MEMBERSHIP_POLL_S
@@ -326,9 +332,11 @@ class Loop:
             if dead:
                 self.stats.missing_at_deadline += len(dead)
                 waiting -= dead
+            lap("collect: membership")
         # anything else already queued for this scan (duplicates, strays) is judged now
         while (s := self.meas_sub.try_recv()) is not None:
             self._take(s, episode, k, set(), got, usable, kind)
+        lap("collect: take")
         return got
 
     def _take(
@@ -472,8 +480,27 @@ def run_scans(
     or could not go on (``error`` set).  ``on_progress(result, episode_done)`` is called after
     every scan's report.  ``linger_s``: afterwards, up to that long for the sensors' last
     counts (:meth:`Loop.linger`)."""
+    with profiled("manager"):
+        return _run_scans(
+            logic, loop, stop, realtime=realtime, on_ready=on_ready, on_status=on_status,
+            on_progress=on_progress, linger_s=linger_s,
+        )  # fmt: skip
+
+
+def _run_scans(
+    logic: ScanLogic,
+    loop: Loop,
+    stop: threading.Event,
+    *,
+    realtime: bool,
+    on_ready: Callable[[], None] | None,
+    on_status: StatusFn | None,
+    on_progress: Callable[[Any, bool], None] | None,
+    linger_s: float,
+) -> Any:
     result, clock, net = logic.result, loop.clock, loop.net
     report = _Reporter(logic, loop, on_status, on_progress)
+    lap = loop.stages.lap
     try:
         try:
             loop.wait_ready(stop)
@@ -483,6 +510,7 @@ def run_scans(
         if on_ready is not None:
             on_ready()
         t_loop = time.perf_counter_ns()
+        loop.stages.start()
         for e in range(len(logic.episodes)):
             logic.start_episode(e)
             loop.on_late = logic.on_late
@@ -495,11 +523,14 @@ def run_scans(
                 if realtime:
                     pace(clock, t_origin + (k - 1) * logic.period_s, stop)
                 t_core0 = time.perf_counter_ns()
+                lap("other")
                 failed, events = loop.membership_changes(k, failed_prev)
                 if events:
                     logic.membership(e, k, events)
                 failed_prev = failed
+                lap("membership")
                 decision = logic.decide(e, k, failed)
+                lap("decide")
                 core_ns = time.perf_counter_ns() - t_core0
                 t_sent = clock.now_ns()
                 cmd = msg.Command(
@@ -513,8 +544,11 @@ def run_scans(
                     windows=decision.windows,
                 )
                 loop.publish_command(cmd)
+                lap("command")
                 report.run()  # scan k-1's (lockstep)
+                lap("report")
                 logic.ahead(e, k)
+                lap("ahead")
                 if realtime:
                     deadline = time.monotonic() + net.deadline_fraction * logic.period_s / speed(
                         clock
@@ -526,6 +560,7 @@ def run_scans(
                 )
                 t_core1 = time.perf_counter_ns()
                 fused = logic.fuse(e, k, got)
+                lap("fuse")
                 loop.stats.core_ns.append(core_ns + time.perf_counter_ns() - t_core1)
                 loop.stats.scans_done += 1
                 loop.stats.loop_wall_ns = time.perf_counter_ns() - t_loop
@@ -540,6 +575,7 @@ def run_scans(
         result.error = str(exc)
     finally:
         report.run()  # a stopped loop's last scan
+        loop.stages.dump("manager", scans=loop.stats.scans_done)
         loop.end()
         if linger_s > 0:
             loop.linger(linger_s, stop)

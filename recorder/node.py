@@ -42,6 +42,7 @@ from covnet.runs.recording import RecordingReader, RecordingWriter, episode_of, 
 from covnet.runs.visual import Visualiser
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, dropped
+from covnet.wire.profiling import Stages, profiled
 
 ROLE = NODE_ID = msg.RECORDER_ID
 QUIET_S = 0.2
@@ -145,6 +146,30 @@ def run(
     :func:`draw_recording`) and ``visual_errors``; with ``live`` (a
     :class:`covnet.runs.live.LiveView`) and its ``live_visualiser``, ``live`` (visual messages
     sent while the run went: :class:`_LiveFeed`)."""
+    stages = Stages()  # the recorder's CPU (covnet bench up --profile; off by default)
+    with profiled("recorder"):
+        out = _run(
+            sc, bus, run_id, clock, stop, writer, linger_s=linger_s, visualiser=visualiser,
+            live=live, live_visualiser=live_visualiser, draw_budget_s=draw_budget_s,
+        )  # fmt: skip
+    stages.dump("recorder", recorded=out["recorded"])
+    return out
+
+
+def _run(
+    sc: Networked,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    writer: RecordingWriter,
+    *,
+    linger_s: float,
+    visualiser: Visualiser | None,
+    live: Any,
+    live_visualiser: Visualiser | None,
+    draw_budget_s: float,
+) -> Counter[str]:
     counts: Counter[str] = Counter()
     sub = getattr(bus, "subscribe_stamped", bus.subscribe)(msg.run_keyexpr(run_id))
     # no grace: the recorder runs beside the manager (its router), and a manager gone without

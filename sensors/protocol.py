@@ -23,7 +23,7 @@ from __future__ import annotations
 import threading
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 from covnet.clock import Clock, WallClock
@@ -33,6 +33,7 @@ from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
 from covnet.processes.process import EXIT_OK, open_client
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample
+from covnet.wire.profiling import Stages, profiled
 from sensors.host import say
 
 
@@ -48,6 +49,47 @@ class SensorStats:
 
 TruthCheck = Callable[[msg.Truth], bool]
 Respond = Callable[[msg.Command, msg.Truth], msg.Measurement | msg.LocalTrack]
+
+
+_SHARED_MAX = 1024
+_shared: dict[tuple[str, bytes], msg.Command | msg.Truth | msg.WireError] = {}
+
+
+def _shared_decode(key: str, payload: bytes, decode: Any) -> Any:
+    """``decode()`` of the message ``payload`` received on ``key``, once for all the sensors of
+    a process (:mod:`sensors.host`): each hosted sensor receives the same commands and truths
+    (the same keys and bytes), and decoding a command, every id of its enabled set checked,
+    is most of a sensor's work for a scan when hundreds are enabled.  Outcomes are kept by key
+    and bytes (at most :data:`_SHARED_MAX`, then forgotten all at once): a message is
+    immutable, so the sensors share it; a refusal is raised again, as a new error of the same
+    reason."""
+    tag = (key, payload)
+    out = _shared.get(tag)
+    if out is None:
+        try:
+            out = decode()
+        except msg.WireError as exc:
+            out = exc
+        if len(_shared) >= _SHARED_MAX:
+            _shared.clear()
+        _shared[tag] = out
+    if isinstance(out, msg.WireError):
+        raise msg.WireError(out.reason, out.detail)
+    return out
+
+
+def decode_command(key: str, payload: bytes) -> msg.Command:
+    """:func:`covnet.wire.messages.decode_command`, shared by the sensors of a process
+    (:func:`_shared_decode`)."""
+    out: msg.Command = _shared_decode(key, payload, lambda: msg.decode_command(key, payload))
+    return out
+
+
+def decode_truth(key: str, payload: bytes) -> msg.Truth:
+    """``decode_as(payload, Truth)``, shared by the sensors of a process
+    (:func:`_shared_decode`)."""
+    out: msg.Truth = _shared_decode(key, payload, lambda: msg.decode_as(payload, msg.Truth))
+    return out
 
 
 def serve(
@@ -79,6 +121,27 @@ def serve(
     older than the scan being measured (the world sends it again for a new episode).
     ``command_ok(command)``: the kind's test of an enabling command's fields (its task for this
     sensor); one it fails is counted ``bad_value`` and not answered."""
+    with profiled(f"sensor-{sensor_id}"):
+        return _serve(
+            sensor_id, bus, run_id, clock, stop, net, truth_ok=truth_ok, respond=respond,
+            missed_command=missed_command, keep_truth=keep_truth, command_ok=command_ok,
+        )  # fmt: skip
+
+
+def _serve(
+    sensor_id: str,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+    net: NetworkSpec,
+    *,
+    truth_ok: TruthCheck,
+    respond: Respond,
+    missed_command: str | None,
+    keep_truth: bool,
+    command_ok: Callable[[msg.Command], bool] | None,
+) -> SensorStats:
     stats = SensorStats()
     # on slow links every command (a gap in the scans says one was missed), else its own
     mine = None if missed_command is not None else sensor_id
@@ -101,7 +164,7 @@ def serve(
         if s is None:
             return False
         try:
-            cmd = msg.decode_command(s.key, s.payload)
+            cmd = decode_command(s.key, s.payload)
         except msg.WireError as exc:
             stats.rejected[exc.reason] += 1
             return True
@@ -134,7 +197,7 @@ def serve(
         if s is None:
             return False
         try:
-            tr = msg.decode_as(s.payload, msg.Truth)
+            tr = decode_truth(s.key, s.payload)
         except msg.WireError as exc:
             stats.rejected[exc.reason] += 1
             return True
@@ -144,24 +207,36 @@ def serve(
         truths[tr.scan] = tr
         return True
 
+    stages = Stages()  # the loop's time by stage (covnet bench up --profile; off by default)
+    lap = stages.lap
     try:
         while not stop.is_set():
             heartbeat.tick(last_scan, stats.rejected, sent=stats.measurements_sent)
             if manager.left:
                 break
+            lap("heartbeat")
             if pending:  # waiting for a commanded scan's truth
                 take_truth(wait_s)
+                lap("wait: truth")
             else:
-                accept(cmd_sub.recv(timeout=wait_s))
+                s = cmd_sub.recv(timeout=wait_s)
+                lap("wait: command")
+                accept(s)
+                lap("command")
             while accept(cmd_sub.try_recv()):
                 pass
             while take_truth(None):
                 pass
+            lap("drain")
             while pending:
                 cmd = pending[0]
                 if cmd.scan in truths:
-                    out = replace(respond(cmd, truths[cmd.scan]), seq=stats.measurements_sent + 1)
-                    bus.publish(meas_key, msg.encode(out))
+                    out = respond(cmd, truths[cmd.scan]).evolve(seq=stats.measurements_sent + 1)
+                    lap("respond")
+                    payload = msg.encode(out)
+                    lap("encode")
+                    bus.publish(meas_key, payload)
+                    lap("publish")
                     stats.measurements_sent += 1
                     if not keep_truth:
                         for old in [k for k in truths if k < cmd.scan - 1]:
@@ -175,6 +250,7 @@ def serve(
         heartbeat.tick(last_scan, stats.rejected, sent=stats.measurements_sent, now=True)
         token.undeclare()
         manager.close()
+        stages.dump(f"sensor-{sensor_id}", sent=stats.measurements_sent)
     return stats
 
 

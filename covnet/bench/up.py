@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import resource
 import sys
 import time
 from collections.abc import Sequence
@@ -51,7 +52,7 @@ def _covnet_row(
     per_process: int | None,
     foxglove: str | None = None,
 ) -> dict[str, Any]:
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), _children_cpu_s()
     sink = io.StringIO()
     try:
         with contextlib.redirect_stdout(sink):
@@ -61,7 +62,7 @@ def _covnet_row(
             )  # fmt: skip
     except UpError as exc:  # with what the processes said (it went to the sink)
         raise UpError(f"{exc}; the run's last output:\n{sink.getvalue()[-3000:]}") from None
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
     if status != 0:
         raise UpError(f"covnet up failed (status {status}):\n{sink.getvalue()[-3000:]}")
     net = json.loads((out / "network.json").read_text())
@@ -74,7 +75,15 @@ def _covnet_row(
         "core_p50_ms": net["core"]["p50_ms"],
         "core_share": net["core_share"],
         "measurement_p50_ms": net["measurement_latency"]["p50_ms"],
+        "cpu_ms_per_scan": 1e3 * cpu / max(net["scans"], 1),
     }
+
+
+def _children_cpu_s() -> float:
+    """CPU seconds (user + system) of this process's children that have ended: a run's
+    processes, all of them, from start-up to exit, when taken before and after it."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 def run(
@@ -139,13 +148,16 @@ def probe(
         for rid in hosted:
             argv += ["--id", rid]
         specs.append(ProcessSpec(f"responders-{name}", argv))
+    cpu0 = _children_cpu_s()
     with Supervisor(specs, on_line=lambda name, line: None) as sup:
         rc = sup.wait("commander", timeout=600)
         lines = sup.output("commander")
+    cpu = _children_cpu_s() - cpu0
     result = next((ln for ln in lines if ln.startswith("RESULT ")), None)
     if rc != 0 or result is None:
         raise RuntimeError(f"the zenoh probe failed (status {rc}): {lines[-20:]}")
     out: dict[str, Any] = json.loads(result[len("RESULT ") :])
+    out["cpu_ms_per_scan"] = 1e3 * cpu / max(scans, 1)
     return out
 
 
@@ -190,6 +202,7 @@ def run_sizes(
                 "probe_scans_per_s": pr["scans_per_s"],
                 "probe_p50_ms": pr["p50_ms"],
                 "probe_p99_ms": pr["p99_ms"],
+                "probe_cpu_ms_per_scan": pr["cpu_ms_per_scan"],
                 "ratio": row["scans_per_s"] / pr["scans_per_s"],
             }
             rows.append(row)

@@ -48,6 +48,8 @@ float64 arrays). Arrays held by messages are read-only.
 
 from __future__ import annotations
 
+import math
+import threading
 from typing import Any, TypeVar
 
 import msgpack
@@ -57,6 +59,7 @@ from numpy.typing import NDArray
 from covnet.wire.keys import _CMD_SEP, _enabled_chunk
 from covnet.wire.schemas import (
     _BY_KIND,
+    _GOOD_NAMES,
     MAX_ARRAY_ELEMENTS,
     MAX_IDS,
     MAX_PAYLOAD_BYTES,
@@ -91,17 +94,42 @@ def _default(obj: object) -> msgpack.ExtType:
     raise TypeError(f"cannot encode {type(obj).__name__}")
 
 
+_packers = threading.local()
+
+
+def _packer() -> msgpack.Packer:
+    """This thread's packer (one per thread: a packer's buffer is its own while it packs)."""
+    try:
+        return _packers.packer
+    except AttributeError:
+        p = _packers.packer = msgpack.Packer(default=_default, use_bin_type=True)
+        return p
+
+
+_INNER_HEAD = b"\x93\xa3<f8"  # the inner list's header and its dtype, as packb writes them
+
+
+def _array_ext(a: NDArray[np.float64], pack: Any) -> msgpack.ExtType:
+    """:func:`_default`'s ext of a float64 array, its inner list packed in pieces (the same
+    bytes: a list of three is its header and its items one after another)."""
+    a = np.ascontiguousarray(a, dtype=_WIRE_DTYPE)
+    return msgpack.ExtType(_EXT_NDARRAY, _INNER_HEAD + pack(list(a.shape)) + pack(a.tobytes()))
+
+
 def encode(msg: Message) -> bytes:
     """``msg`` as msgpack bytes: ``{"v": SCHEMA_VERSION, "k": KIND, ...fields}``."""
     if not isinstance(msg, _Message):
         raise TypeError(f"not a message: {type(msg).__name__}")
+    pack = _packer().pack
     d: dict[str, object] = {"v": SCHEMA_VERSION, "k": msg.KIND}
-    for name, _, _ in _spec(type(msg)).fields:
+    for name, kind, _ in _spec(type(msg)).fields:
         value = getattr(msg, name)
         if value is None:  # optional and unset: omitted
             continue
+        if kind == "mat" or kind == "vec":
+            value = _array_ext(value, pack)
         d[name] = value
-    return msgpack.packb(d, default=_default, use_bin_type=True)
+    return pack(d)
 
 
 _INNER_LIMITS: dict[str, Any] = {
@@ -242,6 +270,138 @@ def _build(cls: type[_M], obj: dict[str, Any]) -> _M:
     return msg
 
 
+# --------------------------------------------------------------------------------------------
+# the fast path: what encode produces, decoded with no check done twice
+# --------------------------------------------------------------------------------------------
+
+
+class _Decline(Exception):
+    """The fast path does not take this payload: the strict path judges it."""
+
+
+_SUM_CHECK_MAX = 64  # up to this many elements, finiteness is summed in Python, else numpy
+
+
+def _fast_ext(code: int, data: bytes) -> NDArray[np.float64]:
+    """The array ext as :func:`encode` writes it (``[dtype, shape, bin]``, dims as positive
+    fixints, bin 8/16/32), finite, within the caps: the same read-only float64 array as
+    :func:`_ext_hook`; anything else declines (the strict path says why)."""
+    if code != _EXT_NDARRAY or not data.startswith(_INNER_HEAD) or len(data) < 9:
+        raise _Decline
+    ndim, d0 = data[5], data[6]
+    if d0 > 0x7F:  # dims as positive fixints only
+        raise _Decline
+    if ndim == 0x91:  # [n]
+        shape: tuple[int, ...] = (d0,)
+        size, pos = d0, 7
+    elif ndim == 0x92 and data[7] <= 0x7F:  # [n, m]
+        shape, size, pos = (d0, data[7]), d0 * data[7], 8
+    else:
+        raise _Decline
+    tag = data[pos]
+    if tag == 0xC4:
+        n, pos = data[pos + 1], pos + 2
+    elif tag == 0xC5:
+        n, pos = int.from_bytes(data[pos + 1 : pos + 3], "big"), pos + 3
+    elif tag == 0xC6:
+        n, pos = int.from_bytes(data[pos + 1 : pos + 5], "big"), pos + 5
+    else:
+        raise _Decline
+    if n != 8 * size or len(data) != pos + n or size > MAX_ARRAY_ELEMENTS:
+        raise _Decline
+    a = np.frombuffer(data, dtype=_F8, count=size, offset=pos).reshape(shape)
+    if _F8_NATIVE and size <= _SUM_CHECK_MAX:
+        # the sum of float64s is finite only if every one is (an inf or a NaN stays one); a
+        # sum that overflows declines, and the strict path checks element by element
+        if not math.isfinite(sum(memoryview(data)[pos:].cast("d"))):
+            raise _Decline
+    elif not np.isfinite(a).all():
+        raise _Decline
+    return a if _F8_NATIVE else a.astype(np.float64)
+
+
+_SCALARS = frozenset({"count", "stamp", "float"})
+
+
+def _fast(payload: bytes, cls: type[_M]) -> _M | None:
+    """``payload`` as ``cls`` when it is what :func:`encode` writes (a map of
+    :data:`SCHEMA_VERSION` and ``cls``'s kind, the fields canonical msgpack, every array the
+    canonical ext, finite); None for anything else, which the strict path then judges.
+
+    Equivalence: a payload this returns a message for is one the strict path decodes to an
+    equal message (same fields, same types, read-only arrays): the same msgpack parse (a C
+    ``unpackb``; its default limits are the payload's length, and the caps the strict path
+    sets are checked on what it returns), the same field checks (:func:`_coerce` for scalars
+    and ids, the class's ``_check``), and arrays from :func:`_fast_ext`, which accepts only
+    finite arrays within the caps of the layout :func:`_ext_hook` reads the same way (``tests/
+    wire/test_fast_codec.py`` checks it on mutated payloads)."""
+    if type(payload) is not bytes or len(payload) > MAX_PAYLOAD_BYTES:
+        return None
+    try:
+        obj = msgpack.unpackb(payload, raw=False, ext_hook=_fast_ext)
+    except Exception:  # noqa: BLE001 (any refusal or oddity: the strict path says why)
+        return None
+    if type(obj) is not dict:
+        return None
+    version = obj.get("v")
+    if type(version) is not int or version != SCHEMA_VERSION or obj.get("k") != cls.KIND:
+        return None
+    spec = _spec(cls)
+    if not spec.keys.issuperset(obj):
+        return None
+    msg = object.__new__(cls)
+    setattr_ = object.__setattr__
+    get = obj.get
+    good = _GOOD_NAMES
+    try:
+        for name, kind, optional in spec.fields:
+            value = get(name, _OMITTED)
+            if value is _OMITTED:
+                if not optional:
+                    return None
+                setattr_(msg, name, None)
+            elif kind == "name":  # an id seen valid before (new ones: the strict path)
+                if type(value) is not str or value not in good:
+                    return None
+                setattr_(msg, name, value)
+            elif kind == "names":
+                if type(value) is not list or len(value) > MAX_IDS or not good.issuperset(value):
+                    return None
+                ids = tuple(value)
+                if len(set(ids)) != len(ids):
+                    return None
+                setattr_(msg, name, ids)
+            elif kind in _SCALARS:
+                setattr_(msg, name, _coerce(kind, name, value, True))
+            elif kind == "mat" or kind == "vec":
+                if type(value) is not np.ndarray or value.ndim != (2 if kind == "mat" else 1):
+                    return None
+                setattr_(msg, name, value)  # checked by _fast_ext
+            else:  # maps: the strict checks (their strings and arrays too)
+                if type(value) is not dict or len(value) > MAX_IDS or not _fits(value):
+                    return None
+                setattr_(msg, name, _coerce(kind, name, value, True))
+        msg._check()
+    except WireError:
+        return None
+    return msg
+
+
+def _fits(d: dict[Any, Any]) -> bool:
+    """A map field within the strict parse's limits: str keys, no string over its cap, no
+    list of ids over :data:`MAX_IDS`."""
+    for k, v in d.items():
+        if type(k) is not str or len(k) > _MAX_STR_LEN:
+            return False
+        if type(v) is str and len(v) > _MAX_STR_LEN:
+            return False
+        if type(v) is list and (
+            len(v) > MAX_IDS or not all(type(x) is str and len(x) <= _MAX_STR_LEN for x in v)
+        ):
+            return False
+    return True
+
+
 def decode(payload: bytes) -> Message:
     """Decode any message kind; raises :class:`WireError` (and nothing else) on bad bytes."""
     obj = _unpack(payload)
@@ -253,7 +413,12 @@ def decode(payload: bytes) -> Message:
 
 
 def decode_as(payload: bytes, cls: type[_M]) -> _M:
-    """Decode a payload from a key that admits only ``cls``; another kind is ``wrong_kind``."""
+    """Decode a payload from a key that admits only ``cls``; another kind is ``wrong_kind``.
+    What :func:`encode` writes takes the fast path (:func:`_fast`), anything else the strict
+    one (the same message or the same :class:`WireError`)."""
+    fast = _fast(payload, cls)
+    if fast is not None:
+        return fast
     obj = _unpack(payload)
     kind = obj["k"]
     if type(kind) is not str or kind != cls.KIND:
@@ -273,7 +438,8 @@ def decode_command(key: str, payload: bytes) -> Command:
         or root.count("/") != 1
         or not root.startswith("covnet/")
         or chunk != _enabled_chunk(cmd.enabled)
-        or any(_CMD_SEP in sid for sid in cmd.enabled)  # "~a~b~" would also name ("a~b",)
+        # "~a~b~" would also name ("a~b",): the chunk has one separator more than ids
+        or chunk.count(_CMD_SEP) != len(cmd.enabled) + 1
     ):
         raise WireError("key_mismatch", f"{key!r} does not name the enabled {cmd.enabled!r}")
     return cmd

@@ -27,11 +27,21 @@ def _name_problem(value: object) -> str | None:
     return None
 
 
+# Ids already found valid: most keys and messages repeat the same few, and checking one costs
+# a regex search.  Bounded: once full, new ids are checked every time.
+_GOOD_NAMES: set[str] = set()
+_GOOD_NAMES_MAX = 4096
+
+
 def _valid(value: object, what: str) -> str:
+    if type(value) is str and value in _GOOD_NAMES:
+        return value
     problem = _name_problem(value)
     if problem is not None:
         raise ValueError(f"invalid {what} {value!r}: {problem}")
     assert isinstance(value, str)
+    if type(value) is str and len(_GOOD_NAMES) < _GOOD_NAMES_MAX:
+        _GOOD_NAMES.add(value)
     return value
 
 

@@ -11,12 +11,12 @@ import typing
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields
 from types import MappingProxyType, UnionType
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from covnet.wire.keys import MAX_NAME_LEN, _name_problem
+from covnet.wire.keys import _GOOD_NAMES, _GOOD_NAMES_MAX, MAX_NAME_LEN, _name_problem
 
 MAX_ARRAY_ELEMENTS = 1 << 20
 """Largest number of elements in one array (8 MiB of float64)."""
@@ -113,12 +113,6 @@ def _is_int(v: object, strict: bool) -> bool:
     if strict:
         return type(v) is int
     return isinstance(v, int | np.integer) and not isinstance(v, bool | np.bool_)
-
-
-# Ids already found valid (see _name_problem): most messages repeat the same few, and checking
-# one costs a regex search.  Bounded: once full, new ids are checked every time.
-_GOOD_NAMES: set[str] = set()
-_GOOD_NAMES_MAX = 4096
 
 
 def _coerce(kind: str, name: str, v: object, strict: bool) -> Any:
@@ -287,9 +281,24 @@ def _coerce_array(name: str, v: object, ndim: int, strict: bool) -> NDArray[np.f
         raise WireError("bad_shape", f"{name} must be {ndim}-D, got shape {a.shape}")
     if a.size > MAX_ARRAY_ELEMENTS:
         raise WireError("too_large", f"{name} has {a.size} elements > {MAX_ARRAY_ELEMENTS}")
-    if not np.isfinite(a).all():
+    if not _all_finite(a):
         raise WireError("non_finite", f"{name} has NaN or inf")
     return a
+
+
+_SUM_CHECK_MAX = 64
+"""Arrays up to this many elements are checked for finiteness by summing them in Python
+(:func:`_all_finite`), a few times faster than numpy's element-wise test on such sizes."""
+
+
+def _all_finite(a: NDArray[np.float64]) -> bool:
+    """Whether every element of ``a`` is finite.  A small array's sum decides when it is
+    finite: a sum of float64s with an inf or a NaN among them is inf or NaN (IEEE 754), so a
+    finite sum means finite elements; a sum that is not (those, or an overflow of finite
+    ones) is settled element by element."""
+    if a.size <= _SUM_CHECK_MAX and math.isfinite(sum(a.ravel().tolist())):
+        return True
+    return bool(np.isfinite(a).all())
 
 
 # --------------------------------------------------------------------------------------------
@@ -306,6 +315,7 @@ class _Spec:
     fields: tuple[tuple[str, str, bool], ...]
     keys: frozenset[str]
     kinds: Mapping[str, str]
+    optional: frozenset[str]
 
 
 _SPECS: dict[type, _Spec] = {}
@@ -321,7 +331,8 @@ def _spec(cls: type) -> _Spec:
             for f in fields(cls)
         )
         kinds = MappingProxyType({name: kind for name, kind, _ in out})
-        spec = _SPECS[cls] = _Spec(out, frozenset(kinds) | {"v", "k"}, kinds)
+        optional = frozenset(name for name, _, opt in out if opt)
+        spec = _SPECS[cls] = _Spec(out, frozenset(kinds) | {"v", "k"}, kinds, optional)
     return spec
 
 
@@ -346,6 +357,9 @@ class _FieldKinds:
         return _spec(cls).kinds
 
 
+_Self = TypeVar("_Self", bound="_Message")
+
+
 class _Message:
     """Base of every message: field validation, and value equality (arrays compared exactly)."""
 
@@ -363,6 +377,29 @@ class _Message:
 
     def _check(self) -> None:
         """Cross-field consistency (shapes); overridden where there is some."""
+
+    def evolve(self: _Self, **changes: Any) -> _Self:
+        """This message with ``changes`` (field name -> value), validated as a constructor
+        validates them (:func:`dataclasses.replace` of it, without checking the fields that
+        stay again: they were checked when this message was built, and its arrays are
+        read-only, so the copy shares them)."""
+        cls = type(self)
+        spec = _spec(cls)
+        out = object.__new__(cls)
+        setattr_ = object.__setattr__
+        for name in spec.kinds:
+            setattr_(out, name, getattr(self, name))
+        optional = spec.optional
+        for name, value in changes.items():
+            kind = spec.kinds.get(name)
+            if kind is None:
+                raise TypeError(f"{cls.__name__} has no field {name!r}")
+            if value is None and name in optional:
+                setattr_(out, name, None)
+            else:
+                setattr_(out, name, _coerce(kind, name, value, strict=False))
+        out._check()
+        return out
 
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
