@@ -74,6 +74,67 @@ def _peer(args: Any, sc: Scenario, stop: threading.Event) -> int:
     return EXIT_OK
 
 
+def run_surveillance(
+    sc: Scenario,
+    sensor_id: str,
+    bus: Bus,
+    run_id: str,
+    clock: Clock,
+    stop: threading.Event,
+) -> SensorStats:
+    """A sensor of a surveillance scenario (``surveillance:``): a command that enables it
+    names its mode (``K<id>``, a track, or ``C<c>``, a search cell) and its window; it
+    returns every present target's measurement inside the window and its clutter
+    (:func:`covnet.covariance_control.surveillance.dwell`, the draws ``covnet run`` makes),
+    from the world's truth of the targets present at the scan."""
+    # start-up: the surveillance world only for configs with surveillance
+    from covnet.covariance_control import surveillance
+
+    sm = surveillance.build(sc)
+    j = sm.sensor_ids.index(sensor_id)
+    model = sm.tm.sensors[j]
+    index = {tid: i for i, tid in enumerate(sm.truth_ids)}
+    side = SensorSide.of_process(sc, sm, j)
+
+    def truth_ok(tr: msg.Truth) -> bool:
+        return all(t in index for t in tr.target_ids) and tr.states.shape == (
+            len(tr.target_ids), 4,
+        )  # fmt: skip
+
+    def command_ok(cmd: msg.Command) -> bool:
+        task = (cmd.targets or {}).get(sensor_id)
+        if task is None or len(task) != 1 or not surveillance.is_task(task[0], sm.n_cells):
+            return False
+        v = (cmd.windows or {}).get(sensor_id)
+        if v is None:
+            return False
+        try:
+            surveillance.window_from_vec(model, v)
+        except ValueError:
+            return False
+        return True
+
+    def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement | msg.LocalTrack:
+        win = surveillance.window_from_vec(model, (cmd.windows or {})[sensor_id])
+        states = np.full((len(sm.truth_ids), 4), np.nan)
+        for i, tid in enumerate(tr.target_ids):
+            states[index[tid]] = tr.states[i]
+        return _wire(side.survey(cmd.episode, cmd.scan, win, states), cmd, clock)
+
+    return serve(
+        sensor_id,
+        bus,
+        run_id,
+        clock,
+        stop,
+        sc.network,
+        truth_ok=truth_ok,
+        respond=respond,
+        keep_truth=sm.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
+        command_ok=command_ok,
+    )
+
+
 def run_targets(
     sc: Scenario,
     sensor_id: str,
@@ -147,6 +208,8 @@ def run(
     scan (lazily, scan by scan up to the commanded one: the same arithmetic as predicting at
     every scan) and updates at the scans it is enabled; a new episode restarts it from the
     initial estimate.  Many targets: :func:`run_targets`."""
+    if sc.surveillance is not None:
+        return run_surveillance(sc, sensor_id, bus, run_id, clock, stop)
     if sc.multitarget:
         return run_targets(sc, sensor_id, bus, run_id, clock, stop)
     model = build_model(sc)

@@ -36,7 +36,13 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     """Serve truth until ``stop`` is set; returns counters (``published``, and
     ``rejected:<reason>`` for every malformed or out-of-range command dropped)."""
     model = build_model(sc)
-    if sc.multitarget:  # every target's truth: (scans, T, 4)
+    if sc.surveillance is not None:  # every target that ever exists: (scans, n, 4), NaN absent
+        # start-up: the surveillance world only for configs with surveillance
+        from covnet.covariance_control import surveillance
+
+        sm = surveillance.build(sc)
+        truth, ids = np.swapaxes(sm.truth, 0, 1), sm.truth_ids
+    elif sc.multitarget:  # every target's truth: (scans, T, 4)
         # start-up: the many-target model only for configs with targets
         from covnet.covariance_control import targets
 
@@ -82,7 +88,8 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
 class _TruthPublisher:
     """``publish(k0, hi)`` publishes ``Truth(k)`` for ``k0 <= k <= min(hi, scans)`` and returns
     the last scan published (counted as ``published``); ``truth`` is ``(scans, T, 4)``, row
-    ``t`` of a scan the state of target ``target_ids[t]``."""
+    ``t`` of a scan the state of target ``target_ids[t]`` (NaN rows: a surveillance target
+    absent at the scan, left out of its message)."""
 
     def __init__(
         self,
@@ -101,7 +108,11 @@ class _TruthPublisher:
         hi = min(hi, self.model.scans)
         T, truth = self.model.T, self.truth
         for k in range(k0, hi + 1):
-            tr = msg.Truth(scan=k, t=k * T, target_ids=self.target_ids, states=truth[k - 1])
+            X, ids = truth[k - 1], self.target_ids
+            here = np.all(np.isfinite(X), axis=1)
+            if not here.all():  # surveillance: only the targets present at the scan
+                X, ids = X[here], tuple(t for t, h in zip(ids, here, strict=True) if h)
+            tr = msg.Truth(scan=k, t=k * T, target_ids=ids, states=X)
             self.bus.publish(self.key, msg.encode(tr))
             self.counts["published"] += 1
         return hi

@@ -221,6 +221,8 @@ def write_network_run(
     """The manager's run directory (and the replay's): the same files as ``covnet run`` for
     the scans done, plus ``network.json`` (the bus's own record) and the failures seen; safe
     to call repeatedly while the run goes on."""
+    if sc.surveillance is not None:
+        return _write_surveillance_network_run(out, sc, result, run_info)
     if sc.multitarget:
         return _write_targets_network_run(out, sc, result, run_info)
     model = build_model(sc)
@@ -432,6 +434,24 @@ def _write_targets_network_run(
     extra, info = _network_facts(result)
     info.update(run_info or {})
     summary = write_targets_run(out, sc, tm, runs, extra=extra, run_info=info)
+    write_json(out / "network.json", result.stats.as_dict())
+    return summary
+
+
+def _write_surveillance_network_run(
+    out: Path, sc: Scenario, result: ManagerResult, run_info: dict[str, Any] | None
+) -> dict[str, Any]:
+    """:func:`write_network_run` of a surveillance run (the episodes are
+    :class:`~covnet.covariance_control.surveillance_log.SurveillanceLog` s)."""
+    # start-up: the surveillance world only for configs with surveillance
+    from covnet.covariance_control import surveillance
+    from covnet.covariance_control.surveillance_results import write_surveillance_run
+
+    sm = surveillance.build(sc)
+    runs = {m: log.as_run() for m, log in result.episodes.items() if log.value}
+    extra, info = _network_facts(result)
+    info.update(run_info or {})
+    summary = write_surveillance_run(out, sc, sm, runs, extra=extra, run_info=info)
     write_json(out / "network.json", result.stats.as_dict())
     return summary
 

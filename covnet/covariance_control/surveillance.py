@@ -231,6 +231,15 @@ def cell_window(sm: SurveillanceModel, j: int, c: int) -> ClutterWindow:
     return ClutterWindow(np.array(parts_c), np.array(parts_h), s.angle_components)
 
 
+def is_task(task: str, n_cells: int) -> bool:
+    """A command's task for a sensor: ``K<id>`` (a track, id >= 1) or ``C<c>`` (a cell
+    ``0 <= c < n_cells``)."""
+    if len(task) < 2 or task[0] not in "KC" or not task[1:].isdigit():
+        return False
+    n = int(task[1:])
+    return n >= 1 if task[0] == "K" else n < n_cells
+
+
 def window_vec(w: ClutterWindow) -> Vec:
     """A window as the wire carries it: ``[centre..., half-width...]``."""
     return np.concatenate([w.center, w.half_width])

@@ -116,12 +116,16 @@ class SurvPlan:
 @dataclass
 class ScanEvents:
     """What a scan's fusion did: tracks started (with the cell whose search found them, or
-    None), confirmed and deleted (ids); per sensor the returns it sent."""
+    None), confirmed and deleted (ids); per sensor the returns it sent; the live tracks and
+    the cells' mass after it."""
 
     started: list[tuple[int, int | None]] = field(default_factory=list)
     confirmed: list[int] = field(default_factory=list)
     deleted: list[int] = field(default_factory=list)
     returns: dict[int, int] = field(default_factory=dict)
+    # after the scan (a driver may decide the next scan before it reports this one)
+    tracks: tuple[Track, ...] = ()
+    u: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 class SurveillanceCentre:
@@ -332,6 +336,7 @@ class SurveillanceCentre:
             # a target found by a dwell that did not search its cell takes its unit out
             self.u = remove_found(self.u, found)
         self._too_wide(k, ev)
+        ev.tracks, ev.u = mgr.live(), self.u.copy()
         return ev
 
     def _too_wide(self, k: int, ev: ScanEvents) -> None:

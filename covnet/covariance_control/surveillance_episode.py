@@ -49,13 +49,11 @@ class SurveillanceEpisode:
 
     def record(self, plan: Any, fused: Any, got: dict[str, Any]) -> None:
         ev, deleted = fused
-        self.log.record(
-            plan.detail, list(self.centre.tracks), ev, deleted, self.centre.u, sorted(got)
-        )
+        self.log.record(plan.detail, ev.tracks, ev, deleted, ev.u, sorted(got))
 
     def outcome(self, plan: Any, fused: Any, got: dict[str, Any]) -> Any:
         sp = plan.detail
-        live = self.centre.tracks
+        live = fused[0].tracks
         k = plan.k
         P_d = self.centre.P_d
         return Outcome(

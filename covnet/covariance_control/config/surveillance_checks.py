@@ -61,7 +61,14 @@ def _target_keys(sc: Scenario, spec: SurveillanceSpec | None) -> list[tuple[str,
             if not t.desired:
                 problems.append((f"{where}.desired", "missing required key (its schedule)"))
             continue
-        for key in sorted(t.model_fields_set - set(_TRUTH_ONLY)):
+        # a key the manager would use, given a value (a normalised config spells out defaults)
+        defaults = type(t).model_fields
+        given = [
+            k
+            for k in sorted(t.model_fields_set - set(_TRUTH_ONLY))
+            if getattr(t, k) != defaults[k].get_default(call_default_factory=True)
+        ]
+        for key in given:
             problems.append(
                 (
                     f"{where}.{key}",
