@@ -241,6 +241,8 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
     """``covnet sweep``: the latency grid of the config's ``sweep`` section."""
     from covnet.covariance_control import sweep as sw  # start-up time of the other commands
 
+    if sc.surveillance is not None:
+        return _surveillance_sweep(args, sc)
     if sc.multitarget:
         raise UsageError(
             "sweep: the latency grid runs the one-target scenario; with 'targets:' give "
@@ -292,6 +294,61 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
 
     total = len(points) * seeds
     return _batch_results(sw, args, sc, out, work, total, "grid point", meta, title, key)
+
+
+def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
+    """``covnet sweep`` of a surveillance config: the search weight λ over
+    ``sweep.search_weight``, each with ``sweep.seeds`` (or ``--seeds``) seeds
+    (:mod:`covnet.covariance_control.surveillance_batch`); ``sweep.csv``/``.json``, the table
+    and ``sweep.png``."""
+    # start-up: the surveillance batch only for configs with surveillance
+    from covnet.batches.pool import write_rows
+    from covnet.covariance_control import surveillance_batch as sb
+
+    spec = sc.sweep
+    if spec is None or spec.search_weight is None:
+        raise UsageError(
+            "sweep: a surveillance config sweeps the search weight: give "
+            "sweep: {search_weight: [0, 5, 20, 50], seeds: 8}"
+        )
+    for opt in ("cluster", "ci_width"):
+        if getattr(args, opt, None) is not None:
+            raise UsageError(f"--{opt.replace('_', '-')}: not for a surveillance sweep")
+    if args.seeds is not None and args.seeds < 1:
+        raise UsageError(f"--seeds: must be >= 1, got {args.seeds}")
+    seeds = args.seeds or spec.seeds
+    out = _batch_out(args, f"{sc.name}-sweep", "sweep", f"surveillance-{sc.name}")
+    weights = list(spec.search_weight)
+    print(
+        f"sweeping {sc.name}: search weight {weights} x {seeds} seeds = "
+        f"{len(weights) * seeds} runs, metrics {', '.join(sc.allocation.metrics)}",
+        file=sys.stderr,
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    rows, outcome = sb.weight_sweep(
+        sc, weights, seeds, out=out, workers=getattr(args, "workers", None),
+        progress=BatchProgress("sweep"),
+    )  # fmt: skip
+    flat = [
+        {"search_weight": r["search_weight"], "metric": r["metric"], "seeds": r["seeds"],
+         **{f"{k}_mean": r[k]["mean"] for k in sb.SCALARS},
+         **{f"{k}_ci95": r[k]["ci95"] for k in sb.SCALARS}}
+        for r in rows
+    ]  # fmt: skip
+    meta = {"scenario": sc.name, "seeds": seeds, "first_seed": sc.seed, "surveillance": True}
+    # sweep.json: every row in full (each scalar's interval); sweep.csv: means and intervals
+    full = [{**r, **f} for r, f in zip(rows, flat, strict=True)]
+    write_rows(out, "sweep", full, meta, list(flat[0]))
+    write_json(out / CONFIG, normalised(sc))
+    end_batch(out, outcome.total, "seed", runs_run=outcome.ran, runs_skipped=outcome.skipped,
+              wall_s=outcome.wall_s, **outcome.backend)  # fmt: skip
+    fig = None if args.no_figures else sb.sweep_figure(out, rows)
+    print(sb.sweep_table(rows))
+    print(f"results: {out / 'sweep.json'}  ({time.perf_counter() - t0:.1f} s)")
+    if fig is not None:
+        print(f"figure: {fig}")
+    return EXIT_OK
 
 
 def mc(args: argparse.Namespace, sc: Scenario) -> int:

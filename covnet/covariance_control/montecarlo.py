@@ -51,6 +51,11 @@ _SCALARS = ("allocation_rate", "mean_ospa", "mean_gospa")
 def run_seed(cfg_data: Mapping[str, Any], seed: int) -> dict[str, Any]:
     """One seed in a worker (top level so it pickles): every metric's run, summarised."""
     sc = from_dict({**cfg_data, "seed": seed}, f"seed {seed}")
+    if sc.surveillance is not None:
+        # start-up: the surveillance batch only for configs with surveillance
+        from covnet.covariance_control.surveillance_batch import seed_row
+
+        return seed_row(cfg_data, seed)
     return _targets_seed(sc) if sc.multitarget else _paper_seed(sc)
 
 
@@ -292,6 +297,23 @@ def write_mc(
             },
         },
     )
+    if sc.surveillance is not None:
+        # start-up: the surveillance batch only for configs with surveillance
+        from covnet.covariance_control.surveillance_batch import aggregate as surv_aggregate
+
+        doc = {
+            "kind": MC_KIND,
+            "scenario": sc.name,
+            "config_hash": config_hash(sc),
+            "seeds": list(seeds),
+            "metrics": list(sc.allocation.metrics),
+            "surveillance": True,
+            "aggregate": surv_aggregate(clean) if clean else {},
+            "per_seed": clean,
+        }
+        write_json(out_dir / MC_FILE, doc)
+        write_json(out_dir / CONFIG, normalised(sc))
+        return doc
     from covnet.covariance_control import targets  # start-up: the desired traces only
 
     tm = targets.build(sc)
@@ -320,6 +342,13 @@ def json_rows(doc: Mapping[str, Any]) -> list[dict[str, Any]]:
     metric's own, such as the allocation rate, in each of its rows), the batch NEES (and NIS)
     and the seeds whose track was lost; the per-scan series stay in ``montecarlo.json``."""
     rows = []
+    if doc.get("surveillance"):  # one row per metric: its scalars' intervals
+        from covnet.covariance_control.surveillance_batch import SCALARS  # start-up
+
+        for m, blk in doc["aggregate"].items():
+            rows.append({"metric": m, "seeds": list(doc["seeds"]),
+                         **{k: blk[k] for k in SCALARS}})  # fmt: skip
+        return rows
     for m, blk in doc["aggregate"].items():
         own = {k: v for k, v in blk.items() if k in _SCALARS}
         for tid, t in blk["targets"].items():
@@ -346,6 +375,10 @@ def format_table(doc: Mapping[str, Any]) -> str:
         lo, hi = b["ci95"]
         return f"{fmt.format(b['mean'])} [{fmt.format(lo)}, {fmt.format(hi)}]"
 
+    if doc.get("surveillance"):
+        from covnet.covariance_control import surveillance_batch  # start-up
+
+        return surveillance_batch.format_table(doc["aggregate"], len(doc["seeds"]))
     lines = [f"{len(doc['seeds'])} seeds, means with 95 % confidence intervals"]
     for m, blk in doc["aggregate"].items():
         head = f"  {m}: allocation rate {ci(blk['allocation_rate'], '{:.3f}')}"

@@ -68,6 +68,11 @@ def make_figures(run_dir: Path) -> list[Path]:
     cfg = json.loads((run_dir / "config.json").read_text())
     summary = json.loads((run_dir / "summary.json").read_text())
     arrays = load_arrays(run_dir / "arrays.npz")
+    if "truth_ids" in arrays:
+        # start-up: the surveillance figures only for surveillance runs
+        from covnet.covariance_control.surveillance_plots import make_surveillance_figures
+
+        return make_surveillance_figures(run_dir)
     if "target_ids" in arrays:
         return make_target_figures(run_dir, cfg, summary, arrays)
     metrics = [str(m) for m in arrays["metrics"]]
@@ -378,6 +383,11 @@ def mc_figure(mc_dir: Path) -> Path:
     targets) and each target's mean ``tr P_t`` against ``tr P_d,t``, with 95 % intervals."""
     doc = json.loads((mc_dir / "montecarlo.json").read_text())
     agg = doc["aggregate"]
+    if doc.get("surveillance"):
+        # start-up: the surveillance figures only for surveillance batches
+        from covnet.covariance_control.surveillance_plots import mc_figure as surv_mc_figure
+
+        return surv_mc_figure(mc_dir, doc)
     metrics = list(agg)
     tids = list(next(iter(agg.values()))["targets"]) if agg else []
     has_ospa = bool(agg) and "ospa_per_scan" in next(iter(agg.values()))

@@ -29,7 +29,8 @@ class SurveillanceRun:
     """One metric's surveillance run: per scan (``(K,)`` arrays) ``gospa`` and its parts
     (``gospa_loc``, ``gospa_missed``, ``gospa_false``: the ``p``-th powers, as GOSPA sums
     them), ``ospa``, ``n_truth`` and ``n_confirmed`` / ``n_tentative``, ``u_sum`` (``Σ u_c``
-    after the scan), ``search_dwells`` / ``track_dwells``, ``value``, ``decision_s``; the
+    after the scan), ``search_dwells`` / ``track_dwells``, ``value`` and its tracks' part
+    ``track_value`` (``Σ_t w_t f(P_t, P_d,t)``), ``decision_s``; the
     tracks of every scan (``tracks[k-1]``: rows ``(id, state, x, P)`` after the scan's
     fusion, deleted ones included at the scan they were deleted), the cells' mass ``u``
     ``(K, C)``, the GOSPA ``pairs[k-1]`` (truth index, track id), and the continuity summary
@@ -50,6 +51,7 @@ class SurveillanceRun:
     search_dwells: np.ndarray
     track_dwells: np.ndarray
     value: np.ndarray
+    track_value: np.ndarray
     decision_s: np.ndarray
     tracks: list[list[TrackRow]]
     pairs: list[list[tuple[int, int]]]
@@ -113,6 +115,7 @@ class SurveillanceLog:
                 "tracks": rows,
                 "started": list(ev.started),
                 "decision_s": plan.decision_s,
+                "track_value": float(plan.value - plan.search_value),
             }
         )
         self.value.append(float(plan.value))
@@ -154,6 +157,7 @@ class SurveillanceLog:
             col("search", int),
             col("track", int),
             np.asarray(self.value, dtype=float),
+            col("track_value"),
             col("decision_s"),
             [r["tracks"] for r in R],
             pairs,

@@ -141,6 +141,8 @@ def normalised(sc: Scenario) -> dict[str, Any]:
     with ``targets:`` leaves out the one-target ``target`` and ``desired`` it does not use, and
     says ``network.latency.missed_command: off``, what it does."""
     later = ("evaluation", *(f"allocation.{f}" for f in _ADDED))
+    if sc.sweep is not None:  # the surveillance grid, added later: left out while unset
+        later = (*later, "sweep.search_weight")
     if not sc.multitarget:
         data = _normalised(sc, (*_PAPER_OMITS, *later))
         for s in data["sensors"]:

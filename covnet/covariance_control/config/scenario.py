@@ -39,7 +39,8 @@ class SweepSpec(ConfigModel):
     sensor: ``network.latency.sensors`` is not used), the loss probability
     ``loss`` (both directions), the fusion ``modes``, ``account_for_loss`` and the ``late``
     policy, each run with ``seeds`` seeds from the config's.  ``metric``: the allocation metric
-    (default: the config's first)."""
+    (default: the config's first).  With ``surveillance:`` the grid is ``search_weight`` (each
+    λ >= 0) instead, over every metric."""
 
     delay_ms: tuple[Float, ...] = (0.0, 100.0, 200.0, 400.0)
     delay_kind: Literal["constant", "exponential", "uniform"] = "exponential"
@@ -49,6 +50,8 @@ class SweepSpec(ConfigModel):
     late: tuple[Literal["oosm", "drop"], ...] = ("oosm",)
     seeds: Int = Field(default=4, ge=1, le=10_000)
     metric: MetricName | None = None
+    # surveillance: the grid of the search weight λ (the latency axes are not used)
+    search_weight: tuple[Float, ...] | None = None
 
     @field_validator("delay_ms")
     @classmethod

@@ -92,6 +92,14 @@ def surveillance_problems(sc: Scenario) -> list[tuple[str, str]]:
     """Every problem of the surveillance keys (module docstring)."""
     spec = sc.surveillance
     problems = _target_keys(sc, spec)
+    grid = None if sc.sweep is None else sc.sweep.search_weight
+    if grid is not None:
+        if spec is None:
+            problems.append(("sweep.search_weight", "only with 'surveillance:' (λ of the search)"))
+        elif not grid or any(w < 0 for w in grid):
+            problems.append(("sweep.search_weight", f"give weights >= 0, got {list(grid)}"))
+        elif spec.search is None:
+            problems.append(("sweep.search_weight", "needs surveillance.search (its cells)"))
     if spec is None:
         if sc.association.method == "jpda":
             problems.append(

@@ -1,0 +1,224 @@
+"""Batches of surveillance runs: ``covnet mc`` (seeds) and ``covnet sweep`` over the search
+weight λ (``sweep.search_weight``), each seed one in-process run through the engine in a worker
+of the batch layer (:mod:`covnet.batches.trials`: on the local cores, written to ``OUT/trials``
+as it finishes, the same command resumes).
+
+Per seed and metric (:func:`seed_row`): the scalars of the run's summary
+(:func:`~covnet.covariance_control.surveillance_results.surveillance_summary`) with
+``rmse_tracked`` (``√(Σ localisation / Σ pairs)`` over the scans: the position RMSE of the
+confirmed tracks that hold a target) and ``track_value`` (the mean over scans of the tracks'
+``Σ_t w_t f(P_t, P_d,t)``: the covariance-control term the search competes with), and per scan
+the GOSPA, its missed part and the cardinality.  Aggregates: per scalar the mean over seeds,
+its 95 % Student interval (``covnet.batches.stats.t_half_width``), the median, min and max;
+per scan the mean and its interval.
+
+The sweep (:func:`weight_sweep`): every ``λ`` of the grid with the same seeds; its table and
+figure read the trade-off: time to confirm and the missed-target part of GOSPA (what search
+buys) against the tracked targets' ``f`` and RMSE (what it costs).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from covnet.batches.stats import t_half_width
+from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
+from covnet.covariance_control.config import Scenario, from_dict, normalised
+
+__all__ = ["SCALARS", "aggregate", "format_table", "seed_row", "weight_sweep"]
+
+#: the per-seed scalars (summary keys and the two derived ones)
+SCALARS = (
+    "gospa_mean", "gospa_missed", "gospa_false", "gospa_localisation", "ospa_mean",
+    "cardinality_error_mean", "time_to_confirm_mean", "missed_targets", "track_breaks",
+    "id_switches", "false_tracks", "search_share", "rmse_tracked", "track_value",
+)  # fmt: skip
+
+
+def seed_row(data: Mapping[str, Any], seed: int) -> dict[str, Any]:
+    """One seed (a worker's task; top level so it pickles): every metric's run, summarised."""
+    # start-up: the workers import what the config needs
+    from covnet.covariance_control import drive, surveillance
+    from covnet.covariance_control.surveillance_results import surveillance_summary
+
+    sc = from_dict({**data, "seed": seed}, f"seed {seed}")
+    sm = surveillance.build(sc)
+    out: dict[str, Any] = {"seed": seed, "surveillance": True, "metrics": {},
+                           "decision_time_s": {}}  # fmt: skip
+    for m in sc.allocation.metrics:
+        r = drive.run(sc, m, sm).run
+        out["decision_time_s"][m] = float(np.median(r.decision_s))
+        s = surveillance_summary(r, sm.truth_ids)
+        pairs = sum(len(p) for p in r.pairs)
+        row = {k: s[k] for k in SCALARS if k in s}
+        row["rmse_tracked"] = math.sqrt(float(r.gospa_loc.sum()) / pairs) if pairs else None
+        row["track_value"] = float(np.mean(r.track_value)) if r.track_value.size else None
+        row["gospa"] = r.gospa.tolist()
+        row["gospa_missed_per_scan"] = r.gospa_missed.tolist()
+        row["n_confirmed"] = r.n_confirmed.tolist()
+        row["n_truth"] = r.n_truth.tolist()
+        out["metrics"][m] = row
+    return out
+
+
+def _seeds(task: tuple[Mapping[str, Any], list[int]]) -> list[dict[str, Any]]:
+    data, seeds = task
+    return [seed_row(data, s) for s in seeds]
+
+
+def interval(values: Sequence[float | None]) -> dict[str, Any]:
+    """Mean, standard deviation (ddof 1), 95 % interval of the mean (Student's t; ``None``
+    for one value), median, min, max, and how many seeds gave a value."""
+    v = np.asarray([x for x in values if x is not None], dtype=np.float64)
+    if v.size == 0:
+        return {"mean": None, "ci95": None, "median": None, "min": None, "max": None, "n": 0}
+    mean = float(v.mean())
+    ci = None
+    sd = None
+    if v.size > 1:
+        sd = float(v.std(ddof=1))
+        h = float(t_half_width(sd, v.size))
+        ci = [mean - h, mean + h]
+    return {"mean": mean, "std": sd, "ci95": ci, "median": float(np.median(v)),
+            "min": float(v.min()), "max": float(v.max()), "n": int(v.size)}  # fmt: skip
+
+
+def _series(rows: Sequence[Sequence[float]]) -> dict[str, list[float]]:
+    a = np.asarray(rows, dtype=np.float64)
+    mean = a.mean(axis=0)
+    if a.shape[0] < 2:
+        return {"mean": mean.tolist(), "ci95_low": mean.tolist(), "ci95_high": mean.tolist()}
+    h = t_half_width(a.std(axis=0, ddof=1), a.shape[0])
+    return {"mean": mean.tolist(), "ci95_low": (mean - h).tolist(),
+            "ci95_high": (mean + h).tolist()}  # fmt: skip
+
+
+def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Per metric: every scalar's :func:`interval` over the seeds; per scan the GOSPA and the
+    confirmed tracks with their intervals (module docstring)."""
+    out: dict[str, Any] = {}
+    for m in rows[0]["metrics"]:
+        per = [r["metrics"][m] for r in rows]
+        blk: dict[str, Any] = {k: interval([p.get(k) for p in per]) for k in SCALARS}
+        blk["gospa_per_scan"] = _series([p["gospa"] for p in per])
+        blk["n_confirmed_per_scan"] = _series([p["n_confirmed"] for p in per])
+        out[m] = blk
+    return out
+
+
+def _ci(b: Mapping[str, Any], fmt: str = "{:.2f}") -> str:
+    if b["mean"] is None:
+        return "-"
+    if b["ci95"] is None:
+        return fmt.format(b["mean"])
+    lo, hi = b["ci95"]
+    return f"{fmt.format(b['mean'])} [{fmt.format(lo)}, {fmt.format(hi)}]"
+
+
+def format_table(agg: Mapping[str, Any], n_seeds: int) -> str:
+    """The headline numbers of :func:`aggregate`, means with their 95 % intervals."""
+    lines = [f"{n_seeds} seeds, means with 95 % confidence intervals"]
+    for m, b in agg.items():
+        lines.append(
+            f"  {m}: GOSPA {_ci(b['gospa_mean'], '{:.1f}')} m, time to confirm "
+            f"{_ci(b['time_to_confirm_mean'], '{:.1f}')} scans, missed targets "
+            f"{_ci(b['missed_targets'])}, false tracks {_ci(b['false_tracks'])}, breaks "
+            f"{_ci(b['track_breaks'])}, search share {_ci(b['search_share'], '{:.3f}')}, "
+            f"tracked RMSE {_ci(b['rmse_tracked'], '{:.1f}')} m"
+        )
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# the sweep over the search weight
+
+
+def _point(weight: float) -> str:
+    return f"search.weight={weight:g}"
+
+
+def weight_sweep(
+    sc: Scenario,
+    weights: Sequence[float],
+    n_seeds: int,
+    *,
+    out: Path | None = None,
+    workers: int | None = None,
+    progress: BatchProgress | None = None,
+) -> tuple[list[dict[str, Any]], Outcome]:
+    """Every weight of ``weights`` over ``n_seeds`` seeds from the config's: one row per
+    weight and metric with the aggregate's intervals (module docstring)."""
+    data = normalised(sc)
+    points = [_point(w) for w in weights]
+    by_point = dict(zip(points, weights, strict=True))
+
+    def task(point: str, seeds: list[int]) -> tuple[dict[str, Any], list[int]]:
+        d = {**data, "surveillance": {**data["surveillance"]}}
+        d["surveillance"]["search"] = {**d["surveillance"]["search"], "weight": by_point[point]}
+        return d, seeds
+
+    key = None
+    if out is not None:
+        base = {k: v for k, v in data.items() if k != "seed"}
+        key = trial_hash("sweep", {"kind": "surveillance", "config": base})
+    b = Batch("sweep", _seeds, task, points, first_seed=sc.seed)
+    outcome = run_trials(b, n_seeds, out=out, key=key, workers=workers, progress=progress)
+    rows = []
+    for p in points:
+        agg = aggregate(outcome.results[p])
+        for m, blk in agg.items():
+            rows.append({"search_weight": by_point[p], "metric": m, "seeds": outcome.seeds[p],
+                         **{k: blk[k] for k in SCALARS}})  # fmt: skip
+    return rows, outcome
+
+
+def sweep_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """The sweep's rows: per weight and metric the trade-off's numbers with their intervals."""
+    lines = ["λ (search.weight) | metric | time to confirm | GOSPA missed part | tracked f | "
+             "tracked RMSE (m) | search share"]  # fmt: skip
+    for r in rows:
+        lines.append(
+            f"{r['search_weight']:g} | {r['metric']} | {_ci(r['time_to_confirm_mean'], '{:.1f}')}"
+            f" | {_ci(r['gospa_missed'], '{:.0f}')} | {_ci(r['track_value'], '{:.3g}')} | "
+            f"{_ci(r['rmse_tracked'], '{:.1f}')} | {_ci(r['search_share'], '{:.2f}')}"
+        )
+    return "\n".join(lines)
+
+
+def sweep_figure(out: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
+    """``sweep.png``: against λ, the time to confirm and the missed-target GOSPA part (left),
+    the tracked targets' f and RMSE (right), each mean with its 95 % interval."""
+    # start-up: matplotlib only for the figure
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7), layout="constrained")
+    panels = [("time_to_confirm_mean", "time to confirm (scans)"),
+              ("gospa_missed", "GOSPA missed part (m²)"),
+              ("track_value", "tracked targets' Σ w f"),
+              ("rmse_tracked", "tracked position RMSE (m)")]  # fmt: skip
+    for ax, (key, label) in zip(axes.ravel(), panels, strict=True):
+        for m in sorted({str(r["metric"]) for r in rows}):
+            rr = [r for r in rows if r["metric"] == m and r[key]["mean"] is not None]
+            x = np.array([r["search_weight"] for r in rr])
+            y = np.array([r[key]["mean"] for r in rr])
+            lo = np.array([(r[key]["ci95"] or [r[key]["mean"]] * 2)[0] for r in rr])
+            hi = np.array([(r[key]["ci95"] or [r[key]["mean"]] * 2)[1] for r in rr])
+            ax.errorbar(x, y, yerr=[y - lo, hi - y], marker="o", capsize=3, label=m)
+        ax.set_xlabel("search weight λ")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    n = rows[0]["seeds"] if rows else 0
+    fig.suptitle(f"Search against track: means over {n} seeds with 95 % intervals")
+    path = out / "sweep.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

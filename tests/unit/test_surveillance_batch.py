@@ -1,0 +1,59 @@
+"""``covnet mc`` and ``covnet sweep`` (over the search weight λ) of a surveillance config, end to
+end through the CLI: intervals over the seeds, the same rows whatever the workers, and the
+sweep's reductions (λ = 0 never searches)."""
+
+from __future__ import annotations
+
+import json
+
+import yaml
+from test_surveillance_run import base
+
+from covnet.cli.app import main
+
+
+def small(tmp_path, **over):
+    d = base(scans=8)
+    d.update(over)
+    p = tmp_path / "s.yaml"
+    p.write_text(yaml.safe_dump(d))
+    return p
+
+
+def test_mc_gives_intervals_over_the_seeds(tmp_path, capsys):
+    cfg = small(tmp_path)
+    out = tmp_path / "mc"
+    args = ["mc", str(cfg), "--trials", "3", "--out", str(out), "--no-figures"]
+    assert main(args) == 0
+    doc = json.loads((out / "montecarlo.json").read_text())
+    assert doc["surveillance"] is True and doc["seeds"] == [7, 8, 9]
+    blk = doc["aggregate"]["spectral"]
+    g = blk["gospa_mean"]
+    assert g["n"] == 3 and g["ci95"][0] <= g["mean"] <= g["ci95"][1]
+    assert len(blk["gospa_per_scan"]["mean"]) == 8
+    assert "95 % confidence" in capsys.readouterr().out
+    # the first seed's row is covnet run's
+    run = tmp_path / "run"
+    assert main(["run", str(cfg), "--out", str(run), "--no-figures"]) == 0
+    s = json.loads((run / "summary.json").read_text())["metrics"]["spectral"]
+    assert doc["per_seed"][0]["metrics"]["spectral"]["gospa_mean"] == s["gospa_mean"]
+
+
+def test_sweep_over_the_search_weight(tmp_path, capsys):
+    cfg = small(tmp_path, sweep={"search_weight": [0.0, 30.0], "seeds": 2})
+    out = tmp_path / "sw"
+    assert main(["sweep", str(cfg), "--out", str(out)]) == 0
+    doc = json.loads((out / "sweep.json").read_text())
+    rows = {r["search_weight"]: r for r in doc["rows"]}
+    assert set(rows) == {0.0, 30.0}
+    assert rows[0.0]["search_share"]["mean"] == 0.0  # λ = 0 never searches
+    assert rows[0.0]["time_to_confirm_mean"]["n"] == 0  # nothing is ever found
+    assert rows[30.0]["search_share"]["mean"] > 0.0
+    assert (out / "sweep.png").exists() and (out / "sweep.csv").exists()
+    assert "search.weight" in capsys.readouterr().out
+
+
+def test_a_sweep_without_the_weight_grid_says_what_to_give(tmp_path, capsys):
+    cfg = small(tmp_path)
+    assert main(["sweep", str(cfg), "--out", str(tmp_path / "x")]) == 2
+    assert "search_weight" in capsys.readouterr().err
