@@ -212,6 +212,7 @@ def sweep_figure(out: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
             lo = np.array([(r[key]["ci95"] or [r[key]["mean"]] * 2)[0] for r in rr])
             hi = np.array([(r[key]["ci95"] or [r[key]["mean"]] * 2)[1] for r in rr])
             ax.errorbar(x, y, yerr=[y - lo, hi - y], marker="o", capsize=3, label=m)
+        ax.set_xscale("symlog", linthresh=1.0)  # λ = 0 and decades of λ on one axis
         ax.set_xlabel("search weight λ")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -29,6 +30,7 @@ from covnet.core.consistency import nees
 from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import build_model
+from covnet.errors import UsageError
 from covnet.runs.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
 from covnet.wire import messages as msg
 
@@ -42,7 +44,14 @@ class Visual:
         self.sc = sc
         self.ids = sc.sensor_ids
         self.episodes = list(sc.allocation.metrics)
-        if sc.multitarget:
+        if sc.surveillance is not None:
+            # the tracks are the manager's (K<id>), each drawn against the confirmed P_d
+            d = sc.surveillance.desired.confirmed
+            P_conf = np.diag(d.diag) if d.diag is not None else np.asarray(d.matrix, np.float64)
+            self.target_ids: tuple[str, ...] = ()
+            self._desired: dict[str, Any] = {}
+            self._track_desired = P_conf
+        elif sc.multitarget:
             # start-up: the many-target model only for configs with targets
             from covnet.covariance_control import targets
 
@@ -63,6 +72,8 @@ class Visual:
             self.marker = 0.0  # set per scan from the desired covariance
 
     def desired(self, tid: str, k: int) -> np.ndarray:
+        if tid not in self._desired:  # surveillance: a track of the manager's
+            return np.asarray(self._track_desired)
         return np.asarray(self._desired[tid](k))
 
     def view(self, scan: ScanMessages) -> View:
@@ -73,12 +84,13 @@ class Visual:
         truth: dict[str, np.ndarray] = {}
         if scan.truth is not None:
             truth = {tid: scan.truth.states[i] for i, tid in enumerate(scan.truth.target_ids)}
-        sd = float(np.sqrt(max(self.desired(t, k)[0, 0] for t in self.target_ids)))
+        ids = self.target_ids or tuple(tr.target_id or "" for tr in scan.tracks) or ("",)
+        sd = float(np.sqrt(max(self.desired(t, k)[0, 0] for t in ids)))
         view = View(frame="world_m", marker=self.marker or max(sd / 2.0, 0.5))
         view.truths = [(tid, (float(x[0]), float(x[2]), 0.0)) for tid, x in truth.items()]
         for tr in scan.tracks:
             tid = tr.target_id or self.target_ids[0]
-            Pd = self.desired(tid, k) if tid in self._desired else None
+            Pd = self.desired(tid, k) if tid in self._desired or not self.target_ids else None
             xt = truth.get(tid)
             view.estimates.append(
                 Estimate(
@@ -128,6 +140,11 @@ def run_messages(sc: Scenario, run_dir: Path) -> Iterator[msg.Message]:
     """The scans of an in-process run directory (``arrays.npz``) as the manager and the world
     would have sent them: per episode and scan a Command, the Truth, the Track(s) and the
     Status (no Measurement: ``covnet run`` keeps no raw measurement)."""
+    if sc.surveillance is not None:
+        raise UsageError(
+            "--mcap: a surveillance run's scene is recorded by covnet up (covnet up CONFIG "
+            "--foxglove); covnet run --mcap draws the known-target scenarios"
+        )
     a = np.load(run_dir / "arrays.npz")
     ids = sc.sensor_ids
     ts = a["t"]

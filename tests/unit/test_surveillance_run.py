@@ -301,3 +301,29 @@ def test_covnet_run_writes_the_surveillance_summary(tmp_path, capsys):
     assert all(v is None or v >= 0 for v in blk["time_to_confirm"].values())
     assert math.isfinite(blk["gospa_mean"])
     assert "GOSPA" in capsys.readouterr().out
+
+
+def test_the_live_view_draws_the_managers_tracks(tmp_path, capsys):
+    """The Foxglove view of a surveillance scan: the present truths, every track K<id> against
+    the confirmed P_d; covnet run --mcap says where the scene is recorded instead."""
+    from covnet.cli.app import main
+    from covnet.covariance_control.visual import Visual
+    from covnet.runs.visual import ScanMessages
+    from covnet.wire import messages as msg
+
+    sc = from_dict(base())
+    st = msg.Status(scan=3, t=3.0, enabled=("P1",), trace_P=10.0, trace_Pd=20.0, value=1.0,
+                    t_sent_ns=0, episode=0, fused=("P1",))  # fmt: skip
+    tr = msg.Truth(scan=3, t=3.0, target_ids=("A",), states=np.array([[3300.0, 100, 3000, 0]]))
+    track = msg.Track(scan=3, t=3.0, x=np.array([3310.0, 90, 2990, 0]), P=np.eye(4) * 50,
+                      t_sent_ns=0, episode=0, target_id="K1")  # fmt: skip
+    view = Visual(sc).view(ScanMessages(0, 3, st, None, tr, {}, [track]))
+    assert [t for t, _ in view.truths] == ["A"]
+    (est,) = view.estimates
+    assert est.id == "K1" and est.desired_xy is not None and est.f is not None
+    cfg = tmp_path / "s.yaml"
+    import yaml
+
+    cfg.write_text(yaml.safe_dump(base()))
+    rc = main(["run", str(cfg), "--out", str(tmp_path / "r"), "--no-figures", "--mcap"])
+    assert rc == 2 and "covnet up" in capsys.readouterr().err
