@@ -474,6 +474,10 @@ class Metric:
       range) is refused by the config;
     - ``relaxation``: a convex bound over the information form (:class:`Relaxation`), tighter
       than the interval bound where it applies;
+    - ``dual_bound``: the metric is a norm of ``P - P_d`` with a known dual ball
+      (:class:`covnet.core.allocation.lower_bounds.DualNorm`): a weak-duality bound of the
+      norm's convex relaxation over the information form, tighter than the interval bound
+      where it applies;
     - ``batch_invariant``: ``f`` of a stack equals ``f`` one matrix at a time, bit for bit (see
       the module docstring); otherwise the searches prune with a margin and recheck near ties.
 
@@ -485,14 +489,19 @@ class Metric:
     interval_bound: object = None  # an IntervalBound, a Ref to one, or None
     relaxation: Relaxation | None = None
     batch_invariant: bool = False
+    dual_bound: object = None  # a DualNorm, a Ref to one, or None
 
     def __call__(self, A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
         return self.fn(A, B)
 
 
-def _builtin(name: str, fn: MetricFn, relaxation: Relaxation | None = None) -> Metric:
+def _builtin(
+    name: str, fn: MetricFn, relaxation: Relaxation | None = None, dual: bool = False
+) -> Metric:
     """A built-in metric: batch-invariant, with both bounds (named ``<NAME>_BOUND`` in
-    :mod:`covnet.core.allocation._fast` and :mod:`covnet.core.allocation.interval_bounds`)."""
+    :mod:`covnet.core.allocation._fast` and :mod:`covnet.core.allocation.interval_bounds`),
+    and with ``dual`` the dual bound ``<NAME>_DUAL`` of
+    :mod:`covnet.core.allocation.lower_bounds`."""
     attr = f"{name.upper()}_BOUND"
     return Metric(
         name,
@@ -501,18 +510,21 @@ def _builtin(name: str, fn: MetricFn, relaxation: Relaxation | None = None) -> M
         interval_bound=Ref("covnet.core.allocation.interval_bounds", attr),
         relaxation=relaxation,
         batch_invariant=True,
+        dual_bound=(
+            Ref("covnet.core.allocation.lower_bounds", f"{name.upper()}_DUAL") if dual else None
+        ),
     )
 
 
 METRICS: dict[str, Metric] = {
     m.name: m
     for m in (
-        _builtin("spectral", spectral),
-        _builtin("abs_trace", abs_trace),
+        _builtin("spectral", spectral, dual=True),
+        _builtin("abs_trace", abs_trace, dual=True),
         _builtin("svd", svd),
         _builtin("frobenius", frobenius, Relaxation("frobenius")),
-        _builtin("one_norm", one_norm),
-        _builtin("inf_norm", inf_norm),
+        _builtin("one_norm", one_norm, dual=True),
+        _builtin("inf_norm", inf_norm, dual=True),
         _builtin("trace_diff", trace_diff),
         _builtin("logdet", logdet, Relaxation("logdet")),
         _builtin("kl", kl, Relaxation("kl")),

@@ -311,8 +311,11 @@ class _Search:
         Z0 = prob.base[None]
         sB = prob.summary(Z0)
         sA = prob.summary(Z0 + prob.suffix[0])
-        lb = prob.combine(sA, sB)
-        lb = prob.refine(Z0, Z0 + prob.suffix[0], lb, sB, self.tau)
+        if prob.dual is not None:  # the dual bound's full run, kept for the certificate
+            lb = np.array([prob.root_bound()])
+        else:
+            lb = prob.combine(sA, sB)
+            lb = prob.refine(Z0, Z0 + prob.suffix[0], lb, sB, self.tau)
         self.n_nodes += 1
         nb = (prob.m + 7) // 8
         root = _Chunk(0, Z0, np.array([k0]), np.zeros((1, nb), dtype=np.uint8), sA, sB, lb)

@@ -39,6 +39,7 @@ from covnet.core.allocation.exact import (
     _spd_error,
 )
 from covnet.core.allocation.interval_bounds import DesiredConstants, IntervalBound, search_context
+from covnet.core.allocation.lower_bounds import DualNorm, _DualBound
 from covnet.core.allocation.relaxation import LOGDET_CONVEX, _cho_solve, _cholesky, _Relaxation
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import MetricFn, capability
@@ -169,6 +170,14 @@ class _Problem:
                 self.relax = _Relaxation(self, relaxation)
             except np.linalg.LinAlgError:  # P_d not SPD: the metric itself will say so
                 self.relax = None
+        self.dual: _DualBound | None = None
+        self._root_bound: float | None = None
+        dual = capability(entry.dual_bound, DualNorm) if entry is not None else None
+        if self.bound is not None and dual is not None and self.r == 2:
+            try:
+                self.dual = _DualBound(self, dual)
+            except ValueError:  # too many atoms for this state dimension
+                self.dual = None
 
     def _reduced(self) -> None:
         P, n, s, r = self.P_pred, self.n, self.s, self.r
@@ -237,7 +246,15 @@ class _Problem:
             return self.bound.summary(self.covariances(Z), self.dc)
 
     def refine(self, Z_lo: Mat, Z_hi: Mat, lb: Mat, sB: Mat, tau: float) -> Mat:
-        """``lb`` raised by the reduced relaxation (:class:`_Relaxation`) where it applies."""
+        """``lb`` raised by the reduced relaxation (:class:`_Relaxation`) or the dual bound
+        (:class:`~covnet.core.allocation.lower_bounds._DualBound`) where it applies."""
+        if self.dual is not None and lb.size:
+            rows = np.flatnonzero(lb <= tau)
+            if rows.size == 0:
+                return lb
+            out = lb.copy()
+            out[rows] = np.fmax(lb[rows], self.dual.bound(Z_lo[rows], Z_hi[rows], tau))
+            return out
         if self.relax is None or lb.size == 0:
             return lb
         rows = np.flatnonzero(lb <= tau)
@@ -330,11 +347,16 @@ class _Problem:
 
     def root_bound(self) -> float:
         """The bound of the root interval ``[P(req ∪ all free), P(req)]``, raised by the
-        reduced relaxation where it applies; without an interval bound ``0`` for a registered
-        metric (an entry of :data:`covnet.core.metrics.METRICS` is ``>= 0``), ``-inf`` for a
-        user's plain function."""
+        reduced relaxation or the dual bound where it applies; without an interval bound ``0``
+        for a registered metric (an entry of :data:`covnet.core.metrics.METRICS` is ``>= 0``),
+        ``-inf`` for a user's plain function."""
         if self.bound is None:
             return 0.0 if self.name is not None else -math.inf
+        if self._root_bound is None:
+            self._root_bound = self._root()
+        return self._root_bound
+
+    def _root(self) -> float:
         Z0 = self.base[None]
         Z1 = Z0 + self.suffix[0]
         sA = self.summary(Z1)
