@@ -178,3 +178,56 @@ def curves_of(results: Mapping[str, Sequence[Mapping[str, Any]]]) -> dict[str, n
     out["points"] = np.asarray(keys, dtype=str)
     out["seeds"] = np.asarray([len(results[k]) for k in keys], dtype=np.int64)
     return out
+
+
+def interval(values: Sequence[float | None]) -> dict[str, Any]:
+    """Mean, standard deviation (ddof 1), the 95 % confidence interval of the mean (Student's
+    t; ``None`` for one value), median, min, max and how many values (``None`` ones are left
+    out): every Monte Carlo scalar's summary over seeds."""
+    v = np.asarray([x for x in values if x is not None], dtype=np.float64)
+    if v.size == 0:
+        return {
+            "mean": None,
+            "std": None,
+            "ci95": None,
+            "median": None,
+            "min": None,
+            "max": None,
+            "n": 0,
+        }
+    mean = float(v.mean())
+    if v.size < 2:
+        return {
+            "mean": mean,
+            "std": None,
+            "ci95": None,
+            "median": mean,
+            "min": mean,
+            "max": mean,
+            "n": 1,
+        }
+    sd = float(v.std(ddof=1))
+    half = float(t_half_width(sd, v.size))
+    return {
+        "mean": mean,
+        "std": sd,
+        "ci95": [mean - half, mean + half],
+        "median": float(np.median(v)),
+        "min": float(v.min()),
+        "max": float(v.max()),
+        "n": int(v.size),
+    }
+
+
+def per_scan_interval(rows: Sequence[Sequence[float]]) -> dict[str, list[float]]:
+    """Per scan (``rows``: one series per seed): the mean over seeds and its 95 % interval."""
+    a = np.asarray(rows, dtype=np.float64)
+    mean = a.mean(axis=0)
+    if a.shape[0] < 2:
+        return {"mean": mean.tolist(), "ci95_low": mean.tolist(), "ci95_high": mean.tolist()}
+    half = t_half_width(a.std(axis=0, ddof=1), a.shape[0])
+    return {
+        "mean": mean.tolist(),
+        "ci95_low": (mean - half).tolist(),
+        "ci95_high": (mean + half).tolist(),
+    }

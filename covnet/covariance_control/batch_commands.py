@@ -115,6 +115,8 @@ def compare_policies(args: argparse.Namespace, sc: Scenario) -> int:
         raise UsageError(f"--runs: at least 2 runs for the 95 % intervals, got {args.runs}")
     opts = batch_options(args, args.runs)
     cp.check(sc, policies, budget)  # every refusal before a directory is made
+    if sc.surveillance is not None:
+        return _surveillance_policies(args, sc, policies, budget, opts)
     key = cp.trial_key(sc, metric)
     out = _batch_out(args, f"{sc.name}-compare-policies", "compare", key)
     extra = 1 if budget == cp.MATCH and cp.REFERENCE not in policies else 0
@@ -164,6 +166,57 @@ def compare_policies(args: argparse.Namespace, sc: Scenario) -> int:
     return _batch_results(
         cp, args, sc, out, work, total, "policy", meta, title, key, more_meta=budgets
     )
+
+
+def _surveillance_policies(
+    args: argparse.Namespace, sc: Scenario, policies: list[str], budget: Any, opts: Any
+) -> int:
+    """``covnet compare --policies`` of a surveillance config
+    (:func:`covnet.covariance_control.surveillance_batch.policy_compare`): ``compare.json`` /
+    ``.csv`` and the table."""
+    # start-up: the surveillance batch only for configs with surveillance
+    from covnet.batches.pool import write_rows
+    from covnet.covariance_control import surveillance_batch as sb
+
+    if not isinstance(budget, int) and budget is not None:
+        raise UsageError("--budget match: not with a surveillance config; give --budget K")
+    if opts.cluster is not None:
+        raise UsageError("--cluster: a surveillance comparison runs on this machine's cores")
+    out = _batch_out(args, f"{sc.name}-compare-policies", "compare", f"surveillance-{sc.name}")
+    print(
+        f"comparing policies {', '.join(policies)} on {sc.name}: {args.runs} seeds from "
+        f"{sc.seed} (the same for each)" + (f", budget K = {budget}" if budget else ""),
+        file=sys.stderr,
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    rows, outcome = sb.policy_compare(
+        sc, policies, budget, args.runs, out=out, workers=opts.workers,
+        progress=BatchProgress("compare"),
+    )  # fmt: skip
+    flat = [
+        {"policy": r["point"], "metric": r["metric"], "seeds": r["seeds"],
+         **{f"{k}_mean": r[k]["mean"] for k in sb.SCALARS},
+         **{f"{k}_ci95": r[k]["ci95"] for k in sb.SCALARS}}
+        for r in rows
+    ]  # fmt: skip
+    meta = {
+        "scenario": sc.name,
+        "compared": "policies",
+        "policies": policies,
+        "runs": args.runs,
+        "first_seed": sc.seed,
+        "budget": budget,
+        "surveillance": True,
+    }
+    write_rows(out, "compare", [{**r, **f} for r, f in zip(rows, flat, strict=True)], meta,
+               list(flat[0]))  # fmt: skip
+    write_json(out / CONFIG, normalised(sc))
+    end_batch(out, outcome.total, "seed", runs_run=outcome.ran, runs_skipped=outcome.skipped,
+              wall_s=outcome.wall_s, **outcome.backend)  # fmt: skip
+    print(sb.compare_table(rows))
+    print(f"results: {out / 'compare.json'}  ({time.perf_counter() - t0:.1f} s)")
+    return EXIT_OK
 
 
 def _trial_options(opts: Any) -> dict[str, Any]:

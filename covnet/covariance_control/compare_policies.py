@@ -144,6 +144,9 @@ def scenario_for(
     :class:`~covnet.errors.UsageError` naming the policy)."""
     data = normalised(sc)
     data["allocation"] = {**data["allocation"], "policy": policy, "budget": budget}
+    if policy != REFERENCE:  # a baseline does not search the subsets: the search keys go
+        for key in ("search", "gap", "time_limit_s", "node_limit"):
+            data["allocation"].pop(key, None)
     if seed is not None:
         data["seed"] = seed
     try:

@@ -29,7 +29,7 @@ import numpy as np
 
 from covnet import __version__
 from covnet.batches.pool import BatchInterrupted
-from covnet.batches.stats import t_half_width
+from covnet.batches.stats import interval, per_scan_interval
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, config_hash, from_dict, normalised
 from covnet.runs.rundir import CONFIG, RUN_INFO, utc_now, write_json
@@ -178,58 +178,6 @@ def mc_outcome(
     return b.seeds(outcome.seeds[POINT]), outcome.results[POINT], outcome
 
 
-def interval(values: Sequence[float]) -> dict[str, Any]:
-    """Mean, standard deviation (ddof 1), the 95 % confidence interval of the mean (Student's
-    t; ``None`` for one value), min and max."""
-    v = np.asarray([x for x in values if x is not None], dtype=np.float64)
-    if v.size == 0:
-        return {
-            "mean": None,
-            "std": None,
-            "ci95": None,
-            "median": None,
-            "min": None,
-            "max": None,
-            "n": 0,
-        }
-    mean = float(v.mean())
-    if v.size < 2:
-        return {
-            "mean": mean,
-            "std": None,
-            "ci95": None,
-            "median": mean,
-            "min": mean,
-            "max": mean,
-            "n": 1,
-        }
-    sd = float(v.std(ddof=1))
-    half = float(t_half_width(sd, v.size))
-    return {
-        "mean": mean,
-        "std": sd,
-        "ci95": [mean - half, mean + half],
-        "median": float(np.median(v)),
-        "min": float(v.min()),
-        "max": float(v.max()),
-        "n": int(v.size),
-    }
-
-
-def _series(rows: Sequence[Sequence[float]]) -> dict[str, list[float]]:
-    """Per scan: the mean over seeds and its 95 % interval."""
-    a = np.asarray(rows, dtype=np.float64)
-    mean = a.mean(axis=0)
-    if a.shape[0] < 2:
-        return {"mean": mean.tolist(), "ci95_low": mean.tolist(), "ci95_high": mean.tolist()}
-    half = t_half_width(a.std(axis=0, ddof=1), a.shape[0])
-    return {
-        "mean": mean.tolist(),
-        "ci95_low": (mean - half).tolist(),
-        "ci95_high": (mean + half).tolist(),
-    }
-
-
 def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) -> dict[str, Any]:
     """Per metric (module docstring); with ``cutoff_m`` (the OSPA cut-off) each target's
     ``lost``: the seeds whose track was ever further than it from the truth."""
@@ -240,7 +188,7 @@ def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) 
         per = [r["metrics"][m] for r in rows]
         blk: dict[str, Any] = {k: interval([p[k] for p in per]) for k in _SCALARS if k in per[0]}
         if "ospa" in per[0]:
-            blk["ospa_per_scan"] = _series([p["ospa"] for p in per])
+            blk["ospa_per_scan"] = per_scan_interval([p["ospa"] for p in per])
         blk["targets"] = {}
         for tid in per[0]["targets"]:
             tt = [p["targets"][tid] for p in per]
@@ -271,8 +219,8 @@ def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) 
                     ],
                     "cutoff_m": cutoff_m,
                 }
-            tb["trace_P_per_scan"] = _series([t["trace_P"] for t in tt])
-            tb["sensors_per_scan"] = _series([t["sensors_per_scan"] for t in tt])
+            tb["trace_P_per_scan"] = per_scan_interval([t["trace_P"] for t in tt])
+            tb["sensors_per_scan"] = per_scan_interval([t["sensors_per_scan"] for t in tt])
             blk["targets"][tid] = tb
         out[m] = blk
     return out

@@ -23,19 +23,20 @@ detected with ``pd``; ``Poisson(clutter_rate)`` false returns uniform in ``w``; 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from covnet.core import streams
 from covnet.core.detection import ClutterWindow
 from covnet.core.gaussian import Mat, Vec
-from covnet.core.manoeuvre import Acceleration, Turn, manoeuvring_trajectory
+from covnet.core.manoeuvre import manoeuvring_trajectory
 from covnet.core.sensor_models import SensorModel, wrap_angle
 from covnet.core.surveillance.births import BirthProcess, BirthRegion, simulate_truth
 from covnet.core.surveillance.search_cells import SearchGrid
 from covnet.covariance_control import targets
-from covnet.covariance_control.config import Scenario
+from covnet.covariance_control.config import Scenario, segments
 from covnet.covariance_control.config.surveillance import SurveillanceSpec
 from covnet.covariance_control.targets import TargetsModel
 
@@ -87,18 +88,11 @@ class SurveillanceModel:
         return np.flatnonzero(self.exists[:, scan - 1])
 
 
-def _segments(sc: Scenario, i: int, shift: int) -> list[object]:
+def _segments(sc: Scenario, i: int, shift: int) -> list[Any]:
+    """Target ``i``'s manoeuvres (:func:`~covnet.covariance_control.config.targets.segments`)
+    on its own clock: scans counted from its appearance (``shift = appears_at_scan - 1``)."""
     assert sc.targets is not None
-    out: list[object] = []
-    for m in sc.targets[i].manoeuvres:
-        a, b = m.from_scan - shift, m.to_scan - shift
-        if m.kind == "turn":
-            assert m.turn_rate_deg_s is not None
-            out.append(Turn(a, b, math.radians(m.turn_rate_deg_s)))
-        else:
-            assert m.accel_mps2 is not None
-            out.append(Acceleration(a, b, *m.accel_mps2))
-    return out
+    return [replace(g, k0=g.k0 - shift, k1=g.k1 - shift) for g in segments(sc.targets[i])]
 
 
 def _configured(sc: Scenario, tm: TargetsModel) -> tuple[list[str], list[Mat], list[Vec]]:
@@ -117,7 +111,7 @@ def _configured(sc: Scenario, tm: TargetsModel) -> tuple[list[str], list[Mat], l
             tg.sigma_a,
             n,
             rng,
-            _segments(sc, t, a - 1),  # type: ignore[arg-type]
+            _segments(sc, t, a - 1),
         )
         row = np.full((K, 4), np.nan)
         row[a - 1 :] = traj

@@ -9,7 +9,7 @@ Per seed and metric (:func:`seed_row`): the scalars of the run's summary
 confirmed tracks that hold a target) and ``track_value`` (the mean over scans of the tracks'
 ``Σ_t w_t f(P_t, P_d,t)``: the covariance-control term the search competes with), and per scan
 the GOSPA, its missed part and the cardinality.  Aggregates: per scalar the mean over seeds,
-its 95 % Student interval (``covnet.batches.stats.t_half_width``), the median, min and max;
+its 95 % Student interval, the median, min and max (``covnet.batches.stats.interval``);
 per scan the mean and its interval.
 
 The sweep (:func:`weight_sweep`): every ``λ`` of the grid with the same seeds; its table and
@@ -26,11 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from covnet.batches.stats import t_half_width
+from covnet.batches.stats import interval, per_scan_interval
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 
-__all__ = ["SCALARS", "aggregate", "format_table", "seed_row", "weight_sweep"]
+__all__ = ["SCALARS", "aggregate", "format_table", "policy_compare", "seed_row", "weight_sweep"]
 
 #: the per-seed scalars (summary keys and the two derived ones)
 SCALARS = (
@@ -71,33 +71,6 @@ def _seeds(task: tuple[Mapping[str, Any], list[int]]) -> list[dict[str, Any]]:
     return [seed_row(data, s) for s in seeds]
 
 
-def interval(values: Sequence[float | None]) -> dict[str, Any]:
-    """Mean, standard deviation (ddof 1), 95 % interval of the mean (Student's t; ``None``
-    for one value), median, min, max, and how many seeds gave a value."""
-    v = np.asarray([x for x in values if x is not None], dtype=np.float64)
-    if v.size == 0:
-        return {"mean": None, "ci95": None, "median": None, "min": None, "max": None, "n": 0}
-    mean = float(v.mean())
-    ci = None
-    sd = None
-    if v.size > 1:
-        sd = float(v.std(ddof=1))
-        h = float(t_half_width(sd, v.size))
-        ci = [mean - h, mean + h]
-    return {"mean": mean, "std": sd, "ci95": ci, "median": float(np.median(v)),
-            "min": float(v.min()), "max": float(v.max()), "n": int(v.size)}  # fmt: skip
-
-
-def _series(rows: Sequence[Sequence[float]]) -> dict[str, list[float]]:
-    a = np.asarray(rows, dtype=np.float64)
-    mean = a.mean(axis=0)
-    if a.shape[0] < 2:
-        return {"mean": mean.tolist(), "ci95_low": mean.tolist(), "ci95_high": mean.tolist()}
-    h = t_half_width(a.std(axis=0, ddof=1), a.shape[0])
-    return {"mean": mean.tolist(), "ci95_low": (mean - h).tolist(),
-            "ci95_high": (mean + h).tolist()}  # fmt: skip
-
-
 def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Per metric: every scalar's :func:`interval` over the seeds; per scan the GOSPA and the
     confirmed tracks with their intervals (module docstring)."""
@@ -105,8 +78,8 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     for m in rows[0]["metrics"]:
         per = [r["metrics"][m] for r in rows]
         blk: dict[str, Any] = {k: interval([p.get(k) for p in per]) for k in SCALARS}
-        blk["gospa_per_scan"] = _series([p["gospa"] for p in per])
-        blk["n_confirmed_per_scan"] = _series([p["n_confirmed"] for p in per])
+        blk["gospa_per_scan"] = per_scan_interval([p["gospa"] for p in per])
+        blk["n_confirmed_per_scan"] = per_scan_interval([p["n_confirmed"] for p in per])
         out[m] = blk
     return out
 
@@ -223,3 +196,62 @@ def sweep_figure(out: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+# --------------------------------------------------------------------------------------------
+# the policies side by side
+
+
+def policy_compare(
+    sc: Scenario,
+    policies: Sequence[str],
+    budget: int | None,
+    n_seeds: int,
+    *,
+    out: Path | None = None,
+    workers: int | None = None,
+    progress: BatchProgress | None = None,
+) -> tuple[list[dict[str, Any]], Outcome]:
+    """``covnet compare --policies`` of a surveillance config: every policy (its many-target
+    form on the tracks, the sensors it leaves off searching:
+    :meth:`~covnet.covariance_control.surveillance_centre.SurveillanceCentre._by_policy`) on
+    the same ``n_seeds`` seeds (paired), one row per policy and metric with the scalars'
+    intervals."""
+    # start-up: the policies' scenario rules
+    from covnet.covariance_control import compare_policies as cp
+
+    datas: dict[str, dict[str, Any]] = {}
+    for p in policies:
+        k = cp.budget_for(sc, p, budget)
+        datas[cp.point_of(p, k)] = normalised(cp.scenario_for(sc, p, k))
+    points = list(datas)
+
+    def task(point: str, seeds: list[int]) -> tuple[dict[str, Any], list[int]]:
+        return datas[point], seeds
+
+    key = None
+    if out is not None:
+        base = {k: v for k, v in normalised(sc).items() if k != "seed"}
+        key = trial_hash("compare", {"kind": "surveillance", "config": base, "points": points})
+    b = Batch("compare", _seeds, task, points, first_seed=sc.seed)
+    outcome = run_trials(b, n_seeds, out=out, key=key, workers=workers, progress=progress)
+    rows = []
+    for p in points:
+        for m, blk in aggregate(outcome.results[p]).items():
+            rows.append({"point": p, "metric": m, "seeds": outcome.seeds[p],
+                         **{k: blk[k] for k in SCALARS}})  # fmt: skip
+    return rows, outcome
+
+
+def compare_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """The policies' rows: means with their 95 % intervals."""
+    lines = ["policy | metric | GOSPA (m) | time to confirm | missed targets | false tracks | "
+             "breaks | tracked RMSE (m) | search share"]  # fmt: skip
+    for r in rows:
+        lines.append(
+            f"{r['point']} | {r['metric']} | {_ci(r['gospa_mean'], '{:.1f}')} | "
+            f"{_ci(r['time_to_confirm_mean'], '{:.1f}')} | {_ci(r['missed_targets'])} | "
+            f"{_ci(r['false_tracks'], '{:.1f}')} | {_ci(r['track_breaks'], '{:.1f}')} | "
+            f"{_ci(r['rmse_tracked'], '{:.1f}')} | {_ci(r['search_share'], '{:.2f}')}"
+        )
+    return "\n".join(lines)

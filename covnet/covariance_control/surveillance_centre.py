@@ -237,6 +237,8 @@ class SurveillanceCentre:
         miss = np.repeat(1.0 - self.pd[:, None], self.sm.n_cells, axis=1)
         cells = CellTerms(self.u.copy(), self.weight, miss, cell_ok)
         P_pred = np.array([g.P for g in preds]).reshape(-1, 4, 4)
+        if self.tm.base.policy != "covariance_control":
+            return self._by_policy(k, P_pred, J, P_d, w, metric, feas, mc, cell_ok)
         # the configured search (exact, bounded, greedy, auto: the SEARCHES registry)
         d = decide_many(
             self.tm.base.search,
@@ -253,6 +255,50 @@ class SurveillanceCentre:
         T = len(preds)
         sv = float(d.value - sum(w[i] * d.values[i] for i in range(T)))
         return tuple(d.assignment), float(d.value), tuple(d.values[:T]), sv
+
+    def _by_policy(
+        self, k: int, P_pred: np.ndarray, J: np.ndarray, P_d: np.ndarray, w: list[float],
+        metric: str, feas: np.ndarray, mc: MultiConstraints, cell_ok: np.ndarray,
+    ) -> tuple[tuple[int, ...], float, tuple[float, ...], float]:  # fmt: skip
+        """A baseline policy (``allocation.policy``) with search: the policy's many-target form
+        assigns sensors to the tracks as it would to known targets
+        (:func:`~covnet.covariance_control.policies.decide_many_by_policy`); then every sensor
+        it leaves off that can search (ascending index, within ``max_active``) searches the
+        cell where it adds the most expected finds, ``u_c pd_j Π_{i already on c}(1 - pd_i)``
+        (the lowest cell on a tie; none when nothing is left to find).  The value is the
+        covariance-control objective of the result, as for every policy."""
+        # start-up: the baseline policies only when one is configured
+        from covnet.covariance_control.policies import decide_many_by_policy
+
+        N, T = len(self.ids), P_pred.shape[0]
+        a = [OFF] * N
+        tv: tuple[float, ...] = ()
+        if T and feas.any():
+            got, _, tv, _, _ = decide_many_by_policy(
+                self.tm, P_pred, J, P_d, w, k, metric, feas, mc
+            )
+            a = list(got)
+        elif T:
+            f = get_metric(metric)
+            tv = tuple(float(f(P_pred[i], P_d[i])) for i in range(T))
+        left = np.ones(self.sm.n_cells)  # Π (1 - pd) of the sensors on each cell so far
+        cap = mc.max_active if mc.max_active is not None else N
+        on = sum(x != OFF for x in a)
+        for j in range(N):
+            if on >= cap or a[j] != OFF or j in mc.excluded or not cell_ok[j].any():
+                continue
+            gain = np.where(cell_ok[j], self.u * left * self.pd[j], -1.0)
+            c = int(np.argmax(gain))
+            if gain[c] <= 0.0:
+                continue
+            a[j] = T + c
+            left[c] *= 1.0 - self.pd[j]
+            on += 1
+        sv = float(self.weight * float(np.dot(self.u, left)))
+        total = 0.0
+        for i, v in enumerate(tv):
+            total = total + w[i] * v
+        return tuple(a), total + sv, tv, sv
 
     def command_fields(
         self, plan: SurvPlan

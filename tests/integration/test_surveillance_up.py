@@ -7,20 +7,15 @@ processes), and ``covnet replay`` reproduces it from the recording."""
 from __future__ import annotations
 
 import json
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from test_multitarget_up import run_network
 
-from covnet.clock import WallClock
 from covnet.covariance_control import drive
 from covnet.covariance_control.config import from_dict
-from covnet.wire.bus import InMemoryBus, InMemoryHub
-from manager import covariance as manager_node
-from sensors import covariance as sensor_node
-from world import covariance as world_node
 
 ROOT = Path(__file__).resolve().parents[2]
 FIELDS = ("gospa", "ospa", "n_confirmed", "n_tentative", "u", "search_dwells", "track_dwells",
@@ -39,46 +34,11 @@ def short_data(scans: int = 14) -> dict:
     return data
 
 
-def run_network(sc):
-    hub = InMemoryHub()
-    stop = threading.Event()
-    node_stops, threads, stats = {}, [], {}
-
-    def start(name, target):
-        ev = threading.Event()
-        node_stops[name] = ev
-        bus = InMemoryBus(hub, name=name)
-
-        def body():
-            try:
-                stats[name] = target(bus, ev)
-            finally:
-                bus.close()
-
-        th = threading.Thread(target=body, name=name, daemon=True)
-        th.start()
-        threads.append(th)
-
-    start("world", lambda bus, ev: world_node.run(sc, bus, "t", WallClock(), ev))
-    for sid in sc.sensor_ids:
-        start(sid, lambda bus, ev, sid=sid: sensor_node.run(sc, sid, bus, "t", WallClock(), ev))
-    mbus = InMemoryBus(hub, name="manager")
-    try:
-        result = manager_node.run(sc, mbus, "t", WallClock(), stop)
-    finally:
-        for ev in node_stops.values():
-            ev.set()
-        for th in threads:
-            th.join(timeout=10)
-        mbus.close()
-    return result, stats
-
-
 def test_in_memory_network_equals_run():
     data = short_data()
     data["network"] = {"record": False}
     sc = from_dict(data)
-    result, stats = run_network(sc)
+    result, stats = run_network(sc, ["spectral"])  # the many-target test's harness
     assert result.completed and result.error is None
     assert result.stats.rejected == {} and result.stats.lost == 0
     ref = drive.run(sc, "spectral").run

@@ -57,3 +57,21 @@ def test_a_sweep_without_the_weight_grid_says_what_to_give(tmp_path, capsys):
     cfg = small(tmp_path)
     assert main(["sweep", str(cfg), "--out", str(tmp_path / "x")]) == 2
     assert "search_weight" in capsys.readouterr().err
+
+
+def test_policies_side_by_side_with_search(tmp_path, capsys):
+    """covnet compare --policies on a surveillance config: every policy on the same seeds; a
+    baseline's spare sensors search (so every policy finds targets)."""
+    cfg = small(tmp_path)
+    out = tmp_path / "cmp"
+    args = ["compare", str(cfg), "--policies", "covariance_control,greedy_information,random",
+            "--budget", "2", "--runs", "2", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    doc = json.loads((out / "compare.json").read_text())
+    rows = {r["point"]: r for r in doc["rows"]}
+    assert set(rows) == {"policy=covariance_control", "policy=greedy_information,budget=2",
+                         "policy=random,budget=2"}  # fmt: skip
+    for r in rows.values():
+        assert r["seeds"] == 2 and r["search_share"]["mean"] > 0.0
+        assert r["gospa_mean"]["n"] == 2
+    assert "greedy_information" in capsys.readouterr().out

@@ -170,13 +170,6 @@ def surveillance_problems(sc: Scenario) -> list[tuple[str, str]]:
                 "re-run track initiation and deletion)",
             )
         )
-    if sc.allocation.policy != "covariance_control":
-        problems.append(
-            (
-                "allocation.policy",
-                "not with 'surveillance:' yet (the baseline policies have no search mode)",
-            )
-        )
     return problems
 
 
