@@ -214,6 +214,11 @@ def _surveillance_policies(
     write_json(out / CONFIG, normalised(sc))
     end_batch(out, outcome.total, "seed", runs_run=outcome.ran, runs_skipped=outcome.skipped,
               wall_s=outcome.wall_s, **outcome.backend)  # fmt: skip
+    if getattr(args, "json", False):  # stdout holds JSON only
+        for r in rows:
+            print(json.dumps(r))
+        print(f"results: {out / 'compare.json'}", file=sys.stderr)
+        return EXIT_OK
     print(sb.compare_table(rows))
     print(f"results: {out / 'compare.json'}  ({time.perf_counter() - t0:.1f} s)")
     return EXIT_OK
@@ -397,6 +402,11 @@ def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
     end_batch(out, outcome.total, "seed", runs_run=outcome.ran, runs_skipped=outcome.skipped,
               wall_s=outcome.wall_s, **outcome.backend)  # fmt: skip
     fig = None if args.no_figures else sb.sweep_figure(out, rows)
+    if getattr(args, "json", False):  # stdout holds JSON only
+        for r in rows:
+            print(json.dumps(r))
+        print(f"results: {out / 'sweep.json'}", file=sys.stderr)
+        return EXIT_OK
     print(sb.sweep_table(rows))
     print(f"results: {out / 'sweep.json'}  ({time.perf_counter() - t0:.1f} s)")
     if fig is not None:

@@ -75,3 +75,10 @@ def test_policies_side_by_side_with_search(tmp_path, capsys):
         assert r["seeds"] == 2 and r["search_share"]["mean"] > 0.0
         assert r["gospa_mean"]["n"] == 2
     assert "greedy_information" in capsys.readouterr().out
+
+
+def test_sweep_json_prints_rows_only(tmp_path, capsys):
+    cfg = small(tmp_path, sweep={"search_weight": [10.0], "seeds": 2})
+    assert main(["sweep", str(cfg), "--out", str(tmp_path / "j"), "--json"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0])["search_weight"] == 10.0
