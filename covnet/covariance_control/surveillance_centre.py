@@ -155,6 +155,7 @@ class SurveillanceCentre:
         s = spec.search
         self.grid = sm.grid
         self.u = np.full(sm.n_cells, 0.0 if s is None else s.u0)
+        self.grown = 0  # the last scan whose birth intensity is in u
         self.birth = _birth_per_cell(sm)
         self.weight = 0.0 if s is None else s.weight
         d = spec.desired
@@ -180,8 +181,10 @@ class SurveillanceCentre:
     # ---------------------------------------------------------------------------- decide
 
     def decide(self, k: int, metric: str, unavailable: frozenset[int]) -> SurvPlan:
-        if k > 1 and self.grid is not None:
-            self.u = grow(self.u, self.birth)
+        if k > self.grown and self.grid is not None:  # once per scan, whoever asks again
+            if k > 1:
+                self.u = grow(self.u, self.birth)
+            self.grown = k
         preds = tuple(predict(t.estimate, self.tm.base.F, self.Q) for t in self.tracks)
         t0 = time.perf_counter()
         modes, value, tv, sv = self._assign(k, preds, metric, unavailable)

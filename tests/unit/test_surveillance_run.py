@@ -176,6 +176,7 @@ def test_every_example_config_loads_and_surveillance_yaml_is_one():
             "positive definite",
         ),
         (lambda d: d.update(sensors=[SENSORS[3]]), "sensors", "bearings alone"),
+        (lambda d: d["allocation"].update(required=["P1"]), "allocation.required", "not with"),
     ],
 )
 def test_bad_values_are_refused_with_their_path(change, path, words):

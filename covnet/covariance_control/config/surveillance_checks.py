@@ -170,6 +170,14 @@ def surveillance_problems(sc: Scenario) -> list[tuple[str, str]]:
                 "re-run track initiation and deletion)",
             )
         )
+    if sc.allocation.required:
+        problems.append(
+            (
+                "allocation.required",
+                "not with 'surveillance:' yet (a required sensor would have to dwell on a "
+                "track or a cell every scan)",
+            )
+        )
     return problems
 
 
