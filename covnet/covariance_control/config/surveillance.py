@@ -28,12 +28,14 @@ know them), and adds::
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 from covnet.config import ConfigModel, Float, Int, Pair, Quad
 from covnet.config import positive as _positive
-from covnet.core.surveillance.search_cells import SearchGrid
 from covnet.records import Field, field_validator
+
+if TYPE_CHECKING:
+    from covnet.core.surveillance.search_cells import SearchGrid
 
 
 class BoxSpec(ConfigModel):
@@ -136,6 +138,9 @@ class SurveillanceSpec(ConfigModel):
 
     def grid(self) -> SearchGrid | None:
         """The search grid over the area (None without ``search``)."""
+        # start-up: the surveillance core (and scipy with it) only where a grid is asked for
+        from covnet.core.surveillance.search_cells import SearchGrid
+
         if self.search is None:
             return None
         (x0, y0), (x1, y1) = self.area.min_m, self.area.max_m

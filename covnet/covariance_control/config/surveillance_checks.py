@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from covnet.core.surveillance.tracks import INITIATORS
 from covnet.covariance_control.config.scenario import Scenario
 from covnet.covariance_control.config.sensors import in_coverage
 from covnet.covariance_control.config.surveillance import CovSpec, SurveillanceSpec
@@ -47,6 +46,9 @@ def _box_problems(path: str, lo: tuple[float, ...], hi: tuple[float, ...]) -> li
 def search_sensors(sc: Scenario) -> list[int]:
     """The sensors that can search: those whose returns can start a track (their model is in
     :data:`~covnet.core.surveillance.tracks.INITIATORS`: a bearing alone cannot, spec §2)."""
+    # start-up: the surveillance core (and scipy with it) only for surveillance configs
+    from covnet.core.surveillance.tracks import INITIATORS
+
     return [i for i, s in enumerate(sc.sensors) if s.model in INITIATORS]
 
 
