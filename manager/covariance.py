@@ -85,9 +85,12 @@ def messages_of(
 ) -> tuple[list[msg.Track], msg.Status]:
     """The Track(s) and Status of a scan's outcome (``now_ns``: their send time)."""
     k, t = out.k, out.k * period_s
+    states = out.track_states or (None,) * len(out.tracks)  # surveillance: the tracks' states
     tracks = [
-        msg.Track(scan=k, t=t, x=g.x, P=g.P, t_sent_ns=now_ns(), episode=e, target_id=tid)
-        for tid, g in out.tracks
+        msg.Track(
+            scan=k, t=t, x=g.x, P=g.P, t_sent_ns=now_ns(), episode=e, target_id=tid, state=st
+        )
+        for (tid, g), st in zip(out.tracks, states, strict=True)
     ]
     status = msg.Status(
         scan=k,
@@ -101,6 +104,7 @@ def messages_of(
         fused=out.fused,
         failed=tuple(sorted(failed - {WORLD_ID})),
         refiltered=out.refiltered,
+        cells=out.cells,
     )
     return tracks, status
 

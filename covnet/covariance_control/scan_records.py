@@ -54,6 +54,9 @@ class Outcome:
     lower_bound: float | None = None
     gap: float | None = None
     per_target: tuple[tuple[str, int], ...] | None = None  # sensors on each target
+    # surveillance: each track's state (aligned with tracks) and the cells' u_c after the scan
+    track_states: tuple[str, ...] | None = None
+    cells: np.ndarray | None = None
 
     def lines(self, scans: int, n_sensors: int) -> dict[str, Any]:
         """The live view's numbers and lines of this scan (``info``, ``info_short``)."""

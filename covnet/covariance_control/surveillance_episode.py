@@ -52,13 +52,17 @@ class SurveillanceEpisode:
         self.log.record(plan.detail, ev.tracks, ev, deleted, ev.u, sorted(got))
 
     def outcome(self, plan: Any, fused: Any, got: dict[str, Any]) -> Any:
+        """The scan's outcome: the live tracks, then those deleted at this scan (their last
+        estimate), each with its state; the cells' ``u_c`` after the scan."""
         sp = plan.detail
-        live = fused[0].tracks
+        ev, deleted = fused
+        live = ev.tracks
+        shown = [*live, *deleted]
         k = plan.k
         P_d = self.centre.P_d
         return Outcome(
             k,
-            tuple((f"K{t.id}", t.estimate) for t in live),
+            tuple((f"K{t.id}", t.estimate) for t in shown),
             plan.enabled,
             float(sp.value),
             float(sum(np.trace(t.estimate.P) for t in live)),
@@ -69,4 +73,6 @@ class SurveillanceEpisode:
                 ("search", sum(1 for j in sp.subset if sp.is_search(j))),
                 ("track", sum(1 for j in sp.subset if not sp.is_search(j))),
             ),
+            track_states=tuple(t.state.value for t in shown),
+            cells=ev.u.copy() if ev.u.size else None,
         )

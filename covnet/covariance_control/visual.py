@@ -8,7 +8,9 @@ desired covariance's x-y block as an ellipse around the estimate; every sensor i
 one target of a paper config; with ``targets:``, the command's dwell).  The numbers: ``N_k``
 (the enabled sensors), ``f`` (the manager's allocation value), ``tr P`` and ``tr P_d`` (the
 Status's), per target ``f(P, P_d)`` of the episode's metric on the fused posterior, ``tr P``,
-``tr P_d``, the position error and the NEES against the truth.
+``tr P_d``, the position error and the NEES against the truth.  Surveillance: the manager's
+tracks (``K<id>``) by state (tentative, confirmed, deleted at the scan) and the search cells
+shaded by their undetected mass ``u_c`` (the Status's ``cells``).
 
 A paper sensor has no position (it measures the target's position directly): such sensors are
 drawn in a row under the first estimate, labelled "(no position)", so that the lines to the
@@ -31,7 +33,16 @@ from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import build_model
 from covnet.errors import UsageError
-from covnet.runs.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
+from covnet.runs.visual import (
+    XY,
+    Area,
+    Coverage,
+    Estimate,
+    ScanMessages,
+    SensorView,
+    View,
+    sensor_states,
+)
 from covnet.wire import messages as msg
 
 __all__ = ["Visual", "run_messages"]
@@ -45,12 +56,16 @@ class Visual:
         self.ids = sc.sensor_ids
         self.episodes = list(sc.allocation.metrics)
         if sc.surveillance is not None:
-            # the tracks are the manager's (K<id>), each drawn against the confirmed P_d
-            d = sc.surveillance.desired.confirmed
-            P_conf = np.diag(d.diag) if d.diag is not None else np.asarray(d.matrix, np.float64)
+            # the tracks are the manager's (K<id>), each drawn against its state's P_d
+            des = sc.surveillance.desired
+            self._by_state = {
+                state: np.diag(c.diag) if c.diag is not None else np.asarray(c.matrix, np.float64)
+                for state, c in (("confirmed", des.confirmed), ("tentative", des.tentative))
+            }
             self.target_ids: tuple[str, ...] = ()
             self._desired: dict[str, Any] = {}
-            self._track_desired = P_conf
+            grid = sc.surveillance.grid()
+            self.cells = np.zeros((0, 4)) if grid is None else grid.boxes()
         elif sc.multitarget:
             # start-up: the many-target model only for configs with targets
             from covnet.covariance_control import targets
@@ -71,9 +86,9 @@ class Visual:
         else:
             self.marker = 0.0  # set per scan from the desired covariance
 
-    def desired(self, tid: str, k: int) -> np.ndarray:
-        if tid not in self._desired:  # surveillance: a track of the manager's
-            return np.asarray(self._track_desired)
+    def desired(self, tid: str, k: int, state: str | None = None) -> np.ndarray:
+        if tid not in self._desired:  # surveillance: a track of the manager's, by its state
+            return np.asarray(self._by_state.get(state or "confirmed", self._by_state["confirmed"]))
         return np.asarray(self._desired[tid](k))
 
     def view(self, scan: ScanMessages) -> View:
@@ -90,7 +105,8 @@ class Visual:
         view.truths = [(tid, (float(x[0]), float(x[2]), 0.0)) for tid, x in truth.items()]
         for tr in scan.tracks:
             tid = tr.target_id or self.target_ids[0]
-            Pd = self.desired(tid, k) if tid in self._desired or not self.target_ids else None
+            known = tid in self._desired or not self.target_ids
+            Pd = self.desired(tid, k, tr.state) if known else None
             xt = truth.get(tid)
             view.estimates.append(
                 Estimate(
@@ -103,8 +119,18 @@ class Visual:
                     trace_Pd=None if Pd is None else float(np.trace(Pd)),
                     error=None if xt is None else float(np.hypot(*(tr.x[XY] - xt[XY]))),
                     nees=None if xt is None else float(nees(xt, tr.x, tr.P)),
+                    state=tr.state,
                 )
             )
+        u = st.cells
+        if u is not None and self.sc.surveillance is not None and u.shape == (len(self.cells),):
+            top = max(float(u.max()), 1e-12) if u.size else 1.0
+            view.areas = [
+                Area(
+                    f"C{c}", float(x0), float(x1), float(y0), float(y1), float(uc), float(uc) / top
+                )
+                for c, ((x0, x1, y0, y1), uc) in enumerate(zip(self.cells, u, strict=True))
+            ]
         states = sensor_states(st, self.ids)
         tasks = scan.command.targets if scan.command is not None else None
         anchor = view.estimates[0].position if view.estimates else (0.0, 0.0, 0.0)

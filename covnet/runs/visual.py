@@ -110,6 +110,9 @@ COLOURS: dict[str, Rgba] = {
     "coverage": (0.55, 0.55, 0.55, 0.35),
     "los": (0.70, 0.70, 0.90, 0.35),
     "triple": (0.85, 0.30, 0.95, 0.9),
+    "tentative": (0.55, 0.75, 1.00, 0.6),  # a surveillance track not yet confirmed
+    "deleted": (0.90, 0.10, 0.10, 0.8),  # a track deleted at this scan (its last estimate)
+    "cell": (1.00, 0.55, 0.10, 1.0),  # a search cell; its alpha is set by its mass u_c
 }
 """Colours (RGBA 0..1) of the scene: sensors by state, truth, estimate, ellipses, lines."""
 
@@ -203,6 +206,21 @@ class Estimate:
     trace_Pd: float | None = None
     error: float | None = None
     nees: float | None = None
+    state: str | None = None  # surveillance: tentative, confirmed or deleted
+
+
+@dataclass(frozen=True)
+class Area:
+    """A search cell ``[x0, x1] x [y0, y1]`` with its undetected mass ``u`` and ``level``
+    (``u`` over the largest of the scan, 0..1: how strongly it is shaded)."""
+
+    id: str
+    x0: float
+    x1: float
+    y0: float
+    y1: float
+    u: float
+    level: float
 
 
 @dataclass(frozen=True)
@@ -226,6 +244,7 @@ class View:
     estimates: list[Estimate] = field(default_factory=list)
     sensors: list[SensorView] = field(default_factory=list)
     segments: list[Segment] = field(default_factory=list)
+    areas: list[Area] = field(default_factory=list)
     n_active: int = 0
     f: float | None = None
     trace_P: float | None = None
@@ -359,8 +378,9 @@ def _timestamp(t_ns: int) -> Any:
 
 def scene_update(view: View, t_ns: int) -> Any:
     """The ``foxglove.SceneUpdate`` of one scan: first a deletion of every entity (so what
-    left the scene goes), then one entity per truth, estimate, sensor and segment (module
-    docstring; ids ``truth/<id>``, ``estimate/<id>``, ``sensor/<id>``, ``segment/<id>``)."""
+    left the scene goes), then one entity per truth, search cell, estimate, sensor and segment
+    (module docstring; ids ``truth/<id>``, ``cell/<id>``, ``estimate/<id>``, ``sensor/<id>``,
+    ``segment/<id>``; an estimate with a ``state`` carries it as metadata)."""
     ts = _timestamp(t_ns)
     size = fm.Vector3(x=view.marker, y=view.marker, z=view.marker)
     LOOP, LIST = fm.LinePrimitiveLineType.LineLoop, fm.LinePrimitiveLineType.LineList
@@ -376,20 +396,41 @@ def scene_update(view: View, t_ns: int) -> Any:
             spheres=[fm.SpherePrimitive(pose=_pose(p), size=size, color=_colour("truth"))],
             texts=[_text((p[0], p[1], p[2] + view.marker), tid, "truth")],
         )
+    for c in view.areas:  # search cells: flat boxes shaded by their undetected mass
+        r, g, b, _ = COLOURS["cell"]
+        centre = ((c.x0 + c.x1) / 2, (c.y0 + c.y1) / 2, 0.0)
+        box = fm.CubePrimitive(
+            pose=_pose(centre),
+            size=fm.Vector3(x=c.x1 - c.x0, y=c.y1 - c.y0, z=view.marker / 10),
+            color=fm.Color(r=r, g=g, b=b, a=0.04 + 0.4 * min(max(c.level, 0.0), 1.0)),
+        )
+        entity(f"cell/{c.id}", cubes=[box], texts=[_text(centre, f"u {c.u:.2f}", "cell")],
+               metadata=[fm.KeyValuePair(key="u", value=f"{c.u:.6g}")])  # fmt: skip
     est_at = {}
     for e in view.estimates:
         est_at[e.id] = e.position
         z = e.position[2]
         lines = []
-        if e.cov_xy is not None:
+        if e.state == "deleted":  # its last estimate, marked; no ellipses
+            sphere = fm.SpherePrimitive(pose=_pose(e.position), size=size, color=_colour("deleted"))
+            entity(f"estimate/{e.id}", spheres=[sphere],
+                   texts=[_text(e.position, f"{e.id} deleted", "deleted")],
+                   metadata=[fm.KeyValuePair(key="state", value="deleted")])  # fmt: skip
+            continue
+        style = "tentative" if e.state == "tentative" else "estimate"
+        if e.cov_xy is not None and style == "tentative":
+            pts = _points(ellipse_points(e.position, e.cov_xy, 1.0), z)
+            lines.append(_line(LOOP, pts, "tentative", 1.0))
+        elif e.cov_xy is not None:
             for n, colour in ((1.0, "sigma1"), (2.0, "sigma2")):
                 pts = _points(ellipse_points(e.position, e.cov_xy, n), z)
                 lines.append(_line(LOOP, pts, colour, 2.0))
         if e.desired_xy is not None:
             pts = _points(ellipse_points(e.position, e.desired_xy, 1.0), z)
             lines.append(_line(LOOP, pts, "desired", 1.5))
-        sphere = fm.SpherePrimitive(pose=_pose(e.position), size=size, color=_colour("estimate"))
-        entity(f"estimate/{e.id}", spheres=[sphere], lines=lines)
+        sphere = fm.SpherePrimitive(pose=_pose(e.position), size=size, color=_colour(style))
+        meta = [] if e.state is None else [fm.KeyValuePair(key="state", value=e.state)]
+        entity(f"estimate/{e.id}", spheres=[sphere], lines=lines, metadata=meta)
     for s in view.sensors:
         lines = []
         if s.coverage is not None:

@@ -50,6 +50,7 @@ from covnet.wire.keys import (
     truth_key,
 )
 from covnet.wire.schemas import (
+    CAP_CELLS,
     CAP_MEAS_DIM,
     CAP_REASONS,
     CAP_ROWS,
@@ -76,6 +77,7 @@ from covnet.wire.schemas import (
 
 __all__ = [
     "CAP_MEAS_DIM",
+    "CAP_CELLS",
     "CAP_REASONS",
     "CAP_ROWS",
     "CAP_SENSORS",

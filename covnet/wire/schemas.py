@@ -33,6 +33,8 @@ CAP_ROWS = 1024
 CAP_STATE_DIM, CAP_MEAS_DIM = 6, 3
 #: reasons a heartbeat's ``rejected`` counts at most
 CAP_REASONS = 64
+#: search cells a surveillance Status carries at most (the config's grid: 64 x 64)
+CAP_CELLS = 64 * 64
 
 REASONS = frozenset(
     {
@@ -526,7 +528,9 @@ class Track(_Message):
     """The fused estimate ``N(x, P)`` for scan ``scan`` at time ``t`` [s]: ``x`` ``(n,)``,
     ``P`` ``(n, n)``.  ``target_id`` (optional): the target of this track when there are
     several (mobile scenarios: one Track per target and scan).  ``node_id`` (optional, peer
-    mode): the peer node whose own fused estimate this is."""
+    mode): the peer node whose own fused estimate this is.  ``state`` (optional,
+    surveillance): the manager's track's state, ``tentative``, ``confirmed`` or ``deleted``
+    (deleted at this scan: its last estimate)."""
 
     KIND: ClassVar[str] = "track"
     scan: Count
@@ -537,6 +541,7 @@ class Track(_Message):
     episode: Count = 0
     target_id: Name | None = None
     node_id: Name | None = None
+    state: Name | None = None
 
     def _check(self) -> None:
         n = self.x.shape[0]
@@ -553,7 +558,8 @@ class Status(_Message):
     metric episodes of one run (one per allocation metric).  ``node_id`` (optional, peer mode):
     the peer node reporting (each node decides and fuses for itself).  ``refiltered`` (optional,
     slow links): the late messages, ``"<sensor>:<scan>"``, re-filtered into their past scans
-    while this scan was collected (so that a replay re-filters the same ones)."""
+    while this scan was collected (so that a replay re-filters the same ones).  ``cells``
+    (optional, surveillance): the search cells' undetected mass ``u_c`` after the scan."""
 
     KIND: ClassVar[str] = "status"
     scan: Count
@@ -568,6 +574,7 @@ class Status(_Message):
     failed: Names = ()
     node_id: Name | None = None
     refiltered: Names | None = None
+    cells: Vec | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -662,7 +669,8 @@ def payload_bounds(
     ``targets`` N keys and M target ids in all (a target goes to one sensor), ``windows`` N
     vectors of 2 dz; Measurement ``z``
     rows x dz, ``R`` dz x dz, ``target_ids`` rows, ``platform`` 4; Status ``enabled``,
-    ``fused``, ``failed`` N each, ``refiltered`` :data:`MAX_IDS`; Track and LocalTrack n and
+    ``fused``, ``failed`` N each, ``refiltered`` :data:`MAX_IDS`, ``cells`` :data:`CAP_CELLS`;
+    Track and LocalTrack n and
     n x n; Heartbeat :data:`CAP_REASONS` reasons (``tests/unit/test_size_cap.py`` encodes
     each kind's largest message and checks the bound and its tightness)."""
     n, dz = state_dim, meas_dim
@@ -685,6 +693,7 @@ def payload_bounds(
         ("status", "fused"): sensors,
         ("status", "failed"): sensors,
         ("status", "refiltered"): MAX_IDS,
+        ("status", "cells"): CAP_CELLS,
         ("ltrack", "x"): n,
         ("ltrack", "P"): n * n,
         ("ltrack", "x_prior"): n,

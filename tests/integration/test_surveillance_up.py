@@ -86,6 +86,16 @@ def test_up_equals_run_and_replays(tmp_path):
     net = json.loads((out / "network.json").read_text())
     assert net["rejected"] == {} and net["lost"] == 0
     assert_nothing_left(out)
+    # the recording's scene (official reader): the cells shaded every scan, tracks by state
+    from test_foxglove_up import SCENE, _visual
+
+    scenes = _visual(out / "recording.mcap")[SCENE]
+    assert len(scenes) == 10
+    ids = [{e.id for e in s.entities} for s in scenes]
+    assert all({f"cell/C{c}" for c in range(16)} <= i for i in ids)
+    states = {kv.value for s in scenes for e in s.entities for kv in e.metadata
+              if e.id.startswith("estimate/") and kv.key == "state"}  # fmt: skip
+    assert "tentative" in states and "confirmed" in states
     rp = CovnetProcess(["replay", str(out)])
     assert rp.wait(timeout=120) == 0, rp.output()
     assert "identical" in rp.output()

@@ -50,8 +50,9 @@ def _largest_messages(n_sensors: int, n_targets: int, rows: int) -> list[m.Messa
         m.Truth(big, 1.5, tids, states, sids, platforms),
         m.Command(big, 1.5, sids, big, big, modes, owner, {s: z[0].repeat(2) for s in sids}),
         m.Measurement(sids[0], big, 1.5, z, np.eye(dz), big, big, _ids("T", rows), x[:4], big),
-        m.Track(big, 1.5, x, P, big, big, tids[0], sids[0]),
-        m.Status(big, 1.5, sids, 1.5, 1.5, 1.5, big, big, sids, sids, sids[0], refiltered),
+        m.Track(big, 1.5, x, P, big, big, tids[0], sids[0], "S" * m.MAX_NAME_LEN),
+        m.Status(big, 1.5, sids, 1.5, 1.5, 1.5, big, big, sids, sids, sids[0], refiltered,
+                 rng.normal(size=m.CAP_CELLS)),  # fmt: skip
         m.LocalTrack(sids[0], big, 1.5, x, P, x, P, big, big, big, tids[0]),
         m.Heartbeat("sensor", sids[0], big, big, reasons, big),
     ]

@@ -293,3 +293,39 @@ def test_layout_is_generated_and_names_real_topics_and_fields():
     assert topics == set(TOPICS)
     fields = re.findall(r'"/covnet/scan\.([A-Za-z_]+)"', committed)
     assert fields and set(fields) <= set(METRICS_SCHEMA["properties"])
+
+
+def test_a_surveillance_scene_draws_track_states_and_cells():
+    """The manager's tracks by state (a tentative one lighter, 1σ only, against the tentative
+    P_d; a deleted one marked, with no ellipse) and the search cells shaded by u_c, decoded
+    with the official protobuf reader; from the kind's view of a scan whose Status carries
+    the cells."""
+    import yaml as _yaml
+
+    from covnet.covariance_control.config import from_dict
+    from covnet.covariance_control.visual import Visual
+    from covnet.runs.visual import ScanMessages
+
+    data = _yaml.safe_load((ROOT / "configs" / "surveillance.yaml").read_text())
+    sc = from_dict(data)
+    u = np.linspace(0.0, 0.3, 16)
+    st = msg.Status(scan=4, t=4.0, enabled=("P1",), trace_P=1.0, trace_Pd=2.0, value=3.0,
+                    t_sent_ns=0, episode=0, fused=("P1",), cells=u)  # fmt: skip
+    tracks = [
+        msg.Track(scan=4, t=4.0, x=np.array([100.0 * i, 0, 5000, 0]), P=np.eye(4) * 100,
+                  t_sent_ns=0, episode=0, target_id=f"K{i}", state=s)  # fmt: skip
+        for i, s in ((1, "confirmed"), (2, "tentative"), (3, "deleted"))
+    ]
+    view = Visual(sc).view(ScanMessages(0, 4, st, None, None, {}, tracks))
+    assert [e.state for e in view.estimates] == ["confirmed", "tentative", "deleted"]
+    assert len(view.areas) == 16 and view.areas[-1].level == pytest.approx(1.0)
+    update = _decode_bytes(SCENE_SCHEMA, scene_update(view, 4_000_000_000).encode())
+    ents = {e.id: e for e in update.entities}
+    assert {f"cell/C{c}" for c in range(16)} <= set(ents)
+    alphas = [ents[f"cell/C{c}"].cubes[0].color.a for c in range(16)]
+    assert alphas == sorted(alphas) and alphas[0] < alphas[-1]  # more mass, more shade
+    assert len(ents["estimate/K1"].lines) == 3  # 1σ, 2σ and the desired ellipse
+    assert len(ents["estimate/K2"].lines) == 2  # 1σ and the tentative desired ellipse
+    c = ents["estimate/K2"].spheres[0].color
+    assert (c.r, c.g, c.b, c.a) == pytest.approx(COLOURS["tentative"])
+    assert ents["estimate/K3"].lines == [] and "deleted" in ents["estimate/K3"].texts[0].text
