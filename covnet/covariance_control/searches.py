@@ -68,6 +68,13 @@ AUTO_EXACT_MAX = 24
 BOUNDED_OPTIONS = ("gap", "time_limit_s", "node_limit")
 
 
+#: ``search: auto`` with search cells (surveillance) is ``exact`` while a scan has at most this
+#: many assignments ``(T + C + 1)^n`` (n sensors that can be on), ``greedy`` beyond (with its
+#: certified bound): cells of equal mass make exact ties that the exact allocator enumerates,
+#: and the bounded search's dual steps grow with the cells (a decision over 64 cells took
+#: 60-90 s with 4 sensors)
+AUTO_MODES_MAX = 4**8
+
 #: the exact assignment allocator's limit (its tables have 2^N entries:
 #: :data:`covnet.core.allocation.assignment.MAX_SENSORS`, not imported here for the start-up
 #: time of every node process; a test keeps the two equal)
@@ -191,7 +198,13 @@ def decide_many(
     if cells is not None and cells.feasible.size:
         can = can | cells.feasible.any(axis=1)
     n = sum(1 for j in range(feas.shape[0]) if j not in mc.excluded and bool(can[j]))
-    entry = SEARCHES[settings.mode].resolved_many(n)
+    entry = SEARCHES[settings.mode]
+    if cells is not None and entry.resolve_many is not None:
+        # auto with search cells: exact while the assignments, (T + C + 1)^n, are few
+        modes = P_pred.shape[0] + int(cells.u.shape[0]) + 1
+        entry = SEARCHES["exact" if modes**n <= AUTO_MODES_MAX else "greedy"]
+    else:
+        entry = entry.resolved_many(n)
     assert entry.many is not None
     return entry.many.decide(settings, P_pred, J, P_d, metric, w, feas, mc, tie_rtol, cells)
 

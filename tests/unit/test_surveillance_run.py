@@ -177,6 +177,9 @@ def test_every_example_config_loads_and_surveillance_yaml_is_one():
         ),
         (lambda d: d.update(sensors=[SENSORS[3]]), "sensors", "bearings alone"),
         (lambda d: d["allocation"].update(required=["P1"]), "allocation.required", "not with"),
+        (lambda d: d["allocation"].update(search="exact")
+         or d["surveillance"]["search"]["cells"].update(nx=8, ny=8),
+         "allocation.search", "exact would weigh"),
     ],
 )
 def test_bad_values_are_refused_with_their_path(change, path, words):
@@ -328,3 +331,20 @@ def test_the_live_view_draws_the_managers_tracks(tmp_path, capsys):
     cfg.write_text(yaml.safe_dump(base()))
     rc = main(["run", str(cfg), "--out", str(tmp_path / "r"), "--no-figures", "--mcap"])
     assert rc == 2 and "covnet up" in capsys.readouterr().err
+
+
+def test_auto_with_cells_is_exact_while_the_assignments_are_few_and_greedy_beyond():
+    """search: auto on a surveillance scan: (T + C + 1)^n assignments decide between the exact
+    allocator and the greedy search (cells of equal mass tie exactly: exact would enumerate
+    the ties)."""
+    from covnet.covariance_control import searches
+
+    few = from_dict(base(allocation={"metrics": ["spectral"], "search": "auto"}))
+    run = drive.run(few, "spectral").run  # 4 sensors, 4 cells: 5^4 assignments, exact
+    assert np.isfinite(run.value).all() and run.n_tracks_started == 3
+    d = base(allocation={"metrics": ["spectral"], "search": "auto"}, scans=3)
+    d["targets"] = d["targets"][:1]
+    d["surveillance"]["search"]["cells"] = {"nx": 8, "ny": 8}  # 65^3 > AUTO_MODES_MAX: greedy
+    assert (64 + 1) ** 3 > searches.AUTO_MODES_MAX  # 3 sensors can search
+    run = drive.run(from_dict(d), "spectral").run
+    assert run.search_dwells.sum() > 0

@@ -113,6 +113,9 @@ GREEDY_DUAL_STEPS = 20
 DUAL_STEPS = 400
 #: bounded: with the gap still open, the exact allocator decides up to this many allowed sensors
 EXACT_FALLBACK = 12
+#: ... and, with search cells, while ``(T + C + 1)^m`` (m allowed sensors) is at most this: cells
+#: of equal mass tie exactly, and the exact allocator enumerates every tie
+EXACT_FALLBACK_CELLS = 4**8
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -634,7 +637,8 @@ def _search(
     n_nodes = cs.moves + n_steps
     gap = _gap(F, L)
     m = int(cs.allow.any(axis=0).sum())
-    if fallback and gap > rel_gap and m <= min(EXACT_FALLBACK, MAX_SENSORS):
+    few = inp.cells is None or (inp.T + inp.C + 1) ** m <= EXACT_FALLBACK_CELLS
+    if fallback and gap > rel_gap and m <= min(EXACT_FALLBACK, MAX_SENSORS) and few:
         if deadline is None or not deadline():
             ex = allocate_assignments(
                 inp.P_pred, inp.J, inp.D, inp.f, inp.w, inp.feasible,

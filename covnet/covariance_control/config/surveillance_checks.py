@@ -11,6 +11,7 @@ from covnet.covariance_control.config.scenario import Scenario
 from covnet.covariance_control.config.sensors import in_coverage
 from covnet.covariance_control.config.surveillance import CovSpec, SurveillanceSpec
 from covnet.covariance_control.fusion_rules import rule_for
+from covnet.covariance_control.searches import AUTO_MODES_MAX
 
 __all__ = ["surveillance_problems", "search_sensors"]
 
@@ -200,6 +201,16 @@ def _search_problems(sc: Scenario, spec: SurveillanceSpec) -> list[tuple[str, st
                     "is outside every range-measuring sensor's coverage: no sensor can search it",
                 )
             )
+    n_on = len(sc.sensors) - len(sc.allocation.excluded)
+    C = spec.search.cells.nx * spec.search.cells.ny
+    if sc.allocation.search == "exact" and (C + 2) ** n_on > AUTO_MODES_MAX:
+        problems.append(
+            (
+                "allocation.search",
+                f"exact would weigh up to ({C} cells + a track + off)^{n_on} assignments a scan "
+                "(and cells of equal mass tie exactly): use auto, bounded or greedy",
+            )
+        )
     if spec.search.birth_intensity is None and spec.births is None and spec.search.u0 == 0.0:
         problems.append(
             (
