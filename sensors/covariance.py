@@ -88,11 +88,10 @@ def run_surveillance(
     (:func:`covnet.covariance_control.surveillance.dwell`, the draws ``covnet run`` makes),
     from the world's truth of the targets present at the scan."""
     # start-up: the surveillance world only for configs with surveillance
-    from covnet.covariance_control import surveillance
+    from covnet.covariance_control import surveillance, targets
 
     sm = surveillance.build(sc)
     j = sm.sensor_ids.index(sensor_id)
-    model = sm.tm.sensors[j]
     index = {tid: i for i, tid in enumerate(sm.truth_ids)}
     side = SensorSide.of_process(sc, sm, j)
 
@@ -109,13 +108,13 @@ def run_surveillance(
         if v is None:
             return False
         try:
-            surveillance.window_from_vec(model, v)
+            targets.window_from_vec(sm.tm, j, v)
         except ValueError:
             return False
         return True
 
     def respond(cmd: msg.Command, tr: msg.Truth) -> msg.Measurement | msg.LocalTrack:
-        win = surveillance.window_from_vec(model, (cmd.windows or {})[sensor_id])
+        win = targets.window_from_vec(sm.tm, j, (cmd.windows or {})[sensor_id])
         states = np.full((len(sm.truth_ids), 4), np.nan)
         for i, tid in enumerate(tr.target_ids):
             states[index[tid]] = tr.states[i]

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batches.pool import BatchInterrupted, end_batch
+from covnet.batches.pool import BatchInterrupted, end_batch, write_rows
 from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.covariance_control.commands import CURVES, EXIT_OK, metric_opt
 from covnet.covariance_control.config import Scenario, SweepSpec, normalised
@@ -175,7 +175,6 @@ def _surveillance_policies(
     (:func:`covnet.covariance_control.surveillance_batch.policy_compare`): ``compare.json`` /
     ``.csv`` and the table."""
     # start-up: the surveillance batch only for configs with surveillance
-    from covnet.batches.pool import write_rows
     from covnet.covariance_control import surveillance_batch as sb
 
     if not isinstance(budget, int) and budget is not None:
@@ -194,12 +193,6 @@ def _surveillance_policies(
         sc, policies, budget, args.runs, out=out, workers=opts.workers,
         progress=BatchProgress("compare"),
     )  # fmt: skip
-    flat = [
-        {"policy": r["point"], "metric": r["metric"], "seeds": r["seeds"],
-         **{f"{k}_mean": r[k]["mean"] for k in sb.SCALARS},
-         **{f"{k}_ci95": r[k]["ci95"] for k in sb.SCALARS}}
-        for r in rows
-    ]  # fmt: skip
     meta = {
         "scenario": sc.name,
         "compared": "policies",
@@ -209,7 +202,30 @@ def _surveillance_policies(
         "budget": budget,
         "surveillance": True,
     }
-    write_rows(out, "compare", [{**r, **f} for r, f in zip(rows, flat, strict=True)], meta,
+    return _surveillance_rows(
+        args, sc, out, "compare", rows, outcome, meta, lambda r: {"policy": r["point"]},
+        lambda: sb.compare_table(rows), t0,
+    )  # fmt: skip
+
+
+def _surveillance_rows(
+    args: argparse.Namespace, sc: Scenario, out: Path, stem: str, rows: list[dict[str, Any]],
+    outcome: Any, meta: dict[str, Any], lead: Callable[[dict[str, Any]], dict[str, Any]],
+    table: Callable[[], str], t0: float, figure: Path | None = None,
+) -> int:  # fmt: skip
+    """A surveillance sweep's or comparison's files and printout: ``<stem>.json`` (every row
+    in full, each scalar's interval) and ``<stem>.csv`` (``lead(row)``, then each scalar's mean
+    and interval), the config, ``run.json``'s status; the table, or with ``--json`` the rows."""
+    # start-up: the surveillance batch only for configs with surveillance
+    from covnet.covariance_control import surveillance_batch as sb
+
+    flat = [
+        {**lead(r), "metric": r["metric"], "seeds": r["seeds"],
+         **{f"{k}_mean": r[k]["mean"] for k in sb.SCALARS},
+         **{f"{k}_ci95": r[k]["ci95"] for k in sb.SCALARS}}
+        for r in rows
+    ]  # fmt: skip
+    write_rows(out, stem, [{**r, **f} for r, f in zip(rows, flat, strict=True)], meta,
                list(flat[0]))  # fmt: skip
     write_json(out / CONFIG, normalised(sc))
     end_batch(out, outcome.total, "seed", runs_run=outcome.ran, runs_skipped=outcome.skipped,
@@ -217,8 +233,13 @@ def _surveillance_policies(
     if getattr(args, "json", False):  # stdout holds JSON only
         for r in rows:
             print(json.dumps(r))
-        print(f"results: {out / 'compare.json'}", file=sys.stderr)
+        print(f"results: {out / f'{stem}.json'}", file=sys.stderr)
         return EXIT_OK
+    print(table())
+    print(f"results: {out / f'{stem}.json'}  ({time.perf_counter() - t0:.1f} s)")
+    if figure is not None:
+        print(f"figure: {figure}")
+    return EXIT_OK
     print(sb.compare_table(rows))
     print(f"results: {out / 'compare.json'}  ({time.perf_counter() - t0:.1f} s)")
     return EXIT_OK
@@ -360,7 +381,6 @@ def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
     (:mod:`covnet.covariance_control.surveillance_batch`); ``sweep.csv``/``.json``, the table
     and ``sweep.png``."""
     # start-up: the surveillance batch only for configs with surveillance
-    from covnet.batches.pool import write_rows
     from covnet.covariance_control import surveillance_batch as sb
 
     spec = sc.sweep
@@ -388,25 +408,12 @@ def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
         sc, weights, seeds, out=out, workers=getattr(args, "workers", None),
         progress=BatchProgress("sweep"),
     )  # fmt: skip
-    flat = [
-        {"search_weight": r["search_weight"], "metric": r["metric"], "seeds": r["seeds"],
-         **{f"{k}_mean": r[k]["mean"] for k in sb.SCALARS},
-         **{f"{k}_ci95": r[k]["ci95"] for k in sb.SCALARS}}
-        for r in rows
-    ]  # fmt: skip
     meta = {"scenario": sc.name, "seeds": seeds, "first_seed": sc.seed, "surveillance": True}
-    # sweep.json: every row in full (each scalar's interval); sweep.csv: means and intervals
-    full = [{**r, **f} for r, f in zip(rows, flat, strict=True)]
-    write_rows(out, "sweep", full, meta, list(flat[0]))
-    write_json(out / CONFIG, normalised(sc))
-    end_batch(out, outcome.total, "seed", runs_run=outcome.ran, runs_skipped=outcome.skipped,
-              wall_s=outcome.wall_s, **outcome.backend)  # fmt: skip
     fig = None if args.no_figures else sb.sweep_figure(out, rows)
-    if getattr(args, "json", False):  # stdout holds JSON only
-        for r in rows:
-            print(json.dumps(r))
-        print(f"results: {out / 'sweep.json'}", file=sys.stderr)
-        return EXIT_OK
+    return _surveillance_rows(
+        args, sc, out, "sweep", rows, outcome, meta,
+        lambda r: {"search_weight": r["search_weight"]}, lambda: sb.sweep_table(rows), t0, fig,
+    )  # fmt: skip
     print(sb.sweep_table(rows))
     print(f"results: {out / 'sweep.json'}  ({time.perf_counter() - t0:.1f} s)")
     if fig is not None:

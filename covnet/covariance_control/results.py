@@ -430,12 +430,9 @@ def _write_targets_network_run(
     from covnet.covariance_control import targets  # start-up: configs with targets only
 
     tm = targets.build(sc)
-    runs = {m: log.as_run() for m, log in result.episodes.items() if log.value}
-    extra, info = _network_facts(result)
-    info.update(run_info or {})
-    summary = write_targets_run(out, sc, tm, runs, extra=extra, run_info=info)
-    write_json(out / "network.json", result.stats.as_dict())
-    return summary
+    return _write_episodes(out, result, run_info, lambda runs, extra, info: write_targets_run(
+        out, sc, tm, runs, extra=extra, run_info=info
+    ))  # fmt: skip
 
 
 def _write_surveillance_network_run(
@@ -448,10 +445,20 @@ def _write_surveillance_network_run(
     from covnet.covariance_control.surveillance_results import write_surveillance_run
 
     sm = surveillance.build(sc)
+    return _write_episodes(out, result, run_info, lambda runs, extra, info: write_surveillance_run(
+        out, sc, sm, runs, extra=extra, run_info=info
+    ))  # fmt: skip
+
+
+def _write_episodes(
+    out: Path, result: ManagerResult, run_info: dict[str, Any] | None, write: Any
+) -> dict[str, Any]:
+    """The episodes' runs (``as_run()`` of each with a scan), the network's facts, then
+    ``write(runs, extra, info)`` (the kind's run writer) and ``network.json``."""
     runs = {m: log.as_run() for m, log in result.episodes.items() if log.value}
     extra, info = _network_facts(result)
     info.update(run_info or {})
-    summary = write_surveillance_run(out, sc, sm, runs, extra=extra, run_info=info)
+    summary: dict[str, Any] = write(runs, extra, info)
     write_json(out / "network.json", result.stats.as_dict())
     return summary
 

@@ -174,17 +174,18 @@ class Search:
     options: tuple[str, ...] = ()
     resolve: Callable[[int], str] | None = None
     many: ManySearch | None = None
-    resolve_many: Callable[[int], str] | None = None
+    resolve_many: Callable[[int, int | None], str] | None = None
 
     def resolved(self, n_candidates: int) -> Search:
         """The entry that decides with ``n_candidates`` candidate sensors."""
         return self if self.resolve is None else SEARCHES[self.resolve(n_candidates)]
 
-    def resolved_many(self, n_candidates: int) -> Search:
-        """The entry that decides a many-target scan with ``n_candidates`` sensors."""
+    def resolved_many(self, n_candidates: int, modes: int | None = None) -> Search:
+        """The entry that decides a many-target scan with ``n_candidates`` sensors (``modes``:
+        with search cells, the modes a sensor has, ``T + C + 1``)."""
         if self.resolve_many is None:
             return self
-        return SEARCHES[self.resolve_many(n_candidates)]
+        return SEARCHES[self.resolve_many(n_candidates, modes)]
 
 
 def decide_many(
@@ -198,13 +199,8 @@ def decide_many(
     if cells is not None and cells.feasible.size:
         can = can | cells.feasible.any(axis=1)
     n = sum(1 for j in range(feas.shape[0]) if j not in mc.excluded and bool(can[j]))
-    entry = SEARCHES[settings.mode]
-    if cells is not None and entry.resolve_many is not None:
-        # auto with search cells: exact while the assignments, (T + C + 1)^n, are few
-        modes = P_pred.shape[0] + int(cells.u.shape[0]) + 1
-        entry = SEARCHES["exact" if modes**n <= AUTO_MODES_MAX else "greedy"]
-    else:
-        entry = entry.resolved_many(n)
+    modes = None if cells is None else P_pred.shape[0] + int(cells.u.shape[0]) + 1
+    entry = SEARCHES[settings.mode].resolved_many(n, modes)
     assert entry.many is not None
     return entry.many.decide(settings, P_pred, J, P_d, metric, w, feas, mc, tie_rtol, cells)
 
@@ -277,7 +273,9 @@ def _auto_resolve(n_candidates: int) -> str:
     return "exact" if n_candidates <= AUTO_EXACT_MAX else "bounded"
 
 
-def _auto_resolve_many(n_candidates: int) -> str:
+def _auto_resolve_many(n_candidates: int, modes: int | None = None) -> str:
+    if modes is not None:  # search cells: exact while the assignments modes^n are few
+        return "exact" if modes**n_candidates <= AUTO_MODES_MAX else "greedy"
     return "exact" if n_candidates <= MANY_EXACT_MAX else "bounded"
 
 

@@ -32,7 +32,7 @@ from covnet.core import streams
 from covnet.core.detection import ClutterWindow
 from covnet.core.gaussian import Mat, Vec
 from covnet.core.manoeuvre import manoeuvring_trajectory
-from covnet.core.sensor_models import SensorModel, wrap_angle
+from covnet.core.sensor_models import wrap_angle
 from covnet.core.surveillance.births import BirthProcess, BirthRegion, simulate_truth
 from covnet.core.surveillance.search_cells import SearchGrid
 from covnet.covariance_control import targets
@@ -40,7 +40,7 @@ from covnet.covariance_control.config import Scenario, segments
 from covnet.covariance_control.config.surveillance import SurveillanceSpec
 from covnet.covariance_control.targets import TargetsModel
 
-__all__ = ["SurveillanceModel", "build", "cell_window", "dwell", "track_window"]
+__all__ = ["SurveillanceModel", "build", "cell_window", "dwell", "is_task"]
 
 #: the stream domain of the birth process: key ``(BIRTHS,)``
 BIRTHS = 30
@@ -102,8 +102,7 @@ def _configured(sc: Scenario, tm: TargetsModel) -> tuple[list[str], list[Mat], l
     K = tm.scans
     for t, (entry, tg) in enumerate(zip(sc.targets, tm.targets, strict=True)):
         a = entry.appears_at_scan
-        key = (streams.TRUTH,) if t == 0 else (streams.TRUTH, t)
-        rng = streams.stream(tm.base.seed, *key)
+        rng = streams.stream(tm.base.seed, *targets._key(streams.TRUTH, t))  # the many-target key
         n = K - a + 1
         traj = manoeuvring_trajectory(
             tg.x0,
@@ -178,16 +177,6 @@ def build(sc: Scenario) -> SurveillanceModel:
 # --------------------------------------------------------------------------------------------
 
 
-def track_window(sm: SurveillanceModel, j: int, pred_x: Vec, S: Mat) -> ClutterWindow:
-    """Sensor ``j``'s window on a track predicted at ``pred_x`` with innovation covariance
-    ``S``: ``h(x̂⁻) ± n_σ √diag S`` (angles at most ±π)."""
-    s = sm.tm.sensors[j]
-    half = sm.tm.window_sigma * np.sqrt(np.diag(S))
-    am = np.asarray(s.angle_components, dtype=bool)
-    half = np.where(am, np.minimum(half, math.pi), half)
-    return ClutterWindow(np.asarray(s.h(pred_x), dtype=np.float64), half, s.angle_components)
-
-
 def cell_window(sm: SurveillanceModel, j: int, c: int) -> ClutterWindow:
     """Sensor ``j``'s window on search cell ``c``: the box of its noise-free measurements over
     the cell (position: the cell itself; range and bearing: the range and the bearing interval
@@ -232,19 +221,6 @@ def is_task(task: str, n_cells: int) -> bool:
         return False
     n = int(task[1:])
     return n >= 1 if task[0] == "K" else n < n_cells
-
-
-def window_vec(w: ClutterWindow) -> Vec:
-    """A window as the wire carries it: ``[centre..., half-width...]``."""
-    return np.concatenate([w.center, w.half_width])
-
-
-def window_from_vec(s: SensorModel, v: Vec) -> ClutterWindow:
-    """:func:`window_vec`'s inverse for a sensor of model ``s`` (``ValueError`` if it is not
-    one)."""
-    if v.shape != (2 * s.dim_z,):
-        raise ValueError(f"a window has {2 * s.dim_z} numbers, got {v.shape}")
-    return ClutterWindow(v[: s.dim_z], v[s.dim_z :], s.angle_components)
 
 
 def dwell(sm: SurveillanceModel, j: int, scan: int, states: Mat, win: ClutterWindow) -> Mat:

@@ -115,6 +115,36 @@ def _point(weight: float) -> str:
     return f"search.weight={weight:g}"
 
 
+def _run_points(
+    command: str,
+    sc: Scenario,
+    datas: Mapping[str, dict[str, Any]],
+    n_seeds: int,
+    out: Path | None,
+    workers: int | None,
+    progress: BatchProgress | None,
+) -> tuple[dict[str, list[dict[str, Any]]], Outcome]:
+    """Every point's config (``datas``: point -> normalised config) over ``n_seeds`` seeds
+    from the config's, on the batch layer; per point one row per metric with the aggregate's
+    intervals (``seeds``: how many ran)."""
+
+    def task(point: str, seeds: list[int]) -> tuple[dict[str, Any], list[int]]:
+        return datas[point], seeds
+
+    key = None
+    if out is not None:
+        base = {k: v for k, v in normalised(sc).items() if k != "seed"}
+        key = trial_hash(command, {"kind": "surveillance", "config": base, "points": datas})
+    b = Batch(command, _seeds, task, list(datas), first_seed=sc.seed)
+    outcome = run_trials(b, n_seeds, out=out, key=key, workers=workers, progress=progress)
+    rows = {
+        p: [{"metric": m, "seeds": outcome.seeds[p], **{k: blk[k] for k in SCALARS}}
+            for m, blk in aggregate(outcome.results[p]).items()]
+        for p in datas
+    }  # fmt: skip
+    return rows, outcome
+
+
 def weight_sweep(
     sc: Scenario,
     weights: Sequence[float],
@@ -127,26 +157,14 @@ def weight_sweep(
     """Every weight of ``weights`` over ``n_seeds`` seeds from the config's: one row per
     weight and metric with the aggregate's intervals (module docstring)."""
     data = normalised(sc)
-    points = [_point(w) for w in weights]
-    by_point = dict(zip(points, weights, strict=True))
-
-    def task(point: str, seeds: list[int]) -> tuple[dict[str, Any], list[int]]:
-        d = {**data, "surveillance": {**data["surveillance"]}}
-        d["surveillance"]["search"] = {**d["surveillance"]["search"], "weight": by_point[point]}
-        return d, seeds
-
-    key = None
-    if out is not None:
-        base = {k: v for k, v in data.items() if k != "seed"}
-        key = trial_hash("sweep", {"kind": "surveillance", "config": base})
-    b = Batch("sweep", _seeds, task, points, first_seed=sc.seed)
-    outcome = run_trials(b, n_seeds, out=out, key=key, workers=workers, progress=progress)
-    rows = []
-    for p in points:
-        agg = aggregate(outcome.results[p])
-        for m, blk in agg.items():
-            rows.append({"search_weight": by_point[p], "metric": m, "seeds": outcome.seeds[p],
-                         **{k: blk[k] for k in SCALARS}})  # fmt: skip
+    datas: dict[str, dict[str, Any]] = {}
+    for w in weights:
+        surv = {**data["surveillance"], "search": {**data["surveillance"]["search"], "weight": w}}
+        datas[_point(w)] = {**data, "surveillance": surv}
+    by_point, outcome = _run_points("sweep", sc, datas, n_seeds, out, workers, progress)
+    rows = [
+        {"search_weight": w, **r} for w in weights for r in by_point[_point(w)]
+    ]  # fmt: skip
     return rows, outcome
 
 
@@ -224,23 +242,8 @@ def policy_compare(
     for p in policies:
         k = cp.budget_for(sc, p, budget)
         datas[cp.point_of(p, k)] = normalised(cp.scenario_for(sc, p, k))
-    points = list(datas)
-
-    def task(point: str, seeds: list[int]) -> tuple[dict[str, Any], list[int]]:
-        return datas[point], seeds
-
-    key = None
-    if out is not None:
-        base = {k: v for k, v in normalised(sc).items() if k != "seed"}
-        key = trial_hash("compare", {"kind": "surveillance", "config": base, "points": points})
-    b = Batch("compare", _seeds, task, points, first_seed=sc.seed)
-    outcome = run_trials(b, n_seeds, out=out, key=key, workers=workers, progress=progress)
-    rows = []
-    for p in points:
-        for m, blk in aggregate(outcome.results[p]).items():
-            rows.append({"point": p, "metric": m, "seeds": outcome.seeds[p],
-                         **{k: blk[k] for k in SCALARS}})  # fmt: skip
-    return rows, outcome
+    by_point, outcome = _run_points("compare", sc, datas, n_seeds, out, workers, progress)
+    return [{"point": p, **r} for p, rs in by_point.items() for r in rs], outcome
 
 
 def compare_table(rows: Sequence[Mapping[str, Any]]) -> str:

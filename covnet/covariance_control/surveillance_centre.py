@@ -50,7 +50,7 @@ import numpy as np
 
 from covnet.core.allocation.assignment import MultiConstraints
 from covnet.core.association import gate_threshold
-from covnet.core.detection import ClutterWindow
+from covnet.core.detection import ClutterWindow, clutter_window
 from covnet.core.gaussian import Gaussian
 from covnet.core.kalman import predict
 from covnet.core.metrics import get_metric
@@ -67,20 +67,13 @@ from covnet.core.surveillance.tracks import (
     Track,
     TrackManager,
     TrackRules,
-    TrackState,
     can_initiate,
     is_hit,
     position_trace,
 )
 from covnet.covariance_control import targets
 from covnet.covariance_control.searches import decide_many
-from covnet.covariance_control.surveillance import (
-    SurveillanceModel,
-    cell_window,
-    track_window,
-    window_from_vec,
-    window_vec,
-)
+from covnet.covariance_control.surveillance import SurveillanceModel, cell_window
 
 __all__ = ["ScanEvents", "SurveillanceCentre", "SurvPlan"]
 
@@ -116,15 +109,12 @@ class SurvPlan:
 @dataclass
 class ScanEvents:
     """What a scan's fusion did: tracks started (with the cell whose search found them, or
-    None), confirmed and deleted (ids); per sensor the returns it sent; the live tracks and
-    the cells' mass after it."""
+    None); after it, the live tracks, those deleted at the scan and the cells' mass."""
 
     started: list[tuple[int, int | None]] = field(default_factory=list)
-    confirmed: list[int] = field(default_factory=list)
-    deleted: list[int] = field(default_factory=list)
-    returns: dict[int, int] = field(default_factory=dict)
     # after the scan (a driver may decide the next scan before it reports this one)
     tracks: tuple[Track, ...] = ()
+    deleted: tuple[Track, ...] = ()
     u: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
@@ -170,6 +160,7 @@ class SurveillanceCentre:
                 if self.can_start[j]:
                     self.cell_ok[j] = coverage_of(self.grid, sen)
         self.pd = np.array([s.pd for s in self.tm.sensors])
+        self.cell_miss = np.repeat(1.0 - self.pd[:, None], sm.n_cells, axis=1)  # (N, C) 1 - pd_j
         # two tracks closer than the association gate (summed position covariance) are one
         self.dup_gate = gate_threshold(2, self.tm.gate_probability)
 
@@ -196,7 +187,7 @@ class SurveillanceCentre:
                 continue
             if a < T:
                 S = targets._innovation_cov(self.tm, j, preds[a])
-                windows[j] = track_window(self.sm, j, preds[a].x, S)
+                windows[j] = clutter_window(self.tm.sensors[j], preds[a].x, S, self.tm.window_sigma)
             else:
                 windows[j] = cell_window(self.sm, j, a - T)
         ids = tuple(t.id for t in self.tracks)
@@ -237,8 +228,7 @@ class SurveillanceCentre:
             max_active=c.max_active,
             max_per_target=self.tm.max_per_target,
         )
-        miss = np.repeat(1.0 - self.pd[:, None], self.sm.n_cells, axis=1)
-        cells = CellTerms(self.u.copy(), self.weight, miss, cell_ok)
+        cells = CellTerms(self.u.copy(), self.weight, self.cell_miss, cell_ok)
         P_pred = np.array([g.P for g in preds]).reshape(-1, 4, 4)
         if self.tm.base.policy != "covariance_control":
             return self._by_policy(k, P_pred, J, P_d, w, metric, feas, mc, cell_ok)
@@ -315,7 +305,9 @@ class SurveillanceCentre:
         for j in plan.subset:
             a = plan.modes[j]
             tasks[self.ids[j]] = (f"K{plan.tracks[a]}",) if a < T else (f"C{a - T}",)
-            windows[self.ids[j]] = window_vec(plan.windows[j])
+            v = targets.window_vec(plan.windows[j])  # every surveillance dwell has a window
+            assert v is not None
+            windows[self.ids[j]] = v
         return enabled, tasks, windows
 
     def usable(self, m: Any) -> bool:
@@ -334,6 +326,7 @@ class SurveillanceCentre:
         ev = ScanEvents()
         k, T = plan.k, len(plan.tracks)
         mgr = self.manager
+        n_deleted = len(mgr.deleted)
         for tid, pred in zip(plan.tracks, plan.preds, strict=True):
             mgr.set_estimate(tid, pred)
         searched: list[list[float]] = [[] for _ in range(self.sm.n_cells)]
@@ -343,18 +336,15 @@ class SurveillanceCentre:
             if m is None:
                 continue
             Z = np.asarray(m.z, dtype=np.float64)
-            ev.returns[j] = int(Z.shape[0])
             a, win, sen = plan.modes[j], plan.windows[j], self.tm.sensors[j]
             cell = a - T if a >= T else None
             if cell is not None:
                 searched[cell].append(float(sen.pd))
             dwelt = plan.tracks[a] if cell is None else None
-            looked = [
-                t
-                for t in mgr.live()
-                if t.id == dwelt
-                or (bool(sen.in_coverage(t.estimate.x)) and bool(win.contains(sen.h(t.estimate.x))))
-            ]
+            live = mgr.live()
+            X = np.array([t.estimate.x for t in live]).reshape(-1, 4)
+            seen = (sen.in_coverage(X) & win.contains(sen.h(X))).tolist() if live else []
+            looked = [t for t, in_win in zip(live, seen, strict=True) if in_win or t.id == dwelt]
             res = jpda_update(
                 [t.estimate for t in looked],
                 Z,
@@ -365,11 +355,7 @@ class SurveillanceCentre:
             )
             for t, up in zip(looked, res.updates, strict=True):
                 hit = is_hit(up.beta0, int(up.gated.size))
-                after = mgr.record_dwell(t.id, up.posterior, hit, k)
-                if after.state is TrackState.CONFIRMED and t.state is TrackState.TENTATIVE:
-                    ev.confirmed.append(t.id)
-                if not after.live:
-                    ev.deleted.append(t.id)
+                mgr.record_dwell(t.id, up.posterior, hit, k)
             if not self.can_start[j]:
                 continue
             rows = res.ungated_rows(Z.shape[0])
@@ -378,17 +364,16 @@ class SurveillanceCentre:
                 ev.started.append((t.id, cell))
                 if cell is None and self.grid is not None:
                     found.append(int(self.grid.cell_of(t.estimate.x[[0, 2]])))
-                if t.state is TrackState.CONFIRMED:  # confirm.m = 1
-                    ev.confirmed.append(t.id)
         if self.grid is not None:
             self.u = after_search(self.u, searched)
             # a target found by a dwell that did not search its cell takes its unit out
             self.u = remove_found(self.u, found)
-        self._too_wide(k, ev)
+        self._too_wide(k)
         ev.tracks, ev.u = mgr.live(), self.u.copy()
+        ev.deleted = tuple(mgr.deleted[n_deleted:])
         return ev
 
-    def _too_wide(self, k: int, ev: ScanEvents) -> None:
+    def _too_wide(self, k: int) -> None:
         """Delete the live tracks (tentative too) whose position covariance trace exceeds
         ``delete_trace_m2``, those outside the area, then the duplicates (module docstring)."""
         mgr = self.manager
@@ -396,13 +381,11 @@ class SurveillanceCentre:
         for t in mgr.live():
             if position_trace(t.estimate) > limit:
                 mgr.delete(t.id, k, "covariance")
-                ev.deleted.append(t.id)
         (x0, y0), (x1, y1) = self.sm.spec.area.min_m, self.sm.spec.area.max_m
         for t in mgr.live():
             px, py = t.estimate.x[0], t.estimate.x[2]
             if not (x0 <= px <= x1 and y0 <= py <= y1):
                 mgr.delete(t.id, k, "left the area")
-                ev.deleted.append(t.id)
         live = list(mgr.live())
         gone: set[int] = set()
         for i, a in enumerate(live):
@@ -412,7 +395,6 @@ class SurveillanceCentre:
                 if _same_target(a.estimate, b.estimate, self.dup_gate):
                     loser = b if position_trace(b.estimate) >= position_trace(a.estimate) else a
                     mgr.delete(loser.id, k, "duplicate")
-                    ev.deleted.append(loser.id)
                     gone.add(loser.id)
 
 
@@ -452,8 +434,3 @@ def _birth_per_cell(sm: SurveillanceModel) -> np.ndarray:
         return np.zeros(grid.n_cells)
     regions = [(r.min_m[0], r.max_m[0], r.min_m[1], r.max_m[1]) for r in b.regions]
     return birth_intensity_per_cell(grid, regions, b.rate)
-
-
-def decode_window(sm: SurveillanceModel, j: int, v: np.ndarray) -> ClutterWindow:
-    """A command's window for sensor ``j`` (``ValueError`` if it is not one)."""
-    return window_from_vec(sm.tm.sensors[j], v)

@@ -43,9 +43,8 @@ class SurveillanceEpisode:
         return False  # surveillance runs on ideal links (the config refuses others)
 
     def fuse(self, plan: Any, got: dict[str, Any]) -> Any:
-        n = len(self.centre.manager.deleted)
         ev = self.centre.fuse(plan.detail, got)
-        return ev, list(self.centre.manager.deleted[n:])
+        return ev, list(ev.deleted)
 
     def record(self, plan: Any, fused: Any, got: dict[str, Any]) -> None:
         ev, deleted = fused
