@@ -25,7 +25,6 @@ median relative excess over the exact optimum where the exact allocator ran.
 from __future__ import annotations
 
 import itertools
-import math
 import time
 from collections.abc import Callable, Sequence
 from functools import partial
@@ -35,7 +34,7 @@ import numpy as np
 
 from covnet.core.gaussian import Mat
 from covnet.core.motion import cv_transition, dwna_process_noise
-from covnet.covariance_control.bench_search import MT_PD, mt_targets
+from covnet.covariance_control.bench_search import mt_information, mt_targets
 
 Row = dict[str, Any]
 
@@ -89,33 +88,8 @@ def targets(T: int, seed: int = SEED) -> tuple[Mat, list[float], list[float]]:
     return np.array(x), desired, weights
 
 
-def information(
-    table: Sequence[tuple[str, float, float, float, float, float, float]], x: Mat
-) -> tuple[Mat, np.ndarray]:
-    """``J`` ``(N, T, 4, 4)`` (``pd · Hᵀ R⁻¹ H`` at the states ``x``) and coverage ``(N, T)``."""
-    N, T = len(table), x.shape[0]
-    J = np.zeros((N, T, 4, 4))
-    feas = np.zeros((N, T), dtype=bool)
-    for j, (kind, sx, sy, a, b, rho, rng_max) in enumerate(table):
-        for t in range(T):
-            dx, dy = x[t, 0] - sx, x[t, 2] - sy
-            r = math.hypot(dx, dy)
-            feas[j, t] = r <= rng_max and (kind == "position" or r > 0.0)
-            if not feas[j, t]:
-                continue
-            if kind == "position":
-                H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
-                c = rho * a * b
-                R = np.array([[a * a, c], [c, b * b]])
-            elif kind == "range_bearing":
-                H = np.array([[dx / r, 0.0, dy / r, 0.0], [-dy / r**2, 0.0, dx / r**2, 0.0]])
-                R = np.diag([a * a, b * b])
-            else:
-                H = np.array([[-dy / r**2, 0.0, dx / r**2, 0.0]])
-                R = np.array([[a * a]])
-            Jt = H.T @ np.linalg.solve(R, H) * MT_PD
-            J[j, t] = 0.5 * (Jt + Jt.T)
-    return J, feas
+#: ``J`` and coverage of a table of sensors (the search bench's many-target maths)
+information = mt_information
 
 
 def problems(

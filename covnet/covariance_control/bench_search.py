@@ -436,12 +436,19 @@ MT_PD = 0.9
 
 def _mt_information(n_sensors: int, x: Mat) -> tuple[Mat, np.ndarray]:
     """``J`` ``(N, T, 4, 4)`` (``pd · Hᵀ R⁻¹ H`` at the states ``x`` ``(T, 4)``, spec §3) and the
-    coverage ``(N, T)`` (range only)."""
+    coverage ``(N, T)`` (range only) of the first ``n_sensors`` of :data:`MT_SENSORS`."""
+    return mt_information(MT_SENSORS[:n_sensors], x)
+
+
+def mt_information(
+    table: Sequence[tuple[str, float, float, float, float, float, float]], x: Mat
+) -> tuple[Mat, np.ndarray]:
+    """:func:`_mt_information` of the sensors of ``table`` (rows ``(kind, sx, sy, a, b, rho,
+    max_range)`` as :data:`MT_SENSORS`)."""
     T = x.shape[0]
-    J = np.zeros((n_sensors, T, 4, 4))
-    feas = np.zeros((n_sensors, T), dtype=bool)
-    for j in range(n_sensors):
-        kind, sx, sy, a, b, rho, rng_max = MT_SENSORS[j]
+    J = np.zeros((len(table), T, 4, 4))
+    feas = np.zeros((len(table), T), dtype=bool)
+    for j, (kind, sx, sy, a, b, rho, rng_max) in enumerate(table):
         for t in range(T):
             dx, dy = x[t, 0] - sx, x[t, 2] - sy
             r = math.hypot(dx, dy)
