@@ -1,15 +1,34 @@
 """Greedy allocation (:func:`allocate_greedy`), also the start of the branch and bound
 (:mod:`covnet.core.allocation.search`).
 
-**Greedy** (:func:`allocate_greedy`): the better of forward selection (add the sensor giving the
-smallest value, while the bound says a superset can still win) and backward elimination (from
-every sensor), then best-improvement local search over removals, additions and 1-swaps, on
-reduced-form values; and, as a second start, the plain heuristic (forward selection while a
-sensor improves, then first-improvement additions, removals and 1-swaps, sensors by index), so
-that greedy is never worse than it; the better final subset (the tie rule on exact values) is
-the result, and the branch and bound's first incumbent.  Its certified lower bound is the
-bound of the root ``[P(required ∪ all allowed), P(required)]`` (with the relaxation where it
-applies).
+**Greedy** (:func:`allocate_greedy`): two starts, evaluated exactly at the end, the tie rule
+picks.  (1) The plain heuristic (:class:`_Plain`): from the required set, add the sensor of the
+smallest value while one improves (by a relative ``IMPROVE``) and the budget allows, ties by the
+lowest sensor index; then first-improvement local search over, in this order, additions,
+removals and 1-swaps, sensors by index, until no move improves; its decisions are taken on
+*exact* values (the reference's arithmetic), screened by working values: only the moves whose
+working value lies within a margin of the decision are evaluated exactly.  (2) The better of the
+forward path continued from (1)'s forward end past non-improving steps (while the bound says a
+superset can still win) and backward elimination (from every sensor), then best-improvement
+local search over removals, additions and 1-swaps, on working (reduced-form) values.  The result
+and the branch and bound's first incumbent is the tie rule's pick among these subsets, the
+required set and the zero sensor's singleton.  Its certified lower bound is the bound of the
+root ``[P(required ∪ all allowed), P(required)]`` (with the relaxation where it applies).
+
+**Never worse than the plain heuristic** (issue 29).  Start (1) takes the decisions of the plain
+forward greedy with 1-swaps on exact values (``tests/property/test_greedy_reference.py``'s
+oracle) whenever every working value it screens is within the margin ``δ = VERIFY · max(f(P_pred,
+P_d), |value|)`` of its exact value (the proofs are in :class:`_Plain`'s methods; rounding
+measured at most ``6e-11`` of that scale on ill-conditioned random problems, against ``VERIFY =
+1e-8``), so it ends on the plain heuristic's subset ``S_p``, bit for bit.  ``S_p`` is one of the
+rows the tie rule chooses from, so the result's value is at most ``f(S_p) + tie_rtol · max(|f(S_p)|,
+tiny)`` (the rule may prefer fewer sensors within that tolerance); the branch and bound records
+these rows as evaluated and its result is the same rule over a superset of them, so ``bounded``
+inherits the guarantee (without a time limit cutting the start short).  Before, start (1) ran on
+working values: those differ from exact ones by up to ``6e-11`` relatively, far above the
+``1e-12`` a move must improve by, so at (near-)ties the path could turn elsewhere (40 of 1 350
+random (problem, metric) pairs, mostly with duplicated sensors) and, once in 900 tie-prone pairs
+(precisions a few ulps apart), end worse.
 """
 
 from __future__ import annotations
@@ -46,6 +65,11 @@ FULL_SCAN_BUDGET = 1 << 17
 IMPROVE = 1e-12
 #: the plain first-improvement local search evaluates at most this many moves per call
 PLAIN_BUDGET = 1 << 20
+#: the plain heuristic decides on working values only farther than this (relative to
+#: ``max(f(P_pred, P_d), |value|)``) from a decision, on exact values nearer (:class:`_Plain`)
+VERIFY = 1e-8
+#: and evaluates the moves near a decision exactly in batches of this many, in order
+VERIFY_BATCH = 16
 
 
 def _improves(v: float, ref: float) -> bool:
@@ -53,21 +77,143 @@ def _improves(v: float, ref: float) -> bool:
     return v < ref - IMPROVE * abs(ref) if math.isfinite(ref) else math.isfinite(v)
 
 
-def _forward(prob: _Problem) -> tuple[NDArray[np.bool_], float, NDArray[np.bool_], float]:
-    """Forward selection from the required set: add the sensor giving the smallest value (ties:
-    the lowest sensor index); stop at the budget, or when the interval bound of (current set, all
-    the rest undecided) exceeds the best value on the path (no superset can do better).  Returns
-    the path's best, and the *plain* forward selection's subset and value: the path up to the
-    first step that does not improve (by a relative ``IMPROVE``), where the plain heuristic stops
-    (the bound never stops the path before: a step that improves is a superset below the best)."""
-    m, K, k0 = prob.m, prob.K, len(prob.req)
-    inc = np.zeros(m, dtype=bool)
-    Z = prob.base.copy()
-    best_val = float(prob.approx_values(Z[None])[0]) if k0 else math.inf
+class _Plain:
+    """The plain heuristic's decisions on exact values, screened by working values.
+
+    Exact values (:meth:`exact`: the reference's arithmetic, non-finite -> ``inf``, counted in
+    ``prob.n_evaluated``) are cached by subset.  ``delta(v)``: the screening margin
+    ``VERIFY · max(f(P_pred, P_d), |v|)``.  A decision is taken on working values only where every
+    value it compares is farther than the margin from the decision; nearer, the values are
+    evaluated exactly.  So the decisions are the exact ones whenever working and exact values
+    differ by less than the margin (rounding: at most ``6e-11`` of ``max(f(P_pred, P_d), |e|)``
+    measured on ill-conditioned random problems, ``VERIFY`` is ``1e-8``)."""
+
+    def __init__(self, prob: _Problem) -> None:
+        self.prob = prob
+        self.by_id = np.argsort(np.asarray(prob.free, dtype=np.int64), kind="stable")
+        with np.errstate(all="ignore"):
+            f0 = np.asarray(prob.f(prob.P_pred[None], prob.D), dtype=np.float64).reshape(-1)
+        self.f0 = float(abs(f0[0])) if f0.size and math.isfinite(float(f0[0])) else 0.0
+        self.cache: dict[bytes, float] = {}
+
+    def delta(self, v: float) -> float:
+        return VERIFY * max(self.f0, abs(v) if math.isfinite(v) else 0.0)
+
+    def exact(self, inc: NDArray[np.bool_]) -> Mat:
+        """Exact values of the branching-order rows ``inc`` ``(c, m)``."""
+        out = np.empty(inc.shape[0])
+        todo = []
+        for i, row in enumerate(inc):
+            hit = self.cache.get(np.packbits(row).tobytes())
+            if hit is None:
+                todo.append(i)
+            else:
+                out[i] = hit
+        if todo:
+            prob = self.prob
+            masks = prob.masks(inc[todo])
+            with np.errstate(all="ignore"):
+                v = np.asarray(prob.f(prob.exact_covariances(masks), prob.D), dtype=np.float64)
+            v = np.where(np.isfinite(v) & masks.any(axis=1), v, np.inf)
+            prob.n_evaluated += len(todo)
+            for i, x in zip(todo, v.tolist(), strict=True):
+                out[i] = x
+                self.cache[np.packbits(inc[i]).tobytes()] = x
+        return out
+
+    def forward(self) -> tuple[NDArray[np.bool_], float]:
+        """Forward selection from the required set: add the sensor of the smallest exact value
+        (ties: the lowest sensor index) while it improves (by a relative ``IMPROVE``) and the
+        budget allows.  The exact minimum is within ``2 δ`` of the working one (``|w - e| <= δ``
+        for all: ``e_k >= w_k - δ > w* + δ >= e_*`` for any ``k`` outside), so only the
+        candidates there are evaluated exactly (usually one).  Returns the subset and its exact
+        value."""
+        prob = self.prob
+        inc = np.zeros(prob.m, dtype=bool)
+        val = float(self.exact(inc[None])[0]) if prob.req else math.inf
+        while len(prob.req) + int(inc.sum()) < prob.K:
+            outs = self.by_id[~inc[self.by_id]]
+            if outs.size == 0:
+                break
+            Z = prob.base + prob.S[inc].sum(axis=0)
+            w = prob.approx_values(Z[None] + prob.S[outs])
+            prob.moves += outs.size
+            w_min = float(w.min())
+            if not math.isfinite(w_min):
+                break
+            near = np.flatnonzero(w <= w_min + 2.0 * self.delta(w_min))
+            rows = np.repeat(inc[None], near.size, axis=0)
+            rows[np.arange(near.size), outs[near]] = True
+            e = self.exact(rows)
+            i = int(np.argmin(e))  # candidates in sensor order: the lowest index of the ties
+            if not _improves(float(e[i]), val):
+                break
+            inc, val = rows[i], float(e[i])
+        return inc, val
+
+    def local_search(self, inc: NDArray[np.bool_], val: float) -> NDArray[np.bool_]:
+        """First-improvement local search over, in this order, additions, removals and 1-swaps
+        (out ascending, then in ascending), sensors by index: the first move whose exact value
+        improves by a relative ``IMPROVE`` is taken, until none does (or PLAIN_BUDGET moves were
+        evaluated: far beyond what 64 sensors need).  A move improves exactly only if its working
+        value is below the threshold plus ``δ``; those are evaluated exactly in order (in
+        batches), the first that improves is taken; one below the threshold minus ``δ`` improves
+        for certain, so at most the uncertain moves before it are evaluated exactly."""
+        prob = self.prob
+        k0, K = len(prob.req), prob.K
+        inc = inc.copy()
+        budget = PLAIN_BUDGET
+        while budget > 0 and math.isfinite(val):
+            Z = prob.base + prob.S[inc].sum(axis=0)
+            ins, outs = self.by_id[inc[self.by_id]], self.by_id[~inc[self.by_id]]
+            parts: list[tuple[NDArray[np.intp], NDArray[np.intp]]] = []
+            if k0 + ins.size < K:
+                parts.append((np.full(outs.size, -1), outs))
+            if k0 or ins.size > 1:
+                parts.append((ins, np.full(ins.size, -1)))
+            parts.append((np.repeat(ins, outs.size), np.tile(outs, ins.size)))
+            rem = np.concatenate([p[0] for p in parts])
+            add = np.concatenate([p[1] for p in parts])
+            thr = val - IMPROVE * abs(val)
+            d = self.delta(val)
+            move: NDArray[np.bool_] | None = None
+            for lo in range(0, rem.size, MOVE_BLOCK):
+                r_, a_ = rem[lo : lo + MOVE_BLOCK], add[lo : lo + MOVE_BLOCK]
+                w = _move_values(prob, Z, r_, a_)
+                budget -= w.size
+                cand = np.flatnonzero(w < thr + d)
+                for c0 in range(0, cand.size, VERIFY_BATCH):
+                    c = cand[c0 : c0 + VERIFY_BATCH]
+                    rows = np.repeat(inc[None], c.size, axis=0)
+                    has_r, has_a = r_[c] >= 0, a_[c] >= 0
+                    rows[np.flatnonzero(has_r), r_[c][has_r]] = False
+                    rows[np.flatnonzero(has_a), a_[c][has_a]] = True
+                    e = self.exact(rows)
+                    ok = np.flatnonzero(e < thr)
+                    if ok.size:
+                        move, val = rows[ok[0]], float(e[ok[0]])
+                        break
+                if move is not None:
+                    break
+            if move is None:
+                break
+            inc = move
+        return inc
+
+
+def _forward(prob: _Problem, inc: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], float]:
+    """Forward selection continued from ``inc`` (the plain forward selection's end) on working
+    values: add the sensor giving the smallest value (ties: the lowest sensor index); stop at
+    the budget, or when the interval bound of (current set, all the rest undecided) exceeds the
+    best value on the path (no superset can do better).  Returns the path's best (working
+    values)."""
+    K, k0 = prob.K, len(prob.req)
+    inc = inc.copy()
+    Z = prob.base + prob.S[inc].sum(axis=0)
+    best_val = float(prob.approx_values(Z[None])[0]) if k0 or inc.any() else math.inf
     best_inc = inc.copy()
-    plain: tuple[NDArray[np.bool_], float] | None = None
     by_id = np.argsort(np.asarray(prob.free, dtype=np.int64), kind="stable")
-    k = k0
+    k = k0 + int(inc.sum())
     while k < K and not inc.all():
         rest = by_id[~inc[by_id]]
         if math.isfinite(best_val) and prob.bound is not None:
@@ -80,16 +226,12 @@ def _forward(prob: _Problem) -> tuple[NDArray[np.bool_], float, NDArray[np.bool_
         i = int(np.argmin(v))
         if not math.isfinite(float(v[i])):
             break
-        if plain is None and not _improves(float(v[i]), best_val):
-            plain = (inc.copy(), best_val)
         inc[rest[i]] = True
         Z = prob.base + prob.S[inc].sum(axis=0)
         k += 1
         if v[i] < best_val:
             best_val, best_inc = float(v[i]), inc.copy()
-    if plain is None:  # every step improved: the path's end
-        plain = (best_inc.copy(), best_val)
-    return best_inc, best_val, plain[0], plain[1]
+    return best_inc, best_val
 
 
 def _backward(prob: _Problem) -> tuple[NDArray[np.bool_], float]:
@@ -203,63 +345,26 @@ def _local_search(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray
     return inc
 
 
-def _first_improvement(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray[np.bool_]:
-    """The plain local search: first-improvement over, in this order, additions, removals and
-    1-swaps (out ascending, then in ascending), sensors by index; the first move that improves
-    by a relative ``IMPROVE`` is taken, until none does (or PLAIN_BUDGET moves were evaluated:
-    far beyond what 64 sensors need).  Moves are evaluated in blocks of MOVE_BLOCK in that order,
-    stopping at the first block with an improving move."""
-    k0, K = len(prob.req), prob.K
-    by_id = np.argsort(np.asarray(prob.free, dtype=np.int64), kind="stable")
-    inc = inc.copy()
-    budget = PLAIN_BUDGET
-    while budget > 0:
-        Z = prob.base + prob.S[inc].sum(axis=0)
-        ins, outs = by_id[inc[by_id]], by_id[~inc[by_id]]
-        none_o, none_i = np.full(outs.size, -1), np.full(ins.size, -1)
-        parts: list[tuple[NDArray[np.intp], NDArray[np.intp]]] = []
-        if k0 + ins.size < K:
-            parts.append((none_o, outs))
-        if k0 or ins.size > 1:
-            parts.append((ins, none_i))
-        parts.append((np.repeat(ins, outs.size), np.tile(outs, ins.size)))
-        rem = np.concatenate([p[0] for p in parts])
-        add = np.concatenate([p[1] for p in parts])
-        move: int | None = None
-        for lo in range(0, rem.size, MOVE_BLOCK):
-            v = _move_values(prob, Z, rem[lo : lo + MOVE_BLOCK], add[lo : lo + MOVE_BLOCK])
-            budget -= v.size
-            ok = np.flatnonzero(v < val - IMPROVE * abs(val))
-            if ok.size:
-                move, val = lo + int(ok[0]), float(v[ok[0]])
-                break
-        if move is None:
-            break
-        if rem[move] >= 0:
-            inc[rem[move]] = False
-        if add[move] >= 0:
-            inc[add[move]] = True
-    return inc
-
-
 def _greedy_incs(prob: _Problem) -> list[NDArray[np.bool_]]:
-    """Greedy's subsets as branching-order rows ``(m,)``: the better of the forward and the
-    backward paths improved by :func:`_local_search`, and the plain heuristic's (forward
-    selection while it improves, then :func:`_first_improvement`), so that greedy is never worse
-    than the plain heuristic (empty: no free sensor can be added, only the required set or the
-    zero sensor is possible).  Moves evaluated: ``prob.moves``."""
+    """Greedy's subsets as branching-order rows ``(m,)``: the plain heuristic's (:class:`_Plain`:
+    forward selection while it improves, then first-improvement local search, on exact values),
+    and the better of the forward path continued from there and the backward path, improved by
+    :func:`_local_search` (empty: no free sensor can be added, only the required set or the zero
+    sensor is possible).  Moves evaluated: ``prob.moves``."""
     if prob.m == 0 or prob.K <= len(prob.req):
         return []
-    f_inc, f_val, p_inc, p_val = _forward(prob)
+    plain = _Plain(prob)
+    p_inc, p_val = plain.forward()
+    f_inc, f_val = _forward(prob, p_inc)
     b_inc, b_val = _backward(prob)
     inc, val = (b_inc, b_val) if b_val < f_val else (f_inc, f_val)
     out = []
-    if math.isfinite(val) and (inc.any() or prob.req):
-        out.append(_local_search(prob, inc, val))
     if math.isfinite(p_val) and (p_inc.any() or prob.req):
-        p_inc = _first_improvement(prob, p_inc, p_val)
-        if not any(np.array_equal(p_inc, o) for o in out):
-            out.append(p_inc)
+        out.append(plain.local_search(p_inc, p_val))
+    if math.isfinite(val) and (inc.any() or prob.req):
+        inc = _local_search(prob, inc, val)
+        if not any(np.array_equal(inc, o) for o in out):
+            out.append(inc)
     return out
 
 
@@ -295,14 +400,17 @@ def allocate_greedy(
     constraints: Constraints = NO_CONSTRAINTS,
     tie_rtol: float = 1e-9,
 ) -> SearchResult:
-    """Forward greedy + best-improvement local search (removals, additions, 1-swaps), and the
-    plain forward greedy + first-improvement 1-swaps (module docstring); the better subset
-    found, its exact value and ``P`` (the reference's arithmetic), and the root interval bound as
-    the certified lower bound (for a metric without an interval bound: ``0`` if registered,
-    ``-inf`` for a user's plain function).
+    """The plain forward greedy + first-improvement 1-swaps on exact values, and forward /
+    backward greedy + best-improvement local search (removals, additions, 1-swaps) on working
+    values (module docstring); the better subset found (the tie rule), its exact value and ``P``
+    (the reference's arithmetic), and the root interval bound as the certified lower bound (for a
+    metric without an interval bound: ``0`` if registered, ``-inf`` for a user's plain function).
+    Never worse than the plain heuristic beyond the tie rule's tolerance (module docstring).
 
     Cost: ``O(N)`` batched evaluations per forward step and ``O(|D| · N)`` per local-search pass,
-    each one ``r x r`` inverse and one metric evaluation of an ``n x n`` matrix."""
+    each one ``r x r`` inverse and one metric evaluation of an ``n x n`` matrix; exact
+    evaluations (a Cholesky inverse each) one per step of the plain heuristic, plus the moves
+    within the margin of a decision."""
     prob = _Problem(P_pred, gains, P_d, metric, constraints, tie_rtol)
     try:
         masks, values = _greedy_start(prob)
