@@ -227,9 +227,11 @@ def _check(name, pb):
         b = allocate_bnb(P_pred, gains, P_d, name, c, TIE_RTOL, rel_gap=0.01, node_limit=node_limit)
         assert b.value <= ref + _tol(ref), ("bounded", node_limit, b.subset, b.value, ref)
         assert b.value <= g.value + _tol(g.value), ("bounded vs greedy", b.value, g.value)
-    # greedy's own plain heuristic follows the oracle's path to the same subset
+    # greedy's own plain heuristic follows the oracle's path to the same subset (but for the
+    # oracle's choice of a zero-gain sensor alone, doing nothing: a row of greedy's own)
     prob = _Problem(P_pred, gains, P_d, name, c, TIE_RTOL)
-    if prob.m and prob.K > len(prob.req):
+    zero = len(ref_subset) == 1 and not gains[ref_subset[0]].any()
+    if prob.m and prob.K > len(prob.req) and not zero:
         plain = _Plain(prob)
         inc, val = plain.forward()
         if math.isfinite(val) and (inc.any() or prob.req):

@@ -81,12 +81,17 @@ class _Plain:
     """The plain heuristic's decisions on exact values, screened by working values.
 
     Exact values (:meth:`exact`: the reference's arithmetic, non-finite -> ``inf``, counted in
-    ``prob.n_evaluated``) are cached by subset.  ``delta(v)``: the screening margin
-    ``VERIFY · max(f(P_pred, P_d), |v|)``.  A decision is taken on working values only where every
-    value it compares is farther than the margin from the decision; nearer, the values are
-    evaluated exactly.  So the decisions are the exact ones whenever working and exact values
-    differ by less than the margin (rounding: at most ``6e-11`` of ``max(f(P_pred, P_d), |e|)``
-    measured on ill-conditioned random problems, ``VERIFY`` is ``1e-8``)."""
+    ``prob.n_evaluated``) are cached by subset.  The screening margin of a working value ``w``
+    is ``δ_w = VERIFY · max(f(P_pred, P_d), |w|)``.  A decision is taken on working values only
+    where every value it compares is farther than the margins from the decision (:meth:`_margins`);
+    nearer, the values are evaluated exactly.  So the decisions are the exact ones whenever
+    ``|w - e| <= δ_w`` for every working value compared (rounding: at most ``6e-11`` of
+    ``max(f(P_pred, P_d), |e|)`` measured on ill-conditioned random problems, ``VERIFY`` is
+    ``1e-8``); usually one exact evaluation per decision at most, none where a move improves by
+    more than the margin.  One exception, by design: the free sensors exclude zero gains, so
+    where the plain heuristic would pick a zero-gain sensor alone (doing nothing is best) this
+    path picks another, and greedy's own zero-sensor row (:func:`_greedy_start`) is the plain
+    heuristic's subset."""
 
     def __init__(self, prob: _Problem) -> None:
         self.prob = prob
@@ -95,9 +100,6 @@ class _Plain:
             f0 = np.asarray(prob.f(prob.P_pred[None], prob.D), dtype=np.float64).reshape(-1)
         self.f0 = float(abs(f0[0])) if f0.size and math.isfinite(float(f0[0])) else 0.0
         self.cache: dict[bytes, float] = {}
-
-    def delta(self, v: float) -> float:
-        return VERIFY * max(self.f0, abs(v) if math.isfinite(v) else 0.0)
 
     def exact(self, inc: NDArray[np.bool_]) -> Mat:
         """Exact values of the branching-order rows ``inc`` ``(c, m)``."""
@@ -121,16 +123,30 @@ class _Plain:
                 self.cache[np.packbits(inc[i]).tobytes()] = x
         return out
 
+    def _margins(self, w: float, val_w: float, val_e: float | None) -> tuple[float, float]:
+        """``(t, slack)``: a value ``e`` improves on the current one iff ``e < thr(val_e)``
+        (``thr(v) = v - IMPROVE·|v|``); with ``|w - e| <= d`` and, when the current value is
+        known only as ``val_w``, ``|val_w - val_e| <= d``, a working value ``w < t - slack``
+        improves for certain and ``w >= t + slack`` for certain not (``thr`` is increasing with
+        slope at most ``1 + IMPROVE``)."""
+        d = VERIFY * max(self.f0, abs(val_w), abs(w) if math.isfinite(w) else 0.0)
+        if val_e is not None:
+            return val_e - IMPROVE * abs(val_e), d
+        return val_w - IMPROVE * abs(val_w), d + (1.0 + IMPROVE) * d
+
     def forward(self) -> tuple[NDArray[np.bool_], float]:
         """Forward selection from the required set: add the sensor of the smallest exact value
         (ties: the lowest sensor index) while it improves (by a relative ``IMPROVE``) and the
-        budget allows.  The exact minimum is within ``2 δ`` of the working one (``|w - e| <= δ``
-        for all: ``e_k >= w_k - δ > w* + δ >= e_*`` for any ``k`` outside), so only the
-        candidates there are evaluated exactly (usually one).  Returns the subset and its exact
-        value."""
+        budget allows.  With ``|w - e| <= δ_w = VERIFY · max(f(P_pred, P_d), |w|)``, the exact
+        minimum is within ``3 δ`` (``δ`` of the working minimum ``w*``) of ``w*``: for any ``k``
+        outside, ``e_k >= w_k - δ_k > w* + δ >= e_*``, so only the candidates there are
+        evaluated exactly (usually none: one candidate, and it improves for certain,
+        :meth:`_margins`).  Returns the subset and its value (exact where known, else
+        working)."""
         prob = self.prob
         inc = np.zeros(prob.m, dtype=bool)
-        val = float(self.exact(inc[None])[0]) if prob.req else math.inf
+        val_e: float | None = float(self.exact(inc[None])[0]) if prob.req else math.inf
+        val_w = val_e if val_e is not None else math.inf
         while len(prob.req) + int(inc.sum()) < prob.K:
             outs = self.by_id[~inc[self.by_id]]
             if outs.size == 0:
@@ -141,29 +157,51 @@ class _Plain:
             w_min = float(w.min())
             if not math.isfinite(w_min):
                 break
-            near = np.flatnonzero(w <= w_min + 2.0 * self.delta(w_min))
+            d = VERIFY * max(self.f0, abs(w_min))
+            near = np.flatnonzero(w <= w_min + 3.0 * d)
             rows = np.repeat(inc[None], near.size, axis=0)
             rows[np.arange(near.size), outs[near]] = True
-            e = self.exact(rows)
-            i = int(np.argmin(e))  # candidates in sensor order: the lowest index of the ties
-            if not _improves(float(e[i]), val):
-                break
-            inc, val = rows[i], float(e[i])
-        return inc, val
+            e_j: float | None = None
+            i = 0
+            if near.size > 1:
+                e = self.exact(rows)
+                i = int(np.argmin(e))  # candidates in sensor order: the lowest index of the ties
+                e_j = float(e[i])
+            w_j = float(w[near[i]])
+            if not math.isfinite(val_w):  # the first sensor: any finite value improves on nothing
+                if e_j is None:
+                    e_j = float(self.exact(rows[i : i + 1])[0])
+                if not math.isfinite(e_j):
+                    break
+            else:
+                t, slack = self._margins(w_j, val_w, val_e)
+                sure = w_j < t - slack
+                if not sure and w_j < t + slack:  # near the threshold: decide exactly
+                    if val_e is None:
+                        val_e = float(self.exact(inc[None])[0])
+                    if e_j is None:
+                        e_j = float(self.exact(rows[i : i + 1])[0])
+                    sure = e_j < val_e - IMPROVE * abs(val_e)
+                if not sure:
+                    break
+            inc, val_w, val_e = rows[i], w_j, e_j
+        return inc, val_w if val_e is None else val_e
 
     def local_search(self, inc: NDArray[np.bool_], val: float) -> NDArray[np.bool_]:
         """First-improvement local search over, in this order, additions, removals and 1-swaps
         (out ascending, then in ascending), sensors by index: the first move whose exact value
         improves by a relative ``IMPROVE`` is taken, until none does (or PLAIN_BUDGET moves were
-        evaluated: far beyond what 64 sensors need).  A move improves exactly only if its working
-        value is below the threshold plus ``δ``; those are evaluated exactly in order (in
-        batches), the first that improves is taken; one below the threshold minus ``δ`` improves
-        for certain, so at most the uncertain moves before it are evaluated exactly."""
+        evaluated: far beyond what 64 sensors need).  A move can improve exactly only if its
+        working value is below the threshold plus the slack (:meth:`_margins`); those are taken
+        in order: one below the threshold minus the slack improves for certain and is taken
+        without an exact evaluation, the uncertain ones before it are evaluated exactly (in
+        batches, with the current subset's exact value) and the first that improves is taken."""
         prob = self.prob
         k0, K = len(prob.req), prob.K
         inc = inc.copy()
+        val_w, val_e = val, None
         budget = PLAIN_BUDGET
-        while budget > 0 and math.isfinite(val):
+        while budget > 0 and math.isfinite(val_w):
             Z = prob.base + prob.S[inc].sum(axis=0)
             ins, outs = self.by_id[inc[self.by_id]], self.by_id[~inc[self.by_id]]
             parts: list[tuple[NDArray[np.intp], NDArray[np.intp]]] = []
@@ -174,25 +212,42 @@ class _Plain:
             parts.append((np.repeat(ins, outs.size), np.tile(outs, ins.size)))
             rem = np.concatenate([p[0] for p in parts])
             add = np.concatenate([p[1] for p in parts])
-            thr = val - IMPROVE * abs(val)
-            d = self.delta(val)
             move: NDArray[np.bool_] | None = None
             for lo in range(0, rem.size, MOVE_BLOCK):
                 r_, a_ = rem[lo : lo + MOVE_BLOCK], add[lo : lo + MOVE_BLOCK]
                 w = _move_values(prob, Z, r_, a_)
                 budget -= w.size
-                cand = np.flatnonzero(w < thr + d)
-                for c0 in range(0, cand.size, VERIFY_BATCH):
-                    c = cand[c0 : c0 + VERIFY_BATCH]
-                    rows = np.repeat(inc[None], c.size, axis=0)
-                    has_r, has_a = r_[c] >= 0, a_[c] >= 0
-                    rows[np.flatnonzero(has_r), r_[c][has_r]] = False
-                    rows[np.flatnonzero(has_a), a_[c][has_a]] = True
-                    e = self.exact(rows)
-                    ok = np.flatnonzero(e < thr)
-                    if ok.size:
-                        move, val = rows[ok[0]], float(e[ok[0]])
-                        break
+                w_big = float(np.max(np.abs(w), initial=0.0, where=np.isfinite(w)))
+                t, slack = self._margins(w_big, val_w, val_e)  # the widest slack of the block
+                cand = np.flatnonzero(w < t + slack)
+                pos = 0
+                while pos < cand.size and move is None:
+                    run: list[int] = []
+                    while pos < cand.size and len(run) < VERIFY_BATCH:
+                        c = int(cand[pos])
+                        t, slack = self._margins(float(w[c]), val_w, val_e)
+                        if w[c] < t - slack:
+                            break
+                        if w[c] < t + slack:
+                            run.append(c)
+                        pos += 1
+                    rows = np.repeat(inc[None], len(run) + 1, axis=0)
+                    for k, c in enumerate(run + [int(cand[pos]) if pos < cand.size else -1]):
+                        if c >= 0 and r_[c] >= 0:
+                            rows[k, r_[c]] = False
+                        if c >= 0 and a_[c] >= 0:
+                            rows[k, a_[c]] = True
+                    if run:
+                        if val_e is None:
+                            val_e = float(self.exact(inc[None])[0])
+                        e = self.exact(rows[:-1])
+                        ok = np.flatnonzero(e < val_e - IMPROVE * abs(val_e))
+                        if ok.size:
+                            move, val_w, val_e = rows[ok[0]], float(e[ok[0]]), float(e[ok[0]])
+                            break
+                    if pos < cand.size and len(run) < VERIFY_BATCH:  # a certain improvement
+                        c = int(cand[pos])
+                        move, val_w, val_e = rows[-1], float(w[c]), None
                 if move is not None:
                     break
             if move is None:
