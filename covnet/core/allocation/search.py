@@ -45,9 +45,10 @@ the tie rule then runs on bit-identical values: the same subset, value and ``P``
 bound first and depth first in turn, and pruned once their bound exceeds ``U - rel_gap·|U|``; a
 limit stops the search (depth first without ``rel_gap``).  ``time_limit_s`` bounds the whole
 decision, every step reading the clock (from the call's start; status 2 once it is reached):
-greedy's start (its working values are ``+inf`` once the time is up, ``_Problem.stop``: every
-phase ends with the best it has, no move is evaluated), the root (not bounded at all when greedy
-took the time: the certificate is then the root's interval bound), the relaxation's and the dual
+greedy's start (its working values are ``+inf`` once GREEDY_SHARE of the time is spent,
+``_Problem.stop``: every phase ends with the best it has, no move is evaluated), the root (not
+bounded at all when greedy took the time: the certificate is then the root's interval bound; its
+dual bound stops once it certifies ``rel_gap``), the relaxation's and the dual
 bound's iterations (each stops after the iteration in progress, its bound so far valid), the tree
 between batches, the leaf table (not built, and its nodes left open, once the time is up), and
 the exact evaluation of the recorded candidates after the tree (lowest bound first, in batches,
@@ -130,6 +131,10 @@ LEAF_GROUP = 8
 #: twice the last, at most FINISH_MAX (the time limit is checked in between)
 FINISH_FIRST = EVAL_PICKS * 16
 FINISH_MAX = 1024
+#: with a time limit, greedy's start gets at most this share of it (its working values are +inf
+#: after that: it keeps the best it has), the rest is the root's bound and the tree's: without
+#: the root's bound a decision certifies only the root's interval bound
+GREEDY_SHARE = 0.5
 
 
 @dataclass(slots=True)
@@ -324,11 +329,12 @@ class _Search:
         Z0 = prob.base[None]
         sB = prob.summary(Z0)
         sA = prob.summary(Z0 + prob.suffix[0])
-        if prob.dual is not None:  # the dual bound's full run, kept for the certificate
-            lb = np.array([prob.root_bound()])
-        else:
-            lb = prob.combine(sA, sB)
-            lb = prob.refine(Z0, Z0 + prob.suffix[0], lb, sB, self.tau)
+        lb = prob.combine(sA, sB)
+        lb = prob.refine(Z0, Z0 + prob.suffix[0], lb, sB, self.tau)
+        if prob.dual is not None and prob._root_bound is None:
+            # the dual bound's run stops once it certifies the gap (lb > tau: 5-16 barrier
+            # iterations at N = 100 instead of 30), kept for the certificate
+            prob._root_bound = float(lb[0])
         self.n_nodes += 1
         nb = (prob.m + 7) // 8
         root = _Chunk(0, Z0, np.array([k0]), np.zeros((1, nb), dtype=np.uint8), sA, sB, lb)
@@ -541,17 +547,25 @@ def allocate_bnb(
     if node_limit is not None and (not isinstance(node_limit, int) or node_limit < 1):
         raise ValueError(f"node_limit must be an integer >= 1 or None, got {node_limit!r}")
     deadline: Callable[[], bool] | None = None
+    greedy_deadline: Callable[[], bool] | None = None
     if time_limit_s is not None:
         if clock is None:
             # only with a time limit (start-up: the core needs no clock otherwise)
             import time
 
             clock = time.perf_counter
-        t_end = clock() + time_limit_s
+        t0 = clock()
+        t_end = t0 + time_limit_s
+        t_greedy = t0 + GREEDY_SHARE * time_limit_s
         tick = clock
 
         def deadline() -> bool:
             return tick() >= t_end
+
+        def greedy_deadline_() -> bool:
+            return tick() >= t_greedy
+
+        greedy_deadline = greedy_deadline_
 
     prob = _Problem(P_pred, gains, P_d, metric, constraints, tie_rtol)
     if prob.bound is None:
@@ -570,10 +584,11 @@ def allocate_bnb(
         )
     # best bound first when a gap is asked for (the certified bound rises fastest); depth first
     # otherwise (bounded memory), also when only a limit guards an exact search
-    prob.stop = deadline  # greedy's phases, the relaxation's and dual bound's iterations
     try:
         search = _Search(prob, rel_gap, rel_gap > 0.0, deadline, node_limit)
+        prob.stop = greedy_deadline  # greedy's phases, GREEDY_SHARE of the time
         search.evaluated(*_greedy_start(prob))
+        prob.stop = deadline  # the relaxation's and the dual bound's iterations
         why = search.finish(search.run())
         masks = np.concatenate(search.ev_masks)
         values = np.concatenate(search.ev_vals)
