@@ -46,7 +46,8 @@ bound first and depth first in turn, and pruned once their bound exceeds ``U - r
 limit stops the search (depth first without ``rel_gap``).  ``time_limit_s`` bounds the whole
 decision, every step reading the clock (from the call's start; status 2 once it is reached):
 greedy's start (its working values are ``+inf`` once GREEDY_SHARE of the time is spent,
-``_Problem.stop``: every phase ends with the best it has, no move is evaluated), the root (not
+``_Problem.stop``: every phase ends with the best it has, no move is evaluated; when it was cut,
+forward selection again, until the whole limit: a floor for the incumbent), the root (not
 bounded at all when greedy took the time: the certificate is then the root's interval bound; its
 dual bound stops once it certifies ``rel_gap``), the relaxation's and the dual
 bound's iterations (each stops after the iteration in progress, its bound so far valid), the tree
@@ -587,7 +588,7 @@ def allocate_bnb(
     try:
         search = _Search(prob, rel_gap, rel_gap > 0.0, deadline, node_limit)
         prob.stop = greedy_deadline  # greedy's phases, GREEDY_SHARE of the time
-        search.evaluated(*_greedy_start(prob))
+        search.evaluated(*_greedy_start(prob, deadline))
         prob.stop = deadline  # the relaxation's and the dual bound's iterations
         why = search.finish(search.run())
         masks = np.concatenate(search.ev_masks)
