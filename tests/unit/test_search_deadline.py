@@ -94,7 +94,7 @@ def test_time_up_in_the_root_barrier_stops_it_after_one_iteration(monkeypatch):
     solves = _count(monkeypatch, _DualBound, "_solve", clock, expire_on=1)
     steps = _count(monkeypatch, _DualBound, "_line_search", clock)
     r = allocate_bnb(P_pred, gains, P_d, "spectral", rel_gap=1e-9, time_limit_s=1.0, clock=clock)
-    assert r.status in (2, 3)  # 3: the one iteration's bound already certified the gap
+    assert r.status in (2, 3)  # 3: the bound already certified the gap
     assert solves["all"] == 1  # the root's run only: no child was bounded
     assert steps["late"] == 0  # the barrier's first iteration gave the bound, no Newton step
     assert r.n_nodes == 1

@@ -48,8 +48,9 @@ decision, every step reading the clock (from the call's start; status 2 once it 
 greedy's start (its working values are ``+inf`` once GREEDY_SHARE of the time is spent,
 ``_Problem.stop``: every phase ends with the best it has, no move is evaluated; when it was cut,
 forward selection again, until the whole limit: a floor for the incumbent), the root (not
-bounded at all when greedy took the time: the certificate is then the root's interval bound; its
-dual bound stops once it certifies ``rel_gap``), the relaxation's and the dual
+explored when greedy took the time: the certificate is then the root's bound, computed whole
+after the deadline, one node; its dual bound stops once it certifies ``rel_gap``), the
+relaxation's and the dual
 bound's iterations (each stops after the iteration in progress, its bound so far valid), the tree
 between batches, the leaf table (not built, and its nodes left open, once the time is up), and
 the exact evaluation of the recorded candidates after the tree (lowest bound first, in batches,
@@ -336,6 +337,8 @@ class _Search:
             # the dual bound's run stops once it certifies the gap (lb > tau: 5-16 barrier
             # iterations at N = 100 instead of 30), kept for the certificate
             prob._root_bound = float(lb[0])
+        else:  # the relaxation's full run (a few ms)
+            prob.root_bound()
         self.n_nodes += 1
         nb = (prob.m + 7) // 8
         root = _Chunk(0, Z0, np.array([k0]), np.zeros((1, nb), dtype=np.uint8), sA, sB, lb)
@@ -611,6 +614,7 @@ def allocate_bnb(
             0,
             STATUS[0],
         )
+    prob.stop = None  # the root's bound runs whole (one node: one step of overshoot)
     lb = min(max(search.lower_bound(), prob.root_bound()), value)
     status = why if why else 3
     return SearchResult(
