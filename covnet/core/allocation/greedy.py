@@ -34,6 +34,7 @@ random (problem, metric) pairs, mostly with duplicated sensors) and, once in 900
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -423,13 +424,21 @@ def _greedy_incs(prob: _Problem) -> list[NDArray[np.bool_]]:
     return out
 
 
-def _greedy_start(prob: _Problem) -> tuple[NDArray[np.bool_], Mat]:
+def _greedy_start(
+    prob: _Problem, deadline: Callable[[], bool] | None = None
+) -> tuple[NDArray[np.bool_], Mat]:
     """Greedy's subset, the required set (when not empty) and the zero sensor's singleton (when
     it is a choice) as sensor rows ``(c, N)``, with their exact values: every feasible subset the
     tree does not record itself.  At least one row (the first free sensor alone if greedy finds
-    nothing finite)."""
+    nothing finite).  ``deadline`` (a time limit): when ``prob.stop`` cut greedy short, forward
+    selection again until the deadline (the plain heuristic's first phase, as a floor)."""
+    incs = _greedy_incs(prob)
+    if deadline is not None and prob.stop is not None and prob.stop():
+        prob.stop = deadline
+        if prob.m and prob.K > len(prob.req):
+            incs.append(_forward(prob)[0])
     rows = []
-    for inc in _greedy_incs(prob):
+    for inc in incs:
         if inc.any() or not prob.req:
             rows.append(prob.masks(inc[None])[0])
     if prob.req:

@@ -200,9 +200,16 @@ class _DualBound:
 
     # -- the barrier method -------------------------------------------------------------------
 
-    def bound(self, Z_lo: Mat, Z_hi: Mat, tau: float = math.inf) -> Mat:
+    def bound(
+        self,
+        Z_lo: Mat,
+        Z_hi: Mat,
+        tau: float = math.inf,
+        stop: Callable[[], bool] | None = None,
+    ) -> Mat:
         """Lower bounds ``(m,)`` of the metric over the nodes with information ``[Z_lo, Z_hi]``
-        (rows ``(m, 4)``), ``0`` where nothing is proven."""
+        (rows ``(m, 4)``), ``0`` where nothing is proven.  ``stop`` (a time limit): the barrier
+        iterations end once it says so (the bound so far: valid whatever ``Y`` was reached)."""
         m = Z_lo.shape[0]
         out = np.zeros(m)
         if m == 0:
@@ -212,10 +219,10 @@ class _DualBound:
             ok = np.isfinite(M_lo).all(axis=(1, 2)) & np.isfinite(V).all(axis=(1, 2))
             idx = np.flatnonzero(ok)
             if idx.size:
-                out[idx] = self._solve(M_lo[idx], V[idx], tau)
+                out[idx] = self._solve(M_lo[idx], V[idx], tau, stop)
         return out
 
-    def _solve(self, M_lo: Mat, V: Mat, tau: float) -> Mat:
+    def _solve(self, M_lo: Mat, V: Mat, tau: float, stop: Callable[[], bool] | None = None) -> Mat:
         m, n = M_lo.shape[0], self.n
         goal = self._goal(tau)
         # dM/dx_k = V B_k Vᵀ (m, 3, n, n)
@@ -237,6 +244,8 @@ class _DualBound:
         s = nu / t
         eye = np.eye(n)
         for it in range(BARRIER_ITERS):
+            # the time is up: this iteration's multipliers give the bound, then stop
+            last = it == BARRIER_ITERS - 1 or (stop is not None and stop())
             # gradient and Hessian of s t + barrier in z = (t, x0, x1, x2)
             g = np.zeros((idx.size, 4))
             g[:, 0] = s
@@ -281,7 +290,7 @@ class _DualBound:
             step[bad] = 0.0
             lam[bad] = 0.0
             central = lam < NEAR_CENTRAL
-            if central.any() or it == BARRIER_ITERS - 1:
+            if central.any() or last:
                 if q is not None:
                     # the multipliers 1/(s f) corrected to first order by the Newton step
                     # (f + Δf: 1/f - Δf/f²), then weights >= 0 summing to 1: a convex
@@ -309,7 +318,7 @@ class _DualBound:
                     live = np.isfinite(val)
                 else:
                     live = ~((lb > tau) | (val <= goal) | ~np.isfinite(val))
-                if not live.any():
+                if not live.any() or last:
                     break
                 if not live.all():
                     keep = np.flatnonzero(live)

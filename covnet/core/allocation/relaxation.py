@@ -19,6 +19,7 @@ but many within ``1e-5``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -282,10 +283,19 @@ class _Relaxation:
         Wi = _inv2(a, b, c)
         return g, (g00 - 0.5 * Wi[0], g01 - 0.5 * Wi[1], g11 - 0.5 * Wi[2])
 
-    def bound(self, Z_lo: Mat, Z_hi: Mat, tau: float, zform: bool = False) -> Mat:
+    def bound(
+        self,
+        Z_lo: Mat,
+        Z_hi: Mat,
+        tau: float,
+        zform: bool = False,
+        stop: Callable[[], bool] | None = None,
+    ) -> Mat:
         """Lower bounds ``(m,)`` of the metric over the nodes with information ``[Z_lo, Z_hi]``
         (rows ``(m, 4)``); ``-inf`` where nothing is proven.  ``zform`` (logdet only, on rows
-        where :meth:`z_convex` holds): the objective in ``Z``."""
+        where :meth:`z_convex` holds): the objective in ``Z``.  ``stop`` (a time limit): the
+        iterations end once it says so, after the first (every iteration's tangent plane is a
+        valid bound, so an early end only loosens it)."""
         m = Z_lo.shape[0]
         out = np.full(m, -np.inf)
         if m == 0:
@@ -309,7 +319,7 @@ class _Relaxation:
                     live = np.isfinite(h_x)
                 else:
                     live = ~((lb_safe > goal) | (h_x <= goal) | ~np.isfinite(h_x))
-                if not live.any():
+                if not live.any() or (stop is not None and stop()):
                     break
                 keep = np.flatnonzero(live)
                 idx = idx[keep]

@@ -22,6 +22,7 @@ candidate ``{j}`` when nothing is required.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -163,6 +164,11 @@ class _Problem:
         )
         self.n_evaluated = 0
         self.moves = 0
+        #: the time limit of a search (``True`` once reached; set by the branch and bound for
+        #: its call): greedy's working values are then ``+inf`` (no move improves, every phase
+        #: ends with what it has) and the relaxation's and dual bound's iterations stop (their
+        #: bound so far, valid at every iteration)
+        self.stop: Callable[[], bool] | None = None
         self.relax: _Relaxation | None = None
         relaxation = entry.relaxation if entry is not None else None
         if self.bound is not None and relaxation is not None and self.r == 2:
@@ -253,7 +259,8 @@ class _Problem:
             if rows.size == 0:
                 return lb
             out = lb.copy()
-            out[rows] = np.fmax(lb[rows], self.dual.bound(Z_lo[rows], Z_hi[rows], tau))
+            db = self.dual.bound(Z_lo[rows], Z_hi[rows], tau, self.stop)
+            out[rows] = np.fmax(lb[rows], db)
             return out
         if self.relax is None or lb.size == 0:
             return lb
@@ -270,9 +277,10 @@ class _Problem:
             return lb
         out = lb.copy()
         if rows.size:
-            out[rows] = np.fmax(lb[rows], self.relax.bound(Z_lo[rows], Z_hi[rows], tau))
+            rb = self.relax.bound(Z_lo[rows], Z_hi[rows], tau, stop=self.stop)
+            out[rows] = np.fmax(lb[rows], rb)
         if zrows.size:
-            zb = self.relax.bound(Z_lo[zrows], Z_hi[zrows], tau, zform=True)
+            zb = self.relax.bound(Z_lo[zrows], Z_hi[zrows], tau, zform=True, stop=self.stop)
             out[zrows] = np.fmax(lb[zrows], zb)
         return out
 
@@ -284,7 +292,10 @@ class _Problem:
 
     def approx_values(self, Z: Mat) -> Mat:
         """The metric on reduced-form covariances (greedy's working values; NaN -> +inf): for
-        frobenius, kl and logdet with ``r = 2`` from the closed forms of :class:`_Relaxation`."""
+        frobenius, kl and logdet with ``r = 2`` from the closed forms of :class:`_Relaxation`;
+        all ``+inf`` once :attr:`stop` says the time is up."""
+        if self.stop is not None and self.stop():
+            return np.full(Z.shape[0], np.inf)
         if self.relax is not None:
             with np.errstate(all="ignore"):
                 v = self.relax.value(Z)
