@@ -117,11 +117,11 @@ EVAL_PICKS = 4
 #: the relaxation refines only nodes with at least this many undecided sensors (1: every node;
 #: at 32-40 sensors 6 left two thirds of kl's nodes, in the last five levels, unrefined)
 RELAX_MIN_REST = 1
-#: exact mode: the dual bound (spectral, one_norm, inf_norm, abs_trace; about 0.1 ms a node
-#: against about 1 µs for the interval bound) only on nodes with at least this many undecided
-#: sensors, where a prune saves a large subtree (N = 40, abs_trace: every node 11-14 s on the
-#: problems that need 0.2 s with it here)
-DUAL_MIN_REST = 18
+#: exact mode: the dual bound (spectral, one_norm, inf_norm, abs_trace; 0.1-1 ms a node against
+#: about 1 µs for the interval bound) only on nodes with at least this many undecided sensors,
+#: where a prune saves a large subtree (N = 40, alternated with 18 and with every node: 26 was
+#: as fast or faster on each abs_trace and spectral bench problem)
+DUAL_MIN_REST = 26
 #: kl, frobenius and logdet: the last this many levels of the tree come from a table of
 #: ``2^LEAF_LEVELS`` sums (:class:`_Leaves`; 2^18 rows: 6 MB, and a k-d tree)
 LEAF_LEVELS = 18
