@@ -131,3 +131,15 @@ def test_identical_sensors_are_adjacent_in_the_branching_order():
     assert same.sum() == 12 - 3  # every copy after its type's first
     for p in np.flatnonzero(same):
         assert prob.free[p - 1] < prob.free[p]
+
+
+def test_a_limit_stops_the_table_of_the_last_levels():
+    """kl on a tie problem: the table's ball holds most completions of every node, and the limit
+    is checked between its queries (before, one batch of nodes ran its every query: this call did
+    not return within minutes).  Deterministic: a node limit."""
+    P_pred, gains, P_d = tie_problem(24, 0, 4)
+    limit = 200_000
+    r = S.allocate_bnb(P_pred, gains, P_d, "kl", node_limit=limit)
+    assert r.status == 1 and not r.exact
+    assert r.n_nodes < 2 * limit
+    assert r.lower_bound <= r.value and r.gap == pytest.approx((r.value - r.lower_bound) / r.value)

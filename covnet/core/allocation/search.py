@@ -459,6 +459,10 @@ class _Search:
         # the lowest bounds first, a few nodes at a time: the threshold falls in between
         order = np.argsort(ch.lb, kind="stable")
         for lo in range(0, order.size, LEAF_GROUP):
+            if lo and self.limited():
+                # a limit: the nodes not queried stay open (their bounds stay in the certificate)
+                self.push(ch.take(order[lo:]))
+                return True
             sub = ch.take(order[lo : lo + LEAF_GROUP])
             sub = sub.take(self.prune(sub.lb))
             if sub.lb.size == 0:
