@@ -38,8 +38,10 @@ def test_the_generator_ties_exactly_and_exact_search_still_matches(name):
     assert ref.value == 9999.0 and ref.subset == (0,)
     assert got.status == 0 and (got.subset, got.value) == (ref.subset, ref.value)
     np.testing.assert_array_equal(got.P, ref.P)
-    # every subset ties exactly: the tree records every one of them as a candidate
-    assert got.n_evaluated >= 2**9 - 1
+    # every subset ties exactly: without the tie rule's pruning (covnet.core.allocation.tie_rule,
+    # which certifies the one_norm and inf_norm ties here) the tree records every one of them
+    if got.n_evaluated < 2**9 - 1:
+        assert name in ("one_norm", "inf_norm")
 
 
 def test_time_limit_bounds_the_whole_decision():

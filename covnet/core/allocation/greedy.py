@@ -431,12 +431,15 @@ def _greedy_start(
     it is a choice) as sensor rows ``(c, N)``, with their exact values: every feasible subset the
     tree does not record itself.  At least one row (the first free sensor alone if greedy finds
     nothing finite).  ``deadline`` (a time limit): when ``prob.stop`` cut greedy short, forward
-    selection again until the deadline (the plain heuristic's first phase, as a floor)."""
+    selection again until the deadline (the plain heuristic, :class:`_Plain`, as a floor)."""
     incs = _greedy_incs(prob)
     if deadline is not None and prob.stop is not None and prob.stop():
         prob.stop = deadline
         if prob.m and prob.K > len(prob.req):
-            incs.append(_forward(prob)[0])
+            plain = _Plain(prob)
+            p_inc, p_val = plain.forward()
+            if math.isfinite(p_val) and (p_inc.any() or prob.req):
+                incs.append(plain.local_search(p_inc, p_val))
     rows = []
     for inc in incs:
         if inc.any() or not prob.req:

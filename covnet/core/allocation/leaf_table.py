@@ -113,6 +113,7 @@ class _Leaves:
         from scipy.spatial import cKDTree  # here only: the start-up of covnet.core stays light
 
         self.tree = cKDTree(X, leafsize=32, balanced_tree=False)
+        self._canon: tuple[bytes, NDArray[np.bool_]] | None = None
         self._ball_of: tuple[float, tuple[NDArray[np.float64], float] | None] | None = None
         self.Xmax = float(np.abs(X).max())
         self.T, self.cnt = T, cnt
@@ -309,10 +310,19 @@ class _Leaves:
         return best
 
     def leaves(
-        self, Z: Mat, k: NDArray[np.int64], inc: NDArray[np.uint8], tau: float
+        self,
+        Z: Mat,
+        k: NDArray[np.int64],
+        inc: NDArray[np.uint8],
+        tau: float,
+        K: int | None = None,
+        same: NDArray[np.bool_] | None = None,
     ) -> tuple[NDArray[np.uint8], Mat, int]:
         """The completions of the nodes (``Z`` ``(c, 4)``, ``k``, packed ``inc``) inside the
-        ball, as packed rows with their bounds; and how many table rows were looked at."""
+        ball, as packed rows with their bounds; and how many table rows were looked at.
+        ``K``: the budget (default the problem's); ``same``: keep only the canonical
+        completions of identical sensors (:mod:`covnet.core.allocation.tie_rule`: position
+        ``p`` included only with ``p - 1``, ``same[p]`` saying the two are identical)."""
         prob = self.prob
         got = self.ball(tau)
         empty = (np.zeros((0, inc.shape[1]), dtype=np.uint8), np.zeros(0), 0)
@@ -332,8 +342,28 @@ class _Leaves:
             return empty
         node = np.repeat(np.arange(Z.shape[0]), n)
         t = np.concatenate([np.asarray(h, dtype=np.intp) for h in hits])
-        ok = (t != 0) & (self.cnt[t] <= prob.K - k[node])
+        ok = (t != 0) & (self.cnt[t] <= (prob.K if K is None else K) - k[node])
+        if same is not None and same[self.d0 :].any():
+            ok &= self._canonical(same)[t]
+            if same[self.d0]:  # the table's first sensor needs the tree's last one
+                d = self.d0 - 1
+                prev = ((inc[:, d >> 3] >> np.uint8(d & 7)) & np.uint8(1)).astype(bool)
+                ok &= prev[node] | ((t & 1) == 0)
         return self._rows(Z, inc, node[ok], t[ok], tau, tot)
+
+    def _canonical(self, same: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Table rows with no position ``p`` (both in the table) included without ``p - 1``
+        where ``same[p]``."""
+        key = same[self.d0 :].tobytes()
+        if self._canon is not None and self._canon[0] == key:
+            return self._canon[1]
+        t = np.arange(self.T.shape[0])
+        ok = np.ones(t.size, dtype=bool)
+        for q in range(1, self.u):
+            if same[self.d0 + q]:
+                ok &= ((t >> q) & 1 == 0) | ((t >> (q - 1)) & 1 == 1)
+        self._canon = (key, ok)
+        return ok
 
     def _rows(
         self,

@@ -41,6 +41,15 @@ gain_sums`; ``P = spd_inverse(spd_inverse(P_pred) + J)``; the metric itself, bat
 the tie rule then runs on bit-identical values: the same subset, value and ``P`` as
 :func:`~covnet.core.allocation.allocate_exhaustive`.
 
+**Tie rule** (exact mode; :mod:`covnet.core.allocation.tie_rule`): once an evaluated subset is
+certified to be in the tie set (its value within the tie tolerance of the root's bound), nodes
+with as many sensors are dropped (only fewer sensors can still be chosen), and of bit-identical
+sensors only the canonical completions are explored (a copy only with its lower-indexed twin);
+a check after the search proves the choice is the reference's, else the search runs again
+without these rules.  The dual bound (spectral, one_norm, inf_norm, abs_trace) costs about a
+hundred interval bounds, so exact mode applies it only to nodes with ``DUAL_MIN_REST`` or more
+undecided sensors.
+
 **Bounded** (``rel_gap > 0``, a time or node limit): with ``rel_gap > 0`` nodes are explored best
 bound first and depth first in turn, and pruned once their bound exceeds ``U - rel_gap·|U|``; a
 limit stops the search (depth first without ``rel_gap``).  ``time_limit_s`` bounds the whole
@@ -100,6 +109,7 @@ from covnet.core.allocation.search_problem import (
     _Problem,
     _subset,
 )
+from covnet.core.allocation.tie_rule import _TieRule
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import MetricFn
 
@@ -120,6 +130,11 @@ EVAL_PICKS = 4
 #: the relaxation refines only nodes with at least this many undecided sensors (1: every node;
 #: at 32-40 sensors 6 left two thirds of kl's nodes, in the last five levels, unrefined)
 RELAX_MIN_REST = 1
+#: exact mode: the dual bound (spectral, one_norm, inf_norm, abs_trace; 0.1-1 ms a node against
+#: about 1 µs for the interval bound) only on nodes with at least this many undecided sensors,
+#: where a prune saves a large subtree (N = 40, alternated with 18 and with every node: 26 was
+#: as fast or faster on each abs_trace and spectral bench problem)
+DUAL_MIN_REST = 26
 #: kl, frobenius and logdet: the last this many levels of the tree come from a table of
 #: ``2^LEAF_LEVELS`` sums (:class:`_Leaves`; 2^18 rows: 6 MB, and a k-d tree)
 LEAF_LEVELS = 18
@@ -224,6 +239,7 @@ class _Search:
         best_first: bool,
         deadline: Callable[[], bool] | None,
         node_limit: int | None,
+        ties: bool = False,
     ) -> None:
         self.prob = prob
         self.rel_gap = rel_gap
@@ -252,6 +268,11 @@ class _Search:
         q = 8 * prob.n + prob.n * prob.n  # the widest summary's entries, generously
         per_node = 8 * (prob.r * prob.r + 2 + 2 * q) + (prob.m + 7) // 8
         self.open_cap = max(CHUNK, OPEN_BYTES // per_node)
+        # exact mode: pruning by the tie rule (:mod:`covnet.core.allocation.tie_rule`)
+        self.ties = _TieRule(prob, symmetry=True) if ties and rel_gap == 0.0 else None
+        self.min_rest = RELAX_MIN_REST
+        if prob.dual is not None and rel_gap == 0.0:
+            self.min_rest = DUAL_MIN_REST
 
     # -- incumbent and thresholds ---------------------------------------------------------------
 
@@ -271,6 +292,8 @@ class _Search:
         self.ev_vals.append(values)
         if values.size:
             self.U = min(self.U, float(values.min()))
+            if self.ties is not None:
+                self.ties.observe(masks, values)
 
     def evaluate_inc(self, inc: NDArray[np.uint8]) -> None:
         masks = self.prob.masks(self.prob.unpack(inc))
@@ -348,6 +371,8 @@ class _Search:
     def record(self, inc: NDArray[np.uint8], est: Mat) -> None:
         """New candidates: those that can still tie are kept; the best few that could beat the
         incumbent are evaluated at once (the incumbent, so the threshold, falls early)."""
+        if self.ties is not None:
+            self.ties.candidates(est)
         rec = self.prune(est)
         inc, est = inc[rec], est[rec]
         if est.size == 0:
@@ -372,24 +397,44 @@ class _Search:
         if ch.lb.size == 0:
             return
         d = ch.depth
+        K = prob.K
+        ties = self.ties
+        if ties is not None:
+            # the size rule: k >= s* keeps only I itself, already a candidate
+            K = min(K, ties.s_star)
+            big = ch.k >= K
+            if big.any():
+                ties.dropped(ch.lb[big])
+                ch = ch.take(~big)
+                if ch.lb.size == 0:
+                    return
         if d == self.d0 and self.leaves_expand(ch):
             return
         last = d + 1 == prob.m
-        relax = prob.m - (d + 1) >= RELAX_MIN_REST
+        relax = prob.m - (d + 1) >= self.min_rest
         out: list[_Chunk] = []
         # include children: I + free[d], a new B (every node here has k < K)
-        Zi = ch.Z + prob.S[d]
+        src = ch
+        if ties is not None and ties.same[d]:
+            # identical sensors: free[d] only with its identical predecessor included
+            has = (ch.inc[:, (d - 1) >> 3] >> np.uint8((d - 1) & 7)) & np.uint8(1)
+            src = ch.take(has.astype(bool))
+        Zi = src.Z + prob.S[d]
         sBi = prob.summary(Zi)
-        ki = ch.k + 1
-        inc = ch.inc.copy()
+        ki = src.k + 1
+        inc = src.inc.copy()
         inc[:, d >> 3] |= np.uint8(1 << (d & 7))
         est = prob.combine(sBi, sBi)
         self.n_nodes += est.size
         self.record(inc, est)
         if not last:
-            inner = np.flatnonzero(ki < prob.K)
+            inner = np.flatnonzero(ki < K)
+            if ties is not None and K < prob.K:
+                drop = np.flatnonzero((ki >= K) & (ki < prob.K))
+                if drop.size:
+                    ties.dropped(prob.combine(src.sA[drop], sBi[drop]))
             if inner.size:
-                sA = ch.sA[inner]
+                sA = src.sA[inner]
                 lbi = prob.combine(sA, sBi[inner])
                 if relax:
                     Zn = Zi[inner]
@@ -440,15 +485,23 @@ class _Search:
         # the lowest bounds first, a few nodes at a time: the threshold falls in between
         order = np.argsort(ch.lb, kind="stable")
         for lo in range(0, order.size, LEAF_GROUP):
-            if lo and self.deadline is not None and self.deadline():
-                self.push(ch.take(order[lo:]))  # not looked at: open, in the bound
-                break
+            if lo and self.limited():
+                # a limit: the nodes not queried stay open (their bounds stay in the certificate)
+                self.push(ch.take(order[lo:]))
+                return True
             sub = ch.take(order[lo : lo + LEAF_GROUP])
             sub = sub.take(self.prune(sub.lb))
             if sub.lb.size == 0:
                 continue
             tau = self.tau
-            inc, est, looked = self.leaves.leaves(sub.Z, sub.k, sub.inc, tau)
+            if self.ties is None:
+                inc, est, looked = self.leaves.leaves(sub.Z, sub.k, sub.inc, tau)
+            else:
+                K = min(self.prob.K, self.ties.s_star)
+                same = self.ties.same if self.ties.symmetry else None
+                inc, est, looked = self.leaves.leaves(sub.Z, sub.k, sub.inc, tau, K, same)
+                if K < self.prob.K:  # completions over the size rule: below the node's bound
+                    self.ties.dropped(sub.lb)
             self.n_nodes += looked
             # every completion left out is above tau (its bound too)
             self.L_pruned = min(self.L_pruned, tau)
@@ -511,6 +564,8 @@ class _Search:
         if not self.rooted:
             return -math.inf
         L = min(self.U, self.L_pruned)
+        if self.ties is not None:  # the size rule's dropped nodes
+            L = min(L, self.ties.L_size)
         if self.keys:
             L = min(L, min(self.keys))
         _, est = self.cands.arrays()
@@ -589,14 +644,21 @@ def allocate_bnb(
     # best bound first when a gap is asked for (the certified bound rises fastest); depth first
     # otherwise (bounded memory), also when only a limit guards an exact search
     try:
-        search = _Search(prob, rel_gap, rel_gap > 0.0, deadline, node_limit)
         prob.stop = greedy_deadline  # greedy's phases, GREEDY_SHARE of the time
-        search.evaluated(*_greedy_start(prob, deadline))
+        start = _greedy_start(prob, deadline)
         prob.stop = deadline  # the relaxation's and the dual bound's iterations
-        why = search.finish(search.run())
-        masks = np.concatenate(search.ev_masks)
-        values = np.concatenate(search.ev_vals)
-        k = tie_select(values, masks, prob.tie_rtol)
+        for ties in (True, False):
+            # the tie rule's pruning first; again without it when its check fails
+            search = _Search(prob, rel_gap, rel_gap > 0.0, deadline, node_limit, ties)
+            search.evaluated(*start)
+            if search.ties is not None and not search.ties.active:
+                search.ties = None  # nothing certified: the rules would prune nothing sure
+            why = search.finish(search.run())
+            masks = np.concatenate(search.ev_masks)
+            values = np.concatenate(search.ev_vals)
+            k = tie_select(values, masks, prob.tie_rtol)
+            if search.ties is None or why or search.ties.verified(masks, values, k):
+                break
         mask, value = masks[k], float(values[k])
         P = prob.exact_covariances(mask[None])[0]
     except np.linalg.LinAlgError as exc:

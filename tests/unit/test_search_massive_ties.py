@@ -1,0 +1,145 @@
+"""Exact branch and bound on problems with massive exact ties (issue 29): the generator of
+:mod:`covnet.covariance_control.tie_problems` does tie, and every metric's exact search returns
+the exhaustive search's subset, value and ``P`` bits on it, with the tie rule's pruning
+(:mod:`covnet.core.allocation.tie_rule`) on, forced to fail its check, and fed a wrong
+certificate (the check must catch it)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from covnet.core.allocation import search as S
+from covnet.core.allocation import tie_rule as TR
+from covnet.core.allocation._fast import tie_threshold
+from covnet.core.allocation.exact import Constraints, allocate_exhaustive
+from covnet.core.metrics import METRICS
+from covnet.covariance_control.tie_problems import tie_problem
+
+#: (sensors, seed, types): copies of 3 or 4 types, and distinct sensors (ties by tolerance only)
+CASES = [(12, 0, 3), (12, 1, 4), (12, 2, 12), (14, 3, 4)]
+
+
+def _values(P_pred, gains, P_d, name):
+    vals, sizes = [], []
+    Y0 = S.spd_inverse(P_pred)
+    for size in range(1, gains.shape[0] + 1):
+        for D in itertools.combinations(range(gains.shape[0]), size):
+            J = np.zeros((4, 4))
+            for j in D:
+                J = J + gains[j]
+            vals.append(float(METRICS[name](S.spd_inverse(Y0 + J), P_d)))
+            sizes.append(size)
+    return np.array(vals), np.array(sizes)
+
+
+@pytest.mark.parametrize(
+    ("name", "least"),
+    [("spectral", 4095), ("one_norm", 4095), ("frobenius", 4095), ("abs_trace", 6), ("svd", 4)],
+)
+def test_generator_makes_massive_ties(name, least):
+    """Every one of the 4 095 subsets ties for the norms the velocity term dominates; for the
+    others the copies of the optimum tie (here 3 types of 4 copies)."""
+    P_pred, gains, P_d = tie_problem(12, 0, 3)
+    v, _ = _values(P_pred, gains, P_d, name)
+    assert (v <= tie_threshold(float(v.min()), 1e-9)).sum() >= least
+
+
+@pytest.mark.parametrize(("n", "seed", "types"), CASES)
+@pytest.mark.parametrize("name", sorted(METRICS))
+def test_bnb_equals_exhaustive_on_massive_ties(name, n, seed, types):
+    P_pred, gains, P_d = tie_problem(n, seed, types)
+    ref = allocate_exhaustive(P_pred, gains, P_d, name)
+    got = S.allocate_bnb(P_pred, gains, P_d, name)
+    assert got.status == 0
+    assert (got.subset, got.value) == (ref.subset, ref.value)
+    np.testing.assert_array_equal(got.P, ref.P)
+    c = Constraints(frozenset({5}), frozenset({0}), 4)
+    ref = allocate_exhaustive(P_pred, gains, P_d, name, c)
+    got = S.allocate_bnb(P_pred, gains, P_d, name, c)
+    assert (got.subset, got.value) == (ref.subset, ref.value)
+    np.testing.assert_array_equal(got.P, ref.P)
+
+
+def test_tie_rules_prune_and_pass_their_check(monkeypatch):
+    """On a copies problem the size rule and the identical-sensor rule are used, the check
+    passes (no second search) and the tree is a small fraction of the plain one."""
+    P_pred, gains, P_d = tie_problem(14, 1, 4)
+    checks = []
+    verified = TR._TieRule.verified
+
+    def spy(self, masks, values, k):
+        ok = verified(self, masks, values, k)
+        checks.append((ok, self.symmetry, self.s_star))
+        return ok
+
+    monkeypatch.setattr(TR._TieRule, "verified", spy)
+    got = S.allocate_bnb(P_pred, gains, P_d, "spectral")
+    assert checks == [(True, True, 1)]
+    monkeypatch.setattr(TR._TieRule, "active", property(lambda self: False))
+    plain = S.allocate_bnb(P_pred, gains, P_d, "spectral")
+    assert (plain.subset, plain.value) == (got.subset, got.value)
+    assert got.n_nodes * 20 < plain.n_nodes
+
+
+@pytest.mark.parametrize("name", ["spectral", "abs_trace", "kl", "frobenius", "svd"])
+def test_failed_check_runs_the_plain_search(name, monkeypatch):
+    """A check that fails sends the decision to the search without the rules: still exact."""
+    monkeypatch.setattr(TR._TieRule, "verified", lambda self, m, v, k: False)
+    for n, seed, types in CASES[:2]:
+        P_pred, gains, P_d = tie_problem(n, seed, types)
+        ref = allocate_exhaustive(P_pred, gains, P_d, name)
+        got = S.allocate_bnb(P_pred, gains, P_d, name)
+        assert (got.subset, got.value) == (ref.subset, ref.value)
+
+
+@pytest.mark.parametrize("name", ["spectral", "abs_trace", "logdet", "trace_diff"])
+def test_check_catches_a_wrong_certificate(name, monkeypatch):
+    """Every evaluated subset declared certified (``thr(L0) = inf``, false): the size rule then
+    drops subsets that can win, and the check must send the decision to the plain search."""
+    orig = TR._TieRule.__init__
+
+    def init(self, prob, symmetry):
+        orig(self, prob, symmetry)
+        self.thr0 = np.inf
+
+    monkeypatch.setattr(TR._TieRule, "__init__", init)
+    for n, seed, types in CASES:
+        P_pred, gains, P_d = tie_problem(n, seed, types)
+        ref = allocate_exhaustive(P_pred, gains, P_d, name)
+        got = S.allocate_bnb(P_pred, gains, P_d, name)
+        assert (got.subset, got.value) == (ref.subset, ref.value)
+
+
+def test_precedes_is_the_tie_rules_order():
+    rng = np.random.default_rng(5)
+    masks = rng.random((200, 7)) < 0.4
+    d = masks[0]
+    key = lambda m: (int(m.sum()), tuple(np.flatnonzero(m)))  # noqa: E731
+    want = np.array([key(m) < key(d) for m in masks])
+    np.testing.assert_array_equal(TR.precedes(masks, d), want)
+
+
+def test_identical_sensors_are_adjacent_in_the_branching_order():
+    from covnet.core.allocation.search_problem import _Problem
+
+    P_pred, gains, P_d = tie_problem(12, 0, 3)
+    prob = _Problem(P_pred, gains, P_d, "spectral", Constraints(), 1e-9)
+    same = TR.identical_to_previous(prob)
+    assert same.sum() == 12 - 3  # every copy after its type's first
+    for p in np.flatnonzero(same):
+        assert prob.free[p - 1] < prob.free[p]
+
+
+def test_a_limit_stops_the_table_of_the_last_levels():
+    """kl on a tie problem: the table's ball holds most completions of every node, and the limit
+    is checked between its queries (before, one batch of nodes ran its every query: this call did
+    not return within minutes).  Deterministic: a node limit."""
+    P_pred, gains, P_d = tie_problem(24, 0, 4)
+    limit = 200_000
+    r = S.allocate_bnb(P_pred, gains, P_d, "kl", node_limit=limit)
+    assert r.status == 1 and not r.exact
+    assert r.n_nodes < 2 * limit
+    assert r.lower_bound <= r.value and r.gap == pytest.approx((r.value - r.lower_bound) / r.value)
