@@ -496,7 +496,11 @@ class _Dual:
         budget: int = ENUM_BUDGET,
         refine_rows: int = REFINE_ROWS,
         deadline: Callable[[], bool] | None = None,
+        upper: Mat | None = None,
     ) -> None:
+        """``upper``: the incumbent's weighted column values; the columns whose count bound
+        is furthest below them are enumerated (and refined) first, so a deadline leaves the
+        least bound behind."""
         self.cs = cs
         self.pieces: list[_Rows | None] = []
         n_any = int(cs.allow.any(axis=0).sum())
@@ -524,13 +528,21 @@ class _Dual:
         self.enum: list[_Enum | None] = [None] * cs.ncol
         depth = _depths([self.nc[c] if isinstance(col, _TargetCol) and self._bounded(col)
                          else 0 for c, col in enumerate(cs.cols)], budget)  # fmt: skip
-        for c, col in enumerate(cs.cols):
-            if deadline is not None and deadline():
-                break  # the columns not enumerated keep their count bound
-            if depth[c] and isinstance(col, _TargetCol):
-                self.enum[c] = _Enum(col, self.opts[c], self.nc[c], depth[c], float(cs.w[c]))
+        order = list(range(cs.ncol))
+        if upper is not None:
+            slack = [float(upper[c]) - float(self.h[c].min()) for c in order]
+            order.sort(key=lambda c: -slack[c])
+        self.order = order
+        for first in (True, False):  # depth 1 everywhere (cheap: n_c sets), then deeper
+            for c in order:
+                col = cs.cols[c]
+                d = min(depth[c], 1) if first else depth[c]
+                if not first and (d <= 1 or (deadline is not None and deadline())):
+                    continue  # the columns not deepened keep their depth-1 bound
+                if d and isinstance(col, _TargetCol):
+                    self.enum[c] = _Enum(col, self.opts[c], self.nc[c], d, float(cs.w[c]))
         self.sep = self.Kp >= sum(self.nc)  # the count limit never binds: columns separate
-        for c in range(cs.ncol):
+        for c in order:
             if deadline is not None and deadline():
                 break
             en = self.enum[c]
@@ -831,7 +843,7 @@ def _search(
         _local_search(st, deadline)
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
-        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline)
+        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v)
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
