@@ -259,3 +259,28 @@ def test_enumeration_bound_exact_for_a_single_sensor_per_target():
         res = allocate_assignments_greedy(P, J, D, metric, w, feas)
         assert res.value == ref.value
         assert ref.value * (1 - 1e-6) <= res.lower_bound <= ref.value
+
+
+@pytest.mark.parametrize("metric", ["kl", "spectral", "abs_trace"])
+@pytest.mark.parametrize("seed", [0, 9, 1])
+def test_no_improving_set_move_is_left(metric, seed, monkeypatch):
+    """With every enumerated set tried (ENUM_MOVES large), the result admits no improving
+    set move: no target's set replaced by a set of at most 2 sensors that are off or on it
+    (checked by hand on exact values) lowers F.  (Seeds 0 and 9: moves and 1-swaps alone
+    leave one for spectral and abs_trace.)"""
+    from covnet.core.allocation import assignment_search as srch
+
+    monkeypatch.setattr(srch, "ENUM_MOVES", 10**6)
+    N, T = 12, 2
+    P, J, D, w, feas = _problem(N, T, 70 + seed)
+    res = allocate_assignments_greedy(P, J, D, metric, w, feas)
+    a = list(res.assignment)
+    F = _F(P, J, D, w, metric, a)
+    for t in range(T):
+        free = [j for j in range(N) if feas[j, t] and a[j] in (OFF, t)]
+        for k in (1, 2):
+            for mem in itertools.combinations(free, k):
+                b = [OFF if x == t else x for x in a]
+                for j in mem:
+                    b[j] = t
+                assert _F(P, J, D, w, metric, b) >= F * (1 - 1e-9), (t, mem)

@@ -151,6 +151,8 @@ ENUM_DEPTH = 3
 REFINE_ROWS = 64
 #: ... this many at a time
 REFINE_BATCH = 64
+#: set moves: per target and size, this many of the best enumerated sets are tried
+ENUM_MOVES = 8
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -481,6 +483,52 @@ def _local_search(st: _State, deadline: Callable[[], bool] | None) -> None:
             st.put(j, ak)
         else:
             st.put(j, x)
+
+
+def _enum_moves(st: _State, dual: _Dual, deadline: Callable[[], bool] | None) -> bool:
+    """Set moves from the enumeration bound: a target's whole set replaced by one of its
+    ``ENUM_MOVES`` best enumerated sets of each size (by their bound) whose members are off or
+    already on it (the old members not in it go off), within the caps and the budget, the
+    required sensors kept; the move lowering ``F`` most (strictly, ``IMPROVE``) while one
+    does.  A local optimum of moves and 1-swaps can miss a better pair that shares no sensor
+    with the target's set; these find it.  Returns whether one was taken."""
+    cs = st.cs
+    moved = False
+    for _ in range(2 * cs.ncol):
+        if deadline is not None and deadline():
+            break
+        F = st.F
+        best_d, best_c, best_mem = -IMPROVE * max(abs(F), TINY), -1, [0]
+        n_on = st.n_on()
+        for c, en in enumerate(dual.enum):
+            if en is None:
+                continue
+            free = (st.a == OFF) | (st.a == c)
+            keep = [j for j in st.sets[c] if cs.required[j]]
+            for k in range(1, min(en.d, en.nc) + 1):
+                sets = en.o[en.sets[k]]
+                cand = np.flatnonzero(free[sets].all(axis=1))
+                if cand.size == 0:
+                    continue
+                order = cand[np.argsort(en.exact[k][cand], kind="stable")[:ENUM_MOVES]]
+                for i in order:
+                    mem = sorted(set(sets[i].tolist()) | set(keep))
+                    n_new = n_on - len(st.sets[c]) + len(mem)
+                    if len(mem) > cs.caps[c] or n_new > cs.K or n_new < 1:
+                        continue
+                    d = float(cs.w[c] * (cs.cols[c].val(mem) - st.v[c]))
+                    if d < best_d:
+                        best_d, best_c, best_mem = d, c, mem
+        if best_c < 0:
+            break
+        for j in list(st.sets[best_c]):
+            if j not in best_mem:
+                st.put(j, OFF)
+        for j in best_mem:
+            if st.a[j] != best_c:
+                st.put(j, best_c)
+        moved = True
+    return moved
 
 
 # --------------------------------------------------------------------------------------------
@@ -844,9 +892,11 @@ def _search(
         st = _State(cs)
         _forward(st)
         _local_search(st, deadline)
+        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v)
+        if _enum_moves(st, dual, deadline):
+            _local_search(st, deadline)
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
-        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v)
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
