@@ -20,9 +20,13 @@ relative improvement ``IMPROVE``): every *move* (one sensor to another column or
 columns change, ``ΔF = Δ_rem + Δ_add``) and every *1-swap* (two sensors on different columns,
 or one on and one off, exchange columns: ``ΔF = M[j, k] + M[k, j]`` with ``M[j, k]`` the change
 of ``j``'s column when ``k`` replaces ``j``); the tables of the columns a step changes are
-recomputed, the others kept.  This is the plain forward greedy with 1-swaps; the bounded search
-only adds to it, so it is never worse.  The final assignment is evaluated exactly (the
-reference's arithmetic).
+recomputed, the others kept.  This is the plain forward greedy with 1-swaps.  *Set moves*
+(:func:`_enum_moves`, once the lower bound's enumeration exists): a target's whole set replaced
+by one of its best enumerated sets (up to ``d`` sensors, each off or already on it), the best
+strict improvement while one exists, then the local search again: a local optimum of moves and
+1-swaps can miss a better pair that shares no sensor with the target's set.  Both searches
+only accept improvements from the plain greedy's local optimum, so neither is worse.  The final
+assignment is evaluated exactly (the reference's arithmetic).
 
 **Lower bound** (Lagrangian relaxation of "each sensor on at most one column", over counts).
 For every column ``c`` and size ``k`` a bound ``h_c(k) <= min { w_c g_c(S) : S ⊆ F_c, |S| = k }``
@@ -951,11 +955,12 @@ def allocate_assignments_greedy(
     *,
     cells: CellTerms | None = None,
 ) -> AssignmentSearch:
-    """Forward greedy and best-improvement moves and 1-swaps (module docstring), the value
-    exact, with the Lagrangian count bound after ``GREEDY_DUAL_STEPS`` dual steps (status 4).
+    """Forward greedy, best-improvement moves and 1-swaps, set moves (module docstring), the
+    value exact, with the Lagrangian bound (count and enumeration bounds, the relaxation's
+    refinement where the metric has one) after ``GREEDY_DUAL_STEPS`` dual steps (status 4).
     Arguments as :func:`~covnet.core.allocation.assignment.allocate_assignments`."""
     inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
-    return _search(inp, 0.0, GREEDY_DUAL_STEPS, None, 4, False, 0)
+    return _search(inp, 0.0, GREEDY_DUAL_STEPS, None, 4, False)
 
 
 def allocate_assignments_bounded(
