@@ -982,8 +982,9 @@ def allocate_assignments_bounded(
     """Greedy, then dual steps until the certified relative gap is at most ``rel_gap``, the
     ``node_limit`` (dual steps) or ``time_limit_s`` (the whole decision; ``clock`` seconds,
     default ``time.perf_counter``); with the gap still open and at most ``EXACT_FALLBACK``
-    allowed sensors, the exact allocator (status 0).  Never worse than
-    :func:`allocate_assignments_greedy` (the same start)."""
+    allowed sensors, the exact allocator (status 0).  Never worse than the plain forward greedy
+    with 1-swaps; without a time limit the same start as :func:`allocate_assignments_greedy`
+    (so never worse than it), with one the set moves see only the sets enumerated in time."""
     if not (math.isfinite(rel_gap) and 0.0 <= rel_gap < 1.0):
         raise ValueError(f"rel_gap must be in [0, 1), got {rel_gap}")
     if node_limit is not None and (not isinstance(node_limit, int) or node_limit < 1):
