@@ -19,7 +19,11 @@ same run, ``exact_median_s`` and ``exact_agree`` (the exact allocator
 :func:`~covnet.core.allocation.assignment.allocate_assignments_exhaustive`, where ``(T+1)^N <=
 reference_assignments``); ``ratio_greedy``: the value over the plain greedy's (forward greedy
 with 1-swaps, the ``greedy`` search) on the same problem, median; ``excess_exact``: the value's
-median relative excess over the exact optimum where the exact allocator ran.
+median relative excess over the exact optimum where the exact allocator ran; ``time_goal_s``,
+``meets_time``, ``meets_gap`` (median gap relative to the value <= 1 %) and
+``meets_gap_nothing`` (relative to the distance from doing nothing): the issue's goals.  Where
+``exact`` cannot run (``N > exact_max``) its row says so in ``skipped`` (every other field
+``None``) instead of failing.
 """
 
 from __future__ import annotations
@@ -187,6 +191,14 @@ def run(
                 ref_t.append(dt)
         for search in searches:
             if search == "exact" and exact is None:
+                why = (
+                    f"exact: N = {N} > exact_max = {exact_max} (its tables have 2^N entries); "
+                    "bounded or greedy serve it"
+                )
+                row = _skipped(metric, N, T, why)
+                rows.append(row)
+                if progress is not None:
+                    progress(row)
                 continue
             call = _call(search, N)
             times: list[float] = []
@@ -201,6 +213,44 @@ def run(
             if progress is not None:
                 progress(row)
     return rows
+
+
+#: the issue's goals: per-decision time by (N, T) (the nearest size at most this), median gap
+TIME_GOALS_S = {(64, 8): 0.1, (256, 16): 1.0}
+GAP_GOAL = 0.01
+
+#: a row's keys (a skipped row has them all, ``None`` where not measured)
+ROW_KEYS = (
+    *("metric", "n_sensors", "n_targets", "search", "median_s", "worst_s", "value_median"),
+    *("lower_bound_median", "gap_median", "gap_worst", "gap_nothing_median", "gap_nothing_worst"),
+    *("n_exact", "n_problems", "ratio_greedy", "exact_median_s", "excess_exact", "exact_agree"),
+    *("reference_median_s", "reference_agree", "time_goal_s", "meets_time", "meets_gap"),
+    *("meets_gap_nothing", "skipped"),
+)
+
+
+def time_goal(N: int, T: int) -> float | None:
+    """The issue's per-decision goal for this size (``None``: none stated)."""
+    return TIME_GOALS_S.get((N, T))
+
+
+def _skipped(metric: str, N: int, T: int, why: str) -> Row:
+    row: Row = dict.fromkeys(ROW_KEYS)
+    row |= {"metric": metric, "n_sensors": N, "n_targets": T, "search": "exact", "skipped": why}
+    return row
+
+
+def _goals(row: Row) -> Row:
+    """``meets_time`` (the median per decision within the size's goal, ``None``: no goal),
+    ``meets_gap`` / ``meets_gap_nothing``: the median gap relative to the value / to the
+    distance from doing nothing at most ``GAP_GOAL``."""
+    goal = time_goal(row["n_sensors"], row["n_targets"])
+    row["time_goal_s"] = goal
+    row["meets_time"] = None if goal is None else bool(row["median_s"] <= goal)
+    row["meets_gap"] = bool(row["gap_median"] <= GAP_GOAL)
+    row["meets_gap_nothing"] = bool(row["gap_nothing_median"] <= GAP_GOAL)
+    row["skipped"] = None
+    return row
 
 
 def _row(
@@ -282,4 +332,4 @@ def _row(
             else r.lower_bound <= e.value <= r.value
             for r, e in zip(results, ref, strict=True)
         )
-    return row
+    return _goals(row)

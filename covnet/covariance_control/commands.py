@@ -471,14 +471,16 @@ def _bench_multitarget_scale(args: argparse.Namespace, metrics: list[str] | None
     cols = (
         *("metric", "n_sensors", "n_targets", "search", "median_s", "gap_median"),
         *("gap_nothing_median", "n_exact", "ratio_greedy", "excess_exact", "reference_agree"),
+        *("meets_time", "meets_gap", "meets_gap_nothing"),
     )
 
     def show(row: dict[str, Any]) -> None:
         if args.json:
             print(json.dumps(row), flush=True)
         else:
+            keys = cols[:4] + ("skipped",) if row.get("skipped") else cols
             print(" ".join(f"{k}={row[k]:.4g}" if isinstance(row[k], float) else f"{k}={row[k]}"
-                           for k in cols), flush=True)  # fmt: skip
+                           for k in keys), flush=True)  # fmt: skip
 
     bm.run(
         args.sensors or [16, 64, 256],

@@ -280,6 +280,8 @@ class _ManyTargets:
             float(sum(np.trace(tg.desired(k)) for tg in tm.targets)),
             tuple(sorted(got, key=ids.index)),
             refiltered,
+            sp.decision.lower_bound,
+            sp.decision.gap,
             per_target=tuple(
                 (tid, len(sp.decision.on_target(i))) for i, tid in enumerate(tm.target_ids)
             ),

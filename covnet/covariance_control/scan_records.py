@@ -74,7 +74,7 @@ class Outcome:
                 f"tr P {self.trace_P:.1f} / tr Pd {self.trace_Pd:.1f}"
             )
         short = f"{k}/{scans} {on}/{n_sensors} on  trP {self.trace_P:.0f}/{self.trace_Pd:.0f}"
-        if self.per_target is None and self.lower_bound is not None and self.gap is not None:
+        if self.lower_bound is not None and self.gap is not None:
             lb = self.lower_bound if math.isfinite(self.lower_bound) else None
             live |= {"value": self.value, "lower_bound": lb, "gap": self.gap}
             info += f"  f {self.value:.4g} (gap {100 * self.gap:.3g} %)"

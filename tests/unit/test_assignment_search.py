@@ -209,3 +209,78 @@ def test_time_limit_bounds_the_decision():
         P, J, D, "kl", w, feas, rel_gap=0.0, time_limit_s=3.0, clock=lambda: float(next(ticks))
     )
     assert r.status in (2, 3) and r.lower_bound <= r.value
+
+
+@pytest.mark.parametrize("metric", ["kl", "spectral", "abs_trace", "frobenius"])
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("budget", [0, 12, 60, 10_000])
+@pytest.mark.parametrize("max_active", [None, 3])
+def test_dual_function_below_the_exhaustive_optimum_at_any_prices(metric, seed, budget, max_active):
+    """L(π) <= F* for every π >= 0: the enumeration bound at every depth (none, 1, 2, all
+    sets), with the count limit binding (the dynamic programme) or not (separable)."""
+    from covnet.core.allocation import assignment_search as srch
+    from covnet.core.allocation.assignment import _Inputs
+
+    N, T = 6, 3
+    P, J, D, w, feas = _problem(N, T, 50 + seed)
+    cons = MultiConstraints(max_active=max_active)
+    ref = allocate_assignments_exhaustive(P, J, D, metric, w, feas, cons)
+    inp = _Inputs(P, J, D, metric, w, feas, cons, 1e-9)
+    dual = srch._Dual(srch._Columns(inp), budget=budget)
+    assert not dual.sep  # 3 targets x ~5 sensors > 6
+    rng = np.random.default_rng(seed)
+    # the separable form drops "Σ k_c <= K'": a relaxation, valid (weaker) here too
+    for scale, dual.sep in itertools.product((0.0, 0.01, 0.3, 3.0), (False, True)):
+        pi = scale * abs(ref.value) * rng.uniform(size=N)
+        L, counts = dual.value(pi)
+        assert L <= ref.value, (scale, L, ref.value)
+        assert len(counts) == T and (dual.sep or sum(counts) <= (max_active or N))
+        g = dual.subgradient(pi, counts)
+        assert g.shape == (N,) and (g >= -1).all()
+
+
+def test_enumeration_depths_within_the_budget():
+    from covnet.core.allocation.assignment_search import ENUM_DEPTH, _depths
+
+    assert _depths([64] * 8, 20_000) == [2] * 8  # 8 x (64 + 2016) sets
+    assert _depths([256] * 16, 20_000) == [1] * 16
+    assert _depths([5, 0, 3], 10**6) == [min(5, ENUM_DEPTH), 0, 3]
+    assert _depths([10, 10], 15) == [1, 0]
+
+
+def test_enumeration_bound_exact_for_a_single_sensor_per_target():
+    """With every target allowed one sensor only, the enumeration bound is the exact value
+    less its rounding allowance (relative 1e-6 here): the gap closes without any search."""
+    N, T = 4, 4
+    P, J, D, w, _ = _problem(N, T, 3)
+    feas = np.eye(N, dtype=bool)
+    for metric in ("spectral", "abs_trace", "kl"):
+        ref = allocate_assignments_exhaustive(P, J, D, metric, w, feas)
+        res = allocate_assignments_greedy(P, J, D, metric, w, feas)
+        assert res.value == ref.value
+        assert ref.value * (1 - 1e-6) <= res.lower_bound <= ref.value
+
+
+@pytest.mark.parametrize("metric", ["kl", "spectral", "abs_trace"])
+@pytest.mark.parametrize("seed", [0, 9, 1])
+def test_no_improving_set_move_is_left(metric, seed, monkeypatch):
+    """With every enumerated set tried (ENUM_MOVES large), the result admits no improving
+    set move: no target's set replaced by a set of at most 2 sensors that are off or on it
+    (checked by hand on exact values) lowers F.  (Seeds 0 and 9: moves and 1-swaps alone
+    leave one for spectral and abs_trace.)"""
+    from covnet.core.allocation import assignment_search as srch
+
+    monkeypatch.setattr(srch, "ENUM_MOVES", 10**6)
+    N, T = 12, 2
+    P, J, D, w, feas = _problem(N, T, 70 + seed)
+    res = allocate_assignments_greedy(P, J, D, metric, w, feas)
+    a = list(res.assignment)
+    F = _F(P, J, D, w, metric, a)
+    for t in range(T):
+        free = [j for j in range(N) if feas[j, t] and a[j] in (OFF, t)]
+        for k in (1, 2):
+            for mem in itertools.combinations(free, k):
+                b = [OFF if x == t else x for x in a]
+                for j in mem:
+                    b[j] = t
+                assert _F(P, J, D, w, metric, b) >= F * (1 - 1e-9), (t, mem)

@@ -20,13 +20,17 @@ relative improvement ``IMPROVE``): every *move* (one sensor to another column or
 columns change, ``ΔF = Δ_rem + Δ_add``) and every *1-swap* (two sensors on different columns,
 or one on and one off, exchange columns: ``ΔF = M[j, k] + M[k, j]`` with ``M[j, k]`` the change
 of ``j``'s column when ``k`` replaces ``j``); the tables of the columns a step changes are
-recomputed, the others kept.  This is the plain forward greedy with 1-swaps; the bounded search
-only adds to it, so it is never worse.  The final assignment is evaluated exactly (the
-reference's arithmetic).
+recomputed, the others kept.  This is the plain forward greedy with 1-swaps.  *Set moves*
+(:func:`_enum_moves`, once the lower bound's enumeration exists): a target's whole set replaced
+by one of its best enumerated sets (up to ``d`` sensors, each off or already on it), the best
+strict improvement while one exists, then the local search again: a local optimum of moves and
+1-swaps can miss a better pair that shares no sensor with the target's set.  Both searches
+only accept improvements from the plain greedy's local optimum, so neither is worse.  The final
+assignment is evaluated exactly (the reference's arithmetic).
 
 **Lower bound** (Lagrangian relaxation of "each sensor on at most one column", over counts).
 For every column ``c`` and size ``k`` a bound ``h_c(k) <= min { w_c g_c(S) : S ⊆ F_c, |S| = k }``
-(``F_c`` the sensors allowed on ``c``):
+(``F_c`` the sensors allowed on ``c``), the *count bound*:
 
 - a target: with ``Q = C⁻¹ + Σ_{j∈F_c} S_j`` (positive definite) and ``μ_j^max``, ``μ_j^min``
   the extreme eigenvalues of ``Q^{-1/2} S_j Q^{-1/2}`` (``S_j ⪰ 0``), every ``|S| = k`` has
@@ -40,20 +44,42 @@ For every column ``c`` and size ``k`` a bound ``h_c(k) <= min { w_c g_c(S) : S �
 - a cell: ``λ u_c`` times the product of the ``k`` smallest ``miss_jc`` (deflated by a relative
   ``4 (k + 2) eps``).
 
+The count interval is wide when the sensors differ (a bearing-only sensor has ``μ^min = 0``,
+so ``β_k`` is the prior's), so each target column also has an *enumeration bound* of depth
+``d_c`` (:func:`_depths`: the depths raised while at most ``ENUM_BUDGET`` sets are enumerated in
+all; ``d_c <= ENUM_DEPTH``): every ``S ⊆ F_c`` with ``|S| <= d_c`` gets the certified bound
+``e(S)`` of ``w_c g_c(S)`` (the degenerate interval ``[Z(S), Z(S)]``), and every ``d_c``-set
+``S0`` the bound ``u(S0)`` of the interval ``[Z(S0), Z(F_c)]``.  **Proof**: a set ``S`` with
+``|S| > d_c`` contains some ``d_c``-set ``S0``, and ``Z(S0) ⪯ Z(S) ⪯ Z(F_c)`` (the ``S_j`` are
+PSD), so ``w_c g_c(S) >= u(S0)``; with prices, ``π(S) >= π(S0) + (the k - d_c smallest prices
+on F_c)`` (the other members are ``k - d_c`` distinct sensors of ``F_c``, prices ``>= 0``).  So
+for every ``k``::
+
+    min_{|S|=k} w_c g_c(S) + π(S) >= b_c(k, π) = max( h_c(k) + π_c(k),
+        min_{|S|=k} e(S) + π(S)                  (k <= d_c),
+        min_{S0} u(S0) + π(S0) + π_c(k - d_c)     (k > d_c) ),
+
+``π_c(k)`` the sum of the ``k`` smallest prices on ``F_c``.  The count and enumeration bounds
+are raised, lazily (the smallest first, at most ``REFINE_ROWS`` a column, within the time
+limit), by the reduced relaxation where the metric has one (kl, frobenius, logdet); the norm
+metrics' barrier dual bound is too slow for these decisions and is not used here.
+
 With prices ``π_j >= 0`` and ``n_c`` the most sensors column ``c`` can take, the dual function::
 
-    L(π) = min { Σ_c h_c(k_c) + π_c(k_c) : 0 <= k_c <= n_c, Σ_c k_c <= K' } - Σ_j π_j,
+    L(π) = min { Σ_c b_c(k_c, π) : 0 <= k_c <= n_c, Σ_c k_c <= K' } - Σ_j π_j,
 
-``π_c(k)`` the sum of the ``k`` smallest prices on ``F_c`` and ``K'`` the budget (or the sensors
-that can be on), is a dynamic programme over the columns (``O((T + C) K'^2)``).  **Proof that
-``L(π) <= F*``**: take any feasible assignment with sets ``S_c``, ``k_c = |S_c|``; then
-``Σ k_c <= K'`` and ``k_c <= n_c``; ``F = Σ_c w_c g_c(S_c) >= Σ_c h_c(k_c)``; since the sets
-are disjoint and ``π >= 0``, ``Σ_c π(S_c) <= Σ_j π_j``, and ``π(S_c) >= π_c(k_c)``, so ``F >=
-Σ_c [h_c(k_c) + π_c(k_c)] - Σ_j π_j >= L(π)``.  The required sensors and "at least one on" are
-dropped (a relaxation).  ``π`` = 0 is the count bound (every target as if it could have any
-``k`` of its feasible sensors, the sensors only limited in number); subgradient steps
-(``g_j = (columns using j in the minimiser) - 1``, Polyak step towards the incumbent) raise it
-where targets compete for the same sensors.  The reported bound is the best ``L`` seen, less a
+``K'`` the budget (or the sensors that can be on), is a dynamic programme over the columns
+(``O((T + C) K'^2)``; when ``Σ_c n_c <= K'`` the count limit cannot bind and the columns
+separate: each takes its least ``b_c``).  **Proof that ``L(π) <= F*``**: take any feasible
+assignment with sets ``S_c``, ``k_c = |S_c|``; then ``Σ k_c <= K'`` and ``k_c <= n_c``; since
+the sets are disjoint and ``π >= 0``, ``Σ_c π(S_c) <= Σ_j π_j``, so ``F = Σ_c w_c g_c(S_c) >=
+Σ_c [w_c g_c(S_c) + π(S_c)] - Σ_j π_j >= Σ_c b_c(k_c, π) - Σ_j π_j >= L(π)``.  The required
+sensors and "at least one on" are dropped (a relaxation).  ``π = 0`` treats every target as if
+it could have any of its feasible sensors (only their number limited); subgradient steps
+(``g_j = (columns using j in the minimiser) - 1``, the minimiser's set the enumerated one where
+that bound is the larger, else the ``k`` cheapest; Polyak step towards the incumbent) raise it
+where targets compete for the same sensors (on the bench's problems they gain little: the
+per-target bounds are the weak part).  The reported bound is the best ``L`` seen, less a
 rounding allowance, at most the value.
 
 **Bounded** (:func:`allocate_assignments_bounded`): greedy, then dual steps until the relative
@@ -67,13 +93,17 @@ sensor off: as ``L <= F* <= value``, ``(value - F*) / (F(nothing) - F*) <= gap_n
 certified bound of the suboptimality relative to what the sensors can gain (meaningful when
 ``F*`` is near 0, where the first gap says nothing).
 
-**Clocks**: only with ``time_limit_s`` (``time.perf_counter`` or ``clock``); it bounds the
-whole decision (greedy's passes, the dual steps, the exact evaluation is ``T`` solves).
+**Clocks**: only with ``time_limit_s`` (``time.perf_counter`` or ``clock``); it is checked
+between greedy's local-search passes, the deeper enumerations, the refinement batches and the
+dual steps.  What always runs to its end: the columns' set-up, the forward greedy, the depth-1
+enumeration (``n_c`` sets a target) and the exact evaluation (``T`` solves), so a decision can
+pass a limit shorter than those (measured 35-60 ms at N = 64, T = 8, the machine shared).
 ``node_limit`` is the deterministic alternative.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -108,7 +138,7 @@ IMPROVE = 1e-12
 #: local search: at most this many passes per sensor
 PASSES_PER_SENSOR = 4
 #: dual steps of greedy's bound (bounded: until its gap, node or time limit)
-GREEDY_DUAL_STEPS = 20
+GREEDY_DUAL_STEPS = 4
 #: the bounded search's dual steps when no limit is given
 DUAL_STEPS = 400
 #: bounded: with the gap still open, the exact allocator decides up to this many allowed sensors
@@ -116,6 +146,17 @@ EXACT_FALLBACK = 12
 #: ... and, with search cells, while ``(T + C + 1)^m`` (m allowed sensors) is at most this: cells
 #: of equal mass tie exactly, and the exact allocator enumerates every tie
 EXACT_FALLBACK_CELLS = 4**8
+#: the enumeration bound: at most this many sets (of every target column) in all
+ENUM_BUDGET = 20_000
+#: ... of at most this many members
+ENUM_DEPTH = 3
+#: per column, at most this many intervals of the bound are refined (lazily, the smallest
+#: first) by the relaxation or the dual bound of the metric
+REFINE_ROWS = 64
+#: ... this many at a time
+REFINE_BATCH = 64
+#: set moves: per target and size, this many of the best enumerated sets are tried
+ENUM_MOVES = 8
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -448,44 +489,136 @@ def _local_search(st: _State, deadline: Callable[[], bool] | None) -> None:
             st.put(j, x)
 
 
+def _enum_moves(st: _State, dual: _Dual, deadline: Callable[[], bool] | None) -> bool:
+    """Set moves from the enumeration bound: a target's whole set replaced by one of its
+    ``ENUM_MOVES`` best enumerated sets of each size (by their bound) whose members are off or
+    already on it (the old members not in it go off), within the caps and the budget, the
+    required sensors kept; the move lowering ``F`` most (strictly, ``IMPROVE``) while one
+    does.  A local optimum of moves and 1-swaps can miss a better pair that shares no sensor
+    with the target's set; these find it.  Returns whether one was taken."""
+    cs = st.cs
+    moved = False
+    for _ in range(2 * cs.ncol):
+        if deadline is not None and deadline():
+            break
+        F = st.F
+        best_d, best_c, best_mem = -IMPROVE * max(abs(F), TINY), -1, [0]
+        n_on = st.n_on()
+        for c, en in enumerate(dual.enum):
+            if en is None:
+                continue
+            free = (st.a == OFF) | (st.a == c)
+            keep = [j for j in st.sets[c] if cs.required[j]]
+            for k in range(1, min(en.d, en.nc) + 1):
+                sets = en.o[en.sets[k]]
+                cand = np.flatnonzero(free[sets].all(axis=1))
+                if cand.size == 0:
+                    continue
+                order = cand[np.argsort(en.exact[k][cand], kind="stable")[:ENUM_MOVES]]
+                for i in order:
+                    mem = sorted(set(sets[i].tolist()) | set(keep))
+                    n_new = n_on - len(st.sets[c]) + len(mem)
+                    if len(mem) > cs.caps[c] or n_new > cs.K or n_new < 1:
+                        continue
+                    d = float(cs.w[c] * (cs.cols[c].val(mem) - st.v[c]))
+                    if d < best_d:
+                        best_d, best_c, best_mem = d, c, mem
+        if best_c < 0:
+            break
+        for j in list(st.sets[best_c]):
+            if j not in best_mem:
+                st.put(j, OFF)
+        for j in best_mem:
+            if st.a[j] != best_c:
+                st.put(j, best_c)
+        moved = True
+    return moved
+
+
 # --------------------------------------------------------------------------------------------
 # the lower bound
 # --------------------------------------------------------------------------------------------
 
 
 class _Dual:
-    """The Lagrangian count bound (module docstring): ``h[c]`` ``(n_c + 1,)`` per column,
-    ``opts[c]`` its allowed sensors, ``Kp`` the count limit."""
+    """The Lagrangian bound (module docstring): per column ``c`` the count bound ``h[c]``
+    ``(n_c + 1,)``, ``opts[c]`` its allowed sensors, ``Kp`` the count limit; per target column
+    the enumeration bound ``enum[c]`` (:class:`_Enum`, or ``None``)."""
 
-    def __init__(self, cs: _Columns) -> None:
+    def __init__(
+        self,
+        cs: _Columns,
+        budget: int = ENUM_BUDGET,
+        refine_rows: int = REFINE_ROWS,
+        deadline: Callable[[], bool] | None = None,
+        upper: Mat | None = None,
+    ) -> None:
+        """``upper``: the incumbent's weighted column values; the columns whose count bound
+        is furthest below them are enumerated (and refined) first, so a deadline leaves the
+        least bound behind."""
         self.cs = cs
-        inp = cs.inp
+        self.pieces: list[_Rows | None] = []
         n_any = int(cs.allow.any(axis=0).sum())
         self.Kp = min(cs.K, n_any)
         self.opts = [np.flatnonzero(cs.allow[c]) for c in range(cs.ncol)]
         self.h: list[Mat] = []
+        self.nc: list[int] = []
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
+            self.nc.append(nc)
             if isinstance(col, _TargetCol):
-                hc = self._target(col, self.opts[c], nc)
+                hc, rows = self._target(col, self.opts[c], nc)
+                self.pieces.append(rows)
             else:
+                self.pieces.append(None)
                 m = np.sort(col.miss[self.opts[c]])[:nc]
                 prods = np.concatenate(([1.0], np.cumprod(m)))
                 k = np.arange(nc + 1)
                 hc = col.scale * prods * (1.0 - 4.0 * (k + 2) * EPS)
             self.h.append(np.maximum(cs.w[c] * hc, 0.0))
-        del inp
+        for c in range(cs.ncol):  # the count bound refined first (cheap where it applies)
+            rows = self.pieces[c]
+            if rows is not None and not (deadline is not None and deadline()):
+                rows.lazy(self.h[c], float(cs.w[c]), refine_rows, deadline)
+        self.enum: list[_Enum | None] = [None] * cs.ncol
+        depth = _depths([self.nc[c] if isinstance(col, _TargetCol) and self._bounded(col)
+                         else 0 for c, col in enumerate(cs.cols)], budget)  # fmt: skip
+        order = list(range(cs.ncol))
+        if upper is not None:
+            slack = [float(upper[c]) - float(self.h[c].min()) for c in order]
+            order.sort(key=lambda c: -slack[c])
+        self.order = order
+        for first in (True, False):  # depth 1 everywhere (cheap: n_c sets), then deeper
+            for c in order:
+                col = cs.cols[c]
+                d = min(depth[c], 1) if first else depth[c]
+                if not first and (d <= 1 or (deadline is not None and deadline())):
+                    continue  # the columns not deepened keep their depth-1 bound
+                if d and isinstance(col, _TargetCol):
+                    self.enum[c] = _Enum(col, self.opts[c], self.nc[c], d, float(cs.w[c]))
+        self.sep = self.Kp >= sum(self.nc)  # the count limit never binds: columns separate
+        for c in order:
+            if deadline is not None and deadline():
+                break
+            en = self.enum[c]
+            if en is not None and en.rows is not None:
+                en.rows.lazy(en.sup, float(cs.w[c]), refine_rows, deadline)
 
     @staticmethod
-    def _target(col: _TargetCol, opts: NDArray[np.intp], nc: int) -> Mat:
+    def _bounded(col: _TargetCol) -> bool:
+        prob = col.prob
+        return prob is not None and not col.none and prob.bound is not None and prob.r > 0
+
+    @staticmethod
+    def _target(col: _TargetCol, opts: NDArray[np.intp], nc: int) -> tuple[Mat, _Rows | None]:
         prob = col.prob
         assert prob is not None
         if col.none or prob.bound is None or prob.r == 0:
             if prob.bound is None:  # no interval bound: a registered metric is >= 0
-                return np.zeros(nc + 1)
+                return np.zeros(nc + 1), None
             Z0 = col.base[None]
             s0 = prob.summary(Z0)
-            return np.full(nc + 1, float(prob.combine(s0, s0)[0]))
+            return np.full(nc + 1, float(prob.combine(s0, s0)[0])), None
         r = prob.r
         Sj = col.S[opts].reshape(-1, r, r)
         Q = col.base.reshape(r, r) + Sj.sum(axis=0)
@@ -497,7 +630,6 @@ class _Dual:
         ev = np.linalg.eigvalsh(G)
         mu_max = np.maximum(ev[:, -1], 0.0)
         mu_min = np.maximum(ev[:, 0], 0.0)
-        k = np.arange(nc + 1)
         alpha = np.concatenate(([0.0], np.cumsum(np.sort(mu_max)[::-1])[:nc])) * (1 + 1e-9)
         beta = np.concatenate(([0.0], np.cumsum(np.sort(mu_min))[:nc])) * (1 - 1e-9)
         Qf = Q.reshape(r * r)
@@ -509,48 +641,185 @@ class _Dual:
         lb = prob.combine(sA, sB)
         sAll = prob.summary(Z_all)
         lb = np.fmax(lb, prob.combine(np.repeat(sAll, nc + 1, axis=0), sB))
-        lb = prob.refine(Z_lo, Z_hi, lb, sB, math.inf)
         lb[0] = float(prob.combine(sB[:1], sB[:1])[0])  # k = 0: the degenerate interval
-        del k
-        return np.where(np.isfinite(lb), lb, 0.0)
+        rows = _Rows(prob, Z_lo, Z_hi, sB, np.arange(1, nc + 1))
+        return np.where(np.isfinite(lb), lb, 0.0), rows
+
+    def _cost(self, c: int, pi: Mat) -> tuple[Mat, Mat]:
+        """Per count ``k``: a lower bound of ``min {w_c g_c(S) + π(S) : |S| = k}`` and the
+        per-count minimisers' sum of prices of the enumerated part (for the subgradient)."""
+        o = self.opts[c]
+        nc = self.nc[c]
+        ps = np.concatenate(([0.0], np.cumsum(np.sort(pi[o])[:nc])))
+        cost = self.h[c] + ps
+        en = self.enum[c]
+        if en is not None:
+            cost = np.fmax(cost, en.cost(pi, ps))
+        return cost, ps
 
     def value(self, pi: Mat) -> tuple[float, list[int]]:
         """``L(π)`` (less a rounding allowance) and the minimiser's counts."""
         Kp = self.Kp
-        G = np.zeros(Kp + 1)
-        choice: list[NDArray[np.intp]] = []
-        for c in range(self.cs.ncol):
-            hc = self.h[c]
-            nc = hc.size - 1
-            pc = np.concatenate(([0.0], np.cumsum(np.sort(pi[self.opts[c]])[:nc])))
-            cost = hc + pc
-            s = np.arange(Kp + 1)[:, None] - np.arange(nc + 1)[None, :]
-            cand = np.where(s >= 0, G[np.maximum(s, 0)] + cost[None, :], np.inf)
-            k = np.argmin(cand, axis=1)
-            choice.append(k)
-            G = cand[np.arange(Kp + 1), k]
-        s_best = int(np.argmin(G))
-        total = float(G[s_best])
-        counts: list[int] = []
-        left = s_best
-        for c in range(self.cs.ncol - 1, -1, -1):
-            kc = int(choice[c][left])
-            counts.append(kc)
-            left -= kc
-        counts.reverse()
+        costs = [self._cost(c, pi)[0] for c in range(self.cs.ncol)]
+        if self.sep:
+            counts = [int(np.argmin(cost)) for cost in costs]
+            total = float(sum(float(cost[k]) for cost, k in zip(costs, counts, strict=True)))
+        else:
+            G = np.zeros(Kp + 1)
+            choice: list[NDArray[np.intp]] = []
+            for cost in costs:
+                nc = cost.size - 1
+                s = np.arange(Kp + 1)[:, None] - np.arange(nc + 1)[None, :]
+                cand = np.where(s >= 0, G[np.maximum(s, 0)] + cost[None, :], np.inf)
+                k = np.argmin(cand, axis=1)
+                choice.append(k)
+                G = cand[np.arange(Kp + 1), k]
+            s_best = int(np.argmin(G))
+            total = float(G[s_best])
+            counts = []
+            left = s_best
+            for c in range(self.cs.ncol - 1, -1, -1):
+                kc = int(choice[c][left])
+                counts.append(kc)
+                left -= kc
+            counts.reverse()
         psum = float(pi.sum())
         hmax = sum(float(h.max()) for h in self.h)
+        hmax += sum(e.scale for e in self.enum if e is not None)
         allow = 64.0 * (self.cs.N + self.cs.ncol + 2) * EPS * (psum + hmax + abs(total))
         return total - psum - allow, counts
 
     def subgradient(self, pi: Mat, counts: list[int]) -> Mat:
+        """``g_j`` = (columns whose minimiser uses ``j``) - 1: the enumerated set where the
+        enumeration bound is the larger, else the ``k`` cheapest sensors."""
         use = np.zeros(self.cs.N)
         for c, k in enumerate(counts):
-            if k:
-                o = self.opts[c]
+            if not k:
+                continue
+            o = self.opts[c]
+            en = self.enum[c]
+            members = en.members(pi, k) if en is not None else None
+            if members is None:
                 order = np.lexsort((o, pi[o]))[:k]
-                use[o[order]] += 1.0
+                members = o[order]
+            use[members] += 1.0
         return use - 1.0
+
+
+class _Rows:
+    """Intervals ``[Z_lo[i], Z_hi[i]]`` (``i`` in ``idx``) whose bounds ``out[i]`` (weighted)
+    the reduced relaxation or the dual bound of :meth:`_Problem.refine` may raise: lazily, the
+    smallest first."""
+
+    def __init__(self, prob: _Problem, Z_lo: Mat, Z_hi: Mat, sB: Mat, idx: NDArray[np.intp]):
+        self.prob, self.Z_lo, self.Z_hi, self.sB, self.idx = prob, Z_lo, Z_hi, sB, idx
+        self.done = np.zeros(idx.size, dtype=bool)
+        self.useful = prob.relax is not None  # the dual bound's barrier: too slow here
+
+    def lazy(self, out: Mat, w: float, limit: int, deadline: Callable[[], bool] | None) -> None:
+        """Refine the rows of ``out[idx]`` smallest first, ``REFINE_BATCH`` at a time, until
+        the smallest is a refined one, ``limit`` rows are refined or the deadline passes.
+        Each refined value is a certified bound (``fmax`` with the old one): the bound stays
+        valid whenever this stops."""
+        if not self.useful or self.idx.size == 0:
+            return
+        n_done = 0
+        while n_done < limit:
+            if deadline is not None and deadline():
+                return
+            vals = out[self.idx]
+            order = np.argsort(vals, kind="stable")
+            if self.done[order[0]]:
+                return
+            pick = order[~self.done[order]][: min(REFINE_BATCH, limit - n_done)]
+            r = np.asarray(pick, dtype=np.intp)
+            cur = vals[r] / w if w > 0 else vals[r]
+            i = self.idx[r]
+            new = self.prob.refine(self.Z_lo[i], self.Z_hi[i], cur, self.sB[i], math.inf)
+            new = np.where(np.isfinite(new), np.maximum(new, 0.0), 0.0)
+            out[i] = np.fmax(vals[r], w * new)
+            self.done[r] = True
+            n_done += r.size
+
+
+def _depths(sizes: list[int], budget: int) -> list[int]:
+    """The enumeration depth per column: raised one column at a time (smallest cost first)
+    while the sets enumerated in all (``Σ_c Σ_{k<=d_c} C(n_c, k)``) stay within ``budget``;
+    0 for a column not enumerated."""
+    depth = [0] * len(sizes)
+    used = 0
+    while True:
+        best, c_best = None, -1
+        for c, n in enumerate(sizes):
+            d = depth[c] + 1
+            if d > min(n, ENUM_DEPTH):
+                continue
+            extra = math.comb(n, d)
+            if best is None or extra < best:
+                best, c_best = extra, c
+        if best is None or used + best > budget:
+            return depth
+        used += best
+        depth[c_best] += 1
+
+
+class _Enum:
+    """The enumeration bound of one target column (module docstring, *Lower bound*): the
+    sets of its allowed sensors ``o`` with at most ``d`` members, each with a certified lower
+    bound of ``w g(S)`` (the degenerate interval ``[Z(S), Z(S)]``) and, for the ``d``-sets,
+    of every superset's (the interval ``[Z(S0), Z(F_c)]``)."""
+
+    def __init__(self, col: _TargetCol, o: NDArray[np.intp], nc: int, d: int, w: float) -> None:
+        prob = col.prob
+        assert prob is not None
+        self.o, self.nc, self.d = o, nc, d
+        S = col.S[o]
+        Z_all = (col.base + S.sum(axis=0))[None]
+        sAll = prob.summary(Z_all)
+        self.sets: list[NDArray[np.intp]] = []  # k-sets as indices into o, k = 0..d
+        self.exact: list[Mat] = []  # their degenerate bounds
+        self.sup = np.zeros(0)  # the d-sets' superset bounds
+        self.rows: _Rows | None = None
+        for k in range(d + 1):
+            combos = list(itertools.combinations(range(o.size), k))
+            idx = np.array(combos, dtype=np.intp).reshape(len(combos), k)
+            Z = col.base[None] + S[idx].sum(axis=1)
+            sZ = prob.summary(Z)
+            lb = prob.combine(sZ, sZ)
+            self.sets.append(idx)
+            self.exact.append(w * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0))
+            if k == d:
+                sup = prob.combine(np.repeat(sAll, idx.shape[0], axis=0), sZ)
+                self.sup = w * np.where(np.isfinite(sup), np.maximum(sup, 0.0), 0.0)
+                Z_hi = np.repeat(Z_all, idx.shape[0], axis=0)
+                self.rows = _Rows(prob, Z, Z_hi, sZ, np.arange(idx.shape[0]))
+        self.scale = float(max(float(e.max()) for e in self.exact))
+
+    def cost(self, pi: Mat, ps: Mat) -> Mat:
+        """Per ``k = 0..nc``: ``min_{|S|=k} w g(S) + π(S)`` for ``k <= d`` (the enumerated
+        sets' bounds), and for ``k > d`` ``min_{S0} [sup(S0) + π(S0)]`` plus the ``k - d``
+        smallest prices of the column (``ps``: the cumulative sums; any ``k - d`` other
+        members cost at least that)."""
+        po = pi[self.o]
+        out = np.empty(self.nc + 1)
+        for k in range(min(self.d, self.nc) + 1):
+            out[k] = float(np.min(self.exact[k] + po[self.sets[k]].sum(axis=1)))
+        if self.nc > self.d:
+            base = float(np.min(self.sup + po[self.sets[self.d]].sum(axis=1)))
+            out[self.d + 1 :] = base + ps[1 : self.nc - self.d + 1]
+        return out
+
+    def members(self, pi: Mat, k: int) -> NDArray[np.intp] | None:
+        """A minimiser's members for count ``k`` (global sensor indices)."""
+        po = pi[self.o]
+        if k <= self.d:
+            i = int(np.argmin(self.exact[k] + po[self.sets[k]].sum(axis=1)))
+            return np.asarray(self.o[self.sets[k][i]])
+        i = int(np.argmin(self.sup + po[self.sets[self.d]].sum(axis=1)))
+        first = self.sets[self.d][i]
+        rest = np.setdiff1d(np.arange(self.o.size), first)
+        order = rest[np.lexsort((rest, po[rest]))][: k - self.d]
+        return np.asarray(self.o[np.concatenate((first, order))])
 
 
 def _dual_bound(
@@ -620,15 +889,18 @@ def _search(
     deadline: Callable[[], bool] | None,
     status_done: int,
     fallback: bool,
+    refine_rows: int = REFINE_ROWS,
 ) -> AssignmentSearch:
     try:
         cs = _Columns(inp)
         st = _State(cs)
         _forward(st)
         _local_search(st, deadline)
+        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v)
+        if _enum_moves(st, dual, deadline):
+            _local_search(st, deadline)
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
-        dual = _Dual(cs)
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
@@ -683,8 +955,9 @@ def allocate_assignments_greedy(
     *,
     cells: CellTerms | None = None,
 ) -> AssignmentSearch:
-    """Forward greedy and best-improvement moves and 1-swaps (module docstring), the value
-    exact, with the Lagrangian count bound after ``GREEDY_DUAL_STEPS`` dual steps (status 4).
+    """Forward greedy, best-improvement moves and 1-swaps, set moves (module docstring), the
+    value exact, with the Lagrangian bound (count and enumeration bounds, the relaxation's
+    refinement where the metric has one) after ``GREEDY_DUAL_STEPS`` dual steps (status 4).
     Arguments as :func:`~covnet.core.allocation.assignment.allocate_assignments`."""
     inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
     return _search(inp, 0.0, GREEDY_DUAL_STEPS, None, 4, False)
@@ -709,8 +982,9 @@ def allocate_assignments_bounded(
     """Greedy, then dual steps until the certified relative gap is at most ``rel_gap``, the
     ``node_limit`` (dual steps) or ``time_limit_s`` (the whole decision; ``clock`` seconds,
     default ``time.perf_counter``); with the gap still open and at most ``EXACT_FALLBACK``
-    allowed sensors, the exact allocator (status 0).  Never worse than
-    :func:`allocate_assignments_greedy` (the same start)."""
+    allowed sensors, the exact allocator (status 0).  Never worse than the plain forward greedy
+    with 1-swaps; without a time limit the same start as :func:`allocate_assignments_greedy`
+    (so never worse than it), with one the set moves see only the sets enumerated in time."""
     if not (math.isfinite(rel_gap) and 0.0 <= rel_gap < 1.0):
         raise ValueError(f"rel_gap must be in [0, 1), got {rel_gap}")
     if node_limit is not None and (not isinstance(node_limit, int) or node_limit < 1):

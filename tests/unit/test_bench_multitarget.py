@@ -1,0 +1,33 @@
+"""``covnet bench multitarget --search``: rows against the plain references where they run,
+the goals stated, and a row that says why ``exact`` did not run instead of failing."""
+
+from __future__ import annotations
+
+import json
+
+from covnet.cli.app import main
+from covnet.covariance_control import bench_multitarget as bm
+
+
+def test_rows_agree_with_the_references_and_state_the_goals():
+    rows = bm.run((6,), (2,), ("kl",), ("exact", "bounded", "greedy"), n_problems=2,
+                  exact_max=6, reference_assignments=3**6)  # fmt: skip
+    assert [r["search"] for r in rows] == ["exact", "bounded", "greedy"]
+    for r in rows:
+        assert set(r) == set(bm.ROW_KEYS) and r["skipped"] is None
+        assert r["exact_agree"] is True and r["reference_agree"] is True
+        assert r["lower_bound_median"] <= r["value_median"]
+        assert r["meets_gap"] == (r["gap_median"] <= bm.GAP_GOAL)
+        assert r["meets_time"] is None and r["time_goal_s"] is None  # no goal at this size
+    assert rows[0]["gap_median"] == 0.0 and rows[0]["excess_exact"] == 0.0
+    assert bm.time_goal(64, 8) == 0.1 and bm.time_goal(256, 16) == 1.0
+
+
+def test_exact_beyond_its_size_is_a_row_that_says_so(capsys):
+    rows = bm.run((6,), (2,), ("kl",), ("exact",), n_problems=1, exact_max=4)
+    assert len(rows) == 1 and "N = 6 > exact_max = 4" in rows[0]["skipped"]
+    assert rows[0]["median_s"] is None
+    args = ["bench", "multitarget", "--sensors", "64", "--targets", "1", "--search", "exact"]
+    assert main([*args, "--metric", "kl", "--problems", "1", "--json"]) == 0
+    (row,) = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert row["search"] == "exact" and "exact_max" in row["skipped"]
