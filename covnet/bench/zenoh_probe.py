@@ -2,11 +2,12 @@
 pub/sub, with nothing else (no allocation, filter, world, recorder, heartbeats or checks).
 
 Per scan: the *commander* (a router session, like the manager) publishes one command of the size
-of covnet's ``Command`` enabling every sensor; each of ``N`` *responders* (one client session
-each, or, hosted ``K > 1`` per process as ``covnet up`` hosts sensors, shares of the process's
-one session, :mod:`sensors.host`; each in its own thread) answers
-with one message of the size of covnet's ``Measurement``; the next command goes out when all
-``N`` answers are in.  It reports scans per second (first command to last answer) and the
+of covnet's ``Command`` enabling every sensor; each of ``N`` *responders* answers with one message
+of the size of covnet's ``Measurement`` on a key of its own; the next command goes out when all
+``N`` answers are in.  Responders are hosted ``K`` per process as ``covnet up`` hosts sensors
+(:mod:`sensors.host`, :class:`sensors.protocol.HostLoop`): one client session, one command
+subscription and one thread per process, each responder its own liveliness token and publisher.
+It reports scans per second (first command to last answer) and the
 per-scan latency (command published -> last answer received), as covnet's manager reports its
 loop (``network.json``: ``scans_per_s``, ``scan_latency``).  The sessions are covnet's own
 (:class:`covnet.wire.zenoh_bus.ZenohBus`: the same zenoh config, FIFO subscriptions read by the
@@ -128,47 +129,44 @@ def commander(args: argparse.Namespace) -> int:
 
 
 def responders(args: argparse.Namespace) -> int:
+    """One responder alone (its own client session and thread), or several hosted in one
+    process as covnet hosts sensors (:class:`sensors.protocol.HostLoop`): one session, one
+    command subscription and one thread for all, each responder its own liveliness token and
+    publisher, answering in turn."""
     stop = threading.Event()
     size = args.measurement_bytes
     errors: list[str] = []
-    try:  # several responders share one session, as covnet's hosted sensors do
-        shared = _open("client", args.connect, stop) if len(args.id) > 1 else None
-    except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
-        print(f"probe: responders: {exc}", file=sys.stderr)
-        return 1
 
-    def one(rid: str) -> None:
+    def serve(bus: Any) -> None:
+        cmds = bus.subscribe(f"probe/{args.run}/cmd")
+        keys = [f"probe/{args.run}/meas/{rid}" for rid in args.id]
+        tokens = [bus.declare_token(f"probe/{args.run}/alive/{rid}") for rid in args.id]
+        while not stop.is_set():
+            s = cmds.recv(timeout=0.5)
+            if s is None:
+                continue
+            k = _HEAD.unpack_from(s.payload)[0]
+            if k == 0:
+                break
+            for key in keys:
+                bus.publish(key, _payload(k, size))
+        for token in tokens:
+            token.undeclare()
+
+    def one() -> None:
         try:
-            with (
-                shared.share() if shared is not None else _open("client", args.connect, stop) as bus
-            ):
-                cmds = bus.subscribe(f"probe/{args.run}/cmd")
-                key = f"probe/{args.run}/meas/{rid}"
-                token = bus.declare_token(f"probe/{args.run}/alive/{rid}")
-                while not stop.is_set():
-                    s = cmds.recv(timeout=0.5)
-                    if s is None:
-                        continue
-                    k = _HEAD.unpack_from(s.payload)[0]
-                    if k == 0:
-                        break
-                    bus.publish(key, _payload(k, size))
-                token.undeclare()
+            with _open("client", args.connect, stop) as bus:
+                serve(bus)
         except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
-            errors.append(f"{rid}: {exc}")
+            errors.append(f"{args.id}: {exc}")
 
-    threads = [threading.Thread(target=one, args=(rid,), daemon=True) for rid in args.id]
-    for th in threads:
-        th.start()
+    th = threading.Thread(target=one, daemon=True)
+    th.start()
     try:
-        for th in threads:
-            while th.is_alive():
-                th.join(0.1)
+        while th.is_alive():
+            th.join(0.1)
     except KeyboardInterrupt:
         stop.set()
-    finally:
-        if shared is not None:
-            shared.close()
     for e in errors:
         print(f"probe: responder {e}", file=sys.stderr)
     return 1 if errors else 0
