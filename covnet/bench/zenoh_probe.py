@@ -6,7 +6,9 @@ of covnet's ``Command`` enabling every sensor; each of ``N`` *responders* answer
 of the size of covnet's ``Measurement`` on a key of its own; the next command goes out when all
 ``N`` answers are in.  Responders are hosted ``K`` per process as ``covnet up`` hosts sensors
 (:mod:`sensors.host`, :class:`sensors.protocol.HostLoop`): one client session, one command
-subscription and one thread per process, each responder its own liveliness token and publisher.
+subscription and one thread per process, each responder its own liveliness token and publisher
+(``--threads``: a thread and a subscription per responder on shares of the one session, how
+covnet hosted sensors before; ``covnet bench up`` reports the ratio to both).
 It reports scans per second (first command to last answer) and the
 per-scan latency (command published -> last answer received), as covnet's manager reports its
 loop (``network.json``: ``scans_per_s``, ``scan_latency``).  The sessions are covnet's own
@@ -129,18 +131,18 @@ def commander(args: argparse.Namespace) -> int:
 
 
 def responders(args: argparse.Namespace) -> int:
-    """One responder alone (its own client session and thread), or several hosted in one
-    process as covnet hosts sensors (:class:`sensors.protocol.HostLoop`): one session, one
-    command subscription and one thread for all, each responder its own liveliness token and
-    publisher, answering in turn."""
+    """The responders ``args.id`` of one process: by default one loop for all (one session,
+    one command subscription, one thread: :class:`sensors.protocol.HostLoop`'s layout);
+    ``--threads``: a thread per responder, each with a subscription of its own on a share of
+    the process's one session (covnet's layout before the host loop)."""
     stop = threading.Event()
     size = args.measurement_bytes
     errors: list[str] = []
 
-    def serve(bus: Any) -> None:
+    def serve(bus: Any, ids: list[str]) -> None:
         cmds = bus.subscribe(f"probe/{args.run}/cmd")
-        keys = [f"probe/{args.run}/meas/{rid}" for rid in args.id]
-        tokens = [bus.declare_token(f"probe/{args.run}/alive/{rid}") for rid in args.id]
+        keys = [f"probe/{args.run}/meas/{rid}" for rid in ids]
+        tokens = [bus.declare_token(f"probe/{args.run}/alive/{rid}") for rid in ids]
         while not stop.is_set():
             s = cmds.recv(timeout=0.5)
             if s is None:
@@ -153,20 +155,34 @@ def responders(args: argparse.Namespace) -> int:
         for token in tokens:
             token.undeclare()
 
-    def one() -> None:
-        try:
-            with _open("client", args.connect, stop) as bus:
-                serve(bus)
-        except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
-            errors.append(f"{args.id}: {exc}")
-
-    th = threading.Thread(target=one, daemon=True)
-    th.start()
+    threaded = args.threads and len(args.id) > 1
     try:
-        while th.is_alive():
-            th.join(0.1)
+        shared = _open("client", args.connect, stop) if threaded else None
+    except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
+        print(f"probe: responders: {exc}", file=sys.stderr)
+        return 1
+
+    def one(ids: list[str]) -> None:
+        try:
+            bus = shared.share() if shared is not None else _open("client", args.connect, stop)
+            with bus:
+                serve(bus, ids)
+        except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
+            errors.append(f"{ids}: {exc}")
+
+    groups = [[rid] for rid in args.id] if threaded else [list(args.id)]
+    threads = [threading.Thread(target=one, args=(g,), daemon=True) for g in groups]
+    for th in threads:
+        th.start()
+    try:
+        for th in threads:
+            while th.is_alive():
+                th.join(0.1)
     except KeyboardInterrupt:
         stop.set()
+    finally:
+        if shared is not None:
+            shared.close()
     for e in errors:
         print(f"probe: responder {e}", file=sys.stderr)
     return 1 if errors else 0
@@ -190,6 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     r.add_argument("--run", required=True)
     r.add_argument("--id", action="append", required=True)
     r.add_argument("--measurement-bytes", type=int, default=146)
+    r.add_argument("--threads", action="store_true", help="a thread per responder")
     args = p.parse_args(argv)
     return commander(args) if args.role == "commander" else responders(args)
 
