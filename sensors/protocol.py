@@ -403,9 +403,10 @@ class HostLoop:
         now_ns = sensors[0].clock.now_ns
         try:
             while not stop.is_set():
-                if now_ns() >= next_beat:
+                if (t_ns := now_ns()) >= next_beat:  # only the heartbeats that are due
                     for one in sensors:
-                        one.tick()
+                        if one.heartbeat.due_ns <= t_ns:
+                            one.tick()
                     next_beat = min(one.heartbeat.due_ns for one in sensors)
                 if manager.left:
                     break
