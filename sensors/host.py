@@ -85,7 +85,8 @@ def host(
     if not share:
         return _run_all(ids, main, args, cfg, stop)
     with open_client(args, cfg.network, "sensor", ids[0], stop) as bus:
-        shared = argparse.Namespace(**vars(args), shared_bus=bus)
+        # host_ids: the sensors that may share one protocol loop (sensors.protocol.HostLoop)
+        shared = argparse.Namespace(**vars(args), shared_bus=bus, host_ids=list(ids))
         return _run_all(ids, main, shared, cfg, stop)
 
 

@@ -32,7 +32,7 @@ from covnet.core.delay import measures_on_missed
 from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
 from covnet.processes.process import EXIT_OK, open_client
 from covnet.wire import messages as msg
-from covnet.wire.bus import Bus, Sample
+from covnet.wire.bus import Bus, Sample, Subscription, Token
 from covnet.wire.profiling import Stages, profiled
 from sensors.host import say
 
@@ -128,6 +128,128 @@ def serve(
         )  # fmt: skip
 
 
+class _Sensor:
+    """One sensor's side of the protocol (module docstring): its counters, the commands it
+    must answer and the truths it holds, fed by a loop that owns the subscriptions (its own,
+    :func:`_serve`; or its host's, shared by every sensor of the process, :class:`HostLoop`)."""
+
+    def __init__(
+        self,
+        sensor_id: str,
+        bus: Bus,
+        run_id: str,
+        clock: Clock,
+        net: NetworkSpec,
+        *,
+        truth_ok: TruthCheck,
+        respond: Respond,
+        missed_command: str | None,
+        keep_truth: bool,
+        command_ok: Callable[[msg.Command], bool] | None,
+    ) -> None:
+        self.id, self.bus, self.run_id, self.clock = sensor_id, bus, run_id, clock
+        self.truth_ok, self.respond = truth_ok, respond
+        self.missed_command, self.keep_truth, self.command_ok = (
+            missed_command, keep_truth, command_ok,
+        )  # fmt: skip
+        self.stats = SensorStats()
+        #: the sub-chunk a command key carries when it enables this sensor (``$*~<id>~$*``)
+        self.tag = f"~{sensor_id}~"
+        self.meas_key = msg.measurement_key(run_id, sensor_id)
+        self.heartbeat = Heartbeat(bus, clock, run_id, "sensor", sensor_id, net.heartbeat_s)
+        self.truths: dict[int, msg.Truth] = {}
+        self.pending: deque[msg.Command] = deque()  # enabled commands not yet answered
+        self.last_scan = 0
+        self.newest = (-1, 0)  # (episode, scan) of the newest command received
+        self.last_on = False
+        self.token: Token | None = None  # its liveliness token, declared by its loop
+
+    def hears(self, key: str) -> bool:
+        """Whether this sensor's own subscription would receive a command on ``key``: every
+        command on slow links, else those whose key names it (zenoh's ``$*~<id>~$*``)."""
+        return self.missed_command is not None or self.tag in key.rpartition("/")[2]
+
+    def tick(self, now: bool = False) -> None:
+        st = self.stats
+        self.heartbeat.tick(self.last_scan, st.rejected, sent=st.measurements_sent, now=now)
+
+    def accept(self, cmd: msg.Command | msg.WireError) -> None:
+        """One command received (or why it was refused); queued if this sensor is enabled."""
+        stats = self.stats
+        if isinstance(cmd, msg.WireError):
+            stats.rejected[cmd.reason] += 1
+            return
+        stats.commands += 1
+        sensor_id = self.id
+        if self.missed_command is not None:
+            if (cmd.episode, cmd.scan) <= self.newest:
+                stats.rejected["stale_command"] += 1
+                return
+            newest = self.newest
+            first = newest[1] + 1 if cmd.episode == newest[0] else 1
+            for m in range(first, cmd.scan):  # commands that never came: the fallback
+                stats.missed_commands += 1
+                if measures_on_missed(self.missed_command, self.last_on):
+                    t_m = cmd.t * m / cmd.scan  # t = scan * period
+                    self.pending.append(
+                        msg.Command(m, t_m, (sensor_id,), cmd.t_sent_ns, episode=cmd.episode)
+                    )
+            self.newest, self.last_on = (cmd.episode, cmd.scan), sensor_id in cmd.enabled
+        self.last_scan = cmd.scan
+        if sensor_id in cmd.enabled:
+            if self.command_ok is not None and not self.command_ok(cmd):
+                stats.rejected["bad_value"] += 1
+                return
+            stats.enabled_scans += 1
+            self.pending.append(cmd)
+
+    def take_truth(self, tr: msg.Truth | msg.WireError) -> None:
+        """One truth received (or why it was refused)."""
+        if isinstance(tr, msg.WireError):
+            self.stats.rejected[tr.reason] += 1
+        elif not self.truth_ok(tr):
+            self.stats.rejected["bad_shape"] += 1
+        else:
+            self.truths[tr.scan] = tr
+
+    def answer(self, lap: Callable[[str], None]) -> None:
+        """Publish the measurement of every pending command whose truth is in hand, oldest
+        first; a command whose truth is gone (a newer one came first) is counted and dropped."""
+        pending, truths, stats = self.pending, self.truths, self.stats
+        while pending:
+            cmd = pending[0]
+            if cmd.scan in truths:
+                out = self.respond(cmd, truths[cmd.scan]).evolve(seq=stats.measurements_sent + 1)
+                lap("respond")
+                payload = msg.encode(out)
+                lap("encode")
+                self.bus.publish(self.meas_key, payload)
+                lap("publish")
+                stats.measurements_sent += 1
+                if not self.keep_truth:
+                    for old in [k for k in truths if k < cmd.scan - 1]:
+                        del truths[old]
+            elif len(pending) > 1:  # a newer command came first: this truth is gone
+                stats.missed_truth += 1
+            else:
+                break
+            pending.popleft()
+
+
+def _command(s: Sample) -> msg.Command | msg.WireError:
+    try:
+        return decode_command(s.key, s.payload)
+    except msg.WireError as exc:
+        return exc
+
+
+def _truth(s: Sample) -> msg.Truth | msg.WireError:
+    try:
+        return decode_truth(s.key, s.payload)
+    except msg.WireError as exc:
+        return exc
+
+
 def _serve(
     sensor_id: str,
     bus: Bus,
@@ -142,116 +264,200 @@ def _serve(
     keep_truth: bool,
     command_ok: Callable[[msg.Command], bool] | None,
 ) -> SensorStats:
-    stats = SensorStats()
+    one = _Sensor(
+        sensor_id, bus, run_id, clock, net, truth_ok=truth_ok, respond=respond,
+        missed_command=missed_command, keep_truth=keep_truth, command_ok=command_ok,
+    )  # fmt: skip
+    host = _hosts.get(id(getattr(bus, "session", None)))
+    if host is not None and host.takes(one):
+        return host.serve(one, stop)
     # on slow links every command (a gap in the scans says one was missed), else its own
     mine = None if missed_command is not None else sensor_id
     cmd_sub = bus.subscribe(msg.command_keyexpr(run_id, mine))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
     manager = ManagerWatch(bus, run_id, manager_grace_s(net))
     token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
-    meas_key = msg.measurement_key(run_id, sensor_id)
-    heartbeat = Heartbeat(bus, clock, run_id, "sensor", sensor_id, net.heartbeat_s)
     wait_s = net.heartbeat_s / 2
-    truths: dict[int, msg.Truth] = {}
-    pending: deque[msg.Command] = deque()  # enabled commands not yet answered, oldest first
-    last_scan = 0
-    newest = (-1, 0)  # (episode, scan) of the newest command received
-    last_on = False
-
-    def accept(s: Sample | None) -> bool:
-        """Decode one command; queue it if this sensor is enabled. False when ``s`` is None."""
-        nonlocal last_scan
-        if s is None:
-            return False
-        try:
-            cmd = decode_command(s.key, s.payload)
-        except msg.WireError as exc:
-            stats.rejected[exc.reason] += 1
-            return True
-        nonlocal newest, last_on
-        stats.commands += 1
-        if missed_command is not None:
-            if (cmd.episode, cmd.scan) <= newest:
-                stats.rejected["stale_command"] += 1
-                return True
-            first = newest[1] + 1 if cmd.episode == newest[0] else 1
-            for m in range(first, cmd.scan):  # commands that never came: the fallback
-                stats.missed_commands += 1
-                if measures_on_missed(missed_command, last_on):
-                    t_m = cmd.t * m / cmd.scan  # t = scan * period
-                    pending.append(
-                        msg.Command(m, t_m, (sensor_id,), cmd.t_sent_ns, episode=cmd.episode)
-                    )
-            newest, last_on = (cmd.episode, cmd.scan), sensor_id in cmd.enabled
-        last_scan = cmd.scan
-        if sensor_id in cmd.enabled:
-            if command_ok is not None and not command_ok(cmd):
-                stats.rejected["bad_value"] += 1
-                return True
-            stats.enabled_scans += 1
-            pending.append(cmd)
-        return True
-
-    def take_truth(timeout: float | None) -> bool:
-        s = truth_sub.recv(timeout) if timeout is not None else truth_sub.try_recv()
-        if s is None:
-            return False
-        try:
-            tr = decode_truth(s.key, s.payload)
-        except msg.WireError as exc:
-            stats.rejected[exc.reason] += 1
-            return True
-        if not truth_ok(tr):
-            stats.rejected["bad_shape"] += 1
-            return True
-        truths[tr.scan] = tr
-        return True
 
     stages = Stages()  # the loop's time by stage (covnet bench up --profile; off by default)
     lap = stages.lap
     try:
         while not stop.is_set():
-            heartbeat.tick(last_scan, stats.rejected, sent=stats.measurements_sent)
+            one.tick()
             if manager.left:
                 break
             lap("heartbeat")
-            if pending:  # waiting for a commanded scan's truth
-                take_truth(wait_s)
+            if one.pending:  # waiting for a commanded scan's truth
+                if (t := truth_sub.recv(wait_s)) is not None:
+                    one.take_truth(_truth(t))
                 lap("wait: truth")
             else:
                 s = cmd_sub.recv(timeout=wait_s)
                 lap("wait: command")
-                accept(s)
+                if s is not None:
+                    one.accept(_command(s))
                 lap("command")
-            while accept(cmd_sub.try_recv()):
-                pass
-            while take_truth(None):
-                pass
+            while (s := cmd_sub.try_recv()) is not None:
+                one.accept(_command(s))
+            while (t := truth_sub.try_recv()) is not None:
+                one.take_truth(_truth(t))
             lap("drain")
-            while pending:
-                cmd = pending[0]
-                if cmd.scan in truths:
-                    out = respond(cmd, truths[cmd.scan]).evolve(seq=stats.measurements_sent + 1)
-                    lap("respond")
-                    payload = msg.encode(out)
-                    lap("encode")
-                    bus.publish(meas_key, payload)
-                    lap("publish")
-                    stats.measurements_sent += 1
-                    if not keep_truth:
-                        for old in [k for k in truths if k < cmd.scan - 1]:
-                            del truths[old]
-                elif len(pending) > 1:  # a newer command came first: this truth is gone
-                    stats.missed_truth += 1
-                else:
-                    break
-                pending.popleft()
+            one.answer(lap)
     finally:  # the last count, for the manager (its last messages may be lost) and the record
-        heartbeat.tick(last_scan, stats.rejected, sent=stats.measurements_sent, now=True)
+        one.tick(now=True)
         token.undeclare()
         manager.close()
-        stages.dump(f"sensor-{sensor_id}", sent=stats.measurements_sent)
-    return stats
+        stages.dump(f"sensor-{sensor_id}", sent=one.stats.measurements_sent)
+    return one.stats
+
+
+class HostLoop:
+    """The one loop of a process hosting several sensors on one session (:mod:`sensors.host`):
+    one thread, one command and one truth subscription and one watch on the manager for all
+    of them, instead of a thread, two subscriptions and a watch per sensor.
+
+    Each hosted sensor's thread still runs its kind's ``main`` (its model, its noise, its
+    ``respond``) up to :func:`serve`, which hands the sensor's protocol state (:class:`_Sensor`)
+    to this loop and waits: the last one to arrive runs the loop for all, the others return
+    their counters when it ends.  What each sensor receives, answers, counts and publishes
+    (its own keys, publishers, liveliness token and heartbeat) is what its own loop would:
+    the command subscription hears every command (``cmd/*``) and gives each sensor those its
+    own key expression would match (:meth:`_Sensor.hears`); a command or truth is decoded
+    once for all of them.  On the wire nothing changes: zenoh delivered a command once to the
+    process's session before too, then once to each sensor's subscription in the process."""
+
+    def __init__(self, bus: Bus, ids: list[str], net: NetworkSpec) -> None:
+        self.bus, self.ids = bus, frozenset(ids)
+        self.grace_s = manager_grace_s(net)
+        self.wait_s = net.heartbeat_s / 2
+        self.expected = len(ids)
+        self.sensors: list[_Sensor] = []
+        self.lock = threading.Lock()
+        self.started = False
+        self.done = threading.Event()
+        self.subs: tuple[Subscription, Subscription, ManagerWatch] | None = None
+
+    def takes(self, one: _Sensor) -> bool:
+        """Whether ``one`` joins this loop: a sensor of this host on a share of its session."""
+        session = getattr(self.bus, "session", None)
+        return one.id in self.ids and getattr(one.bus, "session", None) is session
+
+    def serve(self, one: _Sensor, stop: threading.Event) -> SensorStats:
+        """Hand ``one`` to the loop (class docstring); returns its counters when the loop
+        ends (at once if the process stops before every hosted sensor arrived)."""
+        with self.lock:
+            run_id = one.run_id
+            if self.subs is None:  # the subscriptions exist before any token
+                self.subs = (
+                    self.bus.subscribe(msg.command_keyexpr(run_id)),
+                    self.bus.subscribe(msg.truth_key(run_id)),
+                    ManagerWatch(self.bus, run_id, self.grace_s),
+                )
+            one.token = token = one.bus.declare_token(msg.alive_key(run_id, "sensor", one.id))
+            self.sensors.append(one)
+        while True:
+            with self.lock:
+                runs = not self.started and len(self.sensors) >= self.expected
+                self.started = self.started or runs
+                if not self.started and stop.is_set():  # a hosted sensor never came
+                    self.sensors.remove(one)
+                    self.expected -= 1
+                    break
+            if runs:
+                try:
+                    self._run(stop)
+                finally:
+                    self.done.set()
+                return one.stats
+            if self.done.wait(0.1):
+                return one.stats
+        one.tick(now=True)
+        token.undeclare()
+        return one.stats
+
+    def _run(self, stop: threading.Event) -> None:
+        assert self.subs is not None
+        cmd_sub, truth_sub, manager = self.subs
+        sensors = list(self.sensors)
+        waiting: dict[str, _Sensor] = {}  # sensors with commands to answer
+        wait_s = self.wait_s
+        stages = Stages()
+        lap = stages.lap
+
+        def command(s: Sample) -> None:
+            key = s.key
+            to = [one for one in sensors if one.hears(key)]
+            if to:
+                cmd = _command(s)
+                for one in to:
+                    one.accept(cmd)
+                    if one.pending:
+                        waiting[one.id] = one
+
+        def truth(s: Sample) -> None:
+            tr = _truth(s)
+            for one in sensors:
+                one.take_truth(tr)
+
+        next_beat = 0
+        now_ns = sensors[0].clock.now_ns
+        try:
+            while not stop.is_set():
+                if (t_ns := now_ns()) >= next_beat:  # only the heartbeats that are due
+                    for one in sensors:
+                        if one.heartbeat.due_ns <= t_ns:
+                            one.tick()
+                    next_beat = min(one.heartbeat.due_ns for one in sensors)
+                if manager.left:
+                    break
+                lap("heartbeat")
+                if waiting:  # waiting for a commanded scan's truth
+                    if (t := truth_sub.recv(wait_s)) is not None:
+                        truth(t)
+                    lap("wait: truth")
+                else:
+                    s = cmd_sub.recv(timeout=wait_s)
+                    lap("wait: command")
+                    if s is not None:
+                        command(s)
+                    lap("command")
+                while (s := cmd_sub.try_recv()) is not None:
+                    command(s)
+                while (t := truth_sub.try_recv()) is not None:
+                    truth(t)
+                lap("drain")
+                for sid in list(waiting):
+                    one = waiting[sid]
+                    one.answer(lap)
+                    if not one.pending:
+                        del waiting[sid]
+        finally:
+            for one in sensors:
+                one.tick(now=True)
+                if one.token is not None:
+                    one.token.undeclare()
+            manager.close()
+            cmd_sub.close()
+            truth_sub.close()
+            sent = sum(one.stats.measurements_sent for one in sensors)
+            stages.dump(f"sensors-{len(sensors)}", sent=sent)
+
+
+#: the host loops of this process, by the id of their session (a test may run several)
+_hosts: dict[int, HostLoop] = {}
+_host_lock = threading.Lock()
+
+
+def join_host(bus: Bus, ids: list[str], net: NetworkSpec) -> HostLoop:
+    """The :class:`HostLoop` of this process's hosted sensors ``ids`` on ``bus`` (their shared
+    session), made by the first of them to ask: every :func:`serve` of one of them on a share
+    of it joins it."""
+    key = id(getattr(bus, "session", None))
+    with _host_lock:
+        host = _hosts.get(key)
+        if host is None or host.bus is not bus:
+            host = _hosts[key] = HostLoop(bus, ids, net)
+        return host
 
 
 def process_main(
@@ -263,7 +469,12 @@ def process_main(
 ) -> int:
     """A sensor process around its loop: open the client session, run ``run(cfg, id, bus,
     run_id, clock, stop)`` (over ``wrap(bus)`` when given: a bus that emulates the links, say;
-    closed afterwards), print the counters, exit 0."""
+    closed afterwards), print the counters, exit 0.  A sensor hosted with others on one
+    session (``args.shared_bus``, ``args.host_ids``: :mod:`sensors.host`) is served by their
+    one :class:`HostLoop` (unless its links are emulated: ``wrap``)."""
+    shared, ids = getattr(args, "shared_bus", None), getattr(args, "host_ids", None)
+    if shared is not None and ids is not None and len(ids) > 1 and wrap is None:
+        join_host(shared, list(ids), cfg.network)
     with open_client(args, cfg.network, "sensor", args.id, stop) as bus:
         wrapped = wrap(bus) if wrap is not None else None
         try:

@@ -16,8 +16,9 @@ every scan: one command out, ``N`` measurements back), its sensors hosted as ``c
 hosts them (``--sensors-per-process``, default
 :func:`covnet.processes.up.default_sensors_per_process`),
 and, alternating with it, :mod:`covnet.bench.zenoh_probe` with the same ``N``, hosting, scan count
-and
-message sizes; the row gives both and ``ratio = scans_per_s / probe_scans_per_s``.
+and message sizes, twice: its responders served by one loop per process as covnet's hosted
+sensors are (``ratio = scans_per_s / probe_scans_per_s``), and with a thread per responder, as
+covnet hosted them before (``ratio_threads``, against ``probe_threads_scans_per_s``).
 """
 
 from __future__ import annotations
@@ -117,10 +118,17 @@ def run(
 
 
 def probe(
-    n_sensors: int, per_process: int, scans: int, *, command_bytes: int, measurement_bytes: int
+    n_sensors: int,
+    per_process: int,
+    scans: int,
+    *,
+    command_bytes: int,
+    measurement_bytes: int,
+    threads: bool = False,
 ) -> dict[str, Any]:
     """One closed-loop probe run (:mod:`covnet.bench.zenoh_probe`): ``n_sensors`` responders,
-    ``per_process`` to a process; its ``RESULT``."""
+    ``per_process`` to a process (``threads``: a thread each, else one loop per process);
+    its ``RESULT``."""
     py = sys.executable
     run_id = new_run_id()
     listen = f"tcp/127.0.0.1:{free_port()}"
@@ -144,7 +152,7 @@ def probe(
             "--run",
             run_id,
         ]
-        argv += ["--measurement-bytes", str(measurement_bytes)]
+        argv += ["--measurement-bytes", str(measurement_bytes)] + ["--threads"] * threads
         for rid in hosted:
             argv += ["--id", rid]
         specs.append(ProcessSpec(f"responders-{name}", argv))
@@ -194,22 +202,32 @@ def run_sizes(
                 "run": i + 1,
             }
             row |= _covnet_row(kind_n, sc_n, str(path), tmp / f"run-{n}-{i}", k)
-            pr = probe(
-                n, k, row["scans"], command_bytes=command_bytes(n),
-                measurement_bytes=measurement_bytes(),
-            )  # fmt: skip
+            pr, pt = (
+                probe(
+                    n,
+                    k,
+                    row["scans"],
+                    command_bytes=command_bytes(n),
+                    measurement_bytes=measurement_bytes(),
+                    threads=threads,
+                )  # fmt: skip
+                for threads in (False, True)
+            )
             row |= {
                 "probe_scans_per_s": pr["scans_per_s"],
                 "probe_p50_ms": pr["p50_ms"],
                 "probe_p99_ms": pr["p99_ms"],
                 "probe_cpu_ms_per_scan": pr["cpu_ms_per_scan"],
                 "ratio": row["scans_per_s"] / pr["scans_per_s"],
+                "probe_threads_scans_per_s": pt["scans_per_s"],
+                "ratio_threads": row["scans_per_s"] / pt["scans_per_s"],
             }
             rows.append(row)
             if not quiet:
                 print(
                     f"N = {n}, run {i + 1}/{repeat}: covnet {row['scans_per_s']:.0f} scans/s, "
-                    f"probe {pr['scans_per_s']:.0f} scans/s",
+                    f"probe {pr['scans_per_s']:.0f} scans/s (thread per responder: "
+                    f"{pt['scans_per_s']:.0f})",
                     flush=True,
                 )
     return rows

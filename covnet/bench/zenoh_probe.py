@@ -2,11 +2,14 @@
 pub/sub, with nothing else (no allocation, filter, world, recorder, heartbeats or checks).
 
 Per scan: the *commander* (a router session, like the manager) publishes one command of the size
-of covnet's ``Command`` enabling every sensor; each of ``N`` *responders* (one client session
-each, or, hosted ``K > 1`` per process as ``covnet up`` hosts sensors, shares of the process's
-one session, :mod:`sensors.host`; each in its own thread) answers
-with one message of the size of covnet's ``Measurement``; the next command goes out when all
-``N`` answers are in.  It reports scans per second (first command to last answer) and the
+of covnet's ``Command`` enabling every sensor; each of ``N`` *responders* answers with one message
+of the size of covnet's ``Measurement`` on a key of its own; the next command goes out when all
+``N`` answers are in.  Responders are hosted ``K`` per process as ``covnet up`` hosts sensors
+(:mod:`sensors.host`, :class:`sensors.protocol.HostLoop`): one client session, one command
+subscription and one thread per process, each responder its own liveliness token and publisher
+(``--threads``: a thread and a subscription per responder on shares of the one session, how
+covnet hosted sensors before; ``covnet bench up`` reports the ratio to both).
+It reports scans per second (first command to last answer) and the
 per-scan latency (command published -> last answer received), as covnet's manager reports its
 loop (``network.json``: ``scans_per_s``, ``scan_latency``).  The sessions are covnet's own
 (:class:`covnet.wire.zenoh_bus.ZenohBus`: the same zenoh config, FIFO subscriptions read by the
@@ -128,36 +131,47 @@ def commander(args: argparse.Namespace) -> int:
 
 
 def responders(args: argparse.Namespace) -> int:
+    """The responders ``args.id`` of one process: by default one loop for all (one session,
+    one command subscription, one thread: :class:`sensors.protocol.HostLoop`'s layout);
+    ``--threads``: a thread per responder, each with a subscription of its own on a share of
+    the process's one session (covnet's layout before the host loop)."""
     stop = threading.Event()
     size = args.measurement_bytes
     errors: list[str] = []
-    try:  # several responders share one session, as covnet's hosted sensors do
-        shared = _open("client", args.connect, stop) if len(args.id) > 1 else None
+
+    def serve(bus: Any, ids: list[str]) -> None:
+        cmds = bus.subscribe(f"probe/{args.run}/cmd")
+        keys = [f"probe/{args.run}/meas/{rid}" for rid in ids]
+        tokens = [bus.declare_token(f"probe/{args.run}/alive/{rid}") for rid in ids]
+        while not stop.is_set():
+            s = cmds.recv(timeout=0.5)
+            if s is None:
+                continue
+            k = _HEAD.unpack_from(s.payload)[0]
+            if k == 0:
+                break
+            for key in keys:
+                bus.publish(key, _payload(k, size))
+        for token in tokens:
+            token.undeclare()
+
+    threaded = args.threads and len(args.id) > 1
+    try:
+        shared = _open("client", args.connect, stop) if threaded else None
     except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
         print(f"probe: responders: {exc}", file=sys.stderr)
         return 1
 
-    def one(rid: str) -> None:
+    def one(ids: list[str]) -> None:
         try:
-            with (
-                shared.share() if shared is not None else _open("client", args.connect, stop) as bus
-            ):
-                cmds = bus.subscribe(f"probe/{args.run}/cmd")
-                key = f"probe/{args.run}/meas/{rid}"
-                token = bus.declare_token(f"probe/{args.run}/alive/{rid}")
-                while not stop.is_set():
-                    s = cmds.recv(timeout=0.5)
-                    if s is None:
-                        continue
-                    k = _HEAD.unpack_from(s.payload)[0]
-                    if k == 0:
-                        break
-                    bus.publish(key, _payload(k, size))
-                token.undeclare()
+            bus = shared.share() if shared is not None else _open("client", args.connect, stop)
+            with bus:
+                serve(bus, ids)
         except Exception as exc:  # noqa: BLE001 (say it; the commander times out)
-            errors.append(f"{rid}: {exc}")
+            errors.append(f"{ids}: {exc}")
 
-    threads = [threading.Thread(target=one, args=(rid,), daemon=True) for rid in args.id]
+    groups = [[rid] for rid in args.id] if threaded else [list(args.id)]
+    threads = [threading.Thread(target=one, args=(g,), daemon=True) for g in groups]
     for th in threads:
         th.start()
     try:
@@ -192,6 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     r.add_argument("--run", required=True)
     r.add_argument("--id", action="append", required=True)
     r.add_argument("--measurement-bytes", type=int, default=146)
+    r.add_argument("--threads", action="store_true", help="a thread per responder")
     args = p.parse_args(argv)
     return commander(args) if args.role == "commander" else responders(args)
 

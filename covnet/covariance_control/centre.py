@@ -18,7 +18,7 @@ import numpy as np
 from covnet.core.allocation import Allocation
 from covnet.core.fusion import LocalTrack
 from covnet.core.gaussian import Gaussian, is_spd
-from covnet.core.kalman import gain_and_covariance
+from covnet.core.kalman import gains_sequential
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.decentral import Mirror, decide_rule
 from covnet.covariance_control.fusion_rules import FusionRule, rule_for
@@ -284,10 +284,8 @@ class Gains:
     @staticmethod
     def of(model: Model, P_pred: np.ndarray, subset: tuple[int, ...]) -> Gains:
         order = tuple(sorted(subset))
-        P, gains = P_pred, []
-        for j in order:  # = fused_covariance(model, P_pred, [(j, model.R[j]) ...]), step by step
-            K, P = gain_and_covariance(P, model.H, model.R[j])
-            gains.append(K)
+        # = fused_covariance(model, P_pred, [(j, model.R[j]) ...]), step by step
+        gains, P = gains_sequential(P_pred, model.H, [model.R[j] for j in order])
         return Gains(order, tuple(model.R[j].tobytes() for j in order), tuple(gains), P)
 
 

@@ -238,6 +238,14 @@ def _bounded(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constrai
     from covnet.core.allocation import Allocation
     from covnet.core.allocation.search import allocate_bnb
 
+    n_feasible = feasible_count(len(model.sensor_ids), c)
+    if n_feasible == 1:
+        # one feasible subset (every allowed sensor required: ``covnet bench up --sensors``):
+        # it is the optimum, so its value is its certified lower bound (gap 0), what the
+        # bounded search returns too, without the root relaxation it would solve first
+        # (53 ms a scan at N = 64)
+        res = allocate_bnb(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
+        return Allocation(res.subset, res.value, res.P, 1, res.n_evaluated, res.value, 0.0)
     gap, limit_s, nodes = model.search.bounded_options()
     res = allocate_bnb(
         P_pred,
@@ -250,7 +258,6 @@ def _bounded(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constrai
         time_limit_s=limit_s,
         node_limit=nodes,
     )
-    n_feasible = feasible_count(len(model.sensor_ids), c)
     return Allocation(
         res.subset, res.value, res.P, n_feasible, res.n_evaluated, res.lower_bound, res.gap
     )

@@ -29,6 +29,12 @@ class Heartbeat:
         self._period_ns = int(period_s * 1e9)
         self._next_ns = 0
 
+    @property
+    def due_ns(self) -> int:
+        """When (``clock.now_ns``) the next heartbeat is due: a :meth:`tick` before it sends
+        nothing."""
+        return self._next_ns
+
     def tick(
         self,
         scan: int,

@@ -77,6 +77,7 @@ def test_bench_up_sizes_against_the_probe(monkeypatch, capsys, paper_path):
     for r in rows:
         assert r["scans"] == 40 and r["scans_per_s"] > 0 and r["probe_scans_per_s"] > 0
         assert r["ratio"] == r["scans_per_s"] / r["probe_scans_per_s"]
+        assert r["ratio_threads"] == r["scans_per_s"] / r["probe_threads_scans_per_s"]
         assert 0 < r["probe_p50_ms"] <= r["probe_p99_ms"]
 
 

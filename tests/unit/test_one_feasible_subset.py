@@ -1,0 +1,51 @@
+"""A decision with one feasible subset (every allowed sensor required, as in ``covnet bench up
+--sensors N``): ``bounded`` returns what the full bounded search returns (the same subset,
+value and ``P`` bits, the value as its certified lower bound, gap 0) without solving the
+root relaxation first."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from covnet import kinds
+from covnet.core.allocation import Constraints
+from covnet.core.allocation.search import allocate_bnb
+from covnet.covariance_control.model import build_model, predict_cov
+from covnet.covariance_control.network_sizes import bench_config
+from covnet.covariance_control.searches import SEARCHES, feasible_count
+
+PAPER = Path(__file__).resolve().parents[2] / "configs" / "paper.yaml"
+
+
+@pytest.mark.parametrize(("n", "failed"), [(30, ()), (40, (3, 17))])
+def test_one_feasible_subset_is_the_bounded_search_result(tmp_path, n, failed):
+    import yaml
+
+    _, sc = kinds.load(PAPER)
+    path = tmp_path / "net.yaml"
+    path.write_text(yaml.safe_dump(bench_config(sc, n, 20), sort_keys=False))
+    _, sc_n = kinds.load(path)
+    model = build_model(sc_n)
+    c = model.constraints
+    if failed:  # failed sensors leave the required set: still one subset
+        c = Constraints(excluded=frozenset(failed), required=c.required - frozenset(failed))
+    assert feasible_count(n, c) == 1
+    metric = sc_n.allocation.metrics[0]
+    gap, limit_s, nodes = model.search.bounded_options()
+    P = model.P0
+    for k in range(1, 4):
+        P = predict_cov(model, P)
+        got = SEARCHES["bounded"].decide(model, P, model.desired(k), metric, c)
+        ref = allocate_bnb(
+            P, model.gains, model.desired(k), metric, c, model.tie_rtol,
+            rel_gap=gap, time_limit_s=limit_s, node_limit=nodes,
+        )  # fmt: skip
+        assert got.subset == ref.subset
+        assert got.value == ref.value and np.array_equal(got.P, ref.P)
+        assert got.lower_bound == ref.lower_bound == got.value
+        assert got.gap == ref.gap == 0.0
+        assert got.n_evaluated == ref.n_evaluated and got.n_feasible == 1
+        P = got.P
