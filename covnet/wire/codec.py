@@ -365,7 +365,13 @@ def _fast(payload: bytes, cls: type[_M]) -> _M | None:
                     return None
                 setattr_(msg, name, value)
             elif kind == "names":
-                if type(value) is not list or len(value) > MAX_IDS or not good.issuperset(value):
+                if type(value) is not list or len(value) > MAX_IDS:
+                    return None
+                try:
+                    known = good.issuperset(value)
+                except TypeError:  # an unhashable element (a list, a map): the strict path
+                    return None
+                if not known:
                     return None
                 ids = tuple(value)
                 if len(set(ids)) != len(ids):

@@ -132,15 +132,15 @@ def _coerce(kind: str, name: str, v: object, strict: bool) -> Any:
         if kind == "name" and v in _GOOD_NAMES:
             return v
     elif t is list if strict else t is tuple:
-        if (
-            kind == "names"
-            and len(v) <= MAX_IDS  # type: ignore[arg-type]
-            and _GOOD_NAMES.issuperset(v)  # type: ignore[arg-type]
-            and (strict or all(type(x) is str for x in v))  # type: ignore[attr-defined]
-        ):
-            out: tuple[str, ...] = tuple(v)  # type: ignore[arg-type]
-            if len(set(out)) == len(out):
-                return out
+        if kind == "names" and len(v) <= MAX_IDS:  # type: ignore[arg-type]
+            try:
+                known = _GOOD_NAMES.issuperset(v)  # type: ignore[arg-type]
+            except TypeError:  # an unhashable element: the full checks say which
+                known = False
+            if known and (strict or all(type(x) is str for x in v)):  # type: ignore[attr-defined]
+                out: tuple[str, ...] = tuple(v)  # type: ignore[arg-type]
+                if len(set(out)) == len(out):
+                    return out
     return _coerce_slow(kind, name, v, strict)
 
 

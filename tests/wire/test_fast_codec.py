@@ -132,6 +132,17 @@ def test_structured_payloads_agree(payload, overrides):
     _agree(msgpack.packb(d, use_bin_type=True))
 
 
+@pytest.mark.parametrize("enabled", [[[]], [{}], ["s1", ["s4"]], [b"s1"], [1]])
+def test_unhashable_ids_agree(enabled):
+    """A list of ids holding a list or a map (unhashable) is the strict path's to refuse: the
+    fast path raised TypeError on it (found by the property above)."""
+    for payload in GOLDEN_PAYLOADS:
+        d = msgpack.unpackb(payload, raw=False)
+        if "enabled" in d:
+            d["enabled"] = enabled
+            _agree(msgpack.packb(d, use_bin_type=True))
+
+
 def _ext(inner: bytes) -> msgpack.ExtType:
     return msgpack.ExtType(1, inner)
 
