@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -113,3 +114,21 @@ def assert_nothing_left(run_dir: Path) -> None:
         time.sleep(0.05)
     left = {n: p for n, p in pids.items() if pid_alive(p)}
     assert not left, f"processes left running: {left}"
+
+
+def up_lockstep(config: Path, out: Path, timeout: float = 240.0) -> str:
+    """``covnet up CONFIG --out OUT --no-figures --verbose`` to its end (lockstep by default),
+    asserting exit 0; returns its output (the live ``[status]`` lines among it)."""
+    p = CovnetProcess(["up", str(config), "--out", str(out), "--no-figures", "--verbose"])
+    try:
+        rc = p.wait(timeout=timeout)
+    finally:
+        p.stop()
+    assert rc == 0, p.output()
+    return p.output()
+
+
+def assert_status_shows_gap(output: str) -> None:
+    """Every live ``[status]`` line shows the scan's certified gap (at least one line)."""
+    shown = [line for line in output.splitlines() if line.startswith("[status] ")]
+    assert shown and all(re.search(r"gap [0-9.e+-]+ ?%", line) for line in shown), shown

@@ -5,12 +5,11 @@ per-scan value, certified lower bound and gap included, and the live view shows 
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
 import pytest
-from multiproc import CovnetProcess, assert_nothing_left
+from multiproc import assert_nothing_left, assert_status_shows_gap, up_lockstep
 
 from covnet.cli.app import main as covnet_main
 from covnet.runs.rundir import load_arrays
@@ -30,13 +29,7 @@ def reference(tmp_path_factory):
 @pytest.fixture(scope="module")
 def lockstep_up(tmp_path_factory):
     out = tmp_path_factory.mktemp("up") / "run"
-    p = CovnetProcess(["up", str(LARGE_MT), "--out", str(out), "--no-figures", "--verbose"])
-    try:
-        rc = p.wait(timeout=240)
-    finally:
-        p.stop()
-    assert rc == 0, p.output()
-    return out, p.output()
+    return out, up_lockstep(LARGE_MT, out)
 
 
 def test_large_multitarget_up_equals_run(reference, lockstep_up):
@@ -59,6 +52,5 @@ def test_large_multitarget_up_lost_nothing_and_showed_the_gap(lockstep_up):
     out, output = lockstep_up
     net = json.loads((out / "network.json").read_text())
     assert net["rejected"] == {} and net["lost"] == 0
-    shown = [line for line in output.splitlines() if line.startswith("[status] ")]
-    assert shown and all(re.search(r"gap [0-9.e+-]+ ?%", line) for line in shown), shown
+    assert_status_shows_gap(output)
     assert_nothing_left(out)

@@ -4,12 +4,11 @@
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
 import pytest
-from multiproc import CovnetProcess, assert_nothing_left
+from multiproc import CovnetProcess, assert_nothing_left, assert_status_shows_gap, up_lockstep
 
 from covnet.cli.app import main as covnet_main
 from covnet.runs.rundir import load_arrays
@@ -29,13 +28,7 @@ def reference(tmp_path_factory):
 @pytest.fixture(scope="module")
 def lockstep_up(tmp_path_factory):
     out = tmp_path_factory.mktemp("up") / "run"
-    p = CovnetProcess(["up", str(LARGE), "--out", str(out), "--no-figures", "--verbose"])
-    try:
-        rc = p.wait(timeout=240)
-    finally:
-        p.stop()
-    assert rc == 0, p.output()
-    return out, p.output()
+    return out, up_lockstep(LARGE, out)
 
 
 def test_large_up_equals_run(reference, lockstep_up):
@@ -59,8 +52,7 @@ def test_large_up_lost_nothing_and_showed_the_gap(lockstep_up):
     assert net["rejected"] == {} and net["lost"] == 0
     # the live view shows each scan's certified gap (the manager's status: value, lower_bound,
     # gap, as live.json holds them while the run goes on)
-    shown = [line for line in output.splitlines() if line.startswith("[status] ")]
-    assert shown and all(re.search(r"gap [0-9.e+-]+ ?%", line) for line in shown), shown
+    assert_status_shows_gap(output)
     assert_nothing_left(out)
 
 
