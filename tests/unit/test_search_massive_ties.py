@@ -176,3 +176,29 @@ def test_a_limit_stops_the_table_of_the_last_levels():
     assert r.status == 1 and not r.exact
     assert r.n_nodes < 2 * limit
     assert r.lower_bound <= r.value and r.gap == pytest.approx((r.value - r.lower_bound) / r.value)
+
+
+@pytest.mark.parametrize("velocity_var", [1e8, 1e9])
+@pytest.mark.parametrize(("n", "seed", "types"), FAST_CASES[:2])
+def test_rules_decide_a_nontrivial_tie_set(n, seed, types, velocity_var, monkeypatch):
+    """abs_trace with a larger velocity variance: a subset is certified and the tie set is not
+    every subset (the choice has 2-4 sensors, not the trivial first sensor), so the size rule and
+    the identical-sensor rule both shape the answer.  The check must pass at once (no second
+    search: a wrong pruning that the check catches still fails here) and the result must be the
+    exhaustive search's."""
+    P_pred, gains, P_d = tie_problem(n, seed, types, velocity_var=velocity_var)
+    checks = []
+    verified = TR._TieRule.verified
+
+    def spy(self, masks, values, k):
+        ok = verified(self, masks, values, k)
+        checks.append((ok, self.symmetry))
+        return ok
+
+    monkeypatch.setattr(TR._TieRule, "verified", spy)
+    ref = allocate_exhaustive(P_pred, gains, P_d, "abs_trace")
+    got = S.allocate_bnb(P_pred, gains, P_d, "abs_trace")
+    assert checks == [(True, True)]
+    assert len(ref.subset) > 1
+    assert (got.subset, got.value) == (ref.subset, ref.value)
+    np.testing.assert_array_equal(got.P, ref.P)
