@@ -2,7 +2,10 @@
 :mod:`covnet.covariance_control.tie_problems` does tie, and every metric's exact search returns
 the exhaustive search's subset, value and ``P`` bits on it, with the tie rule's pruning
 (:mod:`covnet.core.allocation.tie_rule`) on, forced to fail its check, and fed a wrong
-certificate (the check must catch it)."""
+certificate (the check must catch it).
+
+The fast suite runs every rule at N = 10 (1 023 subsets, against the exhaustive search: a wrong
+pruning shows there as at N = 14); the ``slow`` tests repeat them at N = 12-14."""
 
 from __future__ import annotations
 
@@ -19,6 +22,8 @@ from covnet.core.metrics import METRICS
 from covnet.covariance_control.tie_problems import tie_problem
 
 #: (sensors, seed, types): copies of 3 or 4 types, and distinct sensors (ties by tolerance only)
+FAST_CASES = [(10, 0, 3), (10, 1, 4), (10, 2, 10)]
+#: the same kinds at 4-16 times as many subsets (``slow``)
 CASES = [(12, 0, 3), (12, 1, 4), (12, 2, 12), (14, 3, 4)]
 
 
@@ -36,18 +41,35 @@ def _values(P_pred, gains, P_d, name):
 
 
 @pytest.mark.parametrize(
-    ("name", "least"),
-    [("spectral", 4095), ("one_norm", 4095), ("frobenius", 4095), ("abs_trace", 6), ("svd", 4)],
+    ("n", "seed", "types", "name", "least"),
+    [
+        (10, 1, 4, "spectral", 1023),
+        (10, 1, 4, "one_norm", 1023),
+        (10, 1, 4, "frobenius", 1023),
+        (10, 1, 4, "abs_trace", 4),
+        (10, 1, 4, "svd", 3),
+        pytest.param(12, 0, 3, "spectral", 4095, marks=pytest.mark.slow),
+        pytest.param(12, 0, 3, "one_norm", 4095, marks=pytest.mark.slow),
+        pytest.param(12, 0, 3, "frobenius", 4095, marks=pytest.mark.slow),
+        pytest.param(12, 0, 3, "abs_trace", 6, marks=pytest.mark.slow),
+        pytest.param(12, 0, 3, "svd", 4, marks=pytest.mark.slow),
+    ],
 )
-def test_generator_makes_massive_ties(name, least):
-    """Every one of the 4 095 subsets ties for the norms the velocity term dominates; for the
-    others the copies of the optimum tie (here 3 types of 4 copies)."""
-    P_pred, gains, P_d = tie_problem(12, 0, 3)
+def test_generator_makes_massive_ties(n, seed, types, name, least):
+    """Every one of the ``2^n - 1`` subsets ties for the norms the velocity term dominates; for
+    the others the copies of the optimum tie (types of 3-4 copies)."""
+    P_pred, gains, P_d = tie_problem(n, seed, types)
     v, _ = _values(P_pred, gains, P_d, name)
     assert (v <= tie_threshold(float(v.min()), 1e-9)).sum() >= least
 
 
-@pytest.mark.parametrize(("n", "seed", "types"), CASES)
+def _all_cases():
+    fast = [pytest.param(*c, id="-".join(map(str, c))) for c in FAST_CASES]
+    slow = [pytest.param(*c, id="-".join(map(str, c)), marks=pytest.mark.slow) for c in CASES]
+    return fast + slow
+
+
+@pytest.mark.parametrize(("n", "seed", "types"), _all_cases())
 @pytest.mark.parametrize("name", sorted(METRICS))
 def test_bnb_equals_exhaustive_on_massive_ties(name, n, seed, types):
     P_pred, gains, P_d = tie_problem(n, seed, types)
@@ -84,19 +106,30 @@ def test_tie_rules_prune_and_pass_their_check(monkeypatch):
     assert got.n_nodes * 20 < plain.n_nodes
 
 
+@pytest.mark.parametrize(
+    "cases",
+    [
+        pytest.param(FAST_CASES[:2], id="fast"),
+        pytest.param(CASES[:2], id="slow", marks=pytest.mark.slow),
+    ],
+)
 @pytest.mark.parametrize("name", ["spectral", "abs_trace", "kl", "frobenius", "svd"])
-def test_failed_check_runs_the_plain_search(name, monkeypatch):
+def test_failed_check_runs_the_plain_search(name, cases, monkeypatch):
     """A check that fails sends the decision to the search without the rules: still exact."""
     monkeypatch.setattr(TR._TieRule, "verified", lambda self, m, v, k: False)
-    for n, seed, types in CASES[:2]:
+    for n, seed, types in cases:
         P_pred, gains, P_d = tie_problem(n, seed, types)
         ref = allocate_exhaustive(P_pred, gains, P_d, name)
         got = S.allocate_bnb(P_pred, gains, P_d, name)
         assert (got.subset, got.value) == (ref.subset, ref.value)
 
 
+@pytest.mark.parametrize(
+    "cases",
+    [pytest.param(FAST_CASES, id="fast"), pytest.param(CASES, id="slow", marks=pytest.mark.slow)],
+)
 @pytest.mark.parametrize("name", ["spectral", "abs_trace", "logdet", "trace_diff"])
-def test_check_catches_a_wrong_certificate(name, monkeypatch):
+def test_check_catches_a_wrong_certificate(name, cases, monkeypatch):
     """Every evaluated subset declared certified (``thr(L0) = inf``, false): the size rule then
     drops subsets that can win, and the check must send the decision to the plain search."""
     orig = TR._TieRule.__init__
@@ -106,7 +139,7 @@ def test_check_catches_a_wrong_certificate(name, monkeypatch):
         self.thr0 = np.inf
 
     monkeypatch.setattr(TR._TieRule, "__init__", init)
-    for n, seed, types in CASES:
+    for n, seed, types in cases:
         P_pred, gains, P_d = tie_problem(n, seed, types)
         ref = allocate_exhaustive(P_pred, gains, P_d, name)
         got = S.allocate_bnb(P_pred, gains, P_d, name)
@@ -143,3 +176,29 @@ def test_a_limit_stops_the_table_of_the_last_levels():
     assert r.status == 1 and not r.exact
     assert r.n_nodes < 2 * limit
     assert r.lower_bound <= r.value and r.gap == pytest.approx((r.value - r.lower_bound) / r.value)
+
+
+@pytest.mark.parametrize("velocity_var", [1e8, 1e9])
+@pytest.mark.parametrize(("n", "seed", "types"), FAST_CASES[:2])
+def test_rules_decide_a_nontrivial_tie_set(n, seed, types, velocity_var, monkeypatch):
+    """abs_trace with a larger velocity variance: a subset is certified and the tie set is not
+    every subset (the choice has 2-4 sensors, not the trivial first sensor), so the size rule and
+    the identical-sensor rule both shape the answer.  The check must pass at once (no second
+    search: a wrong pruning that the check catches still fails here) and the result must be the
+    exhaustive search's."""
+    P_pred, gains, P_d = tie_problem(n, seed, types, velocity_var=velocity_var)
+    checks = []
+    verified = TR._TieRule.verified
+
+    def spy(self, masks, values, k):
+        ok = verified(self, masks, values, k)
+        checks.append((ok, self.symmetry))
+        return ok
+
+    monkeypatch.setattr(TR._TieRule, "verified", spy)
+    ref = allocate_exhaustive(P_pred, gains, P_d, "abs_trace")
+    got = S.allocate_bnb(P_pred, gains, P_d, "abs_trace")
+    assert checks == [(True, True)]
+    assert len(ref.subset) > 1
+    assert (got.subset, got.value) == (ref.subset, ref.value)
+    np.testing.assert_array_equal(got.P, ref.P)
