@@ -171,11 +171,13 @@ REFINE_BATCH = 64
 #: set moves: per target and size, this many of the best enumerated sets are tried
 ENUM_MOVES = 8
 #: the single-target floors (bounded, with a time limit): each target's search stops at this
-#: relative gap, and gets at most this share of the time left when it starts
+#: relative gap, or at its equal share of the time left (the targets not yet bounded)
 FLOOR_GAP = 0.002
-FLOOR_SHARE = 0.5
-#: ... and one starts only with at least this many seconds left (its set-up is not timed)
+#: ... and one starts only with at least this many seconds left, and this multiple of what the
+#: previous one took (the single-target search's set-up is not timed: at N = 256 a 30 ms limit
+#: took 26-154 ms)
 FLOOR_MIN_S = 0.03
+FLOOR_MARGIN = 1.5
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -864,8 +866,9 @@ def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
     """The single-target floors (module docstring): the target columns in decreasing slack
     (the incumbent's weighted value less the column's least bound), each decided by the
     single-target bounded search (:func:`~covnet.core.allocation.search.allocate_bnb`, its
-    allowed sensors, ``FLOOR_GAP``, at most ``FLOOR_SHARE`` of the time left) while time is
-    left; its certified lower bound, weighted, is the column's floor.  Returns how many ran."""
+    allowed sensors, ``FLOOR_GAP``, an equal share of the time left) while ``FLOOR_MIN_S``
+    and ``FLOOR_MARGIN`` times the previous one's time are left; its certified lower bound,
+    weighted, is the column's floor.  Returns how many ran."""
     cs = dual.cs
     inp = cs.inp
     metric = inp.entry.name if inp.entry is not None else inp.f
@@ -876,18 +879,21 @@ def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
             least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
             slack.append((-(float(upper[c]) - least), c))
     done = 0
-    for _, c in sorted(slack):
+    last = 0.0
+    order = [c for _, c in sorted(slack)]
+    for i, c in enumerate(order):
         left = remaining()
-        if left < FLOOR_MIN_S:
-            break
+        if left < max(FLOOR_MIN_S, FLOOR_MARGIN * last):
+            break  # its set-up is not timed: the last one's time says what one costs
         excl = frozenset(int(j) for j in np.flatnonzero(~cs.allow[c]))
         res = allocate_bnb(
             inp.P_pred[c], inp.J[:, c], inp.D[c], metric, Constraints(excl), inp.tie_rtol,
-            rel_gap=FLOOR_GAP, time_limit_s=FLOOR_SHARE * left,
+            rel_gap=FLOOR_GAP, time_limit_s=left / (len(order) - i),
         )  # fmt: skip
         if math.isfinite(res.lower_bound):
             dual.floor[c] = max(dual.floor[c], float(cs.w[c]) * res.lower_bound)
         done += 1
+        last = left - remaining()
     return done
 
 
