@@ -106,11 +106,12 @@ certified bound of the suboptimality relative to what the sensors can gain (mean
 ``F*`` is near 0, where the first gap says nothing).
 
 **Clocks**: only with ``time_limit_s`` (``time.perf_counter`` or ``clock``); it is checked
-between greedy's local-search passes, the deeper enumerations, the refinement batches and the
-dual steps.  What always runs to its end: the columns' set-up, the forward greedy, the depth-1
-enumeration (``n_c`` sets a target) and the exact evaluation (``T`` solves), so a decision can
-pass a limit shorter than those (measured 35-60 ms at N = 64, T = 8, the machine shared).
-``node_limit`` is the deterministic alternative.
+between greedy's local-search passes, the deeper enumerations, the refinement batches, the
+floors and the dual steps.  What always runs to its end: the columns' set-up, the forward
+greedy, the depth-1 enumeration (``n_c`` sets a target), the exact evaluation (``T`` solves)
+and a started floor's set-up (hence ``FLOOR_MARGIN``), so a decision can pass a limit shorter
+than those (measured 35-60 ms at N = 64, T = 8, the machine shared).  ``node_limit`` is the
+deterministic alternative (no floors: they are timed).
 """
 
 from __future__ import annotations
@@ -271,10 +272,12 @@ class _TargetCol:
     def val(self, members: Sequence[int]) -> float:
         return float(self.vals(self.z(members)[None])[0])
 
-    def vals_of(self, sets: Sequence[Sequence[int]]) -> Mat:
-        """The working values of several sets in one batch (each ``Z`` summed as :meth:`z`:
-        the same bits as :meth:`val` one at a time)."""
-        return self.vals(np.array([self.z(mem) for mem in sets]))
+    def vals_of(self, blocks: Sequence[NDArray[np.intp]]) -> Mat:
+        """The working values of the sets of ``blocks`` (each ``(m, k)``, a set a row, in
+        order) in one batch; each ``Z`` is summed as :meth:`z` (the members in turn onto
+        ``base``: the same bits as :meth:`val` one at a time)."""
+        Z = np.concatenate([self.base[None] + self.S[b].sum(axis=1) for b in blocks])
+        return self.vals(Z)
 
     def add(self, members: Sequence[int], cands: NDArray[np.intp]) -> Mat:
         return self.vals(self.z(members)[None] + self.S[cands])
@@ -300,9 +303,8 @@ class _CellCol:
     def _prod(self, members: Sequence[int]) -> float:
         return float(np.prod(self.miss[list(members)])) if len(members) else 1.0
 
-    def vals_of(self, sets: Sequence[Sequence[int]]) -> Mat:
-        self.moves += len(sets)
-        return np.array([self.val(mem) for mem in sets])
+    def vals_of(self, blocks: Sequence[NDArray[np.intp]]) -> Mat:
+        return np.array([self.val(mem) for b in blocks for mem in b.tolist()])
 
     def val(self, members: Sequence[int]) -> float:
         return self.scale * self._prod(members)
@@ -539,25 +541,31 @@ def _enum_moves(st: _State, dual: _Dual, deadline: Callable[[], bool] | None) ->
                 continue
             free = (st.a == OFF) | (st.a == c)
             keep = [j for j in st.sets[c] if cs.required[j]]
-            mems: list[list[int]] = []
+            blocks: list[NDArray[np.intp]] = []  # (m, k) rows of ascending members
             for k in range(1, min(en.d, en.nc) + 1):
                 sets = en.o[en.sets[k]]
                 cand = np.flatnonzero(free[sets].all(axis=1))
                 if cand.size == 0:
                     continue
                 order = cand[np.argsort(en.exact[k][cand], kind="stable")[:ENUM_MOVES]]
+                if not keep:  # the enumerated sets as they are (ascending already)
+                    n_new = n_on - len(st.sets[c]) + k
+                    if k <= cs.caps[c] and 1 <= n_new <= cs.K:
+                        blocks.append(sets[order])
+                    continue
                 for i in order:
                     mem = sorted(set(sets[i].tolist()) | set(keep))
                     n_new = n_on - len(st.sets[c]) + len(mem)
                     if len(mem) > cs.caps[c] or n_new > cs.K or n_new < 1:
                         continue
-                    mems.append(mem)
-            if not mems:
+                    blocks.append(np.array([mem], dtype=np.intp))
+            if not blocks:
                 continue
-            d = cs.w[c] * (cs.cols[c].vals_of(mems) - st.v[c])  # one batch a column
+            d = cs.w[c] * (cs.cols[c].vals_of(blocks) - st.v[c])  # one batch a column
             i_best = int(np.argmin(d))  # the first of the least, as one at a time
             if float(d[i_best]) < best_d:
-                best_d, best_c, best_mem = float(d[i_best]), c, mems[i_best]
+                flat = [r for b in blocks for r in b.tolist()]
+                best_d, best_c, best_mem = float(d[i_best]), c, flat[i_best]
         if best_c < 0:
             break
         for j in list(st.sets[best_c]):
