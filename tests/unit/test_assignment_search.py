@@ -336,3 +336,25 @@ def test_bounded_with_time_takes_the_floors(monkeypatch):
     # (up to the rounding allowance, which the floors' scale enlarges)
     assert g.lower_bound <= b.lower_bound + 1e-9 * abs(ref.value)
     assert b.lower_bound <= ref.value
+
+
+def test_no_floor_for_a_metric_without_an_interval_bound(monkeypatch):
+    """A user's plain metric has no interval bound: its single-target search would be
+    exhaustive, so the bounded search runs no floor for it."""
+    from covnet.core.allocation import assignment_search as srch
+
+    def called(*a, **k):
+        raise AssertionError("a floor ran")
+
+    monkeypatch.setattr(srch, "allocate_bnb", called)
+
+    def mine(A, B):
+        return np.abs(np.trace(A, axis1=-2, axis2=-1) - np.trace(B, axis1=-2, axis2=-1))
+
+    N, T = 13, 2
+    P, J, D, w, feas = _problem(N, T, 5)
+    ticks = iter(np.arange(0.0, 1e6, 1e-3))
+    r = allocate_assignments_bounded(
+        P, J, D, mine, w, feas, time_limit_s=50.0, clock=lambda: float(next(ticks))
+    )
+    assert r.lower_bound <= r.value

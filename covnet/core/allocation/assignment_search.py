@@ -883,7 +883,8 @@ def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
     slack = []
     for c in range(cs.T):
         col = cs.cols[c]
-        if isinstance(col, _TargetCol) and not col.none and dual.opts[c].size:
+        # a metric without an interval bound would be searched exhaustively: no floor
+        if isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size:
             least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
             slack.append((-(float(upper[c]) - least), c))
     done = 0
