@@ -358,3 +358,18 @@ def test_no_floor_for_a_metric_without_an_interval_bound(monkeypatch):
         P, J, D, mine, w, feas, time_limit_s=50.0, clock=lambda: float(next(ticks))
     )
     assert r.lower_bound <= r.value
+
+
+@pytest.mark.parametrize("metric", ["spectral", "abs_trace"])
+@pytest.mark.parametrize("seed", range(3))
+def test_never_worse_than_plain_greedy_even_out_of_time(metric, seed):
+    """A limit that has passed before the local search (a fake clock: every reading a second
+    on) still leaves the forward greedy's moves and 1-swaps run to their local optimum: never
+    worse than the plain forward greedy with 1-swaps."""
+    P, J, D, w, feas = _problem(13, 2, 30 + seed)
+    plain = _plain_greedy(P, J, D, w, feas, metric)
+    ticks = iter(range(10**6))
+    res = allocate_assignments_bounded(
+        P, J, D, metric, w, feas, time_limit_s=0.5, clock=lambda: float(next(ticks))
+    )
+    assert res.status == 2 and res.value <= plain * (1 + 1e-9)

@@ -106,12 +106,14 @@ certified bound of the suboptimality relative to what the sensors can gain (mean
 ``F*`` is near 0, where the first gap says nothing).
 
 **Clocks**: only with ``time_limit_s`` (``time.perf_counter`` or ``clock``); it is checked
-between greedy's local-search passes, the deeper enumerations, the refinement batches, the
-floors and the dual steps.  What always runs to its end: the columns' set-up, the forward
-greedy, the depth-1 enumeration (``n_c`` sets a target), the exact evaluation (``T`` solves)
-and a started floor's set-up (hence ``FLOOR_MARGIN``), so a decision can pass a limit shorter
-than those (measured 35-60 ms at N = 64, T = 8, the machine shared).  ``node_limit`` is the
-deterministic alternative (no floors: they are timed).
+between the local-search passes after the set moves, the deeper enumerations, the refinement
+batches, the floors and the dual steps.  What always runs to its end: the columns' set-up, the
+forward greedy and its first local search (moves and 1-swaps to their local optimum, so that
+even out of time the result is never worse than the plain forward greedy with 1-swaps: cut
+short under a heavy load, it was), the depth-1 enumeration (``n_c`` sets a target), the exact
+evaluation (``T`` solves) and a started floor's set-up (hence ``FLOOR_MARGIN``), so a decision
+can pass a limit shorter than those (measured 35-60 ms at N = 64, T = 8, the machine shared).
+``node_limit`` is the deterministic alternative (no floors: they are timed).
 """
 
 from __future__ import annotations
@@ -985,7 +987,7 @@ def _search(
         cs = _Columns(inp)
         st = _State(cs)
         _forward(st)
-        _local_search(st, deadline)
+        _local_search(st, None)  # to its end: never worse than the plain greedy with 1-swaps
         dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v)
         if _enum_moves(st, dual, deadline):
             _local_search(st, deadline)
