@@ -284,3 +284,92 @@ def test_no_improving_set_move_is_left(metric, seed, monkeypatch):
                 for j in mem:
                     b[j] = t
                 assert _F(P, J, D, w, metric, b) >= F * (1 - 1e-9), (t, mem)
+
+
+@pytest.mark.parametrize("metric", ["kl", "spectral", "abs_trace"])
+@pytest.mark.parametrize("seed", range(3))
+def test_single_target_floors_below_the_exhaustive_optimum(metric, seed):
+    """Each target's floor (the single-target bounded search's certified bound, weighted) is at
+    most its best non-empty set of allowed sensors (exhaustive), and L(π) <= F* at any prices
+    with the floors in."""
+    from covnet.core.allocation import allocate_exhaustive
+    from covnet.core.allocation import assignment_search as srch
+    from covnet.core.allocation.assignment import _Inputs
+    from covnet.core.allocation.exact import Constraints
+
+    N, T = 7, 3
+    P, J, D, w, feas = _problem(N, T, 80 + seed)
+    ref = allocate_assignments_exhaustive(P, J, D, metric, w, feas)
+    inp = _Inputs(P, J, D, metric, w, feas, MultiConstraints(), 1e-9)
+    cs = srch._Columns(inp)
+    dual = srch._Dual(cs, budget=0)  # no enumeration: the floors carry the bound
+    assert srch._floors(dual, np.full(T, np.inf), lambda: 10.0) == T
+    for t in range(T):
+        excl = frozenset(int(j) for j in np.flatnonzero(~feas[:, t]))
+        best = allocate_exhaustive(P[t], J[:, t], D[t], metric, Constraints(excl))
+        assert dual.floor[t] <= w[t] * best.value
+    rng = np.random.default_rng(seed)
+    for scale in (0.0, 0.01, 0.3, 3.0):
+        pi = scale * abs(ref.value) * rng.uniform(size=N)
+        assert dual.value(pi)[0] <= ref.value
+
+
+def test_bounded_with_time_takes_the_floors(monkeypatch):
+    """With time to spare (a fake clock) the bounded search runs a floor for every target,
+    and its bound is at least greedy's (the same start; the floors and more dual steps on top)
+    and at most the exact optimum (N = 13: above the exact fallback)."""
+    from covnet.core.allocation import assignment_search as srch
+
+    ran = []
+    floors = srch._floors
+    monkeypatch.setattr(srch, "_floors", lambda *a: ran.append(floors(*a)) or ran[-1])
+    N, T = 13, 3
+    P, J, D, w, feas = _problem(N, T, 4)
+    ref = allocate_assignments(P, J, D, "spectral", w, feas)
+    g = allocate_assignments_greedy(P, J, D, "spectral", w, feas)
+    ticks = iter(np.arange(0.0, 1e6, 1e-3))
+    b = allocate_assignments_bounded(
+        P, J, D, "spectral", w, feas, rel_gap=0.0, time_limit_s=50.0,
+        clock=lambda: float(next(ticks)),
+    )  # fmt: skip
+    assert ran == [T] and not b.exact
+    # (up to the rounding allowance, which the floors' scale enlarges)
+    assert g.lower_bound <= b.lower_bound + 1e-9 * abs(ref.value)
+    assert b.lower_bound <= ref.value
+
+
+def test_no_floor_for_a_metric_without_an_interval_bound(monkeypatch):
+    """A user's plain metric has no interval bound: its single-target search would be
+    exhaustive, so the bounded search runs no floor for it."""
+    from covnet.core.allocation import assignment_search as srch
+
+    def called(*a, **k):
+        raise AssertionError("a floor ran")
+
+    monkeypatch.setattr(srch, "allocate_bnb", called)
+
+    def mine(A, B):
+        return np.abs(np.trace(A, axis1=-2, axis2=-1) - np.trace(B, axis1=-2, axis2=-1))
+
+    N, T = 13, 2
+    P, J, D, w, feas = _problem(N, T, 5)
+    ticks = iter(np.arange(0.0, 1e6, 1e-3))
+    r = allocate_assignments_bounded(
+        P, J, D, mine, w, feas, time_limit_s=50.0, clock=lambda: float(next(ticks))
+    )
+    assert r.lower_bound <= r.value
+
+
+@pytest.mark.parametrize("metric", ["spectral", "abs_trace"])
+@pytest.mark.parametrize("seed", range(3))
+def test_never_worse_than_plain_greedy_even_out_of_time(metric, seed):
+    """A limit that has passed before the local search (a fake clock: every reading a second
+    on) still leaves the forward greedy's moves and 1-swaps run to their local optimum: never
+    worse than the plain forward greedy with 1-swaps."""
+    P, J, D, w, feas = _problem(13, 2, 30 + seed)
+    plain = _plain_greedy(P, J, D, w, feas, metric)
+    ticks = iter(range(10**6))
+    res = allocate_assignments_bounded(
+        P, J, D, metric, w, feas, time_limit_s=0.5, clock=lambda: float(next(ticks))
+    )
+    assert res.status == 2 and res.value <= plain * (1 + 1e-9)

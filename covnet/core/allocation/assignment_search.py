@@ -64,6 +64,18 @@ are raised, lazily (the smallest first, at most ``REFINE_ROWS`` a column, within
 limit), by the reduced relaxation where the metric has one (kl, frobenius, logdet); the norm
 metrics' barrier dual bound is too slow for these decisions and is not used here.
 
+*Single-target floors* (the bounded search, with a time limit, while at least
+``FLOOR_MIN_S`` is left: :func:`_floors`, the targets furthest below their incumbent first): the
+single-target bounded search (:func:`covnet.core.allocation.search.allocate_bnb`) over the
+target's allowed sensors ``F_c`` (no budget, no required sensor) returns a certified ``ℓ_c <=
+min {g_c(S) : ∅ ≠ S ⊆ F_c}``.  **Proof** of ``b_c(k, π) >= w_c ℓ_c + π_c(k)`` for ``k >= 1``:
+a ``k``-set of ``F_c`` is one of that problem's feasible subsets, so ``w_c g_c(S) >= w_c ℓ_c``
+(``w_c > 0``; the same per-target arithmetic), and ``π(S) >= π_c(k)`` as above.  Its branching
+over the target's own sensors bounds the sets of three or more members far better than the
+intervals ``[Z(S0), Z(F_c)]`` (spectral at N = 64, T = 8: the light targets' bounds rise by
+20-50 %), but it does not see the prices: the coupling between targets is still only the
+count limit's and the dual steps'.
+
 With prices ``π_j >= 0`` and ``n_c`` the most sensors column ``c`` can take, the dual function::
 
     L(π) = min { Σ_c b_c(k_c, π) : 0 <= k_c <= n_c, Σ_c k_c <= K' } - Σ_j π_j,
@@ -94,11 +106,14 @@ certified bound of the suboptimality relative to what the sensors can gain (mean
 ``F*`` is near 0, where the first gap says nothing).
 
 **Clocks**: only with ``time_limit_s`` (``time.perf_counter`` or ``clock``); it is checked
-between greedy's local-search passes, the deeper enumerations, the refinement batches and the
-dual steps.  What always runs to its end: the columns' set-up, the forward greedy, the depth-1
-enumeration (``n_c`` sets a target) and the exact evaluation (``T`` solves), so a decision can
-pass a limit shorter than those (measured 35-60 ms at N = 64, T = 8, the machine shared).
-``node_limit`` is the deterministic alternative.
+between the local-search passes after the set moves, the deeper enumerations, the refinement
+batches, the floors and the dual steps.  What always runs to its end: the columns' set-up, the
+forward greedy and its first local search (moves and 1-swaps to their local optimum, so that
+even out of time the result is never worse than the plain forward greedy with 1-swaps: cut
+short under a heavy load, it was), the depth-1 enumeration (``n_c`` sets a target), the exact
+evaluation (``T`` solves) and a started floor's set-up (hence ``FLOOR_MARGIN``), so a decision
+can pass a limit shorter than those (measured 35-60 ms at N = 64, T = 8, the machine shared).
+``node_limit`` is the deterministic alternative (no floors: they are timed).
 """
 
 from __future__ import annotations
@@ -121,6 +136,7 @@ from covnet.core.allocation.assignment import (
     allocate_assignments,
 )
 from covnet.core.allocation.exact import Constraints, InfeasibleAllocation, _spd_error
+from covnet.core.allocation.search import allocate_bnb
 from covnet.core.allocation.search_problem import _Problem
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import MetricFn
@@ -157,6 +173,14 @@ REFINE_ROWS = 64
 REFINE_BATCH = 64
 #: set moves: per target and size, this many of the best enumerated sets are tried
 ENUM_MOVES = 8
+#: the single-target floors (bounded, with a time limit): each target's search stops at this
+#: relative gap, or at its equal share of the time left (the targets not yet bounded)
+FLOOR_GAP = 0.002
+#: ... and one starts only with at least this many seconds left, and this multiple of what the
+#: previous one took (the single-target search's set-up is not timed: at N = 256 a 30 ms limit
+#: took 26-154 ms)
+FLOOR_MIN_S = 0.03
+FLOOR_MARGIN = 1.5
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -250,6 +274,13 @@ class _TargetCol:
     def val(self, members: Sequence[int]) -> float:
         return float(self.vals(self.z(members)[None])[0])
 
+    def vals_of(self, blocks: Sequence[NDArray[np.intp]]) -> Mat:
+        """The working values of the sets of ``blocks`` (each ``(m, k)``, a set a row, in
+        order) in one batch; each ``Z`` is summed as :meth:`z` (the members in turn onto
+        ``base``: the same bits as :meth:`val` one at a time)."""
+        Z = np.concatenate([self.base[None] + self.S[b].sum(axis=1) for b in blocks])
+        return self.vals(Z)
+
     def add(self, members: Sequence[int], cands: NDArray[np.intp]) -> Mat:
         return self.vals(self.z(members)[None] + self.S[cands])
 
@@ -273,6 +304,9 @@ class _CellCol:
 
     def _prod(self, members: Sequence[int]) -> float:
         return float(np.prod(self.miss[list(members)])) if len(members) else 1.0
+
+    def vals_of(self, blocks: Sequence[NDArray[np.intp]]) -> Mat:
+        return np.array([self.val(mem) for b in blocks for mem in b.tolist()])
 
     def val(self, members: Sequence[int]) -> float:
         return self.scale * self._prod(members)
@@ -509,20 +543,31 @@ def _enum_moves(st: _State, dual: _Dual, deadline: Callable[[], bool] | None) ->
                 continue
             free = (st.a == OFF) | (st.a == c)
             keep = [j for j in st.sets[c] if cs.required[j]]
+            blocks: list[NDArray[np.intp]] = []  # (m, k) rows of ascending members
             for k in range(1, min(en.d, en.nc) + 1):
                 sets = en.o[en.sets[k]]
                 cand = np.flatnonzero(free[sets].all(axis=1))
                 if cand.size == 0:
                     continue
                 order = cand[np.argsort(en.exact[k][cand], kind="stable")[:ENUM_MOVES]]
+                if not keep:  # the enumerated sets as they are (ascending already)
+                    n_new = n_on - len(st.sets[c]) + k
+                    if k <= cs.caps[c] and 1 <= n_new <= cs.K:
+                        blocks.append(sets[order])
+                    continue
                 for i in order:
                     mem = sorted(set(sets[i].tolist()) | set(keep))
                     n_new = n_on - len(st.sets[c]) + len(mem)
                     if len(mem) > cs.caps[c] or n_new > cs.K or n_new < 1:
                         continue
-                    d = float(cs.w[c] * (cs.cols[c].val(mem) - st.v[c]))
-                    if d < best_d:
-                        best_d, best_c, best_mem = d, c, mem
+                    blocks.append(np.array([mem], dtype=np.intp))
+            if not blocks:
+                continue
+            d = cs.w[c] * (cs.cols[c].vals_of(blocks) - st.v[c])  # one batch a column
+            i_best = int(np.argmin(d))  # the first of the least, as one at a time
+            if float(d[i_best]) < best_d:
+                flat = [r for b in blocks for r in b.tolist()]
+                best_d, best_c, best_mem = float(d[i_best]), c, flat[i_best]
         if best_c < 0:
             break
         for j in list(st.sets[best_c]):
@@ -563,6 +608,8 @@ class _Dual:
         self.opts = [np.flatnonzero(cs.allow[c]) for c in range(cs.ncol)]
         self.h: list[Mat] = []
         self.nc: list[int] = []
+        #: per column the weighted single-target floor (``-inf``: none; :func:`_floors`)
+        self.floor = np.full(cs.ncol, -math.inf)
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
             self.nc.append(nc)
@@ -655,6 +702,8 @@ class _Dual:
         en = self.enum[c]
         if en is not None:
             cost = np.fmax(cost, en.cost(pi, ps))
+        if math.isfinite(self.floor[c]):
+            cost[1:] = np.fmax(cost[1:], self.floor[c] + ps[1:])
         return cost, ps
 
     def value(self, pi: Mat) -> tuple[float, list[int]]:
@@ -686,6 +735,7 @@ class _Dual:
         psum = float(pi.sum())
         hmax = sum(float(h.max()) for h in self.h)
         hmax += sum(e.scale for e in self.enum if e is not None)
+        hmax += float(np.abs(self.floor[np.isfinite(self.floor)]).sum())
         allow = 64.0 * (self.cs.N + self.cs.ncol + 2) * EPS * (psum + hmax + abs(total))
         return total - psum - allow, counts
 
@@ -822,6 +872,42 @@ class _Enum:
         return np.asarray(self.o[np.concatenate((first, order))])
 
 
+def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
+    """The single-target floors (module docstring): the target columns in decreasing slack
+    (the incumbent's weighted value less the column's least bound), each decided by the
+    single-target bounded search (:func:`~covnet.core.allocation.search.allocate_bnb`, its
+    allowed sensors, ``FLOOR_GAP``, an equal share of the time left) while ``FLOOR_MIN_S``
+    and ``FLOOR_MARGIN`` times the previous one's time are left; its certified lower bound,
+    weighted, is the column's floor.  Returns how many ran."""
+    cs = dual.cs
+    inp = cs.inp
+    metric = inp.entry.name if inp.entry is not None else inp.f
+    slack = []
+    for c in range(cs.T):
+        col = cs.cols[c]
+        # a metric without an interval bound would be searched exhaustively: no floor
+        if isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size:
+            least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
+            slack.append((-(float(upper[c]) - least), c))
+    done = 0
+    last = 0.0
+    order = [c for _, c in sorted(slack)]
+    for i, c in enumerate(order):
+        left = remaining()
+        if left < max(FLOOR_MIN_S, FLOOR_MARGIN * last):
+            break  # its set-up is not timed: the last one's time says what one costs
+        excl = frozenset(int(j) for j in np.flatnonzero(~cs.allow[c]))
+        res = allocate_bnb(
+            inp.P_pred[c], inp.J[:, c], inp.D[c], metric, Constraints(excl), inp.tie_rtol,
+            rel_gap=FLOOR_GAP, time_limit_s=left / (len(order) - i),
+        )  # fmt: skip
+        if math.isfinite(res.lower_bound):
+            dual.floor[c] = max(dual.floor[c], float(cs.w[c]) * res.lower_bound)
+        done += 1
+        last = left - remaining()
+    return done
+
+
 def _dual_bound(
     dual: _Dual,
     upper: float,
@@ -863,9 +949,11 @@ def _dual_bound(
 
 def _deadline(
     time_limit_s: float | None, clock: Callable[[], float] | None
-) -> Callable[[], bool] | None:
+) -> tuple[Callable[[], bool] | None, Callable[[], float] | None]:
+    """``deadline()`` (the time is up) and ``remaining()`` (seconds left); ``None`` without a
+    limit."""
     if time_limit_s is None:
-        return None
+        return None, None
     if not time_limit_s >= 0:
         raise ValueError(f"time_limit_s must be >= 0 or None, got {time_limit_s}")
     if clock is None:
@@ -879,7 +967,10 @@ def _deadline(
     def deadline() -> bool:
         return tick() >= t_end
 
-    return deadline
+    def remaining() -> float:
+        return t_end - tick()
+
+    return deadline, remaining
 
 
 def _search(
@@ -890,17 +981,20 @@ def _search(
     status_done: int,
     fallback: bool,
     refine_rows: int = REFINE_ROWS,
+    remaining: Callable[[], float] | None = None,
 ) -> AssignmentSearch:
     try:
         cs = _Columns(inp)
         st = _State(cs)
         _forward(st)
-        _local_search(st, deadline)
+        _local_search(st, None)  # to its end: never worse than the plain greedy with 1-swaps
         dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v)
         if _enum_moves(st, dual, deadline):
             _local_search(st, deadline)
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
+        if remaining is not None:
+            _floors(dual, cs.w * st.v, remaining)
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
@@ -989,7 +1083,7 @@ def allocate_assignments_bounded(
         raise ValueError(f"rel_gap must be in [0, 1), got {rel_gap}")
     if node_limit is not None and (not isinstance(node_limit, int) or node_limit < 1):
         raise ValueError(f"node_limit must be an integer >= 1 or None, got {node_limit!r}")
-    deadline = _deadline(time_limit_s, clock)
+    deadline, remaining = _deadline(time_limit_s, clock)
     inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
     steps = DUAL_STEPS if node_limit is None else min(node_limit, DUAL_STEPS)
-    return _search(inp, rel_gap, steps, deadline, 3, True)
+    return _search(inp, rel_gap, steps, deadline, 3, True, remaining=remaining)
