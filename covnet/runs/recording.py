@@ -304,7 +304,7 @@ class RecordingWriter:
         statistics, chunk times and message index kept as the library's ``add_message`` keeps
         them: the same file, byte for byte, a test compares them) instead of through the
         library's record objects: the recorder writes every message of the run, and that path
-        was a fifth of its CPU."""
+        cost ~20 us a message on the loaded 2-core host (of the recorder's 50-75 us)."""
         seq = self._sequence.get(channel, 0) + 1
         self._sequence[channel] = seq
         fast = self._fast
