@@ -5,7 +5,9 @@ covariance control, one for the others) and scan ``k = 1..scans``::
 
     1. (real time) wait for scan k's time, t_origin + (k - 1) T
     2. the sensors alive: liveliness tokens and heartbeats (:class:`manager.membership.
-       Membership`); failures and rejoins since the last scan go to the kind
+       Membership`; a sensor's well-formed message on its own key counts as a heartbeat, so a
+       sensor that measures sends none, :class:`covnet.processes.node_kit.Heartbeat`);
+       failures and rejoins since the last scan go to the kind
     3. the kind decides: enabled set (and its per-sensor modes / targets)       logic.decide
     4. Command(k) on the key that names the enabled set (zenoh takes it to those sensors and
        the recorder only); in lockstep, then scan k-1's report (step 7): the next command is
@@ -163,6 +165,7 @@ class Loop:
     ) -> None:
         self.net, self.bus, self.run_id, self.clock = net, bus, run_id, clock
         self.ids = sensor_ids
+        self.sensor_set = frozenset(sensor_ids)
         self.members = Membership(
             expected=(*self.ids, WORLD_ID), failure_timeout_ns=int(net.failure_timeout_s * 1e9)
         )
@@ -362,6 +365,8 @@ class Loop:
         if key_sensor != m.sensor_id:
             self.stats.reject(s.key, "key_mismatch")
             return
+        if key_sensor in self.sensor_set:  # any message of a sensor is its sign of life
+            self.members.heartbeat(key_sensor, self.clock.now_ns())
         if (bad := self.stats.arrived(m.sensor_id, m.seq)) is not None:
             self.stats.reject(s.key, bad)
             return

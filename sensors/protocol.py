@@ -10,10 +10,12 @@ publishes it; at a scan that does not enable it, it publishes nothing.  On slow 
 every command (to notice one it missed: ``missed_command``).  A command whose truth never comes
 (a sensor restarted after the world sent it) is dropped as soon as a newer command arrives, so a
 sensor never stalls on a scan that has passed.  It sends a heartbeat every
-``network.heartbeat_s`` (a hung loop stops sending them) and declares its liveliness token once
-its subscriptions exist.  Malformed messages are counted by reason and dropped.  It ends on
-``stop`` or when the manager it has seen leaves (its liveliness token goes: the run is over, or
-the manager died).
+``network.heartbeat_s`` (a hung loop stops sending them), except that a measurement stands for
+one (the manager takes any of its messages as a sign of life: a sensor measuring every scan
+sends a heartbeat only when it has new rejections to report, and as it leaves), and declares its
+liveliness token once its subscriptions exist.  Malformed messages are counted by reason and
+dropped.  It ends on ``stop`` or when the manager it has seen leaves (its liveliness token
+goes: the run is over, or the manager died).
 
 :func:`process_main` is what every sensor role module's ``main`` does around :func:`serve`.
 """
@@ -163,6 +165,7 @@ class _Sensor:
         self.newest = (-1, 0)  # (episode, scan) of the newest command received
         self.last_on = False
         self.token: Token | None = None  # its liveliness token, declared by its loop
+        self.told_rejected = 0  # rejections its last heartbeat reported
 
     def hears(self, key: str) -> bool:
         """Whether this sensor's own subscription would receive a command on ``key``: every
@@ -171,7 +174,8 @@ class _Sensor:
 
     def tick(self, now: bool = False) -> None:
         st = self.stats
-        self.heartbeat.tick(self.last_scan, st.rejected, sent=st.measurements_sent, now=now)
+        if self.heartbeat.tick(self.last_scan, st.rejected, sent=st.measurements_sent, now=now):
+            self.told_rejected = st.rejected.total()
 
     def accept(self, cmd: msg.Command | msg.WireError) -> None:
         """One command received (or why it was refused); queued if this sensor is enabled."""
@@ -224,8 +228,10 @@ class _Sensor:
                 payload = msg.encode(out)
                 lap("encode")
                 self.bus.publish(self.meas_key, payload)
-                lap("publish")
                 stats.measurements_sent += 1
+                if stats.rejected.total() == self.told_rejected:
+                    self.heartbeat.touch()  # the measurement is its sign of life
+                lap("publish")
                 if not self.keep_truth:
                     for old in [k for k in truths if k < cmd.scan - 1]:
                         del truths[old]

@@ -18,7 +18,14 @@ from covnet.wire.bus import Bus
 class Heartbeat:
     """Publishes ``Heartbeat(role, node_id, scan, rejected)`` at most every ``period_s``: the
     application-level sign of life a hung loop stops giving (its zenoh session, hence its
-    liveliness token, would live on)."""
+    liveliness token, would live on).
+
+    Any message the manager reads from the node is a sign of life too (the manager takes a
+    sensor's measurement as one, :meth:`manager.loop.Loop.collect`): a node that published
+    one calls :meth:`touch`, and the next heartbeat is due ``period_s`` after that message
+    instead.  So the manager still hears from a live node at least every ``period_s`` (the
+    failure bound, ``failure_timeout_s`` after the last sign of life, is unchanged), and a
+    sensor measuring every scan sends no heartbeat while it does."""
 
     def __init__(
         self, bus: Bus, clock: Clock, run_id: str, role: str, node_id: str, period_s: float
@@ -42,12 +49,12 @@ class Heartbeat:
         *,
         sent: int | None = None,
         now: bool = False,
-    ) -> None:
+    ) -> bool:
         """Publish a heartbeat if one is due (``now``: at once, as a node leaves); ``sent``:
-        a sensor's count of messages sent for the manager."""
+        a sensor's count of messages sent for the manager.  Returns whether it published."""
         t = self._clock.now_ns()
         if t < self._next_ns and not now:
-            return
+            return False
         hb = msg.Heartbeat(
             role=self._role,
             node_id=self._node_id,
@@ -58,6 +65,12 @@ class Heartbeat:
         )
         self._bus.publish(self._key, msg.encode(hb))
         self._next_ns = t + self._period_ns
+        return True
+
+    def touch(self) -> None:
+        """The node just published a message the manager takes as a sign of life: the next
+        heartbeat is due one period from now (class docstring)."""
+        self._next_ns = self._clock.now_ns() + self._period_ns
 
 
 MANAGER_GRACE = 3.0

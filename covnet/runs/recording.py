@@ -52,6 +52,7 @@ one-way latency.  ``utc = start_utc_ns + (t - start_monotonic_ns)`` converts to 
 from __future__ import annotations
 
 import json
+import struct
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -60,7 +61,7 @@ from typing import IO, Any
 
 import msgpack
 from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, Footer, Message, MessageIndex, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -162,6 +163,32 @@ def episode_of(payload: bytes) -> int | None:
     return e if type(e) is int and 0 <= e <= _STAMP_MAX else None
 
 
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")
+"""An MCAP Message record's head: opcode 0x05, record length (22 + data), channel id (u16),
+sequence (u32), log time, publish time (u64, little-endian), then the data."""
+_OP_MESSAGE = 0x05
+
+
+def _fast_parts(writer: Writer) -> tuple[Any, Any, int] | None:
+    """The ``mcap`` writer's statistics, chunk builder and chunk size, for
+    :meth:`RecordingWriter._add`'s direct path; None (the library's ``add_message`` then) when
+    this version of the library keeps them elsewhere."""
+    try:
+        parts = (
+            writer._Writer__statistics,  # type: ignore[attr-defined]
+            writer._Writer__chunk_builder,  # type: ignore[attr-defined]
+            int(writer._Writer__chunk_size),  # type: ignore[attr-defined]
+        )
+        checks = (
+            parts[1].record_writer._buffer.tell,
+            parts[1].message_indices.get,
+            parts[0].channel_message_counts,
+        )
+    except AttributeError:
+        return None
+    return parts if parts[1] is not None and all(c is not None for c in checks) else None
+
+
 def _schema_name(cls: type[msg.Message]) -> str:
     return f"covnet.{cls.__name__}"
 
@@ -218,6 +245,7 @@ class RecordingWriter:
             self._file.close()
             self._file = None
             raise
+        self._fast = _fast_parts(self._writer)
         self._channels: dict[str, int] = {}
         self._visual_schemas: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -270,16 +298,52 @@ class RecordingWriter:
         self.visual_messages += 1
 
     def _add(self, channel: int, log_time: int, data: bytes, publish_time: int) -> None:
-        """One message on ``channel``, numbered 1, 2, ... per channel; flushed when due."""
+        """One message on ``channel``, numbered 1, 2, ... per channel; flushed when due.
+
+        The message record goes straight into the current chunk (one ``struct`` pack, the
+        statistics, chunk times and message index kept as the library's ``add_message`` keeps
+        them: the same file, byte for byte, a test compares them) instead of through the
+        library's record objects: the recorder writes every message of the run, and that path
+        cost ~20 us a message on the loaded 2-core host (of the recorder's 50-75 us)."""
         seq = self._sequence.get(channel, 0) + 1
         self._sequence[channel] = seq
-        self._writer.add_message(
-            channel_id=channel,
-            log_time=log_time,
-            data=data,
-            publish_time=publish_time,
-            sequence=seq & 0xFFFFFFFF,
-        )
+        fast = self._fast
+        if fast is None:
+            self._writer.add_message(
+                channel_id=channel,
+                log_time=log_time,
+                data=data,
+                publish_time=publish_time,
+                sequence=seq & 0xFFFFFFFF,
+            )
+        else:
+            stats, chunk, size = fast
+            if stats.message_count == 0 or log_time < stats.message_start_time:
+                stats.message_start_time = log_time
+            if log_time > stats.message_end_time:
+                stats.message_end_time = log_time
+            stats.channel_message_counts[channel] += 1
+            stats.message_count += 1
+            if chunk.num_messages == 0 or log_time < chunk.message_start_time:
+                chunk.message_start_time = log_time
+            if log_time > chunk.message_end_time:
+                chunk.message_end_time = log_time
+            index = chunk.message_indices.get(channel)
+            if index is None:
+                index = MessageIndex(channel_id=channel, records=[])
+                chunk.message_indices[channel] = index
+            buf = chunk.record_writer._buffer
+            at = buf.tell()
+            index.records.append((log_time, at))
+            chunk.num_messages += 1
+            buf.write(
+                _MESSAGE_HEAD.pack(
+                    _OP_MESSAGE, 22 + len(data), channel, seq & 0xFFFFFFFF, log_time, publish_time
+                )
+            )
+            buf.write(data)
+            if at + 31 + len(data) > size:
+                self._writer._Writer__maybe_finalize_chunk()  # type: ignore[attr-defined]
         self.maybe_flush()
 
     def maybe_flush(self) -> None:

@@ -49,3 +49,47 @@ def test_one_feasible_subset_is_the_bounded_search_result(tmp_path, n, failed):
         assert got.gap == ref.gap == 0.0
         assert got.n_evaluated == ref.n_evaluated and got.n_feasible == 1
         P = got.P
+
+
+@pytest.mark.parametrize(("n", "failed"), [(24, ()), (40, (0, 39))])
+def test_one_feasible_subset_is_the_exact_search_result(tmp_path, n, failed):
+    """``exact`` beyond the fast path (more than 18 sensors): the same subset, value, ``P``
+    bits and count as :func:`allocate_bnb`'s exact search, and every metric's value."""
+    import yaml
+
+    _, sc = kinds.load(PAPER)
+    path = tmp_path / "net.yaml"
+    path.write_text(yaml.safe_dump(bench_config(sc, n, 20), sort_keys=False))
+    _, sc_n = kinds.load(path)
+    model = build_model(sc_n)
+    c = model.constraints
+    if failed:
+        c = Constraints(excluded=frozenset(failed), required=c.required - frozenset(failed))
+    assert feasible_count(n, c) == 1
+    P = predict_cov(model, model.P0)
+    for metric in ("spectral", "abs_trace", "svd", "kl"):
+        got = SEARCHES["exact"].decide(model, P, model.desired(1), metric, c)
+        ref = allocate_bnb(P, model.gains, model.desired(1), metric, c, model.tie_rtol)
+        assert got.subset == ref.subset and got.n_feasible == 1
+        assert got.value == ref.value and np.array_equal(got.P, ref.P)
+        assert got.n_evaluated == ref.n_evaluated
+
+
+def test_not_every_sensor_required_is_left_to_the_search(tmp_path):
+    """One feasible subset that is not "every allowed sensor required" (a budget of one and a
+    single allowed sensor) goes to the search itself."""
+    import yaml
+
+    from covnet.covariance_control.searches import _only_subset
+
+    _, sc = kinds.load(PAPER)
+    path = tmp_path / "net.yaml"
+    path.write_text(yaml.safe_dump(bench_config(sc, 20, 20), sort_keys=False))
+    _, sc_n = kinds.load(path)
+    model = build_model(sc_n)
+    c = Constraints(excluded=frozenset(range(1, 20)), required=frozenset())
+    assert feasible_count(20, c) == 1
+    P = predict_cov(model, model.P0)
+    assert _only_subset(model, P, model.desired(1), "spectral", c) is None
+    got = SEARCHES["bounded"].decide(model, P, model.desired(1), "spectral", c)
+    assert got.subset == (0,) and got.gap == 0.0
