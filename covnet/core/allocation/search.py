@@ -676,8 +676,11 @@ def allocate_bnb(
             0,
             STATUS[0],
         )
-    prob.stop = None  # the root's bound runs whole (one node: one step of overshoot)
-    lb = min(max(search.lower_bound(), prob.root_bound()), value)
+    prob.stop = None  # the root's bound runs whole (one node: one step of overshoot) when
+    # the tree did not reach it, until it certifies rel_gap (the dual bound's barrier stops
+    # there: 5-16 iterations instead of 30 at N = 100)
+    goal = value - rel_gap * abs(value) if rel_gap > 0.0 else math.inf
+    lb = min(max(search.lower_bound(), prob.root_bound(goal)), value)
     status = why if why else 3
     return SearchResult(
         _subset(mask),
