@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from covnet.core.allocation._fast import tie_select
 from covnet.core.allocation.exact import Constraints, _spd_error
 from covnet.core.allocation.search_problem import (
+    EXACT_ENTRIES,
     MOVE_BLOCK,
     NO_CONSTRAINTS,
     STATUS,
@@ -103,7 +104,11 @@ class _Plain:
         self.cache: dict[bytes, float] = {}
 
     def exact(self, inc: NDArray[np.bool_]) -> Mat:
-        """Exact values of the branching-order rows ``inc`` ``(c, m)``."""
+        """Exact values of the branching-order rows ``inc`` ``(c, m)``, in batches whose gain
+        sums stay below EXACT_ENTRIES entries; once ``prob.stop`` says the time is up, the
+        rows of the batches not started are ``inf`` (not cached; the first batch always
+        runs).  One uninterrupted batch of 2 000 tied candidates at N = 2 000 took 14 s and
+        half a gigabyte."""
         out = np.empty(inc.shape[0])
         todo = []
         for i, row in enumerate(inc):
@@ -112,14 +117,19 @@ class _Plain:
                 todo.append(i)
             else:
                 out[i] = hit
-        if todo:
-            prob = self.prob
-            masks = prob.masks(inc[todo])
+        prob = self.prob
+        step = max(1, EXACT_ENTRIES // max(prob.N * prob.n * prob.n, 1))
+        for lo in range(0, len(todo), step):
+            part = todo[lo : lo + step]
+            if lo and prob.stop is not None and prob.stop():
+                out[todo[lo:]] = np.inf
+                break
+            masks = prob.masks(inc[part])
             with np.errstate(all="ignore"):
                 v = np.asarray(prob.f(prob.exact_covariances(masks), prob.D), dtype=np.float64)
             v = np.where(np.isfinite(v) & masks.any(axis=1), v, np.inf)
-            prob.n_evaluated += len(todo)
-            for i, x in zip(todo, v.tolist(), strict=True):
+            prob.n_evaluated += len(part)
+            for i, x in zip(part, v.tolist(), strict=True):
                 out[i] = x
                 self.cache[np.packbits(inc[i]).tobytes()] = x
         return out
@@ -290,18 +300,25 @@ def _forward(prob: _Problem, inc: NDArray[np.bool_]) -> tuple[NDArray[np.bool_],
     return best_inc, best_val
 
 
-def _backward(prob: _Problem) -> tuple[NDArray[np.bool_], float]:
+def _backward(prob: _Problem, reuse: bool = False) -> tuple[NDArray[np.bool_], float]:
     """Backward elimination from every free sensor: remove the sensor whose removal gives the
     smallest value (above BACKWARD_ONE sensors, the ``⌈|D| / BACKWARD_ONE⌉`` best removals at
     once, so a pass costs ``O(N · BACKWARD_ONE)`` evaluations); values count once within the
-    budget.  Returns the path's best."""
+    budget.  Returns the path's best.  ``reuse`` (greedy under a time limit): after removing
+    one sensor the new set's working value is the removal's (the same set, its ``Z`` summed in
+    another order: working values differ by rounding only), not evaluated again (one batch of
+    one row less per pass: 15-40 % of the pass)."""
     m, K, k0 = prob.m, prob.K, len(prob.req)
     inc = np.ones(m, dtype=bool)
     best_inc, best_val = inc.copy(), math.inf
+    known: float | None = None
     while True:
         k = k0 + int(inc.sum())
         if k <= K:
-            v0 = float(prob.approx_values((prob.base + prob.S[inc].sum(axis=0))[None])[0])
+            if known is None:
+                v0 = float(prob.approx_values((prob.base + prob.S[inc].sum(axis=0))[None])[0])
+            else:
+                v0 = known
             if v0 < best_val:
                 best_val, best_inc = v0, inc.copy()
         ins = np.flatnonzero(inc)
@@ -314,8 +331,10 @@ def _backward(prob: _Problem) -> tuple[NDArray[np.bool_], float]:
         if k - K > step:  # still above the budget: remove faster, values do not count yet
             step = max(step, (k - K) // 2)
         step = min(step, ins.size - (0 if k0 else 1))
-        drop = ins[np.argsort(v, kind="stable")[:step]]
+        order = np.argsort(v, kind="stable")[:step]
+        drop = ins[order]
         inc[drop] = False
+        known = float(v[order[0]]) if reuse and step == 1 else None
     return best_inc, best_val
 
 
@@ -444,7 +463,7 @@ def _greedy_incs_timed(
         if not any(np.array_equal(inc, o) for o in out):
             out.append(inc)
 
-    b_inc, b_val = _backward(prob)
+    b_inc, b_val = _backward(prob, reuse=True)
     if math.isfinite(b_val) and (b_inc.any() or prob.req):
         add(_local_search(prob, b_inc, b_val))
     prob.stop = deadline
