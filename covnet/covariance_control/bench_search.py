@@ -12,12 +12,15 @@ cost as
 much as the benchmark); that changes which ``P⁻`` are benchmarked, not what is measured.
 
 **Timing.**  Per problem one untimed warm-up call, then ``repeat`` timed calls
-(``time.perf_counter``); a row's median and worst are over problems x repeats.  ``peak_mb`` is the
-largest ``tracemalloc`` peak of one call per problem.  Every search is compared, in the same run
-and on the same problems, with :func:`covnet.core.allocation.allocate_exhaustive` where
-``n_sensors <= exhaustive_max`` (the plain reference, timed once per problem; subset and value must
-be identical for the exact search) and with :func:`plain_greedy` (forward selection on exact
-values, written the straightforward way).
+(``time.perf_counter``, at least one); a row's median and worst are over problems x repeats, and
+so are its gaps (the decisions timed; values, ratios and node counts: the first timed call per
+problem).  ``peak_mb`` is the largest ``tracemalloc`` peak of one call per problem (the warm-up:
+several times slower under tracemalloc, so with a time limit not the decision reported).
+Every search is compared, in the same run and on the same problems, with
+:func:`covnet.core.allocation.allocate_exhaustive` where ``n_sensors <= exhaustive_max`` (the
+plain reference, timed once per problem; subset and value must be identical for the exact
+search) and with :func:`plain_greedy` (forward selection on exact values, written the
+straightforward way).
 
 Run: ``covnet bench search`` / ``covnet bench multitarget`` (see :func:`main`).
 """
@@ -306,7 +309,7 @@ def run(
                 peak, first = _peak_mb(call)
                 long = time.perf_counter() - t0 > LONG_S
                 runs = [first]
-                for _ in range(1 if long else repeat):
+                for _ in range(1 if long else max(repeat, 1)):
                     res, dt = _timed(call)
                     runs.append(res)
                     times[search].append(dt)
@@ -314,7 +317,7 @@ def run(
                 peaks[search].append(peak)
         best = []
         for p in range(len(problems)):
-            vals = [runs[0].value for runs in (r[p] for r in results.values())]
+            vals = [run.value for runs in (r[p] for r in results.values()) for run in runs]
             if pg:
                 vals.append(pg[p][1])
             e = ex[p]
@@ -322,15 +325,19 @@ def run(
                 vals.append(e[1])
             best.append(min(vals))
         for search, per_problem in results.items():
-            res0 = [runs[0] for runs in per_problem]
+            # the first timed call of each problem (the warm-up runs under tracemalloc, several
+            # times slower: with a time limit its value and gap are not the timed decisions');
+            # the gaps over every timed call, like the times
+            res0 = [runs[1] for runs in per_problem]
             ratio = [r.value / best[p] if best[p] > 0 else 1.0 for p, r in enumerate(res0)]
             plain = (
                 [r.value / pg[p][1] if pg[p][1] > 0 else 1.0 for p, r in enumerate(res0)]
                 if pg
                 else [math.nan]
             )
-            gaps = [r.gap for r in res0]
-            gaps_nothing = [gap_from_nothing(r, nothing[p]) for p, r in enumerate(res0)]
+            timed = [(p, r) for p, runs in enumerate(per_problem) for r in runs[1:]]
+            gaps = [r.gap for _, r in timed]
+            gaps_nothing = [gap_from_nothing(r, nothing[p]) for p, r in timed]
             row: Row = {
                 "search": search,
                 "metric": name,
