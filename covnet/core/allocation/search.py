@@ -55,8 +55,9 @@ bound first and depth first in turn, and pruned once their bound exceeds ``U - r
 limit stops the search (depth first without ``rel_gap``).  ``time_limit_s`` bounds the whole
 decision, every step reading the clock (from the call's start; status 2 once it is reached):
 greedy's start (its working values are ``+inf`` once GREEDY_SHARE of the time is spent,
-``_Problem.stop``: every phase ends with the best it has, no move is evaluated; when it was cut,
-forward selection again, until the whole limit: a floor for the incumbent), the root (not
+``_Problem.stop``: every phase ends with the best it has, no move is evaluated; but the plain
+heuristic, a floor for the incumbent, runs once until the whole limit:
+:func:`~covnet.core.allocation.greedy._greedy_incs_timed`), the root (not
 explored when greedy took the time: the certificate is then the root's bound, computed whole
 after the deadline, one node; its dual bound stops once it certifies ``rel_gap``), the
 relaxation's and the dual
