@@ -12,12 +12,15 @@ cost as
 much as the benchmark); that changes which ``P⁻`` are benchmarked, not what is measured.
 
 **Timing.**  Per problem one untimed warm-up call, then ``repeat`` timed calls
-(``time.perf_counter``); a row's median and worst are over problems x repeats.  ``peak_mb`` is the
-largest ``tracemalloc`` peak of one call per problem.  Every search is compared, in the same run
-and on the same problems, with :func:`covnet.core.allocation.allocate_exhaustive` where
-``n_sensors <= exhaustive_max`` (the plain reference, timed once per problem; subset and value must
-be identical for the exact search) and with :func:`plain_greedy` (forward selection on exact
-values, written the straightforward way).
+(``time.perf_counter``, at least one); a row's median and worst are over problems x repeats, and
+so are its gaps (the decisions timed; values, ratios and node counts: the first timed call per
+problem).  ``peak_mb`` is the largest ``tracemalloc`` peak of one call per problem (the warm-up:
+several times slower under tracemalloc, so with a time limit not the decision reported).
+Every search is compared, in the same run and on the same problems, with
+:func:`covnet.core.allocation.allocate_exhaustive` where ``n_sensors <= exhaustive_max`` (the
+plain reference, timed once per problem; subset and value must be identical for the exact
+search) and with :func:`plain_greedy` (forward selection on exact values, written the
+straightforward way).
 
 Run: ``covnet bench search`` / ``covnet bench multitarget`` (see :func:`main`).
 """
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 import sys
 import time
 import tracemalloc
@@ -169,6 +173,40 @@ def _peak_mb(call: Callable[[], Any]) -> tuple[float, Any]:
         tracemalloc.stop()
 
 
+#: issue 29's certificate goal per size: ``(largest N, median certified gap, seconds per
+#: decision)``, the first entry whose N is >= the row's (beyond the last, the last)
+CERT_GOALS: tuple[tuple[int, float, float], ...] = ((100, 0.01, 0.05), (1000, 0.05, 2.0))
+
+
+def cert_goal(n_sensors: int) -> tuple[float, float]:
+    """``(gap, seconds)`` of :data:`CERT_GOALS` for ``n_sensors``."""
+    for n_max, gap, secs in CERT_GOALS:
+        if n_sensors <= n_max:
+            return gap, secs
+    return CERT_GOALS[-1][1], CERT_GOALS[-1][2]
+
+
+def meets_goal(row: Row) -> dict[str, Any]:
+    """Whether a bounded or greedy row meets :func:`cert_goal`: ``meets_value`` (median gap
+    relative to the value within the goal and median time per decision within its limit),
+    ``meets_nothing`` (the same with the gap relative to doing nothing), ``meets`` (which:
+    ``"both"``, ``"value"``, ``"nothing"`` or ``"no"``), ``worst_within`` (the worst decision
+    also within the time), ``goal_gap``, ``goal_s``."""
+    gap, secs = cert_goal(int(row["n_sensors"]))
+    fast = row["median_s"] <= secs
+    by_value = bool(fast and row["gap_median"] <= gap)
+    by_nothing = bool(fast and row["gap_nothing_median"] <= gap)
+    which = {(True, True): "both", (True, False): "value", (False, True): "nothing"}
+    return {
+        "goal_gap": gap,
+        "goal_s": secs,
+        "meets_value": by_value,
+        "meets_nothing": by_nothing,
+        "meets": which.get((by_value, by_nothing), "no"),
+        "worst_within": bool(row["worst_s"] <= secs),
+    }
+
+
 def _bounded_limit(n_sensors: int) -> float:
     """The default time limit of a bounded decision: 40 ms up to 100 sensors, 1.5 s beyond."""
     return 0.04 if n_sensors <= 100 else 1.5
@@ -226,7 +264,10 @@ def run(
     problem), ``plain_greedy_median_s`` and ``value_ratio_plain_median`` (value over plain
     greedy's).  ``exact`` runs only up to ``exact_max`` sensors; ``exact_cap_s`` turns it into a
     time-capped run (``n_exact`` says how many finished).  ``bounded`` uses ``rel_gap`` and the
-    time limit ``bounded_limit_s`` (seconds, or a function of N).
+    time limit ``bounded_limit_s`` (seconds, or a function of N).  Bounded and greedy rows
+    also say whether they meet issue 29's certificate goal (:func:`meets_goal`: ``meets``,
+    ``meets_value``, ``meets_nothing``, ``worst_within``, ``goal_gap``, ``goal_s``; ``None``
+    for exact rows).
     """
     names = list(metrics) if metrics is not None else sorted(METRICS)
     rows: list[Row] = []
@@ -268,7 +309,7 @@ def run(
                 peak, first = _peak_mb(call)
                 long = time.perf_counter() - t0 > LONG_S
                 runs = [first]
-                for _ in range(1 if long else repeat):
+                for _ in range(1 if long else max(repeat, 1)):
                     res, dt = _timed(call)
                     runs.append(res)
                     times[search].append(dt)
@@ -276,7 +317,7 @@ def run(
                 peaks[search].append(peak)
         best = []
         for p in range(len(problems)):
-            vals = [runs[0].value for runs in (r[p] for r in results.values())]
+            vals = [run.value for runs in (r[p] for r in results.values()) for run in runs]
             if pg:
                 vals.append(pg[p][1])
             e = ex[p]
@@ -284,15 +325,19 @@ def run(
                 vals.append(e[1])
             best.append(min(vals))
         for search, per_problem in results.items():
-            res0 = [runs[0] for runs in per_problem]
+            # the first timed call of each problem (the warm-up runs under tracemalloc, several
+            # times slower: with a time limit its value and gap are not the timed decisions');
+            # the gaps over every timed call, like the times
+            res0 = [runs[1] for runs in per_problem]
             ratio = [r.value / best[p] if best[p] > 0 else 1.0 for p, r in enumerate(res0)]
             plain = (
                 [r.value / pg[p][1] if pg[p][1] > 0 else 1.0 for p, r in enumerate(res0)]
                 if pg
                 else [math.nan]
             )
-            gaps = [r.gap for r in res0]
-            gaps_nothing = [gap_from_nothing(r, nothing[p]) for p, r in enumerate(res0)]
+            timed = [(p, r) for p, runs in enumerate(per_problem) for r in runs[1:]]
+            gaps = [r.gap for _, r in timed]
+            gaps_nothing = [gap_from_nothing(r, nothing[p]) for p, r in timed]
             row: Row = {
                 "search": search,
                 "metric": name,
@@ -319,6 +364,17 @@ def run(
                 "plain_greedy_median_s": float(np.median(pg_t)) if pg_t else None,
                 "value_ratio_plain_median": float(np.median(plain)),
             }
+            if search == "exact":
+                row.update(
+                    goal_gap=None,
+                    goal_s=None,
+                    meets_value=None,
+                    meets_nothing=None,
+                    meets=None,
+                    worst_within=None,
+                )
+            else:
+                row.update(meets_goal(row))
             if ex_t:
                 row["ratio_exhaustive"] = row["exhaustive_median_s"] / row["median_s"]
                 if search == "exact":
@@ -350,6 +406,8 @@ COLUMNS = (
     ("ratio_exhaustive", "{:>8}"),
     ("agree_exhaustive", "{:>6}"),
     ("value_ratio_plain_median", "{:>8.4f}"),
+    ("meets", "{:>7}"),
+    ("worst_within", "{:>6}"),
 )
 
 
@@ -358,10 +416,10 @@ def format_row(row: Row) -> str:
     for key, fmt in COLUMNS:
         v = row.get(key)
         if v is None:
-            out.append(fmt.replace(".4g", "").replace(".3g", "").format("-"))
+            out.append(re.sub(r"\.\d+[a-z]", "", fmt).format("-"))
         elif key == "ratio_exhaustive":
             out.append(fmt.format(f"{v:.1f}x"))
-        elif key == "agree_exhaustive":
+        elif key in ("agree_exhaustive", "worst_within"):
             out.append(fmt.format(str(v)))
         else:
             out.append(fmt.format(v))

@@ -218,6 +218,21 @@ def _tol(v):
     return TIE_RTOL * max(abs(v), TINY)
 
 
+class _PastShare:
+    """A clock at 0 for its first read (the call's start), then at 0.6 of the 600 s limit used
+    here: past greedy's share of it (``GREEDY_SHARE = 0.5``), before its end."""
+
+    def __init__(self) -> None:
+        self.reads = 0
+
+    def __call__(self) -> float:
+        self.reads += 1
+        return 0.0 if self.reads == 1 else 0.6 * 600.0
+
+    def __repr__(self) -> str:
+        return "past greedy's share"
+
+
 def _check(name, pb):
     P_pred, gains, P_d, c = pb
     ref_subset, ref = plain_greedy(P_pred, gains, P_d, name, c)
@@ -227,6 +242,15 @@ def _check(name, pb):
         b = allocate_bnb(P_pred, gains, P_d, name, c, TIE_RTOL, rel_gap=0.01, node_limit=node_limit)
         assert b.value <= ref + _tol(ref), ("bounded", node_limit, b.subset, b.value, ref)
         assert b.value <= g.value + _tol(g.value), ("bounded vs greedy", b.value, g.value)
+    # with a time limit greedy runs its paths in another order (backward first, within its
+    # share; the plain heuristic until the whole limit): a limit never reached, and a clock
+    # past greedy's share (every path but the plain one ends at once) but not the limit
+    for clock in (None, _PastShare()):
+        b = allocate_bnb(
+            P_pred, gains, P_d, name, c, TIE_RTOL, rel_gap=0.01, time_limit_s=600.0,
+            node_limit=2000, clock=clock,
+        )  # fmt: skip
+        assert b.value <= ref + _tol(ref), ("bounded, timed", clock, b.subset, b.value, ref)
     # greedy's own plain heuristic follows the oracle's path to the same subset (but for the
     # oracle's choice of a zero-gain sensor alone, doing nothing: a row of greedy's own)
     prob = _Problem(P_pred, gains, P_d, name, c, TIE_RTOL)

@@ -356,24 +356,25 @@ class _Problem:
         """``P_i = spd_inverse(spd_inverse(P_pred) + J_i)`` with ``J_i`` summed as the reference."""
         return spd_inverse(self.Y0 + gain_sums(self.G, masks))
 
-    def root_bound(self) -> float:
+    def root_bound(self, tau: float = math.inf) -> float:
         """The bound of the root interval ``[P(req ∪ all free), P(req)]``, raised by the
         reduced relaxation or the dual bound where it applies; without an interval bound ``0``
         for a registered metric (an entry of :data:`covnet.core.metrics.METRICS` is ``>= 0``),
-        ``-inf`` for a user's plain function."""
+        ``-inf`` for a user's plain function.  ``tau``: the raising may stop once the bound
+        exceeds it (valid either way); the first call's bound is kept."""
         if self.bound is None:
             return 0.0 if self.name is not None else -math.inf
         if self._root_bound is None:
-            self._root_bound = self._root()
+            self._root_bound = self._root(tau)
         return self._root_bound
 
-    def _root(self) -> float:
+    def _root(self, tau: float = math.inf) -> float:
         Z0 = self.base[None]
         Z1 = Z0 + self.suffix[0]
         sA = self.summary(Z1)
         sB = self.summary(Z0)
         lb = self.combine(sA, sB)
-        lb = self.refine(Z0, Z1, lb, sB, math.inf)
+        lb = self.refine(Z0, Z1, lb, sB, tau)
         return float(lb[0])
 
 
