@@ -259,12 +259,15 @@ class Loop:
 
     def linger(self, timeout_s: float, stop: threading.Event) -> None:
         """After the run (our token gone): keep reading heartbeats, whose ``sent`` counts say
-        how many messages each sensor sent in the end, until every sensor has left, ``stop``
-        or ``timeout_s``.  Measurements arriving now are not taken: the run is over."""
+        how many messages each sensor sent in the end and whose ``rejected`` counts say what
+        the recorder refused to the end (a repeated Status is known only once the manager's
+        last Status has been recorded), until every sensor and the recorder have left,
+        ``stop`` or ``timeout_s``.  Measurements arriving now are not taken: the run is over."""
+        leaving = (*self.ids, RECORDER_ID) if self.net.record else self.ids
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and not stop.is_set():
             self.poll_membership()
-            if not any(s in self.members.alive_tokens for s in self.ids):
+            if not any(s in self.members.alive_tokens for s in leaving):
                 self.poll_membership()  # a heartbeat sent just before its token went
                 return
             stop.wait(0.02)

@@ -239,6 +239,9 @@ def _run(
                 record(s)
             elif not manager.up:
                 break
+        # the last word: every rejection to the end (the manager's linger waits for our token
+        # to go, and reads this heartbeat sent before it)
+        heartbeat.tick(last_scan, rejections(), now=True)
     finally:
         token.undeclare()
         sub.close()

@@ -14,6 +14,7 @@ from covnet.covariance_control.results import write_network_run
 from covnet.runs.recording import RecordingWriter, run_metadata
 from covnet.wire.bus import InMemoryBus, InMemoryHub
 from manager import covariance as manager_node
+from manager.process import LINGER_S
 from recorder import node as recorder_node
 from sensors import covariance as sensor_node
 from world import covariance as world_node
@@ -131,6 +132,7 @@ def run_recorded_network(
                 WallClock(),
                 threading.Event(),
                 on_status=on_status,
+                linger_s=LINGER_S,  # as the manager's process: the nodes' last heartbeats
             )
         finally:
             mbus.close()
