@@ -34,10 +34,11 @@ from covnet.covariance_control.model import Model, build_model, measure
 from covnet.covariance_control.sensor_side import Measured, SensorSide, Tracked
 from covnet.processes.process import EXIT_OK, open_client
 from covnet.wire import messages as msg
+from covnet.wire.batch_encode import MeasurementTemplate
 from covnet.wire.bus import Bus
 from covnet.wire.latency_bus import for_sensor
 from sensors.host import say
-from sensors.protocol import SensorStats, process_main, serve
+from sensors.protocol import FastRespond, SensorStats, process_main, serve
 
 
 def main(args: Any, sc: Scenario, stop: threading.Event) -> int:
@@ -237,7 +238,33 @@ def run(
         respond=respond,
         missed_command=sc.network.latency.missed_command if slow else None,
         keep_truth=model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
+        fast=fast_respond(side, clock),
     )
+
+
+def fast_respond(side: SensorSide, clock: Clock) -> FastRespond | None:
+    """The payload of a one-target sensor's measurement for a command and truth, numbered
+    ``seq``, from the sensor's :class:`~covnet.wire.batch_encode.MeasurementTemplate`: what
+    ``msg.encode(_wire(side.respond(...), command, clock).evolve(seq=seq))`` gives, bit for bit
+    (the same ``side.respond``, so the same ``z``; the template's bytes are the codec's),
+    without building the message twice and packing it field by field; ``None`` under a track
+    rule (a local track is sent: the codec's path), or when the template takes no such sensor.
+    The returned function gives ``None`` for a value the template does not take (the message
+    is then built, and refused, as before)."""
+    eng = side.engine
+    if eng.tracks or eng.many or eng.surveil:
+        return None
+    template = MeasurementTemplate.of(side.sensor_id, eng.model.R[side.j])
+    if template is None:
+        return None
+    encode, respond, now_ns = template.encode, side.respond, clock.now_ns
+
+    def fast(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
+        m = respond(cmd.episode, cmd.scan, None, truth=tr.states[0])
+        assert isinstance(m, Measured)  # one target, no track rule: a measurement
+        return encode(m.scan, cmd.t, m.z, now_ns(), m.episode, seq)
+
+    return fast
 
 
 def _wire(

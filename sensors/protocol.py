@@ -51,6 +51,9 @@ class SensorStats:
 
 TruthCheck = Callable[[msg.Truth], bool]
 Respond = Callable[[msg.Command, msg.Truth], msg.Measurement | msg.LocalTrack]
+#: ``fast(command, truth, seq)``: the payload ``encode(respond(command, truth).evolve(seq=seq))``
+#: would be, bit for bit, made without building the message; ``None``: take that path instead
+FastRespond = Callable[[msg.Command, msg.Truth, int], bytes | None]
 
 
 _SHARED_MAX = 1024
@@ -107,6 +110,7 @@ def serve(
     missed_command: str | None = None,
     keep_truth: bool = False,
     command_ok: Callable[[msg.Command], bool] | None = None,
+    fast: FastRespond | None = None,
 ) -> SensorStats:
     """The protocol every kind of sensor shares (see the module docstring).
 
@@ -122,11 +126,16 @@ def serve(
     world sends it once, :data:`~covnet.wire.messages.TRUTH_UPFRONT_MAX_SCANS`), else drop what is
     older than the scan being measured (the world sends it again for a new episode).
     ``command_ok(command)``: the kind's test of an enabling command's fields (its task for this
-    sensor); one it fails is counted ``bad_value`` and not answered."""
+    sensor); one it fails is counted ``bad_value`` and not answered.  ``fast`` (optional):
+    ``fast(command, truth, seq)`` is the payload of ``respond(command, truth)`` numbered
+    ``seq``, the same bytes made without building the message (``sensors.covariance``: a
+    measurement from its :class:`~covnet.wire.batch_encode.MeasurementTemplate`), or ``None``
+    for a case it does not take (then ``respond`` and the codec)."""
     with profiled(f"sensor-{sensor_id}"):
         return _serve(
             sensor_id, bus, run_id, clock, stop, net, truth_ok=truth_ok, respond=respond,
             missed_command=missed_command, keep_truth=keep_truth, command_ok=command_ok,
+            fast=fast,
         )  # fmt: skip
 
 
@@ -148,9 +157,10 @@ class _Sensor:
         missed_command: str | None,
         keep_truth: bool,
         command_ok: Callable[[msg.Command], bool] | None,
+        fast: FastRespond | None = None,
     ) -> None:
         self.id, self.bus, self.run_id, self.clock = sensor_id, bus, run_id, clock
-        self.truth_ok, self.respond = truth_ok, respond
+        self.truth_ok, self.respond, self.fast = truth_ok, respond, fast
         self.missed_command, self.keep_truth, self.command_ok = (
             missed_command, keep_truth, command_ok,
         )  # fmt: skip
@@ -223,10 +233,16 @@ class _Sensor:
         while pending:
             cmd = pending[0]
             if cmd.scan in truths:
-                out = self.respond(cmd, truths[cmd.scan]).evolve(seq=stats.measurements_sent + 1)
-                lap("respond")
-                payload = msg.encode(out)
-                lap("encode")
+                seq = stats.measurements_sent + 1
+                fast = self.fast
+                payload = None if fast is None else fast(cmd, truths[cmd.scan], seq)
+                if payload is None:
+                    out = self.respond(cmd, truths[cmd.scan]).evolve(seq=seq)
+                    lap("respond")
+                    payload = msg.encode(out)
+                    lap("encode")
+                else:
+                    lap("respond+encode (template)")
                 self.bus.publish(self.meas_key, payload)
                 stats.measurements_sent += 1
                 if stats.rejected.total() == self.told_rejected:
@@ -269,10 +285,11 @@ def _serve(
     missed_command: str | None,
     keep_truth: bool,
     command_ok: Callable[[msg.Command], bool] | None,
+    fast: FastRespond | None,
 ) -> SensorStats:
     one = _Sensor(
         sensor_id, bus, run_id, clock, net, truth_ok=truth_ok, respond=respond,
-        missed_command=missed_command, keep_truth=keep_truth, command_ok=command_ok,
+        missed_command=missed_command, keep_truth=keep_truth, command_ok=command_ok, fast=fast,
     )  # fmt: skip
     host = _hosts.get(id(getattr(bus, "session", None)))
     if host is not None and host.takes(one):
