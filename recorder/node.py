@@ -151,6 +151,7 @@ def run(
         out = _run(
             sc, bus, run_id, clock, stop, writer, linger_s=linger_s, visualiser=visualiser,
             live=live, live_visualiser=live_visualiser, draw_budget_s=draw_budget_s,
+            stages=stages,
         )  # fmt: skip
     stages.dump("recorder", recorded=out["recorded"])
     return out
@@ -169,7 +170,9 @@ def _run(
     live: Any,
     live_visualiser: Visualiser | None,
     draw_budget_s: float,
+    stages: Stages | None = None,
 ) -> Counter[str]:
+    lap = (stages if stages is not None else Stages()).lap
     counts: Counter[str] = Counter()
     sub = getattr(bus, "subscribe_stamped", bus.subscribe)(msg.run_keyexpr(run_id))
     # no grace: the recorder runs beside the manager (its router), and a manager gone without
@@ -221,13 +224,18 @@ def _run(
     try:
         while not stop.is_set():
             heartbeat.tick(last_scan, rejections())
+            lap("heartbeat")
             s = sub.recv(timeout=sc.network.heartbeat_s / 2)
+            lap("wait")
             if s is not None:
                 time.sleep(BATCH_S)  # let the burst gather: one wake-up for all of it
+                lap("wait: the burst")
                 while s is not None:
                     record(s)
                     s = sub.try_recv()
+                lap("record (peek, count, write)")
             writer.maybe_flush()
+            lap("flush")
             if manager.left:
                 break  # the manager left: the run is over
         # wind down: what is in flight, and the manager's last scan when stopped by a signal

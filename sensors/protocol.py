@@ -177,24 +177,32 @@ class _Sensor:
         self.token: Token | None = None  # its liveliness token, declared by its loop
         self.told_rejected = 0  # rejections its last heartbeat reported
 
-    def hears(self, key: str) -> bool:
+    def hears(self, key: str, chunk: str | None = None) -> bool:
         """Whether this sensor's own subscription would receive a command on ``key``: every
-        command on slow links, else those whose key names it (zenoh's ``$*~<id>~$*``)."""
-        return self.missed_command is not None or self.tag in key.rpartition("/")[2]
+        command on slow links, else those whose key names it (zenoh's ``$*~<id>~$*``).
+        ``chunk``: the key's last chunk, when the caller cut it once for several sensors."""
+        if self.missed_command is not None:
+            return True
+        return self.tag in (chunk if chunk is not None else key.rpartition("/")[2])
 
     def tick(self, now: bool = False) -> None:
         st = self.stats
         if self.heartbeat.tick(self.last_scan, st.rejected, sent=st.measurements_sent, now=now):
             self.told_rejected = st.rejected.total()
 
-    def accept(self, cmd: msg.Command | msg.WireError) -> None:
-        """One command received (or why it was refused); queued if this sensor is enabled."""
+    def accept(
+        self, cmd: msg.Command | msg.WireError, enabled: frozenset[str] | None = None
+    ) -> None:
+        """One command received (or why it was refused); queued if this sensor is enabled.
+        ``enabled``: ``frozenset(cmd.enabled)``, when the caller made it once for the
+        sensors of a host (``id in cmd.enabled`` scans the tuple: N compares for N ids)."""
         stats = self.stats
         if isinstance(cmd, msg.WireError):
             stats.rejected[cmd.reason] += 1
             return
         stats.commands += 1
         sensor_id = self.id
+        on = sensor_id in (enabled if enabled is not None else cmd.enabled)
         if self.missed_command is not None:
             if (cmd.episode, cmd.scan) <= self.newest:
                 stats.rejected["stale_command"] += 1
@@ -208,9 +216,9 @@ class _Sensor:
                     self.pending.append(
                         msg.Command(m, t_m, (sensor_id,), cmd.t_sent_ns, episode=cmd.episode)
                     )
-            self.newest, self.last_on = (cmd.episode, cmd.scan), sensor_id in cmd.enabled
+            self.newest, self.last_on = (cmd.episode, cmd.scan), on
         self.last_scan = cmd.scan
-        if sensor_id in cmd.enabled:
+        if on:
             if self.command_ok is not None and not self.command_ok(cmd):
                 stats.rejected["bad_value"] += 1
                 return
@@ -392,7 +400,9 @@ class HostLoop:
                 finally:
                     self.done.set()
                 return one.stats
-            if self.done.wait(0.1):
+            # once the loop runs it ends by setting done (its finally): no polling meanwhile
+            # (64 hosted threads woken 10 times a second each, for nothing)
+            if self.done.wait(None if self.started else 0.1):
                 return one.stats
         one.tick(now=True)
         token.undeclare()
@@ -409,11 +419,13 @@ class HostLoop:
 
         def command(s: Sample) -> None:
             key = s.key
-            to = [one for one in sensors if one.hears(key)]
+            chunk = key.rpartition("/")[2]
+            to = [one for one in sensors if one.hears(key, chunk)]
             if to:
                 cmd = _command(s)
+                enabled = None if isinstance(cmd, msg.WireError) else frozenset(cmd.enabled)
                 for one in to:
-                    one.accept(cmd)
+                    one.accept(cmd, enabled)
                     if one.pending:
                         waiting[one.id] = one
 
