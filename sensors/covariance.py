@@ -246,7 +246,7 @@ def fast_respond(side: SensorSide, clock: Clock) -> FastRespond | None:
     """The payload of a one-target sensor's measurement for a command and truth, numbered
     ``seq``, from the sensor's :class:`~covnet.wire.batch_encode.MeasurementTemplate`: what
     ``msg.encode(_wire(side.respond(...), command, clock).evolve(seq=seq))`` gives, bit for bit
-    (the same ``side.respond``, so the same ``z``; the template's bytes are the codec's),
+    (``side.respond``'s ``z``, its ``noisy(scan, x)``; the template's bytes are the codec's),
     without building the message twice and packing it field by field; ``None`` under a track
     rule (a local track is sent: the codec's path), or when the template takes no such sensor.
     The returned function gives ``None`` for a value the template does not take (the message
@@ -257,12 +257,13 @@ def fast_respond(side: SensorSide, clock: Clock) -> FastRespond | None:
     template = MeasurementTemplate.of(side.sensor_id, eng.model.R[side.j])
     if template is None:
         return None
-    encode, respond, now_ns = template.encode, side.respond, clock.now_ns
+    encode, noisy, now_ns = template.encode, side.noisy, clock.now_ns
 
     def fast(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
-        m = respond(cmd.episode, cmd.scan, None, truth=tr.states[0])
-        assert isinstance(m, Measured)  # one target, no track rule: a measurement
-        return encode(m.scan, cmd.t, m.z, now_ns(), m.episode, seq)
+        # side.respond's z (no track rule: its episode start keeps nothing), without its
+        # Measured
+        z = noisy(cmd.scan, tr.states[0])[None, :]
+        return encode(cmd.scan, cmd.t, z, now_ns(), cmd.episode, seq)
 
     return fast
 

@@ -169,9 +169,7 @@ def test_no_fast_path_under_a_track_rule(tmp_path):
 
 def test_a_sensor_publishes_the_same_payloads_with_and_without_its_fast_path():
     """The protocol state of one sensor answering commands (``_Sensor.answer``), with the fast
-    path and without: the same payloads on the same key, the same counters (the fast path
-    declining at a scan whose ``z`` it would not take: NaN truth, refused by the message as
-    before)."""
+    path and without: the same payloads on the same key, the same counters."""
     sc = kinds.load("configs/paper.yaml")[1]
     model = build_model(sc)
     j = 2
