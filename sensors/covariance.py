@@ -257,15 +257,24 @@ def fast_respond(side: SensorSide, clock: Clock) -> FastRespond | None:
     template = MeasurementTemplate.of(side.sensor_id, eng.model.R[side.j])
     if template is None:
         return None
-    encode, noisy, now_ns = template.encode, side.noisy, clock.now_ns
+    encode, noisy, now_ns = template.encode_row, side.noisy, clock.now_ns
+    if isinstance(noisy, NoiseTable):  # its H x + v inline (the same expression)
+        table, H = noisy.table, noisy.H
 
-    def fast(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
+        def fast(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
+            v = table.get(cmd.scan)
+            if v is None:  # a scan the table does not hold: respond draws it
+                return None
+            return encode(cmd.scan, cmd.t, H @ tr.states[0] + v, now_ns(), cmd.episode, seq)
+
+        return fast
+
+    def fast_any(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
         # side.respond's z (no track rule: its episode start keeps nothing), without its
         # Measured
-        z = noisy(cmd.scan, tr.states[0])[None, :]
-        return encode(cmd.scan, cmd.t, z, now_ns(), cmd.episode, seq)
+        return encode(cmd.scan, cmd.t, noisy(cmd.scan, tr.states[0]), now_ns(), cmd.episode, seq)
 
-    return fast
+    return fast_any
 
 
 def _wire(

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import struct
 import sys
-import threading
 
 import msgpack
 import numpy as np
@@ -52,18 +51,6 @@ __all__ = ["MeasurementTemplate"]
 #: ``platform``, between ``episode`` and ``seq``, unset); another schema gets no template
 _FIELDS = ("sensor_id", "scan", "t", "z", "R", "t_sent_ns", "episode", "seq")
 _LITTLE = sys.byteorder == "little"
-_local = threading.local()
-
-
-def _pack_int(i: int) -> bytes:
-    """msgpack's bytes of ``i``, by this thread's packer (a packer is not shared: its buffer is
-    its own while it packs)."""
-    try:
-        pack = _local.pack
-    except AttributeError:
-        pack = _local.pack = msgpack.Packer(use_bin_type=True).pack
-    out: bytes = pack(i)
-    return out
 
 
 class MeasurementTemplate:
@@ -72,7 +59,9 @@ class MeasurementTemplate:
     outside what the template checks (module docstring).  :meth:`of` returns ``None`` when no
     template can be made (then encode as before)."""
 
-    __slots__ = ("_head", "_mid", "_z_head", "_tail", "_ep", "_seq", "_zshape", "_floats")
+    __slots__ = (
+        "_head", "_mid", "_z_head", "_tail", "_ep", "_seq", "_zshape", "_dz", "_floats", "_pack",
+    )  # fmt: skip
 
     @classmethod
     def of(cls, sensor_id: str, R: np.ndarray) -> MeasurementTemplate | None:
@@ -103,51 +92,60 @@ class MeasurementTemplate:
         head += pack("v") + pack(1) + pack("k") + pack(Measurement.KIND)
         head += pack("sensor_id") + pack(one.sensor_id) + pack("scan")
         self._head = head
-        self._mid = pack("t")
+        self._mid = pack("t") + b"\xcb"  # a float is always a msgpack float64 here
         # z's ext: its raw bytes come last, so its head is the packed ext without them
         z_ext = pack(_array_ext(one.z, pack))
         self._z_head = pack("z") + z_ext[: len(z_ext) - 8 * dz]
         self._tail = pack("R") + pack(_array_ext(one.R, pack)) + pack("t_sent_ns")
         self._ep, self._seq = pack("episode"), pack("seq")
-        self._zshape = (1, dz)
+        self._zshape, self._dz = (1, dz), (dz,)
+        #: this template's packer (ints only; a sensor encodes from one thread at a time)
+        self._pack = msgpack.Packer(use_bin_type=True).pack
         self._floats = struct.Struct(f"<{dz}d")
 
     def encode(
         self, scan: int, t: float, z: np.ndarray, t_sent_ns: int, episode: int, seq: int
     ) -> bytes | None:
         """The payload (class docstring), or ``None``: encode the message as before."""
+        if type(z) is not np.ndarray or z.shape != self._zshape:
+            return None
+        return self.encode_row(scan, t, z[0], t_sent_ns, episode, seq)
+
+    def encode_row(
+        self, scan: int, t: float, row: np.ndarray, t_sent_ns: int, episode: int, seq: int
+    ) -> bytes | None:
+        """:meth:`encode` with ``z = row[None, :]`` (``row``: ``(dz,)``): its bytes are the
+        row's."""
+        if type(row) is not np.ndarray or row.dtype is not _FLOAT64 or row.shape != self._dz:
+            return None
         for i in (scan, t_sent_ns, episode, seq):
             if type(i) is not int or not 0 <= i <= _INT64_MAX:
                 return None
         if type(t) is not float or t - t != 0.0:  # not finite
             return None
-        if type(z) is not np.ndarray or z.dtype != np.float64 or z.shape != self._zshape:
-            return None
-        raw = z.tobytes()  # C order, native (little-endian) float64: the codec's bytes
+        raw = row.tobytes()  # C order, native (little-endian) float64: the codec's bytes
         for v in self._floats.unpack(raw):
             if v - v != 0.0:  # NaN or infinite: the constructor's non_finite
                 return None
+        pack = self._pack
         return b"".join(
             (
                 self._head,
-                _pack_int(scan),
+                pack(scan),
                 self._mid,
-                _float(t),
+                _F64.pack(t),
                 self._z_head,
                 raw,
                 self._tail,
-                _pack_int(t_sent_ns),
+                pack(t_sent_ns),
                 self._ep,
-                _pack_int(episode),
+                pack(episode),
                 self._seq,
-                _pack_int(seq),
+                pack(seq),
             )
         )
 
 
+#: msgpack's float64 after its 0xcb: the big-endian double
 _F64 = struct.Struct(">d")
-
-
-def _float(t: float) -> bytes:
-    """msgpack's float64 of ``t`` (``0xcb`` and the big-endian double)."""
-    return b"\xcb" + _F64.pack(t)
+_FLOAT64 = np.dtype(np.float64)

@@ -129,15 +129,28 @@ def _scenario(tmp_path, n: int):
     return kinds.load(path)[1]
 
 
-@pytest.mark.parametrize("config", ["configs/paper.yaml", "bench-12"])
-def test_a_covariance_sensors_fast_path_sends_its_respond_bytes(tmp_path, config):
+@pytest.mark.parametrize(
+    "config, noise",
+    [
+        ("configs/paper.yaml", "table"), ("bench-12", "table"), ("configs/paper.yaml", "draw"),
+        ("configs/paper.yaml", "table with gaps"),
+    ],
+)  # fmt: skip
+def test_a_covariance_sensors_fast_path_sends_its_respond_bytes(tmp_path, config, noise):
     """``fast_respond`` against ``sensors.covariance.run``'s ``respond`` + ``evolve(seq)`` +
-    the codec: every sensor, every scan, two episodes, the clock read the same."""
+    the codec: every sensor, every scan, two episodes, the clock read the same; its noise
+    drawn ahead (``NoiseTable``, as the sensor process does), drawn per scan (the sensor
+    side's default), or from a table missing every third scan (the fast path declines those:
+    ``None``, and the sensor takes ``respond``)."""
     sc = kinds.load(config)[1] if config.endswith(".yaml") else _scenario(tmp_path, 12)
     model = build_model(sc)
     rng = np.random.default_rng(5)
     for j in range(len(model.sensor_ids)):
-        side_a = SensorSide.of_process(sc, model, j, NoiseTable(model, j))
+        table = NoiseTable(model, j) if noise != "draw" else None
+        if noise == "table with gaps":
+            assert table is not None
+            table.table = {k: v for k, v in table.table.items() if k % 3}
+        side_a = SensorSide.of_process(sc, model, j, table)
         side_b = SensorSide.of_process(sc, model, j, NoiseTable(model, j))
         clock_a, clock_b = _Clock(10**12 + j), _Clock(10**12 + j)
         fast = fast_respond(side_a, clock_a)  # type: ignore[arg-type]
@@ -150,6 +163,9 @@ def test_a_covariance_sensors_fast_path_sends_its_respond_bytes(tmp_path, config
                 tr = msg.Truth(scan, scan * 0.5, ("T1",), states)
                 seq += 1
                 got = fast(cmd, tr, seq)
+                if noise == "table with gaps" and scan % 3 == 0:
+                    assert got is None
+                    continue
                 m = side_b.respond(cmd.episode, cmd.scan, None, truth=tr.states[0])
                 want = msg.encode(_wire(m, cmd, clock_b).evolve(seq=seq))  # type: ignore[arg-type]
                 assert got == want
