@@ -7,8 +7,11 @@ stream ``(seed, j, k)`` (:func:`covnet.covariance_control.model.measure`, the sa
 local filters (``fusion.mode: info | ci``) it publishes its
 :class:`~covnet.wire.messages.LocalTrack`
 instead.  The measurement noise of every scan is drawn at start-up (:class:`NoiseTable`): that
-takes work off the scan's critical path and changes no result.  With ``fusion.mode: peer`` the
-process is a peer node instead (:mod:`sensors.peer`).
+takes work off the scan's critical path and changes no result.  Its payload is then written
+from the sensor's msgpack template (:func:`fast_respond`,
+:class:`covnet.wire.batch_encode.MeasurementTemplate`: the codec's bytes, without building the
+message; issue 29's seventh round).  With ``fusion.mode: peer`` the process is a peer node
+instead (:mod:`sensors.peer`).
 
 Many targets (a config with ``targets:``, :func:`run_targets`): a command that enables the
 sensor names the target it dwells on and, for a sensor with clutter, the dwell's clutter
