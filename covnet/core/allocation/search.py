@@ -48,7 +48,9 @@ sensors only the canonical completions are explored (a copy only with its lower-
 a check after the search proves the choice is the reference's, else the search runs again
 without these rules.  The dual bound (spectral, one_norm, inf_norm, abs_trace) costs about a
 hundred interval bounds, so exact mode applies it only to nodes with ``DUAL_MIN_REST`` or more
-undecided sensors.
+undecided sensors; the others get its vertex bound where the metric has one (one_norm,
+inf_norm: a few fixed dual points a node, :meth:`~covnet.core.allocation.lower_bounds.\
+_DualBound.vertex_bound`).
 
 **Bounded** (``rel_gap > 0``, a time or node limit): with ``rel_gap > 0`` nodes are explored best
 bound first and depth first in turn, and pruned once their bound exceeds ``U - rel_gap·|U|``; a
@@ -274,6 +276,11 @@ class _Search:
         self.min_rest = RELAX_MIN_REST
         if prob.dual is not None and rel_gap == 0.0:
             self.min_rest = DUAL_MIN_REST
+        #: exact mode: the nodes the barrier does not refine get the dual bound's cheap vertex
+        #: bound (one_norm, inf_norm; :meth:`_Problem.refine_vertex`)
+        self.vertex = (
+            rel_gap == 0.0 and prob.dual is not None and prob.dual.dual.vertices is not None
+        )
 
     # -- incumbent and thresholds ---------------------------------------------------------------
 
@@ -440,6 +447,9 @@ class _Search:
                 if relax:
                     Zn = Zi[inner]
                     lbi = prob.refine(Zn, Zn + prob.suffix[d + 1], lbi, sBi[inner], self.tau)
+                elif self.vertex:
+                    Zn = Zi[inner]
+                    lbi = prob.refine_vertex(Zn, Zn + prob.suffix[d + 1], lbi, self.tau)
                 kept = self.prune(lbi)
                 rows = inner[kept]
                 out.append(
@@ -451,6 +461,8 @@ class _Search:
             lbe = prob.combine(sAe, ch.sB)
             if relax:
                 lbe = prob.refine(ch.Z, Z_hi, lbe, ch.sB, self.tau)
+            elif self.vertex:
+                lbe = prob.refine_vertex(ch.Z, Z_hi, lbe, self.tau)
             self.n_nodes += lbe.size
             kept = self.prune(lbe)
             if kept.any():
