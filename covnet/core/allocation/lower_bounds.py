@@ -39,6 +39,17 @@ the dual ball by construction.  A node stops once its bound, after the deflation
 the threshold (pruned) or the primal value ``||M(X)||`` at the current ``X`` is at most it
 (no bound over the node can prune it).
 
+**Vertex bound** (:meth:`_DualBound.vertex_bound`; one_norm, inf_norm in exact mode, on the
+nodes the barrier does not refine).  The barrier is too slow for most nodes of an exact search
+(0.1-1 ms a node), but ``φ(Y)`` is a valid bound for *any* ``Y`` in the dual ball, in
+particular for a few atoms chosen per node without any optimisation: for the induced norms the
+``n`` atoms ``s_j e_jᵀ`` (symmetrised), ``s_j`` the signs of column ``j`` of ``M`` at the
+middle of the node's interval (``X = I/2``), which attain ``||M||_1`` column by column there.
+Their best ``φ`` costs ``n`` small eigenvalue problems a node (about the price of the interval
+bound), and at N = 40 it removes three quarters of one_norm's nodes on the bench problem whose
+search took longest among those decided (3.3 M -> 0.86 M).  (abs_trace's one atom
+``diag(sign M_ii)`` was tried too: it removed 10 % of the nodes and doubled the time.)
+
 **Rounding.**  As the interval bounds (:mod:`covnet.core.allocation.interval_bounds`): the
 computed ``M_lo``, the interval's endpoints and the completion's computed ``P`` are each within
 ``err`` entrywise of the exact ones; an entrywise error ``E`` changes ``<Y, ·>`` by at most
@@ -84,6 +95,10 @@ class DualNorm:
     name: str
     kind: Literal["spectral", "atoms"]
     atoms: Callable[[int], Mat] | None = None
+    #: the dual points of the vertex bound, from ``M`` at a node's middle ``(m, n, n)``: a list
+    #: of ``(m, n, n)`` batches, each row symmetric and in the dual ball; ``None``: no vertex
+    #: bound (module docstring)
+    vertices: Callable[[Mat], list[Mat]] | None = None
 
 
 def _signs(n: int) -> Mat:
@@ -111,9 +126,24 @@ def diagonal_atoms(n: int) -> Mat:
     return out
 
 
+def column_vertices(M: Mat) -> list[Mat]:
+    """For each column ``j`` the atom ``s e_jᵀ``, symmetrised, with ``s`` the signs of ``M[:, :,
+    j]`` (``+1`` at 0) ``(m, n, n)``: ``<s e_jᵀ, M> = Σ_i |M_ij|``, the atoms that attain the
+    induced norm's column sums at ``M``; each is an atom of :func:`column_atoms`, so in the dual
+    ball."""
+    m, n = M.shape[0], M.shape[-1]
+    out = []
+    for j in range(n):
+        Y = np.zeros((m, n, n))
+        Y[:, :, j] = np.where(M[:, :, j] < 0.0, -1.0, 1.0)
+        out.append(0.5 * (Y + np.swapaxes(Y, 1, 2)))
+    return out
+
+
 SPECTRAL_DUAL = DualNorm("spectral", "spectral")
-ONE_NORM_DUAL = DualNorm("one_norm", "atoms", column_atoms)
-INF_NORM_DUAL = DualNorm("inf_norm", "atoms", column_atoms)  # the same for symmetric P - P_d
+ONE_NORM_DUAL = DualNorm("one_norm", "atoms", column_atoms, column_vertices)
+# the same for symmetric P - P_d
+INF_NORM_DUAL = DualNorm("inf_norm", "atoms", column_atoms, column_vertices)
 ABS_TRACE_DUAL = DualNorm("abs_trace", "atoms", diagonal_atoms)
 
 
@@ -221,6 +251,24 @@ class _DualBound:
             if idx.size:
                 out[idx] = self._solve(M_lo[idx], V[idx], tau, stop)
         return out
+
+    def vertex_bound(self, Z_lo: Mat, Z_hi: Mat) -> Mat:
+        """The vertex bound ``(m,)`` over the nodes ``[Z_lo, Z_hi]``: the best :meth:`final`
+        ``φ(Y)`` over the dual points ``vertices(M_mid)`` of :attr:`DualNorm.vertices`, ``M_mid
+        = M_lo + ½ V Vᵀ`` the middle of the node (``X = I/2``); ``0`` without vertices or where
+        nothing is proven.  Valid whatever the points are, as long as each is in the dual ball
+        (module docstring)."""
+        m = Z_lo.shape[0]
+        out = np.zeros(m)
+        vertices = self.dual.vertices
+        if m == 0 or vertices is None:
+            return out
+        with np.errstate(all="ignore"):
+            M_lo, V = self._setup(Z_lo, Z_hi)
+            M_mid = M_lo + 0.5 * np.einsum("mia,mja->mij", V, V)
+            for Y in vertices(np.where(np.isfinite(M_mid), M_mid, 0.0)):
+                out = np.fmax(out, self.final(self.phi(Y, M_lo, V)))
+        return np.where(np.isfinite(out), out, 0.0)
 
     def _solve(self, M_lo: Mat, V: Mat, tau: float, stop: Callable[[], bool] | None = None) -> Mat:
         m, n = M_lo.shape[0], self.n

@@ -284,6 +284,19 @@ class _Problem:
             out[zrows] = np.fmax(lb[zrows], zb)
         return out
 
+    def refine_vertex(self, Z_lo: Mat, Z_hi: Mat, lb: Mat, tau: float) -> Mat:
+        """``lb`` raised by the dual bound's vertex bound (:meth:`~covnet.core.allocation.\
+lower_bounds._DualBound.vertex_bound`; one_norm, inf_norm) on the rows ``<= tau``: the exact
+        search's bound on the nodes its barrier does not refine."""
+        if self.dual is None or self.dual.dual.vertices is None or lb.size == 0:
+            return lb
+        rows = np.flatnonzero(lb <= tau)
+        if rows.size == 0:
+            return lb
+        out = lb.copy()
+        out[rows] = np.fmax(lb[rows], self.dual.vertex_bound(Z_lo[rows], Z_hi[rows]))
+        return out
+
     def combine(self, sA: Mat, sB: Mat) -> Mat:
         assert self.bound is not None
         with np.errstate(all="ignore"):
