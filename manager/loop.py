@@ -378,7 +378,10 @@ class Loop:
         verdicts on those of this scan come from ``usable_many`` (the verdicts ``usable``
         gives, for several messages at once) when the kind has it; every other sample takes
         :meth:`_take` itself.  A verdict is a function of the message and the scan's plan
-        alone, so judging a message before the ones ahead of it are taken changes nothing."""
+        alone, so judging a message before the ones ahead of it are taken changes nothing.
+        The messages of a batch are heard (their sensors' sign of life) when it is taken: one
+        clock reading for the batch, earlier than one per message by at most the batch's
+        handling (a millisecond or two, against failure timeouts of seconds)."""
         if len(batch) < MIN_BATCH:
             for s in batch:
                 self._take(s, episode, k, waiting, got, usable, kind)
