@@ -65,6 +65,10 @@ class CovarianceLogic:
         verdict = self.engine.verdict(m)
         return True if verdict is None else verdict
 
+    def usable_many(self, ms: list[Any]) -> list[bool | str]:
+        """:meth:`usable` of each message (the engine's verdicts computed together)."""
+        return [True if v is None else v for v in self.engine.verdicts(ms)]
+
     def on_late(self, m: Any) -> bool | None:
         return self.engine.insert_late(m) if self.slow else None
 

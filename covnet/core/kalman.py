@@ -62,8 +62,12 @@ def gains_sequential(P: Mat, H: Mat, Rs: Sequence[Mat]) -> tuple[list[Mat], Mat]
     arithmetic and LAPACK calls (``potrf``/``potrs`` on ``S`` and ``H P``), with the input
     checks of :func:`covnet.core.cholesky.cho_factor` made once at the end instead of twice
     per update (hundreds of updates a scan in a large network): a non-finite result, or a
-    factorisation that fails, runs the checked updates again, which raise as they would."""
+    factorisation that fails, runs the checked updates again, which raise as they would.
+    :func:`~covnet.core.gaussian.symmetrise` is written out (``0.5 * (A + Aᵀ)``, the same
+    elementwise operations on the same 2-D array) and the gains' finiteness is checked in one
+    call over all of them (the same test, ``isfinite`` of every entry)."""
     lapack = flapack()
+    dpotrf, dpotrs = lapack.dpotrf, lapack.dpotrs
     P0 = np.asarray(P, dtype=np.float64)
     H = np.asarray(H, dtype=np.float64)
     I, Ht = _eye(P0.shape[0]), H.T
@@ -72,18 +76,19 @@ def gains_sequential(P: Mat, H: Mat, Rs: Sequence[Mat]) -> tuple[list[Mat], Mat]
     for R in Rs:
         HP = H @ P
         S = HP @ Ht + R
-        c, info = lapack.dpotrf(S, lower=0, clean=0, overwrite_a=0)
+        c, info = dpotrf(S, lower=0, clean=0, overwrite_a=0)
         if info != 0:
             break
-        X, info = lapack.dpotrs(c, HP, lower=0, overwrite_b=0)
+        X, info = dpotrs(c, HP, lower=0, overwrite_b=0)
         if info != 0:  # pragma: no cover - only for arguments never passed here
             break
         K = X.T
         I_KH = I - K @ H
-        P = symmetrise(I_KH @ P @ I_KH.T + K @ R @ K.T)
+        A = I_KH @ P @ I_KH.T + K @ R @ K.T
+        P = 0.5 * (A + A.T)  # symmetrise(A)
         Ks.append(K)
     else:
-        if np.isfinite(P).all() and all(np.isfinite(K).all() for K in Ks):
+        if np.isfinite(P).all() and (not Ks or np.isfinite(np.concatenate(Ks)).all()):
             return Ks, P
     Ks, P = [], P0  # the checked path: the same numbers, or its error
     for R in Rs:

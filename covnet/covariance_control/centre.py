@@ -10,6 +10,7 @@ write_network_run`).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +40,7 @@ __all__ = [
     "ManagerResult",
     "as_local_track",
     "fuse_with_gains",
+    "index_of",
     "usable_position",
     "usable_track",
 ]
@@ -289,6 +291,16 @@ class Gains:
         return Gains(order, tuple(model.R[j].tobytes() for j in order), tuple(gains), P)
 
 
+@functools.lru_cache(maxsize=8)
+def index_of(ids: tuple[str, ...]) -> dict[str, int]:
+    """``{sid: ids.index(sid)}`` for the ids of ``ids`` (a network's sensors: looked up per
+    message of a scan, where ``ids.index`` is a scan of the tuple)."""
+    where: dict[str, int] = {}
+    for j, sid in enumerate(ids):
+        where.setdefault(sid, j)  # the first, as ids.index
+    return where
+
+
 def fuse_with_gains(
     gains: Gains | None, model: Model, pred: Gaussian, got: dict[str, Any], ids: tuple[str, ...]
 ) -> Gaussian | None:
@@ -297,7 +309,8 @@ def fuse_with_gains(
     noise covariance the gains assumed); None otherwise."""
     if gains is None or len(got) != len(gains.subset):
         return None
-    ordered = sorted((ids.index(sid), m) for sid, m in got.items())
+    where = index_of(ids)
+    ordered = sorted((where[sid] if sid in where else ids.index(sid), m) for sid, m in got.items())
     if tuple(j for j, _ in ordered) != gains.subset or any(
         m.R.tobytes() != r for (_, m), r in zip(ordered, gains.R, strict=True)
     ):

@@ -58,13 +58,14 @@ import numpy as np
 from covnet.core.allocation import Allocation
 from covnet.core.gaussian import Gaussian
 from covnet.core.kalman import nees
-from covnet.core.validation_gate import passes_innovation, passes_track
+from covnet.core.validation_gate import passes_innovation, passes_track, threshold
 from covnet.covariance_control.centre import (
     CentreFilter,
     EpisodeLog,
     Gains,
     ManagerResult,
     as_local_track,
+    index_of,
     usable_position,
     usable_track,
 )
@@ -119,6 +120,13 @@ class _Speculation:
         return (
             self.k == k and self.unavailable == unavailable and np.array_equal(self.P_pred, P_pred)
         )
+
+
+def _position(ids: tuple[str, ...]) -> Any:
+    """``ids.index`` as a sort key, from a dict (:func:`~covnet.covariance_control.centre.
+    index_of`): the same positions, without a scan of ``ids`` per key."""
+    where = index_of(ids)
+    return lambda sid: where[sid] if sid in where else ids.index(sid)
 
 
 class _OneTarget:
@@ -185,6 +193,57 @@ class _OneTarget:
             ok = passes_innovation(m.z[0] - gate[1], gate[2] + m.R)
         return None if ok else "outside_gate"
 
+    def verdicts(self, ms: Sequence[Any], plan: Plan | None) -> list[str | None]:
+        """``[self.verdict(m, plan) for m in ms]``, the same verdicts, with the content test and
+        the gate of the planned scan's position measurements computed together (numpy over
+        the messages).  Bit for bit :func:`~covnet.covariance_control.model.
+        usable_measurement` and :func:`~covnet.core.validation_gate.passes_innovation`: the
+        same IEEE operations in the same order, elementwise (``R₀₁²`` as the scalar path
+        computes it, a numpy scalar's power), for each message::
+
+            usable = R₀₁ = R₁₀  and  R₀₀ > 0  and  R₀₀ R₁₁ − R₀₁² > 0
+            ν = z − H x⁻,  S = H P⁻ Hᵀ + R,  det = s₁₁ s₂₂ − s₁₂ s₁₂,
+            pass = (s₂₂ ν₁ ν₁ − 2 s₁₂ ν₁ ν₂ + s₁₁ ν₂ ν₂) / det ≤ γ     (det > 0)
+
+        A message of another scan or shape, a rule that fuses tracks, and a ``det`` that is
+        not > 0 (the closed form's own fallback) take :meth:`verdict` itself."""
+        out: list[str | None] = [None] * len(ms)
+        if self.rule.tracks or plan is None:
+            return [self.verdict(m, plan) for m in ms]
+        rows = []
+        for i, m in enumerate(ms):
+            if m.scan == plan.k and m.z.shape == (1, 2) and m.R.shape == (2, 2):
+                rows.append(i)
+            else:
+                out[i] = self.verdict(m, plan)
+        if not rows:
+            return out
+        Z = np.concatenate([ms[i].z for i in rows])
+        R = np.concatenate([ms[i].R for i in rows]).reshape(len(rows), 2, 2)
+        r01 = R[:, 0, 1]
+        sq = np.array([x**2 for x in r01])  # numpy scalars: usable_measurement's R[0, 1] ** 2
+        usable = (r01 == R[:, 1, 0]) & (R[:, 0, 0] > 0) & (R[:, 0, 0] * R[:, 1, 1] - sq > 0)
+        gate = self.gate
+        if gate is None or gate[0] is not plan:  # H x⁻ and H P⁻ Hᵀ once per scan
+            pred, H = plan.detail[0], self.model.H
+            gate = self.gate = (plan, H @ pred.x, H @ pred.P @ H.T)
+        nu = Z - gate[1]
+        S = gate[2] + R
+        a, b, d = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+        n1, n2 = nu[:, 0], nu[:, 1]
+        with np.errstate(all="ignore"):  # det <= 0: the per-message path below
+            det = a * d - b * b
+            inside = (d * n1 * n1 - 2.0 * b * n1 * n2 + a * n2 * n2) / det <= threshold(2)
+        closed = det > 0.0
+        for n, i in enumerate(rows):
+            if not usable[n]:
+                out[i] = "bad_measurement"
+            elif not closed[n]:
+                out[i] = self.verdict(ms[i], plan)
+            elif not inside[n]:
+                out[i] = "outside_gate"
+        return out
+
     def insert_late(self, m: Any) -> bool:
         return self.centre.insert_late(m)
 
@@ -213,7 +272,7 @@ class _OneTarget:
             float(alloc.value),
             float(np.trace(est.P)),
             float(np.trace(self.model.desired(k))),
-            tuple(sorted(got, key=self.ids.index)),
+            tuple(sorted(got, key=_position(self.ids))),
             refiltered,
             alloc.lower_bound,
             alloc.gap,
@@ -491,6 +550,15 @@ class ScanEngine:
         """Why a sensor's message (of the current scan, or a late one) may not be fused, as a
         rejection reason (``bad_measurement``, ``outside_gate``); None when it may."""
         return self._current().verdict(m, self.plan)
+
+    def verdicts(self, ms: Sequence[Any]) -> list[str | None]:
+        """:meth:`verdict` of each message of ``ms`` (the same verdicts; one target's are
+        computed together, :meth:`_OneTarget.verdicts`)."""
+        ep = self._current()
+        many = getattr(ep, "verdicts", None)  # optional: an episode's batch verdicts
+        if many is None:
+            return [ep.verdict(m, self.plan) for m in ms]
+        return many(ms, self.plan)
 
     def usable(self, m: Any) -> bool:
         """A sensor's message may be fused (:meth:`verdict`)."""

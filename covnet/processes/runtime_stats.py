@@ -141,7 +141,10 @@ class NetStats:
         number is refused (then it is rejected, uncounted)."""
         if seq is None:
             return None
-        return self.seq.setdefault(sensor, SeqCount()).add(seq)
+        counts = self.seq.get(sensor)
+        if counts is None:  # (not setdefault: it would build a SeqCount per message)
+            counts = self.seq[sensor] = SeqCount()
+        return counts.add(seq)
 
     def reported(self, sensor: str, sent: int) -> None:
         """``sensor``'s heartbeat says it has sent ``sent`` messages (:meth:`SeqCount.report`)."""

@@ -60,10 +60,12 @@ from covnet.wire.keys import _CMD_SEP, _enabled_chunk
 from covnet.wire.schemas import (
     _BY_KIND,
     _GOOD_NAMES,
+    _INT64_MAX,
     MAX_ARRAY_ELEMENTS,
     MAX_IDS,
     MAX_PAYLOAD_BYTES,
     Command,
+    Measurement,
     Message,
     WireError,
     _coerce,
@@ -406,6 +408,134 @@ def _fits(d: dict[Any, Any]) -> bool:
         ):
             return False
     return True
+
+
+# --------------------------------------------------------------------------------------------
+# the batch path: a scan's measurements decoded and checked together
+# --------------------------------------------------------------------------------------------
+
+
+def _ext_pair(code: int, data: bytes) -> tuple[int, bytes]:
+    """The batch path's ext hook: the ext as it is, checked afterwards for the whole batch
+    (a plain tuple: ``msgpack.ExtType``'s constructor is a Python ``__new__``, and with
+    ``use_list`` a msgpack array is a list, so a tuple in the result is an ext)."""
+    return (code, data)
+
+
+_MEAS_KEYS = ("v", "k", "sensor_id", "scan", "t", "z", "R", "t_sent_ns", "episode", "seq")
+_Z_HEAD = _INNER_HEAD + b"\x92\x01\x02\xc4\x10"  # [dtype, [1, 2], bin 8 of 16 bytes]
+_R_HEAD = _INNER_HEAD + b"\x92\x02\x02\xc4\x20"  # [dtype, [2, 2], bin 8 of 32 bytes]
+
+
+def _ints_ok(col: tuple[Any, ...]) -> bool:
+    """Every value an ``int`` (not a bool) in ``[0, 2**63)``: :func:`_coerce`'s count and
+    stamp, for a column."""
+    return set(map(type, col)) == {int} and min(col) >= 0 and max(col) <= _INT64_MAX
+
+
+def _array_column(
+    col: tuple[Any, ...], head: bytes, shape: tuple[int, int]
+) -> NDArray[np.float64] | None:
+    """The arrays of a column of exts that are all ``head`` followed by ``shape``'s float64s,
+    finite, as one read-only ``(n, *shape)`` array; None when any is not."""
+    if set(map(type, col)) != {tuple} or {c for c, _ in col} != {_EXT_NDARRAY}:
+        return None
+    size = 8 * shape[0] * shape[1]
+    datas = [d for _, d in col]
+    if set(map(type, datas)) != {bytes} or set(map(len, datas)) != {len(head) + size}:
+        return None
+    raw = np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(len(datas), len(head) + size)
+    if not (raw[:, : len(head)] == np.frombuffer(head, dtype=np.uint8)).all():
+        return None
+    a = raw[:, len(head) :].copy().view(_F8).reshape(len(datas), *shape)
+    if not _F8_NATIVE:  # pragma: no cover - big-endian hosts
+        a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        return None
+    a.flags.writeable = False
+    return a
+
+
+def _measurements(payloads: list[Any]) -> list[Any]:
+    """:func:`decode_many` for :class:`Measurement`: the payloads laid out as :func:`encode`
+    writes a covariance-control measurement (the ten keys in their order, one detection
+    ``z`` ``(1, 2)``, ``R`` ``(2, 2)``, no ``target_ids`` nor ``platform``, ``seq`` set).
+
+    Equivalence with :func:`decode_as` (and so with the strict decode): a payload this takes
+    is one :func:`_fast` takes, to an equal message.  Per payload the same ``unpackb`` parse
+    (its default limits, no trailing bytes), a map of exactly those keys; then per column the
+    checks of :func:`_fast`, each at least as strict: ``v`` the int :data:`SCHEMA_VERSION`,
+    ``k`` the kind, ``sensor_id`` a str among the ids seen valid, ``scan``/``t_sent_ns``/
+    ``episode``/``seq`` ints in ``[0, 2**63)``, ``t`` a finite float, ``z`` and ``R`` the
+    array ext of :func:`_fast_ext`'s layout with exactly those shapes (dims as fixints, bin 8)
+    and finite values, which ``Measurement._check`` accepts (``R`` square, ``z``'s columns
+    ``R``'s).  The arrays are read-only rows of one array per batch (values bit for bit the
+    payload's).  A column that fails a check sends every payload of the batch to
+    :func:`decode_as` (None): bad input is rare, and is then judged exactly as before."""
+    out: list[Any] = [None] * len(payloads)
+    rows: list[int] = []
+    values: list[Any] = []
+    unpackb = msgpack.unpackb
+    for i, p in enumerate(payloads):
+        if type(p) is not bytes or len(p) > MAX_PAYLOAD_BYTES:
+            continue
+        try:
+            d = unpackb(p, ext_hook=_ext_pair)
+        except Exception:  # noqa: BLE001 (any refusal: decode_as says why)
+            continue
+        if type(d) is dict and len(d) == 10 and tuple(d) == _MEAS_KEYS:
+            rows.append(i)
+            values.append(tuple(d.values()))
+    if not rows:
+        return out
+    v, k, sid, scan, t, z, R, t_sent, episode, seq = zip(*values, strict=True)
+    if (
+        set(map(type, v)) != {int}
+        or set(v) != {SCHEMA_VERSION}
+        or set(map(type, k)) != {str}
+        or set(k) != {Measurement.KIND}
+        or set(map(type, sid)) != {str}
+        or not _GOOD_NAMES.issuperset(sid)
+        or not (_ints_ok(scan) and _ints_ok(t_sent) and _ints_ok(episode) and _ints_ok(seq))
+        or set(map(type, t)) != {float}
+        or not all(map(math.isfinite, t))
+    ):
+        return out
+    Z = _array_column(z, _Z_HEAD, (1, 2))
+    Rs = _array_column(R, _R_HEAD, (2, 2))
+    if Z is None or Rs is None:
+        return out
+    new, setattr_ = object.__new__, object.__setattr__
+    for n, i in enumerate(rows):
+        m = new(Measurement)
+        setattr_(m, "sensor_id", sid[n])
+        setattr_(m, "scan", scan[n])
+        setattr_(m, "t", t[n])
+        setattr_(m, "z", Z[n])
+        setattr_(m, "R", Rs[n])
+        setattr_(m, "t_sent_ns", t_sent[n])
+        setattr_(m, "episode", episode[n])
+        setattr_(m, "target_ids", None)
+        setattr_(m, "platform", None)
+        setattr_(m, "seq", seq[n])
+        out[i] = m
+    return out
+
+
+_BATCH_DECODERS: dict[str, Any] = {Measurement.KIND: _measurements}
+"""Per message kind, its batch decoder (:func:`decode_many`); kinds without one are decoded
+one by one."""
+
+
+def decode_many(payloads: list[Any], cls: type[_M]) -> list[_M | None]:
+    """The payloads of a key that admits only ``cls``, decoded together where they are what
+    :func:`encode` writes (the kind's entry in :data:`_BATCH_DECODERS`): per payload the
+    message :func:`decode_as` returns for it, or None where the batch path does not take it
+    (anything else: :func:`decode_as` then decodes or rejects it, with its reason)."""
+    batch = _BATCH_DECODERS.get(cls.KIND)
+    if batch is None:
+        return [None] * len(payloads)
+    return batch(payloads)
 
 
 def decode(payload: bytes) -> Message:
