@@ -51,8 +51,9 @@ from covnet.core.allocation.search_problem import (
     _Problem,
     _subset,
 )
+from covnet.core.allocation.svd_bound import WorkingFloor
 from covnet.core.gaussian import Mat
-from covnet.core.metrics import MetricFn
+from covnet.core.metrics import METRICS, MetricFn, capability
 
 #: local search: at most this many passes, each evaluating its moves in batches of MOVE_BLOCK
 MAX_PASSES = 64
@@ -351,6 +352,68 @@ def _move_values(prob: _Problem, Z: Mat, rem: NDArray[np.intp], add: NDArray[np.
     return out
 
 
+def _working_floor(prob: _Problem) -> WorkingFloor | None:
+    """The registered metric's working floor (``Metric.working_floor``), if any."""
+    entry = METRICS.get(prob.name) if prob.name is not None else None
+    if entry is None or entry.fn is not prob.f:
+        return None
+    return capability(entry.working_floor, WorkingFloor)
+
+
+def _screened_values(
+    prob: _Problem,
+    Z: Mat,
+    rem: NDArray[np.intp],
+    add: NDArray[np.intp],
+    thr: float,
+    floor: WorkingFloor | None,
+) -> Mat:
+    """:func:`_move_values`, except that a move whose working floor is at or above ``thr`` may
+    be ``+inf`` instead of its working value (it cannot be below ``thr`` either).
+
+    The same bits as :func:`_move_values` for every other move: each block's ``Zm`` and its
+    covariances are those :meth:`_Problem.approx_values` computes for the block (the same
+    ``MOVE_BLOCK`` blocks, the covariances of the whole block, then its rows), and the metric
+    is batch-invariant (a row's value does not depend on the others in the stack: see
+    :mod:`covnet.core.metrics`), so evaluating only the kept rows gives their values bit for
+    bit.  Non-finite values become ``+inf`` and the time limit makes every value ``+inf``, as
+    in ``approx_values``; if the metric raises ``LinAlgError`` on the kept rows, the block is
+    evaluated by ``approx_values`` itself (its own fallback).  (``LinAlgError`` from ``eigh``
+    means non-convergence on a finite matrix, which a skipped row could in principle cause in
+    the full block but not among the kept rows: never seen, and the values would then differ
+    only in that block's last bits.)"""
+    if floor is None or not math.isfinite(thr) or prob.relax is not None:
+        return _move_values(prob, Z, rem, add)
+    out = np.full(rem.size, np.inf)
+    for lo in range(0, rem.size, MOVE_BLOCK):
+        r_, a_ = rem[lo : lo + MOVE_BLOCK], add[lo : lo + MOVE_BLOCK]
+        if prob.stop is not None and prob.stop():
+            break
+        Zm = np.broadcast_to(Z, (r_.size, Z.size)).copy()
+        Zm[r_ >= 0] -= prob.S[r_[r_ >= 0]]
+        Zm[a_ >= 0] += prob.S[a_[a_ >= 0]]
+        with np.errstate(all="ignore"):
+            X = prob.covariances(Zm)
+            keep = np.flatnonzero(~(floor(X, prob.D) >= thr))
+            if keep.size == 0:
+                continue
+            try:
+                v = np.asarray(prob.f(X[keep], prob.D), dtype=np.float64)
+            except np.linalg.LinAlgError:
+                out[lo : lo + r_.size] = prob.approx_values(Zm)
+                continue
+        out[lo + keep] = np.where(np.isfinite(v), v, np.inf)
+    prob.moves += rem.size
+    return out
+
+
+def _below(best: float) -> float:
+    """What a move's value must be below to improve on ``best`` in :func:`_local_search`; the
+    swaps above it may be skipped (:func:`_screened_values`): the smallest value, and the first
+    index of it, are the same whenever it is below."""
+    return best - 1e-12 * abs(best)
+
+
 def _local_search(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray[np.bool_]:
     """Best-improvement local search over removals, additions and 1-swaps (a strict relative
     improvement of 1e-12 required), at most MAX_PASSES passes.  A pass evaluates every removal
@@ -361,6 +424,7 @@ def _local_search(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray
     k0, K = len(prob.req), prob.K
     inc = inc.copy()
     budget = FULL_SCAN_BUDGET
+    floor = _working_floor(prob)
     for _ in range(MAX_PASSES):
         Z = prob.base + prob.S[inc].sum(axis=0)
         ins, outs = np.flatnonzero(inc), np.flatnonzero(~inc)
@@ -372,7 +436,7 @@ def _local_search(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray
             nonlocal best_move, best_new
             if v.size:
                 i = int(np.argmin(v))
-                if v[i] < best_new - 1e-12 * abs(best_new):
+                if v[i] < _below(best_new):
                     best_new, best_move = float(v[i]), (int(rem[i]), int(add[i]))
 
         v_rem = v_add = None
@@ -387,13 +451,15 @@ def _local_search(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray
         if v_rem is not None and v_add is not None:
             if ins.size * outs.size <= FULL_SWAPS:
                 rem, add = np.repeat(ins, outs.size), np.tile(outs, ins.size)
-                consider(rem, add, _move_values(prob, Z, rem, add))
+                v = _screened_values(prob, Z, rem, add, _below(best_new), floor)
+                consider(rem, add, v)
             else:
                 r_order = ins[np.argsort(v_rem, kind="stable")]
                 a_order = outs[np.argsort(v_add, kind="stable")]
                 si, so = r_order[:SWAP_POOL], a_order[:SWAP_POOL]
                 rem, add = np.repeat(si, so.size), np.tile(so, si.size)
-                consider(rem, add, _move_values(prob, Z, rem, add))
+                v = _screened_values(prob, Z, rem, add, _below(best_new), floor)
+                consider(rem, add, v)
                 rest = a_order[SWAP_POOL:]
                 per = max(1, MOVE_BLOCK // max(outs.size, 1))
                 lo = 0
@@ -408,7 +474,8 @@ def _local_search(prob: _Problem, inc: NDArray[np.bool_], val: float) -> NDArray
                     )
                     add = np.concatenate(cols[: rows.size])
                     budget -= rem.size
-                    consider(rem, add, _move_values(prob, Z, rem, add))
+                    v = _screened_values(prob, Z, rem, add, _below(best_new), floor)
+                    consider(rem, add, v)
         if best_move is None:
             break
         rem_i, add_i = best_move
