@@ -73,6 +73,10 @@ PLAIN_BUDGET = 1 << 20
 VERIFY = 1e-8
 #: and evaluates the moves near a decision exactly in batches of this many, in order
 VERIFY_BATCH = 16
+#: greedy's local search evaluates first this many swaps of a block, those of the lowest
+#: working floor, then only those whose floor is at most the smallest value found
+#: (:func:`_screened_values`)
+FLOOR_FIRST = 64
 
 
 def _improves(v: float, ref: float) -> bool:
@@ -368,23 +372,34 @@ def _screened_values(
     thr: float,
     floor: WorkingFloor | None,
 ) -> Mat:
-    """:func:`_move_values`, except that a move whose working floor is at or above ``thr`` may
-    be ``+inf`` instead of its working value (it cannot be below ``thr`` either).
+    """:func:`_move_values` for a caller that needs only the smallest value and the first index
+    of it, and only when it is below ``thr`` (:func:`_local_search`'s ``consider``): a move
+    whose working floor ``φ`` (``Metric.working_floor``, ``φ <= v``) shows it cannot be that
+    may be ``+inf`` instead of its value ``v``.
 
-    The same bits as :func:`_move_values` for every other move: each block's ``Zm`` and its
+    Per block, the moves with ``φ < thr`` (or ``φ`` NaN) are evaluated in order of ``φ``: the
+    FLOOR_FIRST lowest, then only those with ``φ`` at most the smallest value ``m`` found so far
+    (``m`` carried over the blocks).  Why the result is the same: let ``v* < thr`` be the
+    smallest value and ``i*`` any index attaining it; a skipped move has ``φ >= thr > v*`` or
+    ``φ > m >= v*`` (``m`` is a value found), so its value ``v >= φ > v*``: every ``i*`` is
+    evaluated, and the returned smallest value and its first index are ``v*`` and the first
+    ``i*``.  When no value is below ``thr`` the caller takes no move either
+    way.
+
+    The evaluated values have the bits of :func:`_move_values`: each block's ``Zm`` and its
     covariances are those :meth:`_Problem.approx_values` computes for the block (the same
     ``MOVE_BLOCK`` blocks, the covariances of the whole block, then its rows), and the metric
     is batch-invariant (a row's value does not depend on the others in the stack: see
-    :mod:`covnet.core.metrics`), so evaluating only the kept rows gives their values bit for
-    bit.  Non-finite values become ``+inf`` and the time limit makes every value ``+inf``, as
-    in ``approx_values``; if the metric raises ``LinAlgError`` on the kept rows, the block is
-    evaluated by ``approx_values`` itself (its own fallback).  (``LinAlgError`` from ``eigh``
-    means non-convergence on a finite matrix, which a skipped row could in principle cause in
-    the full block but not among the kept rows: never seen, and the values would then differ
-    only in that block's last bits.)"""
+    :mod:`covnet.core.metrics`).  Non-finite values become ``+inf`` and the time limit makes
+    every value ``+inf``, as in ``approx_values``; if the metric raises ``LinAlgError`` on the
+    evaluated rows, the block is evaluated by ``approx_values`` itself (its own fallback).
+    (``LinAlgError`` from ``eigh`` means non-convergence on a finite matrix, which a skipped
+    row could in principle cause in the full block but not among the evaluated rows: never
+    seen, and the values would then differ only in that block's last bits.)"""
     if floor is None or not math.isfinite(thr) or prob.relax is not None:
         return _move_values(prob, Z, rem, add)
     out = np.full(rem.size, np.inf)
+    m = math.inf
     for lo in range(0, rem.size, MOVE_BLOCK):
         r_, a_ = rem[lo : lo + MOVE_BLOCK], add[lo : lo + MOVE_BLOCK]
         if prob.stop is not None and prob.stop():
@@ -394,15 +409,23 @@ def _screened_values(
         Zm[a_ >= 0] += prob.S[a_[a_ >= 0]]
         with np.errstate(all="ignore"):
             X = prob.covariances(Zm)
-            keep = np.flatnonzero(~(floor(X, prob.D) >= thr))
-            if keep.size == 0:
-                continue
+            phi = floor(X, prob.D)
+            keep = np.flatnonzero(~(phi >= thr) & ~(phi > m))
+            keep = keep[np.argsort(phi[keep], kind="stable")]  # NaN last
+            first, rest = keep[:FLOOR_FIRST], keep[FLOOR_FIRST:]
             try:
-                v = np.asarray(prob.f(X[keep], prob.D), dtype=np.float64)
+                for rows in (first, None):
+                    if rows is None:  # the rest, now that m is known
+                        rows = rest[~(phi[rest] > m)]
+                    if rows.size == 0:
+                        continue
+                    v = np.asarray(prob.f(X[rows], prob.D), dtype=np.float64)
+                    v = np.where(np.isfinite(v), v, np.inf)
+                    out[lo + rows] = v
+                    m = min(m, float(v.min()))
             except np.linalg.LinAlgError:
                 out[lo : lo + r_.size] = prob.approx_values(Zm)
-                continue
-        out[lo + keep] = np.where(np.isfinite(v), v, np.inf)
+                m = min(m, float(out[lo : lo + r_.size].min()))
     prob.moves += rem.size
     return out
 
