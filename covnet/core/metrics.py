@@ -535,6 +535,10 @@ class Metric:
     - ``working_floor``: a cheaper lower bound of ``f``'s computed value on a stack
       (:class:`covnet.core.allocation.svd_bound.WorkingFloor`): greedy's local search skips
       the moves it shows cannot improve (the same moves chosen, fewer evaluated);
+    - ``greedy_whole_limit``: under a time limit, greedy's backward elimination and its local
+      search may use the whole limit, not greedy's share of it (for a metric whose tree does
+      not close the gap within the limit, so that the incumbent decides the certificate:
+      :func:`covnet.core.allocation.greedy._greedy_incs_timed`);
     - ``batch_invariant``: ``f`` of a stack equals ``f`` one matrix at a time, bit for bit (see
       the module docstring); otherwise the searches prune with a margin and recheck near ties.
 
@@ -548,6 +552,7 @@ class Metric:
     batch_invariant: bool = False
     dual_bound: object = None  # a DualNorm, a Ref to one, or None
     working_floor: object = None  # a WorkingFloor, a Ref to one, or None
+    greedy_whole_limit: bool = False
 
     def __call__(self, A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
         return self.fn(A, B)
@@ -559,11 +564,13 @@ def _builtin(
     relaxation: Relaxation | None = None,
     dual: bool = False,
     floor: Ref | None = None,
+    greedy_whole_limit: bool = False,
 ) -> Metric:
     """A built-in metric: batch-invariant, with both bounds (named ``<NAME>_BOUND`` in
     :mod:`covnet.core.allocation._fast` and :mod:`covnet.core.allocation.interval_bounds`),
     with ``dual`` the dual bound ``<NAME>_DUAL`` of
-    :mod:`covnet.core.allocation.lower_bounds`, and ``floor`` its working floor."""
+    :mod:`covnet.core.allocation.lower_bounds`, ``floor`` its working floor and
+    ``greedy_whole_limit`` as :class:`Metric`'s."""
     attr = f"{name.upper()}_BOUND"
     return Metric(
         name,
@@ -576,6 +583,7 @@ def _builtin(
             Ref("covnet.core.allocation.lower_bounds", f"{name.upper()}_DUAL") if dual else None
         ),
         working_floor=floor,
+        greedy_whole_limit=greedy_whole_limit,
     )
 
 
@@ -584,7 +592,12 @@ METRICS: dict[str, Metric] = {
     for m in (
         _builtin("spectral", spectral, dual=True),
         _builtin("abs_trace", abs_trace, dual=True),
-        _builtin("svd", svd, floor=Ref("covnet.core.allocation.svd_bound", "SVD_FLOOR")),
+        _builtin(
+            "svd",
+            svd,
+            floor=Ref("covnet.core.allocation.svd_bound", "SVD_FLOOR"),
+            greedy_whole_limit=True,
+        ),
         _builtin("frobenius", frobenius, Relaxation("frobenius")),
         _builtin("one_norm", one_norm, dual=True),
         _builtin("inf_norm", inf_norm, dual=True),
