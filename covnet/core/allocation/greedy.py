@@ -312,13 +312,17 @@ def _backward(prob: _Problem, reuse: bool = False) -> tuple[NDArray[np.bool_], f
     budget.  Returns the path's best.  ``reuse`` (greedy under a time limit): after removing
     one sensor the new set's working value is the removal's (the same set, its ``Z`` summed in
     another order: working values differ by rounding only), not evaluated again (one batch of
-    one row less per pass: 15-40 % of the pass)."""
+    one row less per pass: 15-40 % of the pass), and the path stops once the interval bound of
+    the current set's subsets shows that none of them can be the path's best
+    (:func:`_backward_done`: the same best, fewer passes)."""
     m, K, k0 = prob.m, prob.K, len(prob.req)
     inc = np.ones(m, dtype=bool)
     best_inc, best_val = inc.copy(), math.inf
     known: float | None = None
+    check = _BackwardCheck(prob) if reuse and prob.bound is not None else None
     while True:
         k = k0 + int(inc.sum())
+        improved = False
         if k <= K:
             if known is None:
                 v0 = float(prob.approx_values((prob.base + prob.S[inc].sum(axis=0))[None])[0])
@@ -326,10 +330,13 @@ def _backward(prob: _Problem, reuse: bool = False) -> tuple[NDArray[np.bool_], f
                 v0 = known
             if v0 < best_val:
                 best_val, best_inc = v0, inc.copy()
+                improved = True
         ins = np.flatnonzero(inc)
         if ins.size == 0 or (ins.size == 1 and not k0):
             break
         Z = prob.base + prob.S[inc].sum(axis=0)
+        if check is not None and not improved and check.done(Z, best_val):
+            break
         v = prob.approx_values(Z[None] - prob.S[ins])
         prob.moves += ins.size
         step = max(1, -(-ins.size // BACKWARD_ONE))
@@ -341,6 +348,36 @@ def _backward(prob: _Problem, reuse: bool = False) -> tuple[NDArray[np.bool_], f
         inc[drop] = False
         known = float(v[order[0]]) if reuse and step == 1 else None
     return best_inc, best_val
+
+
+class _BackwardCheck:
+    """Whether backward elimination can stop (:meth:`done`): every set the path still visits is
+    a subset of the current set ``D`` (with the required ones), so its covariance lies in the
+    Loewner interval ``[P(req ∪ D), P(req)]`` and its exact value is at least that interval's
+    bound ``L`` (:class:`~covnet.core.allocation.interval_bounds.IntervalBound`, the bound the
+    tree uses); its working value is within rounding (at most ``6e-11`` of ``max(f(P(req),
+    P_d), |value|)`` measured, module docstring) of the exact one.  So when ``L`` exceeds the
+    path's best working value by ``VERIFY`` of that scale (``1e-8``), no later set can replace
+    the best and the path's result is the same without the rest.  Checked only on passes where
+    the best did not just improve (about 60 µs a check at N = 100, against the 60-150 µs of a
+    pass); on the bench's svd problems at N = 100 the path stops at 39-55 sensors, after 45-61
+    of its 99 passes."""
+
+    def __init__(self, prob: _Problem) -> None:
+        self.prob = prob
+        self.s_req: Mat | None = None
+        self.scale = 0.0
+
+    def done(self, Z: Mat, best: float) -> bool:
+        if not math.isfinite(best):
+            return False
+        prob = self.prob
+        if self.s_req is None:
+            self.s_req = prob.summary(prob.base[None])
+            f_req = float(prob.approx_values(prob.base[None])[0])
+            self.scale = abs(f_req) if math.isfinite(f_req) else 0.0
+        lb = float(prob.combine(prob.summary(Z[None]), self.s_req)[0])
+        return lb > best + VERIFY * max(self.scale, abs(best))
 
 
 def _move_values(prob: _Problem, Z: Mat, rem: NDArray[np.intp], add: NDArray[np.intp]) -> Mat:
