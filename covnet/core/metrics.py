@@ -159,15 +159,23 @@ def ordered_eigh(
         tol = rtol * np.maximum(s[..., :1], -s[..., -1:])
         tied = (s[..., :-1] - s[..., 1:]) <= tol
         if tied.any():
-            U = U.reshape(-1, n, n).copy()
-            tied_rows = tied.reshape(-1, n - 1)
-            for row in np.flatnonzero(tied_rows.any(axis=1)).tolist():
-                U[row] = _canonical_groups(U[row], tied_rows[row].tolist())
-            U = U.reshape(A.shape)
+            U = _canonical_rows(U, tied)
     # sign: the largest-magnitude component of every eigenvector is positive
     big = np.abs(U).argmax(axis=-2)[..., None, :]
     sign = np.where(np.take_along_axis(U, big, axis=-2) < 0.0, -1.0, 1.0)
     return s.copy(), U * sign
+
+
+def _canonical_rows(U: NDArray[np.float64], tied: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Step 2 of :func:`ordered_eigh` on the batched eigenvectors ``U`` ``(..., n, n)`` (columns
+    in descending eigenvalue order): a copy with every tie group's columns rebuilt by
+    :func:`_canonical_groups`, ``tied`` ``(..., n - 1)`` marking the neighbours that tie."""
+    n = U.shape[-1]
+    out = U.reshape(-1, n, n).copy()
+    tied_rows = tied.reshape(-1, n - 1)
+    for row in np.flatnonzero(tied_rows.any(axis=1)).tolist():
+        out[row] = _canonical_groups(out[row], tied_rows[row].tolist())
+    return out.reshape(U.shape)
 
 
 def _ordered_eigh_one(
@@ -272,6 +280,10 @@ def svd(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
         one = _svd_one(A, B, n)
         if one is not None:
             return one
+    if A.ndim == 3 and B.shape == A.shape[1:] and n and A.shape[0]:
+        many = _svd_stack(A, B, n)
+        if many is not None:
+            return many
     s_A, U_A = ordered_eigh(A)
     s_B, U_B = ordered_eigh(B)
     # cos_i = sum_k U_A[k, i] U_B[k, i], summed over k in a fixed order
@@ -280,9 +292,56 @@ def svd(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
     return orientation + np.sqrt(_sum_last((s_A - s_B) ** 2))
 
 
-#: the last desired covariance's :func:`ordered_eigh` in :func:`_svd_one` (a schedule changes it
-#: rarely): ``(bytes, s_B, U_B)`` as Python floats
-_svd_last_B: list[tuple[bytes, list[float], list[list[float]]]] = []
+#: the last desired covariance's :func:`ordered_eigh` in :func:`_svd_one` and :func:`_svd_stack`
+#: (a schedule changes it rarely): ``(bytes, s_B, U_B)`` as Python floats and as arrays
+_SvdB = tuple[bytes, list[float], list[list[float]], NDArray[np.float64], NDArray[np.float64]]
+_svd_last_B: list[_SvdB] = []
+
+
+def _svd_desired(B: NDArray[np.float64]) -> _SvdB | None:
+    """``B``'s :func:`ordered_eigh`, kept for the next call with the same bytes (``None`` unless
+    ``B`` is finite)."""
+    key = B.tobytes()
+    last = _svd_last_B[0] if _svd_last_B else None
+    if last is None or last[0] != key:
+        if not math.isfinite(sum(B.ravel().tolist())):
+            return None
+        s_B, U_B = ordered_eigh(B)
+        last = (key, s_B.tolist(), U_B.tolist(), s_B, U_B)
+        _svd_last_B[:] = [last]
+    return last
+
+
+def _svd_stack(
+    A: NDArray[np.float64], B: NDArray[np.float64], n: int
+) -> NDArray[np.float64] | None:
+    """:func:`svd` of a stack ``A`` ``(m, n, n)`` against one finite ``B`` ``(n, n)`` (``None``
+    otherwise), bit for bit the general path's values with fewer steps: ``B``'s decomposition
+    kept (:func:`_svd_desired`), and ``A``'s eigenvectors without :func:`ordered_eigh`'s step 4
+    (each column's sign).
+
+    Why the bits agree: a column ``i`` of ``U_A`` enters only ``cos_i = Σ_k U_A[k, i] U_B[k, i]``
+    and then ``|cos_i|``.  Negating the column negates every product exactly, and the sum's
+    additions (in the same fixed order, :func:`_sum_last`) then round to the negated results
+    (round-to-nearest is symmetric under negation), so ``|cos_i|`` has the same bits with or
+    without the sign step.  Every other operation (``np.linalg.eigh`` on the same stack, the
+    descending order, the tie groups of step 2, the sums) is the general path's, in its order.
+    ``tests/unit/test_metrics.py`` compares the two paths bit for bit."""
+    last = _svd_desired(B)
+    if last is None:
+        return None
+    w, U = np.linalg.eigh(A)
+    s_A = w[:, ::-1]
+    U_A = U[:, :, ::-1]
+    if n > 1:
+        tol = EIG_TIE_RTOL * np.maximum(s_A[:, :1], -s_A[:, -1:])
+        tied = (s_A[:, :-1] - s_A[:, 1:]) <= tol
+        if tied.any():
+            U_A = _canonical_rows(U_A, tied)
+    cos = _sum_last(np.swapaxes(U_A * last[4], -1, -2))
+    orientation = np.maximum((n - _sum_last(np.abs(cos))) / n, 0.0)
+    f: NDArray[np.float64] = orientation + np.sqrt(_sum_last((s_A - last[3]) ** 2))
+    return f
 
 
 def _svd_one(A: NDArray[np.float64], B: NDArray[np.float64], n: int) -> NDArray[np.float64] | None:
@@ -294,14 +353,9 @@ def _svd_one(A: NDArray[np.float64], B: NDArray[np.float64], n: int) -> NDArray[
     flat = A.ravel().tolist()
     if not math.isfinite(sum(flat)):
         return None
-    key = B.tobytes()
-    last = _svd_last_B[0] if _svd_last_B else None
-    if last is None or last[0] != key:
-        if not math.isfinite(sum(B.ravel().tolist())):
-            return None
-        s_B, U_B = ordered_eigh(B)
-        last = (key, s_B.tolist(), U_B.tolist())
-        _svd_last_B[:] = [last]
+    last = _svd_desired(B)
+    if last is None:
+        return None
     s_A, U_A = _ordered_eigh_one(A, EIG_TIE_RTOL, signs=False)
     ua, ub = U_A.tolist(), last[2]
     acc = 0.0
@@ -478,6 +532,13 @@ class Metric:
       (:class:`covnet.core.allocation.lower_bounds.DualNorm`): a weak-duality bound of the
       norm's convex relaxation over the information form, tighter than the interval bound
       where it applies;
+    - ``working_floor``: a cheaper lower bound of ``f``'s computed value on a stack
+      (:class:`covnet.core.allocation.svd_bound.WorkingFloor`): greedy's local search skips
+      the moves it shows cannot improve (the same moves chosen, fewer evaluated);
+    - ``greedy_whole_limit``: under a time limit, greedy's backward elimination and its local
+      search may use the whole limit, not greedy's share of it (for a metric whose tree does
+      not close the gap within the limit, so that the incumbent decides the certificate:
+      :func:`covnet.core.allocation.greedy._greedy_incs_timed`);
     - ``batch_invariant``: ``f`` of a stack equals ``f`` one matrix at a time, bit for bit (see
       the module docstring); otherwise the searches prune with a margin and recheck near ties.
 
@@ -490,18 +551,26 @@ class Metric:
     relaxation: Relaxation | None = None
     batch_invariant: bool = False
     dual_bound: object = None  # a DualNorm, a Ref to one, or None
+    working_floor: object = None  # a WorkingFloor, a Ref to one, or None
+    greedy_whole_limit: bool = False
 
     def __call__(self, A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
         return self.fn(A, B)
 
 
 def _builtin(
-    name: str, fn: MetricFn, relaxation: Relaxation | None = None, dual: bool = False
+    name: str,
+    fn: MetricFn,
+    relaxation: Relaxation | None = None,
+    dual: bool = False,
+    floor: Ref | None = None,
+    greedy_whole_limit: bool = False,
 ) -> Metric:
     """A built-in metric: batch-invariant, with both bounds (named ``<NAME>_BOUND`` in
     :mod:`covnet.core.allocation._fast` and :mod:`covnet.core.allocation.interval_bounds`),
-    and with ``dual`` the dual bound ``<NAME>_DUAL`` of
-    :mod:`covnet.core.allocation.lower_bounds`."""
+    with ``dual`` the dual bound ``<NAME>_DUAL`` of
+    :mod:`covnet.core.allocation.lower_bounds`, ``floor`` its working floor and
+    ``greedy_whole_limit`` as :class:`Metric`'s."""
     attr = f"{name.upper()}_BOUND"
     return Metric(
         name,
@@ -513,6 +582,8 @@ def _builtin(
         dual_bound=(
             Ref("covnet.core.allocation.lower_bounds", f"{name.upper()}_DUAL") if dual else None
         ),
+        working_floor=floor,
+        greedy_whole_limit=greedy_whole_limit,
     )
 
 
@@ -521,7 +592,12 @@ METRICS: dict[str, Metric] = {
     for m in (
         _builtin("spectral", spectral, dual=True),
         _builtin("abs_trace", abs_trace, dual=True),
-        _builtin("svd", svd),
+        _builtin(
+            "svd",
+            svd,
+            floor=Ref("covnet.core.allocation.svd_bound", "SVD_FLOOR"),
+            greedy_whole_limit=True,
+        ),
         _builtin("frobenius", frobenius, Relaxation("frobenius")),
         _builtin("one_norm", one_norm, dual=True),
         _builtin("inf_norm", inf_norm, dual=True),
