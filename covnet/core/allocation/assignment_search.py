@@ -181,6 +181,14 @@ FLOOR_GAP = 0.002
 #: took 26-154 ms)
 FLOOR_MIN_S = 0.03
 FLOOR_MARGIN = 1.5
+#: the timed plan (bounded with a time limit, :func:`_search`): the first round of floors
+#: takes at most this share of the time left after the depth-1 bounds (the rest: deepening, set
+#: moves, then a second round of floors); each floor at most ``TIMED_FLOOR_SLICE`` of the
+#: decision's limit, and one starts only with ``TIMED_FLOOR_MIN`` of it left (12 ms and 8 ms at
+#: the bench's 90 ms, N = 64; a kl floor closes most of its column's slack in about 10 ms there)
+TIMED_FLOOR_SHARE = 0.3
+TIMED_FLOOR_SLICE = 0.13
+TIMED_FLOOR_MIN = 0.09
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -597,10 +605,12 @@ class _Dual:
         refine_rows: int = REFINE_ROWS,
         deadline: Callable[[], bool] | None = None,
         upper: Mat | None = None,
+        timed: bool = False,
     ) -> None:
         """``upper``: the incumbent's weighted column values; the columns whose count bound
         is furthest below them are enumerated (and refined) first, so a deadline leaves the
-        least bound behind."""
+        least bound behind.  ``timed`` (the timed plan of :func:`_search`): depth 1 only, its
+        superset bounds refined at once; :meth:`deepen` enumerates deeper later, keeping them."""
         self.cs = cs
         self.pieces: list[_Rows | None] = []
         n_any = int(cs.allow.any(axis=0).sum())
@@ -625,6 +635,8 @@ class _Dual:
             self.h.append(np.maximum(cs.w[c] * hc, 0.0))
         for c in range(cs.ncol):  # the count bound refined first (cheap where it applies)
             rows = self.pieces[c]
+            if timed:
+                break  # refined with the depth-1 superset bounds, in one call a column
             if rows is not None and not (deadline is not None and deadline()):
                 rows.lazy(self.h[c], float(cs.w[c]), refine_rows, deadline)
         self.enum: list[_Enum | None] = [None] * cs.ncol
@@ -635,6 +647,22 @@ class _Dual:
             slack = [float(upper[c]) - float(self.h[c].min()) for c in order]
             order.sort(key=lambda c: -slack[c])
         self.order = order
+        self.depth = depth
+        self.refine_rows = refine_rows
+        self.sep = self.Kp >= sum(self.nc)  # the count limit never binds: columns separate
+        if timed:
+            for c in order:
+                col = cs.cols[c]
+                if depth[c] and isinstance(col, _TargetCol):
+                    self.enum[c] = _Enum(col, self.opts[c], self.nc[c], 1, float(cs.w[c]))
+            for c in order:
+                if deadline is not None and deadline():
+                    break
+                en = self.enum[c]
+                pieces = [(self.pieces[c], self.h[c])]
+                pieces.append((en.rows, en.sup) if en is not None else (None, self.h[c]))
+                _Rows.together(pieces, float(cs.w[c]), refine_rows)
+            return
         for first in (True, False):  # depth 1 everywhere (cheap: n_c sets), then deeper
             for c in order:
                 col = cs.cols[c]
@@ -643,13 +671,41 @@ class _Dual:
                     continue  # the columns not deepened keep their depth-1 bound
                 if d and isinstance(col, _TargetCol):
                     self.enum[c] = _Enum(col, self.opts[c], self.nc[c], d, float(cs.w[c]))
-        self.sep = self.Kp >= sum(self.nc)  # the count limit never binds: columns separate
-        for c in order:
+        self._refine_sup(order, deadline)
+
+    def _refine_sup(self, cols: Sequence[int], deadline: Callable[[], bool] | None) -> None:
+        """The enumerations' superset bounds of ``cols`` refined lazily, in turn."""
+        for c in cols:
             if deadline is not None and deadline():
                 break
             en = self.enum[c]
             if en is not None and en.rows is not None:
-                en.rows.lazy(en.sup, float(cs.w[c]), refine_rows, deadline)
+                en.rows.lazy(en.sup, float(self.cs.w[c]), self.refine_rows, deadline)
+
+    def deepen(self, deadline: Callable[[], bool] | None, upper: Mat | None = None) -> int:
+        """The timed plan: each column in :attr:`order` (the largest slack first) enumerated to
+        its depth, reusing its depth-1 sets and keeping their superset bounds
+        (:attr:`_Enum.lower`), its new superset bounds refined, while the deadline allows.
+        Returns how many columns were deepened."""
+        done = 0
+        order = list(self.order)
+        if upper is not None:  # the slack now (floors in), the largest first
+            zero = np.zeros(self.cs.N)
+            slack = [float(upper[c]) - float(self._cost(c, zero)[0].min()) for c in order]
+            order = [order[i] for i in np.argsort(-np.array(slack), kind="stable")]
+        for c in order:
+            if deadline is not None and deadline():
+                break
+            en = self.enum[c]
+            col = self.cs.cols[c]
+            if en is None or self.depth[c] <= en.d or not isinstance(col, _TargetCol):
+                continue
+            self.enum[c] = _Enum(
+                col, self.opts[c], self.nc[c], self.depth[c], float(self.cs.w[c]), prev=en
+            )
+            self._refine_sup([c], deadline)
+            done += 1
+        return done
 
     @staticmethod
     def _bounded(col: _TargetCol) -> bool:
@@ -792,6 +848,38 @@ class _Rows:
             n_done += r.size
 
 
+    @staticmethod
+    def together(pieces: Sequence[tuple[_Rows | None, Mat]], w: float, limit: int) -> None:
+        """The first batch of :meth:`lazy` of each piece (its ``min(limit, REFINE_BATCH)``
+        smallest rows not yet refined, of ``out``) in one call of the relaxation: its cost
+        is mostly per call (1.3-1.5 ms at 1 to 60 rows, kl and frobenius, N = 64), so one call
+        per column instead of one per piece.  Each refined value is a certified bound of its
+        own interval (``fmax`` with the old one), whatever the other rows of the call."""
+        got = [(r, out) for r, out in pieces if r is not None and r.useful and r.idx.size]
+        if not got:
+            return
+        prob = got[0][0].prob
+        picks = []
+        for r, out in got:
+            vals = out[r.idx]
+            order = np.argsort(vals, kind="stable")
+            pick = order[~r.done[order]][: min(REFINE_BATCH, limit)]
+            picks.append(np.asarray(pick, dtype=np.intp))
+        i_all = [r.idx[p] for (r, _), p in zip(got, picks, strict=True)]
+        Z_lo = np.concatenate([r.Z_lo[i] for (r, _), i in zip(got, i_all, strict=True)])
+        Z_hi = np.concatenate([r.Z_hi[i] for (r, _), i in zip(got, i_all, strict=True)])
+        sB = np.concatenate([r.sB[i] for (r, _), i in zip(got, i_all, strict=True)])
+        cur = np.concatenate([out[i] for (_, out), i in zip(got, i_all, strict=True)])
+        cur = cur / w if w > 0 else cur
+        new = prob.refine(Z_lo, Z_hi, cur, sB, math.inf)
+        new = np.where(np.isfinite(new), np.maximum(new, 0.0), 0.0)
+        at = 0
+        for (r, out), p, i in zip(got, picks, i_all, strict=True):
+            out[i] = np.fmax(out[i], w * new[at : at + i.size])
+            r.done[p] = True
+            at += i.size
+
+
 def _depths(sizes: list[int], budget: int) -> list[int]:
     """The enumeration depth per column: raised one column at a time (smallest cost first)
     while the sets enumerated in all (``Σ_c Σ_{k<=d_c} C(n_c, k)``) stay within ``budget``;
@@ -819,7 +907,19 @@ class _Enum:
     bound of ``w g(S)`` (the degenerate interval ``[Z(S), Z(S)]``) and, for the ``d``-sets,
     of every superset's (the interval ``[Z(S0), Z(F_c)]``)."""
 
-    def __init__(self, col: _TargetCol, o: NDArray[np.intp], nc: int, d: int, w: float) -> None:
+    def __init__(
+        self,
+        col: _TargetCol,
+        o: NDArray[np.intp],
+        nc: int,
+        d: int,
+        w: float,
+        prev: _Enum | None = None,
+    ) -> None:
+        """``prev`` (the timed plan, :func:`_search`): a shallower enumeration of the same
+        column; its sets and bounds are reused, and its superset bounds (refined or not) are
+        kept as :attr:`lower` (``(d0, sup)`` pairs), each a bound of its own (module
+        docstring: every ``S`` with ``|S| > d0`` contains a ``d0``-set)."""
         prob = col.prob
         assert prob is not None
         self.o, self.nc, self.d = o, nc, d
@@ -830,7 +930,15 @@ class _Enum:
         self.exact: list[Mat] = []  # their degenerate bounds
         self.sup = np.zeros(0)  # the d-sets' superset bounds
         self.rows: _Rows | None = None
-        for k in range(d + 1):
+        #: shallower levels' superset bounds ``(d0, sup)`` (``d0 < d``), kept from ``prev``
+        self.lower: list[tuple[int, Mat]] = []
+        k0 = 0
+        if prev is not None and 0 < prev.d < d:
+            self.sets = list(prev.sets)
+            self.exact = list(prev.exact)
+            self.lower = [*prev.lower, (prev.d, prev.sup)]
+            k0 = prev.d + 1
+        for k in range(k0, d + 1):
             combos = list(itertools.combinations(range(o.size), k))
             idx = np.array(combos, dtype=np.intp).reshape(len(combos), k)
             Z = col.base[None] + S[idx].sum(axis=1)
@@ -844,6 +952,8 @@ class _Enum:
                 Z_hi = np.repeat(Z_all, idx.shape[0], axis=0)
                 self.rows = _Rows(prob, Z, Z_hi, sZ, np.arange(idx.shape[0]))
         self.scale = float(max(float(e.max()) for e in self.exact))
+        for _, sup in self.lower:
+            self.scale = max(self.scale, float(sup.max(initial=0.0)))
 
     def cost(self, pi: Mat, ps: Mat) -> Mat:
         """Per ``k = 0..nc``: ``min_{|S|=k} w g(S) + π(S)`` for ``k <= d`` (the enumerated
@@ -857,6 +967,10 @@ class _Enum:
         if self.nc > self.d:
             base = float(np.min(self.sup + po[self.sets[self.d]].sum(axis=1)))
             out[self.d + 1 :] = base + ps[1 : self.nc - self.d + 1]
+        for d0, sup in self.lower:  # every k > d0: above one of its d0-subsets
+            if self.nc > d0:
+                base = float(np.min(sup + po[self.sets[d0]].sum(axis=1)))
+                out[d0 + 1 :] = np.fmax(out[d0 + 1 :], base + ps[1 : self.nc - d0 + 1])
         return out
 
     def members(self, pi: Mat, k: int) -> NDArray[np.intp] | None:
@@ -872,7 +986,14 @@ class _Enum:
         return np.asarray(self.o[np.concatenate((first, order))])
 
 
-def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
+def _floors(
+    dual: _Dual,
+    upper: Mat,
+    remaining: Callable[[], float],
+    min_s: float = FLOOR_MIN_S,
+    slice_s: float | None = None,
+    clock: Callable[[], float] | None = None,
+) -> int:
     """The single-target floors (module docstring): the target columns in decreasing slack
     (the incumbent's weighted value less the column's least bound), each decided by the
     single-target bounded search (:func:`~covnet.core.allocation.search.allocate_bnb`, its
@@ -886,6 +1007,8 @@ def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
     for c in range(cs.T):
         col = cs.cols[c]
         # a metric without an interval bound would be searched exhaustively: no floor
+        if math.isfinite(dual.floor[c]):
+            continue  # floored already (the timed plan's first round)
         if isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size:
             least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
             slack.append((-(float(upper[c]) - least), c))
@@ -894,12 +1017,13 @@ def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
     order = [c for _, c in sorted(slack)]
     for i, c in enumerate(order):
         left = remaining()
-        if left < max(FLOOR_MIN_S, FLOOR_MARGIN * last):
+        if left < max(min_s, FLOOR_MARGIN * last):
             break  # its set-up is not timed: the last one's time says what one costs
         excl = frozenset(int(j) for j in np.flatnonzero(~cs.allow[c]))
+        share = left / (len(order) - i) if slice_s is None else min(slice_s, left - min_s)
         res = allocate_bnb(
             inp.P_pred[c], inp.J[:, c], inp.D[c], metric, Constraints(excl), inp.tie_rtol,
-            rel_gap=FLOOR_GAP, time_limit_s=left / (len(order) - i),
+            rel_gap=FLOOR_GAP, time_limit_s=share, clock=clock,
         )  # fmt: skip
         if math.isfinite(res.lower_bound):
             dual.floor[c] = max(dual.floor[c], float(cs.w[c]) * res.lower_bound)
@@ -982,19 +1106,35 @@ def _search(
     fallback: bool,
     refine_rows: int = REFINE_ROWS,
     remaining: Callable[[], float] | None = None,
+    clock: Callable[[], float] | None = None,
+    time_limit_s: float | None = None,
 ) -> AssignmentSearch:
     try:
         cs = _Columns(inp)
         st = _State(cs)
         _forward(st)
         _local_search(st, None)  # to its end: never worse than the plain greedy with 1-swaps
-        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v)
+        timed = remaining is not None and time_limit_s is not None
+        dual = _Dual(
+            cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v, timed=timed
+        )
+        if timed:
+            assert remaining is not None and time_limit_s is not None
+            min_s, slice_s = TIMED_FLOOR_MIN * time_limit_s, TIMED_FLOOR_SLICE * time_limit_s
+            keep = (1.0 - TIMED_FLOOR_SHARE) * remaining()
+            rem = remaining
+
+            def first() -> float:
+                return rem() - keep
+
+            _floors(dual, cs.w * st.v, first, min_s, slice_s, clock)
+            dual.deepen(deadline, cs.w * st.v)
         if _enum_moves(st, dual, deadline):
             _local_search(st, deadline)
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
-        if remaining is not None:
-            _floors(dual, cs.w * st.v, remaining)
+        if timed:
+            _floors(dual, cs.w * st.v, rem, min_s, slice_s, clock)  # the second round
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
@@ -1086,4 +1226,7 @@ def allocate_assignments_bounded(
     deadline, remaining = _deadline(time_limit_s, clock)
     inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
     steps = DUAL_STEPS if node_limit is None else min(node_limit, DUAL_STEPS)
-    return _search(inp, rel_gap, steps, deadline, 3, True, remaining=remaining)
+    return _search(
+        inp, rel_gap, steps, deadline, 3, True,
+        remaining=remaining, clock=clock, time_limit_s=time_limit_s,
+    )  # fmt: skip
