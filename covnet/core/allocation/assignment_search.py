@@ -94,10 +94,34 @@ where targets compete for the same sensors (on the bench's problems they gain li
 per-target bounds are the weak part).  The reported bound is the best ``L`` seen, less a
 rounding allowance, at most the value.
 
+*Kept levels* (the timed plan below): a column enumerated to depth 1 first and deepened later
+keeps its depth-1 superset bounds ``u1(j)`` (of the intervals ``[Z({j}), Z(F_c)]``, refined)
+beside the deeper ones: for every ``k > 1``, ``b_c(k, π) >= min_j [u1(j) + π_j] + π_c(k - 1)``
+as well (**proof**: the enumeration bound's with ``d_c = 1``: a set of ``k > 1`` members
+contains each of its members ``j``, ``Z({j}) ⪯ Z(S) ⪯ Z(F_c)``, and its other ``k - 1``
+members cost at least ``π_c(k - 1)``); the column's cost is the largest of its bounds.  At
+N = 64 a depth-1 superset bound refined by the relaxation is often above the unrefined
+intervals of the pairs (which only the ``REFINE_ROWS`` smallest of about 1 800 are refined).
+
 **Bounded** (:func:`allocate_assignments_bounded`): greedy, then dual steps until the relative
-gap is at most ``rel_gap`` (or the node or time limit); a *node* is one dual step.  When the gap
-is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact tables are then
-small), the exact allocator decides: status 0, the reference's assignment.
+gap is at most ``rel_gap`` (or the node or time limit); a *node* is one dual step.
+
+*The timed plan* (with ``time_limit_s`` only; with ``node_limit`` alone the order above, bit
+for bit): (1) the count bound and depth 1 everywhere, the count bound's rows and the depth-1
+superset bounds' rows refined in **one** call of the relaxation a column
+(:meth:`_Rows.together`: its cost is mostly per call, 1.3-1.5 ms at 1 to 60 rows, kl and
+frobenius at N = 64, so this halves the refinement's cost; each row's result is a certified
+bound of its own interval whatever the other rows of the call); (2) a first round of
+single-target floors (the targets furthest below their incumbent first, each at most
+``TIMED_FLOOR_SLICE`` of the limit, the round at most ``TIMED_FLOOR_SHARE`` of the time left:
+at N = 64, T = 8 a kl floor closes most of its column's slack in about 10 ms of CPU, where the
+columns' pair enumerations cost 20-30 ms); (3) the columns deepened, the largest slack left
+first (floors in), keeping their depth-1 superset bounds; (4) the set moves on what is
+enumerated, the local search; (5) a second round of floors for the targets without one;
+(6) dual steps.  Every piece is a bound of its own, so whatever the clock cuts, ``L(π) <= F*``.
+
+When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
+tables are then small), the exact allocator decides: status 0, the reference's assignment.
 
 **Gaps.**  ``gap = (value - L) / max(|value|, tiny)``; and, relative to the distance from doing
 nothing, ``gap_nothing = (value - L) / max(F(nothing) - value, tiny)``, with ``F(nothing)`` every
@@ -847,7 +871,6 @@ class _Rows:
             self.done[r] = True
             n_done += r.size
 
-
     @staticmethod
     def together(pieces: Sequence[tuple[_Rows | None, Mat]], w: float, limit: int) -> None:
         """The first batch of :meth:`lazy` of each piece (its ``min(limit, REFINE_BATCH)``
@@ -1115,9 +1138,7 @@ def _search(
         _forward(st)
         _local_search(st, None)  # to its end: never worse than the plain greedy with 1-swaps
         timed = remaining is not None and time_limit_s is not None
-        dual = _Dual(
-            cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v, timed=timed
-        )
+        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v, timed=timed)
         if timed:
             assert remaining is not None and time_limit_s is not None
             min_s, slice_s = TIMED_FLOOR_MIN * time_limit_s, TIMED_FLOOR_SLICE * time_limit_s
