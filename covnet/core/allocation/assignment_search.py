@@ -117,8 +117,12 @@ single-target floors (the targets furthest below their incumbent first, each at 
 at N = 64, T = 8 a kl floor closes most of its column's slack in about 10 ms of CPU, where the
 columns' pair enumerations cost 20-30 ms); (3) the columns deepened, the largest slack left
 first (floors in), keeping their depth-1 superset bounds; (4) the set moves on what is
-enumerated, the local search; (5) a second round of floors for the targets without one;
-(6) dual steps.  Every piece is a bound of its own, so whatever the clock cuts, ``L(π) <= F*``.
+enumerated, the local search; (5) a second round of floors for the targets without one, as
+before the plan (an equal share of the time left each, none started without ``FLOOR_MIN_S``:
+many short floors bound more than a few long ones where the single-target bound is weak,
+spectral at N = 256, and at N = 64 the time under ``FLOOR_MIN_S`` is better spent on dual
+steps, svd); (6) dual steps.  Every piece is a bound of
+its own, so whatever the clock cuts, ``L(π) <= F*``.
 
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
@@ -1155,7 +1159,7 @@ def _search(
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
         if timed:
-            _floors(dual, cs.w * st.v, rem, min_s, slice_s, clock)  # the second round
+            _floors(dual, cs.w * st.v, rem, clock=clock)  # the second: as without the plan
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
