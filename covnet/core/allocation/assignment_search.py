@@ -1159,7 +1159,7 @@ def _search(
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
         if timed:
-            _floors(dual, cs.w * st.v, rem, clock=clock)  # the second: as without the plan
+            _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock)  # the second: as before
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
