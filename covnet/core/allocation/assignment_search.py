@@ -111,12 +111,15 @@ for bit): (1) the count bound and depth 1 everywhere, the count bound's rows and
 superset bounds' rows refined in **one** call of the relaxation a column
 (:meth:`_Rows.together`: its cost is mostly per call, 1.3-1.5 ms at 1 to 60 rows, kl and
 frobenius at N = 64, so this halves the refinement's cost; each row's result is a certified
-bound of its own interval whatever the other rows of the call); (2) a first round of
-single-target floors (the targets furthest below their incumbent first, each at most
-``TIMED_FLOOR_SLICE`` of the limit, the round at most ``TIMED_FLOOR_SHARE`` of the time left:
-at N = 64, T = 8 a kl floor closes most of its column's slack in about 10 ms of CPU, where the
-columns' pair enumerations cost 20-30 ms); (3) the columns deepened, the largest slack left
-first (floors in), keeping their depth-1 superset bounds; (4) the set moves on what is
+bound of its own interval whatever the other rows of the call); (2) where the metric has the
+reduced relaxation (kl, frobenius, logdet: the single-target search's bound is then strong; for
+the others short floors left the bound weak and took the pairs' and dual steps' time,
+measured), a first round of single-target floors (the targets furthest below their incumbent
+first, each at most ``TIMED_FLOOR_SLICE`` of the limit, the round at most
+``TIMED_FLOOR_SHARE`` of the time left: at N = 64, T = 8 a kl floor closes most of its column's
+slack in about 10 ms of CPU, where the columns' pair enumerations cost 20-30 ms); (3) the
+columns deepened, the largest slack left first (floors in), keeping their depth-1 superset
+bounds; (4) the set moves on what is
 enumerated, the local search; (5) a second round of floors for the targets without one, as
 before the plan (an equal share of the time left each, none started without ``FLOOR_MIN_S``:
 many short floors bound more than a few long ones where the single-target bound is weak,
@@ -735,6 +738,11 @@ class _Dual:
             done += 1
         return done
 
+    def relaxed(self) -> bool:
+        """Whether the metric's reduced relaxation refines these bounds (kl, frobenius,
+        logdet): the timed plan's first round of floors runs only then."""
+        return any(r is not None and r.useful for r in self.pieces)
+
     @staticmethod
     def _bounded(col: _TargetCol) -> bool:
         prob = col.prob
@@ -1152,7 +1160,8 @@ def _search(
             def first() -> float:
                 return rem() - keep
 
-            _floors(dual, cs.w * st.v, first, min_s, slice_s, clock)
+            if dual.relaxed():  # a short floor closes a column's slack only with the relaxation
+                _floors(dual, cs.w * st.v, first, min_s, slice_s, clock)
             dual.deepen(deadline, cs.w * st.v)
         if _enum_moves(st, dual, deadline):
             _local_search(st, deadline)
