@@ -94,10 +94,41 @@ where targets compete for the same sensors (on the bench's problems they gain li
 per-target bounds are the weak part).  The reported bound is the best ``L`` seen, less a
 rounding allowance, at most the value.
 
+*Kept levels* (the timed plan below): a column enumerated to depth 1 first and deepened later
+keeps its depth-1 superset bounds ``u1(j)`` (of the intervals ``[Z({j}), Z(F_c)]``, refined)
+beside the deeper ones: for every ``k > 1``, ``b_c(k, π) >= min_j [u1(j) + π_j] + π_c(k - 1)``
+as well (**proof**: the enumeration bound's with ``d_c = 1``: a set of ``k > 1`` members
+contains each of its members ``j``, ``Z({j}) ⪯ Z(S) ⪯ Z(F_c)``, and its other ``k - 1``
+members cost at least ``π_c(k - 1)``); the column's cost is the largest of its bounds.  At
+N = 64 a depth-1 superset bound refined by the relaxation is often above the unrefined
+intervals of the pairs (which only the ``REFINE_ROWS`` smallest of about 1 800 are refined).
+
 **Bounded** (:func:`allocate_assignments_bounded`): greedy, then dual steps until the relative
-gap is at most ``rel_gap`` (or the node or time limit); a *node* is one dual step.  When the gap
-is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact tables are then
-small), the exact allocator decides: status 0, the reference's assignment.
+gap is at most ``rel_gap`` (or the node or time limit); a *node* is one dual step.
+
+*The timed plan* (with ``time_limit_s`` only; with ``node_limit`` alone the order above, bit
+for bit): (1) the count bound and depth 1 everywhere, the count bound's rows and the depth-1
+superset bounds' rows refined in **one** call of the relaxation a column
+(:meth:`_Rows.together`: its cost is mostly per call, 1.3-1.5 ms at 1 to 60 rows, kl and
+frobenius at N = 64, so this halves the refinement's cost; each row's result is a certified
+bound of its own interval whatever the other rows of the call); (2) for the metrics of
+``FLOORS_FIRST`` (kl, frobenius, logdet, trace_diff: a short single-target search closes a
+column's slack there; for the others short floors left the bound weak and took the pairs' and
+dual steps' time, measured), a first round of single-target floors (the targets furthest
+below their incumbent first, each at most ``TIMED_FLOOR_SLICE`` of the limit, the round at most
+``TIMED_FLOOR_SHARE`` of the time left: at N = 64, T = 8 a kl floor closes most of its column's
+slack in about 10 ms of CPU, where the columns' pair enumerations cost 20-30 ms); (3) the
+columns deepened, the largest slack left first (floors in), keeping their depth-1 superset
+bounds; (4) the set moves on what is
+enumerated, the local search; (5) a second round of floors for the targets without one, as
+before the plan (an equal share of the time left each, none started without ``FLOOR_MIN_S``:
+many short floors bound more than a few long ones where the single-target bound is weak,
+spectral at N = 256, and at N = 64 the time under ``FLOOR_MIN_S`` is better spent on dual
+steps, svd); (6) dual steps.  Every piece is a bound of
+its own, so whatever the clock cuts, ``L(π) <= F*``.
+
+When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
+tables are then small), the exact allocator decides: status 0, the reference's assignment.
 
 **Gaps.**  ``gap = (value - L) / max(|value|, tiny)``; and, relative to the distance from doing
 nothing, ``gap_nothing = (value - L) / max(F(nothing) - value, tiny)``, with ``F(nothing)`` every
@@ -181,6 +212,21 @@ FLOOR_GAP = 0.002
 #: took 26-154 ms)
 FLOOR_MIN_S = 0.03
 FLOOR_MARGIN = 1.5
+#: the timed plan (bounded with a time limit, :func:`_search`): the first round of floors
+#: takes at most this share of the time left after the depth-1 bounds (the rest: deepening, set
+#: moves, then a second round of floors); each floor at most ``TIMED_FLOOR_SLICE`` of the
+#: decision's limit, and one starts only with ``TIMED_FLOOR_MIN`` of it left (12 ms and 8 ms at
+#: the bench's 90 ms, N = 64; a kl floor closes most of its column's slack in about 10 ms there)
+TIMED_FLOOR_SHARE = 0.3
+TIMED_FLOOR_SLICE = 0.13
+TIMED_FLOOR_MIN = 0.09
+#: the metrics whose timed plan runs the first round of floors: where a short single-target
+#: search closes a column's slack (its own bound strong: the reduced relaxation's metrics; and
+#: trace_diff).  Measured at N = 64, T = 8, 5 problems, 90 ms of CPU, against the plan without
+#: it: median gap kl 0.43 % (0.75 %), trace_diff 3.1 % of the distance from doing nothing
+#: (14.8 %); spectral 5.6 % (4.0-4.6 %), svd 4.4 % (3.4-3.6 %), the induced norms slightly
+#: worse: there short floors left the bound weak and took the pairs' and the dual steps' time.
+FLOORS_FIRST = frozenset({"kl", "frobenius", "logdet", "trace_diff"})
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -597,10 +643,12 @@ class _Dual:
         refine_rows: int = REFINE_ROWS,
         deadline: Callable[[], bool] | None = None,
         upper: Mat | None = None,
+        timed: bool = False,
     ) -> None:
         """``upper``: the incumbent's weighted column values; the columns whose count bound
         is furthest below them are enumerated (and refined) first, so a deadline leaves the
-        least bound behind."""
+        least bound behind.  ``timed`` (the timed plan of :func:`_search`): depth 1 only, its
+        superset bounds refined at once; :meth:`deepen` enumerates deeper later, keeping them."""
         self.cs = cs
         self.pieces: list[_Rows | None] = []
         n_any = int(cs.allow.any(axis=0).sum())
@@ -625,6 +673,8 @@ class _Dual:
             self.h.append(np.maximum(cs.w[c] * hc, 0.0))
         for c in range(cs.ncol):  # the count bound refined first (cheap where it applies)
             rows = self.pieces[c]
+            if timed:
+                break  # refined with the depth-1 superset bounds, in one call a column
             if rows is not None and not (deadline is not None and deadline()):
                 rows.lazy(self.h[c], float(cs.w[c]), refine_rows, deadline)
         self.enum: list[_Enum | None] = [None] * cs.ncol
@@ -635,6 +685,22 @@ class _Dual:
             slack = [float(upper[c]) - float(self.h[c].min()) for c in order]
             order.sort(key=lambda c: -slack[c])
         self.order = order
+        self.depth = depth
+        self.refine_rows = refine_rows
+        self.sep = self.Kp >= sum(self.nc)  # the count limit never binds: columns separate
+        if timed:
+            for c in order:
+                col = cs.cols[c]
+                if depth[c] and isinstance(col, _TargetCol):
+                    self.enum[c] = _Enum(col, self.opts[c], self.nc[c], 1, float(cs.w[c]))
+            for c in order:
+                if deadline is not None and deadline():
+                    break
+                en = self.enum[c]
+                pieces = [(self.pieces[c], self.h[c])]
+                pieces.append((en.rows, en.sup) if en is not None else (None, self.h[c]))
+                _Rows.together(pieces, float(cs.w[c]), refine_rows)
+            return
         for first in (True, False):  # depth 1 everywhere (cheap: n_c sets), then deeper
             for c in order:
                 col = cs.cols[c]
@@ -643,13 +709,54 @@ class _Dual:
                     continue  # the columns not deepened keep their depth-1 bound
                 if d and isinstance(col, _TargetCol):
                     self.enum[c] = _Enum(col, self.opts[c], self.nc[c], d, float(cs.w[c]))
-        self.sep = self.Kp >= sum(self.nc)  # the count limit never binds: columns separate
-        for c in order:
+        self._refine_sup(order, deadline)
+
+    def _refine_sup(self, cols: Sequence[int], deadline: Callable[[], bool] | None) -> None:
+        """The enumerations' superset bounds of ``cols`` refined lazily, in turn."""
+        for c in cols:
             if deadline is not None and deadline():
                 break
             en = self.enum[c]
             if en is not None and en.rows is not None:
-                en.rows.lazy(en.sup, float(cs.w[c]), refine_rows, deadline)
+                en.rows.lazy(en.sup, float(self.cs.w[c]), self.refine_rows, deadline)
+
+    def deepen(
+        self,
+        deadline: Callable[[], bool] | None,
+        upper: Mat | None = None,
+        remaining: Callable[[], float] | None = None,
+    ) -> int:
+        """The timed plan: each column in :attr:`order` (the largest slack first) enumerated to
+        its depth, reusing its depth-1 sets and keeping their superset bounds
+        (:attr:`_Enum.lower`), its new superset bounds refined, while the deadline allows and
+        (with ``remaining``) at least the last column's time is left (a column's enumeration
+        is not interruptible: under a heavy load one took 15-20 ms of the bench's 90).
+        Returns how many columns were deepened."""
+        done = 0
+        last = 0.0
+        order = list(self.order)
+        if upper is not None:  # the slack now (floors in), the largest first
+            zero = np.zeros(self.cs.N)
+            slack = [float(upper[c]) - float(self._cost(c, zero)[0].min()) for c in order]
+            order = [order[i] for i in np.argsort(-np.array(slack), kind="stable")]
+        for c in order:
+            if deadline is not None and deadline():
+                break
+            en = self.enum[c]
+            col = self.cs.cols[c]
+            if en is None or self.depth[c] <= en.d or not isinstance(col, _TargetCol):
+                continue
+            left = remaining() if remaining is not None else math.inf
+            if left < last:
+                break
+            self.enum[c] = _Enum(
+                col, self.opts[c], self.nc[c], self.depth[c], float(self.cs.w[c]), prev=en
+            )
+            self._refine_sup([c], deadline)
+            done += 1
+            if remaining is not None:
+                last = left - remaining()
+        return done
 
     @staticmethod
     def _bounded(col: _TargetCol) -> bool:
@@ -791,6 +898,37 @@ class _Rows:
             self.done[r] = True
             n_done += r.size
 
+    @staticmethod
+    def together(pieces: Sequence[tuple[_Rows | None, Mat]], w: float, limit: int) -> None:
+        """The first batch of :meth:`lazy` of each piece (its ``min(limit, REFINE_BATCH)``
+        smallest rows not yet refined, of ``out``) in one call of the relaxation: its cost
+        is mostly per call (1.3-1.5 ms at 1 to 60 rows, kl and frobenius, N = 64), so one call
+        per column instead of one per piece.  Each refined value is a certified bound of its
+        own interval (``fmax`` with the old one), whatever the other rows of the call."""
+        got = [(r, out) for r, out in pieces if r is not None and r.useful and r.idx.size]
+        if not got:
+            return
+        prob = got[0][0].prob
+        picks = []
+        for r, out in got:
+            vals = out[r.idx]
+            order = np.argsort(vals, kind="stable")
+            pick = order[~r.done[order]][: min(REFINE_BATCH, limit)]
+            picks.append(np.asarray(pick, dtype=np.intp))
+        i_all = [r.idx[p] for (r, _), p in zip(got, picks, strict=True)]
+        Z_lo = np.concatenate([r.Z_lo[i] for (r, _), i in zip(got, i_all, strict=True)])
+        Z_hi = np.concatenate([r.Z_hi[i] for (r, _), i in zip(got, i_all, strict=True)])
+        sB = np.concatenate([r.sB[i] for (r, _), i in zip(got, i_all, strict=True)])
+        cur = np.concatenate([out[i] for (_, out), i in zip(got, i_all, strict=True)])
+        cur = cur / w if w > 0 else cur
+        new = prob.refine(Z_lo, Z_hi, cur, sB, math.inf)
+        new = np.where(np.isfinite(new), np.maximum(new, 0.0), 0.0)
+        at = 0
+        for (r, out), p, i in zip(got, picks, i_all, strict=True):
+            out[i] = np.fmax(out[i], w * new[at : at + i.size])
+            r.done[p] = True
+            at += i.size
+
 
 def _depths(sizes: list[int], budget: int) -> list[int]:
     """The enumeration depth per column: raised one column at a time (smallest cost first)
@@ -819,7 +957,19 @@ class _Enum:
     bound of ``w g(S)`` (the degenerate interval ``[Z(S), Z(S)]``) and, for the ``d``-sets,
     of every superset's (the interval ``[Z(S0), Z(F_c)]``)."""
 
-    def __init__(self, col: _TargetCol, o: NDArray[np.intp], nc: int, d: int, w: float) -> None:
+    def __init__(
+        self,
+        col: _TargetCol,
+        o: NDArray[np.intp],
+        nc: int,
+        d: int,
+        w: float,
+        prev: _Enum | None = None,
+    ) -> None:
+        """``prev`` (the timed plan, :func:`_search`): a shallower enumeration of the same
+        column; its sets and bounds are reused, and its superset bounds (refined or not) are
+        kept as :attr:`lower` (``(d0, sup)`` pairs), each a bound of its own (module
+        docstring: every ``S`` with ``|S| > d0`` contains a ``d0``-set)."""
         prob = col.prob
         assert prob is not None
         self.o, self.nc, self.d = o, nc, d
@@ -830,7 +980,15 @@ class _Enum:
         self.exact: list[Mat] = []  # their degenerate bounds
         self.sup = np.zeros(0)  # the d-sets' superset bounds
         self.rows: _Rows | None = None
-        for k in range(d + 1):
+        #: shallower levels' superset bounds ``(d0, sup)`` (``d0 < d``), kept from ``prev``
+        self.lower: list[tuple[int, Mat]] = []
+        k0 = 0
+        if prev is not None and 0 < prev.d < d:
+            self.sets = list(prev.sets)
+            self.exact = list(prev.exact)
+            self.lower = [*prev.lower, (prev.d, prev.sup)]
+            k0 = prev.d + 1
+        for k in range(k0, d + 1):
             combos = list(itertools.combinations(range(o.size), k))
             idx = np.array(combos, dtype=np.intp).reshape(len(combos), k)
             Z = col.base[None] + S[idx].sum(axis=1)
@@ -844,6 +1002,8 @@ class _Enum:
                 Z_hi = np.repeat(Z_all, idx.shape[0], axis=0)
                 self.rows = _Rows(prob, Z, Z_hi, sZ, np.arange(idx.shape[0]))
         self.scale = float(max(float(e.max()) for e in self.exact))
+        for _, sup in self.lower:
+            self.scale = max(self.scale, float(sup.max(initial=0.0)))
 
     def cost(self, pi: Mat, ps: Mat) -> Mat:
         """Per ``k = 0..nc``: ``min_{|S|=k} w g(S) + π(S)`` for ``k <= d`` (the enumerated
@@ -857,6 +1017,10 @@ class _Enum:
         if self.nc > self.d:
             base = float(np.min(self.sup + po[self.sets[self.d]].sum(axis=1)))
             out[self.d + 1 :] = base + ps[1 : self.nc - self.d + 1]
+        for d0, sup in self.lower:  # every k > d0: above one of its d0-subsets
+            if self.nc > d0:
+                base = float(np.min(sup + po[self.sets[d0]].sum(axis=1)))
+                out[d0 + 1 :] = np.fmax(out[d0 + 1 :], base + ps[1 : self.nc - d0 + 1])
         return out
 
     def members(self, pi: Mat, k: int) -> NDArray[np.intp] | None:
@@ -872,7 +1036,14 @@ class _Enum:
         return np.asarray(self.o[np.concatenate((first, order))])
 
 
-def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
+def _floors(
+    dual: _Dual,
+    upper: Mat,
+    remaining: Callable[[], float],
+    min_s: float = FLOOR_MIN_S,
+    slice_s: float | None = None,
+    clock: Callable[[], float] | None = None,
+) -> int:
     """The single-target floors (module docstring): the target columns in decreasing slack
     (the incumbent's weighted value less the column's least bound), each decided by the
     single-target bounded search (:func:`~covnet.core.allocation.search.allocate_bnb`, its
@@ -886,6 +1057,8 @@ def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
     for c in range(cs.T):
         col = cs.cols[c]
         # a metric without an interval bound would be searched exhaustively: no floor
+        if math.isfinite(dual.floor[c]):
+            continue  # floored already (the timed plan's first round)
         if isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size:
             least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
             slack.append((-(float(upper[c]) - least), c))
@@ -894,12 +1067,13 @@ def _floors(dual: _Dual, upper: Mat, remaining: Callable[[], float]) -> int:
     order = [c for _, c in sorted(slack)]
     for i, c in enumerate(order):
         left = remaining()
-        if left < max(FLOOR_MIN_S, FLOOR_MARGIN * last):
+        if left < max(min_s, FLOOR_MARGIN * last):
             break  # its set-up is not timed: the last one's time says what one costs
         excl = frozenset(int(j) for j in np.flatnonzero(~cs.allow[c]))
+        share = left / (len(order) - i) if slice_s is None else min(slice_s, left - min_s)
         res = allocate_bnb(
             inp.P_pred[c], inp.J[:, c], inp.D[c], metric, Constraints(excl), inp.tie_rtol,
-            rel_gap=FLOOR_GAP, time_limit_s=left / (len(order) - i),
+            rel_gap=FLOOR_GAP, time_limit_s=share, clock=clock,
         )  # fmt: skip
         if math.isfinite(res.lower_bound):
             dual.floor[c] = max(dual.floor[c], float(cs.w[c]) * res.lower_bound)
@@ -982,19 +1156,35 @@ def _search(
     fallback: bool,
     refine_rows: int = REFINE_ROWS,
     remaining: Callable[[], float] | None = None,
+    clock: Callable[[], float] | None = None,
+    time_limit_s: float | None = None,
 ) -> AssignmentSearch:
     try:
         cs = _Columns(inp)
         st = _State(cs)
         _forward(st)
         _local_search(st, None)  # to its end: never worse than the plain greedy with 1-swaps
-        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v)
+        timed = remaining is not None and time_limit_s is not None
+        dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v, timed=timed)
+        if timed:
+            assert remaining is not None and time_limit_s is not None
+            min_s, slice_s = TIMED_FLOOR_MIN * time_limit_s, TIMED_FLOOR_SLICE * time_limit_s
+            keep = (1.0 - TIMED_FLOOR_SHARE) * remaining()
+            rem = remaining
+
+            def first() -> float:
+                return rem() - keep
+
+            name = inp.entry.name if inp.entry is not None else None
+            if name in FLOORS_FIRST:
+                _floors(dual, cs.w * st.v, first, min_s, slice_s, clock)
+            dual.deepen(deadline, cs.w * st.v, remaining)
         if _enum_moves(st, dual, deadline):
             _local_search(st, deadline)
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
-        if remaining is not None:
-            _floors(dual, cs.w * st.v, remaining)
+        if timed:
+            _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock)  # the second: as before
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
@@ -1086,4 +1276,7 @@ def allocate_assignments_bounded(
     deadline, remaining = _deadline(time_limit_s, clock)
     inp = _Inputs(P_pred, J, P_d, metric, weights, feasible, constraints, tie_rtol, cells)
     steps = DUAL_STEPS if node_limit is None else min(node_limit, DUAL_STEPS)
-    return _search(inp, rel_gap, steps, deadline, 3, True, remaining=remaining)
+    return _search(
+        inp, rel_gap, steps, deadline, 3, True,
+        remaining=remaining, clock=clock, time_limit_s=time_limit_s,
+    )  # fmt: skip
