@@ -9,6 +9,7 @@ import itertools
 
 import numpy as np
 import pytest
+from bound_problems import random_problem, subset_value
 
 from covnet.core.allocation.exact import Constraints, allocate_exhaustive
 from covnet.core.allocation.lower_bounds import (
@@ -22,7 +23,6 @@ from covnet.core.allocation.lower_bounds import (
 from covnet.core.allocation.search import allocate_bnb, allocate_greedy
 from covnet.core.allocation.search_problem import _Problem
 from covnet.core.metrics import METRICS, capability
-from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 
 DUAL = ("abs_trace", "inf_norm", "one_norm", "spectral")
 
@@ -57,23 +57,6 @@ def test_atoms_are_the_norms_support(n):
         )
 
 
-def random_problem(rng, N, loose=False):
-    """Heterogeneous position sensors (random sigmas and correlations), a random SPD
-    ``P_pred`` (loose: large, as the early scans) and ``P_d`` (near the reachable range)."""
-    H = position_matrix()
-    gains = []
-    for _ in range(N):
-        sx, sy = rng.uniform(5.0, 60.0, size=2)
-        rho = rng.uniform(-0.9, 0.9)
-        gains.append(information_gain(H, correlated_noise(sx, sy, rho)))
-    A = rng.normal(size=(4, 4))
-    scale = np.array([1e3, 30.0, 1e3, 30.0]) if loose else np.array([200.0, 8.0, 200.0, 8.0])
-    P_pred = A @ A.T + np.diag(scale)
-    B = rng.normal(size=(4, 4)) * 0.3
-    P_d = np.diag(rng.uniform(0.3, 1.5, size=4) * np.array([40.0, 2.0, 40.0, 2.0])) + B @ B.T
-    return P_pred, np.array(gains), P_d
-
-
 def _cases(n_cases):
     rng = np.random.default_rng(20260329)
     for k in range(n_cases):
@@ -99,15 +82,6 @@ def test_certified_bounds_never_exceed_the_exhaustive_optimum(name):
             assert res.value >= ref.value - 1e-9 * abs(ref.value)
 
 
-def _value(prob, D):
-    J = np.zeros((prob.n, prob.n))
-    for j in sorted(D):
-        J = J + prob.G[j]
-    from covnet.core.allocation._fast import spd_inverse
-
-    return float(prob.f(spd_inverse(prob.Y0 + J), prob.D))
-
-
 @pytest.mark.parametrize("name", DUAL)
 def test_dual_bound_of_random_nodes_is_below_every_completion(name):
     """White box: for random nodes (included / undecided / excluded at random) the dual bound
@@ -126,7 +100,7 @@ def test_dual_bound_of_random_nodes_is_below_every_completion(name):
             Z_hi = Z_lo + prob.S[state == 2].sum(axis=0)
             lb = float(prob.dual.bound(Z_lo[None], Z_hi[None])[0])
             values = [
-                _value(prob, inc + list(extra))
+                subset_value(prob, inc + list(extra))
                 for size in range(len(und) + 1)
                 for extra in itertools.combinations(und, size)
                 if inc or extra

@@ -12,8 +12,8 @@ import itertools
 
 import numpy as np
 import pytest
+from bound_problems import random_problem, subset_value
 
-from covnet.core.allocation._fast import spd_inverse
 from covnet.core.allocation.exact import Constraints, allocate_exhaustive
 from covnet.core.allocation.lower_bounds import (
     INF_NORM_DUAL,
@@ -24,34 +24,8 @@ from covnet.core.allocation.lower_bounds import (
 )
 from covnet.core.allocation.search import allocate_bnb
 from covnet.core.allocation.search_problem import _Problem
-from covnet.core.sensing import correlated_noise, information_gain, position_matrix
 
 NAMES = ("one_norm", "inf_norm")
-
-
-def random_problem(rng, N, loose=False):
-    """As tests/unit/test_lower_bounds.py: heterogeneous position sensors, a random SPD
-    ``P_pred`` (loose: large, as the early scans) and ``P_d`` near the reachable range."""
-    H = position_matrix()
-    gains = []
-    for _ in range(N):
-        sx, sy = rng.uniform(5.0, 60.0, size=2)
-        rho = rng.uniform(-0.9, 0.9)
-        gains.append(information_gain(H, correlated_noise(sx, sy, rho)))
-    A = rng.normal(size=(4, 4))
-    scale = np.array([1e3, 30.0, 1e3, 30.0]) if loose else np.array([200.0, 8.0, 200.0, 8.0])
-    P_pred = A @ A.T + np.diag(scale)
-    B = rng.normal(size=(4, 4)) * 0.3
-    P_d = np.diag(rng.uniform(0.3, 1.5, size=4) * np.array([40.0, 2.0, 40.0, 2.0])) + B @ B.T
-    return P_pred, np.array(gains), P_d
-
-
-def _value(prob, D):
-    """The reference's computed value of the subset ``D``."""
-    J = np.zeros((prob.n, prob.n))
-    for j in sorted(D):
-        J = J + prob.G[j]
-    return float(prob.f(spd_inverse(prob.Y0 + J), prob.D))
 
 
 def test_the_vertex_points_are_registered_for_the_induced_norms_only():
@@ -103,7 +77,7 @@ def test_vertex_bound_of_random_nodes_is_below_every_completion(name):
         vb = float(prob.dual.vertex_bound(Z_lo[None], Z_hi[None])[0])
         lb = float(prob.combine(prob.summary(Z_hi[None]), prob.summary(Z_lo[None]))[0])
         values = [
-            _value(prob, inc + list(extra))
+            subset_value(prob, inc + list(extra))
             for size in range(len(und) + 1)
             for extra in itertools.combinations(und, size)
             if inc or extra
