@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from covnet.core.allocation._fast import spd_inverse
@@ -32,3 +34,14 @@ def subset_value(prob, D):
     for j in sorted(D):
         J = J + prob.G[j]
     return float(prob.f(spd_inverse(prob.Y0 + J), prob.D))
+
+
+def completion_values(prob, inc, und):
+    """The reference values of every non-empty completion of a node: the sensors ``inc`` and
+    any subset of the undecided ``und``."""
+    return [
+        subset_value(prob, list(inc) + list(extra))
+        for size in range(len(und) + 1)
+        for extra in itertools.combinations(und, size)
+        if inc or extra
+    ]

@@ -5,11 +5,9 @@ nodes is below every completion's value, and it is as tight as the relaxation it
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
-from bound_problems import random_problem, subset_value
+from bound_problems import completion_values, random_problem
 
 from covnet.core.allocation.exact import Constraints, allocate_exhaustive
 from covnet.core.allocation.lower_bounds import (
@@ -99,12 +97,7 @@ def test_dual_bound_of_random_nodes_is_below_every_completion(name):
             Z_lo = prob.base + prob.S[state == 1].sum(axis=0)
             Z_hi = Z_lo + prob.S[state == 2].sum(axis=0)
             lb = float(prob.dual.bound(Z_lo[None], Z_hi[None])[0])
-            values = [
-                subset_value(prob, inc + list(extra))
-                for size in range(len(und) + 1)
-                for extra in itertools.combinations(und, size)
-                if inc or extra
-            ]
+            values = completion_values(prob, inc, und)
             if values:
                 assert lb <= min(values), (lb, min(values))
                 checked += 1

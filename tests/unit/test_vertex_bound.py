@@ -8,11 +8,9 @@ tests can fail."""
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
-from bound_problems import random_problem, subset_value
+from bound_problems import completion_values, random_problem
 
 from covnet.core.allocation.exact import Constraints, allocate_exhaustive
 from covnet.core.allocation.lower_bounds import (
@@ -76,12 +74,7 @@ def test_vertex_bound_of_random_nodes_is_below_every_completion(name):
         assert prob.dual is not None
         vb = float(prob.dual.vertex_bound(Z_lo[None], Z_hi[None])[0])
         lb = float(prob.combine(prob.summary(Z_hi[None]), prob.summary(Z_lo[None]))[0])
-        values = [
-            subset_value(prob, inc + list(extra))
-            for size in range(len(und) + 1)
-            for extra in itertools.combinations(und, size)
-            if inc or extra
-        ]
+        values = completion_values(prob, inc, und)
         if values:
             assert vb <= min(values), (vb, min(values))
             checked += 1
