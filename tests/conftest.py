@@ -74,3 +74,17 @@ def interrupted_from_another_thread():
             signal.signal(signal.SIGUSR1, old)
 
     return check
+
+
+@pytest.fixture(scope="module")
+def room_in_the_names_cache():
+    """An empty cache of ids seen valid (``covnet.wire.keys._GOOD_NAMES``) for the module, its
+    contents restored after: the fast and batch decoders take only ids in it, and the strict
+    path adds no more once it holds ``_GOOD_NAMES_MAX`` (a long test process fills it)."""
+    from covnet.wire.keys import _GOOD_NAMES
+
+    saved = set(_GOOD_NAMES)
+    _GOOD_NAMES.clear()
+    yield
+    _GOOD_NAMES.clear()
+    _GOOD_NAMES.update(saved)

@@ -24,6 +24,8 @@ from covnet.wire.bus import InMemoryBus, Sample
 from manager.covariance import CovarianceLogic
 from manager.loop import MIN_BATCH, MIN_VERDICTS, Loop
 
+pytestmark = pytest.mark.usefixtures("room_in_the_names_cache")
+
 
 def _message(
     sid: str, scan: int, z: np.ndarray, R: np.ndarray, seq: int, episode: int = 0

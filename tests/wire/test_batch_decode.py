@@ -17,6 +17,7 @@ from covnet.wire import messages as msg
 from covnet.wire.codec import decode_many
 
 IDS = [f"bd{j:03d}" for j in range(16)]
+pytestmark = pytest.mark.usefixtures("room_in_the_names_cache")
 
 
 def _meas(rng: np.random.Generator, j: int, scan: int, seq: int, **kw: object) -> msg.Measurement:
