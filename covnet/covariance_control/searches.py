@@ -227,39 +227,9 @@ def _exact(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraint
     from covnet.core.allocation import Allocation
     from covnet.core.allocation.search import allocate_bnb
 
-    n_feasible = feasible_count(len(model.sensor_ids), c)
-    if n_feasible == 1 and (one := _only_subset(model, P_pred, P_d, metric, c)) is not None:
-        return Allocation(one[0], one[1], one[2], 1, one[3])
     res = allocate_bnb(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
+    n_feasible = feasible_count(len(model.sensor_ids), c)
     return Allocation(res.subset, res.value, res.P, n_feasible, res.n_evaluated)
-
-
-def _only_subset(
-    model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraints
-) -> tuple[tuple[int, ...], float, Mat, int] | None:
-    """When every allowed sensor is required (one feasible subset: the bus bench's networks),
-    that subset's ``(subset, value, P, n_evaluated)`` by the exact search's own arithmetic
-    (its problem's exact evaluation: the same value and ``P`` bits as
-    :func:`~covnet.core.allocation.search.allocate_bnb`, which since the exact mode's tie
-    rule bounds the root first, 30-70 ms a decision at N = 64, to find the one subset it is
-    given); None otherwise, or on any error (the search then says what is wrong)."""
-    allowed = frozenset(range(len(model.sensor_ids))) - c.excluded
-    if not allowed or c.required != allowed:
-        return None
-    # the exact search's problem (start-up of the processes that never decide)
-    from covnet.core.allocation.search_problem import _Problem
-
-    try:
-        prob = _Problem(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
-        if prob.bound is None:
-            return None
-        mask = np.zeros((1, prob.N), dtype=bool)
-        mask[0, sorted(allowed)] = True
-        value = float(prob.exact(mask)[0])
-        P = prob.exact_covariances(mask)[0]
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    return tuple(sorted(allowed)), value, P, prob.n_evaluated
 
 
 def _bounded(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constraints) -> Allocation:
@@ -274,9 +244,6 @@ def _bounded(model: SearchModel, P_pred: Mat, P_d: Mat, metric: str, c: Constrai
         # it is the optimum, so its value is its certified lower bound (gap 0), what the
         # bounded search returns too, without the root relaxation it would solve first
         # (53 ms a scan at N = 64)
-        one = _only_subset(model, P_pred, P_d, metric, c)
-        if one is not None:
-            return Allocation(one[0], one[1], one[2], 1, one[3], one[1], 0.0)
         res = allocate_bnb(P_pred, model.gains, P_d, metric, c, model.tie_rtol)
         return Allocation(res.subset, res.value, res.P, 1, res.n_evaluated, res.value, 0.0)
     gap, limit_s, nodes = model.search.bounded_options()

@@ -1,7 +1,7 @@
 """A decision with one feasible subset (every allowed sensor required, as in ``covnet bench up
 --sensors N``): ``bounded`` returns what the full bounded search returns (the same subset,
 value and ``P`` bits, the value as its certified lower bound, gap 0) without solving the
-root relaxation first."""
+root relaxation first; the exact search builds no tie rule for it (nothing to branch on)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ import pytest
 
 from covnet import kinds
 from covnet.core.allocation import Constraints
-from covnet.core.allocation.search import allocate_bnb
+from covnet.core.allocation.search import _Search, allocate_bnb
+from covnet.core.allocation.search_problem import _Problem
 from covnet.covariance_control.model import build_model, predict_cov
 from covnet.covariance_control.network_sizes import bench_config
 from covnet.covariance_control.searches import SEARCHES, feasible_count
@@ -73,14 +74,18 @@ def test_one_feasible_subset_is_the_exact_search_result(tmp_path, n, failed):
         assert got.subset == ref.subset and got.n_feasible == 1
         assert got.value == ref.value and np.array_equal(got.P, ref.P)
         assert got.n_evaluated == ref.n_evaluated
+        # and it is that subset's own exact evaluation (the search's problem, no tree)
+        prob = _Problem(P, model.gains, model.desired(1), metric, c, model.tie_rtol)
+        mask = np.zeros((1, n), dtype=bool)
+        mask[0, list(got.subset)] = True
+        assert got.value == float(prob.exact(mask)[0])
+        assert np.array_equal(got.P, prob.exact_covariances(mask)[0])
 
 
 def test_not_every_sensor_required_is_left_to_the_search(tmp_path):
     """One feasible subset that is not "every allowed sensor required" (a budget of one and a
     single allowed sensor) goes to the search itself."""
     import yaml
-
-    from covnet.covariance_control.searches import _only_subset
 
     _, sc = kinds.load(PAPER)
     path = tmp_path / "net.yaml"
@@ -90,6 +95,22 @@ def test_not_every_sensor_required_is_left_to_the_search(tmp_path):
     c = Constraints(excluded=frozenset(range(1, 20)), required=frozenset())
     assert feasible_count(20, c) == 1
     P = predict_cov(model, model.P0)
-    assert _only_subset(model, P, model.desired(1), "spectral", c) is None
     got = SEARCHES["bounded"].decide(model, P, model.desired(1), "spectral", c)
     assert got.subset == (0,) and got.gap == 0.0
+
+
+def test_no_tie_rule_without_a_free_sensor(tmp_path):
+    """With every allowed sensor required the exact search has nothing to branch on: it builds
+    no tie rule (which would bound the root first, 30-70 ms at N = 64, for one subset)."""
+    import yaml
+
+    _, sc = kinds.load(PAPER)
+    path = tmp_path / "net.yaml"
+    path.write_text(yaml.safe_dump(bench_config(sc, 24, 20), sort_keys=False))
+    _, sc_n = kinds.load(path)
+    model = build_model(sc_n)
+    P = predict_cov(model, model.P0)
+    prob = _Problem(P, model.gains, model.desired(1), "spectral", model.constraints, 1e-9)
+    assert prob.m == 0
+    assert _Search(prob, 0.0, False, None, None, True).ties is None
+    assert prob._root_bound is None  # the root was not bounded
