@@ -261,14 +261,14 @@ def fast_respond(side: SensorSide, clock: Clock) -> FastRespond | None:
     if template is None:
         return None
     encode, noisy, now_ns = template.encode_row, side.noisy, clock.now_ns
-    if isinstance(noisy, NoiseTable):  # its H x + v inline (the same expression)
-        table, H = noisy.table, noisy.H
+    if isinstance(noisy, NoiseTable):
+        tabled = noisy.tabled
 
         def fast(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
-            v = table.get(cmd.scan)
-            if v is None:  # a scan the table does not hold: respond draws it
+            z = tabled(cmd.scan, tr.states[0])
+            if z is None:  # a scan the table does not hold: respond draws it
                 return None
-            return encode(cmd.scan, cmd.t, H @ tr.states[0] + v, now_ns(), cmd.episode, seq)
+            return encode(cmd.scan, cmd.t, z, now_ns(), cmd.episode, seq)
 
         return fast
 
@@ -334,7 +334,10 @@ class NoiseTable:
         self.table = table
 
     def __call__(self, scan: int, x: np.ndarray) -> np.ndarray:
+        z = self.tabled(scan, x)
+        return measure(self.model, self.j, scan, x) if z is None else z
+
+    def tabled(self, scan: int, x: np.ndarray) -> np.ndarray | None:
+        """``H x + v`` with the scan's noise ``v`` from the table; None for a scan it lacks."""
         v = self.table.get(scan)
-        if v is None:
-            return measure(self.model, self.j, scan, x)
-        return self.H @ x + v
+        return None if v is None else self.H @ x + v

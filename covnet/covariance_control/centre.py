@@ -11,6 +11,7 @@ write_network_run`).
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -40,7 +41,7 @@ __all__ = [
     "ManagerResult",
     "as_local_track",
     "fuse_with_gains",
-    "index_of",
+    "position_of",
     "usable_position",
     "usable_track",
 ]
@@ -292,13 +293,20 @@ class Gains:
 
 
 @functools.lru_cache(maxsize=8)
-def index_of(ids: tuple[str, ...]) -> dict[str, int]:
-    """``{sid: ids.index(sid)}`` for the ids of ``ids`` (a network's sensors: looked up per
-    message of a scan, where ``ids.index`` is a scan of the tuple)."""
+def _index_of(ids: tuple[str, ...]) -> dict[str, int]:
+    """``{sid: ids.index(sid)}`` for the ids of ``ids``."""
     where: dict[str, int] = {}
     for j, sid in enumerate(ids):
         where.setdefault(sid, j)  # the first, as ids.index
     return where
+
+
+def position_of(ids: tuple[str, ...]) -> Callable[[str], int]:
+    """``ids.index`` from a dict (a network's sensors, looked up per message of a scan, where
+    ``ids.index`` scans the tuple): the same positions, and the same ``ValueError`` for an id
+    not in ``ids``."""
+    where = _index_of(ids)
+    return lambda sid: where[sid] if sid in where else ids.index(sid)
 
 
 def fuse_with_gains(
@@ -309,8 +317,8 @@ def fuse_with_gains(
     noise covariance the gains assumed); None otherwise."""
     if gains is None or len(got) != len(gains.subset):
         return None
-    where = index_of(ids)
-    ordered = sorted((where[sid] if sid in where else ids.index(sid), m) for sid, m in got.items())
+    position = position_of(ids)
+    ordered = sorted((position(sid), m) for sid, m in got.items())
     if tuple(j for j, _ in ordered) != gains.subset or any(
         m.R.tobytes() != r for (_, m), r in zip(ordered, gains.R, strict=True)
     ):

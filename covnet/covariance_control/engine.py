@@ -65,7 +65,7 @@ from covnet.covariance_control.centre import (
     Gains,
     ManagerResult,
     as_local_track,
-    index_of,
+    position_of,
     usable_position,
     usable_track,
 )
@@ -120,13 +120,6 @@ class _Speculation:
         return (
             self.k == k and self.unavailable == unavailable and np.array_equal(self.P_pred, P_pred)
         )
-
-
-def _position(ids: tuple[str, ...]) -> Any:
-    """``ids.index`` as a sort key, from a dict (:func:`~covnet.covariance_control.centre.
-    index_of`): the same positions, without a scan of ``ids`` per key."""
-    where = index_of(ids)
-    return lambda sid: where[sid] if sid in where else ids.index(sid)
 
 
 class _OneTarget:
@@ -186,12 +179,17 @@ class _OneTarget:
         if self.rule.tracks:
             ok = passes_track(m.x, m.P, pred.x, pred.P)
         else:
-            gate = self.gate
-            if gate is None or gate[0] is not plan:  # H x⁻ and H P⁻ Hᵀ once per scan
-                H = self.model.H
-                gate = self.gate = (plan, H @ pred.x, H @ pred.P @ H.T)
-            ok = passes_innovation(m.z[0] - gate[1], gate[2] + m.R)
+            _, Hx, HPH = self._gate(plan)
+            ok = passes_innovation(m.z[0] - Hx, HPH + m.R)
         return None if ok else "outside_gate"
+
+    def _gate(self, plan: Plan) -> tuple[Plan, Any, Any]:
+        """``(plan, H x⁻, H P⁻ Hᵀ)`` of the planned scan's prediction, once per scan."""
+        gate = self.gate
+        if gate is None or gate[0] is not plan:
+            pred, H = plan.detail[0], self.model.H
+            gate = self.gate = (plan, H @ pred.x, H @ pred.P @ H.T)
+        return gate
 
     def verdicts(self, ms: Sequence[Any], plan: Plan | None) -> list[str | None]:
         """``[self.verdict(m, plan) for m in ms]``, the same verdicts, with the content test and
@@ -223,12 +221,9 @@ class _OneTarget:
         r01 = R[:, 0, 1]
         sq = np.array([x**2 for x in r01])  # numpy scalars: usable_measurement's R[0, 1] ** 2
         usable = (r01 == R[:, 1, 0]) & (R[:, 0, 0] > 0) & (R[:, 0, 0] * R[:, 1, 1] - sq > 0)
-        gate = self.gate
-        if gate is None or gate[0] is not plan:  # H x⁻ and H P⁻ Hᵀ once per scan
-            pred, H = plan.detail[0], self.model.H
-            gate = self.gate = (plan, H @ pred.x, H @ pred.P @ H.T)
-        nu = Z - gate[1]
-        S = gate[2] + R
+        _, Hx, HPH = self._gate(plan)
+        nu = Z - Hx
+        S = HPH + R
         a, b, d = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
         n1, n2 = nu[:, 0], nu[:, 1]
         with np.errstate(all="ignore"):  # det <= 0: the per-message path below
@@ -272,7 +267,7 @@ class _OneTarget:
             float(alloc.value),
             float(np.trace(est.P)),
             float(np.trace(self.model.desired(k))),
-            tuple(sorted(got, key=_position(self.ids))),
+            tuple(sorted(got, key=position_of(self.ids))),
             refiltered,
             alloc.lower_bound,
             alloc.gap,

@@ -42,7 +42,7 @@ import sys
 import msgpack
 import numpy as np
 
-from covnet.wire.codec import _array_ext, encode
+from covnet.wire.codec import SCHEMA_VERSION, _array_ext, encode
 from covnet.wire.schemas import _INT64_MAX, Measurement, _spec
 
 __all__ = ["MeasurementTemplate"]
@@ -89,7 +89,7 @@ class MeasurementTemplate:
         pack = packer.pack
         n = 2 + len(_FIELDS)  # "v", "k" and the fields
         head = packer.pack_map_header(n)
-        head += pack("v") + pack(1) + pack("k") + pack(Measurement.KIND)
+        head += pack("v") + pack(SCHEMA_VERSION) + pack("k") + pack(Measurement.KIND)
         head += pack("sensor_id") + pack(one.sensor_id) + pack("scan")
         self._head = head
         self._mid = pack("t") + b"\xcb"  # a float is always a msgpack float64 here

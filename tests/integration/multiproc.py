@@ -116,16 +116,22 @@ def assert_nothing_left(run_dir: Path) -> None:
     assert not left, f"processes left running: {left}"
 
 
-def up_lockstep(config: Path, out: Path, timeout: float = 240.0) -> str:
-    """``covnet up CONFIG --out OUT --no-figures --verbose`` to its end (lockstep by default),
-    asserting exit 0; returns its output (the live ``[status]`` lines among it)."""
-    p = CovnetProcess(["up", str(config), "--out", str(out), "--no-figures", "--verbose"])
+def run_to_end(args: list[str], timeout: float = 240.0) -> str:
+    """``covnet ARGS`` to its end, asserting exit 0 (stopped by PID whatever happens); returns
+    its output."""
+    p = CovnetProcess(args)
     try:
         rc = p.wait(timeout=timeout)
     finally:
         p.stop()
     assert rc == 0, p.output()
     return p.output()
+
+
+def up_lockstep(config: Path, out: Path, timeout: float = 240.0) -> str:
+    """``covnet up CONFIG --out OUT --no-figures --verbose`` to its end (lockstep by default),
+    asserting exit 0; returns its output (the live ``[status]`` lines among it)."""
+    return run_to_end(["up", str(config), "--out", str(out), "--no-figures", "--verbose"], timeout)
 
 
 def assert_status_shows_gap(output: str) -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from multiproc import REPO, CovnetProcess
+from multiproc import REPO, CovnetProcess, run_to_end
 
 pytest.importorskip("distributed")
 
@@ -39,16 +39,6 @@ def cluster():
     while any(_alive(p) for p in pids) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not [p for p in pids if _alive(p)], "dask processes left running"
-
-
-def _run(args: list[str], timeout: float = 240) -> str:
-    p = CovnetProcess(args)
-    try:
-        rc = p.wait(timeout=timeout)
-    finally:
-        p.stop()
-    assert rc == 0, p.output()
-    return p.output()
 
 
 @pytest.fixture(scope="module")
@@ -111,8 +101,8 @@ DEFAULT_CASES = ("sweep", "mc-passive")
 def test_a_cluster_gives_the_local_results_bit_for_bit(case, cluster, small, tmp_path):
     argv, table, wall = CASES[case]
     args = [a.format(**{k: str(v) for k, v in small.items()}) for a in argv]
-    _run([*args, "--out", str(tmp_path / "local"), "--workers", "2"])
-    text = _run([*args, "--out", str(tmp_path / "dask"), "--cluster", cluster.address])
+    run_to_end([*args, "--out", str(tmp_path / "local"), "--workers", "2"])
+    text = run_to_end([*args, "--out", str(tmp_path / "dask"), "--cluster", cluster.address])
     assert f"on {cluster.address}" in text  # the progress line says where
     local = tmp_path / "local" / table
     dask = tmp_path / "dask" / table

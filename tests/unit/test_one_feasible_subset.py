@@ -21,15 +21,21 @@ from covnet.covariance_control.searches import SEARCHES, feasible_count
 PAPER = Path(__file__).resolve().parents[2] / "configs" / "paper.yaml"
 
 
-@pytest.mark.parametrize(("n", "failed"), [(30, ()), (40, (3, 17))])
-def test_one_feasible_subset_is_the_bounded_search_result(tmp_path, n, failed):
+def _bench(tmp_path, n):
+    """The bench network of ``n`` sensors (``covnet bench up --sensors n``): its scenario and
+    model (every sensor required)."""
     import yaml
 
     _, sc = kinds.load(PAPER)
     path = tmp_path / "net.yaml"
     path.write_text(yaml.safe_dump(bench_config(sc, n, 20), sort_keys=False))
     _, sc_n = kinds.load(path)
-    model = build_model(sc_n)
+    return sc_n, build_model(sc_n)
+
+
+@pytest.mark.parametrize(("n", "failed"), [(30, ()), (40, (3, 17))])
+def test_one_feasible_subset_is_the_bounded_search_result(tmp_path, n, failed):
+    sc_n, model = _bench(tmp_path, n)
     c = model.constraints
     if failed:  # failed sensors leave the required set: still one subset
         c = Constraints(excluded=frozenset(failed), required=c.required - frozenset(failed))
@@ -56,13 +62,7 @@ def test_one_feasible_subset_is_the_bounded_search_result(tmp_path, n, failed):
 def test_one_feasible_subset_is_the_exact_search_result(tmp_path, n, failed):
     """``exact`` beyond the fast path (more than 18 sensors): the same subset, value, ``P``
     bits and count as :func:`allocate_bnb`'s exact search, and every metric's value."""
-    import yaml
-
-    _, sc = kinds.load(PAPER)
-    path = tmp_path / "net.yaml"
-    path.write_text(yaml.safe_dump(bench_config(sc, n, 20), sort_keys=False))
-    _, sc_n = kinds.load(path)
-    model = build_model(sc_n)
+    sc_n, model = _bench(tmp_path, n)
     c = model.constraints
     if failed:
         c = Constraints(excluded=frozenset(failed), required=c.required - frozenset(failed))
@@ -85,13 +85,7 @@ def test_one_feasible_subset_is_the_exact_search_result(tmp_path, n, failed):
 def test_not_every_sensor_required_is_left_to_the_search(tmp_path):
     """One feasible subset that is not "every allowed sensor required" (a budget of one and a
     single allowed sensor) goes to the search itself."""
-    import yaml
-
-    _, sc = kinds.load(PAPER)
-    path = tmp_path / "net.yaml"
-    path.write_text(yaml.safe_dump(bench_config(sc, 20, 20), sort_keys=False))
-    _, sc_n = kinds.load(path)
-    model = build_model(sc_n)
+    sc_n, model = _bench(tmp_path, 20)
     c = Constraints(excluded=frozenset(range(1, 20)), required=frozenset())
     assert feasible_count(20, c) == 1
     P = predict_cov(model, model.P0)
@@ -102,13 +96,7 @@ def test_not_every_sensor_required_is_left_to_the_search(tmp_path):
 def test_no_tie_rule_without_a_free_sensor(tmp_path):
     """With every allowed sensor required the exact search has nothing to branch on: it builds
     no tie rule (which would bound the root first, 30-70 ms at N = 64, for one subset)."""
-    import yaml
-
-    _, sc = kinds.load(PAPER)
-    path = tmp_path / "net.yaml"
-    path.write_text(yaml.safe_dump(bench_config(sc, 24, 20), sort_keys=False))
-    _, sc_n = kinds.load(path)
-    model = build_model(sc_n)
+    sc_n, model = _bench(tmp_path, 24)
     P = predict_cov(model, model.P0)
     prob = _Problem(P, model.gains, model.desired(1), "spectral", model.constraints, 1e-9)
     assert prob.m == 0

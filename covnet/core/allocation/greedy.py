@@ -53,7 +53,7 @@ from covnet.core.allocation.search_problem import (
 )
 from covnet.core.allocation.svd_bound import WorkingFloor
 from covnet.core.gaussian import Mat
-from covnet.core.metrics import METRICS, MetricFn, capability
+from covnet.core.metrics import METRICS, Metric, MetricFn, capability
 
 #: local search: at most this many passes, each evaluating its moves in batches of MOVE_BLOCK
 MAX_PASSES = 64
@@ -398,25 +398,34 @@ class _BackwardCheck:
         return lb > best + VERIFY * max(self.scale, abs(best))
 
 
+def _moved(prob: _Problem, Z: Mat, r_: NDArray[np.intp], a_: NDArray[np.intp]) -> Mat:
+    """The information of each move ``(r_[i], a_[i])`` (``-1``: none) from ``Z``, one row each."""
+    Zm = np.broadcast_to(Z, (r_.size, Z.size)).copy()
+    Zm[r_ >= 0] -= prob.S[r_[r_ >= 0]]
+    Zm[a_ >= 0] += prob.S[a_[a_ >= 0]]
+    return Zm
+
+
 def _move_values(prob: _Problem, Z: Mat, rem: NDArray[np.intp], add: NDArray[np.intp]) -> Mat:
     """Working values of the moves ``(rem[i], add[i])`` (``-1``: none) from information ``Z``."""
     out = np.empty(rem.size)
     for lo in range(0, rem.size, MOVE_BLOCK):
         r_, a_ = rem[lo : lo + MOVE_BLOCK], add[lo : lo + MOVE_BLOCK]
-        Zm = np.broadcast_to(Z, (r_.size, Z.size)).copy()
-        Zm[r_ >= 0] -= prob.S[r_[r_ >= 0]]
-        Zm[a_ >= 0] += prob.S[a_[a_ >= 0]]
-        out[lo : lo + r_.size] = prob.approx_values(Zm)
+        out[lo : lo + r_.size] = prob.approx_values(_moved(prob, Z, r_, a_))
     prob.moves += rem.size
     return out
 
 
+def _entry(prob: _Problem) -> Metric | None:
+    """The registry's entry of the problem's metric (None for a user's plain function)."""
+    entry = METRICS.get(prob.name) if prob.name is not None else None
+    return entry if entry is not None and entry.fn is prob.f else None
+
+
 def _working_floor(prob: _Problem) -> WorkingFloor | None:
     """The registered metric's working floor (``Metric.working_floor``), if any."""
-    entry = METRICS.get(prob.name) if prob.name is not None else None
-    if entry is None or entry.fn is not prob.f:
-        return None
-    return capability(entry.working_floor, WorkingFloor)
+    entry = _entry(prob)
+    return None if entry is None else capability(entry.working_floor, WorkingFloor)
 
 
 def _screened_values(
@@ -459,9 +468,7 @@ def _screened_values(
         r_, a_ = rem[lo : lo + MOVE_BLOCK], add[lo : lo + MOVE_BLOCK]
         if prob.stop is not None and prob.stop():
             break
-        Zm = np.broadcast_to(Z, (r_.size, Z.size)).copy()
-        Zm[r_ >= 0] -= prob.S[r_[r_ >= 0]]
-        Zm[a_ >= 0] += prob.S[a_[a_ >= 0]]
+        Zm = _moved(prob, Z, r_, a_)
         with np.errstate(all="ignore"):
             X = prob.covariances(Zm)
             phi = floor(X, prob.D)
@@ -591,8 +598,8 @@ def _greedy_incs(prob: _Problem) -> list[NDArray[np.bool_]]:
 def _backward_whole_limit(prob: _Problem) -> bool:
     """The registered metric asks for backward elimination and its local search until the whole
     time limit (``Metric.greedy_whole_limit``), not greedy's share."""
-    entry = METRICS.get(prob.name) if prob.name is not None else None
-    return entry is not None and entry.fn is prob.f and entry.greedy_whole_limit
+    entry = _entry(prob)
+    return entry is not None and entry.greedy_whole_limit
 
 
 def _greedy_incs_timed(
