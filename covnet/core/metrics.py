@@ -539,6 +539,15 @@ class Metric:
       search may use the whole limit, not greedy's share of it (for a metric whose tree does
       not close the gap within the limit, so that the incumbent decides the certificate:
       :func:`covnet.core.allocation.greedy._greedy_incs_timed`);
+    - ``floors_first``: with many targets under a time limit, the bounded assignment search
+      runs a first round of single-target floors before deepening its enumeration (for a
+      metric whose single-target search closes a target's slack in a short time:
+      :mod:`covnet.core.allocation.assignment_search`, the timed plan).  Measured at N = 64,
+      T = 8, 5 problems, 90 ms of CPU, against the plan without it: median gap kl 0.43 %
+      (0.75 %), trace_diff 3.1 % of the distance from doing nothing (14.8 %); spectral 5.6 %
+      (4.0-4.6 %), svd 4.4 % (3.4-3.6 %), the induced norms slightly worse (short floors left
+      their bound weak and took the pairs' and the dual steps' time): set for the metrics with
+      the reduced relaxation and trace_diff;
     - ``batch_invariant``: ``f`` of a stack equals ``f`` one matrix at a time, bit for bit (see
       the module docstring); otherwise the searches prune with a margin and recheck near ties.
 
@@ -553,6 +562,7 @@ class Metric:
     dual_bound: object = None  # a DualNorm, a Ref to one, or None
     working_floor: object = None  # a WorkingFloor, a Ref to one, or None
     greedy_whole_limit: bool = False
+    floors_first: bool = False
 
     def __call__(self, A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
         return self.fn(A, B)
@@ -565,12 +575,13 @@ def _builtin(
     dual: bool = False,
     floor: Ref | None = None,
     greedy_whole_limit: bool = False,
+    floors_first: bool = False,
 ) -> Metric:
     """A built-in metric: batch-invariant, with both bounds (named ``<NAME>_BOUND`` in
     :mod:`covnet.core.allocation._fast` and :mod:`covnet.core.allocation.interval_bounds`),
     with ``dual`` the dual bound ``<NAME>_DUAL`` of
-    :mod:`covnet.core.allocation.lower_bounds`, ``floor`` its working floor and
-    ``greedy_whole_limit`` as :class:`Metric`'s."""
+    :mod:`covnet.core.allocation.lower_bounds`, ``floor`` its working floor,
+    ``greedy_whole_limit`` and ``floors_first`` as :class:`Metric`'s."""
     attr = f"{name.upper()}_BOUND"
     return Metric(
         name,
@@ -584,6 +595,7 @@ def _builtin(
         ),
         working_floor=floor,
         greedy_whole_limit=greedy_whole_limit,
+        floors_first=floors_first,
     )
 
 
@@ -598,12 +610,12 @@ METRICS: dict[str, Metric] = {
             floor=Ref("covnet.core.allocation.svd_bound", "SVD_FLOOR"),
             greedy_whole_limit=True,
         ),
-        _builtin("frobenius", frobenius, Relaxation("frobenius")),
+        _builtin("frobenius", frobenius, Relaxation("frobenius"), floors_first=True),
         _builtin("one_norm", one_norm, dual=True),
         _builtin("inf_norm", inf_norm, dual=True),
-        _builtin("trace_diff", trace_diff),
-        _builtin("logdet", logdet, Relaxation("logdet")),
-        _builtin("kl", kl, Relaxation("kl")),
+        _builtin("trace_diff", trace_diff, floors_first=True),
+        _builtin("logdet", logdet, Relaxation("logdet"), floors_first=True),
+        _builtin("kl", kl, Relaxation("kl"), floors_first=True),
     )
 }
 

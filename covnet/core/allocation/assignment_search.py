@@ -112,7 +112,7 @@ superset bounds' rows refined in **one** call of the relaxation a column
 (:meth:`_Rows.together`: its cost is mostly per call, 1.3-1.5 ms at 1 to 60 rows, kl and
 frobenius at N = 64, so this halves the refinement's cost; each row's result is a certified
 bound of its own interval whatever the other rows of the call); (2) for the metrics of
-``FLOORS_FIRST`` (kl, frobenius, logdet, trace_diff: a short single-target search closes a
+``Metric.floors_first`` (kl, frobenius, logdet, trace_diff: a short single-target search closes a
 column's slack there; for the others short floors left the bound weak and took the pairs' and
 dual steps' time, measured), a first round of single-target floors (the targets furthest
 below their incumbent first, each at most ``TIMED_FLOOR_SLICE`` of the limit, the round at most
@@ -220,13 +220,6 @@ FLOOR_MARGIN = 1.5
 TIMED_FLOOR_SHARE = 0.3
 TIMED_FLOOR_SLICE = 0.13
 TIMED_FLOOR_MIN = 0.09
-#: the metrics whose timed plan runs the first round of floors: where a short single-target
-#: search closes a column's slack (its own bound strong: the reduced relaxation's metrics; and
-#: trace_diff).  Measured at N = 64, T = 8, 5 problems, 90 ms of CPU, against the plan without
-#: it: median gap kl 0.43 % (0.75 %), trace_diff 3.1 % of the distance from doing nothing
-#: (14.8 %); spectral 5.6 % (4.0-4.6 %), svd 4.4 % (3.4-3.6 %), the induced norms slightly
-#: worse: there short floors left the bound weak and took the pairs' and the dual steps' time.
-FLOORS_FIRST = frozenset({"kl", "frobenius", "logdet", "trace_diff"})
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -1175,8 +1168,7 @@ def _search(
             def first() -> float:
                 return rem() - keep
 
-            name = inp.entry.name if inp.entry is not None else None
-            if name in FLOORS_FIRST:
+            if inp.entry is not None and inp.entry.floors_first:  # Metric.floors_first
                 _floors(dual, cs.w * st.v, first, min_s, slice_s, clock)
             dual.deepen(deadline, cs.w * st.v, remaining)
         if _enum_moves(st, dual, deadline):
