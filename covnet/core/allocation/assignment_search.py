@@ -681,6 +681,7 @@ class _Dual:
         self.depth = depth
         self.refine_rows = refine_rows
         self.sep = self.Kp >= sum(self.nc)  # the count limit never binds: columns separate
+        self._grids: dict[int, tuple[NDArray[np.bool_], NDArray[np.intp]]] = {}
         if timed:
             for c in order:
                 col = cs.cols[c]
@@ -816,13 +817,17 @@ class _Dual:
         else:
             G = np.zeros(Kp + 1)
             choice: list[NDArray[np.intp]] = []
+            rows = np.arange(Kp + 1)
             for cost in costs:
                 nc = cost.size - 1
-                s = np.arange(Kp + 1)[:, None] - np.arange(nc + 1)[None, :]
-                cand = np.where(s >= 0, G[np.maximum(s, 0)] + cost[None, :], np.inf)
+                grid = self._grids.get(nc)
+                if grid is None:  # the DP's index grid of this count, built once
+                    s = rows[:, None] - np.arange(nc + 1)[None, :]
+                    grid = self._grids[nc] = (s >= 0, np.maximum(s, 0))
+                cand = np.where(grid[0], G[grid[1]] + cost[None, :], np.inf)
                 k = np.argmin(cand, axis=1)
                 choice.append(k)
-                G = cand[np.arange(Kp + 1), k]
+                G = cand[rows, k]
             s_best = int(np.argmin(G))
             total = float(G[s_best])
             counts = []
@@ -994,6 +999,11 @@ class _Enum:
                 self.sup = w * np.where(np.isfinite(sup), np.maximum(sup, 0.0), 0.0)
                 Z_hi = np.repeat(Z_all, idx.shape[0], axis=0)
                 self.rows = _Rows(prob, Z, Z_hi, sZ, np.arange(idx.shape[0]))
+        #: per ``k <= 2`` the members' columns of the ``k``-sets (:meth:`_psum`)
+        self._cols = {k: [np.ascontiguousarray(self.sets[k][:, i]) for i in range(k)]
+                      for k in (1, 2) if k < len(self.sets)}  # fmt: skip
+        self._pi: Mat | None = None  # the prices of the last :meth:`cost` and its argmins
+        self._arg: dict[int, int] = {}
         self.scale = float(max(float(e.max()) for e in self.exact))
         for _, sup in self.lower:
             self.scale = max(self.scale, float(sup.max(initial=0.0)))
@@ -1005,26 +1015,60 @@ class _Enum:
         members cost at least that)."""
         po = pi[self.o]
         out = np.empty(self.nc + 1)
+        self._pi = pi.copy()
+        self._arg = {}
+        sums = [self._psum(po, k) for k in range(min(self.d, self.nc) + 1)]
         for k in range(min(self.d, self.nc) + 1):
-            out[k] = float(np.min(self.exact[k] + po[self.sets[k]].sum(axis=1)))
+            v = self.exact[k] + sums[k]
+            i = int(np.argmin(v))
+            self._arg[k] = i
+            out[k] = float(v[i])
         if self.nc > self.d:
-            base = float(np.min(self.sup + po[self.sets[self.d]].sum(axis=1)))
+            v = self.sup + sums[self.d]
+            i = int(np.argmin(v))
+            self._arg[-1] = i
+            base = float(v[i])
             out[self.d + 1 :] = base + ps[1 : self.nc - self.d + 1]
         for d0, sup in self.lower:  # every k > d0: above one of its d0-subsets
             if self.nc > d0:
-                base = float(np.min(sup + po[self.sets[d0]].sum(axis=1)))
+                s0 = sums[d0] if d0 < len(sums) else self._psum(po, d0)
+                base = float(np.min(sup + s0))
                 out[d0 + 1 :] = np.fmax(out[d0 + 1 :], base + ps[1 : self.nc - d0 + 1])
         return out
+
+    def _psum(self, po: Mat, k: int) -> Mat:
+        """The prices of the enumerated ``k``-sets, ``po[sets[k]].sum(axis=1)`` bit for bit:
+        for ``k <= 2`` by additions of the members' columns (the same one or two roundings,
+        without the fancy-indexed ``(m, k)`` copy and the reduction: the dual steps' cost),
+        else that expression."""
+        if k == 0:
+            return np.zeros(1)
+        if k == 1:
+            return po[self._cols[1][0]]
+        if k == 2:
+            c0, c1 = self._cols[2]
+            return po[c0] + po[c1]
+        return np.asarray(po[self.sets[k]].sum(axis=1))
 
     def members(self, pi: Mat, k: int) -> NDArray[np.intp] | None:
         """A minimiser's members for count ``k`` (global sensor indices)."""
         po = pi[self.o]
+        # :meth:`cost`'s argmins at these prices (the dual steps: the same prices)
+        cached = self._pi is not None and np.array_equal(self._pi, pi)
         if k <= self.d:
-            i = int(np.argmin(self.exact[k] + po[self.sets[k]].sum(axis=1)))
+            if cached:
+                i = self._arg[k]
+            else:
+                i = int(np.argmin(self.exact[k] + po[self.sets[k]].sum(axis=1)))
             return np.asarray(self.o[self.sets[k][i]])
-        i = int(np.argmin(self.sup + po[self.sets[self.d]].sum(axis=1)))
+        if cached:
+            i = self._arg[-1]
+        else:
+            i = int(np.argmin(self.sup + po[self.sets[self.d]].sum(axis=1)))
         first = self.sets[self.d][i]
-        rest = np.setdiff1d(np.arange(self.o.size), first)
+        keep = np.ones(self.o.size, dtype=bool)
+        keep[first] = False
+        rest = np.flatnonzero(keep)  # np.setdiff1d(arange, first): sorted, the same
         order = rest[np.lexsort((rest, po[rest]))][: k - self.d]
         return np.asarray(self.o[np.concatenate((first, order))])
 
