@@ -430,6 +430,9 @@ class _State:
         self.R = np.zeros(N)
         self.M = np.zeros((N, N))
         self.M[:, cols.required] = np.inf  # an off sensor's row: a required one cannot leave
+        #: the columns whose members' rows of ``R`` and ``M`` are not yet refreshed (only the
+        #: local search reads them: :meth:`fresh`)
+        self.stale: set[int] = set()
         for c in range(ncol):
             self._refresh_add(c)
 
@@ -475,7 +478,17 @@ class _State:
             self.v[x] = self.cs.cols[x].val(self.sets[x])
         for x in changed:
             self._refresh_add(x)
-            self._refresh_members(x)
+        self.stale.update(changed)
+
+    def fresh(self) -> None:
+        """The stale columns' rows of ``R`` and ``M`` refreshed: the same values as refreshed
+        at every :meth:`put` (a column's rows depend only on its own set and value, and the
+        rows of different columns' members are disjoint; an off sensor's row is set by
+        :meth:`put`), computed once however many puts changed the column since (the forward
+        greedy reads only ``A``; a swap is three puts)."""
+        for c in sorted(self.stale):
+            self._refresh_members(c)
+        self.stale.clear()
 
     def n_on(self) -> int:
         return int((self.a != OFF).sum())
@@ -522,6 +535,7 @@ def _local_search(st: _State, deadline: Callable[[], bool] | None) -> None:
     for _ in range(PASSES_PER_SENSOR * N + 1):
         if deadline is not None and deadline():
             return
+        st.fresh()
         F = st.F
         thr = -IMPROVE * max(abs(F), TINY)
         on = st.a != OFF
