@@ -439,3 +439,102 @@ def test_refinement_together_is_a_bound_of_each_interval(metric):
         assert (en.sup <= top * (1 + 1e-9)).all()
         np.testing.assert_allclose(timed.h[c], plain.h[c], rtol=1e-3, atol=1e-9)
         np.testing.assert_allclose(en.sup, plain.enum[c].sup, rtol=1e-3, atol=1e-9)
+
+
+def _plain_enum_cost(en, pi, ps):
+    """``_Enum.cost`` as written before round mt8 (the reference of the faster one)."""
+    po = pi[en.o]
+    out = np.empty(en.nc + 1)
+    for k in range(min(en.d, en.nc) + 1):
+        out[k] = float(np.min(en.exact[k] + po[en.sets[k]].sum(axis=1)))
+    if en.nc > en.d:
+        base = float(np.min(en.sup + po[en.sets[en.d]].sum(axis=1)))
+        out[en.d + 1 :] = base + ps[1 : en.nc - en.d + 1]
+    for d0, sup in en.lower:
+        if en.nc > d0:
+            base = float(np.min(sup + po[en.sets[d0]].sum(axis=1)))
+            out[d0 + 1 :] = np.fmax(out[d0 + 1 :], base + ps[1 : en.nc - d0 + 1])
+    return out
+
+
+def _plain_members(en, pi, k):
+    po = pi[en.o]
+    if k <= en.d:
+        i = int(np.argmin(en.exact[k] + po[en.sets[k]].sum(axis=1)))
+        return en.o[en.sets[k][i]]
+    i = int(np.argmin(en.sup + po[en.sets[en.d]].sum(axis=1)))
+    first = en.sets[en.d][i]
+    rest = np.setdiff1d(np.arange(en.o.size), first)
+    return en.o[np.concatenate((first, rest[np.lexsort((rest, po[rest]))][: k - en.d]))]
+
+
+@pytest.mark.parametrize("depth", [1, 2, 3])
+@pytest.mark.parametrize("seed", range(3))
+def test_enumeration_cost_and_members_bit_for_bit(depth, seed):
+    """The dual steps' enumeration costs (prices by column additions) and minimisers (kept
+    from the last cost's argmins) equal the plain fancy-indexed sums and argmins bit for bit,
+    at repeated, tied and changed prices, with kept shallower levels (the timed plan)."""
+    from covnet.core.allocation import assignment_search as srch
+    from covnet.core.allocation.assignment import _Inputs
+
+    N, T = 9, 2
+    P, J, D, w, feas = _problem(N, T, 300 + seed)
+    inp = _Inputs(P, J, D, "spectral", w, feas, MultiConstraints(), 1e-9)
+    cs = srch._Columns(inp)
+    col = cs.cols[0]
+    o = np.flatnonzero(cs.allow[0])
+    nc = o.size
+    en = srch._Enum(col, o, nc, 1, float(cs.w[0]))
+    if depth > 1:
+        en = srch._Enum(col, o, nc, depth, float(cs.w[0]), prev=en)
+    rng = np.random.default_rng(seed)
+    pis = [np.zeros(N), rng.uniform(size=N), np.round(rng.uniform(size=N), 1)]
+    pis.append(rng.uniform(0.0, 1e-3, size=N) * 10.0 ** rng.integers(-8, 3, size=N))
+    for pi in pis:
+        ps = np.concatenate(([0.0], np.cumsum(np.sort(pi[o])[:nc])))
+        got = en.cost(pi, ps)
+        assert got.tobytes() == _plain_enum_cost(en, pi, ps).tobytes()
+        po = pi[o]
+        for k in range(depth + 1):
+            ref = po[en.sets[k]].sum(axis=1)
+            assert en._psum(po, k).tobytes() == ref.tobytes(), k
+        for k in range(1, nc + 1):
+            assert en.members(pi, k).tolist() == _plain_members(en, pi, k).tolist()
+    # members at prices other than the last cost's: computed afresh, not the kept argmins
+    for k in range(1, nc + 1):
+        assert en.members(pis[0], k).tolist() == _plain_members(en, pis[0], k).tolist()
+    pi = pis[1].copy()
+    en.cost(pi, np.concatenate(([0.0], np.cumsum(np.sort(pi[o])[:nc]))))
+    pi[o[0]] += 5.0  # changed in place after the cost
+    for k in range(1, nc + 1):
+        assert en.members(pi, k).tolist() == _plain_members(en, pi, k).tolist()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_state_rows_refreshed_lazily_equal_eager(seed):
+    """The local search's rows ``R`` and ``M`` refreshed once before a pass (:meth:`fresh`)
+    equal those refreshed at every put, after random puts (moves, swaps, offs)."""
+    from covnet.core.allocation import assignment_search as srch
+    from covnet.core.allocation.assignment import _Inputs
+
+    N, T = 8, 3
+    P, J, D, w, feas = _problem(N, T, 400 + seed)
+    inp = _Inputs(P, J, D, "kl", w, feas, MultiConstraints(required=frozenset({seed % N})), 1e-9)
+    cs = srch._Columns(inp)
+    lazy, eager = srch._State(cs), srch._State(cs)
+    rng = np.random.default_rng(seed)
+    for _ in range(40):
+        j = int(rng.integers(N))
+        opts = [OFF, *np.flatnonzero(cs.allow[:, j]).tolist()]
+        c = int(opts[rng.integers(len(opts))])
+        for st in (lazy, eager):
+            st.put(j, c)
+        for x in sorted(eager.stale):
+            eager._refresh_members(x)
+        eager.stale.clear()
+        if rng.uniform() < 0.3:
+            lazy.fresh()
+    lazy.fresh()
+    assert lazy.R.tobytes() == eager.R.tobytes()
+    assert lazy.M.tobytes() == eager.M.tobytes()
+    assert lazy.A.tobytes() == eager.A.tobytes()
