@@ -538,3 +538,15 @@ def test_state_rows_refreshed_lazily_equal_eager(seed):
     assert lazy.R.tobytes() == eager.R.tobytes()
     assert lazy.M.tobytes() == eager.M.tobytes()
     assert lazy.A.tobytes() == eager.A.tobytes()
+
+
+def test_combinations_as_itertools():
+    """The enumeration's sets: the rows and order of ``itertools.combinations``."""
+    from covnet.core.allocation.assignment_search import _combinations
+
+    for n in range(6):
+        for k in range(4):
+            ref = list(itertools.combinations(range(n), k))
+            got = _combinations(n, k)
+            assert got.shape == (len(ref), k) and got.dtype == np.intp
+            assert [tuple(r) for r in got.tolist()] == ref

@@ -963,6 +963,21 @@ def _depths(sizes: list[int], budget: int) -> list[int]:
         depth[c_best] += 1
 
 
+def _combinations(n: int, k: int) -> NDArray[np.intp]:
+    """``itertools.combinations(range(n), k)`` as an ``(m, k)`` array, the same rows in the
+    same (lexicographic) order; ``k <= 2`` without the tuples (``np.triu_indices`` runs row
+    by row, ``i < j``: the pairs' order)."""
+    if k == 0:
+        return np.zeros((1, 0), dtype=np.intp)
+    if k == 1:
+        return np.arange(n, dtype=np.intp)[:, None]
+    if k == 2:
+        i, j = np.triu_indices(n, 1)
+        return np.stack((i, j), axis=1).astype(np.intp)
+    combos = list(itertools.combinations(range(n), k))
+    return np.array(combos, dtype=np.intp).reshape(len(combos), k)
+
+
 class _Enum:
     """The enumeration bound of one target column (module docstring, *Lower bound*): the
     sets of its allowed sensors ``o`` with at most ``d`` members, each with a certified lower
@@ -1001,8 +1016,7 @@ class _Enum:
             self.lower = [*prev.lower, (prev.d, prev.sup)]
             k0 = prev.d + 1
         for k in range(k0, d + 1):
-            combos = list(itertools.combinations(range(o.size), k))
-            idx = np.array(combos, dtype=np.intp).reshape(len(combos), k)
+            idx = _combinations(o.size, k)
             Z = col.base[None] + S[idx].sum(axis=1)
             sZ = prob.summary(Z)
             lb = prob.combine(sZ, sZ)
