@@ -103,6 +103,15 @@ members cost at least ``π_c(k - 1)``); the column's cost is the largest of its 
 N = 64 a depth-1 superset bound refined by the relaxation is often above the unrefined
 intervals of the pairs (which only the ``REFINE_ROWS`` smallest of about 1 800 are refined).
 
+*The dual steps' cost* (round mt8): a step evaluates every column's bounds at the new
+prices and the minimiser's members; the enumerated sets' prices are sums of their members'
+columns (:meth:`_Enum._psum`, the same roundings as the fancy-indexed sums), the minimisers'
+argmins are kept from the bound for the subgradient (the same prices), the dynamic programme's
+index grids are built once: 0.42 ms a step instead of 1.25 at N = 64, T = 8 (svd), the
+same bits step for step, so with a clock about 2.5 times the steps in the same time.  The
+local search's rows ``R``, ``M`` are refreshed once before a pass (:meth:`_State.fresh`), not
+at every put.
+
 **Bounded** (:func:`allocate_assignments_bounded`): greedy, then dual steps until the relative
 gap is at most ``rel_gap`` (or the node or time limit); a *node* is one dual step.
 
