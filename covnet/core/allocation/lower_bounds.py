@@ -168,36 +168,47 @@ def column_ascent(M_lo: Mat, V: Mat, sweeps: int = ASCENT_SWEEPS) -> tuple[Mat, 
     middle), ``sweeps`` rounds of exact maximisation coordinate by coordinate (closed form).
     Every ``y_j`` is in the box whatever the input (a non-finite step keeps the coordinate; a
     final clip), so ``sym(y_j e_jᵀ)`` is in the dual ball.  Inputs finite."""
-    b = np.swapaxes(M_lo + 0.5 * (V @ np.swapaxes(V, 1, 2)), 1, 2)  # (m, j, i): b_j = M_mid e_j
+    # coordinate-major layouts (contiguous per coordinate i): bt[i][:, j] = b_j[i] (M_mid is
+    # symmetric), yt[i][:, j] = y_j[i], w0[i], w1[i] the row i of V
+    bt = np.ascontiguousarray(np.moveaxis(M_lo + 0.5 * (V @ np.swapaxes(V, 1, 2)), 1, 0))
     rho = 0.5 * np.sqrt((V * V).sum(axis=2))  # (m, j)
-    y = np.where(b < 0.0, -1.0, 1.0)
-    n = b.shape[-1]
+    yt = np.where(bt < 0.0, -1.0, 1.0)
+    n = bt.shape[0]
+    w0 = np.ascontiguousarray(V[:, :, 0].T)[:, :, None]  # (i, m, 1)
+    w1 = np.ascontiguousarray(V[:, :, 1].T)[:, :, None]
     with np.errstate(all="ignore"):
-        a = y @ V  # Vᵀ y_j (m, j, 2)
+        a0 = (yt * w0).sum(axis=0)  # Vᵀ y_j (m, j), two components
+        a1 = (yt * w1).sum(axis=0)
+        steps = []
+        for i in range(n):  # what does not depend on y: c = β / (ρ|w|) and the step's form
+            wn = np.sqrt(w0[i] * w0[i] + w1[i] * w1[i])  # (m, 1)
+            wn1 = np.where(wn > 0.0, wn, 1.0)
+            rw = rho * wn
+            beta = bt[i]
+            c = np.where(rw > 0.0, beta / np.where(rw > 0.0, rw, 1.0), 2.0 * np.sign(beta))
+            inside = np.abs(c) < 1.0
+            cc = np.where(inside, c, 0.0)
+            k = cc / np.sqrt(1.0 - cc * cc)
+            edge = np.where(c >= 1.0, 1.0, -1.0)
+            steps.append((w0[i] / wn1, w1[i] / wn1, wn1, k, inside, edge))
         for _ in range(sweeps):
             for i in range(n):
-                w0, w1 = V[:, None, i, 0], V[:, None, i, 1]  # w = V[i] (m, 1)
-                wn = np.sqrt(w0 * w0 + w1 * w1)
-                wn1 = np.where(wn > 0.0, wn, 1.0)
-                yi = y[:, :, i]
-                p0 = a[:, :, 0] - yi * w0  # Vᵀ y without coordinate i
-                p1 = a[:, :, 1] - yi * w1
-                alpha = (p0 * w0 + p1 * w1) / wn1
-                gamma = np.abs(p0 * w1 - p1 * w0) / wn1
-                beta = b[:, :, i]
-                rw = rho * wn
-                c = np.where(rw > 0.0, beta / np.where(rw > 0.0, rw, 1.0), 2.0 * np.sign(beta))
-                inside = np.abs(c) < 1.0
-                cc = np.where(inside, c, 0.0)
-                t = (cc * gamma / np.sqrt(1.0 - cc * cc) - alpha) / wn1
-                t = np.where(inside, np.clip(t, -1.0, 1.0), np.where(c >= 1.0, 1.0, -1.0))
+                u0, u1, wn1, k, inside, edge = steps[i]
+                yi = yt[i]
+                p0 = a0 - yi * w0[i]  # Vᵀ y without coordinate i
+                p1 = a1 - yi * w1[i]
+                alpha = p0 * u0 + p1 * u1
+                gamma = np.abs(p0 * u1 - p1 * u0)
+                t = np.where(inside, np.clip((k * gamma - alpha) / wn1, -1.0, 1.0), edge)
                 t = np.where(np.isfinite(t), t, yi)
-                y[:, :, i] = t
-                a[:, :, 0] = p0 + t * w0
-                a[:, :, 1] = p1 + t * w1
-    y = np.clip(np.where(np.isfinite(y), y, 0.0), -1.0, 1.0)
-    a = y @ V
-    h = (b * y).sum(axis=2) - rho * np.sqrt((a * a).sum(axis=2))
+                yt[i] = t
+                a0 = p0 + t * w0[i]
+                a1 = p1 + t * w1[i]
+    yt = np.clip(np.where(np.isfinite(yt), yt, 0.0), -1.0, 1.0)
+    a0 = (yt * w0).sum(axis=0)
+    a1 = (yt * w1).sum(axis=0)
+    h = (bt * yt).sum(axis=0) - rho * np.sqrt(a0 * a0 + a1 * a1)
+    y = np.ascontiguousarray(np.moveaxis(yt, 0, 2))  # (m, j, i)
     return np.asarray(y, dtype=np.float64), np.asarray(h, dtype=np.float64)
 
 
