@@ -206,6 +206,10 @@ class _Problem:
             self.P_inf = P.reshape(n * n).copy()
         self.Kmat, self.Cinv = K, Cinv
         self.T = np.einsum("ia,jb->abij", K, K).reshape(r * r, n * n)
+        # the diagonal's columns (:meth:`diagonals`)
+        diag = np.arange(n) * (n + 1)
+        self.T_diag = np.ascontiguousarray(self.T[:, diag])
+        self.P_inf_diag = self.P_inf[diag].copy()
         rr = r * r
         G = self.G
         base = Cinv.reshape(rr).copy()
@@ -225,10 +229,27 @@ class _Problem:
 
     def covariances(self, Z: Mat) -> Mat:
         """``P(Z) = P∞ + K Z⁻¹ Kᵀ`` ``(m, n, n)`` of the information rows ``Z`` ``(m, r*r)``."""
-        r, n = self.r, self.n
+        n = self.n
         m = Z.shape[0]
-        if r == 0:
+        if self.r == 0:
             return np.broadcast_to(self.P_inf.reshape(n, n), (m, n, n)).copy()
+        X = np.asarray(self._inverse(Z) @ self.T, dtype=np.float64)
+        X += self.P_inf
+        return X.reshape(m, n, n)
+
+    def diagonals(self, Z: Mat) -> Mat:
+        """The diagonals ``(m, n)`` of :meth:`covariances`, bit for bit (the same dot product
+        and sum per entry, on the diagonal's columns of ``T`` and ``P∞`` only)."""
+        m = Z.shape[0]
+        if self.r == 0:
+            return np.broadcast_to(self.P_inf_diag, (m, self.n)).copy()
+        d = np.asarray(self._inverse(Z) @ self.T_diag, dtype=np.float64)
+        d += self.P_inf_diag
+        return d
+
+    def _inverse(self, Z: Mat) -> Mat:
+        """``W = Z⁻¹`` (rows ``(m, r*r)``; ``r >= 1``)."""
+        r = self.r
         with np.errstate(all="ignore"):
             if r == 1:
                 W = 1.0 / Z
@@ -242,13 +263,15 @@ class _Problem:
                 W /= det[:, None]
             else:
                 W = np.ascontiguousarray(_spd_inverse_soa(np.ascontiguousarray(Z.T), r).T)
-        X = np.asarray(W @ self.T, dtype=np.float64)
-        X += self.P_inf
-        return X.reshape(m, n, n)
+        return W
 
     def summary(self, Z: Mat) -> Mat:
+        """The bound's endpoint summaries of the information rows ``Z`` (from the diagonals
+        alone where the bound reads only them: abs_trace, trace_diff)."""
         assert self.bound is not None
         with np.errstate(all="ignore"):
+            if self.bound.from_diagonal is not None:
+                return self.bound.from_diagonal(self.diagonals(Z), self.dc)
             return self.bound.summary(self.covariances(Z), self.dc)
 
     def refine(self, Z_lo: Mat, Z_hi: Mat, lb: Mat, sB: Mat, tau: float) -> Mat:
