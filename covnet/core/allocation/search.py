@@ -48,9 +48,10 @@ sensors only the canonical completions are explored (a copy only with its lower-
 a check after the search proves the choice is the reference's, else the search runs again
 without these rules.  The dual bound (spectral, one_norm, inf_norm, abs_trace) costs about a
 hundred interval bounds, so exact mode applies it only to nodes with ``DUAL_MIN_REST`` or more
-undecided sensors; the others get its vertex bound where the metric has one (one_norm,
-inf_norm: a few fixed dual points a node, :meth:`~covnet.core.allocation.lower_bounds.\
-_DualBound.vertex_bound`).
+undecided sensors (where the metric has a vertex bound, only where that does not prune
+already); the others get the vertex bound alone (one_norm, inf_norm: a few dual points a node,
+each found in closed form by coordinate ascent, and the best mixture of two,
+:meth:`~covnet.core.allocation.lower_bounds._DualBound.vertex_bound`).
 
 **Bounded** (``rel_gap > 0``, a time or node limit): with ``rel_gap > 0`` nodes are explored best
 bound first and depth first in turn, and pruned once their bound exceeds ``U - rel_gap·|U|``; a
