@@ -46,6 +46,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from covnet.core.allocation import inertia
 from covnet.core.gaussian import Mat
 from covnet.core.lapack import flapack
 from covnet.core.metrics import EIG_TIE_RTOL, METRICS, capability, ordered_eigh
@@ -152,6 +153,8 @@ class DesiredConstants:
 
 SummaryFn = Callable[[Mat, DesiredConstants], Mat]
 CombineFn = Callable[[Mat, Mat, DesiredConstants, IntervalContext], NDArray[np.float64]]
+#: ``above(X, dc, ctx, tau, lower)``: :attr:`IntervalBound.above`
+AboveFn = Callable[[Mat, DesiredConstants, IntervalContext, float, bool], Mat]
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,11 +163,18 @@ class IntervalBound:
     and ``combine(s_A, s_B, dc, ctx)`` ``(m,)``, a lower bound of the metric over ``[A, B]``.
     ``from_diagonal(d, dc)``, where the summary reads only the diagonal: the same summary from
     the diagonals ``d`` ``(m, n)`` (a search then computes only those:
-    :meth:`covnet.core.allocation.search_problem._Problem.diagonals`)."""
+    :meth:`covnet.core.allocation.search_problem._Problem.diagonals`).
+    ``above(X, dc, ctx, tau, lower)``, optionally: ``summary(X, dc)`` except on rows it proves
+    ``combine(..) > tau`` for *any* partner summary (``lower``: ``X`` is a lower endpoint
+    ``A``, else an upper one ``B``), which get a looser summary whose combination with any
+    partner is still ``> tau`` and a valid bound (at most that of ``summary``): rows whose
+    bound from ``summary`` is ``> tau`` (spectral's inertia pre-test,
+    :func:`_spectral_above`)."""
 
     summary: SummaryFn
     combine: CombineFn
     from_diagonal: SummaryFn | None = None
+    above: AboveFn | None = None
 
 
 def _f64(x: object) -> Mat:
@@ -200,6 +210,93 @@ def _spectral_combine(
     n err`` with an endpoint's error, the metric by at most ``n err`` with the completion's."""
     v = np.maximum(sA[:, -1], -sB[:, 0])
     return _deflate(v, dc.n, ctx, 2.0 * dc.n * ctx.err)
+
+
+#: the inertia pre-test's shift of the threshold, relative to ``|v0| + scale``
+#: (:func:`_spectral_above`)
+MARGIN = 2.0**-30
+#: a bound on LAPACK's eigenvalue error relative to ``||M||_2`` (:func:`_spectral_above`)
+EIG_REL = 2.0**-32
+#: the factor on the required gap a proven row's check asks for (rounding of the check itself)
+SAFETY = 2.0
+
+
+def _spectral_threshold(tau: float, dc: DesiredConstants, ctx: IntervalContext) -> float:
+    """A ``v0`` with ``_deflate(v) > tau`` for every ``v >= v0`` as :func:`_spectral_combine`
+    computes it (``nan`` if none is found): ``(tau + shift) / (1 - rel)`` raised ulp by ulp
+    until the same floating-point operations as :func:`_deflate`'s give ``> tau`` (python
+    floats are IEEE doubles like numpy's; rounding is monotone, so every ``v >= v0`` passes)."""
+    n = dc.n
+    rel = ROUND * n * EPS
+    sub = 2.0 * n * ctx.err + rel * ctx.scale
+    v0 = (tau + sub) / (1.0 - rel)
+    for _ in range(64):
+        if not math.isfinite(v0):
+            break
+        if v0 * (1.0 - rel) - sub > tau:
+            return v0
+        v0 = math.nextafter(v0, math.inf)
+    return math.nan
+
+
+def _spectral_above(
+    X: Mat, dc: DesiredConstants, ctx: IntervalContext, tau: float, lower: bool
+) -> Mat:
+    """:func:`_eig_minus_d`, except on the rows an inertia test proves prunable, which get no
+    eigenvalues but bounds of the two that :func:`_spectral_combine` reads: a lower endpoint
+    ``[+inf, ..., +inf, v0]`` (``λmax(M) >= v0``), an upper one ``[-v0, -inf, ..., -inf]``
+    (``λmin(M) <= -v0``); the combination is then ``_deflate(v0) > tau`` with any partner, and
+    still a valid lower bound (at most today's, from the computed eigenvalues).
+
+    A lower endpoint's bound needs ``λmax(M) > t``, an upper one's ``-λmin(M) > t`` (``M = X -
+    P_d``, ``t`` the threshold of ``_deflate(v) > tau``): :func:`_spectral_combine`'s ``v =
+    max(λmax(A - P_d), -λmin(B - P_d))`` is at least either.  Proof that a proven row's bound
+    from :func:`_eig_minus_d` is ``> tau``: ``v0`` (:func:`_spectral_threshold`) has
+    ``_deflate(v) > tau`` for every computed ``v >= v0``.  The test factors ``T I - M`` (lower)
+    or ``M + T I`` (upper) with ``T = v0 + MARGIN (|v0| + scale)``; a breakdown proves
+    ``λmax(M) >= T - c·h`` or ``λmin(M) <= -T + c·h`` (:mod:`covnet.core.allocation.inertia`,
+    Demmel's theorem; ``c`` = ``breakdown_slack(n)``, ``h = max_i |H_ii| <= |T| + max_i
+    |M_ii|``).  LAPACK's computed eigenvalues are within ``EIG_REL ||M||_2 <= EIG_REL ||M||_F``
+    of the exact ones of the computed ``M`` (backward stability of the symmetric eigensolvers,
+    LAPACK Users' Guide §4.7: ``p(n) eps ||M||_2`` with a modest ``p``; ``EIG_REL = 2^-32`` is
+    ``2^20 eps``).  So a proven row with ``T - v0 >= c h + EIG_REL ||M||_F`` has a computed
+    ``λmax >= v0`` (lower) or ``-λmin >= v0`` (upper): its bound is ``> tau`` with any partner
+    summary.  Each proven row is checked so (times SAFETY, for the check's own rounding; the
+    whole batch at once with ``max |M_ij|``, ``||M||_F <= n max |M_ij|``) and must be finite;
+    a row that fails, or does not break down, gets LAPACK's eigenvalues, the very bits of
+    :func:`_eig_minus_d` (``eigvalsh`` factors each matrix on its own)."""
+    M = X - dc.D
+    m, n = M.shape[0], dc.n
+    v0 = _spectral_threshold(tau, dc, ctx)
+    if m == 0 or not math.isfinite(v0):
+        return _f64(np.linalg.eigvalsh(M))
+    T = v0 + MARGIN * (abs(v0) + ctx.scale)
+    broken = inertia.lam_max_above(M, T) if lower else inertia.lam_min_below(M, T)
+    rows = np.flatnonzero(broken)
+    if rows.size:
+        c = inertia.breakdown_slack(n)
+        with np.errstate(all="ignore"):
+            # the whole batch at once (||M||_F <= n max |M_ij|), else row by row; NaN: no
+            a = float(np.abs(M).max())
+            if not (T - v0) >= SAFETY * (c * (abs(T) + a) + EIG_REL * n * a):
+                Mr = M[rows]
+                h = abs(T) + np.abs(np.diagonal(Mr, axis1=1, axis2=2)).max(axis=1)
+                fro = np.sqrt((Mr * Mr).sum(axis=(1, 2)))
+                rows = rows[(T - v0) >= SAFETY * (c * h + EIG_REL * fro)]
+    if rows.size == 0:
+        return _f64(np.linalg.eigvalsh(M))
+    keep = np.ones(m, dtype=bool)
+    keep[rows] = False
+    out = np.empty((m, n))
+    if rows.size < m:
+        out[keep] = np.linalg.eigvalsh(M[keep])
+    if lower:  # λmax >= v0 (and λmin <= +inf): the bound deflate(v0) > tau
+        out[rows, :-1] = math.inf
+        out[rows, -1] = v0
+    else:  # λmin <= -v0 (and λmax >= -inf)
+        out[rows, 0] = -v0
+        out[rows, 1:] = -math.inf
+    return out
 
 
 # ---- abs_trace and trace_diff: the diagonal -------------------------------------------------
@@ -473,7 +570,7 @@ def _svd_combine(
 
 # the interval bound of every built-in metric (its entry's ``interval_bound`` in
 # :data:`covnet.core.metrics.METRICS`)
-SPECTRAL_BOUND = IntervalBound(_eig_minus_d, _spectral_combine)
+SPECTRAL_BOUND = IntervalBound(_eig_minus_d, _spectral_combine, above=_spectral_above)
 ABS_TRACE_BOUND = IntervalBound(_diag_minus_d, _abs_trace_combine, _diag_minus_d_from)
 TRACE_DIFF_BOUND = IntervalBound(_trace_minus_d, _trace_diff_combine, _trace_minus_d_from)
 FROBENIUS_BOUND = IntervalBound(_eig_and_entries, _frobenius_combine)

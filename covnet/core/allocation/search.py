@@ -161,6 +161,9 @@ FINISH_MAX = 1024
 #: after that: it keeps the best it has), the rest is the root's bound and the tree's: without
 #: the root's bound a decision certifies only the root's interval bound
 GREEDY_SHARE = 0.5
+#: exact mode: the children's new endpoints through the bound's pre-test where it has one
+#: (spectral's inertia test, :func:`~covnet.core.allocation.interval_bounds._spectral_above`)
+PRETEST = True
 
 
 @dataclass(slots=True)
@@ -290,6 +293,12 @@ class _Search:
         self.vertex = (
             rel_gap == 0.0 and prob.dual is not None and prob.dual.dual.vertices is not None
         )
+        #: exact mode: the children's summaries through the bound's pre-test (rows it proves
+        #: above ``τ`` skip the summary and get a looser bound, still ``> τ``: pruned as
+        #: before, and since a pruned bound exceeds ``τ >= U``, it never sets
+        #: :meth:`lower_bound` or the tie rule's minima, ``min(U, ·)``; not with ``rel_gap``,
+        #: where ``τ < U`` and the certificate would change)
+        self.pretest = PRETEST and rel_gap == 0.0
 
     # -- incumbent and thresholds ---------------------------------------------------------------
 
@@ -437,7 +446,7 @@ class _Search:
             has = (ch.inc[:, (d - 1) >> 3] >> np.uint8((d - 1) & 7)) & np.uint8(1)
             src = ch.take(has.astype(bool))
         Zi = src.Z + prob.S[d]
-        sBi = prob.summary(Zi)
+        sBi = prob.summary_above(Zi, self.tau, False) if self.pretest else prob.summary(Zi)
         ki = src.k + 1
         inc = src.inc.copy()
         inc[:, d >> 3] |= np.uint8(1 << (d & 7))
@@ -466,7 +475,7 @@ class _Search:
                 )
             # exclude children: I unchanged, a new A
             Z_hi = ch.Z + prob.suffix[d + 1]
-            sAe = prob.summary(Z_hi)
+            sAe = prob.summary_above(Z_hi, self.tau, True) if self.pretest else prob.summary(Z_hi)
             lbe = prob.combine(sAe, ch.sB)
             if relax:
                 lbe = prob.refine(ch.Z, Z_hi, lbe, ch.sB, self.tau)

@@ -274,6 +274,17 @@ class _Problem:
                 return self.bound.from_diagonal(self.diagonals(Z), self.dc)
             return self.bound.summary(self.covariances(Z), self.dc)
 
+    def summary_above(self, Z: Mat, tau: float, lower: bool) -> Mat:
+        """:meth:`summary`, except on rows the bound's pre-test proves to bound above ``tau``
+        with any partner (:attr:`IntervalBound.above`: a summary read as ``+inf`` there;
+        ``lower``: ``Z`` gives lower endpoints ``A``); :meth:`summary` where the bound has no
+        pre-test or ``tau`` is not finite."""
+        assert self.bound is not None
+        if self.bound.above is None or not math.isfinite(tau):
+            return self.summary(Z)
+        with np.errstate(all="ignore"):
+            return self.bound.above(self.covariances(Z), self.dc, self.ctx, tau, lower)
+
     def refine(self, Z_lo: Mat, Z_hi: Mat, lb: Mat, sB: Mat, tau: float) -> Mat:
         """``lb`` raised by the reduced relaxation (:class:`_Relaxation`) or the dual bound
         (:class:`~covnet.core.allocation.lower_bounds._DualBound`) where it applies."""
