@@ -298,7 +298,9 @@ class _Search:
         #: before, and since a pruned bound exceeds ``τ >= U``, it never sets
         #: :meth:`lower_bound` or the tie rule's minima, ``min(U, ·)``; not with ``rel_gap``,
         #: where ``τ < U`` and the certificate would change)
-        self.pretest = PRETEST and rel_gap == 0.0
+        self.pretest = (
+            PRETEST and rel_gap == 0.0 and prob.bound is not None and prob.bound.above is not None
+        )
 
     # -- incumbent and thresholds ---------------------------------------------------------------
 
