@@ -28,8 +28,10 @@ relative error ``<= u / (1 - u)``; off-diagonal entries are exact negations): th
 
     ``λmin(T I - M) <= breakdown_slack(n) · max_i |H_ii|``,  i.e.  ``λmax(M) >= T - that``,
 
-and likewise ``λmin(M) <= -T + breakdown_slack(n) · max_i |H_ii|`` for ``H = M + T I``.  A NaN
-pivot (NaN input) proves nothing: such a row is inconclusive.
+and likewise ``λmin(M) <= -T + breakdown_slack(n) · max_i |H_ii|`` for ``H = M + T I``.  A row
+with a non-finite entry, or entries large enough to overflow (the theorem assumes none),
+proves nothing: :func:`cholesky_breaks` reports it as broken and the caller must drop it
+(:func:`covnet.core.allocation.interval_bounds._spectral_above` does).
 """
 
 from __future__ import annotations
@@ -60,26 +62,26 @@ def cholesky_breaks(
     ``diag[i]`` ``(m,)`` and lower entries ``off[i, j]`` ``(m,)`` (``i > j``; ``negated``: the
     entries are ``-off[i, j]``), the standard algorithm (``L_jj = sqrt(H_jj - Σ_k L_jk²)``,
     ``L_ij = (H_ij - Σ_k L_ik L_jk) / L_jj``, the sums left to right, one rounding an
-    operation).  ``True``: some pivot is ``<= 0`` while all earlier ones were ``> 0`` (a NaN
-    pivot is no breakdown, and ends the row: inconclusive).
+    operation).  ``True``: not every pivot is ``> 0``.  For a finite row that is a breakdown:
+    the first pivot ``<= 0`` makes every later one NaN or ``-inf`` (``sqrt`` of a negative, or a
+    division by 0), never ``> 0``.  A row with a NaN or infinite entry is ``True`` too, and
+    proves nothing: the caller drops such rows (and rows large enough to overflow: Demmel's
+    theorem assumes no overflow).
 
     ``negated`` computes ``L~ = -L`` below the diagonal: ``L~_ij = (off_ij + Σ_k L~_ik L~_jk)
     / L_jj``, the same bits as ``-L_ij`` (IEEE negation is exact and round-to-nearest is
     symmetric: ``fl(-a - b) = -fl(a + b)``), and the pivots read only the products
     ``L~_jk² = L_jk²``: the very pivots of ``H``, without negating ``off``."""
     n = len(diag)
-    m = diag[0].shape[0]
-    broken = np.zeros(m, dtype=bool)
-    ok = np.ones(m, dtype=bool)  # every pivot so far > 0
     L: dict[tuple[int, int], Mat] = {}
+    ok: NDArray[np.bool_] = np.ones(diag[0].shape, dtype=bool)  # every pivot so far > 0
     with np.errstate(all="ignore"):
         for j in range(n):
             p = diag[j]
             for k in range(j):
                 p = p - L[j, k] * L[j, k]
-            broken |= ok & (p <= 0.0)
+            ok &= p > 0.0
             if j + 1 < n:
-                ok &= p > 0.0
                 r = np.sqrt(p)
                 for i in range(j + 1, n):
                     s = off[i, j]
@@ -89,7 +91,7 @@ def cholesky_breaks(
                         else:
                             s = s - L[i, k] * L[j, k]
                     L[i, j] = s / r
-    return broken
+    return ~ok
 
 
 def lam_max_above(M: Mat, T: float) -> NDArray[np.bool_]:

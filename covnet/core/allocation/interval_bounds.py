@@ -219,6 +219,8 @@ MARGIN = 2.0**-30
 EIG_REL = 2.0**-32
 #: the factor on the required gap a proven row's check asks for (rounding of the check itself)
 SAFETY = 2.0
+#: a proven row's diagonal of ``H`` stays below this (no overflow in the Cholesky's squares)
+BIG = 2.0**500
 
 
 def _spectral_threshold(tau: float, dc: DesiredConstants, ctx: IntervalContext) -> float:
@@ -262,7 +264,8 @@ def _spectral_above(
     ``2^20 eps``).  So a proven row with ``T - v0 >= c h + EIG_REL ||M||_F`` has a computed
     ``λmax >= v0`` (lower) or ``-λmin >= v0`` (upper): its bound is ``> tau`` with any partner
     summary.  Each proven row is checked so (times SAFETY, for the check's own rounding; the
-    whole batch at once with ``max |M_ij|``, ``||M||_F <= n max |M_ij|``) and must be finite;
+    whole batch at once with ``max |M_ij|``, ``||M||_F <= n max |M_ij|``), must be finite and
+    have ``h <= BIG`` (no overflow: ``|L_ij| <= sqrt(H_ii)`` while the pivots are positive);
     a row that fails, or does not break down, gets LAPACK's eigenvalues, the very bits of
     :func:`_eig_minus_d` (``eigvalsh`` factors each matrix on its own)."""
     M = X - dc.D
@@ -276,13 +279,16 @@ def _spectral_above(
     if rows.size:
         c = inertia.breakdown_slack(n)
         with np.errstate(all="ignore"):
-            # the whole batch at once (||M||_F <= n max |M_ij|), else row by row; NaN: no
+            # the whole batch at once (||M||_F <= n max |M_ij|), else row by row; a NaN or
+            # infinite row fails (its ``need`` is NaN or inf), and so does one near overflow
             a = float(np.abs(M).max())
-            if not (T - v0) >= SAFETY * (c * (abs(T) + a) + EIG_REL * n * a):
+            h1 = abs(T) + a
+            if not (h1 <= BIG and (T - v0) >= SAFETY * (c * h1 + EIG_REL * n * a)):
                 Mr = M[rows]
                 h = abs(T) + np.abs(np.diagonal(Mr, axis1=1, axis2=2)).max(axis=1)
                 fro = np.sqrt((Mr * Mr).sum(axis=(1, 2)))
-                rows = rows[(T - v0) >= SAFETY * (c * h + EIG_REL * fro)]
+                need = np.where(h <= BIG, c * h + EIG_REL * fro, np.nan)
+                rows = rows[(T - v0) >= SAFETY * need]
     if rows.size == 0:
         return _f64(np.linalg.eigvalsh(M))
     keep = np.ones(m, dtype=bool)
