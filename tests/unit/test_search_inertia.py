@@ -78,8 +78,9 @@ def _violations(X, dc, ctx, tau, lower):
     return int((proven & ~(lb > tau)).sum()), int(proven.sum()), bits and valid
 
 
-@pytest.mark.parametrize("lower", [True, False])
-def test_the_pretest_never_prunes_what_the_bound_keeps(lower):
+def _trials(lower):
+    """Six near-threshold batches at three scales and rounding allowances: ``(dc, X, ctx,
+    tau)``."""
     rng = np.random.default_rng(7 if lower else 8)
     for trial in range(6):
         D = np.diag(rng.uniform(0.1, 3.0, 4))
@@ -87,6 +88,12 @@ def test_the_pretest_never_prunes_what_the_bound_keeps(lower):
         ctx = _ctx(scale * 10.0, err=[0.0, 1e-13, 1e-9][trial % 3] * scale)
         tau = scale * rng.uniform(0.5, 2.0)
         dc, X = _cases(rng, D * scale, ctx, tau, lower)
+        yield dc, X, ctx, tau
+
+
+@pytest.mark.parametrize("lower", [True, False])
+def test_the_pretest_never_prunes_what_the_bound_keeps(lower):
+    for dc, X, ctx, tau in _trials(lower):
         bad, proven, bits = _violations(X, dc, ctx, tau, lower)
         assert bad == 0
         assert bits
@@ -101,15 +108,7 @@ def test_a_zero_or_negative_margin_is_caught(lower, margin, monkeypatch):
     fails."""
     monkeypatch.setattr(IB, "MARGIN", margin)
     monkeypatch.setattr(IB, "SAFETY", 0.0 if margin == 0.0 else -math.inf)
-    rng = np.random.default_rng(7 if lower else 8)
-    bad = 0
-    for trial in range(6):
-        D = np.diag(rng.uniform(0.1, 3.0, 4))
-        scale = [1.0, 1e3, 1e-3][trial % 3]
-        ctx = _ctx(scale * 10.0, err=[0.0, 1e-13, 1e-9][trial % 3] * scale)
-        tau = scale * rng.uniform(0.5, 2.0)
-        dc, X = _cases(rng, D * scale, ctx, tau, lower)
-        bad += _violations(X, dc, ctx, tau, lower)[0]
+    bad = sum(_violations(X, dc, ctx, tau, lower)[0] for dc, X, ctx, tau in _trials(lower))
     assert bad > 0
 
 
