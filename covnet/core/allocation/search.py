@@ -143,7 +143,8 @@ DUAL_MIN_REST = 26
 #: exact mode: the vertex bound (one_norm, inf_norm, abs_trace) on the nodes with fewer than
 #: DUAL_MIN_REST and at least this many undecided sensors (1: all of them; at N = 40,
 #: one_norm's problem 0: 0.86 M nodes and 3.8 s CPU with 1, 1.0 M / 3.8 s with 4, 1.8 M /
-#: 4.2 s with 8, 2.7 M / 5.5 s with 12; the small problems 1 and 2 gain 0.02-0.05 s from larger values)
+#: 4.2 s with 8, 2.7 M / 5.5 s with 12; the small problems 1 and 2 gain 0.02-0.05 s from
+#: larger values)
 VERTEX_MIN_REST = 1
 #: kl, frobenius and logdet: the last this many levels of the tree come from a table of
 #: ``2^LEAF_LEVELS`` sums (:class:`_Leaves`; 2^18 rows: 6 MB, and a k-d tree)
