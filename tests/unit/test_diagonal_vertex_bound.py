@@ -180,3 +180,25 @@ def test_an_inflated_diagonal_bound_is_caught(monkeypatch):
             got = allocate_bnb(P_pred, gains, P_d, "abs_trace", c)
             wrong += got.subset != ref.subset or got.value != ref.value
     assert wrong >= 1
+
+
+@pytest.mark.parametrize("n", [2, 3, 4])
+def test_interior_steps_on_both_sides_of_the_regimes_are_grid_maxima(n):
+    """Diagonals ``β_i = -u |v_i|²``, ``u ∈ (0, 1)``: every step takes the closed form (neither
+    ``t = ±1`` case), with the rest ``G_0`` of either sign (``r < 0``: the optimum may sit where
+    ``λmax`` crosses 0; ``r > 0``: where ``λmin`` does).  The last coordinate after one sweep
+    against a 20 001-point grid."""
+    rng = np.random.default_rng(40 + n)
+    m = 300
+    V = rng.normal(size=(m, n, 2))
+    M_lo = np.zeros((m, n, n))
+    u = rng.uniform(0.0, 1.0, size=(m, n)) ** rng.choice([0.2, 1.0, 5.0], size=(m, 1))
+    M_lo[:, np.arange(n), np.arange(n)] = -u * (V * V).sum(axis=2)
+    y, phi = diagonal_ascent(M_lo, V, 1)
+    t = np.linspace(-1.0, 1.0, 20001)
+    for k in range(m):
+        Y = np.repeat(y[k][None], t.size, axis=0)
+        Y[:, n - 1] = t
+        Mk = np.broadcast_to(M_lo[k], (t.size, n, n))
+        grid = _generic_phi(Y, Mk, np.broadcast_to(V[k], (t.size, n, 2)))
+        assert phi[k] >= grid.max() - 1e-9 * (1.0 + abs(grid.max())), k
