@@ -28,12 +28,17 @@ from covnet.core.allocation.search_problem import _Problem
 NAMES = ("one_norm", "inf_norm")
 
 
-def test_the_vertex_points_are_registered_for_the_induced_norms_only():
-    from covnet.core.allocation.lower_bounds import ABS_TRACE_DUAL, SPECTRAL_DUAL
+def test_the_vertex_points_are_registered_for_the_norms_with_closed_forms():
+    from covnet.core.allocation.lower_bounds import (
+        ABS_TRACE_DUAL,
+        SPECTRAL_DUAL,
+        diagonal_bound,
+    )
 
     assert ONE_NORM_DUAL.vertices is column_bound
     assert INF_NORM_DUAL.vertices is column_bound
-    assert SPECTRAL_DUAL.vertices is None and ABS_TRACE_DUAL.vertices is None
+    assert ABS_TRACE_DUAL.vertices is diagonal_bound  # tests/unit/test_diagonal_vertex_bound.py
+    assert SPECTRAL_DUAL.vertices is None
 
 
 def _node_arrays(n, m, seed):

@@ -39,8 +39,8 @@ the dual ball by construction.  A node stops once its bound, after the deflation
 the threshold (pruned) or the primal value ``||M(X)||`` at the current ``X`` is at most it
 (no bound over the node can prune it).
 
-**Vertex bound** (:meth:`_DualBound.vertex_bound`; one_norm, inf_norm in exact mode, on the
-nodes the barrier does not refine, and before the barrier on the others).  The barrier is too
+**Vertex bound** (:meth:`_DualBound.vertex_bound`; one_norm, inf_norm, abs_trace in exact mode,
+on the nodes the barrier does not refine, and before the barrier on the others).  The barrier is too
 slow for most nodes of an exact search (0.1-1 ms a node), but ``φ(Y)`` is a valid bound for
 *any* ``Y`` in the dual ball, in particular for a few points found per node in closed form:
 
@@ -78,6 +78,36 @@ problem 3 (`covnet bench search` problems): the signs alone prune 0.05 % of them
 (2 sweeps) 42 %, with the mixture 48 %, the barrier's optimum 58 %; and the share whose
 subtree's optimum lies above the threshold, which a bound over the completions could prune,
 100 %.
+
+*Diagonal points* (:func:`diagonal_ascent`; abs_trace).  abs_trace's dual ball is the hull of
+the ``diag(s)``, i.e. every ``diag(y)`` with ``y ∈ [-1, 1]^n``, and with ``v_i`` row ``i`` of
+``V``::
+
+    φ(diag(y)) = Σ_i y_i M_lo,ii + negsum(G(y)),   G(y) = Σ_i y_i v_i v_iᵀ   (2 x 2),
+
+concave in ``y`` (a linear term plus ``negsum = min_{0 ⪯ X ⪯ I} <·, X>``, a minimum of linear
+functions).  Its maximum over the box is the relaxation's optimum ``min_X Σ_i |M(X)_ii|``
+(minimax: the box and ``{0 ⪯ X ⪯ I}`` are compact and convex), which the barrier reaches at
+0.1-1 ms a node; coordinate ascent reaches it, or nearly, for a few µs.  One coordinate ``y_i =
+t`` with the others fixed: ``G = G_0 + t w wᵀ`` (``w = v_i``, ``G_0`` the rest), ``f(t) = β t +
+negsum(G_0 + t w wᵀ)`` with ``β = M_lo,ii``, concave, ``f'(t) = β + Σ_{μ_k < 0} (u_kᵀ w)²``
+(``μ_k, u_k`` the eigenpairs of ``G``; each term in ``[0, |w|²]``, together at most
+``|w|²``).  So ``β >= 0`` gives ``t = 1`` and ``β + |w|² <= 0`` gives ``t = -1``.  Otherwise, in
+the basis ``ŵ = w/|w|``, ``ŵ⊥``, ``G = [[p + t|w|², q], [q, r]]``; with ``p' = p + t|w|²`` and
+``x = (p' - r)/2``, exactly one eigenvalue is negative for ``p' > q²/r`` (``r < 0``; below, both
+are: ``f' = β + |w|² > 0``) or ``p' < q²/r`` (``r > 0``; above, none is: ``f' = β < 0``) or
+every ``p'`` (``r = 0 ≠ q``), and there ``f' = β + |w|² (1 - x / sqrt(x² + q²)) / 2``, decreasing
+in ``p'``, zero at ``x = s|q| / sqrt(1 - s²)``, ``s = 1 + 2β/|w|² ∈ (-1, 1)``.  Hence the
+maximiser is ``p'* = r + 2x`` raised to ``q²/r`` (``r < 0``) or lowered to it (``r > 0``), and
+``t = (p'* - p)/|w|²`` clipped to ``[-1, 1]`` (``q = 0``: the kink ``p' = 0``, which the same
+formula gives).  The start is the signs of the diagonal at the node's middle (the seventh
+round's point, which alone pruned 3 % of the sampled nodes below), the result is clipped to
+the box (so ``diag(y)`` is in the dual ball whatever the arithmetic) and ``φ`` is recomputed from
+the final ``y`` (its rounding is that of ``φ``, below).  Measured on the walked nodes with 3-16
+undecided sensors of abs_trace's N = 40 problem 3 (842 sampled): the interval bound prunes none
+of them (they are walked), the box maximum (the barrier run to the end) all of them (median
+2.7 % above the threshold), the ascent from the signs 3 % with no sweep, 99.3 % with one,
+100 % with two.
 
 **Rounding.**  As the interval bounds (:mod:`covnet.core.allocation.interval_bounds`): the
 computed ``M_lo``, the interval's endpoints and the completion's computed ``P`` are each within
@@ -297,11 +327,92 @@ def column_bound(M_lo: Mat, V: Mat, steps: int | None = None) -> Mat:
     return np.asarray(best, dtype=np.float64)
 
 
+#: coordinate sweeps of :func:`diagonal_ascent` (N = 40, abs_trace's problem 3, the sampled
+#: walked nodes with 3-16 undecided sensors: see the module docstring, *diagonal points*)
+DIAG_SWEEPS = 2
+
+
+def diagonal_ascent(M_lo: Mat, V: Mat, sweeps: int | None = None) -> tuple[Mat, Mat]:
+    """A ``y ∈ [-1, 1]^n`` ``(m, n)`` per node that increases ``φ(diag(y)) = Σ_i y_i M_lo,ii +
+    negsum(Σ_i y_i v_i v_iᵀ)`` (module docstring, *diagonal points*), and that ``φ`` ``(m,)``
+    recomputed from the final ``y``: from the signs of the diagonal at the node's middle,
+    ``sweeps`` rounds of exact maximisation coordinate by coordinate (closed form).  ``y`` is
+    in the box whatever the input (a non-finite step keeps the coordinate; a final clip), so
+    ``diag(y)`` is in abs_trace's dual ball.  Inputs finite."""
+    sweeps = DIAG_SWEEPS if sweeps is None else sweeps
+    n = M_lo.shape[-1]
+    beta = [np.ascontiguousarray(M_lo[:, i, i]) for i in range(n)]
+    w0 = [np.ascontiguousarray(V[:, i, 0]) for i in range(n)]
+    w1 = [np.ascontiguousarray(V[:, i, 1]) for i in range(n)]
+    with np.errstate(all="ignore"):
+        y = []
+        g0 = np.zeros(M_lo.shape[0])
+        g1 = np.zeros(M_lo.shape[0])
+        g2 = np.zeros(M_lo.shape[0])
+        steps = []
+        for i in range(n):
+            ww = w0[i] * w0[i] + w1[i] * w1[i]
+            mid = beta[i] + 0.5 * ww  # M_mid,ii
+            yi = np.where(mid < 0.0, -1.0, 1.0)
+            y.append(yi)
+            g0 = g0 + yi * (w0[i] * w0[i])
+            g1 = g1 + yi * (w0[i] * w1[i])
+            g2 = g2 + yi * (w1[i] * w1[i])
+            # what does not depend on y: the case (β >= 0: t = 1; β + |w|² <= 0: t = -1) and
+            # k = s / sqrt(1 - s²), s = 1 + 2β/|w|²
+            ww1 = np.where(ww > 0.0, ww, 1.0)
+            inside = (beta[i] < 0.0) & (beta[i] + ww > 0.0)
+            s = np.where(inside, 1.0 + 2.0 * beta[i] / ww1, 0.0)
+            k = s / np.sqrt(1.0 - s * s)
+            wn = np.sqrt(ww1)
+            edge = np.where(beta[i] >= 0.0, 1.0, -1.0)
+            steps.append((w0[i] / wn, w1[i] / wn, ww1, k, inside, edge))
+        for _ in range(sweeps):
+            for i in range(n):
+                u0, u1, ww1, k, inside, edge = steps[i]
+                yi = y[i]
+                a, b, c = w0[i] * w0[i], w0[i] * w1[i], w1[i] * w1[i]
+                h0, h1, h2 = g0 - yi * a, g1 - yi * b, g2 - yi * c  # G without coordinate i
+                uu = u0 * u1
+                p = u0 * u0 * h0 + 2.0 * uu * h1 + u1 * u1 * h2
+                r = u1 * u1 * h0 - 2.0 * uu * h1 + u0 * u0 * h2
+                q = uu * (h2 - h0) + (u0 * u0 - u1 * u1) * h1
+                ps = r + 2.0 * k * np.abs(q)
+                lim = q * q / np.where(r != 0.0, r, 1.0)
+                ps = np.where(
+                    r < 0.0, np.maximum(ps, lim), np.where(r > 0.0, np.minimum(ps, lim), ps)
+                )
+                t = np.where(inside, np.clip((ps - p) / ww1, -1.0, 1.0), edge)
+                t = np.where(np.isfinite(t), t, yi)
+                y[i] = t
+                g0, g1, g2 = h0 + t * a, h1 + t * b, h2 + t * c
+        yb = np.clip(
+            np.where(np.isfinite(np.stack(y, axis=1)), np.stack(y, axis=1), 0.0), -1.0, 1.0
+        )
+        lin = yb[:, 0] * beta[0]
+        g0 = yb[:, 0] * (w0[0] * w0[0])
+        g1 = yb[:, 0] * (w0[0] * w1[0])
+        g2 = yb[:, 0] * (w1[0] * w1[0])
+        for i in range(1, n):
+            lin = lin + yb[:, i] * beta[i]
+            g0 = g0 + yb[:, i] * (w0[i] * w0[i])
+            g1 = g1 + yb[:, i] * (w0[i] * w1[i])
+            g2 = g2 + yb[:, i] * (w1[i] * w1[i])
+        phi = lin + _negsum_h(g0, g1, g2)
+    return np.asarray(yb, dtype=np.float64), np.asarray(phi, dtype=np.float64)
+
+
+def diagonal_bound(M_lo: Mat, V: Mat) -> Mat:
+    """abs_trace's vertex bound before the rounding allowance ``(m,)``: ``φ(diag(y))`` at the
+    point of :func:`diagonal_ascent`."""
+    return diagonal_ascent(M_lo, V)[1]
+
+
 SPECTRAL_DUAL = DualNorm("spectral", "spectral")
 ONE_NORM_DUAL = DualNorm("one_norm", "atoms", column_atoms, column_bound)
 # the same for symmetric P - P_d
 INF_NORM_DUAL = DualNorm("inf_norm", "atoms", column_atoms, column_bound)
-ABS_TRACE_DUAL = DualNorm("abs_trace", "atoms", diagonal_atoms)
+ABS_TRACE_DUAL = DualNorm("abs_trace", "atoms", diagonal_atoms, diagonal_bound)
 
 
 class _Reduced(Protocol):

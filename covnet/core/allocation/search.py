@@ -50,7 +50,8 @@ without these rules.  The dual bound (spectral, one_norm, inf_norm, abs_trace) c
 hundred interval bounds, so exact mode applies it only to nodes with ``DUAL_MIN_REST`` or more
 undecided sensors (where the metric has a vertex bound, only where that does not prune
 already); the others get the vertex bound alone (one_norm, inf_norm: a few dual points a node,
-each found in closed form by coordinate ascent, and the best mixture of two,
+each found in closed form by coordinate ascent, and the best mixture of two; abs_trace: one
+diagonal point by coordinate ascent,
 :meth:`~covnet.core.allocation.lower_bounds._DualBound.vertex_bound`).
 
 **Bounded** (``rel_gap > 0``, a time or node limit): with ``rel_gap > 0`` nodes are explored best
@@ -139,10 +140,11 @@ RELAX_MIN_REST = 1
 #: where a prune saves a large subtree (N = 40, alternated with 18 and with every node: 26 was
 #: as fast or faster on each abs_trace and spectral bench problem)
 DUAL_MIN_REST = 26
-#: exact mode: the vertex bound (one_norm, inf_norm) on the nodes with fewer than DUAL_MIN_REST
-#: and at least this many undecided sensors (1: all of them; at N = 40, one_norm's problem 0:
-#: 0.86 M nodes and 3.8 s CPU with 1, 1.0 M / 3.8 s with 4, 1.8 M / 4.2 s with 8, 2.7 M / 5.5 s
-#: with 12; the small problems 1 and 2 gain 0.02-0.05 s from larger values)
+#: exact mode: the vertex bound (one_norm, inf_norm, abs_trace) on the nodes with fewer than
+#: DUAL_MIN_REST and at least this many undecided sensors (1: all of them; at N = 40,
+#: one_norm's problem 0: 0.86 M nodes and 3.8 s CPU with 1, 1.0 M / 3.8 s with 4, 1.8 M /
+#: 4.2 s with 8, 2.7 M / 5.5 s with 12; the small problems 1 and 2 gain 0.02-0.05 s from
+#: larger values)
 VERTEX_MIN_REST = 1
 #: kl, frobenius and logdet: the last this many levels of the tree come from a table of
 #: ``2^LEAF_LEVELS`` sums (:class:`_Leaves`; 2^18 rows: 6 MB, and a k-d tree)
@@ -289,7 +291,7 @@ class _Search:
         if prob.dual is not None and rel_gap == 0.0:
             self.min_rest = DUAL_MIN_REST
         #: exact mode: the nodes the barrier does not refine get the dual bound's cheap vertex
-        #: bound (one_norm, inf_norm; :meth:`_Problem.refine_vertex`)
+        #: bound (one_norm, inf_norm, abs_trace; :meth:`_Problem.refine_vertex`)
         self.vertex = (
             rel_gap == 0.0 and prob.dual is not None and prob.dual.dual.vertices is not None
         )

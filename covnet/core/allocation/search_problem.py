@@ -320,8 +320,8 @@ class _Problem:
 
     def refine_vertex(self, Z_lo: Mat, Z_hi: Mat, lb: Mat, tau: float) -> Mat:
         """``lb`` raised by the dual bound's vertex bound (:meth:`~covnet.core.allocation.\
-lower_bounds._DualBound.vertex_bound`; one_norm, inf_norm) on the rows ``<= tau``: the exact
-        search's bound on the nodes its barrier does not refine."""
+lower_bounds._DualBound.vertex_bound`; one_norm, inf_norm, abs_trace) on the rows ``<= tau``: the
+        exact search's bound on the nodes its barrier does not refine."""
         if self.dual is None or self.dual.dual.vertices is None or lb.size == 0:
             return lb
         rows = np.flatnonzero(lb <= tau)
