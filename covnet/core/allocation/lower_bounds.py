@@ -242,19 +242,6 @@ def column_ascent(M_lo: Mat, V: Mat, sweeps: int = ASCENT_SWEEPS) -> tuple[Mat, 
     return np.asarray(y, dtype=np.float64), np.asarray(h, dtype=np.float64)
 
 
-def column_points(M_lo: Mat, V: Mat) -> list[Mat]:
-    """The column points ``sym(y_j e_jᵀ)`` of :func:`column_ascent`, one ``(m, n, n)`` batch
-    per column ``j``: each in the dual ball (``y_j`` in the box)."""
-    y, _ = column_ascent(M_lo, V)
-    m, n = M_lo.shape[0], M_lo.shape[-1]
-    out = []
-    for j in range(n):
-        Y = np.zeros((m, n, n))
-        Y[:, :, j] = y[:, j, :]
-        out.append(0.5 * (Y + np.swapaxes(Y, 1, 2)))
-    return out
-
-
 #: golden-section steps of the mixture of the two best column points (:func:`column_bound`)
 MIX_STEPS = 8
 _GOLD = 0.5 * (math.sqrt(5.0) - 1.0)
