@@ -45,3 +45,16 @@ def completion_values(prob, inc, und):
         for extra in itertools.combinations(und, size)
         if inc or extra
     ]
+
+
+def relaxation_points(seed, count=300):
+    """Sampled ``X`` with ``0 ⪯ X ⪯ I`` (``2 x 2``; the corners ``0`` and ``I``, random
+    interior points and rank-one projectors): where a dual bound must stay below the primal
+    value ``f(M_lo + V X Vᵀ)`` (weak duality)."""
+    rng = np.random.default_rng(seed)
+    Xs = [np.zeros((2, 2)), np.eye(2)]
+    for _ in range(count):
+        Q, _ = np.linalg.qr(rng.normal(size=(2, 2)))
+        Xs.append(Q @ np.diag(rng.uniform(0.0, 1.0, size=2) ** 0.3) @ Q.T)
+        Xs.append(np.outer(Q[:, 0], Q[:, 0]))
+    return Xs

@@ -11,17 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from bound_problems import completion_values, random_problem
+from bound_problems import relaxation_points
 
-from covnet.core.allocation.exact import Constraints, allocate_exhaustive
 from covnet.core.allocation.lower_bounds import (
     ABS_TRACE_DUAL,
-    _DualBound,
     diagonal_ascent,
     diagonal_bound,
 )
-from covnet.core.allocation.search import allocate_bnb
-from covnet.core.allocation.search_problem import _Problem
 
 
 def _node_arrays(n, m, seed):
@@ -96,90 +92,11 @@ def test_the_bound_is_below_the_primal_value_and_above_the_signs(n):
     signs = diagonal_ascent(M_lo, V, 0)[1]
     assert np.all(got >= signs - 1e-12 * (1.0 + np.abs(signs)))
     assert np.mean(got > signs + 1e-9) > 0.3
-    rng = np.random.default_rng(3)
-    Xs = [np.zeros((2, 2)), np.eye(2)]
-    for _ in range(300):
-        Q, _ = np.linalg.qr(rng.normal(size=(2, 2)))
-        Xs.append(Q @ np.diag(rng.uniform(0.0, 1.0, size=2) ** 0.3) @ Q.T)
-        Xs.append(np.outer(Q[:, 0], Q[:, 0]))
     primal = np.full(M_lo.shape[0], np.inf)
-    for X in Xs:
+    for X in relaxation_points(3):
         M = M_lo + V @ X @ np.swapaxes(V, 1, 2)
         primal = np.minimum(primal, np.abs(np.einsum("mii->mi", M)).sum(axis=1))
     assert np.all(got <= primal + 1e-9 * (1.0 + primal))
-
-
-def _nodes(n_cases, rng):
-    cases = np.random.default_rng(20261204)
-    for k in range(n_cases):
-        N = int(cases.integers(4, 11))
-        P_pred, gains, P_d = random_problem(cases, N, loose=bool(k % 2 == 0))
-        prob = _Problem(P_pred, gains, P_d, "abs_trace", Constraints(), 1e-9)
-        if prob.dual is None:
-            continue
-        for _ in range(6):
-            yield prob, rng.integers(0, 3, size=prob.m)  # 0 out, 1 in, 2 undecided
-
-
-def test_the_bound_of_random_nodes_is_below_every_completion():
-    rng = np.random.default_rng(11)
-    checked = raised = 0
-    for prob, state in _nodes(12, rng):
-        inc = [prob.free[i] for i in np.flatnonzero(state == 1)]
-        und = [prob.free[i] for i in np.flatnonzero(state == 2)]
-        Z_lo = prob.base + prob.S[state == 1].sum(axis=0)
-        Z_hi = Z_lo + prob.S[state == 2].sum(axis=0)
-        assert prob.dual is not None
-        vb = float(prob.dual.vertex_bound(Z_lo[None], Z_hi[None])[0])
-        lb = float(prob.combine(prob.summary(Z_hi[None]), prob.summary(Z_lo[None]))[0])
-        values = completion_values(prob, inc, und)
-        if values:
-            assert vb <= min(values), (vb, min(values))
-            checked += 1
-            raised += vb > lb
-            for tau in (0.0, 0.5 * vb, vb, min(values), np.inf):
-                got = float(prob.dual.bound(Z_lo[None], Z_hi[None], tau)[0])
-                assert got <= min(values), (tau, got, min(values))
-                if tau < vb:
-                    assert got == vb  # pruned by the pre-filter, the barrier not run
-    assert checked >= 40
-    assert raised >= 5  # it adds something to the interval bound
-
-
-def _problems():
-    rng = np.random.default_rng(4)
-    for k in range(6):
-        N = (8, 10, 12, 14, 16, 12)[k]
-        yield random_problem(rng, N, loose=bool(k % 2))
-
-
-def test_exact_search_with_the_diagonal_bound_equals_the_exhaustive_one():
-    """Every node of these searches (N <= 16 < DUAL_MIN_REST undecided) gets the vertex
-    bound, none the barrier."""
-    for P_pred, gains, P_d in _problems():
-        for c in (Constraints(), Constraints(max_active=3)):
-            ref = allocate_exhaustive(P_pred, gains, P_d, "abs_trace", c)
-            got = allocate_bnb(P_pred, gains, P_d, "abs_trace", c)
-            assert got.exact and got.subset == ref.subset
-            assert got.value == ref.value
-            assert got.P.tobytes() == ref.P.tobytes()
-
-
-def test_an_inflated_diagonal_bound_is_caught(monkeypatch):
-    """The same check with the vertex bound raised by 1 %: some search prunes the optimum."""
-    plain = _DualBound.vertex_bound
-
-    def inflated(self, Z_lo, Z_hi):
-        return plain(self, Z_lo, Z_hi) * 1.01
-
-    monkeypatch.setattr(_DualBound, "vertex_bound", inflated)
-    wrong = 0
-    for P_pred, gains, P_d in _problems():
-        for c in (Constraints(), Constraints(max_active=3)):
-            ref = allocate_exhaustive(P_pred, gains, P_d, "abs_trace", c)
-            got = allocate_bnb(P_pred, gains, P_d, "abs_trace", c)
-            wrong += got.subset != ref.subset or got.value != ref.value
-    assert wrong >= 1
 
 
 @pytest.mark.parametrize("n", [2, 3, 4])
