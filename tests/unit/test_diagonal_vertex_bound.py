@@ -9,15 +9,20 @@ by 1 % does not, so these tests can fail."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
-from bound_problems import relaxation_points
+from bound_problems import random_problem, relaxation_points
 
+from covnet.core.allocation.exact import allocate_exhaustive
 from covnet.core.allocation.lower_bounds import (
     ABS_TRACE_DUAL,
     diagonal_ascent,
     diagonal_bound,
 )
+from covnet.core.allocation.search import allocate_bnb
+from covnet.core.metrics import METRICS
 
 
 def _node_arrays(n, m, seed):
@@ -119,3 +124,24 @@ def test_interior_steps_on_both_sides_of_the_regimes_are_grid_maxima(n):
         Mk = np.broadcast_to(M_lo[k], (t.size, n, n))
         grid = _generic_phi(Y, Mk, np.broadcast_to(V[k], (t.size, n, 2)))
         assert phi[k] >= grid.max() - 1e-9 * (1.0 + abs(grid.max())), k
+
+
+def test_the_vertex_bound_starts_at_the_metrics_vertex_min_rest():
+    """The search reads the metric's ``DualNorm.vertex_min_rest`` (abs_trace: 8): the vertex
+    bound on more nodes (a lower threshold) prunes at least as much, with the same result."""
+    assert ABS_TRACE_DUAL.vertex_min_rest == 8
+    rng = np.random.default_rng(9)
+    fewer = 0
+    for k in range(3):
+        P_pred, gains, P_d = random_problem(rng, 14, loose=bool(k % 2))
+        ref = allocate_exhaustive(P_pred, gains, P_d, "abs_trace")
+        nodes = []
+        for rest in (1, 8, 100):
+            dual = dataclasses.replace(ABS_TRACE_DUAL, vertex_min_rest=rest)
+            metric = dataclasses.replace(METRICS["abs_trace"], dual_bound=dual)
+            got = allocate_bnb(P_pred, gains, P_d, metric)
+            assert got.exact and got.subset == ref.subset and got.value == ref.value
+            nodes.append(got.n_nodes)
+        assert nodes[0] <= nodes[1] <= nodes[2], nodes
+        fewer += nodes[0] < nodes[2]
+    assert fewer >= 1

@@ -158,6 +158,13 @@ class DualNorm:
     #: ``V`` ``(m, n, 2)`` (finite): ``(m,)``, the best ``φ(Y)`` over a few dual points ``Y``
     #: in the dual ball; ``None``: no vertex bound (module docstring)
     vertices: Callable[[Mat, Mat], Mat] | None = None
+    #: exact mode: the vertex bound on the nodes with at least this many undecided sensors
+    #: (below the barrier's ``DUAL_MIN_REST``; :mod:`covnet.core.allocation.search`), CPU
+    #: clock at N = 40: one_norm's problem 0 0.86 M nodes and 3.8 s with 1, 1.0 M / 3.8 s with
+    #: 4, 1.8 M / 4.2 s with 8, 2.7 M / 5.5 s with 12; abs_trace's five bench problems and four
+    #: tie problems (N = 32, 40), two alternated rounds: 4.0-4.2 s in all with 1, 3.4-3.5 with
+    #: 4, 2.8 with 8 and 12, 3.5-3.6 with 16 (the same subsets, values and bits)
+    vertex_min_rest: int = 1
 
 
 def _signs(n: int) -> Mat:
@@ -399,7 +406,7 @@ SPECTRAL_DUAL = DualNorm("spectral", "spectral")
 ONE_NORM_DUAL = DualNorm("one_norm", "atoms", column_atoms, column_bound)
 # the same for symmetric P - P_d
 INF_NORM_DUAL = DualNorm("inf_norm", "atoms", column_atoms, column_bound)
-ABS_TRACE_DUAL = DualNorm("abs_trace", "atoms", diagonal_atoms, diagonal_bound)
+ABS_TRACE_DUAL = DualNorm("abs_trace", "atoms", diagonal_atoms, diagonal_bound, 8)
 
 
 class _Reduced(Protocol):

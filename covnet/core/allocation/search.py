@@ -140,12 +140,6 @@ RELAX_MIN_REST = 1
 #: where a prune saves a large subtree (N = 40, alternated with 18 and with every node: 26 was
 #: as fast or faster on each abs_trace and spectral bench problem)
 DUAL_MIN_REST = 26
-#: exact mode: the vertex bound (one_norm, inf_norm, abs_trace) on the nodes with fewer than
-#: DUAL_MIN_REST and at least this many undecided sensors (1: all of them; at N = 40,
-#: one_norm's problem 0: 0.86 M nodes and 3.8 s CPU with 1, 1.0 M / 3.8 s with 4, 1.8 M /
-#: 4.2 s with 8, 2.7 M / 5.5 s with 12; the small problems 1 and 2 gain 0.02-0.05 s from
-#: larger values)
-VERTEX_MIN_REST = 1
 #: kl, frobenius and logdet: the last this many levels of the tree come from a table of
 #: ``2^LEAF_LEVELS`` sums (:class:`_Leaves`; 2^18 rows: 6 MB, and a k-d tree)
 LEAF_LEVELS = 18
@@ -295,6 +289,10 @@ class _Search:
         self.vertex = (
             rel_gap == 0.0 and prob.dual is not None and prob.dual.dual.vertices is not None
         )
+        #: ... on the nodes with fewer than DUAL_MIN_REST and at least this many undecided
+        #: sensors (the metric's :attr:`~covnet.core.allocation.lower_bounds.DualNorm.\
+        #: vertex_min_rest`)
+        self.vertex_rest = prob.dual.dual.vertex_min_rest if prob.dual is not None else 1
         #: exact mode: the children's summaries through the bound's pre-test (rows it proves
         #: above ``τ`` skip the summary and get a looser bound, still ``> τ``: pruned as
         #: before, and since a pruned bound exceeds ``τ >= U``, it never sets
@@ -469,7 +467,7 @@ class _Search:
                 if relax:
                     Zn = Zi[inner]
                     lbi = prob.refine(Zn, Zn + prob.suffix[d + 1], lbi, sBi[inner], self.tau)
-                elif self.vertex and prob.m - (d + 1) >= VERTEX_MIN_REST:
+                elif self.vertex and prob.m - (d + 1) >= self.vertex_rest:
                     Zn = Zi[inner]
                     lbi = prob.refine_vertex(Zn, Zn + prob.suffix[d + 1], lbi, self.tau)
                 kept = self.prune(lbi)
@@ -483,7 +481,7 @@ class _Search:
             lbe = prob.combine(sAe, ch.sB)
             if relax:
                 lbe = prob.refine(ch.Z, Z_hi, lbe, ch.sB, self.tau)
-            elif self.vertex and prob.m - (d + 1) >= VERTEX_MIN_REST:
+            elif self.vertex and prob.m - (d + 1) >= self.vertex_rest:
                 lbe = prob.refine_vertex(ch.Z, Z_hi, lbe, self.tau)
             self.n_nodes += lbe.size
             kept = self.prune(lbe)
