@@ -59,8 +59,12 @@ about 0.03 of orientation on the bench problems.  Bounded here through subspaces
    exist), wherever it is positive.
 3. *Weyl on the compression*: ``Qᵀ Π_P Q ⪯ Qᵀ Π_M Q + s QᵀQ`` with ``s = min(r / δ, 1)`` and
    ``QᵀQ = I``, so ``σ_j(QᵀV_P)² <= c_j + s``, ``c_j`` the eigenvalues of ``Qᵀ Π_M Q``
-   (descending, both sides), and ``σ_j <= 1``:
-   ``Σ_{i∈g} |u_Pi · u_Di| <= Σ_j min(1, sqrt(c_j + s))``.
+   (descending, both sides), and ``σ_j <= 1``.  Also, writing ``V_P = V_M Y₁ + V_⊥ Y₂``
+   (``V_⊥`` an orthonormal basis of ``V_M``'s complement, ``||Y₁||_2 <= 1``, ``||Y₂||_2 =
+   ||sin Θ||_2 <= s``), Weyl for singular values gives ``σ_j(QᵀV_P) <= σ_j(QᵀV_M Y₁) +
+   ||QᵀV_⊥||_2 s <= sqrt(c_j) + sin φ_max s``, with ``sin² φ_max = ||QᵀV_⊥||² = 1 - c_min``
+   (``QᵀV_⊥V_⊥ᵀQ = I - Qᵀ Π_M Q``): about half the first form's widening at a tilt of 15°.
+   So ``Σ_{i∈g} |u_Pi · u_Di| <= Σ_j min(1, sqrt(c_j + s), sqrt(c_j) + sin φ_max s)``.
    A block of one (``k = 1``) takes the sharper angle form: ``u_P = cos θ' u_M + sin θ' w``
    (``w ⟂ u_M``, ``sin θ' <= s``, sign absorbed), and ``q = u_D``'s component orthogonal to
    ``u_M`` has norm ``sin φ`` (``cos φ = |u_M · q|``), so ``|u_P · q| <= cos(φ - θ')
