@@ -46,7 +46,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from covnet.core.allocation import inertia
+from covnet.core.allocation import inertia, svd_bound
 from covnet.core.gaussian import Mat
 from covnet.core.lapack import flapack
 from covnet.core.metrics import EIG_TIE_RTOL, METRICS, capability, ordered_eigh
@@ -543,34 +543,31 @@ def _svd_combine(
     **Orientation** ``(n - sum_i |u_Pi · u_Di|) / n`` (computed clipped at 0), from ``B``'s
     eigenvectors: every completion's computed ``P`` is within ``e = tr(B - A) + 4 n err + ROUND
     n eps scale`` of the computed ``B`` in 2-norm (``0 ⪯ B - P ⪯ B - A``, ``||·||_2 <= tr`` for
-    PSD, the errors, LAPACK's backward error).  An eigenvalue of ``B`` separated from its
-    neighbours by ``gap > 4e + 2 rtol (max|s| + e)`` (``rtol`` the eigenvalue tie tolerance of
-    :func:`covnet.core.metrics.ordered_eigh`) keeps its rank in ``P`` and is in no tie group
-    there, so ``P``'s eigenvector is LAPACK's and, by Davis-Kahan, within ``sqrt 2 · e / (gap -
-    e)`` of ``B``'s (up to sign): ``|u_Pi · u_Di| <= |u_Bi · u_Di| + sqrt 2 e / (gap - e)``.  An
-    eigenvector without such a gap is credited nothing (``|u_Pi · u_Di| <= 1``).  On a narrow
-    interval (deep in a search, or a single subset) this credits most of the term."""
+    PSD, the errors, LAPACK's backward error), so ``Σ_i |u_Pi · u_Di|`` is at most
+    :func:`covnet.core.allocation.svd_bound.orientation_sum_bound` at the centre ``B`` with
+    radius ``e`` (proof in that module; twelfth round, issue 29): the ranks of ``B`` split into
+    blocks at gaps ``> 4e + 2 rtol (max|s| + e)`` (``rtol`` the eigenvalue tie tolerance of
+    :func:`covnet.core.metrics.ordered_eigh`, so no tie group of ``P`` crosses a block's end);
+    a block's sum is at most the sum of the cosines of the principal angles between its
+    eigen-subspace and ``P_d``'s, widened by Davis-Kahan (``sin Θ <= e / (gap - e)``).  A block of
+    one eigenvector is the per-vector Davis-Kahan credit of earlier rounds, sharper (the angle
+    form: ``|u_Pi · u_Di| <= cos(max(φ - θ, 0))`` where it used ``|u_Bi · u_Di| + sqrt 2 e /
+    (gap - e)``); a block of a tied pair (the paper's ``P_d``, whose pairs the completions
+    nearly tie) is credited the tilt of the pair's plane, which the per-vector bound could not
+    see.  Eigenvectors in no block with a gap are credited nothing (``|u_Pi · u_Di| <= 1``)."""
     n = dc.n
     s = dc.eig_desc()
     lo, hi = sA[:, :n], sB[:, :n]
     dist = np.maximum(np.maximum(lo - s, s - hi), 0.0)
-    size = _deflate(np.sqrt((dist * dist).sum(axis=1)), n, ctx, 3.0 * n * ctx.err)
+    size = _deflate(np.sqrt(_row_sums(dist * dist)), n, ctx, 3.0 * n * ctx.err)
     U_D = dc.eigvecs()
     m = sB.shape[0]
-    U = sB[:, n:].reshape(m, n, n)
-    e = np.maximum(hi.sum(axis=1) - lo.sum(axis=1), 0.0)
+    U = sB[:, n : n + n * n].reshape(m, n, n)
+    e = np.maximum(_row_sums(hi) - _row_sums(lo), 0.0)
     e += 4.0 * n * ctx.err + ROUND * n * EPS * ctx.scale
-    e = e[:, None]
-    gap = np.full((m, n), np.inf)
-    if n > 1:
-        step = hi[:, :-1] - hi[:, 1:]  # descending: gaps to the next
-        gap[:, :-1] = step
-        gap[:, 1:] = np.minimum(gap[:, 1:], step)
-    need = 4.0 * e + 2.0 * EIG_TIE_RTOL * (np.abs(hi).max(axis=1, keepdims=True) + e)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slack = np.where(gap > need, math.sqrt(2.0) * e / (gap - e), 1.0)
-    cos = np.abs(np.einsum("mki,ki->mi", U, U_D))
-    orient = (n - np.minimum(cos + slack, 1.0).sum(axis=1)) / n - ROUND * n * EPS
+    T = np.matmul(U_D.T, U)  # T[:, j, i] = u_Dj · u_Bi
+    credit = svd_bound.orientation_sum_bound(T, hi, e, EIG_TIE_RTOL) if n > 1 else np.ones(m)
+    orient = (n - credit) / n - ROUND * n * EPS
     return _f64(size + np.maximum(orient, 0.0))
 
 
