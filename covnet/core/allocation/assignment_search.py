@@ -243,8 +243,10 @@ TIMED_FLOOR_SHARE = 0.3
 TIMED_FLOOR_SLICE = 0.13
 TIMED_FLOOR_MIN = 0.09
 #: the root floors (:func:`_root_floors`, round mt12): one starts only with this share of the
-#: decision's limit left (9 ms at the bench's 90 ms)
+#: decision's limit left, at most ``ROOT_FLOOR_MIN_CAP`` seconds (9 ms at the bench's 90 ms and
+#: at its 0.9 s, N = 256: a root's cost hardly grows with N)
 ROOT_FLOOR_MIN = 0.1
+ROOT_FLOOR_MIN_CAP = 0.009
 #: ... each root's barrier (the dual bound) stops after this many iterations (its bound so
 #: far: at 12 of the 30 within 0.05 % of the full run's on spectral, 0.5-3 % on one_norm, at
 #: 3.6 ms of CPU instead of 8, N = 64)
@@ -1426,7 +1428,7 @@ def _search(
         if timed and rooted and inp.entry is not None and not inp.entry.floors_first:  # mt12
             assert time_limit_s is not None
             half = ROOT_FLOOR_AFTER * rem()
-            min_s = ROOT_FLOOR_MIN * time_limit_s
+            min_s = min(ROOT_FLOOR_MIN * time_limit_s, ROOT_FLOOR_MIN_CAP)
 
             def mid_when() -> bool:
                 return rem() < half
