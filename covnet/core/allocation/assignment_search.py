@@ -133,8 +133,20 @@ enumerated, the local search; (5) a second round of floors for the targets witho
 before the plan (an equal share of the time left each, none started without ``FLOOR_MIN_S``:
 many short floors bound more than a few long ones where the single-target bound is weak,
 spectral at N = 256, and at N = 64 the time under ``FLOOR_MIN_S`` is better spent on dual
-steps, svd); (6) dual steps.  Every piece is a bound of
-its own, so whatever the clock cuts, ``L(π) <= F*``.
+steps, svd); (6) dual steps, and among them (round mt12; the metrics without
+``floors_first`` whose single-target problem has a refinement: spectral, the norms,
+abs_trace), once the steps stall or half their time is spent, the *root floors* at the best
+prices so far (:func:`_root_floors`: each target's single-target root bound, the largest
+relative slack first, 12 barrier iterations, about 3.6 ms of CPU a target at N = 64 against
+at least ``FLOOR_MIN_S`` for a single-target search), then the steps go on.  Every piece is
+a bound of its own, so whatever the clock cuts, ``L(π) <= F*``.
+
+*Price-aware floors* (round mt12, off: ``PRICE_FLOORS``): a floor computed at prices ``π⁰`` by
+:func:`covnet.core.allocation.price_floor.price_floor` (a certified ``ℓ <= min_S w_c g_c(S) +
+π⁰(S)``) bounds the column at any prices: ``b_c(k, π) >= ℓ + δ_k``, ``δ_k`` the sum of the
+``k`` smallest ``π_j - π⁰_j`` over ``F_c`` (**proof**: ``w_c g_c(S) + π(S) = [w_c g_c(S) +
+π⁰(S)] + (π - π⁰)(S)``, and the ``k`` members are ``k`` distinct sensors of ``F_c``); with it
+the dual function is still at most ``F*`` (the proof above, ``b_c`` the largest of its bounds).
 
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
@@ -176,6 +188,7 @@ from covnet.core.allocation.assignment import (
     allocate_assignments,
 )
 from covnet.core.allocation.exact import Constraints, InfeasibleAllocation, _spd_error
+from covnet.core.allocation.price_floor import price_floor
 from covnet.core.allocation.search import allocate_bnb
 from covnet.core.allocation.search_problem import _Problem
 from covnet.core.gaussian import Mat
@@ -229,6 +242,28 @@ FLOOR_MARGIN = 1.5
 TIMED_FLOOR_SHARE = 0.3
 TIMED_FLOOR_SLICE = 0.13
 TIMED_FLOOR_MIN = 0.09
+#: the root floors (:func:`_root_floors`, round mt12): one starts only with this share of the
+#: decision's limit left, at most ``ROOT_FLOOR_MIN_CAP`` seconds (9 ms at the bench's 90 ms and
+#: at its 0.9 s, N = 256: a root's cost hardly grows with N)
+ROOT_FLOOR_MIN = 0.1
+ROOT_FLOOR_MIN_CAP = 0.009
+#: ... each root's barrier (the dual bound) stops after this many iterations (its bound so
+#: far: at 12 of the 30 within 0.05 % of the full run's on spectral, 0.5-3 % on one_norm, at
+#: 3.6 ms of CPU instead of 8, N = 64)
+ROOT_ITERS = 12
+#: ... only on the columns whose slack is above this share of their incumbent's value, and
+#: which hold at least ``ROOT_FLOOR_PART`` of the summed slack
+ROOT_FLOOR_SLACK = 1e-3
+ROOT_FLOOR_PART = 0.05
+#: ... among the dual steps, at the best prices so far, once the steps stall (``θ <=
+#: MID_THETA``) or ``1 - ROOT_FLOOR_AFTER`` of the time left for the steps is spent
+ROOT_FLOOR_AFTER = 0.5
+MID_THETA = 0.125
+#: the price-aware floors (:func:`_price_floors`, :mod:`covnet.core.allocation.price_floor`)
+#: after the root floors, each within this many nodes: off (measured: no gain beyond the noise
+#: at 90 or 300 ms of CPU, N = 64, T = 8; README, round mt12)
+PRICE_FLOORS = False
+PRICE_FLOOR_NODES = 1000
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -674,6 +709,9 @@ class _Dual:
         self.nc: list[int] = []
         #: per column the weighted single-target floor (``-inf``: none; :func:`_floors`)
         self.floor = np.full(cs.ncol, -math.inf)
+        #: per column the price-aware floors ``(ℓ, π⁰[opts])`` (:func:`_price_floors`): each a
+        #: certified ``ℓ <= min_S w_c g_c(S) + π⁰(S)``
+        self.pfloors: list[list[tuple[float, Mat]]] = [[] for _ in range(cs.ncol)]
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
             self.nc.append(nc)
@@ -828,6 +866,9 @@ class _Dual:
             cost = np.fmax(cost, en.cost(pi, ps))
         if math.isfinite(self.floor[c]):
             cost[1:] = np.fmax(cost[1:], self.floor[c] + ps[1:])
+        for ell, p0 in self.pfloors[c]:  # ℓ + the k smallest π_j - π⁰_j (price_floor)
+            delta = np.concatenate(([0.0], np.cumsum(np.sort(pi[o] - p0)[:nc])))
+            cost = np.fmax(cost, ell + delta)
         return cost, ps
 
     def value(self, pi: Mat) -> tuple[float, list[int]]:
@@ -864,6 +905,7 @@ class _Dual:
         hmax = sum(float(h.max()) for h in self.h)
         hmax += sum(e.scale for e in self.enum if e is not None)
         hmax += float(np.abs(self.floor[np.isfinite(self.floor)]).sum())
+        hmax += sum(abs(ell) + float(p0.sum()) for pf in self.pfloors for ell, p0 in pf)
         allow = 64.0 * (self.cs.N + self.cs.ncol + 2) * EPS * (psum + hmax + abs(total))
         return total - psum - allow, counts
 
@@ -1156,22 +1198,142 @@ def _floors(
     return done
 
 
+def _root_floors(
+    dual: _Dual,
+    upper: Mat,
+    remaining: Callable[[], float],
+    min_s: float,
+    keep: float = 0.0,
+    pi: Mat | None = None,
+) -> int:
+    """The *root floors* (the timed plan, for the metrics without ``Metric.floors_first``):
+    per target column, the largest slack first (the incumbent's weighted value less the
+    column's least bound at zero prices; none where that is below ``ROOT_FLOOR_SLACK`` of the
+    incumbent's value), the single-target problem's root bound
+    (:meth:`~covnet.core.allocation.search_problem._Problem.root_bound`: the interval
+    ``[P(F_c), P(∅)]`` raised by the metric's relaxation or dual bound; only where the column
+    has one), weighted, is the column's floor, while at least ``min_s`` seconds are left.
+    **Proof**: every ``S ⊆ F_c`` has ``Z(∅) ⪯ Z(S) ⪯ Z(F_c)``, so ``g_c(S)`` is at least the
+    root interval's bound (the single-target search's own root), and the floor's use in the
+    dual (``b_c(k, π) >= w_c ℓ_c + π_c(k)``, :func:`_floors`) holds for any ``ℓ_c <= min_S
+    g_c(S)``.  At N = 64, T = 8 one costs 6-9 ms of CPU (spectral, the norms, abs_trace)
+    against at least ``FLOOR_MIN_S`` for a single-target search, and it gives the light
+    targets most of what that search does.  A running root's barrier stops at the deadline
+    (its bound so far, valid).  Returns how many ran."""
+    cs = dual.cs
+    zero = np.zeros(cs.N) if pi is None else pi
+    slack = []
+    least, gaps = {}, {}
+    for c in range(cs.T):
+        col = cs.cols[c]
+        if not (isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size):
+            continue
+        prob = col.prob
+        assert prob is not None
+        if prob.dual is None and prob.relax is None:
+            continue  # the root's interval bound alone: the depth-1 bounds have it already
+        least[c] = float(dual._cost(c, zero)[0].min(initial=math.inf))
+        gaps[c] = float(upper[c]) - least[c]
+        if gaps[c] > ROOT_FLOOR_SLACK * abs(float(upper[c])):
+            slack.append((-gaps[c] / max(abs(float(upper[c])), TINY), c))
+    total = sum(gaps[c] for _, c in slack)
+    slack = [(r, c) for r, c in slack if gaps[c] >= ROOT_FLOOR_PART * total]
+    done = 0
+
+    for _, c in sorted(slack):
+        if remaining() - keep < min_s:
+            break
+        col = cs.cols[c]
+        assert isinstance(col, _TargetCol) and col.prob is not None
+        prob = col.prob
+        prob.stop = _iterations(ROOT_ITERS, lambda: remaining() < keep)
+        try:
+            root = prob.root_bound()
+        finally:
+            prob.stop = None
+        if math.isfinite(root):
+            dual.floor[c] = max(dual.floor[c], float(cs.w[c]) * max(root, 0.0))
+        done += 1
+    return done
+
+
+def _iterations(n: int, out: Callable[[], bool]) -> Callable[[], bool]:
+    """A ``stop`` for :attr:`_Problem.stop` that says so after ``n`` readings (the barrier
+    and the relaxation read it once an iteration) or once ``out()``."""
+    calls = itertools.count()
+
+    def stop() -> bool:
+        return next(calls) >= n or out()
+
+    return stop
+
+
+def _price_floors(
+    dual: _Dual, upper: Mat, pi: Mat, remaining: Callable[[], float], min_s: float
+) -> int:
+    """The price-aware floors (round mt12, :mod:`covnet.core.allocation.price_floor`) at the
+    prices ``pi``: per target column, the largest slack at these prices first (``upper``:
+    the incumbent's weighted column value plus its sensors' prices), the branch and bound of
+    ``min_S w_c g_c(S) + π(S)`` with the column's root bound as its floor, within
+    ``PRICE_FLOOR_NODES`` nodes, while ``min_s`` seconds are left; its certified bound is
+    kept with its prices (:meth:`_Dual._cost`).  Returns how many ran."""
+    cs = dual.cs
+    order = []
+    for c in range(cs.T):
+        col = cs.cols[c]
+        if not (isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size):
+            continue
+        gap = float(upper[c]) - float(dual._cost(c, pi)[0].min(initial=math.inf))
+        if gap > ROOT_FLOOR_SLACK * abs(float(upper[c])):
+            order.append((-gap, c))
+    done = 0
+    for _, c in sorted(order):
+        left = remaining()
+        if left < min_s:
+            break
+        col = cs.cols[c]
+        assert isinstance(col, _TargetCol) and col.prob is not None
+        prob = col.prob
+        root = prob._root_bound if prob._root_bound is not None else -math.inf
+        res = price_floor(
+            prob, pi, float(cs.w[c]), rel_gap=FLOOR_GAP, node_limit=PRICE_FLOOR_NODES,
+            deadline=lambda: remaining() < min_s, floor=root,
+        )  # fmt: skip
+        if math.isfinite(res.lower):
+            dual.pfloors[c].append((res.lower, pi[dual.opts[c]].copy()))
+        done += 1
+    return done
+
+
 def _dual_bound(
     dual: _Dual,
     upper: float,
     steps: int,
     target_gap: float,
     deadline: Callable[[], bool] | None,
+    mid: Callable[[Mat], object] | None = None,
+    mid_when: Callable[[], bool] | None = None,
 ) -> tuple[float, int]:
     """The best ``L(π)`` over ``steps`` subgradient steps from ``π = 0`` (Polyak steps towards
-    ``upper``, ``θ`` halved after 5 steps without progress); stops early at ``target_gap``."""
+    ``upper``, ``θ`` halved after 5 steps without progress); stops early at ``target_gap``.
+    ``mid`` (the timed plan's root floors, round mt12): called once with the best prices so
+    far when ``mid_when()`` or ``θ <= MID_THETA`` (the steps stall); it may only raise the
+    columns' bounds, so the steps go on from where they are, the best ``L`` re-evaluated."""
     pi = np.zeros(dual.cs.N)
     best, counts = dual.value(pi)
+    best_pi = pi
     n = 1
     theta, stall = 1.0, 0
     while n < steps and _gap(upper, best) > target_gap and theta > 1e-4:
         if deadline is not None and deadline():
             break
+        if mid is not None and (theta <= MID_THETA or (mid_when is not None and mid_when())):
+            mid(best_pi)
+            mid = None
+            best = max(best, dual.value(best_pi)[0])
+            _, counts = dual.value(pi)
+            if deadline is not None and deadline():
+                break
         g = dual.subgradient(pi, counts)
         g = np.where((pi <= 0) & (g < 0), 0.0, g)
         nrm = float(g @ g)
@@ -1182,7 +1344,7 @@ def _dual_bound(
         val, counts = dual.value(pi)
         n += 1
         if val > best:
-            best, stall = val, 0
+            best, stall, best_pi = val, 0, pi
         else:
             stall += 1
             if stall >= 5:
@@ -1258,7 +1420,27 @@ def _search(
         F, values, Ps, gs = cs.exact(a)
         if timed:
             _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock)  # the second: as before
-        L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline)
+        mid: Callable[[Mat], object] | None = None
+        mid_when: Callable[[], bool] | None = None
+        rooted = any(isinstance(col, _TargetCol) and col.prob is not None
+                     and (col.prob.dual is not None or col.prob.relax is not None)
+                     for col in cs.cols)  # fmt: skip
+        if timed and rooted and inp.entry is not None and not inp.entry.floors_first:  # mt12
+            assert time_limit_s is not None
+            half = ROOT_FLOOR_AFTER * rem()
+            min_s = min(ROOT_FLOOR_MIN * time_limit_s, ROOT_FLOOR_MIN_CAP)
+
+            def mid_when() -> bool:
+                return rem() < half
+
+            def mid(pi: Mat) -> int:
+                upper = cs.w * st.v + np.array([float(pi[s].sum()) for s in st.sets])
+                n = _root_floors(dual, upper, rem, min_s, 0.0, pi)
+                if PRICE_FLOORS:
+                    n += _price_floors(dual, upper, pi, rem, min_s)
+                return n
+
+        L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline, mid, mid_when)
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
         raise _spd_error(exc) from exc
