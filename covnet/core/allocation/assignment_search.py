@@ -141,13 +141,6 @@ relative slack first, 12 barrier iterations, about 3.6 ms of CPU a target at N =
 at least ``FLOOR_MIN_S`` for a single-target search), then the steps go on.  Every piece is
 a bound of its own, so whatever the clock cuts, ``L(π) <= F*``.
 
-*Price-aware floors* (round mt12, off: ``PRICE_FLOORS``): a floor computed at prices ``π⁰`` by
-:func:`covnet.core.allocation.price_floor.price_floor` (a certified ``ℓ <= min_S w_c g_c(S) +
-π⁰(S)``) bounds the column at any prices: ``b_c(k, π) >= ℓ + δ_k``, ``δ_k`` the sum of the
-``k`` smallest ``π_j - π⁰_j`` over ``F_c`` (**proof**: ``w_c g_c(S) + π(S) = [w_c g_c(S) +
-π⁰(S)] + (π - π⁰)(S)``, and the ``k`` members are ``k`` distinct sensors of ``F_c``); with it
-the dual function is still at most ``F*`` (the proof above, ``b_c`` the largest of its bounds).
-
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
 
@@ -188,7 +181,6 @@ from covnet.core.allocation.assignment import (
     allocate_assignments,
 )
 from covnet.core.allocation.exact import Constraints, InfeasibleAllocation, _spd_error
-from covnet.core.allocation.price_floor import price_floor
 from covnet.core.allocation.search import allocate_bnb
 from covnet.core.allocation.search_problem import _Problem
 from covnet.core.gaussian import Mat
@@ -259,11 +251,6 @@ ROOT_FLOOR_PART = 0.05
 #: MID_THETA``) or ``1 - ROOT_FLOOR_AFTER`` of the time left for the steps is spent
 ROOT_FLOOR_AFTER = 0.5
 MID_THETA = 0.125
-#: the price-aware floors (:func:`_price_floors`, :mod:`covnet.core.allocation.price_floor`)
-#: after the root floors, each within this many nodes: off (measured: no gain beyond the noise
-#: at 90 or 300 ms of CPU, N = 64, T = 8; README, round mt12)
-PRICE_FLOORS = False
-PRICE_FLOOR_NODES = 1000
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -709,9 +696,6 @@ class _Dual:
         self.nc: list[int] = []
         #: per column the weighted single-target floor (``-inf``: none; :func:`_floors`)
         self.floor = np.full(cs.ncol, -math.inf)
-        #: per column the price-aware floors ``(ℓ, π⁰[opts])`` (:func:`_price_floors`): each a
-        #: certified ``ℓ <= min_S w_c g_c(S) + π⁰(S)``
-        self.pfloors: list[list[tuple[float, Mat]]] = [[] for _ in range(cs.ncol)]
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
             self.nc.append(nc)
@@ -866,9 +850,6 @@ class _Dual:
             cost = np.fmax(cost, en.cost(pi, ps))
         if math.isfinite(self.floor[c]):
             cost[1:] = np.fmax(cost[1:], self.floor[c] + ps[1:])
-        for ell, p0 in self.pfloors[c]:  # ℓ + the k smallest π_j - π⁰_j (price_floor)
-            delta = np.concatenate(([0.0], np.cumsum(np.sort(pi[o] - p0)[:nc])))
-            cost = np.fmax(cost, ell + delta)
         return cost, ps
 
     def value(self, pi: Mat) -> tuple[float, list[int]]:
@@ -905,7 +886,6 @@ class _Dual:
         hmax = sum(float(h.max()) for h in self.h)
         hmax += sum(e.scale for e in self.enum if e is not None)
         hmax += float(np.abs(self.floor[np.isfinite(self.floor)]).sum())
-        hmax += sum(abs(ell) + float(p0.sum()) for pf in self.pfloors for ell, p0 in pf)
         allow = 64.0 * (self.cs.N + self.cs.ncol + 2) * EPS * (psum + hmax + abs(total))
         return total - psum - allow, counts
 
@@ -1268,43 +1248,6 @@ def _iterations(n: int, out: Callable[[], bool]) -> Callable[[], bool]:
     return stop
 
 
-def _price_floors(
-    dual: _Dual, upper: Mat, pi: Mat, remaining: Callable[[], float], min_s: float
-) -> int:
-    """The price-aware floors (round mt12, :mod:`covnet.core.allocation.price_floor`) at the
-    prices ``pi``: per target column, the largest slack at these prices first (``upper``:
-    the incumbent's weighted column value plus its sensors' prices), the branch and bound of
-    ``min_S w_c g_c(S) + π(S)`` with the column's root bound as its floor, within
-    ``PRICE_FLOOR_NODES`` nodes, while ``min_s`` seconds are left; its certified bound is
-    kept with its prices (:meth:`_Dual._cost`).  Returns how many ran."""
-    cs = dual.cs
-    order = []
-    for c in range(cs.T):
-        col = cs.cols[c]
-        if not (isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size):
-            continue
-        gap = float(upper[c]) - float(dual._cost(c, pi)[0].min(initial=math.inf))
-        if gap > ROOT_FLOOR_SLACK * abs(float(upper[c])):
-            order.append((-gap, c))
-    done = 0
-    for _, c in sorted(order):
-        left = remaining()
-        if left < min_s:
-            break
-        col = cs.cols[c]
-        assert isinstance(col, _TargetCol) and col.prob is not None
-        prob = col.prob
-        root = prob._root_bound if prob._root_bound is not None else -math.inf
-        res = price_floor(
-            prob, pi, float(cs.w[c]), rel_gap=FLOOR_GAP, node_limit=PRICE_FLOOR_NODES,
-            deadline=lambda: remaining() < min_s, floor=root,
-        )  # fmt: skip
-        if math.isfinite(res.lower):
-            dual.pfloors[c].append((res.lower, pi[dual.opts[c]].copy()))
-        done += 1
-    return done
-
-
 def _dual_bound(
     dual: _Dual,
     upper: float,
@@ -1435,10 +1378,7 @@ def _search(
 
             def mid(pi: Mat) -> int:
                 upper = cs.w * st.v + np.array([float(pi[s].sum()) for s in st.sets])
-                n = _root_floors(dual, upper, rem, min_s, 0.0, pi)
-                if PRICE_FLOORS:
-                    n += _price_floors(dual, upper, pi, rem, min_s)
-                return n
+                return _root_floors(dual, upper, rem, min_s, 0.0, pi)
 
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline, mid, mid_when)
         nothing = cs.exact([OFF] * cs.N)[0]
