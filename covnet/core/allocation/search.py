@@ -453,6 +453,10 @@ class _Search:
         inc = src.inc.copy()
         inc[:, d >> 3] |= np.uint8(1 << (d & 7))
         est = prob.combine(sBi, sBi)
+        if ties is not None:  # the sharper leaf bound (kl): the check's L_cand within tie_rtol
+            leaf = prob.leaf_bound(Zi)
+            if leaf is not None:
+                est = np.fmax(est, leaf)
         self.n_nodes += est.size
         self.record(inc, est)
         if not last:
@@ -535,6 +539,10 @@ class _Search:
                 inc, est, looked = self.leaves.leaves(sub.Z, sub.k, sub.inc, tau, K, same)
                 if K < self.prob.K:  # completions over the size rule: below the node's bound
                     self.ties.dropped(sub.lb)
+                if est.size:  # the sharper leaf bound (kl), as for the tree's candidates
+                    leaf = self.ties.leaf(self.prob.masks(self.prob.unpack(inc)))
+                    if leaf is not None:
+                        est = np.fmax(est, leaf)
             self.n_nodes += looked
             # every completion left out is above tau (its bound too)
             self.L_pruned = min(self.L_pruned, tau)

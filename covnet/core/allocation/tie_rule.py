@@ -95,19 +95,39 @@ class _TieRule:
         same = identical_to_previous(prob) if symmetry else np.zeros(prob.m, dtype=bool)
         self.same = same
         self.symmetry = bool(same.any())
+        #: the identical-sensor rule alone is worth it: the leaf bound
+        #: (:meth:`~covnet.core.allocation.search_problem._Problem.leaf_bound`) of the best
+        #: evaluated subset is within ``tie_rtol`` of its value (the check's step 1 then
+        #: passes when the choice's twins are bounded as tightly)
+        self.leaf_sharp = False
 
     def observe(self, masks: NDArray[np.bool_], values: Mat) -> None:
-        """Evaluated subsets: the certified ones (``V <= thr(L0)``) lower ``s*``."""
+        """Evaluated subsets: the certified ones (``V <= thr(L0)``) lower ``s*``; with
+        identical sensors and a leaf bound, whether the best one's leaf bound is sharp."""
         ok = values <= self.thr0
         if ok.any():
             self.s_star = min(self.s_star, int(masks[ok].sum(axis=1).min()))
+        if self.symmetry and not self.leaf_sharp and values.size:
+            k = int(np.argmin(values))
+            est = self.leaf(masks[k : k + 1])
+            if est is not None:
+                thr = tie_threshold(float(est[0]), self.prob.tie_rtol)
+                self.leaf_sharp = bool(values[k] <= thr)
+
+    def leaf(self, masks: NDArray[np.bool_]) -> Mat | None:
+        """The leaf bounds of the subsets ``masks`` ``(c, N)`` (``None``: no leaf bound)."""
+        prob = self.prob
+        inc = masks[:, prob.free].astype(np.float64)
+        return prob.leaf_bound(prob.base[None] + inc @ prob.S)
 
     @property
     def active(self) -> bool:
-        """A certified subset has been seen (the rules are used only then: the check's
-        ``V(D) <= thr(L1)`` needs bounds within ``tie_rtol`` of the values, which the rounding
-        allowances of the bounds often are not, and a failed check costs a second search)."""
-        return self.s_star <= self.prob.K + len(self.prob.req)
+        """A certified subset has been seen, or (identical sensors) the leaf bound is sharp
+        (the rules are used only then: the check's ``V(D) <= thr(L1)`` needs bounds within
+        ``tie_rtol`` of the values, which the rounding allowances of the bounds often are not,
+        and a failed check costs a second search).  Without a certified subset ``s*`` stays
+        above the budget: only the identical-sensor rule prunes."""
+        return self.s_star <= self.prob.K + len(self.prob.req) or self.leaf_sharp
 
     def candidates(self, est: Mat) -> None:
         if est.size:
@@ -135,4 +155,7 @@ class _TieRule:
         Z = prob.base[None] + inc @ prob.S
         sB = prob.summary(Z)
         est = prob.combine(sB, sB)
+        leaf = prob.leaf_bound(Z)
+        if leaf is not None:
+            est = np.fmax(est, leaf)
         return bool((est > thr_c).all())
