@@ -694,6 +694,12 @@ def allocate_bnb(
             search.evaluated(*start)
             if search.ties is not None and not search.ties.active:
                 search.ties = None  # nothing certified: the rules would prune nothing sure
+            elif search.ties is not None and search.ties.leaf_sharp:
+                # the identical-sensor rule on a sharp leaf bound (kl): the tree prunes the
+                # twins at every level, where the table would find them all in its ball and
+                # drop them after (kl's tie problems at N = 40: 95 M rows looked at, 7.4 s,
+                # against 82 k nodes, 0.12 s)
+                search.d0 = -1
             why = search.finish(search.run())
             masks = np.concatenate(search.ev_masks)
             values = np.concatenate(search.ev_vals)
