@@ -588,9 +588,35 @@ _fast.spd_inverse` does (LAPACK ``potrf``, ``potri`` = ``trtri`` then ``lauum``,
 
 
 def _lam_min_below(X: Mat) -> float:
-    """A lower bound of ``λmin(X)`` of a symmetric float ``X``: LAPACK's, less ``EIG_REL
-    ||X||_F`` (backward stability, as :func:`_spectral_above`)."""
-    return float(np.linalg.eigvalsh(X)[0]) - EIG_REL * float(np.sqrt((X * X).sum()))
+    """A lower bound of ``λmin(X)`` of a symmetric float ``X``, the larger of two:
+
+    - LAPACK's eigenvalue less ``EIG_REL ||X||_F`` (backward stability, as
+      :func:`_spectral_above`); useless when ``λmin`` is below ``EIG_REL`` of ``||X||``;
+    - from the Cholesky factor and its computed inverse (SPD ``X``): ``L̂L̂ᵀ = X + E1``,
+      ``||E1||_2 <= γ_{n+1} tr X / (1 - n γ_{n+1})`` (:func:`_inverse_factors`, step 1), and
+      ``X̂L̂ = I + R`` with ``||R||_F <= r = γ_{n+1} ||X̂||_F ||L̂||_F`` (step 2), so ``L̂⁻¹ =
+      (I + R)⁻¹ X̂``, ``||L̂⁻¹||_2 <= ||X̂||_F / (1 - r)`` and ``λmin(X) >= (1 - r)² /
+      ||X̂||_F² - ||E1||_2``: relative to ``λmin`` itself (within ``n`` of it), not to
+      ``||X||``."""
+    n = int(X.shape[0])
+    lo = float(np.linalg.eigvalsh(X)[0]) - EIG_REL * float(np.sqrt((X * X).sum()))
+    c, info = lapack.dpotrf(X, lower=1)
+    if info != 0:
+        return lo
+    L = np.tril(np.asarray(c))
+    Xi, info = lapack.dtrtri(L, lower=1)
+    if info != 0:
+        return lo
+    Xi = np.tril(np.asarray(Xi))
+    g1 = _gamma(n + 1)
+    fx = float(np.sqrt((Xi * Xi).sum())) * (1.0 + n * n * UNIT)
+    fl = float(np.sqrt((L * L).sum())) * (1.0 + n * n * UNIT)
+    r = g1 * fx * fl
+    if not (r < 0.5 and n * g1 < 0.5 and fx > 0.0):
+        return lo
+    e1 = g1 * float(np.trace(X)) * (1.0 + n * UNIT) / (1.0 - n * g1)
+    chol = ((1.0 - r) ** 2 / (fx * fx)) * (1.0 - 4.0 * UNIT) - e1
+    return max(lo, chol)
 
 
 class KlLeaf(NamedTuple):
