@@ -35,7 +35,10 @@ from covnet.covariance_control.tie_problems import tie_problem
 _elems = st.floats(-3, 3, allow_nan=False, allow_infinity=False)
 
 
-def _problem(P_pred, gains, P_d, constraints=Constraints()):
+NONE = Constraints()
+
+
+def _problem(P_pred, gains, P_d, constraints=NONE):
     return _Problem(P_pred, gains, P_d, "kl", constraints, 1e-9)
 
 
@@ -155,9 +158,13 @@ def _without_allowance(monkeypatch):
     monkeypatch.setattr(IB, "kl_leaf_constants", constants)
     monkeypatch.setattr(IB, "_gamma", lambda k: 0.0)
     monkeypatch.setattr(IB, "_deflate", lambda v, n, ctx, shift: v)
-    monkeypatch.setattr(IB, "KL_BOUND", IB.IntervalBound(
-        IB._gen_eig, IB._kl_combine, leaf=IB.LeafBound(constants, IB.kl_leaf_bound)
-    ))
+    monkeypatch.setattr(
+        IB,
+        "KL_BOUND",
+        IB.IntervalBound(
+            IB._gen_eig, IB._kl_combine, leaf=IB.LeafBound(constants, IB.kl_leaf_bound)
+        ),
+    )
 
 
 def _full_problem(seed):
@@ -273,7 +280,8 @@ def _class_reference(P_pred, gains, P_d, types):
     thr = tie_threshold(float(vals.min()), 1e-9)
     assert (np.abs(vals - thr) > 1e-6).all()
     k = tie_select(vals, mk, 1e-9)
-    return tuple(np.flatnonzero(mk[k]).tolist()), float(vals[k]), prob.exact_covariances(mk[k : k + 1])[0]
+    P = prob.exact_covariances(mk[k : k + 1])[0]
+    return tuple(np.flatnonzero(mk[k]).tolist()), float(vals[k]), P
 
 
 def test_class_reference_is_the_exhaustive_one():
