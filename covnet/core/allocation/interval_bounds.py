@@ -33,7 +33,11 @@ entrywise-``err`` symmetric ``E``) and deflates by a relative rounding allowance
 arithmetic and of the metric's.  :func:`search_context` builds the context with the error model of
 :mod:`covnet.core.allocation._fast` (``ERR_FACTOR · n² · eps · κ · λmax``, a worst-case model with
 a generous constant, not a certified interval computation); the property tests check
-``bound <= computed value`` on sampled completions.
+``bound <= computed value`` on sampled completions.  kl's *leaf bound* (single subsets,
+:func:`kl_leaf_bound`, for the tie rule) bounds its large trace term instead from the
+reference's own arithmetic, each step a cited backward-error result relative to its own term
+(Cholesky, triangular inverse, Gaussian elimination), and uses the error model only for the
+small term.
 """
 
 from __future__ import annotations

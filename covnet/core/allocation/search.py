@@ -46,7 +46,11 @@ certified to be in the tie set (its value within the tie tolerance of the root's
 with as many sensors are dropped (only fewer sensors can still be chosen), and of bit-identical
 sensors only the canonical completions are explored (a copy only with its lower-indexed twin);
 a check after the search proves the choice is the reference's, else the search runs again
-without these rules.  The dual bound (spectral, one_norm, inf_norm, abs_trace) costs about a
+without these rules.  kl has a sharper bound of single subsets (its leaf bound, the
+reference's arithmetic bounded term by term): it switches the identical-sensor rule on without
+a certified subset and bounds the candidates while the rules are on; then the last levels come
+from the tree, not the table (the tree drops the twins at every level, the table would find
+them all in its ball first).  The dual bound (spectral, one_norm, inf_norm, abs_trace) costs about a
 hundred interval bounds, so exact mode applies it only to nodes with ``DUAL_MIN_REST`` or more
 undecided sensors (where the metric has a vertex bound, only where that does not prune
 already); the others get the vertex bound alone (one_norm, inf_norm: a few dual points a node,

@@ -44,6 +44,20 @@ rounding of any subset whose exact ``P`` lies in the node's interval).
 
 Both hold, so ``D`` is the reference's choice; its value and ``P`` come from the reference's
 arithmetic.  When the check fails the search runs again without these rules.
+
+**Leaf bounds** (kl; :class:`~covnet.core.allocation.interval_bounds.LeafBound`).  Step 1
+needs the candidates' bounds (``L_cand``) within ``tie_rtol`` of their values, and kl's
+degenerate interval bound is hundreds below on the tie problems (its rounding allowance is
+relative to ``tr(P_d) / λmin(P)``).  Its leaf bound
+(:func:`~covnet.core.allocation.interval_bounds.kl_leaf_bound`) bounds the reference's own
+arithmetic term by term, within about ``1e-10`` of the value there, and is valid for every
+subset with the same exact information (so for the twins ``E`` of step 1, whose sums run in
+another order): the search takes the larger of the two for every candidate while the rules
+are on, and step 2 does too.  The rules are switched on either by a certified subset (the
+size rule and the identical-sensor rule) or, with identical sensors and a leaf bound, when the
+best evaluated subset's leaf bound is within ``tie_rtol`` of its value (``V <= thr(est)``:
+then the identical-sensor rule alone, ``s*`` left above the budget, nothing dropped by size;
+the check is unchanged, so a wrong guess costs only the second search).
 """
 
 from __future__ import annotations
