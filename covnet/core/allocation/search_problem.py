@@ -354,7 +354,7 @@ lower_bounds._DualBound.vertex_bound`; one_norm, inf_norm, abs_trace) on the row
         assert self.bound is not None and self.bound.leaf is not None
         with np.errstate(all="ignore"):
             v = self.bound.leaf.bound(Z, self.covariances(Z), self._leaf, self.ctx)
-        return np.where(np.isnan(v), 0.0, v)
+        return np.where(np.isfinite(v), v, 0.0)  # a row it cannot bound: 0 (every value >= 0)
 
     def combine(self, sA: Mat, sB: Mat) -> Mat:
         assert self.bound is not None
