@@ -191,6 +191,35 @@ def test_leaf_bound_below_on_dense_problems(seed):
     assert (lb <= prob.exact(masks)).all()
 
 
+def _ill_problem(seed, c_pred, c_d):
+    """``P_pred`` and ``P_d`` with eigenvalues ``logspace(0, c)`` in random bases, eight sensors
+    of random two-row measurements at scales 0.1-10."""
+    rng = np.random.default_rng(seed)
+    n = 4
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    P_pred = (Q * np.logspace(0, c_pred, n)) @ Q.T
+    Q2, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    P_d = (Q2 * np.logspace(0, c_d, n)) @ Q2.T
+    G = []
+    for _ in range(8):
+        H = rng.normal(size=(2, n)) * rng.choice([0.1, 1.0, 10.0])
+        G.append(H.T @ H)
+    return 0.5 * (P_pred + P_pred.T), np.array(G), 0.5 * (P_d + P_d.T)
+
+
+@pytest.mark.parametrize(
+    ("seed", "c_pred", "c_d"), [(s, 2, 6) for s in range(22, 28)] + [(0, 3, 5), (1, 4, 4)]
+)
+def test_leaf_bound_below_on_ill_conditioned_problems(seed, c_pred, c_d):
+    """Every subset (exhaustive); here the large term's own allowance matters: without it (the
+    rest kept) the bound exceeds the computed value of some subset on seeds 23-27."""
+    prob = _problem(*_ill_problem(seed, c_pred, c_d))
+    masks = np.array([[(c >> j) & 1 for j in range(8)] for c in range(1, 256)], dtype=bool)
+    lb = _leaf(prob, masks)
+    assert lb is not None
+    assert (lb <= prob.exact(masks)).all()
+
+
 def test_the_allowance_is_needed(monkeypatch):
     """Without its allowance the bound exceeds the computed value of some subset (the
     reference's rounding goes below the exact-arithmetic value), with it never."""
