@@ -14,6 +14,7 @@ import itertools
 import numpy as np
 import pytest
 
+from covnet.core.allocation import interval_bounds as IB
 from covnet.core.allocation import search as S
 from covnet.core.allocation import tie_rule as TR
 from covnet.core.allocation._fast import tie_threshold
@@ -166,10 +167,12 @@ def test_identical_sensors_are_adjacent_in_the_branching_order():
         assert prob.free[p - 1] < prob.free[p]
 
 
-def test_a_limit_stops_the_table_of_the_last_levels():
+def test_a_limit_stops_the_table_of_the_last_levels(monkeypatch):
     """kl on a tie problem: the table's ball holds most completions of every node, and the limit
     is checked between its queries (before, one batch of nodes ran its every query: this call did
-    not return within minutes).  Deterministic: a node limit."""
+    not return within minutes).  Deterministic: a node limit.  Without kl's leaf bound (with it
+    the identical-sensor rule decides this problem from the tree, without the table)."""
+    monkeypatch.setattr(IB, "KL_BOUND", IB.IntervalBound(IB._gen_eig, IB._kl_combine))
     P_pred, gains, P_d = tie_problem(24, 0, 4)
     limit = 200_000
     r = S.allocate_bnb(P_pred, gains, P_d, "kl", node_limit=limit)

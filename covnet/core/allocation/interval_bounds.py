@@ -33,7 +33,11 @@ entrywise-``err`` symmetric ``E``) and deflates by a relative rounding allowance
 arithmetic and of the metric's.  :func:`search_context` builds the context with the error model of
 :mod:`covnet.core.allocation._fast` (``ERR_FACTOR · n² · eps · κ · λmax``, a worst-case model with
 a generous constant, not a certified interval computation); the property tests check
-``bound <= computed value`` on sampled completions.
+``bound <= computed value`` on sampled completions.  kl's *leaf bound* (single subsets,
+:func:`kl_leaf_bound`, for the tie rule) bounds its large trace term instead from the
+reference's own arithmetic, each step a cited backward-error result relative to its own term
+(Cholesky, triangular inverse, Gaussian elimination), and uses the error model only for the
+small term.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -158,6 +162,18 @@ AboveFn = Callable[[Mat, DesiredConstants, IntervalContext, float, bool], Mat]
 
 
 @dataclass(frozen=True, slots=True)
+class LeafBound:
+    """A sharper bound of single subsets (degenerate intervals) than ``combine(s, s)``, valid
+    for every subset with the same exact information (the tie rule's twins): ``constants(Y0,
+    gains, Cinv, s, P_pred, P_d)`` once per problem (``None``: not available), then
+    ``bound(Z, X, constants, ctx)`` ``(m,)`` for reduced informations ``Z`` ``(m, r*r)`` and
+    their reduced-form covariances ``X`` ``(m, n, n)`` (kl: :func:`kl_leaf_bound`)."""
+
+    constants: Callable[[Mat, Mat, Mat, NDArray[np.intp], Mat, Mat], object | None]
+    bound: Callable[[Mat, Mat, Any, IntervalContext], NDArray[np.float64]]
+
+
+@dataclass(frozen=True, slots=True)
 class IntervalBound:
     """A metric's interval bound: ``summary(X, dc)`` ``(m, q)`` of endpoints ``X`` ``(m, n, n)``,
     and ``combine(s_A, s_B, dc, ctx)`` ``(m,)``, a lower bound of the metric over ``[A, B]``.
@@ -169,12 +185,14 @@ class IntervalBound:
     ``A``, else an upper one ``B``), which get a looser summary whose combination with any
     partner is still ``> tau`` and a valid bound (at most that of ``summary``): rows whose
     bound from ``summary`` is ``> tau`` (spectral's inertia pre-test,
-    :func:`_spectral_above`)."""
+    :func:`_spectral_above`).  ``leaf``, optionally: a sharper bound of single subsets
+    (:class:`LeafBound`; kl), which the tie rule's pruning reads."""
 
     summary: SummaryFn
     combine: CombineFn
     from_diagonal: SummaryFn | None = None
     above: AboveFn | None = None
+    leaf: LeafBound | None = None
 
 
 def _f64(x: object) -> Mat:
@@ -516,6 +534,279 @@ def _kl_combine(
     return _deflate(v, dc.n, ctx, rel * mag)
 
 
+# ---- kl's leaf bound: a degenerate interval, sharp (the tie rule's certificates) ------------
+
+#: the unit roundoff (IEEE double, round to nearest)
+UNIT = EPS / 2.0
+
+
+def _gamma(k: float) -> float:
+    """Higham's ``γ_k = k u / (1 - k u)`` (``inf`` once ``k u >= 1``)."""
+    ku = k * UNIT
+    return ku / (1.0 - ku) if ku < 1.0 else math.inf
+
+
+def _inverse_factors(kappa: float, n: int) -> tuple[float, float] | None:
+    """``(a, b)`` with ``a A⁻¹ ⪯ spd_inverse(A) ⪯ b A⁻¹`` (Loewner) for every SPD ``n x n``
+    float ``A`` with ``cond A <= kappa``, the inverse computed as :func:`covnet.core.allocation.\
+_fast.spd_inverse` does (LAPACK ``potrf``, ``potri`` = ``trtri`` then ``lauum``, the lower
+    triangle mirrored); ``None`` when the factors are not below ``1/2`` away from 1.
+
+    Proof (``γ_k`` of :func:`_gamma`, ``||·||`` the 2-norm, ``||E||_2 <= ||E||_F``):
+
+    1. ``potrf``: ``L̂L̂ᵀ = A + E1``, ``|E1| <= γ_{n+1} |L̂||L̂ᵀ|`` (Higham, *Accuracy and
+       Stability*, Thm 10.3), so ``||E1||_F <= γ_{n+1} ||L̂||_F² = γ_{n+1} tr(A + E1) <=
+       γ_{n+1} (n λmax(A) + n ||E1||)``: ``||E1|| <= γ_{n+1} n λmax / (1 - n γ_{n+1})`` and
+       ``(1 - ε1) A ⪯ L̂L̂ᵀ ⪯ (1 + ε1) A``, ``ε1 = γ_{n+1} n κ / (1 - n γ_{n+1})``.
+    2. ``trtri`` (``xTRTI2``, Du Croz and Higham's method 2: column ``j`` of ``X`` is
+       ``-x_jj X₂₂ l₂₁`` from the already computed ``X₂₂``): ``X̂L̂ = I + R``, ``|R| <= γ_{n+1}
+       |X̂||L̂|`` (column ``j``: ``x̂_ij l_jj + (X̂₂₂ l₂₁)_i = -θ₂ s_i - e_i (1 + θ₂)``, the
+       product's error ``|e_i| <= γ_{n-1} (|X̂₂₂||l₂₁|)_i``; the diagonal ``fl(1/l) l - 1``).
+       ``||R|| <= γ_{n+1} ||X̂||_F ||L̂||_F`` with ``||L̂||_F² <= n λmax(L̂L̂ᵀ)``, ``||X̂||_F² <=
+       n (1 + r)² / λmin(L̂L̂ᵀ)`` (``X̂ = (I + R) L̂⁻¹``): ``r <= c (1 + r)``, ``c = γ_{n+1} n
+       sqrt(κ (1 + ε1)/(1 - ε1))``, so ``r = ||R|| <= c / (1 - c)``.  Then ``M = X̂ᵀX̂ = L̂⁻ᵀ
+       (I + R)ᵀ(I + R) L̂⁻¹`` lies in ``[(1 - r)², (1 + r)²] (L̂L̂ᵀ)⁻¹`` (congruence: the
+       singular values of ``I + R`` are within ``r`` of 1).
+    3. ``lauum``: every entry of ``M``'s lower triangle is an inner product of at most ``n``
+       terms, so the mirrored result is ``M + E3``, ``|E3| <= γ_n |X̂|ᵀ|X̂|``, ``||E3|| <= γ_n
+       ||X̂||_F² = γ_n tr M``: relative ``ε3 = γ_n n κ(M)``, ``κ(M) <= ((1 + r)/(1 - r))² κ (1 +
+       ε1)/(1 - ε1)``.
+
+    Hence ``a = (1 - r)² (1 - ε3) / (1 + ε1)``, ``b = (1 + r)² (1 + ε3) / (1 - ε1)``.  (Every
+    step holds whatever the order of the inner products and with fused multiply-adds.)"""
+    g1 = _gamma(n + 1)
+    if not n * g1 < 0.5:
+        return None
+    e1 = g1 * n * kappa / (1.0 - n * g1)
+    if not e1 < 0.5:
+        return None
+    c = g1 * n * math.sqrt(kappa * (1.0 + e1) / (1.0 - e1))
+    if not c < 0.5:
+        return None
+    r = c / (1.0 - c)
+    k_m = ((1.0 + r) / (1.0 - r)) ** 2 * kappa * (1.0 + e1) / (1.0 - e1)
+    e3 = _gamma(n) * n * k_m
+    if not e3 < 0.5:
+        return None
+    return (1.0 - r) ** 2 * (1.0 - e3) / (1.0 + e1), (1.0 + r) ** 2 * (1.0 + e3) / (1.0 - e1)
+
+
+def _lam_min_below(X: Mat) -> float:
+    """A lower bound of ``λmin(X)`` of a symmetric float ``X``, the larger of two:
+
+    - LAPACK's eigenvalue less ``EIG_REL ||X||_F`` (backward stability, as
+      :func:`_spectral_above`); useless when ``λmin`` is below ``EIG_REL`` of ``||X||``;
+    - from the Cholesky factor and its computed inverse (SPD ``X``): ``L̂L̂ᵀ = X + E1``,
+      ``||E1||_2 <= γ_{n+1} tr X / (1 - n γ_{n+1})`` (:func:`_inverse_factors`, step 1), and
+      ``X̂L̂ = I + R`` with ``||R||_F <= r = γ_{n+1} ||X̂||_F ||L̂||_F`` (step 2), so ``L̂⁻¹ =
+      (I + R)⁻¹ X̂``, ``||L̂⁻¹||_2 <= ||X̂||_F / (1 - r)`` and ``λmin(X) >= (1 - r)² /
+      ||X̂||_F² - ||E1||_2``: relative to ``λmin`` itself (within ``n`` of it), not to
+      ``||X||``."""
+    n = int(X.shape[0])
+    lo = float(np.linalg.eigvalsh(X)[0]) - EIG_REL * float(np.sqrt((X * X).sum()))
+    c, info = lapack.dpotrf(X, lower=1)
+    if info != 0:
+        return lo
+    L = np.tril(np.asarray(c))
+    Xi, info = lapack.dtrtri(L, lower=1)
+    if info != 0:
+        return lo
+    Xi = np.tril(np.asarray(Xi))
+    g1 = _gamma(n + 1)
+    fx = float(np.sqrt((Xi * Xi).sum())) * (1.0 + n * n * UNIT)
+    fl = float(np.sqrt((L * L).sum())) * (1.0 + n * n * UNIT)
+    r = g1 * fx * fl
+    if not (r < 0.5 and n * g1 < 0.5 and fx > 0.0):
+        return lo
+    e1 = g1 * float(np.trace(X)) * (1.0 + n * UNIT) / (1.0 - n * g1)
+    chol = ((1.0 - r) ** 2 / (fx * fx)) * (1.0 - 4.0 * UNIT) - e1
+    return max(lo, chol)
+
+
+class KlLeaf(NamedTuple):
+    """The constants of :func:`kl_leaf_bound` for one problem (:func:`kl_leaf_constants`)."""
+
+    c_ab: float  # tr(Ŷ0 P_d) - <C⁻¹, P_d[s, s]>, computed
+    c_err: float  # its error, plus the reduced sums' (Ẑ against the exact Z), in the trace
+    D_ss: Mat  # P_d[s, s] (r*r,)
+    D_abs: Mat  # |P_d[s, s]| (r*r,)
+    ab_scale: float  # t_ab >= ab_scale · tr(Ŷ P_d) - ab_sub
+    ab_sub: float
+    y_sub: float  # <Δ_Y, |P_d|>: tr(Ŷ P_d) >= tr(Y* P_d) - y_sub
+    D_inv: Mat  # the computed P_d⁻¹ (n*n,)
+    D_inv_abs_sum: float
+    ba_scale: float  # t_ba >= ba_scale · (<P_d⁻¹, B̂> - errors)
+
+
+def kl_leaf_constants(
+    Y0: Mat,
+    gains: Mat,
+    Cinv: Mat,
+    s: NDArray[np.intp],
+    P_pred: Mat,
+    P_d: Mat,
+) -> KlLeaf | None:
+    """:func:`kl_leaf_bound`'s constants: ``Y0`` the reference's ``spd_inverse(P_pred)`` (its
+    bits), ``gains`` ``(N, n, n)`` every gain a subset may hold, ``Cinv`` ``(r, r)`` and ``s``
+    the reduced form's (:mod:`covnet.core.allocation.search_problem`); ``None`` where the
+    rounding factors are not small (then no leaf bound: the interval bound alone)."""
+    n = int(P_d.shape[0])
+    N = int(gains.shape[0])
+    r = int(s.size)
+    if r == 0 or N == 0:
+        return None
+    D = np.asarray(P_d, dtype=np.float64)
+    try:
+        neg_g = np.maximum(-np.linalg.eigvalsh(gains)[:, 0], 0.0)
+    except np.linalg.LinAlgError:
+        return None
+    fro_g = np.sqrt((gains * gains).sum(axis=(1, 2)))
+    nu = float((neg_g + EIG_REL * fro_g).sum()) * (1.0 + 4.0 * N * UNIT)  # J ⪰ -ν I
+    abs_J = np.abs(gains).sum(axis=0) * (1.0 + _gamma(N))
+    # Δ_Y: the reference's Ŷ = fl(Y0 + fl(Σ J_j)) against Y* = Y0 + Σ J_j (exact), entrywise
+    delta_Y = _gamma(N + 1) * (np.abs(Y0) + abs_J) * (1.0 + 4.0 * UNIT)
+    dY = float(np.sqrt((delta_Y * delta_Y).sum())) * (1.0 + 4.0 * UNIT)
+    y_max = (float(np.sqrt((Y0 * Y0).sum())) + float(fro_g.sum())) * (1.0 + 4.0 * N * UNIT) + dY
+    y_min = (_lam_min_below(Y0) - nu - dY) * (1.0 - 4.0 * UNIT)
+    lam_min_D = _lam_min_below(D) * (1.0 - 4.0 * UNIT)
+    lam_min_P = _lam_min_below(P_pred) * (1.0 - 4.0 * UNIT)
+    if not (y_min > 0.0 and lam_min_D > 0.0 and lam_min_P > 0.0):
+        return None
+    k_Y = y_max / y_min
+    got = _inverse_factors(k_Y, n)
+    if got is None:
+        return None
+    a, b = got
+    k_P = k_Y * b / a
+    g1 = _gamma(n + 1)
+    e4 = g1 * n * k_P / (1.0 - n * g1)
+    # GEPP (numpy's solve): (A + Δ) x̂ = b, ||Δ||_2 <= n γ_{3n} (1 + 2(n² - n) ρ_n) ||A||_2
+    ge = n * _gamma(3 * n) * (1.0 + 2.0 * (n * n - n) * 2.0**n)
+    if not e4 < 0.5:
+        return None
+    f_A = ge * math.sqrt(k_P * (1.0 + e4) / (1.0 - e4))
+    tr_D = float(np.trace(D)) * (1.0 + n * UNIT)
+    e_D = g1 * tr_D / (1.0 - n * g1)  # ||E_D||_F of P_d's Cholesky factor
+    fro_D = float(np.sqrt((D * D).sum())) * (1.0 + 4.0 * UNIT)
+    eps_D = e_D / lam_min_D
+    k_D = fro_D / lam_min_D
+    if not (f_A < 0.5 and eps_D < 0.5):
+        return None
+    f_B = ge * math.sqrt(k_D * (1.0 + eps_D) / (1.0 - eps_D))
+    g_sum = 1.0 - _gamma(n * n + 1)
+    ab_scale = g_sum / (1.0 + f_A) ** 2 / ((1.0 + e4) * b)
+    ab_sub = g_sum / (1.0 + f_A) ** 2 * math.sqrt(n) * y_max * e_D / ((1.0 - e4) * a)
+    # the reduced information: Ẑ against Z = C⁻¹ + Σ S_j (any summation order)
+    S_abs = np.abs(gains[:, s][:, :, s]).sum(axis=0) * (1.0 + _gamma(N))
+    delta_Z = _gamma(2 * N + 2) * (np.abs(Cinv) + S_abs) * (1.0 + 4.0 * UNIT)
+    D_ss = np.ascontiguousarray(D[np.ix_(s, s)]).reshape(r * r)
+    D_abs = np.abs(D_ss)
+    c_ab = float((Y0 * D).sum()) - float((Cinv.reshape(r * r) * D_ss).sum())
+    c_err = _gamma(2 * n * n + 2) * (
+        float((np.abs(Y0) * np.abs(D)).sum()) + float((np.abs(Cinv).reshape(r * r) * D_abs).sum())
+    )
+    c_err += float((delta_Z.reshape(r * r) * D_abs).sum())
+    y_sub = float((delta_Y * np.abs(D)).sum()) * (1.0 + _gamma(n * n))
+    # t_ba: P_d⁻¹ computed as spd_inverse, and Y0 against P_pred⁻¹ (the err model's exact P)
+    got_D = _inverse_factors(k_D, n)
+    got_0 = _inverse_factors(float(np.sqrt((P_pred * P_pred).sum())) / lam_min_P, n)
+    if got_D is None or got_0 is None:
+        return None
+    c_d, info = lapack.dpotrf(D, lower=1)
+    if info != 0:
+        return None
+    D_inv, info = lapack.dpotri(c_d, lower=1)
+    if info != 0:
+        return None
+    D_inv = np.tril(np.asarray(D_inv))
+    D_inv = D_inv + np.tril(D_inv, -1).T
+    lam_P = float(np.trace(P_pred)) * (1.0 + n * UNIT)  # >= λmax(P_pred)
+    if not nu * lam_P < 0.5:
+        return None
+    b0 = (got_0[1] - nu * lam_P) / (1.0 - nu * lam_P)
+    e_Y = dY / y_min
+    ba_scale = g_sum / (1.0 + f_B) ** 2 * (1.0 - e4) * a / (1.0 + eps_D)
+    ba_scale /= (1.0 + e_Y) * b0 * got_D[1]
+    return KlLeaf(
+        c_ab,
+        c_err,
+        D_ss,
+        D_abs,
+        ab_scale,
+        ab_sub,
+        y_sub,
+        D_inv.reshape(n * n),
+        float(np.abs(D_inv).sum()),
+        ba_scale,
+    )
+
+
+def kl_leaf_bound(Z: Mat, X: Mat, lc: KlLeaf, ctx: IntervalContext) -> NDArray[np.float64]:
+    """A lower bound of the kl metric *as the reference computes it* on every subset whose
+    reduced information is ``Z`` ``(m, r*r)`` (computed: any order of the sums), ``X`` ``(m, n,
+    n)`` its reduced-form covariance (:meth:`~covnet.core.allocation.search_problem._Problem.\
+covariances`), within ``ROUND n eps`` of the value plus the few terms below: far sharper than
+    the degenerate interval bound ``[X, X]`` of :func:`_kl_combine` (whose rounding allowance,
+    ``rel · mag`` and the eigenvalues' widening, is relative to ``tr(P_d) / λmin(P)``), so the
+    tie rule's check (:mod:`covnet.core.allocation.tie_rule`) can certify ties of ``tie_rtol``.
+
+    The reference computes ``P̂ = spd_inverse(Ŷ)``, ``Ŷ = fl(Y0 + fl(Σ_j J_j))``, then
+    ``kl = ¼ ((t_ba + t_ab) - 2n)`` with ``L_A = chol(P̂)``, ``L_B = chol(P_d)``, ``t_ab =
+    ||solve(L_A, L_B)||_F²`` (``≈ tr(P̂⁻¹ P_d)``) and ``t_ba = ||solve(L_B, L_A)||_F²``
+    (``≈ tr(P_d⁻¹ P̂)``).  Let ``Y* = Y0 + Σ_j J_j`` exactly (``Y0``'s bits), the same for
+    every subset with the same multiset of gains (the tie rule's twins).
+
+    **t_ab**, the large term (the velocity term of the tie problems), bounded in the
+    information form, where it is linear: ``tr(Y* P_d) = tr(Y0 P_d) + <Z - C⁻¹, P_d[s, s]>``
+    (every gain vanishes outside ``s x s``).  The errors, each relative to its own term:
+
+    - ``|Ŷ - Y*| <= Δ_Y = γ_{N+1} (|Y0| + Σ|J_j|)`` (recursive sums), so ``tr(Ŷ P_d) >=
+      tr(Y* P_d) - <Δ_Y, |P_d|>``, and ``λ(Ŷ) ∈ [y_min, y_max]``: ``y_max = ||Y0||_F + Σ
+      ||J_j||_F + ||Δ_Y||_F``, ``y_min = λmin(Y0) - ν - ||Δ_Y||_F`` (``J_j ⪰ -ν_j I``, Weyl);
+    - ``a Ŷ⁻¹ ⪯ P̂ ⪯ b Ŷ⁻¹`` (:func:`_inverse_factors` with ``κ_Y = y_max / y_min``);
+    - ``L_A L_Aᵀ = P̂ + E4``, ``(1 - ε4) P̂ ⪯ P̂ + E4 ⪯ (1 + ε4) P̂``, ``ε4 = γ_{n+1} n κ(P̂) /
+      (1 - n γ_{n+1})``, ``κ(P̂) <= κ_Y b / a`` (Cholesky, as step 1 there);
+    - ``L̂_B L̂_Bᵀ = P_d + E_D``, ``||E_D||_F <= γ_{n+1} tr(P_d) / (1 - n γ_{n+1})``;
+    - each column of ``solve(L_A, L_B)`` is ``(L_A + Δ_j)⁻¹ l_j`` with ``||Δ_j|| <= n γ_{3n}
+      (1 + 2(n² - n) 2^n) ||L_A||`` (Gaussian elimination with partial pivoting, Higham Thm
+      9.4 and Lemma 9.6, growth ``<= 2^{n-1}``, doubled for the computed one; ``||·||_∞ <=
+      sqrt n ||·||_2`` twice), so its norm is at least ``||L_A⁻¹ l_j|| / (1 + f)``, ``f = n
+      γ_{3n} (1 + 2(n² - n) 2^n) κ(L_A)``, ``κ(L_A)² <= κ(P̂) (1 + ε4)/(1 - ε4)``;
+    - ``Σ_j ||L_A⁻¹ l_j||² = tr((P̂ + E4)⁻¹ (P_d + E_D)) >= tr(Ŷ P_d) / ((1 + ε4) b) - sqrt n
+      y_max ||E_D||_F / ((1 - ε4) a)`` (``(P̂ + E4)⁻¹ ⪰ Ŷ / ((1 + ε4) b)``; ``|tr(A E)| <=
+      ||A||_2 sqrt n ||E||_F``);
+    - the sum of the ``n²`` squares: a relative ``γ_{n²+1}``.
+
+    **t_ba**, the small term (``tr(P_d⁻¹ P)``, about the position term), through the error
+    model's ``P(S)`` (:class:`IntervalContext`: ``|X - P(S)| <= err`` entrywise): ``t_ba >=
+    (1 - γ_{n²+1}) / (1 + f_B)² · tr((P_d + E_D)⁻¹ (P̂ + E4))``, ``f_B`` as ``f`` with
+    ``κ(P_d + E_D)``; ``(P_d + E_D)⁻¹ ⪰ P_d⁻¹ / (1 + ε_D)`` (``ε_D = ||E_D|| / λmin(P_d)``),
+    ``P̂ + E4 ⪰ (1 - ε4) a Ŷ⁻¹``, ``Ŷ⁻¹ ⪰ Y*⁻¹ / (1 + ||Δ_Y|| / y_min)``, ``Y*⁻¹ ⪰ P(S) / b0'``
+    (``Y0 ⪯ b0 P_pred⁻¹``, :func:`_inverse_factors` on ``P_pred``; ``b0' = (b0 - ν λ) / (1 -
+    ν λ)``, ``λ = tr P_pred``, for gains ``⪰ -ν I``), ``P_d⁻¹ ⪰ P̂_d⁻¹ / b_D`` (the computed
+    inverse), and ``tr(P̂_d⁻¹ P(S)) >= <P̂_d⁻¹, X> - err Σ|P̂_d⁻¹|`` (and ``>= 0``).
+
+    **The value.**  ``V = max(¼ ((t_ba + t_ab)(1 + δ1) - 2n)(1 + δ2), 0) >= ¼ (t_ba + t_ab)(1 -
+    2u) - ¼ 2n``; this function's own few operations (relative ``u`` each, no cancellation
+    before the last subtraction) are covered by :func:`_deflate`'s ``ROUND n eps`` of the value
+    and of the scale.  The inner products ``<Ẑ, P_d[s, s]>`` and ``<P̂_d⁻¹, X>`` carry their
+    ``γ`` of the absolute sums, and ``Ẑ`` is within ``γ_{2N+2} (|C⁻¹| + Σ|S_j|)`` of ``Z``."""
+    n = int(X.shape[-1])
+    m = Z.shape[0]
+    if m == 0:
+        return np.zeros(0)
+    t = Z @ lc.D_ss
+    t_err = _gamma(Z.shape[1] + 1) * (np.abs(Z) @ lc.D_abs)
+    tr_y = lc.c_ab + t - (lc.c_err + t_err) - lc.y_sub
+    t_ab = lc.ab_scale * tr_y - lc.ab_sub
+    Xf = X.reshape(m, n * n)
+    q = Xf @ lc.D_inv
+    q_err = _gamma(n * n + 1) * (np.abs(Xf) @ np.abs(lc.D_inv)) + ctx.err * lc.D_inv_abs_sum
+    t_ba = lc.ba_scale * np.maximum(q - q_err, 0.0)
+    v = 0.25 * ((t_ab + t_ba) * (1.0 - 2.0 * UNIT) - 2.0 * n)
+    return _deflate(_f64(v), n, ctx, 0.0)
+
+
 # ---- svd: size and orientation ------------------------------------------------------------
 
 
@@ -580,7 +871,7 @@ FROBENIUS_BOUND = IntervalBound(_eig_and_entries, _frobenius_combine)
 ONE_NORM_BOUND = IntervalBound(_eig_and_entries, _induced_combine)
 INF_NORM_BOUND = IntervalBound(_eig_and_entries, _induced_combine)
 LOGDET_BOUND = IntervalBound(_gen_eig, _logdet_combine)
-KL_BOUND = IntervalBound(_gen_eig, _kl_combine)
+KL_BOUND = IntervalBound(_gen_eig, _kl_combine, leaf=LeafBound(kl_leaf_constants, kl_leaf_bound))
 SVD_BOUND = IntervalBound(_eigh_desc, _svd_combine)
 
 

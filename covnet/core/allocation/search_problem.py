@@ -162,6 +162,11 @@ class _Problem:
         self.bound: IntervalBound | None = (
             capability(entry.interval_bound, IntervalBound) if entry is not None else None
         )
+        #: the bound's sharper bound of single subsets (kl), its constants built on first use
+        #: (:meth:`leaf_bound`; the tie rule's pruning only)
+        self._leaf: object | None = None
+        self._leaf_ready = self.bound is None or self.bound.leaf is None
+        self._allowed = allowed
         self.n_evaluated = 0
         self.moves = 0
         #: the time limit of a search (``True`` once reached; set by the branch and bound for
@@ -330,6 +335,26 @@ lower_bounds._DualBound.vertex_bound`; one_norm, inf_norm, abs_trace) on the row
         out = lb.copy()
         out[rows] = np.fmax(lb[rows], self.dual.vertex_bound(Z_lo[rows], Z_hi[rows]))
         return out
+
+    def leaf_bound(self, Z: Mat) -> Mat | None:
+        """The bound's sharper bound of the single subsets with reduced information ``Z``
+        ``(m, r*r)`` (:class:`~covnet.core.allocation.interval_bounds.LeafBound`; valid for
+        every subset with the same exact information), or ``None`` without one."""
+        if not self._leaf_ready:
+            self._leaf_ready = True
+            assert self.bound is not None and self.bound.leaf is not None
+            try:
+                self._leaf = self.bound.leaf.constants(
+                    self.Y0, self.G[self._allowed], self.Cinv, self.s, self.P_pred, self.D
+                )
+            except np.linalg.LinAlgError:
+                self._leaf = None
+        if self._leaf is None:
+            return None
+        assert self.bound is not None and self.bound.leaf is not None
+        with np.errstate(all="ignore"):
+            v = self.bound.leaf.bound(Z, self.covariances(Z), self._leaf, self.ctx)
+        return np.where(np.isfinite(v), v, 0.0)  # a row it cannot bound: 0 (every value >= 0)
 
     def combine(self, sA: Mat, sB: Mat) -> Mat:
         assert self.bound is not None

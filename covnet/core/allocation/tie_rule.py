@@ -44,6 +44,20 @@ rounding of any subset whose exact ``P`` lies in the node's interval).
 
 Both hold, so ``D`` is the reference's choice; its value and ``P`` come from the reference's
 arithmetic.  When the check fails the search runs again without these rules.
+
+**Leaf bounds** (kl; :class:`~covnet.core.allocation.interval_bounds.LeafBound`).  Step 1
+needs the candidates' bounds (``L_cand``) within ``tie_rtol`` of their values, and kl's
+degenerate interval bound is hundreds below on the tie problems (its rounding allowance is
+relative to ``tr(P_d) / λmin(P)``).  Its leaf bound
+(:func:`~covnet.core.allocation.interval_bounds.kl_leaf_bound`) bounds the reference's own
+arithmetic term by term, within about ``1e-10`` of the value there, and is valid for every
+subset with the same exact information (so for the twins ``E`` of step 1, whose sums run in
+another order): the search takes the larger of the two for every candidate while the rules
+are on, and step 2 does too.  The rules are switched on either by a certified subset (the
+size rule and the identical-sensor rule) or, with identical sensors and a leaf bound, when the
+best evaluated subset's leaf bound is within ``tie_rtol`` of its value (``V <= thr(est)``:
+then the identical-sensor rule alone, ``s*`` left above the budget, nothing dropped by size;
+the check is unchanged, so a wrong guess costs only the second search).
 """
 
 from __future__ import annotations
@@ -95,19 +109,39 @@ class _TieRule:
         same = identical_to_previous(prob) if symmetry else np.zeros(prob.m, dtype=bool)
         self.same = same
         self.symmetry = bool(same.any())
+        #: the identical-sensor rule alone is worth it: the leaf bound
+        #: (:meth:`~covnet.core.allocation.search_problem._Problem.leaf_bound`) of the best
+        #: evaluated subset is within ``tie_rtol`` of its value (the check's step 1 then
+        #: passes when the choice's twins are bounded as tightly)
+        self.leaf_sharp = False
 
     def observe(self, masks: NDArray[np.bool_], values: Mat) -> None:
-        """Evaluated subsets: the certified ones (``V <= thr(L0)``) lower ``s*``."""
+        """Evaluated subsets: the certified ones (``V <= thr(L0)``) lower ``s*``; with
+        identical sensors and a leaf bound, whether the best one's leaf bound is sharp."""
         ok = values <= self.thr0
         if ok.any():
             self.s_star = min(self.s_star, int(masks[ok].sum(axis=1).min()))
+        if self.symmetry and not self.leaf_sharp and values.size:
+            k = int(np.argmin(values))
+            est = self.leaf(masks[k : k + 1])
+            if est is not None:
+                thr = tie_threshold(float(est[0]), self.prob.tie_rtol)
+                self.leaf_sharp = bool(values[k] <= thr)
+
+    def leaf(self, masks: NDArray[np.bool_]) -> Mat | None:
+        """The leaf bounds of the subsets ``masks`` ``(c, N)`` (``None``: no leaf bound)."""
+        prob = self.prob
+        inc = masks[:, prob.free].astype(np.float64)
+        return prob.leaf_bound(prob.base[None] + inc @ prob.S)
 
     @property
     def active(self) -> bool:
-        """A certified subset has been seen (the rules are used only then: the check's
-        ``V(D) <= thr(L1)`` needs bounds within ``tie_rtol`` of the values, which the rounding
-        allowances of the bounds often are not, and a failed check costs a second search)."""
-        return self.s_star <= self.prob.K + len(self.prob.req)
+        """A certified subset has been seen, or (identical sensors) the leaf bound is sharp
+        (the rules are used only then: the check's ``V(D) <= thr(L1)`` needs bounds within
+        ``tie_rtol`` of the values, which the rounding allowances of the bounds often are not,
+        and a failed check costs a second search).  Without a certified subset ``s*`` stays
+        above the budget: only the identical-sensor rule prunes."""
+        return self.s_star <= self.prob.K + len(self.prob.req) or self.leaf_sharp
 
     def candidates(self, est: Mat) -> None:
         if est.size:
@@ -135,4 +169,7 @@ class _TieRule:
         Z = prob.base[None] + inc @ prob.S
         sB = prob.summary(Z)
         est = prob.combine(sB, sB)
+        leaf = prob.leaf_bound(Z)
+        if leaf is not None:
+            est = np.fmax(est, leaf)
         return bool((est > thr_c).all())
