@@ -21,18 +21,17 @@ import math
 
 import numpy as np
 import pytest
+from test_interval_bounds import _P, _ctx
+from test_svd_bound import _problem
 
 from covnet.core import metrics as M
 from covnet.core.allocation import Constraints, allocate, allocate_exhaustive
 from covnet.core.allocation import svd_bound as SB
-from covnet.core.allocation.exact import subset_covariance
 from covnet.core.allocation.interval_bounds import (
     IntervalContext,
     interval_lower_bound,
-    search_context,
 )
 from covnet.core.allocation.search import allocate_bnb
-from covnet.core.motion import cv_transition, dwna_process_noise
 
 #: a context without model error: only the bounds' relative rounding allowance remains
 EXACT = IntervalContext(err=0.0, lam_min=0.1, lam_max=10.0, kappa=100.0, scale=10.0)
@@ -147,47 +146,6 @@ def _bench():
 
     gains = bs.paper_gains(40)
     return gains, bs.decision_problems(gains, "svd", bs.problem_scans(5))
-
-
-def _problem(N, seed):
-    """Position sensors of the tracking model (noise over two decades, some duplicated) and a
-    desired covariance with tied pairs (odd seeds) or a random one."""
-    rng = np.random.default_rng(seed)
-    F = cv_transition(1.0)
-    A = rng.standard_normal((4, 4))
-    P = A @ A.T / 4.0 + np.diag([1.0, 0.01, 1.0, 0.01])
-    P_pred = F @ P @ F.T + dwna_process_noise(1.0, 0.5)
-    H = np.zeros((2, 4))
-    H[0, 0] = H[1, 2] = 1.0
-    gains = []
-    for _ in range(N):
-        sig = 10.0 ** rng.uniform(-1, 1, size=2)
-        c = rng.uniform(-0.5, 0.5) * sig[0] * sig[1]
-        R = np.array([[sig[0] ** 2, c], [c, sig[1] ** 2]])
-        gains.append(H.T @ np.linalg.solve(R, H))
-    gains = np.array(gains)
-    gains[N // 3] = gains[N // 2]
-    if seed % 2:
-        P_d = PAIRS * 10.0 ** rng.uniform(-2, 0)
-    else:
-        B = rng.standard_normal((4, 4))
-        P_d = B @ B.T / 4.0 + 0.1 * np.eye(4)
-    return P_pred, gains, P_d
-
-
-def _P(P_pred, gains, subset):
-    J = np.zeros(gains.shape[1:])
-    for j in sorted(subset):
-        J = J + gains[j]
-    return subset_covariance(P_pred, J)
-
-
-def _ctx(P_pred, gains, P_d):
-    Y0 = np.linalg.inv(P_pred)
-    info = float(np.trace(Y0) + np.trace(gains.sum(axis=0)))
-    return search_context(
-        P_pred, info, P_d, n_terms=gains.shape[0], gain_abs_max=float(np.abs(gains).sum())
-    )
 
 
 def _nodes(rng, N, count, max_und=7):
