@@ -102,3 +102,64 @@ def test_bounded_with_time_runs_the_root_floors(monkeypatch):
     )  # fmt: skip
     assert ran and not b.exact
     assert b.lower_bound <= ref.value
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_dual_steps_from_any_start_stay_below_the_optimum(seed):
+    """Round mt13: the dual steps warm-started from any prices ``π0 >= 0`` (the second run of
+    steps after the late floors) stay at most the exhaustive optimum, report the prices of
+    their best ``L``, and ``π0 = 0`` gives the same bits as no start."""
+    from covnet.core.allocation import assignment_search as srch
+
+    N, T = 8, 3
+    P, J, D, w, feas = _problem(N, T, 60 + seed)
+    cons = MultiConstraints(max_active=3)
+    ref = allocate_assignments_exhaustive(P, J, D, "spectral", w, feas, cons)
+    plain = srch._dual_bound(_dual(P, J, D, w, feas, "spectral", cons), ref.value, 40, 0.0, None)
+    zero = srch._dual_bound(_dual(P, J, D, w, feas, "spectral", cons), ref.value, 40, 0.0, None,
+                            pi0=np.zeros(N))  # fmt: skip
+    assert plain == zero
+    rng = np.random.default_rng(seed)
+    for scale in (0.01, 0.3, 3.0):
+        dual = _dual(P, J, D, w, feas, "spectral", cons)
+        out: list = []
+        pi0 = scale * abs(ref.value) * rng.uniform(size=N)
+        best, n = srch._dual_bound(dual, ref.value, 40, 0.0, None, pi0=pi0, best_out=out)
+        assert best <= ref.value and 1 <= n <= 40
+        assert best >= dual.value(pi0)[0] and dual.value(out[0])[0] == best
+
+
+@pytest.mark.parametrize(("metric", "order"), [
+    ("spectral", ["dual", "floors", "dual"]),  # root floors: the second round after the steps
+    ("svd", ["floors", "dual"]),  # no root floors: as before
+])  # fmt: skip
+def test_second_floors_follow_the_steps_with_root_floors(monkeypatch, metric, order):
+    """Round mt13: with root floors (spectral) the timed plan's second round of single-target
+    floors runs after the dual steps stall, then the steps again from their best prices; other
+    metrics (svd) keep the order before it.  The bound stays at most the exact optimum."""
+    from covnet.core.allocation import assignment_search as srch
+    from covnet.core.allocation.assignment import allocate_assignments
+
+    calls: list[str] = []
+    floors, steps = srch._floors, srch._dual_bound
+
+    def rec_floors(*a, **k):
+        calls.append("floors")
+        return floors(*a, **k)
+
+    def rec_steps(*a, **k):
+        calls.append("dual")
+        return steps(*a, **k)
+
+    monkeypatch.setattr(srch, "_floors", rec_floors)
+    monkeypatch.setattr(srch, "_dual_bound", rec_steps)
+    N, T = 13, 3
+    P, J, D, w, feas = _problem(N, T, 4)
+    ref = allocate_assignments(P, J, D, metric, w, feas)
+    ticks = iter(np.arange(0.0, 1e6, 1e-3))
+    b = srch.allocate_assignments_bounded(
+        P, J, D, metric, w, feas, rel_gap=0.0, time_limit_s=50.0,
+        clock=lambda: float(next(ticks)),
+    )  # fmt: skip
+    assert calls == order and not b.exact
+    assert b.lower_bound <= ref.value

@@ -138,8 +138,14 @@ steps, svd); (6) dual steps, and among them (round mt12; the metrics without
 abs_trace), once the steps stall or half their time is spent, the *root floors* at the best
 prices so far (:func:`_root_floors`: each target's single-target root bound, the largest
 relative slack first, 12 barrier iterations, about 3.6 ms of CPU a target at N = 64 against
-at least ``FLOOR_MIN_S`` for a single-target search), then the steps go on.  Every piece is
-a bound of its own, so whatever the clock cuts, ``L(π) <= F*``.
+at least ``FLOOR_MIN_S`` for a single-target search), then the steps go on.  With root floors
+(round mt13, ``ROOT_SECOND_FLOORS``) step (5) comes after (6): the second round of floors
+(every target column, floored by its root or not) in the time the stalled steps leave, then
+the steps again from their best prices (any ``π >= 0`` gives a bound); at N = 64, T = 8 the
+steps and roots take the time the floors took (spectral at 90 ms of CPU: 1.3 % -> 1.04 % of
+the distance from doing nothing), at N = 256 the steps stall after about 300 ms and the
+floors take the rest.  Every piece is a bound of its own, so whatever the clock cuts,
+``L(π) <= F*``.
 
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
@@ -251,6 +257,12 @@ ROOT_FLOOR_PART = 0.05
 #: MID_THETA``) or ``1 - ROOT_FLOOR_AFTER`` of the time left for the steps is spent
 ROOT_FLOOR_AFTER = 0.5
 MID_THETA = 0.125
+#: ... and where they run, the second round of single-target floors comes after the dual steps
+#: stall, in the time they leave, then the steps again (round mt13; ``True``: before the steps,
+#: as in round mt12).  At N = 64, T = 8 a floor's 30 ms and more are better spent on the steps
+#: and the roots (spectral at 90 ms of CPU: 1.3 % -> 1.05 % of the distance from doing nothing);
+#: at N = 256 the steps stall after about 300 ms and the floors take the rest
+ROOT_SECOND_FLOORS = False
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -1139,13 +1151,16 @@ def _floors(
     min_s: float = FLOOR_MIN_S,
     slice_s: float | None = None,
     clock: Callable[[], float] | None = None,
+    rooted: bool = False,
 ) -> int:
     """The single-target floors (module docstring): the target columns in decreasing slack
     (the incumbent's weighted value less the column's least bound), each decided by the
     single-target bounded search (:func:`~covnet.core.allocation.search.allocate_bnb`, its
     allowed sensors, ``FLOOR_GAP``, an equal share of the time left) while ``FLOOR_MIN_S``
     and ``FLOOR_MARGIN`` times the previous one's time are left; its certified lower bound,
-    weighted, is the column's floor.  Returns how many ran."""
+    weighted, is the column's floor (the larger of it and one there already).  A column with
+    a floor is skipped (the timed plan's first round), unless ``rooted`` (round mt13: after
+    the root floors, which leave one).  Returns how many ran."""
     cs = dual.cs
     inp = cs.inp
     metric = inp.entry.name if inp.entry is not None else inp.f
@@ -1153,7 +1168,7 @@ def _floors(
     for c in range(cs.T):
         col = cs.cols[c]
         # a metric without an interval bound would be searched exhaustively: no floor
-        if math.isfinite(dual.floor[c]):
+        if math.isfinite(dual.floor[c]) and not rooted:
             continue  # floored already (the timed plan's first round)
         if isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size:
             least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
@@ -1256,13 +1271,17 @@ def _dual_bound(
     deadline: Callable[[], bool] | None,
     mid: Callable[[Mat], object] | None = None,
     mid_when: Callable[[], bool] | None = None,
+    pi0: Mat | None = None,
+    best_out: list[Mat] | None = None,
 ) -> tuple[float, int]:
     """The best ``L(π)`` over ``steps`` subgradient steps from ``π = 0`` (Polyak steps towards
     ``upper``, ``θ`` halved after 5 steps without progress); stops early at ``target_gap``.
     ``mid`` (the timed plan's root floors, round mt12): called once with the best prices so
     far when ``mid_when()`` or ``θ <= MID_THETA`` (the steps stall); it may only raise the
-    columns' bounds, so the steps go on from where they are, the best ``L`` re-evaluated."""
-    pi = np.zeros(dual.cs.N)
+    columns' bounds, so the steps go on from where they are, the best ``L`` re-evaluated.
+    ``pi0`` (round mt13): start from these prices (``>= 0``) instead; ``best_out``: the best
+    prices are appended to it.  Every ``L(π)`` with ``π >= 0`` is a bound, whatever the start."""
+    pi = np.zeros(dual.cs.N) if pi0 is None else pi0
     best, counts = dual.value(pi)
     best_pi = pi
     n = 1
@@ -1292,6 +1311,8 @@ def _dual_bound(
             stall += 1
             if stall >= 5:
                 theta, stall = theta / 2.0, 0
+    if best_out is not None:
+        best_out.append(best_pi)
     return best, n
 
 
@@ -1361,14 +1382,15 @@ def _search(
             _local_search(st, deadline)
         a = [int(x) for x in st.a]
         F, values, Ps, gs = cs.exact(a)
-        if timed:
-            _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock)  # the second: as before
-        mid: Callable[[Mat], object] | None = None
-        mid_when: Callable[[], bool] | None = None
         rooted = any(isinstance(col, _TargetCol) and col.prob is not None
                      and (col.prob.dual is not None or col.prob.relax is not None)
                      for col in cs.cols)  # fmt: skip
-        if timed and rooted and inp.entry is not None and not inp.entry.floors_first:  # mt12
+        roots = timed and rooted and inp.entry is not None and not inp.entry.floors_first
+        if timed and not (roots and not ROOT_SECOND_FLOORS):
+            _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock)  # the second: as before
+        mid: Callable[[Mat], object] | None = None
+        mid_when: Callable[[], bool] | None = None
+        if roots:  # mt12
             assert time_limit_s is not None
             half = ROOT_FLOOR_AFTER * rem()
             min_s = min(ROOT_FLOOR_MIN * time_limit_s, ROOT_FLOOR_MIN_CAP)
@@ -1380,7 +1402,14 @@ def _search(
                 upper = cs.w * st.v + np.array([float(pi[s].sum()) for s in st.sets])
                 return _root_floors(dual, upper, rem, min_s, 0.0, pi)
 
-        L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline, mid, mid_when)
+        best_pi: list[Mat] = []
+        L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline, mid, mid_when, None, best_pi)
+        if roots and not ROOT_SECOND_FLOORS and n_steps < steps and _gap(F, L) > rel_gap:
+            # round mt13: the second round of floors after the steps stall, in the time they
+            # leave (N = 256), then the steps again from their best prices
+            if _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock, True):
+                L2, n2 = _dual_bound(dual, F, steps - n_steps, rel_gap, deadline, pi0=best_pi[0])
+                L, n_steps = max(L, L2), n_steps + n2
         nothing = cs.exact([OFF] * cs.N)[0]
     except np.linalg.LinAlgError as exc:
         raise _spd_error(exc) from exc
