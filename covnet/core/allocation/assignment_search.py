@@ -139,7 +139,7 @@ abs_trace), once the steps stall or half their time is spent, the *root floors* 
 prices so far (:func:`_root_floors`: each target's single-target root bound, the largest
 relative slack first, 12 barrier iterations, about 3.6 ms of CPU a target at N = 64 against
 at least ``FLOOR_MIN_S`` for a single-target search), then the steps go on.  With root floors
-(round mt13, ``ROOT_SECOND_FLOORS``) step (5) comes after (6): the second round of floors
+(round mt13) step (5) comes after (6): the second round of floors
 (every target column, floored by its root or not) in the time the stalled steps leave, then
 the steps again from their best prices (any ``π >= 0`` gives a bound); at N = 64, T = 8 the
 steps and roots take the time the floors took (spectral at 90 ms of CPU: 1.3 % -> 1.04 % of
@@ -257,12 +257,6 @@ ROOT_FLOOR_PART = 0.05
 #: MID_THETA``) or ``1 - ROOT_FLOOR_AFTER`` of the time left for the steps is spent
 ROOT_FLOOR_AFTER = 0.5
 MID_THETA = 0.125
-#: ... and where they run, the second round of single-target floors comes after the dual steps
-#: stall, in the time they leave, then the steps again (round mt13; ``True``: before the steps,
-#: as in round mt12).  At N = 64, T = 8 a floor's 30 ms and more are better spent on the steps
-#: and the roots (spectral at 90 ms of CPU: 1.3 % -> 1.05 % of the distance from doing nothing);
-#: at N = 256 the steps stall after about 300 ms and the floors take the rest
-ROOT_SECOND_FLOORS = False
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -1386,7 +1380,7 @@ def _search(
                      and (col.prob.dual is not None or col.prob.relax is not None)
                      for col in cs.cols)  # fmt: skip
         roots = timed and rooted and inp.entry is not None and not inp.entry.floors_first
-        if timed and not (roots and not ROOT_SECOND_FLOORS):
+        if timed and not roots:  # with root floors the second round comes after the steps
             _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock)  # the second: as before
         mid: Callable[[Mat], object] | None = None
         mid_when: Callable[[], bool] | None = None
@@ -1404,7 +1398,7 @@ def _search(
 
         best_pi: list[Mat] = []
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline, mid, mid_when, None, best_pi)
-        if roots and not ROOT_SECOND_FLOORS and n_steps < steps and _gap(F, L) > rel_gap:
+        if roots and n_steps < steps and _gap(F, L) > rel_gap:
             # round mt13: the second round of floors after the steps stall, in the time they
             # leave (N = 256), then the steps again from their best prices
             if _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock, True):
