@@ -201,6 +201,7 @@ def test_exact_search_equals_exhaustive_and_the_tree_is_unchanged(monkeypatch):
     (subset, value, ``P`` bits) and visits as many nodes as without it; the pre-test proved
     rows (it is exercised)."""
     proven = 0
+    monkeypatch.setattr(S, "LAZY", False)  # the pre-test alone (tests/unit/test_search_lazy.py)
     for seed in range(8):
         N = 12 + seed % 5
         P, G, D = _problem(seed, N)
@@ -243,6 +244,7 @@ def test_a_negative_margin_changes_the_search(monkeypatch):
     the result on some problem: the node-count and exhaustive checks above can fail."""
     monkeypatch.setattr(IB, "MARGIN", -0.25)
     monkeypatch.setattr(IB, "SAFETY", -math.inf)
+    monkeypatch.setattr(S, "LAZY", False)
     changed = 0
     for seed in range(8):
         N = 12 + seed % 5

@@ -159,6 +159,8 @@ SummaryFn = Callable[[Mat, DesiredConstants], Mat]
 CombineFn = Callable[[Mat, Mat, DesiredConstants, IntervalContext], NDArray[np.float64]]
 #: ``above(X, dc, ctx, tau, lower)``: :attr:`IntervalBound.above`
 AboveFn = Callable[[Mat, DesiredConstants, IntervalContext, float, bool], Mat]
+#: ``lazy(X, dc, ctx, tau, lower, prev)``: :attr:`IntervalBound.lazy`
+LazyFn = Callable[[Mat, DesiredConstants, IntervalContext, float, bool, Mat], Mat]
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,14 +187,18 @@ class IntervalBound:
     ``A``, else an upper one ``B``), which get a looser summary whose combination with any
     partner is still ``> tau`` and a valid bound (at most that of ``summary``): rows whose
     bound from ``summary`` is ``> tau`` (spectral's inertia pre-test,
-    :func:`_spectral_above`).  ``leaf``, optionally: a sharper bound of single subsets
-    (:class:`LeafBound`; kl), which the tie rule's pruning reads."""
+    :func:`_spectral_above`).  ``lazy(X, dc, ctx, tau, lower, prev)``, optionally: as
+    ``above`` for a search's child whose parent's summary of the same side is ``prev``, with
+    ``prev`` (valid for the nested interval) on the rows kept, except where a subset may become
+    a candidate (spectral, :func:`_spectral_lazy`).  ``leaf``, optionally: a sharper bound of
+    single subsets (:class:`LeafBound`; kl), which the tie rule's pruning reads."""
 
     summary: SummaryFn
     combine: CombineFn
     from_diagonal: SummaryFn | None = None
     above: AboveFn | None = None
     leaf: LeafBound | None = None
+    lazy: LazyFn | None = None
 
 
 def _f64(x: object) -> Mat:
@@ -291,6 +297,84 @@ def _spectral_above(
     v0 = _spectral_threshold(tau, dc, ctx)
     if m == 0 or not math.isfinite(v0):
         return _f64(np.linalg.eigvalsh(M))
+    rows = _spectral_proven(M, v0, ctx, lower)
+    if rows.size == 0:
+        return _f64(np.linalg.eigvalsh(M))
+    keep = np.ones(m, dtype=bool)
+    keep[rows] = False
+    out = np.empty((m, n))
+    if rows.size < m:
+        out[keep] = np.linalg.eigvalsh(M[keep])
+    if lower:  # λmax >= v0 (and λmin <= +inf): the bound deflate(v0) > tau
+        out[rows, :-1] = math.inf
+        out[rows, -1] = v0
+    else:  # λmin <= -v0 (and λmax >= -inf)
+        out[rows, 0] = -v0
+        out[rows, 1:] = -math.inf
+    return out
+
+
+def _spectral_lazy(
+    X: Mat, dc: DesiredConstants, ctx: IntervalContext, tau: float, lower: bool, prev: Mat
+) -> Mat:
+    """Summaries of a search's children's new endpoints without eigenvalues wherever the search
+    does not need them (exact mode; :attr:`IntervalBound.lazy`): ``prev`` ``(m, n)`` is the
+    parent's summary of the same side (the exclude child's new ``A`` replaces the parent's
+    ``A``, the include child's new ``B`` the parent's ``B``).
+
+    - rows :func:`_spectral_proven` proves: :func:`_spectral_above`'s summaries (the bound
+      ``> tau`` with any partner, at most the eigenvalue one);
+    - a lower endpoint's other rows: ``prev``, no eigenvalues;
+    - an upper endpoint's other rows (the include child's ``B``, whose ``combine(s_B, s_B)`` is
+      the subset ``I``'s candidate estimate, read at both extremes): a second inertia test
+      proves ``λmax(B - P_d) >= v0`` (its estimate ``> tau``: not a candidate) on most; those
+      get ``prev`` with ``v0`` as the ``λmax`` entry, and only the rest (the subsets that may be
+      recorded) get ``eigvalsh``, the very bits of :func:`_eig_minus_d`, so the recorded
+      candidates and their estimates are those of :func:`_spectral_above`'s summaries.
+
+    Proof that every summary is valid: the child's completions are some of the parent's, and
+    its new endpoint is nested in the parent's interval (``A_parent ⪯ A_child``, ``B_child ⪯
+    B_parent``), so with ``prev`` in place of the new endpoint's summary
+    :func:`_spectral_combine` bounds the metric over the larger interval ``[A_parent, B]``
+    (resp. ``[A, B_parent]``, and ``[B_child, B_parent]`` for the estimate, whose completions
+    include ``B_child`` itself), with the same error allowance (every covariance involved is
+    within ``err`` of its exact value).  ``λmax(B - P_d) >= v0`` as LAPACK would compute it is
+    :func:`_spectral_proven`'s proof: the estimate with ``v0`` is at most the one with
+    ``eigvalsh``'s value, and ``> tau``.  The bound of a kept child is then at most the
+    eigenvalue one (only the search's node counts may change: a node whose bound rises above
+    a falling ``tau`` is pruned later, and best-first keys and sorts see smaller bounds)."""
+    M = X - dc.D
+    m = M.shape[0]
+    v0 = _spectral_threshold(tau, dc, ctx)
+    if m == 0 or not math.isfinite(v0):
+        return _f64(np.linalg.eigvalsh(M))
+    rows = _spectral_proven(M, v0, ctx, lower)
+    out = np.array(prev, dtype=np.float64)
+    if lower:  # λmax >= v0 (and λmin <= +inf): the bound deflate(v0) > tau
+        out[rows, :-1] = math.inf
+        out[rows, -1] = v0
+        return out
+    rest = np.ones(m, dtype=bool)
+    rest[rows] = False
+    out[rows, 0] = -v0  # λmin <= -v0 (and λmax >= -inf)
+    out[rows, 1:] = -math.inf
+    rest_rows = np.flatnonzero(rest)
+    if rest_rows.size:
+        Mr = M[rest_rows]
+        top = rest_rows[_spectral_proven(Mr, v0, ctx, True)]
+        out[top, -1] = v0  # λmax >= v0: the estimate > tau; λmin <= prev's
+        rest[top] = False
+        if rest.any():
+            out[rest] = np.linalg.eigvalsh(M[rest])
+    return out
+
+
+def _spectral_proven(M: Mat, v0: float, ctx: IntervalContext, lower: bool) -> NDArray[np.intp]:
+    """The rows of ``M = X - P_d`` whose computed ``λmax`` (``lower``) or ``-λmin`` is proven
+    ``>= v0`` (as LAPACK's ``eigvalsh`` would compute it): the inertia test and its check of
+    :func:`_spectral_above`'s docstring (``T = v0 + MARGIN (|v0| + scale)``, a breakdown with
+    ``T - v0 >= SAFETY (c h + EIG_REL ||M||_F)``)."""
+    n = M.shape[1]
     T = v0 + MARGIN * (abs(v0) + ctx.scale)
     broken = inertia.lam_max_above(M, T) if lower else inertia.lam_min_below(M, T)
     rows = np.flatnonzero(broken)
@@ -307,20 +391,7 @@ def _spectral_above(
                 fro = np.sqrt((Mr * Mr).sum(axis=(1, 2)))
                 need = np.where(h <= BIG, c * h + EIG_REL * fro, np.nan)
                 rows = rows[(T - v0) >= SAFETY * need]
-    if rows.size == 0:
-        return _f64(np.linalg.eigvalsh(M))
-    keep = np.ones(m, dtype=bool)
-    keep[rows] = False
-    out = np.empty((m, n))
-    if rows.size < m:
-        out[keep] = np.linalg.eigvalsh(M[keep])
-    if lower:  # λmax >= v0 (and λmin <= +inf): the bound deflate(v0) > tau
-        out[rows, :-1] = math.inf
-        out[rows, -1] = v0
-    else:  # λmin <= -v0 (and λmax >= -inf)
-        out[rows, 0] = -v0
-        out[rows, 1:] = -math.inf
-    return out
+    return rows
 
 
 # ---- abs_trace and trace_diff: the diagonal -------------------------------------------------
@@ -864,7 +935,9 @@ def _svd_combine(
 
 # the interval bound of every built-in metric (its entry's ``interval_bound`` in
 # :data:`covnet.core.metrics.METRICS`)
-SPECTRAL_BOUND = IntervalBound(_eig_minus_d, _spectral_combine, above=_spectral_above)
+SPECTRAL_BOUND = IntervalBound(
+    _eig_minus_d, _spectral_combine, above=_spectral_above, lazy=_spectral_lazy
+)
 ABS_TRACE_BOUND = IntervalBound(_diag_minus_d, _abs_trace_combine, _diag_minus_d_from)
 TRACE_DIFF_BOUND = IntervalBound(_trace_minus_d, _trace_diff_combine, _trace_minus_d_from)
 FROBENIUS_BOUND = IntervalBound(_eig_and_entries, _frobenius_combine)

@@ -164,6 +164,11 @@ GREEDY_SHARE = 0.5
 #: exact mode: the children's new endpoints through the bound's pre-test where it has one
 #: (spectral's inertia test, :func:`~covnet.core.allocation.interval_bounds._spectral_above`)
 PRETEST = True
+#: exact mode without the tie rule: the children's new endpoints through the bound's lazy
+#: summary where it has one (spectral: the parent's summary on the kept rows, eigenvalues only
+#: for the subsets that may be recorded, :func:`~covnet.core.allocation.interval_bounds.\
+#: _spectral_lazy`); the tie rule reads the bounds of the nodes it drops, so not with it
+LAZY = True
 
 
 @dataclass(slots=True)
@@ -305,6 +310,8 @@ class _Search:
         self.pretest = (
             PRETEST and rel_gap == 0.0 and prob.bound is not None and prob.bound.above is not None
         )
+        #: ... and, without the tie rule (decided before :meth:`run`), lazily (:data:`LAZY`)
+        self.lazy = LAZY and self.pretest and prob.bound is not None and prob.bound.lazy is not None
 
     # -- incumbent and thresholds ---------------------------------------------------------------
 
@@ -452,7 +459,13 @@ class _Search:
             has = (ch.inc[:, (d - 1) >> 3] >> np.uint8((d - 1) & 7)) & np.uint8(1)
             src = ch.take(has.astype(bool))
         Zi = src.Z + prob.S[d]
-        sBi = prob.summary_above(Zi, self.tau, False) if self.pretest else prob.summary(Zi)
+        lazy = self.lazy and ties is None
+        if lazy:
+            sBi = prob.summary_lazy(Zi, self.tau, False, src.sB)
+        elif self.pretest:
+            sBi = prob.summary_above(Zi, self.tau, False)
+        else:
+            sBi = prob.summary(Zi)
         ki = src.k + 1
         inc = src.inc.copy()
         inc[:, d >> 3] |= np.uint8(1 << (d & 7))
@@ -485,7 +498,12 @@ class _Search:
                 )
             # exclude children: I unchanged, a new A
             Z_hi = ch.Z + prob.suffix[d + 1]
-            sAe = prob.summary_above(Z_hi, self.tau, True) if self.pretest else prob.summary(Z_hi)
+            if lazy:
+                sAe = prob.summary_lazy(Z_hi, self.tau, True, ch.sA)
+            elif self.pretest:
+                sAe = prob.summary_above(Z_hi, self.tau, True)
+            else:
+                sAe = prob.summary(Z_hi)
             lbe = prob.combine(sAe, ch.sB)
             if relax:
                 lbe = prob.refine(ch.Z, Z_hi, lbe, ch.sB, self.tau)

@@ -290,6 +290,17 @@ class _Problem:
         with np.errstate(all="ignore"):
             return self.bound.above(self.covariances(Z), self.dc, self.ctx, tau, lower)
 
+    def summary_lazy(self, Z: Mat, tau: float, lower: bool, prev: Mat) -> Mat:
+        """:meth:`summary_above` through the bound's lazy summary (:attr:`IntervalBound.lazy`:
+        ``prev``, the parent's summary of the same side, on the rows kept that need no
+        eigenvalues); :meth:`summary_above` where the bound has none or ``tau`` is not
+        finite."""
+        assert self.bound is not None
+        if self.bound.lazy is None or not math.isfinite(tau):
+            return self.summary_above(Z, tau, lower)
+        with np.errstate(all="ignore"):
+            return self.bound.lazy(self.covariances(Z), self.dc, self.ctx, tau, lower, prev)
+
     def refine(self, Z_lo: Mat, Z_hi: Mat, lb: Mat, sB: Mat, tau: float) -> Mat:
         """``lb`` raised by the reduced relaxation (:class:`_Relaxation`) or the dual bound
         (:class:`~covnet.core.allocation.lower_bounds._DualBound`) where it applies."""
