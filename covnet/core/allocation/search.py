@@ -426,6 +426,17 @@ class _Search:
             inc, est = inc[rest], est[rest]
         self.cands.add(inc, est, self.tau)
 
+    def endpoint(self, Z: Mat, lower: bool, prev: Mat, lazy: bool) -> Mat:
+        """The summaries of the children's new endpoints ``Z`` (``lower``: the exclude
+        children's ``A``; ``prev`` the parent's summary of the same side): lazily
+        (:data:`LAZY`), through the pre-test (:data:`PRETEST`) or in full."""
+        prob = self.prob
+        if lazy:
+            return prob.summary_lazy(Z, self.tau, lower, prev)
+        if self.pretest:
+            return prob.summary_above(Z, self.tau, lower)
+        return prob.summary(Z)
+
     def expand(self, ch: _Chunk) -> None:
         """Children of every node of ``ch`` (decide sensor ``free[d]``): bounds, pruning,
         candidates, and the open children pushed."""
@@ -460,12 +471,7 @@ class _Search:
             src = ch.take(has.astype(bool))
         Zi = src.Z + prob.S[d]
         lazy = self.lazy and ties is None
-        if lazy:
-            sBi = prob.summary_lazy(Zi, self.tau, False, src.sB)
-        elif self.pretest:
-            sBi = prob.summary_above(Zi, self.tau, False)
-        else:
-            sBi = prob.summary(Zi)
+        sBi = self.endpoint(Zi, False, src.sB, lazy)
         ki = src.k + 1
         inc = src.inc.copy()
         inc[:, d >> 3] |= np.uint8(1 << (d & 7))
@@ -498,12 +504,7 @@ class _Search:
                 )
             # exclude children: I unchanged, a new A
             Z_hi = ch.Z + prob.suffix[d + 1]
-            if lazy:
-                sAe = prob.summary_lazy(Z_hi, self.tau, True, ch.sA)
-            elif self.pretest:
-                sAe = prob.summary_above(Z_hi, self.tau, True)
-            else:
-                sAe = prob.summary(Z_hi)
+            sAe = self.endpoint(Z_hi, True, ch.sA, lazy)
             lbe = prob.combine(sAe, ch.sB)
             if relax:
                 lbe = prob.refine(ch.Z, Z_hi, lbe, ch.sB, self.tau)
