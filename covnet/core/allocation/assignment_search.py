@@ -1192,7 +1192,6 @@ def _root_floors(
     upper: Mat,
     remaining: Callable[[], float],
     min_s: float,
-    keep: float = 0.0,
     pi: Mat | None = None,
 ) -> int:
     """The *root floors* (the timed plan, for the metrics without ``Metric.floors_first``):
@@ -1212,7 +1211,7 @@ def _root_floors(
     cs = dual.cs
     zero = np.zeros(cs.N) if pi is None else pi
     slack = []
-    least, gaps = {}, {}
+    gaps = {}
     for c in range(cs.T):
         col = cs.cols[c]
         if not (isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size):
@@ -1221,8 +1220,7 @@ def _root_floors(
         assert prob is not None
         if prob.dual is None and prob.relax is None:
             continue  # the root's interval bound alone: the depth-1 bounds have it already
-        least[c] = float(dual._cost(c, zero)[0].min(initial=math.inf))
-        gaps[c] = float(upper[c]) - least[c]
+        gaps[c] = float(upper[c]) - float(dual._cost(c, zero)[0].min(initial=math.inf))
         if gaps[c] > ROOT_FLOOR_SLACK * abs(float(upper[c])):
             slack.append((-gaps[c] / max(abs(float(upper[c])), TINY), c))
     total = sum(gaps[c] for _, c in slack)
@@ -1230,12 +1228,12 @@ def _root_floors(
     done = 0
 
     for _, c in sorted(slack):
-        if remaining() - keep < min_s:
+        if remaining() < min_s:
             break
         col = cs.cols[c]
         assert isinstance(col, _TargetCol) and col.prob is not None
         prob = col.prob
-        prob.stop = _iterations(ROOT_ITERS, lambda: remaining() < keep)
+        prob.stop = _iterations(ROOT_ITERS, lambda: remaining() < 0.0)
         try:
             root = prob.root_bound()
         finally:
@@ -1394,7 +1392,7 @@ def _search(
 
             def mid(pi: Mat) -> int:
                 upper = cs.w * st.v + np.array([float(pi[s].sum()) for s in st.sets])
-                return _root_floors(dual, upper, rem, min_s, 0.0, pi)
+                return _root_floors(dual, upper, rem, min_s, pi)
 
         best_pi: list[Mat] = []
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline, mid, mid_when, None, best_pi)

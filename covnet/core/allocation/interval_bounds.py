@@ -305,13 +305,20 @@ def _spectral_above(
     out = np.empty((m, n))
     if rows.size < m:
         out[keep] = np.linalg.eigvalsh(M[keep])
-    if lower:  # λmax >= v0 (and λmin <= +inf): the bound deflate(v0) > tau
+    _mark_proven(out, rows, v0, lower)
+    return out
+
+
+def _mark_proven(out: Mat, rows: NDArray[np.intp], v0: float, lower: bool) -> None:
+    """The summaries of proven rows, in place: a lower endpoint's ``[+inf, ..., +inf, v0]``
+    (``λmax >= v0``, ``λmin <= +inf``), an upper one's ``[-v0, -inf, ..., -inf]`` (``λmin <=
+    -v0``, ``λmax >= -inf``): the bound ``deflate(v0) > tau`` with any partner."""
+    if lower:
         out[rows, :-1] = math.inf
         out[rows, -1] = v0
-    else:  # λmin <= -v0 (and λmax >= -inf)
+    else:
         out[rows, 0] = -v0
         out[rows, 1:] = -math.inf
-    return out
 
 
 def _spectral_lazy(
@@ -350,14 +357,11 @@ def _spectral_lazy(
         return _f64(np.linalg.eigvalsh(M))
     rows = _spectral_proven(M, v0, ctx, lower)
     out = np.array(prev, dtype=np.float64)
-    if lower:  # λmax >= v0 (and λmin <= +inf): the bound deflate(v0) > tau
-        out[rows, :-1] = math.inf
-        out[rows, -1] = v0
+    _mark_proven(out, rows, v0, lower)
+    if lower:
         return out
     rest = np.ones(m, dtype=bool)
     rest[rows] = False
-    out[rows, 0] = -v0  # λmin <= -v0 (and λmax >= -inf)
-    out[rows, 1:] = -math.inf
     rest_rows = np.flatnonzero(rest)
     if rest_rows.size:
         Mr = M[rest_rows]

@@ -477,9 +477,7 @@ class _Search:
         inc[:, d >> 3] |= np.uint8(1 << (d & 7))
         est = prob.combine(sBi, sBi)
         if ties is not None:  # the sharper leaf bound (kl): the check's L_cand within tie_rtol
-            leaf = prob.leaf_bound(Zi)
-            if leaf is not None:
-                est = np.fmax(est, leaf)
+            est = prob.with_leaf(Zi, est)
         self.n_nodes += est.size
         self.record(inc, est)
         if not last:
@@ -562,10 +560,8 @@ class _Search:
                 inc, est, looked = self.leaves.leaves(sub.Z, sub.k, sub.inc, tau, K, same)
                 if K < self.prob.K:  # completions over the size rule: below the node's bound
                     self.ties.dropped(sub.lb)
-                if est.size:  # the sharper leaf bound (kl), as for the tree's candidates
-                    leaf = self.ties.leaf(self.prob.masks(self.prob.unpack(inc)))
-                    if leaf is not None:
-                        est = np.fmax(est, leaf)
+                if est.size and self.prob.leaf_constants is not None:  # kl, as in the tree
+                    est = self.prob.with_leaf(self.prob.information(self.prob.unpack(inc)), est)
             self.n_nodes += looked
             # every completion left out is above tau (its bound too)
             self.L_pruned = min(self.L_pruned, tau)

@@ -21,6 +21,7 @@ candidate ``{j}`` when nothing is required.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -162,11 +163,7 @@ class _Problem:
         self.bound: IntervalBound | None = (
             capability(entry.interval_bound, IntervalBound) if entry is not None else None
         )
-        #: the bound's sharper bound of single subsets (kl), its constants built on first use
-        #: (:meth:`leaf_bound`; the tie rule's pruning only)
-        self._leaf: object | None = None
-        self._leaf_ready = self.bound is None or self.bound.leaf is None
-        self._allowed = allowed
+        self._allowed = allowed  # the gains a subset may hold (:attr:`leaf_constants`)
         self.n_evaluated = 0
         self.moves = 0
         #: the time limit of a search (``True`` once reached; set by the branch and bound for
@@ -347,25 +344,42 @@ lower_bounds._DualBound.vertex_bound`; one_norm, inf_norm, abs_trace) on the row
         out[rows] = np.fmax(lb[rows], self.dual.vertex_bound(Z_lo[rows], Z_hi[rows]))
         return out
 
+    @functools.cached_property
+    def leaf_constants(self) -> object | None:
+        """The constants of the bound's sharper bound of single subsets (kl's
+        :class:`~covnet.core.allocation.interval_bounds.LeafBound`; the tie rule's pruning
+        only), built on first use; ``None`` without one."""
+        if self.bound is None or self.bound.leaf is None:
+            return None
+        try:
+            return self.bound.leaf.constants(
+                self.Y0, self.G[self._allowed], self.Cinv, self.s, self.P_pred, self.D
+            )
+        except np.linalg.LinAlgError:
+            return None
+
     def leaf_bound(self, Z: Mat) -> Mat | None:
         """The bound's sharper bound of the single subsets with reduced information ``Z``
         ``(m, r*r)`` (:class:`~covnet.core.allocation.interval_bounds.LeafBound`; valid for
         every subset with the same exact information), or ``None`` without one."""
-        if not self._leaf_ready:
-            self._leaf_ready = True
-            assert self.bound is not None and self.bound.leaf is not None
-            try:
-                self._leaf = self.bound.leaf.constants(
-                    self.Y0, self.G[self._allowed], self.Cinv, self.s, self.P_pred, self.D
-                )
-            except np.linalg.LinAlgError:
-                self._leaf = None
-        if self._leaf is None:
+        lc = self.leaf_constants
+        if lc is None:
             return None
         assert self.bound is not None and self.bound.leaf is not None
         with np.errstate(all="ignore"):
-            v = self.bound.leaf.bound(Z, self.covariances(Z), self._leaf, self.ctx)
+            v = self.bound.leaf.bound(Z, self.covariances(Z), lc, self.ctx)
         return np.where(np.isfinite(v), v, 0.0)  # a row it cannot bound: 0 (every value >= 0)
+
+    def with_leaf(self, Z: Mat, est: Mat) -> Mat:
+        """Candidate bounds ``est`` of the single subsets ``Z`` raised by :meth:`leaf_bound`
+        where the bound has one."""
+        leaf = self.leaf_bound(Z)
+        return est if leaf is None else np.fmax(est, leaf)
+
+    def information(self, rows: NDArray[np.bool_]) -> Mat:
+        """The reduced information ``Z`` ``(c, r*r)`` of subsets given by branching-order rows
+        ``(c, m)`` (the required sensors in ``base``)."""
+        return self.base[None] + rows.astype(np.float64) @ self.S
 
     def combine(self, sA: Mat, sB: Mat) -> Mat:
         assert self.bound is not None

@@ -131,8 +131,7 @@ class _TieRule:
     def leaf(self, masks: NDArray[np.bool_]) -> Mat | None:
         """The leaf bounds of the subsets ``masks`` ``(c, N)`` (``None``: no leaf bound)."""
         prob = self.prob
-        inc = masks[:, prob.free].astype(np.float64)
-        return prob.leaf_bound(prob.base[None] + inc @ prob.S)
+        return prob.leaf_bound(prob.information(masks[:, prob.free]))
 
     @property
     def active(self) -> bool:
@@ -165,11 +164,7 @@ class _TieRule:
         rows = np.flatnonzero((values > thr_c) & precedes(masks, masks[k]))
         if rows.size == 0:
             return True
-        inc = masks[rows][:, prob.free].astype(np.float64)
-        Z = prob.base[None] + inc @ prob.S
+        Z = prob.information(masks[rows][:, prob.free])
         sB = prob.summary(Z)
-        est = prob.combine(sB, sB)
-        leaf = prob.leaf_bound(Z)
-        if leaf is not None:
-            est = np.fmax(est, leaf)
+        est = prob.with_leaf(Z, prob.combine(sB, sB))
         return bool((est > thr_c).all())
