@@ -327,7 +327,7 @@ def test_bounded_with_time_takes_the_floors(monkeypatch):
     P, J, D, w, feas = _problem(N, T, 4)
     ref = allocate_assignments(P, J, D, "spectral", w, feas)
     g = allocate_assignments_greedy(P, J, D, "spectral", w, feas)
-    ticks = iter(np.arange(0.0, 1e6, 1e-3))
+    ticks = (i * 1e-3 for i in itertools.count())  # 1 ms a reading, lazily
     b = allocate_assignments_bounded(
         P, J, D, "spectral", w, feas, rel_gap=0.0, time_limit_s=50.0,
         clock=lambda: float(next(ticks)),
@@ -353,7 +353,7 @@ def test_no_floor_for_a_metric_without_an_interval_bound(monkeypatch):
 
     N, T = 13, 2
     P, J, D, w, feas = _problem(N, T, 5)
-    ticks = iter(np.arange(0.0, 1e6, 1e-3))
+    ticks = (i * 1e-3 for i in itertools.count())  # 1 ms a reading, lazily
     r = allocate_assignments_bounded(
         P, J, D, mine, w, feas, time_limit_s=50.0, clock=lambda: float(next(ticks))
     )
