@@ -144,8 +144,16 @@ at least ``FLOOR_MIN_S`` for a single-target search), then the steps go on.  Wit
 the steps again from their best prices (any ``π >= 0`` gives a bound); at N = 64, T = 8 the
 steps and roots take the time the floors took (spectral at 90 ms of CPU: 1.3 % -> 1.04 % of
 the distance from doing nothing), at N = 256 the steps stall after about 300 ms and the
-floors take the rest.  Every piece is a bound of its own, so whatever the clock cuts,
-``L(π) <= F*``.
+floors take the rest.  Round mt15: after the root floors, at the same prices, the *vertex
+rows* (:func:`_vertex_rows`; the metrics whose dual bound has a vertex bound: one_norm,
+inf_norm, abs_trace): the columns still holding a share of the slack get their count rows,
+superset rows and kept levels' rows raised by the dual bound's vertex bound (a few dual points
+in closed form, :meth:`_Rows.vertex`), the least price-adjusted first, one call a column;
+and the induced norms' roots run 20 barrier iterations (``ROOT_ITERS_OF``).  At N = 64, T = 8
+the first closes the heavy targets whose best set has one sensor (bounded at three by the
+pairs' superset intervals), the second the light targets whose 12-iteration root was far
+from its end (one_norm at 90 ms of CPU: 2.15 % -> 0.65 % of the distance from doing
+nothing).  Every piece is a bound of its own, so whatever the clock cuts, ``L(π) <= F*``.
 
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
