@@ -240,6 +240,10 @@ FLOOR_GAP = 0.002
 #: took 26-154 ms)
 FLOOR_MIN_S = 0.03
 FLOOR_MARGIN = 1.5
+#: ... and (round mt15; not the second floors after the root floors) only on the columns whose
+#: slack is at least this share of the summed slack (trace_diff at N = 64, T = 8: a column at
+#: its single-target optimum took a floor's time from one that needed it)
+FLOOR_PART = 0.05
 #: the timed plan (bounded with a time limit, :func:`_search`): the first round of floors
 #: takes at most this share of the time left after the depth-1 bounds (the rest: deepening, set
 #: moves, then a second round of floors); each floor at most ``TIMED_FLOOR_SLICE`` of the
@@ -720,6 +724,8 @@ class _Dual:
         self.nc: list[int] = []
         #: per column the weighted single-target floor (``-inf``: none; :func:`_floors`)
         self.floor = np.full(cs.ncol, -math.inf)
+        #: the columns whose last floor search stopped at its time limit (:func:`_floors`)
+        self.cut: set[int] = set()
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
             self.nc.append(nc)
@@ -1268,7 +1274,13 @@ def _floors(
     and ``FLOOR_MARGIN`` times the previous one's time are left; its certified lower bound,
     weighted, is the column's floor (the larger of it and one there already).  A column with
     a floor is skipped (the timed plan's first round), unless ``rooted`` (round mt13: after
-    the root floors, which leave one).  Returns how many ran."""
+    the root floors, which leave one) or its search stopped at its time limit
+    (:attr:`_Dual.cut`, round mt15: trace_diff's single-target bound is 0 until its search
+    ends, about 8-10 ms of CPU at N = 64, and the first round's shares of 6-8 ms cut it on the
+    targets that hold the gap).  Round mt15, without ``rooted``: only the columns holding at
+    least ``FLOOR_PART`` of the summed slack (some slack: a column at its bound gains nothing),
+    and the first round (``slice_s``) stops where a share would be below what the last floor
+    took (left to the second round, with more time).  Returns how many ran."""
     cs = dual.cs
     inp = cs.inp
     metric = inp.entry.name if inp.entry is not None else inp.f
@@ -1276,11 +1288,14 @@ def _floors(
     for c in range(cs.T):
         col = cs.cols[c]
         # a metric without an interval bound would be searched exhaustively: no floor
-        if math.isfinite(dual.floor[c]) and not rooted:
-            continue  # floored already (the timed plan's first round)
+        if math.isfinite(dual.floor[c]) and not rooted and c not in dual.cut:
+            continue  # floored already, its search to its end (the timed plan's first round)
         if isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size:
             least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
             slack.append((-(float(upper[c]) - least), c))
+    if not rooted:  # round mt15: none where it cannot raise much
+        total = sum(max(-g, 0.0) for g, _ in slack)
+        slack = [(g, c) for g, c in slack if -g > 0.0 and -g >= FLOOR_PART * total]
     done = 0
     last = 0.0
     order = [c for _, c in sorted(slack)]
@@ -1290,12 +1305,18 @@ def _floors(
             break  # its set-up is not timed: the last one's time says what one costs
         excl = frozenset(int(j) for j in np.flatnonzero(~cs.allow[c]))
         share = left / (len(order) - i) if slice_s is None else min(slice_s, left - min_s)
+        if slice_s is not None and share < last:
+            break  # round mt15: less than the last one took: left to the second round
         res = allocate_bnb(
             inp.P_pred[c], inp.J[:, c], inp.D[c], metric, Constraints(excl), inp.tie_rtol,
             rel_gap=FLOOR_GAP, time_limit_s=share, clock=clock,
         )  # fmt: skip
         if math.isfinite(res.lower_bound):
             dual.floor[c] = max(dual.floor[c], float(cs.w[c]) * res.lower_bound)
+        if res.status == 2:
+            dual.cut.add(c)
+        else:
+            dual.cut.discard(c)
         done += 1
         last = left - remaining()
     return done
