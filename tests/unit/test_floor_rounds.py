@@ -53,15 +53,18 @@ def test_a_floor_cut_by_its_time_is_searched_again(monkeypatch):
 
 
 def test_no_floor_without_a_share_of_the_slack(monkeypatch):
-    """A column at its bound (no slack) or with less than ``FLOOR_PART`` of the summed slack
-    takes no floor; the second floors after the root floors (``rooted``) still take every
-    column."""
+    """With ``part`` (the ``floors_first`` metrics' rounds: ``FLOOR_PART``) a column at its
+    bound (no slack) or with less than that share of the summed slack takes no floor; without
+    it (svd's only round, the second floors after the root floors) every column does, as
+    before."""
     srch, dual, calls, least, T = _setup(monkeypatch, "trace_diff", {0: 3, 1: 3, 2: 3})
     upper = least + np.array([10.0, 0.0, 0.2])  # 0.2 / 10.2 < FLOOR_PART
-    assert srch._floors(dual, upper, lambda: 10.0) == 1
+    assert srch._floors(dual, upper, lambda: 10.0, part=srch.FLOOR_PART) == 1
     assert [t for t, _ in calls] == [0]
-    calls.clear()
-    assert srch._floors(dual, upper, lambda: 10.0, rooted=True) == T
+    for kw in ({}, {"rooted": True}):
+        calls.clear()
+        dual.floor[:] = -np.inf
+        assert srch._floors(dual, upper, lambda: 10.0, **kw) == T
 
 
 def test_the_first_round_stops_below_the_last_floors_time(monkeypatch):

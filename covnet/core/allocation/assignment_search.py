@@ -153,7 +153,11 @@ and the induced norms' roots run 20 barrier iterations (``ROOT_ITERS_OF``).  At 
 the first closes the heavy targets whose best set has one sensor (bounded at three by the
 pairs' superset intervals), the second the light targets whose 12-iteration root was far
 from its end (one_norm at 90 ms of CPU: 2.15 % -> 0.65 % of the distance from doing
-nothing).  Every piece is a bound of its own, so whatever the clock cuts, ``L(π) <= F*``.
+nothing).  Also round mt15, the floor rounds (:func:`_floors`): a floor cut by its time
+limit is searched again by the second round, a column with little of the slack takes none
+(the ``floors_first`` metrics), and the first round leaves to the second a floor whose share
+would be below the last one's time (trace_diff: 3.0 % -> 1.41 %).  Every piece is a bound of
+its own, so whatever the clock cuts, ``L(π) <= F*``.
 
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
@@ -240,9 +244,10 @@ FLOOR_GAP = 0.002
 #: took 26-154 ms)
 FLOOR_MIN_S = 0.03
 FLOOR_MARGIN = 1.5
-#: ... and (round mt15; not the second floors after the root floors) only on the columns whose
-#: slack is at least this share of the summed slack (trace_diff at N = 64, T = 8: a column at
-#: its single-target optimum took a floor's time from one that needed it)
+#: ... and (round mt15; the metrics of ``Metric.floors_first``) only on the columns whose slack
+#: is at least this share of the summed slack (trace_diff at N = 64, T = 8: a column at its
+#: single-target optimum took a floor's time from one that needed it; svd, whose only round is
+#: the second, lost 0.03-0.07 points on one problem with it and keeps every column)
 FLOOR_PART = 0.05
 #: the timed plan (bounded with a time limit, :func:`_search`): the first round of floors
 #: takes at most this share of the time left after the depth-1 bounds (the rest: deepening, set
@@ -1266,6 +1271,7 @@ def _floors(
     slice_s: float | None = None,
     clock: Callable[[], float] | None = None,
     rooted: bool = False,
+    part: float = 0.0,
 ) -> int:
     """The single-target floors (module docstring): the target columns in decreasing slack
     (the incumbent's weighted value less the column's least bound), each decided by the
@@ -1277,10 +1283,10 @@ def _floors(
     the root floors, which leave one) or its search stopped at its time limit
     (:attr:`_Dual.cut`, round mt15: trace_diff's single-target bound is 0 until its search
     ends, about 8-10 ms of CPU at N = 64, and the first round's shares of 6-8 ms cut it on the
-    targets that hold the gap).  Round mt15, without ``rooted``: only the columns holding at
-    least ``FLOOR_PART`` of the summed slack (some slack: a column at its bound gains nothing),
-    and the first round (``slice_s``) stops where a share would be below what the last floor
-    took (left to the second round, with more time).  Returns how many ran."""
+    targets that hold the gap).  Round mt15: with ``part > 0`` only the columns holding at
+    least that share of the summed slack (and some slack: a column at its bound gains
+    nothing); the first round (``slice_s``) stops where a share would be below what the last
+    floor took (left to the second round, with more time).  Returns how many ran."""
     cs = dual.cs
     inp = cs.inp
     metric = inp.entry.name if inp.entry is not None else inp.f
@@ -1293,9 +1299,9 @@ def _floors(
         if isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size:
             least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
             slack.append((-(float(upper[c]) - least), c))
-    if not rooted:  # round mt15: none where it cannot raise much
+    if part > 0.0:  # round mt15: none where it cannot raise much
         total = sum(max(-g, 0.0) for g, _ in slack)
-        slack = [(g, c) for g, c in slack if -g > 0.0 and -g >= FLOOR_PART * total]
+        slack = [(g, c) for g, c in slack if -g > 0.0 and -g >= part * total]
     done = 0
     last = 0.0
     order = [c for _, c in sorted(slack)]
@@ -1545,7 +1551,7 @@ def _search(
                 return rem() - keep
 
             if inp.entry is not None and inp.entry.floors_first:  # Metric.floors_first
-                _floors(dual, cs.w * st.v, first, min_s, slice_s, clock)
+                _floors(dual, cs.w * st.v, first, min_s, slice_s, clock, part=FLOOR_PART)
             dual.deepen(deadline, cs.w * st.v, remaining)
         if _enum_moves(st, dual, deadline):
             _local_search(st, deadline)
@@ -1556,7 +1562,8 @@ def _search(
                      for col in cs.cols)  # fmt: skip
         roots = timed and rooted and inp.entry is not None and not inp.entry.floors_first
         if timed and not roots:  # with root floors the second round comes after the steps
-            _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock)  # the second: as before
+            part = FLOOR_PART if inp.entry is not None and inp.entry.floors_first else 0.0
+            _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock, part=part)  # the second
         mid: Callable[[Mat], object] | None = None
         mid_when: Callable[[], bool] | None = None
         if roots:  # mt12
