@@ -144,8 +144,20 @@ at least ``FLOOR_MIN_S`` for a single-target search), then the steps go on.  Wit
 the steps again from their best prices (any ``π >= 0`` gives a bound); at N = 64, T = 8 the
 steps and roots take the time the floors took (spectral at 90 ms of CPU: 1.3 % -> 1.04 % of
 the distance from doing nothing), at N = 256 the steps stall after about 300 ms and the
-floors take the rest.  Every piece is a bound of its own, so whatever the clock cuts,
-``L(π) <= F*``.
+floors take the rest.  Round mt15: after the root floors, at the same prices, the *vertex
+rows* (:func:`_vertex_rows`; the metrics whose dual bound has a vertex bound: one_norm,
+inf_norm, abs_trace): the columns still holding a share of the slack get their count rows,
+superset rows and kept levels' rows raised by the dual bound's vertex bound (a few dual points
+in closed form, :meth:`_Rows.vertex`), the least price-adjusted first, one call a column;
+and the induced norms' roots run 20 barrier iterations (``ROOT_ITERS_OF``).  At N = 64, T = 8
+the first closes the heavy targets whose best set has one sensor (bounded at three by the
+pairs' superset intervals), the second the light targets whose 12-iteration root was far
+from its end (one_norm at 90 ms of CPU: 2.15 % -> 0.65 % of the distance from doing
+nothing).  Also round mt15, the floor rounds (:func:`_floors`): a floor cut by its time
+limit is searched again by the second round, a column with little of the slack takes none
+(the ``floors_first`` metrics), and the first round leaves to the second a floor whose share
+would be below the last one's time (trace_diff: 3.0 % -> 1.41 %).  Every piece is a bound of
+its own, so whatever the clock cuts, ``L(π) <= F*``.
 
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
@@ -232,6 +244,11 @@ FLOOR_GAP = 0.002
 #: took 26-154 ms)
 FLOOR_MIN_S = 0.03
 FLOOR_MARGIN = 1.5
+#: ... and (round mt15; the metrics of ``Metric.floors_first``) only on the columns whose slack
+#: is at least this share of the summed slack (trace_diff at N = 64, T = 8: a column at its
+#: single-target optimum took a floor's time from one that needed it; svd, whose only round is
+#: the second, lost 0.03-0.07 points on one problem with it and keeps every column)
+FLOOR_PART = 0.05
 #: the timed plan (bounded with a time limit, :func:`_search`): the first round of floors
 #: takes at most this share of the time left after the depth-1 bounds (the rest: deepening, set
 #: moves, then a second round of floors); each floor at most ``TIMED_FLOOR_SLICE`` of the
@@ -249,6 +266,11 @@ ROOT_FLOOR_MIN_CAP = 0.009
 #: far: at 12 of the 30 within 0.05 % of the full run's on spectral, 0.5-3 % on one_norm, at
 #: 3.6 ms of CPU instead of 8, N = 64)
 ROOT_ITERS = 12
+#: ... except for these metrics (round mt15: for the induced norms, at 12 the barrier is still
+#: far from its end on some light targets, N = 64, one_norm's problem 2: 11.0 and 11.7 at 12
+#: iterations, 15.6 at 20, 15.7-15.8 at 30, the targets' best sets 15.97 and 16.06; about 4 ms
+#: of CPU a target at 20; abs_trace and spectral gained nothing beyond the noise from 20)
+ROOT_ITERS_OF: dict[str, int] = {"one_norm": 20, "inf_norm": 20}
 #: ... only on the columns whose slack is above this share of their incumbent's value, and
 #: which hold at least ``ROOT_FLOOR_PART`` of the summed slack
 ROOT_FLOOR_SLACK = 1e-3
@@ -257,6 +279,11 @@ ROOT_FLOOR_PART = 0.05
 #: MID_THETA``) or ``1 - ROOT_FLOOR_AFTER`` of the time left for the steps is spent
 ROOT_FLOOR_AFTER = 0.5
 MID_THETA = 0.125
+#: the vertex rows (:func:`_vertex_rows`, round mt15): at most this many rows of a column (its
+#: count rows, its superset rows, each kept level's) are raised ...
+VERTEX_ROWS = 512
+#: ... in rounds of this many of each piece, every piece's in one call
+VERTEX_BATCH = 256
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -702,6 +729,8 @@ class _Dual:
         self.nc: list[int] = []
         #: per column the weighted single-target floor (``-inf``: none; :func:`_floors`)
         self.floor = np.full(cs.ncol, -math.inf)
+        #: the columns whose last floor search stopped at its time limit (:func:`_floors`)
+        self.cut: set[int] = set()
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
             self.nc.append(nc)
@@ -802,6 +831,32 @@ class _Dual:
             if remaining is not None:
                 last = left - remaining()
         return done
+
+    def vertex(self, c: int, pi: Mat, limit: int, deadline: Callable[[], bool] | None) -> int:
+        """Round mt15: column ``c``'s intervals (the count bound's rows, the enumeration's
+        superset rows and its kept levels') raised by the vertex bound (:meth:`_Rows.vertex`),
+        the least price-adjusted first at the prices ``pi`` (a ``k``-set pays at least the
+        ``k`` smallest prices of the column, a superset of ``S0`` at least ``π(S0)``).  Returns
+        how many rows were raised."""
+        o = self.opts[c]
+        nc = self.nc[c]
+        ps = np.concatenate(([0.0], np.cumsum(np.sort(pi[o])[:nc])))
+        pieces: list[tuple[_Rows, Mat, Mat]] = []
+        rows = self.pieces[c]
+        if rows is not None:
+            pieces.append((rows, self.h[c], ps[rows.idx]))
+        en = self.enum[c]
+        if en is not None:
+            po = pi[en.o]
+            if en.rows is not None:
+                pieces.append((en.rows, en.sup, en._psum(po, en.d)))
+            for (d0, sup), lrows in zip(en.lower, en.lower_rows, strict=True):
+                if lrows is not None:
+                    pieces.append((lrows, sup, en._psum(po, d0)))
+        n = _Rows.vertex(pieces, float(self.cs.w[c]), limit, deadline)
+        if en is not None:
+            en.rescale()
+        return n
 
     @staticmethod
     def _bounded(col: _TargetCol) -> bool:
@@ -921,6 +976,8 @@ class _Rows:
         self.prob, self.Z_lo, self.Z_hi, self.sB, self.idx = prob, Z_lo, Z_hi, sB, idx
         self.done = np.zeros(idx.size, dtype=bool)
         self.useful = prob.relax is not None  # the dual bound's barrier: too slow here
+        #: the rows the vertex bound has raised (:meth:`vertex`; built on first use)
+        self.vdone: NDArray[np.bool_] | None = None
 
     def lazy(self, out: Mat, w: float, limit: int, deadline: Callable[[], bool] | None) -> None:
         """Refine the rows of ``out[idx]`` smallest first, ``REFINE_BATCH`` at a time, until
@@ -946,6 +1003,65 @@ class _Rows:
             out[i] = np.fmax(vals[r], w * new)
             self.done[r] = True
             n_done += r.size
+
+    @staticmethod
+    def vertex(
+        pieces: Sequence[tuple[_Rows, Mat, Mat]],
+        w: float,
+        limit: int,
+        deadline: Callable[[], bool] | None,
+    ) -> int:
+        """Round mt15: the rows of each piece ``(rows, out, prices)`` (``out[rows.idx]`` the
+        weighted bounds of the intervals ``[Z_lo, Z_hi]`` of one column, ``prices`` the price
+        sum each row's sets pay at least) raised by the dual bound's *vertex bound*
+        (:meth:`~covnet.core.allocation.lower_bounds._DualBound.vertex_bound`: one_norm,
+        inf_norm, abs_trace; a few dual points in closed form), in rounds: per piece its
+        ``VERTEX_BATCH`` least ``out + prices`` not yet raised, every piece's in one call (its
+        cost is mostly per call: about 0.5 ms, then 2-3 µs a row at N = 64, one_norm; the
+        barrier costs 0.2-0.5 ms a row), until each piece's least is a raised one, ``limit``
+        rows are raised or the deadline passes.  **Proof**: the vertex bound is a certified
+        lower bound of the metric over every information in ``[Z_lo[i], Z_hi[i]]`` (that
+        module's docstring: ``φ(Y)`` for a ``Y`` in the dual ball, deflated by the rounding),
+        so of every set whose information lies there, which is what row ``i`` bounds (the count
+        bound's ``k``-sets, an enumerated set's supersets); ``fmax`` with the old bound keeps it
+        a bound whenever this stops.  Returns how many rows were raised."""
+        got = [(r, out, pr) for r, out, pr in pieces if r.idx.size]
+        if not got:
+            return 0
+        db = got[0][0].prob.dual
+        if db is None or db.dual.vertices is None:
+            return 0
+        for r, _, _ in got:
+            if r.vdone is None:
+                r.vdone = np.zeros(r.idx.size, dtype=bool)
+        n = 0
+        while n < limit:
+            if deadline is not None and deadline():
+                break
+            picks = []
+            for r, out, pr in got:
+                assert r.vdone is not None
+                order = np.argsort(out[r.idx] + pr, kind="stable")
+                if r.vdone[order[0]]:
+                    picks.append(order[:0])
+                else:
+                    picks.append(order[~r.vdone[order]][:VERTEX_BATCH])
+            m = sum(p.size for p in picks)
+            if m == 0:
+                break
+            i_all = [r.idx[p] for (r, _, _), p in zip(got, picks, strict=True)]
+            Z_lo = np.concatenate([r.Z_lo[i] for (r, _, _), i in zip(got, i_all, strict=True)])
+            Z_hi = np.concatenate([r.Z_hi[i] for (r, _, _), i in zip(got, i_all, strict=True)])
+            vb = db.vertex_bound(Z_lo, Z_hi)
+            vb = w * np.where(np.isfinite(vb), np.maximum(vb, 0.0), 0.0)
+            at = 0
+            for (r, out, _), p, i in zip(got, picks, i_all, strict=True):
+                out[i] = np.fmax(out[i], vb[at : at + i.size])
+                assert r.vdone is not None
+                r.vdone[p] = True
+                at += i.size
+            n += m
+        return n
 
     @staticmethod
     def together(pieces: Sequence[tuple[_Rows | None, Mat]], w: float, limit: int) -> None:
@@ -1046,11 +1162,15 @@ class _Enum:
         self.rows: _Rows | None = None
         #: shallower levels' superset bounds ``(d0, sup)`` (``d0 < d``), kept from ``prev``
         self.lower: list[tuple[int, Mat]] = []
+        #: ... and their intervals (``None`` where the level had none; the vertex bound,
+        #: :meth:`_Dual.vertex`), in the order of :attr:`lower`
+        self.lower_rows: list[_Rows | None] = []
         k0 = 0
         if prev is not None and 0 < prev.d < d:
             self.sets = list(prev.sets)
             self.exact = list(prev.exact)
             self.lower = [*prev.lower, (prev.d, prev.sup)]
+            self.lower_rows = [*prev.lower_rows, prev.rows]
             k0 = prev.d + 1
         for k in range(k0, d + 1):
             idx = _combinations(o.size, k)
@@ -1070,6 +1190,11 @@ class _Enum:
         self._pi: Mat | None = None  # the prices of the last :meth:`cost` and its argmins
         self._arg: dict[int, int] = {}
         self.scale = float(max(float(e.max()) for e in self.exact))
+        self.rescale()
+
+    def rescale(self) -> None:
+        """:attr:`scale` (the rounding allowance of :meth:`_Dual.value`) raised to the kept
+        levels' superset bounds, which a refinement may have raised since."""
         for _, sup in self.lower:
             self.scale = max(self.scale, float(sup.max(initial=0.0)))
 
@@ -1146,6 +1271,7 @@ def _floors(
     slice_s: float | None = None,
     clock: Callable[[], float] | None = None,
     rooted: bool = False,
+    part: float = 0.0,
 ) -> int:
     """The single-target floors (module docstring): the target columns in decreasing slack
     (the incumbent's weighted value less the column's least bound), each decided by the
@@ -1154,7 +1280,13 @@ def _floors(
     and ``FLOOR_MARGIN`` times the previous one's time are left; its certified lower bound,
     weighted, is the column's floor (the larger of it and one there already).  A column with
     a floor is skipped (the timed plan's first round), unless ``rooted`` (round mt13: after
-    the root floors, which leave one).  Returns how many ran."""
+    the root floors, which leave one) or its search stopped at its time limit
+    (:attr:`_Dual.cut`, round mt15: trace_diff's single-target bound is 0 until its search
+    ends, about 8-10 ms of CPU at N = 64, and the first round's shares of 6-8 ms cut it on the
+    targets that hold the gap).  Round mt15: with ``part > 0`` only the columns holding at
+    least that share of the summed slack (and some slack: a column at its bound gains
+    nothing); the first round (``slice_s``) stops where a share would be below what the last
+    floor took (left to the second round, with more time).  Returns how many ran."""
     cs = dual.cs
     inp = cs.inp
     metric = inp.entry.name if inp.entry is not None else inp.f
@@ -1162,11 +1294,14 @@ def _floors(
     for c in range(cs.T):
         col = cs.cols[c]
         # a metric without an interval bound would be searched exhaustively: no floor
-        if math.isfinite(dual.floor[c]) and not rooted:
-            continue  # floored already (the timed plan's first round)
+        if math.isfinite(dual.floor[c]) and not rooted and c not in dual.cut:
+            continue  # floored already, its search to its end (the timed plan's first round)
         if isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size:
             least = float(dual._cost(c, np.zeros(cs.N))[0][1:].min(initial=math.inf))
             slack.append((-(float(upper[c]) - least), c))
+    if part > 0.0:  # round mt15: none where it cannot raise much
+        total = sum(max(-g, 0.0) for g, _ in slack)
+        slack = [(g, c) for g, c in slack if -g > 0.0 and -g >= part * total]
     done = 0
     last = 0.0
     order = [c for _, c in sorted(slack)]
@@ -1176,12 +1311,18 @@ def _floors(
             break  # its set-up is not timed: the last one's time says what one costs
         excl = frozenset(int(j) for j in np.flatnonzero(~cs.allow[c]))
         share = left / (len(order) - i) if slice_s is None else min(slice_s, left - min_s)
+        if slice_s is not None and share < last:
+            break  # round mt15: less than the last one took: left to the second round
         res = allocate_bnb(
             inp.P_pred[c], inp.J[:, c], inp.D[c], metric, Constraints(excl), inp.tie_rtol,
             rel_gap=FLOOR_GAP, time_limit_s=share, clock=clock,
         )  # fmt: skip
         if math.isfinite(res.lower_bound):
             dual.floor[c] = max(dual.floor[c], float(cs.w[c]) * res.lower_bound)
+        if res.status == 2:
+            dual.cut.add(c)
+        else:
+            dual.cut.discard(c)
         done += 1
         last = left - remaining()
     return done
@@ -1233,7 +1374,8 @@ def _root_floors(
         col = cs.cols[c]
         assert isinstance(col, _TargetCol) and col.prob is not None
         prob = col.prob
-        prob.stop = _iterations(ROOT_ITERS, lambda: remaining() < 0.0)
+        iters = ROOT_ITERS_OF.get(prob.name, ROOT_ITERS) if prob.name is not None else ROOT_ITERS
+        prob.stop = _iterations(iters, lambda: remaining() < 0.0)
         try:
             root = prob.root_bound()
         finally:
@@ -1241,6 +1383,47 @@ def _root_floors(
         if math.isfinite(root):
             dual.floor[c] = max(dual.floor[c], float(cs.w[c]) * max(root, 0.0))
         done += 1
+    return done
+
+
+def _vertex_rows(
+    dual: _Dual,
+    upper: Mat,
+    pi: Mat,
+    deadline: Callable[[], bool] | None,
+) -> int:
+    """Round mt15 (the timed plan, with the root floors, for the metrics whose dual bound has
+    a vertex bound: one_norm, inf_norm, abs_trace): at the prices ``pi``, per target column
+    the largest slack first (``upper[c]``, the incumbent's weighted value plus its set's
+    prices, less the column's least bound; only the columns holding at least
+    ``ROOT_FLOOR_PART`` of the summed slack, and above ``ROOT_FLOOR_SLACK`` of their
+    incumbent), the column's intervals raised by the vertex bound (:meth:`_Dual.vertex`, at
+    most ``VERTEX_ROWS`` rows a column), while the deadline allows.  Each raised row is a bound
+    of its own interval (:meth:`_Rows.vertex`), so the dual function stays ``<= F*``.  At
+    N = 64, T = 8 (one_norm) the heavy targets whose best set has one sensor hold most of the
+    gap on one problem in five, at ``k >= 3`` where the pairs' superset intervals bound it
+    (141 against 157): the vertex bound closes them for about 500 rows, 6 ms of CPU.
+    Returns how many rows were raised."""
+    cs = dual.cs
+    gaps: dict[int, float] = {}
+    for c in range(cs.T):
+        col = cs.cols[c]
+        if not (isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size):
+            continue
+        prob = col.prob
+        if prob is None or prob.dual is None or prob.dual.dual.vertices is None:
+            continue
+        gap = float(upper[c]) - float(dual._cost(c, pi)[0].min(initial=math.inf))
+        if gap > ROOT_FLOOR_SLACK * abs(float(upper[c])):
+            gaps[c] = gap
+    total = sum(gaps.values())
+    done = 0
+    for c in sorted(gaps, key=lambda c: -gaps[c]):
+        if gaps[c] < ROOT_FLOOR_PART * total:
+            continue
+        if deadline is not None and deadline():
+            break
+        done += dual.vertex(c, pi, VERTEX_ROWS, deadline)
     return done
 
 
@@ -1368,7 +1551,7 @@ def _search(
                 return rem() - keep
 
             if inp.entry is not None and inp.entry.floors_first:  # Metric.floors_first
-                _floors(dual, cs.w * st.v, first, min_s, slice_s, clock)
+                _floors(dual, cs.w * st.v, first, min_s, slice_s, clock, part=FLOOR_PART)
             dual.deepen(deadline, cs.w * st.v, remaining)
         if _enum_moves(st, dual, deadline):
             _local_search(st, deadline)
@@ -1379,7 +1562,8 @@ def _search(
                      for col in cs.cols)  # fmt: skip
         roots = timed and rooted and inp.entry is not None and not inp.entry.floors_first
         if timed and not roots:  # with root floors the second round comes after the steps
-            _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock)  # the second: as before
+            part = FLOOR_PART if inp.entry is not None and inp.entry.floors_first else 0.0
+            _floors(dual, cs.w * st.v, rem, FLOOR_MIN_S, None, clock, part=part)  # the second
         mid: Callable[[Mat], object] | None = None
         mid_when: Callable[[], bool] | None = None
         if roots:  # mt12
@@ -1392,7 +1576,9 @@ def _search(
 
             def mid(pi: Mat) -> int:
                 upper = cs.w * st.v + np.array([float(pi[s].sum()) for s in st.sets])
-                return _root_floors(dual, upper, rem, min_s, pi)
+                done = _root_floors(dual, upper, rem, min_s, pi)
+                _vertex_rows(dual, upper, pi, deadline)  # mt15: where the roots left slack
+                return done
 
         best_pi: list[Mat] = []
         L, n_steps = _dual_bound(dual, F, steps, rel_gap, deadline, mid, mid_when, None, best_pi)
