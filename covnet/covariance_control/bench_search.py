@@ -256,7 +256,9 @@ def run(
     ``worst_s`` (per decision), ``peak_mb``, ``gap_median``, ``gap_worst`` (the certified
     relative gap), ``gap_nothing_median``, ``gap_nothing_worst`` (the certified gap relative
     to the distance from doing nothing, :func:`gap_from_nothing`), ``n_nodes_median``,
-    ``n_exact`` (decisions that ended exact: status 0),
+    ``n_exact`` (decisions that ended exact: status 0), ``problem_s`` and ``problem_status``
+    (per problem, in order: the median time of its timed calls and its first timed call's
+    status, so a capped run says which problems it left open),
     ``value_ratio_median`` / ``value_ratio_worst`` (value over the best value any search or the
     reference found on the problem), and, measured on the same problems in the same run,
     ``exhaustive_median_s`` and ``ratio_exhaustive`` (``exhaustive / median``; ``None`` above
@@ -336,6 +338,11 @@ def run(
                 else [math.nan]
             )
             timed = [(p, r) for p, runs in enumerate(per_problem) for r in runs[1:]]
+            counts = [len(runs) - 1 for runs in per_problem]
+            ends = list(itertools.accumulate(counts))
+            per_problem_times = [
+                times[search][e - c : e] for c, e in zip(counts, ends, strict=True)
+            ]
             gaps = [r.gap for _, r in timed]
             gaps_nothing = [gap_from_nothing(r, nothing[p]) for p, r in timed]
             row: Row = {
@@ -353,6 +360,10 @@ def run(
                 "gap_nothing_worst": float(np.max(gaps_nothing)),
                 "n_nodes_median": float(np.median([r.n_nodes for r in res0])),
                 "n_exact": sum(r.status == 0 for r in res0),
+                # per problem, in problem order: the median time of its timed calls, and the
+                # status of its first timed call (0: exact; which problems a cap left open)
+                "problem_s": [float(np.median(t)) for t in per_problem_times],
+                "problem_status": [int(r.status) for r in res0],
                 "exact_cap_s": exact_cap_s if search == "exact" else None,
                 "bounded_limit_s": limit if search == "bounded" else None,
                 "rel_gap": rel_gap if search == "bounded" else None,
