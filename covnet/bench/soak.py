@@ -14,7 +14,10 @@ restarts). The phase's time runs from the manager's ``READY`` to its last scan (
 ``[status]`` line, ``scan N/N``); samples before and after are start-up and wind-down, not
 counted. Per process, after a warm-up of the first ``warmup`` (10 %) of that time, *growth* is
 the median of the last tenth of the samples against the median of the first tenth, in per cent
-(flat: under :data:`FLAT_PCT`).
+(flat: under :data:`FLAT_PCT`).  The warm-up also covers the first
+:data:`covnet.runs.columns.BLOCK` scans (:func:`phase_warmup`): the manager's result columns
+open their spill files there, once, a step of one descriptor a column and not a leak (a
+3 000-scan run took it at a third of its time).
 
 Latency per window: the phase's scans in ``windows`` consecutive groups (by scan), p50 and p99
 of each scan's latency, taken from the run's ``recording.mcap`` with the manager's own stamps:
@@ -50,6 +53,7 @@ import yaml
 
 from covnet.errors import UpError, UsageError
 from covnet.kinds import load
+from covnet.runs.columns import BLOCK
 from covnet.runs.recording import read_recording
 from covnet.wire import messages as msg
 
@@ -90,6 +94,17 @@ class _Series:
 
     pid: int
     samples: list[tuple[float, int, int]] = field(default_factory=list)
+
+
+def phase_warmup(warmup: float, scans: int) -> float:
+    """The share of a phase's time left out before growth is measured: ``warmup``, and at least
+    the first ``BLOCK + 1`` of its ``scans`` (plus 5 % for the start's slower scans, at most
+    half the phase).  A :class:`covnet.runs.columns.Column` opens its spill file when its first
+    block of :data:`~covnet.runs.columns.BLOCK` rows is full and keeps it to the end: a run of
+    more scans steps up by one descriptor a column there, once."""
+    if scans <= BLOCK:
+        return warmup
+    return max(warmup, min(0.5, (BLOCK + 1) / scans + 0.05))
 
 
 def growth(
@@ -339,7 +354,7 @@ def _phase(
     rows: list[dict[str, Any]] = []
     for proc_name in sorted(series, key=lambda n: (n != "launcher", n != "manager", n)):
         s = series[proc_name]
-        g = growth(s.samples, t0, t1, warmup)
+        g = growth(s.samples, t0, t1, phase_warmup(warmup, scans))
         flat = all(
             g[k] is not None and g[k] < FLAT_PCT for k in ("rss_growth_pct", "fd_growth_pct")
         )
@@ -360,7 +375,7 @@ def _phase(
             "late": net["late"],
             "lost": net["lost"],
             "interval_s": interval_s,
-            "warmup": warmup,
+            "warmup": phase_warmup(warmup, scans),
         }
     )
     if not quiet:

@@ -1,0 +1,37 @@
+"""``covnet bench soak``'s growth: a leak is growth after the warm-up; the result columns'
+spill files, opened once at their first full block, are not."""
+
+from __future__ import annotations
+
+from covnet.bench.soak import FLAT_PCT, growth, phase_warmup
+from covnet.runs.columns import BLOCK
+
+
+def _fds(scans: int, step_at: int, step: int, leak_every: int = 0) -> list[tuple[float, int, int]]:
+    """One sample a scan (time = scan number): 29 descriptors, ``step`` more from scan
+    ``step_at`` on, and one more every ``leak_every`` scans (a leak) when given."""
+    out = []
+    for k in range(1, scans + 1):
+        n = 29 + (step if k > step_at else 0) + (k // leak_every if leak_every else 0)
+        out.append((float(k), 60_000, n))
+    return out
+
+
+def test_the_columns_first_spill_is_in_the_warm_up():
+    scans = 3000  # the slow soak test's lockstep phase: the spill at a third of the run
+    samples = _fds(scans, BLOCK + 1, 10)
+    assert growth(samples, 0.0, scans, 0.1)["fd_growth_pct"] > FLAT_PCT  # the old warm-up
+    assert growth(samples, 0.0, scans, phase_warmup(0.1, scans))["fd_growth_pct"] == 0.0
+
+
+def test_a_leak_is_still_growth():
+    scans = 3000
+    samples = _fds(scans, BLOCK + 1, 10, leak_every=100)  # +30 descriptors over the run
+    assert growth(samples, 0.0, scans, phase_warmup(0.1, scans))["fd_growth_pct"] > FLAT_PCT
+
+
+def test_the_warm_up_is_the_given_one_where_no_column_spills_or_it_is_longer():
+    assert phase_warmup(0.1, BLOCK) == 0.1
+    assert 0.1 <= phase_warmup(0.1, 20_000) < 0.11  # the default soak: about its 10 %
+    assert phase_warmup(0.1, 3000) == (BLOCK + 1) / 3000 + 0.05
+    assert phase_warmup(0.1, BLOCK + 2) == 0.5
