@@ -44,6 +44,22 @@ def _problem(N, T, seed):
     return P, J, D, w, feas
 
 
+
+def _timed_bounded(metric, seed=4, N=13, T=3):
+    """A problem of ``_problem``, its exact optimum (``allocate_assignments``) and the bounded
+    search on it with time to spare: a fake clock, 1 ms a reading, a 50 s limit (the module's
+    functions looked up when called, so a test's monkeypatching takes effect)."""
+    from covnet.core.allocation import assignment_search as srch
+
+    P, J, D, w, feas = _problem(N, T, seed)
+    ref = allocate_assignments(P, J, D, metric, w, feas)
+    ticks = (i * 1e-3 for i in itertools.count())  # 1 ms a reading, lazily
+    b = srch.allocate_assignments_bounded(
+        P, J, D, metric, w, feas, rel_gap=0.0, time_limit_s=50.0,
+        clock=lambda: float(next(ticks)),
+    )  # fmt: skip
+    return ref, b
+
 def _cells(N, C, seed):
     rng = np.random.default_rng([seed, 7])
     return CellTerms(

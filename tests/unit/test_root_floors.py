@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 import pytest
-from test_assignment_search import _problem
+from test_assignment_search import _problem, _timed_bounded
 
 from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments_exhaustive
 from covnet.core.allocation.exact import subset_covariance
@@ -87,19 +87,11 @@ def test_bounded_with_time_runs_the_root_floors(monkeypatch):
     """With a clock and a metric without ``floors_first`` (spectral), the bounded search runs
     the root floors among its dual steps; its bound stays at most the exact optimum."""
     from covnet.core.allocation import assignment_search as srch
-    from covnet.core.allocation.assignment import allocate_assignments
 
     ran = []
     roots = srch._root_floors
     monkeypatch.setattr(srch, "_root_floors", lambda *a: ran.append(roots(*a)) or ran[-1])
-    N, T = 13, 3
-    P, J, D, w, feas = _problem(N, T, 4)
-    ref = allocate_assignments(P, J, D, "spectral", w, feas)
-    ticks = (i * 1e-3 for i in itertools.count())  # 1 ms a reading, lazily
-    b = srch.allocate_assignments_bounded(
-        P, J, D, "spectral", w, feas, rel_gap=0.0, time_limit_s=50.0,
-        clock=lambda: float(next(ticks)),
-    )  # fmt: skip
+    ref, b = _timed_bounded("spectral")
     assert ran and not b.exact
     assert b.lower_bound <= ref.value
 
@@ -138,7 +130,6 @@ def test_second_floors_follow_the_steps_with_root_floors(monkeypatch, metric, or
     floors runs after the dual steps stall, then the steps again from their best prices; other
     metrics (svd) keep the order before it.  The bound stays at most the exact optimum."""
     from covnet.core.allocation import assignment_search as srch
-    from covnet.core.allocation.assignment import allocate_assignments
 
     calls: list[str] = []
     floors, steps = srch._floors, srch._dual_bound
@@ -153,13 +144,6 @@ def test_second_floors_follow_the_steps_with_root_floors(monkeypatch, metric, or
 
     monkeypatch.setattr(srch, "_floors", rec_floors)
     monkeypatch.setattr(srch, "_dual_bound", rec_steps)
-    N, T = 13, 3
-    P, J, D, w, feas = _problem(N, T, 4)
-    ref = allocate_assignments(P, J, D, metric, w, feas)
-    ticks = (i * 1e-3 for i in itertools.count())  # 1 ms a reading, lazily
-    b = srch.allocate_assignments_bounded(
-        P, J, D, metric, w, feas, rel_gap=0.0, time_limit_s=50.0,
-        clock=lambda: float(next(ticks)),
-    )  # fmt: skip
+    ref, b = _timed_bounded(metric)
     assert calls == order and not b.exact
     assert b.lower_bound <= ref.value

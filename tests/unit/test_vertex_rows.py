@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import pytest
-from test_assignment_search import _problem
+from test_assignment_search import _problem, _timed_bounded
 
 from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments_exhaustive
 from covnet.core.allocation.exact import subset_covariance
@@ -138,7 +138,6 @@ def test_bounded_with_time_runs_the_vertex_rows(monkeypatch, metric, iters, vert
     abs_trace; spectral raises none), one_norm's roots run 20 barrier iterations and the
     others' 12; the bound stays at most the exact optimum."""
     from covnet.core.allocation import assignment_search as srch
-    from covnet.core.allocation.assignment import allocate_assignments
 
     calls: list[str] = []
     seen: list[int] = []
@@ -160,14 +159,7 @@ def test_bounded_with_time_runs_the_vertex_rows(monkeypatch, metric, iters, vert
     monkeypatch.setattr(srch, "_root_floors", rec_roots)
     monkeypatch.setattr(srch, "_vertex_rows", rec_rows)
     monkeypatch.setattr(srch, "_iterations", rec_its)
-    N, T = 13, 3
-    P, J, D, w, feas = _problem(N, T, 4)
-    ref = allocate_assignments(P, J, D, metric, w, feas)
-    ticks = (i * 1e-3 for i in itertools.count())  # 1 ms a reading, lazily
-    b = srch.allocate_assignments_bounded(
-        P, J, D, metric, w, feas, rel_gap=0.0, time_limit_s=50.0,
-        clock=lambda: float(next(ticks)),
-    )  # fmt: skip
+    ref, b = _timed_bounded(metric)
     assert calls[:2] == ["roots", f"vertex {vertex}"] and not b.exact
     assert seen and set(seen) == {iters}
     assert b.lower_bound <= ref.value
