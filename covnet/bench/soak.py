@@ -96,14 +96,28 @@ class _Series:
     samples: list[tuple[float, int, int]] = field(default_factory=list)
 
 
-def phase_warmup(warmup: float, scans: int) -> float:
-    """The share of a phase's time left out before growth is measured: ``warmup``, and at least
-    the first ``BLOCK + 1`` of its ``scans`` (plus 5 % for the start's slower scans, at most
-    half the phase).  A :class:`covnet.runs.columns.Column` opens its spill file when its first
-    block of :data:`~covnet.runs.columns.BLOCK` rows is full and keeps it to the end: a run of
-    more scans steps up by one descriptor a column there, once."""
+def phase_warmup(
+    warmup: float,
+    scans: int,
+    lines: Sequence[tuple[float, str]] = (),
+    t0: float = 0.0,
+    t1: float = 1.0,
+) -> float:
+    """The share of a phase's time ``[t0, t1]`` left out before growth is measured: ``warmup``,
+    and at least until the phase's scan ``BLOCK + 1``.  A :class:`covnet.runs.columns.Column`
+    opens its spill file when its first block of :data:`~covnet.runs.columns.BLOCK` rows is
+    full and keeps it to the end: a run of more scans steps up by one descriptor a column
+    there, once.  When is that: the first of the run's ``lines`` (``(t, text)``, times on the
+    same clock as ``t0``) that is a ``[status]`` line past scan ``BLOCK`` (such a line comes
+    after the step: at most ``0.9``); without one, estimated from an even pace (plus 5 % for the
+    start's slower scans, at most half the phase)."""
     if scans <= BLOCK:
         return warmup
+    rx = re.compile(rf"\b(\d+)/{scans}\b")
+    for t, text in lines:
+        m = rx.search(text) if text.startswith("[status]") else None
+        if m is not None and int(m.group(1)) > BLOCK and t1 > t0:
+            return max(warmup, min(0.9, (t - t0) / (t1 - t0)))
     return max(warmup, min(0.5, (BLOCK + 1) / scans + 0.05))
 
 
@@ -347,6 +361,8 @@ def _phase(
     if t_ready is None or t_end is None:
         raise UpError(f"{name}: no READY or last scan in the output")
     t0, t1 = t_ready - t_start, t_end - t_start
+    lines = [(t - t_start, text) for t, text in list(child.lines)]
+    warm = phase_warmup(warmup, scans, lines, t0, t1)
     raw = {n: {"pid": v.pid, "t_s,rss_kb,fds": v.samples} for n, v in series.items()}
     loads = [(t - t_start, v) for t, v in load]
     doc = {"t0_s": t0, "t1_s": t1, "load_1min": loads, "processes": raw}
@@ -354,7 +370,7 @@ def _phase(
     rows: list[dict[str, Any]] = []
     for proc_name in sorted(series, key=lambda n: (n != "launcher", n != "manager", n)):
         s = series[proc_name]
-        g = growth(s.samples, t0, t1, phase_warmup(warmup, scans))
+        g = growth(s.samples, t0, t1, warm)
         flat = all(
             g[k] is not None and g[k] < FLAT_PCT for k in ("rss_growth_pct", "fd_growth_pct")
         )
@@ -375,7 +391,7 @@ def _phase(
             "late": net["late"],
             "lost": net["lost"],
             "interval_s": interval_s,
-            "warmup": phase_warmup(warmup, scans),
+            "warmup": warm,
         }
     )
     if not quiet:

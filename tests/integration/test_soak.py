@@ -17,7 +17,7 @@ NODES = {"launcher", "manager", "world", "recorder", *(f"S{i}" for i in range(1,
 @pytest.mark.timeout(600)
 def test_short_soak_is_flat(tmp_path, paper_path):
     rows = bench_soak.run(
-        str(paper_path), 3000, 60.0, speed=10.0, interval_s=1.0, work=tmp_path, quiet=True
+        str(paper_path), 3000, 60.0, speed=10.0, interval_s=0.5, work=tmp_path, quiet=True
     )
     for phase, scans in (("lockstep", 3000), ("realtime", 600)):
         procs = [r for r in rows if r["phase"] == phase and r["row"] == "process"]

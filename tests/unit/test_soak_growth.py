@@ -35,3 +35,17 @@ def test_the_warm_up_is_the_given_one_where_no_column_spills_or_it_is_longer():
     assert 0.1 <= phase_warmup(0.1, 20_000) < 0.11  # the default soak: about its 10 %
     assert phase_warmup(0.1, 3000) == (BLOCK + 1) / 3000 + 0.05
     assert phase_warmup(0.1, BLOCK + 2) == 0.5
+
+
+def test_the_warm_up_ends_at_the_first_status_past_the_block():
+    """Under load the pace is uneven: the run's own ``[status]`` lines say when the block was
+    passed (the first one past scan ``BLOCK``; the step came before it)."""
+    lines = [
+        (1.0, "[manager] READY"),
+        (2.0, "[status] spectral: 1/3000 8/8 on"),
+        (6.0, f"[status] spectral: scan {BLOCK - 1}/3000  enabled S1"),
+        (7.0, f"[status] spectral: {BLOCK + 300}/3000 5/8 on  trP 15/16"),
+    ]
+    assert phase_warmup(0.1, 3000, lines, 1.0, 11.0) == 0.6  # (7 - 1) / (11 - 1)
+    assert phase_warmup(0.1, 3000, lines[:3], 1.0, 11.0) == (BLOCK + 1) / 3000 + 0.05
+    assert phase_warmup(0.1, 3000, [(10.9, lines[-1][1])], 1.0, 11.0) == 0.9  # at most
