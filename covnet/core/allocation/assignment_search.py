@@ -1328,6 +1328,28 @@ def _floors(
     return done
 
 
+def _slack_columns(
+    dual: _Dual, upper: Mat, pi: Mat, usable: Callable[[_Problem], bool]
+) -> dict[int, float]:
+    """The target columns worth a root floor or vertex rows at the prices ``pi``: their slack
+    (``upper[c]`` less the column's least bound), by column, where the column is bounded, has
+    options and a problem ``usable`` says yes to, the slack is above ``ROOT_FLOOR_SLACK`` of
+    ``|upper[c]|`` and at least ``ROOT_FLOOR_PART`` of those columns' summed slack."""
+    cs = dual.cs
+    gaps: dict[int, float] = {}
+    for c in range(cs.T):
+        col = cs.cols[c]
+        if not (isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size):
+            continue
+        if col.prob is None or not usable(col.prob):
+            continue
+        gap = float(upper[c]) - float(dual._cost(c, pi)[0].min(initial=math.inf))
+        if gap > ROOT_FLOOR_SLACK * abs(float(upper[c])):
+            gaps[c] = gap
+    total = sum(gaps.values())
+    return {c: g for c, g in gaps.items() if g >= ROOT_FLOOR_PART * total}
+
+
 def _root_floors(
     dual: _Dual,
     upper: Mat,
@@ -1351,24 +1373,11 @@ def _root_floors(
     (its bound so far, valid).  Returns how many ran."""
     cs = dual.cs
     zero = np.zeros(cs.N) if pi is None else pi
-    slack = []
-    gaps = {}
-    for c in range(cs.T):
-        col = cs.cols[c]
-        if not (isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size):
-            continue
-        prob = col.prob
-        assert prob is not None
-        if prob.dual is None and prob.relax is None:
-            continue  # the root's interval bound alone: the depth-1 bounds have it already
-        gaps[c] = float(upper[c]) - float(dual._cost(c, zero)[0].min(initial=math.inf))
-        if gaps[c] > ROOT_FLOOR_SLACK * abs(float(upper[c])):
-            slack.append((-gaps[c] / max(abs(float(upper[c])), TINY), c))
-    total = sum(gaps[c] for _, c in slack)
-    slack = [(r, c) for r, c in slack if gaps[c] >= ROOT_FLOOR_PART * total]
+    # the root's interval bound alone: the depth-1 bounds have it already
+    gaps = _slack_columns(dual, upper, zero, lambda p: p.dual is not None or p.relax is not None)
     done = 0
 
-    for _, c in sorted(slack):
+    for c in sorted(gaps, key=lambda c: -gaps[c] / max(abs(float(upper[c])), TINY)):
         if remaining() < min_s:
             break
         col = cs.cols[c]
@@ -1404,23 +1413,11 @@ def _vertex_rows(
     gap on one problem in five, at ``k >= 3`` where the pairs' superset intervals bound it
     (141 against 157): the vertex bound closes them for about 500 rows, 6 ms of CPU.
     Returns how many rows were raised."""
-    cs = dual.cs
-    gaps: dict[int, float] = {}
-    for c in range(cs.T):
-        col = cs.cols[c]
-        if not (isinstance(col, _TargetCol) and dual._bounded(col) and dual.opts[c].size):
-            continue
-        prob = col.prob
-        if prob is None or prob.dual is None or prob.dual.dual.vertices is None:
-            continue
-        gap = float(upper[c]) - float(dual._cost(c, pi)[0].min(initial=math.inf))
-        if gap > ROOT_FLOOR_SLACK * abs(float(upper[c])):
-            gaps[c] = gap
-    total = sum(gaps.values())
+    gaps = _slack_columns(
+        dual, upper, pi, lambda p: p.dual is not None and p.dual.dual.vertices is not None
+    )
     done = 0
     for c in sorted(gaps, key=lambda c: -gaps[c]):
-        if gaps[c] < ROOT_FLOOR_PART * total:
-            continue
         if deadline is not None and deadline():
             break
         done += dual.vertex(c, pi, VERTEX_ROWS, deadline)
