@@ -134,7 +134,9 @@ def test_escalation_sigint_then_sigterm_then_sigkill():
         ProcessSpec("deaf1", [PY, "-c", DEAF_TO_SIGINT]),
         ProcessSpec("deaf2", [PY, "-c", DEAF_TO_BOTH]),
     ]
-    with Supervisor(specs, on_line=Lines(), sigint_timeout=0.3, sigterm_timeout=0.3) as sup:
+    # SIGINT's wait is generous: under load a polite child may need over a second to run its
+    # handler (a 0.3-0.5 s wait failed in CI); the deaf ones just wait it out
+    with Supervisor(specs, on_line=Lines(), sigint_timeout=5.0, sigterm_timeout=1.0) as sup:
         for spec in specs:
             assert sup.wait_for_line(spec.name, "READY", timeout=20)
         pids = sup.pids
@@ -215,7 +217,7 @@ PARENT = textwrap.dedent(
     polite, deaf, pids_file, fail = sys.argv[1], sys.argv[2], Path(sys.argv[3]), sys.argv[4]
     specs = [ProcessSpec("polite", [sys.executable, "-c", polite]),
              ProcessSpec("deaf", [sys.executable, "-c", deaf])]
-    with Supervisor(specs, pids_file=pids_file, sigint_timeout=0.5, sigterm_timeout=0.5) as sup:
+    with Supervisor(specs, pids_file=pids_file, sigint_timeout=5.0, sigterm_timeout=1.0) as sup:
         assert sup.wait_for_line("polite", "READY", 20) and sup.wait_for_line("deaf", "READY", 20)
         print("PARENT READY", flush=True)
         if fail == "raise":
