@@ -267,7 +267,7 @@ def test_child_publishes_in_order_answers_commands_and_dies_visibly(router, run)
         # SIGKILL: the token disappears as soon as the router sees the link close
         os.killpg(sup.pids["s1"], signal.SIGKILL)
         vanished = expect_event(watch, LivelinessEvent(alive_key, False), timeout=5)
-        assert vanished < 1.0, f"token vanished after {vanished:.3f} s"
+        assert vanished < 3.0, f"token vanished after {vanished:.3f} s"
         assert sup.wait("s1", timeout=10) == -signal.SIGKILL
     assert watch.try_recv() is None
 
@@ -291,7 +291,7 @@ def test_graceful_stop_and_frozen_node_noticed_by_lease(router, run):
             frozen = expect_event(watch, LivelinessEvent(keys["s2"], False), timeout=5)
         finally:
             os.kill(pid, signal.SIGCONT)
-        assert 0.2 < frozen < 2.0, f"frozen node dropped after {frozen:.3f} s"
+        assert 0.2 < frozen < 4.0, f"frozen node dropped after {frozen:.3f} s"
 
         # SIGINT: each node leaves its blocking recv(None) at once, closes its session and
         # exits 0 -- also the one just thawed (the signal must reach its main thread, not a
@@ -300,7 +300,7 @@ def test_graceful_stop_and_frozen_node_noticed_by_lease(router, run):
         codes = sup.stop()
         elapsed = time.monotonic() - t0
         assert codes == {"s1": 0, "s2": 0}, (sup.output("s1"), sup.output("s2"))
-        assert elapsed < 3.0
+        assert elapsed < 4.5  # a node stuck in recv would stop only at SIGTERM, after 5 s
         assert "STOPPING" in sup.output("s1") and "STOPPING" in sup.output("s2")
         expect_event(watch, LivelinessEvent(keys["s1"], False), timeout=5)
 

@@ -352,9 +352,9 @@ def test_wall_clock_scales_and_sleeps_until():
     assert clock.now() >= a + 0.2
     t0 = time.monotonic()
     clock.sleep_until(0.0)  # the past: returns at once
-    assert time.monotonic() - t0 < 0.05
+    assert time.monotonic() - t0 < 0.5  # at once (a margin for a loaded machine)
     stamp = clock.now_ns()
-    assert abs(stamp - time.monotonic_ns()) < 50_000_000  # raw CLOCK_MONOTONIC
+    assert abs(stamp - time.monotonic_ns()) < 500_000_000  # raw CLOCK_MONOTONIC
     shared = WallClock(start_ns=clock.start_ns)
     assert shared.now() == pytest.approx(clock.now() / 10.0, abs=0.05)
     for bad in (0.0, -1.0, float("inf"), float("nan")):

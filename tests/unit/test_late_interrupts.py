@@ -147,7 +147,7 @@ ANSWERED = textwrap.dedent(
     # answers it now, before the redelivery; then it exits, which takes a moment
     if {answer}:
         interrupts.answered()
-    time.sleep(0.2)
+    time.sleep(1.0)  # the redelivery (20 ms) lands well inside it, also under load
     sys.exit(130)
     """
 )

@@ -47,14 +47,14 @@ def test_the_generator_ties_exactly_and_exact_search_still_matches(name):
 def test_time_limit_bounds_the_whole_decision():
     """400 sensors, at most 2 active: the tree (160 000 nodes, ~0.4 s here) finishes within the
     limit, then ~79 000 candidates tie exactly.  Before the fix the decision evaluated them all:
-    ~5 s for a 1 s limit.  The bound asserted, ``2 x limit + 0.5 s``, is a bound, not a speed
+    ~5 s for a 1 s limit.  The bound asserted, ``limit + 2.5 s``, is a bound, not a speed
     goal: after the fix the decision returns a few milliseconds after the limit."""
     P_pred, gains, P_d = velocity_tie_problem(400)
     limit = 1.0
     t0 = time.perf_counter()
     r = allocate_bnb(P_pred, gains, P_d, "spectral", Constraints(max_active=2), time_limit_s=limit)
     elapsed = time.perf_counter() - t0
-    assert elapsed <= 2 * limit + 0.5, f"time_limit_s={limit} took {elapsed:.2f} s"
+    assert elapsed <= limit + 2.5, f"time_limit_s={limit} took {elapsed:.2f} s"
     # every subset scores 9999.0: the best found is the optimum, the bound is honest
     assert r.value == 9999.0 and len(r.subset) >= 1
     assert r.lower_bound <= r.value
