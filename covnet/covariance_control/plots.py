@@ -30,11 +30,16 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.colors import ListedColormap  # noqa: E402
-from matplotlib.patches import Wedge  # noqa: E402
+from matplotlib.colors import ListedColormap, to_rgba  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch, Wedge  # noqa: E402
 
 from covnet.core.sensing import correlated_noise  # noqa: E402
 from covnet.runs.rundir import load_arrays  # noqa: E402
+
+#: the most entries the ellipses' legend holds: beyond it the first ``LEGEND_MAX - 1`` sensors
+#: are named and the last entry says how many more are drawn (256 entries do not fit a figure)
+LEGEND_MAX = 64
 
 FIGURES = (
     "fig1_sensor_ellipses.png",
@@ -87,15 +92,25 @@ def make_figures(run_dir: Path) -> list[Path]:
     for i, s in enumerate(cfg["sensors"]):
         e = ellipse_points(correlated_noise(s["sigma_x_m"], s["sigma_y_m"], s["rho"]))
         ls = "-" if i < 10 else "--"
-        ax.plot(e[0], e[1], color=colors[i % 10], ls=ls, lw=1.8, label=s["id"])
+        named = len(ids) <= LEGEND_MAX or i < LEGEND_MAX - 1
+        ax.plot(e[0], e[1], color=colors[i % 10], ls=ls, lw=1.8, label=s["id"] if named else None)
     ax.set_aspect("equal")
     ax.set_xlabel("x error (m)")
     ax.set_ylabel("y error (m)")
     ax.set_title("Sensor measurement uncertainty: {e : eᵀ R⁻¹ e ≤ 1}")
     ax.grid(alpha=0.3)
-    cols = max(2, -(-len(ids) // 16))  # a large network: more, smaller legend columns
+    handles, labels = ax.get_legend_handles_labels()
+    if len(ids) > LEGEND_MAX:  # the rest are drawn, not named
+        handles.append(Line2D([], [], color="none"))
+        labels.append(f"and {len(ids) - len(labels)} more")
+    cols = max(2, -(-len(labels) // 16))  # a large network: more, smaller legend columns
     ax.legend(
-        ncols=cols, fontsize=9 if cols == 2 else 7, loc="upper left", bbox_to_anchor=(1.01, 1.0)
+        handles,
+        labels,
+        ncols=cols,
+        fontsize=9 if cols == 2 else 7,
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
     )
     fig.savefig(paths[0], dpi=120)
     plt.close(fig)
@@ -182,7 +197,23 @@ TARGET_FIGURES = (
     "fig_assignment_raster.png",
 )
 _MODEL_MARKERS = {"position": "s", "range_bearing": "^", "bearing": "o"}
-_TARGET_COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown")
+_TARGET_COLOURS = (
+    "tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange",
+    "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan",
+)  # fmt: skip
+
+
+def target_colours(n: int) -> list[tuple[float, float, float, float]]:
+    """``n`` colours, one a target, all different: tab10's ten, then tab20's lighter ten, then
+    evenly spaced hues (the assignment raster tells targets apart only by colour; six colours
+    repeated gave eight targets two shared pairs)."""
+    cols = [to_rgba(c) for c in _TARGET_COLOURS]
+    if n > len(cols):
+        cols += [plt.get_cmap("tab20")(i) for i in range(1, 20, 2)]
+    if n > len(cols):
+        hsv = plt.get_cmap("hsv")
+        cols += [hsv(i / (n - len(cols) + 1)) for i in range(n - len(cols))]
+    return cols[:n]
 
 
 def _coverage(ax: plt.Axes, s: dict[str, object], color: str) -> None:
@@ -223,7 +254,7 @@ def make_target_figures(
     scans = np.arange(1, K + 1)
     sensors = cfg["sensors"]
     assert isinstance(sensors, list)
-    tcol = [_TARGET_COLOURS[t % len(_TARGET_COLOURS)] for t in range(len(tids))]
+    tcol = target_colours(len(tids))
     switches = summary.get("desired_switch_scans", {})
     switch_scans = (
         sorted({k for v in switches.values() for k in v[1:]}) if isinstance(switches, dict) else []
@@ -355,21 +386,25 @@ def make_target_figures(
     fig.savefig(paths[3], dpi=110)
     plt.close(fig)
 
-    # 5. assignment raster
-    fig, axes = plt.subplots(nm, 1, figsize=(10, 1.2 + 0.3 * len(ids) * nm), squeeze=False,
+    # 5. assignment raster (a large network: 10 inches a metric, every k-th sensor labelled;
+    # the targets' colours in a key beside it)
+    row_in = 0.3 if len(ids) <= 32 else 10.0 / len(ids)
+    tick = max(1, -(-len(ids) // 32))
+    fig, axes = plt.subplots(nm, 1, figsize=(11, 1.2 + row_in * len(ids) * nm), squeeze=False,
                              layout="constrained", sharex=True)  # fmt: skip
-    cmap = ListedColormap(["white", *tcol])
+    cmap = ListedColormap([to_rgba("white"), *tcol])
+    key = [Patch(facecolor=c, label=tid) for tid, c in zip(tids, tcol, strict=True)]
+    key.append(Patch(facecolor="white", edgecolor="0.5", label="off"))
     for ax, m in zip(axes[:, 0], metrics, strict=True):
         asg = arrays[f"assignment.{m}"].T + 1
         ax.imshow(asg, aspect="auto", cmap=cmap, vmin=0, vmax=len(tids), interpolation="nearest",
                   extent=(0.5, asg.shape[1] + 0.5, len(ids) - 0.5, -0.5))  # fmt: skip
         ax.set_xlim(0.5, K + 0.5)
-        ax.set_yticks(range(len(ids)), ids)
+        ax.set_yticks(range(0, len(ids), tick), ids[::tick])
         ax.set_ylabel("sensor")
-        names = ", ".join(
-            f"{tid}: {col.split(':')[-1]}" for tid, col in zip(tids, tcol, strict=True)
-        )
-        ax.set_title(f"{m}: the target each sensor dwelt on ({names}; white: off)")
+        ax.set_title(f"{m}: the target each sensor dwelt on")
+        ax.legend(handles=key, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
+                  ncols=-(-len(key) // 24))  # fmt: skip
         for k in switch_scans:
             ax.axvline(k, color="k", ls=":", lw=1.0)
     axes[-1, 0].set_xlabel("scan k")

@@ -1,0 +1,83 @@
+"""The figures of a large network's run: drawn without a warning (pytest turns warnings into
+errors) and with a legend a reader can hold: at most :data:`LEGEND_MAX` entries, the last one
+saying how many more sensors are drawn."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from matplotlib import pyplot as plt
+
+from covnet import kinds
+from covnet.cli.app import main
+from covnet.covariance_control import plots
+from covnet.covariance_control.network_sizes import bench_config
+
+PAPER = Path(__file__).resolve().parents[2] / "configs" / "paper.yaml"
+
+
+@pytest.mark.parametrize("n", [8, 64, 256])
+def test_a_large_networks_figures_have_a_legend_that_fits(tmp_path, capsys, monkeypatch, n):
+    _, sc = kinds.load(PAPER)
+    cfg = tmp_path / f"net{n}.yaml"
+    cfg.write_text(yaml.safe_dump(bench_config(sc, n, 3), sort_keys=False))
+    legends: list[list[str]] = []
+    save = plt.Figure.savefig
+
+    def spy(fig, *args, **kwargs):
+        if Path(args[0]).name == "fig1_sensor_ellipses.png":
+            for ax in fig.axes:
+                if (leg := ax.get_legend()) is not None:
+                    legends.append([t.get_text() for t in leg.get_texts()])
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(plt.Figure, "savefig", spy)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    assert "Warning" not in capsys.readouterr().err
+    (texts,) = legends
+    assert len(texts) == min(n, plots.LEGEND_MAX)
+    if n <= plots.LEGEND_MAX:
+        assert texts == [f"S{1 + i % 8}.{1 + i // 8}" for i in range(n)]
+    else:
+        assert texts[-1] == f"and {n - plots.LEGEND_MAX + 1} more"
+        assert texts[:-1] == [f"S{1 + i % 8}.{1 + i // 8}" for i in range(plots.LEGEND_MAX - 1)]
+
+
+def test_target_colours_are_all_different():
+    for n in (1, 6, 8, 10, 11, 20, 21, 40):
+        cols = plots.target_colours(n)
+        assert len(cols) == n and len(set(cols)) == n, n
+    assert plots.target_colours(8)[:6] == plots.target_colours(6)  # a target keeps its colour
+
+
+def test_the_assignment_raster_keys_every_target_in_its_own_colour(tmp_path, monkeypatch, capsys):
+    """configs/large_multitarget.yaml: 8 targets, 64 sensors.  Six colours repeated gave T7
+    T1's red and T8 T2's blue, named only in a title cut off at the figure's edge."""
+    raw = yaml.safe_load((PAPER.parent / "large_multitarget.yaml").read_text())
+    raw["scans"] = 2
+    cfg = tmp_path / "lmt.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    keys: list[list[tuple[str, tuple[float, ...]]]] = []
+    save = plt.Figure.savefig
+
+    def spy(fig, *args, **kwargs):
+        if Path(args[0]).name == "fig_assignment_raster.png":
+            for ax in fig.axes:
+                leg = ax.get_legend()
+                assert leg is not None
+                keys.append(
+                    [(t.get_text(), tuple(h.get_facecolor()))
+                     for t, h in zip(leg.get_texts(), leg.legend_handles, strict=True)]
+                )  # fmt: skip
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(plt.Figure, "savefig", spy)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    assert "Warning" not in capsys.readouterr().err
+    assert keys
+    for key in keys:
+        names = [name for name, _ in key]
+        assert names == [t["id"] for t in raw["targets"]] + ["off"]
+        assert len({colour for _, colour in key}) == len(key)
