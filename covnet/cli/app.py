@@ -20,7 +20,7 @@ import os
 import sys
 import threading
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it says so)
@@ -86,16 +86,21 @@ __all__ = [
 ]
 
 
-def _int_list(text: str) -> list[int]:
-    try:
-        vals = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated integers, got {text!r}"
-        ) from None
-    if not vals or any(v < 1 for v in vals):
-        raise argparse.ArgumentTypeError(f"sensor counts must be >= 1, got {text!r}")
-    return vals  # each benchmark's largest count: BENCH_SENSORS_MAX, checked in cmd_bench
+def _counts(what: str) -> Callable[[str], list[int]]:
+    """The parser of a comma-separated list of ``what`` counts (sensor, target), each >= 1."""
+
+    def parse(text: str) -> list[int]:
+        try:
+            vals = [int(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected comma-separated integers, got {text!r}"
+            ) from None
+        if not vals or any(v < 1 for v in vals):
+            raise argparse.ArgumentTypeError(f"{what} counts must be >= 1, got {text!r}")
+        return vals  # each benchmark's largest count: BENCH_SENSORS_MAX, checked in cmd_bench
+
+    return parse
 
 
 def _cluster_address(text: str) -> str:
@@ -423,7 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     b.add_argument(
         "--sensors",
-        type=_int_list,
+        type=_counts("sensor"),
         metavar="N,N,...",
         help=takes("sensors") + "sensor counts (default 8,12,16,20; fusion: 8,12,16; search: "
         "8,...,32; beyond 8 the paper table cycles with both sigmas scaled by 1 + 0.5 (j // 8)); "
@@ -450,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument(
         "--targets",
-        type=_int_list,
+        type=_counts("target"),
         metavar="T,T,...",
         help=takes("targets") + "numbers of targets (default 3, the spec's scenario; up to 8; "
         "multitarget --search: default 3,8,16, any)",

@@ -45,6 +45,9 @@ def test_sensor_counts_per_benchmark(capsys):
     with pytest.raises(SystemExit):
         p.parse_args(["bench", "--sensors", "0,8"])
     assert "sensor counts must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        p.parse_args(["bench", "multitarget", "--targets", "3,0"])
+    assert "argument --targets: target counts must be >= 1" in capsys.readouterr().err
     assert main(["bench", "alloc", "--sensors", "8,25"]) == 2
     assert f"takes counts up to {BENCH_SENSORS_MAX['alloc']}" in capsys.readouterr().err
     assert main(["bench", "multitarget", "--sensors", "17"]) == 2
