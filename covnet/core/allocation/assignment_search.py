@@ -284,6 +284,10 @@ MID_THETA = 0.125
 VERTEX_ROWS = 512
 #: ... in rounds of this many of each piece, every piece's in one call
 VERTEX_BATCH = 256
+#: the chain rows (:meth:`_Dual.chain`, round at16): the metrics whose depth-1 superset rows
+#: are replaced by the chain's in the timed plan (abs_trace: the heavy targets whose best set
+#: has one sensor, bounded at three or more by intervals up to ``Z(F_c)``)
+CHAIN_METRICS = frozenset({"abs_trace"})
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -731,6 +735,8 @@ class _Dual:
         self.floor = np.full(cs.ncol, -math.inf)
         #: the columns whose last floor search stopped at its time limit (:func:`_floors`)
         self.cut: set[int] = set()
+        #: per column with chain rows (:meth:`chain`) each option's position in the chain
+        self.chain_pos: dict[int, NDArray[np.intp]] = {}
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
             self.nc.append(nc)
@@ -774,6 +780,10 @@ class _Dual:
                 pieces = [(self.pieces[c], self.h[c])]
                 pieces.append((en.rows, en.sup) if en is not None else (None, self.h[c]))
                 _Rows.together(pieces, float(cs.w[c]), refine_rows)
+            for c in order:  # round at16: the chain rows, where the metric has them
+                if deadline is not None and deadline():
+                    break
+                self.chain(c)
             return
         for first in (True, False):  # depth 1 everywhere (cheap: n_c sets), then deeper
             for c in order:
@@ -826,11 +836,97 @@ class _Dual:
             self.enum[c] = _Enum(
                 col, self.opts[c], self.nc[c], self.depth[c], float(self.cs.w[c]), prev=en
             )
+            self.chain2(c)  # round at16: where the column has chain rows
             self._refine_sup([c], deadline)
             done += 1
             if remaining is not None:
                 last = left - remaining()
         return done
+
+    def chain(self, c: int) -> bool:
+        """Round at16 (the timed plan, the metrics of :data:`CHAIN_METRICS`): column ``c``'s
+        depth-1 superset rows raised by the *chain*.  Order the column's sensors ``o`` by their
+        depth-1 superset bound, the largest first (ties by index): ``j_1, ..., j_m``.  Every
+        non-empty ``S ⊆ F_c`` has a first member ``j_i`` in that order, and then ``S ⊆ F_i =
+        {j_i, ..., j_m}``, so ``Z({j_i}) ⪯ Z(S) ⪯ Z(F_i)`` (the ``S_j`` are PSD): the bound
+        ``ℓ_i`` of the interval ``[Z({j_i}), Z(F_i)]`` (the interval bound, raised by the
+        vertex bound where the metric has one) bounds ``w_c g_c(S)``.  As the depth-1 superset
+        bound ``u1(j_i)`` (the interval ``[Z({j_i}), Z(F_c)]``, wider) holds for these sets too,
+        row ``j`` becomes ``max(u1(j), ℓ_j)``: a bound of every set whose first member is
+        ``j``.  **Proof** of its use in the dual (:meth:`_Enum.cost`, ``d0 = 1``, ``k > 1``):
+        a ``k``-set ``S`` with first member ``j`` has ``w_c g_c(S) + π(S) >= row(j) + π_j +
+        π_c(k - 1)`` (its other ``k - 1`` members are distinct sensors of ``F_c``, prices ``>=
+        0``), so ``min_{|S|=k} w_c g_c(S) + π(S) >= min_j [row(j) + π_j] + π_c(k - 1)``: the
+        formula of the superset rows, whose proof needs only that each set is above the row of
+        one of its members.  The later raises of these rows (the relaxation, the vertex rows)
+        bound the wider interval ``[Z({j}), Z(F_c)]``, so they stay valid.  Why: abs_trace's
+        heavy targets (best sets of one sensor, values 83-137 at N = 64, T = 8) are bounded
+        at three or more sensors only by intervals reaching ``Z(F_c)`` (38-90), where every
+        diagonal term can reach ``P_d``; the chain's late intervals hold only the weak sensors
+        (their ``Z(F_i)`` small), which is where ``min_i ℓ_i`` lies, and it equals the
+        single-target optimum on 5 of 8 such targets (the single-target search proves it in
+        70-120 ms of CPU, about 110 nodes; the chain costs one batch, about 0.5 ms).  Returns
+        whether the rows were raised."""
+        en = self.enum[c]
+        col = self.cs.cols[c]
+        if en is None or en.d != 1 or not isinstance(col, _TargetCol) or en.nc < 2:
+            return False
+        prob = col.prob
+        if prob is None or prob.name not in CHAIN_METRICS:
+            return False
+        sup = en.sup
+        order = np.argsort(-sup, kind="stable")
+        S = col.S[en.o[order]]
+        Z_lo = col.base[None] + S
+        Z_hi = col.base[None] + np.cumsum(S[::-1], axis=0)[::-1]  # Z(F_i): j_i and the later
+        lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
+        if prob.dual is not None and prob.dual.dual.vertices is not None:
+            lb = np.fmax(lb, prob.dual.vertex_bound(Z_lo, Z_hi))
+        lb = float(self.cs.w[c]) * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+        sup[order] = np.fmax(sup[order], lb)
+        if en.rows is not None:  # the later raises (vertex rows) on the narrower intervals
+            Z_up = np.empty_like(Z_hi)
+            Z_up[order] = Z_hi
+            en.rows.Z_hi = Z_up
+        pos = np.empty(order.size, dtype=np.intp)
+        pos[order] = np.arange(order.size)
+        self.chain_pos[c] = pos
+        return True
+
+    def chain2(self, c: int) -> bool:
+        """Round at16: after :meth:`chain`, column ``c``'s deeper superset rows (its enumeration
+        deepened to ``d >= 2``, :meth:`deepen`) raised by the chain's level ``d``.  With the
+        chain's order ``j_1, ..., j_m``, every ``S`` with more than ``d`` members has a first
+        ``d`` members ``S0`` (the last of them ``j_b``), and ``S ⊆ S0 ∪ {j_e : e > b}``, so
+        ``Z(S0) ⪯ Z(S) ⪯ Z(S0) + Σ_{e > b} S_{j_e}``: that interval's bound bounds ``w_c
+        g_c(S)``, and with the wider ``[Z(S0), Z(F_c)]`` (the old row) ``S0``'s row becomes a
+        bound of every set whose first ``d`` members are ``S0``; the dual's use of the rows
+        (``min_{S0} [row(S0) + π(S0)] + π_c(k - d)``, ``k > d``) needs only that each set is
+        above the row of one of its ``d``-subsets (:meth:`chain`'s proof).  The rows'
+        intervals become these narrower ones, so the vertex rows raise them there.  Returns
+        whether the rows were raised."""
+        en = self.enum[c]
+        col = self.cs.cols[c]
+        pos = self.chain_pos.get(c)
+        if pos is None or en is None or en.d < 2 or not isinstance(col, _TargetCol):
+            return False
+        prob = col.prob
+        assert prob is not None
+        sets = en.sets[en.d]
+        S = col.S[en.o]
+        order = np.argsort(pos, kind="stable")
+        # after[p]: the sum of S over the chain's positions > p
+        after = np.zeros_like(S)
+        after[:-1] = np.cumsum(S[order][::-1], axis=0)[::-1][1:]
+        last = pos[sets].max(axis=1)
+        Z_lo = col.base[None] + S[sets].sum(axis=1)
+        Z_hi = Z_lo + after[last]
+        lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
+        lb = float(self.cs.w[c]) * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+        en.sup = np.fmax(en.sup, lb)
+        if en.rows is not None:
+            en.rows.Z_hi = Z_hi
+        return True
 
     def vertex(self, c: int, pi: Mat, limit: int, deadline: Callable[[], bool] | None) -> int:
         """Round mt15: column ``c``'s intervals (the count bound's rows, the enumeration's
