@@ -1,7 +1,8 @@
 """The timed plan's chain rows (covnet.core.allocation.assignment_search, round at16):
 abs_trace's depth-1 superset rows raised by the chain (the sets whose first member, in the
-order of those rows, is ``j``: the interval ``[Z({j}), Z({j} ∪ later)]``) and its pair rows by
-the chain's second level stay at most the exhaustive minimum over the sets they bound; each
+order of those rows, is ``j``: the interval ``[Z({j}), Z({j} ∪ later)]``), its deeper rows by
+the chain's next level and then by their next member (``_expand_rows``) stay at most the
+exhaustive minimum over the sets they bound; each
 column's bound at every count and price at most the exhaustive minimum with prices; the
 Lagrangian dual function never exceeds the exhaustive assignment optimum at any prices (with
 and without a binding budget, and after the vertex rows raise the chain's intervals); rows
@@ -107,6 +108,19 @@ def test_chain_rows_below_the_exhaustive_optimum(monkeypatch, seed, max_active):
         for c in range(T):
             _check_costs(dual, c, vals[c], pi)
         assert dual.value(pi)[0] <= ref.value
+    # the chain rows expanded by their next member (every row of every column, at each price)
+    before = np.concatenate([dual.enum[c].sup for c in range(T)])
+    monkeypatch.setattr(srch, "EXPAND_ROWS", 10**6)
+    assert sum(srch._expand_rows(dual, pi, None) for pi in prices) > 0
+    raised = np.concatenate([dual.enum[c].sup for c in range(T)])
+    assert (raised >= before).all() and (raised > before * (1 + 1e-9) + 1e-12).any()
+    for c in range(T):
+        assert dual.enum[c].xdone is not None and dual.enum[c].xdone.all()
+        _check_chain(dual, c, vals[c])
+    for pi in prices:
+        for c in range(T):
+            _check_costs(dual, c, vals[c], pi)
+        assert dual.value(pi)[0] <= ref.value
     # the vertex rows on the chain's intervals (every row of every column)
     for c in range(T):
         dual.vertex(c, np.zeros(N), 10**6, None)
@@ -161,8 +175,9 @@ def test_no_chain_for_the_other_metrics(metric):
 
 
 def test_bounded_with_time_runs_the_chain(monkeypatch):
-    """With a clock, abs_trace's bounded search raises the chain rows of every target column
-    and deepens them with the pair level; the bound stays at most the exact optimum."""
+    """With a clock, abs_trace's bounded search raises the chain rows of every target column,
+    deepens them with the chain's next level and expands them among the dual steps; the bound
+    stays at most the exact optimum."""
     from covnet.core.allocation import assignment_search as srch
 
     calls: list[str] = []
@@ -178,10 +193,19 @@ def test_bounded_with_time_runs_the_chain(monkeypatch):
         calls.append(f"pairs {done}")
         return done
 
+    expand = srch._expand_rows
+
+    def rec_expand(*a):
+        n = expand(*a)
+        calls.append(f"expand {n > 0}")
+        return n
+
     monkeypatch.setattr(srch._Dual, "chain", rec_chain)
     monkeypatch.setattr(srch._Dual, "chain2", rec_chain2)
+    monkeypatch.setattr(srch, "_expand_rows", rec_expand)
     ref, b = _timed_bounded("abs_trace")
     assert calls.count("chain True") == 3 and "pairs True" in calls
+    assert calls[-1] == "expand True"
     assert not b.exact and math.isfinite(b.lower_bound)
     assert b.lower_bound <= ref.value
 

@@ -288,6 +288,9 @@ VERTEX_BATCH = 256
 #: are replaced by the chain's in the timed plan (abs_trace: the heavy targets whose best set
 #: has one sensor, bounded at three or more by intervals up to ``Z(F_c)``)
 CHAIN_METRICS = frozenset({"abs_trace"})
+#: ... and their rows expanded by the next member (:meth:`_Dual.expand`) this many at a time
+EXPAND_BATCH = 64
+EXPAND_ROWS = 512
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -926,7 +929,62 @@ class _Dual:
         en.sup = np.fmax(en.sup, lb)
         if en.rows is not None:
             en.rows.Z_hi = Z_hi
+        en.after = after
         return True
+
+    def expand(self, c: int, pi: Mat, limit: int, deadline: Callable[[], bool] | None) -> int:
+        """Round at16: column ``c``'s chain rows of its deepest level ``d`` (after
+        :meth:`chain2`) raised by the chain's next member, the least ``row + π(S0)`` first at
+        the prices ``pi``, ``EXPAND_BATCH`` rows at a time, until the least is an expanded one,
+        ``limit`` rows are expanded or the deadline passes.  Row ``S0`` (last member at the
+        chain's position ``b``) bounds the sets with more than ``d`` members whose first ``d``
+        members are ``S0``; each has a next member ``j_q`` (``q > b``) and lies in ``S0 ∪
+        {j_q} ∪ {j_e : e > q}``, so ``Z(S0 + j_q) ⪯ Z(S) ⪯ Z(S0 + j_q) + Σ_{e > q} S_{j_e}``:
+        **proof** that ``min_q ℓ_q`` (``ℓ_q`` that interval's bound) bounds every set of the
+        row's class, so the row becomes ``max(row, min_q ℓ_q)`` (a row whose class is empty,
+        ``b`` the last position, is left as it is).  Each ``ℓ_q`` is the interval bound (no
+        vertex bound: about a thousand intervals a batch).  Returns how many rows were
+        expanded."""
+        en = self.enum[c]
+        col = self.cs.cols[c]
+        pos = self.chain_pos.get(c)
+        if pos is None or en is None or en.after is None or not isinstance(col, _TargetCol):
+            return 0
+        prob = col.prob
+        assert prob is not None
+        sets = en.sets[en.d]
+        if en.xdone is None:
+            en.xdone = np.zeros(sets.shape[0], dtype=bool)
+        m = pos.size
+        order = np.argsort(pos, kind="stable")
+        S = col.S[en.o]
+        price = en._psum(pi[en.o], en.d)
+        w = float(self.cs.w[c])
+        n = 0
+        while n < limit:
+            if deadline is not None and deadline():
+                break
+            rank = np.argsort(en.sup + price, kind="stable")
+            if en.xdone[rank[0]]:
+                break
+            pick = rank[~en.xdone[rank]][: min(EXPAND_BATCH, limit - n)]
+            last = pos[sets[pick]].max(axis=1)
+            cnt = m - 1 - last  # the next members: positions last + 1 .. m - 1
+            live = pick[cnt > 0]
+            if live.size:
+                cl = cnt[cnt > 0]
+                row = np.repeat(np.arange(live.size), cl)
+                start = np.concatenate(([0], np.cumsum(cl)[:-1]))
+                q = (last[cnt > 0] + 1)[row] + (np.arange(row.size) - start[row])
+                Z_lo = col.base[None] + S[sets[live]].sum(axis=1)
+                Z_lo = Z_lo[row] + S[order[q]]
+                Z_hi = Z_lo + en.after[q]
+                lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
+                lb = w * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+                en.sup[live] = np.fmax(en.sup[live], np.minimum.reduceat(lb, start))
+            en.xdone[pick] = True
+            n += pick.size
+        return n
 
     def vertex(self, c: int, pi: Mat, limit: int, deadline: Callable[[], bool] | None) -> int:
         """Round mt15: column ``c``'s intervals (the count bound's rows, the enumeration's
@@ -1284,6 +1342,10 @@ class _Enum:
         self._cols = {k: [np.ascontiguousarray(self.sets[k][:, i]) for i in range(k)]
                       for k in (1, 2) if k < len(self.sets)}  # fmt: skip
         self._pi: Mat | None = None  # the prices of the last :meth:`cost` and its argmins
+        #: the chain's suffix sums by position and the rows it expanded (round at16,
+        #: :meth:`_Dual.chain2`, :meth:`_Dual.expand`)
+        self.after: Mat | None = None
+        self.xdone: NDArray[np.bool_] | None = None
         self._arg: dict[int, int] = {}
         self.scale = float(max(float(e.max()) for e in self.exact))
         self.rescale()
@@ -1520,6 +1582,20 @@ def _vertex_rows(
     return done
 
 
+def _expand_rows(dual: _Dual, pi: Mat, deadline: Callable[[], bool] | None) -> int:
+    """Round at16 (the timed plan, with the root floors; the columns with chain rows,
+    :data:`CHAIN_METRICS`): at the prices ``pi`` every such column's deepest chain rows
+    expanded by their next member (:meth:`_Dual.expand`, at most ``EXPAND_ROWS`` a column),
+    while the deadline allows.  Each expanded row bounds its own class of sets (that method's
+    proof), so the dual function stays ``<= F*``.  Returns how many rows were expanded."""
+    done = 0
+    for c in range(dual.cs.T):
+        if deadline is not None and deadline():
+            break
+        done += dual.expand(c, pi, EXPAND_ROWS, deadline)
+    return done
+
+
 def _iterations(n: int, out: Callable[[], bool]) -> Callable[[], bool]:
     """A ``stop`` for :attr:`_Problem.stop` that says so after ``n`` readings (the barrier
     and the relaxation read it once an iteration) or once ``out()``."""
@@ -1670,6 +1746,7 @@ def _search(
             def mid(pi: Mat) -> int:
                 upper = cs.w * st.v + np.array([float(pi[s].sum()) for s in st.sets])
                 done = _root_floors(dual, upper, rem, min_s, pi)
+                _expand_rows(dual, pi, deadline)  # at16: the chain rows' next members
                 _vertex_rows(dual, upper, pi, deadline)  # mt15: where the roots left slack
                 return done
 
