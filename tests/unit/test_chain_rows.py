@@ -1,12 +1,12 @@
 """The timed plan's chain rows (covnet.core.allocation.assignment_search, round at16):
-abs_trace's depth-1 superset rows raised by the chain (the sets whose first member, in the
-order of those rows, is ``j``: the interval ``[Z({j}), Z({j} ∪ later)]``), its deeper rows by
-the chain's next level and then by their next member (``_expand_rows``) stay at most the
-exhaustive minimum over the sets they bound; each
-column's bound at every count and price at most the exhaustive minimum with prices; the
-Lagrangian dual function never exceeds the exhaustive assignment optimum at any prices (with
-and without a binding budget, and after the vertex rows raise the chain's intervals); rows
-raised above their sets' minimum are caught; the other metrics get no chain."""
+abs_trace's and trace_diff's depth-1 superset rows raised by the chain (the sets whose first
+member, in the order of those rows, is ``j``: the interval ``[Z({j}), Z({j} ∪ later)]``), their
+deeper rows by the chain's next level and then by their next member (``_expand_rows``) stay
+at most the exhaustive minimum over the sets they bound; each column's bound at every count and
+price at most the exhaustive minimum with prices; the Lagrangian dual function never exceeds
+the exhaustive assignment optimum at any prices (with and without a binding budget, and after
+the vertex rows raise the chain's intervals); rows raised above their sets' minimum are
+caught; the other metrics get no chain."""
 
 from __future__ import annotations
 
@@ -78,16 +78,18 @@ def _check_costs(dual, c, vals, pi, slack=1e-12):
         assert cost[k] <= best * (1 + slack) + 1e-12, (c, k)
 
 
+@pytest.mark.parametrize("metric", ["abs_trace", "trace_diff"])
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 @pytest.mark.parametrize("max_active", [None, 3])
-def test_chain_rows_below_the_exhaustive_optimum(monkeypatch, seed, max_active):
-    """abs_trace, N = 8, T = 3: the chain raises rows above the plain superset rows, each row
+def test_chain_rows_below_the_exhaustive_optimum(monkeypatch, metric, seed, max_active):
+    """abs_trace, trace_diff, N = 8, T = 3: the chain raises rows above the plain superset
+    rows, each row
     is at most the exhaustive minimum over its sets, every column's bound at most the
     exhaustive minimum with prices, and ``L(π) <= F*`` at any prices, before and after the
     vertex rows raise the chain's intervals."""
     from covnet.core.allocation import assignment_search as srch
 
-    N, T, metric = 8, 3, "abs_trace"
+    N, T = 8, 3
     P, J, D, w, feas = _problem(N, T, 90 + seed)
     cons = MultiConstraints(max_active=max_active)
     ref = allocate_assignments_exhaustive(P, J, D, metric, w, feas, cons)
@@ -113,7 +115,9 @@ def test_chain_rows_below_the_exhaustive_optimum(monkeypatch, seed, max_active):
     monkeypatch.setattr(srch, "EXPAND_ROWS", 10**6)
     assert sum(srch._expand_rows(dual, pi, None) for pi in prices) > 0
     raised = np.concatenate([dual.enum[c].sup for c in range(T)])
-    assert (raised >= before).all() and (raised > before * (1 + 1e-9) + 1e-12).any()
+    assert (raised >= before).all()
+    if metric == "abs_trace":  # (trace_diff: on some seeds the next member raises none)
+        assert (raised > before * (1 + 1e-9) + 1e-12).any()
     for c in range(T):
         assert dual.enum[c].xdone is not None and dual.enum[c].xdone.all()
         _check_chain(dual, c, vals[c])
@@ -164,10 +168,9 @@ def test_inflated_chain_rows_are_caught():
         _check_chain(dual, 0, vals)
 
 
-@pytest.mark.parametrize("metric", ["spectral", "one_norm", "kl"])
+@pytest.mark.parametrize("metric", ["spectral", "one_norm", "inf_norm", "svd", "kl"])
 def test_no_chain_for_the_other_metrics(metric):
-    """Only the metrics of ``CHAIN_METRICS`` (abs_trace) get chain rows: the others' rows
-    keep their bits (the same as a dual built without the chain)."""
+    """Only the metrics of ``CHAIN_METRICS`` (abs_trace, trace_diff) get chain rows."""
     N, T = 7, 3
     P, J, D, w, feas = _problem(N, T, 5)
     dual = _dual(P, J, D, w, feas, metric, MultiConstraints())

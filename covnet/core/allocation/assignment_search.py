@@ -157,19 +157,20 @@ nothing).  Also round mt15, the floor rounds (:func:`_floors`): a floor cut by i
 limit is searched again by the second round, a column with little of the slack takes none
 (the ``floors_first`` metrics), and the first round leaves to the second a floor whose share
 would be below the last one's time (trace_diff: 3.0 % -> 1.41 %).  Round at16, the *chain
-rows* (the metrics of :data:`CHAIN_METRICS`: abs_trace): after step (1) each target column's
-sensors are ordered by their depth-1 superset bound (the largest first), and the sets are
-split by their first member in that order: the sets whose first member is ``j`` lie in
-``[Z({j}), Z({j} ∪ later)]``, a narrower interval than ``[Z({j}), Z(F_c)]`` (the late members'
-intervals hold only the weak sensors), so row ``j`` becomes that interval's bound
+rows* (the metrics of :data:`CHAIN_METRICS`: abs_trace, trace_diff): after step (1) each
+target column's sensors are ordered by their depth-1 superset bound (the largest first), and
+the sets are split by their first member in that order: the sets whose first member is ``j``
+lie in ``[Z({j}), Z({j} ∪ later)]``, a narrower interval than ``[Z({j}), Z(F_c)]`` (the late
+members' intervals hold only the weak sensors), so row ``j`` becomes that interval's bound
 (:meth:`_Dual.chain`); the deepened rows likewise by their first ``d`` members
 (:meth:`_Dual.chain2`), and among the dual steps, after the root floors, the deepest rows are
 expanded by their next member (:meth:`_Dual.expand`, :func:`_expand_rows`).  Each row then
 bounds every set whose first members it is, which is all the dual's use of a superset row
 needs (the proofs are in those methods).  At N = 64, T = 8 the heavy targets (best sets of one
 sensor) are closed at about 0.5 ms a column, where the single-target search took 70-120 ms:
-abs_trace at 90 ms of CPU 10.3 % -> 1.11 % of the distance from doing nothing.  Every piece is
-a bound of its own, so whatever the clock cuts, ``L(π) <= F*``.
+abs_trace at 90 ms of CPU 10.3 % -> 1.11 % of the distance from doing nothing (trace_diff,
+whose plan has no root floors and so no expansion, 1.41 % -> 1.20 %).  Every piece is a bound
+of its own, so whatever the clock cuts, ``L(π) <= F*``.
 
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
@@ -298,8 +299,11 @@ VERTEX_ROWS = 512
 VERTEX_BATCH = 256
 #: the chain rows (:meth:`_Dual.chain`, round at16): the metrics whose depth-1 superset rows
 #: are replaced by the chain's in the timed plan (abs_trace: the heavy targets whose best set
-#: has one sensor, bounded at three or more by intervals up to ``Z(F_c)``)
-CHAIN_METRICS = frozenset({"abs_trace"})
+#: has one sensor, bounded at three or more by intervals up to ``Z(F_c)``; trace_diff, at
+#: N = 64, T = 8, 90 ms of CPU: 1.41 % -> 1.20 % of the distance from doing nothing, 45 ms:
+#: 14.8 % -> 2.9 %; spectral, the norms and svd were worse with them: 1.04 -> 1.34 %,
+#: 0.65 -> 3.8 %, 0.92 -> 1.29 %, the chain's summaries taking the time of their steps)
+CHAIN_METRICS = frozenset({"abs_trace", "trace_diff"})
 #: ... and their rows expanded by the next member (:meth:`_Dual.expand`) this many at a time
 EXPAND_BATCH = 64
 EXPAND_ROWS = 512
