@@ -40,10 +40,24 @@ def _timed_dual(P, J, D, w, feas, metric, cons):
     return dual
 
 
+def _bounds(dual, c, S0, S):
+    """Whether column ``c``'s superset row of ``S0`` bounds the set ``S``: ``S0 ⊆ S``, and
+    with the chain rows (round at16, abs_trace) ``S0`` is ``S``'s first ``|S0|`` members in
+    the chain's order."""
+    if not (S0 <= set(S) and len(S) > len(S0)):
+        return False
+    pos = dual.chain_pos.get(c)
+    if pos is None:
+        return True
+    at = {int(j): int(p) for j, p in zip(dual.enum[c].o, pos, strict=True)}
+    return set(sorted(S, key=at.__getitem__)[: len(S0)]) == S0
+
+
 def _check_rows(dual, c, vals, slack=1e-12):
     """Every raised row of column ``c`` at most the least weighted value of the sets it bounds
-    (count row ``k``: the ``k``-sets; a superset row of ``S0``: every superset of ``S0``);
-    returns how many raised rows were checked."""
+    (count row ``k``: the ``k``-sets; a superset row of ``S0``: every superset of ``S0``, with
+    the chain rows the sets whose first members they are, :func:`_bounds`); returns how many
+    raised rows were checked."""
     en = dual.enum[c]
     o = [int(j) for j in en.o]
     checked = 0
@@ -62,7 +76,7 @@ def _check_rows(dual, c, vals, slack=1e-12):
             continue
         for i in np.flatnonzero(r.vdone).tolist():
             S0 = {o[x] for x in en.sets[d0][i]}
-            best = min(v for S, v in vals.items() if S0 <= set(S) and len(S) > d0)
+            best = min((v for S, v in vals.items() if _bounds(dual, c, S0, S)), default=math.inf)
             assert sup[i] <= best * (1 + slack) + 1e-12, (c, d0, S0)
             checked += 1
     return checked

@@ -156,8 +156,21 @@ from its end (one_norm at 90 ms of CPU: 2.15 % -> 0.65 % of the distance from do
 nothing).  Also round mt15, the floor rounds (:func:`_floors`): a floor cut by its time
 limit is searched again by the second round, a column with little of the slack takes none
 (the ``floors_first`` metrics), and the first round leaves to the second a floor whose share
-would be below the last one's time (trace_diff: 3.0 % -> 1.41 %).  Every piece is a bound of
-its own, so whatever the clock cuts, ``L(π) <= F*``.
+would be below the last one's time (trace_diff: 3.0 % -> 1.41 %).  Round at16, the *chain
+rows* (the metrics of :data:`CHAIN_METRICS`: abs_trace, trace_diff): after step (1) each
+target column's sensors are ordered by their depth-1 superset bound (the largest first), and
+the sets are split by their first member in that order: the sets whose first member is ``j``
+lie in ``[Z({j}), Z({j} ∪ later)]``, a narrower interval than ``[Z({j}), Z(F_c)]`` (the late
+members' intervals hold only the weak sensors), so row ``j`` becomes that interval's bound
+(:meth:`_Dual.chain`); the deepened rows likewise by their first ``d`` members
+(:meth:`_Dual.chain2`), and among the dual steps, after the root floors, the deepest rows are
+expanded by their next member (:meth:`_Dual.expand`, :func:`_expand_rows`).  Each row then
+bounds every set whose first members it is, which is all the dual's use of a superset row
+needs (the proofs are in those methods).  At N = 64, T = 8 the heavy targets (best sets of one
+sensor) are closed at about 0.5 ms a column, where the single-target search took 70-120 ms:
+abs_trace at 90 ms of CPU 10.3 % -> 1.11 % of the distance from doing nothing (trace_diff,
+whose plan has no root floors and so no expansion, 1.41 % -> 1.20 %).  Every piece is a bound
+of its own, so whatever the clock cuts, ``L(π) <= F*``.
 
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
@@ -284,6 +297,16 @@ MID_THETA = 0.125
 VERTEX_ROWS = 512
 #: ... in rounds of this many of each piece, every piece's in one call
 VERTEX_BATCH = 256
+#: the chain rows (:meth:`_Dual.chain`, round at16): the metrics whose depth-1 superset rows
+#: are replaced by the chain's in the timed plan (abs_trace: the heavy targets whose best set
+#: has one sensor, bounded at three or more by intervals up to ``Z(F_c)``; trace_diff, at
+#: N = 64, T = 8, 90 ms of CPU: 1.41 % -> 1.20 % of the distance from doing nothing, 45 ms:
+#: 14.8 % -> 2.9 %; spectral, the norms and svd were worse with them: 1.04 -> 1.34 %,
+#: 0.65 -> 3.8 %, 0.92 -> 1.29 %, the chain's summaries taking the time of their steps)
+CHAIN_METRICS = frozenset({"abs_trace", "trace_diff"})
+#: ... and their rows expanded by the next member (:meth:`_Dual.expand`) this many at a time
+EXPAND_BATCH = 64
+EXPAND_ROWS = 512
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -731,6 +754,8 @@ class _Dual:
         self.floor = np.full(cs.ncol, -math.inf)
         #: the columns whose last floor search stopped at its time limit (:func:`_floors`)
         self.cut: set[int] = set()
+        #: per column with chain rows (:meth:`chain`) each option's position in the chain
+        self.chain_pos: dict[int, NDArray[np.intp]] = {}
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
             self.nc.append(nc)
@@ -774,6 +799,14 @@ class _Dual:
                 pieces = [(self.pieces[c], self.h[c])]
                 pieces.append((en.rows, en.sup) if en is not None else (None, self.h[c]))
                 _Rows.together(pieces, float(cs.w[c]), refine_rows)
+            for c in order:  # round at16: the chain rows, where the metric has them
+                col = cs.cols[c]
+                if not (isinstance(col, _TargetCol) and col.prob is not None
+                        and col.prob.name in CHAIN_METRICS):  # fmt: skip
+                    continue  # (no clock reading: the other metrics' plan as before)
+                if deadline is not None and deadline():
+                    break
+                self.chain(c)
             return
         for first in (True, False):  # depth 1 everywhere (cheap: n_c sets), then deeper
             for c in order:
@@ -826,11 +859,152 @@ class _Dual:
             self.enum[c] = _Enum(
                 col, self.opts[c], self.nc[c], self.depth[c], float(self.cs.w[c]), prev=en
             )
+            self.chain2(c)  # round at16: where the column has chain rows
             self._refine_sup([c], deadline)
             done += 1
             if remaining is not None:
                 last = left - remaining()
         return done
+
+    def chain(self, c: int) -> bool:
+        """Round at16 (the timed plan, the metrics of :data:`CHAIN_METRICS`): column ``c``'s
+        depth-1 superset rows raised by the *chain*.  Order the column's sensors ``o`` by their
+        depth-1 superset bound, the largest first (ties by index): ``j_1, ..., j_m``.  Every
+        non-empty ``S ⊆ F_c`` has a first member ``j_i`` in that order, and then ``S ⊆ F_i =
+        {j_i, ..., j_m}``, so ``Z({j_i}) ⪯ Z(S) ⪯ Z(F_i)`` (the ``S_j`` are PSD): the bound
+        ``ℓ_i`` of the interval ``[Z({j_i}), Z(F_i)]`` (the interval bound, raised by the
+        vertex bound where the metric has one) bounds ``w_c g_c(S)``.  As the depth-1 superset
+        bound ``u1(j_i)`` (the interval ``[Z({j_i}), Z(F_c)]``, wider) holds for these sets too,
+        row ``j`` becomes ``max(u1(j), ℓ_j)``: a bound of every set whose first member is
+        ``j``.  **Proof** of its use in the dual (:meth:`_Enum.cost`, ``d0 = 1``, ``k > 1``):
+        a ``k``-set ``S`` with first member ``j`` has ``w_c g_c(S) + π(S) >= row(j) + π_j +
+        π_c(k - 1)`` (its other ``k - 1`` members are distinct sensors of ``F_c``, prices ``>=
+        0``), so ``min_{|S|=k} w_c g_c(S) + π(S) >= min_j [row(j) + π_j] + π_c(k - 1)``: the
+        formula of the superset rows, whose proof needs only that each set is above the row of
+        one of its members.  The later raises of these rows (the relaxation, the vertex rows)
+        bound the wider interval ``[Z({j}), Z(F_c)]``, so they stay valid.  Why: abs_trace's
+        heavy targets (best sets of one sensor, values 83-137 at N = 64, T = 8) are bounded
+        at three or more sensors only by intervals reaching ``Z(F_c)`` (38-90), where every
+        diagonal term can reach ``P_d``; the chain's late intervals hold only the weak sensors
+        (their ``Z(F_i)`` small), which is where ``min_i ℓ_i`` lies, and it equals the
+        single-target optimum on 5 of 8 such targets (the single-target search proves it in
+        70-120 ms of CPU, about 110 nodes; the chain costs one batch, about 0.5 ms).  Returns
+        whether the rows were raised."""
+        en = self.enum[c]
+        col = self.cs.cols[c]
+        if en is None or en.d != 1 or not isinstance(col, _TargetCol) or en.nc < 2:
+            return False
+        prob = col.prob
+        if prob is None or prob.name not in CHAIN_METRICS:
+            return False
+        sup = en.sup
+        order = np.argsort(-sup, kind="stable")
+        S = col.S[en.o[order]]
+        Z_lo = col.base[None] + S
+        Z_hi = col.base[None] + np.cumsum(S[::-1], axis=0)[::-1]  # Z(F_i): j_i and the later
+        lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
+        if prob.dual is not None and prob.dual.dual.vertices is not None:
+            lb = np.fmax(lb, prob.dual.vertex_bound(Z_lo, Z_hi))
+        lb = float(self.cs.w[c]) * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+        sup[order] = np.fmax(sup[order], lb)
+        if en.rows is not None:  # the later raises (vertex rows) on the narrower intervals
+            Z_up = np.empty_like(Z_hi)
+            Z_up[order] = Z_hi
+            en.rows.Z_hi = Z_up
+        pos = np.empty(order.size, dtype=np.intp)
+        pos[order] = np.arange(order.size)
+        self.chain_pos[c] = pos
+        return True
+
+    def chain2(self, c: int) -> bool:
+        """Round at16: after :meth:`chain`, column ``c``'s deeper superset rows (its enumeration
+        deepened to ``d >= 2``, :meth:`deepen`) raised by the chain's level ``d``.  With the
+        chain's order ``j_1, ..., j_m``, every ``S`` with more than ``d`` members has a first
+        ``d`` members ``S0`` (the last of them ``j_b``), and ``S ⊆ S0 ∪ {j_e : e > b}``, so
+        ``Z(S0) ⪯ Z(S) ⪯ Z(S0) + Σ_{e > b} S_{j_e}``: that interval's bound bounds ``w_c
+        g_c(S)``, and with the wider ``[Z(S0), Z(F_c)]`` (the old row) ``S0``'s row becomes a
+        bound of every set whose first ``d`` members are ``S0``; the dual's use of the rows
+        (``min_{S0} [row(S0) + π(S0)] + π_c(k - d)``, ``k > d``) needs only that each set is
+        above the row of one of its ``d``-subsets (:meth:`chain`'s proof).  The rows'
+        intervals become these narrower ones, so the vertex rows raise them there.  Returns
+        whether the rows were raised."""
+        en = self.enum[c]
+        col = self.cs.cols[c]
+        pos = self.chain_pos.get(c)
+        if pos is None or en is None or en.d < 2 or not isinstance(col, _TargetCol):
+            return False
+        prob = col.prob
+        assert prob is not None
+        sets = en.sets[en.d]
+        S = col.S[en.o]
+        order = np.argsort(pos, kind="stable")
+        # after[p]: the sum of S over the chain's positions > p
+        after = np.zeros_like(S)
+        after[:-1] = np.cumsum(S[order][::-1], axis=0)[::-1][1:]
+        last = pos[sets].max(axis=1)
+        Z_lo = col.base[None] + S[sets].sum(axis=1)
+        Z_hi = Z_lo + after[last]
+        lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
+        lb = float(self.cs.w[c]) * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+        en.sup = np.fmax(en.sup, lb)
+        if en.rows is not None:
+            en.rows.Z_hi = Z_hi
+        en.after = after
+        return True
+
+    def expand(self, c: int, pi: Mat, limit: int, deadline: Callable[[], bool] | None) -> int:
+        """Round at16: column ``c``'s chain rows of its deepest level ``d`` (after
+        :meth:`chain2`) raised by the chain's next member, the least ``row + π(S0)`` first at
+        the prices ``pi``, ``EXPAND_BATCH`` rows at a time, until the least is an expanded one,
+        ``limit`` rows are expanded or the deadline passes.  Row ``S0`` (last member at the
+        chain's position ``b``) bounds the sets with more than ``d`` members whose first ``d``
+        members are ``S0``; each has a next member ``j_q`` (``q > b``) and lies in ``S0 ∪
+        {j_q} ∪ {j_e : e > q}``, so ``Z(S0 + j_q) ⪯ Z(S) ⪯ Z(S0 + j_q) + Σ_{e > q} S_{j_e}``:
+        **proof** that ``min_q ℓ_q`` (``ℓ_q`` that interval's bound) bounds every set of the
+        row's class, so the row becomes ``max(row, min_q ℓ_q)`` (a row whose class is empty,
+        ``b`` the last position, is left as it is).  Each ``ℓ_q`` is the interval bound (no
+        vertex bound: about a thousand intervals a batch).  Returns how many rows were
+        expanded."""
+        en = self.enum[c]
+        col = self.cs.cols[c]
+        pos = self.chain_pos.get(c)
+        if pos is None or en is None or en.after is None or not isinstance(col, _TargetCol):
+            return 0
+        prob = col.prob
+        assert prob is not None
+        sets = en.sets[en.d]
+        if en.xdone is None:
+            en.xdone = np.zeros(sets.shape[0], dtype=bool)
+        m = pos.size
+        order = np.argsort(pos, kind="stable")
+        S = col.S[en.o]
+        price = en._psum(pi[en.o], en.d)
+        w = float(self.cs.w[c])
+        n = 0
+        while n < limit:
+            if deadline is not None and deadline():
+                break
+            rank = np.argsort(en.sup + price, kind="stable")
+            if en.xdone[rank[0]]:
+                break
+            pick = rank[~en.xdone[rank]][: min(EXPAND_BATCH, limit - n)]
+            last = pos[sets[pick]].max(axis=1)
+            cnt = m - 1 - last  # the next members: positions last + 1 .. m - 1
+            live = pick[cnt > 0]
+            if live.size:
+                cl = cnt[cnt > 0]
+                row = np.repeat(np.arange(live.size), cl)
+                start = np.concatenate(([0], np.cumsum(cl)[:-1]))
+                q = (last[cnt > 0] + 1)[row] + (np.arange(row.size) - start[row])
+                Z_lo = col.base[None] + S[sets[live]].sum(axis=1)
+                Z_lo = Z_lo[row] + S[order[q]]
+                Z_hi = Z_lo + en.after[q]
+                lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
+                lb = w * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+                en.sup[live] = np.fmax(en.sup[live], np.minimum.reduceat(lb, start))
+            en.xdone[pick] = True
+            n += pick.size
+        return n
 
     def vertex(self, c: int, pi: Mat, limit: int, deadline: Callable[[], bool] | None) -> int:
         """Round mt15: column ``c``'s intervals (the count bound's rows, the enumeration's
@@ -1188,6 +1362,10 @@ class _Enum:
         self._cols = {k: [np.ascontiguousarray(self.sets[k][:, i]) for i in range(k)]
                       for k in (1, 2) if k < len(self.sets)}  # fmt: skip
         self._pi: Mat | None = None  # the prices of the last :meth:`cost` and its argmins
+        #: the chain's suffix sums by position and the rows it expanded (round at16,
+        #: :meth:`_Dual.chain2`, :meth:`_Dual.expand`)
+        self.after: Mat | None = None
+        self.xdone: NDArray[np.bool_] | None = None
         self._arg: dict[int, int] = {}
         self.scale = float(max(float(e.max()) for e in self.exact))
         self.rescale()
@@ -1424,6 +1602,22 @@ def _vertex_rows(
     return done
 
 
+def _expand_rows(dual: _Dual, pi: Mat, deadline: Callable[[], bool] | None) -> int:
+    """Round at16 (the timed plan, with the root floors; the columns with chain rows,
+    :data:`CHAIN_METRICS`): at the prices ``pi`` every such column's deepest chain rows
+    expanded by their next member (:meth:`_Dual.expand`, at most ``EXPAND_ROWS`` a column),
+    while the deadline allows.  Each expanded row bounds its own class of sets (that method's
+    proof), so the dual function stays ``<= F*``.  Returns how many rows were expanded."""
+    done = 0
+    for c in range(dual.cs.T):
+        if c not in dual.chain_pos:
+            continue  # (no clock reading: the other metrics' plan as before)
+        if deadline is not None and deadline():
+            break
+        done += dual.expand(c, pi, EXPAND_ROWS, deadline)
+    return done
+
+
 def _iterations(n: int, out: Callable[[], bool]) -> Callable[[], bool]:
     """A ``stop`` for :attr:`_Problem.stop` that says so after ``n`` readings (the barrier
     and the relaxation read it once an iteration) or once ``out()``."""
@@ -1574,6 +1768,7 @@ def _search(
             def mid(pi: Mat) -> int:
                 upper = cs.w * st.v + np.array([float(pi[s].sum()) for s in st.sets])
                 done = _root_floors(dual, upper, rem, min_s, pi)
+                _expand_rows(dual, pi, deadline)  # at16: the chain rows' next members
                 _vertex_rows(dual, upper, pi, deadline)  # mt15: where the roots left slack
                 return done
 
