@@ -454,6 +454,13 @@ def build_parser() -> argparse.ArgumentParser:
         "in n_exact and timed at the cap (default 60)",
     )
     b.add_argument(
+        "--clock",
+        choices=["wall", "cpu"],
+        help=takes("clock") + "what the decisions are timed by and their limits count: the "
+        "wall clock (default), or the process's CPU time, which other processes' load does "
+        "not eat into (multitarget: with --search)",
+    )
+    b.add_argument(
         "--targets",
         type=_counts("target"),
         metavar="T,T,...",

@@ -111,9 +111,11 @@ BENCH_TAKES: dict[str, frozenset[str]] = {
     "fusion": frozenset({"sensors", "repeat", "json"}),
     "search": frozenset(
         {"sensors", "metric", "search", "exact_cap", "problems", "repeat", "config", "json"}
+        | {"clock"}
     ),
     "multitarget": frozenset(
         {"sensors", "metric", "targets", "search", "problems", "repeat", "config", "json"}
+        | {"clock"}
     ),
     "mobile": frozenset({"json"}),
     "passive": frozenset({"json"}),
@@ -125,6 +127,7 @@ BENCH_DEFAULTS: dict[str, Any] = {
     "metric": None,
     "search": None,
     "exact_cap": None,
+    "clock": "wall",
     "targets": None,
     "config": "configs/paper.yaml",
     "problems": 5,

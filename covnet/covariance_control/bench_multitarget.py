@@ -122,13 +122,15 @@ def problems(
     return out
 
 
-def _timed(call: Callable[[], Any]) -> tuple[Any, float]:
-    t0 = time.perf_counter()
+def _timed(
+    call: Callable[[], Any], clock: Callable[[], float] = time.perf_counter
+) -> tuple[Any, float]:
+    t0 = clock()
     res = call()
-    return res, time.perf_counter() - t0
+    return res, clock() - t0
 
 
-def _call(search: str, n_sensors: int) -> Callable[..., Any]:
+def _call(search: str, n_sensors: int, clock: Callable[[], float]) -> Callable[..., Any]:
     from covnet.core.allocation import assignment as asg  # the bench only: start-up
     from covnet.core.allocation import assignment_search as srch
 
@@ -139,7 +141,7 @@ def _call(search: str, n_sensors: int) -> Callable[..., Any]:
     limit = bounded_limit(n_sensors)
 
     def bounded(*args: Any) -> Any:
-        return srch.allocate_assignments_bounded(*args, time_limit_s=limit)
+        return srch.allocate_assignments_bounded(*args, time_limit_s=limit, clock=clock)
 
     return bounded
 
@@ -155,11 +157,19 @@ def run(
     exact_max: int = 16,
     reference_assignments: int = 4**8,
     progress: Callable[[Row], None] | None = None,
+    clock: str = "wall",
 ) -> list[Row]:
     """The rows of the module docstring, one per (metric, N, T, search); ``exact`` runs only
-    where ``N <= exact_max`` (its tables have ``2^N`` entries)."""
+    where ``N <= exact_max`` (its tables have ``2^N`` entries).  ``clock`` (a key of
+    :data:`~covnet.covariance_control.bench_search.CLOCKS`, the row's ``clock``): what every
+    decision is timed by and what the bounded search's limit counts."""
     from covnet.core.allocation import assignment as asg  # the bench only: start-up
     from covnet.core.allocation import assignment_search as srch
+    from covnet.covariance_control.bench_search import CLOCKS
+
+    if clock not in CLOCKS:
+        raise ValueError(f"clock must be one of {sorted(CLOCKS)}, got {clock!r}")
+    tick = CLOCKS[clock]
 
     rows: list[Row] = []
     for T, N, metric in itertools.product(target_counts, sensor_counts, metrics):
@@ -173,7 +183,7 @@ def run(
             exact = []
             for p in probs:
                 res, dt = _timed(
-                    partial(asg.allocate_assignments, p[0], p[1], p[2], metric, p[3], p[4])
+                    partial(asg.allocate_assignments, p[0], p[1], p[2], metric, p[3], p[4]), tick
                 )
                 exact.append(res)
                 exact_t.append(dt)
@@ -185,7 +195,8 @@ def run(
                 res, dt = _timed(
                     partial(
                         asg.allocate_assignments_exhaustive, p[0], p[1], p[2], metric, p[3], p[4]
-                    )
+                    ),
+                    tick,
                 )
                 ref.append(res)
                 ref_t.append(dt)
@@ -195,20 +206,21 @@ def run(
                     f"exact: N = {N} > exact_max = {exact_max} (its tables have 2^N entries); "
                     "bounded or greedy serve it"
                 )
-                row = _skipped(metric, N, T, why)
+                row = _skipped(metric, N, T, why) | {"clock": clock}
                 rows.append(row)
                 if progress is not None:
                     progress(row)
                 continue
-            call = _call(search, N)
+            call = _call(search, N, tick)
             times: list[float] = []
             results = []
             for p in probs:
                 for _ in range(repeat):
-                    res, dt = _timed(partial(call, p[0], p[1], p[2], metric, p[3], p[4]))
+                    res, dt = _timed(partial(call, p[0], p[1], p[2], metric, p[3], p[4]), tick)
                     times.append(dt)
                 results.append(res)
             row = _row(metric, N, T, search, times, results, greedy, exact, exact_t, ref, ref_t)
+            row["clock"] = clock
             rows.append(row)
             if progress is not None:
                 progress(row)
@@ -225,7 +237,7 @@ ROW_KEYS = (
     *("lower_bound_median", "gap_median", "gap_worst", "gap_nothing_median", "gap_nothing_worst"),
     *("n_exact", "n_problems", "ratio_greedy", "exact_median_s", "excess_exact", "exact_agree"),
     *("reference_median_s", "reference_agree", "time_goal_s", "meets_time", "meets_gap"),
-    *("meets_gap_nothing", "skipped"),
+    *("meets_gap_nothing", "skipped", "clock"),
 )
 
 

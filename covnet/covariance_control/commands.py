@@ -416,6 +416,7 @@ def bench_search(args: argparse.Namespace, sc: Scenario | None) -> int:
         exact_cap_s=bs.EXACT_CAP_S if args.exact_cap is None else args.exact_cap,
         progress=None if args.json else (lambda line: print(line, flush=True)),
         on_row=(lambda row: print(json.dumps(row), flush=True)) if args.json else None,
+        clock=args.clock,
     )
     agree = all(r["agree_exhaustive"] in (None, True) for r in rows)
     if not agree:
@@ -431,6 +432,11 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
     metrics = [metric_opt(load(args.config), [m], m) for m in args.metric] if args.metric else None
     if args.search:
         return _bench_multitarget_scale(args, metrics)
+    if args.clock != "wall":
+        raise UsageError(
+            "--clock: bench multitarget takes it with --search (the searches at scale, whose "
+            "bounded search has a time limit)"
+        )
     if args.sensors and max(args.sensors) > 16:
         raise UsageError(
             "--sensors: bench multitarget takes up to 16 without --search (its sensor table); "
@@ -490,6 +496,7 @@ def _bench_multitarget_scale(args: argparse.Namespace, metrics: list[str] | None
         args.problems,
         args.repeat,
         progress=show,
+        clock=args.clock,
     )
     return EXIT_OK
 

@@ -31,3 +31,25 @@ def test_exact_beyond_its_size_is_a_row_that_says_so(capsys):
     assert main([*args, "--metric", "kl", "--problems", "1", "--json"]) == 0
     (row,) = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert row["search"] == "exact" and "exact_max" in row["skipped"]
+
+
+def test_the_cpu_clock_times_the_decisions_and_counts_the_bounded_limit(monkeypatch, capsys):
+    """``--clock cpu``: the bounded search's 90 ms limit and the decisions' times count it
+    (here a clock of 1 ms a reading: the same rows twice, in whole ticks, which the wall clock
+    cannot promise)."""
+    from covnet.covariance_control import bench_search as bs
+
+    def rows():
+        n = iter(range(10**9))
+        monkeypatch.setitem(bs.CLOCKS, "cpu", lambda: next(n) * 1e-3)
+        return bm.run((64,), (8,), ("abs_trace",), ("bounded",), n_problems=1, clock="cpu")
+
+    (a,), (b,) = rows(), rows()
+    assert a == b and a["clock"] == "cpu"
+    assert a["median_s"] >= 0.09 and abs(a["median_s"] * 1e3 - round(a["median_s"] * 1e3)) < 1e-6
+    args = ["bench", "multitarget", "--sensors", "16", "--targets", "3", "--search", "greedy"]
+    assert main([*args, "--metric", "kl", "--problems", "1", "--clock", "cpu", "--json"]) == 0
+    (row,) = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert row["clock"] == "cpu"
+    assert main(["bench", "multitarget", "--clock", "cpu"]) == 2  # only with --search
+    assert main(["bench", "alloc", "--clock", "cpu"]) == 2  # not a bench that takes it

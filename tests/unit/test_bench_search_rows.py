@@ -12,8 +12,8 @@ def test_per_problem_times_and_statuses_are_the_timed_calls(monkeypatch):
     seen: list[float] = []
     timed = bs._timed
 
-    def spy(call):
-        out = timed(call)
+    def spy(call, clock=bs.time.perf_counter):
+        out = timed(call, clock)
         seen.append(out[1])
         return out
 
@@ -31,3 +31,29 @@ def test_a_capped_exact_run_names_the_problems_it_left_open():
                     exhaustive_max=0, plain_max=0)  # fmt: skip
     assert row["problem_status"] == [2, 2] and row["n_exact"] == 0
     assert len(row["problem_s"]) == 2
+
+
+class _Ticks:
+    """A clock that advances ``step`` seconds at every reading, and counts them."""
+
+    def __init__(self, step: float) -> None:
+        self.step, self.n = step, 0
+
+    def __call__(self) -> float:
+        self.n += 1
+        return self.n * self.step
+
+
+def test_the_cpu_clock_times_the_decisions_and_counts_their_limits(monkeypatch):
+    """``--clock cpu``: the decisions are timed by it and their caps count it (here a clock
+    that jumps 1 s a reading: the exact search stops at its first look at the 0.5 s cap,
+    which the wall clock would not reach at N = 12)."""
+    ticks = _Ticks(1.0)
+    monkeypatch.setitem(bs.CLOCKS, "cpu", ticks)
+    kw = {"n_problems": 1, "repeat": 1, "exact_cap_s": 0.5, "exhaustive_max": 0, "plain_max": 0}
+    (row,) = bs.run((12,), ["spectral"], ("exact",), clock="cpu", **kw)
+    assert row["clock"] == "cpu" and row["problem_status"] == [2]
+    assert row["median_s"] == float(round(row["median_s"])) >= 1.0  # whole ticks
+    assert ticks.n > 4  # the search read it, not only the timer
+    (wall,) = bs.run((12,), ["spectral"], ("exact",), **kw)
+    assert wall["clock"] == "wall" and wall["problem_status"] == [0]
