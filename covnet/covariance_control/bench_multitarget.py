@@ -29,7 +29,6 @@ median relative excess over the exact optimum where the exact allocator ran; ``t
 from __future__ import annotations
 
 import itertools
-import time
 from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
@@ -38,7 +37,7 @@ import numpy as np
 
 from covnet.core.gaussian import Mat
 from covnet.core.motion import cv_transition, dwna_process_noise
-from covnet.covariance_control.bench_search import mt_information, mt_targets
+from covnet.covariance_control.bench_search import _timed, clock_of, mt_information, mt_targets
 
 Row = dict[str, Any]
 
@@ -122,14 +121,6 @@ def problems(
     return out
 
 
-def _timed(
-    call: Callable[[], Any], clock: Callable[[], float] = time.perf_counter
-) -> tuple[Any, float]:
-    t0 = clock()
-    res = call()
-    return res, clock() - t0
-
-
 def _call(search: str, n_sensors: int, clock: Callable[[], float]) -> Callable[..., Any]:
     from covnet.core.allocation import assignment as asg  # the bench only: start-up
     from covnet.core.allocation import assignment_search as srch
@@ -165,11 +156,7 @@ def run(
     decision is timed by and what the bounded search's limit counts."""
     from covnet.core.allocation import assignment as asg  # the bench only: start-up
     from covnet.core.allocation import assignment_search as srch
-    from covnet.covariance_control.bench_search import CLOCKS
-
-    if clock not in CLOCKS:
-        raise ValueError(f"clock must be one of {sorted(CLOCKS)}, got {clock!r}")
-    tick = CLOCKS[clock]
+    tick = clock_of(clock)
 
     rows: list[Row] = []
     for T, N, metric in itertools.product(target_counts, sensor_counts, metrics):

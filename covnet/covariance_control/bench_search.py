@@ -163,6 +163,13 @@ def gap_from_nothing(res: SearchResult, nothing: float) -> float:
 CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.process_time}
 
 
+def clock_of(name: str) -> Callable[[], float]:
+    """The clock :data:`CLOCKS` names; ``ValueError`` naming the valid ones otherwise."""
+    if name not in CLOCKS:
+        raise ValueError(f"clock must be one of {sorted(CLOCKS)}, got {name!r}")
+    return CLOCKS[name]
+
+
 def _timed(
     call: Callable[[], Any], clock: Callable[[], float] = time.perf_counter
 ) -> tuple[Any, float]:
@@ -286,9 +293,7 @@ def run(
     ``meets_value``, ``meets_nothing``, ``worst_within``, ``goal_gap``, ``goal_s``; ``None``
     for exact rows).
     """
-    if clock not in CLOCKS:
-        raise ValueError(f"clock must be one of {sorted(CLOCKS)}, got {clock!r}")
-    tick = CLOCKS[clock]
+    tick = clock_of(clock)
     names = list(metrics) if metrics is not None else sorted(METRICS)
     rows: list[Row] = []
     scans = problem_scans(n_problems)

@@ -9,6 +9,7 @@ a broken chain (its change mis-tabled) is caught."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -23,6 +24,7 @@ from covnet.core.allocation.assignment import (
     allocate_assignments,
     allocate_assignments_exhaustive,
 )
+from covnet.core.metrics import METRICS
 from covnet.covariance_control import bench_multitarget as bm
 
 #: (metric, seed) of the bench's problems (N = 8, T = 3) where a chain improves the local
@@ -178,8 +180,8 @@ def test_timed_plan_without_a_chain_is_bit_for_bit(metric, monkeypatch):
     where one does, the value is at most the one without."""
     calls = []
     real = srch._chain_moves
-    monkeypatch.setattr(srch, "KICK_METRICS", frozenset())  # the chains alone (the kicks call
-    # them too: tests/unit/test_kicks.py)
+    # the chains alone (the kicks call them too: tests/unit/test_kicks.py)
+    monkeypatch.setitem(METRICS, metric, dataclasses.replace(METRICS[metric], kicks=False))
 
     def spy(st, deadline):
         n = real(st, deadline)

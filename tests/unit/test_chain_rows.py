@@ -10,6 +10,7 @@ caught; the other metrics get no chain."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -19,6 +20,7 @@ from test_assignment_search import _problem, _timed_bounded
 from test_vertex_rows import _values
 
 from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments_exhaustive
+from covnet.core.metrics import METRICS
 
 
 def _dual(P, J, D, w, feas, metric, cons, chain=True, monkeypatch=None):
@@ -28,7 +30,8 @@ def _dual(P, J, D, w, feas, metric, cons, chain=True, monkeypatch=None):
 
     if not chain:
         assert monkeypatch is not None
-        monkeypatch.setattr(srch, "CHAIN_METRICS", frozenset())
+        entry = METRICS[metric]
+        monkeypatch.setitem(METRICS, metric, dataclasses.replace(entry, chain_rows=False))
     inp = _Inputs(P, J, D, metric, w, feas, cons, 1e-9)
     dual = srch._Dual(srch._Columns(inp), budget=200, timed=True)
     dual.deepen(None)
@@ -170,7 +173,7 @@ def test_inflated_chain_rows_are_caught():
 
 @pytest.mark.parametrize("metric", ["spectral", "one_norm", "inf_norm", "svd", "kl"])
 def test_no_chain_for_the_other_metrics(metric):
-    """Only the metrics of ``CHAIN_METRICS`` (abs_trace, trace_diff) get chain rows."""
+    """Only the metrics with ``Metric.chain_rows`` (abs_trace, trace_diff) get chain rows."""
     N, T = 7, 3
     P, J, D, w, feas = _problem(N, T, 5)
     dual = _dual(P, J, D, w, feas, metric, MultiConstraints())

@@ -4,10 +4,11 @@ only when ``F`` falls.  It never makes the value worse; every state it returns k
 allowed pairs, the caps, the budget and the required sensors (checked with all of them
 binding, so a kick that ignored one would be caught); it finds better assignments where the
 local search and the chains stop (so the tests can fail); the same problem and clock give the
-same decision; and the metrics without it (``KICK_METRICS``) decide bit for bit as before."""
+same decision; and the metrics without it (``Metric.kicks``) decide bit for bit as before."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -21,6 +22,7 @@ from covnet.core.allocation.assignment import (
     _Inputs,
     allocate_assignments,
 )
+from covnet.core.metrics import METRICS
 from covnet.covariance_control import bench_multitarget as bm
 
 
@@ -102,7 +104,7 @@ def _timed(prob, metric):
 @pytest.mark.parametrize("metric", ["spectral", "abs_trace", "trace_diff", "one_norm", "kl"])
 def test_the_timed_plan_with_kicks(metric, monkeypatch):
     """N = 16 (beyond the exact fallback), a tick clock: the same decision twice; for the
-    metrics of ``KICK_METRICS`` the kicks run and the value is at most the plan's without
+    metrics with ``Metric.kicks`` the kicks run and the value is at most the plan's without
     them (the state they start from is the same), the bound at most the exact optimum; for the
     others the plan is bit for bit the one without."""
     prob = bm.problems(16, 2, metric, 2, seed=5)[1]
@@ -117,10 +119,11 @@ def test_the_timed_plan_with_kicks(metric, monkeypatch):
     monkeypatch.setattr(srch, "_kicks", spy)
     r1, r2 = _timed(prob, metric), _timed(prob, metric)
     assert (r1.assignment, r1.value, r1.lower_bound) == (r2.assignment, r2.value, r2.lower_bound)
-    assert bool(calls) == (metric in srch.KICK_METRICS)
-    monkeypatch.setattr(srch, "KICK_METRICS", frozenset())
+    kicked = METRICS[metric].kicks
+    assert bool(calls) == kicked
+    monkeypatch.setitem(METRICS, metric, dataclasses.replace(METRICS[metric], kicks=False))
     r0 = _timed(prob, metric)
-    if metric in srch.KICK_METRICS or calls:
+    if kicked or calls:
         assert r1.value <= r0.value
     else:
         assert (r1.assignment, r1.value, r1.lower_bound, r1.n_nodes) == (

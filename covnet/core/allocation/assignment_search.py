@@ -158,7 +158,7 @@ nothing).  Also round mt15, the floor rounds (:func:`_floors`): a floor cut by i
 limit is searched again by the second round, a column with little of the slack takes none
 (the ``floors_first`` metrics), and the first round leaves to the second a floor whose share
 would be below the last one's time (trace_diff: 3.0 % -> 1.41 %).  Round at16, the *chain
-rows* (the metrics of :data:`CHAIN_METRICS`: abs_trace, trace_diff): after step (1) each
+rows* (the metrics of ``Metric.chain_rows``: abs_trace, trace_diff): after step (1) each
 target column's sensors are ordered by their depth-1 superset bound (the largest first), and
 the sets are split by their first member in that order: the sets whose first member is ``j``
 lie in ``[Z({j}), Z({j} ∪ later)]``, a narrower interval than ``[Z({j}), Z(F_c)]`` (the late
@@ -179,7 +179,7 @@ iterated local search from the 90 ms run's assignment (5 s of kicks) lowered the
 at N = 64, T = 8 from 1.05 % to 0.49 %, 1.11 % to 0.15 % and 0.41 % to 0.11 % with the same
 bound, by assignments that keep more sensors on, spread over several targets (three to nine
 sensors a step; no pair of additions to one target improves).  So for the metrics of
-:data:`KICK_METRICS` the timed plan gives the *kicks* (:func:`_kicks`: a few random sensors
+``Metric.kicks`` the timed plan gives the *kicks* (:func:`_kicks`: a few random sensors
 reassigned, the local search and the chains to their ends, kept only if ``F`` falls) a share
 ``KICK_SHARE`` of the time left after the ejection chains (90 ms of CPU, over 8 seeds of the
 kicks' generator: abs_trace 1.11 % -> 0.48-0.92 %, trace_diff 0.40 % -> 0.23-0.40 %, spectral
@@ -312,29 +312,18 @@ MID_THETA = 0.125
 VERTEX_ROWS = 512
 #: ... in rounds of this many of each piece, every piece's in one call
 VERTEX_BATCH = 256
-#: the chain rows (:meth:`_Dual.chain`, round at16): the metrics whose depth-1 superset rows
-#: are replaced by the chain's in the timed plan (abs_trace: the heavy targets whose best set
-#: has one sensor, bounded at three or more by intervals up to ``Z(F_c)``; trace_diff, at
-#: N = 64, T = 8, 90 ms of CPU: 1.41 % -> 1.20 % of the distance from doing nothing, 45 ms:
-#: 14.8 % -> 2.9 %; spectral, the norms and svd were worse with them: 1.04 -> 1.34 %,
-#: 0.65 -> 3.8 %, 0.92 -> 1.29 %, the chain's summaries taking the time of their steps)
-CHAIN_METRICS = frozenset({"abs_trace", "trace_diff"})
-#: ... and their rows expanded by the next member (:meth:`_Dual.expand`) this many at a time
+#: the chain rows (:meth:`_Dual.chain`, round at16; the metrics with ``Metric.chain_rows``):
+#: their rows expanded by the next member (:meth:`_Dual.expand`) this many at a time
 EXPAND_BATCH = 64
 EXPAND_ROWS = 512
-#: the iterated local search (:func:`_kicks`, the timed plan after the ejection chains): the
-#: metrics it runs for (their bound settles early, so the time is better spent on the
-#: incumbent: at N = 64, T = 8, 90 ms of CPU, over 8 seeds, abs_trace 1.11 % -> 0.48-0.92 %,
-#: spectral 1.03 % -> 0.89-1.12 % of the distance from doing nothing; one_norm's bound needs
-#: the time: 0.65 % -> 1.13 % with them, so it and the others keep their plan bit for bit),
-#: the share of the time left it takes (0.2-0.4 measured with the fixed seed: spectral
-#: 0.93-0.96 %; 0.5: 2.0 %, the bound starved), the sensors a kick reassigns (drawn from
-#: ``[lo, hi)``) and its generator's seed (fixed: the same problem and clock, the same
-#: decision)
+#: the iterated local search (:func:`_kicks`, the timed plan after the ejection chains; the
+#: metrics with ``Metric.kicks``): the share of the time left it takes (0.2-0.4 measured with
+#: the fixed seed: spectral 0.93-0.96 %; 0.5: 2.0 %, the bound starved), the sensors a kick
+#: reassigns (drawn from ``[lo, hi)``) and its generator's seed (fixed: the same problem and
+#: clock, the same decision)
 KICK_SHARE = 0.3
 KICK_SENSORS = (2, 7)
 KICK_SEED = 2029
-KICK_METRICS = frozenset({"spectral", "abs_trace", "trace_diff"})
 #: ... and it stops after this many kicks in a row that found nothing better (a long time
 #: limit is not spent on a search that has settled)
 KICK_STALL = 60
@@ -863,6 +852,17 @@ def _enum_moves(st: _State, dual: _Dual, deadline: Callable[[], bool] | None) ->
 # --------------------------------------------------------------------------------------------
 
 
+def _weighted(lb: Mat, w: float) -> Mat:
+    """``w`` times bounds of a metric's values, which are ``>= 0``: clipped at 0, and 0 where
+    a bound is not finite."""
+    return w * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+
+
+def _interval_rows(prob: _Problem, Z_lo: Mat, Z_hi: Mat, w: float) -> Mat:
+    """The interval bound over each ``[Z_lo, Z_hi]``, weighted (:func:`_weighted`)."""
+    return _weighted(prob.combine(prob.summary(Z_hi), prob.summary(Z_lo)), w)
+
+
 class _Dual:
     """The Lagrangian bound (module docstring): per column ``c`` the count bound ``h[c]``
     ``(n_c + 1,)``, ``opts[c]`` its allowed sensors, ``Kp`` the count limit; per target column
@@ -894,6 +894,8 @@ class _Dual:
         self.cut: set[int] = set()
         #: per column with chain rows (:meth:`chain`) each option's position in the chain
         self.chain_pos: dict[int, NDArray[np.intp]] = {}
+        #: the metric has chain rows (``Metric.chain_rows``)
+        self.chained = cs.inp.entry is not None and cs.inp.entry.chain_rows
         for c, col in enumerate(cs.cols):
             nc = int(min(self.opts[c].size, cs.caps[c], self.Kp))
             self.nc.append(nc)
@@ -937,11 +939,9 @@ class _Dual:
                 pieces = [(self.pieces[c], self.h[c])]
                 pieces.append((en.rows, en.sup) if en is not None else (None, self.h[c]))
                 _Rows.together(pieces, float(cs.w[c]), refine_rows)
-            for c in order:  # round at16: the chain rows, where the metric has them
-                col = cs.cols[c]
-                if not (isinstance(col, _TargetCol) and col.prob is not None
-                        and col.prob.name in CHAIN_METRICS):  # fmt: skip
-                    continue  # (no clock reading: the other metrics' plan as before)
+            for c in order if self.chained else ():  # round at16: the chain rows
+                if not isinstance(cs.cols[c], _TargetCol):
+                    continue
                 if deadline is not None and deadline():
                     break
                 self.chain(c)
@@ -1005,7 +1005,7 @@ class _Dual:
         return done
 
     def chain(self, c: int) -> bool:
-        """Round at16 (the timed plan, the metrics of :data:`CHAIN_METRICS`): column ``c``'s
+        """Round at16 (the timed plan, the metrics of ``Metric.chain_rows``): column ``c``'s
         depth-1 superset rows raised by the *chain*.  Order the column's sensors ``o`` by their
         depth-1 superset bound, the largest first (ties by index): ``j_1, ..., j_m``.  Every
         non-empty ``S ⊆ F_c`` has a first member ``j_i`` in that order, and then ``S ⊆ F_i =
@@ -1033,7 +1033,7 @@ class _Dual:
         if en is None or en.d != 1 or not isinstance(col, _TargetCol) or en.nc < 2:
             return False
         prob = col.prob
-        if prob is None or prob.name not in CHAIN_METRICS:
+        if prob is None or not self.chained:
             return False
         sup = en.sup
         order = np.argsort(-sup, kind="stable")
@@ -1043,7 +1043,7 @@ class _Dual:
         lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
         if prob.dual is not None and prob.dual.dual.vertices is not None:
             lb = np.fmax(lb, prob.dual.vertex_bound(Z_lo, Z_hi))
-        lb = float(self.cs.w[c]) * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+        lb = _weighted(lb, float(self.cs.w[c]))
         sup[order] = np.fmax(sup[order], lb)
         if en.rows is not None:  # the later raises (vertex rows) on the narrower intervals
             Z_up = np.empty_like(Z_hi)
@@ -1082,9 +1082,7 @@ class _Dual:
         last = pos[sets].max(axis=1)
         Z_lo = col.base[None] + S[sets].sum(axis=1)
         Z_hi = Z_lo + after[last]
-        lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
-        lb = float(self.cs.w[c]) * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
-        en.sup = np.fmax(en.sup, lb)
+        en.sup = np.fmax(en.sup, _interval_rows(prob, Z_lo, Z_hi, float(self.cs.w[c])))
         if en.rows is not None:
             en.rows.Z_hi = Z_hi
         en.after = after
@@ -1137,8 +1135,7 @@ class _Dual:
                 Z_lo = col.base[None] + S[sets[live]].sum(axis=1)
                 Z_lo = Z_lo[row] + S[order[q]]
                 Z_hi = Z_lo + en.after[q]
-                lb = prob.combine(prob.summary(Z_hi), prob.summary(Z_lo))
-                lb = w * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0)
+                lb = _interval_rows(prob, Z_lo, Z_hi, w)
                 en.sup[live] = np.fmax(en.sup[live], np.minimum.reduceat(lb, start))
             en.xdone[pick] = True
             n += pick.size
@@ -1365,7 +1362,7 @@ class _Rows:
             Z_lo = np.concatenate([r.Z_lo[i] for (r, _, _), i in zip(got, i_all, strict=True)])
             Z_hi = np.concatenate([r.Z_hi[i] for (r, _, _), i in zip(got, i_all, strict=True)])
             vb = db.vertex_bound(Z_lo, Z_hi)
-            vb = w * np.where(np.isfinite(vb), np.maximum(vb, 0.0), 0.0)
+            vb = _weighted(vb, w)
             at = 0
             for (r, out, _), p, i in zip(got, picks, i_all, strict=True):
                 out[i] = np.fmax(out[i], vb[at : at + i.size])
@@ -1490,10 +1487,10 @@ class _Enum:
             sZ = prob.summary(Z)
             lb = prob.combine(sZ, sZ)
             self.sets.append(idx)
-            self.exact.append(w * np.where(np.isfinite(lb), np.maximum(lb, 0.0), 0.0))
+            self.exact.append(_weighted(lb, w))
             if k == d:
                 sup = prob.combine(np.repeat(sAll, idx.shape[0], axis=0), sZ)
-                self.sup = w * np.where(np.isfinite(sup), np.maximum(sup, 0.0), 0.0)
+                self.sup = _weighted(sup, w)
                 Z_hi = np.repeat(Z_all, idx.shape[0], axis=0)
                 self.rows = _Rows(prob, Z, Z_hi, sZ, np.arange(idx.shape[0]))
         #: per ``k <= 2`` the members' columns of the ``k``-sets (:meth:`_psum`)
@@ -1742,14 +1739,12 @@ def _vertex_rows(
 
 def _expand_rows(dual: _Dual, pi: Mat, deadline: Callable[[], bool] | None) -> int:
     """Round at16 (the timed plan, with the root floors; the columns with chain rows,
-    :data:`CHAIN_METRICS`): at the prices ``pi`` every such column's deepest chain rows
+    ``Metric.chain_rows``): at the prices ``pi`` every such column's deepest chain rows
     expanded by their next member (:meth:`_Dual.expand`, at most ``EXPAND_ROWS`` a column),
     while the deadline allows.  Each expanded row bounds its own class of sets (that method's
     proof), so the dual function stays ``<= F*``.  Returns how many rows were expanded."""
     done = 0
-    for c in range(dual.cs.T):
-        if c not in dual.chain_pos:
-            continue  # (no clock reading: the other metrics' plan as before)
+    for c in sorted(dual.chain_pos):  # none: no clock reading, the other metrics' plan as before
         if deadline is not None and deadline():
             break
         done += dual.expand(c, pi, EXPAND_ROWS, deadline)
@@ -1873,9 +1868,8 @@ def _search(
         few = inp.cells is None or (inp.T + inp.C + 1) ** m <= EXACT_FALLBACK_CELLS
         exact_next = fallback and m <= min(EXACT_FALLBACK, MAX_SENSORS) and few
         # the kicks where the exact allocator would not decide next, for the metrics whose
-        # bound settles early (KICK_METRICS)
-        kicks = (timed and not exact_next and inp.entry is not None
-                 and inp.entry.name in KICK_METRICS)  # fmt: skip
+        # bound settles early (Metric.kicks)
+        kicks = timed and not exact_next and inp.entry is not None and inp.entry.kicks
         dual = _Dual(cs, refine_rows=refine_rows, deadline=deadline, upper=cs.w * st.v, timed=timed)
         if timed:
             assert remaining is not None and time_limit_s is not None
