@@ -57,3 +57,14 @@ def test_the_cpu_clock_times_the_decisions_and_counts_their_limits(monkeypatch):
     assert ticks.n > 4  # the search read it, not only the timer
     (wall,) = bs.run((12,), ["spectral"], ("exact",), **kw)
     assert wall["clock"] == "wall" and wall["problem_status"] == [0]
+
+
+def test_covnet_bench_search_takes_the_cpu_clock(capsys):
+    import json
+
+    from covnet.cli.app import main
+
+    args = ["bench", "search", "--sensors", "8", "--search", "greedy", "--metric", "kl"]
+    assert main([*args, "--problems", "1", "--repeat", "1", "--clock", "cpu", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [r["clock"] for r in rows] == ["cpu"]
