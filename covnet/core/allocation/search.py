@@ -117,6 +117,7 @@ from covnet.core.allocation.search_problem import (
     _gap,
     _Problem,
     _subset,
+    only_subset,
 )
 from covnet.core.allocation.tie_rule import _TieRule
 from covnet.core.gaussian import Mat
@@ -686,6 +687,11 @@ def allocate_bnb(
 
         greedy_deadline = greedy_deadline_
 
+    if rel_gap == 0.0 and time_limit_s is None and node_limit is None:
+        # one feasible subset: the search's result without its set-up
+        one = only_subset(P_pred, gains, P_d, metric, constraints, tie_rtol)
+        if one is not None:
+            return one
     prob = _Problem(P_pred, gains, P_d, metric, constraints, tie_rtol)
     if prob.bound is None:
         ref = allocate(P_pred, gains, P_d, metric, constraints, tie_rtol)
