@@ -569,18 +569,28 @@ class _State:
 
     def put(self, j: int, c: int) -> None:
         """Sensor ``j`` to column ``c`` (or ``OFF``), tables of the changed columns updated."""
-        old = int(self.a[j])
-        self.a[j] = c
-        changed = [x for x in (old, c) if x != OFF]
-        if old != OFF:
-            self.sets[old].remove(j)
-        if c != OFF:
-            self.sets[c].append(j)
-            self.sets[c].sort()
-        else:
-            self.R[j] = 0.0
-            self.M[j] = 0.0
-            self.M[j, self.cs.required] = np.inf
+        self.move(((j, c),))
+
+    def move(self, changes: Sequence[tuple[int, int]]) -> None:
+        """Each sensor ``j`` of ``changes`` to its column ``c`` (or ``OFF``), in turn; then
+        the changed columns' values and ``A`` rows once.  A column's value and ``A`` row
+        depend only on its own set and on which sensors are on it, so they are the same bits
+        as :meth:`put` one change at a time (a swap is three puts, two columns: refreshed
+        once each instead of three times in all)."""
+        changed: list[int] = []
+        for j, c in changes:
+            old = int(self.a[j])
+            self.a[j] = c
+            if old != OFF:
+                self.sets[old].remove(j)
+            if c != OFF:
+                self.sets[c].append(j)
+                self.sets[c].sort()
+            else:
+                self.R[j] = 0.0
+                self.M[j] = 0.0
+                self.M[j, self.cs.required] = np.inf
+            changed += [x for x in (old, c) if x != OFF and x not in changed]
         for x in changed:
             self.v[x] = self.cs.cols[x].val(self.sets[x])
         for x in changed:
@@ -689,9 +699,7 @@ def _local_search(st: _State, deadline: Callable[[], bool] | None) -> None:
         kind, j, x = move
         if kind == "swap":
             aj, ak = int(st.a[j]), int(st.a[x])
-            st.put(j, OFF)
-            st.put(x, aj)
-            st.put(j, ak)
+            st.move(((j, OFF), (x, aj), (j, ak)))
         else:
             st.put(j, x)
 
@@ -742,8 +750,7 @@ def _chain_moves(st: _State, deadline: Callable[[], bool] | None) -> int:
         if not tot[j] < thr:
             break
         c, c2, k = int(st.a[j]), int(c_best[j]), int(k_best[j])
-        st.put(j, c2)
-        st.put(k, c)
+        st.move(((j, c2), (k, c)))
         taken += 1
         _local_search(st, deadline)
     return taken
@@ -769,18 +776,27 @@ def _kicks(st: _State, until: Callable[[], bool], rng: np.random.Generator) -> t
     lo, hi = KICK_SENSORS
     while not until() and stall < KICK_STALL:
         cur = best.copy()
+        a, counts, n_on = cur.a.copy(), cur.counts(), cur.n_on()
+        kick: list[tuple[int, int]] = []
         for j in rng.choice(cs.N, size=min(int(rng.integers(lo, hi)), cs.N), replace=False):
             j = int(j)
-            counts = cur.counts()
-            was = int(cur.a[j])
+            was = int(a[j])
             opts = [c for c in range(cs.ncol)
                     if cs.allow[c, j] and c != was and counts[c] < cs.caps[c]]  # fmt: skip
-            if was == OFF and cur.n_on() >= cs.K:
+            if was == OFF and n_on >= cs.K:
                 opts = []
             if was != OFF and not cs.required[j]:
                 opts.append(OFF)
             if opts:
-                cur.put(j, opts[int(rng.integers(len(opts)))])
+                c = opts[int(rng.integers(len(opts)))]
+                kick.append((j, c))
+                a[j] = c
+                if was != OFF:
+                    counts[was] -= 1
+                if c != OFF:
+                    counts[c] += 1
+                n_on += (c != OFF) - (was != OFF)
+        cur.move(kick)
         _local_search(cur, until)
         _chain_moves(cur, until)
         if cur.F < best.F - IMPROVE * max(abs(best.F), TINY):
