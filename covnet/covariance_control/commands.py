@@ -376,7 +376,11 @@ def _check_trial_hash(run_dir: Path, stem: str, doc: dict[str, Any]) -> None:
 
 def metric_opt(sc: Scenario, requested: list[str] | None, default: str) -> str:
     """The metric a ``--metric`` option names (its last), else ``default``; a known one."""
-    metric = (requested or [default])[-1]
+    return known_metric((requested or [default])[-1])
+
+
+def known_metric(metric: str) -> str:
+    """``metric`` if it is registered (``--metric``'s check), else a usage error naming them."""
     if metric not in METRICS:
         raise UsageError(f"--metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
     return metric
@@ -400,7 +404,7 @@ def bench_search(args: argparse.Namespace, sc: Scenario | None) -> int:
     search (bit-identical where both run) and plain greedy, per metric and N."""
     from covnet.covariance_control import bench_search as bs  # start-up of the other commands
 
-    metrics = [metric_opt(load(args.config), [m], m) for m in args.metric] if args.metric else None
+    metrics = [known_metric(m) for m in args.metric] if args.metric else None
     searches = args.search or list(bs.SEARCHES)
     for s in searches:
         if s not in bs.SEARCHES:
@@ -429,7 +433,7 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
     enumeration of every assignment (where that runs), per metric and N."""
     from covnet.covariance_control import bench_search as bs  # start-up of the other commands
 
-    metrics = [metric_opt(load(args.config), [m], m) for m in args.metric] if args.metric else None
+    metrics = [known_metric(m) for m in args.metric] if args.metric else None
     if args.search:
         return _bench_multitarget_scale(args, metrics)
     if args.clock != "wall":

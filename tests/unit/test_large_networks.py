@@ -59,7 +59,7 @@ def test_sensor_counts_per_benchmark(capsys):
 def test_bench_search_takes_a_thousand_sensors(capsys):
     rc = main(
         ["bench", "search", "--sensors", "1000", "--search", "greedy", "--metric", "abs_trace",
-         "--problems", "1", "--repeat", "1", "--json", "--config", str(REPO / "configs/paper.yaml")]
+         "--problems", "1", "--repeat", "1", "--json"]
     )  # fmt: skip
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert rc == 0 and len(rows) == 1

@@ -1,0 +1,36 @@
+"""``covnet bench search`` and ``covnet bench multitarget`` generate their own problems: they run
+from any directory (no ``configs/paper.yaml`` read, with or without ``--metric``) and refuse a
+``--config`` they would not use."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from covnet.cli.app import main
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["bench", "search", "--sensors", "4", "--search", "greedy", "--metric", "kl"],
+        ["bench", "multitarget", "--sensors", "16", "--targets", "3", "--search", "greedy",
+         "--metric", "kl"],  # fmt: skip
+        ["bench", "multitarget", "--sensors", "4", "--targets", "2", "--metric", "spectral"],
+    ],
+)
+def test_runs_outside_the_checkout(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # no configs/ here
+    rc = main([*argv, "--problems", "1", "--repeat", "1", "--json"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert rows and {r["metric"] for r in rows} == {argv[argv.index("--metric") + 1]}
+
+
+@pytest.mark.parametrize("target", ["search", "multitarget"])
+def test_config_is_refused(target, capsys):
+    assert main(["bench", target, "--config", "configs/paper.yaml"]) == 2
+    err = capsys.readouterr().err
+    assert f"--config: bench {target} does not take this option" in err
