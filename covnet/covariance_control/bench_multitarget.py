@@ -23,7 +23,8 @@ median relative excess over the exact optimum where the exact allocator ran; ``t
 ``meets_time``, ``meets_gap`` (median gap relative to the value <= 1 %) and
 ``meets_gap_nothing`` (relative to the distance from doing nothing): the issue's goals.  Where
 ``exact`` cannot run (``N > exact_max``) its row says so in ``skipped`` (every other field
-``None``) instead of failing.
+``None``) instead of failing; so does every search's where a generated network is too small
+to cover a target at one of the decision scans (nothing to assign).
 """
 
 from __future__ import annotations
@@ -117,7 +118,10 @@ def problems(
         J, feas = information(table, x)
         if scan in scans:
             out.append((P_pred, J, D, w, feas))
-        P = allocate_assignments_greedy(P_pred, J, D, metric, w, feas).P
+        if feas.any():
+            P = allocate_assignments_greedy(P_pred, J, D, metric, w, feas).P
+        else:  # no sensor covers a target (a small network): every filter only predicts
+            P = P_pred
     return out
 
 
@@ -161,6 +165,18 @@ def run(
     rows: list[Row] = []
     for T, N, metric in itertools.product(target_counts, sensor_counts, metrics):
         probs = problems(N, T, metric, n_problems)
+        empty = sum(not p[4].any() for p in probs)
+        if empty:  # nothing to assign: every search would raise InfeasibleAllocation
+            why = (
+                f"no sensor of the generated network (N = {N}) covers a target at {empty} of "
+                f"the {len(probs)} decision scans: nothing to assign; more sensors cover more"
+            )
+            for search in searches:
+                row = _skipped(metric, N, T, why, search) | {"clock": clock}
+                rows.append(row)
+                if progress is not None:
+                    progress(row)
+            continue
         greedy = [
             srch.allocate_assignments_greedy(p[0], p[1], p[2], metric, p[3], p[4]) for p in probs
         ]
@@ -193,7 +209,7 @@ def run(
                     f"exact: N = {N} > exact_max = {exact_max} (its tables have 2^N entries); "
                     "bounded or greedy serve it"
                 )
-                row = _skipped(metric, N, T, why) | {"clock": clock}
+                row = _skipped(metric, N, T, why, "exact") | {"clock": clock}
                 rows.append(row)
                 if progress is not None:
                     progress(row)
@@ -233,9 +249,9 @@ def time_goal(N: int, T: int) -> float | None:
     return TIME_GOALS_S.get((N, T))
 
 
-def _skipped(metric: str, N: int, T: int, why: str) -> Row:
+def _skipped(metric: str, N: int, T: int, why: str, search: str) -> Row:
     row: Row = dict.fromkeys(ROW_KEYS)
-    row |= {"metric": metric, "n_sensors": N, "n_targets": T, "search": "exact", "skipped": why}
+    row |= {"metric": metric, "n_sensors": N, "n_targets": T, "search": search, "skipped": why}
     return row
 
 

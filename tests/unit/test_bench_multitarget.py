@@ -33,6 +33,23 @@ def test_exact_beyond_its_size_is_a_row_that_says_so(capsys):
     assert row["search"] == "exact" and "exact_max" in row["skipped"]
 
 
+def test_a_network_that_covers_no_target_is_a_row_that_says_so(capsys):
+    """One sensor whose range misses the target (the generated network at N = 1): every
+    search's row is skipped with the reason, exit 0, instead of a traceback; a larger network
+    of the same command decides."""
+    args = ["bench", "multitarget", "--targets", "1", "--search", "bounded", "--search", "greedy"]
+    assert main([*args, "--sensors", "1,3", "--metric", "kl", "--problems", "1", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [(r["n_sensors"], r["search"]) for r in rows] == [
+        (1, "bounded"), (1, "greedy"), (3, "bounded"), (3, "greedy"),
+    ]  # fmt: skip
+    for r in rows[:2]:
+        assert "covers a target at 1 of the 1 decision scans" in r["skipped"]
+        assert r["median_s"] is None and set(r) == set(bm.ROW_KEYS)
+    for r in rows[2:]:
+        assert r["skipped"] is None and r["lower_bound_median"] <= r["value_median"]
+
+
 def test_the_cpu_clock_times_the_decisions_and_counts_the_bounded_limit(monkeypatch, capsys):
     """``--clock cpu``: the bounded search's 90 ms limit and the decisions' times count it
     (here a clock of 1 ms a reading: the same rows twice, in whole ticks, which the wall clock
