@@ -309,3 +309,29 @@ def test_ctrl_c_before_ready_is_an_interruption_and_replay_says_there_is_nothing
         return
     assert rrc == 2, f"{said}\n{info}\n{text}"
     assert "nothing to replay" in said and "before its first scan" in said, said
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("how", ["group-sigint", "sigterm"])
+def test_bench_up_interrupted_while_its_network_runs(how, tmp_path, monkeypatch):
+    """A Ctrl-C or SIGTERM while ``covnet bench up`` runs its network: the run stops and so does
+    the bench, exit 130 with ``interrupted``, not a failed run's status and log; nothing left
+    running.  The signal comes once the run's ``live.json`` exists (the network is up and
+    scanning; its 200 scans take about a second more)."""
+    monkeypatch.setenv("TMPDIR", str(tmp_path))  # the bench's run directories, to watch
+    p = CovnetProcess(["bench", "up", "--sensors", "64", "--repeat", "1"])
+    tree = Descendants(p.proc.pid)
+    try:
+        deadline = time.monotonic() + 60
+        while not list(tmp_path.glob("covnet-bench-up-*/run-64-0/live.json")):
+            assert time.monotonic() < deadline and p.proc.poll() is None, p.output()
+            time.sleep(0.02)
+        rc, took = _stop(p, how)
+    finally:
+        p.stop()
+    text = p.output()
+    assert rc == 130, text
+    assert took < 10.0
+    assert "covnet: error: interrupted" in text and "failed (status" not in text, text
+    assert "Traceback" not in text
+    assert not tree.alive()
