@@ -14,6 +14,7 @@ import random
 import signal
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -99,6 +100,15 @@ def _stop(p: CovnetProcess, how: str) -> tuple[int, float]:
     return rc, time.monotonic() - t0
 
 
+def _stop_when(p: CovnetProcess, ready: Callable[[], bool], how: str) -> tuple[int, float]:
+    """:func:`_stop` once ``ready()`` (polled every 20 ms, at most 60 s, while ``p`` runs)."""
+    deadline = time.monotonic() + 60
+    while not ready():
+        assert p.proc.poll() is None and time.monotonic() < deadline, p.output()
+        time.sleep(0.02)
+    return _stop(p, how)
+
+
 def _interrupt(tmp_path: Path, name: str, seed: int) -> None:
     argv, marker, (lo, hi) = COMMANDS[name]
     rng = random.Random(f"{name}-{seed}")
@@ -158,12 +168,8 @@ def test_covnet_run_interrupted_while_its_metrics_run_in_forks(tmp_path, how):
     out = tmp_path / "run"
     p = CovnetProcess(["run", str(REPO / "configs" / "large.yaml"), "--out", str(out)])
     tree = Descendants(p.proc.pid)
-    try:
-        deadline = time.monotonic() + 60
-        while not any(pp == p.proc.pid for pp, _ in _procs().values()):  # the forks are running
-            assert p.proc.poll() is None and time.monotonic() < deadline, p.output()
-            time.sleep(0.02)
-        rc, took = _stop(p, how)
+    try:  # once the forks are running
+        rc, took = _stop_when(p, lambda: any(pp == p.proc.pid for pp, _ in _procs().values()), how)
     finally:
         p.stop()
     text = p.output()
@@ -322,11 +328,9 @@ def test_bench_up_interrupted_while_its_network_runs(how, tmp_path, monkeypatch)
     p = CovnetProcess(["bench", "up", "--sensors", "64", "--repeat", "1"])
     tree = Descendants(p.proc.pid)
     try:
-        deadline = time.monotonic() + 60
-        while not list(tmp_path.glob("covnet-bench-up-*/run-64-0/live.json")):
-            assert time.monotonic() < deadline and p.proc.poll() is None, p.output()
-            time.sleep(0.02)
-        rc, took = _stop(p, how)
+        rc, took = _stop_when(
+            p, lambda: bool(list(tmp_path.glob("covnet-bench-up-*/run-64-0/live.json"))), how
+        )
     finally:
         p.stop()
     text = p.output()

@@ -358,6 +358,27 @@ def _spd_error(exc: np.linalg.LinAlgError) -> ValueError:
 # --------------------------------------------------------------------------------------------
 
 
+def _checked(
+    P_pred: Mat,
+    gains: Mat,
+    P_d: Mat,
+    metric: str | MetricFn | Metric,
+    constraints: Constraints,
+    tie_rtol: float,
+) -> tuple[Mat, Mat, AllocationPlan, MetricFn, Metric | None]:
+    """The reference's checks of a problem, in its order and with its errors: ``P_pred`` and
+    ``P_d``, the gains and constraints (their plan; infeasible constraints raised), the metric,
+    the tie tolerance (the searches' :class:`~covnet.core.allocation.search_problem._Problem`
+    makes the same)."""
+    P, D = _checked_pd(P_pred, P_d)
+    plan = _prepare(_gains_array(gains, P.shape[0]), constraints, tables=False)
+    f, entry = _resolve_metric(metric)
+    _check_rtol(tie_rtol)
+    if plan.infeasible is not None:
+        raise InfeasibleAllocation(plan.infeasible)
+    return P, D, plan, f, entry
+
+
 def allocate_exhaustive(
     P_pred: Mat,
     gains: Mat,
@@ -369,12 +390,7 @@ def allocate_exhaustive(
     """The plain reference: every feasible subset in turn, ``P_i`` by the information form with
     Cholesky solves (:func:`subset_covariance`), one metric call per subset, then the tie rule
     (module docstring).  Clarity over speed: use :func:`allocate`, which returns the same."""
-    P, D = _checked_pd(P_pred, P_d)
-    plan = _prepare(_gains_array(gains, P.shape[0]), constraints, tables=False)
-    f, _ = _resolve_metric(metric)
-    _check_rtol(tie_rtol)
-    if plan.infeasible is not None:
-        raise InfeasibleAllocation(plan.infeasible)
+    P, D, plan, f, _ = _checked(P_pred, gains, P_d, metric, constraints, tie_rtol)
     G, K, n = plan.gains, plan.max_active, plan.n
     allowed = [j for j in range(G.shape[0]) if j not in constraints.excluded]
     subsets: list[tuple[int, ...]] = []
