@@ -482,9 +482,9 @@ def only_subset(
     allowed sensor required, as in ``covnet bench up --sensors``' networks), without the
     search's set-up (the branching order, the reduced form, the bounds' constants: such a
     decision took 0.57 ms at N = 64 and 1.58 ms at N = 256 with it, 0.29 and 0.38 ms without,
-    CPU); ``None`` otherwise, or for a metric
-    without an interval bound (:func:`~covnet.core.allocation.search.allocate_bnb` hands
-    those to the reference).  The same checks and errors as :class:`_Problem`, and the same
+    CPU); ``None`` otherwise, or for a metric without an interval bound
+    (:func:`~covnet.core.allocation.search.allocate_bnb` hands those to the reference).  The
+    same checks and errors as :class:`_Problem`, and the same
     record as the search's: that subset, its value and ``P`` by the reference's arithmetic
     (:meth:`_Problem.exact`, :meth:`_Problem.exact_covariances`), the value as its own lower
     bound (gap 0), no node, one exact evaluation, status 0."""
