@@ -497,3 +497,26 @@ def test_many_random_and_refusals():
         POLICIES["greedy_information"].decide_many(Pm, J, nofeas, c)
     with pytest.raises(InfeasibleAllocation, match="'all_on': sensor 0 has no covered target"):
         POLICIES["all_on"].decide_many(Pm, J, None, MultiConstraints(max_per_target=0))
+
+
+@pytest.mark.parametrize("name", REWARDS)
+@pytest.mark.parametrize("N", [64, 65, 70, 130])
+def test_many_rewards_beyond_63_sensors(name, N, monkeypatch):
+    """Sensor sets are bit masks of any width: with 64 or more sensors (``configs/
+    large_multitarget.yaml`` has 64) the reward policies decide as on the informative sensors
+    alone.  Here the first ``N - 5`` sensors carry no information (covered, zero gain), the
+    five informative ones sit at indices up to ``N - 1`` (bit 63 and beyond): the greedy's
+    decision and score are the five's alone, greedily (it never takes a sensor that gains
+    nothing)."""
+    Pm, J5, feas5 = _many(N=5, T=3, seed=2)
+    J = np.zeros((N, *J5.shape[1:]))
+    J[N - 5 :] = J5
+    feas = np.ones((N, 3), dtype=bool)
+    feas[N - 5 :] = feas5
+    big = POLICIES[name].decide_many(Pm, J, feas, budget=5)
+    monkeypatch.setattr(policies_many, "MANY_BRUTE_FORCE_MAX", 0)
+    small = POLICIES[name].decide_many(Pm, J5, feas5, budget=5)
+    assert not big.exhaustive and not small.exhaustive  # (T + 1)^N assignments: the greedy
+    assert big.assignment == (OFF,) * (N - 5) + small.assignment
+    assert big.score == small.score
+    assert big.score == pytest.approx(total_reward(name, Pm, J, big.assignment, feas), rel=1e-12)

@@ -384,7 +384,7 @@ class _Rewards:
         pr = self.pr
         for lo in range(0, len(todo), 4096):
             chunk = todo[lo : lo + 4096]
-            masks = ((np.array(chunk)[:, None] >> np.arange(pr.N)) & 1).astype(np.float64)
+            masks = _masks(chunk, pr.N).astype(np.float64)
             Js = (masks @ pr.J[:, t].reshape(pr.N, -1)).reshape(-1, pr.n, pr.n)
             vals = self.batch(pr.P[t], pr.L[t], Js)
             self.known[t].update(zip(chunk, (float(v) for v in vals), strict=True))
@@ -411,6 +411,21 @@ def total_reward(
     for t in range(pr.T):
         R.ensure(t, [codes[t]])
     return R.total(codes)
+
+
+def _masks(codes: Sequence[int], N: int) -> NDArray[np.uint8]:
+    """0/1 rows ``(len(codes), N)``: bit ``j`` of each code (a Python int of any width: a
+    numpy integer holds 63 bits, and a network may have more sensors)."""
+    nb = (N + 7) // 8
+    raw = np.frombuffer(b"".join(c.to_bytes(nb, "little") for c in codes), dtype=np.uint8)
+    return np.unpackbits(raw.reshape(len(codes), nb), axis=1, count=N, bitorder="little")
+
+
+def _codes_of(rows: NDArray[np.bool_]) -> list[int]:
+    """The code (bit ``j`` set where column ``j`` is) of each row, a Python int of any width
+    (the inverse of :func:`_masks`)."""
+    packed = np.packbits(rows.astype(np.uint8), axis=1, bitorder="little")
+    return [int.from_bytes(row.tobytes(), "little") for row in packed]
 
 
 def _codes(pr: _Many, a: Sequence[int]) -> list[int]:
@@ -459,13 +474,12 @@ def _decide_reward(
     A = A[ok]
     if A.shape[0] == 0:
         raise infeasible(f"policy {name!r}: no assignment satisfies the constraints")
-    bits = np.int64(1) << np.arange(pr.N, dtype=np.int64)
     vals = np.zeros(A.shape[0])
     for t in range(pr.T):  # F = 0; F = F + r_t over the targets in order (R.total's sum)
-        codes = ((A == t) * bits).sum(axis=1)
-        uniq, inv = np.unique(codes, return_inverse=True)
-        R.ensure(t, uniq.tolist())
-        vals = vals + np.array([R.known[t][c] for c in uniq.tolist()])[inv]
+        uniq, inv = np.unique(A == t, axis=0, return_inverse=True)
+        codes = _codes_of(uniq)
+        R.ensure(t, codes)
+        vals = vals + np.array([R.known[t][c] for c in codes])[inv.reshape(-1)]
     best = float(vals.max())
     tied = np.flatnonzero(vals >= best - tie_rtol * max(abs(best), TINY)).tolist()
     i = min(tied, key=lambda i: _tie_key(pr, A[i].tolist()))
