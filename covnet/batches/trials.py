@@ -466,8 +466,8 @@ def _run_round(
         p, seeds, exc = failures[0]
         exc.add_note(
             f"{len(failures)} of {len(groups)} task(s) failed (the first: point {p}, seeds "
-            f"{seeds}); the finished trials are saved: the same command again retries only "
-            "the failed ones"
+            f"{seeds}); the finished trials are saved: the same command again (without "
+            "--force, which starts over) retries only the failed ones"
         )
         raise exc
     return ran

@@ -85,6 +85,7 @@ OUTPUT_MARKERS = (
     "compare.json",
     "sweep.json",
     "replay.json",
+    "batch.json",  # a batch (sweep, compare, mc) begun: its trials, even if it never finished
 )
 """Files one of covnet's commands writes: a directory holding one is covnet's output, which
 ``--force`` may clear."""

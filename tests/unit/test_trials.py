@@ -114,6 +114,7 @@ def test_a_failed_task_does_not_stop_the_others(tmp_path):
     with pytest.raises(ValueError, match="seed 2 is bad") as info:
         run_trials(_batch(fails_on_seed_2, ("a", "b")), 4, out=tmp_path, key="f", workers=2)
     assert any("2 of 8 task(s) failed" in n for n in info.value.__notes__)
+    assert any("(without --force, which starts over)" in n for n in info.value.__notes__)
     stored = TrialStore(tmp_path, "f").load()
     assert sorted(stored) == [(p, s) for p in ("a", "b") for s in (0, 1, 3)]
 
@@ -142,6 +143,18 @@ def test_the_directory_rules(tmp_path):
     (other / "a.txt").write_text("mine")
     with pytest.raises(UsageError, match="not empty"):
         prepare_batch_out(other, "x", False, "sweep", "h1")
+
+
+def test_force_replaces_a_batch_that_never_finished(tmp_path):
+    """A batch stopped by a failure or Ctrl-C leaves only ``batch.json`` and its trials: the
+    same command resumes it, and with ``--force`` it is replaced (it is covnet's output)."""
+    out, _ = prepare_batch_out(tmp_path / "b", "x", False, "compare", "h1")
+    write_batch_info(out, "compare", "h1", {})
+    TrialStore(out, "h1").save("p", [1], [{"v": 1.0}])
+    assert sorted(p.name for p in out.iterdir()) == ["batch.json", "trials"]
+    assert prepare_batch_out(out, "x", False, "compare", "h1") == (out, True)
+    assert prepare_batch_out(out, "x", True, "compare", "h1") == (out, False)
+    assert not any(out.iterdir())
 
 
 def test_batch_options_are_checked():
