@@ -47,6 +47,7 @@ from covnet.core.allocation import (
     subset_covariance,
 )
 from covnet.core.allocation.search import SearchResult, allocate_bnb, allocate_greedy
+from covnet.core.allocation.search_problem import gap_from_nothing as _gaps_from_nothing
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import METRICS
 from covnet.core.motion import cv_transition, dwna_process_noise
@@ -144,17 +145,9 @@ def plain_greedy(
 
 
 def gap_from_nothing(res: SearchResult, nothing: float) -> float:
-    """The certified gap relative to the distance from doing nothing: an upper bound of
-    ``(value - f*) / (f(P⁻, P_d) - f*)``, namely ``(value - L) / (f(P⁻, P_d) - value)``
-    (``L <= f* <= value``: the numerator can only shrink and the denominator only grow with
-    ``f*``).  Meaningful when the optimum is near 0, where the gap relative to the value says
-    nothing; ``inf`` when the decision does no better than doing nothing but has a gap, 0 when
-    it has none."""
-    num = max(res.value - res.lower_bound, 0.0)
-    if num == 0.0:
-        return 0.0
-    den = nothing - res.value
-    return num / den if den > 0.0 else math.inf
+    """:func:`covnet.core.allocation.search_problem.gap_from_nothing` of one decision (its
+    value and certified lower bound; ``nothing``: ``f(P⁻, P_d)``)."""
+    return float(_gaps_from_nothing(res.value, res.lower_bound, nothing))
 
 
 #: the clocks a bench may time and limit its decisions by (``--clock``): the wall clock, or the

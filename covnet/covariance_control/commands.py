@@ -222,13 +222,21 @@ def _print_surveillance_summary(out: Path, summary: dict[str, Any]) -> None:
 
 def _gap_text(blk: dict[str, Any]) -> str:
     """A bounded or greedy search's relative gap (``summary.json``'s ``gap_median`` and
-    ``gap_worst``; null where the search reported none); nothing for an exact search."""
+    ``gap_worst``; null where the search reported none), and relative to the distance from
+    doing nothing where the summary has it; nothing for an exact search."""
     if "gap_median" not in blk:
         return ""
     med, worst = blk.get("gap_median"), blk.get("gap_worst")
     if med is None or worst is None:
         return ", search gap not reported"
-    return f", search gap median {100 * med:.2f} %, worst {100 * worst:.2f} %"
+    text = f", search gap median {100 * med:.2f} %, worst {100 * worst:.2f} %"
+    n_med, n_worst = blk.get("gap_nothing_median"), blk.get("gap_nothing_worst")
+    if n_med is not None and n_worst is not None:
+        text += (
+            f" (of the distance from doing nothing: median {100 * n_med:.2f} %, "
+            f"worst {100 * n_worst:.2f} %)"
+        )
+    return text
 
 
 def _lost_text(t: dict[str, Any], cutoff_m: float | None) -> str:

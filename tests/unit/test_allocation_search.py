@@ -16,6 +16,8 @@ from covnet.config import ConfigError
 from covnet.core.allocation.constraints import Constraints
 from covnet.core.allocation.exact import allocate, allocate_exhaustive, prepare
 from covnet.core.allocation.search import allocate_bnb
+from covnet.core.allocation.search_problem import gap_from_nothing
+from covnet.core.metrics import spectral
 from covnet.covariance_control.config import (
     AUTO_EXACT_MAX,
     AUTO_NODE_LIMIT,
@@ -200,6 +202,17 @@ def test_bounded_with_a_node_limit_is_deterministic():
     assert np.array_equal(a.gap, b.gap)
 
 
+def test_gap_from_nothing_elementwise():
+    """``(value - L) / (nothing - value)``; 0 without a gap, inf where the decision does no
+    better than doing nothing, NaN where no bound was reported; scalars too."""
+    v = np.array([2.0, 2.0, 5.0, 5.0, 3.0])
+    lo = np.array([1.0, 2.0, 4.0, np.nan, 3.5])
+    no = np.array([6.0, 6.0, 5.0, 9.0, 8.0])
+    g = gap_from_nothing(v, lo, no)
+    assert g[0] == 0.25 and g[1] == 0.0 and g[2] == np.inf and np.isnan(g[3]) and g[4] == 0.0
+    assert float(gap_from_nothing(2.0, 1.0, 6.0)) == 0.25
+
+
 def test_summary_holds_value_lower_bound_and_gap(tmp_path):
     sc = from_dict(_large(34, 8, search="greedy"))
     run = run_metric(sc, "spectral")
@@ -211,6 +224,14 @@ def test_summary_holds_value_lower_bound_and_gap(tmp_path):
     assert blk["gap"] == run.gap.tolist()
     assert blk["gap_worst"] == float(run.gap.max())
     assert blk["gap_median"] == float(np.median(run.gap))
+    # relative to the distance from doing nothing: the metric of each scan's prediction
+    nothing = np.array([spectral(P, D) for P, D in zip(run.P_pred, traj.P_d, strict=True)])
+    want = (run.value - run.lower_bound) / (nothing - run.value)
+    want[run.value == run.lower_bound] = 0.0
+    assert blk["gap_nothing"] == pytest.approx(want.tolist(), rel=1e-12, abs=0.0)
+    assert blk["gap_nothing_worst"] == pytest.approx(float(want.max()), rel=1e-12)
+    assert blk["gap_nothing_median"] == pytest.approx(float(np.median(want)), rel=1e-12)
+    assert np.all(nothing > run.value)  # every decision improves on doing nothing here
     on_disk = json.loads((tmp_path / "summary.json").read_text())  # strict JSON, no NaN
     assert on_disk["metrics"]["spectral"]["gap"] == blk["gap"]
     arrays = np.load(tmp_path / "arrays.npz")
@@ -221,5 +242,7 @@ def test_an_exact_summary_has_no_gap(paper, tmp_path):
     sc = from_dict({**normalised(paper), "scans": 3})
     run = run_metric(sc, "spectral")
     summary = write_run(tmp_path, sc, shared_trajectory(build_model(sc)), {"spectral": run})
-    assert not {"lower_bound", "gap", "gap_median"} & set(summary["metrics"]["spectral"])
+    assert not {"lower_bound", "gap", "gap_median", "gap_nothing"} & set(
+        summary["metrics"]["spectral"]
+    )
     assert "gap.spectral" not in np.load(tmp_path / "arrays.npz")

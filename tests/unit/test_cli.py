@@ -289,6 +289,15 @@ def test_run_summary_says_a_track_was_lost_and_the_search_gap(tmp_path, capsys):
                 "gap_median": 0.0012,
                 "gap_worst": 0.05,
             },
+            "abs_trace": {
+                "allocation_rate": 0.5,
+                "rmse_position": 20.0,
+                "mean_nees": 4.0,
+                "gap_median": 0.25,
+                "gap_worst": 1.0,
+                "gap_nothing_median": 0.0062,
+                "gap_nothing_worst": 0.0123,
+            },
             "svd": {"allocation_rate": 0.5, "rmse_position": 20.0, "mean_nees": 4.0},
             "kl": {
                 "allocation_rate": 0.5,
@@ -303,6 +312,12 @@ def test_run_summary_says_a_track_was_lost_and_the_search_gap(tmp_path, capsys):
     out = capsys.readouterr().out.splitlines()
     spectral = next(line for line in out if "spectral:" in line)
     assert "search gap median 0.12 %, worst 5.00 %" in spectral
+    assert "doing nothing" not in spectral  # a summary without the second measure
+    abs_trace = next(line for line in out if "abs_trace:" in line)
+    assert (
+        "search gap median 25.00 %, worst 100.00 % (of the distance from doing nothing: "
+        "median 0.62 %, worst 1.23 %)" in abs_trace
+    )
     assert "gap" not in next(line for line in out if "svd:" in line)
     assert "search gap not reported" in next(line for line in out if "kl:" in line)
 

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from covnet.core.allocation._fast import _spd_inverse_soa, gain_sums, spd_inverse
 from covnet.core.allocation.exact import Constraints, _checked, _spd_error
@@ -484,8 +484,8 @@ def only_subset(
     decision took 0.57 ms at N = 64 and 1.58 ms at N = 256 with it, 0.29 and 0.38 ms without,
     CPU); ``None`` otherwise, or for a metric without an interval bound
     (:func:`~covnet.core.allocation.search.allocate_bnb` hands those to the reference).  The
-    same checks and errors as :class:`_Problem`, and the same
-    record as the search's: that subset, its value and ``P`` by the reference's arithmetic
+    same checks and errors as :class:`_Problem`, and the same record as the search's: that
+    subset, its value and ``P`` by the reference's arithmetic
     (:meth:`_Problem.exact`, :meth:`_Problem.exact_covariances`), the value as its own lower
     bound (gap 0), no node, one exact evaluation, status 0."""
     P, D, plan, f, entry = _checked(P_pred, gains, P_d, metric, constraints, tie_rtol)
@@ -513,3 +513,18 @@ def _subset(mask: NDArray[np.bool_]) -> tuple[int, ...]:
 
 def _gap(value: float, lower: float) -> float:
     return max(value - lower, 0.0) / max(abs(value), TINY)
+
+
+def gap_from_nothing(value: ArrayLike, lower: ArrayLike, nothing: ArrayLike) -> NDArray[np.float64]:
+    """The certified gap relative to the distance from doing nothing, elementwise: an upper
+    bound of ``(value - f*) / (f(P⁻, P_d) - f*)``, namely ``(value - L) / (nothing - value)``
+    with ``nothing = f(P⁻, P_d)`` (``L <= f* <= value``: the numerator can only shrink and the
+    denominator only grow with ``f*``).  Meaningful where the optimum is near 0 and the gap
+    relative to the value says nothing (abs_trace, trace_diff); 0 without a gap, ``inf`` where
+    the decision does no better than doing nothing but has a gap, NaN where ``L`` is."""
+    v, lo, no = (np.asarray(x, dtype=np.float64) for x in (value, lower, nothing))
+    num = np.maximum(v - lo, 0.0)
+    den = no - v
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(num == 0.0, 0.0, np.where(den > 0.0, num / den, np.inf))
+    return np.where(np.isnan(lo), np.nan, out)
