@@ -317,7 +317,8 @@ def make_target_figures(
             "(□ position, △ range-bearing, ○ bearing; dashed: coverage)"
         )
         ax.grid(alpha=0.3)
-        ax.legend(loc="lower right")
+        # beside the area, not over it: inside, the key hid the sensors of a corner
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     fig.savefig(paths[0], dpi=110)
     plt.close(fig)
 

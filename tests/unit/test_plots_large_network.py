@@ -81,3 +81,36 @@ def test_the_assignment_raster_keys_every_target_in_its_own_colour(tmp_path, mon
         names = [name for name, _ in key]
         assert names == [t["id"] for t in raw["targets"]] + ["off"]
         assert len({colour for _, colour in key}) == len(key)
+
+
+def test_the_scene_legend_hides_no_sensor(tmp_path, monkeypatch, capsys):
+    """configs/large_multitarget.yaml's scene: the targets' key sat inside the axes, in the
+    lower right corner, over sensors P40 and P60 and their names.  No sensor's marker may lie
+    under the legend."""
+    raw = yaml.safe_load((PAPER.parent / "large_multitarget.yaml").read_text())
+    raw["scans"] = 2
+    cfg = tmp_path / "lmt.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    hidden: list[str] = []
+    checked = []
+    save = plt.Figure.savefig
+    sensors = [(s["id"], s["position_m"]) for s in raw["sensors"]]
+
+    def spy(fig, *args, **kwargs):
+        if Path(args[0]).name == "fig_scene.png":
+            fig.canvas.draw()
+            for ax in fig.axes:
+                leg = ax.get_legend()
+                assert leg is not None
+                box = leg.get_window_extent()
+                for sid, (x, y) in sensors:
+                    px, py = ax.transData.transform((x / 1e3, y / 1e3))
+                    if box.contains(px, py):
+                        hidden.append(sid)
+                checked.append(len(sensors))
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(plt.Figure, "savefig", spy)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    assert "Warning" not in capsys.readouterr().err
+    assert checked == [64] and hidden == []
