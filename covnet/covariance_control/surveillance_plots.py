@@ -90,8 +90,15 @@ def make_surveillance_figures(run_dir: Path) -> list[Path]:
         dead = st == 2
         if dead.any():
             ax.plot(xy[dead, 0], xy[dead, 1], "x", color=col, ms=5)
-    ax.set_xlim(area["min_m"][0], area["max_m"][0])
-    ax.set_ylim(area["min_m"][1], area["max_m"][1])
+    # a margin round the area: sensors stand on its edges and corners, and their names
+    # would otherwise run into the title
+    pad = 0.05 * max(area["max_m"][0] - area["min_m"][0], area["max_m"][1] - area["min_m"][1])
+    ax.set_xlim(area["min_m"][0] - pad, area["max_m"][0] + pad)
+    ax.set_ylim(area["min_m"][1] - pad, area["max_m"][1] + pad)
+    ax.add_patch(plt.Rectangle((area["min_m"][0], area["min_m"][1]),
+                               area["max_m"][0] - area["min_m"][0],
+                               area["max_m"][1] - area["min_m"][1],
+                               fill=False, ec="0.5", lw=0.8))  # fmt: skip
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")

@@ -114,3 +114,37 @@ def test_the_scene_legend_hides_no_sensor(tmp_path, monkeypatch, capsys):
     assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
     assert "Warning" not in capsys.readouterr().err
     assert checked == [64] and hidden == []
+
+
+def test_the_surveillance_scene_keeps_its_edge_sensors_clear_of_the_title(
+    tmp_path, monkeypatch, capsys
+):
+    """configs/surveillance.yaml puts radars on the area's corners and edges (R3, R4, B3 on its
+    top): with the axes ending at the area, their names ran into the title.  Every sensor
+    lies inside the drawn limits, and no sensor's name overlaps the title."""
+    raw = yaml.safe_load((PAPER.parent / "surveillance.yaml").read_text())
+    cfg = PAPER.parent / "surveillance.yaml"
+    ids = {s["id"] for s in raw["sensors"]}
+    seen: list[str] = []
+    save = plt.Figure.savefig
+
+    def spy(fig, *args, **kwargs):
+        if Path(args[0]).name == "fig_scene.png":
+            renderer = fig.canvas.get_renderer()
+            fig.canvas.draw()
+            (ax,) = fig.axes
+            title = ax.title.get_window_extent(renderer)
+            (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+            for s in raw["sensors"]:
+                x, y = s["position_m"]
+                assert x0 < x < x1 and y0 < y < y1, s["id"]
+            for text in ax.texts:
+                if text.get_text() in ids:
+                    seen.append(text.get_text())
+                    assert not text.get_window_extent(renderer).overlaps(title), text.get_text()
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(plt.Figure, "savefig", spy)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
+    assert "Warning" not in capsys.readouterr().err
+    assert sorted(seen) == sorted(ids)
