@@ -643,22 +643,16 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
 
     many = any(r.get("mean_ospa") is not None for r in rows)
     ykey = "mean_ospa" if many else "rmse_steady"
-    fig, ax = plt.subplots(figsize=(7.5, 5.2))
-    xs = np.array([r["sensors_per_scan_mean"] for r in rows], dtype=np.float64)
-    ys = np.array([r[f"{ykey}_mean"] for r in rows], dtype=np.float64)
-    dx = max(float(np.ptp(xs)), 1e-9) * 0.04
-    dy = max(float(np.ptp(ys)), 1e-9) * 0.04
-    for i, (r, c) in enumerate(zip(rows, _colors(len(rows)), strict=True)):
-        x, y = xs[i], ys[i]
+    fig, ax = plt.subplots(figsize=(9.5, 5.2), layout="constrained")
+    for r, c in zip(rows, _colors(len(rows)), strict=True):
+        x, y = float(r["sensors_per_scan_mean"]), float(r[f"{ykey}_mean"])
         xerr, yerr = _err(r, "sensors_per_scan", x), _err(r, ykey, y)
-        ax.errorbar([x], [y], xerr=xerr, yerr=yerr, fmt="o", color=c, capsize=4, ms=6)
         label = r["policy"] + ("" if r["budget"] is None else f" (K={r['budget']})")
-        # labels of points (nearly) on top of each other are stacked, not overprinted
-        below = int(np.sum((np.abs(xs[:i] - x) < dx) & (np.abs(ys[:i] - y) < dy)))
-        ax.annotate(
-            label, (x, y), textcoords="offset points", xytext=(6, 6 - 11 * below), fontsize=8,
-            color=c,
-        )  # fmt: skip
+        ax.errorbar([x], [y], xerr=xerr, yerr=yerr, fmt="o", color=c, capsize=4, ms=6,
+                    label=label)  # fmt: skip
+    # named in a key beside the axes: with --budget match every budgeted policy stands on one
+    # vertical line, where names printed by the points ran over each other
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax.margins(x=0.15, y=0.1)
     ax.set_xlabel("sensor-scans per scan (mean sensors on)")
     ax.set_ylabel(
@@ -666,7 +660,6 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     )
     ax.grid(alpha=0.3)
     ax.set_title(title, fontsize=9)
-    fig.tight_layout()
     path = out / "pareto.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)

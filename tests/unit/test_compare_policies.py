@@ -221,3 +221,47 @@ def test_cli_end_to_end(paper_path, tmp_path):
     (out / "pareto.png").unlink()
     assert main(["plot", str(out)]) == 0  # redrawn from compare.json and curves.npz
     assert (out / "pareto.png").is_file()
+
+
+def test_pareto_names_every_policy_without_overprinting(tmp_path, monkeypatch):
+    """``--budget match`` puts every budgeted policy on one vertical line (the same K), a few
+    metres apart: the names (expected_kl over round_robin, in a 7-policy comparison of
+    ``configs/large_multitarget.yaml``) were printed over each other.  Every policy is named
+    once, and no two names (nor a name and the title) overlap."""
+    import matplotlib.pyplot as plt
+
+    from covnet.covariance_control.compare_policies import make_figure
+
+    ys = {"covariance_control": 10.47, "all_on": 5.31, "random": 13.73, "round_robin": 10.64,
+          "greedy_information": 3.92, "uncertainty_reward": 3.94, "expected_kl": 8.55}  # fmt: skip
+    rows = []
+    for name, y in ys.items():
+        x = 64.0 if name == "all_on" else 24.9
+        K = None if name in ("all_on", "covariance_control") else 25
+        rows.append({"policy": name, "budget": K, "sensors_per_scan_mean": x,
+                     "sensors_per_scan_ci_lo": x - 2, "sensors_per_scan_ci_hi": x + 2,
+                     "mean_ospa": y, "mean_ospa_mean": y, "mean_ospa_ci_lo": y - 20,
+                     "mean_ospa_ci_hi": y + 20})  # fmt: skip
+    texts: list[tuple[str, object]] = []
+    save = plt.Figure.savefig
+
+    def spy(fig, *args, **kwargs):
+        fig.canvas.draw()
+        r = fig.canvas.get_renderer()
+        for ax in fig.axes:
+            pieces = [t for t in ax.texts if t.get_text()]
+            leg = ax.get_legend()
+            if leg is not None:
+                pieces += [t for t in leg.get_texts() if t.get_text()]
+            texts.extend((t.get_text(), t.get_window_extent(r)) for t in pieces)
+            texts.append(("<title>", ax.title.get_window_extent(r)))
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(plt.Figure, "savefig", spy)
+    make_figure(tmp_path, rows, "large_multitarget: allocation policies")
+    names = [t for t, _ in texts if t != "<title>"]
+    for name in ys:
+        assert sum(name in t for t in names) == 1, (name, names)
+    for i, (a, ba) in enumerate(texts):
+        for b, bb in texts[i + 1 :]:
+            assert not ba.overlaps(bb), (a, b)
