@@ -278,6 +278,7 @@ def _batch_results(
         **meta,
         "burn_in_scans": sc.evaluation.burn_in_scans,
         "trial_hash": key,
+        "title": title,  # the figure's, for covnet plot to draw the same
     }
     try:
         rows, outcome = work()

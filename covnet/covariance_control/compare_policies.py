@@ -643,16 +643,17 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
 
     many = any(r.get("mean_ospa") is not None for r in rows)
     ykey = "mean_ospa" if many else "rmse_steady"
-    fig, ax = plt.subplots(figsize=(9.5, 5.2), layout="constrained")
+    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    labels = []
     for r, c in zip(rows, _colors(len(rows)), strict=True):
         x, y = float(r["sensors_per_scan_mean"]), float(r[f"{ykey}_mean"])
         xerr, yerr = _err(r, "sensors_per_scan", x), _err(r, ykey, y)
+        ax.errorbar([x], [y], xerr=xerr, yerr=yerr, fmt="o", color=c, capsize=4, ms=6)
         label = r["policy"] + ("" if r["budget"] is None else f" (K={r['budget']})")
-        ax.errorbar([x], [y], xerr=xerr, yerr=yerr, fmt="o", color=c, capsize=4, ms=6,
-                    label=label)  # fmt: skip
-    # named in a key beside the axes: with --budget match every budgeted policy stands on one
-    # vertical line, where names printed by the points ran over each other
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+        labels.append(
+            ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8,
+                        color=c)  # fmt: skip
+        )
     ax.margins(x=0.15, y=0.1)
     ax.set_xlabel("sensor-scans per scan (mean sensors on)")
     ax.set_ylabel(
@@ -660,10 +661,39 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     )
     ax.grid(alpha=0.3)
     ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    _unstack(fig, ax, labels)
     path = out / "pareto.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _unstack(fig: Any, ax: Any, labels: Sequence[Any]) -> None:
+    """Move the points' names down, from the highest point's, until none overlaps another
+    name or the title: with ``--budget match`` every budgeted policy stands on one vertical
+    line, often metres apart, and names printed at a fixed offset ran over each other (points
+    that coincide get their names one under the other)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    placed = [ax.title.get_window_extent(renderer)]
+    per_px = 72.0 / fig.dpi  # offset points per pixel
+    for ann in sorted(labels, key=lambda a: -float(ax.transData.transform(a.xy)[1])):
+        box = ann.get_window_extent(renderer)
+        moved = 0.0
+        clash = True
+        while clash:
+            clash = False
+            for other in placed:
+                if box.overlaps(other):
+                    step = box.y1 - other.y0 + 1.0
+                    box = box.translated(0.0, -step)
+                    moved += step
+                    clash = True
+        if moved:
+            dx, dy = ann.xyann
+            ann.xyann = (dx, dy - moved * per_px)
+        placed.append(box)
 
 
 def curves_figure(out: Path, data: Mapping[str, np.ndarray], select: Sequence[int]) -> Path:

@@ -197,7 +197,7 @@ class _nothing:
         return False
 
 
-def test_cli_end_to_end(paper_path, tmp_path):
+def test_cli_end_to_end(paper_path, tmp_path, monkeypatch):
     """``python -m covnet compare ... --policies ... --budget match --runs 3``: the files."""
     cfg = tmp_path / "paper30.yaml"
     cfg.write_text(paper_path.read_text().replace("scans: 100", "scans: 30"))
@@ -219,8 +219,14 @@ def test_cli_end_to_end(paper_path, tmp_path):
     for fig in ("pareto.png", "curves.png"):
         assert (out / fig).stat().st_size > 10_000, fig
     (out / "pareto.png").unlink()
+    titles = []
+    real = cp.make_figure
+    monkeypatch.setattr(cp, "make_figure", lambda o, r, t: titles.append(t) or real(o, r, t))
     assert main(["plot", str(out)]) == 0  # redrawn from compare.json and curves.npz
     assert (out / "pareto.png").is_file()
+    # with the command's own title (it was a generic one)
+    want = "paper: allocation policies, metric spectral, 3 paired seeds"
+    assert titles == [doc["title"]] == [want]
 
 
 def test_pareto_names_every_policy_without_overprinting(tmp_path, monkeypatch):
