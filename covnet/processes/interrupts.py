@@ -65,10 +65,22 @@ def _redeliver() -> None:
 
 
 def _hook(unraisable: Any, fallback: Any = None) -> None:
-    if isinstance(unraisable.exc_value, KeyboardInterrupt):
-        threading.Thread(target=_redeliver, name="covnet-interrupt", daemon=True).start()
-        return
-    (fallback or sys.__unraisablehook__)(unraisable)
+    """Redeliver an unraisable ``KeyboardInterrupt``; report anything else as ``fallback``
+    does.  The redelivery itself may land in here: on a loaded machine the main thread can
+    still be inside ``Thread.start`` when the redelivering thread's ``REDELIVER_AFTER_S`` is
+    over, and an exception raised in the hook is printed and lost ("Exception ignored in
+    sys.unraisablehook").  So the hook catches it and starts another redelivery, until one
+    gets out (each is one interrupt: at most one is pending at a time)."""
+    again = isinstance(unraisable.exc_value, KeyboardInterrupt)
+    while True:
+        try:
+            if again:
+                threading.Thread(target=_redeliver, name="covnet-interrupt", daemon=True).start()
+            else:
+                (fallback or sys.__unraisablehook__)(unraisable)
+            return
+        except KeyboardInterrupt:
+            again = True
 
 
 def deliver_late_interrupts() -> None:
