@@ -73,10 +73,7 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
         "first_seed": sc.seed,
         "graph": args.graph or sc.fusion.peer.graph,
     }
-    title = (
-        f"{sc.name}: fusion structures, metric {metric}, {args.runs} seeds, "
-        f"peer graph {meta['graph']}"
-    )
+    title = cmp.figure_title(meta)
 
     def work() -> Any:
         return cmp.compare_outcome(
@@ -156,7 +153,7 @@ def compare_policies(args: argparse.Namespace, sc: Scenario) -> int:
         "budget": budget,
         "fusion": sc.fusion.mode,
     }
-    title = f"{sc.name}: allocation policies, metric {metric}, {args.runs} paired seeds"
+    title = cp.figure_title(meta)
 
     def budgets() -> dict[str, Any]:
         if not plan:  # interrupted before the budgets were known
@@ -278,7 +275,6 @@ def _batch_results(
         **meta,
         "burn_in_scans": sc.evaluation.burn_in_scans,
         "trial_hash": key,
-        "title": title,  # the figure's, for covnet plot to draw the same
     }
     try:
         rows, outcome = work()
@@ -357,10 +353,7 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
         "deadline_fraction": sc.network.deadline_fraction,
         "period_s": sc.period_s,
     }
-    title = (
-        f"{sc.name}: delay and loss ({spec.delay_kind} delays, both directions), "
-        f"metric {metric}, deadline {sc.network.deadline_fraction:g} T"
-    )
+    title = sw.figure_title(meta)
 
     def work() -> Any:
         return sw.sweep_outcome(

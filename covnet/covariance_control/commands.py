@@ -323,10 +323,7 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
             _check_trial_hash(run_dir, stem, doc)
             if doc.get("compared") == "policies":  # covnet compare --policies
                 from covnet.covariance_control import compare_policies as module
-            # the command's own title (a table written before it was kept: a generic one)
-            title = doc.get("title") or (
-                f"{doc.get('scenario', '')}: covnet {stem}, metric {doc.get('metric', '?')}"
-            )
+            title = module.figure_title(doc)  # the command's own
             figures = [module.make_figure(run_dir, rows, title)]
             if (run_dir / CURVES).is_file():
                 curves = load_arrays(run_dir / CURVES)

@@ -31,7 +31,7 @@ seed, so the table is too.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -496,3 +496,12 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def figure_title(meta: Mapping[str, Any]) -> str:
+    """``compare.png``'s title from the table's meta data (the command's, and ``covnet plot``'s
+    when it redraws the figure from ``compare.json``)."""
+    return (
+        f"{meta.get('scenario', '')}: fusion structures, metric {meta.get('metric', '?')}, "
+        f"{meta.get('runs', '?')} seeds, peer graph {meta.get('graph', '?')}"
+    )

@@ -750,3 +750,12 @@ __all__ = [
     "trial_key",
     "write_table",
 ]
+
+
+def figure_title(meta: Mapping[str, Any]) -> str:
+    """``pareto.png``'s title from the table's meta data (the command's, and ``covnet plot``'s
+    when it redraws the figure from ``compare.json``)."""
+    return (
+        f"{meta.get('scenario', '')}: allocation policies, metric {meta.get('metric', '?')}, "
+        f"{meta.get('runs', '?')} paired seeds"
+    )

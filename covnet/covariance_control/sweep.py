@@ -32,7 +32,7 @@ written to the output directory.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -514,3 +514,14 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
             "NEES: after the burn-in, mean ± half-width (4 is consistent)"
         )
     return "\n".join(lines)
+
+
+def figure_title(meta: Mapping[str, Any]) -> str:
+    """The sweep figure's title from the table's meta data (the command's, and ``covnet
+    plot``'s when it redraws the figure from ``sweep.json``)."""
+    fraction = meta.get("deadline_fraction")
+    return (
+        f"{meta.get('scenario', '')}: delay and loss ({meta.get('delay_kind', '?')} delays, "
+        f"both directions), metric {meta.get('metric', '?')}, deadline "
+        f"{'?' if fraction is None else f'{fraction:g}'} T"
+    )

@@ -226,7 +226,7 @@ def test_cli_end_to_end(paper_path, tmp_path, monkeypatch):
     assert (out / "pareto.png").is_file()
     # with the command's own title (it was a generic one)
     want = "paper: allocation policies, metric spectral, 3 paired seeds"
-    assert titles == [doc["title"]] == [want]
+    assert titles == [want] and cp.figure_title(doc) == want
 
 
 def test_pareto_names_every_policy_without_overprinting(tmp_path, monkeypatch):
