@@ -37,14 +37,9 @@ import yaml
 
 from covnet import kinds
 from covnet.errors import UpError
+from covnet.processes.interrupts import EXIT_INTERRUPTED
 from covnet.processes.launch import ProcessSpec, Supervisor
-from covnet.processes.up import (
-    INTERRUPTED,
-    default_sensors_per_process,
-    free_port,
-    sensor_hosts,
-    up,
-)
+from covnet.processes.up import default_sensors_per_process, free_port, sensor_hosts, up
 from covnet.wire.messages import new_run_id
 
 #: scans of each run of a sized network (and of its probe)
@@ -70,7 +65,7 @@ def _covnet_row(
     except UpError as exc:  # with what the processes said (it went to the sink)
         raise UpError(f"{exc}; the run's last output:\n{sink.getvalue()[-3000:]}") from None
     wall, cpu = time.perf_counter() - t0, _children_cpu_s() - cpu0
-    if status == INTERRUPTED:  # Ctrl-C or SIGTERM stopped the run: it stops the bench
+    if status == EXIT_INTERRUPTED:  # Ctrl-C or SIGTERM stopped the run: it stops the bench
         raise KeyboardInterrupt
     if status != 0:
         raise UpError(f"covnet up failed (status {status}):\n{sink.getvalue()[-3000:]}")

@@ -8,8 +8,9 @@ import sys
 from typing import Any
 
 from covnet import kinds
+from covnet.processes.interrupts import EXIT_INTERRUPTED as EXIT_INTERRUPTED
 
-EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
 EXIT_PIPE = 141
 """The reader of stdout went away (``covnet check CONFIG | head``): 128 + SIGPIPE, the status
 of a Unix tool that the closed pipe stopped."""

@@ -47,7 +47,7 @@ from covnet.core.allocation import (
     subset_covariance,
 )
 from covnet.core.allocation.search import SearchResult, allocate_bnb, allocate_greedy
-from covnet.core.allocation.search_problem import gap_from_nothing as _gaps_from_nothing
+from covnet.core.allocation.search_problem import gap_from_nothing
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import METRICS
 from covnet.core.motion import cv_transition, dwna_process_noise
@@ -142,12 +142,6 @@ def plain_greedy(
             break
         best, chosen = v, S
     return tuple(chosen), best
-
-
-def gap_from_nothing(res: SearchResult, nothing: float) -> float:
-    """:func:`covnet.core.allocation.search_problem.gap_from_nothing` of one decision (its
-    value and certified lower bound; ``nothing``: ``f(P⁻, P_d)``)."""
-    return float(_gaps_from_nothing(res.value, res.lower_bound, nothing))
 
 
 #: the clocks a bench may time and limit its decisions by (``--clock``): the wall clock, or the
@@ -270,7 +264,8 @@ def run(
     Rows: ``search``, ``metric``, ``n_sensors``, ``n_problems``, ``repeat``, ``median_s``,
     ``worst_s`` (per decision), ``peak_mb``, ``gap_median``, ``gap_worst`` (the certified
     relative gap), ``gap_nothing_median``, ``gap_nothing_worst`` (the certified gap relative
-    to the distance from doing nothing, :func:`gap_from_nothing`), ``n_nodes_median``,
+    to the distance from doing nothing, :func:`~covnet.core.allocation.search_problem.\
+    gap_from_nothing`), ``n_nodes_median``,
     ``n_exact`` (decisions that ended exact: status 0), ``problem_s`` and ``problem_status``
     (per problem, in order: the median time of its timed calls and its first timed call's
     status, so a capped run says which problems it left open),
@@ -362,7 +357,9 @@ def run(
                 times[search][e - c : e] for c, e in zip(counts, ends, strict=True)
             ]
             gaps = [r.gap for _, r in timed]
-            gaps_nothing = [gap_from_nothing(r, nothing[p]) for p, r in timed]
+            gaps_nothing = [
+                float(gap_from_nothing(r.value, r.lower_bound, nothing[p])) for p, r in timed
+            ]
             row: Row = {
                 "search": search,
                 "metric": name,

@@ -27,6 +27,8 @@ import sys
 import threading
 from typing import Any
 
+#: the exit status of an interrupted command or run (a shell's for SIGINT)
+EXIT_INTERRUPTED = 130
 # long enough for the main thread to leave the hook (a few bytecodes), short for a user
 REDELIVER_AFTER_S = 0.02
 

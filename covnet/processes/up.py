@@ -38,7 +38,6 @@ from covnet.wire.security import endpoint, preflight
 
 __all__ = [
     "HOST_PREFIX",
-    "INTERRUPTED",
     "StatusView",
     "UpError",
     "default_sensors_per_process",
@@ -74,9 +73,6 @@ VITAL = {
     "world": "no truth was published after that (the sensors measured what they had)",
     "recorder": "the recording stops there, so covnet replay cannot reproduce the run",
 }
-#: what :func:`up` returns when a Ctrl-C or SIGTERM stopped the run (a shell's status for
-#: SIGINT)
-INTERRUPTED = 130
 
 
 def default_sensors_per_process(n_sensors: int, cores: int | None = None) -> int:
@@ -419,7 +415,7 @@ def up(
         ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")
         _note_lost(out, lost)
         print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
-        return INTERRUPTED
+        return interrupts.EXIT_INTERRUPTED
     finally:
         signal.signal(signal.SIGTERM, previous)
 
@@ -504,7 +500,7 @@ def _supervise_without_manager(
     except KeyboardInterrupt:
         sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         print("covnet up: interrupted; every process stopped", file=sys.stderr)
-        return INTERRUPTED
+        return interrupts.EXIT_INTERRUPTED
 
 
 def _lost(name: str, rc: int, last: dict[str, Any] | None) -> dict[str, Any]:
