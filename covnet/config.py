@@ -190,6 +190,10 @@ class LinkConfig(ConfigModel):
 
     @model_validator(mode="after")
     def _valid_link(self) -> LinkConfig:
+        if "kind" not in self.delay:
+            from covnet.core.delay import KINDS
+
+            raise ValueError(f"delay.kind is required: one of {', '.join(KINDS)}")
         for key, value in self.delay.items():
             values = value if key == "samples_s" and isinstance(value, list | tuple) else [value]
             if key != "kind" and not all(

@@ -182,7 +182,10 @@ class DelayDist:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> DelayDist:
-        """Inverse of :meth:`to_dict`; an unknown key is a ``ValueError``."""
+        """Inverse of :meth:`to_dict`; an unknown key or a missing ``kind`` is a
+        ``ValueError``."""
+        if "kind" not in data:
+            raise ValueError(f"DelayDist.kind is required: one of {', '.join(KINDS)}")
         return cls(**_known_keys(cls, data))
 
 

@@ -190,6 +190,7 @@ def test_round_trip_through_dicts():
         (lambda: LinkSpec(jitter_s=-1e-3), r"jitter_s must be finite and >= 0"),
         (lambda: LinkSpec(delay=0.01), r"delay must be a DelayDist"),  # type: ignore[arg-type]
         (lambda: LinkSpec.from_dict({"latency": 1}), r"no field 'latency'"),
+        (lambda: LinkSpec.from_dict({"delay": {"value_s": 0.1}}), r"kind is required: one of"),
         (lambda: schedule(LinkSpec(), np.array([1.0, 0.5]), _rng()), r"non-decreasing"),
         (lambda: schedule(LinkSpec(), np.array([np.nan]), _rng()), r"finite"),
         (lambda: LinkState(LinkSpec(), _rng()).on_send(math.inf), r"t_send must be finite"),

@@ -173,6 +173,13 @@ def test_bad_latency_config_names_the_field(paper_path):
     data["network"]["latency"] = {"sensors": {"S9": {}}}
     with pytest.raises(ConfigError, match=r"network.latency.sensors.S9"):
         from_dict(data)
+    # a delay without its kind: the field named, not a TypeError from the constructor
+    data["network"]["latency"] = {"uplink": {"delay": {"value_s": 0.1}}}
+    with pytest.raises(ConfigError, match=r"network.latency.uplink.*delay.kind is required"):
+        from_dict(data)
+    data["network"]["latency"] = {"downlink": {"delay": {}}}
+    with pytest.raises(ConfigError, match=r"network.latency.downlink.*delay.kind is required"):
+        from_dict(data)
 
 
 def test_zero_point_of_a_sweep_is_the_plain_run(paper_path):
