@@ -191,6 +191,7 @@ class LinkConfig(ConfigModel):
     @model_validator(mode="after")
     def _valid_link(self) -> LinkConfig:
         if "kind" not in self.delay:
+            # start-up: the link model only for configs with links (as in spec below)
             from covnet.core.delay import KINDS
 
             raise ValueError(f"delay.kind is required: one of {', '.join(KINDS)}")
