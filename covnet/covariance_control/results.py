@@ -516,7 +516,14 @@ def _network_facts(result: ManagerResult) -> tuple[dict[str, Any], dict[str, Any
 def tracks(sc: Scenario, run_dir: Path) -> list[Episode]:
     """``covnet export`` (:mod:`covnet.runs.export`): per metric of the run (``arrays.npz``'s
     order), every target's truth and fused track over the scans the metric's episode did
-    (scans ``1..K'`` at ``t``); a single target is ``T1``."""
+    (scans ``1..K'`` at ``t``); a single target is ``T1``.  A surveillance run: its targets
+    while they exist and its confirmed tracks
+    (:func:`~covnet.covariance_control.surveillance_results.surveillance_tracks`)."""
+    if sc.surveillance is not None:  # tracks that start and end: their own layout
+        # start-up: the surveillance results only for a surveillance run's export
+        from covnet.covariance_control.surveillance_results import surveillance_tracks
+
+        return surveillance_tracks(run_dir)
     # start-up: the export's readers only for covnet export
     from covnet.runs.export import Episode, StateSeries, read_arrays, require_arrays
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,7 +33,16 @@ from covnet.covariance_control.surveillance import SurveillanceModel
 from covnet.covariance_control.surveillance_log import SurveillanceRun
 from covnet.runs.rundir import ARRAYS, CONFIG, RUN_INFO, SUMMARY, utc_now, write_json, write_npz
 
-__all__ = ["STATES", "surveillance_summary", "track_rows", "write_surveillance_run"]
+if TYPE_CHECKING:
+    from covnet.runs.export import Episode
+
+__all__ = [
+    "STATES",
+    "surveillance_summary",
+    "surveillance_tracks",
+    "track_rows",
+    "write_surveillance_run",
+]
 
 #: a track's state as ``track_rows`` codes it
 STATES = {"tentative": 0, "confirmed": 1, "deleted": 2}
@@ -149,3 +158,49 @@ def write_surveillance_run(
     write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)
     return summary
+
+
+def track_id(n: int) -> str:
+    """The id of covnet's track number ``n`` in an export (``track-17``): a track's own number,
+    not a target's (a surveillance track is started from detections, not cued)."""
+    return f"track-{n}"
+
+
+def surveillance_tracks(run_dir: Path) -> list[Episode]:
+    """``covnet export`` of a surveillance run (:mod:`covnet.runs.export`): per metric, every
+    target's truth over the scans it exists (``exists``; a target that never appeared in the
+    scans done: no series) and every *confirmed* track over the scans it was confirmed at
+    (``track_rows`` with state 1; tentative and deleted rows are left out), with its id
+    :func:`track_id`, time ``t`` and posterior ``x``, ``P``.  These are the two sets covnet's
+    per-scan GOSPA and OSPA compare (:func:`covnet.core.surveillance.continuity.
+    evaluate_continuity`: the existing targets against the confirmed tracks' positions), so a
+    metric on the export gives covnet's.  A network run stopped early: the scans its metric
+    did (``gospa.m``'s length)."""
+    # start-up: the export's readers only for covnet export
+    from covnet.runs.export import Episode, StateSeries, read_arrays, require_arrays
+
+    a = read_arrays(run_dir, "metrics", "t", "truth", "exists", "truth_ids")
+    metrics = [str(m) for m in a["metrics"]]
+    require_arrays(a, run_dir, *(f"{f}.{m}" for m in metrics for f in ("gospa", "track_rows")))
+    t, truth, exists = a["t"], a["truth"], a["exists"]
+    tids = [str(x) for x in a["truth_ids"]]
+    out = []
+    for m in metrics:
+        n = a[f"gospa.{m}"].shape[0]
+        truths = []
+        for i, tid in enumerate(tids):
+            k = np.flatnonzero(exists[i, :n])
+            if k.size:
+                truths.append(StateSeries(tid, k + 1, t[k], truth[i, k]))
+        rows = a[f"track_rows.{m}"]
+        rows = rows[(rows[:, 2] == STATES["confirmed"]) & (rows[:, 0] <= n)]
+        tracks = []
+        for num in sorted({int(x) for x in rows[:, 1]}):
+            r = rows[rows[:, 1] == num]
+            r = r[np.argsort(r[:, 0], kind="stable")]
+            scan = r[:, 0].astype(np.int64)
+            tracks.append(
+                StateSeries(track_id(num), scan, t[scan - 1], r[:, 3:7], r[:, 7:].reshape(-1, 4, 4))
+            )
+        out.append(Episode(m, tuple(truths), tuple(tracks)))
+    return out

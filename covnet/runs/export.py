@@ -9,8 +9,12 @@ track of it, each a :class:`StateSeries`: per scan its number, its time ``t`` (s
 state ``[x, vx, y, vy]`` (m, m/s) and, for a track, the posterior covariance ``P`` (4 x 4) after
 that scan's update.  Every target has exactly one track, with the target's id (covnet's
 trackers are cued: no initiation, no deletion); a single-target (paper) run's target is
-``T1``.  The truth of an episode covers the scans its tracks cover (a network run stopped
-early: the scans it completed).
+``T1``.  A surveillance run (targets that appear and leave, tracks started from detections) is
+the exception: each target over the scans it exists and each *confirmed* track over the scans
+it is confirmed, with the track's own id (``track-17``;
+:func:`covnet.covariance_control.surveillance_results.surveillance_tracks`).  The truth of an
+episode covers the scans its tracks cover (a network run stopped early: the scans it
+completed).
 
 Which scans: a covariance-control run's scans ``1..K`` at ``t = k T`` (``arrays.npz``'s ``t``);
 a mobile run's rows ``0..K`` at ``t = k T`` (row 0 the start: the true initial state and the

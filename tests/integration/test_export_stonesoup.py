@@ -235,3 +235,36 @@ def test_stone_soup_ospa_picks_its_assignment_by_distance():
         g, _ = gm.compute_gospa_metric(ys, xs)
         assert g.value["distance"] == pytest.approx(gospa(X, Y, 100.0, 2.0).distance, rel=RTOL)
     assert above > 0
+
+
+def test_a_surveillance_run_exports_its_confirmed_tracks_and_gives_covnets_gospa(tmp_path):
+    """A surveillance run (targets that appear and leave, tracks started from detections in
+    clutter): the export holds each target while it exists and each confirmed track while it is
+    confirmed, with the track's own id; Stone Soup's OSPA and GOSPA on it are covnet's at every
+    scan with a target or a confirmed track (Stone Soup's timestamps), and covnet's are 0 at
+    the others (nothing against nothing)."""
+    cfg = _config(tmp_path, "surveillance", 100)  # its own length: targets enter until scan 60
+    run = tmp_path / "surv"
+    _covnet("run", str(cfg), "--out", str(run), "--no-figures")
+    doc = _export(run, tmp_path)
+    _check_states(doc, run)
+    a = load_arrays(run / "arrays.npz")
+    summary = json.loads((run / "summary.json").read_text())
+    c, p = summary["ospa"]["cutoff_m"], summary["ospa"]["order"]
+    (m,) = (str(x) for x in a["metrics"])
+    truths, tracks = doc[m]["groundtruth_paths"], doc[m]["tracks"]
+    assert all(t.id.startswith("track-") for t in tracks) and len(tracks) >= 2
+    assert {t.id for t in truths} <= {str(x) for x in a["truth_ids"]}
+    stamps = sorted({s.timestamp for x in (*truths, *tracks) for s in x.states})
+    scans = [round((s - ex.EPOCH).total_seconds() / float(a["t"][0])) for s in stamps]
+    o, g = _stone_soup_metrics(truths, tracks, c, p)
+    assert o.size == len(scans) >= 20
+    idx = np.array(scans) - 1
+    np.testing.assert_allclose(o, a[f"ospa.{m}"][idx], rtol=RTOL, atol=1e-12)
+    np.testing.assert_allclose(g, a[f"gospa.{m}"][idx], rtol=RTOL, atol=1e-12)
+    rest = np.setdiff1d(np.arange(100), idx)
+    assert np.all(a[f"gospa.{m}"][rest] == 0.0) and np.all(a[f"ospa.{m}"][rest] == 0.0)
+    # the confirmed tracks' rows, no other
+    rows = a[f"track_rows.{m}"]
+    assert sum(len(t.states) for t in tracks) == int((rows[:, 2] == 1).sum())
+    assert sum(len(t.states) for t in truths) == int(a["exists"].sum())

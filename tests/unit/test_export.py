@@ -125,6 +125,45 @@ def test_csv_of_a_many_target_run_is_its_arrays(mt_run):
     assert first[15] == ("track", "T1", "1")
 
 
+@pytest.fixture(scope="module")
+def surveillance_run(tmp_path_factory) -> Path:
+    """configs/surveillance.yaml for 30 scans: A1 from scan 1, A5 from 5 and A2 from 10 (the
+    later ones dropped), tracks started from detections in clutter."""
+    data = yaml.safe_load((ROOT / "configs" / "surveillance.yaml").read_text())
+    data["scans"] = 30
+    data["targets"] = [t for t in data["targets"] if t.get("appears_at_scan", 1) <= 10]
+    p = tmp_path_factory.mktemp("cfg") / "surveillance.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return _run(tmp_path_factory, p, "surveillance")
+
+
+def test_csv_of_a_surveillance_run_is_its_targets_and_confirmed_tracks(surveillance_run):
+    """A target's rows are the scans it exists, a track's the scans it is confirmed, with its
+    own id (``track-N``); every value bit for bit from ``arrays.npz``."""
+    rows = _export_csv(surveillance_run)
+    a = load_arrays(surveillance_run / "arrays.npz")
+    (m,) = (str(x) for x in a["metrics"])
+    for i, tid in enumerate(str(x) for x in a["truth_ids"]):
+        tr = [r for r in rows if r["kind"] == "truth" and r["id"] == tid]
+        k = np.flatnonzero(a["exists"][i])
+        assert [int(r["scan"]) for r in tr] == (k + 1).tolist()
+        assert np.array_equal(np.stack([_state(r) for r in tr]), a["truth"][i, k])
+        assert np.array_equal([float(r["t"]) for r in tr], a["t"][k])
+    conf = a[f"track_rows.{m}"]
+    conf = conf[conf[:, 2] == 1]
+    tk = [r for r in rows if r["kind"] == "track"]
+    assert len(tk) == len(conf) > 0
+    assert {r["id"] for r in tk} == {f"track-{int(n)}" for n in conf[:, 1]}
+    for n in {int(x) for x in conf[:, 1]}:
+        mine = conf[conf[:, 1] == n]
+        got = [r for r in tk if r["id"] == f"track-{n}"]
+        assert [int(r["scan"]) for r in got] == mine[:, 0].astype(int).tolist()
+        assert np.array_equal(np.stack([_state(r) for r in got]), mine[:, 3:7])
+        assert np.array_equal(np.stack([_cov(r) for r in got]), mine[:, 7:].reshape(-1, 4, 4))
+    # tentative and deleted tracks are not in it
+    assert len({r["id"] for r in tk}) < len({int(x) for x in a[f"track_rows.{m}"][:, 1]})
+
+
 def test_csv_of_a_mobile_run_starts_at_row_zero(mobile_run):
     rows = _export_csv(mobile_run)
     a = load_arrays(mobile_run / "arrays.npz")

@@ -348,3 +348,46 @@ def test_auto_with_cells_is_exact_while_the_assignments_are_few_and_greedy_beyon
     assert (64 + 1) ** 3 > searches.AUTO_MODES_MAX  # 3 sensors can search
     run = drive.run(from_dict(d), "spectral").run
     assert run.search_dwells.sum() > 0
+
+
+def test_a_surveillance_scenario_without_targets_runs_the_search_alone(tmp_path, capsys):
+    """``targets: []`` is a surveillance scenario (the config allows it: false tracks and the
+    search over an empty area); its config check crashed on the targets' empty trajectories."""
+    import warnings
+
+    import yaml
+
+    from covnet.cli.app import main
+
+    d = base(targets=[])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # every sensor covers a cell: nothing to warn about
+        sc = from_dict(copy.deepcopy(d))
+    assert not sc.targets
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(yaml.safe_dump(d))
+    out = tmp_path / "run"
+    assert main(["run", str(cfg), "--out", str(out), "--no-figures"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["truth_ids"] == []
+    blk = s["metrics"]["spectral"]
+    assert blk["false_tracks"] == 0  # no clutter, no target: no track at all
+    assert blk["search_share"] == 1.0  # every dwell searches
+
+
+def test_a_sensor_that_covers_only_search_cells_is_not_out_of_reach():
+    """With a search grid a sensor can be allocated to the cells it covers: it is out of reach
+    only if it covers neither a target's path nor a cell."""
+    import warnings
+
+    from covnet.covariance_control.config import ConfigWarning
+
+    d = base()
+    # P1 near the north-east cell's centre with a short range: no target's path, that cell
+    d["sensors"][0].update(position_m=[16000.0, 16000.0], max_range_m=3000.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        from_dict(copy.deepcopy(d))
+    d["sensors"][0].update(position_m=[60000.0, 60000.0], max_range_m=1000.0)
+    with pytest.warns(ConfigWarning, match=r"P1 never covers any target or search cell"):
+        from_dict(d)

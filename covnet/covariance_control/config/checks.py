@@ -380,10 +380,19 @@ def nominal_positions(sc: Scenario) -> np.ndarray:
 
 def reach_warnings(sc: Scenario) -> list[tuple[str, str]]:
     """The sensors that never cover any target at any scan (on the noise-free trajectories of
-    :func:`nominal_positions`): allowed, never allocated, probably a mistake."""
+    :func:`nominal_positions`) nor, in surveillance with a search grid, any search cell (its
+    centre, as :func:`covnet.core.surveillance.search_cells.coverage_of` decides): allowed,
+    never allocated, probably a mistake.  Nothing to cover (surveillance with no target and no
+    grid): no warning."""
     if not sc.multitarget or not any(s.max_range_m or s.fov for s in sc.sensors):
         return []
-    xy = nominal_positions(sc)
+    xy = nominal_positions(sc).reshape(-1, 2)
+    grid = sc.surveillance.grid() if sc.surveillance is not None else None
+    if grid is not None:
+        xy = np.concatenate([xy, grid.centres()])
+    if not xy.size:
+        return []
+    what = "any target or search cell" if grid is not None else "any target"
     out = []
     for i, s in enumerate(sc.sensors):
         if in_coverage(s, xy).any():
@@ -399,7 +408,7 @@ def reach_warnings(sc: Scenario) -> list[tuple[str, str]]:
         out.append(
             (
                 f"sensors[{i}]",
-                f"{s.id} never covers any target ({reach}{fov}; nearest approach "
+                f"{s.id} never covers {what} ({reach}{fov}; nearest approach "
                 f"{d / 1e3:.1f} km): it can never be allocated",
             )
         )
