@@ -189,6 +189,17 @@ def test_bad_values_are_refused_with_their_path(change, path, words):
     assert any(p == path and words in m for p, m in got), got
 
 
+def test_peer_mode_is_refused_as_peer_with_central_as_the_only_advice():
+    """``--fusion peer`` on a surveillance config named the peer rule's default (``info:
+    not with 'surveillance:'``) and advised ``central or info``, which surveillance refuses."""
+    d = base(fusion={"mode": "peer"})
+    d["allocation"]["search"] = "exact"  # greedy's own objection to peer aside
+    got = [(p, m) for p, m in problems(d) if p == "fusion.mode"]
+    assert got and all(m.startswith("peer") for _, m in got), got
+    assert not any("info" in m for _, m in got), got
+    assert any("use central)" in m for _, m in got), got
+
+
 def test_jpda_and_appearing_targets_need_surveillance():
     d = base()
     del d["surveillance"]

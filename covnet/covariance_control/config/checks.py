@@ -214,7 +214,8 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
             (
                 "fusion.mode",
                 "peer is not available with 'targets:': the peer nodes' mirror of every node's "
-                "filter is single-target (use central or info)",
+                "filter is single-target "
+                + ("(use central)" if sc.surveillance is not None else "(use central or info)"),
             )
         )
     if sc.allocation.account_for_loss:

@@ -156,8 +156,8 @@ def surveillance_problems(sc: Scenario) -> list[tuple[str, str]]:
         )
     if sc.association.method == "nearest":
         pass  # allowed: nearest neighbour per track, returns shared first come
-    rule = rule_for(sc.fusion)
-    if rule.name != "central":
+    # peer mode (no centre) is refused by the many-target checks, naming peer
+    if sc.fusion.has_centre and (rule := rule_for(sc.fusion)).name != "central":
         problems.append(
             (
                 "fusion.mode",
