@@ -191,10 +191,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     mc.add_argument(
         "--trials",
+        "--seeds",
+        dest="trials",
         type=int,
         metavar="N",
         help="seeds (covariance control: from the config's, default 20; mobile: 0..N-1, "
-        "default 20) or trials per cell (passive, default: config)",
+        "default 20) or trials per cell (passive, default: config); --seeds is the same "
+        "option, named as sweep's",
     )
     mc.add_argument(
         "--metric",
@@ -320,7 +323,13 @@ def build_parser() -> argparse.ArgumentParser:
         "config's allocation.budget",
     )
     cp.add_argument(
-        "--runs", type=int, default=20, help="seeds per mode or policy (default: %(default)s)"
+        "--runs",
+        "--seeds",
+        dest="runs",
+        type=int,
+        default=20,
+        help="seeds per mode or policy (default: %(default)s); --seeds is the same option, "
+        "named as sweep's",
     )
     cp.add_argument(
         "--metric", action="append", metavar="NAME", help="allocation metric (default: the first)"

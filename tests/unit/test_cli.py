@@ -382,3 +382,36 @@ def test_replay_of_a_run_that_ended_before_its_first_scan_says_so(tmp_path, caps
     err = capsys.readouterr().err
     assert "nothing to replay: the run ended before its first scan" in err, err
     assert f"status {status}" in err and "stopped before the network was ready" in err, err
+
+
+@pytest.mark.parametrize(
+    ("argv", "dest"),
+    [
+        (["mc", "c.yaml", "--seeds", "7"], "trials"),
+        (["mc", "c.yaml", "--trials", "7"], "trials"),
+        (["compare", "c.yaml", "--seeds", "7"], "runs"),
+        (["compare", "c.yaml", "--runs", "7"], "runs"),
+        (["sweep", "c.yaml", "--seeds", "7"], "seeds"),
+    ],
+)
+def test_every_batch_command_takes_seeds(argv, dest):
+    """mc (--trials), compare (--runs) and sweep (--seeds) count their seeds under three names;
+    each takes --seeds too, the same option (``--seeds 2`` was 'unrecognized' by mc and
+    compare), and mc's --seed stays the first seed."""
+    from covnet.cli.app import build_parser
+
+    args = build_parser().parse_args(argv)
+    assert getattr(args, dest) == 7
+    args = build_parser().parse_args(["mc", "c.yaml", "--seeds", "3", "--seed", "11"])
+    assert (args.trials, args.seed) == (3, 11)
+
+
+def test_mc_with_seeds_is_mc_with_trials(tmp_path, paper_path, capsys):
+    outs = []
+    for opt in ("--seeds", "--trials"):
+        out = tmp_path / opt.strip("-")
+        argv = ["mc", str(paper_path), opt, "2", "--metric", "spectral", "--workers", "1"]
+        assert main([*argv, "--out", str(out), "--no-figures"]) == 0
+        outs.append(out)
+    a, b = (json.loads((o / "montecarlo.json").read_text()) for o in outs)
+    assert a == b and a["seeds"] == [2026, 2027]
