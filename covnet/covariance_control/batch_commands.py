@@ -41,6 +41,12 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
         return compare_policies(args, sc)
     if getattr(args, "budget", None) is not None:
         raise UsageError("--budget: the policies' budget; give it with --policies")
+    if sc.surveillance is not None:
+        raise UsageError(
+            "compare: the fusion structures are compared on the one-target scenario; "
+            "surveillance fuses returns centrally only (covnet mc evaluates it; covnet compare "
+            "--policies compares allocation policies on it)"
+        )
     if sc.multitarget:
         raise UsageError(
             "compare: the fusion structures are compared on the one-target scenario; with "

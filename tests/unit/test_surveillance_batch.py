@@ -59,6 +59,14 @@ def test_a_sweep_without_the_weight_grid_says_what_to_give(tmp_path, capsys):
     assert "search_weight" in capsys.readouterr().err
 
 
+def test_compare_modes_says_surveillance_is_central_only(tmp_path, capsys):
+    """It advised ``covnet mc --fusion info``, which a surveillance config refuses."""
+    cfg = small(tmp_path)
+    assert main(["compare", str(cfg), "--modes", "central,info", "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "centrally only" in err and "--fusion info" not in err and "--policies" in err
+
+
 def test_policies_side_by_side_with_search(tmp_path, capsys):
     """covnet compare --policies on a surveillance config: every policy on the same seeds; a
     baseline's spare sensors search (so every policy finds targets)."""
