@@ -126,12 +126,16 @@ class RunResult:
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
 
     def to_frame(self) -> Any:
-        """A pandas DataFrame: one row per scan, a column per per-scan array (``(N, k)``
-        arrays as ``name[0]`` ... ``name[k-1]``); without arrays, the summary flattened."""
+        """A pandas DataFrame: one row per scan of the run (the summary's ``scans``), a column
+        per per-scan array: ``(scans,)`` as ``name``, ``(scans, k)`` as ``name[0]`` ...
+        ``name[k-1]`` (e.g. a state's components, each sensor's on/off), and a many-target
+        ``(T, scans)`` array (a value per target and scan) as ``name[0]`` ... ``name[T-1]`` in
+        the run's target order; arrays of other shapes (a sensor list, a surveillance run's
+        track rows) are left out.  Without arrays (a passive run): the summary flattened."""
         pd = _pandas()
         if not self.arrays:
             return pd.json_normalize(self.summary)
-        n = max(len(a) for a in self.arrays.values() if a.ndim >= 1)
+        n = int(self.summary["scans"])
         cols: dict[str, Any] = {"scan": np.arange(1, n + 1)}
         for name, a in self.arrays.items():
             if a.ndim == 1 and len(a) == n:
@@ -139,6 +143,9 @@ class RunResult:
             elif a.ndim == 2 and a.shape[0] == n:
                 for j in range(a.shape[1]):
                     cols[f"{name}[{j}]"] = a[:, j]
+            elif a.ndim == 2 and a.shape[1] == n:
+                for j in range(a.shape[0]):
+                    cols[f"{name}[{j}]"] = a[j]
         return pd.DataFrame(cols)
 
 

@@ -52,6 +52,23 @@ def test_run_returns_the_summary_and_numpy_arrays(paper_path):
         api.run(paper_path, scans=-1)
 
 
+def test_to_frame_has_a_row_per_scan_whatever_the_other_arrays(paper_path):
+    """The rows were the longest array's: with 5 scans and 8 sensors a paper run's frame was
+    the 8 sensor names; a surveillance run's, its track rows."""
+    pytest.importorskip("pandas")
+    df = api.run(paper_path, metric="spectral", scans=5).to_frame()
+    assert list(df["scan"]) == [1, 2, 3, 4, 5] and "nees.spectral" in df
+    assert "x_est.spectral[2]" in df and "enabled.spectral[7]" in df and "sensor_ids" not in df
+    r = api.run(REPO / "configs" / "surveillance.yaml", scans=100)
+    df = r.to_frame()
+    assert len(df) == 100 and "gospa.spectral" in df and "u.spectral[15]" in df
+    assert np.array_equal(df["gospa.spectral"], r.arrays["gospa.spectral"])
+    # a many-target (T, scans) array: a column per target
+    r = api.RunResult(None, {"scans": 3}, {"nees.m": np.arange(6.0).reshape(2, 3)})
+    df = r.to_frame()
+    assert list(df["nees.m[1]"]) == [3.0, 4.0, 5.0] and len(df) == 3
+
+
 def test_sweep_result(tmp_path):
     s = api.sweep(
         REPO / "configs" / "latency.yaml",
