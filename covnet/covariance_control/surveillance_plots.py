@@ -188,7 +188,8 @@ def make_surveillance_figures(run_dir: Path) -> list[Path]:
 
 def mc_figure(mc_dir: Path, doc: dict[str, Any]) -> Path:
     """``montecarlo.png`` of a surveillance ``covnet mc``: per metric the mean GOSPA and the
-    mean number of confirmed tracks per scan, each with its 95 % interval over the seeds."""
+    mean number of confirmed tracks per scan, each with its 95 % interval over the seeds (the
+    axes start at 0, as both quantities do: Student's interval of a few seeds reaches below)."""
     agg = doc["aggregate"]
     fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True, layout="constrained")
     for i, (m, b) in enumerate(agg.items()):
@@ -198,6 +199,8 @@ def mc_figure(mc_dir: Path, doc: dict[str, Any]) -> Path:
             k = np.arange(1, len(s["mean"]) + 1)
             ax.plot(k, s["mean"], color=col, lw=1.5, label=m)
             ax.fill_between(k, s["ci95_low"], s["ci95_high"], color=col, alpha=0.2)
+    for ax in axes:  # both are >= 0: a few seeds' t-interval may reach below (not drawn)
+        ax.set_ylim(bottom=0.0)
     axes[0].set_ylabel("GOSPA (m)")
     axes[1].set_ylabel("confirmed tracks")
     axes[1].set_xlabel("scan k")

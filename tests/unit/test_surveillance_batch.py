@@ -39,6 +39,26 @@ def test_mc_gives_intervals_over_the_seeds(tmp_path, capsys):
     assert doc["per_seed"][0]["metrics"]["spectral"]["gospa_mean"] == s["gospa_mean"]
 
 
+def test_the_mc_figure_starts_its_axes_at_zero(tmp_path, monkeypatch):
+    """GOSPA and a count of tracks are >= 0; a few seeds' Student intervals reach below 0
+    (configs/surveillance.yaml, 3 seeds: to -600 m), and the figure drew its axes down there."""
+    import matplotlib.figure
+
+    from covnet.covariance_control import surveillance_plots
+
+    band = {"mean": [200.0, 50.0, 400.0], "ci95_low": [-300.0, 20.0, -600.0],
+            "ci95_high": [700.0, 80.0, 1400.0]}  # fmt: skip
+    count = {"mean": [0.0, 1.0, 2.0], "ci95_low": [-1.0, 0.0, 0.5], "ci95_high": [1.0, 2.0, 3.5]}
+    blk = {"gospa_per_scan": band, "n_confirmed_per_scan": count}
+    doc = {"scenario": "s", "seeds": [1, 2, 3], "aggregate": {"spectral": blk}}
+    seen = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: seen.append(fig))
+    surveillance_plots.mc_figure(tmp_path, doc)
+    (fig,) = seen
+    assert [ax.get_ylim()[0] for ax in fig.axes] == [0.0, 0.0]
+    assert fig.axes[0].get_ylim()[1] >= 1400.0  # the top of every band still shown
+
+
 def test_sweep_over_the_search_weight(tmp_path, capsys):
     cfg = small(tmp_path, sweep={"search_weight": [0.0, 30.0], "seeds": 2})
     out = tmp_path / "sw"
