@@ -723,7 +723,8 @@ def curves_figure(out: Path, data: Mapping[str, np.ndarray], select: Sequence[in
     n = int(np.min(data["seeds"])) if len(data["seeds"]) else 0
     axes[0].set_title(f"per scan, mean over {n} seeds with 95 % bands")
     axes[0].legend(fontsize=8, ncol=2)
-    for ax in axes:
+    for ax in axes:  # RMSE, OSPA and sensors on are >= 0 (a t band may reach below: not drawn)
+        ax.set_ylim(bottom=0.0)
         ax.grid(alpha=0.3)
     fig.tight_layout()
     path = out / "curves.png"

@@ -271,3 +271,27 @@ def test_pareto_names_every_policy_without_overprinting(tmp_path, monkeypatch):
     for i, (a, ba) in enumerate(texts):
         for b, bb in texts[i + 1 :]:
             assert not ba.overlaps(bb), (a, b)
+
+
+def test_the_curves_figure_starts_its_axes_at_zero(tmp_path, monkeypatch):
+    """OSPA and the sensors on are >= 0; a few seeds' t bands reach below (not drawn)."""
+    import matplotlib.figure
+
+    from covnet.covariance_control import compare_policies as cp
+
+    data = {
+        "points": np.array(["policy=a", "policy=b"]),
+        "seeds": np.array([3, 3]),
+        "ospa": np.array([[5.0, 9.0], [4.0, 6.0]]),
+        "ospa_lo": np.array([[-20.0, 1.0], [-2.0, 2.0]]),
+        "ospa_hi": np.array([[30.0, 17.0], [10.0, 10.0]]),
+        "sensors": np.array([[1.0, 2.0], [1.0, 1.0]]),
+        "sensors_lo": np.array([[-1.0, 0.5], [0.0, 0.0]]),
+        "sensors_hi": np.array([[3.0, 3.5], [2.0, 2.0]]),
+    }
+    seen = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: seen.append(fig))
+    cp.curves_figure(tmp_path, data, [0, 1])
+    (fig,) = seen
+    assert [ax.get_ylim()[0] for ax in fig.axes] == [0.0, 0.0]
+    assert fig.axes[0].get_ylim()[1] >= 30.0
