@@ -70,3 +70,22 @@ def test_the_cpu_clock_times_the_decisions_and_counts_the_bounded_limit(monkeypa
     assert row["clock"] == "cpu"
     assert main(["bench", "multitarget", "--clock", "cpu"]) == 2  # only with --search
     assert main(["bench", "alloc", "--clock", "cpu"]) == 2  # not a bench that takes it
+
+
+def test_bounded_asks_for_the_tightest_certificate_its_limit_allows(monkeypatch):
+    """The bench's bounded decisions run with ``rel_gap`` 0 (the row says so): the search's
+    default stops at a gap of 1 % *of the value*, which is not the gap relative to the
+    distance from doing nothing that several goals are judged in."""
+    from covnet.core.allocation import assignment_search as srch
+
+    seen = []
+    real = srch.allocate_assignments_bounded
+
+    def spy(*args, **kw):
+        seen.append(kw.get("rel_gap"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(srch, "allocate_assignments_bounded", spy)
+    rows = bm.run((6,), (2,), ("kl",), ("bounded", "greedy"), n_problems=2)
+    assert seen == [0.0, 0.0] and bm.BOUNDED_REL_GAP == 0.0
+    assert [(r["search"], r["rel_gap"]) for r in rows] == [("bounded", 0.0), ("greedy", None)]
