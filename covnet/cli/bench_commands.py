@@ -154,6 +154,7 @@ def _bench_options(args: argparse.Namespace) -> None:
                 f"--{dest.replace('_', '-')}: bench {args.target} does not take this option "
                 f"(its options: {takes})"
             )
+    defaulted = not hasattr(args, "config") and "config" in BENCH_TAKES[args.target]
     if args.target == "cluster":  # the sweep's own config; alternations
         for dest, value in (("config", "configs/latency.yaml"), ("repeat", 4)):
             if not hasattr(args, dest):
@@ -161,6 +162,11 @@ def _bench_options(args: argparse.Namespace) -> None:
     for dest, value in BENCH_DEFAULTS.items():
         if not hasattr(args, dest):
             setattr(args, dest, value)
+    if defaulted and not Path(args.config).is_file():
+        raise UsageError(
+            f"--config: not given, and the default {args.config} is not in this directory (a "
+            "path in the covnet checkout): run from the checkout, or give --config PATH"
+        )
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

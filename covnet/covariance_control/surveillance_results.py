@@ -40,6 +40,7 @@ __all__ = [
     "STATES",
     "surveillance_summary",
     "surveillance_tracks",
+    "track_id",
     "track_rows",
     "write_surveillance_run",
 ]
@@ -172,9 +173,9 @@ def surveillance_tracks(run_dir: Path) -> list[Episode]:
     scans done: no series) and every *confirmed* track over the scans it was confirmed at
     (``track_rows`` with state 1; tentative and deleted rows are left out), with its id
     :func:`track_id`, time ``t`` and posterior ``x``, ``P``.  These are the two sets covnet's
-    per-scan GOSPA and OSPA compare (:func:`covnet.core.surveillance.continuity.
-    evaluate_continuity`: the existing targets against the confirmed tracks' positions), so a
-    metric on the export gives covnet's.  A network run stopped early: the scans its metric
+    per-scan GOSPA and OSPA compare (the existing targets against the confirmed tracks'
+    positions: :func:`~covnet.core.surveillance.continuity.evaluate_continuity`), so a metric
+    on the export gives covnet's.  A network run stopped early: the scans its metric
     did (``gospa.m``'s length)."""
     # start-up: the export's readers only for covnet export
     from covnet.runs.export import Episode, StateSeries, read_arrays, require_arrays

@@ -89,6 +89,17 @@ def _export(run: Path, tmp_path: Path) -> dict:
     return {str(k): v for k, v in doc.items()}
 
 
+def _run_exported(tmp_path: Path, name: str, scans: int, **changes) -> tuple:
+    """``covnet run`` of the shortened config, its export read back and checked state by state
+    (:func:`_check_states`): ``(run directory, export, arrays, summary)``."""
+    cfg = _config(tmp_path, name, scans, **changes)
+    run = tmp_path / name
+    _covnet("run", str(cfg), "--out", str(run), "--no-figures")
+    doc = _export(run, tmp_path)
+    _check_states(doc, run)
+    return run, doc, load_arrays(run / "arrays.npz"), json.loads((run / "summary.json").read_text())
+
+
 def _stone_soup_metrics(truths, tracks, c: float, p: float) -> tuple[np.ndarray, np.ndarray]:
     """Stone Soup's per-timestamp OSPA and GOSPA distances on positions."""
     measure = Euclidean(mapping=(0, 2))
@@ -174,13 +185,9 @@ def test_one_target_ospa_is_the_cut_position_error(tmp_path):
     present is the error below ``c`` and ``c`` (a missed and a false target: ``(c^p/2 ·
     2)^(1/p)``) at or beyond; with ``c`` above every error the root mean square of OSPA is the
     summary's ``rmse_position``."""
-    cfg = _config(tmp_path, "paper", 12, allocation={"metrics": ["spectral", "svd"]})
-    run = tmp_path / "paper"
-    _covnet("run", str(cfg), "--out", str(run), "--no-figures")
-    doc = _export(run, tmp_path)
-    _check_states(doc, run)
-    a = load_arrays(run / "arrays.npz")
-    summary = json.loads((run / "summary.json").read_text())
+    run, doc, a, summary = _run_exported(
+        tmp_path, "paper", 12, allocation={"metrics": ["spectral", "svd"]}
+    )
     for m in ("spectral", "svd"):
         err = np.hypot(*(a[f"x_est.{m}"] - a["truth"])[:, [0, 2]].T)
         truths, tracks = doc[m]["groundtruth_paths"], doc[m]["tracks"]
@@ -243,13 +250,8 @@ def test_a_surveillance_run_exports_its_confirmed_tracks_and_gives_covnets_gospa
     confirmed, with the track's own id; Stone Soup's OSPA and GOSPA on it are covnet's at every
     scan with a target or a confirmed track (Stone Soup's timestamps), and covnet's are 0 at
     the others (nothing against nothing)."""
-    cfg = _config(tmp_path, "surveillance", 100)  # its own length: targets enter until scan 60
-    run = tmp_path / "surv"
-    _covnet("run", str(cfg), "--out", str(run), "--no-figures")
-    doc = _export(run, tmp_path)
-    _check_states(doc, run)
-    a = load_arrays(run / "arrays.npz")
-    summary = json.loads((run / "summary.json").read_text())
+    # its own length: targets enter until scan 60
+    run, doc, a, summary = _run_exported(tmp_path, "surveillance", 100)
     c, p = summary["ospa"]["cutoff_m"], summary["ospa"]["order"]
     (m,) = (str(x) for x in a["metrics"])
     truths, tracks = doc[m]["groundtruth_paths"], doc[m]["tracks"]

@@ -34,3 +34,22 @@ def test_config_is_refused(target, capsys):
     assert main(["bench", target, "--config", "configs/paper.yaml"]) == 2
     err = capsys.readouterr().err
     assert f"--config: bench {target} does not take this option" in err
+
+
+@pytest.mark.parametrize(
+    ("argv", "default"),
+    [
+        (["bench", "up"], "configs/paper.yaml"),
+        (["bench"], "configs/paper.yaml"),
+        (["bench", "cluster"], "configs/latency.yaml"),
+    ],
+)
+def test_a_default_config_missing_here_says_to_give_one(argv, default, tmp_path, monkeypatch,
+                                                        capsys):  # fmt: skip
+    """Outside the checkout the benches that read a config said only "invalid config
+    configs/paper.yaml: cannot read file", as if the user had named it."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"--config: not given, and the default {default} is not in this directory" in err
+    assert "--config PATH" in err

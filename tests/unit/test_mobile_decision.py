@@ -251,3 +251,29 @@ def test_decision_pair_modes_and_registry():
         assert pm[i] == (d.modes[d.assign[i]] if d.assign[i] >= 0 else -1)
     assert sorted(SOLVERS) == ["closed_form", "lp", "lp_highs", "milp"]
     assert replace(d, solver="x").solver == "x"
+
+
+def test_a_relaxation_the_dual_simplex_leaves_unknown_is_solved_by_the_interior_point():
+    """Found by the property test: four targets, three sensors at one point; HiGHS's dual
+    simplex ends the MILP's relaxation with "model_status is Unknown" (status 4), and the
+    relaxation was NaN, so a mobile run's J_relax too.  The interior-point method (with its
+    crossover) solves it; the bound is then the MILP's optimum, which it must not exceed."""
+    x = np.array([[248.0, 0, 70, 0], [50, 0, 224, 0], [0, 0, 91, 0], [0, 0, 125, 0]])
+    P = np.diag([25.0, 0.25, 25.0, 0.25])[None].repeat(4, 0)
+    sensors = Sensors(
+        position=np.array([[190.0, 0], [190, 190], [190, 190], [190, 190]]),
+        speed=np.array([0.0, 3.5, 0, 0]),
+        R0=np.array([4.0, 1, 4, 4])[:, None, None] * np.eye(2),
+        r_pd=np.full(4, 20.0),
+        b0=np.ones(4),
+        b1=np.zeros(4),
+        capacity=np.full(4, np.inf),
+    )
+    params = CostParams(trace_kind="full", dist_uses_velocity=False, pd_include_track_cov=False)
+    ct = cost_tensor(x, P, sensors, params)
+    p = DecisionProblem(ct.c, ct.c0, sensors.capacity)
+    status, message, value = relaxation(p)
+    exact = decide_milp(p)
+    assert status == 0, message
+    assert "interior point" in message
+    assert decide_lp(p).J_lp - 1e-9 * value <= value <= exact.objective * (1 + 1e-9)

@@ -69,11 +69,39 @@ class _SparseLinprog(Protocol):
         A_eq: sparse.csr_array,
         b_eq: Vec,
         bounds: tuple[float, float],
-        method: Literal["highs-ds"],
+        method: Literal["highs-ds", "highs-ipm"],
     ) -> OptimizeResult: ...
 
 
 _linprog = cast(_SparseLinprog, linprog)
+
+#: scipy's status of a HiGHS solve that ended neither optimal nor proven infeasible or
+#: unbounded ("numerical difficulties", HiGHS's "model_status is Unknown")
+_HIGHS_UNKNOWN = 4
+
+
+def _highs_lp(
+    c: Vec,
+    A_ub: sparse.csr_array | None,
+    b_ub: Vec | None,
+    A_eq: sparse.csr_array,
+    b_eq: Vec,
+) -> OptimizeResult:
+    """``min cᵀx`` over ``A_ub x <= b_ub``, ``A_eq x = b_eq``, ``0 <= x <= 1`` by HiGHS's dual
+    simplex (a vertex); where it ends with status 4 (unknown, numerical difficulties: the
+    property tests found a mobile MILP's relaxation with three sensors at one point), again by
+    HiGHS's interior-point method, whose crossover also ends at a vertex; its message then says
+    so.  Any other outcome is the dual simplex's."""
+    res = _linprog(c, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=(0.0, 1.0),
+                   method="highs-ds")  # fmt: skip
+    if res.status != _HIGHS_UNKNOWN:
+        return res
+    ipm = _linprog(c, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=(0.0, 1.0),
+                   method="highs-ipm")  # fmt: skip
+    if ipm.status != 0:
+        return res
+    ipm["message"] = f"{ipm['message']} (by the interior point: the dual simplex ended unknown)"
+    return ipm
 
 
 class SolverError(RuntimeError):
@@ -255,16 +283,9 @@ def build_lp(problem: DecisionProblem, collapse_modes: bool = True) -> LinearPro
 
 
 def solve_lp(lp: LinearProgram) -> LPSolution:
-    """HiGHS dual simplex (a vertex).  ``x`` is read only when the solve succeeded."""
-    res = _linprog(
-        lp.c,
-        A_ub=lp.A_ub,
-        b_ub=lp.b_ub,
-        A_eq=lp.A_eq,
-        b_eq=lp.b_eq,
-        bounds=(0.0, 1.0),
-        method="highs-ds",
-    )
+    """HiGHS dual simplex (a vertex; :func:`_highs_lp`).  ``x`` is read only when the solve
+    succeeded."""
+    res = _highs_lp(lp.c, lp.A_ub, lp.b_ub, lp.A_eq, lp.b_eq)
     if res.status != 0 or res.x is None:
         return LPSolution(int(res.status), str(res.message), False, None, None, _NAN)
     M, N, R = lp.shape
@@ -538,22 +559,15 @@ def decide_milp(problem: DecisionProblem, options: SolverOptions | None = None) 
 
 
 def relaxation(problem: DecisionProblem, linking: Linking = "strong") -> tuple[int, str, float]:
-    """``J_relax``: the LP relaxation of the exact problem (HiGHS dual simplex).
+    """``J_relax``: the LP relaxation of the exact problem (HiGHS dual simplex, the interior
+    point where it ends unknown: :func:`_highs_lp`).
 
     Returns ``(status, message, value)``; ``value`` is NaN unless ``status == 0``.
     """
     if problem.M == 0 or problem.N == 0:
         return 0, "trivial", _trivial(problem, "relax").objective
     mp = build_milp(problem, linking)
-    res = _linprog(
-        mp.c,
-        A_ub=mp.A_ub,
-        b_ub=mp.b_ub,
-        A_eq=mp.A_eq,
-        b_eq=mp.b_eq,
-        bounds=(0.0, 1.0),
-        method="highs-ds",
-    )
+    res = _highs_lp(mp.c, mp.A_ub, mp.b_ub, mp.A_eq, mp.b_eq)
     value = float(res.fun) if res.status == 0 else _NAN
     return int(res.status), str(res.message), value
 
