@@ -172,7 +172,8 @@ def _mean_ci(values: np.ndarray) -> tuple[float, float]:
 def mc_figure(out_dir: Path) -> Path:
     """``fig_mobile_mc.png`` from ``out_dir/montecarlo.json``: per target (and overall) the
     position RMSE and the missed-detection rate, second half of the run and whole run, as the
-    mean over seeds with its 95 % confidence interval."""
+    mean over seeds with its 95 % confidence interval (the axes cut at the quantities' own
+    limits, 0 and a rate's 1: Student's interval of a few seeds reaches beyond)."""
     doc = json.loads((out_dir / "montecarlo.json").read_text())
     rows = doc["per_seed"]
     names = [*rows[0]["target_ids"], "overall"]
@@ -181,17 +182,20 @@ def mc_figure(out_dir: Path) -> Path:
         b = r["overall"] if name == "overall" else r["targets"][name]  # type: ignore[index]
         return b  # type: ignore[return-value]
 
-    panels = (
-        ("rmse_position_m", "rmse_position_second_half_m", "position RMSE [m]"),
-        ("missed_detection_rate", "missed_detection_rate_second_half", "missed detections"),
+    panels = (  # (whole run, second half, label, the quantity's upper limit)
+        ("rmse_position_m", "rmse_position_second_half_m", "position RMSE [m]", None),
+        ("missed_detection_rate", "missed_detection_rate_second_half", "missed detections", 1.0),
     )
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
     x = np.arange(len(names))
-    for ax, (whole, second, label) in zip(axes, panels, strict=True):
+    for ax, (whole, second, label, top) in zip(axes, panels, strict=True):
         for dx, key, tag in ((-0.18, whole, "whole run"), (0.18, second, "second half")):
             stats = [_mean_ci(np.array([block(r, n)[key] for r in rows])) for n in names]
             means, halves = zip(*stats, strict=True)
             ax.bar(x + dx, means, 0.36, yerr=halves, capsize=4, label=tag)
+        # an RMSE is >= 0 and a rate in [0, 1]: a few seeds' t-interval reaches beyond (cut)
+        hi = ax.get_ylim()[1]
+        ax.set_ylim(0.0, hi if top is None else min(hi, top))
         ax.set_xticks(x, names)
         ax.set_ylabel(label)
         ax.grid(axis="y", alpha=0.3)

@@ -244,3 +244,26 @@ def test_mc_json_lines_and_no_figures(tmp_path, capsys):
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert rows[-1]["target"] == "overall" and all(r["seeds"] == 2 for r in rows)
     assert not list(out.glob("*.png"))
+
+
+def test_the_mc_figure_cuts_its_axes_at_the_quantities_limits(tmp_path, monkeypatch):
+    """Two seeds' Student intervals drew an RMSE axis down to -20 m and a missed-detection
+    rate above 1 (configs/mobile.yaml, --trials 2)."""
+    import matplotlib.figure
+
+    from covnet.mobile import plots
+
+    def seed(rmse: float, rate: float) -> dict:
+        b = {"rmse_position_m": rmse, "rmse_position_second_half_m": rmse,
+             "missed_detection_rate": rate, "missed_detection_rate_second_half": rate}  # fmt: skip
+        return {"target_ids": ["T1"], "targets": {"T1": b}, "overall": b}
+
+    doc = {"scenario": "m", "solver": "lp", "per_seed": [seed(1.0, 0.05), seed(30.0, 0.95)]}
+    (tmp_path / "montecarlo.json").write_text(json.dumps(doc))
+    seen = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: seen.append(fig))
+    plots.mc_figure(tmp_path)
+    (fig,) = seen
+    rmse, rate = fig.axes[:2]
+    assert rmse.get_ylim()[0] == 0.0 and rmse.get_ylim()[1] > 100.0  # the bands' tops shown
+    assert rate.get_ylim() == (0.0, 1.0)
