@@ -162,11 +162,7 @@ def _bench_options(args: argparse.Namespace) -> None:
     for dest, value in BENCH_DEFAULTS.items():
         if not hasattr(args, dest):
             setattr(args, dest, value)
-    if defaulted and not Path(args.config).is_file():
-        raise UsageError(
-            f"--config: not given, and the default {args.config} is not in this directory (a "
-            "path in the covnet checkout): run from the checkout, or give --config PATH"
-        )
+    args.config_defaulted = defaulted  # checked after the options' values (cmd_bench)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -184,6 +180,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"--exact-cap: must be > 0 seconds, got {args.exact_cap}")
     if args.foxglove and (args.target != "up" or args.sensors):
         raise UsageError("--foxglove: only for bench up (the paper network, without --sensors)")
+    if args.config_defaulted and not Path(args.config).is_file():
+        raise UsageError(
+            f"--config: not given, and the default {args.config} is not in this directory (a "
+            "path in the covnet checkout): run from the checkout, or give --config PATH"
+        )
     if args.target == "up":
         return cmd_bench_up(args)
     if args.target == "cluster":
