@@ -132,9 +132,10 @@ def growth(
     t_warm = t0 + warmup * (t1 - t0)
     kept = [s for s in samples if t_warm <= s[0] <= t1]
     out: dict[str, Any] = {"samples": len(kept)}
-    if not kept:
-        for what in ("rss", "fd"):
-            out.update({f"{what}_{k}": None for k in ("start", "end", "max", "growth_pct")})
+    if not kept:  # the same keys, None: not measured
+        for what, unit in (("rss", "_kb"), ("fd", "")):
+            out.update({f"{what}_{k}{unit}": None for k in ("start", "end", "max")})
+            out[f"{what}_growth_pct"] = None
         return out
     n = max(1, len(kept) // 10)
     for what, i, unit in (("rss", 1, "_kb"), ("fd", 2, "")):
@@ -371,8 +372,13 @@ def _phase(
     for proc_name in sorted(series, key=lambda n: (n != "launcher", n != "manager", n)):
         s = series[proc_name]
         g = growth(s.samples, t0, t1, warm)
-        flat = all(
-            g[k] is not None and g[k] < FLAT_PCT for k in ("rss_growth_pct", "fd_growth_pct")
+        # None: no sample after the warm-up (a phase shorter than a few intervals)
+        flat = (
+            None
+            if not g["samples"]
+            else all(
+                g[k] is not None and g[k] < FLAT_PCT for k in ("rss_growth_pct", "fd_growth_pct")
+            )
         )
         row = {"phase": name, "row": "process", "process": proc_name, "pid": s.pid}
         rows.append({**row, **g, "flat": flat})
@@ -458,9 +464,14 @@ def run(
 # --------------------------------------------------------------------------------------------
 
 
+def _flat_word(flat: bool | None) -> str:
+    return "-" if flat is None else "yes" if flat else "NO"
+
+
 def _print_table(rows: list[dict[str, Any]]) -> None:
-    def num(v: Any, fmt: str) -> str:
-        return "-" if v is None else format(v, fmt)
+    def num(v: Any, fmt: str) -> str:  # "-": not measured, as wide as the number would be
+        width = re.match(r"\+?(\d*)", fmt)
+        return "-".rjust(int(width.group(1) or 0) if width else 0) if v is None else format(v, fmt)
 
     for phase in dict.fromkeys(r["phase"] for r in rows):
         summ = next(r for r in rows if r["phase"] == phase and r["row"] == "summary")
@@ -474,9 +485,8 @@ def _print_table(rows: list[dict[str, Any]]) -> None:
             f"  {'process':>9} {'samples':>7} {'RSS start MB':>12} {'end MB':>7} {'max MB':>7} "
             f"{'growth':>7} {'fds':>9} {'growth':>7} {'flat':>5}"
         )
-        for r in rows:
-            if r["phase"] != phase or r["row"] != "process":
-                continue
+        procs = [r for r in rows if r["phase"] == phase and r["row"] == "process"]
+        for r in procs:
             kb = ("rss_start_kb", "rss_end_kb", "rss_max_kb")
             mb = {k: None if r[k] is None else r[k] / 1024 for k in kb}
             fds = "-" if r["fd_start"] is None else f"{r['fd_start']:g}->{r['fd_end']:g}"
@@ -484,7 +494,13 @@ def _print_table(rows: list[dict[str, Any]]) -> None:
                 f"  {r['process']:>9} {r['samples']:>7} {num(mb['rss_start_kb'], '12.1f')} "
                 f"{num(mb['rss_end_kb'], '7.1f')} {num(mb['rss_max_kb'], '7.1f')} "
                 f"{num(r['rss_growth_pct'], '+6.1f')}% {fds:>9} "
-                f"{num(r['fd_growth_pct'], '+6.1f')}% {'yes' if r['flat'] else 'NO':>5}"
+                f"{num(r['fd_growth_pct'], '+6.1f')}% {_flat_word(r['flat']):>5}"
+            )
+        if any(r["flat"] is None for r in procs):
+            print(
+                f"  (-: not measured, no sample after the warm-up: the phase's {summ['loop_s']} s "
+                "of scans are too short for the sampling interval; give more --scans or "
+                "--realtime-s, or a shorter --interval)"
             )
         print(
             f"  {'window':>9} {'scans':>11} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} "
@@ -502,7 +518,8 @@ def main(args: argparse.Namespace) -> int:
     """``covnet bench soak`` (its options: ``covnet.cli.app``; ``config``, ``metric`` (a list or
     None), ``json``, ``scans``, ``realtime_s``, ``speed``, ``interval``, ``windows``,
     ``work``): one JSON row per line with ``--json``, else a table per phase; exit 0 when
-    every process is flat, 1 otherwise."""
+    every process is flat, 1 otherwise (a process not measured, in a phase too short for the
+    sampling interval, is not shown flat)."""
     for name, low in (("scans", 0), ("realtime_s", 0), ("windows", 1)):
         if getattr(args, name) < low:
             flag = "--" + name.replace("_", "-")

@@ -49,3 +49,25 @@ def test_the_warm_up_ends_at_the_first_status_past_the_block():
     assert phase_warmup(0.1, 3000, lines, 1.0, 11.0) == 0.6  # (7 - 1) / (11 - 1)
     assert phase_warmup(0.1, 3000, lines[:3], 1.0, 11.0) == (BLOCK + 1) / 3000 + 0.05
     assert phase_warmup(0.1, 3000, [(10.9, lines[-1][1])], 1.0, 11.0) == 0.9  # at most
+
+
+def test_a_phase_too_short_to_sample_is_reported_not_a_traceback(capsys):
+    """``covnet bench soak --scans 300``: a lockstep phase of 0.6 s has no sample after its
+    warm-up at the default 2 s interval.  Its rows had other keys (``rss_start`` for
+    ``rss_start_kb``) and the table ended in a KeyError; such a process is now shown as not
+    measured (``-``), with a note, and is not counted flat."""
+    from covnet.bench.soak import _print_table
+
+    empty = growth([], 0.0, 0.6, 0.1)
+    full = growth([(0.3, 60_000, 29), (0.5, 60_000, 29)], 0.0, 0.6, 0.1)
+    assert set(empty) == set(full) and empty["samples"] == 0
+    assert all(v is None for k, v in empty.items() if k != "samples")
+    rows = [
+        {"phase": "lockstep", "row": "summary", "scans": 300, "loop_s": 0.6, "scans_per_s": 500.0,
+         "scan_p50_ms": 1.8, "scan_p99_ms": 2.9, "late": 0, "lost": 0},  # fmt: skip
+        {"phase": "lockstep", "row": "process", "process": "manager", "pid": 1, **empty,
+         "flat": None},  # fmt: skip
+    ]
+    _print_table(rows)
+    out = capsys.readouterr().out
+    assert "manager" in out and "not measured" in out and "--interval" in out
