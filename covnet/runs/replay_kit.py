@@ -216,7 +216,7 @@ def recording_notes(reader: RecordingReader, counts: dict[str, int]) -> list[str
                 else "every earlier segment is complete"
             )
         )
-    if not reader.complete:
+    if not reader.complete and reader.error is None:  # stopped early: the error says where
         notes.append(
             "recording has no footer (the recorder did not close it: killed?); read up to "
             + ("its last complete record (the last one is cut)" if reader.truncated else "its end")
@@ -229,7 +229,7 @@ def recording_notes(reader: RecordingReader, counts: dict[str, int]) -> list[str
     if reader.orphans:
         notes.append(f"recording: {reader.orphans} message(s) of an unknown channel skipped")
     if reader.error:
-        notes.append(f"recording: {reader.error}")
+        notes.append(f"recording: {reader.error}; the replay used what came before it")
     skipped = {k: v for k, v in counts.items() if k.startswith("skipped:")}
     if skipped:
         notes.append(f"payloads skipped (not used by the replay): {skipped}")
@@ -351,7 +351,8 @@ class KindReplay:
 
     def command(self, args: argparse.Namespace, cfg: Any) -> int:
         """``covnet replay RUN_DIR [--out DIR] [--force]``: :meth:`replay_run`, then one line
-        (``identical``) or the differences; exit 0 when identical, else 1."""
+        (``identical``) or the differences, and the recording's notes (:func:`recording_notes`)
+        on stderr; exit 0 when identical, else 1."""
         run_dir = Path(args.run_dir)
         needed = (CONFIG, RUN_INFO, *self.compared, RECORDING)
         missing = [f for f in needed if not (run_dir / f).is_file()]
@@ -373,11 +374,15 @@ class KindReplay:
         files = " and ".join(self.compared)
         if report.identical:
             print(f"replayed {run_dir}: identical: {files} reproduced exactly ({report.out_dir})")
-            return EXIT_OK
-        print(f"replayed {run_dir}: {files} DIFFERS ({report.out_dir}):", file=sys.stderr)
-        for d in report.differences[:20]:
-            print(f"  {d}", file=sys.stderr)
-        return EXIT_FAIL
+        else:
+            print(f"replayed {run_dir}: {files} DIFFERS ({report.out_dir}):", file=sys.stderr)
+            for d in report.differences[:20]:
+                print(f"  {d}", file=sys.stderr)
+        # what the recording says of itself (damage, a restarted recorder, skipped payloads):
+        # a damaged file is told apart from a wrong replay
+        for note in report.notes:
+            print(f"  note: {note}", file=sys.stderr)
+        return EXIT_OK if report.identical else EXIT_FAIL
 
 
 class ScanSteps(Protocol):

@@ -171,6 +171,33 @@ def test_a_cut_recording_is_caught(recorded_run, tmp_path):
     assert any("completed" in d or "scans_completed" in d for d in report.differences)
 
 
+def test_covnet_replay_prints_what_the_recording_says_of_itself(recorded_run, tmp_path, capsys):
+    """``covnet replay`` of a damaged recording printed only the differences; what the reader
+    found (no footer, an unreadable record at byte N, corrupt chunks) was only in
+    ``replay.json``, so a user could not tell a damaged file from a wrong replay."""
+    from covnet.cli.app import main
+
+    src, _, _ = recorded_run
+    run = tmp_path / "run"
+    _copy_run(src, run)
+    data = (src / RECORDING).read_bytes()
+    (run / RECORDING).write_bytes(data[: len(data) // 2])
+    assert main(["replay", str(run), "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err
+    assert "DIFFERS" in err and "note: recording has no footer" in err
+    # bytes flipped all along it: reading stops or skips chunks, and says where
+    flipped = bytearray(data)
+    for i in range(5000, len(flipped), 7919):
+        flipped[i] ^= 0xFF
+    (run / RECORDING).write_bytes(bytes(flipped))
+    assert main(["replay", str(run), "--out", str(tmp_path / "r3")]) == 1
+    err = capsys.readouterr().err
+    assert "note: recording: unreadable record at byte" in err or "corrupt chunk" in err, err
+    # an intact recording: no note
+    assert main(["replay", str(src), "--out", str(tmp_path / "r2")]) == 0
+    assert "note:" not in capsys.readouterr().err
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(240)
 def test_replay_of_a_multiprocess_run(tmp_path, paper_path):
