@@ -217,7 +217,8 @@ def target_colours(n: int) -> list[tuple[float, float, float, float]]:
 
 
 def _coverage(ax: plt.Axes, s: dict[str, object], color: str) -> None:
-    """A sensor's coverage: the outline of its range circle or sector (faint, dashed)."""
+    """A sensor's coverage: the outline of its range circle or sector (faint, dashed), in the
+    scene's kilometres (the config's metres / 1000, as the sensors' markers)."""
     pos = s.get("position_m")
     rmax = s.get("max_range_m")
     if pos is None or rmax is None:
@@ -228,10 +229,11 @@ def _coverage(ax: plt.Axes, s: dict[str, object], color: str) -> None:
         theta = (c - hw, c + hw)
     else:
         theta = (0.0, 360.0)
+    xy = np.asarray(pos, dtype=np.float64) / 1e3
     ax.add_patch(
         Wedge(
-            tuple(pos),  # type: ignore[arg-type]
-            float(rmax),  # type: ignore[arg-type]
+            (float(xy[0]), float(xy[1])),
+            float(rmax) / 1e3,  # type: ignore[arg-type]
             *theta,
             facecolor="none",
             alpha=0.35,

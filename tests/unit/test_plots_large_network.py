@@ -148,3 +148,36 @@ def test_the_surveillance_scene_keeps_its_edge_sensors_clear_of_the_title(
     assert main(["run", str(cfg), "--out", str(tmp_path / "out")]) == 0
     assert "Warning" not in capsys.readouterr().err
     assert sorted(seen) == sorted(ids)
+
+
+def test_the_scene_draws_each_sensors_coverage_at_its_place_in_km(tmp_path, monkeypatch):
+    """The many-target scene's coverage outlines were drawn in metres on the kilometre axes:
+    each circle 1000 times too large and too far out, so none was seen (and drawing their
+    dashes took most of the figures' time: 5.5 s of 7 at 64 sensors)."""
+    from matplotlib.patches import Wedge
+
+    raw = yaml.safe_load((PAPER.parent / "large_multitarget.yaml").read_text())
+    raw["scans"] = 2
+    cfg = tmp_path / "lmt.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    out = tmp_path / "out"
+    assert main(["run", str(cfg), "--out", str(out), "--no-figures"]) == 0
+    want = sorted(
+        (round(s["position_m"][0] / 1e3, 6), round(s["position_m"][1] / 1e3, 6),
+         round(s["max_range_m"] / 1e3, 6))  # fmt: skip
+        for s in raw["sensors"]
+        if s.get("max_range_m")
+    )
+    got: list[list[tuple[float, float, float]]] = []
+
+    def spy(fig, *args, **kwargs):
+        if Path(args[0]).name == "fig_scene.png":
+            for ax in fig.axes:
+                w = [p for p in ax.patches if isinstance(p, Wedge)]
+                got.append(sorted((round(p.center[0], 6), round(p.center[1], 6),
+                                   round(p.r, 6)) for p in w))  # fmt: skip
+        return None
+
+    monkeypatch.setattr(plt.Figure, "savefig", spy)
+    assert main(["plot", str(out)]) == 0
+    assert got and all(g == want for g in got) and len(want) == 64
