@@ -373,13 +373,8 @@ def _phase(
         s = series[proc_name]
         g = growth(s.samples, t0, t1, warm)
         # None: no sample after the warm-up (a phase shorter than a few intervals)
-        flat = (
-            None
-            if not g["samples"]
-            else all(
-                g[k] is not None and g[k] < FLAT_PCT for k in ("rss_growth_pct", "fd_growth_pct")
-            )
-        )
+        pct = (g["rss_growth_pct"], g["fd_growth_pct"])
+        flat = all(p < FLAT_PCT for p in pct) if g["samples"] else None
         row = {"phase": name, "row": "process", "process": proc_name, "pid": s.pid}
         rows.append({**row, **g, "flat": flat})
     lat = scan_latencies(out / "recording.mcap")

@@ -154,7 +154,6 @@ def _bench_options(args: argparse.Namespace) -> None:
                 f"--{dest.replace('_', '-')}: bench {args.target} does not take this option "
                 f"(its options: {takes})"
             )
-    defaulted = not hasattr(args, "config") and "config" in BENCH_TAKES[args.target]
     if args.target == "cluster":  # the sweep's own config; alternations
         for dest, value in (("config", "configs/latency.yaml"), ("repeat", 4)):
             if not hasattr(args, dest):
@@ -162,10 +161,11 @@ def _bench_options(args: argparse.Namespace) -> None:
     for dest, value in BENCH_DEFAULTS.items():
         if not hasattr(args, dest):
             setattr(args, dest, value)
-    args.config_defaulted = defaulted  # checked after the options' values (cmd_bench)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    # a default config missing here is said after the options' values are checked
+    default_config = not hasattr(args, "config") and "config" in BENCH_TAKES[args.target]
     _bench_options(args)
     for name in ("problems", "repeat"):
         if getattr(args, name) < 1:
@@ -180,7 +180,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"--exact-cap: must be > 0 seconds, got {args.exact_cap}")
     if args.foxglove and (args.target != "up" or args.sensors):
         raise UsageError("--foxglove: only for bench up (the paper network, without --sensors)")
-    if args.config_defaulted and not Path(args.config).is_file():
+    if default_config and not Path(args.config).is_file():
         raise UsageError(
             f"--config: not given, and the default {args.config} is not in this directory (a "
             "path in the covnet checkout): run from the checkout, or give --config PATH"
