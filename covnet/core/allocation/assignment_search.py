@@ -187,6 +187,15 @@ kicks' generator: abs_trace 1.11 % -> 0.48-0.92 %, trace_diff 0.40 % -> 0.23-0.4
 the time (one_norm 0.65 % -> 1.13 % with them), so they keep their plan bit for bit.  The kicks'
 generator has a fixed seed: the same problem and clock give the same decision.
 
+*Plans on a slower machine* (round mt20): the set-up, the enumeration, the set moves and the
+chains cost a fixed amount of CPU, so on a slower machine they take more of the limit, and
+shares of what is left then leave the bound too little: on a 2-core Intel Xeon host, N = 64,
+T = 8, 90 ms of CPU, the chains ended at 48-60 ms and spectral's median gap was 2.9 % where
+130 ms gave 1.1 %.  So the kicks start only while ``KICK_MIN_LEFT`` of the limit is left,
+and the root floors start at the latest when ``ROOT_START_SHARE`` of it is left (each root
+costs the same at any limit).  Where the limit is generous for the machine neither rule
+binds, and the plan is the one above.
+
 When the gap is still open and the allowed sensors are at most ``EXACT_FALLBACK`` (the exact
 tables are then small), the exact allocator decides: status 0, the reference's assignment.
 
@@ -327,6 +336,18 @@ KICK_SEED = 2029
 #: ... and it stops after this many kicks in a row that found nothing better (a long time
 #: limit is not spent on a search that has settled)
 KICK_STALL = 60
+#: ... and they start only while this share of the decision's limit is left after the ejection
+#: chains (round mt20: on a slower machine the set-up, the enumeration and the chains take more
+#: of the limit, and the kicks' share then starved the bound; on a 2-core Intel Xeon host,
+#: N = 64, T = 8, 90 ms of CPU, spectral's median over 45 problems 2.88 % -> 1.63 % of the
+#: distance from doing nothing with ``ROOT_START_SHARE``, better on 38 and worse on 5; at 130
+#: and 200 ms no significant difference: many_targets.md, round mt20)
+KICK_MIN_LEFT = 0.5
+#: the root floors start once the dual steps stall, or half of their time is spent
+#: (``ROOT_FLOOR_AFTER``), or no more than this share of the decision's limit is left, whichever
+#: comes first (round mt20, as ``KICK_MIN_LEFT``: a root costs about the same at any limit, so a
+#: plan that reached its steps late left too few of them)
+ROOT_START_SHARE = 0.35
 
 STATUS: dict[int, str] = {
     0: "optimal: the exact allocator decided (the reference's assignment)",
@@ -1903,7 +1924,15 @@ def _search(
             _local_search(st, deadline)
         if timed:  # br16: ejection chains, then the local search again
             _chain_moves(st, deadline)
-        if kicks and deadline is not None and remaining is not None:
+        # mt20: the kicks only while KICK_MIN_LEFT of the limit is left (a slower machine
+        # gives the bound the time it needs before the incumbent's polish)
+        if (
+            kicks
+            and deadline is not None
+            and remaining is not None
+            and time_limit_s is not None
+            and remaining() >= KICK_MIN_LEFT * time_limit_s
+        ):
             stop_at = (1.0 - KICK_SHARE) * remaining()  # the kicks: their share of what is left
             st, _ = _kicks(st, lambda: deadline() or remaining() <= stop_at,
                            np.random.default_rng(KICK_SEED))  # fmt: skip
@@ -1920,7 +1949,9 @@ def _search(
         mid_when: Callable[[], bool] | None = None
         if roots:  # mt12
             assert time_limit_s is not None
-            half = ROOT_FLOOR_AFTER * rem()
+            # mt20: the roots once half the steps' time is spent, or ROOT_START_SHARE of the
+            # limit is all that is left, whichever comes first
+            half = max(ROOT_FLOOR_AFTER * rem(), ROOT_START_SHARE * time_limit_s)
             min_s = min(ROOT_FLOOR_MIN * time_limit_s, ROOT_FLOOR_MIN_CAP)
 
             def mid_when() -> bool:
