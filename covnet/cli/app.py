@@ -103,6 +103,23 @@ def _counts(what: str) -> Callable[[str], list[int]]:
     return parse
 
 
+#: the most seeds (or trials, runs) a batch option takes: a batch lists each point's runs
+#: before it starts, so a mistyped count would fill the memory instead of running
+MAX_SEEDS = 100_000
+
+
+def _seed_count(text: str) -> int:
+    """``--trials``, ``--seeds``, ``--runs``, ``--max-seeds``: an integer, at most
+    :data:`MAX_SEEDS` (each command checks its own least value and says why)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if n > MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"at most {MAX_SEEDS} in one batch, got {n}")
+    return n
+
+
 def _cluster_address(text: str) -> str:
     """``--cluster``: checked while the options are parsed, before any directory is made."""
     problem = scheduler_problem(text)
@@ -132,7 +149,7 @@ def _batch_options(p: argparse.ArgumentParser, seeds: str) -> None:
     )
     p.add_argument(
         "--max-seeds",
-        type=int,
+        type=_seed_count,
         metavar="N",
         help="with --ci-width: at most N per point (default 100)",
     )
@@ -193,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--trials",
         "--seeds",
         dest="trials",
-        type=int,
+        type=_seed_count,
         metavar="N",
         help="seeds (covariance control: from the config's, default 20; mobile: 0..N-1, "
         "default 20) or trials per cell (passive, default: config); --seeds is the same "
@@ -326,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--runs",
         "--seeds",
         dest="runs",
-        type=int,
+        type=_seed_count,
         default=20,
         help="seeds per mode or policy (default: %(default)s); --seeds is the same option, "
         "named as sweep's",
@@ -360,7 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="network latency: a grid of delay x loss x fusion mode x seeds (the config's sweep)",
     )
     sw.add_argument("config", help="scenario YAML with a sweep section, e.g. configs/latency.yaml")
-    sw.add_argument("--seeds", type=int, help="seeds per grid point (default: sweep.seeds)")
+    sw.add_argument("--seeds", type=_seed_count, help="seeds per grid point (default: sweep.seeds)")
     sw.add_argument("--metric", action="append", metavar="NAME", help="allocation metric")
     sw.add_argument("--seed", type=int, help="first seed (default: the config's)")
     sw.add_argument("--workers", type=int, help="processes (default: one per core)")

@@ -163,6 +163,11 @@ def _bench_options(args: argparse.Namespace) -> None:
             setattr(args, dest, value)
 
 
+#: the most ``--problems`` and ``--repeat`` a benchmark takes (its problems are drawn before
+#: it starts: a mistyped count failed in numpy instead of being named)
+BENCH_COUNT_MAX = 10_000
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     # a default config missing here is said after the options' values are checked
     default_config = not hasattr(args, "config") and "config" in BENCH_TAKES[args.target]
@@ -170,6 +175,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for name in ("problems", "repeat"):
         if getattr(args, name) < 1:
             raise UsageError(f"--{name}: must be >= 1, got {getattr(args, name)}")
+        if getattr(args, name) > BENCH_COUNT_MAX:  # the problems are drawn up front
+            raise UsageError(f"--{name}: at most {BENCH_COUNT_MAX}, got {getattr(args, name)}")
     if args.sensors is not None:
         top = BENCH_SENSORS_MAX[args.target]  # (one that takes none: refused above)
         if max(args.sensors) > top:

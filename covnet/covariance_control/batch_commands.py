@@ -436,7 +436,9 @@ def mc(args: argparse.Namespace, sc: Scenario) -> int:
         raise UsageError(f"--workers: must be >= 1, got {workers}")
     if not sc.fusion.has_centre:
         raise UsageError("mc: fusion.mode peer is compared by covnet compare, not covnet mc")
-    for opt, val in (("--cluster", args.cluster), ("--ci-width", args.ci_width)):
+    options = (("--cluster", args.cluster), ("--ci-width", args.ci_width),
+               ("--max-seeds", args.max_seeds))  # fmt: skip
+    for opt, val in options:
         if val is not None:  # no headline metric for --ci-width; the cluster path untried
             raise UsageError(
                 f"{opt}: covnet mc of a covariance-control config runs on this "

@@ -298,16 +298,26 @@ def up_problem(sc: Scenario, *, realtime: bool, netns: bool) -> str | None:
     return None
 
 
+#: the batch tables whose directories have per-point curves (``covnet plot --point``)
+TABLES = ("compare", "sweep")
+
+
 def plot(run_dir: Path, point: str | None = None) -> list[Path]:
     """Redraw the figures of a run, ``covnet mc``, ``covnet compare`` or ``covnet sweep``
     directory: a batch's table figure and its per-scan curves (``curves.png``: the default
     points, or with ``point`` every point whose key contains it, e.g.
     ``delay_ms=350,loss=0,mode=central``)."""
+    if point is not None and not any((run_dir / f"{s}.json").is_file() for s in TABLES):
+        what = "covnet mc" if (run_dir / "montecarlo.json").is_file() else "run"
+        raise UsageError(
+            f"--point: {run_dir} is a {what} directory; per-point curves are drawn for covnet "
+            "sweep and covnet compare directories"
+        )
     if (run_dir / "montecarlo.json").is_file():
         from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
 
         return [mc_figure(run_dir)]
-    for stem in ("compare", "sweep"):
+    for stem in TABLES:
         table = run_dir / f"{stem}.json"
         if table.is_file():
             # start-up: the table modules only for their directories

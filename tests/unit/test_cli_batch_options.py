@@ -1,0 +1,84 @@
+"""Batch options a command cannot honour are refused, not ignored: ``covnet mc`` of a
+covariance-control config refuses ``--max-seeds`` as it refuses ``--ci-width`` (the cap only
+bounds what ``--ci-width`` adds); ``covnet plot --point`` on a run or mc directory says that
+per-point curves belong to sweep and compare directories; a seed count above ``MAX_SEEDS`` is
+refused while the options are parsed, before a directory is made (a batch lists its runs
+before it starts: ``--seeds 99999999999999999999`` filled the memory)."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from covnet.cli.app import MAX_SEEDS, main
+
+
+@pytest.fixture(scope="module")
+def paper5(tmp_path_factory, paper_path):
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = 5
+    path = tmp_path_factory.mktemp("cfg") / "paper5.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_covariance_control_mc_refuses_max_seeds(paper5, tmp_path, capsys):
+    out = tmp_path / "mc"
+    assert main(["mc", str(paper5), "--trials", "2", "--max-seeds", "5", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--max-seeds" in err and "--trials seeds" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_plot_point_on_a_run_or_mc_directory_is_refused(paper5, tmp_path, capsys):
+    run, mc = tmp_path / "run", tmp_path / "mc"
+    args = ["--metric", "spectral", "--no-figures"]
+    assert main(["run", str(paper5), "--out", str(run), *args]) == 0
+    assert main(["mc", str(paper5), "--trials", "2", "--out", str(mc), "--no-figures"]) == 0
+    capsys.readouterr()
+    for d, what in ((run, "a run directory"), (mc, "a covnet mc directory")):
+        assert main(["plot", str(d), "--point", "delay_ms=350"]) == 2
+        err = capsys.readouterr().err
+        assert f"--point: {d} is {what}" in err and "sweep and covnet compare" in err
+    assert main(["plot", str(run)]) == 0  # without --point it draws
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["mc", "{cfg}", "--trials", "{n}"],
+        ["mc", "{cfg}", "--seeds", "{n}"],
+        ["compare", "{cfg}", "--runs", "{n}"],
+        ["sweep", "{cfg}", "--seeds", "{n}"],
+        ["sweep", "{cfg}", "--ci-width", "1", "--max-seeds", "{n}"],
+    ],
+)
+def test_a_seed_count_above_the_limit_is_refused_before_anything_runs(
+    argv, paper5, tmp_path, capsys
+):
+    out = tmp_path / "out"
+    n = 99999999999999999999
+    args = [a.format(cfg=paper5, n=n) for a in argv] + ["--out", str(out)]
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"at most {MAX_SEEDS} in one batch, got {n}" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["bench", "search", "--sensors", "12", "--problems", "99999999999999999999"],
+        ["bench", "multitarget", "--sensors", "16", "--targets", "3", "--problems", "20000"],
+        ["bench", "search", "--sensors", "12", "--repeat", "99999999999999999999"],
+    ],
+)
+def test_bench_counts_above_the_limit_are_named(argv, capsys):
+    """They failed in numpy with a traceback (``Maximum allowed size exceeded``)."""
+    from covnet.cli.bench_commands import BENCH_COUNT_MAX
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"at most {BENCH_COUNT_MAX}, got" in err and "Traceback" not in err
