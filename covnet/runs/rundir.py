@@ -24,6 +24,8 @@ import json
 import os
 import shutil
 import time
+import zipfile
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -187,9 +189,16 @@ def config_mismatch(run_dir: Path, config_hash: str) -> str | None:
 
 
 def load_arrays(path: Path) -> dict[str, np.ndarray]:
-    """Every array of an ``.npz`` file, read into memory (the file is closed on return)."""
-    with np.load(path) as data:
-        return {k: data[k] for k in data.files}
+    """Every array of an ``.npz`` file, read into memory (the file is closed on return).  A
+    file that is not a whole ``.npz`` (cut short, emptied, overwritten) is a
+    :class:`~covnet.errors.UsageError` naming it: the user named its run directory."""
+    try:  # opened here: numpy leaves its own handle open when the archive is damaged
+        with open(path, "rb") as fh, np.load(fh) as data:
+            return {k: data[k] for k in data.files}
+    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError) as exc:
+        # numpy takes a file that is no archive for a pickle, and advises loading it unsafely
+        why = "not an .npz archive" if "pickle" in str(exc) else str(exc) or type(exc).__name__
+        raise UsageError(f"{path}: not a readable arrays file ({why})") from None
 
 
 def record_end(out: Path, status: str, ended: str, **facts: Any) -> None:
