@@ -49,6 +49,7 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
+from covnet.batches import MAX_SEEDS
 from covnet.batches.pool import BatchInterrupted, default_workers, imap_unordered
 from covnet.config import hash_of
 from covnet.errors import UsageError
@@ -535,39 +536,50 @@ class BatchOptions:
         return f" on {self.cluster}" if self.cluster else ""
 
 
-def batch_options(args: Any, seeds: int) -> BatchOptions:
+def batch_options(args: Any, seeds: int, *, api: bool = False) -> BatchOptions:
     """``--cluster``, ``--ci-width``, ``--max-seeds`` and ``--workers`` of ``args`` (absent
-    ones are None), checked before anything runs; ``seeds``: the first round's seeds."""
+    ones are None), checked before anything runs; ``seeds``: the first round's seeds.  ``api``:
+    the messages name the Python API's parameters (``ci_width``) instead of the options."""
+
+    def opt(name: str) -> str:
+        return name.replace("-", "_") if api else f"--{name}"
+
     cluster = getattr(args, "cluster", None)
     ci = getattr(args, "ci_width", None)
     cap = getattr(args, "max_seeds", None)
     workers = getattr(args, "workers", None)
     if workers is not None and workers < 1:
-        raise UsageError(f"--workers: must be >= 1, got {workers}")
+        raise UsageError(f"{opt('workers')}: must be >= 1, got {workers}")
     if ci is not None and not (math.isfinite(ci) and ci > 0):
         raise UsageError(
-            f"--ci-width: must be a width > 0 (in the headline metric's unit), got {ci}"
+            f"{opt('ci-width')}: must be a width > 0 (in the headline metric's unit), got {ci}"
         )
     if cap is not None:
         if ci is None:
-            raise UsageError("--max-seeds: caps the seeds --ci-width adds; give --ci-width too")
+            raise UsageError(
+                f"{opt('max-seeds')}: caps the seeds {opt('ci-width')} adds; give "
+                f"{opt('ci-width')} too"
+            )
         if cap < seeds:
-            raise UsageError(f"--max-seeds: must be >= the {seeds} seeds of the first round")
+            raise UsageError(f"{opt('max-seeds')}: must be >= the {seeds} seeds of the first round")
+        if cap > MAX_SEEDS:
+            raise UsageError(f"{opt('max-seeds')}: at most {MAX_SEEDS} in one batch, got {cap}")
     if ci is not None and cap is None:
         cap = max(DEFAULT_MAX_SEEDS, seeds)
     if cluster is not None:
         if workers is not None:
             raise UsageError(
-                "--workers: the local pool's processes; with --cluster the cluster's workers "
-                "run the trials (leave out one of them)"
+                f"{opt('workers')}: the local pool's processes; with {opt('cluster')} the "
+                "cluster's workers run the trials (leave out one of them)"
             )
         if not re.fullmatch(r"(tcp|tls|ws|wss|inproc|ucx)://\S+|[\w.\-\[\]:]+:\d+", cluster):
             raise UsageError(
-                f"--cluster: a Dask scheduler address, e.g. tcp://192.0.2.10:8786, got {cluster!r}"
+                f"{opt('cluster')}: a Dask scheduler address, e.g. tcp://192.0.2.10:8786, got "
+                f"{cluster!r}"
             )
         if importlib.util.find_spec("distributed") is None:
             raise UsageError(
-                "--cluster: runs on Dask distributed, which is not installed: "
+                f"{opt('cluster')}: runs on Dask distributed, which is not installed: "
                 "pip install 'covnet[cluster]'"
             )
     return BatchOptions(cluster, ci, cap, workers)

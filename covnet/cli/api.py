@@ -33,6 +33,7 @@ import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -41,8 +42,9 @@ import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it 
 
 # isort: split
 from covnet import kinds
+from covnet.batches import MAX_SEEDS
 from covnet.batches.stats import per_scan_bands
-from covnet.batches.trials import prepare_batch_out, write_batch_info
+from covnet.batches.trials import batch_options, prepare_batch_out, write_batch_info
 from covnet.config import ConfigError
 from covnet.errors import UsageError
 from covnet.runs.rundir import ARRAYS, SUMMARY, load_arrays, read_json
@@ -247,6 +249,10 @@ def sweep(
 
     if metric is not None and metric not in METRICS:
         raise UsageError(f"metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
+    if seeds is not None and not (isinstance(seeds, int) and 1 <= seeds <= MAX_SEEDS):
+        raise UsageError(f"seeds: an integer from 1 to {MAX_SEEDS}, got {seeds!r}")
+    options = SimpleNamespace(cluster=cluster, ci_width=ci_width, max_seeds=max_seeds,
+                              workers=workers)  # fmt: skip
     grid_fields = set(SweepSpec.model_fields)
     grid = {k: overrides.pop(k) for k in list(overrides) if k in grid_fields}
     kind, cfg = load(config, **overrides)
@@ -255,6 +261,8 @@ def sweep(
         data = kind.normalised(cfg)
         data["sweep"] = {**(data.get("sweep") or {}), **grid}
         cfg = kind.from_dict(data, f"{cfg.name} (with sweep {', '.join(grid)})", None)
+    # the command's checks, before a directory is made (the seeds of the first round)
+    batch_options(options, seeds or (cfg.sweep or SweepSpec()).seeds, api=True)
     target = Path(out) if out is not None else None
     if target is not None:
         spec = cfg.sweep or SweepSpec()

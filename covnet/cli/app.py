@@ -27,6 +27,7 @@ import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it 
 
 # isort: split
 from covnet import __version__
+from covnet.batches import MAX_SEEDS
 from covnet.cli.bench_commands import (
     BENCH_DEFAULTS,
     BENCH_SENSORS_MAX,
@@ -101,11 +102,6 @@ def _counts(what: str) -> Callable[[str], list[int]]:
         return vals  # each benchmark's largest count: BENCH_SENSORS_MAX, checked in cmd_bench
 
     return parse
-
-
-#: the most seeds (or trials, runs) a batch option takes: a batch lists each point's runs
-#: before it starts, so a mistyped count would fill the memory instead of running
-MAX_SEEDS = 100_000
 
 
 def _seed_count(text: str) -> int:

@@ -3,9 +3,12 @@ covariance-control config refuses ``--max-seeds`` as it refuses ``--ci-width`` (
 bounds what ``--ci-width`` adds); ``covnet plot --point`` on a run or mc directory says that
 per-point curves belong to sweep and compare directories; a seed count above ``MAX_SEEDS`` is
 refused while the options are parsed, before a directory is made (a batch lists its runs
-before it starts: ``--seeds 99999999999999999999`` filled the memory)."""
+before it starts: ``--seeds 99999999999999999999`` filled the memory); the API's ``sweep``
+checks its batch arguments as the command does."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 import yaml
@@ -82,3 +85,30 @@ def test_bench_counts_above_the_limit_are_named(argv, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert f"at most {BENCH_COUNT_MAX}, got" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"seeds": -3}, "seeds: an integer from 1 to"),
+        ({"seeds": 99999999999999999999}, "seeds: an integer from 1 to"),
+        ({"seeds": 2, "workers": 0}, "workers: must be >= 1, got 0"),
+        ({"seeds": 2, "ci_width": -1.0}, "ci_width: must be a width > 0"),
+        ({"seeds": 2, "max_seeds": 5}, "max_seeds: caps the seeds ci_width adds"),
+        ({"seeds": 2, "ci_width": 1.0, "max_seeds": 10**9}, "max_seeds: at most"),
+        ({"seeds": 2, "cluster": "nowhere"}, "cluster: a Dask scheduler address"),
+    ],
+)
+def test_the_api_sweep_checks_its_batch_arguments_as_the_command(kwargs, message, tmp_path):
+    """``covnet.api.sweep`` ran with ``seeds=-3`` (no run at all), ``workers=0`` or
+    ``ci_width=-1`` and filled the memory with ``seeds=10**20``; it now refuses them, naming
+    its own parameters, before a directory is made."""
+    from covnet import api
+    from covnet.errors import UsageError
+
+    out = tmp_path / "sweep"
+    grid = {"delay_ms": [0], "loss": [0.0], "modes": ["central"], "account_for_loss": [False]}
+    latency = Path(__file__).resolve().parents[2] / "configs" / "latency.yaml"
+    with pytest.raises(UsageError, match=message):
+        api.sweep(str(latency), out=out, **grid, **kwargs)
+    assert not out.exists()

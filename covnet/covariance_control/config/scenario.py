@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
+from covnet.batches import MAX_SEEDS
 from covnet.config import (
     Bool,
     ConfigModel,
@@ -48,7 +49,7 @@ class SweepSpec(ConfigModel):
     modes: tuple[FusionRuleName, ...] = ("central", "ci")
     account_for_loss: tuple[Bool, ...] = (False, True)
     late: tuple[Literal["oosm", "drop"], ...] = ("oosm",)
-    seeds: Int = Field(default=4, ge=1, le=10_000)
+    seeds: Int = Field(default=4, ge=1, le=MAX_SEEDS)
     metric: MetricName | None = None
     # surveillance: the grid of the search weight λ (the latency axes are not used)
     search_weight: tuple[Float, ...] | None = None
