@@ -72,9 +72,14 @@ def load(config: Any, **overrides: Any) -> tuple[Any, Any]:
     elif isinstance(config, Mapping):
         kind, cfg = kinds.from_dict(dict(config), "<api>")
         source = "<api>"
-    else:
+    elif hasattr(config, "kind"):  # a loaded config (every kind's records its kind)
         kind, cfg = kinds.of(config), config
         source = f"{getattr(cfg, 'name', 'config')}"
+    else:
+        raise UsageError(
+            "config: a path, a mapping or a loaded config (covnet.cli.api.load), got "
+            f"{type(config).__name__}"
+        )
     options = {k: overrides.pop(k) for k in list(overrides) if k in kinds.OPTIONS}
     if isinstance(options.get("metric"), str):
         options["metric"] = [options["metric"]]  # the command line's --metric is repeatable
@@ -166,6 +171,8 @@ def run(
     (the caller removes it)."""
     kind, cfg = load(config, **overrides)
     if out is not None:
+        if Path(out).exists() and not Path(out).is_dir():  # as the command's --out
+            raise UsageError(f"out {out}: exists and is not a directory")
         return _run_into(kind, cfg, Path(out), figures)
     target = Path(tempfile.mkdtemp(prefix="covnet-run-"))
     kept = keep or figures

@@ -207,3 +207,20 @@ def test_a_folder_named_covnet_says_what_is_wrong(tmp_path, statement):
     msg = proc.stdout
     assert str(tmp_path / "covnet") in msg and "namespace package" in msg, msg
     assert "rename" in msg and "__version__" not in msg, msg
+
+
+@pytest.mark.parametrize("config", [None, 42, ["configs/paper.yaml"]])
+def test_a_config_of_another_type_is_named(config):
+    """``api.run(None)`` ended in ``AttributeError: 'NoneType' object has no attribute
+    'kind'``."""
+    with pytest.raises(UsageError, match=r"config: a path, a mapping or a loaded config"):
+        api.run(config)
+
+
+def test_out_naming_a_file_is_refused_as_the_command_refuses_it(tmp_path, paper_path):
+    """It ended in ``FileExistsError``, where ``covnet run --out FILE`` says what is wrong."""
+    f = tmp_path / "notes.txt"
+    f.write_text("mine\n")
+    with pytest.raises(UsageError, match=r"out .*notes.txt: exists and is not a directory"):
+        api.run(paper_path, out=f, scans=3)
+    assert f.read_text() == "mine\n"
