@@ -59,6 +59,9 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
             raise UsageError(f"--modes: unknown mode {m!r}; choose from {', '.join(cmp.modes())}")
     if not modes:
         raise UsageError("--modes: name at least one mode")
+    dup = sorted({m for m in modes if modes.count(m) > 1})  # as --policies
+    if dup:
+        raise UsageError(f"--modes: {', '.join(dup)} named twice")
     metric = metric_opt(sc, args.metric, sc.allocation.metrics[0])
     if args.runs < 2:
         raise UsageError(f"--runs: at least 2 runs for a NEES band, got {args.runs}")

@@ -112,3 +112,13 @@ def test_the_api_sweep_checks_its_batch_arguments_as_the_command(kwargs, message
     with pytest.raises(UsageError, match=message):
         api.sweep(str(latency), out=out, **grid, **kwargs)
     assert not out.exists()
+
+
+def test_compare_modes_named_twice_are_refused_as_policies_are(paper5, tmp_path, capsys):
+    """``--modes central,central`` ran the mode twice and printed two identical rows."""
+    out = tmp_path / "cmp"
+    argv = ["compare", str(paper5), "--runs", "2", "--modes", "central,ci,central"]
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--modes: central named twice" in err and "Traceback" not in err
+    assert not out.exists()
