@@ -393,8 +393,17 @@ def _check_trial_hash(run_dir: Path, stem: str, doc: dict[str, Any]) -> None:
 
 
 def metric_opt(sc: Scenario, requested: list[str] | None, default: str) -> str:
-    """The metric a ``--metric`` option names (its last), else ``default``; a known one."""
-    return known_metric((requested or [default])[-1])
+    """The one metric a ``--metric`` option names (repeated: the same), else ``default``; a
+    known one.  Two different ones are refused: the command runs one (it took the last)."""
+    names = list(dict.fromkeys(requested or [default]))
+    for name in names:
+        known_metric(name)
+    if len(names) > 1:
+        raise UsageError(
+            f"--metric: this command compares with one metric, got {', '.join(names)}; run it "
+            "once per metric"
+        )
+    return names[0]
 
 
 def known_metric(metric: str) -> str:

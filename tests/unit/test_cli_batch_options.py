@@ -122,3 +122,17 @@ def test_compare_modes_named_twice_are_refused_as_policies_are(paper5, tmp_path,
     err = capsys.readouterr().err
     assert "--modes: central named twice" in err and "Traceback" not in err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("cmd", ["compare", "sweep"])
+def test_two_metrics_for_a_one_metric_batch_are_refused(cmd, paper5, tmp_path, capsys):
+    """``covnet sweep --metric kl --metric spectral`` ran spectral alone (the last), saying
+    nothing of kl; the same metric twice is still one."""
+    out = tmp_path / "b"
+    cfg = str(paper5)
+    seeds = ["--runs", "2"] if cmd == "compare" else ["--seeds", "1"]
+    argv = [cmd, cfg, *seeds, "--metric", "kl", "--metric", "spectral", "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--metric: this command compares with one metric, got kl, spectral" in err
+    assert not out.exists()
