@@ -8,6 +8,7 @@ the kind provides."""
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from covnet import kinds
@@ -108,8 +109,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         raise UsageError(
             "--speed: scales the real-time clock, so it does nothing in lockstep; add --realtime"
         )
-    if args.speed is not None and not args.speed > 0:
-        raise UsageError(f"--speed: must be > 0, got {args.speed}")
+    if args.speed is not None and not (math.isfinite(args.speed) and args.speed > 0):
+        # inf made every period 0: the manager failed before READY
+        raise UsageError(f"--speed: must be a finite number > 0, got {args.speed}")
     if args.router is not None and (problem := endpoint_problem(args.router)) is not None:
         raise UsageError(f"--router: {problem}")
     k = args.sensors_per_process
