@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import signal
@@ -509,6 +510,10 @@ def _print_table(rows: list[dict[str, Any]]) -> None:
                 print(f"  {r['window']:>9} {span:>11} {ms} {lag:>24} {num(r['load_1min'], '5.2f')}")
 
 
+#: the most latency windows a run is cut into (``--windows``)
+MAX_WINDOWS = 10_000
+
+
 def main(args: argparse.Namespace) -> int:
     """``covnet bench soak`` (its options: ``covnet.cli.app``; ``config``, ``metric`` (a list or
     None), ``json``, ``scans``, ``realtime_s``, ``speed``, ``interval``, ``windows``,
@@ -516,12 +521,17 @@ def main(args: argparse.Namespace) -> int:
     every process is flat, 1 otherwise (a process not measured, in a phase too short for the
     sampling interval, is not shown flat)."""
     for name, low in (("scans", 0), ("realtime_s", 0), ("windows", 1)):
-        if getattr(args, name) < low:
-            flag = "--" + name.replace("_", "-")
-            raise UsageError(f"{flag}: must be >= {low}, got {getattr(args, name)}")
+        value = getattr(args, name)
+        flag = "--" + name.replace("_", "-")
+        if not value >= low:  # nan too
+            raise UsageError(f"{flag}: must be >= {low}, got {value}")
+        if not math.isfinite(value):  # inf failed converting seconds to scans
+            raise UsageError(f"{flag}: must be a finite number, got {value}")
+    if args.windows > MAX_WINDOWS:  # each window's table is made up front
+        raise UsageError(f"--windows: at most {MAX_WINDOWS}, got {args.windows}")
     for name in ("speed", "interval"):
-        if not getattr(args, name) > 0:
-            raise UsageError(f"--{name}: must be > 0, got {getattr(args, name)}")
+        if not (math.isfinite(getattr(args, name)) and getattr(args, name) > 0):
+            raise UsageError(f"--{name}: must be a finite number > 0, got {getattr(args, name)}")
     if args.scans == 0 and args.realtime_s == 0:
         raise UsageError("--scans and --realtime-s are both 0: nothing to run")
     metric = args.metric[0] if getattr(args, "metric", None) else None

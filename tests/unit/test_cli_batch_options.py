@@ -136,3 +136,22 @@ def test_two_metrics_for_a_one_metric_batch_are_refused(cmd, paper5, tmp_path, c
     err = capsys.readouterr().err
     assert "--metric: this command compares with one metric, got kl, spectral" in err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("opt", "value", "message"),
+    [
+        ("--realtime-s", "inf", "--realtime-s: must be a finite number, got inf"),
+        ("--realtime-s", "nan", "--realtime-s: must be >= 0, got nan"),
+        ("--windows", "99999999999", "--windows: at most 10000, got 99999999999"),
+        ("--interval", "inf", "--interval: must be a finite number > 0, got inf"),
+        ("--speed", "inf", "--speed: must be a finite number > 0, got inf"),
+    ],
+)
+def test_bench_soak_names_values_it_cannot_use(opt, value, message, capsys):
+    """``--realtime-s inf`` and ``nan`` ended in an OverflowError or ValueError traceback,
+    ``--windows 99999999999`` in a MemoryError, and ``--interval inf`` ran without ever
+    sampling."""
+    assert main(["bench", "soak", opt, value]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
