@@ -13,11 +13,11 @@ A config class is a :class:`Record` subclass whose annotated class attributes ar
 every field:
 
 - **types are strict**: a ``float`` field takes a number (an ``int`` becomes a ``float``; no
-  booleans, no strings, no inf or NaN), ``int`` an integer (no booleans, no ``2.0``), ``str``
-  and ``bool`` only themselves; ``Literal[...]`` one of its values; ``tuple[X, ...]`` a list or
-  tuple of ``X`` (kept as a tuple); ``tuple[X, Y]`` exactly two; ``dict[str, X]`` a mapping;
-  ``X | None`` ``None`` or an ``X``; ``Any`` anything; a record a mapping of its fields (or an
-  instance, taken as it is);
+  booleans, no strings, no inf or NaN, a magnitude at most ``MAX_MAGNITUDE``), ``int`` an
+  integer (no booleans, no ``2.0``), ``str`` and ``bool`` only themselves; ``Literal[...]``
+  one of its values; ``tuple[X, ...]`` a list or tuple of ``X`` (kept as a tuple); ``tuple[X,
+  Y]`` exactly two; ``dict[str, X]`` a mapping; ``X | None`` ``None`` or an ``X``; ``Any``
+  anything; a record a mapping of its fields (or an instance, taken as it is);
 - **unknown keys are errors** (usually typos); a field without a default is required;
 - constraints (:func:`Field`: ``ge``/``gt``/``le``/``lt`` on numbers, ``min_length``/
   ``max_length`` on tuples and strings, ``pattern`` on strings) are checked once the value has
@@ -231,6 +231,13 @@ def _num(x: float) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
+#: the largest magnitude a float field takes: a standard deviation of 1e308 m passed the
+#: finite check, then overflowed in the run (its square, the filter's products) and ended in
+#: a traceback; 1e15 leaves every physical quantity of a config (metres, seconds, variances,
+#: weights) room, and its fourth power is still far from an overflow
+MAX_MAGNITUDE = 1e15
+
+
 def _float(v: Any, loc: Loc, errors: Errors) -> Any:
     if isinstance(v, bool) or not isinstance(v, int | float):
         return _err(errors, loc, "float_type", "Input should be a valid number", v)
@@ -240,6 +247,12 @@ def _float(v: Any, loc: Loc, errors: Errors) -> Any:
         v = math.inf
     if not math.isfinite(v):
         return _err(errors, loc, "finite_number", "Input should be a finite number", v)
+    if abs(v) > MAX_MAGNITUDE:
+        return _err(
+            errors, loc, "finite_number",
+            f"Input should be a number of magnitude at most {MAX_MAGNITUDE:g} (the run squares "
+            "and multiplies it: beyond, its arithmetic overflows)", v,
+        )  # fmt: skip
     return v
 
 

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from covnet import kinds
 from covnet.records import (
+    MAX_MAGNITUDE,
     AfterValidator,
     Field,
     Record,
@@ -68,10 +69,43 @@ def problems(cls: type[Record], **data: Any) -> list[tuple[str, str, Any]]:
 # --- types are strict -----------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("value", [True, "1.0", None, [1.0], math.inf, math.nan, 10**400])
+@pytest.mark.parametrize(
+    "value", [True, "1.0", None, [1.0], math.inf, math.nan, 10**400, 1e308, -1e16, 10**16]
+)
 def test_a_float_field_takes_only_a_finite_number(value):
     [(loc, kind, given_)] = problems(Rec, x=value)
     assert loc == "x" and kind in ("float_type", "finite_number")
+
+
+@pytest.mark.parametrize("value", [MAX_MAGNITUDE, -MAX_MAGNITUDE, 10**15, 1e-300])
+def test_a_float_field_takes_magnitudes_up_to_the_limit(value):
+    assert Rec(x=value).x == float(value)
+
+
+def test_a_huge_value_is_named_by_check_and_run_not_a_traceback(tmp_path, capsys):
+    """A sensor's standard deviation of 1e308 m passed the finite check and ended ``covnet
+    run`` in an OverflowError; a desired covariance of 1e308 ended ``covnet check`` itself in
+    numpy's LinAlgError (found by a fuzz of every number of the shipped configs)."""
+    import yaml
+
+    from covnet.cli.app import main
+
+    for path, where in (
+        (("sensors", 0, "sigma_x_m"), "sensors[0].sigma_x_m"),
+        (("desired", 0, "diag", 1), "desired[0].diag[1]"),
+    ):
+        data = yaml.safe_load((REPO / "configs" / "paper.yaml").read_text())
+        node = data
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = 1e308
+        cfg = tmp_path / "huge.yaml"
+        cfg.write_text(yaml.safe_dump(data))
+        for cmd in (["check", str(cfg)], ["run", str(cfg), "--out", str(tmp_path / "o")]):
+            assert main(cmd) == 2
+            err = capsys.readouterr().err
+            assert f"{where}: Input should be a number of magnitude at most 1e+15" in err
+            assert "Traceback" not in err
 
 
 def test_an_integer_becomes_a_float():
@@ -244,7 +278,7 @@ def test_dump_copy_and_the_fields_given():
     assert "Rec(x=1.0, n=3" in repr(r)
 
 
-finite = st.floats(allow_nan=False, allow_infinity=False)
+finite = st.floats(-MAX_MAGNITUDE, MAX_MAGNITUDE)  # what a float field takes
 words = st.from_regex(r"[a-z]{1,5}", fullmatch=True)
 inners = st.builds(lambda a, b: {"a": a, "b": b}, finite, st.integers())
 
