@@ -116,6 +116,21 @@ class ConfigModel(Record):
     unknown keys rejected, every problem with its path)."""
 
 
+#: the largest Poisson rate of events a scan a config takes (false returns per dwell, clutter
+#: per scan, births per scan): every event is drawn and processed at every scan, so a rate of
+#: 1e14 tried to allocate petabytes
+MAX_RATE = 1e4
+
+
+def rate(v: float) -> float:
+    """A field validator: a Poisson rate of events a scan, ``0 <= v <= MAX_RATE``."""
+    if not v >= 0.0:
+        raise ValueError(f"must be >= 0 (events a scan), got {v}")
+    if v > MAX_RATE:
+        raise ValueError(f"at most {MAX_RATE:g} events a scan, got {v:g}")
+    return v
+
+
 def positive(v: float) -> float:
     """A field validator: ``v > 0``."""
     if not v > 0:

@@ -610,10 +610,32 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_PIPE
     except BaseException as exc:  # a Ctrl-C, or an extension's stand-in for one it swallowed
         if not interrupts.caused(exc):
-            raise
+            why = _numerical_failure(exc)
+            if why is None:
+                raise
+            _err(why)
+            return EXIT_FAIL
         interrupts.answered()
         _err("interrupted")
         return EXIT_INTERRUPTED
+
+
+def _numerical_failure(exc: BaseException) -> str | None:
+    """The message for a covariance that lost positive definiteness in a run (numpy's
+    ``LinAlgError``, the allocator's :class:`NotPositiveDefinite`), else None.  A config whose
+    scales are far apart (a period of 1e14 s, process noise of 1e14) reaches it within double
+    precision; it ended in a traceback."""
+    import numpy as np  # only on a failure
+
+    from covnet.core.allocation.exact import NotPositiveDefinite
+
+    if not isinstance(exc, np.linalg.LinAlgError | NotPositiveDefinite):
+        return None
+    return (
+        f"numerical failure: {exc}\n  the config's scales (periods, noise levels, initial "
+        "and desired covariances) may be too far apart for double precision; if they are "
+        "sensible, this is a bug in covnet: please report it with the config"
+    )
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ from covnet.config import (
     hash_of,
     in_registry,
     positive,
+    rate,
     read_yaml,
     unique_ids,
     validate,
@@ -106,12 +107,7 @@ class ClutterSpec(ConfigModel):
             raise ValueError(f"must be in (0, 1], got {v}")
         return v
 
-    @field_validator("rate_per_scan")
-    @classmethod
-    def _rate(cls, v: float) -> float:
-        if not v >= 0:
-            raise ValueError(f"must be >= 0, got {v}")
-        return v
+    _rate = field_validator("rate_per_scan")(rate)  # at most MAX_RATE
 
     @field_validator("window_rad")
     @classmethod

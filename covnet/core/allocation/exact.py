@@ -346,8 +346,14 @@ def _gains_array(gains: object, n: int) -> Mat:
     return G
 
 
+class NotPositiveDefinite(ValueError):
+    """A predicted covariance or an information sum that is not positive definite in the
+    arithmetic (a ``ValueError``, as before): a bad input, or scales too far apart for double
+    precision (``covnet`` names it as a numerical failure)."""
+
+
 def _spd_error(exc: np.linalg.LinAlgError) -> ValueError:
-    return ValueError(
+    return NotPositiveDefinite(
         "P_pred must be symmetric positive definite and P_pred⁻¹ + J_i positive definite "
         f"(gains must be positive semi-definite): {exc}"
     )

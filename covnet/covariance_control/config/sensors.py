@@ -10,7 +10,7 @@ from typing import Any, Literal, get_type_hints
 
 import numpy as np
 
-from covnet.config import ConfigModel, Float, Ident, Pair
+from covnet.config import ConfigModel, Float, Ident, Pair, rate
 from covnet.core.sensor_models import SENSOR_MODELS
 from covnet.covariance_control.config.fields import SensorModelName, positive_or_none
 from covnet.records import BAD, Field, Record, field_validator
@@ -112,7 +112,7 @@ class SensorSpec(ConfigModel):
     def _clutter(cls, v: float) -> float:
         if not v >= 0.0:
             raise ValueError(f"must be >= 0 (false returns per dwell), got {v}")
-        return v
+        return rate(v)  # at most MAX_RATE: each return is drawn, gated and weighed every scan
 
     @classmethod
     def _build(cls, data: Any, loc: _Loc, errors: _Errors, into: Record | None = None) -> Any:

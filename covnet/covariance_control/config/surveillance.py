@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Annotated
 
-from covnet.config import ConfigModel, Float, Int, Pair, Quad
+from covnet.config import MAX_RATE, ConfigModel, Float, Int, Pair, Quad
 from covnet.config import positive as _positive
 from covnet.records import Field, field_validator
 
@@ -57,7 +57,7 @@ class BirthSpec(ConfigModel):
     """``Poisson(rate)`` new targets per scan, each from a region chosen with probability
     proportional to its area; each leaves when it exits the area."""
 
-    rate: Float = Field(ge=0.0)
+    rate: Float = Field(ge=0.0, le=MAX_RATE)
     regions: tuple[BirthRegionSpec, ...] = Field(min_length=1)
     accel_noise_std_mps2: Float = Field(default=0.5, ge=0.0)
 

@@ -13,7 +13,7 @@ import numpy as np
 from covnet.config import Bool, ConfigModel, Float, Ident, Int, Pair, Quad
 from covnet.config import positive as _positive
 from covnet.covariance_control.config.fields import positive_or_none
-from covnet.records import Field, field_validator
+from covnet.records import Field, field_validator, model_validator
 
 
 class TargetSpec(ConfigModel):
@@ -159,6 +159,18 @@ class OspaSpec(ConfigModel):
         if not v >= 1.0:
             raise ValueError(f"must be >= 1, got {v}")
         return v
+
+    @model_validator(mode="after")
+    def _no_overflow(self) -> OspaSpec:
+        """Every distance is cut at ``c`` and raised to ``p``, and the target set's sum of
+        them must stay finite: ``c^p`` at most 1e300 (an order of 1e14 ended the run in the
+        assignment's "cost matrix is infeasible")."""
+        if self.order * math.log10(self.cutoff_m) > 300.0:
+            raise ValueError(
+                f"order: cutoff_m ** order = {self.cutoff_m:g} ** {self.order:g} overflows "
+                "double precision; take a smaller order (1 or 2 are usual)"
+            )
+        return self
 
 
 def segments(t: TargetEntry) -> list[Any]:

@@ -1,0 +1,82 @@
+"""Numbers a config takes that the run cannot use (found by a fuzz of every number of the
+shipped configs: inf, nan, -1, 0, 1e14, 1e308).  Rates of events a scan are bounded (each event
+is drawn and processed every scan: a clutter rate of 1e14 tried to allocate petabytes); an
+OSPA order whose ``c^p`` overflows is refused (the assignment failed with "cost matrix is
+infeasible"); and scales so far apart that a covariance loses positive definiteness end the run
+with a message naming a numerical failure, not numpy's traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from covnet.cli.app import main
+from covnet.config import MAX_RATE
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _config(tmp_path, name, edit, scans=None):
+    data = yaml.safe_load((REPO / "configs" / f"{name}.yaml").read_text())
+    edit(data)
+    if scans is not None:
+        data["scans"] = scans
+    path = tmp_path / f"{name}-edited.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _set(*keys, value):
+    def edit(data):
+        node = data
+        for k in keys[:-1]:
+            node = node[k]
+        node[keys[-1]] = value
+
+    return edit
+
+
+def _births(rate):
+    def edit(data):
+        box = {"min_m": [0.0, 0.0], "max_m": [1000.0, 20000.0]}
+        data["surveillance"]["births"] = {"rate": rate, "regions": [box]}
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    ("name", "edit", "where"),
+    [
+        ("multitarget", lambda v: _set("sensors", 0, "clutter_rate", value=v),
+         "sensors[0].clutter_rate"),
+        ("surveillance", _births, "surveillance.births.rate"),
+        ("passive", lambda v: _set("clutter", "rate_per_scan", value=v), "clutter.rate_per_scan"),
+    ],
+)  # fmt: skip
+def test_a_rate_of_events_a_scan_is_bounded(name, edit, where, tmp_path, capsys):
+    cfg = _config(tmp_path, name, edit(1e14))
+    assert main(["check", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert where in err and "Traceback" not in err
+    assert "10000" in err or f"{MAX_RATE:g}" in err
+    ok = _config(tmp_path, name, edit(MAX_RATE))
+    assert main(["check", str(ok)]) == 0, capsys.readouterr().err
+
+
+def test_an_ospa_order_that_overflows_is_refused(tmp_path, capsys):
+    cfg = _config(tmp_path, "multitarget", _set("ospa", "order", value=1e14))
+    assert main(["check", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "ospa: order: cutoff_m ** order" in err and "overflows double precision" in err
+
+
+def test_scales_too_far_apart_end_in_a_numerical_failure_message(tmp_path, capsys):
+    """A period of 1e14 s: the first prediction's covariance is not positive definite in
+    double precision; it ended ``covnet run`` in numpy's LinAlgError traceback."""
+    cfg = _config(tmp_path, "paper", _set("period_s", value=1e14), scans=3)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "o"), "--no-figures"]) == 1
+    err = capsys.readouterr().err
+    assert "numerical failure:" in err and "too far apart for double precision" in err
+    assert "Traceback" not in err
