@@ -256,7 +256,9 @@ def sweep(
 
     if metric is not None and metric not in METRICS:
         raise UsageError(f"metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
-    if seeds is not None and not (isinstance(seeds, int) and 1 <= seeds <= MAX_SEEDS):
+    if seeds is not None and not (
+        isinstance(seeds, int) and not isinstance(seeds, bool) and 1 <= seeds <= MAX_SEEDS
+    ):
         raise UsageError(f"seeds: an integer from 1 to {MAX_SEEDS}, got {seeds!r}")
     options = SimpleNamespace(cluster=cluster, ci_width=ci_width, max_seeds=max_seeds,
                               workers=workers)  # fmt: skip
