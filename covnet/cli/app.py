@@ -586,6 +586,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # SIGINT and SIGTERM raise KeyboardInterrupt; one inside a weakref callback is raised
         # again, not printed and lost
         interrupts.deliver_late_interrupts()
+    interrupts.begin_command()
     parser = build_parser()
     args = parser.parse_args(argv)
     warnings.showwarning = _show_warning
@@ -625,7 +626,8 @@ def _numerical_failure(exc: BaseException) -> str | None:
     ``LinAlgError``, the allocator's :class:`NotPositiveDefinite`), else None.  A config whose
     scales are far apart (a period of 1e14 s, process noise of 1e14) reaches it within double
     precision; it ended in a traceback."""
-    import numpy as np  # only on a failure
+    # start-up: numpy and the allocator only on a failure
+    import numpy as np
 
     from covnet.core.allocation.exact import NotPositiveDefinite
 

@@ -37,6 +37,14 @@ _requested = False
 _answered = False
 
 
+def begin_command() -> None:
+    """A new command starts with no interruption asked for or answered: a command run in the
+    same process after an interrupted one (the tests', the API's callers') must not take its
+    own errors for that interruption's stand-ins (:func:`caused`)."""
+    global _requested, _answered
+    _requested = _answered = False
+
+
 def raise_interrupt(signum: int, frame: Any) -> None:
     """The SIGINT/SIGTERM handler of a command: remember the request, raise KeyboardInterrupt."""
     global _requested

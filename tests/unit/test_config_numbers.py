@@ -80,3 +80,19 @@ def test_scales_too_far_apart_end_in_a_numerical_failure_message(tmp_path, capsy
     err = capsys.readouterr().err
     assert "numerical failure:" in err and "too far apart for double precision" in err
     assert "Traceback" not in err
+
+
+def test_an_earlier_interrupted_command_does_not_make_this_one_interrupted(
+    tmp_path, capsys, monkeypatch
+):
+    """A command run in the same process after an interrupted one (here the interruption's
+    flag left set, as a test of Ctrl-C leaves it) took its own error for that interruption's
+    stand-in and said "interrupted", exit 130 (seen in the suite: this module's numerical
+    failure, run by the worker after an interruption test)."""
+    from covnet.processes import interrupts
+
+    monkeypatch.setattr(interrupts, "_requested", True)
+    monkeypatch.setattr(interrupts, "_answered", True)
+    cfg = _config(tmp_path, "paper", _set("period_s", value=1e14), scans=3)
+    assert main(["run", str(cfg), "--out", str(tmp_path / "o"), "--no-figures"]) == 1
+    assert "numerical failure:" in capsys.readouterr().err
