@@ -171,6 +171,10 @@ def test_rerunning_from_the_stored_config_reproduces_the_run(
         # inf made every period 0: the manager failed before READY
         (["up", str(PAPER), "--realtime", "--speed", "inf"], "--speed: must be a finite number"),
         (["up", str(PAPER), "--nodes", "S1,S99"], "--nodes: unknown process 'S99'"),
+        # without the manager here and with the default router (port 0: a free port of this
+        # host), the sensors tried a port nothing listens on and failed to connect
+        (["up", str(PAPER), "--nodes", "S1"], "--nodes S1: the manager (the network's router)"),
+        (["up", str(PAPER), "--nodes", "sensors", "--router", "tcp/127.0.0.1:0"], "give --router"),
         (["up", str(PAPER), "--solver", "lp"], "--solver: a covariance-control scenario"),
         (["up", str(LATENCY)], "network.latency describes slow or lossy links"),
         (["run", str(PAPER), "--metric", "nope"], "--metric: unknown metric 'nope'"),
