@@ -21,9 +21,10 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from covnet import kinds
-from covnet.config import ConfigError, NetworkSpec
+from covnet.config import ConfigError, NetworkSpec, endpoint_problem
 from covnet.errors import UsageError
 from covnet.wire import security
+from covnet.wire.keys import run_keyexpr
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
 
@@ -84,7 +85,19 @@ def default_run_id(cfg: Any) -> str:
 
 
 def resolve_run(args: Any, cfg: Any) -> str:
-    """``--run`` or the default; sets ``args.run`` so the rest of a ``main`` can use it."""
+    """``--run`` or the default; sets ``args.run`` so the rest of a ``main`` can use it.  The
+    node's options that name the wire are checked here, before a session opens, as ``covnet
+    up`` checks them: ``--run`` (a key chunk) and ``--connect`` / ``--listen`` (endpoints; a
+    malformed one was retried until ``ready_timeout_s``)."""
+    if args.run is not None:
+        try:
+            run_keyexpr(args.run)  # validates like every key part, as covnet up does
+        except ValueError as exc:
+            raise UsageError(f"--run: {exc}") from None
+    for option in ("connect", "listen"):
+        value = getattr(args, option, None)
+        if value is not None and (problem := endpoint_problem(value)) is not None:
+            raise UsageError(f"--{option}: {problem}")
     args.run = args.run or default_run_id(cfg)
     return str(args.run)
 
