@@ -32,6 +32,10 @@ class Column:
     """Rows of one ``shape`` and ``dtype`` appended one at a time (a list's ``append``,
     ``len`` and truthiness; iteration yields the rows)."""
 
+    #: no spill file yet; also on an instance whose ``__init__`` a Ctrl-C cut short, which
+    #: ``__del__`` then closes without an "Exception ignored ... AttributeError" traceback
+    _spill: IO[bytes] | None = None
+
     def __init__(self, shape: tuple[int, ...] = (), dtype: DTypeLike = np.float64) -> None:
         self.shape, self.dtype = tuple(shape), np.dtype(dtype)
         self._block: NDArray[Any] | None = None

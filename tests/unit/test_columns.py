@@ -37,3 +37,28 @@ def test_bool_and_int_columns_cast_like_np_array():
         ints.append(i * 7)
     assert masks.array().tolist() == [[i % 2 == 0, True, False] for i in range(5)]
     assert ints.array().dtype == np.int64 and ints.array().tolist() == [0, 7, 14, 21, 28]
+
+
+def test_a_column_whose_init_was_cut_short_is_collected_quietly(monkeypatch):
+    """A Ctrl-C inside ``Column.__init__`` (seen in the suite: ``covnet run`` interrupted while
+    its forks start) left an instance without ``_spill``; its ``__del__`` then printed
+    "Exception ignored ... AttributeError: 'Column' object has no attribute '_spill'"."""
+    import gc
+
+    import numpy as np
+
+    from covnet.runs.columns import Column
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    seen = []
+    monkeypatch.setattr("sys.unraisablehook", lambda u: seen.append(u))
+    monkeypatch.setattr(np, "dtype", interrupted)
+    try:
+        Column((2,), np.float64)
+    except KeyboardInterrupt:
+        pass
+    monkeypatch.undo()
+    gc.collect()
+    assert not seen, [str(u.exc_value) for u in seen]
