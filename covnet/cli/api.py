@@ -260,8 +260,6 @@ def sweep(
         isinstance(seeds, int) and not isinstance(seeds, bool) and 1 <= seeds <= MAX_SEEDS
     ):
         raise UsageError(f"seeds: an integer from 1 to {MAX_SEEDS}, got {seeds!r}")
-    options = SimpleNamespace(cluster=cluster, ci_width=ci_width, max_seeds=max_seeds,
-                              workers=workers)  # fmt: skip
     grid_fields = set(SweepSpec.model_fields)
     grid = {k: overrides.pop(k) for k in list(overrides) if k in grid_fields}
     kind, cfg = load(config, **overrides)
@@ -271,6 +269,9 @@ def sweep(
         data["sweep"] = {**(data.get("sweep") or {}), **grid}
         cfg = kind.from_dict(data, f"{cfg.name} (with sweep {', '.join(grid)})", None)
     # the command's checks, before a directory is made (the seeds of the first round)
+    options = SimpleNamespace(
+        cluster=cluster, ci_width=ci_width, max_seeds=max_seeds, workers=workers
+    )
     batch_options(options, seeds or (cfg.sweep or SweepSpec()).seeds, api=True)
     target = Path(out) if out is not None else None
     if target is not None:

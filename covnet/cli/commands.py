@@ -140,14 +140,18 @@ def cmd_up(args: argparse.Namespace) -> int:
         if n not in known:
             raise UsageError(f"--nodes: unknown process {n!r}; choose from {sorted(known)}")
     router = args.router or cfg.network.router
-    if nodes is not None and "manager" not in nodes and cfg.network.connect is None:
-        if router.rpartition(":")[2] == "0":  # a free port of this host, where nothing listens
-            raise UsageError(
-                f"--nodes {args.nodes}: the manager (the network's router) runs elsewhere, so "
-                "these nodes connect to it: give --router with its endpoint and port (e.g. "
-                "tcp/192.0.2.10:7447), or network.router or network.connect in the config (port "
-                "0 picks a free port, known only on the manager's host)"
-            )
+    if (
+        nodes is not None
+        and "manager" not in nodes
+        and cfg.network.connect is None
+        and router.rpartition(":")[2] == "0"  # a free port of this host, where nothing listens
+    ):
+        raise UsageError(
+            f"--nodes {args.nodes}: the manager (the network's router) runs elsewhere, so "
+            "these nodes connect to it: give --router with its endpoint and port (e.g. "
+            "tcp/192.0.2.10:7447), or network.router or network.connect in the config (port "
+            "0 picks a free port, known only on the manager's host)"
+        )
     if args.foxglove is not None:
         from covnet.runs.live import address_problem  # start-up: the SDK only for --foxglove
 
