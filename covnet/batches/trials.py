@@ -133,9 +133,11 @@ class TrialStore:
         atomic_write(path, (json.dumps(doc, default=_json_default) + "\n").encode())
 
     def load(self) -> dict[tuple[str, int], Result]:
-        """Every stored trial: ``(point, seed) -> result`` (unreadable files are left out:
-        their trials run again)."""
+        """Every stored trial: ``(point, seed) -> result``.  Unreadable files (cut short by a
+        full disk, edited, not JSON) are left out, so their trials run again, and listed in
+        ``unreadable`` with the reason, for the batch to say so."""
         done: dict[tuple[str, int], Result] = {}
+        self.unreadable: list[tuple[Path, str]] = []
         if not self.root.is_dir():
             return done
         for path in sorted(self.root.glob("*/*.json")):
@@ -143,8 +145,9 @@ class TrialStore:
                 doc = read_json(path)
                 pairs = zip(doc["seeds"], doc["results"], strict=True)
                 done.update({(str(doc["point"]), int(s)): r for s, r in pairs})
-            except (ValueError, KeyError, TypeError):
-                continue
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                why = f"no {exc}" if isinstance(exc, KeyError) else str(exc)
+                self.unreadable.append((path, why))
         return done
 
 
@@ -346,6 +349,13 @@ def run_trials(
     step = max(1, ci_batch or n)
     skipped = ran = rounds = 0
     say = note or (lambda msg: print(f"covnet: {msg}", file=sys.stderr, flush=True))
+    if store is not None and store.unreadable:
+        path, why = store.unreadable[0]
+        more = f" and {len(store.unreadable) - 1} more" if len(store.unreadable) > 1 else ""
+        say(
+            f"{len(store.unreadable)} trial file(s) of {out} could not be read and run "
+            f"again: {path} ({why}){more}"
+        )
     runner = _runner(cluster, workers)
     try:
         asked: set[tuple[str, int]] = set()

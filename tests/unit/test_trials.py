@@ -79,6 +79,32 @@ def test_trials_are_stored_and_skipped_on_a_rerun(tmp_path):
     assert TrialStore(tmp_path, "k").load()[("wide", 3)] == again.results["wide"][3]
 
 
+def test_a_damaged_trial_file_is_named_and_run_again(tmp_path):
+    first = run_trials(_batch(), 2, out=tmp_path, key="d", workers=1)
+    damaged = tmp_path / "trials" / "d" / "wide" / "1.json"
+    damaged.write_bytes(damaged.read_bytes()[:20])  # cut short, as by a full disk
+    with pytest.raises(ValueError) as why:
+        json.loads(damaged.read_text())
+    notes = []
+    again = run_trials(_batch(), 2, out=tmp_path, key="d", workers=1, note=notes.append)
+    assert (again.ran, again.skipped) == (1, 3)
+    assert again.results == first.results  # the trial is deterministic
+    assert notes[0] == (
+        f"1 trial file(s) of {tmp_path} could not be read and run again: {damaged} ({why.value})"
+    )
+    # the file is whole again
+    assert TrialStore(tmp_path, "d").load()[("wide", 1)] == first.results["wide"][1]
+
+
+def test_a_trial_file_that_is_a_directory_is_named_not_a_traceback(tmp_path):
+    run_trials(_batch(), 1, out=tmp_path, key="e", workers=1)
+    (tmp_path / "trials" / "e" / "wide" / "0.json").unlink()
+    (tmp_path / "trials" / "e" / "wide" / "0.json").mkdir()
+    store = TrialStore(tmp_path, "e")
+    assert sorted(store.load()) == [("narrow", 0)]
+    assert [p.name for p, _ in store.unreadable] == ["0.json"]
+
+
 def test_grouped_tasks_are_one_file_each(tmp_path):
     out = run_trials(_batch(group=5), 7, out=tmp_path, key="g", workers=1)
     names = sorted(p.name for p in (tmp_path / "trials" / "g" / "wide").iterdir())
