@@ -345,8 +345,10 @@ def _fast(payload: bytes, cls: type[_M]) -> _M | None:
         return None
     if type(obj) is not dict:
         return None
-    version = obj.get("v")
-    if type(version) is not int or version != SCHEMA_VERSION or obj.get("k") != cls.KIND:
+    version, kind = obj.get("v"), obj.get("k")
+    if type(version) is not int or version != SCHEMA_VERSION or type(kind) is not str:
+        return None  # (a kind that is an array compared by ``!=`` is numpy's ValueError)
+    if kind != cls.KIND:
         return None
     spec = _spec(cls)
     if not spec.keys.issuperset(obj):

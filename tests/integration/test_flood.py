@@ -80,6 +80,8 @@ def _variants(good: dict[str, Any], rng: np.random.Generator) -> list[bytes]:
             out.append(msgpack.packb({**good, field: bad}, use_bin_type=True, default=msg._default))
     out.append(msgpack.packb({**good, "v": 99}, use_bin_type=True, default=msg._default))
     out.append(msgpack.packb({**good, "k": "nope"}, use_bin_type=True, default=msg._default))
+    # a kind that is an array: a numpy comparison in the fast decode, which killed the node
+    out.append(msgpack.packb({**good, "k": np.ones(2)}, use_bin_type=True, default=msg._default))
     out.append(msgpack.packb({**good, "extra": 1}, use_bin_type=True, default=msg._default))
     out.append(msgpack.packb({"v": 1, "k": good["k"]}, use_bin_type=True))  # missing fields
     out.append(msgpack.packb([1, 2, 3]))  # not a map

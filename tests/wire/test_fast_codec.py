@@ -143,6 +143,23 @@ def test_unhashable_ids_agree(enabled):
             _agree(msgpack.packb(d, use_bin_type=True))
 
 
+@pytest.mark.parametrize("field", ["k", "v"])
+@pytest.mark.parametrize("value", [np.array([1.0, 2.0]), np.zeros(0), np.array([[3.0]])])
+def test_an_array_where_the_kind_or_version_goes_is_a_wire_error(field, value):
+    """``{"v": 1, "k": <array>}`` made the fast path compare an array with the kind's
+    string (numpy's "truth value of an array is ambiguous" ValueError, not a WireError),
+    and the manager or every sensor died of one such payload on its key."""
+    for cls in m.MESSAGE_TYPES:
+        d: dict[str, object] = {"v": m.SCHEMA_VERSION, "k": cls.KIND, field: value}
+        payload = msgpack.packb(d, use_bin_type=True, default=m._default)
+        assert codec._fast(payload, cls) is None
+        with pytest.raises(m.WireError):
+            m.decode_as(payload, cls)
+        with pytest.raises(m.WireError):
+            m.decode(payload)
+        assert all(x is None for x in codec.decode_many([payload] * 3, cls))
+
+
 def _ext(inner: bytes) -> msgpack.ExtType:
     return msgpack.ExtType(1, inner)
 
