@@ -186,7 +186,12 @@ def load_recording(
             elif kind == msg.Measurement.KIND:
                 m = msg.decode_as(s.payload, message)
                 rec.count(label)
-                if m.sensor_id != msg.parse_measurement_key(s.key) or not acceptable(m):
+                try:
+                    key_sensor = msg.parse_measurement_key(s.key)
+                except ValueError:  # an id no sensor can have: the manager's ``bad_key``
+                    rec.count("skipped:bad_key")
+                    continue
+                if m.sensor_id != key_sensor or not acceptable(m):
                     rec.count(f"skipped:invalid_{label}")
                 elif rec.meas.setdefault((m.episode, m.scan, m.sensor_id), m) is not m:
                     rec.count(f"{label}_duplicate")

@@ -236,3 +236,23 @@ def test_a_tampered_decision_is_reported(recorded, tmp_path):
     report = CASES[name][3](tmp_path / "run")
     assert not report.identical
     assert any("scan 2: replayed allocation" in d for d in report.differences), report.differences
+
+
+def test_a_measurement_on_a_key_with_an_invalid_sensor_id_is_skipped_not_a_crash():
+    """A well-formed Measurement on ``covnet/<run>/sensor/<65 X>/meas`` (the manager counts it
+    ``bad_key``) ended ``covnet replay`` in a ValueError from the key's parser."""
+    import numpy as np
+
+    from covnet.runs.recording import RecordedSample
+    from covnet.runs.replay_kit import load_recording
+
+    run = "r1"
+    good = msg.Measurement("S1", 3, 3.0, np.zeros((1, 2)), np.eye(2), 5, seq=3)
+    payload = msg.encode(good)
+    samples = [
+        RecordedSample(f"covnet/{run}/sensor/{'X' * 65}/meas", payload, 1, 1),
+        RecordedSample(msg.measurement_key(run, "S1"), payload, 2, 2),
+    ]
+    rec = load_recording(iter(samples), run)
+    assert rec.counts["skipped:bad_key"] == 1
+    assert list(rec.meas) == [(good.episode, 3, "S1")]
