@@ -245,6 +245,9 @@ class Loop:
                 self.members.heartbeat(hb.node_id, now)
                 if hb.sent is not None and hb.role == "sensor":
                     self.stats.reported(hb.node_id, hb.sent)
+            elif hb.node_id != RECORDER_ID:
+                self.stats.reject(s.key, "unknown_node")
+                continue
             if hb.rejected:
                 self.stats.node_rejected[hb.node_id] = dict(hb.rejected)
 
@@ -305,7 +308,11 @@ class Loop:
                 raise ManagerError(f"nodes not alive after {self.net.ready_timeout_s} s: {missing}")
             ev = self.live_sub.recv(timeout=0.05)
             if ev is not None:
-                role, node = msg.parse_alive_key(ev.key)
+                try:
+                    role, node = msg.parse_alive_key(ev.key)
+                except ValueError:  # a token no node of ours declares
+                    self.stats.reject(ev.key, "bad_key")
+                    continue
                 if role in ("sensor", "world", "recorder"):
                     self.members.token(node, ev.alive, self.clock.now_ns())
 
@@ -436,8 +443,10 @@ class Loop:
         if key_sensor != m.sensor_id:
             self.stats.reject(s.key, "key_mismatch")
             return
-        if key_sensor in self.sensor_set:  # any message of a sensor is its sign of life
-            self.members.heartbeat(key_sensor, self.clock.now_ns())
+        if key_sensor not in self.sensor_set:  # no sensor of the run: no numbers, no fusion
+            self.stats.reject(s.key, "unknown_sensor")
+            return
+        self.members.heartbeat(key_sensor, self.clock.now_ns())  # a sensor's sign of life
         self._judge(s, m, episode, k, waiting, got, usable)
 
     def _judge(
@@ -452,7 +461,13 @@ class Loop:
     ) -> None:
         """The rest of :meth:`_take` for a well-formed message ``m`` from its sensor's own
         key: its number, lateness, scan, and the kind's verdict (``usable``: the kind's test,
-        or its verdict on ``m`` already given)."""
+        or its verdict on ``m`` already given).  A message of a scan ahead of this one is
+        refused before its number counts (no sensor sends one: a forgery's ``seq`` would
+        count as sent and lost)."""
+        if (m.episode, m.scan) > (episode, k):
+            self.stats.reject(s.key, "wrong_scan")
+            self.stats.outcome[m.sensor_id]["rejected"] += 1
+            return
         if (bad := self.stats.arrived(m.sensor_id, m.seq)) is not None:
             self.stats.reject(s.key, bad)
             return
