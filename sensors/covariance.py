@@ -133,6 +133,7 @@ def run_surveillance(
         sc.network,
         truth_ok=truth_ok,
         respond=respond,
+        scans=sm.scans,
         keep_truth=sm.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
         command_ok=command_ok,
     )
@@ -190,6 +191,7 @@ def run_targets(
         respond=respond,
         # slow links: every command (a stale one is ignored), a missed one is a scan off
         missed_command="off" if not sc.network.latency.is_ideal(sc.sensor_ids) else None,
+        scans=tm.scans,
         keep_truth=tm.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
         command_ok=command_ok,
     )
@@ -240,6 +242,7 @@ def run(
         truth_ok=truth_ok,
         respond=respond,
         missed_command=sc.network.latency.missed_command if slow else None,
+        scans=model.scans,
         keep_truth=model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
         fast=fast_respond(side, clock),
     )

@@ -78,7 +78,8 @@ def run(
         )
 
     stats = serve(
-        sensor_id, bus, run_id, clock, stop, cfg.network, truth_ok=truth_ok, respond=respond
+        sensor_id, bus, run_id, clock, stop, cfg.network, truth_ok=truth_ok, respond=respond,
+        scans=cfg.scans,
     )
     if bad_targets[0]:
         stats.rejected["bad_target"] += bad_targets[0]

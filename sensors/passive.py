@@ -61,7 +61,8 @@ def run(
         )
 
     return serve(
-        sensor_id, bus, run_id, clock, stop, cfg.network, truth_ok=truth_ok, respond=respond
+        sensor_id, bus, run_id, clock, stop, cfg.network, truth_ok=truth_ok, respond=respond,
+        scans=cfg.scans,
     )
 
 

@@ -107,6 +107,7 @@ def serve(
     *,
     truth_ok: TruthCheck,
     respond: Respond,
+    scans: int,
     missed_command: str | None = None,
     keep_truth: bool = False,
     command_ok: Callable[[msg.Command], bool] | None = None,
@@ -117,6 +118,9 @@ def serve(
     ``truth_ok(truth)`` says whether a decoded ``Truth`` is usable by this sensor (else it is
     counted as ``bad_shape``); ``respond(command, truth)`` makes the measurement message for
     an enabled command once its scan's truth is in hand.  Returns the sensor's counters.
+    ``scans``: the run's number of scans; a truth of a scan outside ``1..scans`` is counted
+    ``bad_scan`` and not kept (a sensor keeps the truths of scans to come: forged ones of
+    scans that never come filled its memory).
 
     ``missed_command`` (slow links, ``network.latency.missed_command``): a command older than
     the newest one received is stale and ignored; scans whose command never came (a gap before
@@ -134,8 +138,8 @@ def serve(
     with profiled(f"sensor-{sensor_id}"):
         return _serve(
             sensor_id, bus, run_id, clock, stop, net, truth_ok=truth_ok, respond=respond,
-            missed_command=missed_command, keep_truth=keep_truth, command_ok=command_ok,
-            fast=fast,
+            scans=scans, missed_command=missed_command, keep_truth=keep_truth,
+            command_ok=command_ok, fast=fast,
         )  # fmt: skip
 
 
@@ -154,12 +158,14 @@ class _Sensor:
         *,
         truth_ok: TruthCheck,
         respond: Respond,
+        scans: int,
         missed_command: str | None,
         keep_truth: bool,
         command_ok: Callable[[msg.Command], bool] | None,
         fast: FastRespond | None = None,
     ) -> None:
         self.id, self.bus, self.run_id, self.clock = sensor_id, bus, run_id, clock
+        self.scans = scans
         self.truth_ok, self.respond, self.fast = truth_ok, respond, fast
         self.missed_command, self.keep_truth, self.command_ok = (
             missed_command, keep_truth, command_ok,
@@ -229,6 +235,8 @@ class _Sensor:
         """One truth received (or why it was refused)."""
         if isinstance(tr, msg.WireError):
             self.stats.rejected[tr.reason] += 1
+        elif not 1 <= tr.scan <= self.scans:
+            self.stats.rejected["bad_scan"] += 1
         elif not self.truth_ok(tr):
             self.stats.rejected["bad_shape"] += 1
         else:
@@ -290,13 +298,14 @@ def _serve(
     *,
     truth_ok: TruthCheck,
     respond: Respond,
+    scans: int,
     missed_command: str | None,
     keep_truth: bool,
     command_ok: Callable[[msg.Command], bool] | None,
     fast: FastRespond | None,
 ) -> SensorStats:
     one = _Sensor(
-        sensor_id, bus, run_id, clock, net, truth_ok=truth_ok, respond=respond,
+        sensor_id, bus, run_id, clock, net, truth_ok=truth_ok, respond=respond, scans=scans,
         missed_command=missed_command, keep_truth=keep_truth, command_ok=command_ok, fast=fast,
     )  # fmt: skip
     host = _hosts.get(id(getattr(bus, "session", None)))

@@ -152,7 +152,8 @@ def _bad_sensor(cfg, sid):
             return meas(k, z)
 
         return serve(
-            sid, bus, "t", clock, stop, cfg.network, truth_ok=lambda tr: True, respond=respond
+            sid, bus, "t", clock, stop, cfg.network, truth_ok=lambda tr: True, respond=respond,
+            scans=cfg.scans,
         )
 
     return run

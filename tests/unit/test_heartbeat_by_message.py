@@ -35,7 +35,7 @@ def _setup() -> tuple[SimClock, _Sensor, Loop, object]:
 
     sensor = _Sensor(
         "S1", InMemoryBus(hub), RUN, clock, net, truth_ok=lambda t: True, respond=respond,
-        missed_command=None, keep_truth=False, command_ok=None,
+        scans=10**6, missed_command=None, keep_truth=False, command_ok=None,
     )  # fmt: skip
     sensor.token = sensor.bus.declare_token(msg.alive_key(RUN, "sensor", "S1"))
     manager.poll_membership()

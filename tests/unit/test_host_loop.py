@@ -21,7 +21,7 @@ def _sensor(sid: str, missed: str | None) -> _Sensor:
     return _Sensor(
         sid, InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
         respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
-        missed_command=missed, keep_truth=False, command_ok=None,
+        scans=10**6, missed_command=missed, keep_truth=False, command_ok=None,
     )  # fmt: skip
 
 

@@ -94,7 +94,9 @@ def test_a_token_with_an_invalid_node_id_while_the_manager_waits_is_not_a_crash(
     from covnet.wire.bus import LivelinessEvent
     from manager.loop import ManagerError
 
-    loop = Loop(NetworkSpec(ready_timeout_s=0.3), paper.sensor_ids, InMemoryBus(), "st", WallClock())
+    loop = Loop(
+        NetworkSpec(ready_timeout_s=0.3), paper.sensor_ids, InMemoryBus(), "st", WallClock()
+    )
     monkeypatch.setattr(loop, "poll_membership", lambda: None)  # only the wait reads events
     for key in (f"covnet/st/alive/sensor/{'X' * 65}", "covnet/st/alive"):
         loop.live_sub.channel.put(LivelinessEvent(key, True))

@@ -202,7 +202,8 @@ def test_a_sensor_publishes_the_same_payloads_with_and_without_its_fast_path():
 
         one = _Sensor(
             model.sensor_ids[j], bus, "run1", clock, NetworkSpec(),  # type: ignore[arg-type]
-            truth_ok=lambda tr: True, respond=respond, missed_command=None, keep_truth=True,
+            truth_ok=lambda tr: True, respond=respond, scans=30, missed_command=None,
+            keep_truth=True,
             command_ok=None, fast=fast_respond(side, clock) if use_fast else None,  # type: ignore[arg-type]
         )  # fmt: skip
         got = []

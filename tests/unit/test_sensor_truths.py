@@ -1,0 +1,29 @@
+"""A sensor keeps the truths of scans to come (the world sends a short run's truth once, up
+front); a rogue client's truths of scans that never come (scan 10^9 + i) were kept for the whole
+run, and 300 of them grew every sensor by ~100 MB.  A truth of a scan outside ``1..scans`` is
+now counted ``bad_scan`` and dropped, in every kind (``scans`` is a required argument of
+``serve``: the kinds' sensor loops pass their run's)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from covnet.clock import WallClock
+from covnet.config import NetworkSpec
+from covnet.wire import messages as msg
+from covnet.wire.bus import InMemoryBus
+from sensors.protocol import _Sensor
+
+
+@pytest.mark.parametrize("keep_truth", [False, True])
+def test_a_truth_of_a_scan_outside_the_run_is_refused(keep_truth):
+    one = _Sensor(
+        "S1", InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
+        respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
+        scans=10, missed_command=None, keep_truth=keep_truth, command_ok=None,
+    )  # fmt: skip
+    for k in (0, 1, 10, 11, 10**9):
+        one.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
+    assert sorted(one.truths) == [1, 10]
+    assert one.stats.rejected == {"bad_scan": 3}
