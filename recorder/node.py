@@ -207,6 +207,9 @@ def _run(
     def record(s: Sample) -> None:
         nonlocal last_scan
         kind, t_sent, scan = peek(s.payload)
+        if not write(s.key, s.payload, s.t_recv_ns, t_sent):
+            rejected["no_channel"] += 1  # a new key with no channel left (writer.write)
+            return
         counts[kind] += 1
         if kind.startswith("undecodable:"):
             rejected[kind.removeprefix("undecodable:")] += 1
@@ -217,7 +220,6 @@ def _run(
             statuses.add(tag)
         if kind == cmd_kind and scan is not None:
             last_scan = scan
-        write(s.key, s.payload, s.t_recv_ns, t_sent)
         if feed is not None:
             feed.add(kind, s.key, s.payload, s.t_recv_ns, t_sent)
 

@@ -23,7 +23,10 @@ Layout of ``recording.mcap``
 - Channels: one per concrete key, ``topic`` = the key (``covnet/<run>/sensor/S3/meas``, ...),
   ``message_encoding`` ``"msgpack"``, the schema of the kind that key carries (from the key
   builders of :mod:`covnet.wire.messages`; ``schema_id`` 0 for a key no builder makes), metadata
-  ``{"kind": <Message.KIND or "">}``. A channel is registered when its first message arrives.
+  ``{"kind": <Message.KIND or "">}``. A channel is registered when its first message arrives;
+  keys of no covnet layout get at most :data:`MAX_FOREIGN_CHANNELS` channels and all keys at
+  most :data:`MAX_KEY_CHANNELS` (the ids are 16-bit): a message on a new key beyond them is
+  not recorded, and the recorder counts it ``no_channel``.
 - Messages: ``data`` = the payload exactly as received (also when it does not decode: the
   recording is of the wire, the replay decodes strictly); ``log_time`` = receive time
   (:attr:`covnet.wire.bus.Sample.t_recv_ns`); ``publish_time`` = the message's own ``t_sent_ns``
@@ -91,6 +94,13 @@ CHUNK_SIZE = 1024 * 1024
 (~2-3 KB with a channel per key) per chunk for the file's summary, so fewer, larger chunks keep
 a long run's recorder flat (the soak: 32 KiB chunks grew it 7.9 % over 20 000 scans)."""
 FLUSH_INTERVAL_S = 1.0
+#: MCAP channel ids are 16-bit: the received keys get at most this many channels, the rest of
+#: the id range is the visual channels' (a new key beyond it is not recorded, and counted)
+MAX_KEY_CHANNELS = 65_000
+#: keys of no covnet message layout (nothing covnet publishes) get at most this many channels:
+#: a rogue client's puts on 70 000 distinct keys of the run had used up the id range, and the
+#: recorder died (``struct.error``); their payloads are recorded while there is room
+MAX_FOREIGN_CHANNELS = 1024
 """Longest time a received message stays only in the recorder's memory (what a recorder killed
 with SIGKILL loses at most)."""
 META_RUN = "covnet.run"
@@ -247,6 +257,7 @@ class RecordingWriter:
             raise
         self._fast = _fast_parts(self._writer)
         self._channels: dict[str, int] = {}
+        self._key_channels = self._foreign_channels = 0
         self._visual_schemas: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
         self._last_flush_ns = time.monotonic_ns()
@@ -257,14 +268,21 @@ class RecordingWriter:
     def closed(self) -> bool:
         return self._file is None
 
-    def write(self, key: str, payload: bytes, t_recv_ns: int, t_sent_ns: int | None) -> None:
+    def write(self, key: str, payload: bytes, t_recv_ns: int, t_sent_ns: int | None) -> bool:
         """Record one message received at ``t_recv_ns`` (``t_sent_ns``: the sender's stamp
-        when the payload decoded, else None)."""
+        when the payload decoded, else None); False when its key is new and no channel is
+        left for it (:data:`MAX_KEY_CHANNELS`, :data:`MAX_FOREIGN_CHANNELS`): not recorded."""
         if self._file is None:
             raise ValueError(f"recording {self.path} is closed")
         channel = self._channels.get(key)
         if channel is None:
             kind = key_kind(self.run_id, key)
+            if self._key_channels >= MAX_KEY_CHANNELS or (
+                kind is None and self._foreign_channels >= MAX_FOREIGN_CHANNELS
+            ):
+                return False
+            self._key_channels += 1
+            self._foreign_channels += kind is None
             channel = self._writer.register_channel(
                 topic=key,
                 message_encoding=MESSAGE_ENCODING,
@@ -274,6 +292,7 @@ class RecordingWriter:
             self._channels[key] = channel
         self._add(channel, t_recv_ns, bytes(payload), t_recv_ns if t_sent_ns is None else t_sent_ns)
         self.messages += 1
+        return True
 
     def write_visual(self, vm: Any) -> None:
         """Record one visual message (a :class:`covnet.runs.visual.VisualMessage`: topic, schema,

@@ -259,3 +259,25 @@ def test_direct_message_path_writes_the_library_s_file_byte_for_byte(tmp_path, c
         paths.append(path)
     assert paths[0].read_bytes() == paths[1].read_bytes()
     assert list(read_recording(paths[0])) == samples
+
+
+def test_a_flood_of_new_keys_does_not_use_up_the_channel_ids(tmp_path, monkeypatch):
+    """MCAP channel ids are 16-bit; a rogue client's puts on 70 000 distinct keys of the run
+    ended the recorder in ``struct.error`` (ushort format).  Keys of no covnet layout get at
+    most MAX_FOREIGN_CHANNELS channels, every key at most MAX_KEY_CHANNELS; a message on a new
+    key beyond them is not recorded (``write`` says so), and the file stays whole."""
+    from covnet.runs import recording
+
+    monkeypatch.setattr(recording, "MAX_KEY_CHANNELS", 1500)
+    path = tmp_path / "rec.mcap"
+    w = RecordingWriter(path, run_id=RUN)
+    written = [w.write(f"covnet/{RUN}/junk/k{i}", b"x", i + 1, None) for i in range(70_000)]
+    assert sum(written) == recording.MAX_FOREIGN_CHANNELS and all(written[:1024])
+    assert w.write(f"covnet/{RUN}/junk/k0", b"y", 80_000, None)  # a known key: recorded
+    legit = [w.write(msg.measurement_key(RUN, f"S{i}"), b"z", 90_000 + i, None) for i in range(600)]
+    assert sum(legit) == 1500 - recording.MAX_FOREIGN_CHANNELS
+    w.close()
+    got = list(read_recording(path))
+    assert len(got) == recording.MAX_FOREIGN_CHANNELS + 1 + 1500 - recording.MAX_FOREIGN_CHANNELS
+    with open(path, "rb") as f:
+        assert len(make_reader(f).get_summary().channels) == 1500
