@@ -238,6 +238,13 @@ def recording_notes(reader: RecordingReader, counts: dict[str, int]) -> list[str
     skipped = {k: v for k, v in counts.items() if k.startswith("skipped:")}
     if skipped:
         notes.append(f"payloads skipped (not used by the replay): {skipped}")
+    if counts.get("status_duplicate"):
+        notes.append(
+            f"{counts['status_duplicate']} scan(s) have more than one Status recorded: the "
+            "manager sends one, so the others are another session's (a forger's, when the "
+            "run has no access control); the replay takes the first of each, and where a "
+            "forged one came first the differences below are the forger's"
+        )
     return notes
 
 

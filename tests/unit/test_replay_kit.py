@@ -256,3 +256,23 @@ def test_a_measurement_on_a_key_with_an_invalid_sensor_id_is_skipped_not_a_crash
     rec = load_recording(iter(samples), run)
     assert rec.counts["skipped:bad_key"] == 1
     assert list(rec.meas) == [(good.episode, 3, "S1")]
+
+
+def test_a_second_status_of_a_scan_is_named_in_the_notes(tmp_path):
+    """A forged Status recorded before the manager's made the replay report differences with
+    nothing to say why (the replay takes the first Status of a scan): the notes now say that
+    a scan has more than one, which the manager never sends."""
+    from covnet.runs.replay_kit import load_recording, recording_notes
+
+    run = "r2"
+    path = tmp_path / "rec.mcap"
+    w = RecordingWriter(path, run_id=run)
+    for i, value in enumerate((9.0, 1.0)):  # the forger's first, then the manager's
+        st = msg.Status(3, 3.0, ("S1",), 2.0, 1.0, value, 1, 0, (), ("S1",))
+        w.write(msg.status_key(run), msg.encode(st), 10 + i, None)
+    w.close()
+    reader = RecordingReader(path)
+    rec = load_recording(reader.samples(), run)
+    assert rec.status[(0, 3)].value == 9.0 and rec.counts["status_duplicate"] == 1
+    notes = recording_notes(reader, rec.counts)
+    assert any(n.startswith("1 scan(s) have more than one Status recorded") for n in notes)
