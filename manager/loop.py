@@ -193,6 +193,8 @@ class Loop:
         self.hb_sub = bus.subscribe(msg.heartbeat_keyexpr(run_id))
         self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))
         self.token = bus.declare_token(msg.alive_key(run_id, "manager", msg.MANAGER_ID))
+        # the run's end declared (:meth:`end`), or by another session while the run goes on
+        self.ending = self.forged_done = False
         self.keys = {
             "cmd": msg.command_keyexpr(run_id),  # commands are counted under this one
             "track": msg.track_key(run_id),
@@ -203,6 +205,7 @@ class Loop:
         """The run is over on purpose: declare its end (the nodes leave at once; a manager
         token lost without it is waited for, :class:`covnet.processes.node_kit.
         ManagerWatch`), then withdraw the manager's token."""
+        self.ending = True
         self.done_token = self.bus.declare_token(msg.done_key(self.run_id))
         self.token.undeclare()
 
@@ -231,6 +234,9 @@ class Loop:
                 continue
             if role in ("sensor", "world", "recorder"):
                 self.members.token(node, ev.alive, now)
+            elif role == "manager" and node == msg.DONE_ID and ev.alive and not self.ending:
+                self.stats.reject(ev.key, "forged_done")
+                self.forged_done = True
         while (s := self.hb_sub.try_recv()) is not None:
             self.stats.received(s.key, len(s.payload))
             try:
@@ -255,8 +261,17 @@ class Loop:
         self, k: int, previous: frozenset[str]
     ) -> tuple[frozenset[str], list[dict[str, Any]]]:
         """The failed set at scan ``k`` and the failure/rejoin events since ``previous``
-        (a failure carries when it was first seen, ``detected_ns``)."""
+        (a failure carries when it was first seen, ``detected_ns``).  Another session's
+        declaration of the run's end (the ``done`` token, which this manager declares only as
+        it ends) makes every node leave: the run stops here, saying so."""
         self.poll_membership()
+        if self.forged_done:
+            raise ManagerError(
+                f"scan {k}: another session declared the run's end (the liveliness token "
+                f"{msg.done_key(self.run_id)}, which only this manager declares, as it ends): "
+                "every node leaves; without access control any session on the bus can end "
+                "a run (README: Security (multi-host runs))"
+            )
         failed = self.members.failed(self.clock.now_ns())
         events: list[dict[str, Any]] = []
         for sid in sorted((failed ^ previous) - {WORLD_ID}):

@@ -103,3 +103,23 @@ def test_a_token_with_an_invalid_node_id_while_the_manager_waits_is_not_a_crash(
     with pytest.raises(ManagerError, match="nodes not alive"):
         loop.wait_ready(threading.Event())
     assert loop.stats.rejected == {"bad_key": 2}
+
+
+def test_a_done_token_of_another_session_stops_the_run_saying_why(paper):
+    """A third-party session declaring ``alive/manager/done`` made every node leave, and the
+    manager then failed with "all 8 sensors are excluded": it now stops at once and names
+    the forged token; its own ``done`` (as it ends) is no such event."""
+    from covnet.wire.bus import LivelinessEvent
+    from manager.loop import ManagerError
+
+    loop = Loop(NetworkSpec(), paper.sensor_ids, InMemoryBus(), "st", WallClock())
+    loop.membership_changes(1, frozenset())  # nothing yet
+    loop.live_sub.channel.put(LivelinessEvent(msg.done_key("st"), True))
+    with pytest.raises(ManagerError, match="another session declared the run's end"):
+        loop.membership_changes(2, frozenset())
+    assert loop.stats.rejected == {"forged_done": 1}
+    own = Loop(NetworkSpec(), paper.sensor_ids, InMemoryBus(), "st2", WallClock())
+    own.end()
+    own.live_sub.channel.put(LivelinessEvent(msg.done_key("st2"), True))
+    own.poll_membership()
+    assert not own.forged_done and own.stats.rejected == {}
