@@ -724,21 +724,39 @@ def allocate_assignments(
     except np.linalg.LinAlgError as exc:
         raise _spd_error(exc) from exc
     thr = tie_threshold(float(F.min()), inp.tie_rtol)
-    best = None
-    best_key = None
-    for i in np.flatnonzero(F <= thr).tolist():
-        a = _vector(cands[i], allowed, N)
-        key = inp.tie_key(a)
-        if best_key is None or key < best_key:
-            best, best_key = i, key
-    assert best is not None
-    chosen = cands[best]
+    chosen = cands[_tie_choice(cands, np.flatnonzero(F <= thr), m, inp.T + inp.C)]
     a = _vector(chosen, allowed, N)
     values = [targets[t].exact[chosen[t]][0] for t in range(T)]
     Ps = [targets[t].exact[chosen[t]][1] for t in range(T)]
     gs = [cols[T + c].exact[chosen[T + c]][0] for c in range(inp.C)]
     n_eval = sum(len(tg.exact) for tg in targets)
     return _result(inp, a, values, Ps, len(cands), n_eval, None, gs)
+
+
+def _tie_choice(cands: Sequence[Sequence[int]], tied: NDArray[np.intp], m: int, off: int) -> int:
+    """The index among ``tied`` (ascending indices into ``cands``, each a set code per column
+    over the ``m`` allowed sensors) that :meth:`_Inputs.tie_key` ranks first, the first one
+    of equal keys: the key is (sensors on, each allowed sensor's column, ``off`` for none, in
+    sensor order); the sensors that are not allowed are off in every candidate and do not
+    change the order.  The key compared a part at a time over all the candidates still in the
+    running, which keep their order (a desired covariance far above every reachable one ties
+    nearly every candidate, millions of them: a loop over their keys took most of such a
+    decision)."""
+    if len(tied) == 1:
+        return int(tied[0])
+    codes = np.array([cands[i] for i in tied.tolist()], dtype=np.int64)  # (n, columns)
+    on = _popcount(codes[:, 0])
+    for t in range(1, codes.shape[1]):
+        on += _popcount(codes[:, t])  # the sets are disjoint
+    keep = np.flatnonzero(on == on.min())
+    for b in range(m):
+        if len(keep) == 1:
+            break
+        column = np.full(len(keep), off, dtype=np.int64)
+        for t in range(codes.shape[1] - 1, -1, -1):  # at most one column holds the sensor
+            column[((codes[keep, t] >> b) & 1) == 1] = t
+        keep = keep[column == column.min()]
+    return int(tied[keep[0]])
 
 
 def _vector(sets: Sequence[int], allowed: list[int], N: int) -> list[int]:
