@@ -51,13 +51,14 @@ def test_the_choice_is_the_loops(data):
         cands += [list(c) for c in cands[: n // 2]]
     tied = np.array(sorted(data.draw(st.sets(st.integers(0, len(cands) - 1), min_size=1))))
     off = ncol + data.draw(st.integers(0, 2))
-    assert _tie_choice(cands, tied, m, off) == _loop_choice(cands, tied, allowed, N, off)
+    got = _tie_choice(np.array(cands, dtype=np.int64), tied, m, off)
+    assert got == _loop_choice(cands, tied, allowed, N, off)
 
 
 def test_a_hand_case():
     """Three sensors, two columns, all on (the count ties): the key is the columns in sensor
     order, the first of equal keys wins."""
-    cands = [[0b110, 0b001], [0b011, 0b100], [0b111, 0], [0b011, 0b100], [0b101, 0b010]]
+    cands = np.array([[0b110, 0b001], [0b011, 0b100], [0b111, 0], [0b011, 0b100], [0b101, 0b010]])
     # columns by sensor: (1, 0, 0), (0, 0, 1), (0, 0, 0), (0, 0, 1), (0, 1, 0)
     assert _tie_choice(cands, np.arange(5), 3, 2) == 2
     assert _tie_choice(cands, np.array([0, 1, 3, 4]), 3, 2) == 1
@@ -74,3 +75,53 @@ def test_a_desired_covariance_nothing_reaches_ties_every_candidate_and_decides_e
     assert fast.assignment == ref.assignment
     assert fast.value == ref.value and np.array_equal(fast.P, ref.P)
     assert fast.n_candidates > 100  # the many ties this is about
+
+
+def _enumerate_loop(targets, Hs, ws, full, root, tau):
+    """The loop over the prefixes :func:`assignment._enumerate` replaced (reference)."""
+    keep = np.flatnonzero(root <= tau)
+    tg0 = targets[0]
+    partial = [
+        ([int(tg0.subs[i])], full ^ int(tg0.subs[i]), ws[0] * float(tg0.lb[i]))
+        for i in keep.tolist()
+    ]
+    for t in range(1, len(targets)):
+        tg = targets[t]
+        nxt = []
+        for sets, R, acc in partial:
+            sel = (tg.subs & ~R) == 0
+            sub, lbs = tg.subs[sel], tg.lb[sel]
+            part = acc + ws[t] * lbs
+            v = part + Hs[t + 1][R ^ sub]
+            for k in np.flatnonzero(v <= tau).tolist():
+                code = int(sub[k])
+                nxt.append((sets + [code], R ^ code, float(part[k])))
+        partial = nxt
+    return [sets for sets, _, _ in partial]
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 1 << 20])
+@pytest.mark.parametrize(
+    ("seed", "scale", "metric"),
+    [(1, 1.0, "spectral"), (2, 1.0, "kl"), (3, 1e14, "abs_trace"), (4, 1.0, "logdet")],
+)
+def test_the_enumeration_is_the_loops_row_for_row(monkeypatch, chunk, seed, scale, metric):
+    from covnet.core.allocation import assignment
+
+    real = assignment._enumerate
+    calls = []
+
+    def both(*args):
+        got = real(*args)
+        want = _enumerate_loop(*args)
+        assert got.tolist() == want
+        calls.append(len(want))
+        return got
+
+    monkeypatch.setattr(assignment, "ENUM_CHUNK", chunk)
+    monkeypatch.setattr(assignment, "_enumerate", both)
+    P, J, D = _problem(N=6, T=3, seed=seed)
+    D = D * scale
+    fast = allocate_assignments(P, J, D, metric)
+    ref = allocate_assignments_exhaustive(P, J, D, metric)
+    assert calls and fast.assignment == ref.assignment and fast.value == ref.value

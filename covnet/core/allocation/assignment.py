@@ -716,7 +716,7 @@ def allocate_assignments(
             raise InfeasibleAllocation("no assignment satisfies the constraints")
         # the incumbent: the bound's optimum, evaluated exactly
         sets = _backtrack(cols, Hs, ws, full, int(np.argmin(root)))
-        U = _exact_total(cols, ws, [sets])[0]
+        U = _exact_total(cols, ws, np.array([sets], dtype=np.int64))[0]
         tau = U + inp.tie_rtol * max(abs(U), TINY)
         tau_b = tau * (1.0 + 16.0 * ncol * EPS) + TINY
         cands = _enumerate(cols, Hs, ws, full, root, tau_b)
@@ -724,7 +724,7 @@ def allocate_assignments(
     except np.linalg.LinAlgError as exc:
         raise _spd_error(exc) from exc
     thr = tie_threshold(float(F.min()), inp.tie_rtol)
-    chosen = cands[_tie_choice(cands, np.flatnonzero(F <= thr), m, inp.T + inp.C)]
+    chosen = cands[_tie_choice(cands, np.flatnonzero(F <= thr), m, inp.T + inp.C)].tolist()
     a = _vector(chosen, allowed, N)
     values = [targets[t].exact[chosen[t]][0] for t in range(T)]
     Ps = [targets[t].exact[chosen[t]][1] for t in range(T)]
@@ -733,18 +733,22 @@ def allocate_assignments(
     return _result(inp, a, values, Ps, len(cands), n_eval, None, gs)
 
 
-def _tie_choice(cands: Sequence[Sequence[int]], tied: NDArray[np.intp], m: int, off: int) -> int:
-    """The index among ``tied`` (ascending indices into ``cands``, each a set code per column
-    over the ``m`` allowed sensors) that :meth:`_Inputs.tie_key` ranks first, the first one
-    of equal keys: the key is (sensors on, each allowed sensor's column, ``off`` for none, in
-    sensor order); the sensors that are not allowed are off in every candidate and do not
-    change the order.  The key compared a part at a time over all the candidates still in the
-    running, which keep their order (a desired covariance far above every reachable one ties
-    nearly every candidate, millions of them: a loop over their keys took most of such a
-    decision)."""
+#: entries of one chunk of :func:`_enumerate` (prefixes times the next target's sets)
+ENUM_CHUNK = 1 << 20
+
+
+def _tie_choice(cands: NDArray[np.int64], tied: NDArray[np.intp], m: int, off: int) -> int:
+    """The index among ``tied`` (ascending indices into the rows of ``cands``, each a set
+    code per column over the ``m`` allowed sensors) that :meth:`_Inputs.tie_key` ranks
+    first, the first one of equal keys.  The key is (sensors on, each allowed sensor's
+    column, ``off`` for none, in sensor order); the sensors that are not allowed are off in
+    every candidate and do not change the order.  It is compared a part at a time over all
+    the candidates still in the running, which keep their order (a desired covariance far
+    above every reachable one ties nearly every candidate, millions of them: a loop over
+    their keys took most of such a decision)."""
     if len(tied) == 1:
         return int(tied[0])
-    codes = np.array([cands[i] for i in tied.tolist()], dtype=np.int64)  # (n, columns)
+    codes = cands[tied]  # (n, columns)
     on = _popcount(codes[:, 0])
     for t in range(1, codes.shape[1]):
         on += _popcount(codes[:, t])  # the sets are disjoint
@@ -792,40 +796,55 @@ def _enumerate(
     full: int,
     root: Mat,
     tau: float,
-) -> list[list[int]]:
-    """Every assignment (as per-target set codes) whose bound is at most ``tau``: target by
-    target, keeping the prefixes whose least completion (``H``) stays within ``tau``."""
+) -> NDArray[np.int64]:
+    """Every assignment whose bound is at most ``tau``, a row of per-target set codes each:
+    target by target, keeping the prefixes whose least completion (``H``) stays within
+    ``tau``.  The prefixes are extended a chunk at a time (every prefix against every set of
+    the next target, the compatible ones kept), in the order of a loop over the prefixes and,
+    within one, over the sets: the rows come in that order, and each prefix's bound is
+    ``acc + w_t lb`` with the loop's arithmetic (elementwise, the same IEEE operations)."""
     keep = np.flatnonzero(root <= tau)
     tg0 = targets[0]
-    partial = [
-        ([int(tg0.subs[i])], full ^ int(tg0.subs[i]), ws[0] * float(tg0.lb[i]))
-        for i in keep.tolist()
-    ]
+    codes = tg0.subs[keep][:, None].astype(np.int64)
+    R = full ^ tg0.subs[keep].astype(np.int64)
+    acc = ws[0] * tg0.lb[keep]
     for t in range(1, len(targets)):
         tg = targets[t]
-        nxt = []
-        for sets, R, acc in partial:
-            sel = (tg.subs & ~R) == 0
-            sub, lbs = tg.subs[sel], tg.lb[sel]
-            part = acc + ws[t] * lbs
-            v = part + Hs[t + 1][R ^ sub]
-            for k in np.flatnonzero(v <= tau).tolist():
-                code = int(sub[k])
-                nxt.append((sets + [code], R ^ code, float(part[k])))
-        partial = nxt
-    return [sets for sets, _, _ in partial]
+        subs = tg.subs.astype(np.int64)
+        wlb = ws[t] * tg.lb
+        H = Hs[t + 1]
+        step = max(1, ENUM_CHUNK // max(subs.size, 1))
+        parts_codes, parts_R, parts_acc = [], [], []
+        for lo in range(0, R.size, step):
+            Rc = R[lo : lo + step, None]
+            part = acc[lo : lo + step, None] + wlb[None, :]
+            v = part + H[Rc ^ subs[None, :]]
+            pi, si = np.nonzero(((subs[None, :] & ~Rc) == 0) & (v <= tau))
+            parts_codes.append(np.concatenate((codes[lo + pi], subs[si, None]), axis=1))
+            parts_R.append(Rc[pi, 0] ^ subs[si])
+            parts_acc.append(part[pi, si])
+        if not parts_codes:
+            return np.zeros((0, len(targets)), dtype=np.int64)
+        codes = np.concatenate(parts_codes)
+        R = np.concatenate(parts_R)
+        acc = np.concatenate(parts_acc)
+    return codes
 
 
 def _exact_total(
-    targets: Sequence[_Target | _Cell], ws: list[float], cands: list[list[int]]
+    targets: Sequence[_Target | _Cell], ws: list[float], cands: NDArray[np.int64]
 ) -> Mat:
-    """``F`` of each candidate with the reference's arithmetic (per-target values exact, summed
-    ``F = 0; F = F + w_t v_t``, then the cells' ``F = F + g_c`` with ``w = 1``: ``1.0 * g`` is
-    ``g``)."""
-    for t, tg in enumerate(targets):
-        tg.values([c[t] for c in cands])
+    """``F`` of each candidate (a row of set codes) with the reference's arithmetic (per-target
+    values exact, summed ``F = 0; F = F + w_t v_t``, then the cells' ``F = F + g_c`` with
+    ``w = 1``: ``1.0 * g`` is ``g``); each target's distinct codes looked up once."""
     F = np.zeros(len(cands))
+    looked_up = []
     for t, tg in enumerate(targets):
-        v = np.array([tg.exact[c[t]][0] for c in cands])
+        u, inv = np.unique(cands[:, t], return_inverse=True)
+        tg.values(u.tolist())
+        looked_up.append((u.tolist(), inv.reshape(-1)))
+    for t, tg in enumerate(targets):
+        codes, inv = looked_up[t]
+        v = np.array([tg.exact[c][0] for c in codes])[inv]
         F = F + ws[t] * v
     return F
