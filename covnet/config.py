@@ -25,6 +25,7 @@ import hashlib
 import json
 import os
 import re
+import reprlib
 from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, Protocol, TypeVar, get_args
@@ -32,6 +33,7 @@ from typing import Annotated, Any, Literal, Protocol, TypeVar, get_args
 import yaml
 
 from covnet.records import (
+    MAX_MAGNITUDE,
     AfterValidator,
     Field,
     Record,
@@ -215,7 +217,13 @@ class LinkConfig(ConfigModel):
             if key != "kind" and not all(
                 isinstance(v, int | float) and not isinstance(v, bool) for v in values
             ):
-                raise ValueError(f"delay.{key} must be a number of seconds, got {value!r}")
+                raise ValueError(f"delay.{key} must be a number of seconds, got {_short(value)}")
+            if key != "kind" and not all(abs(v) <= MAX_MAGNITUDE for v in values):
+                # (an int beyond a float's range ended in the core's OverflowError)
+                raise ValueError(
+                    f"delay.{key} must be a number of seconds of magnitude at most "
+                    f"{MAX_MAGNITUDE:g}, got {_short(value)}"
+                )
         self.spec()  # the core's checks, with its messages naming the field
         return self
 
@@ -483,7 +491,39 @@ def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
                 "without a sign as text: write 1.0e+4 or 10000.0)"
             )
         return path, f"expected a number, got the string {value!r} (drop the quotes)"
-    return path, f"{msg}, got {value!r}"
+    return path, f"{msg}, got {_short(value)}"
+
+
+#: how a refused value is quoted in a message: a few items and characters of it (a value of a
+#: billion items, from YAML aliases, or a 5000-character string was echoed whole)
+_SHORT = reprlib.Repr()
+_SHORT.maxstring = _SHORT.maxother = 80
+_SHORT.maxlist = _SHORT.maxtuple = _SHORT.maxdict = 6
+_SHORT.maxlevel = 3
+
+
+def _short(value: object) -> str:
+    return _SHORT.repr(value)
+
+
+#: the most values (scalars, lists, mappings) a config may hold once YAML's aliases are
+#: expanded: ``&a [*b, *b, ...]`` nine levels deep is a billion of them from a few lines
+MAX_CONFIG_VALUES = 1_000_000
+
+
+def _count_values(data: object, limit: int) -> int:
+    """The number of values in ``data`` (each visit of a shared one counts: what a reader of
+    the expanded document sees), counted up to ``limit + 1`` at most."""
+    n, stack = 0, [data]
+    while stack and n <= limit:
+        x = stack.pop()
+        n += 1
+        if isinstance(x, dict):
+            stack.extend(x.keys())
+            stack.extend(x.values())
+        elif isinstance(x, list):
+            stack.extend(x)
+    return n
 
 
 #: a number YAML 1.1 reads as text: an exponent without a sign (``1e4``, ``1.0E4``)
@@ -601,13 +641,19 @@ def read_yaml(path: str | Path) -> object:
         raise ConfigError(str(p), [("", f"cannot read file: {exc.strerror or exc}")]) from None
     except UnicodeDecodeError as exc:
         raise ConfigError(str(p), [("", f"not UTF-8 text: {exc}")]) from None
+    deep = "nested too deeply (lists or mappings within each other hundreds of levels down)"
     if p.suffix == ".json":
         try:
-            return json.loads(text)
+            data = json.loads(text)
         except ValueError as exc:
             raise ConfigError(str(p), [("", f"not valid JSON: {exc}")]) from None
+        except RecursionError:
+            raise ConfigError(str(p), [("", f"not valid JSON: {deep}")]) from None
+        return _bounded(p, data)
     try:
-        return _load_yaml(text)
+        return _bounded(p, _load_yaml(text))
+    except RecursionError:
+        raise ConfigError(str(p), [("", f"not valid YAML: {deep}")]) from None
     except _DuplicateKeys as exc:
         raise ConfigError(str(p), [("", m) for m in exc.messages]) from None
     except yaml.YAMLError as exc:
@@ -615,6 +661,16 @@ def read_yaml(path: str | Path) -> object:
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(str(p), [("", f"not valid YAML: {where}{problem}")]) from None
+
+
+def _bounded(p: Path, data: object) -> object:
+    if _count_values(data, MAX_CONFIG_VALUES) > MAX_CONFIG_VALUES:
+        raise ConfigError(
+            str(p),
+            [("", f"more than {MAX_CONFIG_VALUES:,} values once YAML's aliases (*name) are "
+                  "expanded: not a config covnet can take")],
+        )  # fmt: skip
+    return data
 
 
 M = TypeVar("M", bound=Record)
