@@ -419,6 +419,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument(
         "--episode", metavar="NAME", help="only this episode, e.g. a metric (default: every one)"
     )
+    ex.add_argument(
+        "--force", action="store_true", help="replace an existing --out file (not a run's own)"
+    )
     ex.set_defaults(func=cmd_export)
 
     b = sub.add_parser(

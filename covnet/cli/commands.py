@@ -247,7 +247,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     # start-up: the export's readers and writers for this command only
     from covnet.runs.export import export
 
-    path = export(args.run_dir, args.format, args.out, args.episode)
+    path = export(args.run_dir, args.format, args.out, args.episode, args.force)
     if path is not None:
         print(path)
     return EXIT_OK

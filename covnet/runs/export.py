@@ -300,11 +300,17 @@ def write_stonesoup(episodes: Iterable[Episode], start: datetime = EPOCH) -> str
 
 
 def export(
-    run_dir: str | Path, fmt: str, out: str | Path | None = None, episode: str | None = None
+    run_dir: str | Path,
+    fmt: str,
+    out: str | Path | None = None,
+    episode: str | None = None,
+    force: bool = False,
 ) -> Path | None:
     """``covnet export``: ``run_dir``'s episodes (or the one called ``episode``) in format
     ``fmt`` (:data:`FORMATS`) written to ``out`` (default: :data:`DEFAULT_NAMES` in the run
-    directory; ``"-"``: standard output).  Returns the file written (``None`` for stdout)."""
+    directory, replaced; ``"-"``: standard output).  Returns the file written (``None`` for
+    stdout).  An existing ``out`` is replaced only with ``force``, and never when it is one of
+    the run's own files (``--out RUN/summary.json`` wrote CSV over the run's summary)."""
     if fmt not in FORMATS:
         raise UsageError(f"--format {fmt}: choose from {', '.join(FORMATS)}")
     chosen = _select(read_run(run_dir), episode, run_dir)  # what is wrong with the run first
@@ -317,5 +323,11 @@ def export(
         raise UsageError(f"--out {out}: is a directory (expected a file name)")
     if not path.parent.is_dir():
         raise UsageError(f"--out {out}: its folder {path.parent} does not exist")
+    if out is not None and path.exists():
+        own = path.resolve().parent == Path(run_dir).resolve()
+        if own and path.name not in DEFAULT_NAMES.values():
+            raise UsageError(f"--out {out}: is one of the run's own files; choose another name")
+        if not force:
+            raise UsageError(f"--out {out}: exists; choose another name or pass --force")
     atomic_write(path, text.encode())
     return path

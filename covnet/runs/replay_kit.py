@@ -373,9 +373,11 @@ class KindReplay:
                 f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
             )
         if args.out is not None:
-            out = prepare_out(args.out, "replay", args.force)
+            out = prepare_out(args.out, "replay", args.force, reads=run_dir)
         else:  # the run's own replay directory: replaced
             out = run_dir / REPLAY_DIR
+            if out.exists() and not out.is_dir():
+                raise UsageError(f"{out}: exists and is not a directory (the replay's own)")
             if out.is_dir() and any(out.iterdir()):
                 clear_output(out)
         try:

@@ -93,16 +93,32 @@ OUTPUT_MARKERS = (
 ``--force`` may clear."""
 
 
-def prepare_out(out: str | Path | None, name: str, force: bool, option: str = "--out") -> Path:
+def prepare_out(
+    out: str | Path | None,
+    name: str,
+    force: bool,
+    option: str = "--out",
+    *,
+    reads: Path | None = None,
+) -> Path:
     """The directory a command writes to: ``out``, or :func:`new_run_dir` of ``name`` when
     ``None``.  An existing file, or a non-empty directory without ``force``, is a
     :class:`~covnet.errors.UsageError` naming ``--out``.  With ``force`` a non-empty directory
     is emptied first (so nothing of an earlier run stays beside the new one), but only when it
     is an earlier output of covnet (:data:`OUTPUT_MARKERS`) and neither the working directory
-    nor one of its parents: ``--force`` never deletes anything else."""
+    nor one of its parents: ``--force`` never deletes anything else.  ``reads``: the
+    directory the command reads; ``out`` may not be it or hold it (``covnet replay RUN --out
+    RUN --force`` emptied the run it was asked to read, recording and all)."""
     if out is None:
         return new_run_dir(name)
     p = Path(out)
+    if reads is not None:
+        src, target = reads.resolve(), p.resolve()
+        if target == src or target in src.parents:
+            raise UsageError(
+                f"{option} {out}: it is (or holds) {reads}, the directory this command reads: "
+                "choose another"
+            )
     if p.exists() and not p.is_dir():
         raise UsageError(f"{option} {out}: exists and is not a directory")
     if p.is_dir() and any(p.iterdir()):

@@ -1,0 +1,86 @@
+"""Commands that read a run directory never write over it (a hunt through damaged and
+misused run directories found both):
+
+- ``covnet replay RUN --out RUN --force`` emptied the run it was asked to read (recording,
+  summary, arrays), then failed on the missing config; ``--out`` may now be neither the run
+  nor a folder holding it, and the default ``RUN/replay`` that is a file is named;
+- ``covnet export RUN --out RUN/summary.json`` wrote CSV over the run's summary (exit 0); an
+  existing ``--out`` is now replaced only with ``--force``, and a run's own file never."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import pytest
+
+from covnet.cli.app import main
+from covnet.errors import UsageError
+from covnet.runs.rundir import prepare_out
+from tests.conftest import REPO
+
+
+def _digest(d: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(d)): hashlib.sha1(p.read_bytes()).hexdigest()
+        for p in sorted(d.rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("r") / "run"
+    assert main(["run", str(REPO / "configs" / "paper.yaml"), "--no-figures", "--out", str(d)]) == 0
+    for name in ("run.json", "recording.mcap"):  # what a replay checks for first
+        (d / name).write_bytes(b"")
+    return d
+
+
+def test_prepare_out_refuses_the_directory_read_or_one_holding_it(tmp_path):
+    src = tmp_path / "a" / "run"
+    src.mkdir(parents=True)
+    for out in (src, tmp_path / "a", tmp_path / "a" / "." / "run"):
+        with pytest.raises(UsageError, match="the directory this command reads"):
+            prepare_out(out, "replay", True, reads=src)
+    assert prepare_out(src / "sub", "replay", True, reads=src) == src / "sub"
+
+
+@pytest.mark.parametrize("out", [".", ".."])
+def test_replay_out_the_run_itself_with_force_deletes_nothing(run_dir, out, capsys):
+    before = _digest(run_dir)
+    assert main(["replay", str(run_dir), "--out", str(run_dir / out), "--force"]) == 2
+    assert "the directory this command reads" in capsys.readouterr().err
+    assert _digest(run_dir) == before
+
+
+def test_replay_default_out_that_is_a_file_is_named(tmp_path, run_dir, capsys):
+    import shutil
+
+    d = tmp_path / "copy"
+    shutil.copytree(run_dir, d)
+    (d / "replay").write_text("mine")
+    assert main(["replay", str(d)]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
+    assert (d / "replay").read_text() == "mine"
+
+
+@pytest.mark.parametrize("name", ["summary.json", "arrays.npz", "config.json"])
+def test_export_never_writes_over_the_runs_own_files(run_dir, name, capsys):
+    before = _digest(run_dir)
+    for extra in ([], ["--force"]):
+        assert main(["export", str(run_dir), "--out", str(run_dir / name), *extra]) == 2
+        assert "one of the run's own files" in capsys.readouterr().err
+    assert _digest(run_dir) == before
+
+
+def test_export_replaces_an_existing_file_only_with_force(tmp_path, run_dir, capsys):
+    out = tmp_path / "mine.csv"
+    out.write_text("keep me")
+    assert main(["export", str(run_dir), "--out", str(out)]) == 2
+    assert "exists; choose another name or pass --force" in capsys.readouterr().err
+    assert out.read_text() == "keep me"
+    assert main(["export", str(run_dir), "--out", str(out), "--force"]) == 0
+    assert out.read_text().startswith("kind,episode,id,scan")
+    # the default name in the run directory is the export's own: replaced without a word
+    assert main(["export", str(run_dir)]) == 0 and main(["export", str(run_dir)]) == 0
