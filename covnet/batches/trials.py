@@ -163,14 +163,31 @@ def prepare_batch_out(
         return new_run_dir(name), False
     p = Path(out)
     info = p / BATCH_INFO
-    if p.is_dir() and info.is_file():
+    if p.is_dir() and (info.exists() or info.is_symlink()):
         try:
             have = read_json(info)
-        except ValueError:
-            have = {}
+            why = None if isinstance(have, dict) else "not a JSON object"
+        except (OSError, ValueError) as exc:
+            have, why = {}, str(exc)
         if force:
             clear_output(p)
             return p, False
+        if why is None and not {"command", "trial_hash"} <= set(have):
+            why = "no command or trial_hash"
+        if why is not None:  # damaged: its trials folder still says which batch it holds
+            if (p / TRIALS / key).is_dir() and info.is_file():
+                print(
+                    f"covnet: {info} cannot be read ({why}); {p / TRIALS / key} holds this "
+                    "batch's trials: resuming, and writing it again",
+                    file=sys.stderr,
+                )
+                info.unlink()  # write_batch_info writes it again
+                return p, True
+            raise UsageError(
+                f"--out {out}: its {BATCH_INFO} cannot be read ({why}) and it holds no trials "
+                f"of this batch ({TRIALS}/{key}); choose another directory, or pass --force "
+                "to delete what it holds and start over"
+            )
         if have.get("command") == command and have.get("trial_hash") == key:
             return p, True
         raise UsageError(

@@ -323,3 +323,26 @@ def test_cli_ci_width_adds_seeds_until_narrow_and_says_so(tmp_path, capsys):
     assert main(["plot", str(out), "--point", "delay_ms=350"]) == 0
     assert (out / "curves.png").stat().st_size > 10_000
     assert main(["plot", str(out), "--point", "nope"]) == 2
+
+
+@pytest.mark.parametrize("damage", [b"", b"[]", b"null", b"{\"command\": ", b"{}"])
+def test_a_damaged_batch_json_resumes_from_its_trials_or_says_what_is_wrong(tmp_path, damage):
+    """A damaged ``batch.json`` was taken for another batch's ("holds the trials of another
+    batch (covnet None, ...) ... or pass --force to replace it", advice that deletes every
+    trial), or ended in an AttributeError (a list, null).  Its ``trials/<hash>`` folder says
+    which batch the directory holds: the batch resumes and writes it again; without that
+    folder the message names the file."""
+    out = tmp_path / "b"
+    o, resuming = prepare_batch_out(out, "x", False, "sweep", "h1")
+    write_batch_info(o, "sweep", "h1", {})
+    run_trials(_batch(), 2, out=o, key="h1", workers=1)
+    (o / "batch.json").write_bytes(damage)
+    again, resuming = prepare_batch_out(out, "x", False, "sweep", "h1")
+    assert again == out and resuming
+    write_batch_info(again, "sweep", "h1", {})
+    assert json.loads((o / "batch.json").read_text())["trial_hash"] == "h1"
+    (o / "batch.json").write_bytes(damage)
+    with pytest.raises(UsageError, match="batch.json cannot be read") as info:
+        prepare_batch_out(out, "x", False, "sweep", "h2")
+    assert "another batch" not in str(info.value)
+    assert (o / "trials" / "h1").is_dir()
