@@ -344,6 +344,8 @@ class KindReplay:
         kind = kinds.get(self.kind)
         cfg = kind.from_dict(_read_json(run_dir / CONFIG), str(run_dir / CONFIG), None)
         info = _read_json(run_dir / RUN_INFO)
+        if not isinstance(info, dict):
+            raise ReplayError(f"{run_dir / RUN_INFO}: not a JSON object (not a network run?)")
         episodes = info.get("episodes", kind.episodes(cfg))
         if not isinstance(episodes, list) or not all(isinstance(m, str) for m in episodes):
             raise ReplayError(f"{run_dir / RUN_INFO} has no 'episodes' list (not a network run?)")
@@ -382,9 +384,8 @@ class KindReplay:
                 clear_output(out)
         try:
             report = self.replay_run(run_dir, out)
-        except ReplayError as exc:
-            print(f"covnet: error: {exc}", file=sys.stderr)
-            return EXIT_FAIL
+        except ReplayError as exc:  # a file of the run missing or unreadable: the user's input
+            raise UsageError(str(exc)) from None
         files = " and ".join(self.compared)
         if report.identical:
             print(f"replayed {run_dir}: identical: {files} reproduced exactly ({report.out_dir})")

@@ -84,3 +84,22 @@ def test_export_replaces_an_existing_file_only_with_force(tmp_path, run_dir, cap
     assert out.read_text().startswith("kind,episode,id,scan")
     # the default name in the run directory is the export's own: replaced without a word
     assert main(["export", str(run_dir)]) == 0 and main(["export", str(run_dir)]) == 0
+
+
+@pytest.mark.parametrize(
+    ("content", "says"),
+    [(b"[]", "not a JSON object"), (b"42", "not a JSON object"), (b"", "cannot read")],
+)
+def test_replay_of_a_run_whose_run_json_is_damaged_is_a_usage_error(
+    tmp_path, run_dir, capsys, content, says
+):
+    """``run.json`` a list, a number (an AttributeError traceback) or empty (exit 1, where a
+    missing one is exit 2): every file of the run that cannot be read is the user's input."""
+    import shutil
+
+    d = tmp_path / "copy"
+    shutil.copytree(run_dir, d)
+    (d / "run.json").write_bytes(content)
+    assert main(["replay", str(d)]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err
