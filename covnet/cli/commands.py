@@ -228,15 +228,26 @@ def cmd_plot(args: argparse.Namespace) -> int:
     stale = config_mismatch(run_dir, kinds.config_hash(cfg))
     if stale is not None:
         raise UsageError(stale)
-    if args.point is not None:
-        try:
-            figures = kind.plot(run_dir, point=args.point)  # type: ignore[call-arg]
-        except TypeError as exc:  # a kind whose plot takes no point
-            if "point" not in str(exc):
-                raise
-            raise UsageError(f"--point: a {kind.title} directory has no per-point curves") from None
-    else:
-        figures = kind.plot(run_dir)
+    try:
+        if args.point is not None:
+            try:
+                figures = kind.plot(run_dir, point=args.point)  # type: ignore[call-arg]
+            except TypeError as exc:  # a kind whose plot takes no point
+                if "point" not in str(exc):
+                    raise
+                raise UsageError(
+                    f"--point: a {kind.title} directory has no per-point curves"
+                ) from None
+        else:
+            figures = kind.plot(run_dir)
+    except (KeyError, TypeError, AttributeError, IndexError, ValueError) as exc:
+        # a result table whose layout is not the one covnet wrote (a key gone, a list where a
+        # table was, null, text where a number was): edited or damaged, the user's input
+        raise UsageError(
+            f"{run_dir}: a result file does not have the layout covnet writes "
+            f"({type(exc).__name__}: {exc}); was it edited? The command that made the "
+            "directory writes it again"
+        ) from None
     for p in figures:
         print(p)
     return EXIT_OK
