@@ -36,6 +36,7 @@ seed)
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import json
 import math
@@ -126,11 +127,14 @@ class TrialStore:
         return self.root / point / f"{name}.json"
 
     def save(self, point: str, seeds: Sequence[int], results: Sequence[Result]) -> None:
-        """Write one task's results (atomically: a reader never sees half a file)."""
+        """Write one task's results (atomically: a reader never sees half a file), with the
+        digest of its content (:func:`_digest`)."""
         path = self._file(point, seeds)
         path.parent.mkdir(parents=True, exist_ok=True)
-        doc = {"point": point, "seeds": list(seeds), "results": list(results)}
-        atomic_write(path, (json.dumps(doc, default=_json_default) + "\n").encode())
+        doc = json.loads(json.dumps({"point": point, "seeds": list(seeds),
+                                     "results": list(results)}, default=_json_default))
+        doc["sha256"] = _digest(doc)
+        atomic_write(path, (json.dumps(doc) + "\n").encode())
 
     def load(self) -> dict[tuple[str, int], Result]:
         """Every stored trial: ``(point, seed) -> result``.  Unreadable files (cut short by a
@@ -143,12 +147,24 @@ class TrialStore:
         for path in sorted(self.root.glob("*/*.json")):
             try:
                 doc = read_json(path)
+                if "sha256" in doc and doc["sha256"] != _digest(doc):
+                    raise ValueError("edited: its content is not what was written (sha256)")
                 pairs = zip(doc["seeds"], doc["results"], strict=True)
                 done.update({(str(doc["point"]), int(s)): r for s, r in pairs})
             except (OSError, ValueError, KeyError, TypeError) as exc:
                 why = f"no {exc}" if isinstance(exc, KeyError) else str(exc)
                 self.unreadable.append((path, why))
         return done
+
+
+def _digest(doc: Mapping[str, Any]) -> str:
+    """SHA-256 of a trial file's ``point``, ``seeds`` and ``results`` as canonical JSON (keys
+    sorted; floats in their round-trip form, so what is read back digests the same): a file
+    edited or damaged into another valid one (a result's field removed or set to null, its
+    point or seeds changed) is told from the one written, and its trials run again.  A file
+    without it (an older store) is read as before."""
+    body = {k: doc[k] for k in ("point", "seeds", "results")}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
 
 def prepare_batch_out(

@@ -346,3 +346,37 @@ def test_a_damaged_batch_json_resumes_from_its_trials_or_says_what_is_wrong(tmp_
         prepare_batch_out(out, "x", False, "sweep", "h2")
     assert "another batch" not in str(info.value)
     assert (o / "trials" / "h1").is_dir()
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda d: d["results"][0].update(x=None),  # a result's field set to null
+        lambda d: d["results"][0].pop("x"),  # removed
+        lambda d: d.update(point="narrow"),  # another point's trial in its place
+        lambda d: d.update(seeds=[9999]),  # another seed's
+    ],
+)
+def test_a_trial_file_edited_into_another_valid_one_is_run_again_with_a_note(tmp_path, edit):
+    """A trial file edited or damaged into valid JSON of another content was taken as it was
+    (a null RMSE left out of the mean silently; a missing field a KeyError traceback in the
+    table; a changed point or seed another trial's result): its digest now tells it."""
+    first = run_trials(_batch(), 2, out=tmp_path, key="s", workers=1)
+    path = tmp_path / "trials" / "s" / "wide" / "1.json"
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc))
+    notes = []
+    again = run_trials(_batch(), 2, out=tmp_path, key="s", workers=1, note=notes.append)
+    assert again.results == first.results and again.ran == 1
+    assert "could not be read and run again" in notes[0] and "sha256" in notes[0]
+
+
+def test_a_trial_file_without_a_digest_is_read_as_before(tmp_path):
+    first = run_trials(_batch(), 2, out=tmp_path, key="o", workers=1)
+    for path in (tmp_path / "trials" / "o").rglob("*.json"):
+        doc = json.loads(path.read_text())
+        del doc["sha256"]
+        path.write_text(json.dumps(doc))
+    again = run_trials(_batch(), 2, out=tmp_path, key="o", workers=1)
+    assert again.ran == 0 and again.results == first.results
