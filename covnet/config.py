@@ -635,6 +635,8 @@ def read_yaml(path: str | Path) -> object:
     would read ``1e-09`` as text); an unreadable file or bad YAML (JSON) is a
     :class:`ConfigError` naming the line and column."""
     p = Path(path)
+    if p.exists() and not p.is_file():  # a FIFO or a device: read forever, or until no memory
+        raise ConfigError(str(p), [("", "not a regular file")])
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:

@@ -612,6 +612,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not _stdout_closed():
             raise
         return EXIT_PIPE
+    except OSError as exc:  # a file covnet reads or writes: a directory in its place, no room
+        where = f"{exc.filename}: " if exc.filename else ""
+        _err(f"{where}{exc.strerror or exc}")
+        return EXIT_FAIL
     except BaseException as exc:  # a Ctrl-C, or an extension's stand-in for one it swallowed
         if not interrupts.caused(exc):
             why = _numerical_failure(exc)

@@ -173,7 +173,12 @@ def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
 
 
 def read_json(path: Path) -> Any:
-    return json.loads(Path(path).read_text())
+    """The JSON in ``path``; a ``ValueError`` when it is not a regular file (a FIFO or a device
+    was read until the machine's memory ran out, or forever) or not JSON."""
+    p = Path(path)
+    if p.exists() and not p.is_file():
+        raise ValueError(f"{p} is not a regular file")
+    return json.loads(p.read_text())
 
 
 #: the result files that carry the hash of the config they were computed from (a run's
