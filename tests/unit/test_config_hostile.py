@@ -61,3 +61,33 @@ def test_an_integer_beyond_a_float_as_a_delay_is_a_config_error(tmp_path, delay)
     p.write_text(PAPER + f"\nnetwork:\n  latency:\n    uplink:\n      delay: {delay}\n")
     with pytest.raises(ConfigError, match="magnitude at most"):
         load(p)
+
+
+@pytest.mark.parametrize(
+    ("edit", "where", "says"),
+    [
+        ("allocation:\n  metrics: [spectral, spectral, svd]", "allocation.metrics", "duplicate"),
+        ("allocation:\n  required: [S1, S1]", "allocation.required", "duplicate"),
+        ("allocation:\n  excluded: [S8, S8]", "allocation.excluded", "duplicate"),
+        (
+            "fusion:\n  mode: peer\n  peer: {graph: custom, edges: [[S1, S2], [S2, S1]]}",
+            "fusion.peer.edges[1]",
+            "the link of edges[0] again",
+        ),
+        ("fusion:\n  mode: peer\n  peer: {graph: ring, hub: S3}", "fusion.peer.hub", "star"),
+    ],
+)
+def test_a_list_entry_given_twice_or_a_key_with_no_effect_is_named(tmp_path, edit, where, says):
+    """A metric named twice ran once while config.json (and its hash) kept both; a repeated
+    required or excluded sensor or peer link, and a star's hub on another graph, were taken
+    without a word."""
+    import yaml
+
+    raw = yaml.safe_load(PAPER)
+    for key, value in yaml.safe_load(edit).items():
+        raw[key] = {**raw.get(key, {}), **value}
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ConfigError) as info:
+        load(p)
+    assert any(w == where and says in m for w, m in info.value.problems), info.value.problems

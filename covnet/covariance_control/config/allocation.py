@@ -52,6 +52,15 @@ class AllocationSpec(ConfigModel):
     policy: PolicyName = "covariance_control"
     budget: Int | None = Field(default=None, ge=1)
 
+    @field_validator("metrics", "required", "excluded")
+    @classmethod
+    def _once_each(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        # a repeated metric ran once while config.json (and its hash) kept both
+        dups = sorted({x for x in v if v.count(x) > 1})
+        if dups:
+            raise ValueError(f"duplicate entries {dups}: name each once")
+        return v
+
     @field_validator("gap")
     @classmethod
     def _gap(cls, v: float | None) -> float | None:

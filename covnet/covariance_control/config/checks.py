@@ -359,6 +359,13 @@ def _peer_problems(peer: PeerSpec, ids: tuple[str, ...]) -> list[tuple[str, str]
                 problems.append((f"fusion.peer.edges[{i}][{end}]", f"no sensor with id {sid!r}"))
         if a == b:
             problems.append((f"fusion.peer.edges[{i}]", f"a self-loop on {a!r}"))
+    seen: dict[frozenset[str], int] = {}
+    for i, (a, b) in enumerate(peer.edges):  # a link is undirected: [a, b] is [b, a]
+        first = seen.setdefault(frozenset((a, b)), i)
+        if first != i and a != b:
+            problems.append((f"fusion.peer.edges[{i}]", f"the link of edges[{first}] again"))
+    if peer.hub is not None and peer.graph != "star":
+        problems.append(("fusion.peer.hub", "only used with graph: star"))
     return problems
 
 
