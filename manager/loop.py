@@ -477,11 +477,10 @@ class Loop:
         """The rest of :meth:`_take` for a well-formed message ``m`` from its sensor's own
         key: its number, lateness, scan, and the kind's verdict (``usable``: the kind's test,
         or its verdict on ``m`` already given).  A message of a scan ahead of this one is
-        refused before its number counts (no sensor sends one: a forgery's ``seq`` would
-        count as sent and lost)."""
+        refused before its number or the sensor's counts see it (no sensor sends one: a
+        forgery's ``seq`` would count as sent and lost; it is counted under its key)."""
         if (m.episode, m.scan) > (episode, k):
             self.stats.reject(s.key, "wrong_scan")
-            self.stats.outcome[m.sensor_id]["rejected"] += 1
             return
         if (bad := self.stats.arrived(m.sensor_id, m.seq)) is not None:
             self.stats.reject(s.key, bad)

@@ -72,6 +72,8 @@ def test_a_measurement_of_a_later_scan_does_not_count_its_number(paper):
                logic.usable, msg.Measurement)  # fmt: skip
     assert loop.stats.rejected == {"wrong_scan": 1}
     assert loop.stats.sensors().get(s1, {}).get("sent", 0) == 0
+    # nor in the sensor's own outcome (sent = on_time + late + rejected + lost holds)
+    assert loop.stats.sensors().get(s1, {}).get("rejected", 0) == 0
     assert loop.stats.lost == 0
 
 
