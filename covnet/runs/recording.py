@@ -508,6 +508,9 @@ class RecordingReader:
     def _segment(self, path: Path) -> Iterator[RecordedSample]:
         channels: dict[int, str] = {}
         visual: set[int] = set()  # channels of another encoding: the visual ones, skipped
+        if path.exists() and not path.is_file():  # a FIFO was read forever, a directory failed
+            self.error = f"{path.name} is not a regular file"
+            return
         with open(path, "rb") as f:
             stream = _Exact(f)
             reader = StreamReader(stream, emit_chunks=True, validate_crcs=False)  # type: ignore[arg-type]

@@ -43,3 +43,16 @@ def test_a_directory_where_a_trial_is_written_ends_the_batch_with_its_name(tmp_p
     err = capsys.readouterr().err
     assert str(trials[0]) in err and "Traceback" not in err
     shutil.rmtree(out)
+
+
+@pytest.mark.parametrize("make", [os.mkfifo, os.mkdir])
+def test_a_recording_segment_that_is_not_a_file_stops_the_reading_with_a_note(tmp_path, make):
+    """``recording.2.mcap`` a FIFO hung ``covnet replay``; a directory ended in a traceback."""
+    from covnet.runs.recording import RecordingReader, RecordingWriter
+
+    path = tmp_path / "recording.mcap"
+    RecordingWriter(path, run_id="r").close()
+    make(tmp_path / "recording.2.mcap")
+    reader = RecordingReader(path)
+    assert list(reader.samples()) == []
+    assert reader.error == "recording.2.mcap is not a regular file"
