@@ -75,6 +75,7 @@ def test_an_integer_beyond_a_float_as_a_delay_is_a_config_error(tmp_path, delay)
             "the link of edges[0] again",
         ),
         ("fusion:\n  mode: peer\n  peer: {graph: ring, hub: S3}", "fusion.peer.hub", "star"),
+        ("allocation:\n  policy: random\n  budget: 100", "allocation.budget", "the 8 sensors"),
     ],
 )
 def test_a_list_entry_given_twice_or_a_key_with_no_effect_is_named(tmp_path, edit, where, says):

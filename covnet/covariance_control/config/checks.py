@@ -307,6 +307,8 @@ def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
                 "(or allocation.max_active)",
             )
         )
+    if al.budget is not None and al.budget > len(sc.sensor_ids):  # as max_active
+        problems.append(("allocation.budget", f"more than the {len(sc.sensor_ids)} sensors"))
     if sc.multitarget and not pol.many_targets:
         problems.append(("allocation.policy", f"{al.policy} has no many-target form"))
     if not sc.fusion.has_centre or not rule_for(sc.fusion).information_form:
