@@ -121,6 +121,7 @@ class TrialStore:
     def __init__(self, out: Path, key: str) -> None:
         self.root = Path(out) / TRIALS / key
         self.key = key
+        self.unreadable: list[tuple[Path, str]] = []  # (file, why): from the last load
 
     def _file(self, point: str, seeds: Sequence[int]) -> Path:
         name = str(seeds[0]) if len(seeds) == 1 else f"{seeds[0]}-{seeds[-1]}"
@@ -131,8 +132,8 @@ class TrialStore:
         digest of its content (:func:`_digest`)."""
         path = self._file(point, seeds)
         path.parent.mkdir(parents=True, exist_ok=True)
-        doc = json.loads(json.dumps({"point": point, "seeds": list(seeds),
-                                     "results": list(results)}, default=_json_default))
+        body = {"point": point, "seeds": list(seeds), "results": list(results)}
+        doc = json.loads(json.dumps(body, default=_json_default))  # as a reader will see it
         doc["sha256"] = _digest(doc)
         atomic_write(path, (json.dumps(doc) + "\n").encode())
 
@@ -141,7 +142,7 @@ class TrialStore:
         full disk, edited, not JSON) are left out, so their trials run again, and listed in
         ``unreadable`` with the reason, for the batch to say so."""
         done: dict[tuple[str, int], Result] = {}
-        self.unreadable: list[tuple[Path, str]] = []
+        self.unreadable = []
         if not self.root.is_dir():
             return done
         for path in sorted(self.root.glob("*/*.json")):
