@@ -352,6 +352,12 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
             elif point is not None:
                 raise UsageError(f"--point: {run_dir} has no per-scan curves ({CURVES})")
             return figures
+    if (run_dir / "batch.json").is_file():  # a batch's directory without its table
+        raise UsageError(
+            f"{run_dir}: a covnet mc, sweep or compare directory without its table "
+            "(montecarlo.json, sweep.json or compare.json): interrupted before the end? The "
+            "same command with the same --out finishes it (its trials are kept)"
+        )
     missing = [f for f in (SUMMARY, "arrays.npz") if not (run_dir / f).is_file()]
     if missing:
         raise UsageError(f"{run_dir}: not a complete run directory (missing {', '.join(missing)})")

@@ -56,3 +56,15 @@ def test_a_recording_segment_that_is_not_a_file_stops_the_reading_with_a_note(tm
     reader = RecordingReader(path)
     assert list(reader.samples()) == []
     assert reader.error == "recording.2.mcap is not a regular file"
+
+
+def test_plot_of_a_batch_directory_without_its_table_says_so(tmp_path, capsys):
+    """It said "not a complete run directory (missing summary.json, arrays.npz)"."""
+    out = tmp_path / "mc"
+    args = ["mc", str(REPO / "configs" / "paper.yaml"), "--seeds", "2", "--workers", "1"]
+    assert main([*args, "--out", str(out)]) == 0
+    (out / "montecarlo.json").unlink()
+    capsys.readouterr()
+    assert main(["plot", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "without its table" in err and "summary.json" not in err
