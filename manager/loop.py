@@ -479,14 +479,15 @@ class Loop:
         or its verdict on ``m`` already given).  A message of a scan ahead of this one is
         refused before its number or the sensor's counts see it (no sensor sends one: a
         forgery's ``seq`` would count as sent and lost; it is counted under its key)."""
-        if (m.episode, m.scan) > (episode, k):
+        at = (m.episode, m.scan)
+        if at > (episode, k):
             self.stats.reject(s.key, "wrong_scan")
             return
         if (bad := self.stats.arrived(m.sensor_id, m.seq)) is not None:
             self.stats.reject(s.key, bad)
             return
         outcome = self.stats.outcome[m.sensor_id]
-        if (m.episode, m.scan) < (episode, k):
+        if at < (episode, k):
             self.stats.late += 1
             outcome["late"] += 1
             self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
@@ -506,10 +507,8 @@ class Loop:
                 self.stats.late_dropped += 1
                 outcome["late_dropped"] += 1
             return
-        reason = None
-        if (m.episode, m.scan) != (episode, k):
-            reason = "wrong_scan"
-        elif m.sensor_id in got:
+        reason = None  # (this scan's from here on: a later one was refused, an earlier is late)
+        if m.sensor_id in got:
             reason = "duplicate"
         elif m.sensor_id not in waiting and not self.accept_unsolicited:
             reason = "not_enabled"

@@ -48,7 +48,7 @@ from covnet import kinds
 from covnet.errors import UsageError
 from covnet.processes.network_run import ScanDecision, ScanImpossible
 from covnet.runs.recording import META_RUN, RecordedSample, RecordingReader, key_kind, read_metadata
-from covnet.runs.rundir import CONFIG, RUN_INFO, SUMMARY, clear_output, prepare_out, write_json
+from covnet.runs.rundir import CONFIG, RUN_INFO, SUMMARY, prepare_out, write_json
 from covnet.wire import messages as msg
 
 __all__ = [
@@ -374,14 +374,12 @@ class KindReplay:
             raise UsageError(
                 f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
             )
-        if args.out is not None:
-            out = prepare_out(args.out, "replay", args.force, reads=run_dir)
-        else:  # the run's own replay directory: replaced
-            out = run_dir / REPLAY_DIR
-            if out.exists() and not out.is_dir():
-                raise UsageError(f"{out}: exists and is not a directory (the replay's own)")
-            if out.is_dir() and any(out.iterdir()):
-                clear_output(out)
+        # default: the run's own replay directory, replaced
+        own = args.out is None
+        out = prepare_out(
+            run_dir / REPLAY_DIR if own else args.out, "replay", own or args.force,
+            "the replay directory" if own else "--out", reads=run_dir,
+        )  # fmt: skip
         try:
             report = self.replay_run(run_dir, out)
         except ReplayError as exc:  # a file of the run missing or unreadable: the user's input

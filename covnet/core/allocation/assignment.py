@@ -838,13 +838,9 @@ def _exact_total(
     values exact, summed ``F = 0; F = F + w_t v_t``, then the cells' ``F = F + g_c`` with
     ``w = 1``: ``1.0 * g`` is ``g``); each target's distinct codes looked up once."""
     F = np.zeros(len(cands))
-    looked_up = []
     for t, tg in enumerate(targets):
         u, inv = np.unique(cands[:, t], return_inverse=True)
-        tg.values(u.tolist())
-        looked_up.append((u.tolist(), inv.reshape(-1)))
-    for t, tg in enumerate(targets):
-        codes, inv = looked_up[t]
-        v = np.array([tg.exact[c][0] for c in codes])[inv]
-        F = F + ws[t] * v
+        codes = u.tolist()
+        tg.values(codes)
+        F = F + ws[t] * np.array([tg.exact[c][0] for c in codes])[inv.reshape(-1)]
     return F
