@@ -50,6 +50,7 @@ from covnet.covariance_control.simulate import (
 from covnet.runs.rundir import (
     ARRAYS,
     CONFIG,
+    FILE_DIGESTS,
     RUN_INFO,
     SUMMARY,
     read_json,
@@ -217,7 +218,7 @@ def write_run(
             arrays[f"x_est.{m}.{sid}"] = r.x_est
             arrays[f"P_post.{m}.{sid}"] = r.P_post
             arrays[f"nees.{m}.{sid}"] = r.nees
-    write_npz(out_dir / ARRAYS, arrays)
+    info[FILE_DIGESTS] = {ARRAYS: write_npz(out_dir / ARRAYS, arrays)}
     write_json(out_dir / CONFIG, normalised(sc))
     write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)
@@ -443,7 +444,7 @@ def write_targets_run(
         if r.lower_bound is not None and r.gap is not None:
             arrays[f"lower_bound.{m}"] = r.lower_bound
             arrays[f"gap.{m}"] = r.gap
-    write_npz(out_dir / ARRAYS, arrays)
+    info[FILE_DIGESTS] = {ARRAYS: write_npz(out_dir / ARRAYS, arrays)}
     write_json(out_dir / CONFIG, normalised(sc))
     write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)

@@ -31,7 +31,16 @@ from covnet.batches.stats import median
 from covnet.covariance_control.config import Scenario, config_hash, normalised
 from covnet.covariance_control.surveillance import SurveillanceModel
 from covnet.covariance_control.surveillance_log import SurveillanceRun
-from covnet.runs.rundir import ARRAYS, CONFIG, RUN_INFO, SUMMARY, utc_now, write_json, write_npz
+from covnet.runs.rundir import (
+    ARRAYS,
+    CONFIG,
+    FILE_DIGESTS,
+    RUN_INFO,
+    SUMMARY,
+    utc_now,
+    write_json,
+    write_npz,
+)
 
 if TYPE_CHECKING:
     from covnet.runs.export import Episode
@@ -154,7 +163,7 @@ def write_surveillance_run(
             arrays[f"{key}.{m}"] = getattr(r, key)
         arrays[f"track_rows.{m}"] = track_rows(r)
         arrays[f"time_to_confirm.{m}"] = r.time_to_confirm
-    write_npz(out_dir / ARRAYS, arrays)
+    info[FILE_DIGESTS] = {ARRAYS: write_npz(out_dir / ARRAYS, arrays)}
     write_json(out_dir / CONFIG, normalised(sc))
     write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)

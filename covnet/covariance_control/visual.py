@@ -33,6 +33,7 @@ from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import build_model
 from covnet.errors import UsageError
+from covnet.runs.rundir import ARRAYS, load_arrays
 from covnet.runs.visual import (
     XY,
     Area,
@@ -171,7 +172,7 @@ def run_messages(sc: Scenario, run_dir: Path) -> Iterator[msg.Message]:
             "--mcap: a surveillance run's scene is recorded by covnet up (covnet up CONFIG "
             "--foxglove); covnet run --mcap draws the known-target scenarios"
         )
-    a = np.load(run_dir / "arrays.npz")
+    a = load_arrays(run_dir / ARRAYS)
     ids = sc.sensor_ids
     ts = a["t"]
     for e, m in enumerate(sc.allocation.metrics):

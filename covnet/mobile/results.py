@@ -39,6 +39,7 @@ from covnet.mobile.simulate import MobileRun
 from covnet.runs.rundir import (
     ARRAYS,
     CONFIG,
+    FILE_DIGESTS,
     RUN_INFO,
     SUMMARY,
     read_json,
@@ -165,7 +166,7 @@ def write_run(
     arrays = run.arrays()
     arrays["target_ids"] = np.array(cfg.target_ids)
     arrays["sensor_ids"] = np.array(cfg.sensor_ids)
-    write_npz(out_dir / ARRAYS, arrays)
+    digest = write_npz(out_dir / ARRAYS, arrays)
     write_json(out_dir / CONFIG, normalised(cfg))
     info: dict[str, Any] = {
         "created_utc": utc_now(),
@@ -174,7 +175,7 @@ def write_run(
         "kind": "mobile",
         "decision_time_s": decision_times(run),
     }
-    write_json(out_dir / RUN_INFO, {**info, **(run_info or {})})
+    write_json(out_dir / RUN_INFO, {**info, **(run_info or {}), FILE_DIGESTS: {ARRAYS: digest}})
     write_json(out_dir / SUMMARY, summary)
     return summary
 

@@ -23,6 +23,7 @@ import numpy as np
 from covnet.core.consistency import nees
 from covnet.core.mobile.models import MODE_NAMES
 from covnet.mobile.config import MobileConfig
+from covnet.runs.rundir import ARRAYS, load_arrays
 from covnet.runs.visual import XY, Coverage, Estimate, ScanMessages, SensorView, View, sensor_states
 from covnet.wire import messages as msg
 
@@ -81,7 +82,7 @@ def run_messages(cfg: MobileConfig, run_dir: Path) -> Iterator[msg.Message]:
     """The scans of an in-process mobile run directory (``arrays.npz``) as the manager and the
     world would have sent them: per scan a Command (modes, targets), the Truth (targets and
     platforms), a Track per target and the Status."""
-    a = np.load(run_dir / "arrays.npz")
+    a = load_arrays(run_dir / ARRAYS)
     ids = tuple(str(s) for s in a["sensor_ids"])
     tids = tuple(str(s) for s in a["target_ids"])
     T = float(cfg.scan_period_s)

@@ -9,7 +9,10 @@
 The file names every kind shares are constants here: ``config.json`` (the normalised config the
 run used), ``run.json`` (wall-clock facts: creation time, version, timings, process layout:
 what a replay cannot and need not reproduce), ``summary.json`` and ``arrays.npz`` (what the
-config and seed determine).
+config and seed determine).  ``run.json`` also keeps the SHA-256 of the ``arrays.npz`` the run
+wrote (:data:`FILE_DIGESTS`), and :func:`load_arrays` refuses another file in its place: the
+config's hash in ``summary.json`` ties the summary to ``config.json``, the digest ties the
+arrays to the run.
 
 How a run or batch ended is in ``run.json`` (:func:`record_end`), for every command and kind:
 ``status`` (:data:`STATUSES`: ``completed``, ``interrupted`` by Ctrl-C or SIGTERM, ``failed``),
@@ -20,6 +23,7 @@ being written (or was written by an older covnet).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -38,12 +42,14 @@ from covnet.errors import UsageError
 __all__ = [
     "ARRAYS",
     "CONFIG",
+    "FILE_DIGESTS",
     "LIVE",
     "RUN_INFO",
     "STATUSES",
     "SUMMARY",
     "atomic_write",
     "config_mismatch",
+    "file_sha256",
     "load_arrays",
     "new_run_dir",
     "prepare_out",
@@ -165,11 +171,50 @@ def write_json(path: Path, obj: Any) -> None:
     atomic_write(path, (json.dumps(obj, indent=2) + "\n").encode())
 
 
-def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    """A compressed ``.npz`` of ``arrays``, atomically."""
+def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> str:
+    """A compressed ``.npz`` of ``arrays``, atomically; returns the SHA-256 of the file written
+    (``run.json`` keeps it under :data:`FILE_DIGESTS`, so :func:`load_arrays` knows the run's own
+    file from another run's)."""
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
+    digest = file_sha256(tmp)
     os.replace(tmp, path)
+    return digest
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of ``path``'s bytes, in hex."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+#: ``run.json``'s map of a run's arrays file name to the SHA-256 of the file the run wrote
+#: (``{"arrays.npz": "..."}``): an ``arrays.npz`` copied from another run, or edited, differs
+FILE_DIGESTS = "file_sha256"
+
+
+def _digest_mismatch(path: Path) -> str | None:
+    """Why ``path`` is not the file its run directory's ``run.json`` says the run wrote (None:
+    it is, or ``run.json`` keeps no digest of it: runs before the digests, batch files)."""
+    try:
+        info = read_json(path.parent / RUN_INFO)
+    except (OSError, ValueError):
+        return None
+    want = info.get(FILE_DIGESTS, {}) if isinstance(info, dict) else {}
+    want = want.get(path.name) if isinstance(want, dict) else None
+    if not isinstance(want, str):
+        return None
+    got = file_sha256(path)
+    if got == want:
+        return None
+    return (
+        f"{path}: not the file this run wrote (SHA-256 {got[:12]}..., {RUN_INFO}'s "
+        f"{FILE_DIGESTS} says {want[:12]}...): copied from another run or edited? Put back the "
+        "run's own file, or run it again"
+    )
 
 
 def read_json(path: Path) -> Any:
@@ -212,14 +257,21 @@ def config_mismatch(run_dir: Path, config_hash: str) -> str | None:
 def load_arrays(path: Path) -> dict[str, np.ndarray]:
     """Every array of an ``.npz`` file, read into memory (the file is closed on return).  A
     file that is not a whole ``.npz`` (cut short, emptied, overwritten) is a
-    :class:`~covnet.errors.UsageError` naming it: the user named its run directory."""
+    :class:`~covnet.errors.UsageError` naming it: the user named its run directory.  So is a
+    whole ``.npz`` other than the one its run wrote (the digest in the run's ``run.json``,
+    :data:`FILE_DIGESTS`): another run's arrays would draw and export that run's numbers under
+    this one's config and summary."""
     try:  # opened here: numpy leaves its own handle open when the archive is damaged
         with open(path, "rb") as fh, np.load(fh) as data:
-            return {k: data[k] for k in data.files}
+            arrays = {k: data[k] for k in data.files}
     except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError) as exc:
         # numpy takes a file that is no archive for a pickle, and advises loading it unsafely
         why = "not an .npz archive" if "pickle" in str(exc) else str(exc) or type(exc).__name__
         raise UsageError(f"{path}: not a readable arrays file ({why})") from None
+    why_not = _digest_mismatch(Path(path))
+    if why_not:
+        raise UsageError(why_not)
+    return arrays
 
 
 def record_end(out: Path, status: str, ended: str, **facts: Any) -> None:

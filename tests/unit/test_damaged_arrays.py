@@ -4,6 +4,7 @@ another file in its place) is named with what is wrong, exit 2, by ``covnet plot
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import pytest
@@ -52,3 +53,46 @@ def test_a_damaged_arrays_file_is_named(run_dir, tmp_path, capsys, how):
         assert f"{bad / 'arrays.npz'}: not a readable arrays file" in err and "Traceback" not in err
         if how == "another file":
             assert "not an .npz archive" in err and "unsafely" not in err
+
+
+@pytest.fixture(scope="module")
+def other_run(tmp_path_factory, run_dir):
+    """The same config as :func:`run_dir` with another seed: a whole, readable ``arrays.npz``
+    of the same shapes and names, with other numbers."""
+    out = tmp_path_factory.mktemp("other") / "run"
+    cfg = run_dir.parent / "p5.yaml"
+    argv = ["run", str(cfg), "--out", str(out), "--metric", "spectral", "--seed", "7"]
+    assert main([*argv, "--no-figures"]) == 0
+    return out
+
+
+def test_another_runs_arrays_file_is_named(run_dir, other_run, tmp_path, capsys):
+    """Another run's ``arrays.npz`` copied into a run directory was drawn and exported as this
+    run's (its numbers under this run's config and summary), exit 0.  The run's ``run.json``
+    keeps the SHA-256 of the file it wrote; another file is named, exit 2."""
+    bad = tmp_path / "run"
+    shutil.copytree(run_dir, bad)
+    shutil.copy(other_run / "arrays.npz", bad / "arrays.npz")
+    assert load_arrays(other_run / "arrays.npz")  # a whole file, in its own run
+    with pytest.raises(UsageError, match="arrays.npz: not the file this run wrote"):
+        load_arrays(bad / "arrays.npz")
+    capsys.readouterr()
+    for cmd in (["plot", str(bad)], ["export", str(bad), "--out", str(tmp_path / "x.csv")]):
+        assert main(cmd) == 2, cmd
+        err = capsys.readouterr().err
+        assert f"{bad / 'arrays.npz'}: not the file this run wrote" in err, err
+        assert "Traceback" not in err
+    assert not (tmp_path / "x.csv").exists()
+
+
+def test_a_run_without_digests_reads_as_before(run_dir, other_run, tmp_path):
+    """Runs written before the digests (no ``file_sha256`` in ``run.json``) read as before."""
+    old = tmp_path / "run"
+    shutil.copytree(run_dir, old)
+    info = json.loads((old / "run.json").read_text())
+    assert set(info["file_sha256"]) == {"arrays.npz"}
+    del info["file_sha256"]
+    (old / "run.json").write_text(json.dumps(info))
+    shutil.copy(other_run / "arrays.npz", old / "arrays.npz")
+    assert load_arrays(old / "arrays.npz")
+    assert main(["export", str(old), "--out", str(tmp_path / "x.csv")]) == 0
