@@ -6,7 +6,9 @@ network's router and this monitor: it watches every node's ``peer/<id>/track`` a
 writes the run directory: per metric, every node's own estimates (``arrays.npz``), the
 ``peer`` block of ``summary.json`` (each node's RMSE and NEES, and whether all nodes enabled the
 same sensors at every scan), and the failures the nodes reported.  Its liveliness token is the
-run's: the nodes leave when it goes.
+run's: the nodes leave when it goes.  It reads the nodes' heartbeats for what they refused
+(``network.json``'s ``rejected_by_node``, as the central manager's), and after the run lingers
+for their last ones, which each node sends as it leaves.
 """
 
 from __future__ import annotations
@@ -44,9 +46,8 @@ def run(
     """Watch the peer nodes until every live node has reported the last scan of the last
     episode (``completed``), or ``stop``, or no report for ``network.scan_timeout_s``; the
     episodes are the config's metrics (peer mode runs in lockstep only: ``realtime`` must be
-    false).  ``linger_s`` is the skeleton's (:func:`manager.loop.run_scans`); the peers send no
-    counts to wait for."""
-    del linger_s
+    false).  ``linger_s``: afterwards, up to that long for the nodes' last heartbeats (their
+    rejection counts), as :meth:`manager.loop.Loop.linger`."""
     if realtime:
         raise ValueError("--realtime: peer mode runs in lockstep only")
     metrics = list(sc.allocation.metrics)
@@ -58,11 +59,13 @@ def run(
     subs = [
         bus.subscribe(msg.peer_keyexpr(run_id, "*")),
         bus.subscribe(msg.measurement_keyexpr(run_id)),  # the local tracks: counted only
+        bus.subscribe(msg.heartbeat_keyexpr(run_id)),  # the nodes' rejection counts
     ]
     live = bus.watch_liveliness(msg.alive_keyexpr(run_id))
     token = bus.declare_token(msg.alive_key(run_id, "manager", "manager"))
     alive: set[str] = set()
     expected = {*ids, "world", *(("recorder",) if net.record else ())}
+    hb_root = msg.heartbeat_keyexpr(run_id).removesuffix("*/*")
     reported: set[tuple[int, int]] = set()  # (episode, scan) whose status went to on_status
     t_loop = time.perf_counter_ns()
     t_prev = [time.perf_counter_ns()]  # when the previous scan was complete
@@ -72,8 +75,28 @@ def run(
             node = ev.key.rsplit("/", 1)[-1]
             (alive.add if ev.alive else alive.discard)(node)
 
+    def heartbeat(s: Any) -> None:
+        try:
+            hb = msg.decode_as(s.payload, msg.Heartbeat)
+            own_key = msg.heartbeat_key(run_id, hb.role, hb.node_id)
+        except msg.WireError as exc:
+            stats.reject(s.key, exc.reason)
+            return
+        except ValueError:
+            stats.reject(s.key, "bad_key")
+            return
+        if own_key != s.key:
+            stats.reject(s.key, "key_mismatch")
+        elif hb.node_id not in expected:
+            stats.reject(s.key, "unknown_node")
+        elif hb.rejected:
+            stats.node_rejected[hb.node_id] = dict(hb.rejected)
+
     def take(s: Any) -> None:
         stats.received(s.key, len(s.payload))
+        if s.key.startswith(hb_root):
+            heartbeat(s)
+            return
         if "/peer/" not in s.key:
             return
         try:
@@ -162,6 +185,20 @@ def run(
     finally:
         _done = bus.declare_token(msg.done_key(run_id))  # the run's end, on purpose (kept)
         token.undeclare()
+        # the nodes' last heartbeats, sent as they leave (what they refused to the end)
+        leaving = expected - {"world"}
+        deadline = time.monotonic() + linger_s
+        while time.monotonic() < deadline and not stop.is_set():
+            for sub in subs:
+                while (s := sub.try_recv()) is not None:
+                    take(s)
+            drain_live()
+            if not leaving & alive:
+                for sub in subs:  # a heartbeat sent just before its token went
+                    while (s := sub.try_recv()) is not None:
+                        take(s)
+                break
+            stop.wait(0.02)
         for sub in subs:
             sub.close()
         live.close()

@@ -309,6 +309,8 @@ def run(
         beat()
         inbox.wait(lambda: manager.left, time.monotonic() + net.ready_timeout_s, stop, beat)
     finally:
+        # what it refused to the end, for the monitor's network.json (it lingers for this)
+        heartbeat.tick(last[0], stats.rejected, now=True)
         token.undeclare()
         manager.close()
         inbox.close()

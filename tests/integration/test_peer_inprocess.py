@@ -31,7 +31,7 @@ def _scenario(paper, graph="ring", scans=15):
     return from_dict(data)
 
 
-def _network(sc, metrics, *, extra=None, stop_node=None):
+def _network(sc, metrics, *, extra=None, stop_node=None, linger_s=0.0):
     nodes = NodeThreads()
     nodes.start("world", lambda bus, ev: world_node.run(sc, bus, RUN, WallClock(), ev))
     for sid in sc.sensor_ids:
@@ -54,6 +54,7 @@ def _network(sc, metrics, *, extra=None, stop_node=None):
             WallClock(),
             threading.Event(),
             on_status=on_status,
+            linger_s=linger_s,
         )
     finally:
         mbus.close()  # the monitor's token goes: the nodes finish on their own
@@ -99,7 +100,7 @@ def test_malformed_peer_messages_are_counted_and_dropped(paper):
             bus.close()
             sent.append(True)
 
-    result, stats = _network(sc, ["abs_trace"], extra=inject)
+    result, stats = _network(sc, ["abs_trace"], extra=inject, linger_s=20.0)
     assert result.completed
     ref = run_peer(sc, "abs_trace")
     truth = np.zeros((sc.scans, 4))
@@ -110,6 +111,45 @@ def test_malformed_peer_messages_are_counted_and_dropped(paper):
     rejected = sum(sum(s.rejected.values()) for sid, s in stats.items() if sid in sc.sensor_ids)
     assert rejected >= 8  # every node saw the two bad statuses; S1 and S3 the bad track
     assert sum(result.stats.rejected.values()) >= 3
+    # what each node refused reaches network.json, as with a fusion centre (the monitor read
+    # no heartbeat: rejected_by_node was empty in peer mode)
+    by_node = result.stats.as_dict()["rejected_by_node"]
+    for sid in sc.sensor_ids:
+        assert by_node.get(sid, {}) == dict(stats[sid].rejected), sid
+    assert sum(map(len, by_node.values())) > 0
+
+
+def test_forged_heartbeats_are_counted_and_dropped(paper):
+    """Heartbeats of no node of the run, or on another node's key, are refused by reason and
+    their counts never reach ``rejected_by_node``."""
+    sc = _scenario(paper, scans=6)
+    forged = [
+        (
+            msg.heartbeat_key(RUN, "sensor", "S99"),
+            msg.encode(msg.Heartbeat("sensor", "S99", 1, 0, rejected={"x": 9})),
+        ),
+        (
+            msg.heartbeat_key(RUN, "sensor", "S1"),
+            msg.encode(msg.Heartbeat("sensor", "S2", 1, 0, rejected={"x": 9})),
+        ),
+        (msg.heartbeat_key(RUN, "sensor", "S3"), b"\x00garbage"),
+    ]
+    sent = []
+
+    def inject(hub, st):
+        if st["scan"] == 2 and not sent:
+            bus = InMemoryBus(hub, name="rogue")
+            for key, payload in forged:
+                bus.publish(key, payload)
+            bus.close()
+            sent.append(True)
+
+    result, _ = _network(sc, ["abs_trace"], extra=inject, linger_s=20.0)
+    assert result.completed
+    rej = result.stats.as_dict()
+    assert all("x" not in v for v in rej["rejected_by_node"].values())
+    assert rej["rejected"]["unknown_node"] == 1 and rej["rejected"]["key_mismatch"] == 1
+    assert sum(rej["rejected"].values()) == 3
 
 
 def test_a_stopped_node_drops_out_of_every_decision(paper):
