@@ -643,6 +643,8 @@ def _run_scans(
                     return result
                 if realtime:
                     pace(clock, t_origin + (k - 1) * logic.period_s, stop)
+                    if stop.is_set():  # interrupted while waiting for the scan's time
+                        return result
                 t_core0 = time.perf_counter_ns()
                 lap("other")
                 failed, events = loop.membership_changes(k, failed_prev)
@@ -686,6 +688,10 @@ def _run_scans(
                     logic.message_type,
                     getattr(logic, "usable_many", None),  # optional: a kind's batch verdicts
                 )
+                if stop.is_set():
+                    # interrupted while collecting: the scan is not done (fused from what had
+                    # come, it was recorded as a scan without its measurements)
+                    return result
                 t_core1 = time.perf_counter_ns()
                 fused = logic.fuse(e, k, got)
                 lap("fuse")
