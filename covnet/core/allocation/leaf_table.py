@@ -170,10 +170,16 @@ class _Leaves:
         self.gn = float(np.sqrt(g[0] ** 2 + 2.0 * g[1] ** 2 + g[2] ** 2)) * (1.0 + 1e-6)
 
     def _threshold(self, tau: float) -> float | None:
-        """``τ'`` of ``τ`` (class docstring), or None where there is none."""
+        """``τ'`` of ``τ`` (class docstring), or None where there is none: also where the
+        relaxation's relative rounding ``rel = 64 n² eps (κ + 1)`` reaches 1 (``κ >~ 4e12``),
+        beyond which ``(goal + rel) / (1 - rel)`` is no bound (it went negative, every ball was
+        empty, and the exact search dropped every completion below the table's depth: a wrong
+        subset certified optimal)."""
         if not math.isfinite(tau):
             return None
         relax = self.relax
+        if not relax.rel < 1.0:
+            return None
         tp = (relax._goal(tau) + relax.rel) / (1.0 - relax.rel)
         return tp if math.isfinite(tp) else None
 

@@ -426,8 +426,17 @@ class _Relaxation:
         """From ``h``'s units to the metric's, less the model errors (the interval bounds'):
         frobenius ``a sqrt(max(lb, 0)) - c``, kl and logdet ``a lb - c`` (:meth:`_final_affine`;
         kl: ``lb (1 - rel) - (3 ρ (lb + n) + κ' mag)``, logdet ``lb (1 - rel) - (2 n ρ + κ'
-        (mag + |c1|))``, ``ρ = n err / λmin``)."""
+        (mag + |c1|))``, ``ρ = n err / λmin``).
+
+        The bound is ``a x_true - c <= f`` with ``x_true >= x``, the node's true ``h``-minimum:
+        it follows from ``x`` only where ``a > 0``.  Where the model errors swamp it (``a <= 0``:
+        kl's ``3 ρ >= 1 - rel`` on an ill-conditioned problem, ``ρ = n err / λmin``), ``a x -
+        c`` is no bound at all (a very negative ``x`` made it a huge positive number, and a
+        search certified a subset at twice the optimum as optimal): then there is none,
+        ``-inf``, as :meth:`_goal` already says."""
         a, c = self._final_affine()
+        if a <= 0.0:
+            return np.full(np.shape(lb), -np.inf)
         x = np.sqrt(np.maximum(lb, 0.0)) if self.form == "frobenius" else lb
         v = a * x - c
         return np.where(np.isnan(v), -np.inf, v)
