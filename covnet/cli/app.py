@@ -59,6 +59,7 @@ from covnet.cli.common import (
 from covnet.config import ConfigError, ConfigWarning, scheduler_problem
 from covnet.errors import UpError, UsageError
 from covnet.processes import interrupts
+from covnet.runs import rundir
 
 __all__ = [
     "BENCHES",
@@ -593,8 +594,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     warnings.showwarning = _show_warning
+    # the config a command reads: --force never empties a directory holding it
+    config = getattr(args, "config", None)
     try:
-        status = int(args.func(args))
+        with rundir.reading(*([config] if isinstance(config, str) and config else [])):
+            status = int(args.func(args))
         # the output still buffered is written here, where a reader that has gone is told
         # from a failure (not at the interpreter's exit: "Exception ignored", status 120)
         sys.stdout.flush()

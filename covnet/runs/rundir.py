@@ -30,7 +30,9 @@ import shutil
 import time
 import zipfile
 import zlib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +56,7 @@ __all__ = [
     "new_run_dir",
     "prepare_out",
     "read_json",
+    "reading",
     "record_end",
     "utc_now",
     "write_json",
@@ -137,10 +140,34 @@ def prepare_out(
     return p
 
 
+_READS: ContextVar[tuple[Path, ...]] = ContextVar("covnet_reads", default=())
+"""The files the running command reads (:func:`reading`): :func:`clear_output` never deletes
+them."""
+
+
+@contextmanager
+def reading(*paths: str | Path) -> Iterator[None]:
+    """Within this block, ``paths`` are files the command reads (its config): ``--force`` never
+    empties a directory holding one (``covnet run OUT/my.yaml --out OUT --force`` deleted the
+    user's ``my.yaml``).  Set by the CLI around every command."""
+    token = _READS.set(_READS.get() + tuple(Path(p).resolve() for p in paths))
+    try:
+        yield
+    finally:
+        _READS.reset(token)
+
+
 def clear_output(p: Path, option: str = "--out") -> None:
-    """Delete everything in ``p``, an earlier covnet output directory (see :func:`prepare_out`)."""
+    """Delete everything in ``p``, an earlier covnet output directory (see :func:`prepare_out`),
+    unless it holds a file the command reads (:func:`reading`)."""
     here = Path.cwd().resolve()
     target = p.resolve()
+    for src in _READS.get():
+        if target == src or target in src.parents:
+            raise UsageError(
+                f"{option} {p} --force: refusing to empty {p}: it holds {src}, which this "
+                "command reads; choose another directory, or move the file out of it first"
+            )
     if target == here or target in here.parents or target == Path.home().resolve():
         raise UsageError(
             f"{option} {p} --force: refusing to empty {target}: it holds the working "

@@ -103,3 +103,35 @@ def test_replay_of_a_run_whose_run_json_is_damaged_is_a_usage_error(
     assert main(["replay", str(d)]) == 2
     err = capsys.readouterr().err
     assert says in err and "Traceback" not in err
+
+
+def _small(tmp_path: Path, name: str, scans: int = 3) -> Path:
+    text = (REPO / "configs" / "paper.yaml").read_text()
+    cfg = tmp_path / name
+    cfg.write_text(text.replace("scans: 100", f"scans: {scans}", 1))
+    assert f"scans: {scans}" in cfg.read_text()
+    return cfg
+
+
+@pytest.mark.parametrize("cmd", [["run", "--no-figures"], ["mc", "--trials", "1", "--no-figures"]])
+def test_force_never_empties_the_directory_holding_the_config(tmp_path, capsys, cmd):
+    """``covnet run OUT/my.yaml --out OUT --force`` (OUT an earlier run) deleted the user's
+    ``my.yaml`` with the rest of OUT, and exited 0; the batch commands alike.  Now refused,
+    naming the file, and OUT untouched."""
+    out = tmp_path / "out"
+    first = _small(tmp_path, "first.yaml")
+    assert main([cmd[0], str(first), *cmd[1:], "--out", str(out), "--metric", "kl"]) == 0
+    mine = out / "my.yaml"
+    mine.write_text(first.read_text())
+    before = _digest(out)
+    capsys.readouterr()
+    assert main([cmd[0], str(mine), *cmd[1:], "--out", str(out), "--force", "--metric", "kl"]) == 2
+    err = capsys.readouterr().err
+    assert f"it holds {mine.resolve()}, which this command reads" in err, err
+    assert _digest(out) == before
+    # elsewhere, --force works as before
+    other = tmp_path / "other"
+    assert main([cmd[0], str(mine), *cmd[1:], "--out", str(other), "--metric", "kl"]) == 0
+    assert (
+        main([cmd[0], str(mine), *cmd[1:], "--out", str(other), "--force", "--metric", "kl"]) == 0
+    )
