@@ -65,6 +65,13 @@ def compare(args: argparse.Namespace, sc: Scenario) -> int:
     metric = metric_opt(sc, args.metric, sc.allocation.metrics[0])
     if args.runs < 2:
         raise UsageError(f"--runs: at least 2 runs for a NEES band, got {args.runs}")
+    if args.graph is not None and not any(m.startswith("peer-") for m in modes):
+        raise UsageError(
+            f"--graph {args.graph}: the peer modes' graph, and none of {', '.join(modes)} is "
+            "one (peer-info, peer-ci)"
+        )
+    for m in modes:  # each mode's config is valid (a custom graph has edges) before any file
+        cmp.scenario_for(sc, m, args.graph)
     opts = batch_options(args, args.runs)
     key = cmp.trial_key(sc, metric, args.graph)
     out = _batch_out(args, f"{sc.name}-compare", "compare", key)
