@@ -41,16 +41,61 @@ except ImportError as exc:  # pragma: no cover (the extra is installed in CI)
         "pip install 'covnet[cluster]' (dask[distributed])"
     ) from exc
 
-__all__ = ["DaskRunner", "LocalCluster", "connect"]
+__all__ = ["DaskRunner", "LocalCluster", "connect", "scheduler_answers"]
 
 CONNECT_TIMEOUT_S = 15.0
+
+
+def scheduler_answers(address: str, timeout_s: float | None = None) -> str | None:
+    """What keeps ``address`` from being a Dask scheduler covnet can use, found within
+    ``timeout_s`` (None: a scheduler answered).  Beyond :func:`~covnet.config.scheduler_problem`
+    (the address's form, a refused connection), it asks the peer who it is, over Dask's own
+    comm layer, in its own thread and event loop, all of it bounded: a port where something
+    else listens (a web server, a zenoh router: a mistyped port) accepted the connection and
+    never answered Dask's handshake, and Dask's client waited for it without end.
+    ``timeout_s``: :data:`CONNECT_TIMEOUT_S` by default."""
+    timeout_s = CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
+    problem = scheduler_problem(address, timeout_s)
+    if problem is not None:
+        return problem
+    import asyncio  # start-up: only for --cluster
+    import concurrent.futures
+
+    from distributed.comm import connect as comm_connect
+
+    async def identity() -> Any:
+        comm = await comm_connect(address, timeout=timeout_s)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    def ask() -> Any:
+        return asyncio.run(asyncio.wait_for(identity(), timeout_s))
+
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:  # whatever loop the caller runs
+        try:
+            reply = pool.submit(ask).result()
+        except TimeoutError:
+            return (
+                f"nothing answered as a Dask scheduler within {timeout_s:g} s (is it the "
+                "scheduler's port? dask scheduler prints it: Scheduler at tcp://...)"
+            )
+        except Exception as exc:  # the comm layer's errors: a closed or garbled connection
+            return f"no Dask scheduler answered there ({type(exc).__name__}: {exc})"
+    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        what = reply.get("type") if isinstance(reply, dict) else type(reply).__name__
+        return f"it answered, but not as a Dask scheduler (as {what!r})"
+    return None
 
 
 def connect(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> distributed.Client:
     """A client of the scheduler at ``address`` (``tcp://host:port``); an unreachable one is a
     :class:`~covnet.errors.UsageError` (at once when nothing listens there: a refused TCP
-    connection is not retried for ``timeout_s`` as Dask's client would)."""
-    problem = scheduler_problem(address, timeout_s)
+    connection is not retried for ``timeout_s`` as Dask's client would; within ``timeout_s``
+    when something else listens there, :func:`scheduler_answers`)."""
+    problem = scheduler_answers(address, timeout_s)
     if problem is not None:
         raise UsageError(f"--cluster {address}: {problem}")
     try:

@@ -626,4 +626,10 @@ def batch_options(args: Any, seeds: int, *, api: bool = False) -> BatchOptions:
                 f"{opt('cluster')}: runs on Dask distributed, which is not installed: "
                 "pip install 'covnet[cluster]'"
             )
+        # dask: only for --cluster (start-up of the rest); before any directory is made
+        from covnet.batches.cluster import scheduler_answers
+
+        problem = scheduler_answers(cluster)
+        if problem is not None:
+            raise UsageError(f"{opt('cluster')} {cluster}: {problem}")
     return BatchOptions(cluster, ci, cap, workers)

@@ -154,3 +154,59 @@ def test_a_malformed_scheduler_address_is_refused_at_once(small, tmp_path, capsy
     assert exc.value.code == 2
     assert "expected a Dask scheduler address like tcp://" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_a_port_where_no_scheduler_answers_is_refused_in_bounded_time(
+    small, tmp_path, capsys, monkeypatch
+):
+    """A mistyped port where something else listens (here a TCP server that accepts and never
+    says a word, as a web server or a zenoh router does to Dask's handshake): Dask's client
+    waited without end (600 s seen) and the batch directory was already made.  Now refused
+    within the connect timeout, exit 2, nothing made."""
+    import socket
+    import threading
+
+    from covnet.batches import cluster as cl
+    from covnet.cli.app import main
+
+    monkeypatch.setattr(cl, "CONNECT_TIMEOUT_S", 2.0)
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(4)
+    held: list[socket.socket] = []
+    stop = threading.Event()
+
+    def accept() -> None:
+        server.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                held.append(server.accept()[0])  # kept open, never written to
+            except OSError:
+                continue
+
+    t = threading.Thread(target=accept, daemon=True)
+    t.start()
+    try:
+        address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        t0 = time.monotonic()
+        rc = main(
+            ["sweep", str(small["sweep"]), "--out", str(tmp_path / "x"), "--cluster", address]
+        )
+        took = time.monotonic() - t0
+    finally:
+        stop.set()
+        t.join()
+        for c in held:
+            c.close()
+        server.close()
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "nothing answered as a Dask scheduler within 2 s" in err, err
+    assert took < 30, took
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_scheduler_answers(cluster):
+    from covnet.batches.cluster import scheduler_answers
+
+    assert scheduler_answers(cluster.address, 10.0) is None
