@@ -21,7 +21,7 @@ from typing import Any
 from covnet.batches.pool import BatchInterrupted, end_batch, write_rows
 from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.covariance_control.commands import CURVES, EXIT_OK, metric_opt
-from covnet.covariance_control.config import Scenario, SweepSpec, normalised
+from covnet.covariance_control.config import Scenario, SweepSpec, from_dict, normalised
 from covnet.errors import UsageError
 from covnet.runs.rundir import CONFIG, write_json, write_npz
 
@@ -181,6 +181,17 @@ def compare_policies(args: argparse.Namespace, sc: Scenario) -> int:
     )
 
 
+def _surveillance_metrics(args: argparse.Namespace, sc: Scenario) -> Scenario:
+    """``sc`` with only ``--metric``'s metric when one is given (a surveillance batch runs every
+    metric of the config otherwise): it ran them all, or the config's, whatever was asked."""
+    if getattr(args, "metric", None) is None:
+        return sc
+    metric = metric_opt(sc, args.metric, sc.allocation.metrics[0])
+    data = normalised(sc)
+    data["allocation"] = {**data["allocation"], "metrics": [metric]}
+    return from_dict(data, sc.name)
+
+
 def _surveillance_policies(
     args: argparse.Namespace, sc: Scenario, policies: list[str], budget: Any, opts: Any
 ) -> int:
@@ -188,16 +199,23 @@ def _surveillance_policies(
     (:func:`covnet.covariance_control.surveillance_batch.policy_compare`): ``compare.json`` /
     ``.csv`` and the table."""
     # start-up: the surveillance batch only for configs with surveillance
+    from covnet.covariance_control import compare_policies as cp
     from covnet.covariance_control import surveillance_batch as sb
 
     if not isinstance(budget, int) and budget is not None:
         raise UsageError("--budget match: not with a surveillance config; give --budget K")
     if opts.cluster is not None:
         raise UsageError("--cluster: a surveillance comparison runs on this machine's cores")
-    out = _batch_out(args, f"{sc.name}-compare-policies", "compare", f"surveillance-{sc.name}")
+    sc = _surveillance_metrics(args, sc)
+    metrics = list(sc.allocation.metrics)
+    # the config's hash keys the batch (its name did: a changed config with the same name ran
+    # into, and overwrote, the earlier batch's directory without --force)
+    key = cp.trial_key(sc, ",".join(metrics))
+    out = _batch_out(args, f"{sc.name}-compare-policies", "compare", key)
     print(
-        f"comparing policies {', '.join(policies)} on {sc.name}: {args.runs} seeds from "
-        f"{sc.seed} (the same for each)" + (f", budget K = {budget}" if budget else ""),
+        f"comparing policies {', '.join(policies)} on {sc.name}: metrics {', '.join(metrics)}, "
+        f"{args.runs} seeds from {sc.seed} (the same for each)"
+        + (f", budget K = {budget}" if budget else ""),
         file=sys.stderr,
         flush=True,
     )
@@ -214,10 +232,13 @@ def _surveillance_policies(
         "first_seed": sc.seed,
         "budget": budget,
         "surveillance": True,
+        "metric": ",".join(metrics),
+        "trial_hash": key,
     }
+    fig = None if args.no_figures else sb.compare_figure(out, rows)
     return _surveillance_rows(
         args, sc, out, "compare", rows, outcome, meta, lambda r: {"policy": r["point"]},
-        lambda: sb.compare_table(rows), t0,
+        lambda: sb.compare_table(rows), t0, fig,
     )  # fmt: skip
 
 
@@ -252,9 +273,6 @@ def _surveillance_rows(
     print(f"results: {out / f'{stem}.json'}  ({time.perf_counter() - t0:.1f} s)")
     if figure is not None:
         print(f"figure: {figure}")
-    return EXIT_OK
-    print(sb.compare_table(rows))
-    print(f"results: {out / 'compare.json'}  ({time.perf_counter() - t0:.1f} s)")
     return EXIT_OK
 
 
@@ -392,6 +410,7 @@ def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
     and ``sweep.png``."""
     # start-up: the surveillance batch only for configs with surveillance
     from covnet.covariance_control import surveillance_batch as sb
+    from covnet.covariance_control import sweep as sw
 
     spec = sc.sweep
     if spec is None or spec.search_weight is None:
@@ -405,7 +424,12 @@ def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
     if args.seeds is not None and args.seeds < 1:
         raise UsageError(f"--seeds: must be >= 1, got {args.seeds}")
     seeds = args.seeds or spec.seeds
-    out = _batch_out(args, f"{sc.name}-sweep", "sweep", f"surveillance-{sc.name}")
+    batch_options(args, seeds)  # --workers, --max-seeds: checked as for every batch
+    sc = _surveillance_metrics(args, sc)
+    # the config's hash keys the batch (its name did: a changed config with the same name ran
+    # into, and overwrote, the earlier batch's directory without --force)
+    key = sw.trial_key(sc, ",".join(sc.allocation.metrics))
+    out = _batch_out(args, f"{sc.name}-sweep", "sweep", key)
     weights = list(spec.search_weight)
     print(
         f"sweeping {sc.name}: search weight {weights} x {seeds} seeds = "
@@ -418,17 +442,19 @@ def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
         sc, weights, seeds, out=out, workers=getattr(args, "workers", None),
         progress=BatchProgress("sweep"),
     )  # fmt: skip
-    meta = {"scenario": sc.name, "seeds": seeds, "first_seed": sc.seed, "surveillance": True}
+    meta = {
+        "scenario": sc.name,
+        "seeds": seeds,
+        "first_seed": sc.seed,
+        "surveillance": True,
+        "metric": ",".join(sc.allocation.metrics),
+        "trial_hash": key,
+    }
     fig = None if args.no_figures else sb.sweep_figure(out, rows)
     return _surveillance_rows(
         args, sc, out, "sweep", rows, outcome, meta,
         lambda r: {"search_weight": r["search_weight"]}, lambda: sb.sweep_table(rows), t0, fig,
     )  # fmt: skip
-    print(sb.sweep_table(rows))
-    print(f"results: {out / 'sweep.json'}  ({time.perf_counter() - t0:.1f} s)")
-    if fig is not None:
-        print(f"figure: {fig}")
-    return EXIT_OK
 
 
 def mc(args: argparse.Namespace, sc: Scenario) -> int:

@@ -331,6 +331,8 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
             except (ValueError, KeyError) as exc:
                 raise UsageError(f"{table}: not a {stem} table ({exc})") from None
             _check_trial_hash(run_dir, stem, doc)
+            if doc.get("surveillance"):  # a surveillance sweep or comparison: no curves
+                return [_surveillance_table_figure(run_dir, stem, rows, point)]
             if doc.get("compared") == "policies":  # covnet compare --policies
                 from covnet.covariance_control import compare_policies as module
             title = module.figure_title(doc)  # the command's own
@@ -369,6 +371,28 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
     from covnet.covariance_control.plots import make_figures  # matplotlib: start-up
 
     return make_figures(run_dir)
+
+
+def _surveillance_table_figure(
+    run_dir: Path, stem: str, rows: list[dict[str, Any]], point: str | None
+) -> Path:
+    """A surveillance ``sweep.png`` (over the search weight) or ``compare.png`` (policies)."""
+    # start-up: the surveillance batch only for its directories
+    from covnet.covariance_control import surveillance_batch as sb
+
+    if point is not None:
+        raise UsageError(
+            f"--point: {run_dir} is a surveillance {stem}, whose figure shows every point; it "
+            "keeps no per-point curves"
+        )
+    draw = sb.sweep_figure if stem == "sweep" else sb.compare_figure
+    try:
+        return draw(run_dir, rows)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UsageError(
+            f"{run_dir / f'{stem}.json'}: not a surveillance {stem} table as covnet writes it "
+            f"({type(exc).__name__}: {exc}); was it edited?"
+        ) from None
 
 
 def _check_trial_hash(run_dir: Path, stem: str, doc: dict[str, Any]) -> None:

@@ -30,7 +30,16 @@ from covnet.batches.stats import interval, per_scan_interval
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 
-__all__ = ["SCALARS", "aggregate", "format_table", "policy_compare", "seed_row", "weight_sweep"]
+__all__ = [
+    "SCALARS",
+    "aggregate",
+    "compare_figure",
+    "format_table",
+    "policy_compare",
+    "seed_row",
+    "sweep_figure",
+    "weight_sweep",
+]
 
 #: the per-seed scalars (summary keys and the two derived ones)
 SCALARS = (
@@ -244,6 +253,52 @@ def policy_compare(
         datas[cp.point_of(p, k)] = normalised(cp.scenario_for(sc, p, k))
     by_point, outcome = _run_points("compare", sc, datas, n_seeds, out, workers, progress)
     return [{"point": p, **r} for p, rs in by_point.items() for r in rs], outcome
+
+
+def compare_figure(out: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
+    """``compare.png``: per policy (and metric), GOSPA, the time to confirm, the false tracks
+    and the tracked targets' RMSE, each mean with its 95 % interval over the paired seeds."""
+    # start-up: matplotlib only for the figure
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    points = list(dict.fromkeys(str(r["point"]) for r in rows))
+    metrics = sorted({str(r["metric"]) for r in rows})
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), layout="constrained")
+    panels = [("gospa_mean", "GOSPA (m)"),
+              ("time_to_confirm_mean", "time to confirm (scans)"),
+              ("false_tracks", "false tracks"),
+              ("rmse_tracked", "tracked position RMSE (m)")]  # fmt: skip
+    width = 0.8 / max(len(metrics), 1)
+    for ax, (key, label) in zip(axes.ravel(), panels, strict=True):
+        for i, m in enumerate(metrics):
+            x, y, lo, hi = [], [], [], []
+            for j, p in enumerate(points):
+                r = next((r for r in rows if r["point"] == p and r["metric"] == m), None)
+                if r is None or r[key]["mean"] is None:
+                    continue
+                mean = float(r[key]["mean"])
+                ci = r[key]["ci95"] or [mean, mean]
+                x.append(j + (i - (len(metrics) - 1) / 2) * width)
+                y.append(mean)
+                lo.append(mean - float(ci[0]))
+                hi.append(float(ci[1]) - mean)
+            ax.errorbar(x, y, yerr=[lo, hi], fmt="o", capsize=3, label=m)
+        ax.set_xticks(range(len(points)))
+        ax.set_xticklabels([p.replace("policy=", "").replace(",", "\n") for p in points],
+                           fontsize=7)  # fmt: skip
+        ax.set_ylabel(label)
+        ax.set_ylim(bottom=0.0)  # all four are >= 0
+        ax.grid(alpha=0.3, axis="y")
+    axes[0, 0].legend(fontsize=8)
+    n = rows[0]["seeds"] if rows else 0
+    fig.suptitle(f"Policies side by side: means over the same {n} seeds with 95 % intervals")
+    path = out / "compare.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def compare_table(rows: Sequence[Mapping[str, Any]]) -> str:

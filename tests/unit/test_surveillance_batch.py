@@ -110,3 +110,66 @@ def test_sweep_json_prints_rows_only(tmp_path, capsys):
     assert main(["sweep", str(cfg), "--out", str(tmp_path / "j"), "--json"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1 and json.loads(lines[0])["search_weight"] == 10.0
+
+
+def test_metric_option_is_honoured_and_checked(tmp_path, capsys):
+    """``--metric`` on a surveillance sweep or policy comparison: it ran the config's metrics
+    whatever was asked (``--metric nonsense`` exited 0); ``--workers 0`` and ``--max-seeds``
+    without ``--ci-width`` were taken by the surveillance sweep alone."""
+    cfg = small(
+        tmp_path,
+        allocation={"metrics": ["spectral", "kl"]},
+        sweep={"search_weight": [10.0], "seeds": 1},
+    )
+    out = tmp_path / "sw"
+    assert main(["sweep", str(cfg), "--out", str(out), "--metric", "kl", "--no-figures"]) == 0
+    doc = json.loads((out / "sweep.json").read_text())
+    assert [r["metric"] for r in doc["rows"]] == ["kl"]
+    cmp = tmp_path / "cmp"
+    args = ["compare", str(cfg), "--policies", "covariance_control,random", "--budget", "2",
+            "--runs", "2", "--metric", "kl", "--out", str(cmp), "--no-figures"]  # fmt: skip
+    assert main(args) == 0
+    doc = json.loads((cmp / "compare.json").read_text())
+    assert {r["metric"] for r in doc["rows"]} == {"kl"}
+    capsys.readouterr()
+    for bad, word in ((["--metric", "nonsense"], "--metric"), (["--workers", "0"], "--workers"),
+                      (["--max-seeds", "3"], "--max-seeds")):  # fmt: skip
+        x = tmp_path / "x"
+        assert main(["sweep", str(cfg), "--out", str(x), *bad]) == 2, bad
+        assert word in capsys.readouterr().err
+        assert not x.exists()
+
+
+def test_a_changed_config_of_the_same_name_is_another_batch(tmp_path, capsys):
+    """The batch was keyed by the scenario's name: the same command on a changed config ran
+    into the earlier batch's directory and replaced its results, without ``--force``."""
+    grid = {"search_weight": [10.0], "seeds": 1}
+    cfg = small(tmp_path, sweep=grid)
+    out = tmp_path / "sw"
+    assert main(["sweep", str(cfg), "--out", str(out), "--no-figures"]) == 0
+    before = (out / "sweep.json").read_bytes()
+    assert main(["sweep", str(cfg), "--out", str(out), "--no-figures"]) == 0  # resumes
+    assert "already done" in capsys.readouterr().err
+    changed = small(tmp_path, sweep=grid, scans=6)
+    assert main(["sweep", str(changed), "--out", str(out), "--no-figures"]) == 2
+    assert "holds the trials of another batch" in capsys.readouterr().err
+    assert (out / "sweep.json").read_bytes() == before
+
+
+def test_plot_redraws_surveillance_sweeps_and_comparisons(tmp_path, capsys):
+    """``covnet plot`` of a surveillance sweep or policy comparison directory: exit 2 ("was it
+    edited?", KeyError) on untouched directories; the comparison drew no figure at all."""
+    cfg = small(tmp_path, sweep={"search_weight": [0.0, 10.0], "seeds": 1})
+    sw, cmp = tmp_path / "sw", tmp_path / "cmp"
+    assert main(["sweep", str(cfg), "--out", str(sw), "--no-figures"]) == 0
+    args = ["compare", str(cfg), "--policies", "covariance_control,random", "--budget", "2",
+            "--runs", "2", "--out", str(cmp)]  # fmt: skip
+    assert main(args) == 0
+    assert (cmp / "compare.png").is_file()
+    (cmp / "compare.png").unlink()
+    for d, fig in ((sw, "sweep.png"), (cmp, "compare.png")):
+        capsys.readouterr()
+        assert main(["plot", str(d)]) == 0, capsys.readouterr().err
+        assert (d / fig).is_file()
+        assert main(["plot", str(d), "--point", "x"]) == 2
+        assert "no per-point curves" in capsys.readouterr().err
