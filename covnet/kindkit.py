@@ -42,6 +42,9 @@ class KindBase:
     def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
         return None
 
+    def mcap_problem(self, cfg: Any) -> str | None:
+        return None
+
     def tracks(self, cfg: Any, run_dir: Path) -> list[Any]:
         """No truths and tracks to export (a kind that has them overrides this)."""
         raise UsageError(f"{run_dir}: a {self.title} run has no truths and tracks to export")

@@ -122,6 +122,11 @@ class Kind(Protocol):
         a :class:`covnet.runs.visual.KindVisual`): one scan's messages -> what Foxglove draws."""
         ...
 
+    def mcap_problem(self, cfg: Any) -> str | None:
+        """Why ``covnet run --mcap`` cannot draw ``cfg``'s scenes (None: it can); asked before
+        the run, so a refusal writes nothing."""
+        ...
+
     def run_messages(self, cfg: Any, run_dir: Path) -> Iterable[Any]:
         """An in-process run directory's scans as the messages a network run would have sent
         (``covnet run --mcap`` feeds them to :meth:`visual`)."""

@@ -24,6 +24,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     ``run.json`` says ``completed``), the figures after them; a Ctrl-C before the results
     leaves nothing, one while drawing leaves the complete results."""
     kind, cfg = _load(args, *RUN_OPTIONS)
+    problem = kind.mcap_problem(cfg) if args.mcap else None
+    if problem is not None:  # before the run: it was refused after it, with a run.mcap begun
+        raise UsageError(f"--mcap: {problem}")
     out = prepare_out(args.out, cfg.name, args.force)
     try:
         status = int(kind.run(cfg, out, figures=not args.no_figures))

@@ -71,6 +71,7 @@ class CovarianceControl(KindBase):
     rebuild = staticmethod(lazy(_REPLAY, "rebuild"))
     visual = staticmethod(lazy(_VISUAL, "Visual"))
     run_messages = staticmethod(lazy(_VISUAL, "run_messages"))
+    mcap_problem = staticmethod(lazy(_VISUAL, "mcap_problem"))
 
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)

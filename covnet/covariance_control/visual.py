@@ -46,7 +46,7 @@ from covnet.runs.visual import (
 )
 from covnet.wire import messages as msg
 
-__all__ = ["Visual", "run_messages"]
+__all__ = ["Visual", "mcap_problem", "run_messages"]
 
 
 class Visual:
@@ -163,15 +163,25 @@ class Visual:
         return view
 
 
+def mcap_problem(sc: Scenario) -> str | None:
+    """Why ``covnet run --mcap`` cannot rebuild ``sc``'s scenes from its run directory (None:
+    it can): a surveillance run's tracks come and go, which ``arrays.npz`` does not keep as
+    messages."""
+    if sc.surveillance is not None:
+        return (
+            "a surveillance run's scene is recorded by covnet up (covnet up CONFIG "
+            "--foxglove); covnet run --mcap draws the known-target scenarios"
+        )
+    return None
+
+
 def run_messages(sc: Scenario, run_dir: Path) -> Iterator[msg.Message]:
     """The scans of an in-process run directory (``arrays.npz``) as the manager and the world
     would have sent them: per episode and scan a Command, the Truth, the Track(s) and the
     Status (no Measurement: ``covnet run`` keeps no raw measurement)."""
-    if sc.surveillance is not None:
-        raise UsageError(
-            "--mcap: a surveillance run's scene is recorded by covnet up (covnet up CONFIG "
-            "--foxglove); covnet run --mcap draws the known-target scenarios"
-        )
+    problem = mcap_problem(sc)
+    if problem is not None:
+        raise UsageError(f"--mcap: {problem}")
     a = load_arrays(run_dir / ARRAYS)
     ids = sc.sensor_ids
     ts = a["t"]

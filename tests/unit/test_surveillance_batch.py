@@ -173,3 +173,14 @@ def test_plot_redraws_surveillance_sweeps_and_comparisons(tmp_path, capsys):
         assert (d / fig).is_file()
         assert main(["plot", str(d), "--point", "x"]) == 2
         assert "no per-point curves" in capsys.readouterr().err
+
+
+def test_run_mcap_of_a_surveillance_config_is_refused_before_the_run(tmp_path, capsys):
+    """``covnet run --mcap`` of a surveillance config was refused once the whole run was done,
+    leaving its results, a ``run.mcap`` of no message and a ``run.json`` without a status."""
+    cfg = small(tmp_path)
+    out = tmp_path / "run"
+    assert main(["run", str(cfg), "--out", str(out), "--mcap", "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert "--mcap: a surveillance run's scene is recorded by covnet up" in err, err
+    assert not out.exists()
