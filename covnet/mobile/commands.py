@@ -40,8 +40,8 @@ def _pm(st: dict[str, Any]) -> str:
     return f"{st['mean']:.2f}±{(st['ci_hi'] - st['ci_lo']) / 2:.2f}"
 
 
-def _pct(x: float) -> str:
-    return f"{100.0 * x:.1f} %"
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100.0 * x:.1f} %"
 
 
 def print_summary(out: Path, s: dict[str, Any]) -> None:

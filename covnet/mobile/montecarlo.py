@@ -165,11 +165,14 @@ def run_seeds(
         raise
 
 
-def _stats(values: Iterable[float]) -> dict[str, Any]:
+def _stats(values: Iterable[float | None]) -> dict[str, Any]:
     """Mean, standard deviation (ddof 0, as always), min, max over seeds, then the 95 %
     Student t interval of the mean (``ci_lo``, ``ci_hi``: from the sample standard deviation,
-    ddof 1; None with one seed) and ``n``."""
-    v = np.asarray(list(values), dtype=np.float64)
+    ddof 1; None with one seed) and ``n``: over the seeds where the value is defined (a rate
+    over no scan is None), every entry None where it is defined in none."""
+    v = np.asarray([x for x in values if x is not None], dtype=np.float64)
+    if v.size == 0:
+        return dict.fromkeys(("mean", "std", "min", "max", "ci_lo", "ci_hi"), None) | {"n": 0}
     t = seed_stats(v)
     return {
         "mean": float(v.mean()),

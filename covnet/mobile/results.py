@@ -54,8 +54,10 @@ if TYPE_CHECKING:
 WORSE_TOL = 1e-9
 
 
-def _rate(x: np.ndarray) -> float:
-    return float(x.mean()) if x.size else float("nan")
+def _rate(x: np.ndarray) -> float | None:
+    """The share of ``x`` that is true; None (JSON ``null``) over no scan: ``NaN`` made
+    ``summary.json`` invalid JSON (a target never assigned, the first half of one scan)."""
+    return float(x.mean()) if x.size else None
 
 
 def _stats(t: np.ndarray) -> dict[str, float]:
