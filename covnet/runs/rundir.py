@@ -119,7 +119,9 @@ def prepare_out(
     directory the command reads; ``out`` may not be it or hold it (``covnet replay RUN --out
     RUN --force`` emptied the run it was asked to read, recording and all)."""
     if out is None:
-        return new_run_dir(name)
+        made = new_run_dir(name)
+        _writable(made, f"{made} (the default output directory; give {option})")
+        return made
     p = Path(out)
     if reads is not None:
         src, target = reads.resolve(), p.resolve()
@@ -137,7 +139,21 @@ def prepare_out(
                 "replace its contents"
             )
         clear_output(p, option)
+    _writable(p, f"{option} {out}")
     return p
+
+
+def _writable(p: Path, what: str) -> None:
+    """Make ``p`` and write (then remove) a file in it: a read-only file system, ``/proc`` or
+    a directory without write permission is a :class:`~covnet.errors.UsageError` naming
+    ``what`` now, not an ``OSError`` on a temporary file once the whole run is done."""
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        probe = p / f".covnet-write-check-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UsageError(f"{what}: cannot write there ({exc.strerror or exc})") from None
 
 
 _READS: ContextVar[tuple[Path, ...]] = ContextVar("covnet_reads", default=())
@@ -162,17 +178,17 @@ def clear_output(p: Path, option: str = "--out") -> None:
     unless it holds a file the command reads (:func:`reading`)."""
     here = Path.cwd().resolve()
     target = p.resolve()
+    if target == here or target in here.parents or target == Path.home().resolve():
+        raise UsageError(
+            f"{option} {p} --force: refusing to empty {target}: it holds the working "
+            "directory (or is the home directory)"
+        )
     for src in _READS.get():
         if target == src or target in src.parents:
             raise UsageError(
                 f"{option} {p} --force: refusing to empty {p}: it holds {src}, which this "
                 "command reads; choose another directory, or move the file out of it first"
             )
-    if target == here or target in here.parents or target == Path.home().resolve():
-        raise UsageError(
-            f"{option} {p} --force: refusing to empty {target}: it holds the working "
-            "directory (or is the home directory)"
-        )
     if not any((p / m).exists() for m in OUTPUT_MARKERS):
         raise UsageError(
             f"{option} {p} --force: refusing to empty {p}: it is not an output of covnet "
