@@ -34,9 +34,12 @@ Per scan ``k``:
     nobody dwells on would otherwise never end), of tracks whose position left the area (the
     truth leaves there too) and of **duplicates**: of two live tracks
     whose positions are inside the χ² gate of their summed position covariance
-    (``Δpᵀ (P_a + P_b)⁻¹ Δp <= χ²₂(gate_probability)``) the less certain one (larger position
-    trace; on a tie the younger) is deleted.  Without it a track started from clutter beside a
-    target, once JPDA shares the target's returns with it, follows that target for ever.
+    (``Δpᵀ (P_a + P_b)⁻¹ Δp <= χ²₂(gate_probability)``) a tentative one goes before a
+    confirmed one, then the less certain one (larger position trace; on a tie the younger).
+    Without it a track started from clutter beside a target, once JPDA shares the target's
+    returns with it, follows that target for ever; with the trace alone, a fresh tentative
+    track (its covariance from one return of a fine sensor) replaced the target's confirmed
+    track, a track break and a new id for nothing.
 """
 
 from __future__ import annotations
@@ -67,6 +70,7 @@ from covnet.core.surveillance.tracks import (
     Track,
     TrackManager,
     TrackRules,
+    TrackState,
     can_initiate,
     is_hit,
     position_trace,
@@ -393,9 +397,15 @@ class SurveillanceCentre:
                 if a.id in gone or b.id in gone:
                     continue
                 if _same_target(a.estimate, b.estimate, self.dup_gate):
-                    loser = b if position_trace(b.estimate) >= position_trace(a.estimate) else a
+                    loser = max(a, b, key=_duplicate_rank)
                     mgr.delete(loser.id, k, "duplicate")
                     gone.add(loser.id)
+
+
+def _duplicate_rank(t: Track) -> tuple[bool, float, int]:
+    """Of two duplicates the one with the larger rank is deleted: a tentative one before a
+    confirmed one, then the larger position trace, then the younger (the larger id)."""
+    return (t.state is not TrackState.CONFIRMED, position_trace(t.estimate), t.id)
 
 
 def _same_target(a: Gaussian, b: Gaussian, gate: float) -> bool:
