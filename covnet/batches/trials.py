@@ -418,12 +418,23 @@ def run_trials(
             ]
             if not wide:
                 break
+            added: set[int] = set()
             for p in wide:
-                wanted[p] = min(cap, wanted[p] + step)
+                extra = min(cap, wanted[p] + step) - wanted[p]
+                wanted[p] += extra
+                added.add(extra)
+            # the seeds each point gets now: the step, or fewer where the cap cuts it (it said
+            # "2 more" where the cap left room for 1)
+            each = (
+                f"{step} more seed(s) each"
+                if added == {step}
+                else f"{min(added)}-{max(added)} more seed(s) each"
+                if len(added) > 1
+                else f"{max(added)} more seed(s) each"
+            )
             say(
                 f"round {rounds}: {len(wide)} point(s) with a 95 % interval on the "
-                f"{batch.headline_name} of {ci_width:g} or wider: {step} more seed(s) each "
-                f"(cap {cap})"
+                f"{batch.headline_name} of {ci_width:g} or wider: {each} (cap {cap})"
             )
         where = runner.describe()
     except KeyboardInterrupt:

@@ -117,6 +117,26 @@ def _seed_count(text: str) -> int:
     return n
 
 
+class _OneOf(argparse.Action):
+    """An option with an alias (``--runs`` / ``--seeds``, ``--trials`` / ``--seeds``): given
+    twice it is refused; argparse took the last one without a word (``--runs 2 --seeds 3``
+    ran 3)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        mark = f"_given_{self.dest}"
+        first = getattr(namespace, mark, None)
+        if first is not None:
+            parser.error(f"{first} and {option_string}: one option given twice; give it once")
+        setattr(namespace, mark, option_string)
+        setattr(namespace, self.dest, values)
+
+
 def _cluster_address(text: str) -> str:
     """``--cluster``: checked while the options are parsed, before any directory is made."""
     problem = scheduler_problem(text)
@@ -207,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--trials",
         "--seeds",
         dest="trials",
+        action=_OneOf,
         type=_seed_count,
         metavar="N",
         help="seeds (covariance control: from the config's, default 20; mobile: 0..N-1, "
@@ -340,6 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--runs",
         "--seeds",
         dest="runs",
+        action=_OneOf,
         type=_seed_count,
         default=20,
         help="seeds per mode or policy (default: %(default)s); --seeds is the same option, "
@@ -504,8 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "--repeat",
         type=int,
-        help=takes("repeat") + "timed repeats per problem (alloc, default 3), whole runs (up), "
-        "alternations (cluster, default 4)",
+        help=takes("repeat") + "timed repeats per problem (alloc, fusion: default 3), whole runs "
+        "(up), alternations (cluster, default 4)",
     )
     b.add_argument(
         "--json",

@@ -447,7 +447,7 @@ def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:
     """``covnet bench fusion``: the batched covariance-intersection candidates."""
     from covnet.covariance_control import bench_fusion as bf  # start-up of the other commands
 
-    rows = bf.run_bench(args.sensors or [8, 12, 16], repeat=max(args.repeat, 3))
+    rows = bf.run_bench(args.sensors or [8, 12, 16], repeat=args.repeat)
     if args.json:
         for row in rows:
             print(json.dumps(row))

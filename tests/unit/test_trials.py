@@ -323,6 +323,13 @@ def test_cli_ci_width_adds_seeds_until_narrow_and_says_so(tmp_path, capsys):
     assert main(["plot", str(out), "--point", "delay_ms=350"]) == 0
     assert (out / "curves.png").stat().st_size > 10_000
     assert main(["plot", str(out), "--point", "nope"]) == 2
+    # a cap that leaves room for fewer seeds than the step: the note says how many (it said
+    # "2 more seed(s) each" where 1 was added)
+    out3 = tmp_path / "o3"
+    capsys.readouterr()
+    assert main([*argv[:3], str(out3), *argv[4:], "--ci-width", "0.001", "--max-seeds", "3"]) == 0
+    err = capsys.readouterr().err
+    assert "1 more seed(s) each (cap 3)" in err and "2 more" not in err, err
 
 
 @pytest.mark.parametrize("damage", [b"", b"[]", b"null", b"{\"command\": ", b"{}"])
