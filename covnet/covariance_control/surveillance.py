@@ -5,7 +5,10 @@ dwell that returns every existing target inside its window.
 **Truth.**  A configured target with ``appears_at_scan = a`` starts from its
 ``initial_position_m`` / ``initial_velocity_mps`` at time ``(a - 1) T`` and moves as a
 many-target truth does (its TRUTH stream, its manoeuvres); it exists at scans ``a ..
-leaves_at_scan - 1`` (to the end without ``leaves_at_scan``).  With ``a = 1`` its trajectory is
+leaves_at_scan - 1`` (to the end without ``leaves_at_scan``), and only while it is inside the
+area: outside it is no part of the surveillance problem, as a born target, which leaves there,
+and a track, which is deleted there (a configured target that flew out was scored as missed,
+and its deleted track as a break, every scan to the end).  With ``a = 1`` its trajectory is
 today's bit for bit.  Births (``surveillance.births``): the birth process of
 :mod:`covnet.core.surveillance.births` from the stream ``(seed, BIRTHS)``, each born target
 leaving at the first scan it is outside the area.  ``truth`` is ``(n, scans, 4)`` with NaN
@@ -97,7 +100,8 @@ def _segments(sc: Scenario, i: int, shift: int) -> list[Any]:
 
 def _configured(sc: Scenario, tm: TargetsModel) -> tuple[list[str], list[Mat], list[Vec]]:
     """The configured targets' truth rows and existence (module docstring)."""
-    assert sc.targets is not None
+    assert sc.targets is not None and sc.surveillance is not None
+    (x0, y0), (x1, y1) = sc.surveillance.area.min_m, sc.surveillance.area.max_m
     ids, rows, alive = [], [], []
     K = tm.scans
     for t, (entry, tg) in enumerate(zip(sc.targets, tm.targets, strict=True)):
@@ -117,6 +121,8 @@ def _configured(sc: Scenario, tm: TargetsModel) -> tuple[list[str], list[Mat], l
         end = K if entry.leaves_at_scan is None else entry.leaves_at_scan - 1
         ex = np.zeros(K, dtype=bool)
         ex[a - 1 : end] = True
+        with np.errstate(invalid="ignore"):  # NaN before it appears: outside
+            ex &= (row[:, 0] >= x0) & (row[:, 0] <= x1) & (row[:, 2] >= y0) & (row[:, 2] <= y1)
         row[~ex] = np.nan
         ids.append(entry.id)
         rows.append(row)
