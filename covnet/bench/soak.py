@@ -534,6 +534,15 @@ def main(args: argparse.Namespace) -> int:
             raise UsageError(f"--{name}: must be a finite number > 0, got {getattr(args, name)}")
     if args.scans == 0 and args.realtime_s == 0:
         raise UsageError("--scans and --realtime-s are both 0: nothing to run")
+    if args.work:  # checked now: its runs' --out would refuse it only after the set-up (exit 1)
+        work = Path(args.work)
+        if work.exists() and not work.is_dir():
+            raise UsageError(f"--work {args.work}: exists and is not a directory")
+        if work.is_dir() and any(work.iterdir()):
+            raise UsageError(
+                f"--work {args.work}: not empty (an earlier soak's runs?); give a new or empty "
+                "directory"
+            )
     metric = args.metric[0] if getattr(args, "metric", None) else None
     rows = run(
         args.config,

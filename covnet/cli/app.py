@@ -560,7 +560,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--interval", type=float, help=takes("interval") + "seconds between samples (default 2)"
     )
     b.add_argument("--windows", type=int, help=takes("windows") + "latency windows per run (10)")
-    b.add_argument("--work", help=takes("work") + "keep the soak's run directories here")
+    b.add_argument(
+        "--work",
+        help=takes("work") + "keep the soak's run directories here (a new or empty directory)",
+    )
     b.set_defaults(func=cmd_bench)
     return p
 

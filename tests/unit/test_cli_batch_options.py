@@ -155,3 +155,21 @@ def test_bench_soak_names_values_it_cannot_use(opt, value, message, capsys):
     assert main(["bench", "soak", opt, value]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("what", ["a file", "an earlier soak's"])
+def test_bench_soak_work_must_be_new_or_empty(tmp_path, capsys, what):
+    """``--work`` of an earlier soak failed after the set-up, exit 1, with its lockstep run's
+    --out message; a file, with "File exists".  Now named first, exit 2."""
+    work = tmp_path / "w"
+    if what == "a file":
+        work.write_text("x")
+        message = f"--work {work}: exists and is not a directory"
+    else:
+        (work / "lockstep").mkdir(parents=True)
+        (work / "soak-5.yaml").write_text("x")
+        message = f"--work {work}: not empty"
+    argv = ["bench", "soak", "--scans", "5", "--realtime-s", "0", "--work", str(work)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
