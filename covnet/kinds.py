@@ -216,7 +216,10 @@ def apply_named_options(
         if name not in OPTIONS:
             raise ValueError(f"not a run option: {name!r}")
         if name not in kind.options:
-            takes = ", ".join(names[o] for o in OPTIONS if o in kind.options) or "none"
+            # the ones this command passes too (covnet mc of a mobile config named --solver,
+            # which mc does not have)
+            takes = ", ".join(names[o] for o in OPTIONS if o in kind.options and o in values)
+            takes = takes or "none"
             raise UsageError(
                 f"{names[name]}: a {kind.title} scenario does not take this option "
                 f"(its options: {takes})"

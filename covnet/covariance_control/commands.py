@@ -503,13 +503,13 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
             "--sensors: bench multitarget takes up to 16 without --search (its sensor table); "
             "with --search exact|bounded|greedy generated networks up to 256"
         )
-    if not args.json:
-        print(" ".join(k for k, _ in bs.MT_COLUMNS), flush=True)
     targets = getattr(args, "targets", None) or [3]
     if any(not 1 <= t <= len(bs.MT_TARGETS) + len(bs.MT_MORE_TARGETS) for t in targets):
         raise UsageError(
             f"--targets: 1 to {len(bs.MT_TARGETS) + len(bs.MT_MORE_TARGETS)}, got {targets}"
         )
+    if not args.json:  # after the checks: a refused command prints no table header
+        print(" ".join(k for k, _ in bs.MT_COLUMNS), flush=True)
     rows = bs.run_multitarget(
         args.sensors or [8, 12, 16],
         metrics or ("spectral", "abs_trace", "svd", "kl"),

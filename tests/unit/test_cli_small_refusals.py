@@ -1,5 +1,7 @@
-"""An option with an alias given twice is refused (exit 2, naming both): ``covnet compare
---runs 2 --seeds 3`` ran 3 seeds and ``covnet mc --trials 2 --seeds 3`` ran 3, without a word."""
+"""Small command-line defects a hunt through every option found: an option with an alias given
+twice (``covnet compare --runs 2 --seeds 3`` ran 3 seeds without a word), an option silently
+raised, a table header printed before a refusal, a refusal naming options the command does not
+have."""
 
 from __future__ import annotations
 
@@ -38,3 +40,21 @@ def test_bench_fusion_takes_the_repeat_given(monkeypatch, capsys):
     )
     assert main(["bench", "fusion", "--sensors", "4", "--repeat", "1", "--json"]) == 0
     assert seen == [1]
+
+
+def test_a_refused_bench_prints_no_table_header(capsys):
+    """``bench multitarget --targets 99`` printed its table's header to stdout, then refused."""
+    assert main(["bench", "multitarget", "--targets", "99"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and "--targets: 1 to" in captured.err
+
+
+def test_a_refused_option_names_only_the_commands_options(tmp_path, capsys):
+    """``covnet mc`` of a mobile config with ``--metric`` said "(its options: --seed,
+    --solver)": mc has no --solver."""
+    mobile = str(REPO / "configs" / "mobile.yaml")
+    assert main(["mc", mobile, "--metric", "kl", "--out", str(tmp_path / "m")]) == 2
+    err = capsys.readouterr().err
+    assert "(its options: --seed)" in err, err
+    assert main(["run", mobile, "--metric", "kl", "--out", str(tmp_path / "r")]) == 2
+    assert "(its options: --seed, --solver)" in capsys.readouterr().err
