@@ -100,6 +100,8 @@ def _counts(what: str) -> Callable[[str], list[int]]:
             ) from None
         if not vals or any(v < 1 for v in vals):
             raise argparse.ArgumentTypeError(f"{what} counts must be >= 1, got {text!r}")
+        if len(set(vals)) < len(vals):  # "8,8" timed the same size twice, two rows
+            raise argparse.ArgumentTypeError(f"a count given twice in {text!r}")
         return vals  # each benchmark's largest count: BENCH_SENSORS_MAX, checked in cmd_bench
 
     return parse

@@ -183,6 +183,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             raise UsageError(
                 f"--sensors: bench {args.target} takes counts up to {top}, got {max(args.sensors)}"
             )
+    if args.metric:  # a metric named twice is timed once (as covnet run takes it), one row
+        args.metric = list(dict.fromkeys(args.metric))
     if args.exact_cap is not None and not args.exact_cap > 0:
         raise UsageError(f"--exact-cap: must be > 0 seconds, got {args.exact_cap}")
     if args.foxglove and (args.target != "up" or args.sensors):

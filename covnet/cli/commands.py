@@ -137,6 +137,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         reason = unsupported_reason()
         if reason is not None:
             raise UsageError(reason)
+    if args.nodes is not None and not args.nodes.strip():
+        raise UsageError("--nodes: empty; name the processes to start here (e.g. sensors)")
     nodes = [n.strip() for n in args.nodes.split(",")] if args.nodes else None
     known = {"manager", "world", "recorder", "sensors", *cfg.sensor_ids}
     for n in nodes or []:

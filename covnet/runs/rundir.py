@@ -118,6 +118,8 @@ def prepare_out(
     nor one of its parents: ``--force`` never deletes anything else.  ``reads``: the
     directory the command reads; ``out`` may not be it or hold it (``covnet replay RUN --out
     RUN --force`` emptied the run it was asked to read, recording and all)."""
+    if out is not None and not str(out).strip():
+        raise UsageError(f"{option}: empty; give a directory (or leave {option} out)")
     if out is None:
         made = new_run_dir(name)
         _writable(made, f"{made} (the default output directory; give {option})")

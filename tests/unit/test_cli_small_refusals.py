@@ -58,3 +58,35 @@ def test_a_refused_option_names_only_the_commands_options(tmp_path, capsys):
     assert "(its options: --seed)" in err, err
     assert main(["run", mobile, "--metric", "kl", "--out", str(tmp_path / "r")]) == 2
     assert "(its options: --seed, --solver)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["run", PAPER, "--out", ""], "--out: empty"),
+        (["up", PAPER, "--nodes", ""], "--nodes: empty"),
+    ],
+)
+def test_an_empty_value_is_refused(tmp_path, monkeypatch, capsys, argv, message):
+    """``--out ""`` wrote into the working directory; ``--nodes ""`` started every process."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_bench_count_given_twice_is_refused_and_a_metric_named_twice_timed_once(
+    monkeypatch, capsys
+):
+    """``--sensors 8,8`` timed the same size twice; ``--metric kl --metric kl`` gave two rows
+    of the same metric (covnet run takes a metric named twice once)."""
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "alloc", "--sensors", "8,8"])
+    assert exc.value.code == 2
+    assert "a count given twice in '8,8'" in capsys.readouterr().err
+    from covnet.covariance_control import commands
+
+    seen = []
+    monkeypatch.setattr(commands, "bench_alloc", lambda args, sc: seen.append(args.metric) or 0)
+    assert main(["bench", "alloc", "--sensors", "8", "--metric", "kl", "--metric", "kl"]) == 0
+    assert seen == [["kl"]]
