@@ -128,10 +128,14 @@ def budget_for(sc: Scenario, policy: str, budget: int | str | None) -> int | Non
         return budget
     k = sc.allocation.budget
     if pol.needs_budget and k is None and sc.allocation.max_active is None:
+        match = (
+            ""  # a surveillance comparison refuses match: no advice it would refuse
+            if sc.surveillance is not None
+            else ", or --budget match (covariance control's mean sensors per scan)"
+        )
         raise UsageError(
             f"--policies: {policy} ({pol.summary}) needs a budget K and {sc.name} has none "
-            "(allocation.budget or max_active): give --budget K, or --budget match (covariance "
-            "control's mean sensors per scan)"
+            f"(allocation.budget or max_active): give --budget K{match}"
         )
     return k
 

@@ -184,3 +184,13 @@ def test_run_mcap_of_a_surveillance_config_is_refused_before_the_run(tmp_path, c
     err = capsys.readouterr().err
     assert "--mcap: a surveillance run's scene is recorded by covnet up" in err, err
     assert not out.exists()
+
+
+def test_a_missing_budget_advises_only_what_is_taken(tmp_path, capsys):
+    """A surveillance comparison of ``random`` without a budget advised ``--budget match``,
+    which it then refuses."""
+    cfg = small(tmp_path)
+    argv = ["compare", str(cfg), "--policies", "random", "--runs", "2", "--out", str(tmp_path / "c")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "give --budget K" in err and "match" not in err, err
