@@ -190,7 +190,8 @@ def test_a_missing_budget_advises_only_what_is_taken(tmp_path, capsys):
     """A surveillance comparison of ``random`` without a budget advised ``--budget match``,
     which it then refuses."""
     cfg = small(tmp_path)
-    argv = ["compare", str(cfg), "--policies", "random", "--runs", "2", "--out", str(tmp_path / "c")]
+    out = str(tmp_path / "c")
+    argv = ["compare", str(cfg), "--policies", "random", "--runs", "2", "--out", out]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "give --budget K" in err and "match" not in err, err
