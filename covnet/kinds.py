@@ -18,7 +18,7 @@ role modules (README, "Architecture").
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -203,23 +203,29 @@ def apply_options(kind: Kind, cfg: Any, source: str, **values: Any) -> Any:
     """``cfg`` with the given :data:`OPTIONS` applied (``None`` values are not given), as a
     new validated config.  An option the kind does not take, or a value it refuses, is a
     :class:`~covnet.errors.UsageError` naming the option."""
-    return apply_named_options(kind, cfg, source, values, OPTIONS)
+    return apply_named_options(kind, cfg, source, values, OPTIONS, taken=values)
 
 
 def apply_named_options(
-    kind: Kind, cfg: Any, source: str, values: Mapping[str, Any], names: Mapping[str, str]
+    kind: Kind,
+    cfg: Any,
+    source: str,
+    values: Mapping[str, Any],
+    names: Mapping[str, str],
+    *,
+    taken: Collection[str] | None = None,
 ) -> Any:
     """:func:`apply_options`, its errors naming each option as ``names`` spell it (the
-    command line's flags: :data:`OPTIONS`; :mod:`covnet.cli.api` names its arguments)."""
+    command line's flags: :data:`OPTIONS`; :mod:`covnet.cli.api` names its arguments).
+    ``taken``: the options the caller has (a refusal lists the kind's options among them;
+    ``covnet mc`` of a mobile config listed ``--solver``, which mc does not have); None: all."""
     given = {k: v for k, v in values.items() if v is not None and v != []}
     for name in given:
         if name not in OPTIONS:
             raise ValueError(f"not a run option: {name!r}")
         if name not in kind.options:
-            # the ones this command passes too (covnet mc of a mobile config named --solver,
-            # which mc does not have)
-            takes = ", ".join(names[o] for o in OPTIONS if o in kind.options and o in values)
-            takes = takes or "none"
+            offered = [o for o in OPTIONS if taken is None or o in taken]
+            takes = ", ".join(names[o] for o in offered if o in kind.options) or "none"
             raise UsageError(
                 f"{names[name]}: a {kind.title} scenario does not take this option "
                 f"(its options: {takes})"

@@ -47,7 +47,7 @@ from covnet.batches.stats import per_scan_bands
 from covnet.batches.trials import batch_options, prepare_batch_out, write_batch_info
 from covnet.config import ConfigError
 from covnet.errors import UsageError
-from covnet.runs.rundir import ARRAYS, SUMMARY, load_arrays, read_json
+from covnet.runs.rundir import ARRAYS, SUMMARY, load_arrays, prepare_out, read_json
 
 __all__ = ["RunResult", "SweepResult", "load", "run", "sweep"]
 
@@ -83,6 +83,7 @@ def load(config: Any, **overrides: Any) -> tuple[Any, Any]:
     options = {k: overrides.pop(k) for k in list(overrides) if k in kinds.OPTIONS}
     if isinstance(options.get("metric"), str):
         options["metric"] = [options["metric"]]  # the command line's --metric is repeatable
+    _check_option_types(options)
     if overrides:
         data = kind.normalised(cfg)
         for name, value in overrides.items():
@@ -96,6 +97,36 @@ def load(config: Any, **overrides: Any) -> tuple[Any, Any]:
 #: the run options as this module's callers name them (errors say ``metric: ...``, not the
 #: command line's ``--metric: ...``)
 _ARGUMENTS = {name: name for name in kinds.OPTIONS}
+
+
+def _check_option_types(options: Mapping[str, Any]) -> None:
+    """The run options' types, each named (``metric=3`` and ``seed="a"`` ended in a bare
+    ``TypeError`` from deep inside): ``metric`` a name or a list of names, ``seed`` an integer,
+    ``fusion`` and ``solver`` names."""
+    for name, value in options.items():
+        if value is None:
+            continue
+        if name == "metric":
+            ok = isinstance(value, list | tuple) and all(isinstance(m, str) for m in value)
+            want = "a metric name or a list of them"
+        elif name == "seed":
+            ok = isinstance(value, int) and not isinstance(value, bool)
+            want = "an integer"
+        else:
+            ok = isinstance(value, str)
+            want = "a name"
+        if not ok:
+            raise UsageError(f"{name}: {want}, got {value!r}")
+
+
+def _check_flag(name: str, value: Any) -> None:
+    if not isinstance(value, bool):  # figures="no" counted as true
+        raise UsageError(f"{name}: True or False, got {value!r}")
+
+
+def _check_path(name: str, value: Any) -> None:
+    if value is not None and not isinstance(value, str | Path):
+        raise UsageError(f"{name}: a path, got {value!r}")
 
 
 def _override(data: dict[str, Any], name: str, value: Any, source: str) -> None:
@@ -134,25 +165,33 @@ class RunResult:
 
     def to_frame(self) -> Any:
         """A pandas DataFrame: one row per scan of the run (the summary's ``scans``), a column
-        per per-scan array: ``(scans,)`` as ``name``, ``(scans, k)`` as ``name[0]`` ...
-        ``name[k-1]`` (e.g. a state's components, each sensor's on/off), and a many-target
-        ``(T, scans)`` array (a value per target and scan) as ``name[0]`` ... ``name[T-1]`` in
-        the run's target order; arrays of other shapes (a sensor list, a surveillance run's
-        track rows) are left out.  Without arrays (a passive run): the summary flattened."""
+        per per-scan array and entry: ``(scans,)`` as ``name``, ``(scans, k)`` as ``name[0]``
+        ... ``name[k-1]`` (e.g. a state's components, each sensor's on/off), ``(scans, 4, 4)``
+        as ``name[i][j]`` (a covariance); a many-target array, whose second axis is the scans,
+        with the target first: ``(T, scans)`` as ``name[t]``, ``(T, scans, 4)`` as
+        ``name[t][i]`` (each target's estimate or truth: they were left out), ``(T, scans, 4,
+        4)`` as ``name[t][i][j]``, in the run's target order.  Arrays with no scan axis (a
+        sensor list, a surveillance run's track rows) are left out.  Without arrays (a
+        passive run): the summary flattened."""
         pd = _pandas()
         if not self.arrays:
             return pd.json_normalize(self.summary)
         n = int(self.summary["scans"])
         cols: dict[str, Any] = {"scan": np.arange(1, n + 1)}
         for name, a in self.arrays.items():
-            if a.ndim == 1 and len(a) == n:
-                cols[name] = a
-            elif a.ndim == 2 and a.shape[0] == n:
-                for j in range(a.shape[1]):
-                    cols[f"{name}[{j}]"] = a[:, j]
-            elif a.ndim == 2 and a.shape[1] == n:
-                for j in range(a.shape[0]):
-                    cols[f"{name}[{j}]"] = a[j]
+            if a.ndim == 0 or a.dtype.kind not in "biuf":
+                continue
+            if a.shape[0] == n:
+                per_scan = a
+            elif a.ndim >= 2 and a.shape[1] == n:
+                per_scan = np.moveaxis(a, 1, 0)  # (T, scans, ...): the scans first
+            else:
+                continue
+            if per_scan.ndim == 1:
+                cols[name] = per_scan
+                continue
+            for idx in np.ndindex(*per_scan.shape[1:]):
+                cols[name + "".join(f"[{i}]" for i in idx)] = per_scan[(slice(None), *idx)]
         return pd.DataFrame(cols)
 
 
@@ -160,20 +199,25 @@ def run(
     config: Any,
     *,
     out: str | Path | None = None,
+    force: bool = False,
     figures: bool = False,
     keep: bool = False,
     **overrides: Any,
 ) -> RunResult:
     """``covnet run``: the whole scenario in this process into ``out``, its printout
-    suppressed; the results read back.  Without ``out`` the run goes to a temporary directory
-    that is removed once the results are read (``RunResult.out`` is then None), also when the
-    run fails; ``keep=True`` (or ``figures=True``) keeps it, and ``RunResult.out`` names it
-    (the caller removes it)."""
+    suppressed; the results read back.  ``out`` follows the command's ``--out`` rules: a new
+    or empty directory, or with ``force=True`` an earlier covnet output, emptied first (a
+    non-empty directory was written into, an earlier run's files left beside the new ones).
+    Without ``out`` the run goes to a temporary directory that is removed once the results are
+    read (``RunResult.out`` is then None), also when the run fails; ``keep=True`` (or
+    ``figures=True``) keeps it, and ``RunResult.out`` names it (the caller removes it)."""
+    _check_path("out", out)
+    for name, flag in (("force", force), ("figures", figures), ("keep", keep)):
+        _check_flag(name, flag)
     kind, cfg = load(config, **overrides)
     if out is not None:
-        if Path(out).exists() and not Path(out).is_dir():  # as the command's --out
-            raise UsageError(f"out {out}: exists and is not a directory")
-        return _run_into(kind, cfg, Path(out), figures)
+        target = prepare_out(out, str(getattr(cfg, "name", "run")), force, "out")
+        return _run_into(kind, cfg, target, figures)
     target = Path(tempfile.mkdtemp(prefix="covnet-run-"))
     kept = keep or figures
     try:
@@ -254,8 +298,15 @@ def sweep(
     from covnet.covariance_control import sweep as sw
     from covnet.covariance_control.config import SweepSpec
 
+    if isinstance(metric, list | tuple) and len(metric) == 1:
+        metric = metric[0]  # as run(metric=[...]) takes it: a sweep runs one metric
+    if metric is not None and not isinstance(metric, str):
+        raise UsageError(f"metric: a metric name (a sweep runs one), got {metric!r}")
     if metric is not None and metric not in METRICS:
         raise UsageError(f"metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
+    if workers is not None and not (isinstance(workers, int) and not isinstance(workers, bool)):
+        raise UsageError(f"workers: an integer, got {workers!r}")
+    _check_path("out", out)
     if seeds is not None and not (
         isinstance(seeds, int) and not isinstance(seeds, bool) and 1 <= seeds <= MAX_SEEDS
     ):

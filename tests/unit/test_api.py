@@ -224,3 +224,67 @@ def test_out_naming_a_file_is_refused_as_the_command_refuses_it(tmp_path, paper_
     with pytest.raises(UsageError, match=r"out .*notes.txt: exists and is not a directory"):
         api.run(paper_path, out=f, scans=3)
     assert f.read_text() == "mine\n"
+
+
+def test_out_follows_the_commands_rules(tmp_path, paper_path):
+    """``api.run(out=DIR)`` wrote into a non-empty directory: an earlier run's summary and
+    arrays replaced, its recording and figures left beside them (a mix of two runs), a user's
+    files among the run's.  Now the command's ``--out`` rules: refused, or with ``force=True``
+    an earlier covnet output emptied first."""
+    earlier = tmp_path / "earlier"
+    api.run(paper_path, out=earlier, scans=3, metric="kl")
+    (earlier / "recording.mcap").write_bytes(b"an earlier network run's")
+    before = sorted(p.name for p in earlier.iterdir())
+    with pytest.raises(UsageError, match=r"out .*earlier: directory is not empty"):
+        api.run(paper_path, out=earlier, scans=2, metric="kl")
+    assert sorted(p.name for p in earlier.iterdir()) == before
+    r = api.run(paper_path, out=earlier, scans=2, metric="kl", force=True)
+    assert not (earlier / "recording.mcap").exists() and r.summary["scans"] == 2
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("x")
+    with pytest.raises(UsageError, match=r"not an output of covnet"):
+        api.run(paper_path, out=mine, scans=2, metric="kl", force=True)
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+
+
+@pytest.mark.parametrize(
+    "call,message",
+    [
+        (lambda p: api.run(p, metric=3), "metric: a metric name or a list of them, got 3"),
+        (lambda p: api.run(p, seed="a"), "seed: an integer, got 'a'"),
+        (lambda p: api.run(p, fusion=1), "fusion: a name, got 1"),
+        (lambda p: api.run(p, out=5), "out: a path, got 5"),
+        (lambda p: api.run(p, figures="no"), "figures: True or False, got 'no'"),
+        (lambda p: api.sweep(p, workers="2"), "workers: an integer, got '2'"),
+        (lambda p: api.sweep(p, metric=["kl", "svd"]), "metric: a metric name (a sweep runs"),
+    ],
+)
+def test_wrong_argument_types_are_named(paper_path, call, message):
+    """Each ended in a bare ``TypeError`` from deep inside (or, ``figures="no"``, counted as
+    true)."""
+    with pytest.raises(UsageError, match=re.escape(message)):
+        call(paper_path)
+
+
+def test_a_refused_option_lists_the_kinds_options(paper_path):
+    """The API's message listed "(its options: none)"."""
+    with pytest.raises(UsageError, match=re.escape("(its options: seed, metric, fusion)")):
+        api.run(paper_path, solver="lp")
+
+
+def test_to_frame_keeps_each_targets_estimate_and_truth():
+    """A many-target run's ``(T, scans, 4)`` estimates and truths were left out of the frame
+    (the README says a many-target array gives a column per target); so was every covariance."""
+    pytest.importorskip("pandas")
+    r = api.run(REPO / "configs" / "multitarget.yaml", metric="spectral")
+    df = r.to_frame()
+    x, truth, P = r.arrays["x_est.spectral"], r.arrays["truth"], r.arrays["P_post.spectral"]
+    assert x.ndim == 3 and x.shape[1] == len(df)
+    for t in range(x.shape[0]):
+        for i in range(4):
+            assert np.array_equal(df[f"x_est.spectral[{t}][{i}]"], x[t, :, i])
+            assert np.array_equal(df[f"truth[{t}][{i}]"], truth[t, :, i], equal_nan=True)
+    assert np.array_equal(df["P_post.spectral[2][0][1]"], P[2, :, 0, 1])
+    one = api.run(REPO / "configs" / "paper.yaml", metric="kl", scans=4)
+    assert np.array_equal(one.to_frame()["P_post.kl[1][3]"], one.arrays["P_post.kl"][:, 1, 3])
