@@ -699,12 +699,21 @@ def write_run_mcap(kind: Any, cfg: Any, run_dir: Path, path: Path | None = None)
     vis = Visualiser(kind.visual(cfg), kind.episodes(cfg), timed=False)
     meta = run_metadata("in-process", cfg)
     meta["covnet.run"]["mode"] = "in-process (covnet run --mcap): visual channels only"
+    # its times are the scenario's, not this host's clock (the recorder's metadata says so)
+    meta["covnet.run"]["time_base"] = (
+        "scenario time in ns from 0 (episodes one after another, a second apart)"
+    )
+    for key in ("start_monotonic_ns", "start_utc_ns"):
+        meta["covnet.run"].pop(key, None)
     base_ns, last_ns, episode = 0, 0, 0
     with RecordingWriter(path, run_id="in-process", metadata=meta) as w:
         for m in kind.run_messages(cfg, Path(run_dir)):
-            e = int(getattr(m, "episode", 0))
-            if e != episode:
-                episode, base_ns = e, last_ns + 1_000_000_000
+            # a message without an episode (the Truth) belongs to the current one: taken for
+            # episode 0, it moved the base twice a scan from the second episode on (its scan
+            # 15 at 301 s instead of 31 s)
+            e = getattr(m, "episode", None)
+            if e is not None and int(e) != episode:
+                episode, base_ns = int(e), last_ns + 1_000_000_000
             last_ns = max(last_ns, base_ns + round(float(getattr(m, "t", 0.0)) * 1e9))
             for vm in vis.feed_message(m, last_ns):
                 w.write_visual(vm)

@@ -329,3 +329,26 @@ def test_a_surveillance_scene_draws_track_states_and_cells():
     c = ents["estimate/K2"].spheres[0].color
     assert (c.r, c.g, c.b, c.a) == pytest.approx(COLOURS["tentative"])
     assert ents["estimate/K3"].lines == [] and "deleted" in ents["estimate/K3"].texts[0].text
+
+
+def test_run_mcap_times_are_scenario_time_episode_after_episode(tmp_path):
+    """Episodes one after another, a second apart, each scan ``T`` after the last.  The Truth,
+    which carries no episode, was taken for episode 0: from the second episode on the time base
+    moved twice a scan (episode 1's scans 1, 2, 3 at 21, 28, 37 s; its scan 15 at 301 s)."""
+    kind, cfg = _paper(scans=6)  # three metrics: three episodes
+    out = tmp_path / "run"
+    kind.run(cfg, out, figures=False)
+    from covnet.runs.visual import write_run_mcap
+
+    times = []
+    with open(write_run_mcap(kind, cfg, out), "rb") as f:
+        for _, _, m in make_reader(f).iter_messages(topics=[METRICS_TOPIC]):
+            times.append(m.log_time / 1e9)
+    T = float(cfg.period_s)
+    episodes = len(cfg.allocation.metrics)
+    assert len(times) == 6 * episodes
+    expected, base = [], 0.0
+    for e in range(episodes):
+        expected += [base + k * T for k in range(1, 7)]
+        base = expected[-1] + 1.0
+    np.testing.assert_allclose(times, expected)
