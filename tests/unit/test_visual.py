@@ -348,7 +348,7 @@ def test_run_mcap_times_are_scenario_time_episode_after_episode(tmp_path):
     episodes = len(cfg.allocation.metrics)
     assert len(times) == 6 * episodes
     expected, base = [], 0.0
-    for e in range(episodes):
+    for _ in range(episodes):
         expected += [base + k * T for k in range(1, 7)]
         base = expected[-1] + 1.0
     np.testing.assert_allclose(times, expected)
