@@ -248,6 +248,25 @@ def recording_notes(reader: RecordingReader, counts: dict[str, int]) -> list[str
     return notes
 
 
+#: the first bytes of every MCAP file
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _check_mcap_start(path: Path) -> None:
+    """A :class:`ReplayError` when ``path`` does not start as an MCAP file (empty, or other
+    bytes from its first one): not a recording cut short, whose start reads, but no recording;
+    it was read as a truncated one ("no footer: killed?") and the run said to differ."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise ReplayError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if not head:
+        raise ReplayError(f"{path}: empty (no recording was written)")
+    if head != MCAP_MAGIC[: len(head)] or len(head) < len(MCAP_MAGIC):
+        raise ReplayError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
+
+
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
@@ -349,6 +368,11 @@ class KindReplay:
         episodes = info.get("episodes", kind.episodes(cfg))
         if not isinstance(episodes, list) or not all(isinstance(m, str) for m in episodes):
             raise ReplayError(f"{run_dir / RUN_INFO} has no 'episodes' list (not a network run?)")
+        # the files compared and the recording are readable before anything is compared: an
+        # unreadable one was a "difference" (exit 1), where the README says exit 2
+        for name in self.compared:
+            _read_json(run_dir / name)
+        _check_mcap_start(run_dir / RECORDING)
         meta_run = read_metadata(run_dir / RECORDING).get(META_RUN, {})
         run_id = info.get("run_id") or meta_run.get("run_id")
         if not isinstance(run_id, str):

@@ -318,3 +318,27 @@ def test_a_recorder_killed_with_sigkill_loses_at_most_its_flush_interval(tmp_pat
     assert not reader.complete  # no footer: it was killed
     assert reader.corrupt_chunks == [] and reader.error is None
     assert [g for g in got if "/hb/" not in g[0]] == published
+
+
+@pytest.mark.parametrize(
+    "damage,message",
+    [
+        (("summary.json", b"{bad"), "summary.json: Expecting"),
+        ((RECORDING, b""), "recording.mcap: empty"),
+        ((RECORDING, bytes(range(256)) * 20), "recording.mcap: not an MCAP file"),
+    ],
+)
+def test_an_unreadable_file_of_the_run_is_exit_2(recorded_run, tmp_path, capsys, damage, message):
+    """An unreadable ``summary.json`` or a recording that is no MCAP file from its first byte
+    were "differences" (exit 1, the empty one noted as "no footer: killed?"); the README says a
+    file of the run missing or unreadable is exit 2."""
+    from covnet.cli.app import main
+
+    src, _, _ = recorded_run
+    run = tmp_path / "run"
+    _copy_run(src, run)
+    name, data = damage
+    (run / name).write_bytes(data)
+    assert main(["replay", str(run), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "DIFFERS" not in err, err
