@@ -39,7 +39,9 @@ class KindBase:
         result: dict[str, Any] = self.config.normalised(cfg)
         return result
 
-    def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
+    def up_problem(
+        self, cfg: Any, *, realtime: bool, netns: bool, foxglove: bool = False
+    ) -> str | None:
         return None
 
     def mcap_problem(self, cfg: Any) -> str | None:

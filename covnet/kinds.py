@@ -98,8 +98,11 @@ class Kind(Protocol):
         """After ``covnet up``: figures and the printed summary from the run directory."""
         ...
 
-    def up_problem(self, cfg: Any, *, realtime: bool, netns: bool) -> str | None:
-        """Why ``covnet up`` cannot run ``cfg`` with this clock or emulation (None: it can)."""
+    def up_problem(
+        self, cfg: Any, *, realtime: bool, netns: bool, foxglove: bool = False
+    ) -> str | None:
+        """Why ``covnet up`` cannot run ``cfg`` with this clock, emulation or live view (None:
+        it can)."""
         ...
 
     def restartable(self, cfg: Any) -> frozenset[str]:

@@ -122,7 +122,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         raise UsageError(f"--sensors-per-process: must be >= 1, got {k}")
     if k not in (None, 1) and args.netns:
         raise UsageError("--sensors-per-process: --netns runs each sensor in its own namespace")
-    problem = kind.up_problem(cfg, realtime=args.realtime, netns=args.netns)
+    problem = kind.up_problem(
+        cfg, realtime=args.realtime, netns=args.netns, foxglove=bool(args.foxglove)
+    )
     if problem is not None:
         raise UsageError(problem)
     if args.netns:

@@ -282,10 +282,19 @@ def after_up(sc: Scenario, out: Path, *, figures: bool) -> None:
     print_summary(out, summary)
 
 
-def up_problem(sc: Scenario, *, realtime: bool, netns: bool) -> str | None:
+def up_problem(
+    sc: Scenario, *, realtime: bool, netns: bool, foxglove: bool = False
+) -> str | None:
     """Why ``covnet up`` cannot run ``sc`` this way (None: it can)."""
     if not sc.fusion.has_centre and realtime:
         return "--realtime: fusion.mode peer runs in lockstep only (leave out --realtime)"
+    if not sc.fusion.has_centre and foxglove:
+        # the visual channels draw the fusion centre's scans: a live view of a peer run
+        # advertised its channels and sent nothing
+        return (
+            "--foxglove: fusion.mode peer has no fusion centre whose scans the visual channels "
+            "draw (its recording holds the nodes' tracks and statuses, not the scenes)"
+        )
     if not sc.network.latency.is_ideal(sc.sensor_ids):
         if not sc.fusion.has_centre:
             return "network.latency: peer mode has no fusion centre to be late for"

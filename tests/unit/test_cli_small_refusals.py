@@ -90,3 +90,13 @@ def test_a_bench_count_given_twice_is_refused_and_a_metric_named_twice_timed_onc
     monkeypatch.setattr(commands, "bench_alloc", lambda args, sc: seen.append(args.metric) or 0)
     assert main(["bench", "alloc", "--sensors", "8", "--metric", "kl", "--metric", "kl"]) == 0
     assert seen == [["kl"]]
+
+
+def test_a_live_view_of_a_peer_run_is_refused(tmp_path, capsys):
+    """``covnet up --fusion peer --foxglove`` advertised the visual channels and sent nothing:
+    they draw the fusion centre's scans, and a peer run has none."""
+    out = tmp_path / "up"
+    argv = ["up", PAPER, "--fusion", "peer", "--foxglove", "127.0.0.1:18771", "--out", str(out)]
+    assert main(argv) == 2
+    assert "--foxglove: fusion.mode peer has no fusion centre" in capsys.readouterr().err
+    assert not out.exists()
