@@ -165,11 +165,15 @@ def _serve_peers(
     stop: threading.Event,
     publish: _TruthPublisher,
 ) -> None:
-    """Peer mode (no commands): the first window of truth goes out once every sensor is up,
-    the next ones ahead of the scans the peer nodes' statuses show they have reached."""
+    """Peer mode (no commands): the first window of truth goes out once every sensor (and the
+    recorder, which records it: without it the first truths were missing from the recording)
+    is up, the next ones ahead of the scans the peer nodes' statuses show they have reached."""
     model, counts = publish.model, publish.counts
     status_sub = bus.subscribe(msg.peer_keyexpr(run_id, "status"))
-    live = bus.watch_liveliness(msg.alive_keyexpr(run_id, "sensor"))
+    live = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
+    wanted = {msg.alive_key(run_id, "sensor", sid) for sid in sc.sensor_ids}
+    if sc.network.record:
+        wanted.add(msg.alive_key(run_id, "recorder", "recorder"))
     manager = ManagerWatch(bus, run_id, manager_grace_s(sc.network))
     token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
     heartbeat = Heartbeat(bus, clock, run_id, "world", "world", sc.network.heartbeat_s)
@@ -185,9 +189,8 @@ def _serve_peers(
             rejected = {k[9:]: v for k, v in counts.items() if k.startswith("rejected:")}
             heartbeat.tick(last_scan, rejected)
             while (ev := live.try_recv()) is not None:
-                node = ev.key.rsplit("/", 1)[-1]
-                (alive.add if ev.alive else alive.discard)(node)
-            if window[1] < 0 and alive >= set(sc.sensor_ids):
+                (alive.add if ev.alive else alive.discard)(ev.key)
+            if window[1] < 0 and alive >= wanted:
                 publish_from(1)
             s = status_sub.recv(timeout=sc.network.heartbeat_s / 2)
             if s is None or window[1] < 0:
