@@ -127,6 +127,11 @@ def key_kind(run_id: str, key: str) -> str | None:
             return msg.Measurement.KIND
         if keyexpr_matches(msg.heartbeat_keyexpr(run_id), key):
             return msg.Heartbeat.KIND
+        if keyexpr_matches(msg.peer_keyexpr(run_id, "*"), key):
+            # a peer node's Track and Status (they were foreign keys: no schema, and more
+            # than MAX_FOREIGN_CHANNELS of them, a network of 512 peers, went unrecorded)
+            what = msg.parse_peer_key(key)[1]
+            return msg.Track.KIND if what == "track" else msg.Status.KIND
     except ValueError:  # not a valid key at all
         return None
     return None

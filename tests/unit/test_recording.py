@@ -199,6 +199,31 @@ def test_key_kinds_follow_the_key_builders():
     assert key_kind(RUN, msg.heartbeat_key(RUN, "world", "world")) == "hb"
     assert key_kind(RUN, msg.truth_key("other")) is None
     assert key_kind(RUN, f"covnet/{RUN}/sensor/S1/meas/extra") is None
+    # a peer node's Track and Status: they were foreign keys (no schema, counted against
+    # MAX_FOREIGN_CHANNELS: a network of 512 peers went partly unrecorded)
+    assert key_kind(RUN, msg.peer_track_key(RUN, "S2")) == "track"
+    assert key_kind(RUN, msg.peer_status_key(RUN, "S2")) == "status"
+    assert key_kind(RUN, f"covnet/{RUN}/peer/S2/other") is None
+    assert key_kind(RUN, msg.peer_track_key("other", "S2")) is None
+
+
+def test_every_key_builder_of_a_message_has_its_channel_kind():
+    """The "Adding a message" recipe says the recording names a channel from its key: every
+    key builder of :mod:`covnet.wire.messages` that makes a message key is in ``key_kind``."""
+    keys = {
+        msg.truth_key(RUN), msg.command_key(RUN, ["S1"]), msg.measurement_key(RUN, "S1"),
+        msg.track_key(RUN), msg.status_key(RUN), msg.heartbeat_key(RUN, "sensor", "S1"),
+        msg.peer_track_key(RUN, "S1"), msg.peer_status_key(RUN, "S1"),
+    }  # fmt: skip
+    # every message key builder is among these (a new one must be added here and to key_kind;
+    # alive_key and done_key make liveliness tokens, not message keys)
+    builders = {n for n in dir(msg) if n.endswith("_key") and not n.startswith("parse_")}
+    assert builders - {"alive_key", "done_key"} == {
+        "truth_key", "command_key", "measurement_key", "track_key", "status_key",
+        "heartbeat_key", "peer_track_key", "peer_status_key",
+    }  # fmt: skip
+    missing = [k for k in keys if key_kind(RUN, k) is None]
+    assert missing == []
 
 
 def test_run_keyexpr_matches_every_key_of_the_run_and_nothing_else():
