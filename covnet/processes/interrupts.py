@@ -25,6 +25,7 @@ import _thread
 import signal
 import sys
 import threading
+import time
 from typing import Any
 
 #: the exit status of an interrupted command or run (a shell's for SIGINT)
@@ -41,13 +42,29 @@ def begin_command() -> None:
     """A new command starts with no interruption asked for or answered: a command run in the
     same process after an interrupted one (the tests', the API's callers') must not take its
     own errors for that interruption's stand-ins (:func:`caused`)."""
-    global _requested, _answered
+    global _requested, _answered, _last_request
     _requested = _answered = False
+    _last_request = None
+
+
+#: a SIGINT or SIGTERM this soon after the last one is the same request delivered twice, not
+#: a second Ctrl-C (which makes ``covnet up`` SIGKILL its nodes): GNU ``timeout -s INT`` signals
+#: the command and then its own process group, and a group's Ctrl-C reaches a command once per
+#: way it is attached; a hand pressing Ctrl-C twice takes longer
+SAME_REQUEST_S = 0.25
+_last_request: float | None = None
 
 
 def raise_interrupt(signum: int, frame: Any) -> None:
-    """The SIGINT/SIGTERM handler of a command: remember the request, raise KeyboardInterrupt."""
-    global _requested
+    """The SIGINT/SIGTERM handler of a command: remember the request, raise KeyboardInterrupt;
+    one within :data:`SAME_REQUEST_S` of the last is the same request and raises nothing (a
+    duplicate had ``covnet up`` SIGKILL every node: a recording without its footer, and
+    ``network.json``'s counters lost)."""
+    global _requested, _last_request
+    now = time.monotonic()
+    if _last_request is not None and now - _last_request < SAME_REQUEST_S:
+        return
+    _last_request = now
     _requested = True
     raise KeyboardInterrupt(f"signal {signum}")
 
