@@ -2,7 +2,10 @@
 no result.  ``python tests/golden/golden.py OUT.json`` runs every case of :data:`CASES` with the
 ``covnet`` on ``sys.path`` and writes ``{case: {file: sha256}}``; ``tests/integration/
 test_golden.py`` runs the same cases and compares them with ``tests/golden/hashes.json`` (made
-on the code before the architecture change, issue 13).
+on the code before the architecture change, issue 13; the four cases with covariance
+intersection, ``run-paper-ci``, ``run-latency-ci``, ``compare`` and ``sweep``, recorded again
+on December 5 after CI that gives one track all the weight returns that track's mean as it is:
+the estimates moved by at most 1e-11 m, every decision and printed figure the same).
 
 A JSON file is hashed as its bytes; wall-clock keys (:data:`WALL_CLOCK_KEYS`) are removed first
 and the rest re-serialised canonically only where a case says so (those files held timings

@@ -410,3 +410,25 @@ def test_information_fusion_bad_input():
     )
     with pytest.raises(ValueError, match="fused information Y is not positive definite"):
         information_fusion(prior, [loose])
+
+
+def test_ci_that_takes_one_track_whole_keeps_its_mean_exactly():
+    """A local track from a sensor with R's least eigenvalue 2e-16 m² (σ 1e-6 m, ρ 0.9999),
+    beside a looser prediction: the weights are [0, 1], so CI is that track.  Its mean went
+    through inv(P) and back: 30 m/s (120 standard deviations) off in velocity, and a ci run
+    diverged (NEES 1 000) where central and info did not."""
+    F, Q = cv_transition(1.0), dwna_process_noise(1.0, 0.5)
+    H = position_matrix()
+    R = correlated_noise(1e-6, 1e-6, 0.9999)
+    rng = np.random.default_rng(0)
+    truth = np.array([0.0, 426.0, 0.0, 0.0])
+    P0 = np.diag([1e4, 1e2, 1e4, 1e2])
+    g = Gaussian(truth + rng.normal(size=4) * np.sqrt(np.diag(P0)), P0)
+    for _ in range(2):
+        truth = F @ truth
+        g = update(predict(g, F, Q), H @ truth + np.linalg.cholesky(R) @ rng.normal(size=2), H, R)
+    prior = Gaussian(np.array([800.0, 400.0, 0.0, 0.0]), np.diag([500.0, 100.0, 500.0, 100.0]))
+    fused = covariance_intersection([prior, g], "det")
+    np.testing.assert_array_equal(fused.x, g.x)
+    e = fused.x - g.x
+    assert e @ np.linalg.solve(fused.P, e) == 0.0
