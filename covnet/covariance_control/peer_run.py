@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 
 from covnet.core.gaussian import Gaussian
-from covnet.core.kalman import nees
+from covnet.core.kalman import nees, predict_covariance
 from covnet.covariance_control.config import Scenario
-from covnet.covariance_control.model import build_model, truth_trajectory
+from covnet.covariance_control.model import Model, build_model, truth_trajectory
 from covnet.covariance_control.results import write_json, write_run
 from covnet.covariance_control.simulate import MetricRun, shared_trajectory
 from covnet.processes.runtime_stats import NetStats
@@ -38,7 +38,13 @@ class NodeLog:
             n += 1
         return n
 
-    def as_run(self, metric: str, ids: tuple[str, ...], truth: np.ndarray) -> MetricRun:
+    def as_run(
+        self, metric: str, ids: tuple[str, ...], truth: np.ndarray, model: Model | None = None
+    ) -> MetricRun:
+        """The node's run; ``P_pred`` (which a node does not report) is rebuilt with
+        ``model``'s motion from the node's own previous estimate, as its filter predicted it
+        (the network wrote NaN where ``covnet run --fusion peer`` wrote the prediction);
+        without ``model``, NaN."""
         n = self.scans()
         enabled = np.zeros((n, len(ids)), dtype=bool)
         for k in range(1, n + 1):
@@ -52,11 +58,22 @@ class NodeLog:
             value=np.array([self.statuses[k].value for k in range(1, n + 1)]),
             x_est=x,
             P_post=P,
-            P_pred=np.full((n, 4, 4), np.nan),  # a peer node does not report its prediction
+            P_pred=_predictions(P, model) if model is not None else np.full((n, 4, 4), np.nan),
             nees=eps,
             decision_s=np.zeros(n),
             n_evaluated=np.zeros(n, dtype=np.int64),
         )
+
+
+def _predictions(P_post: np.ndarray, model: Model) -> np.ndarray:
+    """``P⁻_k = F P_{k-1} Fᵀ + Q`` (``P_0``: the filter's initial covariance), with the
+    filter's own arithmetic (:func:`~covnet.core.kalman.predict_covariance`)."""
+    out = np.empty_like(P_post)
+    prev = model.P0
+    for k in range(P_post.shape[0]):
+        out[k] = predict_covariance(prev, model.F, model.Q)
+        prev = P_post[k]
+    return out
 
 
 @dataclass
@@ -84,7 +101,7 @@ def write_peer_run(
     failures: dict[str, list[dict[str, Any]]] = {}
     for e, metric in enumerate(result.metrics):
         logs = result.nodes.get(e, {})
-        nodes = {n: logs[n].as_run(metric, ids, truth) for n in ids if n in logs}
+        nodes = {n: logs[n].as_run(metric, ids, truth, model) for n in ids if n in logs}
         nodes = {n: r for n, r in nodes.items() if len(r.value)}
         if not nodes:
             continue

@@ -81,6 +81,10 @@ def test_peer_ring_equals_the_in_process_run_and_nodes_agree(tmp_path, paper_pat
         for name in ("x_est", "P_post"):
             key = f"{name}.abs_trace.{sid}"
             np.testing.assert_allclose(y[key], x[key], rtol=0, atol=1e-12, err_msg=key)
+    # every array of the run, the first node's prediction included (the network wrote NaN)
+    assert set(x) == set(y)
+    for key in x:
+        np.testing.assert_array_equal(y[key], x[key], err_msg=key)
     names = set(json.loads((out / "processes.json").read_text()))
     assert "manager" in names  # the router and monitor: it neither decides nor fuses
     # the recording re-fuses node by node (the engine of each node alone) to the same summary
