@@ -154,7 +154,7 @@ METRICS_SCHEMA: dict[str, Any] = {
             },
         },
     },
-    "required": ["episode", "scan", "t", "n_active", "messages", "targets"],
+    "required": ["episode", "scan", "t", "n_active", "targets"],
 }
 """JSON Schema of ``/covnet/scan`` (schema name ``covnet.ScanMetrics``).  Every field has ONE
 type and no field is ``null``: Foxglove's JSON-schema parser rejects the whole channel for a
@@ -644,8 +644,10 @@ class Visualiser:
                 "trace_Pd": _num(view.trace_Pd),
                 "rmse": _num(math.sqrt(s / n)) if n else None,
                 "nees": _num(float(np.mean(nees))) if nees else None,
-                "messages": self._counts,
-                "bytes": self._bytes,
+                # counts of a network's messages: none in covnet run --mcap (a 0 there drew a
+                # line of zeros in Foxglove's plots)
+                "messages": self._counts if self.timed else None,
+                "bytes": self._bytes if self.timed else None,
                 "scan_latency_ms": (
                     _num((scan.status.t_sent_ns - cmd.t_sent_ns) / 1e6)
                     if cmd is not None and self.timed
