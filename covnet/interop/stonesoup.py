@@ -248,6 +248,16 @@ def _desired(value: object, size: int | None) -> Matrix:
         )
     if not np.isfinite(M).all():
         raise ValueError("CovarianceControlReward: desired_covariance has non-finite entries")
+    scale = max(float(np.max(np.abs(M))), np.finfo(np.float64).tiny)
+    if float(np.max(np.abs(M - M.T))) > 1e-12 * scale:  # it was symmetrised without a word
+        raise ValueError("CovarianceControlReward: desired_covariance is not symmetric")
+    try:  # -I or zeros ended in numpy's LinAlgError at the first call (kl, logdet)
+        np.linalg.cholesky(_sym(M))
+    except np.linalg.LinAlgError:
+        raise ValueError(
+            "CovarianceControlReward: desired_covariance is not positive definite (a "
+            "covariance the tracks could reach)"
+        ) from None
     return _sym(M)
 
 

@@ -335,6 +335,10 @@ def test_a_configurations_own_covariance_as_desired_scores_the_maximum_zero(metr
         ({"desired_covariance": [1.0, 2.0]}, "must be a square matrix"),
         ({"state_indices": (0, 0)}, "state_indices must be distinct"),
         ({"weight": -1.0}, "weight must be a finite number >= 0"),
+        # accepted, then numpy's LinAlgError at the first call (kl, logdet), or symmetrised
+        ({"desired_covariance": -np.eye(2)}, "desired_covariance is not positive definite"),
+        ({"desired_covariance": np.zeros((2, 2))}, "desired_covariance is not positive definite"),
+        ({"desired_covariance": [[1.0, 0.5], [0.0, 1.0]]}, "desired_covariance is not symmetric"),
     ],
 )
 def test_bad_parameters_are_refused_naming_them(kwargs, match):
