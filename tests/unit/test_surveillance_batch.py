@@ -195,3 +195,18 @@ def test_a_missing_budget_advises_only_what_is_taken(tmp_path, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "give --budget K" in err and "match" not in err, err
+
+
+def test_intervals_of_nonnegative_scalars_stop_at_zero():
+    """Every scalar of a surveillance batch is >= 0; with 2 seeds the tracked RMSE's interval
+    read 14.6 [-6.6, 35.7] m."""
+    from covnet.covariance_control.surveillance_batch import SCALARS, aggregate
+
+    def row(v):
+        return {"metrics": {"m": {**dict.fromkeys(SCALARS, v), "gospa": [v], "n_confirmed": [1]}}}
+
+    blk = aggregate([row(1.0), row(30.0)])["m"]
+    for k in SCALARS:
+        lo, hi = blk[k]["ci95"]
+        assert lo == 0.0 and hi > 30.0, (k, blk[k])
+    assert blk["rmse_tracked"]["mean"] == 15.5  # the mean itself untouched
