@@ -225,6 +225,18 @@ def _rows(episodes: Iterable[Episode]) -> Iterable[list[str]]:
                     ]
 
 
+def _an_export(path: Path) -> bool:
+    """``path`` holds an earlier export (its first line is the CSV header, or a Stone Soup
+    document's ``groundtruth_paths``): ``--force`` may replace it under its own name in the run
+    directory (only the default names could be replaced there)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            head = [f.readline().rstrip("\n") for _ in range(2)]
+    except (OSError, UnicodeDecodeError):
+        return False
+    return head[0] == ",".join(CSV_COLUMNS) or head[1].strip() == "groundtruth_paths: !!set"
+
+
 def write_csv(episodes: Iterable[Episode]) -> str:
     """The CSV text of ``episodes`` (module docstring)."""
     buf = io.StringIO()
@@ -325,7 +337,7 @@ def export(
         raise UsageError(f"--out {out}: its folder {path.parent} does not exist")
     if out is not None and path.exists():
         own = path.resolve().parent == Path(run_dir).resolve()
-        if own and path.name not in DEFAULT_NAMES.values():
+        if own and path.name not in DEFAULT_NAMES.values() and not _an_export(path):
             raise UsageError(f"--out {out}: is one of the run's own files; choose another name")
         if not force:
             raise UsageError(f"--out {out}: exists; choose another name or pass --force")

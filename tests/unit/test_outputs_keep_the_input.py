@@ -10,6 +10,7 @@ misused run directories found both):
 from __future__ import annotations
 
 import hashlib
+import shutil
 from pathlib import Path
 
 import pytest
@@ -84,6 +85,21 @@ def test_export_replaces_an_existing_file_only_with_force(tmp_path, run_dir, cap
     assert out.read_text().startswith("kind,episode,id,scan")
     # the default name in the run directory is the export's own: replaced without a word
     assert main(["export", str(run_dir)]) == 0 and main(["export", str(run_dir)]) == 0
+
+
+@pytest.mark.parametrize("fmt", ["csv", "stonesoup"])
+def test_export_force_replaces_its_own_earlier_export_in_the_run(tmp_path, run_dir, capsys, fmt):
+    """An export under a name of one's own in the run directory could not be replaced: with
+    ``--force`` it was "one of the run's own files".  The run's files still never are."""
+    if fmt == "stonesoup":
+        pytest.importorskip("stonesoup")
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    argv = ["export", str(run), "--format", fmt, "--out", str(run / f"mine.{fmt}")]
+    assert main(argv) == 0
+    assert main([*argv, "--force"]) == 0, capsys.readouterr().err
+    assert main(["export", str(run), "--out", str(run / "summary.json"), "--force"]) == 2
+    assert "is one of the run's own files" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
