@@ -22,7 +22,9 @@ Layout of ``recording.mcap``
   the class in :mod:`covnet.wire.messages`.
 - Channels: one per concrete key, ``topic`` = the key (``covnet/<run>/sensor/S3/meas``, ...),
   ``message_encoding`` ``"msgpack"``, the schema of the kind that key carries (from the key
-  builders of :mod:`covnet.wire.messages`; ``schema_id`` 0 for a key no builder makes), metadata
+  builders of :mod:`covnet.wire.messages`; a sensor's key whose first payload is a LocalTrack,
+  as the info, ci and peer rules send, is ``ltrack``; ``schema_id`` 0 for a key no builder
+  makes), metadata
   ``{"kind": <Message.KIND or "">}``. A channel is registered when its first message arrives;
   keys of no covnet layout get at most :data:`MAX_FOREIGN_CHANNELS` channels and all keys at
   most :data:`MAX_KEY_CHANNELS` (the ids are 16-bit): a message on a new key beyond them is
@@ -282,6 +284,10 @@ class RecordingWriter:
         channel = self._channels.get(key)
         if channel is None:
             kind = key_kind(self.run_id, key)
+            if kind == msg.Measurement.KIND and peek(payload)[0] == msg.LocalTrack.KIND:
+                # a sensor's key carries its local track where the fusion rule fuses tracks
+                # (info, ci, peer): named by the first payload, not "meas" for every run
+                kind = msg.LocalTrack.KIND
             if self._key_channels >= MAX_KEY_CHANNELS or (
                 kind is None and self._foreign_channels >= MAX_FOREIGN_CHANNELS
             ):

@@ -306,3 +306,25 @@ def test_a_flood_of_new_keys_does_not_use_up_the_channel_ids(tmp_path, monkeypat
     assert len(got) == recording.MAX_FOREIGN_CHANNELS + 1 + 1500 - recording.MAX_FOREIGN_CHANNELS
     with open(path, "rb") as f:
         assert len(make_reader(f).get_summary().channels) == 1500
+
+
+def test_a_sensor_key_carrying_local_tracks_is_named_so(tmp_path):
+    """With the info, ci and peer rules a sensor's key carries its LocalTrack: the channel was
+    named ``meas`` (schema ``covnet.Measurement``) whatever it carried; the first payload names
+    it now.  A Measurement on it is still ``meas``."""
+    path = tmp_path / "rec.mcap"
+    lt = msg.LocalTrack(
+        sensor_id="S1", scan=1, t=1.0, x=np.zeros(4), P=np.eye(4), x_prior=np.zeros(4),
+        P_prior=np.eye(4), t_sent_ns=5, episode=0,
+    )  # fmt: skip
+    m = msg.Measurement("S2", 1, 1.0, np.zeros((1, 2)), np.eye(2), 5, seq=1)
+    with RecordingWriter(path, run_id=RUN) as w:
+        w.write(msg.measurement_key(RUN, "S1"), msg.encode(lt), 10, 5)
+        w.write(msg.measurement_key(RUN, "S2"), msg.encode(m), 11, 5)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    topics = {c.topic: c for c in summary.channels.values()}
+    local, meas = topics[msg.measurement_key(RUN, "S1")], topics[msg.measurement_key(RUN, "S2")]
+    assert local.metadata == {"kind": "ltrack"} and meas.metadata == {"kind": "meas"}
+    assert summary.schemas[local.schema_id].name == "covnet.LocalTrack"
