@@ -75,16 +75,26 @@ def run(
             node = ev.key.rsplit("/", 1)[-1]
             (alive.add if ev.alive else alive.discard)(node)
 
-    def heartbeat(s: Any) -> None:
+    def read(s: Any, decode: Callable[[], Any]) -> Any:
+        """``decode()``, or None with the message counted by reason (a wire error's, or
+        ``bad_key`` for a key or id no builder makes)."""
         try:
-            hb = msg.decode_as(s.payload, msg.Heartbeat)
-            own_key = msg.heartbeat_key(run_id, hb.role, hb.node_id)
+            return decode()
         except msg.WireError as exc:
             stats.reject(s.key, exc.reason)
-            return
         except ValueError:
             stats.reject(s.key, "bad_key")
+        return None
+
+    def heartbeat(s: Any) -> None:
+        def decode() -> tuple[msg.Heartbeat, str]:
+            hb = msg.decode_as(s.payload, msg.Heartbeat)
+            return hb, msg.heartbeat_key(run_id, hb.role, hb.node_id)
+
+        got = read(s, decode)
+        if got is None:
             return
+        hb, own_key = got
         if own_key != s.key:
             stats.reject(s.key, "key_mismatch")
         elif hb.node_id not in expected:
@@ -99,19 +109,16 @@ def run(
             return
         if "/peer/" not in s.key:
             return
-        try:
+        def decode() -> tuple[str, msg.Track | msg.Status]:
             node, what = msg.parse_peer_key(s.key)
-            m: msg.Track | msg.Status = (
-                msg.decode_as(s.payload, msg.Track)
-                if what == "track"
-                else msg.decode_as(s.payload, msg.Status)
-            )
-        except msg.WireError as exc:
-            stats.reject(s.key, exc.reason)
+            if what == "track":
+                return node, msg.decode_as(s.payload, msg.Track)
+            return node, msg.decode_as(s.payload, msg.Status)
+
+        got = read(s, decode)
+        if got is None:
             return
-        except ValueError:
-            stats.reject(s.key, "bad_key")
-            return
+        node, m = got
         if m.node_id != node or node not in ids:
             stats.reject(s.key, "key_mismatch")
             return

@@ -227,10 +227,17 @@ def sweep_figure(out: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
         ax.set_xlabel("search weight λ")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
     n = rows[0]["seeds"] if rows else 0
-    fig.suptitle(f"Search against track: means over {n} seeds with 95 % intervals")
-    path = out / "sweep.png"
+    return _save(fig, axes, f"Search against track: means over {n} seeds with 95 % intervals",
+                 out / "sweep.png")  # fmt: skip
+
+
+def _save(fig: Any, axes: Any, title: str, path: Path) -> Path:
+    """A batch figure's legend (first panel), title, file; the figure closed."""
+    import matplotlib.pyplot as plt  # start-up: matplotlib only for the figures
+
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(title)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -303,13 +310,9 @@ def compare_figure(out: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
         ax.set_ylabel(label)
         ax.set_ylim(bottom=0.0)  # all four are >= 0
         ax.grid(alpha=0.3, axis="y")
-    axes[0, 0].legend(fontsize=8)
     n = rows[0]["seeds"] if rows else 0
-    fig.suptitle(f"Policies side by side: means over the same {n} seeds with 95 % intervals")
-    path = out / "compare.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    title = f"Policies side by side: means over the same {n} seeds with 95 % intervals"
+    return _save(fig, axes, title, out / "compare.png")
 
 
 def compare_table(rows: Sequence[Mapping[str, Any]]) -> str:

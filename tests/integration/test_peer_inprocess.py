@@ -63,6 +63,22 @@ def _network(sc, metrics, *, extra=None, stop_node=None, linger_s=0.0):
     return result, nodes.stats
 
 
+def _rogue_at_scan_2(puts):
+    """An ``extra`` for :func:`_network`: a rogue session publishes ``puts`` (key, payload)
+    once, as scan 2's status is reported."""
+    sent = []
+
+    def inject(hub, st):
+        if st["scan"] == 2 and not sent:
+            bus = InMemoryBus(hub, name="rogue")
+            for key, payload in puts:
+                bus.publish(key, payload)
+            bus.close()
+            sent.append(True)
+
+    return inject
+
+
 def test_threads_reproduce_the_in_process_peer_run(paper):
     sc = _scenario(paper)
     result, stats = _network(sc, ["abs_trace"])
@@ -95,17 +111,7 @@ def test_malformed_peer_messages_are_counted_and_dropped(paper):
         ),  # a measurement where a local track belongs
         (msg.peer_track_key(RUN, "S3"), b"\x92\x01"),
     ]
-    sent = []
-
-    def inject(hub, st):
-        if st["scan"] == 2 and not sent:
-            bus = InMemoryBus(hub, name="rogue")
-            for key, payload in bad:
-                bus.publish(key, payload)
-            bus.close()
-            sent.append(True)
-
-    result, stats = _network(sc, ["abs_trace"], extra=inject, linger_s=20.0)
+    result, stats = _network(sc, ["abs_trace"], extra=_rogue_at_scan_2(bad), linger_s=20.0)
     assert result.completed
     ref = run_peer(sc, "abs_trace")
     truth = np.zeros((sc.scans, 4))
@@ -139,17 +145,7 @@ def test_forged_heartbeats_are_counted_and_dropped(paper):
         ),
         (msg.heartbeat_key(RUN, "sensor", "S3"), b"\x00garbage"),
     ]
-    sent = []
-
-    def inject(hub, st):
-        if st["scan"] == 2 and not sent:
-            bus = InMemoryBus(hub, name="rogue")
-            for key, payload in forged:
-                bus.publish(key, payload)
-            bus.close()
-            sent.append(True)
-
-    result, _ = _network(sc, ["abs_trace"], extra=inject, linger_s=20.0)
+    result, _ = _network(sc, ["abs_trace"], extra=_rogue_at_scan_2(forged), linger_s=20.0)
     assert result.completed
     rej = result.stats.as_dict()
     assert all("x" not in v for v in rej["rejected_by_node"].values())
