@@ -146,14 +146,18 @@ def prepare_out(
 
 
 def _writable(p: Path, what: str) -> None:
-    """Make ``p`` and write (then remove) a file in it: a read-only file system, ``/proc`` or
-    a directory without write permission is a :class:`~covnet.errors.UsageError` naming
-    ``what`` now, not an ``OSError`` on a temporary file once the whole run is done."""
+    """Write (then remove) a file in ``p``, made for the check and removed again when it did
+    not exist (a command refused later leaves no empty directory): a read-only file system,
+    ``/proc`` or a directory without write permission is a :class:`~covnet.errors.UsageError`
+    naming ``what`` now, not an ``OSError`` on a temporary file once the whole run is done."""
+    made = not p.exists()
     try:
         p.mkdir(parents=True, exist_ok=True)
         probe = p / f".covnet-write-check-{os.getpid()}"
         probe.write_bytes(b"")
         probe.unlink()
+        if made:
+            p.rmdir()
     except OSError as exc:
         raise UsageError(f"{what}: cannot write there ({exc.strerror or exc})") from None
 
