@@ -42,8 +42,8 @@ def begin_command() -> None:
     """A new command starts with no interruption asked for or answered: a command run in the
     same process after an interrupted one (the tests', the API's callers') must not take its
     own errors for that interruption's stand-ins (:func:`caused`)."""
-    global _requested, _answered, _last_request
-    _requested = _answered = False
+    global _requested, _answered, _last_request, _redelivering
+    _requested = _answered = _redelivering = False
     _last_request = None
 
 
@@ -53,6 +53,7 @@ def begin_command() -> None:
 #: way it is attached; a hand pressing Ctrl-C twice takes longer
 SAME_REQUEST_S = 0.25
 _last_request: float | None = None
+_redelivering = False
 
 
 def raise_interrupt(signum: int, frame: Any) -> None:
@@ -60,9 +61,11 @@ def raise_interrupt(signum: int, frame: Any) -> None:
     one within :data:`SAME_REQUEST_S` of the last is the same request and raises nothing (a
     duplicate had ``covnet up`` SIGKILL every node: a recording without its footer, and
     ``network.json``'s counters lost)."""
-    global _requested, _last_request
+    global _requested, _last_request, _redelivering
     now = time.monotonic()
-    if _last_request is not None and now - _last_request < SAME_REQUEST_S:
+    if _redelivering:  # this module's own redelivery of one that was lost: never a duplicate
+        _redelivering = False
+    elif _last_request is not None and now - _last_request < SAME_REQUEST_S:
         return
     _last_request = now
     _requested = True
@@ -86,8 +89,10 @@ def answered() -> None:
 
 
 def _redeliver() -> None:
+    global _redelivering
     threading.Event().wait(REDELIVER_AFTER_S)
     if not _answered:
+        _redelivering = True  # :func:`raise_interrupt` raises it whenever it comes
         _thread.interrupt_main(signal.SIGINT)
 
 
