@@ -210,3 +210,13 @@ def test_a_scheduler_answers(cluster):
     from covnet.batches.cluster import scheduler_answers
 
     assert scheduler_answers(cluster.address, 10.0) is None
+
+
+def test_the_api_sweep_on_a_cluster_gives_the_local_rows(cluster, small):
+    """The README's ``api.sweep(..., cluster="tcp://host:8786")`` (no test followed it): the
+    same rows as on the local cores."""
+    from covnet.cli import api
+
+    local = api.sweep(small["sweep"], seeds=2, workers=2)
+    remote = api.sweep(small["sweep"], seeds=2, cluster=cluster.address)
+    assert remote.rows == local.rows and len(remote.rows) == 8
