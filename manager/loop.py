@@ -34,6 +34,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Sequence
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -65,6 +66,33 @@ are taken one by one (a batch's fixed cost is a few messages' worth: in process,
 cost 19 us a message against 16 one by one, 8 cost 13, 64 cost 7), at most ``MAX_BATCH``."""
 MIN_VERDICTS = 16
 """A kind's verdicts on fewer messages than this are asked one by one (numpy's fixed costs)."""
+
+
+def take_heartbeat(
+    stats: NetStats, run_id: str, s: Sample, known: AbstractSet[str]
+) -> msg.Heartbeat | None:
+    """The node heartbeat in sample ``s`` (already counted as received), checked, its
+    rejection counts kept in ``stats.node_rejected``; None when refused, counted by reason (a
+    wire error's, ``bad_key``, ``key_mismatch``: another node's key, ``unknown_node``: a node
+    not in ``known``).  The manager's loop and the peer observer read heartbeats alike."""
+    try:
+        hb = msg.decode_as(s.payload, msg.Heartbeat)
+        own_key = msg.heartbeat_key(run_id, hb.role, hb.node_id)
+    except msg.WireError as exc:
+        stats.reject(s.key, exc.reason)
+        return None
+    except ValueError:
+        stats.reject(s.key, "bad_key")
+        return None
+    if own_key != s.key:
+        stats.reject(s.key, "key_mismatch")
+        return None
+    if hb.node_id not in known:
+        stats.reject(s.key, "unknown_node")
+        return None
+    if hb.rejected:
+        stats.node_rejected[hb.node_id] = dict(hb.rejected)
+    return hb
 
 
 class ManagerError(RuntimeError):
@@ -180,6 +208,8 @@ class Loop:
         )
         # the recorder must hear everything: wait for its token too (never allocated)
         self.wait_for = (*self.members.expected, RECORDER_ID) if net.record else ()
+        #: the nodes whose heartbeats count (the recorder's for its rejection counts only)
+        self.hb_known = frozenset((*self.members.expected, RECORDER_ID))
         self.stats = NetStats()
         #: the scan loop's time by stage (``covnet bench up --profile``; off by default)
         self.stages = Stages()
@@ -239,23 +269,11 @@ class Loop:
                 self.forged_done = True
         while (s := self.hb_sub.try_recv()) is not None:
             self.stats.received(s.key, len(s.payload))
-            try:
-                hb = msg.decode_as(s.payload, msg.Heartbeat)
-            except msg.WireError as exc:
-                self.stats.reject(s.key, exc.reason)
-                continue
-            if msg.heartbeat_key(self.run_id, hb.role, hb.node_id) != s.key:
-                self.stats.reject(s.key, "key_mismatch")
-                continue
-            if hb.node_id in self.members.expected:
+            hb = take_heartbeat(self.stats, self.run_id, s, self.hb_known)
+            if hb is not None and hb.node_id != RECORDER_ID:
                 self.members.heartbeat(hb.node_id, now)
                 if hb.sent is not None and hb.role == "sensor":
                     self.stats.reported(hb.node_id, hb.sent)
-            elif hb.node_id != RECORDER_ID:
-                self.stats.reject(s.key, "unknown_node")
-                continue
-            if hb.rejected:
-                self.stats.node_rejected[hb.node_id] = dict(hb.rejected)
 
     def membership_changes(
         self, k: int, previous: frozenset[str]

@@ -28,6 +28,7 @@ from covnet.covariance_control.peer_run import NodeLog, PeerResult
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
+from manager.loop import take_heartbeat
 
 
 def run(
@@ -75,50 +76,26 @@ def run(
             node = ev.key.rsplit("/", 1)[-1]
             (alive.add if ev.alive else alive.discard)(node)
 
-    def read(s: Any, decode: Callable[[], Any]) -> Any:
-        """``decode()``, or None with the message counted by reason (a wire error's, or
-        ``bad_key`` for a key or id no builder makes)."""
-        try:
-            return decode()
-        except msg.WireError as exc:
-            stats.reject(s.key, exc.reason)
-        except ValueError:
-            stats.reject(s.key, "bad_key")
-        return None
-
-    def heartbeat(s: Any) -> None:
-        def decode() -> tuple[msg.Heartbeat, str]:
-            hb = msg.decode_as(s.payload, msg.Heartbeat)
-            return hb, msg.heartbeat_key(run_id, hb.role, hb.node_id)
-
-        got = read(s, decode)
-        if got is None:
-            return
-        hb, own_key = got
-        if own_key != s.key:
-            stats.reject(s.key, "key_mismatch")
-        elif hb.node_id not in expected:
-            stats.reject(s.key, "unknown_node")
-        elif hb.rejected:
-            stats.node_rejected[hb.node_id] = dict(hb.rejected)
-
     def take(s: Any) -> None:
         stats.received(s.key, len(s.payload))
         if s.key.startswith(hb_root):
-            heartbeat(s)
+            take_heartbeat(stats, run_id, s, expected)
             return
         if "/peer/" not in s.key:
             return
-        def decode() -> tuple[str, msg.Track | msg.Status]:
+        try:
             node, what = msg.parse_peer_key(s.key)
-            if what == "track":
-                return node, msg.decode_as(s.payload, msg.Track)
-            return node, msg.decode_as(s.payload, msg.Status)
-
-        got = read(s, decode)
-        if got is None:
+            m: msg.Track | msg.Status = (
+                msg.decode_as(s.payload, msg.Track)
+                if what == "track"
+                else msg.decode_as(s.payload, msg.Status)
+            )
+        except msg.WireError as exc:
+            stats.reject(s.key, exc.reason)
             return
-        node, m = got
+        except ValueError:
+            stats.reject(s.key, "bad_key")
+            return
         if m.node_id != node or node not in ids:
             stats.reject(s.key, "key_mismatch")
             return
@@ -133,6 +110,15 @@ def run(
             log.tracks[m.scan] = m
         else:
             log.statuses[m.scan] = m
+
+    def drain() -> bool:
+        """Take every message waiting; whether there was one."""
+        got = False
+        for sub in subs:
+            while (s := sub.try_recv()) is not None:
+                take(s)
+                got = True
+        return got
 
     def scan_done(e: int, k: int) -> bool:
         logs = result.nodes[e]
@@ -159,11 +145,7 @@ def run(
         while e < len(metrics):
             if stop.is_set():
                 return result
-            got = False
-            for sub in subs:
-                while (s := sub.try_recv()) is not None:
-                    take(s)
-                    got = True
+            got = drain()
             drain_live()
             if got:
                 last_news = time.monotonic()
@@ -196,14 +178,10 @@ def run(
         leaving = expected - {"world"}
         deadline = time.monotonic() + linger_s
         while time.monotonic() < deadline and not stop.is_set():
-            for sub in subs:
-                while (s := sub.try_recv()) is not None:
-                    take(s)
+            drain()
             drain_live()
             if not leaving & alive:
-                for sub in subs:  # a heartbeat sent just before its token went
-                    while (s := sub.try_recv()) is not None:
-                        take(s)
+                drain()  # a heartbeat sent just before its token went
                 break
             stop.wait(0.02)
         for sub in subs:
