@@ -209,6 +209,23 @@ def apply_options(kind: Kind, cfg: Any, source: str, **values: Any) -> Any:
     return apply_named_options(kind, cfg, source, values, OPTIONS, taken=values)
 
 
+def _check_type(spelled: str, name: str, value: Any) -> None:
+    """A run option's type, named as its caller spells it (the Python API's ``metric=3`` and
+    ``seed="a"`` ended in a bare ``TypeError`` from deep inside; the command line's are typed
+    by its parser): ``metric`` a list of names, ``seed`` an integer, the others names."""
+    if name == "metric":
+        ok = isinstance(value, list | tuple) and all(isinstance(m, str) for m in value)
+        want = "a metric name or a list of them"
+    elif name == "seed":
+        ok = isinstance(value, int) and not isinstance(value, bool)
+        want = "an integer"
+    else:
+        ok = isinstance(value, str)
+        want = "a name"
+    if not ok:
+        raise UsageError(f"{spelled}: {want}, got {value!r}")
+
+
 def apply_named_options(
     kind: Kind,
     cfg: Any,
@@ -226,6 +243,7 @@ def apply_named_options(
     for name in given:
         if name not in OPTIONS:
             raise ValueError(f"not a run option: {name!r}")
+        _check_type(names[name], name, given[name])
         if name not in kind.options:
             offered = [o for o in OPTIONS if taken is None or o in taken]
             takes = ", ".join(names[o] for o in offered if o in kind.options) or "none"

@@ -425,13 +425,8 @@ def run_trials(
                 added.add(extra)
             # the seeds each point gets now: the step, or fewer where the cap cuts it (it said
             # "2 more" where the cap left room for 1)
-            each = (
-                f"{step} more seed(s) each"
-                if added == {step}
-                else f"{min(added)}-{max(added)} more seed(s) each"
-                if len(added) > 1
-                else f"{max(added)} more seed(s) each"
-            )
+            lo, hi = min(added), max(added)
+            each = f"{lo if lo == hi else f'{lo}-{hi}'} more seed(s) each"
             say(
                 f"round {rounds}: {len(wide)} point(s) with a 95 % interval on the "
                 f"{batch.headline_name} of {ci_width:g} or wider: {each} (cap {cap})"
@@ -603,6 +598,8 @@ def batch_options(args: Any, seeds: int, *, api: bool = False) -> BatchOptions:
     ci = getattr(args, "ci_width", None)
     cap = getattr(args, "max_seeds", None)
     workers = getattr(args, "workers", None)
+    if workers is not None and (not isinstance(workers, int) or isinstance(workers, bool)):
+        raise UsageError(f"{opt('workers')}: an integer, got {workers!r}")  # the API's "2"
     if workers is not None and workers < 1:
         raise UsageError(f"{opt('workers')}: must be >= 1, got {workers}")
     if ci is not None and not (math.isfinite(ci) and ci > 0):

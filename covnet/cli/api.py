@@ -83,7 +83,6 @@ def load(config: Any, **overrides: Any) -> tuple[Any, Any]:
     options = {k: overrides.pop(k) for k in list(overrides) if k in kinds.OPTIONS}
     if isinstance(options.get("metric"), str):
         options["metric"] = [options["metric"]]  # the command line's --metric is repeatable
-    _check_option_types(options)
     if overrides:
         data = kind.normalised(cfg)
         for name, value in overrides.items():
@@ -97,26 +96,6 @@ def load(config: Any, **overrides: Any) -> tuple[Any, Any]:
 #: the run options as this module's callers name them (errors say ``metric: ...``, not the
 #: command line's ``--metric: ...``)
 _ARGUMENTS = {name: name for name in kinds.OPTIONS}
-
-
-def _check_option_types(options: Mapping[str, Any]) -> None:
-    """The run options' types, each named (``metric=3`` and ``seed="a"`` ended in a bare
-    ``TypeError`` from deep inside): ``metric`` a name or a list of names, ``seed`` an integer,
-    ``fusion`` and ``solver`` names."""
-    for name, value in options.items():
-        if value is None:
-            continue
-        if name == "metric":
-            ok = isinstance(value, list | tuple) and all(isinstance(m, str) for m in value)
-            want = "a metric name or a list of them"
-        elif name == "seed":
-            ok = isinstance(value, int) and not isinstance(value, bool)
-            want = "an integer"
-        else:
-            ok = isinstance(value, str)
-            want = "a name"
-        if not ok:
-            raise UsageError(f"{name}: {want}, got {value!r}")
 
 
 def _check_flag(name: str, value: Any) -> None:
@@ -304,8 +283,6 @@ def sweep(
         raise UsageError(f"metric: a metric name (a sweep runs one), got {metric!r}")
     if metric is not None and metric not in METRICS:
         raise UsageError(f"metric: unknown metric {metric!r}; choose from {sorted(METRICS)}")
-    if workers is not None and not (isinstance(workers, int) and not isinstance(workers, bool)):
-        raise UsageError(f"workers: an integer, got {workers!r}")
     _check_path("out", out)
     if seeds is not None and not (
         isinstance(seeds, int) and not isinstance(seeds, bool) and 1 <= seeds <= MAX_SEEDS

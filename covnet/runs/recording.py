@@ -68,7 +68,7 @@ import msgpack
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Chunk, Footer, Message, MessageIndex, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from covnet import __version__, kinds
 from covnet.config import hash_of
@@ -83,6 +83,7 @@ __all__ = [
     "RecordingReader",
     "RecordingWriter",
     "key_kind",
+    "mcap_start_problem",
     "peek",
     "read_metadata",
     "read_recording",
@@ -110,6 +111,22 @@ META_CONFIG = "covnet.config"
 ARRAY_EXT_DOC = (
     "msgpack ext type 1 = msgpack [dtype '<f8', shape [d0, d1, ...], raw little-endian bytes]"
 )
+
+
+def mcap_start_problem(path: Path) -> str | None:
+    """Why ``path`` is no MCAP file from its first byte (None: it starts as one): empty, or
+    other bytes.  Not a recording cut short, whose start reads, but no recording at all (the
+    replay read it as a truncated one, "no footer: killed?")."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP0_MAGIC))
+    except OSError as exc:
+        return f"cannot read {path}: {exc.strerror or exc}"
+    if not head:
+        return f"{path}: empty (no recording was written)"
+    if head != MCAP0_MAGIC:
+        return f"{path}: not an MCAP file (it does not start with the MCAP magic)"
+    return None
 
 
 def key_kind(run_id: str, key: str) -> str | None:

@@ -47,7 +47,14 @@ import numpy as np
 from covnet import kinds
 from covnet.errors import UsageError
 from covnet.processes.network_run import ScanDecision, ScanImpossible
-from covnet.runs.recording import META_RUN, RecordedSample, RecordingReader, key_kind, read_metadata
+from covnet.runs.recording import (
+    META_RUN,
+    RecordedSample,
+    RecordingReader,
+    key_kind,
+    mcap_start_problem,
+    read_metadata,
+)
 from covnet.runs.rundir import CONFIG, RUN_INFO, SUMMARY, prepare_out, write_json
 from covnet.wire import messages as msg
 
@@ -248,25 +255,6 @@ def recording_notes(reader: RecordingReader, counts: dict[str, int]) -> list[str
     return notes
 
 
-#: the first bytes of every MCAP file
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
-def _check_mcap_start(path: Path) -> None:
-    """A :class:`ReplayError` when ``path`` does not start as an MCAP file (empty, or other
-    bytes from its first one): not a recording cut short, whose start reads, but no recording;
-    it was read as a truncated one ("no footer: killed?") and the run said to differ."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(len(MCAP_MAGIC))
-    except OSError as exc:
-        raise ReplayError(f"cannot read {path}: {exc.strerror or exc}") from None
-    if not head:
-        raise ReplayError(f"{path}: empty (no recording was written)")
-    if head != MCAP_MAGIC[: len(head)] or len(head) < len(MCAP_MAGIC):
-        raise ReplayError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
-
-
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
@@ -372,7 +360,9 @@ class KindReplay:
         # unreadable one was a "difference" (exit 1), where the README says exit 2
         for name in self.compared:
             _read_json(run_dir / name)
-        _check_mcap_start(run_dir / RECORDING)
+        problem = mcap_start_problem(run_dir / RECORDING)
+        if problem is not None:
+            raise ReplayError(problem)
         meta_run = read_metadata(run_dir / RECORDING).get(META_RUN, {})
         run_id = info.get("run_id") or meta_run.get("run_id")
         if not isinstance(run_id, str):
