@@ -52,6 +52,7 @@ from covnet.core.allocation.search_problem import (
     _subset,
 )
 from covnet.core.allocation.svd_bound import WorkingFloor
+from covnet.core.allocation.tie_rule import identical_to_previous
 from covnet.core.gaussian import Mat
 from covnet.core.metrics import METRICS, Metric, MetricFn, capability
 
@@ -118,13 +119,11 @@ class _Plain:
         kappa = float(prob.ctx.kappa)
         #: the working values' rounding is within the screening margin (class docstring)
         self.trusted = math.isfinite(kappa) and prob.n**2 * EPS * (kappa + 1.0) <= VERIFY
-        classes: dict[bytes, int] = {}
+        # bit-identical sensors are adjacent in the branching order (the tie rule's twins)
+        same = identical_to_previous(prob)
         #: per branching position, the class of bit-identical gains its sensor is in
-        self.twin_class = np.array(
-            [classes.setdefault(prob.G[f].tobytes(), len(classes)) for f in prob.free],
-            dtype=np.intp,
-        )
-        self.has_twins = len(classes) < prob.m
+        self.twin_class = np.cumsum(~same)
+        self.has_twins = bool(same.any())
 
     def values(
         self, inc: NDArray[np.bool_], w: Mat, rem: NDArray[np.intp], add: NDArray[np.intp]
