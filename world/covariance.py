@@ -132,9 +132,7 @@ def _serve_upfront(
     manager = ManagerWatch(bus, run_id, manager_grace_s(sc.network))
     token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
     heartbeat = Heartbeat(bus, clock, run_id, "world", "world", sc.network.heartbeat_s)
-    wanted = {msg.alive_key(run_id, "sensor", sid) for sid in sc.sensor_ids}
-    if sc.network.record:
-        wanted.add(msg.alive_key(run_id, "recorder", "recorder"))
+    wanted = _first_truth_waits_for(sc, run_id)
     alive: set[str] = set()
     sent = False
     try:
@@ -157,6 +155,15 @@ def _serve_upfront(
         live.close()
 
 
+def _first_truth_waits_for(sc: Scenario, run_id: str) -> set[str]:
+    """The liveliness tokens the first truth waits for: every sensor's and the recorder's,
+    which records it."""
+    wanted = {msg.alive_key(run_id, "sensor", sid) for sid in sc.sensor_ids}
+    if sc.network.record:
+        wanted.add(msg.alive_key(run_id, "recorder", "recorder"))
+    return wanted
+
+
 def _serve_peers(
     sc: Scenario,
     bus: Bus,
@@ -171,9 +178,7 @@ def _serve_peers(
     model, counts = publish.model, publish.counts
     status_sub = bus.subscribe(msg.peer_keyexpr(run_id, "status"))
     live = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
-    wanted = {msg.alive_key(run_id, "sensor", sid) for sid in sc.sensor_ids}
-    if sc.network.record:
-        wanted.add(msg.alive_key(run_id, "recorder", "recorder"))
+    wanted = _first_truth_waits_for(sc, run_id)
     manager = ManagerWatch(bus, run_id, manager_grace_s(sc.network))
     token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
     heartbeat = Heartbeat(bus, clock, run_id, "world", "world", sc.network.heartbeat_s)
