@@ -91,8 +91,17 @@ STATS = (
     "allocation_rate_std",
     "allocation_rate_ci_lo",
     "allocation_rate_ci_hi",
+    *(
+        f"{k}_{s}"
+        for k in ("deadline_miss_rate", "late", "lost")
+        for s in ("std", "ci_lo", "ci_hi")
+    ),
 )
-"""The statistics over seeds (:func:`covnet.batches.stats.error_stats`), after the means."""
+"""The statistics over seeds (:func:`covnet.batches.stats.error_stats`, and
+:data:`SPREAD`'s), after the means."""
+SPREAD = ("allocation_rate", "deadline_miss_rate", "late", "lost")
+"""The per-run numbers whose spread over seeds a row gives (``<name>_mean/std/ci_lo/ci_hi``,
+:func:`covnet.batches.stats.add_stats`): every quantity the figure draws besides the errors'."""
 COLUMNS = (*POINT_KEYS, "seeds", "rmse_position", *MEANS, *STATS, "point")
 
 
@@ -306,7 +315,8 @@ def rows_of(
             np.asarray([r["nees_scan"] for r in rs], dtype=np.float64),
             burn_in,
         )
-        add_stats(row, "allocation_rate", [r["allocation_rate"] for r in rs])
+        for k in SPREAD:
+            add_stats(row, k, [r[k] for r in rs])
         row["point"] = key
         rows.append(row)
     return rows

@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 
+from covnet.batches.stats import seed_stats
 from covnet.cli.app import main
 from covnet.config import ConfigError
 from covnet.covariance_control.config import from_dict, load, normalised
@@ -18,7 +19,13 @@ from covnet.covariance_control.fusion_rules import measurement_from_track
 from covnet.covariance_control.latency_sim import delivery_probabilities, run_latency
 from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.simulate import run_metric
-from covnet.covariance_control.sweep import grid, link_for, point_scenario, sweep
+from covnet.covariance_control.sweep import (
+    grid,
+    link_for,
+    point_scenario,
+    sweep,
+    sweep_outcome,
+)
 
 
 def _sc(paper_path, scans=40, mode="central", **latency):
@@ -204,6 +211,31 @@ def test_zero_point_of_a_sweep_is_the_plain_run(paper_path):
     assert zero["rmse_position"] == pytest.approx(float(np.sqrt(np.mean(err2))), rel=1e-12)
     assert zero["deadline_miss_rate"] == zero["late"] == zero["lost"] == 0
     assert rows[1]["late"] > 0
+
+
+def test_sweep_rows_give_the_spread_of_every_drawn_count(paper_path):
+    """Every quantity the sweep figure draws has its 95 % interval over seeds: the deadline
+    misses, late and lost measurements as well as the errors (they vary with the seed's delays
+    and losses); each the t interval of the per-seed values."""
+    sc = _sc(paper_path, scans=30)
+    data = normalised(sc)
+    data["sweep"] = {
+        "delay_ms": [300],
+        "loss": [0.2],
+        "modes": ["central"],
+        "account_for_loss": [False],
+        "seeds": 4,
+    }
+    rows, outcome = sweep_outcome(from_dict(data), metric="spectral", workers=1)
+    (row,) = rows
+    runs = outcome.results[row["point"]]
+    for k in ("deadline_miss_rate", "late", "lost"):
+        values = [r[k] for r in runs]
+        assert len(set(values)) > 1, k  # a spread to show
+        want = seed_stats(values)
+        assert row[f"{k}_mean"] == row[k] == pytest.approx(want["mean"], rel=1e-12)
+        assert (row[f"{k}_ci_lo"], row[f"{k}_ci_hi"]) == (want["ci_lo"], want["ci_hi"])
+        assert row[f"{k}_ci_lo"] < row[k] < row[f"{k}_ci_hi"]
 
 
 def test_cli_sweep_writes_table_and_figure(paper_path, tmp_path, capsys):
