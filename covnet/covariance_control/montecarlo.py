@@ -186,14 +186,19 @@ def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) 
     out: dict[str, Any] = {}
     for m in rows[0]["metrics"]:
         per = [r["metrics"][m] for r in rows]
-        blk: dict[str, Any] = {k: interval([p[k] for p in per]) for k in _SCALARS if k in per[0]}
+        # every scalar and curve here is >= 0 (rates, distances, NEES, traces, counts)
+        blk: dict[str, Any] = {
+            k: interval([p[k] for p in per], nonnegative=True) for k in _SCALARS if k in per[0]
+        }
         if "ospa" in per[0]:
-            blk["ospa_per_scan"] = per_scan_interval([p["ospa"] for p in per])
+            blk["ospa_per_scan"] = per_scan_interval([p["ospa"] for p in per], nonnegative=True)
         blk["targets"] = {}
         for tid in per[0]["targets"]:
             tt = [p["targets"][tid] for p in per]
             tb: dict[str, Any] = {
-                k: interval([t[k] for t in tt]) for k in _TARGET_SCALARS if k in tt[0]
+                k: interval([t[k] for t in tt], nonnegative=True)
+                for k in _TARGET_SCALARS
+                if k in tt[0]
             }
             n = sum(t["nees_n"] for t in tt)
             band = chi2_band(4, n)
@@ -219,8 +224,10 @@ def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) 
                     ],
                     "cutoff_m": cutoff_m,
                 }
-            tb["trace_P_per_scan"] = per_scan_interval([t["trace_P"] for t in tt])
-            tb["sensors_per_scan"] = per_scan_interval([t["sensors_per_scan"] for t in tt])
+            tb["trace_P_per_scan"] = per_scan_interval([t["trace_P"] for t in tt], nonnegative=True)
+            tb["sensors_per_scan"] = per_scan_interval(
+                [t["sensors_per_scan"] for t in tt], nonnegative=True
+            )
             blk["targets"][tid] = tb
         out[m] = blk
     return out

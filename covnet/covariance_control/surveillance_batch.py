@@ -80,26 +80,20 @@ def _seeds(task: tuple[Mapping[str, Any], list[int]]) -> list[dict[str, Any]]:
     return [seed_row(data, s) for s in seeds]
 
 
-def _nonnegative(iv: dict[str, Any]) -> dict[str, Any]:
-    """``iv`` with its interval's lower end clipped at 0: every scalar here is ``>= 0`` (a
-    distance, a count, a share), and a few seeds' Student interval reached below (a tracked
-    RMSE of 14.6 [-6.6, 35.7] m with 2 seeds), as :func:`~covnet.batches.stats.per_scan_bands`
-    clips its bands."""
-    ci = iv.get("ci95")
-    if ci is not None and ci[0] < 0.0:
-        iv = {**iv, "ci95": [0.0, ci[1]]}
-    return iv
-
-
 def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Per metric: every scalar's :func:`interval` over the seeds; per scan the GOSPA and the
     confirmed tracks with their intervals (module docstring)."""
     out: dict[str, Any] = {}
     for m in rows[0]["metrics"]:
         per = [r["metrics"][m] for r in rows]
-        blk: dict[str, Any] = {k: _nonnegative(interval([p.get(k) for p in per])) for k in SCALARS}
-        blk["gospa_per_scan"] = per_scan_interval([p["gospa"] for p in per])
-        blk["n_confirmed_per_scan"] = per_scan_interval([p["n_confirmed"] for p in per])
+        # every scalar and curve here is >= 0 (a distance, a count, a share)
+        blk: dict[str, Any] = {
+            k: interval([p.get(k) for p in per], nonnegative=True) for k in SCALARS
+        }
+        blk["gospa_per_scan"] = per_scan_interval([p["gospa"] for p in per], nonnegative=True)
+        blk["n_confirmed_per_scan"] = per_scan_interval(
+            [p["n_confirmed"] for p in per], nonnegative=True
+        )
         out[m] = blk
     return out
 

@@ -203,10 +203,32 @@ def test_intervals_of_nonnegative_scalars_stop_at_zero():
     from covnet.covariance_control.surveillance_batch import SCALARS, aggregate
 
     def row(v):
-        return {"metrics": {"m": {**dict.fromkeys(SCALARS, v), "gospa": [v], "n_confirmed": [1]}}}
+        return {"metrics": {"m": {**dict.fromkeys(SCALARS, v), "gospa": [v], "n_confirmed": [v]}}}
 
     blk = aggregate([row(1.0), row(30.0)])["m"]
     for k in SCALARS:
         lo, hi = blk[k]["ci95"]
         assert lo == 0.0 and hi > 30.0, (k, blk[k])
     assert blk["rmse_tracked"]["mean"] == 15.5  # the mean itself untouched
+    for k in ("gospa_per_scan", "n_confirmed_per_scan"):  # the per-scan bands too
+        assert blk[k]["ci95_low"][0] == 0.0 and blk[k]["ci95_high"][0] > 0.0, (k, blk[k])
+
+
+def test_many_target_mc_intervals_stop_at_zero():
+    """The many-target Monte Carlo's scalars and per-scan curves (OSPA, traces, rates, NEES,
+    sensors) are >= 0: a heavy-tailed trace (one seed's lost track) gave a band from -300 to
+    700 in its figure."""
+    from covnet.covariance_control.montecarlo import _SCALARS, _TARGET_SCALARS, aggregate
+
+    def row(v):
+        t = {**dict.fromkeys(_TARGET_SCALARS, v), "nees_n": 1, "nees_sum": v}
+        t |= {"trace_P": [v, 1.0], "sensors_per_scan": [v, 1.0]}
+        return {"metrics": {"m": {**dict.fromkeys(_SCALARS, v), "ospa": [v], "targets": {"T": t}}}}
+
+    blk = aggregate([row(1.0), row(30.0)])["m"]
+    tb = blk["targets"]["T"]
+    for b in [*(blk[k] for k in _SCALARS), *(tb[k] for k in _TARGET_SCALARS)]:
+        assert b["ci95"][0] == 0.0 and b["ci95"][1] > 30.0 and b["mean"] == 15.5, b
+    for b in (blk["ospa_per_scan"], tb["trace_P_per_scan"], tb["sensors_per_scan"]):
+        assert b["ci95_low"][0] == 0.0 and b["ci95_high"][0] > 30.0, b
+    assert tb["trace_P_per_scan"]["ci95_low"][1] == 1.0  # no spread: the value itself
