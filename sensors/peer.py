@@ -23,7 +23,12 @@ Every node runs, per metric episode and scan ``k`` (lockstep)::
 
 The mirror advances with the *decided* subset (what every node knows), so decisions stay
 identical on every node even when a track is lost.  A node that died stays out for the rest of
-the run (peer mode does not restart nodes).  Malformed messages are counted and dropped.
+the run (peer mode does not restart nodes).  Malformed messages are counted and dropped, and
+so are well-formed ones a node cannot use: a track or status of a scan beyond the next one
+(``wrong_scan``: no peer can be further ahead in lockstep) or outside the run (``bad_scan``), a
+truth outside the run, and a neighbour's track that fails the node's validation gate
+(``outside_gate``, :meth:`covnet.covariance_control.engine.ScanEngine.verdict`): among a
+neighbour's tracks of a scan the node fuses the first that passes it, the others are counted.
 """
 
 from __future__ import annotations
@@ -57,19 +62,36 @@ class PeerStats:
     rejected: Counter[str] = field(default_factory=Counter)
 
 
-class _Inbox:
-    """What a node has heard: statuses (node, episode, scan), neighbours' tracks, truth,
-    peers' liveliness."""
+MAX_CANDIDATES = 4
+"""Tracks a node keeps of one neighbour's scan (the genuine one and copies or forgeries); more
+are counted ``duplicate``."""
 
-    def __init__(self, bus: Bus, run_id: str, me: str, nbr_ids: Sequence[str], stats: PeerStats):
+
+class _Inbox:
+    """What a node has heard: statuses (node, episode, scan), neighbours' tracks (up to
+    :data:`MAX_CANDIDATES` per node and scan), truth, peers' liveliness; ``at``: the node's
+    own ``(episode, scan)``, which bounds what it keeps (module docstring)."""
+
+    def __init__(
+        self,
+        bus: Bus,
+        run_id: str,
+        me: str,
+        nbr_ids: Sequence[str],
+        stats: PeerStats,
+        episodes: int,
+        scans: int,
+    ):
         self.stats = stats
         self.me = me
+        self.episodes, self.scans = episodes, scans
+        self.at = (0, 1)
         self.status_sub = bus.subscribe(msg.peer_keyexpr(run_id, "status"))
         self.track_subs = [bus.subscribe(msg.measurement_key(run_id, n)) for n in nbr_ids]
         self.truth_sub = bus.subscribe(msg.truth_key(run_id))
         self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
         self.statuses: set[tuple[str, int, int]] = set()
-        self.tracks: dict[tuple[str, int, int], msg.LocalTrack] = {}
+        self.tracks: dict[tuple[str, int, int], list[msg.LocalTrack]] = {}
         self.truth: dict[int, np.ndarray] = {}
         self.alive: set[str] = set()
 
@@ -98,20 +120,36 @@ class _Inbox:
                     self.stats.rejected["key_mismatch"] += 1
                 elif not usable_track(tr):
                     self.stats.rejected["bad_measurement"] += 1
-                elif (sender, tr.episode, tr.scan) in self.tracks:
-                    self.stats.rejected["duplicate"] += 1
+                elif (why := self._outside(tr.episode, tr.scan)) is not None:
+                    self.stats.rejected[why] += 1
+                elif len(c := self.tracks.setdefault((sender, tr.episode, tr.scan), [])) < (
+                    MAX_CANDIDATES
+                ):
+                    c.append(tr)
                 else:
-                    self.tracks[(sender, tr.episode, tr.scan)] = tr
+                    self.stats.rejected["duplicate"] += 1
         while (s := self.truth_sub.try_recv()) is not None:
             try:
                 t = msg.decode_as(s.payload, msg.Truth)
             except msg.WireError as exc:
                 self.stats.rejected[exc.reason] += 1
                 continue
-            if t.states.ndim == 2 and t.states.shape[0] >= 1 and t.states.shape[1] == 4:
+            if not 1 <= t.scan <= self.scans:
+                self.stats.rejected["bad_scan"] += 1
+            elif t.states.ndim == 2 and t.states.shape[0] >= 1 and t.states.shape[1] == 4:
                 self.truth[t.scan] = t.states[0]
             else:
                 self.stats.rejected["bad_shape"] += 1
+
+    def _outside(self, episode: int, scan: int) -> str | None:
+        """Why a track or status of ``(episode, scan)`` is not kept: ``bad_scan`` outside the
+        run, ``wrong_scan`` beyond the scan after the node's own (in lockstep no peer gets
+        further: it waits for this node's status of its scan); None when it is kept."""
+        if not (0 <= episode < self.episodes and 1 <= scan <= self.scans):
+            return "bad_scan"
+        e, k = self.at
+        nxt = (e, k + 1) if k < self.scans else (e + 1, 1)
+        return "wrong_scan" if (episode, scan) > nxt else None
 
     def _status(self, s: Sample) -> None:
         try:
@@ -125,6 +163,9 @@ class _Inbox:
             return
         if st.node_id != node:
             self.stats.rejected["key_mismatch"] += 1
+            return
+        if (why := self._outside(st.episode, st.scan)) is not None:
+            self.stats.rejected[why] += 1
             return
         self.statuses.add((node, st.episode, st.scan))
 
@@ -176,6 +217,41 @@ def _has_truth(inbox: _Inbox, k: int) -> bool:
     return k in inbox.truth
 
 
+class _Passing:
+    """``(node, episode, scan) in self``: a kept track of that node and scan passes
+    ``verdict`` (the engine's, for the planned scan); :meth:`take` the first that does, the
+    others counted."""
+
+    def __init__(
+        self,
+        tracks: dict[tuple[str, int, int], list[msg.LocalTrack]],
+        verdict: Callable[[msg.LocalTrack], str | None],
+    ):
+        self.tracks, self.verdict = tracks, verdict
+        self.seen: dict[int, str | None] = {}  # id of a candidate -> its verdict
+
+    def _why(self, m: msg.LocalTrack) -> str | None:
+        if id(m) not in self.seen:
+            self.seen[id(m)] = self.verdict(m)
+        return self.seen[id(m)]
+
+    def __contains__(self, key: object) -> bool:
+        cands = self.tracks.get(key, []) if isinstance(key, tuple) else []
+        return any(self._why(m) is None for m in cands)
+
+    def take(self, key: tuple[str, int, int], rejected: Counter[str]) -> msg.LocalTrack | None:
+        chosen = None
+        for m in self.tracks.pop(key, ()):
+            why = self._why(m)
+            if why is not None:
+                rejected[why] += 1
+            elif chosen is None:
+                chosen = m
+            else:
+                rejected["duplicate"] += 1
+        return chosen
+
+
 def run(
     sc: Scenario,
     node_id: str,
@@ -194,7 +270,9 @@ def run(
     engine = ScanEngine(sc, metrics, model=model, nodes=(me,))
     side = SensorSide(engine, me)
     stats = PeerStats()
-    inbox = _Inbox(bus, run_id, node_id, [ids[n] for n in nbrs], stats)
+    inbox = _Inbox(
+        bus, run_id, node_id, [ids[n] for n in nbrs], stats, len(metrics), model.scans
+    )
     manager = ManagerWatch(bus, run_id, manager_grace_s(net))
     token = bus.declare_token(msg.alive_key(run_id, "sensor", node_id))
     heartbeat = Heartbeat(bus, clock, run_id, "sensor", node_id, net.heartbeat_s)
@@ -223,6 +301,7 @@ def run(
             for k in range(1, model.scans + 1):
                 if stop.is_set() or manager.left:
                     return stats
+                inbox.at = (e, k)
                 if prev is not None:
                     pe, pk = prev
                     others = members - {node_id}
@@ -259,9 +338,10 @@ def run(
                         stats.tracks_sent += 1
                         got[node_id] = tr
                 want = [ids[j] for j in plan.subset if j in nbrs and ids[j] in members]
-                inbox.each(want, inbox.tracks, e, k, net.scan_timeout_s, stop, beat)
+                passing = _Passing(inbox.tracks, engine.verdict)
+                inbox.each(want, passing, e, k, net.scan_timeout_s, stop, beat)
                 for n in want:
-                    m = inbox.tracks.pop((n, e, k), None)
+                    m = passing.take((n, e, k), stats.rejected)
                     if m is not None:
                         got[n] = m
                 out = engine.report(plan, engine.fuse(plan, got), got)

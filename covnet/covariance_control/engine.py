@@ -396,20 +396,37 @@ class _Peers:
         pass
 
     def verdict(self, m: Any, plan: Plan | None) -> str | None:
-        """None when a local track may be fused; else ``bad_measurement`` (its content)."""
-        return None if usable_track(m) else "bad_measurement"
+        """None when a local track may be fused; else ``bad_measurement`` (its content) or,
+        for an engine of one node (a peer process, a node's replay) and a track of the
+        planned scan, ``outside_gate``: impossible under that node's prediction
+        (:func:`~covnet.core.validation_gate.passes_track`, the test :meth:`fuse` applies per
+        node, so an engine of every node, in process, fuses the same tracks)."""
+        if not usable_track(m):
+            return "bad_measurement"
+        if plan is None or m.scan != plan.k or len(self.nodes) != 1:
+            return None
+        pred = predict_step(self.model, self.fused[self.nodes[0]])
+        return None if passes_track(m.x, m.P, pred.x, pred.P) else "outside_gate"
 
     def insert_late(self, m: Any) -> bool:
         return False  # a peer node fuses a scan's tracks once
 
     def fuse(self, plan: Plan, got: dict[str, Any]) -> Any:
-        """Every node's ``x_n = rule(x_n⁻, tracks of got ∩ ({n} ∪ neighbours(n)))``; the
-        mirror then advances with the *decided* subset (what every node knows)."""
+        """Every node's ``x_n = rule(x_n⁻, tracks of got ∩ ({n} ∪ neighbours(n)))``, each track
+        through node ``n``'s validation gate against ``x_n⁻`` (a forged or corrupted track is
+        not fused: :func:`~covnet.core.validation_gate.passes_track`, failed by a genuine one
+        about once in 10⁹); the mirror then advances with the *decided* subset (what every
+        node knows)."""
         heard_all = {self.ids.index(sid): as_local_track(m) for sid, m in got.items()}
         out: dict[int, tuple[Gaussian, Gaussian, tuple[int, ...]]] = {}
         for n in self.nodes:
             pred = predict_step(self.model, self.fused[n])
-            heard = [(j, heard_all[j]) for j in (n, *self.nbrs[n]) if j in heard_all]
+            heard = [
+                (j, heard_all[j])
+                for j in (n, *self.nbrs[n])
+                if j in heard_all
+                and passes_track(heard_all[j].post.x, heard_all[j].post.P, pred.x, pred.P)
+            ]
             self.fused[n] = self.rule.fuse(self.model, pred, heard)
             out[n] = (pred, self.fused[n], tuple(j for j, _ in heard))
         self.mirror.advance(self.rule, self.model, plan.subset)

@@ -5,6 +5,7 @@ tracks are counted and dropped, and a stopped node drops out of every decision."
 from __future__ import annotations
 
 import threading
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -167,3 +168,46 @@ def test_a_stopped_node_drops_out_of_every_decision(paper):
             st = logs[s].statuses[k]
             assert "S3" in st.failed and "S3" not in st.enabled
             assert st.enabled == logs["S1"].statuses[k].enabled  # all agree
+
+
+def _far_track(sid, scan, episode=0):
+    """A well-formed local track of ``sid`` 140 km from the target."""
+    x = np.array([1e5, 0.0, 1e5, 0.0])
+    return msg.encode(
+        msg.LocalTrack(sid, scan, float(scan), x, np.eye(4), x, 2.0 * np.eye(4), 1, episode)
+    )
+
+
+def test_well_formed_tracks_of_other_scans_or_outside_the_gate_are_not_fused(paper):
+    """A peer node kept any well-formed track whatever its scan, the first one of a (node,
+    scan) winning: a rogue's tracks for later scans were fused and the genuine ones refused
+    as duplicates (a node 140 km off, 'nodes agree: yes').  Now a track or status beyond the
+    next scan is ``wrong_scan``, outside the run ``bad_scan``, and a track of the scan that
+    fails the node's validation gate ``outside_gate``: the genuine one is fused."""
+    sc = _scenario(paper, scans=12)
+    forged = []
+    for sid in sc.sensor_ids:
+        key = msg.measurement_key(RUN, sid)
+        forged += [(key, _far_track(sid, k)) for k in (3, 4, 8, 12)]  # near and far scans
+        forged += [(key, _far_track(sid, 10**9)), (key, _far_track(sid, 3, episode=7))]
+    forged.append(
+        (
+            msg.peer_status_key(RUN, "S1"),
+            msg.encode(msg.Status(11, 11.0, ("S1",), 1.0, 1.0, 1.0, 1, node_id="S1")),
+        )
+    )
+    far_truth = msg.Truth(10**9, 1.0, ("T1",), np.zeros((1, 4)))
+    forged.append((msg.truth_key(RUN), msg.encode(far_truth)))
+    result, stats = _network(sc, ["abs_trace"], extra=_rogue_at_scan_2(forged), linger_s=20.0)
+    assert result.completed
+    ref = run_peer(sc, "abs_trace")
+    truth = np.zeros((sc.scans, 4))
+    for sid, log in result.nodes[0].items():
+        run = log.as_run("abs_trace", sc.sensor_ids, truth)
+        np.testing.assert_array_equal(run.x_est, ref[sid].x_est)
+        np.testing.assert_array_equal(run.enabled, ref[sid].enabled)
+    refused = sum((stats[s].rejected for s in sc.sensor_ids), start=Counter())
+    # every node hears its two ring neighbours' keys: two tracks of 10**9 and two of episode 7
+    assert refused["bad_scan"] >= 4 * len(sc.sensor_ids) + len(sc.sensor_ids)  # + the truth
+    assert refused["wrong_scan"] >= 2 * len(sc.sensor_ids)  # at least the scan-12 tracks
+    assert refused["outside_gate"] + refused["wrong_scan"] >= 4 * len(sc.sensor_ids)
