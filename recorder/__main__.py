@@ -59,7 +59,9 @@ def main(argv: list[str] | None = None) -> int:
         try:
             with open_client(args, cfg.network, node.ROLE, node.NODE_ID, stop) as bus:
                 meta = run_metadata(args.run, cfg)
-                with RecordingWriter(out, run_id=args.run, metadata=meta) as w:
+                with RecordingWriter(
+                    out, run_id=args.run, metadata=meta, sensors=cfg.sensor_ids
+                ) as w:
                     counts = node.run(
                         cfg, bus, args.run, WallClock(args.speed), stop, w,
                         visualiser=visualiser, live=live, live_visualiser=live_visualiser,

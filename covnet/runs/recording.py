@@ -26,9 +26,12 @@ Layout of ``recording.mcap``
   as the info, ci and peer rules send, is ``ltrack``; ``schema_id`` 0 for a key no builder
   makes), metadata
   ``{"kind": <Message.KIND or "">}``. A channel is registered when its first message arrives;
-  keys of no covnet layout get at most :data:`MAX_FOREIGN_CHANNELS` channels and all keys at
-  most :data:`MAX_KEY_CHANNELS` (the ids are 16-bit): a message on a new key beyond them is
-  not recorded, and the recorder counts it ``no_channel``.
+  keys of no covnet layout, or of covnet's layout naming a node the run does not have (a
+  command key ``cmd/~S9999~``, when the recorder knows the run's sensors), get at most
+  :data:`MAX_FOREIGN_CHANNELS` channels and all keys at most :data:`MAX_KEY_CHANNELS` (the ids
+  are 16-bit): a message on a new key beyond them is not recorded, the recorder counts it
+  ``no_channel``, and the recording ends with a metadata record ``covnet.unrecorded``
+  (``{"no_channel": n, "first_key": ...}``) that the replay reports.
 - Messages: ``data`` = the payload exactly as received (also when it does not decode: the
   recording is of the wire, the replay decodes strictly); ``log_time`` = receive time
   (:attr:`covnet.wire.bus.Sample.t_recv_ns`); ``publish_time`` = the message's own ``t_sent_ns``
@@ -59,7 +62,7 @@ from __future__ import annotations
 import json
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -108,6 +111,9 @@ MAX_FOREIGN_CHANNELS = 1024
 with SIGKILL loses at most)."""
 META_RUN = "covnet.run"
 META_CONFIG = "covnet.config"
+META_UNRECORDED = "covnet.unrecorded"
+"""The metadata record a recording ends with when messages went unrecorded (no channel left:
+``no_channel``, how many; ``first_key``, the first such key)."""
 ARRAY_EXT_DOC = (
     "msgpack ext type 1 = msgpack [dtype '<f8', shape [d0, d1, ...], raw little-endian bytes]"
 )
@@ -129,9 +135,38 @@ def mcap_start_problem(path: Path) -> str | None:
     return None
 
 
-def key_kind(run_id: str, key: str) -> str | None:
+_OTHER_NODES = frozenset(
+    (role, role) for role in (msg.MANAGER_ID, msg.WORLD_ID, msg.RECORDER_ID)
+)
+"""``(role, node id)`` of the run's nodes besides its sensors (their heartbeat keys)."""
+
+
+def _names_members(run_id: str, key: str, sensors: Collection[str]) -> bool:
+    """Every node ``key`` names (a key of covnet's layout) is one of the run's: sensors
+    ``sensors``, and the manager, world and recorder."""
+    if keyexpr_matches(msg.command_keyexpr(run_id), key):
+        return all(s in sensors for s in msg.parse_command_key(key))
+    if keyexpr_matches(msg.measurement_keyexpr(run_id), key):
+        return msg.parse_measurement_key(key) in sensors
+    if keyexpr_matches(msg.heartbeat_keyexpr(run_id), key):
+        role, node = key.rsplit("/", 2)[1:]
+        return (role == "sensor" and node in sensors) or (role, node) in _OTHER_NODES
+    if keyexpr_matches(msg.peer_keyexpr(run_id, "*"), key):
+        return msg.parse_peer_key(key)[0] in sensors
+    return True
+
+
+def key_kind(run_id: str, key: str, sensors: Collection[str] | None = None) -> str | None:
     """The message kind (``Message.KIND``) the key builders of :mod:`covnet.wire.messages` put on
-    ``key`` for run ``run_id``, or None for a key they never make."""
+    ``key`` for run ``run_id``, or None for a key they never make; with ``sensors`` (the run's
+    sensor ids) also None for a key of their layout that names a node the run does not have
+    (a rogue's ``cmd/~Z17~``: a foreign key)."""
+    if sensors is not None:
+        try:
+            if not _names_members(run_id, key, sensors):
+                return None
+        except ValueError:  # not a valid key at all
+            return None
     fixed = {
         msg.truth_key(run_id): msg.Truth.KIND,
         msg.track_key(run_id): msg.Track.KIND,
@@ -254,11 +289,16 @@ class RecordingWriter:
         metadata: dict[str, dict[str, str]] | None = None,
         chunk_size: int = CHUNK_SIZE,
         flush_interval_s: float = FLUSH_INTERVAL_S,
+        sensors: Collection[str] | None = None,
     ) -> None:
         """Create (truncate) ``path`` and write the header, the schemas and ``metadata``
-        (name -> str map; see :func:`run_metadata`)."""
+        (name -> str map; see :func:`run_metadata`); ``sensors``: the run's sensor ids, so that
+        a key naming another node counts as foreign (:func:`key_kind`)."""
         self.path = Path(path)
         self.run_id = run_id
+        self.sensors = frozenset(sensors) if sensors is not None else None
+        self.unrecorded = 0  # messages on a new key with no channel left
+        self._first_unrecorded = ""
         self._flush_interval_ns = int(flush_interval_s * 1e9)
         self._file: IO[bytes] | None = open(self.path, "wb")  # closed in close()
         try:
@@ -300,7 +340,7 @@ class RecordingWriter:
             raise ValueError(f"recording {self.path} is closed")
         channel = self._channels.get(key)
         if channel is None:
-            kind = key_kind(self.run_id, key)
+            kind = key_kind(self.run_id, key, self.sensors)
             if kind == msg.Measurement.KIND and peek(payload)[0] == msg.LocalTrack.KIND:
                 # a sensor's key carries its local track where the fusion rule fuses tracks
                 # (info, ci, peer): named by the first payload, not "meas" for every run
@@ -308,6 +348,8 @@ class RecordingWriter:
             if self._key_channels >= MAX_KEY_CHANNELS or (
                 kind is None and self._foreign_channels >= MAX_FOREIGN_CHANNELS
             ):
+                self.unrecorded += 1
+                self._first_unrecorded = self._first_unrecorded or key
                 return False
             self._key_channels += 1
             self._foreign_channels += kind is None
@@ -415,6 +457,11 @@ class RecordingWriter:
         if f is None:
             return
         try:
+            if self.unrecorded:
+                self._writer.add_metadata(
+                    META_UNRECORDED,
+                    {"no_channel": str(self.unrecorded), "first_key": self._first_unrecorded},
+                )
             self._writer.finish()
         finally:
             f.close()

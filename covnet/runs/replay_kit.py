@@ -49,6 +49,7 @@ from covnet.errors import UsageError
 from covnet.processes.network_run import ScanDecision, ScanImpossible
 from covnet.runs.recording import (
     META_RUN,
+    META_UNRECORDED,
     RecordedSample,
     RecordingReader,
     key_kind,
@@ -242,6 +243,13 @@ def recording_notes(reader: RecordingReader, counts: dict[str, int]) -> list[str
         notes.append(f"recording: {reader.orphans} message(s) of an unknown channel skipped")
     if reader.error:
         notes.append(f"recording: {reader.error}; the replay used what came before it")
+    lost = reader.metadata.get(META_UNRECORDED)
+    if lost:
+        notes.append(
+            f"recording: {lost.get('no_channel', '?')} message(s) on new keys were not recorded "
+            f"(no channel left; the first on {lost.get('first_key', '?')!r}): another session "
+            "filled the recorder's channels, so messages of the run may be missing"
+        )
     skipped = {k: v for k, v in counts.items() if k.startswith("skipped:")}
     if skipped:
         notes.append(f"payloads skipped (not used by the replay): {skipped}")

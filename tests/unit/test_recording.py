@@ -308,6 +308,53 @@ def test_a_flood_of_new_keys_does_not_use_up_the_channel_ids(tmp_path, monkeypat
         assert len(make_reader(f).get_summary().channels) == 1500
 
 
+def test_keys_naming_nodes_the_run_does_not_have_are_foreign(tmp_path, monkeypatch):
+    """A rogue's puts on covnet-shaped keys naming made-up nodes (``cmd/~Z17~``,
+    ``sensor/S9999/meas``, ``hb/sensor/X``, ``peer/Q/track``) counted as the run's own: 66 000 of
+    them used up every channel and the manager's later commands went unrecorded, while the
+    replay said ``identical``.  With the run's sensors known they are foreign (capped), the
+    run's own keys keep their channels, and what was not recorded is in the recording."""
+    from covnet.runs import recording
+    from covnet.runs.replay_kit import recording_notes
+
+    monkeypatch.setattr(recording, "MAX_KEY_CHANNELS", 1500)
+    path = tmp_path / "rec.mcap"
+    w = RecordingWriter(path, run_id=RUN, sensors=("S1", "S2"))
+    rogue = [
+        *(msg.command_key(RUN, [f"Z{i}"]) for i in range(700)),
+        *(msg.command_key(RUN, ["S1", f"Z{i}"]) for i in range(300)),
+        *(msg.measurement_key(RUN, f"S{i + 3}") for i in range(300)),
+        *(msg.heartbeat_key(RUN, "sensor", f"X{i}") for i in range(200)),
+        *(msg.heartbeat_key(RUN, "world", f"W{i}") for i in range(100)),
+        *(msg.peer_track_key(RUN, f"Q{i}") for i in range(100)),
+    ]
+    written = [w.write(k, b"x", i + 1, None) for i, k in enumerate(rogue)]
+    assert sum(written) == recording.MAX_FOREIGN_CHANNELS
+    own = [
+        msg.command_key(RUN, []),
+        msg.command_key(RUN, ["S1", "S2"]),
+        msg.measurement_key(RUN, "S2"),
+        msg.heartbeat_key(RUN, "sensor", "S1"),
+        msg.heartbeat_key(RUN, msg.WORLD_ID, msg.WORLD_ID),
+        msg.heartbeat_key(RUN, msg.MANAGER_ID, msg.MANAGER_ID),
+        msg.peer_status_key(RUN, "S2"),
+        msg.track_key(RUN),
+    ]
+    assert all(w.write(k, b"y", 10_000 + i, None) for i, k in enumerate(own))
+    assert w.unrecorded == len(rogue) - recording.MAX_FOREIGN_CHANNELS
+    w.close()
+    reader = RecordingReader(path)
+    assert len(list(reader.samples())) == recording.MAX_FOREIGN_CHANNELS + len(own)
+    assert reader.metadata[recording.META_UNRECORDED] == {
+        "no_channel": str(len(rogue) - recording.MAX_FOREIGN_CHANNELS),
+        "first_key": rogue[recording.MAX_FOREIGN_CHANNELS],
+    }
+    (note,) = [n for n in recording_notes(reader, {}) if "not recorded" in n]
+    assert str(len(rogue) - recording.MAX_FOREIGN_CHANNELS) in note
+    with open(path, "rb") as f:  # the official reader takes the record at the end
+        assert make_reader(f).get_summary().statistics.metadata_count == 1
+
+
 def test_a_sensor_key_carrying_local_tracks_is_named_so(tmp_path):
     """With the info, ci and peer rules a sensor's key carries its LocalTrack: the channel was
     named ``meas`` (schema ``covnet.Measurement``) whatever it carried; the first payload names
