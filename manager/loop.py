@@ -364,7 +364,11 @@ class Loop:
     ) -> dict[str, Any]:
         """Receive scan ``k``'s messages (measurements, or local tracks: ``kind``) from the
         ``waiting`` sensors until all arrived, a sensor failed or the deadline passed (step 6
-        of the module docstring); ``usable`` is the kind's test of a message's content.
+        of the module docstring); ``usable`` is the kind's test of a message's content.  On
+        slow links (``on_late`` set) until the deadline in any case: a late message of an
+        earlier scan that arrives before it is re-filtered before scan ``k`` is fused, as
+        ``covnet run`` does (it was left to the next scan once every enabled sensor had
+        answered, and the estimates differed).
 
         Membership (a waiting sensor that failed) is checked whenever a wait times out (at
         least every 0.05 s) and otherwise at most every :data:`MEMBERSHIP_POLL_S`: the scan
@@ -374,7 +378,8 @@ class Loop:
         got: dict[str, Any] = {}
         lap = self.stages.lap
         next_poll = time.monotonic() + MEMBERSHIP_POLL_S
-        while waiting:
+        to_deadline = self.on_late is not None
+        while waiting or to_deadline:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or stop.is_set():
                 self.stats.missing_at_deadline += len(waiting)

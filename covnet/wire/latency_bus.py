@@ -5,9 +5,11 @@
 leave after their link's delay (or never, when the link loses them), and messages received on
 chosen key expressions are handed to the loop after their link's delay (or never).  Each link
 direction is a :class:`~covnet.core.delay.LinkState` drawing from its own stream of the seed
-(:func:`covnet.core.delay.link_stream`): the ``n``-th message on a link meets the same delay and
-loss draws in every run.  Delays are in *scenario* seconds, so a ``--speed X`` run divides them
-by ``X`` on the wall clock, like the scan period.
+(:func:`covnet.core.delay.link_stream`): the ``n``-th message of an episode on a link meets the
+same delay and loss draws in every run, and every episode (metric) starts its links from the
+start of their streams, as ``covnet run`` does (:class:`EpisodeLinks`; the episode is the
+message's own field).  Delays are in *scenario* seconds, so a ``--speed X`` run divides them by
+``X`` on the wall clock, like the scan period.
 
 A sensor process applies both of its directions (its commands in, its measurements out); the
 delays of the real transport (~0.1 ms on loopback) come on top.  Everything else (truth,
@@ -21,8 +23,10 @@ import heapq
 import itertools
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, cast
+
+import msgpack
 
 from covnet.core.delay import DOWN, UP, LinkState, link_stream
 from covnet.wire import messages as msg
@@ -48,16 +52,51 @@ class _Delayed:
         return self.heap[0][0] if self.heap else None
 
 
+def _episode(payload: bytes) -> int | None:
+    """The ``episode`` field of a message's payload (0 when absent, the schema's default);
+    None when it is not a msgpack map with an int there."""
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception:  # msgpack's ValueError, ExtraData, FormatError, StackError, ...
+        return None
+    e = obj.get("episode", 0) if type(obj) is dict else None
+    return e if type(e) is int and e >= 0 else None
+
+
+class EpisodeLinks:
+    """One link direction: a :class:`~covnet.core.delay.LinkState` per episode, each new from
+    ``make`` (the start of the link's stream), as ``covnet run`` builds every episode's links
+    (its draws continued across episodes: a second metric's run met other delays and losses
+    than ``covnet run``'s).  A message counts for its own episode when that is one already
+    seen or the next one; anything else (no episode: malformed; a jump: forged) for the
+    newest, so a rogue cannot make it keep a state per number."""
+
+    def __init__(self, make: Callable[[], LinkState]) -> None:
+        self.make = make
+        self.states: dict[int, LinkState] = {}
+        self.newest = 0
+
+    def for_payload(self, payload: bytes) -> LinkState:
+        e = _episode(payload)
+        if e is None or (e not in self.states and e > self.newest + 1):
+            e = self.newest
+        self.newest = max(self.newest, e)
+        state = self.states.get(e)
+        if state is None:
+            state = self.states[e] = self.make()
+        return state
+
+
 class _DelayedSubscription:
     """A subscription whose samples come out after their link's delay (lost ones never)."""
 
-    def __init__(self, inner: Subscription, link: LinkState, speed: float) -> None:
+    def __init__(self, inner: Subscription, link: EpisodeLinks, speed: float) -> None:
         self.inner, self.link, self.speed = inner, link, speed
         self.held = _Delayed()
 
     def _admit(self, s: Sample) -> None:
         now = time.monotonic_ns()
-        due = self.link.on_send(now * 1e-9 * self.speed)
+        due = self.link.for_payload(s.payload).on_send(now * 1e-9 * self.speed)
         if due is not None:  # a lost message never comes out
             self.held.push(round(due / self.speed * 1e9), s)
 
@@ -99,8 +138,8 @@ class DelayedBus:
         self,
         bus: Bus,
         *,
-        outgoing: Mapping[str, LinkState],
-        incoming: Mapping[str, LinkState],
+        outgoing: Mapping[str, EpisodeLinks],
+        incoming: Mapping[str, EpisodeLinks],
         speed: float = 1.0,
     ) -> None:
         self.bus, self.speed = bus, float(speed)
@@ -116,7 +155,7 @@ class DelayedBus:
         if link is None:
             self.bus.publish(key, payload)
             return
-        due = link.on_send(time.monotonic_ns() * 1e-9 * self.speed)
+        due = link.for_payload(payload).on_send(time.monotonic_ns() * 1e-9 * self.speed)
         if due is None:
             return  # lost on the emulated link
         with self._cond:
@@ -161,16 +200,17 @@ def for_sensor(bus: Bus, sc: Any, sensor_id: str, run_id: str, speed: float) -> 
 
     j = sc.sensor_ids.index(sensor_id)
     lat = sc.network.latency
+    up, down = lat.link(sensor_id, "uplink"), lat.link(sensor_id, "downlink")
     return DelayedBus(
         bus,
         outgoing={
-            msg.measurement_key(run_id, sensor_id): LinkState(
-                lat.link(sensor_id, "uplink"), link_stream(sc.seed, j, UP)
+            msg.measurement_key(run_id, sensor_id): EpisodeLinks(
+                lambda: LinkState(up, link_stream(sc.seed, j, UP))
             )
         },
         incoming={
-            msg.command_keyexpr(run_id): LinkState(
-                lat.link(sensor_id, "downlink"), link_stream(sc.seed, j, DOWN)
+            msg.command_keyexpr(run_id): EpisodeLinks(
+                lambda: LinkState(down, link_stream(sc.seed, j, DOWN))
             )
         },
         speed=speed,
