@@ -246,10 +246,14 @@ def summarise(
     skip: int = 10,
     burn_in: int | None = None,
 ) -> dict[str, Any]:
-    """One row of the comparison table (see the module docstring)."""
+    """One row of the comparison table (see the module docstring); the NEES columns from
+    scan ``burn_in + 1`` on when a burn-in is given (``evaluation.burn_in_scans``: they
+    started at scan 11 whatever it was, beside ``nees_steady_*`` from the burn-in), else
+    ``skip + 1``."""
     R = len(trials)
     all_nees = np.stack([t.nees for t in trials])
-    skip = min(skip, all_nees.shape[1] // 2)  # a short run keeps its second half
+    # a short run keeps its second half
+    skip = burn_in_of(skip if burn_in is None else burn_in, all_nees.shape[1])
     enabled = np.stack([t.enabled for t in trials])
     row: dict[str, Any] = {
         "mode": mode,

@@ -70,6 +70,25 @@ def test_nees_verdict_from_the_run_averages(short, level, verdict):
     assert row["mean_nees"] == pytest.approx(level, rel=0.1)
 
 
+@pytest.mark.parametrize("burn_in", [0, 4, 10, 30])
+def test_nees_columns_start_after_the_burn_in(short, burn_in):
+    """``mean_nees``, its verdict and band share started at scan 11 whatever
+    ``evaluation.burn_in_scans`` was, beside ``nees_steady_*`` from the burn-in: two "mean NEES
+    after the burn-in" in one row (4.54 against 4.28 with a burn-in of 0)."""
+    rng = np.random.default_rng(1)
+    trials = [
+        Trial("central", r, rng.chisquare(4, 50) * np.linspace(3, 1, 50) / 4, np.ones(50),
+              np.ones((50, 8), bool))
+        for r in range(5)
+    ]  # fmt: skip
+    row = summarise(short, "central", trials, None, burn_in=burn_in)
+    nees = np.stack([t.nees for t in trials])
+    b = min(burn_in, 25)
+    assert row["burn_in_scans"] == b
+    assert row["mean_nees"] == pytest.approx(nees[:, b:].mean(), rel=1e-12)
+    assert row["mean_nees"] == pytest.approx(row["nees_steady_mean"], rel=1e-12)
+
+
 def test_scenario_for_each_mode(short):
     assert scenario_for(short, "ci-fast").fusion.ci_objective == "fast"
     sc = scenario_for(short, "peer-ci", graph="star", seed=7)
