@@ -142,9 +142,11 @@ POINT = "seeds"
 
 def trial_key(sc: Scenario) -> str:
     """The hash that keys the Monte Carlo's trials: the config without its seed (each trial
-    sets its own; the config's seed is the first trial's)."""
+    sets its own; the config's seed is the first trial's) and its evaluation settings (which
+    change no trial: a changed burn-in refused the batch's own directory), as the sweep's."""
     data = normalised(sc)
     data.pop("seed", None)
+    data.pop("evaluation", None)
     return trial_hash("mc", {"kind": "covariance_control", "config": data})
 
 

@@ -90,6 +90,28 @@ def test_mc_of_the_paper(paper_path, tmp_path):
     assert rates[0] == rates[1]
 
 
+def test_mc_resumes_after_a_change_of_its_evaluation_settings(paper_path, tmp_path, capsys):
+    """The trials' key covered ``evaluation`` (which changes no trial), so changing only the
+    burn-in refused the batch's own directory (exit 2, "holds the trials of another batch")."""
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = 6
+    data["allocation"]["metrics"] = ["spectral"]
+    data["desired"][1]["from_scan"] = 4
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "mc"
+    argv = ["mc", str(cfg), "--trials", "2", "--workers", "1", "--out", str(out), "--no-figures"]
+    assert main(argv) == 0
+    first = (out / "montecarlo.json").read_bytes()
+    data["evaluation"] = {"burn_in_scans": 2}
+    cfg.write_text(yaml.safe_dump(data))
+    capsys.readouterr()
+    assert main(argv) == 0, capsys.readouterr().err
+    assert json.loads((out / "montecarlo.json").read_text())["per_seed"] == json.loads(first)[
+        "per_seed"
+    ]
+
+
 def test_mc_bad_trials(short_config, tmp_path, capsys):
     assert main(["mc", str(short_config), "--trials", "0", "--out", str(tmp_path / "x")]) == 2
     assert "--trials" in capsys.readouterr().err
