@@ -50,7 +50,7 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
-from covnet.batches import MAX_SEEDS
+from covnet.batches import MAX_SEEDS, point_text
 from covnet.batches.pool import BatchInterrupted, default_workers, imap_unordered
 from covnet.config import hash_of
 from covnet.errors import UsageError
@@ -88,16 +88,7 @@ Result = Any
 def point_key(point: Mapping[str, Any]) -> str:
     """A grid point as a readable file name: ``delay_ms=350,loss=0.1,mode=central,...``
     (characters other than letters, digits and ``.=,_+-`` become ``_``)."""
-    parts = []
-    for k, v in point.items():
-        text = (
-            ("true" if v else "false")
-            if isinstance(v, bool)
-            else f"{v:g}"
-            if isinstance(v, float)
-            else str(v)
-        )
-        parts.append(f"{k}={text}")
+    parts = [f"{k}={point_text(v)}" for k, v in point.items()]
     return re.sub(r"[^A-Za-z0-9.=,_+-]", "_", ",".join(parts)) or "all"
 
 

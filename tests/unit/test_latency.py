@@ -261,3 +261,24 @@ def test_cli_sweep_writes_table_and_figure(paper_path, tmp_path, capsys):
         assert len(list(csv.DictReader(f))) == 8
     assert (out / "sweep.png").stat().st_size > 20_000
     assert main(["sweep", str(cfg), "--out", str(out), "--seeds", "0", "--force"]) == 2
+
+
+@pytest.mark.parametrize(
+    ("axis", "values", "needle"),
+    [
+        ("delay_ms", [0, 0], "0.0 is given twice"),
+        ("delay_ms", [0.1, 0.10000001], "0.10000001 and 0.1 are one point"),
+        ("loss", [0.1, 0.1], "given twice"),
+        ("modes", ["central", "ci", "central"], "'central' is given twice"),
+        ("account_for_loss", [False, False], "given twice"),
+    ],
+)
+def test_a_sweep_axis_names_each_grid_point_once(paper_path, axis, values, needle):
+    """Repeated (or, to the 6 digits that name a point's trials, equal) values of an axis were
+    merged into one grid point silently: "4 grid points x 2 seeds = 8 runs" ran 4, and of
+    0.1 and 0.10000001 ms only one ran."""
+    data = normalised(load(paper_path))
+    data["sweep"] = {axis: values}
+    with pytest.raises(ConfigError) as err:
+        from_dict(data)
+    assert f"sweep.{axis}" in str(err.value) and needle in str(err.value), str(err.value)

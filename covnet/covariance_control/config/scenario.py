@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from covnet.batches import MAX_SEEDS
+from covnet.batches import MAX_SEEDS, point_text
 from covnet.config import (
     Bool,
     ConfigModel,
@@ -73,6 +73,23 @@ class SweepSpec(ConfigModel):
     def _non_empty(cls, v: tuple[Any, ...]) -> tuple[Any, ...]:
         if not v:
             raise ValueError("give at least one value")
+        return v
+
+    @field_validator("delay_ms", "loss", "modes", "account_for_loss", "late", "search_weight")
+    @classmethod
+    def _distinct(cls, v: tuple[Any, ...] | None) -> tuple[Any, ...] | None:
+        """Each value of an axis once, as the trials name it (a repeated or 6-digit-equal
+        value was merged into one grid point, silently, and the run count overstated)."""
+        seen: dict[str, Any] = {}
+        for x in v or ():
+            text = point_text(x)
+            if text in seen:
+                same = "is given twice" if seen[text] == x else f"and {seen[text]!r} are one point"
+                raise ValueError(
+                    f"{x!r} {same} (a grid point is named by its values to 6 significant "
+                    "digits: give each value once)"
+                )
+            seen[text] = x
         return v
 
 
