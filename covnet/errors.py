@@ -3,6 +3,8 @@
 - :class:`UsageError`: a mistake in the user's input (an option, a path, a combination that
   cannot work): one line naming the option and what is allowed, exit status 2.
 - :class:`UpError`: ``covnet up`` could not bring the network up or it did not finish: exit 1.
+- :class:`WorkerDied`: a batch's worker process ended without its task's result (killed, out
+  of memory): that task failed, the others went on; exit 1.
 
 A bad config is a :class:`covnet.config.ConfigError` (exit 2), listing every problem.
 
@@ -19,7 +21,7 @@ from __future__ import annotations
 
 import sys
 
-__all__ = ["UpError", "UsageError", "shadowed_package"]
+__all__ = ["UpError", "UsageError", "WorkerDied", "shadowed_package"]
 
 
 def shadowed_package() -> str | None:
@@ -47,3 +49,8 @@ class UsageError(Exception):
 
 class UpError(RuntimeError):
     """The network could not be brought up or did not finish."""
+
+
+class WorkerDied(RuntimeError):
+    """A worker process ended without sending its task's result (killed, out of memory): a
+    failure of that task, the others go on (on a new worker)."""

@@ -39,6 +39,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
+from covnet.errors import WorkerDied
 from covnet.runs.rundir import record_end
 
 T = TypeVar("T")
@@ -63,10 +64,6 @@ class BatchInterrupted(KeyboardInterrupt, Generic[R]):
         self.partial: Any = None
         """What the command makes of the finished runs (its table's complete rows), set on
         the way up by the function that knows how."""
-
-
-class WorkerDied(RuntimeError):
-    """A worker process ended without sending its task's result (killed, out of memory)."""
 
 
 def default_workers() -> int:
@@ -117,9 +114,12 @@ def imap_unordered(
 ) -> Iterator[tuple[int, bool, Any]]:
     """``(index, True, fn(tasks[index]))`` for each task in completion order, or ``(index,
     False, exception)`` for one that raised (the others go on; the exception carries the
-    worker's traceback as a note).  ``workers`` processes as :func:`parallel_map`; ``1`` runs
-    in this process.  Every worker is stopped and reaped when the iteration ends, also by an
-    exception (Ctrl-C) or by the caller leaving the loop (close the generator, or let it go)."""
+    worker's traceback as a note) or whose worker ended before answering (killed, out of
+    memory: a :class:`WorkerDied`, and a new worker takes the next task; one such death stopped
+    the whole batch with a traceback).  ``workers`` processes as :func:`parallel_map`; ``1``
+    runs in this process.  Every worker is stopped and reaped when the iteration ends, also by
+    an exception (Ctrl-C) or by the caller leaving the loop (close the generator, or let it
+    go)."""
     n = len(tasks)
     workers = min(workers or default_workers(), max(n, 1))
     if workers <= 1:
@@ -143,16 +143,20 @@ def imap_unordered(
             busy = [w for w in pool if w.task is not None]
             ready = wait([w.conn for w in busy] + [w.sentinel for w in busy], timeout=0.2)
             for w in busy:
-                if w.conn in ready:
-                    i, ok, value = _receive(w)
-                    received += 1
-                    _hand_out(w, todo)
-                    yield i, ok, value
-                elif w.sentinel in ready:
-                    raise WorkerDied(
-                        f"a worker process (pid {w.proc.pid}) ended with exit code "
-                        f"{w.proc.wait()} while running task {w.task}"
-                    )
+                if w.conn not in ready and w.sentinel not in ready:
+                    continue
+                out: tuple[int, bool, Any]
+                try:
+                    if w.conn not in ready:
+                        raise WorkerDied(f"a worker process (pid {w.proc.pid}) ended")
+                    out = _receive(w)
+                except WorkerDied as died:
+                    i = _replace(pool, w, fn)
+                    died.args = (f"{died} with exit code {w.proc.returncode} during task {i}",)
+                    out, w = (i, False, died), pool[-1]
+                received += 1
+                _hand_out(w, todo)
+                yield out
         finished = True
     finally:
         if finished:
@@ -165,37 +169,60 @@ def _start(pool: list[_Worker], fn: Callable[..., Any], workers: int) -> None:
     """Start ``workers`` :mod:`covnet.batches.worker` processes, each in its own session, and
     send each the parent's ``sys.path`` and ``fn``."""
     for _ in range(workers):
-        mine, theirs = socket.socketpair()
-        try:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "covnet.batches.worker", str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),),
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-            )
-        finally:
-            theirs.close()
-        conn = Connection(mine.detach())
-        pidfd = os.pidfd_open(proc.pid) if hasattr(os, "pidfd_open") else None
-        pool.append(_Worker(proc, conn, pidfd))
+        _spawn(pool, fn)
+
+
+def _spawn(pool: list[_Worker], fn: Callable[..., Any]) -> None:
+    """One more worker at the end of ``pool`` (see :func:`_start`)."""
+    mine, theirs = socket.socketpair()
+    try:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "covnet.batches.worker", str(theirs.fileno())],
+            pass_fds=(theirs.fileno(),),
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    finally:
+        theirs.close()
+    conn = Connection(mine.detach())
+    pidfd = os.pidfd_open(proc.pid) if hasattr(os, "pidfd_open") else None
+    pool.append(_Worker(proc, conn, pidfd))
+    try:
         conn.send(list(sys.path))
         conn.send(fn)
+    except OSError:  # it died at once: its first task finds out (EOF)
+        pass
+
+
+def _replace(pool: list[_Worker], w: _Worker, fn: Callable[..., Any]) -> int:
+    """Reap the ended worker ``w`` and put a new one at the end of ``pool``; the index of the
+    task ``w`` was running."""
+    task = w.task
+    assert task is not None
+    w.proc.wait()
+    w.conn.close()
+    if w.pidfd is not None:
+        os.close(w.pidfd)
+    pool.remove(w)
+    _spawn(pool, fn)
+    return task
 
 
 def _hand_out(w: _Worker, todo: Iterator[tuple[int, Any]]) -> None:
     nxt = next(todo, None)
     w.task = None if nxt is None else nxt[0]
     if nxt is not None:
-        w.conn.send(nxt)
+        try:
+            w.conn.send(nxt)
+        except OSError:  # it has ended: the wait finds out (its sentinel), a failed task
+            pass
 
 
 def _receive(w: _Worker) -> tuple[int, bool, Any]:
     try:
         i, ok, value, tb = w.conn.recv()
     except EOFError:
-        raise WorkerDied(
-            f"a worker process (pid {w.proc.pid}) ended during task {w.task}"
-        ) from None
+        raise WorkerDied(f"a worker process (pid {w.proc.pid}) ended") from None
     if not ok:
         value.add_note(f"in a worker process (pid {w.proc.pid}), task {i}:\n{tb}")
     return int(i), bool(ok), value

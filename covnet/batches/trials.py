@@ -424,13 +424,11 @@ def run_trials(
             )
         where = runner.describe()
     except KeyboardInterrupt:
-        if progress is not None:
-            progress.close()
         raise BatchInterrupted(dict(known), sum(wanted.values())) from None
     finally:
         runner.close()
-    if progress is not None:
-        progress.close()
+        if progress is not None:  # its last line, with the failures too (it was left out)
+            progress.close()
     results = {p: [known[(p, s)] for s in batch.seeds(wanted[p])] for p in batch.points}
     return Outcome(
         results,

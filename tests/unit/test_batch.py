@@ -13,7 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from covnet.batches.pool import BatchInterrupted, WorkerDied, end_batch, parallel_map
+from covnet.batches.pool import (
+    BatchInterrupted,
+    WorkerDied,
+    end_batch,
+    imap_unordered,
+    parallel_map,
+)
 from covnet.runs.rundir import read_json
 
 
@@ -89,6 +95,26 @@ def test_a_worker_that_dies_is_reported():
     assert _workers_of(os.getpid()) == []
 
 
+def dies_on_even_killed(x: int) -> int:
+    if x in (2, 4):
+        os.kill(os.getpid(), signal.SIGKILL)  # as the OOM killer or a kill -9 would
+    return x * 10
+
+
+def test_a_dead_worker_fails_its_task_and_the_others_go_on():
+    """One killed worker ended the whole batch (a WorkerDied traceback, the other worker
+    terminated, the other tasks never run); now its task is a failure and a new worker takes
+    the rest."""
+    out = {i: (ok, v) for i, ok, v in imap_unordered(dies_on_even_killed, list(range(7)), 2)}
+    assert sorted(out) == list(range(7))
+    for i in (2, 4):
+        ok, died = out[i]
+        assert not ok and isinstance(died, WorkerDied), died
+        assert f"during task {i}" in str(died) and "exit code -9" in str(died), str(died)
+    assert {i: v for i, (ok, v) in out.items() if ok} == {i: 10 * i for i in (0, 1, 3, 5, 6)}
+    assert _workers_of(os.getpid()) == []
+
+
 def test_ctrl_c_stops_every_worker_and_keeps_what_was_done():
     timers: list[threading.Timer] = []
 
@@ -137,3 +163,22 @@ def test_end_batch_records_the_status(tmp_path, capsys):
     end_batch(tmp_path / "nothing", 5, "seed", BatchInterrupted({}, 5), kept=0)
     assert not (tmp_path / "nothing").exists()
     assert "nothing written" in capsys.readouterr().err
+
+
+def test_the_cli_reports_a_dead_worker_in_one_line(monkeypatch, capsys):
+    """A batch whose worker was killed ends with exit 1 and one line (it was a traceback)."""
+    import argparse
+
+    from covnet.cli import app
+
+    def fails(args):
+        exc = WorkerDied("a worker process (pid 7) ended with exit code -9 during task 3")
+        exc.add_note("1 of 4 task(s) failed; the finished trials are saved")
+        raise exc
+
+    parser = argparse.ArgumentParser()
+    parser.set_defaults(func=fails)
+    monkeypatch.setattr(app, "build_parser", lambda: parser)
+    assert app.main([]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "exit code -9" in err and "trials are saved" in err, err
