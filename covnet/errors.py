@@ -5,6 +5,8 @@
 - :class:`UpError`: ``covnet up`` could not bring the network up or it did not finish: exit 1.
 - :class:`WorkerDied`: a batch's worker process ended without its task's result (killed, out
   of memory): that task failed, the others went on; exit 1.
+- :class:`ClusterLost`: the Dask scheduler of a ``--cluster`` batch went away: the tasks not
+  finished failed (the finished trials are saved); exit 1.
 
 A bad config is a :class:`covnet.config.ConfigError` (exit 2), listing every problem.
 
@@ -21,7 +23,7 @@ from __future__ import annotations
 
 import sys
 
-__all__ = ["UpError", "UsageError", "WorkerDied", "shadowed_package"]
+__all__ = ["ClusterLost", "UpError", "UsageError", "WorkerDied", "shadowed_package"]
 
 
 def shadowed_package() -> str | None:
@@ -54,3 +56,8 @@ class UpError(RuntimeError):
 class WorkerDied(RuntimeError):
     """A worker process ended without sending its task's result (killed, out of memory): a
     failure of that task, the others go on (on a new worker)."""
+
+
+class ClusterLost(RuntimeError):
+    """The Dask scheduler a batch ran on went away (its client closed): every task not
+    finished is a failure of this kind."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import queue
 import shutil
 import signal
 import subprocess
@@ -31,7 +32,7 @@ from typing import Any
 
 from covnet import blas_kernel
 from covnet.config import scheduler_problem
-from covnet.errors import UsageError
+from covnet.errors import ClusterLost, UsageError
 
 try:
     import distributed
@@ -44,6 +45,8 @@ except ImportError as exc:  # pragma: no cover (the extra is installed in CI)
 __all__ = ["DaskRunner", "LocalCluster", "connect", "scheduler_answers"]
 
 CONNECT_TIMEOUT_S = 15.0
+POLL_S = 0.5
+"""How long the batch waits for a task before it checks that the scheduler is still there."""
 
 
 def scheduler_answers(address: str, timeout_s: float | None = None) -> str | None:
@@ -147,25 +150,62 @@ class DaskRunner:
         ]
         index = {f.key: i for i, f in enumerate(futures)}
         self._pending = list(futures)
+        pending = {f.key: f for f in futures}
+        finished: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        for f in futures:  # called when it finishes, fails or is cancelled
+            f.add_done_callback(finished.put)
         try:
-            done = distributed.as_completed(
-                futures, loop=self.client.loop, with_results=True, raise_errors=False
-            )
-            for fut, value in done:
-                i = index[fut.key]
-                if fut.status == "error":
-                    exc = value[1] if isinstance(value, tuple) and len(value) == 3 else value
-                    if not isinstance(exc, Exception):
-                        exc = RuntimeError(f"task {i} failed on the cluster: {exc!r}")
-                    exc.add_note(f"on the Dask cluster {self.address}, task {i}")
-                    yield i, False, exc
-                elif fut.status == "cancelled":
-                    yield i, False, RuntimeError(f"task {i} was cancelled on the cluster")
-                else:
-                    yield i, True, value
+            while pending:
+                if self.client.status not in ("running", "connecting"):
+                    for key in sorted(pending, key=index.__getitem__):
+                        yield index[key], False, self._lost(index[key])
+                    return
+                try:
+                    fut = finished.get(timeout=POLL_S)
+                except queue.Empty:
+                    continue
+                if pending.pop(fut.key, None) is None:
+                    continue
+                yield self._outcome(index[fut.key], fut)
                 fut.release()
         finally:
             self._cancel()
+
+    def _lost(self, i: int) -> ClusterLost:
+        return ClusterLost(
+            f"task {i}: the Dask scheduler at {self.address} went away before it finished "
+            f"(the client's status: {self.client.status})"
+        )
+
+    def _outcome(self, i: int, fut: Any) -> tuple[int, bool, Any]:
+        """``(i, ok, result or exception)`` of a future that is no longer pending.  Its
+        result is fetched here: a scheduler that died meanwhile makes this fail, which
+        :class:`distributed.as_completed` (used before) did not catch (one future then stayed
+        pending for ever: the batch waited without end)."""
+        if fut.status == "finished":
+            try:
+                return i, True, fut.result(timeout=CONNECT_TIMEOUT_S)
+            except Exception as exc:  # noqa: BLE001 (the fetch failed: the cluster's side)
+                if self.client.status != "running":
+                    return i, False, self._lost(i)
+                err = RuntimeError(f"task {i}: its result could not be fetched: {exc!r}")
+                return i, False, err
+        if fut.status == "error":
+            raised: Any
+            try:
+                raised = fut.exception(timeout=CONNECT_TIMEOUT_S)
+            except Exception:  # noqa: BLE001 (as above)
+                raised = None
+            failure = (
+                raised
+                if isinstance(raised, Exception)
+                else RuntimeError(f"task {i} failed on the cluster: {raised!r}")
+            )
+            failure.add_note(f"on the Dask cluster {self.address}, task {i}")
+            return i, False, failure
+        if self.client.status != "running":  # cancelled as the connection went
+            return i, False, self._lost(i)
+        return i, False, RuntimeError(f"task {i} was cancelled on the cluster ({fut.status})")
 
     def _cancel(self) -> None:
         live = [f for f in self._pending if not f.done()]

@@ -57,7 +57,7 @@ from covnet.cli.common import (
     _err,
 )
 from covnet.config import ConfigError, ConfigWarning, scheduler_problem
-from covnet.errors import UpError, UsageError, WorkerDied
+from covnet.errors import ClusterLost, UpError, UsageError, WorkerDied
 from covnet.processes import interrupts
 from covnet.runs import rundir
 
@@ -639,7 +639,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UpError as exc:  # a network run that failed (bench up, bench soak): its reason
         _err(str(exc))
         return EXIT_FAIL
-    except WorkerDied as exc:  # a batch's worker killed (the others went on): not a bug
+    except (WorkerDied, ClusterLost) as exc:  # a batch's worker or scheduler gone: not a bug
         _err("; ".join([str(exc), *getattr(exc, "__notes__", ())]))
         return EXIT_FAIL
     except BrokenPipeError:

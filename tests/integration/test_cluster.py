@@ -220,3 +220,33 @@ def test_the_api_sweep_on_a_cluster_gives_the_local_rows(cluster, small):
     local = api.sweep(small["sweep"], seeds=2, workers=2)
     remote = api.sweep(small["sweep"], seeds=2, cluster=cluster.address)
     assert remote.rows == local.rows and len(remote.rows) == 8
+
+
+@pytest.mark.slow  # ~20 s: Dask's client tries to reconnect for 15 s before it closes
+@pytest.mark.timeout(180)
+def test_a_scheduler_that_goes_away_fails_the_unfinished_tasks_in_bounded_time():
+    """The scheduler killed mid-batch: the batch waited for ever (one future stayed pending:
+    Dask's as_completed lost it when fetching its result failed), or ended in a traceback.
+    Now the finished tasks come back, every unfinished one is a ClusterLost failure, within
+    Dask's reconnection time."""
+    from covnet.batches.cluster import DaskRunner
+    from covnet.errors import ClusterLost
+
+    with LocalCluster(workers=1, threads=1) as c:
+        runner = DaskRunner(c.address)
+        try:
+            out = []
+            t0 = None
+            for i, ok, value in runner.imap(time.sleep, [0.0, 0.0, 60.0, 60.0, 60.0]):
+                out.append((i, ok, value))
+                if sum(ok for _, ok, _ in out) == 2 and t0 is None:
+                    c.procs[0].kill()  # the scheduler
+                    t0 = time.monotonic()
+            elapsed = time.monotonic() - t0
+        finally:
+            runner.close()
+    assert sorted(i for i, ok, _ in out if ok) == [0, 1]
+    lost = {i: v for i, ok, v in out if not ok}
+    assert sorted(lost) == [2, 3, 4] and all(isinstance(v, ClusterLost) for v in lost.values())
+    assert "went away" in str(lost[2])
+    assert elapsed < 60, elapsed

@@ -182,3 +182,20 @@ def test_the_cli_reports_a_dead_worker_in_one_line(monkeypatch, capsys):
     assert app.main([]) == 1
     err = capsys.readouterr().err
     assert "Traceback" not in err and "exit code -9" in err and "trials are saved" in err, err
+
+
+def test_the_cli_reports_a_lost_scheduler_in_one_line(monkeypatch, capsys):
+    import argparse
+
+    from covnet.cli import app
+    from covnet.errors import ClusterLost
+
+    def fails(args):
+        raise ClusterLost("task 8: the Dask scheduler at tcp://127.0.0.1:1 went away")
+
+    parser = argparse.ArgumentParser()
+    parser.set_defaults(func=fails)
+    monkeypatch.setattr(app, "build_parser", lambda: parser)
+    assert app.main([]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "went away" in err, err
