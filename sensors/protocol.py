@@ -206,6 +206,11 @@ class _Sensor:
         if isinstance(cmd, msg.WireError):
             stats.rejected[cmd.reason] += 1
             return
+        if not 1 <= cmd.scan <= self.scans:
+            # a scan the run does not have (on slow links one of 10**9 made every sensor
+            # fill in the scans up to it, one command each: hours, and the memory)
+            stats.rejected["bad_scan"] += 1
+            return
         stats.commands += 1
         sensor_id = self.id
         on = sensor_id in (enabled if enabled is not None else cmd.enabled)

@@ -27,3 +27,23 @@ def test_a_truth_of_a_scan_outside_the_run_is_refused(keep_truth):
         one.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
     assert sorted(one.truths) == [1, 10]
     assert one.stats.rejected == {"bad_scan": 3}
+
+
+@pytest.mark.parametrize("missed", [None, "keep_last", "off"])
+def test_a_command_of_a_scan_outside_the_run_is_refused(missed):
+    """On slow links a sensor filled in every scan up to a command's (one fallback command
+    each): a rogue's command of scan 10**9 took hours of CPU and the memory of a queue of 10**9
+    commands.  A command of a scan outside ``1..scans`` is counted ``bad_scan``, in every mode,
+    and changes nothing."""
+    one = _Sensor(
+        "S1", InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
+        respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
+        scans=10, missed_command=missed, keep_truth=False, command_ok=None,
+    )  # fmt: skip
+    for k in (0, 11, 10**9):
+        one.accept(msg.Command(k, float(k), ("S1",), 1))
+    assert one.stats.rejected == {"bad_scan": 3}
+    assert not one.pending and one.newest == (-1, 0) and one.stats.missed_commands == 0
+    one.accept(msg.Command(3, 3.0, ("S1",), 1))
+    assert [c.scan for c in one.pending] == [3]  # (keep_last: off before its first command)
+    assert one.stats.missed_commands == (0 if missed is None else 2)
