@@ -217,6 +217,9 @@ class Loop:
         # a sensor that measured on a stale command is fused too
         self.on_late: Callable[[Any], bool | None] | None = None
         self.accept_unsolicited = False
+        #: slow links: collect until the deadline (a late message that arrives before it is
+        #: re-filtered before the scan is fused, as covnet run does)
+        self.to_deadline = False
         self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
         # each sensor's own measurement key (what parse_measurement_key gives for it)
         self._key_sensor = {msg.measurement_key(run_id, sid): sid for sid in sensor_ids}
@@ -365,7 +368,7 @@ class Loop:
         """Receive scan ``k``'s messages (measurements, or local tracks: ``kind``) from the
         ``waiting`` sensors until all arrived, a sensor failed or the deadline passed (step 6
         of the module docstring); ``usable`` is the kind's test of a message's content.  On
-        slow links (``on_late`` set) until the deadline in any case: a late message of an
+        slow links (``to_deadline``) until the deadline in any case: a late message of an
         earlier scan that arrives before it is re-filtered before scan ``k`` is fused, as
         ``covnet run`` does (it was left to the next scan once every enabled sensor had
         answered, and the estimates differed).
@@ -378,7 +381,7 @@ class Loop:
         got: dict[str, Any] = {}
         lap = self.stages.lap
         next_poll = time.monotonic() + MEMBERSHIP_POLL_S
-        to_deadline = self.on_late is not None
+        to_deadline = self.to_deadline
         while waiting or to_deadline:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or stop.is_set():
@@ -506,7 +509,7 @@ class Loop:
         if at > (episode, k):
             self.stats.reject(s.key, "wrong_scan")
             return
-        if (bad := self.stats.arrived(m.sensor_id, m.seq)) is not None:
+        if (bad := self.stats.arrived(m.sensor_id, m.seq, at)) is not None:
             self.stats.reject(s.key, bad)
             return
         outcome = self.stats.outcome[m.sensor_id]
@@ -659,6 +662,7 @@ def _run_scans(
             logic.start_episode(e)
             loop.on_late = logic.on_late
             loop.accept_unsolicited = logic.accept_unsolicited
+            loop.to_deadline = bool(getattr(logic, "slow", False))  # optional: slow links
             t_origin = clock.now()
             failed_prev: frozenset[str] = frozenset()
             for k in range(1, logic.scans + 1):

@@ -50,12 +50,20 @@ class SeqCount:
     sent_before: int = 0
     arrived_before: int = 0
     seen: bytearray = field(default_factory=bytearray)  # bit i: seq i + 1 arrived
+    first_at: tuple[int, int] | None = None  # (episode, scan) of this stretch's seq 1
 
-    def add(self, seq: int) -> str | None:
-        """Note ``seq``'s arrival; None, or why it is refused (``duplicate``, ``bad_seq``).
-        A second ``seq`` 1 is a restarted process counting again (:meth:`restart`)."""
+    def add(self, seq: int, at: tuple[int, int] | None = None) -> str | None:
+        """Note ``seq``'s arrival (of a message of ``(episode, scan)`` ``at``); None, or why it
+        is refused (``duplicate``, ``bad_seq``).  A second ``seq`` 1 of a later scan than the
+        first one's is a restarted process counting again (:meth:`restart`); of the same scan
+        or an earlier one, or without a scan, it is a copy (``duplicate``: one replayed
+        ``seq`` 1 was taken for a restart and made up hundreds of lost messages)."""
         if seq == 1 and self.seen and self.seen[0] & 1:
+            if at is None or self.first_at is None or at <= self.first_at:
+                return "duplicate"
             self.restart()
+        if seq == 1:
+            self.first_at = at
         i = seq - 1
         if i < 0 or seq > self.high + SEQ_AHEAD:
             return "bad_seq"
@@ -136,15 +144,20 @@ class NetStats:
         self.rejected[reason] += 1
         self.rejected_by_key[key][reason] += 1
 
-    def arrived(self, sensor: str, seq: int | None) -> str | None:
-        """A well-formed message of ``sensor`` numbered ``seq`` arrived; None, or why its
-        number is refused (then it is rejected, uncounted)."""
+    def arrived(
+        self, sensor: str, seq: int | None, at: tuple[int, int] | None = None
+    ) -> str | None:
+        """A well-formed message of ``sensor`` numbered ``seq`` (of ``(episode, scan)`` ``at``)
+        arrived; None, or why its number is refused (then it is rejected, uncounted):
+        ``missing_seq`` for a message without one (every sensor numbers its messages: such a
+        message is not a sensor's, and counted as its ``late`` it broke ``sent = on_time +
+        late + rejected + lost``)."""
         if seq is None:
-            return None
+            return "missing_seq"
         counts = self.seq.get(sensor)
         if counts is None:  # (not setdefault: it would build a SeqCount per message)
             counts = self.seq[sensor] = SeqCount()
-        return counts.add(seq)
+        return counts.add(seq, at)
 
     def reported(self, sensor: str, sent: int) -> None:
         """``sensor``'s heartbeat says it has sent ``sent`` messages (:meth:`SeqCount.report`)."""

@@ -41,11 +41,24 @@ def test_a_forged_number_far_ahead_is_refused_and_costs_no_memory():
 def test_a_restarted_sensor_counts_again_from_one():
     c = SeqCount()
     for s in (1, 2, 3):
-        c.add(s)
+        c.add(s, (0, s))
     c.report(4)  # one lost before it died
-    assert c.add(1) is None  # the new process
-    c.add(3)
+    assert c.add(1, (0, 9)) is None  # the new process, at a later scan
+    c.add(3, (0, 11))
     assert (c.sent, c.lost) == (4 + 3, 1 + 1)
+
+
+def test_a_copy_of_seq_one_is_a_duplicate_not_a_restart():
+    """One replayed seq-1 message (scan 1) mid-run was taken for a restarted process: the
+    stretch so far folded away and the real next seq opened a gap, 51 to 379 messages
+    "lost" of a sensor that lost none."""
+    c = SeqCount()
+    for s in range(1, 988):
+        assert c.add(s, (0, s)) is None
+    assert c.add(1, (0, 1)) == "duplicate"  # the copy: the same scan as the first seq 1
+    assert c.add(1, None) == "duplicate"  # (no scan given: never a restart)
+    assert c.add(988, (0, 988)) is None
+    assert (c.sent, c.arrived, c.lost) == (988, 988, 0)
 
 
 @given(
@@ -86,4 +99,6 @@ def test_network_json_per_sensor_block():
     }
     assert s1["sent"] == s1["on_time"] + s1["late"] + s1["rejected"] + s1["lost"]
     assert d["lost"] == 2
-    assert ns.arrived("S1", None) is None  # an unnumbered message is not counted
+    # an unnumbered message is not a sensor's (each numbers its own): refused, not counted
+    assert ns.arrived("S1", None) == "missing_seq"
+    assert ns.as_dict()["sensors"]["S1"] == s1

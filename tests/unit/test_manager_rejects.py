@@ -30,6 +30,7 @@ def _sample(sensor_key: str, **fields) -> Sample:
                 "R": np.eye(2),
                 "t_sent_ns": 1,
                 "episode": 0,
+                "seq": 1,
             }
             | fields
         )
@@ -46,6 +47,7 @@ CASES = [
     ("not-enabled", _sample("S3", sensor_id="S3"), "not_enabled"),
     ("two-detections", _sample("S1", z=np.zeros((2, 2))), "bad_measurement"),
     ("not-spd", _sample("S1", R=np.array([[1.0, 2.0], [2.0, 1.0]])), "bad_measurement"),
+    ("unnumbered", _sample("S1", seq=None), "missing_seq"),  # every sensor numbers its own
 ]
 
 
@@ -91,6 +93,7 @@ def _track_sample(sensor_key: str, **fields) -> Sample:
                 "P_prior": 2.0 * np.eye(4),
                 "t_sent_ns": 1,
                 "episode": 0,
+                "seq": 1,
             }
             | fields
         )
