@@ -387,6 +387,19 @@ class Networked(Protocol):
 _SEC = "network.security"
 
 
+def endpoint_security_problem(endpoint: str, net: NetworkSpec) -> str | None:
+    """Why ``endpoint`` cannot carry this network's security (None: it can): with TLS only a
+    ``tcp/`` (made ``tls/``) or ``tls/`` endpoint, without it no ``tls/``.  For the config's
+    endpoints and for those given on the command line (``--router``, ``--listen``,
+    ``--connect``: a ``udp/`` one there ran the whole network without TLS)."""
+    proto = endpoint.partition("/")[0]
+    if net.security.tls is not None and proto not in ("tcp", "tls"):
+        return f"with {_SEC}.tls use a tcp/ or tls/ endpoint, got {endpoint!r}"
+    if net.security.tls is None and proto == "tls":
+        return f"a tls/ endpoint needs {_SEC}.tls"
+    return None
+
+
 def security_problems(net: NetworkSpec, sensor_ids: Sequence[str]) -> list[tuple[str, str]]:
     """``(path, message)`` for every problem in the *shape* of ``network.security`` and the
     endpoints it governs (empty when all is well). Files are not looked at here, so that a
@@ -397,15 +410,8 @@ def security_problems(net: NetworkSpec, sensor_ids: Sequence[str]) -> list[tuple
     problems: list[tuple[str, str]] = []
     for field in ("router", "connect"):
         ep = getattr(net, field)
-        if ep is None:
-            continue
-        proto = ep.partition("/")[0]
-        if sec.tls is not None and proto not in ("tcp", "tls"):
-            problems.append(
-                (f"network.{field}", f"with {_SEC}.tls use a tcp/ or tls/ endpoint, got {ep!r}")
-            )
-        if sec.tls is None and proto == "tls":
-            problems.append((f"network.{field}", f"a tls/ endpoint needs {_SEC}.tls"))
+        if ep is not None and (problem := endpoint_security_problem(ep, net)) is not None:
+            problems.append((f"network.{field}", problem))
     if sec.access_control and not sec.authenticated:
         problems.append(
             (
@@ -413,15 +419,19 @@ def security_problems(net: NetworkSpec, sensor_ids: Sequence[str]) -> list[tuple
                 f"needs node identities: set {_SEC}.credentials_file and/or {_SEC}.tls",
             )
         )
-    if sec.authenticated:
-        # start-up: the message module (msgpack, the schemas) only for a secured network
-        from covnet.wire.messages import RESERVED_IDS
-
-        for i, sid in enumerate(sensor_ids):
-            if sid in RESERVED_IDS:
-                problems.append(
-                    (f"sensors[{i}].id", f"{sid!r} is a reserved node identity with {_SEC}")
+    # the manager's, world's and recorder's ids name their processes, keys and (with
+    # security) identities: a sensor of that name passed check and run, and covnet up failed
+    # with a traceback ("duplicate process names")
+    reserved = ("manager", "world", "recorder")  # covnet.wire.keys.RESERVED_IDS (start-up)
+    for i, sid in enumerate(sensor_ids):
+        if sid in reserved:
+            problems.append(
+                (
+                    f"sensors[{i}].id",
+                    f"{sid!r} is the name of one of the network's own nodes "
+                    f"({', '.join(reserved)}): give the sensor another id",
                 )
+            )
     return problems
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from covnet import kinds
 from covnet.cli.common import EXIT_FAIL, EXIT_OK, RUN_OPTIONS, _err, _load, _note, _options
-from covnet.config import endpoint_problem, hash_of, read_yaml
+from covnet.config import endpoint_problem, endpoint_security_problem, hash_of, read_yaml
 from covnet.errors import UpError, UsageError
 from covnet.processes import interrupts
 from covnet.runs.rundir import CONFIG, RUN_INFO, config_mismatch, prepare_out, read_json, record_end
@@ -115,7 +115,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.speed is not None and not (math.isfinite(args.speed) and args.speed > 0):
         # inf made every period 0: the manager failed before READY
         raise UsageError(f"--speed: must be a finite number > 0, got {args.speed}")
-    if args.router is not None and (problem := endpoint_problem(args.router)) is not None:
+    if args.router is not None and (
+        (problem := endpoint_problem(args.router)) is not None
+        or (problem := endpoint_security_problem(args.router, cfg.network)) is not None
+    ):
         raise UsageError(f"--router: {problem}")
     k = args.sensors_per_process
     if k is not None and k < 1:

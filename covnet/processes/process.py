@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from covnet import kinds
-from covnet.config import ConfigError, NetworkSpec, endpoint_problem
+from covnet.config import ConfigError, NetworkSpec, endpoint_problem, endpoint_security_problem
 from covnet.errors import UsageError
 from covnet.wire import security
 from covnet.wire.keys import run_keyexpr
@@ -96,7 +96,10 @@ def resolve_run(args: Any, cfg: Any) -> str:
             raise UsageError(f"--run: {exc}") from None
     for option in ("connect", "listen"):
         value = getattr(args, option, None)
-        if value is not None and (problem := endpoint_problem(value)) is not None:
+        if value is not None and (
+            (problem := endpoint_problem(value)) is not None
+            or (problem := endpoint_security_problem(value, cfg.network)) is not None
+        ):
             raise UsageError(f"--{option}: {problem}")
     args.run = args.run or default_run_id(cfg)
     return str(args.run)

@@ -188,12 +188,56 @@ def test_tls_endpoints_need_tls_and_tls_needs_tcp(paper, lab):
     assert "use a tcp/ or tls/ endpoint" in _problems(data, lab)["network.router"]
 
 
-def test_reserved_sensor_ids_with_security(paper, lab):
+@pytest.mark.parametrize(
+    ("tls", "option", "endpoint", "needle"),
+    [
+        (True, "--router", "udp/127.0.0.1:7447", "use a tcp/ or tls/ endpoint"),
+        (False, "--router", "tls/127.0.0.1:7447", "a tls/ endpoint needs"),
+    ],
+)
+def test_command_line_endpoints_are_held_to_the_security_too(
+    paper, lab, capsys, tls, option, endpoint, needle
+):
+    """``covnet up --router udp/...`` with ``network.security.tls`` ran the whole network
+    over plain UDP (a client with no certificate read every message); the same endpoint in
+    the config was refused.  Now the command line's endpoints are checked as the config's."""
+    from covnet.cli.app import main
+
+    sec = {"tls": {"ca": "pki/ca.pem", "cert_dir": "pki/certs"}} if tls else {}
+    data = _data(paper, credentials_file="creds.txt", **sec)
+    cfg = lab / "c.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    assert main(["up", str(cfg), option, endpoint, "--out", str(lab / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"{option}: " in err and needle in err, err
+    assert not (lab / "out").exists()
+
+
+def test_a_nodes_command_line_endpoint_is_held_to_the_security(paper, lab):
+    """``python -m manager --listen`` / ``python -m sensors --connect``: the same check."""
+    import argparse
+
+    from covnet.errors import UsageError
+    from covnet.processes.process import resolve_run
+
+    sec = {"tls": {"ca": "pki/ca.pem", "cert_dir": "pki/certs"}}
+    cfg = from_dict(_data(paper, **sec), "t.yaml", base_dir=lab)
+    for option in ("listen", "connect"):
+        args = argparse.Namespace(run=None, listen=None, connect=None)
+        setattr(args, option, "udp/127.0.0.1:7447")
+        with pytest.raises(UsageError, match=f"--{option}: with network.security.tls"):
+            resolve_run(args, cfg)
+
+
+@pytest.mark.parametrize("name", ["manager", "world", "recorder"])
+def test_reserved_sensor_ids(paper, lab, name):
+    """A node's own name as a sensor id is refused with or without security (without it,
+    check and run took it and covnet up failed with a traceback)."""
     data = _data(paper, credentials_file="creds.txt")
-    data["sensors"][1]["id"] = "world"
-    assert "reserved node identity" in _problems(data, lab)["sensors[1].id"]
+    data["sensors"][1]["id"] = name
+    assert "network's own nodes" in _problems(data, lab)["sensors[1].id"]
     data["network"].pop("security")
-    from_dict(data)  # without security a sensor may be called 'world'
+    assert "network's own nodes" in _problems(data, lab)["sensors[1].id"]
 
 
 def test_read_credentials_parses_like_zenoh(lab):
