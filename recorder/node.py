@@ -37,7 +37,7 @@ from typing import Any
 
 from covnet.clock import Clock
 from covnet.config import Networked
-from covnet.processes.node_kit import Heartbeat, ManagerWatch
+from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_appear_s
 from covnet.runs.recording import RecordingReader, RecordingWriter, episode_of, peek
 from covnet.runs.visual import Visualiser
 from covnet.wire import messages as msg
@@ -177,7 +177,7 @@ def _run(
     sub = getattr(bus, "subscribe_stamped", bus.subscribe)(msg.run_keyexpr(run_id))
     # no grace: the recorder runs beside the manager (its router), and a manager gone without
     # its end is a crash whose recording the launcher rebuilds from at once
-    manager = ManagerWatch(bus, run_id)
+    manager = ManagerWatch(bus, run_id, appear_s=manager_appear_s(sc.network))
     token = bus.declare_token(msg.alive_key(run_id, ROLE, NODE_ID))
     heartbeat = Heartbeat(bus, clock, run_id, ROLE, NODE_ID, sc.network.heartbeat_s)
     last_scan = 0

@@ -49,7 +49,7 @@ from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.decentral import neighbours
 from covnet.covariance_control.engine import ScanEngine, SensorSide, Tracked
 from covnet.covariance_control.model import build_model
-from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
+from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_appear_s, manager_grace_s
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample
 
@@ -273,7 +273,7 @@ def run(
     inbox = _Inbox(
         bus, run_id, node_id, [ids[n] for n in nbrs], stats, len(metrics), model.scans
     )
-    manager = ManagerWatch(bus, run_id, manager_grace_s(net))
+    manager = ManagerWatch(bus, run_id, manager_grace_s(net), manager_appear_s(net))
     token = bus.declare_token(msg.alive_key(run_id, "sensor", node_id))
     heartbeat = Heartbeat(bus, clock, run_id, "sensor", node_id, net.heartbeat_s)
     keys = {

@@ -31,7 +31,7 @@ from typing import Any
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
 from covnet.core.delay import measures_on_missed
-from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s
+from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_appear_s, manager_grace_s
 from covnet.processes.process import EXIT_OK, open_client
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, Subscription, Token
@@ -320,7 +320,7 @@ def _serve(
     mine = None if missed_command is not None else sensor_id
     cmd_sub = bus.subscribe(msg.command_keyexpr(run_id, mine))
     truth_sub = bus.subscribe(msg.truth_key(run_id))
-    manager = ManagerWatch(bus, run_id, manager_grace_s(net))
+    manager = ManagerWatch(bus, run_id, manager_grace_s(net), manager_appear_s(net))
     token = bus.declare_token(msg.alive_key(run_id, "sensor", sensor_id))
     wait_s = net.heartbeat_s / 2
 
@@ -374,6 +374,7 @@ class HostLoop:
     def __init__(self, bus: Bus, ids: list[str], net: NetworkSpec) -> None:
         self.bus, self.ids = bus, frozenset(ids)
         self.grace_s = manager_grace_s(net)
+        self.appear_s = manager_appear_s(net)
         self.wait_s = net.heartbeat_s / 2
         self.expected = len(ids)
         self.sensors: list[_Sensor] = []
@@ -396,7 +397,7 @@ class HostLoop:
                 self.subs = (
                     self.bus.subscribe(msg.command_keyexpr(run_id)),
                     self.bus.subscribe(msg.truth_key(run_id)),
-                    ManagerWatch(self.bus, run_id, self.grace_s),
+                    ManagerWatch(self.bus, run_id, self.grace_s, self.appear_s),
                 )
             one.token = token = one.bus.declare_token(msg.alive_key(run_id, "sensor", one.id))
             self.sensors.append(one)

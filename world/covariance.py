@@ -24,7 +24,13 @@ import numpy as np
 from covnet.clock import Clock
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import Model, build_model, truth_trajectory
-from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_grace_s, serve_commands
+from covnet.processes.node_kit import (
+    Heartbeat,
+    ManagerWatch,
+    manager_appear_s,
+    manager_grace_s,
+    serve_commands,
+)
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
 
@@ -129,7 +135,9 @@ def _serve_upfront(
     """A run of at most ``TRUTH_UPFRONT_MAX_SCANS`` scans: every scan's truth once every sensor
     (and the recorder, which records it) is alive, again when a sensor (re)joins."""
     live = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
-    manager = ManagerWatch(bus, run_id, manager_grace_s(sc.network))
+    manager = ManagerWatch(
+        bus, run_id, manager_grace_s(sc.network), manager_appear_s(sc.network)
+    )
     token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
     heartbeat = Heartbeat(bus, clock, run_id, "world", "world", sc.network.heartbeat_s)
     wanted = _first_truth_waits_for(sc, run_id)
@@ -179,7 +187,9 @@ def _serve_peers(
     status_sub = bus.subscribe(msg.peer_keyexpr(run_id, "status"))
     live = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
     wanted = _first_truth_waits_for(sc, run_id)
-    manager = ManagerWatch(bus, run_id, manager_grace_s(sc.network))
+    manager = ManagerWatch(
+        bus, run_id, manager_grace_s(sc.network), manager_appear_s(sc.network)
+    )
     token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
     heartbeat = Heartbeat(bus, clock, run_id, "world", "world", sc.network.heartbeat_s)
     alive: set[str] = set()

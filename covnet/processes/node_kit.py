@@ -83,17 +83,33 @@ def manager_grace_s(net: NetworkSpec) -> float:
     return MANAGER_GRACE * net.failure_timeout_s
 
 
+def manager_appear_s(net: NetworkSpec) -> float:
+    """How long a node waits for a manager it has never seen: the manager's own wait for the
+    nodes (``ready_timeout_s``) and its grace (:class:`ManagerWatch`'s ``appear_s``)."""
+    return net.ready_timeout_s + manager_grace_s(net)
+
+
 class ManagerWatch:
     """Follows the manager's liveliness.  ``left`` once the run is over for this node: the
     manager declared its end (:func:`~covnet.wire.messages.done_key`: finished or stopped on
     purpose), or a manager that was seen has been gone for ``grace_s`` (a crash).  A manager
     token that goes and comes back within ``grace_s`` (a lossy or slow link can end the zenoh
     session that carries it, while both ends run on) is not the end: the node stays, and the
-    manager takes it back when it hears it again."""
+    manager takes it back when it hears it again.
 
-    def __init__(self, bus: Bus, run_id: str, grace_s: float = 0.0) -> None:
+    ``appear_s``: a manager never seen within that long of the watch's start is not coming
+    (another run id: a mistyped ``--run``, or hosts that derived different ones): :attr:`left`
+    raises :class:`ConnectionError` saying so (the node's process exits 1 with that line);
+    a sensors-only host waited for it without end."""
+
+    def __init__(
+        self, bus: Bus, run_id: str, grace_s: float = 0.0, appear_s: float | None = None
+    ) -> None:
         self._sub = bus.watch_liveliness(msg.alive_keyexpr(run_id, "manager"))
+        self.run_id = run_id
         self.grace_s = grace_s
+        self.appear_by = None if appear_s is None else time.monotonic() + appear_s
+        self.appear_s = appear_s
         self.seen = False
         self.up = False
         self.done = False
@@ -118,6 +134,11 @@ class ManagerWatch:
         self.poll()
         if self.done:
             return True
+        if not self.seen and self.appear_by is not None and time.monotonic() > self.appear_by:
+            raise ConnectionError(
+                f"no manager of run {self.run_id!r} appeared within {self.appear_s:g} s (is "
+                "--run the same on every host, and the manager's host started?)"
+            )
         return self.seen and not self.up and time.monotonic() - self.down_since >= self.grace_s
 
     def close(self) -> None:
@@ -140,7 +161,7 @@ def serve_commands(
     one counted as ``rejected:<reason>``) and pass it to ``handle``, which returns whether it
     took it (else it counted why).  Heartbeats carry the last scan taken and the rejections."""
     cmd_sub = bus.subscribe(msg.command_keyexpr(run_id))  # every command
-    manager = ManagerWatch(bus, run_id, manager_grace_s(net))
+    manager = ManagerWatch(bus, run_id, manager_grace_s(net), manager_appear_s(net))
     token = bus.declare_token(msg.alive_key(run_id, role, node_id))
     heartbeat = Heartbeat(bus, clock, run_id, role, node_id, net.heartbeat_s)
     last_scan = 0

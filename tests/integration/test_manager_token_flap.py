@@ -52,6 +52,29 @@ def test_the_watch_waits_for_a_lost_manager_and_leaves_at_its_end():
         w.close()
 
 
+def test_a_manager_never_seen_is_given_up_on():
+    """A sensors-only host whose manager never appeared (a mistyped --run, or hosts that
+    derived other run ids) waited for it without end; now its nodes give up after
+    ``appear_s`` with a line that says why (their processes exit 1), and a manager seen in
+    time is followed as before."""
+    import pytest
+
+    hub = InMemoryHub()
+    node, mgr = InMemoryBus(hub, name="node"), InMemoryBus(hub, name="manager")
+    lonely = ManagerWatch(node, "t", grace_s=0.3, appear_s=0.2)
+    assert not lonely.left
+    time.sleep(0.25)
+    with pytest.raises(ConnectionError, match="no manager of run 't' appeared within 0.2 s"):
+        lonely.left
+    watch = ManagerWatch(node, "t", grace_s=0.3, appear_s=0.2)
+    token = mgr.declare_token(msg.alive_key("t", "manager", msg.MANAGER_ID))
+    time.sleep(0.25)
+    assert not watch.left and watch.up  # it came in time: no limit any more
+    token.undeclare()
+    for w in (lonely, watch):
+        w.close()
+
+
 def test_a_manager_token_lost_for_a_moment_loses_no_node(paper, tmp_path, monkeypatch):
     net = paper.network.model_dump() | {"record": True}
     sc = with_overrides(paper, scans=20, network=net)
