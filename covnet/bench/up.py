@@ -36,7 +36,7 @@ from typing import Any
 import yaml
 
 from covnet import kinds
-from covnet.errors import UpError
+from covnet.errors import UpError, UsageError
 from covnet.processes.interrupts import EXIT_INTERRUPTED
 from covnet.processes.launch import ProcessSpec, Supervisor
 from covnet.processes.up import default_sensors_per_process, free_port, sensor_hosts, up
@@ -191,10 +191,16 @@ def run_sizes(
     scans = SIZED_SCANS if scans is None else scans
 
     make = kinds.command(kind, "bench:up-config", "a bench network of N sensors")
+    networks = {}
+    for n in sizes:  # every size's network before any run: a refusal costs no run
+        try:
+            networks[n] = make(sc, n, scans)
+        except ValueError as exc:  # the config cannot make it (a radar in a scaled family)
+            raise UsageError(f"--config, --sensors {n}: {exc}") from None
     rows = []
     for n in sizes:
         path = tmp / f"network-{n}.yaml"
-        path.write_text(yaml.safe_dump(make(sc, n, scans), sort_keys=False))
+        path.write_text(yaml.safe_dump(networks[n], sort_keys=False))
         kind_n, sc_n = kinds.load(path)
         k = per_process if per_process is not None else default_sensors_per_process(n)
         for i in range(repeat):

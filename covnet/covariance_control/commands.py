@@ -10,9 +10,9 @@ Each returns an exit status (0 success, 1 a run failed); a user's mistake raises
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,7 @@ from covnet.processes.forked import map_in_forks
 from covnet.runs.rundir import (
     CONFIG,
     SUMMARY,
+    json_line,
     load_arrays,
     read_json,
 )
@@ -459,7 +460,7 @@ def bench_fusion(args: argparse.Namespace, sc: Scenario | None) -> int:
     rows = bf.run_bench(args.sensors or [8, 12, 16], repeat=args.repeat)
     if args.json:
         for row in rows:
-            print(json.dumps(row))
+            print(json_line(row))
     else:
         print(bf.format_table(rows))
     return EXIT_OK
@@ -485,7 +486,7 @@ def bench_search(args: argparse.Namespace, sc: Scenario | None) -> int:
         args.repeat,
         exact_cap_s=bs.EXACT_CAP_S if args.exact_cap is None else args.exact_cap,
         progress=None if args.json else (lambda line: print(line, flush=True)),
-        on_row=(lambda row: print(json.dumps(row), flush=True)) if args.json else None,
+        on_row=(lambda row: print(json_line(row), flush=True)) if args.json else None,
         clock=args.clock,
     )
     agree = all(r["agree_exhaustive"] in (None, True) for r in rows)
@@ -529,7 +530,18 @@ def bench_multitarget(args: argparse.Namespace, sc: Scenario | None) -> int:
     )
     if args.json:
         for row in rows:
-            print(json.dumps(row))
+            print(json_line(row))
+    return _agreed(rows)
+
+
+def _agreed(rows: Sequence[dict[str, Any]]) -> int:
+    """EXIT_OK, or EXIT_FAIL (said on stderr) when a row's check against a reference found a
+    disagreement (``agree_reference``, ``exact_agree``, ``reference_agree`` False: the bench
+    printed it and exited 0, where ``bench search`` and ``bench`` exit 1)."""
+    keys = ("agree_reference", "exact_agree", "reference_agree")
+    if any(row.get(k) is False for row in rows for k in keys):
+        print("covnet: error: an allocator disagreed with its reference", file=sys.stderr)
+        return EXIT_FAIL
     return EXIT_OK
 
 
@@ -552,13 +564,13 @@ def _bench_multitarget_scale(args: argparse.Namespace, metrics: list[str] | None
 
     def show(row: dict[str, Any]) -> None:
         if args.json:
-            print(json.dumps(row), flush=True)
+            print(json_line(row), flush=True)
         else:
             keys = cols[:4] + ("skipped",) if row.get("skipped") else cols
             print(" ".join(f"{k}={row[k]:.4g}" if isinstance(row[k], float) else f"{k}={row[k]}"
                            for k in keys), flush=True)  # fmt: skip
 
-    bm.run(
+    rows = bm.run(
         args.sensors or [16, 64, 256],
         targets,
         metrics or ("kl", "spectral", "abs_trace"),
@@ -568,7 +580,7 @@ def _bench_multitarget_scale(args: argparse.Namespace, metrics: list[str] | None
         progress=show,
         clock=args.clock,
     )
-    return EXIT_OK
+    return _agreed(rows)
 
 
 def bench_alloc(args: argparse.Namespace, sc: Scenario | None) -> int:
@@ -578,7 +590,19 @@ def bench_alloc(args: argparse.Namespace, sc: Scenario | None) -> int:
     sensors = args.sensors or [8, 12, 16, 20]
     sc = sc if sc is not None else load(args.config)
     metrics = [metric_opt(sc, [m], m) for m in args.metric] if args.metric else None
+    other = [s.id for s in sc.sensors if s.sigma_x_m is None or s.sigma_y_m is None]
+    if other:  # (it was taken for a 1 m position sensor)
+        raise UsageError(
+            f"--config: the allocator bench takes position sensors (sigma_x_m, sigma_y_m); "
+            f"{other[0]} is not one"
+        )
     table = [s.position_noise for s in sc.sensors]
+    if len(table) < 8 and max(sensors) > len(table):  # (a traceback at the first size)
+        raise UsageError(
+            f"--sensors {max(sensors)}: beyond the config's {len(table)} sensors the bench "
+            "repeats its first 8, scaled: give a config of 8 or more, or --sensors up to "
+            f"{len(table)}"
+        )
 
     def progress(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
@@ -594,7 +618,7 @@ def bench_alloc(args: argparse.Namespace, sc: Scenario | None) -> int:
     if args.json:
         keys = ("metric", "n_sensors", "median_s", "baseline_median_s", "peak_mb")
         for row in rows:
-            print(json.dumps({k: row[k] for k in keys} | {"agree": row["agree"]}))
+            print(json_line({k: row[k] for k in keys} | {"agree": row["agree"]}))
     else:
         print(
             "fast: per-decision allocate(P_pred, plan, P_d, metric) with plan = prepare(gains) "

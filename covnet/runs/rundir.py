@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import shutil
 import time
@@ -213,6 +214,23 @@ def atomic_write(path: Path, data: bytes) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(data)
     os.replace(tmp, path)
+
+
+def _nulls(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _nulls(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_nulls(v) for v in obj]
+    return obj
+
+
+def json_line(obj: Any) -> str:
+    """``obj`` as one line of strict JSON: a non-finite float (a NaN where no value exists, an
+    infinite cap) as ``null`` (``json.dumps`` wrote ``NaN``/``Infinity``, which JavaScript's,
+    Go's and Rust's parsers reject)."""
+    return json.dumps(_nulls(obj), allow_nan=False)
 
 
 def write_json(path: Path, obj: Any) -> None:
