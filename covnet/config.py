@@ -242,6 +242,19 @@ class SensorLinks(ConfigModel):
     downlink: LinkConfig | None = None
 
 
+def _missed_command(v: Any) -> str:
+    """``keep_last``, ``off`` or ``on``; ``off`` and ``on`` also as YAML 1.1 reads them
+    unquoted, false and true (the README's ``missed_command: off`` was refused as ``got
+    False``)."""
+    v = {False: "off", True: "on"}[v] if isinstance(v, bool) else v
+    if not isinstance(v, str) or v not in ("keep_last", "off", "on"):
+        raise ValueError(f"Input should be 'keep_last', 'off' or 'on', got {v!r}")
+    return v
+
+
+MissedCommand = Annotated[Any, AfterValidator(_missed_command)]
+
+
 class LatencySpec(ConfigModel):
     """The network between the sensors and the fusion node (README, "Network latency").
 
@@ -260,7 +273,7 @@ class LatencySpec(ConfigModel):
     sensors: dict[Str, SensorLinks] = Field(default_factory=dict)
     late: Literal["oosm", "drop"] = "oosm"
     oosm_depth: Int = Field(default=5, ge=1, le=1000)
-    missed_command: Literal["keep_last", "off", "on"] = "keep_last"
+    missed_command: MissedCommand = "keep_last"
 
     def link(self, sensor_id: str, direction: str) -> Any:
         """The :class:`~covnet.core.delay.LinkSpec` of ``sensor_id``'s ``uplink`` or
@@ -495,10 +508,14 @@ def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
     if kind == "value_error":
         return path, msg
     if kind == "float_type" and isinstance(value, str) and _looks_numeric(value):
-        if _UNSIGNED_EXPONENT.fullmatch(value.strip()):
+        if (m := _EXPONENT.fullmatch(value.strip())) and not _YAML_FLOAT.fullmatch(value.strip()):
+            mantissa, exponent = m.group(1), m.group(2)
+            mantissa += "" if "." in mantissa else ".0"
+            exponent = exponent if exponent[0] in "+-" else "+" + exponent
             return path, (
                 f"expected a number, got the string {value!r} (YAML 1.1 reads an exponent "
-                "without a sign as text: write 1.0e+4 or 10000.0)"
+                "without a sign, or a number with an exponent and no dot, as text: write "
+                f"{mantissa}e{exponent})"
             )
         return path, f"expected a number, got the string {value!r} (drop the quotes)"
     return path, f"{msg}, got {_short(value)}"
@@ -536,8 +553,12 @@ def _count_values(data: object, limit: int) -> int:
     return n
 
 
-#: a number YAML 1.1 reads as text: an exponent without a sign (``1e4``, ``1.0E4``)
-_UNSIGNED_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE]\d+")
+#: a number with an exponent (mantissa, exponent)
+_EXPONENT = re.compile(r"([-+]?(?:\d+\.?\d*|\.\d+))[eE]([-+]?\d+)")
+#: what YAML 1.1 (PyYAML) reads as a float: a dot, and an exponent only with a sign; a
+#: number-like string that is not one of these was written unquoted and read as text
+#: (``1e4``, ``1.0E4``, ``1e-9``), one that is was quoted
+_YAML_FLOAT = re.compile(r"[-+]?(?:\d[\d_]*)?\.[\d_]*(?:[eE][-+]\d+)?")
 
 
 def _root_causes(errors: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:

@@ -65,7 +65,7 @@ def test_a_manager_never_seen_is_given_up_on():
     assert not lonely.left
     time.sleep(0.25)
     with pytest.raises(ConnectionError, match="no manager of run 't' appeared within 0.2 s"):
-        lonely.left
+        _ = lonely.left
     watch = ManagerWatch(node, "t", grace_s=0.3, appear_s=0.2)
     token = mgr.declare_token(msg.alive_key("t", "manager", msg.MANAGER_ID))
     time.sleep(0.25)

@@ -249,13 +249,20 @@ def test_config_problems_are_root_causes_all_at_once(tmp_path, capsys):
         "allocation.metrics[1]",
         "fusion.mode",
     ], lines
-    assert "write 1.0e+4 or 10000.0" in lines[1]
+    assert "write 1.0e+4" in lines[1]
     assert "duplicate sensor id 'S1'" in lines[2]
 
 
 @pytest.mark.parametrize(
     "text,hint",
-    [("1e4", "YAML 1.1 reads an exponent"), ("1.5E3", "YAML 1.1"), ("1.0", "drop the quotes")],
+    [
+        ("1e4", "write 1.0e+4"),
+        ("1.5E3", "write 1.5e+3"),
+        ("1.0", "drop the quotes"),
+        ("1e-9", "write 1.0e-9"),  # (was told to drop quotes it did not have)
+        ("2E+5", "write 2.0e+5"),
+        ("1.0e-9", "drop the quotes"),  # YAML reads it unquoted: it was quoted
+    ],
 )
 def test_a_number_given_as_text_gets_the_hint_that_fits(tmp_path, capsys, text, hint):
     data = yaml.safe_load(PAPER.read_text())
@@ -267,6 +274,19 @@ def test_a_number_given_as_text_gets_the_hint_that_fits(tmp_path, capsys, text, 
     assert line.strip().startswith(f"period_s: expected a number, got the string '{text}'")
     assert hint in line
     assert ("YAML 1.1" in line) != ("drop the quotes" in line)
+
+
+@pytest.mark.parametrize(
+    ("written", "read"), [("off", "'off'"), ("on", "'on'"), ("'off'", "'off'")]
+)
+def test_missed_command_off_and_on_as_the_readme_writes_them(tmp_path, capsys, written, read):
+    """YAML 1.1 reads an unquoted off/on as false/true: ``missed_command: off`` was refused as
+    ``got False``."""
+    text = PAPER.read_text() + f"\nnetwork:\n  latency:\n    missed_command: {written}\n"
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    assert main(["check", str(p)]) == 0, capsys.readouterr().err
+    assert f"missed_command: {read}" in capsys.readouterr().out
 
 
 # --------------------------------------------------------------------------------------------
