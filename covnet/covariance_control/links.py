@@ -54,9 +54,10 @@ class LatencyCounts:
     """What the links did in one run (summed over scans)."""
 
     commanded: int = 0  # sensors enabled by the centre's commands
-    commands_missed: int = 0  # (sensor, scan) whose command was late or lost at t_k
+    commands_missed: int = 0  # (sensor, scan) whose command a later one overtook (filled in)
     measured: int = 0  # measurements (or tracks) sensors sent
-    unsolicited: int = 0  # ... by a sensor not enabled for that scan (a stale command)
+    fallback_sent: int = 0  # ... for a scan whose command never reached the sensor
+    unsolicited: int = 0  # fused on time from a sensor not enabled for that scan (as network.json)
     on_time: int = 0  # fused at their own scan's deadline
     late_refiltered: int = 0  # late, re-filtered from their scan (OOSM)
     late_dropped: int = 0  # late and dropped (policy drop, too old for the buffer, or CI)
