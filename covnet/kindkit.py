@@ -31,6 +31,9 @@ class KindBase:
 
     config: Any
     title: str
+    mc_options: frozenset[str] | None = None
+    """The run options its ``covnet mc`` takes, where fewer than ``Kind.options`` (None: the
+    same): what a refusal lists as its options."""
 
     def from_dict(self, data: object, source: str, base_dir: str | Path | None) -> Any:
         return self.config.from_dict(data, source, base_dir)

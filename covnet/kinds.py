@@ -202,11 +202,16 @@ def config_hash(cfg: Any) -> str:
     return hash_of(of(cfg).normalised(cfg))
 
 
-def apply_options(kind: Kind, cfg: Any, source: str, **values: Any) -> Any:
+def apply_options(
+    kind: Kind, cfg: Any, source: str, *, taken: Collection[str] | None = None, **values: Any
+) -> Any:
     """``cfg`` with the given :data:`OPTIONS` applied (``None`` values are not given), as a
     new validated config.  An option the kind does not take, or a value it refuses, is a
-    :class:`~covnet.errors.UsageError` naming the option."""
-    return apply_named_options(kind, cfg, source, values, OPTIONS, taken=values)
+    :class:`~covnet.errors.UsageError` naming the option; ``taken``: the options the command
+    takes for this kind (default: those in ``values``), which a refusal lists."""
+    return apply_named_options(
+        kind, cfg, source, values, OPTIONS, taken=values if taken is None else taken
+    )
 
 
 def _check_type(spelled: str, name: str, value: Any) -> None:

@@ -51,7 +51,16 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_mc(args: argparse.Namespace) -> int:
-    kind, cfg = _load(args, "seed", "metric", "fusion")
+    kind, cfg = kinds.load(args.config)
+    names = ("seed", "metric", "fusion")
+    takes = getattr(kind, "mc_options", None)  # optional: fewer than the kind's run options
+    cfg = kinds.apply_options(
+        kind,
+        cfg,
+        args.config,
+        taken=names if takes is None else [n for n in names if n in takes],
+        **_options(args, *names),
+    )
     return kinds.command(kind, "mc", "a Monte Carlo protocol")(args, cfg)
 
 

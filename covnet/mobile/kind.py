@@ -34,6 +34,7 @@ class Mobile(KindBase):
     title = "mobile"
     roles = {"manager": "manager.mobile", "sensor": "sensors.mobile", "world": "world.mobile"}
     options = {"seed": seed_option, "solver": _solver}
+    mc_options = frozenset[str]()  # its mc runs seeds 0..N-1 with the config's solver
     commands = {
         "mc": lazy(_COMMANDS, "mc"),
         "replay": lazy(_REPLAY, "command"),

@@ -51,11 +51,15 @@ def test_a_refused_bench_prints_no_table_header(capsys):
 
 def test_a_refused_option_names_only_the_commands_options(tmp_path, capsys):
     """``covnet mc`` of a mobile config with ``--metric`` said "(its options: --seed,
-    --solver)": mc has no --solver."""
+    --solver)": mc has no --solver; then "(its options: --seed)", and its mc refuses --seed
+    too (it runs seeds 0..N-1)."""
     mobile = str(REPO / "configs" / "mobile.yaml")
-    assert main(["mc", mobile, "--metric", "kl", "--out", str(tmp_path / "m")]) == 2
-    err = capsys.readouterr().err
-    assert "(its options: --seed)" in err, err
+    for option in (["--metric", "kl"], ["--fusion", "ci"]):
+        assert main(["mc", mobile, *option, "--out", str(tmp_path / "m")]) == 2
+        err = capsys.readouterr().err
+        assert "(its options: none)" in err, err
+    assert main(["mc", mobile, "--seed", "3", "--out", str(tmp_path / "m")]) == 2
+    assert "runs seeds 0..N-1" in capsys.readouterr().err
     assert main(["run", mobile, "--metric", "kl", "--out", str(tmp_path / "r")]) == 2
     assert "(its options: --seed, --solver)" in capsys.readouterr().err
 
