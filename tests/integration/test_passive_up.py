@@ -140,14 +140,18 @@ def _bad_sensor(cfg, sid):
             bad_el = np.array([[0.5, 2.0]])  # elevation beyond pi/2
             if k == 2:
                 return meas(k, bad_el)
-            for m in (
-                meas(k, bad_el),
-                meas(k, np.zeros((1, 3)), R=np.eye(3)),  # not angle pairs
-                meas(k, z, target_ids=tuple(f"x{i}" for i in range(len(z)))),  # another kind's
-                meas(k, np.zeros((manager_node.MAX_LIST + 1, 2))),  # too long
-                meas(k, z, sensor_id="s1"),  # on s3's key
+            for i, m in enumerate(
+                (
+                    meas(k, bad_el),
+                    meas(k, np.zeros((1, 3)), R=np.eye(3)),  # not angle pairs
+                    meas(k, z, target_ids=tuple(f"x{i}" for i in range(len(z)))),  # another kind's
+                    meas(k, np.zeros((manager_node.MAX_LIST + 1, 2))),  # too long
+                    meas(k, z, sensor_id="s1"),  # on s3's key
+                )
             ):
-                bus.publish(key, msg.encode(m))
+                # numbered, as a sensor numbers what it sends (an unnumbered message is
+                # refused before its content is looked at: missing_seq)
+                bus.publish(key, msg.encode(m.evolve(seq=50_000 + 10 * k + i)))
             bus.publish(key, b"\x93garbage")
             return meas(k, z)
 
