@@ -58,7 +58,7 @@ from covnet.cli.common import (
 )
 from covnet.config import ConfigError, ConfigWarning, scheduler_problem
 from covnet.errors import ClusterLost, UpError, UsageError, WorkerDied
-from covnet.processes import interrupts
+from covnet.processes import interrupts, output
 from covnet.runs import rundir
 
 __all__ = [
@@ -618,6 +618,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # again, not printed and lost
         interrupts.deliver_late_interrupts()
     interrupts.begin_command()
+    output.reset()
     parser = build_parser()
     args = parser.parse_args(argv)
     warnings.showwarning = _show_warning
@@ -629,6 +630,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the output still buffered is written here, where a reader that has gone is told
         # from a failure (not at the interpreter's exit: "Exception ignored", status 120)
         sys.stdout.flush()
+        if output.gone() and status == EXIT_OK:  # a reader gone while it worked on (up)
+            return EXIT_PIPE
         return status
     except ConfigError as exc:
         print(f"covnet: {exc}", file=sys.stderr)

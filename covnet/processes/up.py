@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from covnet.errors import UpError
-from covnet.processes import interrupts
+from covnet.processes import interrupts, output
 from covnet.processes.launch import ProcessSpec, Supervisor
 from covnet.processes.netns_launch import NetnsTopology, up_in_namespaces
 from covnet.processes.process import run_option_args
@@ -200,7 +200,7 @@ class StatusView:
         if self._progress is not None:
             self._progress.console.print(text, markup=False, highlight=False)
         else:
-            print(text, flush=True)
+            output.say(text)  # (a reader gone: silence, not a traceback from this thread)
 
     def update(self, st: dict[str, Any]) -> None:
         """One manager STATUS line (:func:`manager.loop.run_scans`: the kind's ``info`` and the
@@ -214,7 +214,7 @@ class StatusView:
             now = time.monotonic()
             if now - self._last_plain >= 1.0 or st["scan"] == st["scans"]:
                 head = f"[status] {st['metric']}: "
-                print(head + status_text(st, self.width - len(head)), flush=True)
+                output.say(head + status_text(st, self.width - len(head)))
                 self._last_plain = now
 
 
