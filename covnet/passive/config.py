@@ -45,6 +45,10 @@ from covnet.core.passive.model import AssocParams
 from covnet.passive.scene import FORMATIONS, SceneModel, formation
 from covnet.records import Field, field_validator
 
+MAX_PASSIVE_RATE = 50.0
+"""The most false returns a sensor's list holds a scan (``clutter.rate_per_scan``): at 200 a
+scan took 2.1 GB and 6.7 s; at 50, with the targets, the triples' arrays are some 30 MB."""
+
 __all__ = [
     "KIND",
     "PassiveConfig",
@@ -108,6 +112,19 @@ class ClutterSpec(ConfigModel):
         return v
 
     _rate = field_validator("rate_per_scan")(rate)  # at most MAX_RATE
+
+    @field_validator("rate_per_scan")
+    @classmethod
+    def _few(cls, v: float) -> float:
+        """At most :data:`MAX_PASSIVE_RATE`: the association tests every triple of the three
+        sensors' lists, so its memory and time grow with the cube of a list's length (1 000
+        false returns a scan asked for 7.5 GiB an array: a MemoryError traceback)."""
+        if v > MAX_PASSIVE_RATE:
+            raise ValueError(
+                f"at most {MAX_PASSIVE_RATE:g} false returns a scan (the association tests "
+                f"every triple of the three sensors' lists: n³ work and memory), got {v:g}"
+            )
+        return v
 
     @field_validator("window_rad")
     @classmethod
