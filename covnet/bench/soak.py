@@ -133,7 +133,8 @@ def growth(
     t_warm = t0 + warmup * (t1 - t0)
     kept = [s for s in samples if t_warm <= s[0] <= t1]
     out: dict[str, Any] = {"samples": len(kept)}
-    if not kept:  # the same keys, None: not measured
+    if len(kept) < 2:  # the same keys, None: not measured (one sample shows no growth: it
+        # was its own start and end, "+0.0 %, flat")
         for what, unit in (("rss", "_kb"), ("fd", "")):
             out.update({f"{what}_{k}{unit}": None for k in ("start", "end", "max")})
             out[f"{what}_growth_pct"] = None
@@ -238,9 +239,15 @@ def _soak_config(config_path: str, work: Path, scans: int, metric: str | None) -
     kind, cfg = load(config_path)
     data = yaml.safe_load(Path(config_path).read_text())
     data["scans"] = int(scans)
-    metrics = (data.get("allocation") or {}).get("metrics")
+    # the config's metrics as loaded (its own list or the default one: a config without
+    # allocation.metrics ran all three, whatever --metric said, and timed the first only)
+    metrics = getattr(getattr(cfg, "allocation", None), "metrics", None)
     if metrics:
-        data["allocation"]["metrics"] = [metric or metrics[0]]
+        if metric is not None and metric not in _metric_names():
+            raise UsageError(f"--metric: unknown metric {metric!r}")
+        data.setdefault("allocation", {})["metrics"] = [metric or metrics[0]]
+    elif metric is not None:
+        raise UsageError(f"--metric: a {kind.title} scenario has no allocation metrics")
     sec = (data.get("network") or {}).get("security") or {}
     base = Path(config_path).resolve().parent
     for k in ("credentials_file",):
@@ -254,6 +261,13 @@ def _soak_config(config_path: str, work: Path, scans: int, metric: str | None) -
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     load(str(path))  # the same checks as covnet up makes, before anything starts
     return path
+
+
+def _metric_names() -> list[str]:
+    """The metric registry's names (start-up: imported for a soak with --metric only)."""
+    from covnet.core.metrics import METRICS
+
+    return list(METRICS)
 
 
 class _Child:
@@ -375,7 +389,7 @@ def _phase(
         g = growth(s.samples, t0, t1, warm)
         # None: no sample after the warm-up (a phase shorter than a few intervals)
         pct = (g["rss_growth_pct"], g["fd_growth_pct"])
-        flat = all(p < FLAT_PCT for p in pct) if g["samples"] else None
+        flat = all(p < FLAT_PCT for p in pct) if g["rss_growth_pct"] is not None else None
         row = {"phase": name, "row": "process", "process": proc_name, "pid": s.pid}
         rows.append({**row, **g, "flat": flat})
     lat = scan_latencies(out / "recording.mcap")
@@ -543,7 +557,10 @@ def main(args: argparse.Namespace) -> int:
                 f"--work {args.work}: not empty (an earlier soak's runs?); give a new or empty "
                 "directory"
             )
-    metric = args.metric[0] if getattr(args, "metric", None) else None
+    metrics = getattr(args, "metric", None) or []
+    if len(metrics) > 1:  # (the first ran, silently)
+        raise UsageError(f"--metric: a soak runs one metric, got {len(metrics)}")
+    metric = metrics[0] if metrics else None
     rows = run(
         args.config,
         args.scans,
