@@ -21,7 +21,7 @@ import math
 import os
 import platform
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -302,7 +302,17 @@ def run_grid_outcome(
     rows = [r for k, recs in outcome.results.items() for r in cell_rows(by_key[k], recs, methods)]
     facts = _facts(n_trials, len(cells), methods, n_workers, t0)
     facts.update(outcome.ci_facts())
+    ran = sorted({len(recs) for recs in outcome.results.values()})
+    if ran and ran != [n_trials]:  # --ci-width added trials to some cells: say how many
+        facts["trials_range"] = [ran[0], ran[-1]]
     return rows, facts, outcome
+
+
+def trials_text(facts: Mapping[str, Any]) -> str:
+    """``"6"``, or ``"12-18"`` where ``--ci-width`` gave the cells different counts (the
+    summary line and ``results.md`` said the first round's 6)."""
+    lo, hi = facts.get("trials_range") or (facts["trials"], facts["trials"])
+    return str(lo) if lo == hi else f"{lo}-{hi}"
 
 
 def _facts(
@@ -380,7 +390,7 @@ def write_results(
     write_json(out_dir / CONFIG, normalised(cfg))
     title = (
         f"# Passive association, Monte Carlo ({cfg.name}, config {doc['config_hash']}, "
-        f"seed {cfg.seed}, {facts['trials']} trials per cell)\n\n"
+        f"seed {cfg.seed}, {trials_text(facts)} trials per cell)\n\n"
         f"Times are medians per scan on {facts['machine']['processor']} "
         f"({facts['workers']} worker processes); compare methods by ratios only.\n\n"
     )

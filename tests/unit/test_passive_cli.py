@@ -166,3 +166,24 @@ def test_mc_json_lines_and_no_figures(tmp_path, capsys):
     assert rows and all("method" in r for r in rows)
     assert not list(out.glob("*.png"))
     assert json.loads((out / "results.json").read_text())["seed"] == 5
+
+
+def test_ci_width_says_how_many_trials_each_cell_ran(tmp_path, capsys):
+    """With ``--ci-width`` the summary line, ``results.md`` and ``results.json`` said the first
+    round's trial count ("6 trials per cell") where the cells ran 12 and 18."""
+    data = yaml.safe_load(PASSIVE.read_text())
+    data["montecarlo"].update(
+        trials=6, formations=["cross"], spacings_km=[1.0], sigmas_mrad=[1.0, 3.0], methods=["cot"]
+    )
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "mc"
+    argv = ["mc", str(cfg), "--out", str(out), "--workers", "1"]
+    assert main([*argv, "--ci-width", "0.3", "--max-seeds", "18"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    ran = sorted({r["trials"] for r in doc["rows"]})
+    assert len(ran) > 1, ran  # (the case: cells with different counts)
+    text = f"{ran[0]}-{ran[-1]}"
+    assert doc["trials_range"] == [ran[0], ran[-1]]
+    assert f"x {text} trials in" in capsys.readouterr().out
+    assert f"{text} trials per cell" in (out / "results.md").read_text().splitlines()[0]
