@@ -6,6 +6,7 @@ stepped with the recording, :mod:`covnet.covariance_control.replay`)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,25 @@ class PeerResult:
     error: str | None = None
 
 
+def failed_by_majority(statuses: Mapping[str, Mapping[int, Any]]) -> dict[str, int]:
+    """Per node, the first scan at which most of the other nodes that reported that scan
+    name it failed (``statuses``: node -> scan -> its Status, whose ``failed`` are the nodes
+    it left out).  Every node's own view counted alone, a node frozen for a few seconds, which
+    then found none of its peers' statuses and left them all out, made every sensor "failed";
+    by the majority only the frozen one is."""
+    scans = sorted({k for by_scan in statuses.values() for k in by_scan})
+    out: dict[str, int] = {}
+    for k in scans:
+        reports = {n: by_scan[k] for n, by_scan in statuses.items() if k in by_scan}
+        named = {m for st in reports.values() for m in st.failed}
+        for m in sorted(named - set(out)):
+            voters = [n for n in reports if n != m]
+            votes = sum(m in reports[n].failed for n in voters)
+            if voters and 2 * votes > len(voters):
+                out[m] = k
+    return out
+
+
 def write_peer_run(
     out: Path, sc: Scenario, result: PeerResult, run_info: dict[str, Any] | None = None
 ) -> dict[str, Any]:
@@ -109,11 +129,7 @@ def write_peer_run(
         # the metrics block: the first node that completed the most scans
         first = max(nodes, key=lambda n: (len(nodes[n].value), -ids.index(n)))
         runs[metric] = nodes[first]
-        seen: dict[str, int] = {}
-        for log in logs.values():
-            for k, st in sorted(log.statuses.items()):
-                for n in st.failed:
-                    seen[n] = min(seen.get(n, k), k)
+        seen = failed_by_majority({n: log.statuses for n, log in logs.items()})
         failures[metric] = [
             {"sensor": n, "scan": k, "event": "failed"} for n, k in sorted(seen.items())
         ]

@@ -211,3 +211,27 @@ def test_well_formed_tracks_of_other_scans_or_outside_the_gate_are_not_fused(pap
     assert refused["bad_scan"] >= 4 * len(sc.sensor_ids) + len(sc.sensor_ids)  # + the truth
     assert refused["wrong_scan"] >= 2 * len(sc.sensor_ids)  # at least the scan-12 tracks
     assert refused["outside_gate"] + refused["wrong_scan"] >= 4 * len(sc.sensor_ids)
+
+
+def test_failures_are_the_majority_view():
+    """A node frozen for seconds found none of its peers' statuses and left them all out:
+    merged, every node's view made every sensor "failed" (summary.json listed all eight).
+    A node is failed where most of the others that reported the scan say so."""
+    from types import SimpleNamespace as S
+
+    from covnet.covariance_control.peer_run import failed_by_majority
+
+    ids = [f"S{i}" for i in range(1, 6)]
+
+    def st(failed):
+        return S(failed=tuple(failed))
+
+    statuses = {n: {k: st([]) for k in range(1, 4)} for n in ids}
+    for n in ids[:4]:  # S5 frozen after scan 1: the others leave it out from scan 2
+        statuses[n].update({2: st(["S5"]), 3: st(["S5"])})
+    statuses["S5"][3] = st(ids[:4])  # and it, back, leaves them all out
+    assert failed_by_majority(statuses) == {"S5": 2}
+    statuses["S3"].pop(3)  # S3 killed after scan 2: the survivors name it at scan 3
+    for n in ("S1", "S2", "S4"):
+        statuses[n][3] = st(["S5", "S3"])
+    assert failed_by_majority(statuses) == {"S5": 2, "S3": 3}
