@@ -224,13 +224,15 @@ def cmd_up(args: argparse.Namespace) -> int:
 def cmd_check(args: argparse.Namespace) -> int:
     import yaml  # the check's printout only (start-up time of the other commands)
 
-    from covnet.wire.messages import RESERVED_IDS  # start-up: the check's own
+    from covnet.wire.messages import RECORDER_ID, RESERVED_IDS  # start-up: the check's own
     from covnet.wire.security import preflight
 
     kind, cfg = kinds.load(args.config)
     data = kind.normalised(cfg)
     # the files security needs on this host (keys, certificates, passwords), for every node
-    preflight(cfg, [*RESERVED_IDS, *cfg.sensor_ids], args.config)
+    # the network runs (no recorder with network.record false: check asked for its password)
+    nodes = [n for n in RESERVED_IDS if n != RECORDER_ID or cfg.network.record]
+    preflight(cfg, [*nodes, *cfg.sensor_ids], args.config)
     print(yaml.safe_dump(data, sort_keys=False), end="")
     print(f"# config hash: {hash_of(data)}")
     return EXIT_OK

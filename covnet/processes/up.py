@@ -287,6 +287,7 @@ def up(
             foxglove=foxglove,
         )  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
+    given_router = router  # --router (None: the config's)
     router = resolve_router(endpoint(sc.network, router or sc.network.router))
     wanted = set(nodes) if nodes is not None else None
     ids = list(sc.sensor_ids)  # the sensors started here, in config order
@@ -319,7 +320,8 @@ def up(
         specs = [sp for sp in specs if sp.name in wanted or sp.name in sensor_procs]
     hosts = {sid: name for name, hosted in groups if len(hosted) > 1 for sid in hosted}
     nodes_here = [sp.name for sp in specs if not sp.name.startswith(HOST_PREFIX)] + list(hosts)
-    preflight(sc, nodes_here, str(config_path))  # keys, passwords: on this host
+    # keys, passwords: on this host; the certificates' names against the endpoint in use
+    preflight(sc, nodes_here, str(config_path), router=given_router)
     if not any(sp.name == "manager" for sp in specs):
         return _supervise_without_manager(specs, out, run_id, router, hosts)
     ready = threading.Event()

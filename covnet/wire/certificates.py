@@ -398,7 +398,9 @@ def _node_problems(
     return out
 
 
-def certificate_problems(net: NetworkSpec, names: Sequence[str]) -> list[tuple[str, str]]:
+def certificate_problems(
+    net: NetworkSpec, names: Sequence[str], router: str | None = None
+) -> list[tuple[str, str]]:
     """``(path, message)`` for everything zenoh would refuse, or that would make a node
     unknown to the router, in the TLS files of ``names`` (``manager``, ``world``,
     ``recorder``, sensor ids) on this host; empty without TLS.
@@ -426,11 +428,14 @@ def certificate_problems(net: NetworkSpec, names: Sequence[str]) -> list[tuple[s
         problems += [(_CA_FIELD, m) for m in ca_problems]
     if not Path(tls.cert_dir).is_dir():  # file_problems says so
         return problems
+    # the endpoint the clients connect to: the config's, or the command line's --router
+    # (the check named the config's while the run used --router: a right certificate refused)
     connect: tuple[str, str] | None = None
-    field = "network.connect" if net.connect else "network.router"
-    hp = _endpoint_host_port(net.connect or net.router)
+    where = net.connect or router or net.router
+    field = "network.connect" if net.connect else "--router" if router else "network.router"
+    hp = _endpoint_host_port(where)
     if tls.verify_name and hp is not None:
-        connect = (hp[0], f"{field} {net.connect or net.router}")
+        connect = (hp[0], f"{field} {where}")
     for name in names:
         problems += [(_DIR_FIELD, m) for m in _node_problems(tls, name, cas, connect, now)]
     return problems

@@ -188,11 +188,14 @@ def file_problems(net: NetworkSpec) -> list[tuple[str, str]]:
     return problems
 
 
-def preflight(sc: Networked, names: Sequence[str], source: str = "config") -> None:
+def preflight(
+    sc: Networked, names: Sequence[str], source: str = "config", router: str | None = None
+) -> None:
     """Check, before any process starts, that every one of ``names`` (process names as
     ``covnet up`` uses them: ``manager``, ``world``, ``recorder``, sensor ids) will find its
     files, password and certificate on this host, and that the certificates are ones zenoh will
-    accept (:func:`certificate_problems`); one :class:`ConfigError` lists them all."""
+    accept (:func:`certificate_problems`; ``router``: ``covnet up --router``, the endpoint the
+    clients connect to when the config names none); one :class:`ConfigError` lists them all."""
     net = sc.network
     problems = file_problems(net)
     if not problems:
@@ -203,7 +206,7 @@ def preflight(sc: Networked, names: Sequence[str], source: str = "config") -> No
             except ConfigError as exc:
                 # not the key and certificate files: certificate_problems names them per node
                 problems += [p for p in exc.problems if p not in problems and p[0] != _DIR_FIELD]
-    problems += [p for p in certificate_problems(net, names) if p not in problems]
+    problems += [p for p in certificate_problems(net, names, router) if p not in problems]
     if problems:
         raise ConfigError(source, problems)
 

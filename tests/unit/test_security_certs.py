@@ -616,3 +616,30 @@ def test_login_problem_tls_to_something_that_does_not_speak_tls(lab, paper, list
     problem = login_problem(net, "S1", f"tls/127.0.0.1:{listener}", timeout_s=0.3)
     assert problem is not None and problem.startswith("TLS handshake failed for S1 (")
     assert "did not complete a TLS handshake" in problem
+
+
+def test_the_router_given_on_the_command_line_is_the_one_checked(lab, paper):
+    """``covnet up --router tcp/127.0.0.2:P``: the clients connect there, but the check named
+    the config's router: a certificate for 127.0.0.2 was refused and one for 127.0.0.1 only
+    passed (every client then failed its TLS handshake)."""
+    sc = load(write_config(lab, paper))
+    assert certificate_problems(sc.network, ["manager"]) == []  # the config's 127.0.0.1
+    [(_, message)] = certificate_problems(sc.network, ["manager"], "tcp/127.0.0.2:7447")
+    assert "but not 127.0.0.2" in message and "--router tcp/127.0.0.2:7447" in message
+    _ca(lab).issue(lab / "pki" / "certs", "manager", san=("127.0.0.2",))
+    assert certificate_problems(sc.network, ["manager"], "tcp/127.0.0.2:7447") == []
+
+
+def test_check_asks_for_no_recorder_without_a_recording(lab, paper, capsys):
+    """``covnet check`` of a config with ``network.record: false`` wanted the recorder's
+    certificate (exit 2) while ``covnet up`` ran it: no recorder runs."""
+    cfg = write_config(lab, paper)  # record: false, and the lab has no recorder certificate
+    for ext in ("pem", "key"):
+        (lab / "pki" / "certs" / f"recorder.{ext}").unlink(missing_ok=True)
+    rc, err = check(cfg, capsys)
+    assert rc == 0, err
+    data = yaml.safe_load(cfg.read_text())
+    data["network"]["record"] = True
+    cfg.write_text(yaml.safe_dump(data, sort_keys=False))
+    rc, err = check(cfg, capsys)
+    assert rc == 2 and "recorder" in err, err
