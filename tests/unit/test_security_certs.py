@@ -513,7 +513,7 @@ def _timeless(text: str) -> str:
 )
 def test_one_problem_reported_exactly(lab, paper, capsys, break_it, path, fragments):
     break_it(lab)
-    cfg = write_config(lab, paper)
+    cfg = write_config(lab, paper, record=True)  # (check then asks for the recorder's files)
     problems = problems_of(cfg)
     assert len(problems) == 1, problems
     [(got_path, message)] = problems
@@ -529,7 +529,7 @@ def test_one_problem_reported_exactly(lab, paper, capsys, break_it, path, fragme
 def test_every_problem_at_once(lab, paper, capsys):
     for break_it in (_v1, _expired, _not_yet_valid, _manager_without_san, _key_mismatch):
         break_it(lab)
-    cfg = write_config(lab, paper)
+    cfg = write_config(lab, paper, record=True)  # (check then asks for the recorder's files)
     problems = problems_of(cfg)
     who = sorted(m.split("'s ")[0] for _, m in problems)
     assert who == ["S1", "S2", "manager", "recorder", "world"], problems
