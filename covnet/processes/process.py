@@ -21,7 +21,13 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from covnet import kinds
-from covnet.config import ConfigError, NetworkSpec, endpoint_problem, endpoint_security_problem
+from covnet.config import (
+    ConfigError,
+    NetworkSpec,
+    endpoint_problem,
+    endpoint_security_problem,
+    hash_of,
+)
 from covnet.errors import UsageError
 from covnet.wire import security
 from covnet.wire.keys import run_keyexpr
@@ -80,8 +86,15 @@ def load_config(args: Any) -> tuple[Any, Any]:
 
 
 def default_run_id(cfg: Any) -> str:
-    """The run id processes started separately agree on without being told: ``name-hash``."""
-    return f"{cfg.name}-{kinds.config_hash(cfg)[:8]}"
+    """The run id processes started separately agree on without being told: ``name-hash``,
+    the hash of the config without ``network.security`` (its file paths are made absolute
+    where the config lies: copies of one config on two hosts, or in two folders, gave two run
+    ids, and the hosts never met)."""
+    data = kinds.of(cfg).normalised(cfg)
+    net = data.get("network")
+    if isinstance(net, dict) and "security" in net:
+        data = {**data, "network": {k: v for k, v in net.items() if k != "security"}}
+    return f"{cfg.name}-{hash_of(data)[:8]}"
 
 
 def resolve_run(args: Any, cfg: Any) -> str:

@@ -93,6 +93,27 @@ def test_relative_paths_resolve_against_the_config_file(paper, lab, tmp_path_fac
     assert with_overrides(sc, seed=5).network.security == sec
 
 
+def test_copies_in_two_folders_agree_on_the_run_id(paper, lab, tmp_path):
+    """Hosts started without --run agree on a run id derived from the config; with security
+    its file paths are made absolute where the config lies, so copies of one config in two
+    folders derived two run ids and the hosts never met."""
+    import shutil
+
+    from covnet.processes.process import default_run_id
+
+    data = _data(paper, access_control=True, credentials_file="creds.txt")
+    a, b = lab / "c.yaml", tmp_path / "hostB" / "c.yaml"
+    b.parent.mkdir()
+    for path in (a, b):
+        path.write_text(yaml.safe_dump(data))
+    shutil.copy(lab / "creds.txt", b.parent / "creds.txt")
+    ra, rb = default_run_id(load(a)), default_run_id(load(b))
+    assert ra == rb and ra.startswith(f"{data['name']}-"), (ra, rb)
+    data["seed"] += 1  # another config: another run id
+    b.write_text(yaml.safe_dump(data))
+    assert default_run_id(load(b)) != ra
+
+
 @pytest.mark.parametrize(
     "security, path, fragment",
     [
