@@ -224,7 +224,11 @@ class LinkConfig(ConfigModel):
                     f"delay.{key} must be a number of seconds of magnitude at most "
                     f"{MAX_MAGNITUDE:g}, got {_short(value)}"
                 )
-        self.spec()  # the core's checks, with its messages naming the field
+        # the core's checks, with its messages naming the field; then the table as the core
+        # reads it (floats, every parameter of the kind): written as 1 or 1.0, with a default
+        # written out or left out, one config, one hash (the table was kept as written)
+        # (a record check sees the record as it is built, before anyone else: it may set it)
+        self.__dict__["delay"] = self.spec().delay.to_dict()
         return self
 
     def spec(self) -> Any:

@@ -285,3 +285,28 @@ def test_a_sweep_axis_names_each_grid_point_once(paper_path, axis, values, needl
     with pytest.raises(ConfigError) as err:
         from_dict(data)
     assert f"sweep.{axis}" in str(err.value) and needle in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize(
+    "a, b",
+    [
+        ({"kind": "constant", "value_s": 1}, {"kind": "constant", "value_s": 1.0}),
+        ({"kind": "exponential", "mean_s": 0.2}, {"kind": "exponential", "mean_s": 0.2,
+                                                  "offset_s": 0}),  # fmt: skip
+        ({"kind": "uniform", "high_s": 0.3}, {"kind": "uniform", "low_s": 0.0, "high_s": 0.3}),
+    ],
+)
+def test_a_delay_written_two_ways_is_one_config(paper_path, a, b):
+    """The delay table was kept as written: 1 against 1.0, a default written out or left out,
+    gave other config hashes for bit-identical runs.  It is the table the core reads now."""
+    from covnet.covariance_control.config import config_hash
+
+    hashes = []
+    for delay in (a, b):
+        data = normalised(load(paper_path))
+        data["network"]["latency"]["uplink"] = {"delay": delay}
+        sc = from_dict(data)
+        hashes.append(config_hash(sc))
+    assert hashes[0] == hashes[1]
+    assert all(isinstance(v, float) for k, v in normalised(sc)["network"]["latency"]["uplink"][
+        "delay"].items() if k != "kind")  # fmt: skip
