@@ -748,45 +748,97 @@ def validate(
     return cfg
 
 
+_DUPLICATE_ID = re.compile(r"@\[(\d+)\]\.id: duplicate ")
+"""The message of :func:`unique_ids`: the index of the record that repeats an id."""
+
+
+def _at(data: Any, loc: Sequence[int | str]) -> Any:
+    """``data[loc[0]][loc[1]]...``, or None where there is no such place."""
+    for part in loc:
+        try:
+            data = data[part]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return data
+
+
+def _repaired(
+    data: dict[str, Any], errors: Sequence[Mapping[str, Any]]
+) -> tuple[Any, list[tuple[int | str, ...]]] | None:
+    """``data`` without the values ``errors`` refused (each falls back to its default), and
+    the scopes they lie in; None when a refused place cannot be removed."""
+    scopes: list[tuple[int | str, ...]] = []
+    repaired: Any = copy.deepcopy(data)
+    for err in errors:
+        loc = tuple(err["loc"])
+        dup = _DUPLICATE_ID.match(str(err.get("msg", "")))
+        table = _at(repaired, loc) if dup else None
+        if dup and isinstance(table, list) and int(dup.group(1)) < len(table):
+            # a repeated id (unique_ids): that record under a stand-in id, not the whole
+            # table gone (the checks that span fields need it: "no sensor with id 'S9'")
+            i = int(dup.group(1))
+            if isinstance(table[i], dict):
+                table[i]["id"] = f"{table[i].get('id')}_repeated_{i}"
+                scopes.append((*loc, i))
+                continue
+        while loc and isinstance(loc[-1], int):  # an item of a list of values: the list
+            loc = loc[:-1]
+        if not loc:
+            return None
+        holder = repaired
+        for part in loc[:-1]:
+            try:
+                holder = holder[part]
+            except (KeyError, IndexError, TypeError):
+                return None
+        if isinstance(holder, dict):
+            holder.pop(loc[-1], None)
+        items = [i for i, part in enumerate(loc) if isinstance(part, int)]
+        scopes.append(loc[: items[-1] + 1] if items else loc)
+    return repaired, scopes
+
+
 def _later_problems(
     model: type[M],
     data: dict[str, Any],
     exc: ValidationError,
     problems: Callable[[M], list[tuple[str, str]]],
 ) -> list[tuple[str, str]]:
-    """The checks that span fields, run on ``data`` without the values the structure refused
-    (each falls back to its default), so that the whole list comes at once: nothing when a
-    refused value has no default (the config is then incomplete), and nothing said within the
-    record that holds a refused value (a sensor whose ``model`` is refused would otherwise be
-    checked as the default model)."""
-    scopes: list[tuple[int | str, ...]] = []
-    repaired: Any = copy.deepcopy(data)
-    for err in exc.errors():
-        loc = tuple(err["loc"])
-        while loc and isinstance(loc[-1], int):  # an item of a list of values: the list
-            loc = loc[:-1]
-        if not loc:
-            return []
-        holder = repaired
-        for part in loc[:-1]:
-            try:
-                holder = holder[part]
-            except (KeyError, IndexError, TypeError):
-                return []
-        if isinstance(holder, dict):
-            holder.pop(loc[-1], None)
-        items = [i for i, part in enumerate(loc) if isinstance(part, int)]
-        scopes.append(loc[: items[-1] + 1] if items else loc)
-    try:
-        cfg = model.model_validate(repaired)
-    except ValidationError:
-        return []
-    inside = [_fmt_loc(scope) for scope in scopes]
-    return [
-        (path, msg)
-        for path, msg in problems(cfg) + network_problems(cfg)
-        if not any(path == s or path.startswith((f"{s}.", f"{s}[")) for s in inside)
-    ]
+    """What the first look at the structure could not see, so that the whole list comes at
+    once: ``data`` without the values the structure refused (each falls back to its default)
+    is validated again; what that refuses (a check that runs only once every item of its list
+    is valid, a duplicate id behind a bad value: three rounds of fixes for one file) is added,
+    removed in turn, up to a few rounds; then the checks that span fields, on the repaired
+    copy.  Nothing more once a refused value has no default (the copy lacks a required key),
+    and nothing said within the record that holds a refused value (a sensor whose ``model`` is
+    refused would otherwise be checked as the default model)."""
+    errors = list(exc.errors())
+    seen = set(_root_causes(errors))
+    extra: list[tuple[str, str]] = []
+    for _ in range(4):
+        fixed = _repaired(data, errors)
+        if fixed is None:
+            return extra
+        repaired, scopes = fixed
+        try:
+            cfg = model.model_validate(repaired)
+        except ValidationError as again:
+            # a key missing now is one this removed (a missing one was said at first)
+            more = [e for e in again.errors() if e["type"] != "missing"]
+            new = [rc for rc in _root_causes(more) if rc not in seen]
+            if not new:
+                return extra
+            extra += new
+            seen.update(new)
+            errors += more
+            continue
+        inside = [_fmt_loc(scope) for scope in scopes]
+        return extra + [
+            (path, msg)
+            for path, msg in problems(cfg) + network_problems(cfg)
+            if not any(path == s or path.startswith((f"{s}.", f"{s}[")) for s in inside)
+        ]
+    return extra
 
 
 def normalised(cfg: Record, omit_if_default: Sequence[str] = ()) -> dict[str, Any]:

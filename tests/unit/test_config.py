@@ -171,6 +171,22 @@ def test_every_problem_reported_at_once(raw):
     assert {"sensors[3].rho", "sensors[5].sigma_y_m", "bogus"} <= paths
 
 
+def test_problems_behind_others_are_reported_in_the_same_list(raw):
+    """A bad value hid a repeated id (the id check runs once every sensor is valid), and a
+    repeated id hid every check that spans fields (the whole sensor table was set aside):
+    three rounds of fixes for one file.  Now one list."""
+    raw["sensors"][0]["rho"] = 1.82
+    raw["sensors"][1]["id"] = raw["sensors"][0]["id"]
+    raw["desired"][0]["from_scan"] = 2
+    raw["allocation"]["required"] = ["S9"]
+    found = dict(_problems(raw))
+    assert set(found) == {
+        "sensors[0].rho", "sensors[1].id", "desired[0].from_scan", "allocation.required[0]"
+    }, found  # fmt: skip
+    assert "duplicate sensor id" in found["sensors[1].id"]
+    assert "no sensor with id 'S9'" in found["allocation.required[0]"]
+
+
 def test_message_reads_path_colon_reason(raw):
     raw["sensors"][3]["rho"] = 1.5
     with pytest.raises(ConfigError) as info:
