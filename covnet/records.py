@@ -253,7 +253,7 @@ def _float(v: Any, loc: Loc, errors: Errors) -> Any:
             f"Input should be a number of magnitude at most {MAX_MAGNITUDE:g} (the run squares "
             "and multiplies it: beyond, its arithmetic overflows)", v,
         )  # fmt: skip
-    return v
+    return v + 0.0  # -0.0 as 0.0: one number, one hash (its sign changed the config's hash)
 
 
 def _int(v: Any, loc: Loc, errors: Errors) -> Any:

@@ -158,6 +158,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     for n in nodes or []:
         if n not in known:
             raise UsageError(f"--nodes: unknown process {n!r}; choose from {sorted(known)}")
+        if n == "recorder" and not cfg.network.record:  # (it started nothing and exited 0)
+            raise UsageError(
+                "--nodes recorder: network.record is false in the config, so no recorder runs"
+            )
     router = args.router or cfg.network.router
     if (
         nodes is not None

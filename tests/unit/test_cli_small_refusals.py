@@ -104,3 +104,34 @@ def test_a_live_view_of_a_peer_run_is_refused(tmp_path, capsys):
     assert main(argv) == 2
     assert "--foxglove: fusion.mode peer has no fusion centre" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_nodes_recorder_without_a_recording_is_refused(tmp_path, capsys):
+    """``covnet up --nodes recorder`` with ``network.record: false`` started nothing and
+    exited 0."""
+    import yaml
+
+    data = yaml.safe_load((REPO / "configs" / "paper.yaml").read_text())
+    data["network"] = {"record": False}
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    argv = ["up", str(cfg), "--nodes", "recorder", "--router", "tcp/127.0.0.1:7447"]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 2
+    assert "network.record is false" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_minus_zero_is_zero_in_a_config(paper_path):
+    """``-0.0`` and ``0.0`` gave two config hashes for one run (the sign of zero was kept)."""
+    import math
+
+    import yaml
+
+    from covnet.covariance_control.config import config_hash, from_dict
+
+    data = yaml.safe_load(paper_path.read_text())
+    data["target"]["initial_position_m"] = [0.0, -0.0]
+    sc = from_dict(data)
+    assert math.copysign(1.0, sc.target.initial_position_m[1]) == 1.0
+    data["target"]["initial_position_m"] = [0.0, 0.0]
+    assert config_hash(from_dict(data)) == config_hash(sc)
