@@ -38,10 +38,11 @@ from typing import Any
 from covnet.clock import Clock
 from covnet.config import Networked
 from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_appear_s
-from covnet.runs.recording import RecordingReader, RecordingWriter, episode_of, peek
+from covnet.runs.recording import RecordingReader, RecordingWriter, peek
 from covnet.runs.visual import Visualiser
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, dropped
+from covnet.wire.codec import episode_of
 from covnet.wire.profiling import Stages, profiled
 
 ROLE = NODE_ID = msg.RECORDER_ID

@@ -604,11 +604,9 @@ def _stdout_closed() -> bool:
         poll.register(fd, select.POLLOUT)
         if not any(ev & select.POLLERR for _, ev in poll.poll(0)):
             return False
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, fd)
-        os.close(devnull)
     except (OSError, ValueError, AttributeError):
         return False
+    output.silence()
     return True
 
 

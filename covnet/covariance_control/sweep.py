@@ -67,6 +67,9 @@ MEANS = (
     "fused",
 )
 """The per-run numbers a row averages over its seeds."""
+SPREAD = ("allocation_rate", "deadline_miss_rate", "late", "lost")
+"""The per-run numbers whose spread over seeds a row gives (``<name>_mean/std/ci_lo/ci_hi``,
+:func:`covnet.batches.stats.add_stats`): every quantity the figure draws besides the errors'."""
 STATS = (
     "burn_in_scans",
     "rmse_steady",
@@ -88,20 +91,10 @@ STATS = (
     "nees_steady_std",
     "nees_steady_ci_lo",
     "nees_steady_ci_hi",
-    "allocation_rate_std",
-    "allocation_rate_ci_lo",
-    "allocation_rate_ci_hi",
-    *(
-        f"{k}_{s}"
-        for k in ("deadline_miss_rate", "late", "lost")
-        for s in ("std", "ci_lo", "ci_hi")
-    ),
+    *(f"{k}_{s}" for k in SPREAD for s in ("std", "ci_lo", "ci_hi")),
 )
 """The statistics over seeds (:func:`covnet.batches.stats.error_stats`, and
 :data:`SPREAD`'s), after the means."""
-SPREAD = ("allocation_rate", "deadline_miss_rate", "late", "lost")
-"""The per-run numbers whose spread over seeds a row gives (``<name>_mean/std/ci_lo/ci_hi``,
-:func:`covnet.batches.stats.add_stats`): every quantity the figure draws besides the errors'."""
 COLUMNS = (*POINT_KEYS, "seeds", "rmse_position", *MEANS, *STATS, "point")
 
 

@@ -221,17 +221,6 @@ def peek(payload: bytes) -> tuple[str, int | None, int | None]:
     )
 
 
-def episode_of(payload: bytes) -> int | None:
-    """The ``episode`` field of a payload :func:`peek` read as a message (0 when absent, the
-    schema's default; None when it is not an int in ``[0, 2**63)``)."""
-    try:
-        obj = msgpack.unpackb(payload, raw=False, strict_map_key=False)
-    except Exception:  # as in peek
-        return None
-    e = obj.get("episode", 0) if type(obj) is dict else None
-    return e if type(e) is int and 0 <= e <= _STAMP_MAX else None
-
-
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 """An MCAP Message record's head: opcode 0x05, record length (22 + data), channel id (u16),
 sequence (u32), log time, publish time (u64, little-endian), then the data."""

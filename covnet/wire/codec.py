@@ -88,6 +88,19 @@ _M = TypeVar("_M", bound=_Message)
 # --------------------------------------------------------------------------------------------
 
 
+def episode_of(payload: bytes) -> int | None:
+    """The ``episode`` field of a payload, read with one plain msgpack unpack (no strict
+    decode: the recorder's look at what it records, a link emulator's at what it delays): 0
+    when absent (the schema's default); None when the payload is not a msgpack map or the
+    field not an int in ``[0, 2**63)``."""
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception:  # msgpack's ValueError, ExtraData, FormatError, StackError, ...
+        return None
+    e = obj.get("episode", 0) if type(obj) is dict else None
+    return e if type(e) is int and 0 <= e < 2**63 else None
+
+
 def _default(obj: object) -> msgpack.ExtType:
     if isinstance(obj, np.ndarray) and obj.dtype == np.float64:
         a = np.ascontiguousarray(obj, dtype=_WIRE_DTYPE)

@@ -26,11 +26,10 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any, cast
 
-import msgpack
-
 from covnet.core.delay import DOWN, UP, LinkState, link_stream
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, LivelinessSubscription, Sample, Subscription, Token
+from covnet.wire.codec import episode_of
 
 
 class _Delayed:
@@ -52,17 +51,6 @@ class _Delayed:
         return self.heap[0][0] if self.heap else None
 
 
-def _episode(payload: bytes) -> int | None:
-    """The ``episode`` field of a message's payload (0 when absent, the schema's default);
-    None when it is not a msgpack map with an int there."""
-    try:
-        obj = msgpack.unpackb(payload, raw=False, strict_map_key=False)
-    except Exception:  # msgpack's ValueError, ExtraData, FormatError, StackError, ...
-        return None
-    e = obj.get("episode", 0) if type(obj) is dict else None
-    return e if type(e) is int and e >= 0 else None
-
-
 class EpisodeLinks:
     """One link direction: a :class:`~covnet.core.delay.LinkState` per episode, each new from
     ``make`` (the start of the link's stream), as ``covnet run`` builds every episode's links
@@ -77,7 +65,7 @@ class EpisodeLinks:
         self.newest = 0
 
     def for_payload(self, payload: bytes) -> LinkState:
-        e = _episode(payload)
+        e = episode_of(payload)
         if e is None or (e not in self.states and e > self.newest + 1):
             e = self.newest
         self.newest = max(self.newest, e)

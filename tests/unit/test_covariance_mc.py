@@ -73,13 +73,21 @@ def test_mc_of_many_targets(short_config, tmp_path):
     assert main(["plot", str(out)]) == 0 and (out / "montecarlo.png").is_file()
 
 
-def test_mc_of_the_paper(paper_path, tmp_path):
+def _short_paper(paper_path: Path, tmp_path: Path, scans: int, **more) -> tuple[dict, Path]:
+    """The paper config with ``scans`` scans, one metric, its P_d switch at half the run,
+    written to ``tmp_path``: ``(data, path)``."""
     data = yaml.safe_load(paper_path.read_text())
-    data["scans"] = 20
+    data["scans"] = scans
     data["allocation"]["metrics"] = ["spectral"]
-    data["desired"][1]["from_scan"] = 11
+    data["desired"][1]["from_scan"] = scans // 2 + 1
+    data |= more
     cfg = tmp_path / "p.yaml"
     cfg.write_text(yaml.safe_dump(data))
+    return data, cfg
+
+
+def test_mc_of_the_paper(paper_path, tmp_path):
+    _, cfg = _short_paper(paper_path, tmp_path, 20)
     out = tmp_path / "mc"
     assert main(["mc", str(cfg), "--trials", "2", "--workers", "1", "--out", str(out)]) == 0
     doc = json.loads((out / "montecarlo.json").read_text())
@@ -93,12 +101,7 @@ def test_mc_of_the_paper(paper_path, tmp_path):
 def test_mc_resumes_after_a_change_of_its_evaluation_settings(paper_path, tmp_path, capsys):
     """The trials' key covered ``evaluation`` (which changes no trial), so changing only the
     burn-in refused the batch's own directory (exit 2, "holds the trials of another batch")."""
-    data = yaml.safe_load(paper_path.read_text())
-    data["scans"] = 6
-    data["allocation"]["metrics"] = ["spectral"]
-    data["desired"][1]["from_scan"] = 4
-    cfg = tmp_path / "p.yaml"
-    cfg.write_text(yaml.safe_dump(data))
+    data, cfg = _short_paper(paper_path, tmp_path, 6)
     out = tmp_path / "mc"
     argv = ["mc", str(cfg), "--trials", "2", "--workers", "1", "--out", str(out), "--no-figures"]
     assert main(argv) == 0
