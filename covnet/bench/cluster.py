@@ -91,7 +91,7 @@ def run(config: Path, seeds: int = 2, repeat: int = 4) -> dict[str, Any]:
 
 
 def main(args: Any) -> int:
-    res = run(Path(args.config), repeat=max(2, args.repeat))
+    res = run(Path(args.config), repeat=args.repeat)
     if args.json:
         for r in res["rows"]:
             print(json.dumps(r))

@@ -529,7 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--repeat",
         type=int,
         help=takes("repeat") + "timed repeats per problem (alloc, fusion: default 3), whole runs "
-        "(up), alternations (cluster, default 4)",
+        "(up), alternations (cluster, default 4, at least 2)",
     )
     b.add_argument(
         "--json",
@@ -547,7 +547,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--sensors-per-process",
         type=int,
         metavar="K",
-        help=takes("sensors_per_process") + "sensors per sensor process (default: covnet up's)",
+        help=takes("sensors_per_process") + "sensors per sensor process, with --sensors (default: "
+        "covnet up's)",
     )
     b.add_argument(
         "--scans", type=int, help=takes("scans") + "lockstep scans (0: none; default 20000)"

@@ -187,6 +187,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
         args.metric = list(dict.fromkeys(args.metric))
     if args.exact_cap is not None and not args.exact_cap > 0:
         raise UsageError(f"--exact-cap: must be > 0 seconds, got {args.exact_cap}")
+    if args.sensors_per_process is not None and not args.sensors:
+        # without --sensors the config's own network runs, hosted as its config says
+        raise UsageError(
+            "--sensors-per-process: only with --sensors (the bench networks of N sensors); "
+            "without it bench up runs the config's network as covnet up hosts it"
+        )
+    if args.target == "cluster" and args.repeat < 2:  # it ran 2 and said nothing
+        raise UsageError(
+            f"--repeat: bench cluster alternates the local pool and Dask, at least 2 pairs, "
+            f"got {args.repeat}"
+        )
     if args.foxglove and (args.target != "up" or args.sensors):
         raise UsageError("--foxglove: only for bench up (the paper network, without --sensors)")
     if default_config and not Path(args.config).is_file():

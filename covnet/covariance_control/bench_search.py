@@ -209,6 +209,10 @@ def meets_goal(row: Row) -> dict[str, Any]:
     }
 
 
+#: the most sensors ``covnet bench search`` runs its exact search on (above it bounded and greedy)
+EXACT_MAX = 40
+
+
 def _bounded_limit(n_sensors: int) -> float:
     """The default time limit of a bounded decision: 40 ms up to 100 sensors, 1.5 s beyond."""
     return 0.04 if n_sensors <= 100 else 1.5
@@ -260,7 +264,7 @@ def run(
     rel_gap: float = 0.01,
     bounded_limit_s: float | Callable[[int], float] = _bounded_limit,
     exact_cap_s: float | None = None,
-    exact_max: int = 40,
+    exact_max: int = EXACT_MAX,
     plain_max: int = 100,
     progress: Callable[[str], None] | None = None,
     on_row: Callable[[Row], None] | None = None,
@@ -725,7 +729,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--problems", type=int, default=5)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--exhaustive-max", type=int, default=16)
-    parser.add_argument("--exact-max", type=int, default=40)
+    parser.add_argument("--exact-max", type=int, default=EXACT_MAX)
     parser.add_argument("--exact-cap", type=float, default=None)
     parser.add_argument("--multitarget", action="store_true")
     args = parser.parse_args(argv)

@@ -476,6 +476,13 @@ def bench_search(args: argparse.Namespace, sc: Scenario | None) -> int:
     for s in searches:
         if s not in bs.SEARCHES:
             raise UsageError(f"--search: unknown search {s!r}; choose from {list(bs.SEARCHES)}")
+    big = [n for n in args.sensors or () if n > bs.EXACT_MAX]
+    if args.search and "exact" in args.search and big:
+        # exact above EXACT_MAX gave no row at all, and said nothing
+        raise UsageError(
+            f"--search exact: bench search runs the exact search up to {bs.EXACT_MAX} sensors, "
+            f"got --sensors {big[0]} (beyond it: --search bounded or greedy)"
+        )
     if not args.json:
         print(bs.header(), flush=True)
     rows = bs.run(

@@ -361,6 +361,25 @@ def test_a_bench_option_that_does_not_apply_is_refused(argv, refused, capsys):
     assert "does not take this option" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        # exact above 40 sensors gave no row and exit 0
+        (["bench", "search", "--search", "exact", "--sensors", "20,41"], "--search exact: bench"),
+        # without --sensors the paper network ran as covnet up hosts it, K unused
+        (["bench", "up", "--sensors-per-process", "4"], "--sensors-per-process: only with"),
+        # --repeat 1 ran 2 pairs
+        (["bench", "cluster", "--repeat", "1"], "--repeat: bench cluster alternates"),
+    ],
+)
+def test_a_bench_option_that_would_have_no_effect_is_refused(argv, message, capsys):
+    """An option a benchmark takes but could not honour is refused before anything runs (exit
+    2, one line), not silently dropped."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
 def test_bench_help_says_which_benchmarks_take_each_option(capsys):
     with pytest.raises(SystemExit):
         main(["bench", "--help"])
