@@ -134,6 +134,11 @@ REFUSED_FOR_S = 2.0
 """A client gives up before ``ready_timeout_s`` once the router has been there and refused its
 session (:func:`covnet.wire.security.login_problem`) for this long."""
 
+ROUTER_RETRY_S = 2.0
+"""A router whose listener cannot be opened (the port taken, the address not on this host)
+gives up after this long, not at ``ready_timeout_s``: waiting does not free an address, and
+this is long enough for a router of a run just ended to let its port go."""
+
 
 def open_bus(
     mode: str,
@@ -148,7 +153,8 @@ def open_bus(
     diagnose: Callable[[], str | None] | None = None,
 ) -> Any:
     """Open a :class:`~covnet.wire.zenoh_bus.ZenohBus`, retrying a client's connection for up to
-    ``timeout_s`` (so processes may start in any order, as on several hosts).
+    ``timeout_s`` (so processes may start in any order, as on several hosts), a router's listener
+    for up to :data:`ROUTER_RETRY_S`.
 
     ``diagnose``: asked, at most every 0.5 s, after a failed attempt, why the session does not
     open; a text means the router is there and refuses it (a wrong password, a certificate it
@@ -158,7 +164,8 @@ def open_bus(
     # use this module too (start-up time)
     from covnet.wire.zenoh_bus import ZenohBus, zenoh_config
 
-    deadline = time.monotonic() + timeout_s
+    wait_s = min(timeout_s, ROUTER_RETRY_S) if mode == "router" else timeout_s
+    deadline = time.monotonic() + wait_s
     verdict: str | None = None
     refused_since: float | None = None
     next_look = 0.0

@@ -369,3 +369,23 @@ def test_fifo_recv_runs_signal_handlers_delivered_to_another_thread(
     bus.publish(m.command_key(run, ["s1"]), b"after")  # the subscription still works afterwards
     got = sub.recv(timeout=5)
     assert got is not None and got.payload == b"after"
+
+
+def test_a_router_whose_port_is_taken_says_so_within_seconds_not_at_the_ready_timeout():
+    """A router's listener on a taken port is not cured by waiting: ``open_bus`` gives up after
+    ``ROUTER_RETRY_S``, not after the whole ``timeout_s`` (30 s by default, every run that
+    could not listen waited it out)."""
+    from covnet.processes.process import open_bus
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        t0 = time.monotonic()
+        with pytest.raises(ConnectionError, match="cannot open a zenoh router session"):
+            open_bus(
+                "router", listen=[endpoint], lease_ms=None, timeout_s=60.0,
+                stop=threading.Event(),
+            )  # fmt: skip
+        # generous: the retries stop at ROUTER_RETRY_S (2 s); the old code took timeout_s
+        assert time.monotonic() - t0 < 30.0
