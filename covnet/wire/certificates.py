@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import socket
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -453,13 +453,35 @@ _ALERTS = {
 }
 
 
+class _NoVerdict(Exception):
+    """The probe's connection went (reset, closed) before it could tell anything: a router
+    exiting, not a refusal of this node."""
+
+
+def _waits_for_us(sock: socket.socket, timeout_s: float) -> bool:
+    """Whether the peer keeps the connection open, waiting for us to speak first (a zenoh
+    router waits for the client's handshake); raises :class:`_NoVerdict` when it closes or
+    resets it (a router exiting: its kernel accepted the connection, nobody will answer)."""
+    sock.settimeout(timeout_s)
+    try:
+        data = sock.recv(1)
+    except TimeoutError:
+        return True
+    except OSError:
+        raise _NoVerdict from None
+    if not data:
+        raise _NoVerdict
+    return True  # it spoke first: not a closing listener at least
+
+
 def _tls_problem(
     tls: TlsSpec, node_id: str, sock: socket.socket, host: str, timeout_s: float
 ) -> str | None:
     """A TLS handshake over ``sock`` as ``node_id`` (its certificate and the CA, like zenoh's
     client): why it fails, or ``None`` when the router accepted it. In TLS 1.3 the router
     checks the client's certificate after the client's side of the handshake is done, so a
-    rejection shows as an alert on the first read."""
+    rejection shows as an alert on the first read. Raises :class:`_NoVerdict` when the
+    connection went before the handshake told anything."""
     # start-up: ssl only to diagnose a refused TLS login
     import ssl
 
@@ -472,21 +494,43 @@ def _tls_problem(
         ctx.load_cert_chain(cert, key, password=lambda: b"")  # never a password prompt
     except (OSError, ssl.SSLError) as exc:
         return f"its certificate {str(cert)!r} or key cannot be used: {exc}; run covnet check"
-    tsock = ctx.wrap_socket(sock, server_hostname=host, do_handshake_on_connect=False)
+    # over memory buffers, not ssl's socket wrapper: that one, given a socket the router has
+    # just reset, raises from its constructor and leaves its own socket unclosed
+    incoming, outgoing = ssl.MemoryBIO(), ssl.MemoryBIO()
+    tls_obj = ctx.wrap_bio(incoming, outgoing, server_hostname=host)
+
+    def drive(step: Callable[[], object]) -> None:
+        """Run ``step`` of the handshake, sending what it wrote and feeding it what the router
+        sends until it needs nothing more; a connection closed meanwhile is no verdict."""
+        while True:
+            try:
+                step()
+                return
+            except ssl.SSLWantReadError:
+                if pending := outgoing.read():
+                    sock.sendall(pending)
+                data = sock.recv(16384)
+                if not data:
+                    raise _NoVerdict from None  # closed without an alert: a refusal sends one
+                incoming.write(data)
+
     try:
-        tsock.settimeout(timeout_s)
+        sock.settimeout(timeout_s)
         try:
-            tsock.do_handshake()
+            drive(tls_obj.do_handshake)
         except TimeoutError:
             return (
                 f"the router at {host} did not complete a TLS handshake: is it listening on tls/?"
             )
         try:
-            tsock.recv(1)
+            drive(lambda: tls_obj.read(1))  # a refusal: an alert here (ssl.SSLError below)
         except TimeoutError:
             return None  # the router waits for zenoh's handshake: TLS went through
+        return None
     except ssl.SSLCertVerificationError as exc:
         return f"{node_id} does not accept the router's certificate: {exc.verify_message}"
+    except (ssl.SSLEOFError, ssl.SSLZeroReturnError):
+        raise _NoVerdict from None  # closed without an alert: a refusal would send one
     except ssl.SSLError as exc:
         reason = str(exc.reason or exc)
         alert = reason.partition("ALERT_")[2]
@@ -498,10 +542,12 @@ def _tls_problem(
             )
         return f"the TLS handshake with the router at {host} failed: {reason.lower()}"
     except OSError:
-        return None  # the connection went: nothing to tell
-    finally:
-        tsock.close()
-    return None
+        raise _NoVerdict from None  # the connection went: nothing to tell
+
+
+PASSWORD_PROBE_S = 0.3
+"""How long :func:`login_problem` waits, without TLS, to see that the router keeps the
+connection open (a router exiting resets it at once)."""
 
 
 def login_problem(net: NetworkSpec, node_id: str, ep: str, timeout_s: float = 1.0) -> str | None:
@@ -510,7 +556,8 @@ def login_problem(net: NetworkSpec, node_id: str, ep: str, timeout_s: float = 1.
     network, shows which side refuses which certificate) or ``"authentication failed for
     <node> (...)"`` (the router is there, TLS, if on, goes through, and a password is in use);
     ``None`` when security is off, when nothing accepts connections at ``ep`` (the router is
-    not up, yet) or when nothing can be told. Opens no zenoh session; takes up to about
+    not up, yet), when the connection is reset or closed before anything is told (a router
+    exiting) or when nothing can be told. Opens no zenoh session; takes up to about
     ``2 * timeout_s``."""
     sec = net.security
     hp = _endpoint_host_port(ep)
@@ -522,10 +569,17 @@ def login_problem(net: NetworkSpec, node_id: str, ep: str, timeout_s: float = 1.
     except OSError:
         return None
     with sock:
-        if sec.tls is not None:
-            problem = _tls_problem(sec.tls, node_id, sock, host, timeout_s)
-            if problem:
-                return f"TLS handshake failed for {node_id} ({problem})"
+        try:
+            if sec.tls is not None:
+                problem = _tls_problem(sec.tls, node_id, sock, host, timeout_s)
+                if problem:
+                    return f"TLS handshake failed for {node_id} ({problem})"
+            elif sec.credentials_file is not None:
+                _waits_for_us(sock, min(timeout_s, PASSWORD_PROBE_S))
+        except _NoVerdict:
+            # a router exiting (another node's failure stops the run) accepts and resets: no
+            # word on this node's password or certificate
+            return None
     if sec.credentials_file is None:
         return None
     return (

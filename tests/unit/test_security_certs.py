@@ -20,6 +20,7 @@ import datetime as dt
 import ipaddress
 import re
 import socket
+import struct
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -609,6 +610,50 @@ def test_login_problem_names_the_node_and_the_password_file(lab, paper, listener
     # nobody listens: the router is not up (yet), nothing to tell
     assert login_problem(net, "S1", f"tcp/127.0.0.1:{_free_port()}") is None
     assert login_problem(paper.network, "S1", f"tcp/127.0.0.1:{listener}") is None  # no security
+
+
+@pytest.fixture(params=["reset", "closed"])
+def exiting_router(request) -> Iterator[int]:
+    """A TCP port whose owner accepts each connection and drops it at once, as a router process
+    that is exiting does (its kernel still accepts): reset (SO_LINGER 0) or closed."""
+    srv = socket.create_server(("127.0.0.1", 0))
+    done = threading.Event()
+
+    def serve() -> None:
+        srv.settimeout(0.1)
+        while not done.is_set():
+            try:
+                conn = srv.accept()[0]
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if request.param == "reset":
+                conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            conn.close()
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    yield srv.getsockname()[1]
+    done.set()
+    t.join(5)
+    srv.close()
+
+
+def test_a_router_that_drops_the_connection_is_no_verdict_on_the_node(lab, paper, exiting_router):
+    """When another node's failure stops a run, the router exits while the others still try to
+    log in: its kernel accepts and drops their probes. That said "authentication failed for
+    world (the password ... is not the router's ...)" of nodes whose password was right (and
+    the same with TLS on, whose probe ended without an alert); a dropped connection tells
+    nothing (None), with passwords and with TLS."""
+    (lab / "creds.txt").write_text("S1:pw\n")
+    data = normalised(paper)
+    data["network"]["security"] = {"credentials_file": "creds.txt"}
+    pw = lab / "pw.yaml"
+    pw.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert login_problem(load(pw).network, "S1", f"tcp/127.0.0.1:{exiting_router}") is None
+    tls = load(write_config(lab, paper)).network
+    assert login_problem(tls, "S1", f"tls/127.0.0.1:{exiting_router}", timeout_s=1.0) is None
 
 
 def test_login_problem_tls_to_something_that_does_not_speak_tls(lab, paper, listener):
