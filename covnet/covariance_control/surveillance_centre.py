@@ -316,11 +316,12 @@ class SurveillanceCentre:
 
     def usable(self, m: Any) -> bool:
         """A dwell's returns the centre may use: one of this run's sensors, ``(m, dim_z)``
-        finite returns and its own noise ``R``."""
+        finite returns and its own noise ``R``; any number of them, clutter or not (a dwell
+        returns every target in its window)."""
         if m.sensor_id not in self.ids:
             return False
         j = self.ids.index(m.sensor_id)
-        return targets.usable_returns(self.tm, j, m.z, m.R)
+        return targets.usable_returns(self.tm, j, m.z, m.R, one_target_per_dwell=False)
 
     # ---------------------------------------------------------------------------- fuse
 

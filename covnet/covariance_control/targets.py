@@ -797,16 +797,20 @@ class History:
         return predict_all(self.tm, self.entries[-1].post)
 
 
-def usable_returns(tm: TargetsModel, j: int, z: Mat, R: Mat) -> bool:
+def usable_returns(
+    tm: TargetsModel, j: int, z: Mat, R: Mat, *, one_target_per_dwell: bool = True
+) -> bool:
     """A dwell's returns the manager may use: ``(m, dim_z)`` of sensor ``j``'s model with its
-    ``R`` (the wire checked finiteness), at most one without clutter, bearings in ``(−π,
-    π]``."""
+    ``R`` (the wire checked finiteness), bearings in ``(−π, π]``, and, where a dwell looks at
+    one known target (``one_target_per_dwell``, the many-target model), at most one without
+    clutter. A surveillance dwell returns every target in its window (surveillance.md §1): there
+    a sensor without clutter may return several."""
     s = tm.sensors[j]
     if z.ndim != 2 or z.shape[1] != s.dim_z or R.shape != s.R.shape:
         return False
     if not np.array_equal(R, s.R):
         return False
-    if s.clutter_rate == 0.0 and z.shape[0] > 1:
+    if one_target_per_dwell and s.clutter_rate == 0.0 and z.shape[0] > 1:
         return False
     am = np.asarray(s.angle_components, dtype=bool)
     ang = z[:, am]
