@@ -122,7 +122,7 @@ def write_surveillance_run(
         "truth_ids": list(sm.truth_ids),
         "sensor_models": [s.kind for s in sm.tm.sensors],
         "covnet_version": __version__,
-        "association": sm.tm.method,
+        "association": "jpda",  # what the centre runs (pda, the default, is its one-track case)
         "ospa": {"cutoff_m": sm.tm.ospa_c, "order": sm.tm.ospa_p},
         "search_weight": 0.0 if sm.spec.search is None else sm.spec.search.weight,
         "cells": sm.n_cells,

@@ -180,6 +180,8 @@ def test_every_example_config_loads_and_surveillance_yaml_is_one():
         (lambda d: d["allocation"].update(search="exact")
          or d["surveillance"]["search"]["cells"].update(nx=8, ny=8),
          "allocation.search", "exact would weigh"),
+        # accepted, and JPDA ran in its name (the summary said nearest)
+        (lambda d: d["association"].update(method="nearest"), "association.method", "JPDA"),
     ],
 )
 def test_bad_values_are_refused_with_their_path(change, path, words):
@@ -314,6 +316,13 @@ def test_covnet_run_writes_the_surveillance_summary(tmp_path, capsys):
     ):
         assert key in blk
     assert all(v is None or v >= 0 for v in blk["time_to_confirm"].values())
+    # the association the centre ran, also when the key is left out (its default: pda)
+    assert s["association"] == "jpda"
+    d = base()
+    del d["association"]
+    cfg.write_text(yaml.safe_dump(d))
+    assert main(["run", str(cfg), "--out", str(tmp_path / "run2"), "--no-figures"]) == 0
+    assert json.loads((tmp_path / "run2" / "summary.json").read_text())["association"] == "jpda"
     assert math.isfinite(blk["gospa_mean"])
     assert "GOSPA" in capsys.readouterr().out
 

@@ -154,8 +154,14 @@ def surveillance_problems(sc: Scenario) -> list[tuple[str, str]]:
                 "(position or range_bearing): bearings alone cannot start a track",
             )
         )
-    if sc.association.method == "nearest":
-        pass  # allowed: nearest neighbour per track, returns shared first come
+    if sc.association.method == "nearest":  # it was accepted, and JPDA ran in its name
+        problems.append(
+            (
+                "association.method",
+                "nearest: not with 'surveillance:' (the manager shares each dwell's returns "
+                "among the tracks by JPDA): jpda, or leave the key out",
+            )
+        )
     # peer mode (no centre) is refused by the many-target checks, naming peer
     if sc.fusion.has_centre and (rule := rule_for(sc.fusion)).name != "central":
         problems.append(
