@@ -98,6 +98,20 @@ def _segments(sc: Scenario, i: int, shift: int) -> list[Any]:
     return [replace(g, k0=g.k0 - shift, k1=g.k1 - shift) for g in segments(sc.targets[i])]
 
 
+def _first_stay(ex: np.ndarray) -> np.ndarray:
+    """The first run of ``True`` in ``ex`` only: a target that flies out of the area has left,
+    even where its path comes back in (a born target too; its track was deleted there, and a
+    return would score that deletion as a break)."""
+    inside = np.flatnonzero(ex)
+    if inside.size == 0:
+        return ex
+    out = ex.copy()
+    gaps = np.flatnonzero(~ex[inside[0] :])
+    if gaps.size:
+        out[inside[0] + gaps[0] :] = False
+    return out
+
+
 def _configured(sc: Scenario, tm: TargetsModel) -> tuple[list[str], list[Mat], list[Vec]]:
     """The configured targets' truth rows and existence (module docstring)."""
     assert sc.targets is not None and sc.surveillance is not None
@@ -123,6 +137,7 @@ def _configured(sc: Scenario, tm: TargetsModel) -> tuple[list[str], list[Mat], l
         ex[a - 1 : end] = True
         with np.errstate(invalid="ignore"):  # NaN before it appears: outside
             ex &= (row[:, 0] >= x0) & (row[:, 0] <= x1) & (row[:, 2] >= y0) & (row[:, 2] <= y1)
+        ex = _first_stay(ex)
         row[~ex] = np.nan
         ids.append(entry.id)
         rows.append(row)

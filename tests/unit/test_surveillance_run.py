@@ -440,3 +440,26 @@ def test_a_dwell_without_clutter_that_sees_two_targets_is_fused(monkeypatch):
     assert max(seen) >= 2  # the case arises
     assert refused == []
     assert np.isfinite(run.time_to_confirm).all() and (run.time_to_confirm <= 3).all()
+
+
+def test_a_configured_target_that_flies_out_has_left_even_where_its_path_comes_back():
+    """README: a target exists "only while it is inside the area: one that flies out leaves
+    there, as a born target does". A target turning at 8 deg/s just inside the edge flew out at
+    scan 4 and existed again from scan 22 (its deleted track then scored as a break)."""
+    d = base(scans=40)
+    d["targets"] = [
+        {
+            "id": "U1",
+            "initial_position_m": [19800.0, 10000.0],
+            "initial_velocity_mps": [60.0, 0.0],
+            "manoeuvres": [
+                {"kind": "turn", "from_scan": 1, "to_scan": 40, "turn_rate_deg_s": 8.0}
+            ],
+        },
+        # one that flies in: it appears where it enters
+        {"id": "I1", "initial_position_m": [-500.0, 5000.0], "initial_velocity_mps": [150.0, 0.0]},
+    ]
+    ex = surveillance.build(from_dict(d)).exists
+    u1, i1 = ex[0], ex[1]
+    assert u1[:3].all() and not u1[3:].any(), u1.astype(int)
+    assert not i1[:3].any() and i1[4:].all(), i1.astype(int)
