@@ -34,8 +34,27 @@ def _exit_with_the_answer() -> None:
         os._exit(EXIT_INTERRUPTED)
 
 
+def _reopen_closed_standard_streams() -> None:
+    """A standard stream closed by the caller (``covnet run ... >&-``) becomes ``/dev/null``:
+    Python left ``sys.stdout`` ``None`` (every print a traceback), and the first file covnet
+    opened would have taken descriptor 1, and with it every node process's output."""
+    for fd, name, mode in ((0, "stdin", os.O_RDONLY), (1, "stdout", os.O_WRONLY),
+                           (2, "stderr", os.O_WRONLY)):  # fmt: skip
+        try:
+            os.fstat(fd)
+            continue
+        except OSError:
+            pass
+        null = os.open(os.devnull, mode)
+        if null != fd:
+            os.dup2(null, fd)
+            os.close(null)
+        setattr(sys, name, open(fd, "r" if fd == 0 else "w", closefd=False))  # noqa: SIM115
+
+
 def entry() -> int:
     """The ``covnet`` command: :func:`covnet.cli.app.main` behind handlers installed first."""
+    _reopen_closed_standard_streams()
     # SIGINT and SIGTERM raise KeyboardInterrupt; one inside an import's weakref callback is
     # raised again, not printed and lost
     interrupts.deliver_late_interrupts()

@@ -16,7 +16,14 @@ from covnet.cli.common import EXIT_FAIL, EXIT_OK, RUN_OPTIONS, _err, _load, _not
 from covnet.config import endpoint_problem, endpoint_security_problem, hash_of, read_yaml
 from covnet.errors import UpError, UsageError
 from covnet.processes import interrupts
-from covnet.runs.rundir import CONFIG, RUN_INFO, config_mismatch, prepare_out, read_json, record_end
+from covnet.runs.rundir import (
+    CONFIG,
+    RUN_INFO,
+    config_mismatch,
+    prepare_out,
+    read_json,
+    record_end,
+)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -36,12 +43,21 @@ def cmd_run(args: argparse.Namespace) -> int:
 
             print(f"visual channels for Foxglove: {write_run_mcap(kind, cfg, out)}")
     except BaseException as exc:
+        # every kind writes run.json last: with it the results are whole (it was written before
+        # summary.json, and a Ctrl-C between them was recorded as complete)
+        whole = (out / RUN_INFO).is_file()
+        if isinstance(exc, BrokenPipeError) and whole:  # covnet run | head: results whole
+            record_end(out, "completed", "every scan done (its printed output cut)")
         if not interrupts.caused(exc):
             raise
-        if (out / RUN_INFO).is_file():
-            record_end(out, "completed", "every scan done (figures interrupted)")
-            _note(f"interrupted while drawing the figures: {out} holds the complete results "
-                  f"(covnet plot {out} draws them)")  # fmt: skip
+        if whole:
+            later = "figures" if not args.no_figures else "printing"
+            record_end(out, "completed", f"every scan done ({later} interrupted)")
+            _note(f"interrupted after the results were written: {out} holds the complete "
+                  f"results (covnet plot {out} draws the figures)")  # fmt: skip
+        elif out.is_dir() and any(out.iterdir()):
+            record_end(out, "interrupted", "while the results were written: incomplete")
+            _note(f"interrupted while the results were written: {out} is incomplete")
         else:
             _note("interrupted before the results were written: nothing written")
         raise

@@ -220,8 +220,8 @@ def write_run(
             arrays[f"nees.{m}.{sid}"] = r.nees
     info[FILE_DIGESTS] = {ARRAYS: write_npz(out_dir / ARRAYS, arrays)}
     write_json(out_dir / CONFIG, normalised(sc))
-    write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)
+    write_json(out_dir / RUN_INFO, info)  # last: a run.json says the results are whole
     return summary
 
 
@@ -446,8 +446,8 @@ def write_targets_run(
             arrays[f"gap.{m}"] = r.gap
     info[FILE_DIGESTS] = {ARRAYS: write_npz(out_dir / ARRAYS, arrays)}
     write_json(out_dir / CONFIG, normalised(sc))
-    write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)
+    write_json(out_dir / RUN_INFO, info)  # last: a run.json says the results are whole
     return summary
 
 

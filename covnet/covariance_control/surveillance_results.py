@@ -165,8 +165,8 @@ def write_surveillance_run(
         arrays[f"time_to_confirm.{m}"] = r.time_to_confirm
     info[FILE_DIGESTS] = {ARRAYS: write_npz(out_dir / ARRAYS, arrays)}
     write_json(out_dir / CONFIG, normalised(sc))
-    write_json(out_dir / RUN_INFO, info)
     write_json(out_dir / SUMMARY, summary)
+    write_json(out_dir / RUN_INFO, info)  # last: a run.json says the results are whole
     return summary
 
 

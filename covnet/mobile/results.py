@@ -177,8 +177,9 @@ def write_run(
         "kind": "mobile",
         "decision_time_s": decision_times(run),
     }
-    write_json(out_dir / RUN_INFO, {**info, **(run_info or {}), FILE_DIGESTS: {ARRAYS: digest}})
     write_json(out_dir / SUMMARY, summary)
+    # last: a run.json says the results are whole
+    write_json(out_dir / RUN_INFO, {**info, **(run_info or {}), FILE_DIGESTS: {ARRAYS: digest}})
     return summary
 
 
