@@ -56,8 +56,8 @@ from covnet.config import hash_of
 from covnet.errors import UsageError
 from covnet.runs.rundir import (
     atomic_write,
+    claim,
     clear_output,
-    new_run_dir,
     prepare_out,
     read_json,
     utc_now,
@@ -167,11 +167,13 @@ def prepare_batch_out(
     names ``key``), or with ``force`` any earlier covnet output emptied.  A directory of
     another batch, or any other non-empty one, without ``force`` is a
     :class:`~covnet.errors.UsageError` that says which."""
-    if out is None:
-        return new_run_dir(name), False
+    if out is None:  # made and claimed (two batches started in one second: two directories)
+        return prepare_out(None, name, force), False
     p = Path(out)
     info = p / BATCH_INFO
     if p.is_dir() and (info.exists() or info.is_symlink()):
+        # resumed (or replaced): no other command writes into it meanwhile (prepare_out's)
+        claim(p, f"--out {out}")
         try:
             have = read_json(info)
             why = None if isinstance(have, dict) else "not a JSON object"

@@ -47,7 +47,7 @@ from covnet.batches.stats import per_scan_bands
 from covnet.batches.trials import batch_options, prepare_batch_out, write_batch_info
 from covnet.config import ConfigError
 from covnet.errors import UsageError
-from covnet.runs.rundir import ARRAYS, SUMMARY, load_arrays, prepare_out, read_json
+from covnet.runs.rundir import ARRAYS, SUMMARY, claims, load_arrays, prepare_out, read_json
 
 __all__ = ["RunResult", "SweepResult", "load", "run", "sweep"]
 
@@ -195,8 +195,9 @@ def run(
         _check_flag(name, flag)
     kind, cfg = load(config, **overrides)
     if out is not None:
-        target = prepare_out(out, str(getattr(cfg, "name", "run")), force, "out")
-        return _run_into(kind, cfg, target, figures)
+        with claims():  # no other command writes into out while this one does
+            target = prepare_out(out, str(getattr(cfg, "name", "run")), force, "out")
+            return _run_into(kind, cfg, target, figures)
     target = Path(tempfile.mkdtemp(prefix="covnet-run-"))
     kept = keep or figures
     try:
@@ -302,19 +303,20 @@ def sweep(
     )
     batch_options(options, seeds or (cfg.sweep or SweepSpec()).seeds, api=True)
     target = Path(out) if out is not None else None
-    if target is not None:
-        spec = cfg.sweep or SweepSpec()
-        key = sw.trial_key(cfg, metric or spec.metric or cfg.allocation.metrics[0])
-        target, _ = prepare_batch_out(target, cfg.name, False, "sweep", key)
-        write_batch_info(target, "sweep", key, {})
-    rows, outcome = sw.sweep_outcome(
-        cfg,
-        metric=metric,
-        seeds=seeds,
-        workers=workers,
-        out=target,
-        cluster=cluster,
-        ci_width=ci_width,
-        max_seeds=max_seeds,
-    )
+    with claims():  # no other command writes into out while this one does
+        if target is not None:
+            spec = cfg.sweep or SweepSpec()
+            key = sw.trial_key(cfg, metric or spec.metric or cfg.allocation.metrics[0])
+            target, _ = prepare_batch_out(target, cfg.name, False, "sweep", key)
+            write_batch_info(target, "sweep", key, {})
+        rows, outcome = sw.sweep_outcome(
+            cfg,
+            metric=metric,
+            seeds=seeds,
+            workers=workers,
+            out=target,
+            cluster=cluster,
+            ci_width=ci_width,
+            max_seeds=max_seeds,
+        )
     return SweepResult(rows, outcome.results, target)

@@ -624,7 +624,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     # the config a command reads: --force never empties a directory holding it
     config = getattr(args, "config", None)
     try:
-        with rundir.reading(*([config] if isinstance(config, str) and config else [])):
+        # the output directories the command claims (prepare_out) are released when it ends
+        reads = [config] if isinstance(config, str) and config else []
+        with rundir.claims(), rundir.reading(*reads):
             status = int(args.func(args))
         # the output still buffered is written here, where a reader that has gone is told
         # from a failure (not at the interpreter's exit: "Exception ignored", status 120)

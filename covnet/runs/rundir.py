@@ -1,9 +1,10 @@
 """Run directories: where a command writes, and how, for every scenario kind.
 
 - :func:`prepare_out`: the ``--out`` rule every command follows (a new folder under ``runs/``
-  when none is given; an existing non-empty directory only with ``--force``);
-- :func:`write_json`, :func:`write_npz`: written to a temporary name and renamed, so a reader
-  never sees half a file;
+  when none is given; an existing non-empty directory only with ``--force``), and the claim
+  on the directory (:func:`claim`) that refuses a second command writing into it at once;
+- :func:`write_json`, :func:`write_npz`: written to a temporary name of their own and
+  renamed, so a reader never sees half a file and two writers never share one;
 - :func:`read_json`, :func:`load_arrays`: the matching readers.
 
 The file names every kind shares are constants here: ``config.json`` (the normalised config the
@@ -23,17 +24,25 @@ being written (or was written by an older covnet).
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import errno
+import fcntl
+import functools
 import hashlib
 import json
 import math
 import os
 import shutil
+import tempfile
+import threading
 import time
 import zipfile
 import zlib
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from contextvars import ContextVar
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +60,8 @@ __all__ = [
     "STATUSES",
     "SUMMARY",
     "atomic_write",
+    "claim",
+    "claims",
     "config_mismatch",
     "file_sha256",
     "load_arrays",
@@ -112,7 +123,9 @@ def prepare_out(
     reads: Path | None = None,
 ) -> Path:
     """The directory a command writes to: ``out``, or :func:`new_run_dir` of ``name`` when
-    ``None``.  An existing file, or a non-empty directory without ``force``, is a
+    ``None``, made and claimed (:func:`claim`) for this command: another covnet command
+    writing there now is a :class:`~covnet.errors.UsageError`, with or without ``force``.  An
+    existing file, or a non-empty directory without ``force``, is a
     :class:`~covnet.errors.UsageError` naming ``--out``.  With ``force`` a non-empty directory
     is emptied first (so nothing of an earlier run stays beside the new one), but only when it
     is an earlier output of covnet (:data:`OUTPUT_MARKERS`) and neither the working directory
@@ -122,9 +135,7 @@ def prepare_out(
     if out is not None and not str(out).strip():
         raise UsageError(f"{option}: empty; give a directory (or leave {option} out)")
     if out is None:
-        made = new_run_dir(name)
-        _writable(made, f"{made} (the default output directory; give {option})")
-        return made
+        return _new_claimed_dir(name, option)
     p = Path(out)
     if reads is not None:
         src, target = reads.resolve(), p.resolve()
@@ -135,15 +146,169 @@ def prepare_out(
             )
     if p.exists() and not p.is_dir():
         raise UsageError(f"{option} {out}: exists and is not a directory")
-    if p.is_dir() and any(p.iterdir()):
-        if not force:
-            raise UsageError(
-                f"{option} {out}: directory is not empty; choose another or pass --force to "
-                "replace its contents"
-            )
-        clear_output(p, option)
-    _writable(p, f"{option} {out}")
+    # claimed before it is looked into: the check that it is empty (or the emptying) holds
+    # until this command ends
+    new = claim(p, f"{option} {out}")
+    try:
+        if any(p.iterdir()):
+            if not force:
+                raise UsageError(
+                    f"{option} {out}: directory is not empty; choose another or pass --force "
+                    "to replace its contents"
+                )
+            clear_output(p, option)
+        _writable(p, f"{option} {out}")
+    except BaseException:
+        if new:
+            _release(p.resolve())
+        raise
     return p
+
+
+def _new_claimed_dir(name: str, option: str) -> Path:
+    """A new :func:`new_run_dir` of ``name``, made (by this process alone: two commands
+    started in the same second take ``-2`` and the first) and claimed."""
+    for _ in range(1000):
+        made = new_run_dir(name)
+        what = f"{made} (the default output directory; give {option})"
+        try:
+            made.mkdir(parents=True)
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            raise UsageError(f"{what}: cannot write there ({exc.strerror or exc})") from None
+        claim(made, what, made=True)
+        try:
+            _writable(made, what)
+        except BaseException:
+            _release(made.resolve())
+            raise
+        return made
+    raise UsageError(f"{option}: no free name for {name} under runs/; give {option}")
+
+
+@dataclass
+class _Claim:
+    path: Path
+    fd: int  # open on the directory, flock'ed: the lock lives as long as this descriptor
+    made: bool  # made by this claim: removed again at the release when still empty
+    pid: int
+
+
+_CLAIMS: dict[Path, _Claim] = {}
+"""The directories this process holds (:func:`claim`), by resolved path."""
+_CLAIMS_LOCK = threading.RLock()
+_SCOPE: ContextVar[list[Path] | None] = ContextVar("covnet_claims", default=None)
+
+
+def claim(p: Path, what: str, *, made: bool = False) -> bool:
+    """Claim the directory ``p`` (made when missing) for this command: an exclusive
+    ``flock`` on the directory itself (no file of its own appears in it), held until the
+    :func:`claims` block that took it ends (every CLI command is one), else until this process
+    exits.  Another process holding it (a covnet command writing there now) is a
+    :class:`~covnet.errors.UsageError` naming ``what`` (``--out DIR``); ``--force`` does not
+    change that.  This process claiming it again is no error (a command may prepare its
+    directory twice).  A forked child keeps no claim (:func:`_forget_claims`).  On a file
+    system without ``flock`` (some network mounts) the directory is used unclaimed.
+    True: claimed now, False: held already or not lockable."""
+    made = made or not p.exists()
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"{what}: cannot write there ({exc.strerror or exc})") from None
+    key = p.resolve()
+    with _CLAIMS_LOCK:
+        have = _CLAIMS.get(key)
+        if have is not None:
+            if have.pid == os.getpid() and _same_dir(have.fd, p):
+                return False
+            _release(key)  # the directory it held was removed (and made again)
+        for _ in range(10):
+            try:
+                fd = os.open(p, os.O_RDONLY | os.O_DIRECTORY)
+            except FileNotFoundError:  # removed by an empty command's release: make it again
+                p.mkdir(parents=True, exist_ok=True)
+                made = True
+                continue
+            except OSError as exc:
+                raise UsageError(f"{what}: cannot open it ({exc.strerror or exc})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                os.close(fd)
+                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
+                    raise UsageError(
+                        f"{what}: another covnet command is writing there now (it holds the "
+                        "directory until it ends; --force does not take it over); wait for it "
+                        "to end, or choose another directory"
+                    ) from None
+                return False  # no flock here: unclaimed, as before
+            if not _same_dir(fd, p):  # removed (and made again) before the lock: once more
+                os.close(fd)
+                continue
+            _CLAIMS[key] = _Claim(p, fd, made, os.getpid())
+            scope = _SCOPE.get()
+            if scope is not None:
+                scope.append(key)
+            return True
+    raise UsageError(f"{what}: the directory keeps disappearing (removed by another process?)")
+
+
+def _same_dir(fd: int, p: Path) -> bool:
+    try:
+        a, b = os.fstat(fd), os.stat(p)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+def _release(key: Path) -> None:
+    """Give up the claim on ``key`` (removing the directory when the claim made it and it is
+    still empty: a command refused, or failed before it wrote, leaves no empty directory)."""
+    with _CLAIMS_LOCK:
+        c = _CLAIMS.pop(key, None)
+        if c is None:
+            return
+        if c.pid == os.getpid() and c.made and _same_dir(c.fd, c.path):
+            with contextlib.suppress(OSError):
+                c.path.rmdir()  # only when empty
+        with contextlib.suppress(OSError):
+            os.close(c.fd)
+
+
+@contextmanager
+def claims() -> Iterator[None]:
+    """Within this block, the directories :func:`claim` (:func:`prepare_out`) takes are this
+    block's: released when it ends (the CLI wraps every command in one, the API its
+    functions).  Claimed outside any block, a directory is held until the process exits."""
+    mine: list[Path] = []
+    token = _SCOPE.set(mine)
+    try:
+        yield
+    finally:
+        _SCOPE.reset(token)
+        for key in reversed(mine):
+            _release(key)
+
+
+def _release_all() -> None:
+    for key in list(_CLAIMS):
+        _release(key)
+
+
+def _forget_claims() -> None:
+    """In a forked child: the parent's claims are the parent's (the lock stays with it while
+    it lives); the child closes its copies, so none outlives the command that made it."""
+    global _CLAIMS_LOCK
+    _CLAIMS_LOCK = threading.RLock()
+    for c in _CLAIMS.values():
+        with contextlib.suppress(OSError):
+            os.close(c.fd)
+    _CLAIMS.clear()
+
+
+atexit.register(_release_all)
+os.register_at_fork(after_in_child=_forget_claims)
 
 
 def _writable(p: Path, what: str) -> None:
@@ -209,11 +374,47 @@ def clear_output(p: Path, option: str = "--out") -> None:
             child.unlink()
 
 
+@functools.cache
+def _file_mode() -> int:
+    """The mode a new file gets from this process's umask (``0o666 & ~umask``): what the
+    temporary files (made ``0o600``) are given.  Read from ``/proc`` (setting the umask to
+    read it would change it for the other threads a moment)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+@contextmanager
+def _temporary_beside(path: Path) -> Iterator[tuple[Any, Path]]:
+    """A new file of its own (``NAME.<random>.tmp``) in ``path``'s directory, open for
+    writing, with a new file's mode; moved onto ``path`` when the block ends, removed when it
+    fails: two writers of one file never share a temporary one (a fixed ``NAME.tmp`` mixed
+    two runs' arrays into one corrupt file)."""
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    tmp = Path(name)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            os.fchmod(fh.fileno(), _file_mode())
+            yield fh, tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
 def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same directory."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    """Write ``data`` to ``path`` through a temporary file of its own in the same directory
+    (:func:`_temporary_beside`)."""
+    with _temporary_beside(path) as (fh, _):
+        fh.write(data)
 
 
 def _nulls(obj: Any) -> Any:
@@ -242,10 +443,10 @@ def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> str:
     """A compressed ``.npz`` of ``arrays``, atomically; returns the SHA-256 of the file written
     (``run.json`` keeps it under :data:`FILE_DIGESTS`, so :func:`load_arrays` knows the run's own
     file from another run's)."""
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
-    digest = file_sha256(tmp)
-    os.replace(tmp, path)
+    with _temporary_beside(path) as (fh, tmp):
+        np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
+        fh.flush()
+        digest = file_sha256(tmp)
     return digest
 
 
