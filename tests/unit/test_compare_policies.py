@@ -130,6 +130,23 @@ def test_budget_given_and_refusals(paper30):
         cp.check(from_dict(data), ["random"], 3)
 
 
+def test_a_budget_the_config_cannot_honour_is_refused_naming_it(paper30):
+    """A budget below the required sensors was accepted and every run ended in a traceback;
+    one above ``max_active`` ran ``max_active`` sensors while the table said the budget."""
+    from covnet.config import ConfigError
+
+    data = normalised(paper30)
+    data["allocation"] = {**data["allocation"], "policy": "random", "budget": 1,
+                          "required": ["S1", "S2"]}  # fmt: skip
+    with pytest.raises(ConfigError) as e:
+        from_dict(data)
+    assert any(p == "allocation.budget" and "2 required" in m for p, m in e.value.problems)
+    data = normalised(paper30)
+    data["allocation"] = {**data["allocation"], "max_active": 3}
+    with pytest.raises(UsageError, match=r"allocation.budget: 5: more than allocation.max_active"):
+        cp.check(from_dict(data), ["random"], 5)
+
+
 def test_trial_points_resume_when_a_policy_is_added(paper30, tmp_path):
     first, o1, _ = cp.compare_outcome(paper30, ["all_on"], "abs_trace", 2, workers=1, out=tmp_path)
     rows, o2, _ = cp.compare_outcome(

@@ -309,6 +309,23 @@ def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
         )
     if al.budget is not None and al.budget > len(sc.sensor_ids):  # as max_active
         problems.append(("allocation.budget", f"more than the {len(sc.sensor_ids)} sensors"))
+    if al.budget is not None and al.max_active is not None and al.budget > al.max_active:
+        # the policy ran max_active sensors while the results said budget
+        problems.append(
+            (
+                "allocation.budget",
+                f"{al.budget}: more than allocation.max_active {al.max_active} (a policy turns "
+                "on at most max_active sensors)",
+            )
+        )
+    if al.budget is not None and al.budget < len(set(al.required)):  # every run: a traceback
+        problems.append(
+            (
+                "allocation.budget",
+                f"{al.budget}: smaller than the {len(set(al.required))} required sensors "
+                "(allocation.required: on every scan)",
+            )
+        )
     if sc.multitarget and not pol.many_targets:
         problems.append(("allocation.policy", f"{al.policy} has no many-target form"))
     if not sc.fusion.has_centre or not rule_for(sc.fusion).information_form:
