@@ -55,8 +55,12 @@ __all__ = [
 ]
 
 ASSOCIATION = "association.json"
-MAX_LIST = 256
-"""Longest list the manager associates (the candidate triples grow as n1·n2·n3)."""
+MAX_LIST = 112
+"""Longest list the manager associates (the candidate triples grow as n1·n2·n3): the longest
+an honest sensor sends, its 5 targets and ``Poisson(λ)`` false returns at the largest
+``clutter.rate_per_scan`` (:data:`~covnet.passive.config.MAX_PASSIVE_RATE`, 50), whose
+``1e-12`` upper tail is 107. At 256 (the old bound) one list stalled the manager for 20 s and
+4 GB (``cot``) or ran it out of memory (``lr``)."""
 SCAN_PERIOD_S = 1.0  # scenario time of scan k is k s (the scenes are static)
 
 

@@ -205,3 +205,27 @@ def test_file_errors(tmp_path):
     top.write_text("- 1\n")
     with pytest.raises(ConfigError, match="top level must be a mapping"):
         load(top)
+
+
+def test_the_longest_list_the_manager_takes_is_the_longest_an_honest_sensor_sends():
+    """A list of 256 rows passed the manager's check and stalled it for 20 s and 4 GB (cot) or
+    ran it out of memory (lr); an honest sensor's list holds its 5 targets and Poisson(λ ≤ 50)
+    false returns."""
+    import numpy as np
+    from scipy import stats
+
+    from covnet.passive.config import MAX_PASSIVE_RATE
+    from covnet.passive.network import MAX_LIST, usable_list
+    from covnet.passive.scene import FORMATIONS, formation
+    from covnet.wire import messages as msg
+
+    targets = max(len(formation(f, 1.0, (5.0, 5.0), 1.0)) for f in FORMATIONS)
+    honest = targets + int(stats.poisson.isf(1e-12, MAX_PASSIVE_RATE))
+    assert honest <= MAX_LIST < 128
+
+    def listing(n):
+        z = np.zeros((n, 2))
+        return msg.Measurement(scan=1, t=1.0, sensor_id="S1", z=z, R=np.eye(2) * 1e-5,
+                               t_sent_ns=0, episode=0)  # fmt: skip
+
+    assert usable_list(listing(honest)) and not usable_list(listing(128))
