@@ -299,6 +299,22 @@ def test_round_robin_blocks_and_coverage():
     assert seen == set(range(7))
 
 
+@pytest.mark.parametrize(
+    "N, eligible, m",
+    [(8, [0, 1, 3, 4, 6, 7], 4), (8, [0, 2, 3, 4, 5, 6, 7], 2), (8, [1, 2, 3, 4, 5, 6, 7], 3)],
+)
+def test_round_robin_gives_every_eligible_sensor_the_same_share(N, eligible, m):
+    """README: "K sensors in a cyclic order". The cycle over all N indices, skipping the
+    ineligible ones, put the sensor after each skipped one on twice as often (2 of 8 excluded,
+    K = 4: two sensors on every scan, the paper config's S1 and S5)."""
+    E = len(eligible)
+    counts = dict.fromkeys(eligible, 0)
+    for scan in range(1, 1 + 5 * E):  # 5 E scans: every eligible sensor exactly 5 m times
+        for j, _ in round_robin_order(N, eligible, m, scan):
+            counts[j] += 1
+    assert set(counts.values()) == {5 * m}, counts
+
+
 def test_round_robin_order_rounds():
     assert round_robin_order(4, [0, 1, 2, 3], 3, 2) == [(3, 0), (0, 1), (1, 1)]
     with pytest.raises(ValueError, match="scan number must be an integer >= 1"):

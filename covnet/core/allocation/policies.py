@@ -393,25 +393,22 @@ def _decide_random(
 def round_robin_order(N: int, eligible: Sequence[int], m: int, scan: int) -> list[tuple[int, int]]:
     """The ``m`` sensors of scan ``scan`` (``>= 1``) in the cyclic schedule, with their round.
 
-    Positions ``q = s, s+1, ...`` with ``s = (scan - 1) · m`` over the cycle of *all* ``N``
-    indices; position ``q`` is sensor ``q mod N`` in round ``q // N``; the first ``m`` eligible
-    sensors met are taken (at most one cycle).  Returns ``[(sensor, round), ...]`` in the order
-    met.  With every sensor eligible, scan ``k`` takes the block ``(k-1)m .. km - 1`` (mod N):
-    ``ceil(N / m)`` consecutive scans cover every sensor; an ineligible sensor is skipped without
-    moving the others' turns."""
+    The cycle is over the ``E`` eligible sensors ``e_0 < e_1 < ... < e_{E-1}``: positions
+    ``q = s, s+1, ..., s+m-1`` with ``s = (scan - 1) · m``; position ``q`` is sensor
+    ``e_{q mod E}`` in round ``q // E`` (``m <= E``).  Returns ``[(sensor, round), ...]`` in
+    that order.  Every eligible sensor is on in ``m / E`` of the scans (``ceil(E / m)``
+    consecutive scans cover them all); with every sensor eligible, scan ``k`` takes the block
+    ``(k-1)m .. km - 1`` (mod N).  (A cycle over all ``N`` indices that skipped the ineligible
+    ones put the sensor after each skipped one on twice as often: with 2 of 8 excluded and
+    ``m = 4``, two sensors were on every scan.)"""
     if not _is_int(scan) or scan < 1:
         raise ValueError(
             f"policy 'round_robin': the scan number must be an integer >= 1, got {scan!r}"
         )
-    ok = set(eligible)
-    out: list[tuple[int, int]] = []
+    order = sorted(set(eligible))
+    E = len(order)
     s = (int(scan) - 1) * m
-    for q in range(s, s + N):
-        if len(out) == m:
-            break
-        if q % N in ok:
-            out.append((q % N, q // N))
-    return out
+    return [(order[q % E], q // E) for q in range(s, s + min(m, E))]
 
 
 def _decide_round_robin(
