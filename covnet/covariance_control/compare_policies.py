@@ -612,7 +612,8 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
             if many
             else f"RMSE after the first {r0['burn_in_scans']} scans (evaluation.burn_in_scans)"
         )
-        + "; NEES after them, verdict: where its 95 % interval lies against 4; f: the "
+        + (f"; NEES after the first {r0['burn_in_scans']} scans" if many else "; NEES after them")
+        + ", verdict: where its 95 % interval lies against 4; f: the "
         "covariance-control objective of the chosen subset; trP<=trPd: share of scans"
         + (
             " (target-scans); lost: seeds in which some track was ever further from its "
