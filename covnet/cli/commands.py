@@ -92,13 +92,13 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     run_dir = Path(args.run_dir)
+    _replayable(run_dir)  # a run stopped before its first scan may have no config.json
     if not (run_dir / CONFIG).is_file():
         raise UsageError(f"{run_dir}: not a recorded network run directory (no {CONFIG})")
     try:
         data = read_json(run_dir / CONFIG)
     except ValueError as exc:
         raise UsageError(f"{run_dir / CONFIG}: not valid JSON ({exc})") from None
-    _replayable(run_dir)
     kind, cfg = kinds.from_dict(data, str(run_dir / CONFIG))
     return kinds.command(kind, "replay", "replaying a recorded network run")(args, cfg)
 

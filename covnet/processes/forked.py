@@ -97,14 +97,19 @@ def map_in_forks(fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
     try:
         for x in items[:-1]:
             r, w = os.pipe()
-            pid = os.fork()
-            if pid == 0:  # the child: compute, send, leave
-                for _, earlier in children:
-                    os.close(earlier)
-                os.close(r)
-                _send_result(fn, x, w)
+            # SIGINT and SIGTERM wait while the child is made and registered: one that came
+            # between the fork and the registration lost the child (never killed), and one in
+            # the child before it reached its own code unwound the caller's (a second covnet
+            # command, left running after the first had exited)
+            mask = signal.pthread_sigmask(signal.SIG_BLOCK, _STOPS)
+            try:
+                pid = os.fork()
+                if pid == 0:  # the child: compute, send, leave
+                    _map_child(fn, x, w, [r, *(earlier for _, earlier in children)], mask)
+                children.append((pid, r))
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
             os.close(w)
-            children.append((pid, r))
         last = fn(items[-1])
         results = []
         while children:
@@ -115,6 +120,24 @@ def map_in_forks(fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
             os.close(r)
             _kill(pid)
     return [*results, last]
+
+
+_STOPS = {signal.SIGINT, signal.SIGTERM}
+
+
+def _map_child(fn: Callable[[T], R], x: T, w: int, others: list[int], mask: Any) -> NoReturn:
+    """A fork of :func:`map_in_forks`: computes ``fn(x)``, sends it through ``w`` and leaves
+    (``os._exit``); never returns into its parent's code, whatever happens.  A Ctrl-C or
+    SIGTERM ends it at once (the default action: the parent kills it anyway)."""
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        for fd in others:
+            os.close(fd)
+        _send_result(fn, x, w)
+    finally:
+        os._exit(1)
 
 
 def _kill(pid: int) -> None:

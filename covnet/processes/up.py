@@ -434,7 +434,10 @@ def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str,
     recording = out / "recording.mcap"
     if not recording.is_file() or recording.stat().st_size == 0:
         if not out.is_dir() or not any(p.name != "processes.json" for p in out.iterdir()):
-            return f"nothing was recorded ({out} holds only the process list)"
+            # stopped before the manager wrote anything: no scan was done (run.json says so,
+            # and covnet replay then that there is nothing to replay)
+            record_end(out, status, f"{why}; nothing was recorded", scans_completed=0)
+            return f"nothing was recorded ({out} holds no results)"
         record_end(out, status, f"{why}; no recording to rebuild the results from")
         return f"no recording: {out} holds no results"
     try:

@@ -403,6 +403,23 @@ def test_replay_of_a_run_that_ended_before_its_first_scan_says_so(tmp_path, caps
     assert f"status {status}" in err and "stopped before the network was ready" in err, err
 
 
+@pytest.mark.parametrize("before", [[], ["processes.json"]])
+def test_up_stopped_before_anything_was_written_says_so_and_replay_too(tmp_path, capsys, before):
+    """``covnet up`` interrupted before the manager wrote its config: the directory was left
+    empty (or with the process list) without a run.json, the launcher said it held the process
+    list, and ``covnet replay`` answered "not a recorded network run directory"."""
+    from covnet.processes.up import settle
+
+    for name in before:
+        (tmp_path / name).write_text("[]")
+    said = settle(None, None, tmp_path, {}, "interrupted", "stopped before the network was ready")
+    assert said == f"nothing was recorded ({tmp_path} holds no results)"
+    info = json.loads((tmp_path / "run.json").read_text())
+    assert info["status"] == "interrupted" and info["scans_completed"] == 0
+    assert main(["replay", str(tmp_path)]) == 2
+    assert "nothing to replay: the run ended before its first scan" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     ("argv", "dest"),
     [
