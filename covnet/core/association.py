@@ -58,6 +58,7 @@ __all__ = [
     "gate_volume",
     "information_reduction_factor",
     "information_reduction_table",
+    "information_reduction_table_streamed",
     "nearest_neighbour_update",
     "pda_combine",
     "pda_update",
@@ -407,4 +408,96 @@ def information_reduction_table(
         with_target = np.concatenate([u0[:, None, :], clutter], axis=1)
         term = p * pg * reduction(with_target) + (1.0 - p * pg) * reduction(clutter)
         q2 += weights[m] * term
+    return q2
+
+
+def information_reduction_table_streamed(
+    pd: float,
+    dim_z: int,
+    clutter_in_gate: ArrayLike,
+    rng: np.random.Generator,
+    gate_probability: float = DEFAULT_GATE_PROBABILITY,
+    n_samples: int = 2000,
+) -> Vec:
+    """:func:`information_reduction_table` for large ``μ_G``: the same estimator, the same
+    draws in the same order (the target's directions and radii, then clutter point 1 of every
+    sample, point 2, ...), so for one generator state the values agree with it to rounding and
+    the Poisson tails (< 1e-11); only the bookkeeping differs.
+
+    :func:`information_reduction_table` keeps every clutter point, ``(n_samples, m_max, n_z)``
+    floats, and sums the first ``m`` afresh for every ``m`` (``O(n_samples m_max² n_z)``): at
+    ``μ_G = 10⁴`` (``m_max ≈ 10 700``) that is 170 MB a dimension and hours.  Here each point is
+    drawn, folded into the running sums ``E₁ = Σe_k``, ``E₂ = Σe_k‖u_k‖²``, ``V = Σe_k u_k`` of
+    every sample and dropped, and the term for ``m`` points is added only to the ``μ_G`` whose
+    Poisson mass at ``m`` counts (``m`` between the ``1e-13`` lower and the ``1e-12`` upper
+    quantile, as the other's ``m_max``).  Memory ``O(n_samples (n_z + len(μ_G)) + m_max
+    len(μ_G))``; time ``O(n_samples (m_max n_z + Σ_μ 14 √μ))``: for ``n_samples = 2000`` and
+    92 points from 4 to ``10⁴``, 1.5 s (``n_z = 1``) or 3.6 s (``n_z = 2``) on an idle core,
+    under 10 MB."""
+    p = _check_pd(pd)
+    pg = _check_gate_probability(gate_probability)
+    mus = np.asarray(clutter_in_gate, dtype=np.float64)
+    if mus.ndim != 1 or mus.size == 0 or not np.all(np.isfinite(mus)) or np.any(mus < 0.0):
+        raise ValueError("clutter_in_gate: expected a non-empty 1-D array of finite numbers >= 0")
+    n = int(dim_z)
+    if n != dim_z or n < 1:
+        raise ValueError(f"dim_z: expected a positive integer, got {dim_z!r}")
+    if int(n_samples) < 1:
+        raise ValueError(f"n_samples: expected a positive integer, got {n_samples!r}")
+    if p == 0.0:
+        return np.zeros(mus.size)
+    if pg == 1.0:
+        if np.any(mus > 0.0):
+            raise ValueError(
+                "gate_probability: clutter in an unbounded gate (P_G = 1) is undefined"
+            )
+        return np.full(mus.size, p)
+    N = int(n_samples)
+    g = gate_threshold(n, pg)
+    pos = mus > 0.0
+    hi = np.zeros(mus.size, dtype=np.intp)
+    lo = np.zeros(mus.size, dtype=np.intp)
+    hi[pos] = np.asarray(stats.poisson.isf(1e-12, mus[pos]), dtype=np.intp) + 1
+    lo[pos] = np.maximum(np.asarray(stats.poisson.ppf(1e-13, mus[pos]), dtype=np.intp) - 1, 0)
+    m_max = int(hi.max())
+    log_c = 0.5 * n * math.log(math.pi) - math.lgamma(0.5 * n + 1.0)
+    v_ball = math.exp(log_c + 0.5 * n * math.log(g))
+    b = mus * (2.0 * math.pi) ** (0.5 * n) * (1.0 - p * pg) / (p * v_ball)  # (μ,)
+    d0 = rng.standard_normal((N, n))
+    r0 = np.sqrt(stats.chi2.ppf(rng.random(N) * pg, n))
+    u0 = d0 / np.linalg.norm(d0, axis=1, keepdims=True) * r0[:, None]
+    s0 = (u0 * u0).sum(axis=1)
+    e0 = np.exp(-0.5 * s0)
+    E1 = np.zeros(N)
+    E2 = np.zeros(N)
+    V = np.zeros((N, n))
+
+    def reduction(E1: Vec, E2: Vec, V: Mat, bb: Vec) -> Vec:
+        """:func:`information_reduction_table`'s ``reduction`` from the sums, for ``bb``."""
+        V2 = (V * V).sum(axis=1)
+        inv_d = 1.0 / (bb[:, None] + E1[None, :])  # (μ, N)
+        # mean over samples of E₁/d − (E₂/d − ‖V‖²/d²)/n, as two matrix-vector products
+        out = inv_d @ (E1 - E2 / n) + (inv_d * inv_d) @ V2 / n
+        return np.asarray(out / E1.size)
+
+    q2 = np.zeros(mus.size)
+    for m in range(m_max + 1):
+        if m > 0:
+            dc = rng.standard_normal((N, n))
+            rc = math.sqrt(g) * rng.random(N) ** (1.0 / n)
+            u = dc / np.linalg.norm(dc, axis=1, keepdims=True) * rc[:, None]
+            s2 = (u * u).sum(axis=1)
+            e = np.exp(-0.5 * s2)
+            E1 += e
+            E2 += e * s2
+            V += e[:, None] * u
+        idx = np.flatnonzero((lo <= m) & (m <= hi))
+        if idx.size == 0:
+            continue
+        w = np.asarray(stats.poisson.pmf(m, mus[idx]))
+        bb = b[idx]
+        term = p * pg * reduction(E1 + e0, E2 + e0 * s0, V + e0[:, None] * u0, bb)
+        if m > 0:
+            term = term + (1.0 - p * pg) * reduction(E1, E2, V, bb)
+        q2[idx] += w * term
     return q2

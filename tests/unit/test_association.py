@@ -15,6 +15,7 @@ from covnet.core.association import (
     gate_volume,
     information_reduction_factor,
     information_reduction_table,
+    information_reduction_table_streamed,
     nearest_neighbour_update,
     pda_update,
     pda_weights,
@@ -260,3 +261,18 @@ def test_q2_matches_the_mean_pda_covariance_reduction():
     empirical = np.trace(reduction) / np.trace(KSK)
     assert 0.4 < q2 < 0.85
     assert empirical == pytest.approx(q2, abs=0.03)
+
+
+def test_streamed_q2_table_is_the_table_from_the_same_draws():
+    """information_reduction_table_streamed: the same estimator and draws as the table, so for
+    one generator state the same values (to rounding and the Poisson tails), on both sides of
+    4, in one and two dimensions."""
+    for dz, grid in ((1, np.linspace(0.0, 4.0, 81)), (2, np.array([0.0, 0.3, 4.0, 10.0, 30.0]))):
+        a = information_reduction_table(0.9, dz, grid, np.random.default_rng(5), 0.99, 400)
+        b = information_reduction_table_streamed(0.9, dz, grid, np.random.default_rng(5), 0.99, 400)
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-11)
+    np.testing.assert_array_equal(
+        information_reduction_table_streamed(0.7, 1, [0.0], np.random.default_rng(0), 1.0), [0.7]
+    )
+    with pytest.raises(ValueError, match="P_G = 1"):
+        information_reduction_table_streamed(0.9, 2, [0.5], np.random.default_rng(0), 1.0)
