@@ -20,10 +20,13 @@ it.**  ``u_c · (1 − Π(1 − P_D,j))`` is exactly the expected number of unde
 scan found in ``c`` -- it left ``u_c`` whether or not a return was received, and the tracks a
 search starts are that mass (this is the undetected-target update of the Poisson
 multi-Bernoulli mixture filter, exact for Poisson undetected targets).  Nothing more is
-subtracted for them.  A track started from a return that no search of its cell produced (a
-target found while dwelling on another track) did not go through step 2; for it
-:func:`remove_found` subtracts ``min(u_c, 1)`` from its cell: the found target, at most the
-mass there.
+subtracted for them.  A track started from a return that no search produced (a target found
+while dwelling on another track) did not go through step 2; for it :func:`remove_found`
+subtracts ``min(u_c, 1)`` from its cell: the found target, at most the mass there.  (A search
+of cell ``c`` whose window reaches into cell ``c'`` searched that part of ``c'`` too; the exact
+update would apply ``(1 − P_D)`` to the mass of ``c'`` inside the window.  Neither that nor a
+whole unit is taken from ``c'`` for the tracks such a search starts there: a whole unit per
+clutter-started tentative track drains the cells, README *Surveillance*.)
 
 **Coverage.**  Sensor ``j`` can search cell ``c`` when the cell's **centre** is inside its
 coverage (:meth:`~covnet.core.sensor_models.SensorModel.in_coverage`: ``max_range_m``,
