@@ -36,9 +36,11 @@ the gate, a track is confirmed at its ``M``-th dwell (``M − 1`` dwells after t
 **Deletion of a confirmed track**: after ``delete_after_misses`` consecutive dwells that were
 not hits (reason ``"misses"``), or when the trace of its position covariance
 ``P[0,0] + P[2,2]`` exceeds ``delete_trace_m2`` (reason ``"covariance"``,
-:func:`check_covariance`, called after the prediction and after the updates of a scan).
-Tentative tracks are deleted only by the M-of-N rule (with their velocity spread their position
-covariance is large by design).
+:func:`check_covariance`).  Tentative tracks are deleted here only by the M-of-N rule (with
+their velocity spread their position covariance is large by design); the surveillance centre
+(:mod:`covnet.covariance_control.surveillance_centre`, after a scan's fusion) also deletes any
+live track, tentative or confirmed, whose position trace passes ``delete_trace_m2``, or that
+left the area.
 """
 
 from __future__ import annotations
