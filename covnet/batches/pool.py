@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from covnet.errors import WorkerDied
+from covnet.processes import interrupts
 from covnet.runs.rundir import record_end
 
 T = TypeVar("T")
@@ -310,6 +311,51 @@ def end_batch(
         f"figures skipped (partial){again}",
         file=sys.stderr,
     )
+
+
+def finish_batch(out: Path, total: int, what: str, write: Callable[[], R], **facts: Any) -> R:
+    """Write the results of a batch whose ``total`` runs all finished: ``write()`` (its table
+    files and ``config.json``), then ``run.json``'s ``completed`` (:func:`end_batch` with
+    ``facts``), last, so a ``run.json`` that says ``completed`` has the whole table beside it;
+    ``write``'s value.
+
+    A Ctrl-C or SIGTERM meanwhile (it left a ``run.json`` without ``status`` and no table) ends
+    the batch as one while its runs went on: the table is written (``write()`` again: every
+    row is there; a second interruption leaves it unwritten), ``run.json`` says
+    ``interrupted``, stderr what ``out`` holds and that the same command finishes it (its
+    trials are kept), and the interruption goes on (exit 130)."""
+    try:
+        value = write()
+        end_batch(out, total, what, **facts)
+        return value
+    except BaseException as exc:
+        if not interrupts.caused(exc):
+            raise
+        try:
+            write()
+            holds = "the whole table"
+        except BaseException as again:
+            if not interrupts.caused(again):
+                raise
+            holds = "a table that may be incomplete or an earlier one"
+        record_end(
+            out,
+            "interrupted",
+            f"interrupted (Ctrl-C or SIGTERM) after every run ({total} of {total}), while the "
+            "results were written",
+            runs_completed=total,
+            runs_total=total,
+            **facts,
+        )
+        again_cmd = (
+            f"; the same command with --out {out} finishes it" if (out / "trials").is_dir() else ""
+        )
+        print(
+            f"interrupted after every run ({total} of {total}), while the results were written: "
+            f"{out} holds {holds} (run.json: interrupted); figures skipped{again_cmd}",
+            file=sys.stderr,
+        )
+        raise
 
 
 def progress_printer(label: str, every_s: float = 1.0) -> Progress:

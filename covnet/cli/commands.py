@@ -19,6 +19,7 @@ from covnet.processes import interrupts
 from covnet.runs.rundir import (
     CONFIG,
     RUN_INFO,
+    after_the_results,
     config_mismatch,
     prepare_out,
     read_json,
@@ -237,7 +238,9 @@ def cmd_up(args: argparse.Namespace) -> int:
     except UpError as exc:
         _err(str(exc))
         status = EXIT_FAIL
-    kind.after_up(cfg, out, figures=not args.no_figures)
+    # the run has ended and run.json says how: a Ctrl-C while drawing keeps it and says so
+    with after_the_results(out, "printing" if args.no_figures else "figures"):
+        kind.after_up(cfg, out, figures=not args.no_figures)
     return status
 
 

@@ -18,12 +18,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batches.pool import BatchInterrupted, end_batch, write_rows
+from covnet.batches.pool import BatchInterrupted, end_batch, finish_batch, write_rows
 from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.covariance_control.commands import CURVES, EXIT_OK, metric_opt
 from covnet.covariance_control.config import Scenario, SweepSpec, from_dict, normalised
 from covnet.errors import UsageError
-from covnet.runs.rundir import CONFIG, write_json, write_npz
+from covnet.runs.rundir import CONFIG, after_the_results, write_json, write_npz
 
 
 def _batch_out(args: argparse.Namespace, name: str, command: str, key: str) -> Path:
@@ -235,21 +235,22 @@ def _surveillance_policies(
         "metric": ",".join(metrics),
         "trial_hash": key,
     }
-    fig = None if args.no_figures else sb.compare_figure(out, rows)
     return _surveillance_rows(
         args, sc, out, "compare", rows, outcome, meta, lambda r: {"policy": r["point"]},
-        lambda: sb.compare_table(rows), t0, fig,
+        lambda: sb.compare_table(rows), t0, lambda: sb.compare_figure(out, rows),
     )  # fmt: skip
 
 
 def _surveillance_rows(
     args: argparse.Namespace, sc: Scenario, out: Path, stem: str, rows: list[dict[str, Any]],
     outcome: Any, meta: dict[str, Any], lead: Callable[[dict[str, Any]], dict[str, Any]],
-    table: Callable[[], str], t0: float, figure: Path | None = None,
+    table: Callable[[], str], t0: float, figure: Callable[[], Path],
 ) -> int:  # fmt: skip
     """A surveillance sweep's or comparison's files and printout: ``<stem>.json`` (every row
     in full, each scalar's interval) and ``<stem>.csv`` (``lead(row)``, then each scalar's mean
-    and interval), the config, ``run.json``'s status; the table, or with ``--json`` the rows."""
+    and interval), the config, ``run.json``'s status (:func:`finish_batch`: last); then the
+    figure (``figure()``, unless ``--no-figures``) and the table, or with ``--json`` the rows
+    (:func:`after_the_results`: an interruption there keeps the results and says so)."""
     # start-up: the surveillance batch only for configs with surveillance
     from covnet.covariance_control import surveillance_batch as sb
 
@@ -259,20 +260,26 @@ def _surveillance_rows(
          **{f"{k}_ci95": r[k]["ci95"] for k in sb.SCALARS}}
         for r in rows
     ]  # fmt: skip
-    write_rows(out, stem, [{**r, **f} for r, f in zip(rows, flat, strict=True)], meta,
-               list(flat[0]))  # fmt: skip
-    write_json(out / CONFIG, normalised(sc))
-    end_batch(out, outcome.total, "seed", runs_run=outcome.ran, runs_skipped=outcome.skipped,
-              wall_s=outcome.wall_s, **outcome.backend)  # fmt: skip
-    if getattr(args, "json", False):  # stdout holds JSON only
-        for r in rows:
-            print(json.dumps(r))
-        print(f"results: {out / f'{stem}.json'}", file=sys.stderr)
-        return EXIT_OK
-    print(table())
-    print(f"results: {out / f'{stem}.json'}  ({time.perf_counter() - t0:.1f} s)")
-    if figure is not None:
-        print(f"figure: {figure}")
+
+    def write() -> None:
+        write_rows(out, stem, [{**r, **f} for r, f in zip(rows, flat, strict=True)], meta,
+                   list(flat[0]))  # fmt: skip
+        write_json(out / CONFIG, normalised(sc))
+
+    finish_batch(out, outcome.total, "seed", write, runs_run=outcome.ran,
+                 runs_skipped=outcome.skipped, wall_s=outcome.wall_s,
+                 **outcome.backend)  # fmt: skip
+    with after_the_results(out, "printing" if args.no_figures else "figures"):
+        drawn = None if args.no_figures else figure()
+        if getattr(args, "json", False):  # stdout holds JSON only
+            for r in rows:
+                print(json.dumps(r))
+            print(f"results: {out / f'{stem}.json'}", file=sys.stderr)
+            return EXIT_OK
+        print(table())
+        print(f"results: {out / f'{stem}.json'}  ({time.perf_counter() - t0:.1f} s)")
+        if drawn is not None:
+            print(f"figure: {drawn}")
     return EXIT_OK
 
 
@@ -301,9 +308,11 @@ def _batch_results(
     """Run ``covnet compare`` / ``sweep``'s ``work`` (its table's rows and the trials'
     :class:`~covnet.batches.trials.Outcome`, from ``total`` runs) and write: the table files, the
     per-scan curves (``curves.npz``), the config (which says the directory's kind, for ``covnet
-    plot``), ``run.json``'s status, the figures, the printout.  Interrupted: the complete rows
-    (each a ``what``) are written, no figure, and the interruption goes on (exit 130); the
-    trials stay in ``out/trials`` for the same command to resume.  ``more_meta()``: what the
+    plot``), ``run.json``'s status (last: :func:`finish_batch`), the figures, the printout.
+    Interrupted: the complete rows (each a ``what``) are written, no figure, and the
+    interruption goes on (exit 130); the trials stay in ``out/trials`` for the same command to
+    resume.  Interrupted while drawing or printing: ``run.json`` stays ``completed`` and says
+    so (:func:`after_the_results`).  ``more_meta()``: what the
     work found out that the table's meta data should say (``--budget match``'s K)."""
     meta = {
         **meta,
@@ -320,30 +329,36 @@ def _batch_results(
         end_batch(out, total, what, stop, len(stop.partial or ()))
         raise
     meta = {**meta, **outcome.ci_facts(), **(more_meta() if more_meta else {})}
-    module.write_table(out, rows, meta)
-    curves = module.curves(outcome.results)
-    write_npz(out / CURVES, curves)
-    write_json(out / CONFIG, normalised(sc))
-    end_batch(
+
+    def write() -> dict[str, Any]:
+        module.write_table(out, rows, meta)
+        curves: dict[str, Any] = module.curves(outcome.results)
+        write_npz(out / CURVES, curves)
+        write_json(out / CONFIG, normalised(sc))
+        return curves
+
+    curves = finish_batch(
         out,
         outcome.total,
         what,
+        write,
         runs_run=outcome.ran,
         runs_skipped=outcome.skipped,
         wall_s=outcome.wall_s,
         trials_per_s=outcome.ran / outcome.wall_s if outcome.wall_s > 0 else None,
         **outcome.backend,
     )
-    if not args.no_figures:
-        module.make_figure(out, rows, title)
-        module.curves_figure(out, curves, module.default_curves(rows))
-    if args.json:  # stdout holds JSON only
-        for r in rows:
-            print(json.dumps(r))
-        print(f"results: {out}", file=sys.stderr)
-    else:
-        print(module.format_table(rows))
-        print(f"results: {out}")
+    with after_the_results(out, "printing" if args.no_figures else "figures"):
+        if not args.no_figures:
+            module.make_figure(out, rows, title)
+            module.curves_figure(out, curves, module.default_curves(rows))
+        if args.json:  # stdout holds JSON only
+            for r in rows:
+                print(json.dumps(r))
+            print(f"results: {out}", file=sys.stderr)
+        else:
+            print(module.format_table(rows))
+            print(f"results: {out}")
     return EXIT_OK
 
 
@@ -450,10 +465,10 @@ def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
         "metric": ",".join(sc.allocation.metrics),
         "trial_hash": key,
     }
-    fig = None if args.no_figures else sb.sweep_figure(out, rows)
     return _surveillance_rows(
         args, sc, out, "sweep", rows, outcome, meta,
-        lambda r: {"search_weight": r["search_weight"]}, lambda: sb.sweep_table(rows), t0, fig,
+        lambda r: {"search_weight": r["search_weight"]}, lambda: sb.sweep_table(rows), t0,
+        lambda: sb.sweep_figure(out, rows),
     )  # fmt: skip
 
 
@@ -499,28 +514,29 @@ def mc(args: argparse.Namespace, sc: Scenario) -> int:
             mcm.write_mc(out, sc, list(done_seeds), list(done_rows))
         end_batch(out, n, "seed", stop, len(stop.partial or ()))
         raise
-    doc = mcm.write_mc(out, sc, seeds, rows)
-    end_batch(
+    doc = finish_batch(
         out,
         outcome.total,
         "seed",
+        lambda: mcm.write_mc(out, sc, seeds, rows),
         runs_run=outcome.ran,
         runs_skipped=outcome.skipped,
         wall_s=outcome.wall_s,
         **outcome.backend,
     )
-    figure = None
-    if not args.no_figures:
-        from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
+    with after_the_results(out, "printing" if args.no_figures else "figures"):
+        figure = None
+        if not args.no_figures:
+            from covnet.covariance_control.plots import mc_figure  # matplotlib: start-up
 
-        figure = mc_figure(out)
-    if args.json:  # stdout holds JSON only
-        for row in mcm.json_rows(doc):
-            print(json.dumps(row))
-        print(f"results: {out / mcm.MC_FILE}", file=sys.stderr)
-        return EXIT_OK
-    print(mcm.format_table(doc))
-    print(f"results: {out / mcm.MC_FILE}  ({time.perf_counter() - t0:.1f} s)")
-    if figure is not None:
-        print(f"figure: {figure}")
+            figure = mc_figure(out)
+        if args.json:  # stdout holds JSON only
+            for row in mcm.json_rows(doc):
+                print(json.dumps(row))
+            print(f"results: {out / mcm.MC_FILE}", file=sys.stderr)
+            return EXIT_OK
+        print(mcm.format_table(doc))
+        print(f"results: {out / mcm.MC_FILE}  ({time.perf_counter() - t0:.1f} s)")
+        if figure is not None:
+            print(f"figure: {figure}")
     return EXIT_OK

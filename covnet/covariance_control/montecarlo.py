@@ -239,21 +239,11 @@ def write_mc(
     out_dir: Path, sc: Scenario, seeds: Sequence[int], rows: Sequence[Mapping[str, Any]]
 ) -> dict[str, Any]:
     """``montecarlo.json`` (the config hash, the seeds, the aggregate and every seed's row:
-    what the config and the seeds determine), ``config.json`` and ``run.json`` (wall clock)."""
+    what the config and the seeds determine), ``config.json``, then ``run.json`` (wall clock;
+    last, as the batch's status that follows: with it the table is whole)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     times = [r["decision_time_s"] for r in rows]
     clean = [{k: v for k, v in r.items() if k != "decision_time_s"} for r in rows]
-    write_json(
-        out_dir / RUN_INFO,
-        {
-            "created_utc": utc_now(),
-            "covnet_version": __version__,
-            "kind": MC_KIND,
-            "decision_time_median_s": {
-                m: float(np.median([t[m] for t in times])) for m in (times[0] if times else {})
-            },
-        },
-    )
     if sc.surveillance is not None:
         # start-up: the surveillance batch only for configs with surveillance
         from covnet.covariance_control.surveillance_batch import aggregate as surv_aggregate
@@ -270,6 +260,7 @@ def write_mc(
         }
         write_json(out_dir / MC_FILE, doc)
         write_json(out_dir / CONFIG, normalised(sc))
+        _write_run_info(out_dir, times)
         return doc
     from covnet.covariance_control import targets  # start-up: the desired traces only
 
@@ -291,7 +282,23 @@ def write_mc(
     }
     write_json(out_dir / MC_FILE, doc)
     write_json(out_dir / CONFIG, normalised(sc))
+    _write_run_info(out_dir, times)
     return doc
+
+
+def _write_run_info(out_dir: Path, times: Sequence[Mapping[str, float]]) -> None:
+    """``run.json``: the wall clock, each metric's median decision time over the seeds."""
+    write_json(
+        out_dir / RUN_INFO,
+        {
+            "created_utc": utc_now(),
+            "covnet_version": __version__,
+            "kind": MC_KIND,
+            "decision_time_median_s": {
+                m: float(np.median([t[m] for t in times])) for m in (times[0] if times else {})
+            },
+        },
+    )
 
 
 def json_rows(doc: Mapping[str, Any]) -> list[dict[str, Any]]:

@@ -18,14 +18,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from covnet.batches.pool import BatchInterrupted, default_workers, end_batch
+from covnet.batches.pool import BatchInterrupted, default_workers, end_batch, finish_batch
 from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.errors import UsageError
 from covnet.mobile.config import MobileConfig
 from covnet.mobile.montecarlo import MC_FILE, mc_outcome, trial_key, write_mc
 from covnet.mobile.results import load_summary, write_run
 from covnet.mobile.simulate import run as simulate
-from covnet.runs.rundir import RUN_INFO, read_json
+from covnet.runs.rundir import RUN_INFO, after_the_results, read_json
 
 # The figure (matplotlib) and the benchmark are imported by the commands that use them:
 # start-up time of the others.
@@ -195,15 +195,26 @@ def mc_run(
             write_mc(out_dir, cfg, list(done_seeds), list(done_rows))
         end_batch(out_dir, seeds, "seed", stop, len(stop.partial or ()))
         raise
-    doc = write_mc(out_dir, cfg, seed_list, rows, outcome.ci_facts())
-    end_batch(
+    doc = finish_batch(
         out_dir,
         outcome.total,
         "seed",
+        lambda: write_mc(out_dir, cfg, seed_list, rows, outcome.ci_facts()),
         runs_run=outcome.ran,
         runs_skipped=outcome.skipped,
         **outcome.backend,
     )
+    with after_the_results(out_dir, "figures" if figures else "printing"):
+        _print_mc(doc, out_dir, figures, json_out, len(seed_list), t0)
+    return EXIT_OK
+
+
+def _print_mc(
+    doc: dict[str, Any], out_dir: Path, figures: bool, json_out: bool, seeds: int, t0: float
+) -> None:
+    """``covnet mc``'s figure (with ``figures``) and printout of a mobile batch's
+    ``montecarlo.json`` document ``doc`` (``seeds`` seeds, begun at ``perf_counter()``
+    ``t0``)."""
     figure = None
     if figures:
         from covnet.mobile.plots import mc_figure  # matplotlib: start-up of the other commands
@@ -212,12 +223,12 @@ def mc_run(
     agg = doc["aggregate"]
     if json_out:  # stdout holds JSON only: a row per target, then the overall one
         for tid, b in [*agg["targets"].items(), ("overall", agg["overall"])]:
-            print(json.dumps({"target": tid, "seeds": len(seed_list), **b}))
+            print(json.dumps({"target": tid, "seeds": seeds, **b}))
         print(f"results: {out_dir / MC_FILE}", file=sys.stderr)
-        return EXIT_OK
+        return
     print(
         f"Monte Carlo: {out_dir / MC_FILE}  (config {doc['config_hash']}, seeds "
-        f"0..{len(seed_list) - 1}, {time.perf_counter() - t0:.1f} s)"
+        f"0..{seeds - 1}, {time.perf_counter() - t0:.1f} s)"
     )
     print(
         f"  {'target':>8} {'RMSE m':>12} {'2nd half':>12} {'missed':>8} {'2nd half':>9}"
@@ -244,7 +255,6 @@ def mc_run(
         )
     if figure is not None:
         print(f"figure: {figure}")
-    return EXIT_OK
 
 
 def bench(args: Any, cfg: Any = None) -> int:

@@ -238,23 +238,12 @@ def write_mc(
     extra: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write ``montecarlo.json`` (config hash, seeds, aggregate, per-seed summaries: what the
-    config and seeds determine) and ``run.json`` (the wall clock: each seed's decision times
-    and the median over seeds of each part's median)."""
+    config and seeds determine), ``config.json``, then ``run.json`` (the wall clock: each
+    seed's decision times and the median over seeds of each part's median; last, as the
+    batch's status that follows: with it the table is whole)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     rows, times = split_timing(rows)
     parts = times[0] if times else {}
-    write_json(
-        out_dir / RUN_INFO,
-        {
-            "created_utc": utc_now(),
-            "covnet_version": __version__,
-            "kind": "mobile-montecarlo",
-            "decision_time_median_s": {
-                part: float(np.median([t[part]["median"] for t in times])) for part in parts
-            },
-            "decision_time_s": dict(zip((str(s) for s in seeds), times, strict=True)),
-        },
-    )
     doc = {
         "kind": "mobile-montecarlo",
         "scenario": cfg.name,
@@ -267,4 +256,16 @@ def write_mc(
     }
     write_json(out_dir / MC_FILE, doc)
     write_json(out_dir / "config.json", normalised(cfg))
+    write_json(
+        out_dir / RUN_INFO,
+        {
+            "created_utc": utc_now(),
+            "covnet_version": __version__,
+            "kind": "mobile-montecarlo",
+            "decision_time_median_s": {
+                part: float(np.median([t[part]["median"] for t in times])) for part in parts
+            },
+            "decision_time_s": dict(zip((str(s) for s in seeds), times, strict=True)),
+        },
+    )
     return doc

@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 
 from covnet import __version__
-from covnet.batches.pool import BatchInterrupted, end_batch
+from covnet.batches.pool import BatchInterrupted, end_batch, finish_batch
 from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.errors import UsageError
 from covnet.passive.associate import header, scan_record
 from covnet.passive.config import PassiveConfig, normalised
 from covnet.passive.montecarlo import run_grid_outcome, trial_key, trials_text, write_results
 from covnet.passive.scene import draw
-from covnet.runs.rundir import RUN_INFO, read_json, utc_now, write_json
+from covnet.runs.rundir import RUN_INFO, after_the_results, read_json, utc_now, write_json
 
 __all__ = ["after_up", "bench", "mc", "run"]
 
@@ -116,25 +116,26 @@ def mc_run(
             write_results(out_dir, cfg, *stop.partial)
         end_batch(out_dir, cells * n, "cell", stop, kept)
         raise
-    doc = write_results(out_dir, cfg, rows, facts)
-    end_batch(
+    doc = finish_batch(
         out_dir,
         outcome.total,
         "cell",
+        lambda: write_results(out_dir, cfg, rows, facts),
         runs_run=outcome.ran,
         runs_skipped=outcome.skipped,
         **outcome.backend,
     )
-    figs = mc_figures(out_dir) if figures else []
-    if json_out:  # stdout holds JSON only: a row per cell and method
-        for row in doc["rows"]:
-            print(json.dumps(row))
-        print(f"results: {out_dir / 'results.json'}", file=sys.stderr)
-        return EXIT_OK
-    _print_mc_summary(doc)
-    print(f"results: {out_dir / 'results.json'}, {out_dir / 'results.md'}")
-    for f in figs:
-        print(f"figure: {f}")
+    with after_the_results(out_dir, "figures" if figures else "printing"):
+        figs = mc_figures(out_dir) if figures else []
+        if json_out:  # stdout holds JSON only: a row per cell and method
+            for row in doc["rows"]:
+                print(json.dumps(row))
+            print(f"results: {out_dir / 'results.json'}", file=sys.stderr)
+            return EXIT_OK
+        _print_mc_summary(doc)
+        print(f"results: {out_dir / 'results.json'}, {out_dir / 'results.md'}")
+        for f in figs:
+            print(f"figure: {f}")
     return EXIT_OK
 
 

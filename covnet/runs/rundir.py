@@ -34,6 +34,7 @@ import json
 import math
 import os
 import shutil
+import sys
 import tempfile
 import threading
 import time
@@ -50,6 +51,7 @@ import numpy as np
 
 from covnet import __version__, blas_kernel
 from covnet.errors import UsageError
+from covnet.processes import interrupts
 
 __all__ = [
     "ARRAYS",
@@ -59,6 +61,7 @@ __all__ = [
     "RUN_INFO",
     "STATUSES",
     "SUMMARY",
+    "after_the_results",
     "atomic_write",
     "claim",
     "claims",
@@ -562,6 +565,37 @@ def record_end(out: Path, status: str, ended: str, **facts: Any) -> None:
     info.update({"status": status, "ended": ended, **facts})
     Path(out).mkdir(parents=True, exist_ok=True)
     write_json(path, info)
+
+
+@contextmanager
+def after_the_results(out: Path, step: str) -> Iterator[None]:
+    """Around what a command does once its results are written and ``out/run.json`` says how
+    it ended: ``step``, ``"figures"`` (drawing them, then the printout) or ``"printing"``.  An
+    interruption there (Ctrl-C, SIGTERM, or an extension's error in its place) keeps
+    ``run.json``'s ``status``, adds ``(<step> interrupted)`` to its ``ended``, says on stderr
+    that ``out`` holds the results and ``covnet plot`` draws the figures, and goes on (exit
+    130).  It ended with "interrupted" only, the figures missing and ``run.json`` saying it all
+    went well (``covnet up``, the batch commands)."""
+    try:
+        yield
+    except BaseException as exc:
+        if not interrupts.caused(exc):
+            raise
+        try:
+            info = json.loads((Path(out) / RUN_INFO).read_text())
+        except (OSError, ValueError):
+            info = None
+        if not isinstance(info, dict):
+            info = {}
+        status = info.get("status")
+        if status in STATUSES:
+            ended = info.get("ended") or status
+            record_end(out, status, f"{ended} ({step} interrupted)")
+            what = "the complete results" if status == "completed" else f"the results ({status})"
+            doing = "drawing the figures" if step == "figures" else "printing the results"
+            print(f"covnet: interrupted while {doing}: {out} holds {what} (covnet plot {out} "
+                  "draws the figures)", file=sys.stderr)  # fmt: skip
+        raise
 
 
 def utc_now() -> str:
