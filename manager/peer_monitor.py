@@ -9,6 +9,11 @@ same sensors at every scan), and the failures the nodes reported.  Its livelines
 run's: the nodes leave when it goes.  It reads the nodes' heartbeats for what they refused
 (``network.json``'s ``rejected_by_node``, as the central manager's), and after the run lingers
 for their last ones, which each node sends as it leaves.
+
+Stopped (Ctrl-C to ``covnet up``), it still takes every Track and Status the nodes deliver
+until they have left: the nodes advance without it, and the recorder records what they send
+until the run is over, so an observer that stopped taking at once kept fewer scans than the
+recording holds and ``covnet replay`` (which rebuilds every scan recorded) said DIFFERS.
 """
 
 from __future__ import annotations
@@ -30,6 +35,10 @@ from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
 from manager.loop import take_heartbeat
 
+STOPPED_LINGER_S = 1.0
+"""Stopped: the longest time to keep taking the nodes' reports until they have left (stopped
+with it, they leave within milliseconds; the launcher waits 5 s before its SIGTERM)."""
+
 
 def run(
     sc: Scenario,
@@ -48,7 +57,10 @@ def run(
     episode (``completed``), or ``stop``, or no report for ``network.scan_timeout_s``; the
     episodes are the config's metrics (peer mode runs in lockstep only: ``realtime`` must be
     false).  ``linger_s``: afterwards, up to that long for the nodes' last heartbeats (their
-    rejection counts), as :meth:`manager.loop.Loop.linger`."""
+    rejection counts), as :meth:`manager.loop.Loop.linger`, taking their last Tracks and
+    Statuses too; after a ``stop`` (once the network was ready) up to
+    ``min(linger_s, STOPPED_LINGER_S)``: the result holds every scan the nodes reported
+    before they left, as the recording does."""
     if realtime:
         raise ValueError("--realtime: peer mode runs in lockstep only")
     metrics = list(sc.allocation.metrics)
@@ -124,6 +136,7 @@ def run(
         logs = result.nodes[e]
         return all(n in logs and k in logs[n].statuses or n not in alive for n in ids)
 
+    ready = False
     try:
         deadline = time.monotonic() + net.ready_timeout_s
         while not expected <= alive:
@@ -137,13 +150,14 @@ def run(
                 )
                 return result
             time.sleep(0.01)
+        ready = True
         if on_ready is not None:
             on_ready()
         last_news = time.monotonic()
         e = 0
         k = 1
         while e < len(metrics):
-            if stop.is_set():
+            if stop.is_set():  # the reports already sent are taken below, as the nodes leave
                 return result
             got = drain()
             drain_live()
@@ -174,16 +188,18 @@ def run(
     finally:
         _done = bus.declare_token(msg.done_key(run_id))  # the run's end, on purpose (kept)
         token.undeclare()
-        # the nodes' last heartbeats, sent as they leave (what they refused to the end)
+        # the nodes' last heartbeats, sent as they leave (what they refused to the end), and,
+        # stopped, the Tracks and Statuses they sent meanwhile (the recording has them too)
         leaving = expected - {"world"}
-        deadline = time.monotonic() + linger_s
-        while time.monotonic() < deadline and not stop.is_set():
+        stopped = stop.is_set()
+        deadline = time.monotonic() + (min(linger_s, STOPPED_LINGER_S) if stopped else linger_s)
+        while time.monotonic() < deadline and (ready if stopped else not stop.is_set()):
             drain()
             drain_live()
             if not leaving & alive:
-                drain()  # a heartbeat sent just before its token went
+                drain()  # a report or heartbeat sent just before its token went
                 break
-            stop.wait(0.02)
+            time.sleep(0.02)
         for sub in subs:
             sub.close()
         live.close()

@@ -23,10 +23,13 @@ Every node runs, per metric episode and scan ``k`` (lockstep)::
 
 The mirror advances with the *decided* subset (what every node knows), so decisions stay
 identical on every node even when a track is lost.  A node that died stays out for the rest of
-the run (peer mode does not restart nodes).  Malformed messages are counted and dropped, and
-so are well-formed ones a node cannot use: a track or status of a scan beyond the next one
-(``wrong_scan``: no peer can be further ahead in lockstep) or outside the run (``bad_scan``), a
-truth outside the run, and a neighbour's track that fails the node's validation gate
+the run (peer mode does not restart nodes).  A node stopped (Ctrl-C) during a scan publishes
+nothing of that scan: its waits were cut short, so whom it would name failed and what it would
+fuse are not the network's (it named every peer whose status had not come yet failed).
+Malformed messages are counted and dropped, and so are well-formed ones a node cannot use: a
+track or status of a scan beyond the next one (``wrong_scan``: no peer can be further ahead in
+lockstep) or outside the run (``bad_scan``), a truth outside the run, and a neighbour's track
+that fails the node's validation gate
 (``outside_gate``, :meth:`covnet.covariance_control.engine.ScanEngine.verdict`): among a
 neighbour's tracks of a scan the node fuses the first that passes it, the others are counted.
 """
@@ -306,6 +309,8 @@ def run(
                     pe, pk = prev
                     others = members - {node_id}
                     inbox.each(others, inbox.statuses, pe, pk, net.scan_timeout_s, stop, beat)
+                    if stop.is_set():  # the members are not known: the scan is not begun
+                        return stats
                     members = {node_id} | {n for n in others if (n, pe, pk) in inbox.statuses}
                 plan = engine.decide(k, engine.unavailable(frozenset(ids) - members))
                 t_k = k * model.T
@@ -340,6 +345,8 @@ def run(
                 want = [ids[j] for j in plan.subset if j in nbrs and ids[j] in members]
                 passing = _Passing(inbox.tracks, engine.verdict)
                 inbox.each(want, passing, e, k, net.scan_timeout_s, stop, beat)
+                if stop.is_set():  # cut by the stop: not the scan the network would have fused
+                    return stats
                 for n in want:
                     m = passing.take((n, e, k), stats.rejected)
                     if m is not None:

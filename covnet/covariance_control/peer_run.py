@@ -111,7 +111,8 @@ def write_peer_run(
     """The run directory of a peer-mode network: as ``covnet run --fusion peer`` writes it (the
     first node's run under ``metrics``, every node's under ``peer``), for the scans reported,
     plus ``network.json`` and the failures the nodes reported (``failures``: per metric, the
-    first scan at which the live nodes excluded each failed node)."""
+    first scan at which the live nodes excluded each failed node); ``run.json`` gets
+    ``run_info`` and ``scans_completed``."""
     model = build_model(sc)
     traj = shared_trajectory(model)
     truth = truth_trajectory(model)
@@ -138,7 +139,8 @@ def write_peer_run(
         "scans_completed": {m: len(r.value) for m, r in runs.items()},
         "failures": failures,
     }
-    info: dict[str, Any] = {"mode": "network"}
+    # run.json says how far the run got, as a central manager's does (the launcher prints it)
+    info: dict[str, Any] = {"mode": "network", "scans_completed": extra["scans_completed"]}
     info.update(run_info or {})
     summary = write_run(out, sc, traj, runs, extra=extra, run_info=info, node_runs=node_runs)
     write_json(out / "network.json", result.stats.as_dict())

@@ -156,3 +156,32 @@ def test_a_killed_peer_is_dropped_from_every_decision(covnet_proc, tmp_path, pap
     # the recording replays the failure too: each node's decisions without the victim
     assert covnet_main(["replay", str(out)]) == 0
     assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()
+
+
+def test_an_interrupted_peer_run_replays_identically(covnet_proc, tmp_path, paper_path):
+    """Ctrl-C to ``covnet up --fusion peer`` mid-run: exit 130, ``run.json`` says how many
+    scans were done (the launcher printed "scans unknown"), no node is called failed for
+    leaving, and ``covnet replay`` reproduces summary.json (it said DIFFERS: the observer had
+    stopped taking the nodes' reports at once, one scan short of the recording, and nodes cut
+    mid-scan had named their peers failed)."""
+    cfg = _config(tmp_path, paper_path, "int", 300, {"mode": "peer", "peer": {"graph": "full"}})
+    out = tmp_path / "run"
+    p = covnet_proc(["up", str(cfg), "--out", str(out), "--metric", "spectral", "--no-figures"])
+    assert p.wait_for("[manager] READY", timeout=90), p.output()
+    # the launcher prints a status line a second: the second one is some scans into the run
+    scans = re.compile(r"\[status\] spectral: scan (\d+)/")
+    m = p.wait_for(lambda s: (g := scans.search(s)) is not None and int(g[1]) > 1, timeout=90)
+    assert m, p.output()
+    os.killpg(p.proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C
+    assert p.wait(timeout=60) == 130, p.output()
+    assert "Traceback" not in p.output(), p.output()
+    assert_nothing_left(out)
+    info = json.loads((out / "run.json").read_text())
+    summary = json.loads((out / "summary.json").read_text())
+    assert info["status"] == "interrupted", info
+    done = info["scans_completed"]["spectral"]
+    assert done == summary["scans_completed"]["spectral"] and 1 < done < 300, (info, summary)
+    assert f"(interrupted: spectral {done})" in p.output(), p.output()
+    assert summary["failures"] == {"spectral": []}, summary["failures"]
+    assert covnet_main(["replay", str(out)]) == 0
+    assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()

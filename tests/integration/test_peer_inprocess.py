@@ -4,7 +4,9 @@ tracks are counted and dropped, and a stopped node drops out of every decision."
 
 from __future__ import annotations
 
+import json
 import threading
+import time
 from collections import Counter
 
 import numpy as np
@@ -15,9 +17,14 @@ from covnet.clock import WallClock
 from covnet.covariance_control.config import from_dict, normalised
 from covnet.covariance_control.decentral_sim import run_peer
 from covnet.covariance_control.model import build_model
+from covnet.covariance_control.peer_run import write_peer_run
+from covnet.covariance_control.replay import RECORDING, replay_run
+from covnet.runs.recording import RecordingWriter, run_metadata
 from covnet.wire import messages as msg
 from covnet.wire.bus import InMemoryBus
 from manager import peer_monitor
+from manager.process import LINGER_S
+from recorder import node as recorder_node
 from sensors import peer
 from world import covariance as world_node
 
@@ -235,3 +242,129 @@ def test_failures_are_the_majority_view():
     for n in ("S1", "S2", "S4"):
         statuses[n][3] = st(["S5", "S3"])
     assert failed_by_majority(statuses) == {"S5": 2, "S3": 3}
+
+
+def _statuses_of(sub, seen):
+    """Take what ``sub`` (the nodes' Status keys) holds into ``seen``: (node, scan) pairs."""
+    while (s := sub.try_recv()) is not None:
+        st = msg.decode_as(s.payload, msg.Status)
+        seen.add((st.node_id, st.scan))
+
+
+def test_a_stopped_observer_keeps_every_scan_the_nodes_reported_and_replays(paper, tmp_path):
+    """Ctrl-C to ``covnet up --fusion peer``: the observer stopped taking the nodes' reports at
+    once, while the nodes, which do not wait for it, had reported more scans, all recorded:
+    ``covnet replay`` rebuilt those and said DIFFERS (scans_completed 49 != 50).  Here the
+    observer is stopped with every node three scans ahead of what it has taken (the moment
+    is made, not waited for), and the nodes and the recorder with it: it keeps every scan each
+    node reported, no node is called failed, and the replay reproduces summary.json."""
+    data = normalised(paper)
+    data["scans"] = 40
+    data["fusion"] = {"mode": "peer", "peer": {"graph": "full"}}
+    sc = with_metrics(from_dict(data), ["abs_trace"])
+    assert sc.network.record
+    nodes = NodeThreads()
+    probe = nodes.bus("probe")
+    status_sub = probe.subscribe(msg.peer_keyexpr(RUN, "status"))
+    writer = RecordingWriter(tmp_path / RECORDING, run_id=RUN, metadata=run_metadata(RUN, sc))
+    clock = WallClock()
+    nodes.start("recorder", lambda bus, ev: recorder_node.run(sc, bus, RUN, clock, ev, writer))
+    nodes.start("world", lambda bus, ev: world_node.run(sc, bus, RUN, clock, ev))
+    for sid in sc.sensor_ids:
+        nodes.start(
+            sid, lambda bus, ev, sid=sid: peer.run(sc, sid, ["abs_trace"], bus, RUN, clock, ev)
+        )
+    stop = threading.Event()
+    seen: set[tuple[str, int]] = set()
+    ahead = []
+
+    def on_progress(result, last):
+        if stop.is_set():
+            return
+        taken = max(max(log.statuses) for log in result.nodes[0].values() if log.statuses)
+        if taken < 3:
+            return
+        target = taken + 3  # every node reports it before the observer takes anything more
+        deadline = time.monotonic() + 30
+        while not all((sid, target) in seen for sid in sc.sensor_ids):
+            assert time.monotonic() < deadline, f"the nodes never reported scan {target}"
+            _statuses_of(status_sub, seen)
+            time.sleep(0.001)
+        ahead.append((taken, target))
+        stop.set()  # Ctrl-C: the observer, every node and the recorder at once
+        for ev in nodes.stops.values():
+            ev.set()
+
+    mbus = nodes.bus("manager")
+    try:
+        result = peer_monitor.run(
+            sc, mbus, RUN, clock, stop, on_progress=on_progress, linger_s=LINGER_S
+        )
+    finally:
+        mbus.close()
+        nodes.close(20.0)
+        writer.close()
+        probe.close()
+    assert ahead, "the observer was never stopped"
+    taken, target = ahead[0]
+    assert not result.completed
+    logs = result.nodes[0]
+    for sid in sc.sensor_ids:  # every scan a node published, none cut by the stop
+        assert logs[sid].scans() == nodes.stats[sid].scans >= target, (sid, ahead)
+        assert max(logs[sid].statuses) == nodes.stats[sid].scans, sid
+    write_peer_run(tmp_path, sc, result, {"episodes": ["abs_trace"], "run_id": RUN})
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["failures"] == {"abs_trace": []}
+    info = json.loads((tmp_path / "run.json").read_text())
+    assert info["scans_completed"] == summary["scans_completed"], info
+    assert info["scans_completed"]["abs_trace"] >= target
+    report = replay_run(tmp_path)
+    assert report.identical, report.differences
+
+
+def test_a_node_stopped_while_it_waits_publishes_nothing_of_that_scan(paper):
+    """A node stopped (Ctrl-C) while it waited for its peers published the scan all the same,
+    fused from what had come (and, cut while waiting for their statuses, naming those it had
+    not heard failed): an interrupted run's last scan said sensors failed that were only
+    leaving.  Here S2 is up but mute, so every other
+    node waits for its scan-1 track (``scan_timeout_s`` 60 s); stopped there, none publishes
+    a Track or Status."""
+    data = normalised(paper)
+    data["scans"] = 10
+    data["network"]["record"] = False
+    data["network"]["scan_timeout_s"] = 60.0
+    data["fusion"] = {"mode": "peer", "peer": {"graph": "full"}}
+    sc = with_metrics(from_dict(data), ["spectral"])  # scan 1 enables all eight
+    nodes = NodeThreads()
+    probe = nodes.bus("probe")
+    sub = probe.subscribe(msg.peer_keyexpr(RUN, "*"))
+    tracks = probe.subscribe(msg.measurement_keyexpr(RUN))
+    tokens = [  # the mute S2 and a monitor that watches nothing
+        probe.declare_token(msg.alive_key(RUN, "sensor", "S2")),
+        probe.declare_token(msg.alive_key(RUN, "manager", "manager")),
+    ]
+    nodes.start("world", lambda bus, ev: world_node.run(sc, bus, RUN, WallClock(), ev))
+    waiting = [s for s in sc.sensor_ids if s != "S2"]
+    for sid in waiting:
+        nodes.start(
+            sid, lambda bus, ev, sid=sid: peer.run(sc, sid, ["spectral"], bus, RUN, WallClock(), ev)
+        )
+    try:
+        sent: set[str] = set()  # a node sends its local track, then waits for S2's
+        deadline = time.monotonic() + 60
+        while sent != set(waiting):
+            assert time.monotonic() < deadline, f"local tracks of scan 1 from {sorted(sent)} only"
+            if (s := tracks.recv(timeout=0.1)) is not None:
+                sent.add(msg.decode_as(s.payload, msg.LocalTrack).sensor_id)
+        assert sub.try_recv() is None  # all wait: S2's track never comes
+    finally:
+        nodes.close(20.0)  # the stop, while they wait
+        for t in tokens:
+            t.undeclare()
+    assert all(not th.is_alive() for th in nodes.threads)
+    published = []
+    while (s := sub.try_recv()) is not None:
+        published.append(s.key)
+    probe.close()
+    assert published == [], published
+    assert all(nodes.stats[sid].scans == 0 for sid in waiting)
