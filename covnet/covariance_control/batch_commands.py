@@ -220,10 +220,14 @@ def _surveillance_policies(
         flush=True,
     )
     t0 = time.perf_counter()
-    rows, outcome = sb.policy_compare(
-        sc, policies, budget, args.runs, out=out, workers=opts.workers,
-        progress=BatchProgress("compare"),
-    )  # fmt: skip
+    try:
+        rows, outcome = sb.policy_compare(
+            sc, policies, budget, args.runs, out=out, workers=opts.workers,
+            progress=BatchProgress("compare"),
+        )  # fmt: skip
+    except BatchInterrupted as stop:  # run.json says so, and that the same command resumes
+        end_batch(out, stop.total, "policy", stop)
+        raise
     meta = {
         "scenario": sc.name,
         "compared": "policies",
@@ -453,10 +457,14 @@ def _surveillance_sweep(args: argparse.Namespace, sc: Scenario) -> int:
         flush=True,
     )
     t0 = time.perf_counter()
-    rows, outcome = sb.weight_sweep(
-        sc, weights, seeds, out=out, workers=getattr(args, "workers", None),
-        progress=BatchProgress("sweep"),
-    )  # fmt: skip
+    try:
+        rows, outcome = sb.weight_sweep(
+            sc, weights, seeds, out=out, workers=getattr(args, "workers", None),
+            progress=BatchProgress("sweep"),
+        )  # fmt: skip
+    except BatchInterrupted as stop:  # run.json says so, and that the same command resumes
+        end_batch(out, stop.total, "grid point", stop)
+        raise
     meta = {
         "scenario": sc.name,
         "seeds": seeds,

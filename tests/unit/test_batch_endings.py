@@ -212,3 +212,32 @@ def test_covnet_up_interrupted_while_drawing_says_so_in_run_json(tmp_path, monke
     assert (info["status"], info["ended"]) == ("completed", "every scan done (figures interrupted)")
     assert f"interrupted while drawing the figures: {out} holds the complete results" in err
     assert main(["plot", str(out)]) == 0 and list(out.glob("*.png"))
+
+
+@pytest.mark.parametrize(
+    "argv, function",
+    [
+        (lambda p: ["sweep", str(_surveillance(p)), "--workers", "1"], "weight_sweep"),
+        (lambda p: ["compare", str(_surveillance(p)), "--policies", "all_on,random", "--budget",
+                    "2", "--runs", "2", "--workers", "1"], "policy_compare"),
+    ],
+)  # fmt: skip
+def test_a_surveillance_batch_interrupted_while_it_runs_records_it(
+    argv, function, tmp_path, monkeypatch, capsys
+):
+    """``covnet sweep`` / ``compare --policies`` of a surveillance config interrupted while its
+    trials ran left no run.json and no word that the same command resumes."""
+    from covnet.batches.pool import BatchInterrupted
+    from covnet.covariance_control import surveillance_batch as sb
+
+    def interrupted(*args: Any, out: Path, **kw: Any) -> Any:
+        (out / "trials").mkdir(parents=True, exist_ok=True)
+        (out / "trials" / "one.json").write_text("{}")  # a finished trial, kept
+        raise BatchInterrupted({(0, 1): {}}, 4)
+
+    monkeypatch.setattr(sb, function, interrupted)
+    out = tmp_path / "out"
+    assert main([*argv(tmp_path), "--out", str(out)]) == 130
+    info = _info(out)
+    assert info["status"] == "interrupted" and info["runs_completed"] == 1, info
+    assert "resumes" in capsys.readouterr().err
