@@ -334,6 +334,27 @@ def information_reduction_factor(
     return float(information_reduction_table(p, dim_z, [mu], rng, pg, n_samples)[0])
 
 
+def _table_inputs(
+    pd: float, dim_z: int, clutter_in_gate: ArrayLike, gate_probability: float, n_samples: int
+) -> tuple[float, float, Vec, int, int]:
+    """The checked inputs of the ``q₂`` tables: ``P_D``, ``P_G``, the ``μ_G`` array, ``n_z``
+    and the sample count (a ``ValueError`` naming the argument otherwise; clutter in an
+    unbounded gate, ``P_G = 1`` with some ``μ_G > 0``, is undefined)."""
+    p = _check_pd(pd)
+    pg = _check_gate_probability(gate_probability)
+    mus = np.asarray(clutter_in_gate, dtype=np.float64)
+    if mus.ndim != 1 or mus.size == 0 or not np.all(np.isfinite(mus)) or np.any(mus < 0.0):
+        raise ValueError("clutter_in_gate: expected a non-empty 1-D array of finite numbers >= 0")
+    n = int(dim_z)
+    if n != dim_z or n < 1:
+        raise ValueError(f"dim_z: expected a positive integer, got {dim_z!r}")
+    if int(n_samples) < 1:
+        raise ValueError(f"n_samples: expected a positive integer, got {n_samples!r}")
+    if p > 0.0 and pg == 1.0 and np.any(mus > 0.0):
+        raise ValueError("gate_probability: clutter in an unbounded gate (P_G = 1) is undefined")
+    return p, pg, mus, n, int(n_samples)
+
+
 def information_reduction_table(
     pd: float,
     dim_z: int,
@@ -346,25 +367,9 @@ def information_reduction_table(
     draws (so the values are smooth in ``μ_G`` and ``numpy.interp`` between them is accurate);
     for the same generator state each value equals :func:`information_reduction_factor`'s (to
     the Poisson tail mass, < 1e-12)."""
-    p = _check_pd(pd)
-    pg = _check_gate_probability(gate_probability)
-    mus = np.asarray(clutter_in_gate, dtype=np.float64)
-    if mus.ndim != 1 or mus.size == 0 or not np.all(np.isfinite(mus)) or np.any(mus < 0.0):
-        raise ValueError("clutter_in_gate: expected a non-empty 1-D array of finite numbers >= 0")
-    n = int(dim_z)
-    if n != dim_z or n < 1:
-        raise ValueError(f"dim_z: expected a positive integer, got {dim_z!r}")
-    if int(n_samples) < 1:
-        raise ValueError(f"n_samples: expected a positive integer, got {n_samples!r}")
-    if p == 0.0:
-        return np.zeros(mus.size)
-    if pg == 1.0:
-        if np.any(mus > 0.0):
-            raise ValueError(
-                "gate_probability: clutter in an unbounded gate (P_G = 1) is undefined"
-            )
+    p, pg, mus, n, N = _table_inputs(pd, dim_z, clutter_in_gate, gate_probability, n_samples)
+    if p == 0.0 or pg == 1.0:  # no detection; no clutter in an unbounded gate
         return np.full(mus.size, p)
-    N = int(n_samples)
     g = gate_threshold(n, pg)
     m_max = int(stats.poisson.isf(1e-12, float(mus.max()))) + 1 if mus.max() > 0.0 else 0
     weights = np.asarray(stats.poisson.pmf(np.arange(m_max + 1)[:, None], mus[None, :]))  # (m, μ)
@@ -434,25 +439,9 @@ def information_reduction_table_streamed(
     len(μ_G))``; time ``O(n_samples (m_max n_z + Σ_μ 14 √μ))``: for ``n_samples = 2000`` and
     92 points from 4 to ``10⁴``, 1.5 s (``n_z = 1``) or 3.6 s (``n_z = 2``) on an idle core,
     under 10 MB."""
-    p = _check_pd(pd)
-    pg = _check_gate_probability(gate_probability)
-    mus = np.asarray(clutter_in_gate, dtype=np.float64)
-    if mus.ndim != 1 or mus.size == 0 or not np.all(np.isfinite(mus)) or np.any(mus < 0.0):
-        raise ValueError("clutter_in_gate: expected a non-empty 1-D array of finite numbers >= 0")
-    n = int(dim_z)
-    if n != dim_z or n < 1:
-        raise ValueError(f"dim_z: expected a positive integer, got {dim_z!r}")
-    if int(n_samples) < 1:
-        raise ValueError(f"n_samples: expected a positive integer, got {n_samples!r}")
-    if p == 0.0:
-        return np.zeros(mus.size)
-    if pg == 1.0:
-        if np.any(mus > 0.0):
-            raise ValueError(
-                "gate_probability: clutter in an unbounded gate (P_G = 1) is undefined"
-            )
+    p, pg, mus, n, N = _table_inputs(pd, dim_z, clutter_in_gate, gate_probability, n_samples)
+    if p == 0.0 or pg == 1.0:  # no detection; no clutter in an unbounded gate
         return np.full(mus.size, p)
-    N = int(n_samples)
     g = gate_threshold(n, pg)
     pos = mus > 0.0
     hi = np.zeros(mus.size, dtype=np.intp)
