@@ -5,6 +5,7 @@ the run directory as it goes, let the nodes leave before the router closes, set 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import threading
@@ -118,8 +119,9 @@ def serve(
     directory with ``write(result)`` once, when the loop has ended (completed, stopped by
     SIGINT/SIGTERM, or failed), then how it ended (:func:`covnet.runs.rundir.record_end`).  While
     it runs, the last STATUS goes to ``live.json`` (:data:`covnet.runs.rundir.LIVE`) at most every
-    ``write_every_s``; that file is removed once the results are written.  Exit 0, or 1 on
-    an error."""
+    ``write_every_s``; that file is removed once the results are written (or could not be:
+    an ``OSError``, a full disk, is raised naming the file, and :func:`covnet.processes.
+    process.guarded` prints it in one line).  Exit 0, or 1 on an error."""
     out = Path(args.out)
     last_write = [0.0]
     last_status = [0.0]
@@ -157,10 +159,14 @@ def serve(
         # the run is over (our token is gone): the nodes leave on their own; keep the router
         # up until they have, so that none is cut off mid-publish
         wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
-    write(result)
-    status, why = ending(result, stop)
-    record_end(out, status, why, membership=result.stats.membership_counts())
-    (out / LIVE).unlink(missing_ok=True)
+    try:
+        write(result)
+        status, why = ending(result, stop)
+        record_end(out, status, why, membership=result.stats.membership_counts())
+    finally:  # the run is over: no live snapshot stays, also when the results could not be
+        # written (a full disk: the OSError names the file; the launcher rebuilds or says so)
+        with contextlib.suppress(OSError):
+            (out / LIVE).unlink(missing_ok=True)
     if result.error and status == "failed":
         print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
         return EXIT_FAIL

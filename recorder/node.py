@@ -73,7 +73,8 @@ def draw_recording(
 ) -> None:
     """Write the visual channels of what ``writer`` recorded (read back from its own file,
     flushed: the raw channels only) into it, scan by scan, for at most ``budget_s`` seconds
-    (then say how far it got).  An error is counted and ends the drawing, never the recording."""
+    (then say how far it got).  An error is counted and ends the drawing, never the recording;
+    an ``OSError`` (the recording itself could not be written or read back) is raised."""
     deadline = time.monotonic() + budget_s
     try:
         samples = list(RecordingReader(writer.path).samples())
@@ -91,6 +92,8 @@ def draw_recording(
             for vm in out:
                 writer.write_visual(vm)
             counts["visual"] += len(out)
+    except OSError:  # the recording's file could not be written (a full disk): not the picture's
+        raise
     except Exception as exc:  # the picture must never cost the recording
         _warn(counts, exc)
 

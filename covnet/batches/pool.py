@@ -27,6 +27,7 @@ added as a note), after the other workers are stopped.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import socket
@@ -41,7 +42,7 @@ from typing import Any, Generic, TypeVar
 
 from covnet.errors import WorkerDied
 from covnet.processes import interrupts
-from covnet.runs.rundir import record_end
+from covnet.runs.rundir import atomic_write, record_end
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -380,11 +381,15 @@ def write_rows(
     meta: dict[str, Any],
     columns: Sequence[str],
 ) -> None:
-    """``<stem>.json`` (``meta`` and every row in full) and ``<stem>.csv`` (``columns``)."""
+    """``<stem>.json`` (``meta`` and every row in full) and ``<stem>.csv`` (``columns``), each
+    written whole or not at all (:func:`covnet.runs.rundir.atomic_write`: a full disk left a
+    half table, and an error naming no file)."""
 
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{stem}.json").write_text(json.dumps({**meta, "rows": list(rows)}, indent=2) + "\n")
-    with (out / f"{stem}.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
+    doc = json.dumps({**meta, "rows": list(rows)}, indent=2) + "\n"
+    atomic_write(out / f"{stem}.json", doc.encode())
+    table = io.StringIO(newline="")
+    w = csv.DictWriter(table, fieldnames=list(columns), extrasaction="ignore")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write(out / f"{stem}.csv", table.getvalue().encode())

@@ -651,8 +651,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         return EXIT_PIPE
     except OSError as exc:  # a file covnet reads or writes: a directory in its place, no room
-        where = f"{exc.filename}: " if exc.filename else ""
-        _err(f"{where}{exc.strerror or exc}")
+        # (the writers name their file; a note: run.json could not record the failure either)
+        _err("; ".join([rundir.os_error_text(exc), *getattr(exc, "__notes__", ())]))
         return EXIT_FAIL
     except BaseException as exc:  # a Ctrl-C, or an extension's stand-in for one it swallowed
         if not interrupts.caused(exc):

@@ -20,6 +20,7 @@ from covnet.runs.rundir import (
     CONFIG,
     RUN_INFO,
     after_the_results,
+    check_writable,
     config_mismatch,
     prepare_out,
     read_json,
@@ -272,6 +273,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
     stale = config_mismatch(run_dir, kinds.config_hash(cfg))
     if stale is not None:
         raise UsageError(stale)
+    # the figures go into the directory: one on a read-only file system is named now (exit 2),
+    # not by the first figure's OSError
+    check_writable(run_dir, f"{run_dir} (covnet plot draws the figures into it)")
     try:
         if args.point is not None:
             try:

@@ -65,6 +65,7 @@ from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.simulate import MetricRun
 from covnet.covariance_control.sweep import _pm
 from covnet.covariance_control.sweep import curves_figure as sweep_curves_figure
+from covnet.runs.rundir import save_figure
 from covnet.wire import messages as msg
 
 
@@ -497,7 +498,7 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     fig.suptitle(title)
     fig.tight_layout()
     path = out / "compare.png"
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

@@ -68,6 +68,7 @@ from covnet.core.allocation.policy_registry import POLICIES, Policy
 from covnet.covariance_control.compare import nees_consistency, traffic_per_scan
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 from covnet.errors import UsageError
+from covnet.runs.rundir import save_figure
 from covnet.wire import messages as msg
 
 MATCH = "match"
@@ -669,7 +670,7 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     fig.tight_layout()
     _unstack(fig, ax, labels)
     path = out / "pareto.png"
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -733,7 +734,7 @@ def curves_figure(out: Path, data: Mapping[str, np.ndarray], select: Sequence[in
         ax.grid(alpha=0.3)
     fig.tight_layout()
     path = out / "curves.png"
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

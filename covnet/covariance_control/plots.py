@@ -35,7 +35,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch, Wedge  # noqa: E402
 
 from covnet.core.sensing import correlated_noise  # noqa: E402
-from covnet.runs.rundir import load_arrays  # noqa: E402
+from covnet.runs.rundir import load_arrays, save_figure  # noqa: E402
 
 #: the most entries the ellipses' legend holds: beyond it the first ``LEGEND_MAX - 1`` sensors
 #: are named and the last entry says how many more are drawn (256 entries do not fit a figure)
@@ -112,7 +112,7 @@ def make_figures(run_dir: Path) -> list[Path]:
         loc="upper left",
         bbox_to_anchor=(1.01, 1.0),
     )
-    fig.savefig(paths[0], dpi=120)
+    save_figure(fig, paths[0], dpi=120)
     plt.close(fig)
 
     # 2. sensors allocated per scan
@@ -130,7 +130,7 @@ def make_figures(run_dir: Path) -> list[Path]:
     ax.set_title("Sensors allocated per scan (dotted: desired covariance changes)")
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.savefig(paths[1], dpi=120)
+    save_figure(fig, paths[1], dpi=120)
     plt.close(fig)
 
     # 3. diagonal of P vs the desired levels
@@ -151,7 +151,7 @@ def make_figures(run_dir: Path) -> list[Path]:
         ax.set_xlabel("scan k")
     axes[0, 0].legend(fontsize=9)
     fig.suptitle("Diagonal of the filtered covariance P(k|k) against the desired covariance")
-    fig.savefig(paths[2], dpi=120)
+    save_figure(fig, paths[2], dpi=120)
     plt.close(fig)
 
     # 4. allocation raster (a large network: 5 inches a metric, every k-th sensor labelled)
@@ -184,7 +184,7 @@ def make_figures(run_dir: Path) -> list[Path]:
         ax.set_title(f"{m}: sensors allocated (filled) per scan, rate {rate:.1f} %")
         _switch_lines(ax, switches, color="tab:red")
     axes[-1, 0].set_xlabel("scan k")
-    fig.savefig(paths[3], dpi=120)
+    save_figure(fig, paths[3], dpi=120)
     plt.close(fig)
     return paths
 
@@ -321,7 +321,7 @@ def make_target_figures(
         ax.grid(alpha=0.3)
         # beside the area, not over it: inside, the key hid the sensors of a corner
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
-    fig.savefig(paths[0], dpi=110)
+    save_figure(fig, paths[0], dpi=110)
     plt.close(fig)
 
     # 2. sensors per target per scan
@@ -344,7 +344,7 @@ def make_target_figures(
         ax.grid(alpha=0.3)
         ax.legend(ncols=len(tids) + 1, fontsize=9, loc="upper left")
     axes[-1, 0].set_xlabel("scan k")
-    fig.savefig(paths[1], dpi=110)
+    save_figure(fig, paths[1], dpi=110)
     plt.close(fig)
 
     # 3. tr P_t against tr P_d,t
@@ -365,7 +365,7 @@ def make_target_figures(
         ax.legend(fontsize=8, loc="upper right")
     axes[0, 0].set_title("Trace of each target's filtered covariance against its desired one")
     axes[-1, 0].set_xlabel("scan k")
-    fig.savefig(paths[2], dpi=110)
+    save_figure(fig, paths[2], dpi=110)
     plt.close(fig)
 
     # 4. OSPA over time
@@ -386,7 +386,7 @@ def make_target_figures(
     ax.set_title(f"OSPA and GOSPA of the target positions (cut-off c = {c} m, p = 2)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=9)
-    fig.savefig(paths[3], dpi=110)
+    save_figure(fig, paths[3], dpi=110)
     plt.close(fig)
 
     # 5. assignment raster (a large network: 10 inches a metric, every k-th sensor labelled;
@@ -411,7 +411,7 @@ def make_target_figures(
         for k in switch_scans:
             ax.axvline(k, color="k", ls=":", lw=1.0)
     axes[-1, 0].set_xlabel("scan k")
-    fig.savefig(paths[4], dpi=110)
+    save_figure(fig, paths[4], dpi=110)
     plt.close(fig)
     return paths
 
@@ -466,6 +466,6 @@ def mc_figure(mc_dir: Path) -> Path:
             ax.set_title(f"{doc['scenario']}: means over {n} seeds with 95 % intervals")
     axes[-1, 0].set_xlabel("scan k")
     path = mc_dir / "montecarlo.png"
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path

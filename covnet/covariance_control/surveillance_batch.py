@@ -29,6 +29,7 @@ import numpy as np
 from covnet.batches.stats import interval, per_scan_interval
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, from_dict, normalised
+from covnet.runs.rundir import save_figure
 
 __all__ = [
     "SCALARS",
@@ -232,7 +233,7 @@ def _save(fig: Any, axes: Any, title: str, path: Path) -> Path:
 
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(title)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

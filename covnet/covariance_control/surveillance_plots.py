@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from covnet.runs.rundir import load_arrays  # noqa: E402
+from covnet.runs.rundir import load_arrays, save_figure  # noqa: E402
 
 __all__ = ["FIGURES", "make_surveillance_figures", "mc_figure"]
 
@@ -104,7 +104,7 @@ def make_surveillance_figures(run_dir: Path) -> list[Path]:
     ax.set_ylabel("y (m)")
     ax.set_title(f"{m0}: truth (grey), tracks (solid confirmed, dotted tentative, x deleted); "
                  "cells: u_c after the last scan", fontsize=9)  # fmt: skip
-    fig.savefig(paths[0], dpi=110)
+    save_figure(fig, paths[0], dpi=110)
     plt.close(fig)
 
     K = len(a[f"gospa.{m0}"])
@@ -122,7 +122,7 @@ def make_surveillance_figures(run_dir: Path) -> list[Path]:
     ax.set_title("Cardinality: confirmed tracks against true targets")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.savefig(paths[1], dpi=110)
+    save_figure(fig, paths[1], dpi=110)
     plt.close(fig)
 
     # 3. GOSPA and its decomposition
@@ -143,7 +143,7 @@ def make_surveillance_figures(run_dir: Path) -> list[Path]:
         ax.legend(loc="upper left", fontsize=8)
         ax2.legend(loc="upper right", fontsize=8)
     axes[-1, 0].set_xlabel("scan k")
-    fig.savefig(paths[2], dpi=110)
+    save_figure(fig, paths[2], dpi=110)
     plt.close(fig)
 
     # 4. search against track
@@ -162,7 +162,7 @@ def make_surveillance_figures(run_dir: Path) -> list[Path]:
     ax.set_title(f"Search against track (search weight λ = {summary['search_weight']:g})")
     ax.legend(loc="upper left", fontsize=8)
     ax2.legend(loc="upper right", fontsize=8)
-    fig.savefig(paths[3], dpi=110)
+    save_figure(fig, paths[3], dpi=110)
     plt.close(fig)
 
     # 5. time to confirm
@@ -181,7 +181,7 @@ def make_surveillance_figures(run_dir: Path) -> list[Path]:
     ax.set_title("Time to confirm: scans from a target's appearance to its first confirmed track")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="y")
-    fig.savefig(paths[4], dpi=110)
+    save_figure(fig, paths[4], dpi=110)
     plt.close(fig)
     return paths
 
@@ -210,6 +210,6 @@ def mc_figure(mc_dir: Path, doc: dict[str, Any]) -> Path:
     for ax in axes:
         ax.grid(alpha=0.3)
     path = mc_dir / "montecarlo.png"
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path

@@ -52,6 +52,7 @@ from covnet.batches.trials import (
 from covnet.covariance_control.config import Scenario, SweepSpec, from_dict, normalised
 from covnet.covariance_control.latency_sim import run_latency
 from covnet.covariance_control.model import build_model, truth_trajectory
+from covnet.runs.rundir import save_figure
 
 POINT_KEYS = ("delay_ms", "loss", "mode", "account_for_loss", "late_policy")
 MEANS = (
@@ -417,7 +418,7 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
     fig.suptitle(f"{title}\n{sub}" if sub else title)
     fig.tight_layout(rect=(0, 0.04, 1, 0.98))
     path = out / "sweep.png"
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -471,7 +472,7 @@ def curves_figure(out: Path, curves: dict[str, np.ndarray], select: Sequence[int
     fig.suptitle("per-scan curves, bands: 95 % t intervals over seeds")
     fig.tight_layout()
     path = out / "curves.png"
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 

@@ -27,7 +27,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
 from covnet.batches.stats import t_half_width  # noqa: E402
-from covnet.runs.rundir import load_arrays  # noqa: E402
+from covnet.runs.rundir import load_arrays, save_figure  # noqa: E402
 
 FIGURE = "fig_mobile_trajectories.png"
 SENSOR_COLORS = (
@@ -150,7 +150,7 @@ def make_figure(run_dir: Path) -> Path:
         f"platform travel {summary['platform_travel_m']['total']:.0f} m"
     )
     path = run_dir / FIGURE
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -205,6 +205,6 @@ def mc_figure(out_dir: Path) -> Path:
         "(mean, 95 % confidence interval)"
     )
     path = out_dir / MC_FIGURE
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path

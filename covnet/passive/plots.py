@@ -21,6 +21,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from covnet.runs.rundir import save_figure  # noqa: E402
+
 P_VS_D = "fig_p_vs_d.png"
 TIME = "fig_time.png"
 SCENE = "scene.png"
@@ -117,7 +119,7 @@ def mc_figures(out_dir: Path) -> list[Path]:
         f"({doc['trials']} runs per cell; lr and milp usually coincide)",
         fontsize=12,
     )
-    fig.savefig(paths[0], dpi=110, bbox_inches="tight")
+    save_figure(fig, paths[0], dpi=110, bbox_inches="tight")
     plt.close(fig)
 
     # time per method
@@ -161,7 +163,7 @@ def mc_figures(out_dir: Path) -> list[Path]:
     )
     ax.grid(alpha=0.3, axis="y", which="both")
     ax.legend()
-    fig.savefig(paths[1], dpi=110)
+    save_figure(fig, paths[1], dpi=110)
     plt.close(fig)
     return paths
 
@@ -295,6 +297,6 @@ def scene_figure(out_dir: Path) -> Path:
         fontsize=11,
     )
     path = out_dir / SCENE
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path

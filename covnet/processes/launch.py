@@ -244,8 +244,15 @@ class Supervisor:
         pids: dict[str, object] = {name: run.proc.pid for name, run in self._runs.items()}
         pids.update(self._pids_extra)
         tmp = self._pids_file.with_name(self._pids_file.name + ".tmp")
-        tmp.write_text(json.dumps(pids, indent=1) + "\n")
-        os.replace(tmp, self._pids_file)
+        try:
+            tmp.write_text(json.dumps(pids, indent=1) + "\n")
+            os.replace(tmp, self._pids_file)
+        except BaseException as exc:  # none left half-written; a full disk names the file
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            if isinstance(exc, OSError):
+                exc.filename, exc.filename2 = str(self._pids_file), None
+            raise
 
     # ---- watching ------------------------------------------------------------------------
 

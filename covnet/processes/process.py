@@ -231,7 +231,8 @@ def open_client(args: Any, net: NetworkSpec, role: str, node_id: str, stop: thre
 
 
 def guarded(body: Callable[[], int], prog: str) -> int:
-    """Run ``body``; a user's mistake prints one line and exits 2, a failure exits 1."""
+    """Run ``body``; a user's mistake prints one line and exits 2, a failure exits 1 (a file
+    that could not be written, a full disk: one line naming it, no traceback)."""
     try:
         return body()
     except ConfigError as exc:
@@ -242,4 +243,8 @@ def guarded(body: Callable[[], int], prog: str) -> int:
         return EXIT_USAGE
     except (ValueError, ConnectionError) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_FAIL
+    except OSError as exc:  # the node's files (the run directory, the recording)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"{prog}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_FAIL

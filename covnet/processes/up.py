@@ -15,6 +15,7 @@ draws the figures from the run directory.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -33,7 +34,7 @@ from covnet.processes import interrupts, output
 from covnet.processes.launch import ProcessSpec, Supervisor
 from covnet.processes.netns_launch import NetnsTopology, up_in_namespaces
 from covnet.processes.process import run_option_args
-from covnet.runs.rundir import LIVE, RUN_INFO, STATUSES, record_end, write_json
+from covnet.runs.rundir import LIVE, RUN_INFO, STATUSES, os_error_text, record_end, write_json
 from covnet.wire.security import endpoint, preflight
 
 __all__ = [
@@ -403,19 +404,19 @@ def up(
         if status != 0:
             why = f"the manager exited with status {status}"
             ended = settle(kind, sc, out, facts, "failed", why)
-            _note_lost(out, lost)
+            ended += _note_lost(out, lost)
             raise UpError(f"the manager failed (exit status {status}); {ended}")
         if lost:
-            _note_lost(out, lost)
+            unsaid = _note_lost(out, lost)
             why = "; ".join(ev["ended"] for ev in lost.values())
-            raise UpError(f"the run is not complete: {why} (run.json: status failed)")
+            raise UpError(f"the run is not complete: {why}{unsaid or ' (run.json: status failed)'}")
         if others and not sc.network.restart == "on-failure":
             view.line(f"[launcher] note: processes that did not exit cleanly: {others}")
         return 0
     except KeyboardInterrupt:
         sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")
-        _note_lost(out, lost)
+        ended += _note_lost(out, lost)
         print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
         return interrupts.EXIT_INTERRUPTED
     finally:
@@ -431,15 +432,18 @@ def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str,
     info = _run_info(out)
     if info.get("status") in STATUSES:
         return f"{out} holds the scans done ({info['status']}: {_scans(info)})"
+    # the manager's live snapshot, left by a manager that died: the run is over
+    with contextlib.suppress(OSError):
+        (out / LIVE).unlink(missing_ok=True)
     recording = out / "recording.mcap"
     if not recording.is_file() or recording.stat().st_size == 0:
         if not out.is_dir() or not any(p.name != "processes.json" for p in out.iterdir()):
             # stopped before the manager wrote anything: no scan was done (run.json says so,
             # and covnet replay then that there is nothing to replay)
-            record_end(out, status, f"{why}; nothing was recorded", scans_completed=0)
-            return f"nothing was recorded ({out} holds no results)"
-        record_end(out, status, f"{why}; no recording to rebuild the results from")
-        return f"no recording: {out} holds no results"
+            unsaid = _record_end(out, status, f"{why}; nothing was recorded", scans_completed=0)
+            return f"nothing was recorded ({out} holds no results){unsaid}"
+        unsaid = _record_end(out, status, f"{why}; no recording to rebuild the results from")
+        return f"no recording: {out} holds no results{unsaid}"
     try:
         report = kind.rebuild(
             sc,
@@ -450,9 +454,10 @@ def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str,
             {**run_info, "mode": "network"},
         )
     except Exception as exc:  # noqa: BLE001 (whatever the recording holds, say it and go on)
-        record_end(out, status, f"{why}; rebuilding from the recording failed: {exc}")
-        return f"the recording could not be rebuilt ({exc}); {out} holds no results"
-    (out / LIVE).unlink(missing_ok=True)
+        # a file that could not be written (a full disk) as FILE: why
+        what = os_error_text(exc) if isinstance(exc, OSError) else str(exc)
+        unsaid = _record_end(out, status, f"{why}; rebuilding from the recording failed: {what}")
+        return f"the recording could not be rebuilt ({what}); {out} holds no results{unsaid}"
     scans = _scans(_run_info(out))
     record_end(
         out,
@@ -462,6 +467,16 @@ def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str,
         rebuild_notes=list(getattr(report, "notes", [])),
     )
     return f"rebuilt {out} from the recording up to the last complete scan ({scans})"
+
+
+def _record_end(out: Path, status: str, why: str, **facts: Any) -> str:
+    """:func:`~covnet.runs.rundir.record_end`, best effort: ``""``, or what to add to the
+    message when ``run.json`` could not be written either (a full disk)."""
+    try:
+        record_end(out, status, why, **facts)
+    except OSError as exc:
+        return f"; {out / RUN_INFO} does not say so ({exc.strerror or exc})"
+    return ""
 
 
 def _scans(info: dict[str, Any]) -> str:
@@ -525,12 +540,22 @@ def _lost(name: str, rc: int, last: dict[str, Any] | None) -> dict[str, Any]:
     }
 
 
-def _note_lost(out: Path, lost: dict[str, dict[str, Any]]) -> None:
+def _note_lost(out: Path, lost: dict[str, dict[str, Any]]) -> str:
     """A run whose world or recorder died (and was not restarted) is not complete, though the
     manager did every scan: ``run.json`` says ``failed`` and why, lists them under ``lost``,
-    and both it and ``network.json`` count them as failed in ``membership``."""
+    and both it and ``network.json`` count them as failed in ``membership``.  Best effort:
+    ``""``, or what to add to the message when a file could not be written (a full disk: the
+    recorder dies of it too)."""
     if not lost:
-        return
+        return ""
+    try:
+        _write_lost(out, lost)
+    except OSError as exc:
+        return f"; {os_error_text(exc)}: the nodes lost are not recorded there"
+    return ""
+
+
+def _write_lost(out: Path, lost: dict[str, dict[str, Any]]) -> None:
     info = _run_info(out)
     membership = _with_lost(info.get("membership"), lost)
     net = out / "network.json"

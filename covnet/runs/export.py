@@ -72,7 +72,14 @@ from numpy.typing import NDArray
 from covnet import kinds
 from covnet.config import read_yaml
 from covnet.errors import UsageError
-from covnet.runs.rundir import ARRAYS, CONFIG, atomic_write, config_mismatch, load_arrays
+from covnet.runs.rundir import (
+    ARRAYS,
+    CONFIG,
+    atomic_write,
+    check_writable,
+    config_mismatch,
+    load_arrays,
+)
 
 if TYPE_CHECKING:  # the optional extra (no type information: Any to mypy)
     from stonesoup.types.groundtruth import GroundTruthPath
@@ -322,14 +329,26 @@ def export(
     ``fmt`` (:data:`FORMATS`) written to ``out`` (default: :data:`DEFAULT_NAMES` in the run
     directory, replaced; ``"-"``: standard output).  Returns the file written (``None`` for
     stdout).  An existing ``out`` is replaced only with ``force``, and never when it is one of
-    the run's own files (``--out RUN/summary.json`` wrote CSV over the run's summary)."""
+    the run's own files (``--out RUN/summary.json`` wrote CSV over the run's summary).  A
+    folder it cannot write in (a read-only file system) is a :class:`UsageError` naming
+    ``--out`` (or the run directory, the default's folder) before the export is made."""
     if fmt not in FORMATS:
         raise UsageError(f"--format {fmt}: choose from {', '.join(FORMATS)}")
     chosen = _select(read_run(run_dir), episode, run_dir)  # what is wrong with the run first
+    to_stdout = out is not None and str(out) == "-"
+    path = None if to_stdout else _out_path(run_dir, fmt, out, force)
     text = write_csv(chosen) if fmt == "csv" else write_stonesoup(chosen)
-    if out is not None and str(out) == "-":
+    if path is None:
         sys.stdout.write(text)
         return None
+    atomic_write(path, text.encode())
+    return path
+
+
+def _out_path(run_dir: str | Path, fmt: str, out: str | Path | None, force: bool) -> Path:
+    """The file :func:`export` writes, checked: a folder that exists and can be written in
+    (:func:`~covnet.runs.rundir.check_writable`), not a directory, not one of the run's own
+    files, and an existing file only with ``force``."""
     path = Path(run_dir) / DEFAULT_NAMES[fmt] if out is None else Path(out)
     if path.is_dir():
         raise UsageError(f"--out {out}: is a directory (expected a file name)")
@@ -341,5 +360,9 @@ def export(
             raise UsageError(f"--out {out}: is one of the run's own files; choose another name")
         if not force:
             raise UsageError(f"--out {out}: exists; choose another name or pass --force")
-    atomic_write(path, text.encode())
+    what = (
+        f"--out {out}" if out is not None
+        else f"{run_dir} (the export's default folder: give --out, or --out - for stdout)"
+    )  # fmt: skip
+    check_writable(path.parent, what)
     return path

@@ -458,8 +458,22 @@ class RecordingWriter:
     def __enter__(self) -> RecordingWriter:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, kind: object, exc: BaseException | None, tb: object) -> None:
+        """Close (:meth:`close`).  An ``OSError`` of the block or of the closing that names no
+        file (a full disk's failed ``write()``) is raised naming this recording."""
+        try:
+            self.close()
+        except OSError as err:
+            _name_file(err, self.path)
+            raise
+        if isinstance(exc, OSError):
+            _name_file(exc, self.path)
+
+
+def _name_file(exc: OSError, path: Path) -> None:
+    """``exc`` names ``path`` when it names no file (a ``ConnectionError`` is left as it is)."""
+    if exc.filename is None and not isinstance(exc, ConnectionError):
+        exc.filename = str(path)
 
 
 def run_metadata(run_id: str, config: Any | None) -> dict[str, dict[str, str]]:

@@ -18,7 +18,9 @@ arrays to the run.
 How a run or batch ended is in ``run.json`` (:func:`record_end`), for every command and kind:
 ``status`` (:data:`STATUSES`: ``completed``, ``interrupted`` by Ctrl-C or SIGTERM, ``failed``),
 ``ended`` (why, in words) and the command's counts (``scans_completed`` per episode for a run,
-``runs_completed`` / ``runs_total`` for a batch).  A directory without a ``status`` is still
+``runs_completed`` / ``runs_total`` for a batch).  A command stopped by an ``OSError`` (a full
+disk) is recorded ``failed`` by :func:`claims` (:func:`record_failure`); the writers here name
+the file that could not be written.  A directory without a ``status`` is still
 being written (or was written by an older covnet).
 """
 
@@ -63,19 +65,24 @@ __all__ = [
     "SUMMARY",
     "after_the_results",
     "atomic_write",
+    "check_writable",
     "claim",
     "claims",
     "config_mismatch",
     "file_sha256",
     "load_arrays",
     "new_run_dir",
+    "os_error_text",
     "prepare_out",
     "read_json",
     "reading",
     "record_end",
+    "record_failure",
+    "save_figure",
     "utc_now",
     "write_json",
     "write_npz",
+    "writing",
 ]
 
 SUMMARY = "summary.json"
@@ -160,7 +167,7 @@ def prepare_out(
                     "to replace its contents"
                 )
             clear_output(p, option)
-        _writable(p, f"{option} {out}")
+        check_writable(p, f"{option} {out}")
     except BaseException:
         if new:
             _release(p.resolve())
@@ -182,7 +189,7 @@ def _new_claimed_dir(name: str, option: str) -> Path:
             raise UsageError(f"{what}: cannot write there ({exc.strerror or exc})") from None
         claim(made, what, made=True)
         try:
-            _writable(made, what)
+            check_writable(made, what)
         except BaseException:
             _release(made.resolve())
             raise
@@ -283,15 +290,54 @@ def _release(key: Path) -> None:
 def claims() -> Iterator[None]:
     """Within this block, the directories :func:`claim` (:func:`prepare_out`) takes are this
     block's: released when it ends (the CLI wraps every command in one, the API its
-    functions).  Claimed outside any block, a directory is held until the process exits."""
+    functions).  Claimed outside any block, a directory is held until the process exits.
+
+    The block ending in an ``OSError`` (a full disk: a file that could not be written) marks
+    each of its directories that holds something ``status: failed`` in ``run.json``
+    (:func:`record_failure`) before it is released."""
     mine: list[Path] = []
     token = _SCOPE.set(mine)
     try:
         yield
+    except OSError as exc:
+        if not isinstance(exc, BrokenPipeError):  # a reader gone: the command's own ending
+            for key in mine:
+                record_failure(_CLAIMS[key].path if key in _CLAIMS else key, exc)
+        raise
     finally:
         _SCOPE.reset(token)
         for key in reversed(mine):
             _release(key)
+
+
+def os_error_text(exc: OSError) -> str:
+    """``FILE: why`` of an ``OSError`` (``why`` alone when it names no file)."""
+    where = f"{exc.filename}: " if exc.filename else ""
+    return f"{where}{exc.strerror or exc}"
+
+
+def record_failure(out: Path, exc: OSError) -> None:
+    """Best effort: ``out/run.json`` says ``status: failed`` because of ``exc`` (what could
+    not be written, and why), when ``out`` holds anything (a command that failed before it
+    wrote leaves its directory empty).  When ``run.json`` cannot be written either (the disk
+    is still full), a note on ``exc`` says so (the CLI prints it after the error).  A
+    ``failed`` already recorded (by ``covnet up``'s launcher) keeps its reason, this one
+    after it."""
+    why = f"stopped by an error: {os_error_text(exc)}"
+    info: Any = None
+    failed = False
+    try:
+        if not out.is_dir() or not any(out.iterdir()):
+            return
+        with contextlib.suppress(OSError, ValueError):
+            info = json.loads((out / RUN_INFO).read_text())
+        failed = isinstance(info, dict) and info.get("status") == "failed"
+        if failed and info.get("ended"):
+            why = f"{info['ended']}; then {why}"
+        record_end(out, "failed", why)
+    except OSError as again:
+        said = "says failed, but not this error" if failed else "does not say the command failed"
+        exc.add_note(f"{out / RUN_INFO} {said} (not written: {again.strerror or again})")
 
 
 def _release_all() -> None:
@@ -314,11 +360,13 @@ atexit.register(_release_all)
 os.register_at_fork(after_in_child=_forget_claims)
 
 
-def _writable(p: Path, what: str) -> None:
+def check_writable(p: Path, what: str) -> None:
     """Write (then remove) a file in ``p``, made for the check and removed again when it did
     not exist (a command refused later leaves no empty directory): a read-only file system,
     ``/proc`` or a directory without write permission is a :class:`~covnet.errors.UsageError`
-    naming ``what`` now, not an ``OSError`` on a temporary file once the whole run is done."""
+    naming ``what`` now, not an ``OSError`` on a temporary file once the whole run is done.
+    (A real write, not ``os.access``: root passes every permission check, not a read-only
+    mount.)"""
     made = not p.exists()
     try:
         p.mkdir(parents=True, exist_ok=True)
@@ -395,21 +443,47 @@ def _file_mode() -> int:
 
 
 @contextmanager
+def writing(path: str | Path) -> Iterator[None]:
+    """Within this block ``path`` is being written: an ``OSError`` that names no file (a
+    failed ``write()``: a full disk, a quota, an I/O error) is raised again naming ``path``,
+    so the message says which file (``covnet: error: No space left on device`` named none).
+    A ``ConnectionError`` (a network's, a pipe's) is left as it is."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is None and not isinstance(exc, ConnectionError):
+            exc.filename = str(path)
+        raise
+
+
+def save_figure(fig: Any, path: Path, **kwargs: Any) -> None:
+    """``fig.savefig(path, **kwargs)`` (matplotlib; the image library removes a file it could
+    not finish), an ``OSError`` naming ``path`` (:func:`writing`)."""
+    with writing(path):
+        fig.savefig(path, **kwargs)
+
+
+@contextmanager
 def _temporary_beside(path: Path) -> Iterator[tuple[Any, Path]]:
     """A new file of its own (``NAME.<random>.tmp``) in ``path``'s directory, open for
     writing, with a new file's mode; moved onto ``path`` when the block ends, removed when it
     fails: two writers of one file never share a temporary one (a fixed ``NAME.tmp`` mixed
-    two runs' arrays into one corrupt file)."""
-    fd, name = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    tmp = Path(name)
+    two runs' arrays into one corrupt file).  An ``OSError`` (a full disk, a read-only file
+    system) names ``path``, the file that could not be written, not the temporary one."""
+    tmp: Path | None = None
     try:
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+        tmp = Path(name)
         with os.fdopen(fd, "wb") as fh:
             os.fchmod(fh.fileno(), _file_mode())
             yield fh, tmp
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+    except BaseException as exc:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        if isinstance(exc, OSError) and not isinstance(exc, ConnectionError):
+            exc.filename, exc.filename2 = str(path), None
         raise
 
 
