@@ -45,6 +45,7 @@ __all__ = [
     "free_port",
     "process_specs",
     "resolve_router",
+    "hosted_by",
     "sensor_hosts",
     "up",
 ]
@@ -95,6 +96,14 @@ def sensor_hosts(sensor_ids: Sequence[str], per_process: int) -> list[tuple[str,
     if per_process == 1:
         return [(g[0], g) for g in groups]
     return [(f"{HOST_PREFIX}{i + 1}", g) for i, g in enumerate(groups)]
+
+
+def hosted_by(groups: Sequence[tuple[str, list[str]]]) -> dict[str, str]:
+    """Sensor id -> the host process (``sensors@<i>``) that runs it, for every sensor a host
+    runs; a sensor in its own process (named after it) is not listed.  (A host left with one
+    sensor, the last of ``N`` by ``K`` with ``N mod K = 1``, is a host too: its sensor was left
+    out of ``processes.json`` and of the certificates checked before the start.)"""
+    return {sid: name for name, hosted in groups if name.startswith(HOST_PREFIX) for sid in hosted}
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -319,7 +328,7 @@ def up(
     if wanted is not None:
         sensor_procs = {name for name, _ in groups}
         specs = [sp for sp in specs if sp.name in wanted or sp.name in sensor_procs]
-    hosts = {sid: name for name, hosted in groups if len(hosted) > 1 for sid in hosted}
+    hosts = hosted_by(groups)
     nodes_here = [sp.name for sp in specs if not sp.name.startswith(HOST_PREFIX)] + list(hosts)
     # keys, passwords: on this host; the certificates' names against the endpoint in use
     preflight(sc, nodes_here, str(config_path), router=given_router)

@@ -14,7 +14,7 @@ import pytest
 import yaml
 from multiproc import assert_nothing_left
 
-from covnet.processes.up import default_sensors_per_process, sensor_hosts
+from covnet.processes.up import default_sensors_per_process, hosted_by, sensor_hosts
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
@@ -30,6 +30,16 @@ def test_default_and_grouping():
     assert default_sensors_per_process(64, cores=48) == 1
     assert sensor_hosts(["a", "b", "c"], 1) == [("a", ["a"]), ("b", ["b"]), ("c", ["c"])]
     assert sensor_hosts(["a", "b", "c"], 2) == [("sensors@1", ["a", "b"]), ("sensors@2", ["c"])]
+
+
+def test_a_host_left_with_one_sensor_still_hosts_it():
+    """8 sensors by 7: ``sensors@2`` runs S8 alone; S8 was missing from ``processes.json``'s
+    ``hosts`` and from the certificates checked before the start (its missing certificate then
+    ended the run with an error line that did not always show)."""
+    ids = [f"S{i}" for i in range(1, 9)]
+    hosts = hosted_by(sensor_hosts(ids, 7))
+    assert hosts == {**{s: "sensors@1" for s in ids[:7]}, "S8": "sensors@2"}
+    assert hosted_by(sensor_hosts(ids, 1)) == {}  # a process per sensor: named after it
 
 
 def _config(tmp_path: Path) -> Path:
