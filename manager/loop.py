@@ -211,6 +211,8 @@ class Loop:
         #: the nodes whose heartbeats count (the recorder's for its rejection counts only)
         self.hb_known = frozenset((*self.members.expected, RECORDER_ID))
         self.stats = NetStats()
+        # the failed set as the run's counts last saw it (an episode's own starts afresh)
+        self._counted_failed: frozenset[str] = frozenset()
         #: the scan loop's time by stage (``covnet bench up --profile``; off by default)
         self.stages = Stages()
         # slow links: a late message goes to on_late (re-filtered or dropped, it says which);
@@ -303,8 +305,12 @@ class Loop:
             }
             if sid in failed:
                 event["detected_ns"] = self.members.down_since_ns(sid)
-            self.stats.membership[sid][event["event"]] += 1
             events.append(event)
+        # the run's counts: each change once (every episode's log starts from no failure, so
+        # the same failure is an event of each episode; it was counted once an episode)
+        for sid in sorted((failed ^ self._counted_failed) - {WORLD_ID}):
+            self.stats.membership[sid]["failed" if sid in failed else "rejoined"] += 1
+        self._counted_failed = failed
         return failed, events
 
     def linger(self, timeout_s: float, stop: threading.Event) -> None:

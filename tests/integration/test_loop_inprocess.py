@@ -130,3 +130,19 @@ def test_failed_sensor_is_excluded_and_run_completes(short_paper):
     events = result.episodes["spectral"].failures
     assert events and events[0]["sensor"] == "S2" and events[0]["event"] == "failed"
     assert events[0]["scan"] <= 5
+
+
+def test_a_sensor_failure_is_counted_once_whatever_the_number_of_metrics(short_paper):
+    """Each metric's episode starts its failure log afresh, so one failure is an event of every
+    episode; ``membership`` (run.json, network.json) counted it once an episode (one SIGKILL:
+    ``failed: 3`` with three metrics)."""
+    sc = with_overrides(short_paper, scans=12)
+    metrics = ["spectral", "trace_diff"]
+    result, _ = run_network(sc, metrics, kill_after_scan=3, victim="S2")
+    assert result.completed
+    assert all(
+        [ev["event"] for ev in result.episodes[m].failures if ev["sensor"] == "S2"] == ["failed"]
+        for m in metrics
+    )  # every episode's log has it
+    assert result.stats.membership_counts() == {"S2": {"failed": 1, "rejoined": 0}}
+
