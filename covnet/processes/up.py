@@ -368,6 +368,7 @@ def up(
     sup = Supervisor(
         specs, on_line=on_line, pids_file=out / "processes.json", pids_extra=_hosts(hosts)
     )
+    was_ready = False
     try:
         with (  # the children first: they may be forks of this process, while it has one thread
             sup,
@@ -388,6 +389,7 @@ def up(
                     )
                 if time.monotonic() > deadline:
                     raise UpError("the network did not become READY in time")
+            was_ready = True
             if on_ready is not None:
                 on_ready(sup)
             restarts_seen = 0
@@ -422,6 +424,15 @@ def up(
         if others and not sc.network.restart == "on-failure":
             view.line(f"[launcher] note: processes that did not exit cleanly: {others}")
         return 0
+    except UpError as exc:
+        # before READY a node failed: the launcher stopped the manager, which then wrote
+        # "interrupted" (as for a Ctrl-C); the run failed (the manager's own "failed" and its
+        # reason are kept)
+        if not was_ready and _run_info(out).get("status") != "failed":
+            unsaid = _record_end(out, "failed", str(exc))
+            if unsaid:
+                raise UpError(f"{exc}{unsaid}") from None
+        raise
     except KeyboardInterrupt:
         sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")

@@ -189,6 +189,35 @@ def test_crashed_manager_ends_the_run_with_a_message(covnet_proc, tmp_path, pape
     assert "identical" in rp.output()
 
 
+def test_a_node_that_dies_before_ready_is_a_failed_run_not_an_interrupted_one(
+    covnet_proc, tmp_path, paper_path
+):
+    """A sensor process gone before READY: the launcher stops the network and exits 1, but
+    run.json said ``interrupted`` ("Ctrl-C in the launcher"): the manager, stopped by the
+    launcher, took it for a Ctrl-C. (S8 is never started, so READY cannot come first.)"""
+    out = tmp_path / "run"
+    here = ",".join(["manager", "world", "recorder", *(f"S{i}" for i in range(1, 8))])
+    p = covnet_proc(["up", str(paper_path), "--nodes", here, "--out", str(out), "--no-figures"])
+    deadline = time.monotonic() + 60
+    while "S7" not in (pids := _pids(out)):
+        assert p.proc.poll() is None and time.monotonic() < deadline, p.output()
+        time.sleep(0.05)
+    os.kill(pids["S7"], signal.SIGKILL)
+    assert p.wait(timeout=60) == 1, p.output()
+    assert "S7 exited with status -9 before the network was READY" in p.output()
+    assert_nothing_left(out)
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "failed", info
+    assert "S7 exited" in info["ended"], info
+
+
+def _pids(out: Path) -> dict[str, int]:
+    try:
+        return dict(json.loads((out / "processes.json").read_text()))
+    except (OSError, ValueError):
+        return {}
+
+
 def test_force_replaces_an_earlier_run_directory(covnet_proc, tmp_path, paper_path):
     """``covnet up --out DIR --force`` on a directory an earlier covnet run wrote: the new run's
     files only, nothing of the old one left (an old figure, an old replay/)."""
