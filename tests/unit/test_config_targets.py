@@ -145,6 +145,10 @@ BAD = [
      "allocation.detection", "expected"),
     ("per-target", lambda d: d["allocation"].update(max_per_target=0),
      "allocation.max_per_target", "greater than or equal to 1"),
+    # room for 3 of the 4 required: every scan turned every sensor off, exit 0
+    ("per-target-required", lambda d: d["allocation"].update(
+        max_per_target=1, required=[s["id"] for s in d["sensors"][:4]]),
+     "allocation.max_per_target", "fewer than the 4 of allocation.required"),
     ("ci", lambda d: d.update(fusion={"mode": "ci"}), "fusion.mode", "ci is not available"),
     ("peer", lambda d: d.update(fusion={"mode": "peer"}), "fusion.mode", "peer is not available"),
     ("loss-aware", lambda d: d["allocation"].update(account_for_loss=True),

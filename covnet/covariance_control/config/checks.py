@@ -173,6 +173,18 @@ def semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
             )
         if al.max_active > len(ids):
             problems.append(("allocation.max_active", f"more than the {len(ids)} sensors"))
+    n_req = len(set(al.required))
+    if sc.multitarget and al.max_per_target is not None and sc.targets is not None:
+        room = al.max_per_target * len(sc.targets)
+        if sc.surveillance is None and n_req > room:
+            # every scan turned every sensor off (exit 0), or, one target, a traceback
+            problems.append(
+                (
+                    "allocation.max_per_target",
+                    f"{al.max_per_target} x {len(sc.targets)} targets: room for {room} sensors, "
+                    f"fewer than the {n_req} of allocation.required (on every scan)",
+                )
+            )
     if sc.multitarget:
         problems += _multitarget_fusion_problems(sc)
     return problems
