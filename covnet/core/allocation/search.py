@@ -753,6 +753,10 @@ def allocate_bnb(
     # there: 5-16 iterations instead of 30 at N = 100)
     goal = value - rel_gap * abs(value) if rel_gap > 0.0 else math.inf
     lb = min(max(search.lower_bound(), prob.root_bound(goal)), value)
+    if _gap(value, lb) > rel_gap and (deadline is None or not deadline()):
+        # rel_gap not certified, time left: at least the root's bound whole (greedy's, which
+        # was larger on the same subset when the root's stopped early)
+        lb = min(max(lb, prob.root_bound_whole()), value)
     status = why if why else 3
     return SearchResult(
         _subset(mask),

@@ -166,6 +166,7 @@ class _Problem:
                 self.relax = None
         self.dual: _DualBound | None = None
         self._root_bound: float | None = None
+        self._root_whole: float | None = None
         dual = capability(entry.dual_bound, DualNorm) if entry is not None else None
         if self.bound is not None and dual is not None and self.r == 2:
             try:
@@ -438,6 +439,17 @@ lower_bounds._DualBound.vertex_bound`; one_norm, inf_norm, abs_trace) on the row
         if self._root_bound is None:
             self._root_bound = self._root(tau)
         return self._root_bound
+
+    def root_bound_whole(self) -> float:
+        """:meth:`root_bound` raised to the end (``tau = inf``), computed once: the first
+        call's bound may have stopped early (a dual bound stops once its own primal value shows
+        it cannot reach ``tau``), and greedy's, always whole, was then the larger certificate
+        on the same subset."""
+        if self.bound is None:
+            return self.root_bound()
+        if self._root_whole is None:
+            self._root_whole = self._root(math.inf)
+        return max(self._root_whole, self.root_bound())
 
     def _root(self, tau: float = math.inf) -> float:
         Z0 = self.base[None]
