@@ -219,6 +219,9 @@ class Loop:
         # a sensor that measured on a stale command is fused too
         self.on_late: Callable[[Any], bool | None] | None = None
         self.accept_unsolicited = False
+        # the sensors the scan being collected enabled (a sensor dropped from the wait as
+        # failed is still one: its measurement arriving before the scan is fused is taken)
+        self._enabled: frozenset[str] = frozenset()
         #: slow links: collect until the deadline (a late message that arrives before it is
         #: re-filtered before the scan is fused, as covnet run does)
         self.to_deadline = False
@@ -385,6 +388,7 @@ class Loop:
         What is queued is taken together (:meth:`_take_many`; ``usable_many``: the kind's
         verdicts on several messages at once, :meth:`ScanLogic.usable_many`)."""
         got: dict[str, Any] = {}
+        self._enabled = frozenset(waiting)
         lap = self.stages.lap
         next_poll = time.monotonic() + MEMBERSHIP_POLL_S
         to_deadline = self.to_deadline
@@ -542,7 +546,13 @@ class Loop:
         reason = None  # (this scan's from here on: a later one was refused, an earlier is late)
         if m.sensor_id in got:
             reason = "duplicate"
-        elif m.sensor_id not in waiting and not self.accept_unsolicited:
+        elif (
+            m.sensor_id not in waiting
+            and m.sensor_id not in self._enabled
+            and not self.accept_unsolicited
+        ):
+            # (an enabled sensor that the wait dropped as failed, and that answered after
+            # all, is taken: it was refused as not enabled, one of an honest scan's answers)
             reason = "not_enabled"
         elif not _passes(verdict := usable(m) if callable(usable) else usable):
             reason = verdict if isinstance(verdict, str) else "bad_measurement"
@@ -550,7 +560,7 @@ class Loop:
             self.stats.reject(s.key, reason)
             outcome["rejected"] += 1
             return
-        self.stats.unsolicited += m.sensor_id not in waiting
+        self.stats.unsolicited += m.sensor_id not in waiting and m.sensor_id not in self._enabled
         outcome["on_time"] += 1
         got[m.sensor_id] = m
         waiting.discard(m.sensor_id)

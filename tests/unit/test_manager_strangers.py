@@ -12,6 +12,9 @@ sensor's numbers or the fused scan (found by a rogue client on the real bus):
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -125,3 +128,29 @@ def test_a_done_token_of_another_session_stops_the_run_saying_why(paper):
     own.live_sub.channel.put(LivelinessEvent(msg.done_key("st2"), True))
     own.poll_membership()
     assert not own.forged_done and own.stats.rejected == {}
+
+
+def test_an_enabled_sensor_dropped_as_failed_that_answers_after_all_is_taken(paper):
+    """Under load the wait may take an enabled sensor for failed (its heartbeat late) and stop
+    waiting for it; its measurement, arriving before the scan is fused, was refused as
+    ``not_enabled`` (a flaky in-process run: ``rejected {'not_enabled': 1}``). It is this
+    scan's answer of an enabled sensor: taken. One never enabled is still refused."""
+    loop, logic, decision = _setup(paper, False)
+    off = [sorted(decision.enabled)[-1]]  # the scan as if this one were not enabled
+    enabled = sorted(set(decision.enabled) - set(off))
+    late = enabled[0]
+    loop.members.is_up = lambda sid, now: sid != late  # type: ignore[method-assign]
+    bus = InMemoryBus(loop.bus._hub, name="sensors")  # the sensors' side of the same hub
+    for i, sid in enumerate(enabled[1:], start=1):
+        bus.publish(msg.measurement_key("st", sid), msg.encode(_meas(sid, 1, i)))
+
+    def answers_late():  # the dropped sensor, and a stray of one not enabled, come after
+        bus.publish(msg.measurement_key("st", late), msg.encode(_meas(late, 1, 1)))
+        bus.publish(msg.measurement_key("st", off[0]), msg.encode(_meas(off[0], 1, 1)))
+
+    poll = loop.poll_membership
+    loop.poll_membership = lambda: (poll(), answers_late())[0]  # type: ignore[method-assign]
+    got = loop.collect(0, 1, set(enabled), time.monotonic() + 5.0, threading.Event(),
+                       logic.usable)  # fmt: skip
+    assert set(got) == set(enabled)
+    assert loop.stats.rejected == {"not_enabled": 1}  # the one never enabled
