@@ -433,3 +433,17 @@ def test_one_pair_metric_paths_equal_the_batched_ones(name):
             one = METRICS[name](A[k], B)
             assert np.asarray(one).shape == ()
             assert np.asarray(one).tobytes() == batched[k].tobytes()
+
+
+@pytest.mark.parametrize("name", ["kl", "logdet"])
+def test_a_singular_desired_covariance_is_named_for_the_metrics_that_invert_it(name):
+    """A singular ``P_d`` with kl / logdet was blamed on ``P_pred`` and the gains only (the
+    CLI's config check names it; the Python API's message did not)."""
+    from covnet.core.allocation.search import allocate_bnb
+
+    P = np.eye(2) * 10.0
+    G = np.array([np.eye(2), np.diag([1.0, 0.0]), np.diag([0.0, 2.0])])
+    P_d = np.diag([1.0, 0.0])
+    for search in (allocate_exhaustive, allocate, allocate_bnb):
+        with pytest.raises(ValueError, match=r"P_d positive definite for a metric that inverts"):
+            search(P, G, P_d, name)

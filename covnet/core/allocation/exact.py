@@ -353,9 +353,13 @@ class NotPositiveDefinite(ValueError):
 
 
 def _spd_error(exc: np.linalg.LinAlgError) -> ValueError:
+    """The allocators' message for a matrix their arithmetic cannot factor: ``P_pred``, an
+    information sum, or ``P_d`` for a metric that inverts it (kl, logdet: a singular ``P_d``
+    was blamed on ``P_pred`` and the gains)."""
     return NotPositiveDefinite(
         "P_pred must be symmetric positive definite and P_pred⁻¹ + J_i positive definite "
-        f"(gains must be positive semi-definite): {exc}"
+        "(gains must be positive semi-definite), and P_d positive definite for a metric that "
+        f"inverts it (kl, logdet): {exc}"
     )
 
 
