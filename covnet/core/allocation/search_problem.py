@@ -63,7 +63,11 @@ class SearchResult:
 
     ``subset``: chosen sensor indices, ascending; ``value``: its exact ``f(P, P_d)`` (the
     reference's arithmetic); ``P``: its covariance; ``lower_bound``: a certified lower bound of
-    the optimum over the feasible subsets; ``gap = (value - lower_bound) / max(|value|, tiny)``;
+    the optimum over the feasible subsets; ``gap = (value - lower_bound) / max(|value|, tiny)``.
+    "The optimum" is the tie rule's choice: among the values within ``tie_rtol`` of the least,
+    the fewest sensors.  So with status 0 ``lower_bound = value`` may lie up to ``tie_rtol``
+    (relative) above the least value of all subsets, and status 3 means ``gap <= rel_gap +
+    tie_rtol`` (``tie_rtol`` defaults to 1e-9; the config caps it at 1e-3);
     ``n_nodes``: branch-and-bound nodes created (greedy: moves evaluated); ``n_evaluated``: exact
     metric evaluations; ``exact``: the subset is the reference's (the search completed with
     ``rel_gap = 0``).
