@@ -355,6 +355,34 @@ def _table_inputs(
     return p, pg, mus, n, int(n_samples)
 
 
+def _target_points(rng: np.random.Generator, N: int, n: int, pg: float) -> Mat:
+    """``(N, n)`` whitened innovations of the target's return, conditioned on the gate: a
+    uniform direction, the radius from the χ²_n law cut at ``P_G``.  The draws of the ``q₂``
+    tables, always in this order: the target's directions and radii, then clutter point 1 of
+    every sample (:func:`_clutter_points`), point 2, ... (so the first k points do not depend
+    on how many are drawn: one generator state gives the same ``q₂`` in a table or alone)."""
+    d0 = rng.standard_normal((N, n))
+    r0 = np.sqrt(stats.chi2.ppf(rng.random(N) * pg, n))
+    return np.asarray(d0 / np.linalg.norm(d0, axis=1, keepdims=True) * r0[:, None])
+
+
+def _clutter_points(rng: np.random.Generator, N: int, n: int, g: float) -> Mat:
+    """``(N, n)``: one clutter return of every sample, uniform in the gate's ball of radius
+    ``√g`` (whitened)."""
+    dc = rng.standard_normal((N, n))
+    rc = math.sqrt(g) * rng.random(N) ** (1.0 / n)
+    return np.asarray(dc / np.linalg.norm(dc, axis=1, keepdims=True) * rc[:, None])
+
+
+def _clutter_weights(mus: Vec, n: int, p: float, pg: float, g: float) -> Vec:
+    """``b_μ = μ (2π)^{n/2} (1 − P_D P_G) / (P_D V_ball)``, ``V_ball`` the volume of the
+    ``n``-ball of radius ``√g``: the no-detection term of the PDA weights' denominator in
+    whitened coordinates, per ``μ_G``."""
+    log_c = 0.5 * n * math.log(math.pi) - math.lgamma(0.5 * n + 1.0)
+    v_ball = math.exp(log_c + 0.5 * n * math.log(g))
+    return np.asarray(mus * (2.0 * math.pi) ** (0.5 * n) * (1.0 - p * pg) / (p * v_ball))
+
+
 def information_reduction_table(
     pd: float,
     dim_z: int,
@@ -373,20 +401,11 @@ def information_reduction_table(
     g = gate_threshold(n, pg)
     m_max = int(stats.poisson.isf(1e-12, float(mus.max()))) + 1 if mus.max() > 0.0 else 0
     weights = np.asarray(stats.poisson.pmf(np.arange(m_max + 1)[:, None], mus[None, :]))  # (m, μ)
-    # draws, always in this order: the target's directions and radii, then clutter point 1 of
-    # every sample (directions, radii), point 2, ... (so the first k points do not depend on
-    # how many are drawn: one generator state gives the same q₂ in a table or alone)
-    d0 = rng.standard_normal((N, n))
-    r0 = np.sqrt(stats.chi2.ppf(rng.random(N) * pg, n))
-    u0 = d0 / np.linalg.norm(d0, axis=1, keepdims=True) * r0[:, None]
+    u0 = _target_points(rng, N, n, pg)
     uc = np.empty((N, m_max, n))
     for k in range(m_max):
-        dc = rng.standard_normal((N, n))
-        rc = math.sqrt(g) * rng.random(N) ** (1.0 / n)
-        uc[:, k] = dc / np.linalg.norm(dc, axis=1, keepdims=True) * rc[:, None]
-    log_c = 0.5 * n * math.log(math.pi) - math.lgamma(0.5 * n + 1.0)
-    v_ball = math.exp(log_c + 0.5 * n * math.log(g))
-    b = mus * (2.0 * math.pi) ** (0.5 * n) * (1.0 - p * pg) / (p * v_ball)  # (μ,)
+        uc[:, k] = _clutter_points(rng, N, n, g)
+    b = _clutter_weights(mus, n, p, pg, g)  # (μ,)
 
     def reduction(U: Mat) -> Vec:
         """Mean over samples of (1 − β_0) − spread/n for the points U (N, k, n), per μ.
@@ -449,12 +468,8 @@ def information_reduction_table_streamed(
     hi[pos] = np.asarray(stats.poisson.isf(1e-12, mus[pos]), dtype=np.intp) + 1
     lo[pos] = np.maximum(np.asarray(stats.poisson.ppf(1e-13, mus[pos]), dtype=np.intp) - 1, 0)
     m_max = int(hi.max())
-    log_c = 0.5 * n * math.log(math.pi) - math.lgamma(0.5 * n + 1.0)
-    v_ball = math.exp(log_c + 0.5 * n * math.log(g))
-    b = mus * (2.0 * math.pi) ** (0.5 * n) * (1.0 - p * pg) / (p * v_ball)  # (μ,)
-    d0 = rng.standard_normal((N, n))
-    r0 = np.sqrt(stats.chi2.ppf(rng.random(N) * pg, n))
-    u0 = d0 / np.linalg.norm(d0, axis=1, keepdims=True) * r0[:, None]
+    b = _clutter_weights(mus, n, p, pg, g)  # (μ,)
+    u0 = _target_points(rng, N, n, pg)
     s0 = (u0 * u0).sum(axis=1)
     e0 = np.exp(-0.5 * s0)
     E1 = np.zeros(N)
@@ -472,9 +487,7 @@ def information_reduction_table_streamed(
     q2 = np.zeros(mus.size)
     for m in range(m_max + 1):
         if m > 0:
-            dc = rng.standard_normal((N, n))
-            rc = math.sqrt(g) * rng.random(N) ** (1.0 / n)
-            u = dc / np.linalg.norm(dc, axis=1, keepdims=True) * rc[:, None]
+            u = _clutter_points(rng, N, n, g)
             s2 = (u * u).sum(axis=1)
             e = np.exp(-0.5 * s2)
             E1 += e
