@@ -283,8 +283,7 @@ def end_batch(
         )
         return
     n = len(stop.done)
-    resumable = (out / "trials").is_dir()
-    again = f"; the same command with --out {out} resumes" if resumable else ""
+    again = _same_command(out, "resumes")
     if kept == 0 and not out.is_dir():
         print(
             f"interrupted after {n} of {total} runs, before the first complete {what}: "
@@ -312,6 +311,12 @@ def end_batch(
         f"figures skipped (partial){again}",
         file=sys.stderr,
     )
+
+
+def _same_command(out: Path, does: str) -> str:
+    """``"; the same command with --out OUT <does>"`` when ``out`` keeps finished trials (the
+    same command takes them up), else ``""``."""
+    return f"; the same command with --out {out} {does}" if (out / "trials").is_dir() else ""
 
 
 def finish_batch(out: Path, total: int, what: str, write: Callable[[], R], **facts: Any) -> R:
@@ -348,9 +353,7 @@ def finish_batch(out: Path, total: int, what: str, write: Callable[[], R], **fac
             runs_total=total,
             **facts,
         )
-        again_cmd = (
-            f"; the same command with --out {out} finishes it" if (out / "trials").is_dir() else ""
-        )
+        again_cmd = _same_command(out, "finishes it")
         print(
             f"interrupted after every run ({total} of {total}), while the results were written: "
             f"{out} holds {holds} (run.json: interrupted); figures skipped{again_cmd}",

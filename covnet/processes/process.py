@@ -29,6 +29,7 @@ from covnet.config import (
     hash_of,
 )
 from covnet.errors import UsageError
+from covnet.runs.rundir import os_error_text
 from covnet.wire import security
 from covnet.wire.keys import run_keyexpr
 
@@ -245,6 +246,5 @@ def guarded(body: Callable[[], int], prog: str) -> int:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_FAIL
     except OSError as exc:  # the node's files (the run directory, the recording)
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"{prog}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"{prog}: error: {os_error_text(exc)}", file=sys.stderr)
         return EXIT_FAIL

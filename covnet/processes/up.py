@@ -34,7 +34,15 @@ from covnet.processes import interrupts, output
 from covnet.processes.launch import ProcessSpec, Supervisor
 from covnet.processes.netns_launch import NetnsTopology, up_in_namespaces
 from covnet.processes.process import run_option_args
-from covnet.runs.rundir import LIVE, RUN_INFO, STATUSES, os_error_text, record_end, write_json
+from covnet.runs.rundir import (
+    LIVE,
+    RUN_INFO,
+    STATUSES,
+    os_error_text,
+    record_end,
+    try_record_end,
+    write_json,
+)
 from covnet.wire.security import endpoint, preflight
 
 __all__ = [
@@ -43,9 +51,9 @@ __all__ = [
     "UpError",
     "default_sensors_per_process",
     "free_port",
+    "hosted_by",
     "process_specs",
     "resolve_router",
-    "hosted_by",
     "sensor_hosts",
     "up",
 ]
@@ -490,13 +498,10 @@ def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str,
 
 
 def _record_end(out: Path, status: str, why: str, **facts: Any) -> str:
-    """:func:`~covnet.runs.rundir.record_end`, best effort: ``""``, or what to add to the
-    message when ``run.json`` could not be written either (a full disk)."""
-    try:
-        record_end(out, status, why, **facts)
-    except OSError as exc:
-        return f"; {out / RUN_INFO} does not say so ({exc.strerror or exc})"
-    return ""
+    """:func:`~covnet.runs.rundir.try_record_end`: ``""``, or what to add to the message when
+    ``run.json`` could not be written either (a full disk)."""
+    unwritten = try_record_end(out, status, why, **facts)
+    return f"; {out / RUN_INFO} does not say so ({unwritten})" if unwritten else ""
 
 
 def _scans(info: dict[str, Any]) -> str:

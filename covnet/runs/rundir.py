@@ -79,6 +79,7 @@ __all__ = [
     "record_end",
     "record_failure",
     "save_figure",
+    "try_record_end",
     "utc_now",
     "write_json",
     "write_npz",
@@ -325,19 +326,29 @@ def record_failure(out: Path, exc: OSError) -> None:
     after it."""
     why = f"stopped by an error: {os_error_text(exc)}"
     info: Any = None
-    failed = False
     try:
         if not out.is_dir() or not any(out.iterdir()):
             return
-        with contextlib.suppress(OSError, ValueError):
-            info = json.loads((out / RUN_INFO).read_text())
-        failed = isinstance(info, dict) and info.get("status") == "failed"
-        if failed and info.get("ended"):
-            why = f"{info['ended']}; then {why}"
-        record_end(out, "failed", why)
-    except OSError as again:
+        info = json.loads((out / RUN_INFO).read_text())
+    except (OSError, ValueError):
+        pass
+    failed = isinstance(info, dict) and info.get("status") == "failed"
+    if failed and info.get("ended"):
+        why = f"{info['ended']}; then {why}"
+    unwritten = try_record_end(out, "failed", why)
+    if unwritten:
         said = "says failed, but not this error" if failed else "does not say the command failed"
-        exc.add_note(f"{out / RUN_INFO} {said} (not written: {again.strerror or again})")
+        exc.add_note(f"{out / RUN_INFO} {said} (not written: {unwritten})")
+
+
+def try_record_end(out: Path, status: str, ended: str, **facts: Any) -> str:
+    """:func:`record_end`, best effort: ``""``, or why ``run.json`` could not be written (a
+    full disk), for the caller's message about a run that is ending badly anyway."""
+    try:
+        record_end(out, status, ended, **facts)
+    except OSError as exc:
+        return str(exc.strerror or exc)
+    return ""
 
 
 def _release_all() -> None:
