@@ -75,6 +75,7 @@ from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from covnet import __version__, kinds
 from covnet.config import hash_of
+from covnet.runs.rundir import name_file
 from covnet.wire import messages as msg
 from covnet.wire.bus import keyexpr_matches
 
@@ -464,16 +465,10 @@ class RecordingWriter:
         try:
             self.close()
         except OSError as err:
-            _name_file(err, self.path)
+            name_file(err, self.path)
             raise
         if isinstance(exc, OSError):
-            _name_file(exc, self.path)
-
-
-def _name_file(exc: OSError, path: Path) -> None:
-    """``exc`` names ``path`` when it names no file (a ``ConnectionError`` is left as it is)."""
-    if exc.filename is None and not isinstance(exc, ConnectionError):
-        exc.filename = str(path)
+            name_file(exc, self.path)
 
 
 def run_metadata(run_id: str, config: Any | None) -> dict[str, dict[str, str]]:

@@ -71,6 +71,7 @@ __all__ = [
     "config_mismatch",
     "file_sha256",
     "load_arrays",
+    "name_file",
     "new_run_dir",
     "os_error_text",
     "prepare_out",
@@ -462,9 +463,15 @@ def writing(path: str | Path) -> Iterator[None]:
     try:
         yield
     except OSError as exc:
-        if exc.filename is None and not isinstance(exc, ConnectionError):
-            exc.filename = str(path)
+        name_file(exc, path)
         raise
+
+
+def name_file(exc: OSError, path: str | Path) -> None:
+    """``exc`` names ``path`` when it names no file (a failed ``write()``); a
+    ``ConnectionError`` (a network's, a pipe's) is left as it is."""
+    if exc.filename is None and not isinstance(exc, ConnectionError):
+        exc.filename = str(path)
 
 
 def save_figure(fig: Any, path: Path, **kwargs: Any) -> None:
