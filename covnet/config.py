@@ -36,6 +36,7 @@ from covnet.records import (
     MAX_MAGNITUDE,
     AfterValidator,
     Field,
+    Placed,
     Record,
     ValidationError,
     field_validator,
@@ -469,13 +470,14 @@ def network_problems(cfg: Networked) -> list[tuple[str, str]]:
 def unique_ids(noun: str) -> AfterValidator:
     """The validator of a table of records with an ``id`` (sensors, targets):
     ``Annotated[tuple[Spec, ...], unique_ids("sensor")]``, run with the structure (so a repeated
-    id is reported together with every other problem) at ``<table>[i].id``."""
+    id is reported together with every other problem) at ``<table>[i].id``, type
+    ``duplicate_id`` (the loader's repair renames that record: :func:`_repaired`)."""
 
     def check(records: tuple[Any, ...]) -> tuple[Any, ...]:
         seen: set[str] = set()
         for i, r in enumerate(records):
             if r.id in seen:
-                raise ValueError(f"@[{i}].id: duplicate {noun} id {r.id!r}")
+                raise Placed((i, "id"), f"duplicate {noun} id {r.id!r}", "duplicate_id")
             seen.add(r.id)
         return records
 
@@ -506,10 +508,7 @@ def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
         return path, "missing required key"
     msg = str(err["msg"])
     value = err.get("input")
-    if kind == "value_error" and msg.startswith("@"):  # a check naming a place inside its field
-        where, _, text = msg[1:].partition(": ")
-        return path + where, text
-    if kind == "value_error":
+    if kind in ("value_error", "duplicate_id"):
         return path, msg
     if kind == "float_type" and isinstance(value, str) and _looks_numeric(value):
         if (m := _EXPONENT.fullmatch(value.strip())) and not _YAML_FLOAT.fullmatch(value.strip()):
@@ -748,10 +747,6 @@ def validate(
     return cfg
 
 
-_DUPLICATE_ID = re.compile(r"@\[(\d+)\]\.id: duplicate ")
-"""The message of :func:`unique_ids`: the index of the record that repeats an id."""
-
-
 def _at(data: Any, loc: Sequence[int | str]) -> Any:
     """``data[loc[0]][loc[1]]...``, or None where there is no such place."""
     for part in loc:
@@ -771,16 +766,16 @@ def _repaired(
     repaired: Any = copy.deepcopy(data)
     for err in errors:
         loc = tuple(err["loc"])
-        dup = _DUPLICATE_ID.match(str(err.get("msg", "")))
-        table = _at(repaired, loc) if dup else None
-        if dup and isinstance(table, list) and int(dup.group(1)) < len(table):
-            # a repeated id (unique_ids): that record under a stand-in id, not the whole
-            # table gone (the checks that span fields need it: "no sensor with id 'S9'")
-            i = int(dup.group(1))
-            if isinstance(table[i], dict):
-                table[i]["id"] = f"{table[i].get('id')}_repeated_{i}"
-                scopes.append((*loc, i))
+        if err["type"] == "duplicate_id":
+            # a repeated id (unique_ids, at <table>[i].id): that record under a stand-in id,
+            # not the whole table gone (the checks that span fields need it: "no sensor with
+            # id 'S9'")
+            record = _at(repaired, loc[:-1])
+            if isinstance(record, dict):
+                record["id"] = f"{record.get('id')}_repeated_{loc[-2]}"
+                scopes.append(loc[:-1])
                 continue
+            loc = loc[:-2]
         while loc and isinstance(loc[-1], int):  # an item of a list of values: the list
             loc = loc[:-1]
         if not loc:

@@ -25,8 +25,8 @@ every field:
   the length is reported only when it is wrong by itself);
 - then the field's checks run (:class:`AfterValidator` in its ``Annotated`` type, then the
   :func:`field_validator`\\ s naming it, in class order): a ``ValueError`` they raise is the
-  problem, at the field's location (or, for a message ``"@<suffix>: text"``, at the location
-  plus ``<suffix>``);
+  problem, at the field's location (a :class:`Placed` problem at the location plus its
+  ``where``, with its own ``type``);
 - a record's own :func:`model_validator` runs when all its fields are valid;
 - defaults are not validated (they are the author's, not the user's).
 
@@ -61,6 +61,7 @@ __all__ = [
     "AfterValidator",
     "Field",
     "FieldInfo",
+    "Placed",
     "Record",
     "ValidationError",
     "field_validator",
@@ -206,6 +207,17 @@ class ValidationError(ValueError):
 
     def errors(self) -> list[dict[str, Any]]:
         return list(self._errors)
+
+
+class Placed(ValueError):
+    """A check's problem at a place inside the value it checks: raised by a field's check, it is
+    reported at the field's location plus ``where`` (keys and indices: ``(1, "id")`` is the
+    second item's ``id``), with the error ``type`` ``kind`` (``value_error`` unless a caller
+    needs to tell it apart: :func:`covnet.config.unique_ids`' ``duplicate_id``)."""
+
+    def __init__(self, where: Loc, text: str, kind: str = "value_error") -> None:
+        super().__init__(text)
+        self.where, self.text, self.kind = tuple(where), text, kind
 
 
 class _Bad:
@@ -425,6 +437,8 @@ def _after(inner: Check, funcs: tuple[Callable[[Any], Any], ...]) -> Check:
 
 
 def _value_error(errors: Errors, loc: Loc, exc: ValueError, value: Any) -> Any:
+    if isinstance(exc, Placed):
+        return _err(errors, (*loc, *exc.where), exc.kind, exc.text, value)
     return _err(errors, loc, "value_error", str(exc), value)
 
 

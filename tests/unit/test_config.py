@@ -187,6 +187,24 @@ def test_problems_behind_others_are_reported_in_the_same_list(raw):
     assert "no sensor with id 'S9'" in found["allocation.required[0]"]
 
 
+def test_a_repeated_id_is_a_structured_problem_the_repair_reads(raw):
+    """The repair that keeps a repeated id's record (so the checks that span fields still see
+    it) found the record by parsing the check's message text; it reads the problem's type and
+    place now."""
+    from covnet.covariance_control.config.scenario import Scenario
+    from covnet.records import ValidationError
+
+    raw["sensors"][4]["id"] = raw["sensors"][2]["id"]
+    with pytest.raises(ValidationError) as exc:
+        Scenario.model_validate(raw)
+    (err,) = exc.value.errors()
+    assert (err["loc"], err["type"]) == (("sensors", 4, "id"), "duplicate_id")
+    raw["allocation"]["required"] = ["S9"]
+    found = dict(_problems(raw))
+    assert set(found) == {"sensors[4].id", "allocation.required[0]"}, found
+    assert found["sensors[4].id"] == f"duplicate sensor id {raw['sensors'][2]['id']!r}"
+
+
 def test_message_reads_path_colon_reason(raw):
     raw["sensors"][3]["rho"] = 1.5
     with pytest.raises(ConfigError) as info:

@@ -19,6 +19,7 @@ from covnet.records import (
     MAX_MAGNITUDE,
     AfterValidator,
     Field,
+    Placed,
     Record,
     ValidationError,
     field_validator,
@@ -30,7 +31,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def _positive(v: float) -> float:
     if not v > 0:
-        raise ValueError("@.x: must be > 0")
+        raise ValueError("must be > 0")
     return v
 
 
@@ -218,7 +219,25 @@ def test_checks_run_in_order_after_the_type_and_a_record_check_last():
         Checked(b=-1.0, a="x")
     errs = exc.value.errors()
     assert [(e["loc"], e["type"]) for e in errs] == [(("a",), "int_type"), (("b",), "value_error")]
-    assert errs[1]["msg"] == "@.x: must be > 0"  # covnet.config puts the suffix on the path
+    assert errs[1]["msg"] == "must be > 0"
+
+
+def _no_zero(v: tuple[int, ...]) -> tuple[int, ...]:
+    if 0 in v:
+        raise Placed((v.index(0), "n"), "must not be 0", "zero_item")
+    return v
+
+
+class Holder(Record):
+    items: Annotated[tuple[int, ...], AfterValidator(_no_zero)] = ()
+
+
+def test_a_placed_problem_is_reported_below_its_field_with_its_own_type():
+    with pytest.raises(ValidationError) as exc:
+        Holder(items=(3, 0))
+    (err,) = exc.value.errors()
+    assert (err["loc"], err["type"]) == (("items", 1, "n"), "zero_item")
+    assert err["msg"] == "must not be 0"
 
 
 def test_defaults_are_not_validated():
