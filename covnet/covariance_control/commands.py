@@ -260,6 +260,14 @@ def _print_targets_summary(out: Path, summary: dict[str, Any]) -> None:
             f"  {m:>10}: rate {100 * blk['allocation_rate']:5.1f} %, mean OSPA "
             f"{blk['mean_ospa']:.1f} m, mean GOSPA {blk['mean_gospa']:.1f} m" + _gap_text(blk)
         )
+        off = {sid: n for sid, n in blk.get("required_off", {}).items() if n}
+        if off:
+            scans = len(blk["sensors_per_scan"])
+            print(
+                f"  {'':>10}  required sensors off: "
+                + ", ".join(f"{sid} in {n} of {scans} scans" for sid, n in off.items())
+                + " (failed, covering no target, or no room under allocation.max_per_target)"
+            )
         for tid, t in blk["targets"].items():
             lo, hi = t["nees_band_95"]
             nis = "-" if t["mean_nis"] is None else f"{t['mean_nis']:.2f}"

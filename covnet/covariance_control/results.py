@@ -365,6 +365,11 @@ def targets_summary(
         "dwells_that_updated": float(run.used.sum() / max(int(enabled.sum()), 1)),
         "subsets_evaluated_median": median(run.n_evaluated),
     }
+    required = sorted(tm.base.constraints.required)
+    if required:
+        # scans each required sensor was off: failed, covering no target, or one more than
+        # its targets had room for under max_per_target (targets.assignable)
+        out["required_off"] = {ids[j]: int((run.assignment[:, j] < 0).sum()) for j in required}
     if run.lower_bound is not None and run.gap is not None:
         # a bounded or greedy search: what it certified at every scan (null: not reported)
         out["lower_bound"] = _finite_or_none(run.lower_bound)

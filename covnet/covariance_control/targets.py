@@ -521,12 +521,15 @@ def decide(
     unavailable: frozenset[int] = frozenset(),
 ) -> TargetDecision:
     """Scan ``k``'s assignment (module docstring).  ``unavailable`` (failed sensors) join the
-    configured exclusions, and a required sensor is required only while it is up and covers
-    some target.  ``T = 1`` is today's single-target allocator (:func:`covnet.core.allocation.
-    allocate`) on the feasible sensors when the search is exact; otherwise (and for ``T > 1``)
-    the configured search's many-target form (:func:`covnet.covariance_control.searches.\
-decide_many`: ``exact`` the assignment allocator, ``bounded``/``greedy`` its searches at
-    scale, ``auto`` exact up to ``MANY_EXACT_MAX`` sensors).  With no feasible sensor every
+    configured exclusions, and a required sensor is required only while it is up and can be
+    on: it covers some target, and the required sensors that can all be on at once under
+    ``max_per_target`` are :func:`assignable`'s (the others are free sensors this scan; the
+    summary counts the scans each required sensor was off).  ``T = 1`` is today's
+    single-target allocator (:func:`covnet.core.allocation.allocate`) on the feasible sensors
+    when the search is exact; otherwise (and for ``T > 1``) the configured search's
+    many-target form (:func:`covnet.covariance_control.searches.decide_many`: ``exact`` the
+    assignment allocator, ``bounded``/``greedy`` its searches at scale, ``auto`` exact up to
+    ``MANY_EXACT_MAX`` sensors).  With no feasible sensor every
     sensor is off."""
     J, feas = information(tm, preds)
     P_pred = np.array([g.P for g in preds])
@@ -536,7 +539,7 @@ decide_many`: ``exact`` the assignment allocator, ``bounded``/``greedy`` its sea
     N, T = feas.shape
     nowhere = frozenset(j for j in range(N) if not feas[j].any())
     excluded = c.excluded | unavailable | nowhere
-    required = c.required - unavailable - nowhere
+    required = assignable(c.required - unavailable, feas, tm.max_per_target)
     if len(excluded - required) >= N:
         return _all_off(tm, preds, P_d, w, metric, feas)
     mc = MultiConstraints(
@@ -563,6 +566,38 @@ decide_many`: ``exact`` the assignment allocator, ``bounded``/``greedy`` its sea
     return TargetDecision(
         a.assignment, a.value, a.values, a.P, a.n_evaluated, feas, a.lower_bound, a.gap
     )
+
+
+def assignable(
+    required: frozenset[int], feas: np.ndarray, max_per_target: int | None
+) -> frozenset[int]:
+    """The required sensors that stay required this scan: the largest set of them that can all
+    be on at once, each on a target it covers (``feas[j, t]``), at most ``max_per_target`` on a
+    target.  A maximum bipartite b-matching of sensors to targets by augmenting paths, the
+    sensors tried in ascending index (so a scan's set is the same in every runner): a required
+    sensor left out is one that covers no target, or one more than its targets have room for.
+    Without ``max_per_target`` every required sensor that covers a target stays required."""
+    covering = sorted(j for j in required if feas[j].any())
+    if max_per_target is None:
+        return frozenset(covering)
+    holders: list[list[int]] = [[] for _ in range(feas.shape[1])]
+
+    def place(j: int, seen: set[int]) -> bool:
+        for t in np.flatnonzero(feas[j]).tolist():
+            if t in seen:
+                continue
+            seen.add(t)
+            if len(holders[t]) < max_per_target:
+                holders[t].append(j)
+                return True
+            for h in list(holders[t]):  # make room: move a holder to another target
+                if place(h, seen):
+                    holders[t].remove(h)
+                    holders[t].append(j)
+                    return True
+        return False
+
+    return frozenset(j for j in covering if place(j, set()))
 
 
 def _decide_one(
