@@ -56,7 +56,7 @@ class MobileLogic:
     def ahead(self, e: int, k: int) -> None:
         self.steps.ahead()
 
-    def usable(self, m: msg.Measurement) -> bool:
+    def usable(self, m: msg.Measurement) -> bool | str:
         return self.steps.usable(m)
 
     def on_late(self, m: Any) -> bool | None:

@@ -51,6 +51,7 @@ from covnet.core.mobile.models import (
     truth_trajectories,
 )
 from covnet.core.mobile.models import move_platforms as core_move_platforms
+from covnet.core.validation_gate import passes_measurement
 from covnet.mobile.config import MobileConfig
 
 
@@ -226,6 +227,16 @@ def measure_pair(
     R = noise_of(model, j, x_true, q, qdot)
     detected, z = draw_detection(pair_stream(model.seed, scan, i, j), Pd, C_POS @ x_true, R)
     return detected, z, Pd
+
+
+def passes_gate(
+    model: MobileModel, x_pred: Vec, P_pred: Mat, z: Vec, j: int, q: Vec, qdot: Vec
+) -> bool:
+    """The fusion centre's validation gate (:mod:`covnet.core.validation_gate`) on a detection
+    ``z`` of the target predicted at ``N(x⁻, P⁻)`` by sensor ``j`` at ``q`` moving at ``q̇``:
+    ``νᵀ S⁻¹ ν ≤ γ`` with ``S = C P⁻ Cᵀ + R`` and the ``R`` of :func:`update_track`."""
+    R = noise_of(model, j, x_pred, q, qdot)
+    return passes_measurement(np.asarray(z, dtype=np.float64), R, C_POS, x_pred, P_pred)
 
 
 def update_track(

@@ -10,12 +10,16 @@ Per scan ``k`` (the steps of :func:`covnet.mobile.simulate.run`, with the same f
              and its platform stays); Command(k): enabled = the alive sensors, the mode and
              the targets of each
     ahead    (compare_exact) the exact solver and the relaxation, while the sensors measure
-    usable   a measurement must carry its platform state and detections of commanded targets
-             only
+    usable   a measurement must carry its platform state and one detection (a row of z) of
+             each commanded target it names, and no other; the platform state must be the one
+             its commanded mode gives (move_platforms from the platform's last state, as the
+             world moves it: the position is known exactly, spec §3.2), else ``bad_platform``;
+             each detection must pass the validation gate under its target's prediction
+             (passes_gate: χ², a tail of 1e-9), else ``outside_gate``: counted, never fused
     fuse     each observed target updates with its detection (update_track, R from the
-             sensor's reported position and velocity); the platforms for the next decision are
-             the ones the sensors reported, a silent one dead-reckoned from its commanded mode
-             (move_platforms, as the world moves it)
+             platform's position and velocity after this scan's move); the platforms for the
+             next decision are those (move_platforms of the commanded modes; a failed sensor
+             stays)
     report   the scan's rows into the result; Track(k) per target and Status(k) with
              tr P = Σ_i tr P_i and value = the decision's objective (0 when not finite)
 
@@ -42,6 +46,7 @@ from covnet.mobile.model import (
     initial_tracks,
     lp_reference,
     move_platforms,
+    passes_gate,
     true_pd,
     truth,
     update_track,
@@ -158,6 +163,7 @@ class MobileSteps:
             model, self.xp, self.Pp, self.pos, alive=alive, solver=self.solver
         )
         d = step.decision
+        self.moved = move_platforms(model, self.pos, d.modes)
         self.commanded = {
             sid: tuple(tids[i] for i in np.flatnonzero(d.assign == j))
             for j, sid in enumerate(ids)
@@ -189,25 +195,36 @@ class MobileSteps:
             row["exact_status"] = c.exact_status
         self.row = row
 
-    def usable(self, m: msg.Measurement) -> bool:
-        """The platform state, and detections (``(n, 2)``) of this scan's commanded targets only."""
-        return (
-            m.platform is not None
-            and m.target_ids is not None
-            and m.z.shape[1] == 2
-            and set(m.target_ids) <= set(self.commanded.get(m.sensor_id, ()))
-        )
+    def usable(self, m: msg.Measurement) -> bool | str:
+        """The module docstring's test: True, False (``bad_measurement``: no platform state,
+        detections that are not ``(n, 2)`` rows of this scan's commanded targets, one each),
+        ``bad_platform`` or ``outside_gate``."""
+        mine = self.commanded.get(m.sensor_id, ())
+        if (
+            m.platform is None
+            or m.target_ids is None
+            or m.z.shape != (len(m.target_ids), 2)
+            or len(set(m.target_ids)) != len(m.target_ids)
+            or not set(m.target_ids) <= set(mine)
+        ):
+            return False
+        j = self.ids.index(m.sensor_id)
+        pos, qdot = self.moved
+        # the world's move of the same state by the same mode: the same bits; a margin for
+        # nothing but a reordering of the arithmetic
+        if not np.allclose(m.platform, np.hstack([pos[j], qdot[j]]), rtol=1e-9, atol=1e-6):
+            return "bad_platform"
+        for z, tid in zip(m.z, m.target_ids, strict=True):
+            i = self.tids.index(tid)
+            if not passes_gate(self.model, self.xp[i], self.Pp[i], z, j, pos[j], qdot[j]):
+                return "outside_gate"
+        return True
 
     def fuse(self, k: int, got: dict[str, msg.Measurement]) -> dict[str, Any]:
         """Scan ``k``'s rows from the usable measurements ``got`` (sensor id -> message)."""
         model, ids, tids, d = self.model, self.ids, self.tids, self.step.decision
-        # platforms: as reported; a silent one dead-reckoned from its commanded mode
-        pos_dr, qdot = move_platforms(model, self.pos, d.modes)
-        pos = pos_dr.copy()
-        for sid, m in got.items():
-            j = ids.index(sid)
-            assert m.platform is not None
-            pos[j], qdot[j] = m.platform[:2], m.platform[2:]
+        # platforms: moved by their commanded modes (a usable report says the same)
+        pos, qdot = self.moved
         xn, Pn = self.xp.copy(), self.Pp.copy()
         detected = np.zeros(model.M, dtype=bool)
         pd = np.full(model.M, np.nan)

@@ -433,7 +433,9 @@ class ScanSteps(Protocol):
 
     def ahead(self) -> None: ...
 
-    def usable(self, m: Any) -> bool: ...
+    def usable(self, m: Any) -> bool | str:
+        """True, or False / the reason the manager refused ``m`` for (module docstring)."""
+        ...
 
     def fuse(self, k: int, got: dict[str, Any]) -> Any: ...
 
@@ -498,7 +500,7 @@ def recompute_scans(
         got: dict[str, Any] = {}
         for sid in st.fused:
             m = rec.meas.get((0, k, sid))
-            if m is None or not steps.usable(m):
+            if m is None or steps.usable(m) is not True:  # a str is a reason for no
                 diffs.add(
                     "measurement",
                     f"{where} scan {k}: the manager fused {sid} but no valid measurement of it "

@@ -4,6 +4,7 @@ real processes over zenoh; a sensor that dies leaves the problem and the run goe
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -20,6 +21,7 @@ from visual_check import assert_visual_channels
 from covnet.clock import WallClock
 from covnet.mobile.config import load, with_overrides
 from covnet.mobile.simulate import TIMING_FIELDS, run
+from covnet.wire import messages as msg
 from manager import mobile as manager_node
 from sensors import mobile as sensor_node
 from world import mobile as world_node
@@ -48,14 +50,19 @@ def _cfg(scans: int, seed: int = 0, record: bool = False):
 # --------------------------------------------------------------------------------------------
 
 
-def run_network(cfg, *, solver=None, kill_after_scan=None, victim=None):
+def run_network(cfg, *, solver=None, kill_after_scan=None, victim=None, wrap_bus=None):
+    """``wrap_bus``: sensor id -> a wrapper of that sensor's bus (a node that misbehaves)."""
     if solver is not None:  # --solver is a change of the config, for every process alike
         cfg = with_overrides(cfg, str(MOBILE), solver=solver)
     nodes = NodeThreads()
     nodes.start("world", lambda bus, ev: world_node.run(cfg, bus, "t", WallClock(), ev))
     for sid in cfg.sensor_ids:
+        wrap = (wrap_bus or {}).get(sid, lambda bus: bus)
         nodes.start(
-            sid, lambda bus, ev, sid=sid: sensor_node.run(cfg, sid, bus, "t", WallClock(), ev)
+            sid,
+            lambda bus, ev, sid=sid, wrap=wrap: sensor_node.run(
+                cfg, sid, wrap(bus), "t", WallClock(), ev
+            ),
         )
 
     def on_status(st):
@@ -107,6 +114,65 @@ def test_in_process_failed_sensor_leaves_the_problem():
     # its platform stays where it was; the scans before the failure are covnet run's
     assert np.all(got.platforms[k_fail:, j] == got.platforms[k_fail - 1, j])
     np.testing.assert_array_equal(got.x_est[:4], ref.x_est[:4])
+
+
+class Forger:
+    """A sensor's bus whose published measurements are changed by ``change`` (the wire format,
+    the key and the sequence numbers intact): a password holder speaking for its own node."""
+
+    def __init__(self, bus, change):
+        self.bus, self.change = bus, change
+
+    def __getattr__(self, name):
+        return getattr(self.bus, name)
+
+    def publish(self, key, payload):
+        try:
+            msg.parse_measurement_key(key)
+        except ValueError:
+            return self.bus.publish(key, payload)
+        m = msg.decode_as(payload, msg.Measurement)
+        return self.bus.publish(key, msg.encode(self.change(m)))
+
+
+FORGERIES = {
+    # detections moved 20 km east: fused, they took T1's track 16 km away for good
+    "outside_gate": lambda m: dataclasses.replace(m, z=m.z + np.array([20_000.0, 0.0])),
+    # a platform state far away (finite): the manager's update raised, the manager died
+    "bad_platform": lambda m: dataclasses.replace(m, platform=np.array([1e200, 0.0, 0.0, 0.0])),
+    # a platform 500 m off: it was taken as the position of the next decision
+    "bad_platform_near": lambda m: dataclasses.replace(m, platform=m.platform + [500.0, 0, 0, 0]),
+}
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("forgery", sorted(FORGERIES))
+def test_a_forged_mobile_measurement_is_counted_and_never_fused(forgery):
+    """The mobile manager fused whatever a sensor sent that had the right shapes: detections
+    moved 20 km, a platform state of 1e200 m (which killed it).  Now the platform must be where
+    its commanded mode took it and each detection must pass the validation gate; the rest is
+    counted under the sensor's key and dropped, and the run goes on."""
+    cfg = _cfg(scans=12)
+    # the manager waits for S1's genuine answer until the scan's timeout: keep it short
+    net = cfg.network.model_dump() | {"scan_timeout_s": 0.3}
+    cfg = with_overrides(cfg, str(MOBILE), network=net)
+    change = FORGERIES[forgery]
+    result, stats = run_network(cfg, wrap_bus={"S1": lambda bus: Forger(bus, change)})
+    assert result.completed and result.error is None
+    rejected = result.stats.rejected_by_key.get(msg.measurement_key("t", "S1"), {})
+    reason = forgery.removesuffix("_near")
+    assert set(rejected) == {reason}
+    sent = stats["S1"]
+    if reason == "bad_platform":  # every one of S1's answers
+        assert rejected[reason] == sent.measurements_sent == cfg.scans
+    else:  # those with a detection (an empty answer has nothing to gate or drop)
+        assert 0 < rejected[reason] <= sent.measurements_sent
+    got = result.as_run()
+    err = np.hypot(got.x_est[..., 0] - got.truth[..., 0], got.x_est[..., 2] - got.truth[..., 2])
+    assert err.max() < 1000.0  # metres: every track on its target
+    # the platforms are where the commanded modes took them (the world's own moves)
+    ref = run(with_overrides(cfg, str(MOBILE), scans=1))
+    np.testing.assert_array_equal(got.platforms[0], ref.platforms[0])
 
 
 # --------------------------------------------------------------------------------------------
