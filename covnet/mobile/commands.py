@@ -71,6 +71,7 @@ def print_summary(out: Path, s: dict[str, Any]) -> None:
             f"  optimality: LP + post-step worse than the MILP in {worse}/{opt['decisions']} "
             f"decisions, mean gap {100 * opt['mean_gap']:.4f} %, max gap "
             f"{100 * opt['max_gap']:.2f} %, {opt['conflicts_resolved']} mode conflicts resolved"
+            + _not_optimal_text(opt)
         )
     info = out / RUN_INFO
     t = read_json(info).get("decision_time_s") if info.is_file() else None
@@ -252,6 +253,7 @@ def _print_mc(
             f"{opt['decisions_lp_post_worse']}/{opt['decisions']} decisions "
             f"({_pct(opt['share_lp_post_worse'])}), mean gap {100 * opt['mean_gap']:.4f} %, "
             f"max gap {100 * opt['max_gap']:.2f} %, {opt['conflicts_resolved']} conflicts resolved"
+            + _not_optimal_text(opt)
         )
     if figure is not None:
         print(f"figure: {figure}")
@@ -333,3 +335,9 @@ def plot(run_dir: Path) -> list[Path]:
             f"nor a Monte Carlo one ({MC_FILE})"
         )
     return [make_figure(run_dir)]
+
+
+def _not_optimal_text(opt: dict[str, Any]) -> str:
+    """The decisions the optimality figures leave out: the MILP proved no optimum in time."""
+    n = opt.get("exact_not_optimal", 0)
+    return f" ({n} more left out: the MILP proved no optimum within its time limit)" if n else ""

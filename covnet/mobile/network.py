@@ -183,6 +183,8 @@ class MobileSteps:
         row["J_lp"] = d.J_lp
         if d.solver != "milp":
             row["conflicts"], row["J_post"] = d.conflicts, d.objective
+        else:  # HiGHS's own gap, with or without the comparison (as covnet run records it)
+            row["mip_gap"] = d.mip_gap
         if self.model.compare_exact:
             t0 = time.perf_counter()
             ref = lp_reference(step.problem, step)

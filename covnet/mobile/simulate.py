@@ -119,6 +119,8 @@ def run(
         J_lp[r] = d.J_lp
         if d.solver != "milp":
             conflicts[r], J_post[r] = d.conflicts, d.objective
+        else:  # HiGHS's own gap (a time-out's is not 0), with or without the comparison
+            mip_gap[r] = d.mip_gap
         if model.compare_exact:
             t0 = time.perf_counter()
             ref = lp_reference(step.problem, step)

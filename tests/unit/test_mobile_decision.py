@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from covnet.core.mobile import decision as dec_module
 from covnet.core.mobile.cost import CostParams, cost_tensor
 from covnet.core.mobile.decision import (
     SOLVERS,
@@ -18,6 +19,7 @@ from covnet.core.mobile.decision import (
     SolverOptions,
     build_lp,
     build_milp,
+    compare,
     decide_closed_form,
     decide_lp,
     decide_lp_highs,
@@ -230,6 +232,50 @@ def test_milp_time_limit_reports_status_and_gap():
     assert d.objective == pytest.approx(objective(p, d.modes, d.assign))
     counts = np.bincount(d.assign[d.assign >= 0], minlength=10)
     assert np.all(counts <= 4)
+
+
+def _timed_out_with(monkeypatch, x_of):
+    """``solve_milp`` as HiGHS at a time-out (status 1) whose incumbent is ``x_of(real x)``."""
+    real = dec_module.solve_milp
+
+    def timed_out(mp, options):
+        sol = real(mp, options)
+        x = x_of(sol.x, mp)
+        fun = float(mp.c @ x)
+        return replace(sol, status=1, message="Time limit reached.", x=x, fun=fun, mip_gap=0.5)
+
+    monkeypatch.setattr(dec_module, "solve_milp", timed_out)
+
+
+def test_a_timed_out_milp_never_returns_worse_than_the_lp_post_step(monkeypatch):
+    """A kept incumbent 6.7 times worse than the LP + post-step decision (a target left
+    unobserved) was commanded at a 0.21 s limit: on a time-out the better of the two is used."""
+    p = random_problem(3, 4, 3)
+    lp = decide_lp(p)
+
+    def nobody_observes(x, mp):  # feasible: every sensor stays, every target unobserved
+        M, N = mp.shape
+        bad = np.zeros_like(x)
+        bad[M * N * 9 + np.arange(N) * 9 + STAY] = 1.0
+        bad[M * N * 9 + N * 9 :] = 1.0
+        return bad
+
+    _timed_out_with(monkeypatch, nobody_observes)
+    d = decide_milp(p)
+    assert d.fallback and d.status == 1 and d.solver == "milp" and d.mip_gap == 0.5
+    assert d.objective == lp.objective and np.array_equal(d.assign, lp.assign)
+    assert "worse than the LP + post-step" in d.message
+
+
+def test_a_timed_out_milp_keeps_a_better_incumbent_and_has_no_j_star(monkeypatch):
+    p = random_problem(3, 4, 3, conflict=True)
+    best = decide_milp(p)
+    _timed_out_with(monkeypatch, lambda x, mp: x)  # the optimum, but not proven in time
+    d = decide_milp(p)
+    assert not d.fallback and d.status == 1 and d.objective == best.objective
+    # the optimality statistics leave it out: J* unknown
+    c = compare(decide_lp(p), d, 0.0)
+    assert np.isnan(c.J_star) and np.isnan(c.gap) and c.exact_status == 1
 
 
 def test_milp_program_shapes():

@@ -267,3 +267,28 @@ def test_the_mc_figure_cuts_its_axes_at_the_quantities_limits(tmp_path, monkeypa
     rmse, rate = fig.axes[:2]
     assert rmse.get_ylim()[0] == 0.0 and rmse.get_ylim()[1] > 100.0  # the bands' tops shown
     assert rate.get_ylim() == (0.0, 1.0)
+
+
+def test_a_comparison_whose_milp_timed_out_is_left_out_and_counted(tmp_path, monkeypatch, capsys):
+    """An exact solve that hit its time limit was compared as if it were J*: 'LP + post-step
+    worse in 0/5, gap 0 %' where the solved MILPs gave 3 of 5 worse.  Such a decision has no
+    J* now: the optimality figures leave it out and say how many they left out."""
+    from dataclasses import replace
+
+    from covnet.core.mobile import decision as dec_module
+
+    real, calls = dec_module.solve_milp, []
+
+    def second_times_out(mp, options):
+        sol = real(mp, options)
+        calls.append(1)
+        return replace(sol, status=1, message="Time limit reached.") if len(calls) == 2 else sol
+
+    monkeypatch.setattr(dec_module, "solve_milp", second_times_out)
+    out = tmp_path / "run"
+    assert main(["run", str(write_cfg(tmp_path, short(scans=4))), "--out", str(out)]) == 0
+    opt = json.loads((out / "summary.json").read_text())["optimality"]
+    assert opt["decisions"] == 3 and opt["exact_not_optimal"] == 1
+    assert opt["per_decision"]["J_star"][1] is None and opt["per_decision"]["gap"][1] is None
+    assert None not in opt["per_decision"]["J_star"][::2]
+    assert "(1 more left out: the MILP proved no optimum" in capsys.readouterr().out
