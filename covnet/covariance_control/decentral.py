@@ -107,14 +107,7 @@ def feasible_subsets(
 
 
 def _constraints(model: Model, unavailable: frozenset[int]) -> Constraints:
-    c = model.constraints
-    if not unavailable:
-        return c
-    return Constraints(
-        excluded=c.excluded | (unavailable - c.required),
-        required=c.required - unavailable,
-        max_active=c.max_active,
-    )
+    return model.constraints.without(unavailable)
 
 
 def local_posterior_covs(model: Model, P_local_prior: Mat) -> Mat:

@@ -263,13 +263,7 @@ def decide(
     the exhaustive search's result bit for bit.  ``bounded`` / ``greedy``: the best subset found,
     with its certified ``lower_bound`` and ``gap`` (:mod:`covnet.core.allocation.search`).
     """
-    c = model.constraints
-    if unavailable:
-        c = Constraints(
-            excluded=c.excluded | (unavailable - c.required),
-            required=c.required - unavailable,
-            max_active=c.max_active,
-        )
+    c = model.constraints.without(unavailable)
     if model.policy != "covariance_control":
         # start-up: the baseline policies only when one is configured
         from covnet.covariance_control.policies import decide_by_policy

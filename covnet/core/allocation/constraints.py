@@ -19,3 +19,16 @@ class Constraints:
     excluded: frozenset[int] = frozenset()
     required: frozenset[int] = frozenset()
     max_active: int | None = None
+
+    def without(self, unavailable: frozenset[int]) -> Constraints:
+        """These constraints while the sensors ``unavailable`` are down (failed, seen at run
+        time): they join the excluded set, in no feasible subset, and a required one stops
+        being required.  (A failed required sensor once stopped being required without being
+        excluded: the allocator went on choosing a dead sensor and counting its information.)"""
+        if not unavailable:
+            return self
+        return Constraints(
+            excluded=self.excluded | unavailable,
+            required=self.required - unavailable,
+            max_active=self.max_active,
+        )
