@@ -44,6 +44,7 @@ from covnet.covariance_control.model import (
     Model,
     decide,
     initial_estimate,
+    nothing_on,
     predict_cov,
     predict_step,
 )
@@ -157,7 +158,10 @@ def decide_rule(
     points = P_prior[None] if P_prior.ndim == 2 else P_prior
     if reach is None:
         reach = np.ones((points.shape[0], len(model.sensor_ids)), dtype=bool)
-    subsets, masks = feasible_subsets(len(model.sensor_ids), _constraints(model, unavailable))
+    constraints = _constraints(model, unavailable)
+    if unavailable and len(constraints.excluded) == len(model.sensor_ids):
+        return nothing_on(points, model.desired(scan), metric)
+    subsets, masks = feasible_subsets(len(model.sensor_ids), constraints)
     if not subsets:
         raise ValueError("no feasible subset: every sensor is excluded or failed")
     P_local_post = local_posterior_covs(model, P_local_prior)

@@ -264,12 +264,32 @@ def decide(
     with its certified ``lower_bound`` and ``gap`` (:mod:`covnet.core.allocation.search`).
     """
     c = model.constraints.without(unavailable)
+    if unavailable and len(c.excluded) == len(model.sensor_ids):
+        return nothing_on(P_pred, model.desired(scan), metric)
     if model.policy != "covariance_control":
         # start-up: the baseline policies only when one is configured
         from covnet.covariance_control.policies import decide_by_policy
 
         return decide_by_policy(model, P_pred, scan, metric, c)
     return SEARCHES[model.search_mode].decide(model, P_pred, model.desired(scan), metric, c)
+
+
+def nothing_on(P_prior: Mat, P_d: Mat, metric: str) -> Allocation:
+    """The decision of a scan whose every sensor is down (failed at run time, the rest
+    excluded): nobody is enabled and the filter only predicts, so the empty subset with the
+    value ``f(P⁻, P_d)`` and ``P = P⁻``; with several fusion points (``P_prior`` ``(K, n, n)``,
+    peer mode) the worst point's.  (The allocator refuses an empty subset: the manager died
+    with "all 8 sensors are excluded" when the one host of every sensor was killed.)"""
+    # start-up: the allocator's record and the metrics only where a decision is made
+    from covnet.core.allocation.exact import Allocation
+    from covnet.core.metrics import get_metric
+
+    points = np.asarray(P_prior, dtype=np.float64)
+    points = points[None] if points.ndim == 2 else points
+    f = get_metric(metric)
+    values = [float(f(P, P_d)) for P in points]
+    worst = int(np.argmax(values))
+    return Allocation((), values[worst], points[worst].copy(), 1, 1)
 
 
 def measure(model: Model, sensor_index: int, scan: int, true_state: Vec) -> Vec:

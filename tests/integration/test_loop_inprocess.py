@@ -146,3 +146,28 @@ def test_a_sensor_failure_is_counted_once_whatever_the_number_of_metrics(short_p
     )  # every episode's log has it
     assert result.stats.membership_counts() == {"S2": {"failed": 1, "rejoined": 0}}
 
+
+
+def test_when_every_sensor_has_failed_the_scans_go_on_predicting(paper):
+    """Every sensor down at once (the one host of all of them killed): the manager died with
+    "all 8 sensors are excluded, so no non-empty subset is feasible" (exit 1, even under
+    ``restart: on-failure``).  A scan with nobody alive enables nobody and only predicts."""
+    from covnet.core.metrics import get_metric
+    from covnet.covariance_control.config import from_dict, normalised
+    from covnet.covariance_control.model import build_model
+
+    data = normalised(paper)
+    data.update(scans=10, sensors=data["sensors"][:1])
+    data["network"]["record"] = False
+    sc = from_dict(data)
+    result, _ = run_network(sc, ["spectral"], kill_after_scan=3, victim="S1")
+    assert result.completed and result.error is None
+    run = result.episodes["spectral"].as_run(1)
+    (event,) = result.episodes["spectral"].failures
+    k = event["scan"]
+    assert event["event"] == "failed" and k <= 6
+    assert run.enabled[: k - 1].any() and not run.enabled[k - 1 :].any()
+    np.testing.assert_array_equal(run.P_post[k - 1 :], run.P_pred[k - 1 :])  # predict only
+    f, model = get_metric("spectral"), build_model(sc)
+    for i in range(k - 1, sc.scans):
+        assert run.value[i] == f(run.P_pred[i], model.desired(i + 1))

@@ -266,3 +266,20 @@ def test_a_failed_required_sensor_is_out_of_every_subset(paper_path, fusion):
         assert s3 not in d.subset, (k, d.subset)
         chosen |= set(d.subset)
     assert chosen  # the others are allocated
+
+
+@pytest.mark.parametrize("fusion", ["central", "ci"])
+def test_every_sensor_failed_is_a_scan_with_nobody_on(paper_path, fusion):
+    from covnet.covariance_control.model import decide, predict_cov
+
+    sc = _scenario(paper_path, mode="ci")
+    model = build_model(sc)
+    everyone = frozenset(range(len(model.sensor_ids)))
+    P_prior = predict_cov(model, model.P0)
+    _, P_local = Mirror.start(model).predicted(model)
+    if fusion == "central":
+        d = decide(model, P_prior, 60, "spectral", unavailable=everyone)
+    else:
+        d = decide_rule(rule_for(sc.fusion), model, P_prior, P_local, 60, "spectral", everyone)
+    assert d.subset == () and np.array_equal(d.P, P_prior)
+    assert d.value == get_metric("spectral")(P_prior, model.desired(60))
