@@ -10,6 +10,7 @@ import os
 import re
 import signal
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -114,6 +115,42 @@ def test_in_process_failed_sensor_leaves_the_problem():
     # its platform stays where it was; the scans before the failure are covnet run's
     assert np.all(got.platforms[k_fail:, j] == got.platforms[k_fail - 1, j])
     np.testing.assert_array_equal(got.x_est[:4], ref.x_est[:4])
+
+
+@pytest.mark.timeout(60)
+def test_a_dead_world_does_not_stall_every_later_scan():
+    """The mobile world publishes each truth on the scan's command: once it died (and is not
+    restarted), every later scan waited network.scan_timeout_s (10 s) for sensors that wait for
+    a truth that never comes (a 100-scan run whose world died at scan 20: 13 more minutes).
+    Now a scan waits for them at most loop.WORLD_GONE_WAIT_S while the world is down."""
+    from manager.loop import WORLD_GONE_WAIT_S
+
+    cfg = _cfg(scans=12)
+    assert cfg.network.scan_timeout_s == 10.0
+    nodes, t0 = NodeThreads(), time.monotonic()
+    nodes.start("world", lambda bus, ev: world_node.run(cfg, bus, "t", WallClock(), ev))
+    for sid in cfg.sensor_ids:
+        nodes.start(
+            sid, lambda bus, ev, sid=sid: sensor_node.run(cfg, sid, bus, "t", WallClock(), ev)
+        )
+
+    def on_status(st):
+        if st["scan"] == 3:
+            nodes.stop("world")
+
+    mbus = nodes.bus("manager")
+    try:
+        result = manager_node.run(
+            cfg, mbus, "t", WallClock(), threading.Event(), on_status=on_status
+        )
+    finally:
+        nodes.close()
+        mbus.close()
+    assert result.completed and result.error is None
+    # the scans after the world stopped fused nothing, and none waited the scan timeout
+    assert result.stats.missing_at_deadline >= 8
+    assert time.monotonic() - t0 < 9 * 10.0 / 2
+    assert WORLD_GONE_WAIT_S < cfg.network.scan_timeout_s
 
 
 class Forger:
