@@ -81,7 +81,8 @@ HOST_PREFIX = "sensors@"
 #: the nodes without which a run is not complete, and what is missing once one has died
 VITAL = {
     "world": "no truth was published after that (the sensors measured what they had)",
-    "recorder": "the recording stops there, so covnet replay cannot reproduce the run",
+    "recorder": "the recording stops there (a SIGKILL loses up to its last second of messages, "
+    "the chunk it was writing), so covnet replay cannot reproduce the run",
 }
 
 
