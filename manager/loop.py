@@ -236,6 +236,7 @@ class Loop:
         #: the launcher restarts a world that dies (``network.restart: on-failure`` and a kind
         #: whose world may be restarted): a scan then waits for it as for anything else
         self.world_returns = False
+        self._looked_ns: int | None = None  # the last poll_membership
         self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
         # each sensor's own measurement key (what parse_measurement_key gives for it)
         self._key_sensor = {msg.measurement_key(run_id, sid): sid for sid in sensor_ids}
@@ -273,8 +274,11 @@ class Loop:
         self.publish(key, cmd, count_as=self.keys["cmd"])
 
     def poll_membership(self) -> None:
-        """Drain liveliness events and heartbeats (non-blocking)."""
+        """Drain liveliness events and heartbeats (non-blocking); after a look more than the
+        failure timeout after the last one (this process was paused), the nodes get two
+        heartbeat periods to be heard (:meth:`manager.membership.Membership.resumed`)."""
         now = self.clock.now_ns()
+        last_look, self._looked_ns = self._looked_ns, now
         while (ev := self.live_sub.try_recv()) is not None:
             try:
                 role, node = msg.parse_alive_key(ev.key)
@@ -293,6 +297,8 @@ class Loop:
                 self.members.heartbeat(hb.node_id, now)
                 if hb.sent is not None and hb.role == "sensor":
                     self.stats.reported(hb.node_id, hb.sent)
+        if last_look is not None and now - last_look > self.members.failure_timeout_ns:
+            self.members.resumed(last_look, now, int(2e9 * self.net.heartbeat_s))
 
     def membership_changes(
         self, k: int, previous: frozenset[str]

@@ -50,6 +50,18 @@ class Membership:
     def heartbeat(self, node_id: str, now_ns: int) -> None:
         self.last_heartbeat_ns[node_id] = now_ns
 
+    def resumed(self, last_look_ns: int, now_ns: int, grace_ns: int) -> None:
+        """The listener looked last at ``last_look_ns`` and looks again only now, more than the
+        timeout later (its process was paused: a SIGSTOP, a swapped-out machine): what the
+        nodes sent meanwhile is still on its way (the router is this process).  A node up at
+        the last look counts as heard ``grace_ns`` before its timeout runs out from now,
+        instead of failed at once (four to five live sensors were failed as a paused manager
+        resumed, and the run then differed from ``covnet run``)."""
+        floor = now_ns - self.failure_timeout_ns + min(grace_ns, self.failure_timeout_ns)
+        for node, last in self.last_heartbeat_ns.items():
+            if last < floor and self.is_up(node, last_look_ns):
+                self.last_heartbeat_ns[node] = floor
+
     def is_up(self, node_id: str, now_ns: int) -> bool:
         last = self.last_heartbeat_ns.get(node_id)
         if last is None or now_ns - last > self.failure_timeout_ns:
