@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import yaml
 
 from covnet import kinds
 from covnet.cli.app import main
@@ -283,3 +284,17 @@ def test_every_sensor_failed_is_a_scan_with_nobody_on(paper_path, fusion):
         d = decide_rule(rule_for(sc.fusion), model, P_prior, P_local, 60, "spectral", everyone)
     assert d.subset == () and np.array_equal(d.P, P_prior)
     assert d.value == get_metric("spectral")(P_prior, model.desired(60))
+
+
+def test_the_progress_line_and_the_summary_print_one_rate(paper_path, tmp_path, capsys):
+    """153 of 240 sensor-scans (63.75 %) was printed 63.8 % in the progress line and 63.7 % in
+    the summary of the same run."""
+    sc = tmp_path / "ring.yaml"
+    raw = yaml.safe_load(paper_path.read_text())
+    raw.update(scans=30, fusion={"mode": "peer", "peer": {"graph": "ring", "rule": "info"}})
+    raw["allocation"]["metrics"] = ["abs_trace"]
+    sc.write_text(yaml.safe_dump(raw))
+    assert main(["run", str(sc), "--no-figures", "--out", str(tmp_path / "run")]) == 0
+    out = capsys.readouterr().out
+    rates = [ln.split("rate")[1].split("%")[0].strip() for ln in out.splitlines() if " rate " in ln]
+    assert len(rates) == 2 and rates[0] == rates[1] == "63.7", out
