@@ -56,6 +56,7 @@ from covnet.errors import UpError, UsageError
 from covnet.kinds import load
 from covnet.runs.columns import BLOCK
 from covnet.runs.recording import read_recording
+from covnet.runs.rundir import writing
 from covnet.wire import messages as msg
 
 __all__ = [
@@ -258,7 +259,8 @@ def _soak_config(config_path: str, work: Path, scans: int, metric: str | None) -
             if sec["tls"].get(k):
                 sec["tls"][k] = str(base / sec["tls"][k])
     path = work / f"soak-{scans}.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with writing(path):
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
     load(str(path))  # the same checks as covnet up makes, before anything starts
     return path
 
@@ -382,7 +384,8 @@ def _phase(
     raw = {n: {"pid": v.pid, "t_s,rss_kb,fds": v.samples} for n, v in series.items()}
     loads = [(t - t_start, v) for t, v in load]
     doc = {"t0_s": t0, "t1_s": t1, "load_1min": loads, "processes": raw}
-    (out / "soak_samples.json").write_text(json.dumps(doc))
+    with writing(out / "soak_samples.json"):
+        (out / "soak_samples.json").write_text(json.dumps(doc))
     rows: list[dict[str, Any]] = []
     for proc_name in sorted(series, key=lambda n: (n != "launcher", n != "manager", n)):
         s = series[proc_name]

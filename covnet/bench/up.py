@@ -40,6 +40,7 @@ from covnet.errors import UpError, UsageError
 from covnet.processes.interrupts import EXIT_INTERRUPTED
 from covnet.processes.launch import ProcessSpec, Supervisor
 from covnet.processes.up import default_sensors_per_process, free_port, sensor_hosts, up
+from covnet.runs.rundir import writing
 from covnet.wire.messages import new_run_id
 
 #: scans of each run of a sized network (and of its probe)
@@ -200,7 +201,8 @@ def run_sizes(
     rows = []
     for n in sizes:
         path = tmp / f"network-{n}.yaml"
-        path.write_text(yaml.safe_dump(networks[n], sort_keys=False))
+        with writing(path):
+            path.write_text(yaml.safe_dump(networks[n], sort_keys=False))
         kind_n, sc_n = kinds.load(path)
         k = per_process if per_process is not None else default_sensors_per_process(n)
         for i in range(repeat):

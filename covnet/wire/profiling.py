@@ -101,4 +101,10 @@ class Stages:
             "span_wall_ns": time.perf_counter_ns() - self._t0,
             "process_cpu_ns": time.process_time_ns() - self._p0,
         }
-        _file(where, name, ".json").write_text(json.dumps({**data, **extra}))
+        path = _file(where, name, ".json")
+        try:
+            path.write_text(json.dumps({**data, **extra}))
+        except OSError as exc:  # a full disk: the message names the file (it named none)
+            if exc.filename is None:
+                exc.filename = str(path)
+            raise
