@@ -12,6 +12,7 @@ from covnet.clock import WallClock
 from covnet.covariance_control.replay import RECORDING
 from covnet.covariance_control.results import write_network_run
 from covnet.runs.recording import RecordingWriter, run_metadata
+from covnet.wire import messages as msg
 from covnet.wire.bus import InMemoryBus, InMemoryHub
 from manager import covariance as manager_node
 from manager.process import LINGER_S
@@ -146,3 +147,23 @@ def run_recorded_network(
     assert not errors, errors
     write_network_run(out, sc, result, {"episodes": metrics, "run_id": RUN})
     return result, stats
+
+
+class Forger:
+    """A node's bus whose published measurements are changed by ``change`` (a
+    :class:`~covnet.wire.messages.Measurement` to another; the wire format, the key and the
+    sequence numbers intact): a password holder speaking for its own node."""
+
+    def __init__(self, bus: Any, change: Callable[[Any], Any]) -> None:
+        self.bus, self.change = bus, change
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.bus, name)
+
+    def publish(self, key: str, payload: bytes) -> Any:
+        try:
+            msg.parse_measurement_key(key)
+        except ValueError:
+            return self.bus.publish(key, payload)
+        m = msg.decode_as(payload, msg.Measurement)
+        return self.bus.publish(key, msg.encode(self.change(m)))

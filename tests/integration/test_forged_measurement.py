@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from nodethreads import run_recorded_network
+from nodethreads import Forger, run_recorded_network
 
 from covnet.core.validation_gate import TAIL, passes_measurement, threshold
 from covnet.covariance_control.config import with_overrides
@@ -22,23 +22,9 @@ from covnet.wire import messages as msg
 SHIFT = np.array([20_000.0, 0.0])
 
 
-class Forger:
-    """A node's bus whose published measurements are moved by :data:`SHIFT` (the wire format,
-    the key and the sequence numbers intact)."""
-
-    def __init__(self, bus):
-        self.bus = bus
-
-    def __getattr__(self, name):
-        return getattr(self.bus, name)
-
-    def publish(self, key, payload):
-        try:
-            msg.parse_measurement_key(key)
-        except ValueError:
-            return self.bus.publish(key, payload)
-        m = msg.decode_as(payload, msg.Measurement)
-        return self.bus.publish(key, msg.encode(dataclasses.replace(m, z=m.z + SHIFT)))
+def _shifted(m):
+    """S3's measurement moved by :data:`SHIFT`."""
+    return dataclasses.replace(m, z=m.z + SHIFT)
 
 
 def test_the_gate_is_chi_square_with_a_billionth_tail():
@@ -60,7 +46,8 @@ def test_a_forged_sensor_is_never_fused_and_the_replay_agrees(paper, tmp_path):
     net = paper.network.model_dump() | {"record": True, "scan_timeout_s": 0.2}
     sc = with_overrides(paper, scans=20, network=net)
     out = tmp_path / "run"
-    result, _ = run_recorded_network(sc, ["spectral"], out, wrap_bus={"S3": Forger})
+    forger = {"S3": lambda bus: Forger(bus, _shifted)}
+    result, _ = run_recorded_network(sc, ["spectral"], out, wrap_bus=forger)
     assert result.completed and result.error is None
     log = result.episodes["spectral"].as_run(len(sc.sensor_ids))
     s3 = sc.sensor_ids.index("S3")
@@ -78,6 +65,9 @@ def test_a_forged_sensor_is_never_fused_and_the_replay_agrees(paper, tmp_path):
 class StatusForger(Forger):
     """A node's bus that, with each measurement it sends, also publishes a forged Status of that
     scan on the manager's status key (a password holder impersonating the manager)."""
+
+    def __init__(self, bus):
+        super().__init__(bus, lambda m: m)
 
     def publish(self, key, payload):
         self.bus.publish(key, payload)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 from multiproc import REPO, assert_nothing_left
-from nodethreads import NodeThreads
+from nodethreads import Forger, NodeThreads
 from visual_check import assert_visual_channels
 
 from covnet.clock import WallClock
@@ -127,49 +127,13 @@ def test_a_dead_world_does_not_stall_every_later_scan():
 
     cfg = _cfg(scans=12)
     assert cfg.network.scan_timeout_s == 10.0
-    nodes, t0 = NodeThreads(), time.monotonic()
-    nodes.start("world", lambda bus, ev: world_node.run(cfg, bus, "t", WallClock(), ev))
-    for sid in cfg.sensor_ids:
-        nodes.start(
-            sid, lambda bus, ev, sid=sid: sensor_node.run(cfg, sid, bus, "t", WallClock(), ev)
-        )
-
-    def on_status(st):
-        if st["scan"] == 3:
-            nodes.stop("world")
-
-    mbus = nodes.bus("manager")
-    try:
-        result = manager_node.run(
-            cfg, mbus, "t", WallClock(), threading.Event(), on_status=on_status
-        )
-    finally:
-        nodes.close()
-        mbus.close()
+    t0 = time.monotonic()
+    result, _ = run_network(cfg, kill_after_scan=3, victim="world")
     assert result.completed and result.error is None
     # the scans after the world stopped fused nothing, and none waited the scan timeout
     assert result.stats.missing_at_deadline >= 8
     assert time.monotonic() - t0 < 9 * 10.0 / 2
     assert WORLD_GONE_WAIT_S < cfg.network.scan_timeout_s
-
-
-class Forger:
-    """A sensor's bus whose published measurements are changed by ``change`` (the wire format,
-    the key and the sequence numbers intact): a password holder speaking for its own node."""
-
-    def __init__(self, bus, change):
-        self.bus, self.change = bus, change
-
-    def __getattr__(self, name):
-        return getattr(self.bus, name)
-
-    def publish(self, key, payload):
-        try:
-            msg.parse_measurement_key(key)
-        except ValueError:
-            return self.bus.publish(key, payload)
-        m = msg.decode_as(payload, msg.Measurement)
-        return self.bus.publish(key, msg.encode(self.change(m)))
 
 
 FORGERIES = {
