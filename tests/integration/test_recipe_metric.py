@@ -59,3 +59,35 @@ def test_the_searches_that_need_a_bound_refuse_it(registered, tmp_path):
     ), err.value.problems
     # greedy needs none: its certified lower bound is then 0 (every metric is >= 0)
     load(write_config(tmp_path, {"metrics": ["nuclear"], "search": "greedy"}))
+
+
+def test_exact_beyond_what_enumeration_holds_is_refused_for_it(registered, tmp_path):
+    """``search: exact`` with a metric without a bound enumerates every subset: on 64 sensors
+    ``covnet run`` asked for 32 PiB and died with a traceback.  The config refuses it beyond
+    ``AUTO_EXACT_MAX`` candidate sensors, naming the metric and the way out."""
+    import yaml
+
+    from covnet.covariance_control.searches import AUTO_EXACT_MAX
+
+    large = Path(__file__).resolve().parents[2] / "configs" / "large.yaml"
+    data = yaml.safe_load(large.read_text())
+    data["allocation"] = {"metrics": ["nuclear"], "search": "exact"}
+    path = tmp_path / "large.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError) as err:
+        load(path)
+    n = len(data["sensors"])
+    assert n > AUTO_EXACT_MAX
+    assert (
+        "allocation.search",
+        f"exact with {n} candidate sensors: metric 'nuclear' has no interval bound (its METRICS "
+        f"entry's interval_bound is None), so every subset (2^{n}) would be evaluated; at most "
+        f"{AUTO_EXACT_MAX} candidate sensors for it: choose search: greedy, or exclude sensors",
+    ) in err.value.problems
+    # the same network with greedy, or exact with the built-in metrics, is a config
+    data["allocation"]["search"] = "greedy"
+    path.write_text(yaml.safe_dump(data))
+    load(path)
+    data["allocation"] = {"metrics": ["spectral"], "search": "exact"}
+    path.write_text(yaml.safe_dump(data))
+    load(path)

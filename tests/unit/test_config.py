@@ -223,3 +223,21 @@ def test_load_bad_yaml_and_missing_file(tmp_path):
         load(bad)
     with pytest.raises(ConfigError, match="cannot read file"):
         load(tmp_path / "nope.yaml")
+
+
+def test_a_budget_for_a_policy_that_takes_none_is_refused(raw):
+    """all_on with allocation.budget: 4 ran every sensor while summary.json said budget 4."""
+    raw["allocation"].update(policy="all_on", budget=4)
+    found = dict(_problems(raw))
+    assert found == {
+        "allocation.budget": "policy all_on (every available sensor, every scan) takes no budget"
+    }, found
+
+
+def test_coverage_keys_without_targets_are_the_one_problem(raw):
+    """A sensor with max_range_m on a one-target config was told to add position_m, then, once
+    it had, that both need a 'targets:' list: only the root cause now."""
+    raw["sensors"][3]["max_range_m"] = 1000.0
+    found = dict(_problems(raw))
+    assert set(found) == {"sensors[3].max_range_m"}, found
+    assert found["sensors[3].max_range_m"].startswith("needs a 'targets:' list")

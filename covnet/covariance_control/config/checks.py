@@ -23,7 +23,12 @@ from covnet.covariance_control.config.sensors import (
 from covnet.covariance_control.config.surveillance_checks import surveillance_problems
 from covnet.covariance_control.config.targets import DesiredSpec, segments
 from covnet.covariance_control.fusion_rules import refusal, rule_for
-from covnet.covariance_control.searches import BOUNDED_OPTIONS, MANY_EXACT_MAX, SEARCHES
+from covnet.covariance_control.searches import (
+    AUTO_EXACT_MAX,
+    BOUNDED_OPTIONS,
+    MANY_EXACT_MAX,
+    SEARCHES,
+)
 
 
 def _schedule_problems(path: str, schedule: tuple[DesiredSpec, ...]) -> list[tuple[str, str]]:
@@ -76,7 +81,9 @@ def _sensor_problems(sc: Scenario) -> list[tuple[str, str]]:
                     f"every sensor's: {', '.join(common)})"
                 )
             problems.append((f"{where}.{key}", why))
-        if s.position_m is None and (entry.measures_from_position or s.max_range_m or s.fov):
+        # (coverage without targets: is refused below, a position for it would be too)
+        covers = sc.multitarget and (s.max_range_m or s.fov)
+        if s.position_m is None and (entry.measures_from_position or covers):
             what = "measures from" if entry.measures_from_position else "has coverage around"
             problems.append(
                 (f"{where}.position_m", f"missing required key (a {s.model} sensor {what} it)")
@@ -275,6 +282,21 @@ def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
     n = len(set(sc.sensor_ids) - set(al.excluded))
     used = search.resolved(n)
     as_ = "" if used is search else f" (with {n} candidate sensors: {used.name})"
+    if used.name == "exact" and n > AUTO_EXACT_MAX and not sc.multitarget:
+        # without a bound the exact search enumerates every subset (2^n): at n = 64 it asked
+        # for 32 PiB and died with a traceback
+        for m in al.metrics:
+            entry = METRICS.get(m)
+            if entry is not None and entry.interval_bound is None:
+                problems.append(
+                    (
+                        "allocation.search",
+                        f"exact with {n} candidate sensors: metric {m!r} has no interval bound "
+                        "(its METRICS entry's interval_bound is None), so every subset "
+                        f"(2^{n}) would be evaluated; at most {AUTO_EXACT_MAX} candidate sensors "
+                        "for it: choose search: greedy, or exclude sensors",
+                    )
+                )
     if "interval_bound" in used.needs:
         for m in al.metrics:
             entry = METRICS.get(m)
@@ -311,6 +333,14 @@ def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
     if pol is None:  # reported by the field's check
         return []
     problems: list[tuple[str, str]] = []
+    if al.budget is not None and not (pol.needs_budget or pol.reward is not None):
+        # it ran every sensor while summary.json said "budget": K
+        problems.append(
+            (
+                "allocation.budget",
+                f"policy {al.policy} ({pol.summary}) takes no budget",
+            )
+        )
     if pol.needs_budget and al.budget is None and al.max_active is None:
         problems.append(
             (
