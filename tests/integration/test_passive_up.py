@@ -91,6 +91,61 @@ def run_network(cfg, sensor_runs=None, *, kill_after_scan=None, victim=None):
     return result, nodes.stats, got
 
 
+class _LosesCommand:
+    """A bus whose command subscription never delivers the command of scan ``lost``."""
+
+    def __init__(self, bus, lost):
+        self.bus, self.lost = bus, lost
+
+    def __getattr__(self, name):
+        return getattr(self.bus, name)
+
+    def subscribe(self, keyexpr, *args, **kwargs):
+        sub = self.bus.subscribe(keyexpr, *args, **kwargs)
+        if keyexpr != msg.command_keyexpr("t"):
+            return sub
+        lost = self.lost
+
+        class Sub:
+            def __getattr__(self, name):
+                return getattr(sub, name)
+
+            def recv(self, timeout=None):
+                s = sub.recv(timeout=timeout)
+                if s is not None and msg.decode_command(s.key, s.payload).scan == lost:
+                    return None  # as a timed-out wait
+                return s
+
+        return Sub()
+
+
+@pytest.mark.timeout(60)
+def test_a_world_that_missed_a_command_serves_the_later_ones():
+    """The passive world took only the command of the scan after its last one: once one was
+    lost (its session lapsed while it was paused 1.5 s), it refused every later command as
+    bad_scan, and every scan to the end waited scan_timeout_s (10 s) with nothing to associate."""
+    cfg = _cfg(scans=6, seed=3, scan_timeout_s=1.0)  # scan 3 waits for its truth that long
+    nodes = NodeThreads()
+    nodes.start(
+        "world",
+        lambda bus, ev: world_node.run(cfg, _LosesCommand(bus, 3), "t", WallClock(), ev),
+    )
+    for sid in cfg.sensor_ids:
+        nodes.start(
+            sid, lambda bus, ev, sid=sid: sensor_node.run(cfg, sid, bus, "t", WallClock(), ev)
+        )
+    mbus = nodes.bus("manager")
+    try:
+        result = manager_node.run(cfg, mbus, "t", WallClock(), threading.Event())
+    finally:
+        nodes.close()
+        mbus.close()
+    assert result.completed
+    world = nodes.stats["world"]
+    assert world["published"] == 5 and world["rejected:bad_scan"] == 0, world
+    assert [r["associated"] for r in result.scans] == [True, True, False, True, True, True]
+
+
 @pytest.mark.timeout(60)
 def test_in_process_network_equals_run(tmp_path):
     cfg = _cfg(scans=4, seed=11)
