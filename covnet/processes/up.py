@@ -424,6 +424,7 @@ def up(
         if status != 0:
             why = f"the manager exited with status {status}"
             ended = settle(kind, sc, out, facts, "failed", why)
+            _note_restarts(out, sup.restarts)  # (a run.json rebuilt from the recording)
             ended += _note_lost(out, lost)
             raise UpError(f"the manager failed (exit status {status}); {ended}")
         if lost:
@@ -445,6 +446,7 @@ def up(
     except KeyboardInterrupt:
         sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")
+        _note_restarts(out, sup.restarts)  # the launcher printed them: run.json says them too
         ended += _note_lost(out, lost)
         print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
         return interrupts.EXIT_INTERRUPTED

@@ -194,3 +194,29 @@ def test_a_dead_world_or_recorder_is_not_a_completed_run(tmp_path, paper_path, v
             rp.stop()
         said = rp.output()
         assert rrc == 1 and "the recorder died" in said and "Traceback" not in said, said
+
+
+@pytest.mark.timeout(120)
+def test_restarts_are_in_run_json_also_when_the_run_is_interrupted(tmp_path, paper_path):
+    """The launcher printed ``restarted: {'S5': 1}``, but a run then interrupted (Ctrl-C) left
+    ``restarts: null`` in run.json: it was written on the normal path only."""
+    data = yaml.safe_load(paper_path.read_text())
+    data["allocation"]["metrics"] = ["spectral"]
+    data.setdefault("network", {})["restart"] = "on-failure"
+    cfg = tmp_path / "restart.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "run"
+    p = CovnetProcess(["up", str(cfg), "--realtime", "--speed", "5", "--out", str(out)])
+    try:
+        assert p.wait_for("[manager] READY", timeout=60), p.output()
+        pid = json.loads((out / "processes.json").read_text())["S5"]
+        os.kill(pid, signal.SIGKILL)
+        assert p.wait_for("[launcher] restarted: {'S5': 1}", timeout=30), p.output()
+        os.killpg(p.proc.pid, signal.SIGINT)  # Ctrl-C: the terminal's whole group
+        rc = p.wait(timeout=60)
+    finally:
+        p.stop()
+    assert rc == 130, p.output()
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "interrupted" and info["restarts"] == {"S5": 1}, info
+    assert_nothing_left(out)
