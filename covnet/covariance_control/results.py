@@ -127,18 +127,24 @@ def _finite_or_none(a: np.ndarray) -> list[float | None]:
 
 
 def peer_summary(
-    nodes: Mapping[str, MetricRun], traj: Trajectory, sensor_ids: tuple[str, ...]
+    nodes: Mapping[str, MetricRun],
+    traj: Trajectory,
+    sensor_ids: tuple[str, ...],
+    disagree: list[int] | None = None,
 ) -> dict[str, Any]:
     """Peer mode, one metric: each node's own estimate quality and whether all nodes enabled
-    the same sensors at every scan (``agreement``; ``disagree_scans`` lists where not)."""
+    the same sensors at every scan (``agreement``; ``disagree_scans`` lists where not: given,
+    from every scan the nodes reported (a network run's:
+    :func:`covnet.covariance_control.peer_run.disagreement`), or from the runs' scans)."""
     per_node = {sid: metric_summary(r, traj, sensor_ids, None) for sid, r in nodes.items()}
     runs = list(nodes.values())
-    n = min(len(r.enabled) for r in runs)
-    disagree = [
-        k + 1
-        for k in range(n)
-        if any(not np.array_equal(r.enabled[k], runs[0].enabled[k]) for r in runs)
-    ]
+    if disagree is None:
+        n = min(len(r.enabled) for r in runs)
+        disagree = [
+            k + 1
+            for k in range(n)
+            if any(not np.array_equal(r.enabled[k], runs[0].enabled[k]) for r in runs)
+        ]
     rmse = [b["rmse_position"] for b in per_node.values()]
     return {
         "agreement": not disagree,
@@ -161,6 +167,7 @@ def write_run(
     extra: Mapping[str, Any] | None = None,
     run_info: Mapping[str, Any] | None = None,
     node_runs: Mapping[str, Mapping[str, MetricRun]] | None = None,
+    disagree: Mapping[str, list[int]] | None = None,
 ) -> dict[str, Any]:
     """Write ``summary.json``, ``arrays.npz``, ``config.json`` and ``run.json``; return the
     summary.
@@ -187,7 +194,10 @@ def write_run(
     }
     summary.update(policy_fields(sc))
     if node_runs:
-        summary["peer"] = {m: peer_summary(nodes, traj, ids) for m, nodes in node_runs.items()}
+        summary["peer"] = {
+            m: peer_summary(nodes, traj, ids, (disagree or {}).get(m))
+            for m, nodes in node_runs.items()
+        }
     if extra:
         summary.update(extra)
     info: dict[str, Any] = {

@@ -1,0 +1,45 @@
+"""A peer network's ``agreement``: over every scan the nodes reported.  A node frozen for 1.5 s
+missed one scan's Status, was left out by the others and went on alone, disagreeing at 258 of
+300 scans, while ``summary.json`` said ``agreement: true``: each node's run stops at its first
+gap, and the runs were compared only that far."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from covnet.covariance_control.config import load
+from covnet.covariance_control.peer_run import NodeLog, PeerResult, disagreement, write_peer_run
+from covnet.processes.runtime_stats import NetStats
+from covnet.wire import messages as msg
+
+
+def _log(enabled_by_scan: dict[int, tuple[str, ...]]) -> NodeLog:
+    log = NodeLog()
+    for k, enabled in enabled_by_scan.items():
+        log.statuses[k] = msg.Status(k, float(k), enabled, 1.0, 1.0, 1.0, 0)
+        log.tracks[k] = msg.Track(k, float(k), np.zeros(4), np.eye(4) * 10.0, 0)
+    return log
+
+
+def test_a_gap_and_a_node_going_on_alone_are_disagreements():
+    all_ = {k: ("S1", "S2") for k in range(1, 7)}
+    alone = {k: (("S1", "S2") if k < 3 else ("S3",)) for k in (1, 2, 4, 5, 6)}  # no scan 3
+    logs = {"S1": _log(all_), "S2": _log(all_), "S3": _log(alone)}
+    assert disagreement(logs) == [3, 4, 5, 6]
+    assert disagreement({"S1": _log(all_), "S2": _log(all_)}) == []
+    # a node that stops (killed) is not a disagreement after its last report
+    assert disagreement({"S1": _log(all_), "S3": _log({1: ("S1", "S2"), 2: ("S1", "S2")})}) == []
+
+
+def test_the_summary_says_the_nodes_disagree(paper_path, tmp_path):
+    sc = load(paper_path)
+    ids = sc.sensor_ids
+    every = {k: ids[:4] for k in range(1, 7)}
+    alone = {k: (ids[:4] if k < 3 else ids[4:]) for k in (1, 2, 4, 5, 6)}
+    logs = {n: _log(alone if n == "S8" else every) for n in ids}
+    result = PeerResult(["spectral"], {0: logs}, NetStats(), completed=True)
+    write_peer_run(tmp_path, sc, result)
+    peer = json.loads((tmp_path / "summary.json").read_text())["peer"]["spectral"]
+    assert peer["agreement"] is False and peer["disagree_scans"] == [3, 4, 5, 6]
