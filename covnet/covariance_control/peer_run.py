@@ -62,7 +62,7 @@ class NodeLog:
             P_pred=_predictions(P, model) if model is not None else np.full((n, 4, 4), np.nan),
             nees=eps,
             decision_s=np.zeros(n),
-            n_evaluated=np.zeros(n, dtype=np.int64),
+            n_evaluated=np.full(n, -1, dtype=np.int64),  # not reported by a node
         )
 
 

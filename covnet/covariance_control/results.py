@@ -84,7 +84,10 @@ def metric_summary(
         "rmse_velocity": float(np.sqrt(vel_err2.mean())),
         "mean_nees": float(run.nees.mean()),
         "usage": {sid: int(u) for sid, u in zip(sensor_ids, usage, strict=True)},
-        "subsets_evaluated_median": median(run.n_evaluated),
+        # (null: not reported; a peer network's nodes do not report it: it said 0)
+        "subsets_evaluated_median": (
+            median(run.n_evaluated) if (run.n_evaluated >= 0).all() else None
+        ),
     }
     if run.lower_bound is not None and run.gap is not None:
         # a bounded or greedy search: what it certified at every scan (null: not reported)

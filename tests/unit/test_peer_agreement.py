@@ -43,3 +43,13 @@ def test_the_summary_says_the_nodes_disagree(paper_path, tmp_path):
     write_peer_run(tmp_path, sc, result)
     peer = json.loads((tmp_path / "summary.json").read_text())["peer"]["spectral"]
     assert peer["agreement"] is False and peer["disagree_scans"] == [3, 4, 5, 6]
+
+
+def test_what_the_nodes_do_not_report_is_null_not_zero(paper_path, tmp_path):
+    """A node's Status does not carry how many subsets it evaluated: the network peer run's
+    summary said 0 (``covnet run --fusion peer``: 255)."""
+    sc = load(paper_path)
+    logs = {n: _log({k: sc.sensor_ids[:4] for k in (1, 2, 3)}) for n in sc.sensor_ids}
+    write_peer_run(tmp_path, sc, PeerResult(["spectral"], {0: logs}, NetStats(), completed=True))
+    blk = json.loads((tmp_path / "summary.json").read_text())["metrics"]["spectral"]
+    assert blk["subsets_evaluated_median"] is None
