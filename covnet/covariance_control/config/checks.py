@@ -282,33 +282,26 @@ def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
     n = len(set(sc.sensor_ids) - set(al.excluded))
     used = search.resolved(n)
     as_ = "" if used is search else f" (with {n} candidate sensors: {used.name})"
-    if used.name == "exact" and n > AUTO_EXACT_MAX and not sc.multitarget:
-        # without a bound the exact search enumerates every subset (2^n): at n = 64 it asked
-        # for 32 PiB and died with a traceback
-        for m in al.metrics:
-            entry = METRICS.get(m)
-            if entry is not None and entry.interval_bound is None:
-                problems.append(
-                    (
-                        "allocation.search",
-                        f"exact with {n} candidate sensors: metric {m!r} has no interval bound "
-                        "(its METRICS entry's interval_bound is None), so every subset "
-                        f"(2^{n}) would be evaluated; at most {AUTO_EXACT_MAX} candidate sensors "
-                        "for it: choose search: greedy, or exclude sensors",
-                    )
-                )
-    if "interval_bound" in used.needs:
-        for m in al.metrics:
-            entry = METRICS.get(m)
-            if entry is not None and entry.interval_bound is None:
-                problems.append(
-                    (
-                        "allocation.search",
-                        f"{al.search}{as_} is {used.words}: it needs each metric's interval "
-                        f"bound, and metric {m!r} has none (its METRICS entry's interval_bound "
-                        "is None); choose search: exact or greedy for it",
-                    )
-                )
+    # a metric without an interval bound: no branch and bound, and the exact search then
+    # enumerates every subset (2^n: at n = 64 it asked for 32 PiB and died with a traceback)
+    unbounded = [m for m in al.metrics if m in METRICS and METRICS[m].interval_bound is None]
+    for m in unbounded:
+        if "interval_bound" in used.needs:
+            why = (
+                f"{al.search}{as_} is {used.words}: it needs each metric's interval bound, and "
+                f"metric {m!r} has none (its METRICS entry's interval_bound is None); choose "
+                "search: exact or greedy for it"
+            )
+        elif used.name == "exact" and n > AUTO_EXACT_MAX and not sc.multitarget:
+            why = (
+                f"exact with {n} candidate sensors: metric {m!r} has no interval bound (its "
+                f"METRICS entry's interval_bound is None), so every subset (2^{n}) would be "
+                f"evaluated; at most {AUTO_EXACT_MAX} candidate sensors for it: choose search: "
+                "greedy, or exclude sensors"
+            )
+        else:
+            continue
+        problems.append(("allocation.search", why))
     return problems
 
 
