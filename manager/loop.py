@@ -43,6 +43,7 @@ from typing import Any, Protocol
 
 from covnet.clock import Clock
 from covnet.config import NetworkSpec
+from covnet.processes.node_kit import WORLD_GONE_WAIT_S
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, dropped
@@ -61,11 +62,6 @@ __all__ = [
 ]
 
 WORLD_ID, RECORDER_ID = msg.WORLD_ID, msg.RECORDER_ID
-#: how long a scan waits for its sensors once the world is down for good (step 6): a sensor
-#: whose truth of the scan was published answers in milliseconds, one without it never (it
-#: waits for the truth); each scan waited ``network.scan_timeout_s`` (10 s), a mobile run whose
-#: world died at scan 20 of 100 took 13 more minutes
-WORLD_GONE_WAIT_S = 0.5
 MEMBERSHIP_POLL_S = 0.005
 """While measurements keep arriving, the longest time between two membership checks."""
 MIN_BATCH, MAX_BATCH = 8, 1024

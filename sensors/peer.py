@@ -52,7 +52,13 @@ from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.decentral import neighbours
 from covnet.covariance_control.engine import ScanEngine, SensorSide, Tracked
 from covnet.covariance_control.model import build_model
-from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_appear_s, manager_grace_s
+from covnet.processes.node_kit import (
+    WORLD_GONE_WAIT_S,
+    Heartbeat,
+    ManagerWatch,
+    manager_appear_s,
+    manager_grace_s,
+)
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample
 
@@ -200,11 +206,14 @@ class _Inbox:
         timeout_s: float,
         stop: threading.Event,
         heartbeat: Callable[[], None],
+        give_up: Callable[[], bool] | None = None,
     ) -> bool:
         """Wait until every node of ``nodes`` has its ``(node, episode, scan)`` entry in
-        ``have`` (statuses or tracks) or has left (its liveliness token is gone)."""
+        ``have`` (statuses or tracks) or has left (its liveliness token is gone), or
+        ``give_up()`` (the world gone: no track made from its truth will come)."""
         return self.wait(
-            lambda: all((n, episode, scan) in have or n not in self.alive for n in nodes),
+            lambda: all((n, episode, scan) in have or n not in self.alive for n in nodes)
+            or (give_up is not None and give_up()),
             time.monotonic() + timeout_s,
             stop,
             heartbeat,
@@ -214,6 +223,11 @@ class _Inbox:
         for sub in (self.status_sub, self.truth_sub, *self.track_subs):
             sub.close()
         self.live_sub.close()
+
+
+def _truth_or(inbox: _Inbox, k: int, give_up: Callable[[], bool]) -> bool:
+    """Scan ``k``'s truth has come, or ``give_up()`` (the world is gone)."""
+    return _has_truth(inbox, k) or give_up()
 
 
 def _has_truth(inbox: _Inbox, k: int) -> bool:
@@ -285,9 +299,21 @@ def run(
         "status": msg.peer_status_key(run_id, node_id),
     }
     last = [0]
+    # the world restarted when it dies (network.restart: on-failure; the covariance-control
+    # world's truth is the seed's); otherwise, once it is gone, a scan's waits for the truth
+    # and for the tracks made from it end after WORLD_GONE_WAIT_S: a node without the truth
+    # publishes its Status without a track at once, and no peer times it out
+    world_returns = net.restart == "on-failure"
 
     def beat() -> None:
         heartbeat.tick(last[0], stats.rejected)
+
+    def world_gone(since: float) -> bool:
+        return (
+            not world_returns
+            and msg.WORLD_ID not in inbox.alive
+            and time.monotonic() - since > WORLD_GONE_WAIT_S
+        )
 
     try:
         # start: every peer, the world, the monitor (and the recorder) up, so that every node
@@ -316,12 +342,13 @@ def run(
                 t_k = k * model.T
                 got: dict[str, Any] = {}
                 if node_id in plan.enabled:
+                    t0 = time.monotonic()
                     if inbox.wait(
-                        partial(_has_truth, inbox, k),
-                        time.monotonic() + net.scan_timeout_s,
+                        partial(_truth_or, inbox, k, partial(world_gone, t0)),
+                        t0 + net.scan_timeout_s,
                         stop,
                         beat,
-                    ):
+                    ) and _has_truth(inbox, k):
                         tr = side.respond(e, k, plan, truth=inbox.truth[k])
                         assert isinstance(tr, Tracked)  # peer rules fuse local tracks
                         bus.publish(
@@ -344,7 +371,8 @@ def run(
                         got[node_id] = tr
                 want = [ids[j] for j in plan.subset if j in nbrs and ids[j] in members]
                 passing = _Passing(inbox.tracks, engine.verdict)
-                inbox.each(want, passing, e, k, net.scan_timeout_s, stop, beat)
+                give_up = partial(world_gone, time.monotonic())
+                inbox.each(want, passing, e, k, net.scan_timeout_s, stop, beat, give_up)
                 if stop.is_set():  # cut by the stop: not the scan the network would have fused
                     return stats
                 for n in want:

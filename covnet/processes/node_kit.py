@@ -78,6 +78,13 @@ MANAGER_GRACE = 3.0
 token went without its end (:class:`ManagerWatch`) before it takes the run for over."""
 
 
+WORLD_GONE_WAIT_S = 0.5
+"""How long a scan waits for what depends on the truth once the world is down for good (dead,
+and not restarted): a node that has the scan's truth answers in milliseconds, one without it
+never (a scan waited ``network.scan_timeout_s``, 10 s: a mobile run whose world died at scan 20
+of 100 took 13 more minutes; peer nodes then timed each other out and split)."""
+
+
 def manager_grace_s(net: NetworkSpec) -> float:
     """:data:`MANAGER_GRACE` failure timeouts, in seconds."""
     return MANAGER_GRACE * net.failure_timeout_s

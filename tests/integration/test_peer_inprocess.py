@@ -368,3 +368,21 @@ def test_a_node_stopped_while_it_waits_publishes_nothing_of_that_scan(paper):
     probe.close()
     assert published == [], published
     assert all(nodes.stats[sid].scans == 0 for sid in waiting)
+
+
+@pytest.mark.timeout(90)
+def test_a_dead_world_neither_stalls_the_nodes_nor_splits_them(paper, tmp_path):
+    """The world died (not restarted): each node waited scan_timeout_s (10 s) for a truth that
+    never came, then for the tracks the others could not make, and the nodes timed each other
+    out at different moments and disagreed for the rest of the run.  Once the world is gone
+    the waits end after node_kit.WORLD_GONE_WAIT_S: every node publishes its Status at once."""
+    sc = _scenario(paper, scans=24)  # truth goes out 16 scans ahead: scans 18-24 have none
+    t0 = time.monotonic()
+    result, _ = _network(sc, ["spectral"], stop_node=("world", 3))
+    assert result.completed and result.error is None
+    assert time.monotonic() - t0 < 45  # 7 scans without truth: 70-140 s before
+    summary = write_peer_run(tmp_path, sc, result)
+    assert summary["scans_completed"] == {"spectral": 24}
+    peer = summary["peer"]["spectral"]
+    assert peer["agreement"] is True, peer["disagree_scans"]
+    assert summary["failures"]["spectral"] == []  # no live node taken for failed
