@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -88,3 +92,35 @@ def room_in_the_names_cache():
     yield
     _GOOD_NAMES.clear()
     _GOOD_NAMES.update(saved)
+
+
+@contextlib.contextmanager
+def _tmpfs(where: Path, options: str) -> Iterator[Path]:
+    where.mkdir()
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode})")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", str(where)], check=True)
+
+
+@pytest.fixture
+def tmpfs(tmp_path) -> Iterator:
+    """``tmpfs(name, options)``: a tmpfs mounted at ``tmp_path / name`` with the mount
+    ``options`` (``size=100k``, ``ro``), unmounted after the test; the test is skipped without
+    root or where a tmpfs cannot be mounted (real full and read-only file systems)."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    with contextlib.ExitStack() as stack:
+
+        def mount(name: str, options: str) -> Path:
+            return stack.enter_context(_tmpfs(tmp_path / name, options))
+
+        yield mount

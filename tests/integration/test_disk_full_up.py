@@ -7,9 +7,7 @@ could not), and neither ``live.json`` nor a temporary file stays."""
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
 
 import pytest
 from multiproc import CovnetProcess, assert_nothing_left
@@ -22,39 +20,24 @@ FULL = "No space left on device"
 
 
 @pytest.mark.parametrize("size", ["700k", "300k"])
-def test_up_on_a_full_disk_names_the_file_and_ends_failed(tmp_path, size):
-    if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    small = tmp_path / "small"
-    small.mkdir()
-    r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(small)],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode})")
+def test_up_on_a_full_disk_names_the_file_and_ends_failed(tmpfs, size):
+    out = tmpfs("small", f"size={size}") / "up"
+    p = CovnetProcess(["up", str(PAPER), "--out", str(out), "--no-figures"])
     try:
-        out = small / "up"
-        p = CovnetProcess(["up", str(PAPER), "--out", str(out), "--no-figures"])
-        try:
-            rc = p.wait(timeout=150)
-        finally:
-            p.stop()
-        text = p.output()
-        assert rc == 1, text
-        assert "Traceback" not in text, text
-        nodes = [ln for ln in text.splitlines() if re.match(r"\[\w+\] \w+: error:", ln)]
-        assert nodes, text  # the manager (and at 300 kB the recorder) could not write
-        for ln in nodes:
-            assert re.search(rf"error: {re.escape(str(out))}/\S+: {FULL}$", ln), ln
-        (final,) = [ln for ln in text.splitlines() if ln.startswith("covnet: error:")]
-        assert f"{out}/" in final and FULL in final, final
-        if "run.json does not say" not in final:
-            assert json.loads((out / "run.json").read_text())["status"] == "failed"
-        left = sorted(p.name for p in out.iterdir() if p.name == "live.json" or ".tmp" in p.name)
-        assert left == [], left
-        assert_nothing_left(out)
+        rc = p.wait(timeout=150)
     finally:
-        subprocess.run(["umount", str(small)], check=True)
+        p.stop()
+    text = p.output()
+    assert rc == 1, text
+    assert "Traceback" not in text, text
+    nodes = [ln for ln in text.splitlines() if re.match(r"\[\w+\] \w+: error:", ln)]
+    assert nodes, text  # the manager (and at 300 kB the recorder) could not write
+    for ln in nodes:
+        assert re.search(rf"error: {re.escape(str(out))}/\S+: {FULL}$", ln), ln
+    (final,) = [ln for ln in text.splitlines() if ln.startswith("covnet: error:")]
+    assert f"{out}/" in final and FULL in final, final
+    if "run.json does not say" not in final:
+        assert json.loads((out / "run.json").read_text())["status"] == "failed"
+    left = sorted(p.name for p in out.iterdir() if p.name == "live.json" or ".tmp" in p.name)
+    assert left == [], left
+    assert_nothing_left(out)

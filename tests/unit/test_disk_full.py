@@ -221,35 +221,6 @@ def test_plot_into_a_read_only_run_directory_is_refused_before_it_draws(
 # ---- the same on real file systems (root: a small or read-only tmpfs) ------------------------
 
 
-@contextlib.contextmanager
-def _tmpfs(where: Path, options: str) -> Iterator[Path]:
-    where.mkdir()
-    r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode})")
-    try:
-        yield where
-    finally:
-        subprocess.run(["umount", str(where)], check=True)
-
-
-@pytest.fixture
-def tmpfs(tmp_path) -> Iterator:
-    if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    with contextlib.ExitStack() as stack:
-
-        def mount(name: str, options: str) -> Path:
-            return stack.enter_context(_tmpfs(tmp_path / name, options))
-
-        yield mount
-
-
 def test_a_run_on_a_real_full_disk(tmpfs, capsys):
     """100 kB: ``config.json`` and ``arrays.npz`` fit, the paper run's ``summary.json`` not."""
     out = tmpfs("small", "size=100k") / "o"
