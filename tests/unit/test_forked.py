@@ -201,6 +201,16 @@ from covnet.processes import forked
 def square(x):
     return x * x, os.getpid()
 
+def still_alive(pids):  # the processes of pids that still exist (zombies included)
+    alive = []
+    for p in pids:
+        try:
+            os.kill(p, 0)
+            alive.append(p)
+        except ProcessLookupError:
+            pass
+    return alive
+
 what = sys.argv[1]
 if what == "map":
     out = forked.map_in_forks(square, [1, 2, 3, 4])
@@ -228,14 +238,7 @@ elif what == "interrupt":
         forked.map_in_forks(slow_or_interrupted, ["a", "b", "last"])
     except KeyboardInterrupt:
         pids = [int(p) for p in os.listdir(marks)]
-        alive = []
-        for p in pids:
-            try:
-                os.kill(p, 0)
-                alive.append(p)
-            except ProcessLookupError:
-                pass
-        print(json.dumps({"children": len(pids), "alive": alive}))
+        print(json.dumps({"children": len(pids), "alive": still_alive(pids)}))
 elif what == "signal_at_fork":
     # a Ctrl-C to the group at the moment of the fork: parent and child each get one
     import signal
@@ -253,13 +256,7 @@ elif what == "signal_at_fork":
         forked.map_in_forks(lambda x: time.sleep(60), ["a", "b", "last"])
     except KeyboardInterrupt:  # whoever gets here writes a mark: only the parent should
         open(os.path.join(marks, str(os.getpid())), "w").close()
-    alive = []
-    for p in forks:
-        try:
-            os.kill(p, 0)
-            alive.append(p)
-        except ProcessLookupError:
-            pass
+    alive = still_alive(forks)
     time.sleep(0.5)  # a child that unwound this code would have written its mark by now
     if forks:
         print(json.dumps({"me": os.getpid(), "forks": len(forks), "alive": alive,
