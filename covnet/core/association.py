@@ -59,6 +59,7 @@ __all__ = [
     "information_reduction_factor",
     "information_reduction_table",
     "information_reduction_table_streamed",
+    "log_unit_ball_volume",
     "nearest_neighbour_update",
     "pda_combine",
     "pda_update",
@@ -90,6 +91,12 @@ def gate_threshold(dim_z: int, gate_probability: float = DEFAULT_GATE_PROBABILIT
     return float(stats.chi2.ppf(pg, int(dim_z)))
 
 
+def log_unit_ball_volume(n: int) -> float:
+    """``log c_n``, ``c_n = π^{n/2} / Γ(n/2 + 1)`` the volume of the unit ``n``-ball (a ball of
+    radius ``√γ`` has ``c_n γ^{n/2}``)."""
+    return 0.5 * n * math.log(math.pi) - math.lgamma(0.5 * n + 1.0)
+
+
 def gate_volume(S: ArrayLike, gate_probability: float = DEFAULT_GATE_PROBABILITY) -> float:
     """``V_G = c_n γ^{n/2} √det S`` with ``c_n = π^{n/2} / Γ(n/2 + 1)`` (``∞`` for ``P_G = 1``)."""
     SS = np.asarray(S, dtype=np.float64)
@@ -102,8 +109,7 @@ def gate_volume(S: ArrayLike, gate_probability: float = DEFAULT_GATE_PROBABILITY
         raise ValueError("S: expected a positive definite innovation covariance")
     if math.isinf(g):
         return math.inf
-    log_c = 0.5 * n * math.log(math.pi) - math.lgamma(0.5 * n + 1.0)
-    return math.exp(log_c + 0.5 * n * math.log(g) + 0.5 * float(logdet))
+    return math.exp(log_unit_ball_volume(n) + 0.5 * n * math.log(g) + 0.5 * float(logdet))
 
 
 def expected_clutter_in_gate(
@@ -378,8 +384,7 @@ def _clutter_weights(mus: Vec, n: int, p: float, pg: float, g: float) -> Vec:
     """``b_μ = μ (2π)^{n/2} (1 − P_D P_G) / (P_D V_ball)``, ``V_ball`` the volume of the
     ``n``-ball of radius ``√g``: the no-detection term of the PDA weights' denominator in
     whitened coordinates, per ``μ_G``."""
-    log_c = 0.5 * n * math.log(math.pi) - math.lgamma(0.5 * n + 1.0)
-    v_ball = math.exp(log_c + 0.5 * n * math.log(g))
+    v_ball = math.exp(log_unit_ball_volume(n) + 0.5 * n * math.log(g))
     return np.asarray(mus * (2.0 * math.pi) ** (0.5 * n) * (1.0 - p * pg) / (p * v_ball))
 
 

@@ -55,6 +55,7 @@ from covnet.core.association import (
     gate_volume,
     information_reduction_table,
     information_reduction_table_streamed,
+    log_unit_ball_volume,
     nearest_neighbour_update,
     pda_update,
 )
@@ -145,8 +146,8 @@ def max_clutter_in_gate(
     if any(angle_components):
         return r
     g = gate_threshold(n, gate_probability)
-    log_c = 0.5 * n * math.log(math.pi) - math.lgamma(0.5 * n + 1.0)
-    rho = math.exp(log_c + 0.5 * n * math.log(g) - n * math.log(2.0 * float(window_sigma)))
+    log_v = log_unit_ball_volume(n) + 0.5 * n * math.log(g)  # the whitened gate's volume
+    rho = math.exp(log_v - n * math.log(2.0 * float(window_sigma)))
     return r * min(1.0, rho)
 
 
