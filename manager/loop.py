@@ -43,7 +43,7 @@ from typing import Any, Protocol
 
 from covnet.clock import Clock
 from covnet.config import NetworkSpec
-from covnet.processes.node_kit import WORLD_GONE_WAIT_S
+from covnet.processes.node_kit import WORLD_GONE_WAIT_S, world_returns
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, dropped
@@ -799,12 +799,8 @@ def run(
     """A kind's manager over ``bus``: ``make_logic(cfg, loop)`` (the kind's :class:`ScanLogic`)
     in :func:`run_scans`; returns the kind's result (also when stopped, with
     ``completed=False``, or when the network never came up, with ``error`` set)."""
-    from covnet import kinds  # start-up: the kinds' registry (what may be restarted)
-
     loop = Loop(cfg.network, cfg.sensor_ids, bus, run_id, clock)
-    loop.world_returns = cfg.network.restart == "on-failure" and "world" in kinds.of(
-        cfg
-    ).restartable(cfg)
+    loop.world_returns = world_returns(cfg)
     return run_scans(
         make_logic(cfg, loop),
         loop,

@@ -58,6 +58,7 @@ from covnet.processes.node_kit import (
     ManagerWatch,
     manager_appear_s,
     manager_grace_s,
+    world_returns,
 )
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample
@@ -299,18 +300,17 @@ def run(
         "status": msg.peer_status_key(run_id, node_id),
     }
     last = [0]
-    # the world restarted when it dies (network.restart: on-failure; the covariance-control
-    # world's truth is the seed's); otherwise, once it is gone, a scan's waits for the truth
-    # and for the tracks made from it end after WORLD_GONE_WAIT_S: a node without the truth
-    # publishes its Status without a track at once, and no peer times it out
-    world_returns = net.restart == "on-failure"
+    # a world gone for good: a scan's waits for the truth and for the tracks made from it end
+    # after WORLD_GONE_WAIT_S (a node without the truth publishes its Status without a track
+    # at once, and no peer times it out)
+    returns = world_returns(sc)
 
     def beat() -> None:
         heartbeat.tick(last[0], stats.rejected)
 
     def world_gone(since: float) -> bool:
         return (
-            not world_returns
+            not returns
             and msg.WORLD_ID not in inbox.alive
             and time.monotonic() - since > WORLD_GONE_WAIT_S
         )

@@ -8,6 +8,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Mapping
+from typing import Any
 
 from covnet.clock import Clock
 from covnet.config import NetworkSpec
@@ -83,6 +84,17 @@ WORLD_GONE_WAIT_S = 0.5
 and not restarted): a node that has the scan's truth answers in milliseconds, one without it
 never (a scan waited ``network.scan_timeout_s``, 10 s: a mobile run whose world died at scan 20
 of 100 took 13 more minutes; peer nodes then timed each other out and split)."""
+
+
+def world_returns(cfg: Any) -> bool:
+    """Whether the launcher restarts a world that dies: ``network.restart: on-failure`` and a
+    kind whose world may be restarted (its truth the seed's: :meth:`covnet.kinds.Kind.
+    restartable`).  Otherwise a dead world is gone for good, and the waits for what depends
+    on the truth end after :data:`WORLD_GONE_WAIT_S`."""
+    # start-up: the kinds' registry, only as a loop begins
+    from covnet import kinds
+
+    return cfg.network.restart == "on-failure" and "world" in kinds.of(cfg).restartable(cfg)
 
 
 def manager_grace_s(net: NetworkSpec) -> float:
