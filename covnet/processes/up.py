@@ -419,14 +419,14 @@ def up(
                     break
                 time.sleep(0.05)
             final = sup.stop()
-        _note_restarts(out, sup.restarts)
         others = {k: v for k, v in final.items() if k != "manager" and v not in (0, None)}
         if status != 0:
             why = f"the manager exited with status {status}"
             ended = settle(kind, sc, out, facts, "failed", why)
-            _note_restarts(out, sup.restarts)  # (a run.json rebuilt from the recording)
+            _note_restarts(out, sup.restarts)  # (into a run.json rebuilt from the recording too)
             ended += _note_lost(out, lost)
             raise UpError(f"the manager failed (exit status {status}); {ended}")
+        _note_restarts(out, sup.restarts)
         if lost:
             unsaid = _note_lost(out, lost)
             why = "; ".join(ev["ended"] for ev in lost.values())
