@@ -128,15 +128,21 @@ class TrialStore:
         doc["sha256"] = _digest(doc)
         atomic_write(path, (json.dumps(doc) + "\n").encode())
 
-    def load(self) -> dict[tuple[str, int], Result]:
-        """Every stored trial: ``(point, seed) -> result``.  Unreadable files (cut short by a
-        full disk, edited, not JSON) are left out, so their trials run again, and listed in
-        ``unreadable`` with the reason, for the batch to say so."""
+    def load(self, points: Sequence[str] | None = None) -> dict[tuple[str, int], Result]:
+        """Every stored trial (of ``points`` only, when given): ``(point, seed) -> result``.
+        Unreadable files (cut short by a full disk, edited, not JSON) are left out, so their
+        trials run again, and listed in ``unreadable`` with the reason, for the batch to say
+        so (a batch run in parts, as ``compare --budget match`` is, names each file once: in
+        the part whose point it is)."""
         done: dict[tuple[str, int], Result] = {}
         self.unreadable = []
         if not self.root.is_dir():
             return done
-        for path in sorted(self.root.glob("*/*.json")):
+        if points is None:
+            paths = sorted(self.root.glob("*/*.json"))
+        else:  # a point's name is a directory, never a pattern
+            paths = sorted({f for p in points for f in (self.root / p).glob("*.json")})
+        for path in paths:
             try:
                 doc = read_json(path)
                 if "sha256" in doc and doc["sha256"] != _digest(doc):
@@ -370,7 +376,7 @@ def run_trials(
     here."""
     t0 = time.perf_counter()
     store = TrialStore(out, key) if out is not None and key is not None else None
-    known: dict[tuple[str, int], Result] = store.load() if store is not None else {}
+    known: dict[tuple[str, int], Result] = store.load(batch.points) if store is not None else {}
     wanted = dict.fromkeys(batch.points, n)
     cap = max(max_seeds or n, n)
     step = max(1, ci_batch or n)
