@@ -489,13 +489,17 @@ def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str,
         what = os_error_text(exc) if isinstance(exc, OSError) else str(exc)
         unsaid = _record_end(out, status, f"{why}; rebuilding from the recording failed: {what}")
         return f"the recording could not be rebuilt ({what}); {out} holds no results{unsaid}"
-    scans = _scans(_run_info(out))
+    info = _run_info(out)
+    scans = _scans(info)
     record_end(
         out,
         status,
         f"{why}; the results were rebuilt from the recording (covnet replay's code)",
         rebuilt_from_recording=True,
         rebuild_notes=list(getattr(report, "notes", [])),
+        # what the manager would have written: its count of the failure and rejoin events,
+        # which the rebuild recovered from the recorded Status messages
+        membership=_rebuilt_membership(info, _summary(out)),
     )
     return f"rebuilt {out} from the recording up to the last complete scan ({scans})"
 
@@ -513,6 +517,57 @@ def _scans(info: dict[str, Any]) -> str:
     if isinstance(done, dict):
         return ", ".join(f"{k} {v}" for k, v in done.items()) or "no scan"
     return f"{done} scans" if done is not None else "scans unknown"
+
+
+def membership_of(failures: Any, scans_done: Any = None) -> dict[str, dict[str, int]]:
+    """``run.json``'s ``membership`` from a run's failure events, counted as the manager counts
+    them (:meth:`manager.loop.Bus.membership_changes`): per node that failed at least once, how
+    often it ``failed`` and ``rejoined``.
+
+    ``failures`` is one list of ``{"sensor", "scan", "event"}`` or such lists by episode, in
+    the run's order, with ``scans_done`` (``{episode: scans}``) saying which episodes ran.
+    Each episode's log starts from no failure (a node down as it starts is a ``failed`` event
+    at its scan 1) while the manager counts each change of the failed set once over the run::
+
+        F_e(k)  = F_e(k-1) xor {nodes of episode e's events at scan k},   F_e(0) = {}
+        counts += F_e(k) xor F_prev   (each node: failed if in F_e(k), else rejoined)
+
+    at every scan with events and at each episode's scan 1 (a node that came back between two
+    episodes has no event there, but the manager counted its rejoin)."""
+    if isinstance(failures, dict):
+        done = scans_done if isinstance(scans_done, dict) else {}
+        episodes = [evs for m, evs in failures.items() if done.get(m, 1)]
+    else:
+        episodes = [failures]
+    counts: dict[str, dict[str, int]] = {}
+    counted: frozenset[str] = frozenset()
+    for evs in episodes:
+        by_scan: dict[int, set[str]] = {1: set()}
+        for ev in evs if isinstance(evs, list) else ():
+            if isinstance(ev, dict) and ev.get("event") in ("failed", "rejoined"):
+                by_scan.setdefault(int(ev.get("scan", 1)), set()).add(str(ev.get("sensor")))
+        failed: frozenset[str] = frozenset()
+        for k in sorted(by_scan):
+            failed = failed ^ by_scan[k]
+            for sid in sorted(failed ^ counted):
+                c = counts.setdefault(sid, {"failed": 0, "rejoined": 0})
+                c["failed" if sid in failed else "rejoined"] += 1
+            counted = failed
+    return dict(sorted(counts.items()))
+
+
+def _rebuilt_membership(info: dict[str, Any], summary: dict[str, Any]) -> dict[str, Any]:
+    if "failures" in info:  # the kinds whose run.json logs them (one list)
+        return membership_of(info["failures"])
+    return membership_of(summary.get("failures"), summary.get("scans_completed"))
+
+
+def _summary(out: Path) -> dict[str, Any]:
+    try:
+        info = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return info if isinstance(info, dict) else {}
 
 
 def _run_info(out: Path) -> dict[str, Any]:

@@ -178,6 +178,7 @@ def test_crashed_manager_ends_the_run_with_a_message(covnet_proc, tmp_path, pape
     info = json.loads((out / "run.json").read_text())
     assert info["status"] == "failed" and info["rebuilt_from_recording"] is True
     assert "exited with status -9" in info["ended"]
+    assert info["membership"] == {}  # counted from the rebuilt failures: none (it had none)
     summary = json.loads((out / "summary.json").read_text())
     done = summary["scans_completed"].get("spectral")
     assert done is not None, f"no complete scan rebuilt: {summary}\n{p.output()}"
