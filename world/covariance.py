@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import threading
 from collections import Counter
+from typing import Any
 
 import numpy as np
 
@@ -182,9 +183,16 @@ def _serve_peers(
 ) -> None:
     """Peer mode (no commands): the first window of truth goes out once every sensor (and the
     recorder, which records it: without it the first truths were missing from the recording)
-    is up, the next ones ahead of the scans the peer nodes' statuses show they have reached."""
+    is up, the next ones ahead of the scans the peer nodes' statuses show they have reached.
+
+    Until its first status a world also reads the nodes' heartbeats (each says the last scan
+    its node finished, the truth is the same in every episode): a world restarted after the
+    nodes left its last window learns where they are from them, within a heartbeat period,
+    where it sent scans 1-17 and waited for a status that no node could make without the
+    truth it waited for (``scan_timeout_s``, one scan fused without truth)."""
     model, counts = publish.model, publish.counts
     status_sub = bus.subscribe(msg.peer_keyexpr(run_id, "status"))
+    beats: Any = bus.subscribe(msg.heartbeat_keyexpr(run_id))
     live = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
     wanted = _first_truth_waits_for(sc, run_id)
     manager = ManagerWatch(
@@ -199,6 +207,21 @@ def _serve_peers(
     def publish_from(k0: int) -> None:
         window[:] = [k0, publish(k0, k0 + TRUTH_WINDOW)]
 
+    def after(done: int) -> int:
+        """The scan whose truth the nodes need next, after finishing scan ``done``."""
+        return done + 1 if done < model.scans else 1
+
+    def follow_heartbeats() -> None:
+        while (h := beats.try_recv()) is not None:
+            try:
+                hb = msg.decode_as(h.payload, msg.Heartbeat)
+            except msg.WireError as exc:
+                counts[f"rejected:{exc.reason}"] += 1
+                continue
+            need = after(hb.scan)
+            if hb.role == "sensor" and hb.scan > 0 and not window[0] <= need <= window[1]:
+                publish_from(need)
+
     try:
         while not stop.is_set() and not manager.left:
             rejected = {k[9:]: v for k, v in counts.items() if k.startswith("rejected:")}
@@ -207,6 +230,8 @@ def _serve_peers(
                 (alive.add if ev.alive else alive.discard)(ev.key)
             if window[1] < 0 and alive >= wanted:
                 publish_from(1)
+            if beats is not None and window[1] >= 0:
+                follow_heartbeats()
             s = status_sub.recv(timeout=sc.network.heartbeat_s / 2)
             if s is None or window[1] < 0:
                 continue
@@ -215,7 +240,10 @@ def _serve_peers(
             except msg.WireError as exc:
                 counts[f"rejected:{exc.reason}"] += 1
                 continue
-            need = st.scan + 1 if st.scan < model.scans else 1
+            if beats is not None:  # the statuses lead from here
+                beats.close()
+                beats = None
+            need = after(st.scan)
             last_scan = st.scan
             if not window[0] <= need <= window[1]:
                 publish_from(need)
@@ -224,3 +252,5 @@ def _serve_peers(
         manager.close()
         live.close()
         status_sub.close()
+        if beats is not None:
+            beats.close()

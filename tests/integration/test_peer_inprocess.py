@@ -40,7 +40,7 @@ def _scenario(paper, graph="ring", scans=15):
     return from_dict(data)
 
 
-def _network(sc, metrics, *, extra=None, stop_node=None, linger_s=0.0):
+def _network(sc, metrics, *, extra=None, stop_node=None, linger_s=0.0, act=None):
     nodes = NodeThreads()
     nodes.start("world", lambda bus, ev: world_node.run(sc, bus, RUN, WallClock(), ev))
     for sid in sc.sensor_ids:
@@ -53,6 +53,8 @@ def _network(sc, metrics, *, extra=None, stop_node=None, linger_s=0.0):
             extra(nodes.hub, st)
         if stop_node is not None and st["scan"] == stop_node[1]:
             nodes.stop(stop_node[0])
+        if act is not None:
+            act(nodes, st)
 
     mbus = nodes.bus("monitor")
     try:
@@ -386,3 +388,36 @@ def test_a_dead_world_neither_stalls_the_nodes_nor_splits_them(paper, tmp_path):
     peer = summary["peer"]["spectral"]
     assert peer["agreement"] is True, peer["disagree_scans"]
     assert summary["failures"]["spectral"] == []  # no live node taken for failed
+
+
+@pytest.mark.timeout(90)
+def test_a_world_restarted_beyond_its_window_follows_the_nodes_heartbeats(paper, tmp_path):
+    """The world died and came back (``restart: on-failure``) after the nodes had left the
+    window of truth it had sent: the new world sent scans 1-17 again and waited for a status,
+    while every node waited ``scan_timeout_s`` for scan 18's truth; that scan was fused
+    without it (no node's own track).  The new world reads the heartbeats until its first
+    status: it sends scan 18's truth within a heartbeat period."""
+    data = normalised(_scenario(paper, scans=24))
+    data["network"]["restart"] = "on-failure"
+    sc = from_dict(data)
+    said = []
+
+    def restart(nodes, st):
+        said.append(st["scan"])
+        if st["scan"] == 12 and "world" in nodes.stops and not nodes.stops["world"].is_set():
+            nodes.stop("world")
+        if st["scan"] == 17 and "world-2" not in nodes.stops:  # the nodes hold truth to 17
+            nodes.start(
+                "world-2", lambda bus, ev: world_node.run(sc, bus, RUN, WallClock(), ev)
+            )
+
+    result, stats = _network(sc, ["spectral"], act=restart)
+    assert result.completed and result.error is None
+    summary = write_peer_run(tmp_path, sc, result)
+    assert summary["scans_completed"] == {"spectral": 24}
+    assert summary["peer"]["spectral"]["agreement"] is True
+    # every scan fused the tracks its nodes made from the truth: none went without
+    subsets = summary["metrics"]["spectral"]["subsets"]
+    fused = [len(s) for s in subsets]
+    assert all(n > 0 for n in fused), fused
+    assert stats["world-2"]["published"] >= 17 + 7, stats["world-2"]
