@@ -10,8 +10,9 @@ paper run goes from ~398 to ~450 scans/s).  The sensors keep that truth for the 
 metric's episode uses the same trajectory) and only ever measure a scan they were commanded
 for.  A longer run is paced by the manager's scan tick instead, in lockstep and in real time
 alike: on ``Command(k)`` the world publishes ``Truth(k)`` .. ``Truth(k+16)`` unless the previous
-window already covered ``k`` and no sensor has joined since.  It ends on ``stop`` or when the
-manager it has seen leaves.
+window already covered ``k`` and no sensor has joined since; until its first command it also
+follows the sensors' heartbeats (a world restarted while a command was in flight sends that
+scan's truth).  It ends on ``stop`` or when the manager it has seen leaves.
 """
 
 from __future__ import annotations
@@ -68,11 +69,28 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     window = [0, -1]  # the scans whose truth went out with the last window
     # a sensor that (re)joins mid-run has missed the window: the next command starts a new one
     joins = bus.watch_liveliness(msg.alive_keyexpr(run_id, "sensor"))
+    # until its first command, the sensors' heartbeats (the last command each took): a world
+    # restarted while a command was in flight sends that scan's truth, which its sensors
+    # wait for (else the scan waited scan_timeout_s and fused nothing)
+    beats: list[Any] = [bus.subscribe(msg.heartbeat_keyexpr(run_id))]
+
+    def follow_heartbeats() -> None:
+        while beats and (h := beats[0].try_recv()) is not None:
+            try:
+                hb = msg.decode_as(h.payload, msg.Heartbeat)
+            except msg.WireError as exc:
+                counts[f"rejected:{exc.reason}"] += 1
+                continue
+            k = hb.scan
+            if hb.role == "sensor" and 1 <= k <= model.scans and not window[0] <= k < window[1]:
+                window[:] = [k, publish(k, k + TRUTH_WINDOW)]
 
     def handle(cmd: msg.Command) -> bool:
         if not 1 <= cmd.scan <= model.scans:
             counts["rejected:bad_scan"] += 1
             return False
+        if beats:  # the commands lead from here
+            beats.pop().close()
         # Truth goes out a window of scans ahead (the trajectory does not depend on the
         # commands): a sensor wakes for truth once per window, not once per scan, and holds
         # the truth when its command comes.  A new window when a command leaves the last one
@@ -86,9 +104,14 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
         return True
 
     try:
-        serve_commands(bus, run_id, clock, stop, sc.network, "world", "world", counts, handle)
+        serve_commands(
+            bus, run_id, clock, stop, sc.network, "world", "world", counts, handle,
+            idle=follow_heartbeats,
+        )  # fmt: skip
     finally:
         joins.close()
+        for sub in beats:
+            sub.close()
     return counts
 
 

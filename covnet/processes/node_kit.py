@@ -174,11 +174,13 @@ def serve_commands(
     node_id: str,
     counts: Counter[str],
     handle: Callable[[msg.Command], bool],
+    idle: Callable[[], None] | None = None,
 ) -> None:
     """A node that acts on the manager's commands (the world): subscribe, declare the token,
     then until ``stop`` or the manager leaves: heartbeat, decode each command strictly (a bad
     one counted as ``rejected:<reason>``) and pass it to ``handle``, which returns whether it
-    took it (else it counted why).  Heartbeats carry the last scan taken and the rejections."""
+    took it (else it counted why).  Heartbeats carry the last scan taken and the rejections.
+    ``idle()``, when given, runs before each wait for a command."""
     cmd_sub = bus.subscribe(msg.command_keyexpr(run_id))  # every command
     manager = ManagerWatch(bus, run_id, manager_grace_s(net), manager_appear_s(net))
     token = bus.declare_token(msg.alive_key(run_id, role, node_id))
@@ -188,6 +190,8 @@ def serve_commands(
         while not stop.is_set() and not manager.left:
             rejected = {k[9:]: v for k, v in counts.items() if k.startswith("rejected:")}
             heartbeat.tick(last_scan, rejected)
+            if idle is not None:
+                idle()
             s = cmd_sub.recv(timeout=net.heartbeat_s / 2)
             if s is None:
                 continue

@@ -18,7 +18,7 @@ from sensors import covariance as sensor_node
 from world import covariance as world_node
 
 
-def run_network(sc, metrics, *, kill_after_scan=None, victim=None):
+def run_network(sc, metrics, *, kill_after_scan=None, victim=None, act=None):
     hub = InMemoryHub()
     stop = threading.Event()
     node_stops = {}
@@ -56,6 +56,8 @@ def run_network(sc, metrics, *, kill_after_scan=None, victim=None):
             # wait until it has stopped: a sensor no scan enables sees its stop event only at its
             # next heartbeat wait (nothing else wakes it), and this run is faster than that
             next(th for th in threads if th.name == victim).join(10)
+        if act is not None:
+            act(st, start, node_stops, threads)
 
     mbus = InMemoryBus(hub, name="manager")
     try:
@@ -118,6 +120,32 @@ def test_truth_up_front_and_window_by_window_give_the_run(short_paper, monkeypat
     else:
         assert world["published"] > 2 * short_paper.scans - 2  # windows overlap by a scan
     assert all(stats[sid].missed_truth == 0 for sid in short_paper.sensor_ids)
+
+
+def test_a_world_restarted_with_a_command_in_flight_sends_that_scans_truth(
+    short_paper, monkeypatch
+):
+    """Truth window by window (a run above TRUTH_UPFRONT_MAX_SCANS, here 10): the world died
+    and came back while Command(18) was in flight, past its last window (scans 1-17 went out
+    with Command(1)).  The new world waited for the next command, its sensors for scan 18's
+    truth: that scan waited scan_timeout_s and fused nothing.  Until its first command the
+    world now follows the sensors' heartbeats (the last command each took)."""
+    from covnet.wire import messages as msg
+
+    monkeypatch.setattr(msg, "TRUTH_UPFRONT_MAX_SCANS", 10)
+
+    def restart(st, start, node_stops, threads):
+        if st["scan"] == 8 and not node_stops["world"].is_set():
+            node_stops["world"].set()
+            next(th for th in threads if th.name == "world").join(10)
+        if st["scan"] == 17 and "world-2" not in node_stops:
+            # Command(18) is out (it goes before scan 17's report): the new world missed it
+            start("world-2", world_node.run, short_paper)
+
+    metrics = ["spectral"]
+    result, stats = run_network(short_paper, metrics, act=restart)
+    assert_equals_run(result, short_paper, metrics)
+    assert stats["world-2"]["published"] >= 30 - 18 + 1
 
 
 def test_failed_sensor_is_excluded_and_run_completes(short_paper):
