@@ -163,27 +163,17 @@ def test_trial_points_resume_when_a_policy_is_added(paper30, tmp_path):
 def test_budget_match_names_a_damaged_trial_file_once(paper30, tmp_path, capsys):
     """``--budget match`` runs its batch in two parts (the reference, then the others): a
     damaged trial file of another policy was named by both parts, two identical lines."""
-    cp.compare_outcome(
-        paper30,
-        ["covariance_control", "all_on"],
-        "abs_trace",
-        2,
-        budget="match",
-        workers=1,
-        out=tmp_path,
-    )
+    def compare():
+        policies = ["covariance_control", "all_on"]
+        return cp.compare_outcome(
+            paper30, policies, "abs_trace", 2, budget="match", workers=1, out=tmp_path
+        )
+
+    compare()
     damaged = sorted((tmp_path / "trials").rglob("policy=all_on/*.json"))[-1]
     damaged.write_bytes(damaged.read_bytes()[:20])  # cut short, as by a full disk
     capsys.readouterr()
-    _, again, _ = cp.compare_outcome(
-        paper30,
-        ["covariance_control", "all_on"],
-        "abs_trace",
-        2,
-        budget="match",
-        workers=1,
-        out=tmp_path,
-    )
+    _, again, _ = compare()
     err = capsys.readouterr().err
     assert err.count("could not be read") == 1, err
     assert str(damaged) in err and (again.ran, again.skipped) == (1, 3)
