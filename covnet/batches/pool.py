@@ -223,7 +223,7 @@ def _hand_out(w: _Worker, todo: Iterator[tuple[int, Any]]) -> None:
 def _receive(w: _Worker) -> tuple[int, bool, Any]:
     try:
         i, ok, value, tb = w.conn.recv()
-    except EOFError:
+    except (EOFError, OSError):  # OSError: it died with what it was sent unread (ECONNRESET)
         raise WorkerDied(f"a worker process (pid {w.proc.pid}) ended") from None
     if not ok:
         value.add_note(f"in a worker process (pid {w.proc.pid}), task {i}:\n{tb}")

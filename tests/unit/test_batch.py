@@ -115,6 +115,35 @@ def test_a_dead_worker_fails_its_task_and_the_others_go_on():
     assert _workers_of(os.getpid()) == []
 
 
+def test_a_worker_dead_before_it_read_its_messages_fails_its_task_and_the_others_go_on(
+    monkeypatch,
+):
+    """A worker killed while it was still starting (its path, function and first task unread
+    in its socket): the parent's read got ECONNRESET, not EOF, and the whole batch stopped
+    with "Connection reset by peer".  It is a dead worker like any other."""
+    import subprocess
+    import sys
+
+    real, started = subprocess.Popen, []
+
+    def first_never_reads(argv, **kw):
+        if not started:  # the first worker: dies without reading what it was sent
+            argv = [sys.executable, "-c", "import os, time; time.sleep(0.5); os._exit(9)"]
+        started.append(argv)
+        return real(argv, **kw)
+
+    monkeypatch.setattr(subprocess, "Popen", first_never_reads)
+    out = {i: (ok, v) for i, ok, v in imap_unordered(square, list(range(5)), 2)}
+    assert sorted(out) == list(range(5))
+    failed = {i: v for i, (ok, v) in out.items() if not ok}
+    assert len(failed) == 1 and all(isinstance(v, WorkerDied) for v in failed.values()), failed
+    (why,) = map(str, failed.values())
+    assert "exit code 9" in why, why
+    assert {i: v for i, (ok, v) in out.items() if ok} == {i: i * i for i in out if i not in failed}
+    assert len(started) == 3  # the two workers and the one that took over
+    assert _workers_of(os.getpid()) == []
+
+
 def test_ctrl_c_stops_every_worker_and_keeps_what_was_done():
     timers: list[threading.Timer] = []
 
