@@ -41,6 +41,7 @@ from scipy.stats import chi2
 
 from covnet.batches.pool import BatchInterrupted, write_rows
 from covnet.batches.stats import (
+    SHARE,
     add_stats,
     burn_in_of,
     ci_half_width,
@@ -273,7 +274,7 @@ def summarise(
         all_nees,
         sc.evaluation.burn_in_scans if burn_in is None else burn_in,
     )
-    add_stats(row, "allocation_rate", [float(t.enabled.mean()) for t in trials])
+    add_stats(row, "allocation_rate", [float(t.enabled.mean()) for t in trials], SHARE)
     return row
 
 

@@ -46,11 +46,14 @@ import numpy as np
 
 from covnet.batches.pool import BatchInterrupted, write_rows
 from covnet.batches.stats import (
+    NONNEGATIVE,
+    SHARE,
     add_stats,
     burn_in_of,
     ci_half_width,
     curves_of,
     error_stats,
+    plus_minus,
     seed_stats,
     t_half_width,
 )
@@ -324,14 +327,14 @@ def summarise(
         "rmse_position": float(np.sqrt(err2.mean())),
         **nees_consistency(nees, b, per_scan=T),
     }
-    add_stats(row, "sensors_per_scan", sensors.mean(axis=1))
-    add_stats(row, "sensor_scans", sensors.sum(axis=1))
+    add_stats(row, "sensors_per_scan", sensors.mean(axis=1), NONNEGATIVE)
+    add_stats(row, "sensor_scans", sensors.sum(axis=1), NONNEGATIVE)
     error_stats(row, err2, nees, burn_in)
     if "ospa_scan" in trials[0]:
         for name in ("ospa", "gospa"):
             per_seed = _stack(trials, f"{name}_scan").mean(axis=1)
             row[f"mean_{name}"] = float(per_seed.mean())
-            add_stats(row, f"mean_{name}", per_seed)
+            add_stats(row, f"mean_{name}", per_seed, NONNEGATIVE)
         lost = [int(t.get("lost_tracks", 0)) for t in trials]
         row["seeds_with_lost_track"] = int(sum(n > 0 for n in lost))
         row["lost_tracks"] = int(sum(lost))
@@ -340,11 +343,11 @@ def summarise(
     add_stats(row, "mean_f", f)
     share = _stack(trials, "within_scan").mean(axis=1)
     row["share_trP_le_trPd"] = float(share.mean())
-    add_stats(row, "share_trP_le_trPd", share)
+    add_stats(row, "share_trP_le_trPd", share, SHARE)
     for name in ("messages_per_scan", "bytes_per_scan"):
         v = np.asarray([t[name] for t in trials], dtype=np.float64)
         row[name] = float(v.mean())
-        add_stats(row, name, v)
+        add_stats(row, name, v, NONNEGATIVE)
     return row
 
 
@@ -570,9 +573,9 @@ def _ci(r: Mapping[str, Any], name: str, fmt: str = ".2f", scale: float = 1.0) -
     if m is None:
         return "-"
     lo, hi = r.get(f"{name}_ci_lo"), r.get(f"{name}_ci_hi")
-    if lo is None or hi is None:
-        return f"{scale * m:{fmt}}"
-    return f"{scale * m:{fmt}} ± {scale * (hi - lo) / 2:{fmt}}"
+    return plus_minus(
+        scale * m, None if lo is None else scale * lo, None if hi is None else scale * hi, fmt
+    )
 
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:

@@ -441,7 +441,8 @@ def mc_figure(mc_dir: Path) -> Path:
             k = np.arange(1, len(s["mean"]) + 1)
             col = plt.get_cmap("tab10")(i)
             ax.plot(k, s["mean"], color=col, lw=1.5, label=f"{m}")
-            ax.fill_between(k, s["ci95_low"], s["ci95_high"], color=col, alpha=0.2)
+            if s["ci95_low"] is not None:  # one seed: no interval
+                ax.fill_between(k, s["ci95_low"], s["ci95_high"], color=col, alpha=0.2)
         ax.set_ylabel("OSPA (m)")
         ax.set_ylim(bottom=0.0)
         ax.set_title(f"{doc['scenario']}: means over {n} seeds with 95 % intervals")
@@ -453,7 +454,8 @@ def mc_figure(mc_dir: Path) -> Path:
             k = np.arange(1, len(s["mean"]) + 1)
             col = plt.get_cmap("tab10")(i)
             ax.plot(k, s["mean"], color=col, lw=1.4, label=f"tr P ({m})")
-            ax.fill_between(k, s["ci95_low"], s["ci95_high"], color=col, alpha=0.2)
+            if s["ci95_low"] is not None:  # one seed: no interval
+                ax.fill_between(k, s["ci95_low"], s["ci95_high"], color=col, alpha=0.2)
         pd_ = doc.get("trace_Pd", {}).get(tid)
         if pd_:
             ax.step(np.arange(1, len(pd_) + 1), pd_, where="mid", color="k", ls="--", lw=1.2,

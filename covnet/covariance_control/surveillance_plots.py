@@ -198,7 +198,8 @@ def mc_figure(mc_dir: Path, doc: dict[str, Any]) -> Path:
             s = b[key]
             k = np.arange(1, len(s["mean"]) + 1)
             ax.plot(k, s["mean"], color=col, lw=1.5, label=m)
-            ax.fill_between(k, s["ci95_low"], s["ci95_high"], color=col, alpha=0.2)
+            if s["ci95_low"] is not None:  # one seed: no interval
+                ax.fill_between(k, s["ci95_low"], s["ci95_high"], color=col, alpha=0.2)
     for ax in axes:  # both are >= 0: a few seeds' t-interval may reach below (not drawn)
         ax.set_ylim(bottom=0.0)
     axes[0].set_ylabel("GOSPA (m)")

@@ -39,7 +39,16 @@ from typing import Any
 import numpy as np
 
 from covnet.batches.pool import BatchInterrupted, write_rows
-from covnet.batches.stats import add_stats, ci_half_width, curves_of, error_stats, seed_stats
+from covnet.batches.stats import (
+    NONNEGATIVE,
+    SHARE,
+    add_stats,
+    ci_half_width,
+    curves_of,
+    error_stats,
+    plus_minus,
+    seed_stats,
+)
 from covnet.batches.trials import (
     Batch,
     BatchProgress,
@@ -68,7 +77,12 @@ MEANS = (
     "fused",
 )
 """The per-run numbers a row averages over its seeds."""
-SPREAD = ("allocation_rate", "deadline_miss_rate", "late", "lost")
+SPREAD = {
+    "allocation_rate": SHARE,
+    "deadline_miss_rate": SHARE,
+    "late": NONNEGATIVE,
+    "lost": NONNEGATIVE,
+}
 """The per-run numbers whose spread over seeds a row gives (``<name>_mean/std/ci_lo/ci_hi``,
 :func:`covnet.batches.stats.add_stats`): every quantity the figure draws besides the errors'."""
 STATS = (
@@ -310,7 +324,7 @@ def rows_of(
             burn_in,
         )
         for k in SPREAD:
-            add_stats(row, k, [r[k] for r in rs])
+            add_stats(row, k, [r[k] for r in rs], SPREAD[k])
         row["point"] = key
         rows.append(row)
     return rows
@@ -482,10 +496,7 @@ def _pm(row: dict[str, Any], name: str, spec: str = ".2f") -> str:
     mean = row.get(f"{name}_mean")
     if mean is None:
         return "-"
-    lo, hi = row.get(f"{name}_ci_lo"), row.get(f"{name}_ci_hi")
-    if lo is None or hi is None:
-        return format(mean, spec)
-    return f"{format(mean, spec)}±{format((hi - lo) / 2, spec)}"
+    return plus_minus(mean, row.get(f"{name}_ci_lo"), row.get(f"{name}_ci_hi"), spec, "±")
 
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from covnet.batches.pool import BatchInterrupted, default_workers, end_batch, finish_batch
+from covnet.batches.stats import plus_minus
 from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.errors import UsageError
 from covnet.mobile.config import MobileConfig
@@ -35,9 +36,7 @@ EXIT_OK = 0
 
 def _pm(st: dict[str, Any]) -> str:
     """``mean±half-width`` of an aggregate's statistics (the mean alone with one seed)."""
-    if st.get("ci_lo") is None:
-        return f"{st['mean']:.2f}"
-    return f"{st['mean']:.2f}±{(st['ci_hi'] - st['ci_lo']) / 2:.2f}"
+    return plus_minus(st["mean"], st.get("ci_lo"), st.get("ci_hi"), ".2f", "±")
 
 
 def _pct(x: float | None) -> str:

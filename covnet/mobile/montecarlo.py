@@ -23,7 +23,7 @@ import numpy as np
 
 from covnet import __version__
 from covnet.batches.pool import BatchInterrupted, parallel_map
-from covnet.batches.stats import ci_half_width, seed_stats
+from covnet.batches.stats import NONNEGATIVE, SHARE, Bounds, ci_half_width, seed_stats
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.mobile.config import MobileConfig, config_hash, from_dict, normalised
 from covnet.mobile.results import WORSE_TOL, decision_times, summarise
@@ -165,15 +165,16 @@ def run_seeds(
         raise
 
 
-def _stats(values: Iterable[float | None]) -> dict[str, Any]:
+def _stats(values: Iterable[float | None], bounds: Bounds = NONNEGATIVE) -> dict[str, Any]:
     """Mean, standard deviation (ddof 0, as always), min, max over seeds, then the 95 %
     Student t interval of the mean (``ci_lo``, ``ci_hi``: from the sample standard deviation,
-    ddof 1; None with one seed) and ``n``: over the seeds where the value is defined (a rate
-    over no scan is None), every entry None where it is defined in none."""
+    ddof 1, within the quantity's ``bounds``: every one here is ``>= 0``, a rate within
+    ``[0, 1]``; None with one seed) and ``n``: over the seeds where the value is defined (a
+    rate over no scan is None), every entry None where it is defined in none."""
     v = np.asarray([x for x in values if x is not None], dtype=np.float64)
     if v.size == 0:
         return dict.fromkeys(("mean", "std", "min", "max", "ci_lo", "ci_hi"), None) | {"n": 0}
-    t = seed_stats(v)
+    t = seed_stats(v, bounds)
     return {
         "mean": float(v.mean()),
         "std": float(v.std()),
@@ -194,6 +195,10 @@ _BLOCK_KEYS = (
     "miss_given_assigned",
     "unobserved_scans",
 )
+_BOUNDS = {
+    k: SHARE if "rate" in k or k == "miss_given_assigned" else NONNEGATIVE for k in _BLOCK_KEYS
+}
+"""The range of each: the rates within ``[0, 1]``, the rest ``>= 0``."""
 
 
 def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -201,10 +206,10 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     first = rows[0]
     agg: dict[str, Any] = {
         "targets": {
-            t: {k: _stats(r["targets"][t][k] for r in rows) for k in _BLOCK_KEYS}
+            t: {k: _stats((r["targets"][t][k] for r in rows), _BOUNDS[k]) for k in _BLOCK_KEYS}
             for t in first["target_ids"]
         },
-        "overall": {k: _stats(r["overall"][k] for r in rows) for k in _BLOCK_KEYS},
+        "overall": {k: _stats((r["overall"][k] for r in rows), _BOUNDS[k]) for k in _BLOCK_KEYS},
         "usage_cost_total": _stats(r["usage_cost_total"] for r in rows),
         "platform_travel_m": {
             s: _stats(r["platform_travel_m"][s] for r in rows) for s in first["platform_travel_m"]

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from covnet.batches.pool import BatchInterrupted
-from covnet.batches.stats import add_stats, ci_half_width, seed_stats
+from covnet.batches.stats import SHARE, add_stats, ci_half_width, seed_stats
 from covnet.batches.trials import (
     Batch,
     BatchProgress,
@@ -170,8 +170,8 @@ def cell_rows(
             row["sd_optimal_rate"] = float(
                 np.mean(c <= ref + OPT_RTOL * np.maximum(1.0, np.abs(ref)))
             )
-        add_stats(row, "p_trial", _p_trials(records, m))
-        add_stats(row, "exact_scan", [float(bool(x["exact"])) for x in recs])
+        add_stats(row, "p_trial", _p_trials(records, m), SHARE)
+        add_stats(row, "exact_scan", [float(bool(x["exact"])) for x in recs], SHARE)
         rows.append(row)
     return rows
 

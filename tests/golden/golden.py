@@ -8,7 +8,11 @@ on December 5 after CI that gives one track all the weight returns that track's 
 the estimates moved by at most 1e-11 m, every decision and printed figure the same; the
 three ``run-latency`` cases' ``summary.json`` recorded again the same day when its
 ``latency.unsolicited`` became ``network.json``'s (fused on time: 0 where it was 8, 8 and 6) and
-``fallback_sent`` took the old count: the only two keys that changed, the arrays the same).
+``fallback_sent`` took the old count: the only two keys that changed, the arrays the same); the
+``(issue 18)`` hashes of ``compare``, ``mc-mobile`` and ``mc-passive`` recorded again on December
+6 when the intervals over seeds were cut to their quantity's range (``stats.seed_stats``'s
+bounds): only ``*_ci_lo`` below 0 and ``*_ci_hi`` above 1 of a share changed (to 0 and 1), every
+other key the same (each file compared key by key with the code before).
 
 A JSON file is hashed as its bytes; wall-clock keys (:data:`WALL_CLOCK_KEYS`) are removed first
 and the rest re-serialised canonically only where a case says so (those files held timings

@@ -20,6 +20,7 @@ from covnet.covariance_control.latency_sim import delivery_probabilities, run_la
 from covnet.covariance_control.model import build_model, truth_trajectory
 from covnet.covariance_control.simulate import run_metric
 from covnet.covariance_control.sweep import (
+    SPREAD,
     grid,
     link_for,
     point_scenario,
@@ -235,7 +236,7 @@ def test_sweep_rows_give_the_spread_of_every_drawn_count(paper_path):
     for k in ("deadline_miss_rate", "late", "lost"):
         values = [r[k] for r in runs]
         assert len(set(values)) > 1, k  # a spread to show
-        want = seed_stats(values)
+        want = seed_stats(values, SPREAD[k])
         assert row[f"{k}_mean"] == row[k] == pytest.approx(want["mean"], rel=1e-12)
         assert (row[f"{k}_ci_lo"], row[f"{k}_ci_hi"]) == (want["ci_lo"], want["ci_hi"])
         assert row[f"{k}_ci_lo"] < row[k] < row[f"{k}_ci_hi"]
