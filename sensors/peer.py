@@ -62,6 +62,7 @@ from covnet.processes.node_kit import (
 )
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample
+from sensors.protocol import TRUTHS_NEAR
 
 
 @dataclass
@@ -150,6 +151,18 @@ class _Inbox:
                 self.truth[t.scan] = t.states[0]
             else:
                 self.stats.rejected["bad_shape"] += 1
+
+    def forget_before(self, e: int, k: int) -> None:
+        """Done with scan ``k`` of episode ``e``: drop the tracks and statuses of earlier
+        scans (the next scan needs this one's statuses) and the truths of earlier scans, but
+        the first :data:`~sensors.protocol.TRUTHS_NEAR` (the truth is every episode's, and the
+        world may send the next episode's first window before this episode ends).  They were
+        kept for the whole run: 2.3 kB a scan."""
+        for key in [key for key in self.tracks if key[1:] < (e, k)]:
+            del self.tracks[key]
+        self.statuses.difference_update([s for s in self.statuses if s[1:] < (e, k)])
+        for old in [j for j in self.truth if TRUTHS_NEAR < j < k]:
+            del self.truth[old]
 
     def _outside(self, episode: int, scan: int) -> str | None:
         """Why a track or status of ``(episode, scan)`` is not kept: ``bad_scan`` outside the
@@ -417,8 +430,7 @@ def run(
                         )
                     ),
                 )
-                for key in [key for key in inbox.tracks if key[1:] < (e, k)]:
-                    del inbox.tracks[key]
+                inbox.forget_before(e, k)
                 prev = (e, k)
         # the last status must reach the others before this node leaves
         beat()

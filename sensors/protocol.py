@@ -56,6 +56,10 @@ Respond = Callable[[msg.Command, msg.Truth], msg.Measurement | msg.LocalTrack]
 FastRespond = Callable[[msg.Command, msg.Truth, int], bytes | None]
 
 
+TRUTHS_NEAR = 32
+"""A sensor that keeps no run's truth (a run above ``TRUTH_UPFRONT_MAX_SCANS``: the world sends
+windows of 17 scans ahead) and has no command waiting keeps the truths within this many scans
+of the newest: two windows."""
 _SHARED_MAX = 1024
 _shared: dict[tuple[str, bytes], msg.Command | msg.Truth | msg.WireError] = {}
 
@@ -245,7 +249,13 @@ class _Sensor:
         elif not self.truth_ok(tr):
             self.stats.rejected["bad_shape"] += 1
         else:
-            self.truths[tr.scan] = tr
+            truths = self.truths
+            truths[tr.scan] = tr
+            if not self.keep_truth and not self.pending and len(truths) > 2 * TRUTHS_NEAR + 1:
+                # nothing waits for a truth: keep those near the newest (a sensor no scan
+                # enables answered nothing, so its truths were never dropped: 0.5 kB a scan)
+                for old in [k for k in truths if abs(k - tr.scan) > TRUTHS_NEAR]:
+                    del truths[old]
 
     def answer(self, lap: Callable[[str], None]) -> None:
         """Publish the measurement of every pending command whose truth is in hand, oldest

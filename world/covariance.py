@@ -10,7 +10,8 @@ paper run goes from ~398 to ~450 scans/s).  The sensors keep that truth for the 
 metric's episode uses the same trajectory) and only ever measure a scan they were commanded
 for.  A longer run is paced by the manager's scan tick instead, in lockstep and in real time
 alike: on ``Command(k)`` the world publishes ``Truth(k)`` .. ``Truth(k+16)`` unless the previous
-window already covered ``k`` and no sensor has joined since; until its first command it also
+window already covered ``k`` and no sensor has joined since (on the command of a window's last
+scan ``k``, the next window ``Truth(k+1)`` .. ``Truth(k+17)``, a scan ahead); until its first command it also
 follows the sensors' heartbeats (a world restarted while a command was in flight sends that
 scan's truth).  It ends on ``stop`` or when the manager it has seen leaves.
 """
@@ -66,7 +67,7 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     if model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS:
         _serve_upfront(sc, bus, run_id, clock, stop, publish)
         return counts
-    window = [0, -1]  # the scans whose truth went out with the last window
+    window = [0, -1]  # the first and last scans whose truth went out with the last window
     # a sensor that (re)joins mid-run has missed the window: the next command starts a new one
     joins = bus.watch_liveliness(msg.alive_keyexpr(run_id, "sensor"))
     # until its first command, the sensors' heartbeats (the last command each took): a world
@@ -82,7 +83,9 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
                 counts[f"rejected:{exc.reason}"] += 1
                 continue
             k = hb.scan
-            if hb.role == "sensor" and 1 <= k <= model.scans and not window[0] <= k < window[1]:
+            if hb.role != "sensor" or not 1 <= k <= model.scans:
+                continue
+            if not window[0] <= k <= window[1]:
                 window[:] = [k, publish(k, k + TRUTH_WINDOW)]
 
     def handle(cmd: msg.Command) -> bool:
@@ -93,13 +96,17 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
             beats.pop().close()
         # Truth goes out a window of scans ahead (the trajectory does not depend on the
         # commands): a sensor wakes for truth once per window, not once per scan, and holds
-        # the truth when its command comes.  A new window when a command leaves the last one
-        # (or the scans start again: the next metric's episode).
+        # the truth when its command comes.  The next window goes out with the command of a
+        # window's last scan, one scan ahead (it sent that last scan again: 17 truths a 16
+        # scans); a new one when a command leaves the last (or the scans start again: the
+        # next metric's episode).
         k0 = cmd.scan
         while (ev := joins.try_recv()) is not None:
             if ev.alive:
                 window[:] = [0, -1]
-        if not window[0] <= k0 < window[1]:
+        if k0 == window[1] < model.scans:
+            window[:] = [k0 + 1, publish(k0 + 1, k0 + 1 + TRUTH_WINDOW)]
+        elif not window[0] <= k0 <= window[1]:
             window[:] = [k0, publish(k0, k0 + TRUTH_WINDOW)]
         return True
 

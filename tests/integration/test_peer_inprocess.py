@@ -421,3 +421,27 @@ def test_a_world_restarted_beyond_its_window_follows_the_nodes_heartbeats(paper,
     fused = [len(s) for s in subsets]
     assert all(n > 0 for n in fused), fused
     assert stats["world-2"]["published"] >= 17 + 7, stats["world-2"]
+
+
+def test_a_node_forgets_the_scans_it_is_done_with():
+    """A peer node kept every scan's statuses and truths for the whole run (2.3 kB a scan:
+    45 MB over the soak's 20 000 scans).  After scan k of episode e it keeps the statuses and
+    tracks from (e, k) on, and the truths of scans >= k and the first TRUTHS_NEAR (the next
+    episode's first window may come before this episode ends)."""
+    from sensors.protocol import TRUTHS_NEAR
+
+    inbox = peer._Inbox(InMemoryBus(), RUN, "S1", ["S2"], peer.PeerStats(), 2, 300)
+    for e in (0, 1):
+        for k in range(1, 301):
+            inbox.statuses.update({("S2", e, k), ("S3", e, k)})
+            inbox.tracks[("S2", e, k)] = []
+    inbox.truth.update({j: np.zeros(4) for j in range(1, 301)})
+    same = inbox.statuses
+    inbox.forget_before(0, 200)
+    assert inbox.statuses is same  # the set a wait holds stays the one filled
+    assert min(s[1:] for s in inbox.statuses) == (0, 200) and len(inbox.statuses) == 2 * 401
+    assert min(k[1:] for k in inbox.tracks) == (0, 200) and len(inbox.tracks) == 401
+    assert sorted(inbox.truth) == [*range(1, TRUTHS_NEAR + 1), *range(200, 301)]
+    inbox.forget_before(1, 5)  # the next episode: its first window stays
+    assert len(inbox.statuses) == 2 * 296 and len(inbox.tracks) == 296
+    assert sorted(inbox.truth) == [*range(1, TRUTHS_NEAR + 1), *range(200, 301)]

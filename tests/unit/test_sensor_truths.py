@@ -47,3 +47,35 @@ def test_a_command_of_a_scan_outside_the_run_is_refused(missed):
     one.accept(msg.Command(3, 3.0, ("S1",), 1))
     assert [c.scan for c in one.pending] == [3]  # (keep_last: off before its first command)
     assert one.stats.missed_commands == (0 if missed is None else 2)
+
+
+def test_a_sensor_no_scan_enables_keeps_only_the_truths_near_the_newest():
+    """A run above TRUTH_UPFRONT_MAX_SCANS (truth window by window): a sensor drops its old
+    truths as it answers a command; one that no scan enables answered nothing and kept every
+    truth (0.5 kB a scan: 10 MB over the soak's 20 000 scans).  Without a command waiting it
+    keeps those within TRUTHS_NEAR of the newest; a waiting command's truth is never dropped."""
+    from sensors.protocol import TRUTHS_NEAR
+
+    one = _Sensor(
+        "S8", InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
+        respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
+        scans=20_000, missed_command=None, keep_truth=False, command_ok=None,
+    )  # fmt: skip
+    for k in range(1, 5001):
+        one.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
+        assert len(one.truths) <= 2 * TRUTHS_NEAR + 1
+    assert 5000 in one.truths and 5000 - TRUTHS_NEAR in one.truths
+    # a command waiting for its truth: nothing is dropped while it waits
+    one.accept(msg.Command(6000, 600.0, ("S8",), 1))
+    for k in range(5001, 6001):
+        one.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
+    assert 6000 in one.truths and len(one.truths) > 1000
+    # a sensor that keeps the run's truth (up to TRUTH_UPFRONT_MAX_SCANS) keeps all of it
+    keep = _Sensor(
+        "S8", InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
+        respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
+        scans=500, missed_command=None, keep_truth=True, command_ok=None,
+    )  # fmt: skip
+    for k in range(1, 501):
+        keep.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
+    assert len(keep.truths) == 500
