@@ -37,7 +37,7 @@ from typing import Any
 
 from covnet.clock import Clock
 from covnet.config import Networked
-from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_appear_s
+from covnet.processes.node_kit import NOTE, Heartbeat, ManagerWatch, manager_appear_s
 from covnet.runs.recording import RecordingReader, RecordingWriter, peek
 from covnet.runs.visual import Visualiser
 from covnet.wire import messages as msg
@@ -82,9 +82,11 @@ def draw_recording(
             if time.monotonic() > deadline:
                 counts["visual_cut"] += 1
                 print(
-                    f"recorder: visual channels drawn for the first {visualiser.frames} scans "
-                    f"only (the {budget_s:.0f} s budget after the run)",
+                    f"{NOTE}the recording's visual channels (Foxglove) hold the first "
+                    f"{visualiser.frames} scans only: drawing them stopped at its "
+                    f"{budget_s:.0f} s budget after the run (the raw channels hold every scan)",
                     file=sys.stderr,
+                    flush=True,
                 )
                 break
             kind, t_sent, _ = peek(s.payload)

@@ -11,9 +11,9 @@ metric's episode uses the same trajectory) and only ever measure a scan they wer
 for.  A longer run is paced by the manager's scan tick instead, in lockstep and in real time
 alike: on ``Command(k)`` the world publishes ``Truth(k)`` .. ``Truth(k+16)`` unless the previous
 window already covered ``k`` and no sensor has joined since (on the command of a window's last
-scan ``k``, the next window ``Truth(k+1)`` .. ``Truth(k+17)``, a scan ahead); until its first command it also
-follows the sensors' heartbeats (a world restarted while a command was in flight sends that
-scan's truth).  It ends on ``stop`` or when the manager it has seen leaves.
+scan ``k``, the next window ``Truth(k+1)`` .. ``Truth(k+17)``, a scan ahead); until its first
+command it also follows the sensors' heartbeats (a world restarted while a command was in
+flight sends that scan's truth).  It ends on ``stop`` or when the manager it has seen leaves.
 """
 
 from __future__ import annotations

@@ -86,6 +86,13 @@ never (a scan waited ``network.scan_timeout_s``, 10 s: a mobile run whose world 
 of 100 took 13 more minutes; peer nodes then timed each other out and split)."""
 
 
+NOTE = "note: "
+"""A node's output line the user must see without ``--verbose`` starts so (the launcher shows
+it: :func:`covnet.processes.up.shown`); the recorder's visual channels cut short by their time
+budget said so only with ``--verbose``: a long run's Foxglove view ended at scan 4 731 of 6 000
+without a word."""
+
+
 def world_returns(cfg: Any) -> bool:
     """Whether the launcher restarts a world that dies: ``network.restart: on-failure`` and a
     kind whose world may be restarted (its truth the seed's: :meth:`covnet.kinds.Kind.

@@ -33,6 +33,7 @@ from covnet.errors import UpError
 from covnet.processes import interrupts, output
 from covnet.processes.launch import ProcessSpec, Supervisor
 from covnet.processes.netns_launch import NetnsTopology, up_in_namespaces
+from covnet.processes.node_kit import NOTE
 from covnet.processes.process import run_option_args
 from covnet.runs.rundir import (
     LIVE,
@@ -359,7 +360,7 @@ def up(
             return
         if name == "manager" and text == "READY":
             ready.set()
-        if verbose or name == "manager" or "error" in text.lower() or "Traceback" in text:
+        if shown(name, text, verbose):
             view.line(f"[{name}] {text}")
 
     view.line(f"[launcher] run {run_id}: router {router}, run directory {out}")
@@ -604,6 +605,18 @@ def _supervise_without_manager(
         sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         print("covnet up: interrupted; every process stopped", file=sys.stderr)
         return interrupts.EXIT_INTERRUPTED
+
+
+def shown(name: str, text: str, verbose: bool) -> bool:
+    """Whether the launcher prints node ``name``'s output line ``text``: every line with
+    ``--verbose``; else the manager's, a :data:`NOTE`, an error or a traceback."""
+    return (
+        verbose
+        or name == "manager"
+        or text.startswith(NOTE)
+        or "error" in text.lower()
+        or "Traceback" in text
+    )
 
 
 def _lost(name: str, rc: int, last: dict[str, Any] | None) -> dict[str, Any]:
