@@ -21,6 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from covnet.passive.montecarlo import trials_text  # noqa: E402
 from covnet.runs.rundir import save_figure  # noqa: E402
 
 P_VS_D = "fig_p_vs_d.png"
@@ -42,10 +43,14 @@ def _style(method: str, i: int) -> tuple[str, str, str]:
     return plt.get_cmap("tab10").colors[(i + 4) % 10], "D", "-"  # type: ignore[attr-defined]
 
 
-def _half_width(row: dict[str, Any]) -> float:
-    """Half the 95 % interval of a row's per-trial share associated (NaN without one)."""
-    lo, hi = row.get("p_trial_ci_lo"), row.get("p_trial_ci_hi")
-    return float("nan") if lo is None or hi is None else 0.5 * (hi - lo)
+def _trial_interval(row: dict[str, Any]) -> tuple[float, float, float]:
+    """A row's per-trial share associated: its mean and 95 % interval, as ``results.json``
+    has them (NaN without one).  The figure drew half the interval's width around the pooled
+    ``p`` instead, which is not the interval of anything (the targets per trial vary)."""
+    m, lo, hi = (row.get(f"p_trial_{k}") for k in ("mean", "ci_lo", "ci_hi"))
+    if m is None or lo is None or hi is None:
+        return (float("nan"),) * 3
+    return float(m), float(lo), float(hi)
 
 
 def mc_figures(out_dir: Path) -> list[Path]:
@@ -76,7 +81,7 @@ def mc_figures(out_dir: Path) -> list[Path]:
             ax = axes[a, b]
             for i, m in enumerate(methods):
                 sel = sorted(
-                    (r["d_km"], np.nan if r["p"] is None else r["p"], _half_width(r))
+                    (r["d_km"], np.nan if r["p"] is None else r["p"], *_trial_interval(r))
                     for r in rows
                     if r["method"] == m
                     and r["formation"] == f
@@ -86,9 +91,12 @@ def mc_figures(out_dir: Path) -> list[Path]:
                 if not sel:
                     continue
                 color, marker, ls = _style(m, i)
-                d, p, hw = zip(*sel, strict=True)
-                if np.any(np.isfinite(hw)):  # the 95 % interval over trials, as error bars
-                    ax.errorbar(d, p, yerr=hw, fmt="none", ecolor=color, capsize=3, lw=1.0)
+                d, p, tm, tlo, thi = (np.asarray(v) for v in zip(*sel, strict=True))
+                if np.any(np.isfinite(tm)):  # the per-trial mean and its 95 % interval
+                    ax.errorbar(
+                        d, tm, yerr=[tm - tlo, thi - tm], fmt="_", color=color, ms=8,
+                        capsize=3, lw=1.0,
+                    )  # fmt: skip
                 hollow = m == "milp"
                 ax.plot(
                     d,
@@ -116,7 +124,9 @@ def mc_figures(out_dir: Path) -> list[Path]:
     fig.legend(handles, labels, loc="outside lower center", ncols=len(methods), fontsize=11)
     fig.suptitle(
         f"Passive association: correct association rate p against target spacing d "
-        f"({doc['trials']} runs per cell; lr and milp usually coincide)",
+        f"({trials_text(doc)} runs per cell; lr and milp usually coincide)\n"
+        f"lines: p over every target of the cell's runs; bars: the per-run share's mean (tick) "
+        f"and its 95 % interval",
         fontsize=12,
     )
     save_figure(fig, paths[0], dpi=110, bbox_inches="tight")
