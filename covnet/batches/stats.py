@@ -22,6 +22,7 @@ __all__ = [
     "SHARE",
     "add_stats",
     "ci_half_width",
+    "count_range",
     "curves_of",
     "error_stats",
     "median",
@@ -106,6 +107,15 @@ def plus_minus(
     if abs(below - above) <= 1e-9 * max(abs(below), abs(above), abs(mean), 1e-300):
         return f"{format(mean, spec)}{sep}{format((hi - lo) / 2, spec)}"
     return f"{format(mean, spec)} [{format(lo, spec)}, {format(hi, spec)}]"
+
+
+def count_range(counts: Iterable[int]) -> str:
+    """Seed counts as a title says them: ``"6"``, or ``"6-9"`` where ``--ci-width`` gave the
+    points different counts."""
+    c = sorted({int(n) for n in counts})
+    if not c:
+        return "0"
+    return str(c[0]) if len(c) == 1 else f"{c[0]}-{c[-1]}"
 
 
 def ci_half_width(stats: Mapping[str, Any]) -> float:

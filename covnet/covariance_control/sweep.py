@@ -44,6 +44,7 @@ from covnet.batches.stats import (
     SHARE,
     add_stats,
     ci_half_width,
+    count_range,
     curves_of,
     error_stats,
     plus_minus,
@@ -421,11 +422,10 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
                 ax.set_xlabel("mean one-way delay [ms]")
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=8)
-    seeds = sorted({int(r["seeds"]) for r in rows})
     burn = rows[0].get("burn_in_scans") if rows else None
     sub = (
-        f"bands: 95 % t intervals over {seeds[0] if len(seeds) == 1 else f'{seeds[0]}-{seeds[-1]}'}"
-        f" seeds; burn-in {burn} scans"
+        f"bands: 95 % t intervals over {count_range(r['seeds'] for r in rows)} seeds; "
+        f"burn-in {burn} scans"
         if burn is not None
         else ""
     )

@@ -130,3 +130,45 @@ def test_cli_compare_bad_options(paper_path, tmp_path, capsys, extra, needle):
     rc = main(["compare", str(paper_path), "--out", str(tmp_path / "x"), *extra])
     assert rc == 2
     assert needle in capsys.readouterr().err
+
+
+def test_modes_of_different_seed_counts_each_get_their_own_band_and_the_title_the_range(
+    short, tmp_path, monkeypatch
+):
+    """With --ci-width the modes run different counts: the table gave the first mode's chi-
+    square band ("of 9 runs") for every mode, and compare.png's title the first round's seed
+    count ("3 seeds" where the modes ran 9, 6 and 9)."""
+    from scipy.stats import chi2
+
+    from covnet.covariance_control import compare as cmp
+
+    (three,) = compare(short, ["central"], "abs_trace", 3, workers=1)
+    (two,) = compare(short, ["ci"], "abs_trace", 2, workers=1)
+    rows = [three, two]
+    for r in rows:
+        R = r["runs"]
+        assert r["nees_band_95"] == pytest.approx(chi2.ppf([0.025, 0.975], 4 * R) / R)
+    text = cmp.format_table(rows)
+    for r in rows:
+        lo, hi = r["nees_band_95"]
+        assert f"[{lo:.2f}, {hi:.2f}] of {r['runs']} runs" in text, text
+    figs = []
+    real = cmp.save_figure
+
+    def keep(fig, path, **kw):
+        figs.append(fig)
+        real(fig, path, **kw)
+
+    monkeypatch.setattr(cmp, "save_figure", keep)
+    cmp.make_figure(tmp_path, rows, cmp.figure_title({"scenario": "paper", "runs": 3}))
+    (fig,) = figs
+    assert fig._suptitle.get_text().endswith(", 2-3 seeds a mode"), fig._suptitle.get_text()
+    nees_ax = fig.axes[2]
+    bands = sorted(
+        (round(p.get_y(), 9), round(p.get_y() + p.get_height(), 9))
+        for p in nees_ax.patches
+        if p.get_alpha() == 0.35
+    )
+    assert bands == sorted(
+        (round(r["nees_band_95"][0], 9), round(r["nees_band_95"][1], 9)) for r in rows
+    )
