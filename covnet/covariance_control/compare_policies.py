@@ -477,11 +477,54 @@ def _headline(burn: int) -> Any:
 def _rows(
     plan: Plan, results: Mapping[str, list[dict[str, Any]]], burn: int
 ) -> list[dict[str, Any]]:
-    return [
+    rows = [
         summarise(p, plan.budgets[p], results[plan.point(p)], burn, plan.source_of(p))
         for p in plan.policies
         if plan.point(p) in results
     ]
+    ref = plan.point(REFERENCE) if REFERENCE in plan.policies else None
+    if ref is not None and ref in results:
+        for row in rows:
+            if row["policy"] != REFERENCE:
+                paired(row, results[plan.point(row["policy"])], results[ref], burn)
+    return rows
+
+
+def _accuracy(trials: Sequence[Mapping[str, Any]], burn_in: int) -> tuple[str, np.ndarray]:
+    """The table's accuracy column per seed: the mean OSPA with targets, else the steady RMSE
+    (as :func:`summarise` and :func:`covnet.batches.stats.error_stats` compute them)."""
+    if "ospa_scan" in trials[0]:
+        return "mean_ospa", _stack(trials, "ospa_scan").mean(axis=1)
+    err2 = _stack(trials, "pos_err2_scan")
+    return "rmse_steady", np.sqrt(err2[:, burn_in_of(burn_in, err2.shape[1]) :].mean(axis=1))
+
+
+def paired(
+    row: dict[str, Any],
+    trials: Sequence[Mapping[str, Any]],
+    ref: Sequence[Mapping[str, Any]],
+    burn_in: int,
+) -> None:
+    """Add to ``row`` the paired differences from :data:`REFERENCE` over the seeds both ran
+    (the same seeds: a policy's seed ``s`` and the reference's see the same target and
+    noise), per seed ``d_s = a_s(policy) - a_s(reference)``, and their mean with its 95 % t
+    interval, for the accuracy column (``<acc>_vs_reference_mean/std/ci_lo/ci_hi``) and the
+    sensors per scan (``sensors_per_scan_vs_reference_...``).  Paired, a difference is
+    resolved when its interval excludes 0, which two overlapping intervals of the rows do not
+    decide either way."""
+    mine = {int(t["seed"]): i for i, t in enumerate(trials)}
+    common = [j for j, t in enumerate(ref) if int(t["seed"]) in mine]
+    a = [trials[mine[int(ref[j]["seed"])]] for j in common]
+    b = [ref[j] for j in common]
+    if not a:
+        return
+    name, x = _accuracy(a, burn_in)
+    _, y = _accuracy(b, burn_in)
+    row["vs_reference"] = REFERENCE
+    add_stats(row, f"{name}_vs_reference", x - y)
+    on_a = _stack(a, "sensors_scan").mean(axis=1)
+    on_b = _stack(b, "sensors_scan").mean(axis=1)
+    add_stats(row, "sensors_per_scan_vs_reference", on_a - on_b)
 
 
 # --------------------------------------------------------------------------------------------
@@ -560,6 +603,12 @@ COLUMNS = (
     "bytes_per_scan",
     "bytes_per_scan_ci_lo",
     "bytes_per_scan_ci_hi",
+    "vs_reference",
+    *(
+        f"{name}_vs_reference_{s}"
+        for name in ("rmse_steady", "mean_ospa", "sensors_per_scan")
+        for s in ("mean", "ci_lo", "ci_hi")
+    ),
 )
 
 
@@ -576,6 +625,17 @@ def _ci(r: Mapping[str, Any], name: str, fmt: str = ".2f", scale: float = 1.0) -
     return plus_minus(
         scale * m, None if lo is None else scale * lo, None if hi is None else scale * hi, fmt
     )
+
+
+def _signed(r: Mapping[str, Any], name: str) -> str:
+    """``+0.31 [+0.12, +0.49]`` of a paired difference (``=`` appended where its interval
+    contains 0)."""
+    m, lo, hi = (r.get(f"{name}_{k}") for k in ("mean", "ci_lo", "ci_hi"))
+    if m is None:
+        return "-"
+    if lo is None or hi is None:
+        return f"{m:+.2f}"
+    return f"{m:+.2f} [{lo:+.2f}, {hi:+.2f}]" + (" =" if lo <= 0.0 <= hi else "")
 
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
@@ -603,6 +663,18 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
             f"{r['messages_per_scan']:9.1f} {r['bytes_per_scan']:7.0f}"
             + (f" {r['seeds_with_lost_track']:>5}" if many else "")
         )
+    versus = [r for r in rows if r.get("vs_reference")]
+    if versus:
+        lines.append(
+            f"paired against {REFERENCE} (the same seeds; mean difference and its 95 % t "
+            "interval; '=' where the interval contains 0: no difference shown):"
+        )
+        name = "mean_ospa" if many else "rmse_steady"
+        for r in versus:
+            lines.append(
+                f"{r['policy']:>18}  {acc} {_signed(r, f'{name}_vs_reference')}, "
+                f"sensors/scan {_signed(r, 'sensors_per_scan_vs_reference')}"
+            )
     r0 = rows[0]
     if any(r["budget_source"] == MATCH for r in rows):
         lines.append(

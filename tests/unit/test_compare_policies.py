@@ -86,6 +86,50 @@ def test_rows_equal_direct_runs(paper30, matched):
         assert row["nees_verdict"] in ("consistent", "conservative", "optimistic")
 
 
+def test_paired_differences_from_covariance_control_equal_the_direct_runs(paper30, matched):
+    """The policies share their seeds: each row gives the paired difference from covariance
+    control (per seed, then its 95 % t interval), from the same direct runs as the oracle
+    above; the table says which intervals contain 0."""
+    from scipy import stats as sps
+
+    rows, _, _ = matched
+    burn = paper30.evaluation.burn_in_scans
+
+    def per_seed(policy, budget):
+        rmse, on = [], []
+        for seed in [paper30.seed + i for i in range(3)]:
+            sc = _with(paper30, policy, budget, seed)
+            model = build_model(sc)
+            run = run_metric(sc, "spectral", model)
+            err = run.x_est - shared_trajectory(model).truth
+            rmse.append(np.sqrt((err[:, 0] ** 2 + err[:, 2] ** 2)[burn:].mean()))
+            on.append(run.enabled.sum() / sc.scans)
+        return np.array(rmse), np.array(on)
+
+    ref_rmse, ref_on = per_seed("covariance_control", None)
+    by = {r["policy"]: r for r in rows}
+    assert "vs_reference" not in by["covariance_control"]
+    for policy in ("all_on", "random"):
+        r = by[policy]
+        rmse, on = per_seed(policy, r["budget"])
+        for name, d in (("rmse_steady", rmse - ref_rmse), ("sensors_per_scan", on - ref_on)):
+            m = d.mean()
+            assert r[f"{name}_vs_reference_mean"] == pytest.approx(m, rel=1e-9, abs=1e-12)
+            if d.std() > 0:
+                lo, hi = sps.t.interval(0.95, 2, loc=m, scale=sps.sem(d))
+                assert (r[f"{name}_vs_reference_ci_lo"], r[f"{name}_vs_reference_ci_hi"]) == (
+                    pytest.approx((lo, hi), rel=1e-9)
+                )
+    table = cp.format_table(rows)
+    assert "paired against covariance_control" in table
+    line = next(x for x in table.splitlines() if x.strip().startswith("all_on  RMSE m"))
+    lo, hi = (
+        by["all_on"]["rmse_steady_vs_reference_ci_lo"],
+        by["all_on"]["rmse_steady_vs_reference_ci_hi"],
+    )
+    assert line.rstrip().split("sensors/scan")[0].rstrip(", ").endswith(" =") == (lo <= 0 <= hi)
+
+
 def test_budget_match_is_covariance_controls_mean_sensors(matched):
     rows, _, plan = matched
     by = {r["policy"]: r for r in rows}
@@ -163,6 +207,7 @@ def test_trial_points_resume_when_a_policy_is_added(paper30, tmp_path):
 def test_budget_match_names_a_damaged_trial_file_once(paper30, tmp_path, capsys):
     """``--budget match`` runs its batch in two parts (the reference, then the others): a
     damaged trial file of another policy was named by both parts, two identical lines."""
+
     def compare():
         policies = ["covariance_control", "all_on"]
         return cp.compare_outcome(
