@@ -124,3 +124,22 @@ def tmpfs(tmp_path) -> Iterator:
             return stack.enter_context(_tmpfs(tmp_path / name, options))
 
         yield mount
+
+
+@pytest.fixture
+def saved_figures(monkeypatch):
+    """``keep(module)``: from then on the figures ``module`` saves (its ``save_figure``) are
+    also appended to the returned list, still open, for a test to read what was drawn."""
+    figs: list = []
+
+    def keep(module):
+        real = module.save_figure
+
+        def save(fig, path, **kw):
+            figs.append(fig)
+            real(fig, path, **kw)
+
+        monkeypatch.setattr(module, "save_figure", save)
+        return figs
+
+    return keep

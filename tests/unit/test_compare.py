@@ -133,7 +133,7 @@ def test_cli_compare_bad_options(paper_path, tmp_path, capsys, extra, needle):
 
 
 def test_modes_of_different_seed_counts_each_get_their_own_band_and_the_title_the_range(
-    short, tmp_path, monkeypatch
+    short, tmp_path, saved_figures
 ):
     """With --ci-width the modes run different counts: the table gave the first mode's chi-
     square band ("of 9 runs") for every mode, and compare.png's title the first round's seed
@@ -152,14 +152,7 @@ def test_modes_of_different_seed_counts_each_get_their_own_band_and_the_title_th
     for r in rows:
         lo, hi = r["nees_band_95"]
         assert f"[{lo:.2f}, {hi:.2f}] of {r['runs']} runs" in text, text
-    figs = []
-    real = cmp.save_figure
-
-    def keep(fig, path, **kw):
-        figs.append(fig)
-        real(fig, path, **kw)
-
-    monkeypatch.setattr(cmp, "save_figure", keep)
+    figs = saved_figures(cmp)
     cmp.make_figure(tmp_path, rows, cmp.figure_title({"scenario": "paper", "runs": 3}))
     (fig,) = figs
     assert fig._suptitle.get_text().endswith(", 2-3 seeds a mode"), fig._suptitle.get_text()

@@ -21,7 +21,7 @@ def _row(sigma, method, p, mean, lo, hi, trials):
     }  # fmt: skip
 
 
-def test_the_bars_are_the_tables_intervals_and_the_title_the_trials_run(tmp_path, monkeypatch):
+def test_the_bars_are_the_tables_intervals_and_the_title_the_trials_run(tmp_path, saved_figures):
     rows = [
         _row(1.0, "cot", 0.962, 0.958, 0.867, 1.0, 12),
         _row(1.0, "greedy", 0.887, 0.900, 0.752, 1.0, 12),
@@ -33,14 +33,7 @@ def test_the_bars_are_the_tables_intervals_and_the_title_the_trials_run(tmp_path
         "machine": {"processor": "x86_64"},
     }  # fmt: skip
     (tmp_path / "results.json").write_text(json.dumps(doc))
-    figs = []
-    real = plots.save_figure
-
-    def keep(fig, path, **kw):
-        figs.append(fig)
-        real(fig, path, **kw)
-
-    monkeypatch.setattr(plots, "save_figure", keep)
+    figs = saved_figures(plots)
     plots.mc_figures(tmp_path)
     fig = figs[0]
     assert "12-18 runs per cell" in fig._suptitle.get_text()

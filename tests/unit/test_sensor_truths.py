@@ -16,13 +16,17 @@ from covnet.wire.bus import InMemoryBus
 from sensors.protocol import _Sensor
 
 
-@pytest.mark.parametrize("keep_truth", [False, True])
-def test_a_truth_of_a_scan_outside_the_run_is_refused(keep_truth):
-    one = _Sensor(
+def _sensor(scans, *, keep_truth, missed=None):
+    return _Sensor(
         "S1", InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
         respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
-        scans=10, missed_command=None, keep_truth=keep_truth, command_ok=None,
+        scans=scans, missed_command=missed, keep_truth=keep_truth, command_ok=None,
     )  # fmt: skip
+
+
+@pytest.mark.parametrize("keep_truth", [False, True])
+def test_a_truth_of_a_scan_outside_the_run_is_refused(keep_truth):
+    one = _sensor(10, keep_truth=keep_truth)
     for k in (0, 1, 10, 11, 10**9):
         one.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
     assert sorted(one.truths) == [1, 10]
@@ -35,11 +39,7 @@ def test_a_command_of_a_scan_outside_the_run_is_refused(missed):
     each): a rogue's command of scan 10**9 took hours of CPU and the memory of a queue of 10**9
     commands.  A command of a scan outside ``1..scans`` is counted ``bad_scan``, in every mode,
     and changes nothing."""
-    one = _Sensor(
-        "S1", InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
-        respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
-        scans=10, missed_command=missed, keep_truth=False, command_ok=None,
-    )  # fmt: skip
+    one = _sensor(10, keep_truth=False, missed=missed)
     for k in (0, 11, 10**9):
         one.accept(msg.Command(k, float(k), ("S1",), 1))
     assert one.stats.rejected == {"bad_scan": 3}
@@ -56,26 +56,18 @@ def test_a_sensor_no_scan_enables_keeps_only_the_truths_near_the_newest():
     keeps those within TRUTHS_NEAR of the newest; a waiting command's truth is never dropped."""
     from sensors.protocol import TRUTHS_NEAR
 
-    one = _Sensor(
-        "S8", InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
-        respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
-        scans=20_000, missed_command=None, keep_truth=False, command_ok=None,
-    )  # fmt: skip
+    one = _sensor(20_000, keep_truth=False)
     for k in range(1, 5001):
         one.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
         assert len(one.truths) <= 2 * TRUTHS_NEAR + 1
     assert 5000 in one.truths and 5000 - TRUTHS_NEAR in one.truths
     # a command waiting for its truth: nothing is dropped while it waits
-    one.accept(msg.Command(6000, 600.0, ("S8",), 1))
+    one.accept(msg.Command(6000, 600.0, ("S1",), 1))
     for k in range(5001, 6001):
         one.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
     assert 6000 in one.truths and len(one.truths) > 1000
     # a sensor that keeps the run's truth (up to TRUTH_UPFRONT_MAX_SCANS) keeps all of it
-    keep = _Sensor(
-        "S8", InMemoryBus(), "run1", WallClock(), NetworkSpec(), truth_ok=lambda tr: True,
-        respond=lambda c, t: None,  # type: ignore[arg-type,return-value]
-        scans=500, missed_command=None, keep_truth=True, command_ok=None,
-    )  # fmt: skip
+    keep = _sensor(500, keep_truth=True)
     for k in range(1, 501):
         keep.take_truth(msg.Truth(k, 0.1 * k, ("T1",), np.zeros((1, 4))))
     assert len(keep.truths) == 500
