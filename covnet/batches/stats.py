@@ -226,13 +226,16 @@ def curves_of(results: Mapping[str, Sequence[Mapping[str, Any]]]) -> dict[str, n
     return out
 
 
-def interval(values: Sequence[float | None], *, nonnegative: bool = False) -> dict[str, Any]:
+def interval(
+    values: Sequence[float | None], *, nonnegative: bool = False, bounds: Bounds = UNBOUNDED
+) -> dict[str, Any]:
     """Mean, standard deviation (ddof 1), the 95 % confidence interval of the mean (Student's
     t; ``None`` for one value), median, min, max and how many values (``None`` ones are left
     out): every Monte Carlo scalar's summary over seeds.  ``nonnegative``: the quantity is
     ``>= 0`` (a distance, a count, a rate, a NEES), and the interval's lower end is clipped at 0
     (a few seeds' Student interval reaches below: a tracked RMSE of 14.6 [-6.6, 35.7] m with two
-    seeds), as :func:`per_scan_bands` clips its RMSE bands."""
+    seeds), as :func:`per_scan_bands` clips its RMSE bands; ``bounds``: the quantity's range, as
+    :func:`seed_stats` (a rate: :data:`SHARE`)."""
     v = np.asarray([x for x in values if x is not None], dtype=np.float64)
     if v.size == 0:
         return {
@@ -257,11 +260,15 @@ def interval(values: Sequence[float | None], *, nonnegative: bool = False) -> di
         }
     sd = float(v.std(ddof=1))
     half = float(t_half_width(sd, v.size))
-    lo = mean - half
+    lo, hi = mean - half, mean + half
+    floor, ceiling = (0.0 if nonnegative else None, None) if bounds == UNBOUNDED else bounds
     return {
         "mean": mean,
         "std": sd,
-        "ci95": [max(lo, 0.0) if nonnegative else lo, mean + half],
+        "ci95": [
+            lo if floor is None else max(lo, floor),
+            hi if ceiling is None else min(hi, ceiling),
+        ],
         "median": float(np.median(v)),
         "min": float(v.min()),
         "max": float(v.max()),

@@ -29,7 +29,7 @@ import numpy as np
 
 from covnet import __version__
 from covnet.batches.pool import BatchInterrupted
-from covnet.batches.stats import interval, per_scan_interval
+from covnet.batches.stats import NONNEGATIVE, SHARE, interval, per_scan_interval
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, config_hash, from_dict, normalised
 from covnet.runs.rundir import CONFIG, RUN_INFO, utc_now, write_json
@@ -46,6 +46,8 @@ _TARGET_SCALARS = (
     "sensors_per_scan_mean",
 )
 _SCALARS = ("allocation_rate", "mean_ospa", "mean_gospa")
+_BOUNDS = {"allocation_rate": SHARE}
+"""The range of a scalar other than ``>= 0``."""
 
 
 def run_seed(cfg_data: Mapping[str, Any], seed: int) -> dict[str, Any]:
@@ -190,7 +192,9 @@ def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) 
         per = [r["metrics"][m] for r in rows]
         # every scalar and curve here is >= 0 (rates, distances, NEES, traces, counts)
         blk: dict[str, Any] = {
-            k: interval([p[k] for p in per], nonnegative=True) for k in _SCALARS if k in per[0]
+            k: interval([p[k] for p in per], bounds=_BOUNDS.get(k, NONNEGATIVE))
+            for k in _SCALARS
+            if k in per[0]
         }
         if "ospa" in per[0]:
             blk["ospa_per_scan"] = per_scan_interval([p["ospa"] for p in per], nonnegative=True)

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from covnet.batches.stats import interval, per_scan_interval
+from covnet.batches.stats import NONNEGATIVE, SHARE, interval, per_scan_interval
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 from covnet.runs.rundir import save_figure
@@ -89,7 +89,10 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         per = [r["metrics"][m] for r in rows]
         # every scalar and curve here is >= 0 (a distance, a count, a share)
         blk: dict[str, Any] = {
-            k: interval([p.get(k) for p in per], nonnegative=True) for k in SCALARS
+            k: interval(
+                [p.get(k) for p in per], bounds=SHARE if k == "search_share" else NONNEGATIVE
+            )
+            for k in SCALARS
         }
         blk["gospa_per_scan"] = per_scan_interval([p["gospa"] for p in per], nonnegative=True)
         blk["n_confirmed_per_scan"] = per_scan_interval(
