@@ -117,11 +117,10 @@ def run(
         if isinstance(m, msg.Track) and not (m.x.shape == (4,) and is_spd(m.P)):
             stats.reject(s.key, "bad_measurement")
             return
-        log = result.nodes[m.episode].setdefault(node, NodeLog())
-        if isinstance(m, msg.Track):
-            log.tracks[m.scan] = m
-        else:
-            log.statuses[m.scan] = m
+        log = result.nodes[m.episode].get(node)
+        if log is None:
+            log = result.nodes[m.episode][node] = NodeLog()
+        log.add(m)
 
     def drain() -> bool:
         """Take every message waiting; whether there was one."""
@@ -134,7 +133,7 @@ def run(
 
     def scan_done(e: int, k: int) -> bool:
         logs = result.nodes[e]
-        return all(n in logs and k in logs[n].statuses or n not in alive for n in ids)
+        return all(n in logs and logs[n].has_status(k) or n not in alive for n in ids)
 
     ready = False
     try:
@@ -220,7 +219,7 @@ def _report(
     if on_status is None or (e, k) in reported:
         return
     reported.add((e, k))
-    sts = [log.statuses[k] for log in result.nodes[e].values() if k in log.statuses]
+    sts = [s for log in result.nodes[e].values() if (s := log.recent_status(k)) is not None]
     if not sts:
         return
     st = sts[0]

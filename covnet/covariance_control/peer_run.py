@@ -7,9 +7,9 @@ stepped with the recording, :mod:`covnet.covariance_control.replay`)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -20,17 +20,115 @@ from covnet.covariance_control.model import Model, build_model, truth_trajectory
 from covnet.covariance_control.results import write_json, write_run
 from covnet.covariance_control.simulate import MetricRun, shared_trajectory
 from covnet.processes.runtime_stats import NetStats
+from covnet.runs.columns import Column
 from covnet.wire import messages as msg
 
-__all__ = ["NodeLog", "PeerResult", "write_peer_run"]
+__all__ = ["NodeLog", "PeerResult", "StatusRow", "TrackRow", "write_peer_run"]
 
 
-@dataclass
+class TrackRow(NamedTuple):
+    """What a peer run keeps of a node's Track of a scan."""
+
+    x: np.ndarray
+    P: np.ndarray
+
+
+class StatusRow(NamedTuple):
+    """What a peer run keeps of a node's Status of a scan."""
+
+    enabled: tuple[str, ...]
+    value: float
+    failed: tuple[str, ...]
+
+
+_ROW = np.dtype(
+    [
+        ("scan", np.int64),
+        ("status", np.bool_),  # a Status's row (else a Track's)
+        ("x", np.float64, (4,)),
+        ("P", np.float64, (4, 4)),
+        ("value", np.float64),
+        ("enabled", np.int32),  # index of the node set in NodeLog's table of sets
+        ("failed", np.int32),
+    ]
+)
+_RECENT = 64
+"""The Statuses a :class:`NodeLog` keeps whole, of its latest scans (the monitor reports and
+asks of the scan in progress); older ones are looked up in the rows."""
+
+
 class NodeLog:
-    """One node's reports in one episode, by scan."""
+    """One node's reports in one episode, by scan: every Track and Status as a row of one
+    :class:`~covnet.runs.columns.Column` (a long run's rows go to its spill file as blocks
+    fill: the monitor kept every decoded message, about 17 kB a scan for 8 nodes, and was the
+    one process of a peer soak that grew), read back as ``tracks`` and ``statuses`` (scan ->
+    :class:`TrackRow` / :class:`StatusRow`; a later report of a scan replaces an earlier
+    one, as the dictionaries of messages did)."""
 
-    tracks: dict[int, msg.Track] = field(default_factory=dict)
-    statuses: dict[int, msg.Status] = field(default_factory=dict)
+    def __init__(self) -> None:
+        self._rows = Column((), _ROW)
+        self._sets: dict[tuple[str, ...], int] = {}
+        self._set_list: list[tuple[str, ...]] = []
+        self._recent: dict[int, msg.Status] = {}
+        self._views: tuple[dict[int, TrackRow], dict[int, StatusRow]] | None = None
+
+    def _set(self, nodes: tuple[str, ...]) -> int:
+        i = self._sets.get(nodes)
+        if i is None:
+            i = self._sets[nodes] = len(self._set_list)
+            self._set_list.append(nodes)
+        return i
+
+    def add(self, m: msg.Track | msg.Status) -> None:
+        """Keep a node's Track or Status (of this log's episode)."""
+        row: tuple[Any, ...]
+        if isinstance(m, msg.Track):
+            row = (m.scan, False, m.x, m.P, 0.0, -1, -1)
+        else:
+            row = (m.scan, True, 0.0, 0.0, m.value, self._set(m.enabled), self._set(m.failed))
+            self._recent[m.scan] = m
+            if len(self._recent) > _RECENT:
+                for k in sorted(self._recent)[: _RECENT // 2]:
+                    del self._recent[k]
+        self._rows.append(np.array(row, dtype=_ROW))
+        self._views = None
+
+    def recent_status(self, k: int) -> msg.Status | None:
+        """The Status of scan ``k`` as it came, if it is among the latest :data:`_RECENT`."""
+        return self._recent.get(k)
+
+    def has_status(self, k: int) -> bool:
+        """Whether a Status of scan ``k`` is here."""
+        if k in self._recent:
+            return True
+        if not self._recent or k > min(self._recent):
+            return False
+        return k in self.statuses
+
+    def _built(self) -> tuple[dict[int, TrackRow], dict[int, StatusRow]]:
+        if self._views is None:
+            rows = self._rows.array()
+            tracks: dict[int, TrackRow] = {}
+            statuses: dict[int, StatusRow] = {}
+            sets = self._set_list
+            for r in rows:
+                k = int(r["scan"])
+                if r["status"]:
+                    statuses[k] = StatusRow(
+                        sets[int(r["enabled"])], float(r["value"]), sets[int(r["failed"])]
+                    )
+                else:
+                    tracks[k] = TrackRow(r["x"].copy(), r["P"].copy())
+            self._views = (tracks, statuses)
+        return self._views
+
+    @property
+    def tracks(self) -> dict[int, TrackRow]:
+        return self._built()[0]
+
+    @property
+    def statuses(self) -> dict[int, StatusRow]:
+        return self._built()[1]
 
     def scans(self) -> int:
         """Scans 1..n reported completely (track and status), without a gap."""

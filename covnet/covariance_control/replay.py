@@ -365,20 +365,20 @@ def _replay_node(
         tr = rec.node_track.get((node, e, k))
         if tr is not None and not (np.array_equal(tr.x, est.x) and np.array_equal(tr.P, est.P)):
             diffs.add("track", f"{at}: the replayed estimate differs from the node's Track")
-        log.statuses[k] = msg.Status(
-            scan=k,
-            t=st.t,
-            enabled=plan.enabled,
-            trace_P=out.trace_P,
-            trace_Pd=out.trace_Pd,
-            value=out.value,
-            t_sent_ns=0,
-            episode=e,
-            fused=out.fused,
-            failed=st.failed,
-            node_id=node,
+        log.add(
+            msg.Status(
+                scan=k,
+                t=st.t,
+                enabled=plan.enabled,
+                trace_P=out.trace_P,
+                trace_Pd=out.trace_Pd,
+                value=out.value,
+                t_sent_ns=0,
+                episode=e,
+                fused=out.fused,
+                failed=st.failed,
+                node_id=node,
+            )
         )
-        log.tracks[k] = msg.Track(
-            scan=k, t=st.t, x=est.x, P=est.P, t_sent_ns=0, episode=e, node_id=node
-        )
+        log.add(msg.Track(scan=k, t=st.t, x=est.x, P=est.P, t_sent_ns=0, episode=e, node_id=node))
     return log

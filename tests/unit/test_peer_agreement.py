@@ -18,8 +18,8 @@ from covnet.wire import messages as msg
 def _log(enabled_by_scan: dict[int, tuple[str, ...]]) -> NodeLog:
     log = NodeLog()
     for k, enabled in enabled_by_scan.items():
-        log.statuses[k] = msg.Status(k, float(k), enabled, 1.0, 1.0, 1.0, 0)
-        log.tracks[k] = msg.Track(k, float(k), np.zeros(4), np.eye(4) * 10.0, 0)
+        log.add(msg.Status(k, float(k), enabled, 1.0, 1.0, 1.0, 0))
+        log.add(msg.Track(k, float(k), np.zeros(4), np.eye(4) * 10.0, 0))
     return log
 
 
@@ -53,3 +53,34 @@ def test_what_the_nodes_do_not_report_is_null_not_zero(paper_path, tmp_path):
     write_peer_run(tmp_path, sc, PeerResult(["spectral"], {0: logs}, NetStats(), completed=True))
     blk = json.loads((tmp_path / "summary.json").read_text())["metrics"]["spectral"]
     assert blk["subsets_evaluated_median"] is None
+
+
+def test_a_node_log_keeps_its_rows_off_the_heap_and_reads_back_every_report():
+    """The peer monitor kept every node's decoded Track and Status (17 kB a scan for 8 nodes):
+    a NodeLog keeps rows in a spilling column and the latest Statuses whole; what it reads
+    back is what was added (a later report of a scan replacing an earlier one)."""
+    from covnet.runs.columns import BLOCK
+
+    rng = np.random.default_rng(7)
+    log, want_s, want_t = NodeLog(), {}, {}
+    ids = ("S1", "S2", "S3")
+    for k in [*range(1, 2 * BLOCK + 10), 5, 17]:  # two scans reported again
+        st = msg.Status(
+            k, float(k), tuple(i for i in ids if rng.random() < 0.5), 1.0, 1.0,
+            float(rng.normal()), 0, failed=tuple(i for i in ids if rng.random() < 0.1),
+        )  # fmt: skip
+        A = rng.normal(size=(4, 4))
+        tr = msg.Track(k, float(k), rng.normal(size=4), A @ A.T + np.eye(4), 0)
+        log.add(st)
+        log.add(tr)
+        want_s[k], want_t[k] = st, tr
+    assert log._rows._spilled > 0 and len(log._recent) <= 64  # the heap holds one block
+    assert set(log.statuses) == set(want_s) and set(log.tracks) == set(want_t)
+    for k, st in want_s.items():
+        got = log.statuses[k]
+        assert (got.enabled, got.value, got.failed) == (st.enabled, st.value, st.failed)
+        assert np.array_equal(log.tracks[k].x, want_t[k].x)
+        assert np.array_equal(log.tracks[k].P, want_t[k].P)
+    assert log.scans() == 2 * BLOCK + 9
+    assert log.has_status(2 * BLOCK + 9) and log.has_status(3) and not log.has_status(10**6)
+    assert log.recent_status(2 * BLOCK + 9) is want_s[2 * BLOCK + 9]
