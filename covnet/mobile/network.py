@@ -55,6 +55,7 @@ from covnet.mobile.results import write_run
 from covnet.mobile.simulate import MobileRun
 from covnet.processes.network_run import ScanDecision, ScanImpossible, network_run_info
 from covnet.processes.runtime_stats import NetStats
+from covnet.runs.columns import Column
 from covnet.runs.rundir import RUN_INFO, write_json
 from covnet.wire import messages as msg
 
@@ -67,7 +68,7 @@ class MobileResult:
 
     solver: str
     seed: int
-    rows: dict[str, list[Any]] = field(default_factory=dict)
+    rows: ScanRows = field(default_factory=lambda: ScanRows())
     failures: list[dict[str, Any]] = field(default_factory=list)
     stats: NetStats = field(default_factory=NetStats)
     completed: bool = False
@@ -79,7 +80,7 @@ class MobileResult:
 
     @property
     def scans_done(self) -> int:
-        return len(self.rows.get("modes", ()))
+        return self.rows.count("modes")
 
     def as_run(self) -> MobileRun:
         """The scans done as a :class:`MobileRun` (``covnet run``'s arrays)."""
@@ -89,10 +90,12 @@ class MobileResult:
         r = self.rows
 
         def arr(name: str, dtype: Any = np.float64) -> np.ndarray:
-            return np.array(r[name], dtype=dtype)
+            assert r.dtype(name) == np.dtype(dtype), name
+            return r.array(name)
 
         def with_start(name: str, start: np.ndarray) -> np.ndarray:
-            return np.array([start, *r[name]], dtype=np.float64)
+            rows = r.array(name) if n else np.empty((0, *np.shape(start)))
+            return np.concatenate([np.asarray(start, dtype=np.float64)[None], rows])
 
         return MobileRun(
             solver=self.solver,
@@ -128,6 +131,42 @@ _ROWS = (
     "x_est P_post platforms modes assign detected pd_true usage objective status fractional "
     "J_lp J_post J_star J_relax gap conflicts mip_gap exact_status cost_s solve_s compare_s"
 ).split()
+_DTYPES = {
+    **dict.fromkeys(("modes", "assign", "status", "conflicts", "exact_status"), np.int64),
+    **dict.fromkeys(("detected", "fractional"), np.bool_),
+}
+"""Each row's dtype in ``covnet run``'s arrays (float64 where not named)."""
+
+
+class ScanRows:
+    """The manager's per-scan rows by name, each a :class:`~covnet.runs.columns.Column` of the
+    dtype ``covnet run``'s arrays give it (made at its first row, of that row's shape): a long
+    run's rows go to the columns' spill files as blocks fill (as Python lists of arrays they
+    grew the manager by about 2 kB a scan).  ``array(name)`` is ``np.array(rows, dtype)``, bit
+    for bit (a None of a float row is NaN, as there)."""
+
+    def __init__(self) -> None:
+        self._cols: dict[str, Column] = {}
+
+    def append(self, name: str, value: Any) -> None:
+        col = self._cols.get(name)
+        dtype = np.dtype(_DTYPES.get(name, np.float64))
+        if dtype.kind == "f":
+            value = np.asarray(value, dtype=np.float64)  # (None -> NaN, as np.array does)
+        if col is None:
+            col = self._cols[name] = Column(np.shape(value), dtype)
+        col.append(value)
+
+    def count(self, name: str) -> int:
+        col = self._cols.get(name)
+        return 0 if col is None else len(col)
+
+    def dtype(self, name: str) -> np.dtype[Any]:
+        return np.dtype(_DTYPES.get(name, np.float64))
+
+    def array(self, name: str) -> np.ndarray:
+        col = self._cols.get(name)
+        return np.empty((0,), dtype=self.dtype(name)) if col is None else col.array()
 
 
 class MobileSteps:
@@ -144,9 +183,7 @@ class MobileSteps:
         self.pos = model.sensors.position.copy()
         self.b = usage_cost(model.sensors.b0, model.sensors.b1)
         self.commanded: dict[str, tuple[str, ...]] = {}
-        self.result = MobileResult(
-            self.solver, model.seed, {n: [] for n in _ROWS}, stats=stats or NetStats()
-        )
+        self.result = MobileResult(self.solver, model.seed, ScanRows(), stats=stats or NetStats())
         r = self.result
         r.x0, r.P0, r.pos0, r.truth = self.x.copy(), self.P.copy(), self.pos.copy(), self.X
 
@@ -285,7 +322,7 @@ class MobileSteps:
             failed=tuple(sorted(failed - {msg.WORLD_ID})),
         )
         for name in _ROWS:
-            self.result.rows[name].append(fused[name])
+            self.result.rows.append(name, fused[name])
         return tracks, status
 
 
