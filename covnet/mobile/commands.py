@@ -64,7 +64,12 @@ def print_summary(out: Path, s: dict[str, Any]) -> None:
         f"{s['usage_cost_total']:.1f}, platform travel {s['platform_travel_m']['total']:.0f} m"
     )
     opt = s.get("optimality")
-    if opt is not None:
+    if opt is not None and not opt["decisions"]:
+        print(
+            f"  optimality: no MILP proved an optimum within its time limit "
+            f"({opt['exact_not_optimal']} compared decisions left out)"
+        )
+    elif opt is not None:
         worse = round(opt["share_lp_post_worse"] * opt["decisions"])
         print(
             f"  optimality: LP + post-step worse than the MILP in {worse}/{opt['decisions']} "
@@ -246,7 +251,12 @@ def _print_mc(
         f"{agg['platform_travel_m']['total']['mean']:.0f} m (means)"
     )
     opt = agg.get("optimality")
-    if opt is not None:
+    if opt is not None and not opt["decisions"]:
+        print(
+            f"  optimality: no MILP proved an optimum within its time limit "
+            f"({opt['exact_not_optimal']} compared decisions left out)"
+        )
+    elif opt is not None:
         print(
             f"  optimality: LP + post-step worse than the MILP in "
             f"{opt['decisions_lp_post_worse']}/{opt['decisions']} decisions "

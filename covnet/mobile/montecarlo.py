@@ -218,19 +218,20 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             sum(r["decisions"]["mode_conflicts_resolved"] for r in rows)
         ),
     }
-    if all("optimality" in r for r in rows):
-        gaps = np.concatenate([np.asarray(r["optimality"]["gaps"], dtype=np.float64) for r in rows])
+    opts = [r["optimality"] for r in rows if "optimality" in r]
+    if opts:  # pooled over the decisions solved; every seed's time-outs counted
+        gaps = np.concatenate([np.asarray(o["gaps"], dtype=np.float64) for o in opts])
+        integ = [o["mean_integrality_gap"] for o in opts if o["mean_integrality_gap"] is not None]
+        some = bool(gaps.size)
         agg["optimality"] = {
             "decisions": int(gaps.size),
-            "share_lp_post_worse": float(np.mean(gaps > WORSE_TOL)),
+            "share_lp_post_worse": float(np.mean(gaps > WORSE_TOL)) if some else None,
             "decisions_lp_post_worse": int(np.count_nonzero(gaps > WORSE_TOL)),
-            "mean_gap": float(gaps.mean()),
-            "max_gap": float(gaps.max()),
-            "conflicts_resolved": int(sum(r["optimality"]["conflicts_resolved"] for r in rows)),
-            "mean_integrality_gap": float(
-                np.mean([r["optimality"]["mean_integrality_gap"] for r in rows])
-            ),
-            "exact_not_optimal": int(sum(r["optimality"]["exact_not_optimal"] for r in rows)),
+            "mean_gap": float(gaps.mean()) if some else None,
+            "max_gap": float(gaps.max()) if some else None,
+            "conflicts_resolved": int(sum(o["conflicts_resolved"] for o in opts)),
+            "mean_integrality_gap": float(np.mean(integ)) if integ else None,
+            "exact_not_optimal": int(sum(o["exact_not_optimal"] for o in opts)),
         }
     return agg
 

@@ -125,17 +125,19 @@ def summarise(cfg: MobileConfig, run: MobileRun) -> dict[str, Any]:
         },
     }
     done = np.isfinite(run.J_star)
-    if done.any():
+    if (run.exact_status >= 0).any():  # compare_exact ran: every decision solved or left out
+        # (a run whose every MILP timed out lost the whole block, its count of them with it)
         g = run.gap[done]
         js = run.J_star[done]
         integ = (js - run.J_relax[done]) / np.abs(js)
+        some = bool(done.any())
         summary["optimality"] = {
             "decisions": int(done.sum()),
-            "share_lp_post_worse": float(np.mean(g > WORSE_TOL)),
-            "mean_gap": float(g.mean()),
-            "max_gap": float(g.max()),
+            "share_lp_post_worse": float(np.mean(g > WORSE_TOL)) if some else None,
+            "mean_gap": float(g.mean()) if some else None,
+            "max_gap": float(g.max()) if some else None,
             "conflicts_resolved": int(run.conflicts[done].sum()),
-            "mean_integrality_gap": float(np.nanmean(integ)),
+            "mean_integrality_gap": _finite(np.nanmean(integ)) if some else None,
             # compared decisions the MILP proved no optimum for (a time-out): left out above
             "exact_not_optimal": int(np.count_nonzero(run.exact_status > 0)),
             "per_decision": {

@@ -292,3 +292,46 @@ def test_a_comparison_whose_milp_timed_out_is_left_out_and_counted(tmp_path, mon
     assert opt["per_decision"]["J_star"][1] is None and opt["per_decision"]["gap"][1] is None
     assert None not in opt["per_decision"]["J_star"][::2]
     assert "(1 more left out: the MILP proved no optimum" in capsys.readouterr().out
+
+
+def _every_milp_times_out(monkeypatch):
+    from dataclasses import replace
+
+    from covnet.core.mobile import decision as dec_module
+
+    real = dec_module.solve_milp
+    monkeypatch.setattr(
+        dec_module,
+        "solve_milp",
+        lambda mp, options: replace(real(mp, options), status=1, message="Time limit reached."),
+    )
+
+
+def test_a_run_whose_every_milp_timed_out_still_says_how_many(tmp_path, monkeypatch, capsys):
+    """Every compared decision timed out: summary.json had no optimality block at all, so the
+    count of those left out was lost and the printout said nothing."""
+    _every_milp_times_out(monkeypatch)
+    out = tmp_path / "run"
+    assert main(["run", str(write_cfg(tmp_path, short(scans=3))), "--out", str(out)]) == 0
+    opt = json.loads((out / "summary.json").read_text())["optimality"]
+    assert opt["decisions"] == 0 and opt["exact_not_optimal"] == 3
+    assert opt["mean_gap"] is None and opt["per_decision"]["J_star"] == [None] * 3
+    said = capsys.readouterr().out
+    assert "no MILP proved an optimum within its time limit (3 compared decisions" in said, said
+
+
+def test_mc_pools_the_seeds_that_solved_and_counts_every_time_out(tmp_path, monkeypatch):
+    """One seed whose compared decisions all timed out removed the optimality summary of the
+    whole batch."""
+    from covnet.mobile.montecarlo import aggregate, run_seed, split_timing
+
+    data = short(scans=3)
+    solved = run_seed(data, 1, None)
+    _every_milp_times_out(monkeypatch)
+    timed_out = run_seed(data, 2, None)
+    assert timed_out["optimality"]["decisions"] == 0
+    alone = aggregate(split_timing([solved])[0])["optimality"]
+    both = aggregate(split_timing([solved, timed_out])[0])["optimality"]
+    assert both["decisions"] == alone["decisions"] == 3
+    assert both["mean_gap"] == alone["mean_gap"] and both["exact_not_optimal"] == 3
+    assert aggregate(split_timing([timed_out])[0])["optimality"]["mean_gap"] is None
