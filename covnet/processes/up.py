@@ -558,6 +558,8 @@ def membership_of(failures: Any, scans_done: Any = None) -> dict[str, dict[str, 
 
 
 def _rebuilt_membership(info: dict[str, Any], summary: dict[str, Any]) -> dict[str, Any]:
+    if "peer" in summary:  # no fusion centre counts them: the monitor writes none (README)
+        return {}
     if "failures" in info:  # the kinds whose run.json logs them (one list)
         return membership_of(info["failures"])
     return membership_of(summary.get("failures"), summary.get("scans_completed"))

@@ -104,3 +104,25 @@ def test_a_rebuilt_run_json_gets_the_membership(tmp_path):
     assert said.startswith("rebuilt"), said
     info = json.loads((tmp_path / "run.json").read_text())
     assert info["membership"] == counted == {"S3": {"failed": 1, "rejoined": 1}}
+
+
+def test_a_rebuilt_peer_run_has_no_membership_as_the_monitor_writes_none(tmp_path):
+    """Peer mode has no fusion centre to count failures (README: `membership` stays empty);
+    the rebuild counted the majority's failures as a centre's."""
+    (tmp_path / "recording.mcap").write_bytes(b"x")
+
+    class Kind:
+        @staticmethod
+        def episodes(_sc):
+            return ["spectral"]
+
+        @staticmethod
+        def rebuild(sc, run_id, episodes, recording, out, info):
+            (out / "run.json").write_text(json.dumps({"run_id": run_id, "mode": "network"}))
+            fails = {"spectral": [{"sensor": "S3", "scan": 24, "event": "failed"}]}
+            summary = {"failures": fails, "scans_completed": {"spectral": 30}, "peer": {}}
+            (out / "summary.json").write_text(json.dumps(summary))
+            return SimpleNamespace(notes=[])
+
+    settle(Kind, None, tmp_path, {"run_id": "r1"}, "failed", "the monitor died")
+    assert json.loads((tmp_path / "run.json").read_text())["membership"] == {}
