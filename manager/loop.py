@@ -428,6 +428,7 @@ class Loop:
             dead = {sid for sid in waiting if not self.members.is_up(sid, now_ns)}
             if (
                 waiting
+                and not to_deadline  # (collected to the deadline anyway: counted there)
                 and not self.world_returns
                 and time.monotonic() - t_begin > WORLD_GONE_WAIT_S
                 and not self.members.is_up(WORLD_ID, now_ns)
