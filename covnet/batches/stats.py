@@ -16,6 +16,7 @@ import numpy as np
 
 __all__ = [
     "CI_LEVEL",
+    "CUT",
     "UNBOUNDED",
     "Bounds",
     "NONNEGATIVE",
@@ -93,6 +94,10 @@ def seed_stats(values: Iterable[float], bounds: Bounds = UNBOUNDED) -> dict[str,
     ci_lo = mean - half if lo is None else max(mean - half, lo)
     ci_hi = mean + half if hi is None else min(mean + half, hi)
     return {"n": n, "mean": mean, "std": std, "ci_lo": ci_lo, "ci_hi": ci_hi}
+
+
+CUT = "[lo, hi] where the interval is cut at the quantity's range"
+"""How a table's legend says what :func:`plus_minus` prints for a cut interval."""
 
 
 def plus_minus(

@@ -41,6 +41,7 @@ from scipy.stats import chi2
 
 from covnet.batches.pool import BatchInterrupted, write_rows
 from covnet.batches.stats import (
+    CUT,
     SHARE,
     add_stats,
     burn_in_of,
@@ -447,7 +448,7 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
         lines.append(
             f"RMSE m: every scan; steady: after the first {rows[0]['burn_in_scans']} scans "
             "(evaluation.burn_in_scans), mean over seeds ± the half-width of its 95 % t "
-            "interval; transient: those first scans (pooled)"
+            f"interval ({CUT}); transient: those first scans (pooled)"
         )
     return "\n".join(lines)
 

@@ -46,6 +46,7 @@ import numpy as np
 
 from covnet.batches.pool import BatchInterrupted, write_rows
 from covnet.batches.stats import (
+    CUT,
     NONNEGATIVE,
     SHARE,
     add_stats,
@@ -682,7 +683,8 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
             "same for every policy that takes a budget"
         )
     lines.append(
-        f"each: mean over {r0['runs']} paired seeds ± the half-width of its 95 % t interval; "
+        f"each: mean over {r0['runs']} paired seeds ± the half-width of its 95 % t interval "
+        f"({CUT}); "
         + (
             "mean OSPA over every scan"
             if many

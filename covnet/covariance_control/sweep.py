@@ -40,6 +40,7 @@ import numpy as np
 
 from covnet.batches.pool import BatchInterrupted, write_rows
 from covnet.batches.stats import (
+    CUT,
     NONNEGATIVE,
     SHARE,
     add_stats,
@@ -526,7 +527,7 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
             f"RMSE m: every scan, as before; steady: after the first {rows[0]['burn_in_scans']} "
             "scans (evaluation.burn_in_scans), mean over seeds ± the half-width of its 95 % "
             "t interval; transient: those first scans (pooled; worst: the worst seed's); "
-            "NEES: after the burn-in, mean ± half-width (4 is consistent)"
+            f"NEES: after the burn-in, mean ± half-width (4 is consistent); {CUT}"
         )
     return "\n".join(lines)
 

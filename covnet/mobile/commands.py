@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from covnet.batches.pool import BatchInterrupted, default_workers, end_batch, finish_batch
-from covnet.batches.stats import plus_minus
+from covnet.batches.stats import CUT, plus_minus
 from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_out, write_batch_info
 from covnet.errors import UsageError
 from covnet.mobile.config import MobileConfig
@@ -236,13 +236,13 @@ def _print_mc(
         f"0..{seeds - 1}, {time.perf_counter() - t0:.1f} s)"
     )
     print(
-        f"  {'target':>8} {'RMSE m':>12} {'2nd half':>12} {'missed':>8} {'2nd half':>9}"
-        "  (means over seeds ± 95 % half-width)"
+        f"  {'target':>8} {'RMSE m':>18} {'2nd half':>18} {'missed':>8} {'2nd half':>9}"
+        f"  (means over seeds ± 95 % half-width; {CUT})"
     )
     for tid, b in [*agg["targets"].items(), ("overall", agg["overall"])]:
         print(
-            f"  {tid:>8} {_pm(b['rmse_position_m']):>12} "
-            f"{_pm(b['rmse_position_second_half_m']):>12} "
+            f"  {tid:>8} {_pm(b['rmse_position_m']):>18} "
+            f"{_pm(b['rmse_position_second_half_m']):>18} "
             f"{_pct(b['missed_detection_rate']['mean']):>8} "
             f"{_pct(b['missed_detection_rate_second_half']['mean']):>9}"
         )
