@@ -17,6 +17,7 @@ from covnet.core.surveillance.continuity import ContinuityFrame, evaluate_contin
 from covnet.core.surveillance.tracks import Track, TrackState
 from covnet.covariance_control.surveillance import SurveillanceModel
 from covnet.covariance_control.surveillance_centre import ScanEvents, SurvPlan
+from covnet.runs.columns import Column
 
 __all__ = ["SurveillanceLog", "SurveillanceRun"]
 
@@ -67,18 +68,60 @@ class SurveillanceRun:
         return (self.search_dwells + self.track_dwells)[:, None]
 
 
+_STATES = ("tentative", "confirmed", "deleted")
+"""A track row's state, by its code in the rows' column."""
+_TRACK = np.dtype(
+    [("id", np.int64), ("state", np.int8), ("x", np.float64, (4,)), ("P", np.float64, (4, 4))]
+)
+_POINT = np.dtype([("id", np.intp), ("xy", np.float64, (2,))])
+
+
+class _Ragged:
+    """Rows of one dtype, a varying number a scan: one spilling column of every row and one of
+    each scan's count (a long run's rows go off the heap as blocks fill)."""
+
+    def __init__(self, dtype: np.dtype[Any]) -> None:
+        self.rows = Column((), dtype)
+        self.counts = Column((), np.int64)
+
+    def append(self, rows: Sequence[tuple[Any, ...]]) -> None:
+        for r in rows:
+            self.rows.append(np.array(r, dtype=self.rows.dtype))
+        self.counts.append(len(rows))
+
+    def scans(self) -> list[np.ndarray]:
+        """Each scan's rows, in order."""
+        rows, counts = self.rows.array(), self.counts.array()
+        ends = np.cumsum(counts)
+        return [rows[e - n : e] for n, e in zip(counts.tolist(), ends.tolist(), strict=True)]
+
+
 @dataclass
 class SurveillanceLog:
     """Rows of one episode, appended per scan (module docstring); ``value`` (one per scan)
-    is what the shared code counts scans by."""
+    is what the shared code counts scans by.  Every per-scan row is kept in spilling columns
+    (:class:`~covnet.runs.columns.Column`): as Python dicts, lists and frames they grew the
+    manager by about 4 kB a scan; :meth:`as_run` reads them back as they were."""
 
     metric: str
     sm: SurveillanceModel
-    value: list[float] = field(default_factory=list)
-    rows: list[dict[str, Any]] = field(default_factory=list)
-    frames: list[ContinuityFrame] = field(default_factory=list)
+    value: Column = field(default_factory=lambda: Column((), np.float64))
     failures: list[dict[str, Any]] = field(default_factory=list)
-    fused_from: list[list[str]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._cols = {
+            "n_tentative": Column((), np.int64),
+            "u": Column((self.sm.n_cells,), np.float64),
+            "search": Column((), np.int64),
+            "track": Column((), np.int64),
+            "decision_s": Column((), np.float64),
+            "track_value": Column((), np.float64),
+        }
+        self._tracks = _Ragged(_TRACK)
+        self._truth_points = _Ragged(_POINT)
+        self._track_points = _Ragged(_POINT)
+        self._started = 0
+        self._ever_confirmed: set[int] = set()
 
     def record(
         self,
@@ -92,44 +135,53 @@ class SurveillanceLog:
         sm, k = self.sm, plan.k
         present = sm.present(k)
         conf = [t for t in tracks if t.state is TrackState.CONFIRMED]
-        self.frames.append(
-            ContinuityFrame(
-                k,
-                present,
-                sm.truth[present, k - 1][:, [0, 2]],
-                np.array([t.id for t in conf], dtype=np.intp),
-                np.array([t.estimate.x[[0, 2]] for t in conf]).reshape(-1, 2),
-            )
+        frame = ContinuityFrame(
+            k,
+            present,
+            sm.truth[present, k - 1][:, [0, 2]],
+            np.array([t.id for t in conf], dtype=np.intp),
+            np.array([t.estimate.x[[0, 2]] for t in conf]).reshape(-1, 2),
         )
-        rows: list[TrackRow] = [
-            (t.id, t.state.value, t.estimate.x.copy(), t.estimate.P.copy()) for t in tracks
-        ]
-        rows += [(t.id, "deleted", t.estimate.x.copy(), t.estimate.P.copy()) for t in deleted]
+        self._truth_points.append(list(zip(frame.truth_ids, frame.truth_xy, strict=True)))
+        self._track_points.append(list(zip(frame.track_ids, frame.track_xy, strict=True)))
+        code = {name: i for i, name in enumerate(_STATES)}
+        rows = [(t.id, code[t.state.value], t.estimate.x, t.estimate.P) for t in tracks]
+        rows += [(t.id, code["deleted"], t.estimate.x, t.estimate.P) for t in deleted]
+        self._tracks.append(rows)
+        self._ever_confirmed.update(int(t.id) for t in conf)
         T = len(plan.tracks)
-        self.rows.append(
-            {
-                "n_tentative": len(tracks) - len(conf),
-                "u": u.copy(),
-                "search": sum(1 for j in plan.subset if plan.modes[j] >= T),
-                "track": sum(1 for j in plan.subset if plan.modes[j] < T),
-                "tracks": rows,
-                "started": list(ev.started),
-                "decision_s": plan.decision_s,
-                "track_value": float(plan.value - plan.search_value),
-            }
-        )
+        c = self._cols
+        c["n_tentative"].append(len(tracks) - len(conf))
+        c["u"].append(u)
+        c["search"].append(sum(1 for j in plan.subset if plan.modes[j] >= T))
+        c["track"].append(sum(1 for j in plan.subset if plan.modes[j] < T))
+        c["decision_s"].append(plan.decision_s)
+        c["track_value"].append(float(plan.value - plan.search_value))
+        self._started += len(ev.started)
         self.value.append(float(plan.value))
-        self.fused_from.append(fused)
+
+    def _frames(self) -> list[ContinuityFrame]:
+        truths, found = self._truth_points.scans(), self._track_points.scans()
+        return [
+            ContinuityFrame(k, t["id"], t["xy"], f["id"], f["xy"])
+            for k, (t, f) in enumerate(zip(truths, found, strict=True), start=1)
+        ]
+
+    def _track_rows(self) -> list[list[TrackRow]]:
+        return [
+            [(int(r["id"]), _STATES[int(r["state"])], r["x"].copy(), r["P"].copy()) for r in rows]
+            for rows in self._tracks.scans()
+        ]
 
     def as_run(self) -> SurveillanceRun:
-        R = self.rows
-        K = len(R)
+        c = self._cols
+        K = len(self.value)
         C = self.sm.n_cells
-        rep = evaluate_continuity(self.frames, self.sm.tm.ospa_c, self.sm.tm.ospa_p)
+        rep = evaluate_continuity(self._frames(), self.sm.tm.ospa_c, self.sm.tm.ospa_p)
         S = rep.scans
 
         def col(key: str, dtype: Any = float) -> np.ndarray:
-            return np.array([r[key] for r in R], dtype=dtype)
+            return np.asarray(c[key].array(), dtype=dtype)
 
         def per_scan(key: str, dtype: Any = float) -> np.ndarray:
             return np.array([getattr(x, key) for x in S], dtype=dtype)
@@ -141,7 +193,7 @@ class SurveillanceLog:
             if v is not None:
                 ttc[tau] = v
         held = {tid for ps in pairs for _, tid in ps}
-        ever_confirmed = {tid for r in R for (tid, st, _, _) in r["tracks"] if st == "confirmed"}
+        u = c["u"].array().reshape(K, C)
         return SurveillanceRun(
             self.metric,
             per_scan("gospa"),
@@ -152,18 +204,18 @@ class SurveillanceLog:
             per_scan("n_true", int),
             per_scan("n_confirmed", int),
             col("n_tentative", int),
-            np.array([float(r["u"].sum()) for r in R]),
-            np.array([r["u"] for r in R]).reshape(K, C),
+            np.array([float(row.sum()) for row in u]),
+            u,
             col("search", int),
             col("track", int),
-            np.asarray(self.value, dtype=float),
+            self.value.array(),
             col("track_value"),
             col("decision_s"),
-            [r["tracks"] for r in R],
+            self._track_rows(),
             pairs,
             ttc,
             rep.n_breaks,
             rep.n_switches,
-            sum(len(r["started"]) for r in R),
-            len(ever_confirmed - held),
+            self._started,
+            len(self._ever_confirmed - held),
         )

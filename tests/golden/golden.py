@@ -161,6 +161,11 @@ CASES: dict[str, tuple[list[str], dict[str, bool]]] = {
         {"summary.json": False, "arrays.npz": False},
     ),
     "run-mobile": (["run", "configs/mobile.yaml"], {"summary.json": True, "arrays.npz": False}),
+    # recorded on December 6 with the code before the surveillance log's columns (6a8b7e2)
+    "run-surveillance": (
+        ["run", "configs/surveillance.yaml"],
+        {"summary.json": False, "arrays.npz": False},
+    ),
     "run-passive": (["run", "configs/passive.yaml"], {"association.json": True}),
     "mc-mobile": (["mc", "configs/mobile.yaml", "--trials", "3"], {"montecarlo.json": True}),
     "mc-passive": (["mc", "configs/passive.yaml", "--trials", "2"], {"results.json": True}),
