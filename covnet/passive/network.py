@@ -40,6 +40,7 @@ from covnet.passive.config import PassiveConfig, normalised
 from covnet.passive.scene import draw
 from covnet.processes.network_run import ScanDecision, network_run_info
 from covnet.processes.runtime_stats import NetStats
+from covnet.runs.columns import Records
 from covnet.runs.rundir import CONFIG, RUN_INFO, write_json
 from covnet.wire import messages as msg
 
@@ -74,7 +75,7 @@ class PassiveResult:
 
     method: str
     seed: int
-    scans: list[dict[str, Any]] = field(default_factory=list)
+    scans: Records = field(default_factory=Records)  # off the heap as they add up
     failures: list[dict[str, Any]] = field(default_factory=list)
     stats: NetStats = field(default_factory=NetStats)
     completed: bool = False
@@ -85,9 +86,7 @@ class PassiveResult:
     def scans_done(self) -> int:
         return len(self.scans)
 
-    @property
-    def unassociated(self) -> int:
-        return sum(not r["associated"] for r in self.scans)
+    unassociated: int = 0
 
 
 def usable_list(m: msg.Measurement) -> bool:
@@ -192,6 +191,7 @@ class PassiveSteps:
             failed=tuple(sorted(failed - {msg.WORLD_ID})),
         )
         self.result.scans.append(row)
+        self.result.unassociated += not row["associated"]
         self.result.association_time_s.append(fused["time_s"])
         return tracks, status
 
@@ -200,12 +200,13 @@ def association_doc(cfg: PassiveConfig, result: PassiveResult) -> dict[str, Any]
     """``association.json`` of a network run: the run's fields, then the fields of the last
     associated scan at the top level (the shape ``covnet run`` writes for its one scan, which
     the scene figure reads), then ``scans``: every scan's record, and ``summary``."""
-    done = [r for r in result.scans if r["associated"]]
+    scans = result.scans.list()
+    done = [r for r in scans if r["associated"]]
     doc: dict[str, Any] = {"kind": "passive-network", **header(cfg, result.seed, result.method)}
     if done:
         doc |= {k: v for k, v in done[-1].items() if k not in ("associated", "missing")}
     scored = [r["score"] for r in done if "score" in r]
-    doc["scans"] = result.scans
+    doc["scans"] = scans
     doc["summary"] = {
         "scans": result.scans_done,
         "associated": len(done),

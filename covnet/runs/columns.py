@@ -14,6 +14,7 @@ memory.  :meth:`Column.array` gives the stacked array, with the values bit for b
 
 from __future__ import annotations
 
+import json
 import math
 import tempfile
 from collections.abc import Iterator
@@ -22,7 +23,7 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
-__all__ = ["BLOCK", "Column"]
+__all__ = ["BLOCK", "Column", "Records"]
 
 BLOCK = 1024
 """Rows per block."""
@@ -89,6 +90,57 @@ class Column:
 
     def close(self) -> None:
         """Drop the spill file (also done when the column is garbage-collected)."""
+        if self._spill is not None:
+            self._spill.close()
+            self._spill = None
+
+    def __del__(self) -> None:
+        self.close()
+
+
+class Records:
+    """Per-scan records of varying shape (JSON-able dicts: what a run's JSON file lists scan by
+    scan), appended one at a time (a list's ``append``, ``len``, truthiness and iteration);
+    every :data:`BLOCK` records go to a spill file (an anonymous temporary file, as
+    :class:`Column`'s) as lines of JSON, so only the block being filled is in memory.  Read
+    back (iteration, :meth:`list`) they are what ``json.loads(json.dumps(record))`` gives: the
+    same JSON when written again (a tuple is a list there too)."""
+
+    _spill: IO[bytes] | None = None
+
+    def __init__(self) -> None:
+        self._tail: list[Any] = []
+        self._spill = None
+        self._n = 0
+
+    def append(self, record: Any) -> None:
+        self._tail.append(record)
+        self._n += 1
+        if len(self._tail) >= BLOCK:
+            if self._spill is None:
+                self._spill = tempfile.TemporaryFile(prefix="covnet-records-")
+            self._spill.seek(0, 2)
+            self._spill.write("".join(json.dumps(r) + "\n" for r in self._tail).encode())
+            self._tail = []
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __bool__(self) -> bool:
+        return self._n > 0
+
+    def __iter__(self) -> Iterator[Any]:
+        if self._spill is not None:
+            self._spill.seek(0)
+            for line in self._spill:
+                yield json.loads(line)
+        yield from (json.loads(json.dumps(r)) for r in self._tail)
+
+    def list(self) -> list[Any]:
+        """Every record, in order."""
+        return list(self)
+
+    def close(self) -> None:
         if self._spill is not None:
             self._spill.close()
             self._spill = None

@@ -163,7 +163,7 @@ def test_in_process_network_equals_run(tmp_path):
     # scan 1 is what `covnet run` associates for the same seed
     assert main(["run", str(PASSIVE), "--out", str(tmp_path / "scene"), "--seed", "11"]) == 0
     ref = json.loads((tmp_path / "scene" / "association.json").read_text())
-    _assert_same_scan(result.scans[0], ref)
+    _assert_same_scan(result.scans.list()[0], ref)
     for sid in cfg.sensor_ids:
         assert stats[sid].measurements_sent == stats[sid].enabled_scans == cfg.scans
         assert not stats[sid].rejected
@@ -223,7 +223,7 @@ def test_malformed_lists_are_rejected_and_counted():
     cfg = _cfg(scans=3, seed=4, scan_timeout_s=1.0)
     result, _, tracks = run_network(cfg, {"s3": _bad_sensor(cfg, "s3")})
     assert result.completed and result.error is None
-    r1, r2, r3 = result.scans
+    r1, r2, r3 = result.scans.list()
     # scans 1 and 3: the good list came after the bad ones; the association is covnet run's
     for r in (r1, r3):
         assert r["associated"]
@@ -250,10 +250,10 @@ def test_failed_sensor_scans_are_counted_not_associated():
     assert events and events[0]["sensor"] == "s2" and events[0]["event"] == "failed"
     k_fail = events[0]["scan"]
     assert 3 <= k_fail <= 6
-    for r in result.scans[:2]:
+    for r in result.scans.list()[:2]:
         assert r["associated"]
         _assert_same_scan(r, _reference(cfg, r["scan"]))
-    for r in result.scans[k_fail - 1 :]:  # s2 seen failed: not commanded, nothing associated
+    for r in result.scans.list()[k_fail - 1 :]:  # s2 seen failed: not commanded, nothing associated
         assert not r["associated"] and r["missing"] == ["s2"]
     assert result.unassociated >= 6 - k_fail + 1
     assert not [t for t in tracks if t.scan >= k_fail]
