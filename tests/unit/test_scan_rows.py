@@ -1,6 +1,7 @@
-"""Per-scan rows off the heap. The mobile manager's: kept as Python lists of arrays they grew the manager by
-about 2 kB a scan (+13 % over 5 000 scans); in spilling columns, read back bit for bit as
-``np.array(rows, dtype)`` gave them (a None of a float row is NaN there and here)."""
+"""Per-scan rows off the heap: the mobile manager's (as Python lists of arrays they grew the
+manager by about 2 kB a scan, +13 % over 5 000 scans) in spilling columns, read back bit for bit
+as ``np.array(rows, dtype)`` gave them (a None of a float row is NaN there and here); the
+passive manager's records as JSON lines."""
 
 from __future__ import annotations
 
