@@ -166,6 +166,12 @@ def cmd_up(args: argparse.Namespace) -> int:
                 "--netns runs the whole network on this machine, each sensor in its own "
                 "namespace: not with --nodes or --router (for several hosts, leave out --netns)"
             )
+        if args.foxglove:  # (it told the user to open an address nothing on the host served)
+            raise UsageError(
+                "--foxglove: with --netns the live view's server runs inside the manager's "
+                "network namespace, out of the host's reach; leave out one of them (the "
+                "recording holds the same channels: open recording.mcap in Foxglove after)"
+            )
         reason = unsupported_reason()
         if reason is not None:
             raise UsageError(reason)

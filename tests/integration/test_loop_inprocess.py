@@ -150,6 +150,21 @@ def test_a_world_restarted_with_a_command_in_flight_sends_that_scans_truth(
     assert stats["world-2"]["published"] >= 30 - 18 + 1
 
 
+def test_lockstep_with_slow_links_does_not_wait_for_the_deadline(short_paper):
+    """Lockstep with slow links (--netns: the delays on real paths): every scan waited its
+    whole scan_timeout_s (10 s on a 20 ms link) after every sensor had answered, collecting to
+    a deadline that only real time has (in lockstep nothing is late)."""
+    net = short_paper.network.model_dump() | {
+        "scan_timeout_s": 3.0,
+        "latency": {"uplink": {"delay": {"kind": "constant", "value_s": 0.02}}, "late": "oosm"},
+    }
+    sc = with_overrides(short_paper, scans=4, network=net)
+    result, _ = run_network(sc, ["spectral"])
+    assert result.completed and result.error is None
+    waits = np.array(result.stats.scan_latency_ns) / 1e9
+    assert len(waits) == 4 and waits.max() < sc.network.scan_timeout_s / 2, waits
+
+
 def test_failed_sensor_is_excluded_and_run_completes(short_paper):
     sc = with_overrides(short_paper, scans=20)
     # S2 is used by spectral at scan 1; stop it after scan 3

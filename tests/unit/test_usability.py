@@ -177,6 +177,9 @@ def test_rerunning_from_the_stored_config_reproduces_the_run(
         (["up", str(PAPER), "--nodes", "sensors", "--router", "tcp/127.0.0.1:0"], "give --router"),
         (["up", str(PAPER), "--solver", "lp"], "--solver: a covariance-control scenario"),
         (["up", str(LATENCY)], "network.latency describes slow or lossy links"),
+        # the live view's server ran inside the manager's namespace, out of the host's reach
+        (["up", str(PAPER), "--netns", "--foxglove"], "--foxglove: with --netns the live view"),
+        (["up", str(PASSIVE), "--netns", "--foxglove"], "--foxglove: with --netns the live"),
         (["run", str(PAPER), "--metric", "nope"], "--metric: unknown metric 'nope'"),
         (["run", str(PAPER), "--fusion", "gossip"], "--fusion: unknown fusion mode"),
         (["run", str(PASSIVE), "--metric", "spectral"], "--metric: a passive scenario"),
