@@ -228,10 +228,13 @@ def link_subnet(index: int) -> ipaddress.IPv4Network:
 
 @contextmanager
 def _namespace(name: str) -> Iterator[str]:
-    r = run_ip("netns", "add", name)
-    if r.returncode != 0:
-        raise RuntimeError(f"cannot create network namespace {name}: {r.stderr.strip()}")
+    # the add inside the try: a Ctrl-C while `ip netns add` ran (the namespace made, its
+    # return not seen) left it behind; the name is this process's (its pid), so deleting it
+    # whatever happened deletes nothing of another's
     try:
+        r = run_ip("netns", "add", name)
+        if r.returncode != 0:
+            raise RuntimeError(f"cannot create network namespace {name}: {r.stderr.strip()}")
         r = run_ip("-n", name, "link", "set", "lo", "up")
         if r.returncode != 0:
             raise RuntimeError(f"cannot bring up lo in {name}: {r.stderr.strip()}")

@@ -64,9 +64,9 @@ def netem_available() -> bool:
     if not can_make_namespaces() or shutil.which("tc") is None:
         return False
     ns = f"cvprobe{os.getpid() % 100000}"
-    if run_ip("netns", "add", ns).returncode != 0:
-        return False
-    try:
+    try:  # (the add inside: a Ctrl-C while it ran left the namespace behind)
+        if run_ip("netns", "add", ns).returncode != 0:
+            return False
         r = run_ip("netns", "exec", ns, "tc", "qdisc", "add", "dev", "lo", "root", "netem",
                    "delay", "1ms")  # fmt: skip
         return r.returncode == 0

@@ -82,10 +82,11 @@ def namespaces(count: int = 2, prefix: str = "cvn") -> Iterator[list[str]]:
     try:
         for _ in range(count):
             ns = _unique(prefix)
+            made.append(ns)  # before the add: a Ctrl-C while it ran left the namespace behind
             r = run_ip("netns", "add", ns)
             if r.returncode != 0:
+                made.pop()  # (not made: another's of that name is not ours to delete)
                 raise NamespaceError(f"cannot create a network namespace: {r.stderr.strip()}")
-            made.append(ns)
             run_ip("-n", ns, "link", "set", "lo", "up")
         yield made
     finally:
