@@ -147,6 +147,9 @@ class SensorLink:
             "devices": [info.dev_a, info.dev_b] if info is not None else None,
             "mode": getattr(info, "mode", None),
             "forwarder_pid": getattr(info, "pid", None),
+            # its exit status when it died during the run (the sensor was cut off from then
+            # on, and the counters died with it); None: it did not
+            "forwarder_died": getattr(info, "died", None),
             "uplink": self.uplink.to_dict(),
             "downlink": self.downlink.to_dict(),
             "wire_uplink": self.wire_uplink.to_dict(),
@@ -375,6 +378,17 @@ def netns_topology(
             stack.close()  # links (forwarders stopped, devices gone), then namespaces
 
 
+def dead_links(topo: NetnsTopology) -> list[str]:
+    """What to say of each link whose forwarder died during the run (a sensor cut off by its
+    link looked like a failed sensor, and its counters were null without a reason)."""
+    return [
+        f"the link of {sid} died during the run (its forwarder's exit status {died}): "
+        f"{sid} was cut off from then on, and the link's counters are lost"
+        for sid, lk in topo.links.items()
+        if (died := getattr(lk.info, "died", None)) is not None
+    ]
+
+
 def note_topology(out: Path, topo: NetnsTopology) -> None:
     """Merge ``topo.describe()`` into ``out/run.json`` under ``netns`` (``out/netns.json``
     when the manager wrote no ``run.json``)."""
@@ -445,3 +459,5 @@ def up_in_namespaces(
             signal.signal(signal.SIGTERM, previous)
         if topo is not None:
             note_topology(out, topo)
+            for line in dead_links(topo):
+                print(f"[launcher] {line}", file=sys.stderr, flush=True)

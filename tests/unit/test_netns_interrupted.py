@@ -54,3 +54,32 @@ def test_the_links_namespaces(monkeypatch):
         pass
     (added,) = [a[2] for a in ip.calls if a[:2] == ("netns", "add")]
     assert ip.deleted() == [added]
+
+
+def test_a_link_whose_forwarder_died_is_said_and_recorded():
+    """A link forwarder killed mid-run cut its sensor off: the run said only that the sensor
+    failed, and the link's counters were null without a reason."""
+    import sys
+    from types import SimpleNamespace
+
+    from covnet.processes.netem.tun_link import Forwarder
+
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import os; os._exit(9)"], stdout=subprocess.PIPE
+    )
+    proc.wait(timeout=30)
+    fw = Forwarder(proc)
+    fw.stop()
+    assert fw.died == 9 and fw.stats is None
+    live = subprocess.Popen(
+        [sys.executable, "-c", "import time; time.sleep(30)"], stdout=subprocess.PIPE
+    )
+    alive = Forwarder(live)
+    alive.stop(grace=5)
+    assert alive.died is None  # stopped by us: not a death
+    topo = SimpleNamespace(links={
+        "S3": SimpleNamespace(info=SimpleNamespace(died=-9)),
+        "S4": SimpleNamespace(info=SimpleNamespace(died=None)),
+    })  # fmt: skip
+    (line,) = netns_launch.dead_links(topo)
+    assert line.startswith("the link of S3 died during the run") and "exit status -9" in line

@@ -59,6 +59,8 @@ class LinkInfo:
     dev_b: str
     mode: str
     pid: int | None = None
+    #: the forwarder's exit status when it died before the link was closed (None: it did not)
+    died: int | None = None
     stats: dict[str, dict[str, int]] | None = field(default=None)
 
 
@@ -237,4 +239,4 @@ def emulated_link(
         yield info
     finally:
         fw.stop()
-        info.stats = fw.stats
+        info.stats, info.died = fw.stats, fw.died

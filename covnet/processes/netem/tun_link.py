@@ -197,6 +197,8 @@ class Forwarder:
         self.proc = proc
         self.output = ""
         self.stats: dict[str, dict[str, int]] | None = None
+        #: its exit status when it had ended before :meth:`stop` (killed mid-run), else None
+        self.died: int | None = None
 
     @property
     def pid(self) -> int:
@@ -228,6 +230,8 @@ class Forwarder:
     def stop(self, grace: float = 3.0) -> None:
         """SIGINT, then SIGTERM, then SIGKILL, each given ``grace`` seconds; collects the
         forwarder's last output and its ``STATS``."""
+        if self.proc.poll() is not None:
+            self.died = self.proc.returncode
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             if self.proc.poll() is not None:
                 break
