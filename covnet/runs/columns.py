@@ -29,13 +29,26 @@ BLOCK = 1024
 """Rows per block."""
 
 
-class Column:
-    """Rows of one ``shape`` and ``dtype`` appended one at a time (a list's ``append``,
-    ``len`` and truthiness; iteration yields the rows)."""
+class _Spilling:
+    """What a store with a spill file shares: closing it, also when garbage-collected."""
 
     #: no spill file yet; also on an instance whose ``__init__`` a Ctrl-C cut short, which
     #: ``__del__`` then closes without an "Exception ignored ... AttributeError" traceback
     _spill: IO[bytes] | None = None
+
+    def close(self) -> None:
+        """Drop the spill file (also done when the store is garbage-collected)."""
+        if self._spill is not None:
+            self._spill.close()
+            self._spill = None
+
+    def __del__(self) -> None:
+        self.close()
+
+
+class Column(_Spilling):
+    """Rows of one ``shape`` and ``dtype`` appended one at a time (a list's ``append``,
+    ``len`` and truthiness; iteration yields the rows)."""
 
     def __init__(self, shape: tuple[int, ...] = (), dtype: DTypeLike = np.float64) -> None:
         self.shape, self.dtype = tuple(shape), np.dtype(dtype)
@@ -88,25 +101,14 @@ class Column:
             return tail.copy()
         return np.concatenate([head, tail])
 
-    def close(self) -> None:
-        """Drop the spill file (also done when the column is garbage-collected)."""
-        if self._spill is not None:
-            self._spill.close()
-            self._spill = None
 
-    def __del__(self) -> None:
-        self.close()
-
-
-class Records:
+class Records(_Spilling):
     """Per-scan records of varying shape (JSON-able dicts: what a run's JSON file lists scan by
     scan), appended one at a time (a list's ``append``, ``len``, truthiness and iteration);
     every :data:`BLOCK` records go to a spill file (an anonymous temporary file, as
     :class:`Column`'s) as lines of JSON, so only the block being filled is in memory.  Read
     back (iteration, :meth:`list`) they are what ``json.loads(json.dumps(record))`` gives: the
     same JSON when written again (a tuple is a list there too)."""
-
-    _spill: IO[bytes] | None = None
 
     def __init__(self) -> None:
         self._tail: list[Any] = []
@@ -139,11 +141,3 @@ class Records:
     def list(self) -> list[Any]:
         """Every record, in order."""
         return list(self)
-
-    def close(self) -> None:
-        if self._spill is not None:
-            self._spill.close()
-            self._spill = None
-
-    def __del__(self) -> None:
-        self.close()
