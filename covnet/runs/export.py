@@ -354,6 +354,13 @@ def _out_path(run_dir: str | Path, fmt: str, out: str | Path | None, force: bool
         raise UsageError(f"--out {out}: is a directory (expected a file name)")
     if not path.parent.is_dir():
         raise UsageError(f"--out {out}: its folder {path.parent} does not exist")
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        # a device, a FIFO or a link was replaced by a regular file with --force (as root,
+        # --out /dev/stdout --force would have replaced the machine's /dev/stdout)
+        raise UsageError(
+            f"--out {out if out is not None else path}: not a regular file (a link, a device or "
+            "a pipe), which an export never replaces; give a file name, or --out - for stdout"
+        )
     if out is not None and path.exists():
         own = path.resolve().parent == Path(run_dir).resolve()
         if own and path.name not in DEFAULT_NAMES.values() and not _an_export(path):

@@ -8,6 +8,7 @@ import csv
 import io
 import json
 import shutil
+import stat
 import sys
 from pathlib import Path
 
@@ -181,6 +182,27 @@ def test_one_episode_to_a_named_file_or_stdout(paper_run, tmp_path, capsys):
     assert {r["episode"] for r in rows} == {"svd"} and len(rows) == 14
     assert main(["export", str(paper_run), "--episode", "svd", "--out", "-"]) == 0
     assert capsys.readouterr().out == out.read_text()
+
+
+@pytest.mark.parametrize("kind", ["fifo", "link"])
+def test_an_out_that_is_not_a_regular_file_is_never_replaced(paper_run, tmp_path, kind, capsys):
+    """--out P --force replaced a FIFO, a device or a symlink with a regular file (as root,
+    --out /dev/stdout --force would replace the machine's node): refused, even with --force."""
+    import os
+
+    target = tmp_path / "elsewhere.csv"
+    target.write_text("kept\n")
+    out = tmp_path / "out"
+    if kind == "fifo":
+        os.mkfifo(out)
+    else:
+        out.symlink_to(target)
+    for extra in ([], ["--force"]):
+        assert main(["export", str(paper_run), "--out", str(out), *extra]) == 2
+        err = capsys.readouterr().err
+        assert "not a regular file" in err and "--out - for stdout" in err, err
+    assert out.is_symlink() if kind == "link" else stat.S_ISFIFO(out.lstat().st_mode)
+    assert target.read_text() == "kept\n"
 
 
 def _rewrite(run: Path, arrays: dict[str, np.ndarray]) -> None:
