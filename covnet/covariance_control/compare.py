@@ -230,7 +230,7 @@ def nees_consistency(
     # within a run are correlated, so they are not counted as independent samples)
     run_means = nees.mean(axis=1)
     half = float(t_half_width(run_means.std(ddof=1), R))
-    glo, ghi = grand - half, grand + half
+    glo, ghi = max(grand - half, 0.0), grand + half  # a NEES is >= 0 (as every batch interval)
     d = float(dim)
     verdict = "consistent" if glo <= d <= ghi else ("conservative" if ghi < d else "optimistic")
     return {

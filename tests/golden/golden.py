@@ -12,7 +12,9 @@ three ``run-latency`` cases' ``summary.json`` recorded again the same day when i
 ``(issue 18)`` hashes of ``compare``, ``mc-mobile`` and ``mc-passive`` recorded again on December
 6 when the intervals over seeds were cut to their quantity's range (``stats.seed_stats``'s
 bounds): only ``*_ci_lo`` below 0 and ``*_ci_hi`` above 1 of a share changed (to 0 and 1), every
-other key the same (each file compared key by key with the code before).
+other key the same (each file compared key by key with the code before); ``compare``'s both
+hashes again the same day when the grand mean NEES's interval ``nees_mean_ci_95`` was cut at 0
+too (its lower end, -3.2 and -10.3 in that file, the only other change).
 
 A JSON file is hashed as its bytes; wall-clock keys (:data:`WALL_CLOCK_KEYS`) are removed first
 and the rest re-serialised canonically only where a case says so (those files held timings

@@ -165,3 +165,14 @@ def test_modes_of_different_seed_counts_each_get_their_own_band_and_the_title_th
     assert bands == sorted(
         (round(r["nees_band_95"][0], 9), round(r["nees_band_95"][1], 9)) for r in rows
     )
+
+
+def test_the_grand_mean_nees_interval_stops_at_zero():
+    """compare.json's nees_mean_ci_95 (and compare.png's bar) reached -0.39 where the row's
+    other NEES interval, printed in the table, was cut at 0."""
+    from covnet.covariance_control.compare import nees_consistency
+
+    nees = np.array([[1.0] * 20, [9.0] * 20])  # two runs far apart: a wide t interval
+    r = nees_consistency(nees, 0)
+    assert r["nees_mean_ci_95"][0] == 0.0 and r["nees_mean_ci_95"][1] > 9.0
+    assert r["mean_nees"] == 5.0 and r["nees_verdict"] == "consistent"
