@@ -354,8 +354,9 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
                 return [_surveillance_table_figure(run_dir, stem, rows, point)]
             if doc.get("compared") == "policies":  # covnet compare --policies
                 from covnet.covariance_control import compare_policies as module
-            title = module.figure_title(doc)  # the command's own
-            figures = [module.make_figure(run_dir, rows, title)]
+            # --point checked before anything is drawn (a refused one redrew the table's
+            # figure, then exited 2)
+            select: list[int] | None = None
             if (run_dir / CURVES).is_file():
                 curves = load_arrays(run_dir / CURVES)
                 keys = [str(k) for k in curves["points"]]
@@ -369,9 +370,12 @@ def plot(run_dir: Path, point: str | None = None) -> list[Path]:
                         f"--point {point}: no point of {run_dir} matches; its points: "
                         + "; ".join(keys)
                     )
-                figures.append(module.curves_figure(run_dir, curves, select))
             elif point is not None:
                 raise UsageError(f"--point: {run_dir} has no per-scan curves ({CURVES})")
+            title = module.figure_title(doc)  # the command's own
+            figures = [module.make_figure(run_dir, rows, title)]
+            if select is not None:
+                figures.append(module.curves_figure(run_dir, curves, select))
             return figures
     if (run_dir / "batch.json").is_file():  # a batch's directory without its table
         raise UsageError(

@@ -322,7 +322,10 @@ def test_cli_ci_width_adds_seeds_until_narrow_and_says_so(tmp_path, capsys):
     assert json.loads((out2 / "sweep.json").read_text())["rounds"] == 1
     assert main(["plot", str(out), "--point", "delay_ms=350"]) == 0
     assert (out / "curves.png").stat().st_size > 10_000
+    drawn = {f: (out / f).stat().st_mtime_ns for f in ("sweep.png", "curves.png")}
     assert main(["plot", str(out), "--point", "nope"]) == 2
+    # refused before anything was drawn (it redrew sweep.png, then exited 2)
+    assert {f: (out / f).stat().st_mtime_ns for f in drawn} == drawn
     # a cap that leaves room for fewer seeds than the step: the note says how many (it said
     # "2 more seed(s) each" where 1 was added)
     out3 = tmp_path / "o3"
