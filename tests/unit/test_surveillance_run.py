@@ -191,6 +191,15 @@ def test_bad_values_are_refused_with_their_path(change, path, words):
     assert any(p == path and words in m for p, m in got), got
 
 
+@pytest.mark.parametrize("mode", ["ci", "info"])
+def test_a_fusion_centre_other_than_central_is_named_once(mode):
+    """``fusion.mode: ci`` on a surveillance config gave three messages for one mistake: the
+    surveillance refusal, the many-target one advising "central or info" (which surveillance
+    refuses), and greedy's objection to a mode that is not the cause."""
+    got = problems(base(fusion={"mode": mode}))
+    assert len(got) == 1 and got[0][0] == "fusion.mode" and "only central" in got[0][1], got
+
+
 def test_peer_mode_is_refused_as_peer_with_central_as_the_only_advice():
     """``--fusion peer`` on a surveillance config named the peer rule's default (``info:
     not with 'surveillance:'``) and advised ``central or info``, which surveillance refuses."""

@@ -226,7 +226,9 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
                 )
             )
     mode = sc.fusion.mode
-    if sc.fusion.has_centre and (why := refusal(rule_for(sc.fusion), "targets")) is not None:
+    if _surveillance_refuses_mode(sc):
+        pass  # its own check names the cause (central only), once
+    elif sc.fusion.has_centre and (why := refusal(rule_for(sc.fusion), "targets")) is not None:
         problems.append(("fusion.mode", f"{mode} {why}"))
     elif not sc.fusion.has_centre:
         problems.append(
@@ -257,6 +259,13 @@ def _multitarget_fusion_problems(sc: Scenario) -> list[tuple[str, str]]:
     return problems
 
 
+def _surveillance_refuses_mode(sc: Scenario) -> bool:
+    """A surveillance config whose fusion centre is not ``central``: its own check
+    (:mod:`.surveillance_checks`) refuses ``fusion.mode``; the other checks that follow from
+    the mode said it again, two of them contradicting it ("use central or info")."""
+    return sc.surveillance is not None and sc.fusion.has_centre and sc.fusion.mode != "central"
+
+
 def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
     """What the search entry (:data:`SEARCHES`) cannot do with this config, in its own words."""
     al = sc.allocation
@@ -269,8 +278,10 @@ def _search_problems(sc: Scenario) -> list[tuple[str, str]]:
             users = " or ".join(k for k, s in _by_options() if opt in s.options)
             why = f"only used with search: {users}, not {al.search}"
             problems.append((f"allocation.{opt}", why))
-    if search.information_form and (
-        not sc.fusion.has_centre or not rule_for(sc.fusion).information_form
+    if (
+        search.information_form
+        and (not sc.fusion.has_centre or not rule_for(sc.fusion).information_form)
+        and not _surveillance_refuses_mode(sc)  # (the mode is the cause, named once)
     ):
         problems.append(
             (
