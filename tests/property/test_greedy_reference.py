@@ -252,7 +252,10 @@ def _check(name, pb):
         )  # fmt: skip
         assert b.value <= ref + _tol(ref), ("bounded, timed", clock, b.subset, b.value, ref)
     # greedy's own plain heuristic follows the oracle's path to the same subset (but for the
-    # oracle's choice of a zero-gain sensor alone, doing nothing: a row of greedy's own)
+    # oracle's choice of a zero-gain sensor alone, doing nothing: a row of greedy's own), or
+    # to another whose exact value ties the oracle's under the tie rule (sensors of equal
+    # information: the "spread" problems' 2.946341314407894 against 2.9463413144078934,
+    # which the working arithmetic may order either way)
     prob = _Problem(P_pred, gains, P_d, name, c, TIE_RTOL)
     zero = len(ref_subset) == 1 and not gains[ref_subset[0]].any()
     if prob.m and prob.K > len(prob.req) and not zero:
@@ -260,7 +263,12 @@ def _check(name, pb):
         inc, val = plain.forward()
         if math.isfinite(val) and (inc.any() or prob.req):
             inc = plain.local_search(inc, val)
-            assert _subset(prob.masks(inc[None])[0]) == ref_subset, ("path", ref_subset)
+            got = _subset(prob.masks(inc[None])[0])
+            if got != ref_subset:
+                mask = np.zeros((1, len(gains)), dtype=bool)
+                mask[0, list(got)] = True
+                (v,) = _values(P_pred, gains, P_d, name, mask)
+                assert abs(v - ref) <= _tol(ref), ("path", got, v, ref_subset, ref)
 
 
 @pytest.mark.parametrize("name", sorted(METRICS))
