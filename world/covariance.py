@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import threading
 from collections import Counter
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -76,16 +77,8 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     beats: list[Any] = [bus.subscribe(msg.heartbeat_keyexpr(run_id))]
 
     def follow_heartbeats() -> None:
-        while beats and (h := beats[0].try_recv()) is not None:
-            try:
-                hb = msg.decode_as(h.payload, msg.Heartbeat)
-            except msg.WireError as exc:
-                counts[f"rejected:{exc.reason}"] += 1
-                continue
-            k = hb.scan
-            if hb.role != "sensor" or not 1 <= k <= model.scans:
-                continue
-            if not window[0] <= k <= window[1]:
+        for k in _sensor_scans(beats[0], counts) if beats else ():
+            if 1 <= k <= model.scans and not window[0] <= k <= window[1]:
                 window[:] = [k, publish(k, k + TRUTH_WINDOW)]
 
     def handle(cmd: msg.Command) -> bool:
@@ -120,6 +113,20 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
         for sub in beats:
             sub.close()
     return counts
+
+
+def _sensor_scans(beats: Any, counts: Counter[str]) -> Iterator[int]:
+    """The scans the sensors' heartbeats waiting in subscription ``beats`` carry (a sensor's:
+    the last command it took; a peer node's: the last scan it finished), a malformed one
+    counted as ``rejected:<reason>``: where a restarted world learns the nodes are."""
+    while (h := beats.try_recv()) is not None:
+        try:
+            hb = msg.decode_as(h.payload, msg.Heartbeat)
+        except msg.WireError as exc:
+            counts[f"rejected:{exc.reason}"] += 1
+            continue
+        if hb.role == "sensor":
+            yield hb.scan
 
 
 class _TruthPublisher:
@@ -242,14 +249,8 @@ def _serve_peers(
         return done + 1 if done < model.scans else 1
 
     def follow_heartbeats() -> None:
-        while (h := beats.try_recv()) is not None:
-            try:
-                hb = msg.decode_as(h.payload, msg.Heartbeat)
-            except msg.WireError as exc:
-                counts[f"rejected:{exc.reason}"] += 1
-                continue
-            need = after(hb.scan)
-            if hb.role == "sensor" and hb.scan > 0 and not window[0] <= need <= window[1]:
+        for done in _sensor_scans(beats, counts):
+            if done > 0 and not window[0] <= (need := after(done)) <= window[1]:
                 publish_from(need)
 
     try:

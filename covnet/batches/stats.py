@@ -90,10 +90,14 @@ def seed_stats(values: Iterable[float], bounds: Bounds = UNBOUNDED) -> dict[str,
         return {"n": 1, "mean": mean, "std": None, "ci_lo": None, "ci_hi": None}
     std = float(v.std(ddof=1))
     half = t_half_width(std, n)
-    lo, hi = bounds
-    ci_lo = mean - half if lo is None else max(mean - half, lo)
-    ci_hi = mean + half if hi is None else min(mean + half, hi)
+    ci_lo, ci_hi = _within(mean - half, mean + half, bounds)
     return {"n": n, "mean": mean, "std": std, "ci_lo": ci_lo, "ci_hi": ci_hi}
+
+
+def _within(lo: float, hi: float, bounds: Bounds) -> tuple[float, float]:
+    """The interval ``[lo, hi]`` cut to ``bounds``."""
+    floor, ceiling = bounds
+    return (lo if floor is None else max(lo, floor), hi if ceiling is None else min(hi, ceiling))
 
 
 CUT = "[lo, hi] where the interval is cut at the quantity's range"
@@ -231,16 +235,13 @@ def curves_of(results: Mapping[str, Sequence[Mapping[str, Any]]]) -> dict[str, n
     return out
 
 
-def interval(
-    values: Sequence[float | None], *, nonnegative: bool = False, bounds: Bounds = UNBOUNDED
-) -> dict[str, Any]:
+def interval(values: Sequence[float | None], *, bounds: Bounds = UNBOUNDED) -> dict[str, Any]:
     """Mean, standard deviation (ddof 1), the 95 % confidence interval of the mean (Student's
     t; ``None`` for one value), median, min, max and how many values (``None`` ones are left
-    out): every Monte Carlo scalar's summary over seeds.  ``nonnegative``: the quantity is
-    ``>= 0`` (a distance, a count, a rate, a NEES), and the interval's lower end is clipped at 0
-    (a few seeds' Student interval reaches below: a tracked RMSE of 14.6 [-6.6, 35.7] m with two
-    seeds), as :func:`per_scan_bands` clips its RMSE bands; ``bounds``: the quantity's range, as
-    :func:`seed_stats` (a rate: :data:`SHARE`)."""
+    out): every Monte Carlo scalar's summary over seeds.  ``bounds``: the quantity's range, to
+    which the interval is cut, as :func:`seed_stats` cuts its own (:data:`NONNEGATIVE`: a
+    distance, a count, a NEES, whose few seeds' Student interval reached below 0, a tracked
+    RMSE of 14.6 [-6.6, 35.7] m with two seeds; :data:`SHARE`: a rate)."""
     v = np.asarray([x for x in values if x is not None], dtype=np.float64)
     if v.size == 0:
         return {
@@ -265,15 +266,10 @@ def interval(
         }
     sd = float(v.std(ddof=1))
     half = float(t_half_width(sd, v.size))
-    lo, hi = mean - half, mean + half
-    floor, ceiling = (0.0 if nonnegative else None, None) if bounds == UNBOUNDED else bounds
     return {
         "mean": mean,
         "std": sd,
-        "ci95": [
-            lo if floor is None else max(lo, floor),
-            hi if ceiling is None else min(hi, ceiling),
-        ],
+        "ci95": list(_within(mean - half, mean + half, bounds)),
         "median": float(np.median(v)),
         "min": float(v.min()),
         "max": float(v.max()),
@@ -282,19 +278,20 @@ def interval(
 
 
 def per_scan_interval(
-    rows: Sequence[Sequence[float]], *, nonnegative: bool = False
-) -> dict[str, list[float]]:
+    rows: Sequence[Sequence[float]], *, bounds: Bounds = UNBOUNDED
+) -> dict[str, list[float] | None]:
     """Per scan (``rows``: one series per seed): the mean over seeds and its 95 % interval
-    (``nonnegative``: its lower end clipped at 0, as :func:`interval`'s; ``None`` with one
-    seed, as :func:`interval`'s: it gave the mean as both ends, an interval of zero width)."""
+    (cut to ``bounds``, as :func:`interval`'s; ``None`` with one seed, as :func:`interval`'s:
+    it gave the mean as both ends, an interval of zero width)."""
     a = np.asarray(rows, dtype=np.float64)
     mean = a.mean(axis=0)
     if a.shape[0] < 2:
         return {"mean": mean.tolist(), "ci95_low": None, "ci95_high": None}
     half = t_half_width(a.std(axis=0, ddof=1), a.shape[0])
-    low = mean - half
+    floor, ceiling = bounds
+    low, high = mean - half, mean + half
     return {
         "mean": mean.tolist(),
-        "ci95_low": (np.maximum(low, 0.0) if nonnegative else low).tolist(),
-        "ci95_high": (mean + half).tolist(),
+        "ci95_low": (low if floor is None else np.maximum(low, floor)).tolist(),
+        "ci95_high": (high if ceiling is None else np.minimum(high, ceiling)).tolist(),
     }

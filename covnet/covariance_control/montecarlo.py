@@ -197,12 +197,12 @@ def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) 
             if k in per[0]
         }
         if "ospa" in per[0]:
-            blk["ospa_per_scan"] = per_scan_interval([p["ospa"] for p in per], nonnegative=True)
+            blk["ospa_per_scan"] = per_scan_interval([p["ospa"] for p in per], bounds=NONNEGATIVE)
         blk["targets"] = {}
         for tid in per[0]["targets"]:
             tt = [p["targets"][tid] for p in per]
             tb: dict[str, Any] = {
-                k: interval([t[k] for t in tt], nonnegative=True)
+                k: interval([t[k] for t in tt], bounds=NONNEGATIVE)
                 for k in _TARGET_SCALARS
                 if k in tt[0]
             }
@@ -230,9 +230,11 @@ def aggregate(rows: Sequence[Mapping[str, Any]], cutoff_m: float | None = None) 
                     ],
                     "cutoff_m": cutoff_m,
                 }
-            tb["trace_P_per_scan"] = per_scan_interval([t["trace_P"] for t in tt], nonnegative=True)
+            tb["trace_P_per_scan"] = per_scan_interval(
+                [t["trace_P"] for t in tt], bounds=NONNEGATIVE
+            )
             tb["sensors_per_scan"] = per_scan_interval(
-                [t["sensors_per_scan"] for t in tt], nonnegative=True
+                [t["sensors_per_scan"] for t in tt], bounds=NONNEGATIVE
             )
             blk["targets"][tid] = tb
         out[m] = blk

@@ -94,9 +94,9 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             )
             for k in SCALARS
         }
-        blk["gospa_per_scan"] = per_scan_interval([p["gospa"] for p in per], nonnegative=True)
+        blk["gospa_per_scan"] = per_scan_interval([p["gospa"] for p in per], bounds=NONNEGATIVE)
         blk["n_confirmed_per_scan"] = per_scan_interval(
-            [p["n_confirmed"] for p in per], nonnegative=True
+            [p["n_confirmed"] for p in per], bounds=NONNEGATIVE
         )
         out[m] = blk
     return out

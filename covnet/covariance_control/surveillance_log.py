@@ -70,6 +70,7 @@ class SurveillanceRun:
 
 _STATES = ("tentative", "confirmed", "deleted")
 """A track row's state, by its code in the rows' column."""
+_CODE = {name: i for i, name in enumerate(_STATES)}
 _TRACK = np.dtype(
     [("id", np.int64), ("state", np.int8), ("x", np.float64, (4,)), ("P", np.float64, (4, 4))]
 )
@@ -144,9 +145,8 @@ class SurveillanceLog:
         )
         self._truth_points.append(list(zip(frame.truth_ids, frame.truth_xy, strict=True)))
         self._track_points.append(list(zip(frame.track_ids, frame.track_xy, strict=True)))
-        code = {name: i for i, name in enumerate(_STATES)}
-        rows = [(t.id, code[t.state.value], t.estimate.x, t.estimate.P) for t in tracks]
-        rows += [(t.id, code["deleted"], t.estimate.x, t.estimate.P) for t in deleted]
+        rows = [(t.id, _CODE[t.state.value], t.estimate.x, t.estimate.P) for t in tracks]
+        rows += [(t.id, _CODE["deleted"], t.estimate.x, t.estimate.P) for t in deleted]
         self._tracks.append(rows)
         self._ever_confirmed.update(int(t.id) for t in conf)
         T = len(plan.tracks)

@@ -150,7 +150,7 @@ class ScanRows:
 
     def append(self, name: str, value: Any) -> None:
         col = self._cols.get(name)
-        dtype = np.dtype(_DTYPES.get(name, np.float64))
+        dtype = self.dtype(name) if col is None else col.dtype
         if dtype.kind == "f":
             value = np.asarray(value, dtype=np.float64)  # (None -> NaN, as np.array does)
         if col is None:

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from covnet.batches.pool import BatchInterrupted
-from covnet.batches.stats import SHARE, add_stats, ci_half_width, seed_stats
+from covnet.batches.stats import SHARE, add_stats, ci_half_width, count_range, seed_stats
 from covnet.batches.trials import (
     Batch,
     BatchProgress,
@@ -311,8 +311,7 @@ def run_grid_outcome(
 def trials_text(facts: Mapping[str, Any]) -> str:
     """``"6"``, or ``"12-18"`` where ``--ci-width`` gave the cells different counts (the
     summary line and ``results.md`` said the first round's 6)."""
-    lo, hi = facts.get("trials_range") or (facts["trials"], facts["trials"])
-    return str(lo) if lo == hi else f"{lo}-{hi}"
+    return count_range(facts.get("trials_range") or (facts["trials"],))
 
 
 def _facts(

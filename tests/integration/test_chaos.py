@@ -147,6 +147,20 @@ def test_chaos_run_completes_and_never_allocates_a_dead_sensor(tmp_path, paper_p
         assert rrc == 0 and "identical" in rp.output(), rp.output()
 
 
+def _spectral_config(tmp_path, paper_path, name, *, scans=None, restart=None):
+    """The paper config with the spectral metric alone (``scans``, ``network.restart``
+    changed where given), written to ``tmp_path / name``."""
+    data = yaml.safe_load(paper_path.read_text())
+    data["allocation"]["metrics"] = ["spectral"]
+    if scans is not None:
+        data["scans"] = scans
+    if restart is not None:
+        data.setdefault("network", {})["restart"] = restart
+    cfg = tmp_path / name
+    cfg.write_text(yaml.safe_dump(data))
+    return cfg
+
+
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("victim", ["world", "recorder"])
 def test_a_dead_world_or_recorder_is_not_a_completed_run(tmp_path, paper_path, victim):
@@ -154,11 +168,7 @@ def test_a_dead_world_or_recorder_is_not_a_completed_run(tmp_path, paper_path, v
     network is READY and a few scans are done: the manager still does every scan, but the run
     is not complete: exit 1, ``run.json`` says ``failed``, names the node and the scan under
     ``lost``, and ``membership`` (there and in ``network.json``) counts its failure."""
-    data = yaml.safe_load(paper_path.read_text())
-    data["scans"] = 40
-    data["allocation"]["metrics"] = ["spectral"]
-    cfg = tmp_path / "short.yaml"
-    cfg.write_text(yaml.safe_dump(data))
+    cfg = _spectral_config(tmp_path, paper_path, "short.yaml", scans=40)
     out = tmp_path / "run"
     p = CovnetProcess(["up", str(cfg), "--realtime", "--speed", "10", "--out", str(out)])
     try:
@@ -200,11 +210,7 @@ def test_a_dead_world_or_recorder_is_not_a_completed_run(tmp_path, paper_path, v
 def test_restarts_are_in_run_json_also_when_the_run_is_interrupted(tmp_path, paper_path):
     """The launcher printed ``restarted: {'S5': 1}``, but a run then interrupted (Ctrl-C) left
     ``restarts: null`` in run.json: it was written on the normal path only."""
-    data = yaml.safe_load(paper_path.read_text())
-    data["allocation"]["metrics"] = ["spectral"]
-    data.setdefault("network", {})["restart"] = "on-failure"
-    cfg = tmp_path / "restart.yaml"
-    cfg.write_text(yaml.safe_dump(data))
+    cfg = _spectral_config(tmp_path, paper_path, "restart.yaml", restart="on-failure")
     out = tmp_path / "run"
     p = CovnetProcess(["up", str(cfg), "--realtime", "--speed", "5", "--out", str(out)])
     try:

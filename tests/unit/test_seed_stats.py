@@ -72,9 +72,9 @@ def test_the_sweeps_rates_are_shares_and_its_counts_nonnegative():
 
 
 def test_one_seed_has_no_per_scan_interval():
-    one = per_scan_interval([[3.0, 2.0]], nonnegative=True)
+    one = per_scan_interval([[3.0, 2.0]], bounds=NONNEGATIVE)
     assert one == {"mean": [3.0, 2.0], "ci95_low": None, "ci95_high": None}
-    two = per_scan_interval([[3.0, 2.0], [5.0, 2.0]], nonnegative=True)
+    two = per_scan_interval([[3.0, 2.0], [5.0, 2.0]], bounds=NONNEGATIVE)
     assert two["ci95_low"][1] == two["ci95_high"][1] == 2.0 and two["ci95_low"][0] == 0.0
 
 
@@ -86,5 +86,5 @@ def test_the_mc_summary_of_a_rate_stays_within_0_1():
     rates = [1.0, 0.97, 1.0]
     assert _t(rates)[1] > 1
     assert interval(rates, bounds=SHARE)["ci95"] == [pytest.approx(_t(rates)[0]), 1.0]
-    assert interval([0.2, 9.0, 0.4], nonnegative=True)["ci95"][0] == 0.0
+    assert interval([0.2, 9.0, 0.4], bounds=NONNEGATIVE)["ci95"][0] == 0.0
     assert interval([0.2, 9.0, 0.4])["ci95"][0] < 0
