@@ -264,6 +264,13 @@ def _surveillance_rows(
          **{f"{k}_ci95": r[k]["ci95"] for k in sb.SCALARS}}
         for r in rows
     ]  # fmt: skip
+    if any(r.get("vs_reference") for r in rows):  # a policy comparison's paired differences
+        for r, f in zip(rows, flat, strict=True):
+            f["vs_reference"] = r.get("vs_reference")
+            for k in sb.SCALARS:
+                d = r.get(f"{k}_vs_reference") or {}
+                f[f"{k}_vs_reference_mean"] = d.get("mean")
+                f[f"{k}_vs_reference_ci95"] = d.get("ci95")
 
     def write() -> None:
         write_rows(out, stem, [{**r, **f} for r, f in zip(rows, flat, strict=True)], meta,

@@ -36,6 +36,7 @@ __all__ = [
     "aggregate",
     "compare_figure",
     "format_table",
+    "paired",
     "policy_compare",
     "seed_row",
     "sweep_figure",
@@ -259,7 +260,8 @@ def policy_compare(
     form on the tracks, the sensors it leaves off searching:
     :meth:`~covnet.covariance_control.surveillance_centre.SurveillanceCentre._by_policy`) on
     the same ``n_seeds`` seeds (paired), one row per policy and metric with the scalars'
-    intervals."""
+    intervals; with covariance control among them, each other row also holds its paired
+    differences from it (:func:`paired`)."""
     # start-up: the policies' scenario rules
     from covnet.covariance_control import compare_policies as cp
 
@@ -268,7 +270,40 @@ def policy_compare(
         k = cp.budget_for(sc, p, budget)
         datas[cp.point_of(p, k)] = normalised(cp.scenario_for(sc, p, k))
     by_point, outcome = _run_points("compare", sc, datas, n_seeds, out, workers, progress)
-    return [{"point": p, **r} for p, rs in by_point.items() for r in rs], outcome
+    rows = [{"point": p, **r} for p, rs in by_point.items() for r in rs]
+    if cp.REFERENCE in policies:
+        ref = cp.point_of(cp.REFERENCE, cp.budget_for(sc, cp.REFERENCE, budget))
+        for r in rows:
+            if r["point"] != ref:
+                paired(r, outcome.results[r["point"]], outcome.results[ref], cp.REFERENCE)
+    return rows, outcome
+
+
+def paired(
+    row: dict[str, Any],
+    seeds: Sequence[Mapping[str, Any]],
+    ref: Sequence[Mapping[str, Any]],
+    reference: str,
+) -> None:
+    """Add to one policy's ``row`` (one metric) its paired differences from ``reference``'s
+    runs over the seeds both ran: per seed ``d_s = x_s(policy) - x_s(reference)`` of every
+    scalar of :data:`SCALARS` (the same seed: the same targets, clutter and noise), and their
+    :func:`interval` (``<scalar>_vs_reference``: mean, Student 95 % interval, not cut: a
+    difference may have either sign).  A seed where either side has no value (no target ever
+    confirmed: no time to confirm) is left out of that scalar's difference.  Paired, a
+    difference is shown when its interval excludes 0, which two overlapping intervals of the
+    rows do not decide either way."""
+    m = row["metric"]
+    by_seed = {int(s["seed"]): s["metrics"][m] for s in ref if m in s["metrics"]}
+    common = [(s["metrics"][m], by_seed[int(s["seed"])]) for s in seeds
+              if int(s["seed"]) in by_seed and m in s["metrics"]]  # fmt: skip
+    if not common:
+        return
+    row["vs_reference"] = reference
+    for k in SCALARS:
+        d = [None if a.get(k) is None or b.get(k) is None else float(a[k]) - float(b[k])
+             for a, b in common]  # fmt: skip
+        row[f"{k}_vs_reference"] = interval(d)
 
 
 def compare_figure(out: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
@@ -314,7 +349,8 @@ def compare_figure(out: Path, rows: Sequence[Mapping[str, Any]]) -> Path:
 
 
 def compare_table(rows: Sequence[Mapping[str, Any]]) -> str:
-    """The policies' rows: means with their 95 % intervals."""
+    """The policies' rows: means with their 95 % intervals; then each policy's paired
+    differences from the reference (:func:`paired`), where they were computed."""
     lines = ["policy | metric | GOSPA (m) | time to confirm | missed targets | false tracks | "
              "breaks | tracked RMSE (m) | search share"]  # fmt: skip
     for r in rows:
@@ -324,4 +360,31 @@ def compare_table(rows: Sequence[Mapping[str, Any]]) -> str:
             f"{_ci(r['false_tracks'], '{:.1f}')} | {_ci(r['track_breaks'], '{:.1f}')} | "
             f"{_ci(r['rmse_tracked'], '{:.1f}')} | {_ci(r['search_share'], '{:.2f}')}"
         )
+    versus = [r for r in rows if r.get("vs_reference")]
+    if versus:
+        lines.append(
+            f"paired against {versus[0]['vs_reference']} (the same seeds, the same metric: mean "
+            "difference and its 95 % t interval; '=' where the interval contains 0: no "
+            "difference shown):"
+        )
+        for r in versus:
+            lines.append(
+                f"{r['point']} | {r['metric']} | GOSPA "
+                f"{_signed(r['gospa_mean_vs_reference'], '{:+.1f}')} m, time to confirm "
+                f"{_signed(r['time_to_confirm_mean_vs_reference'], '{:+.1f}')} scans, missed "
+                f"targets {_signed(r['missed_targets_vs_reference'])}, false tracks "
+                f"{_signed(r['false_tracks_vs_reference'], '{:+.1f}')}, tracked RMSE "
+                f"{_signed(r['rmse_tracked_vs_reference'], '{:+.1f}')} m"
+            )
     return "\n".join(lines)
+
+
+def _signed(b: Mapping[str, Any], fmt: str = "{:+.2f}") -> str:
+    """A paired difference's mean and interval, ``=`` appended where the interval holds 0."""
+    if b["mean"] is None:
+        return "-"
+    if b["ci95"] is None:
+        return fmt.format(b["mean"])
+    lo, hi = b["ci95"]
+    same = " =" if lo <= 0.0 <= hi else ""
+    return f"{fmt.format(b['mean'])} [{fmt.format(lo)}, {fmt.format(hi)}]{same}"

@@ -235,3 +235,56 @@ def test_many_target_mc_intervals_stop_at_zero():
     for b in (blk["ospa_per_scan"], tb["trace_P_per_scan"], tb["sensors_per_scan"]):
         assert b["ci95_low"][0] == 0.0 and b["ci95_high"][0] > 30.0, b
     assert tb["trace_P_per_scan"]["ci95_low"][1] == 1.0  # no spread: the value itself
+
+
+def test_policies_are_paired_against_covariance_control(tmp_path, capsys):
+    """``compare --policies`` of a surveillance config gave each policy's intervals only (two
+    overlapping intervals decide nothing): each other policy's row now holds its paired
+    differences from covariance control, seed by seed, here against ``covnet run`` of each
+    policy and seed."""
+    import math
+
+    from covnet.batches.stats import t_half_width
+
+    cfg = small(tmp_path)
+    out = tmp_path / "cmp"
+    args = ["compare", str(cfg), "--policies", "covariance_control,random", "--budget", "2",
+            "--runs", "3", "--out", str(out), "--no-figures"]  # fmt: skip
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    doc = json.loads((out / "compare.json").read_text())
+    rows = {r["point"]: r for r in doc["rows"]}
+    assert rows["policy=covariance_control"].get("vs_reference") is None
+    row = rows["policy=random,budget=2"]
+    assert row["vs_reference"] == "covariance_control"
+    summaries = {}
+    for policy in ("covariance_control", "random"):
+        for seed in (7, 8, 9):
+            d = yaml.safe_load(cfg.read_text())
+            d["seed"] = seed
+            d["allocation"] = {**d.get("allocation", {}), "policy": policy,
+                               "budget": None if policy == "covariance_control" else 2}  # fmt: skip
+            if policy != "covariance_control":  # a baseline takes no search keys
+                for k in ("search", "gap", "time_limit_s", "node_limit"):
+                    d["allocation"].pop(k, None)
+            p = tmp_path / f"{policy}-{seed}.yaml"
+            p.write_text(yaml.safe_dump(d))
+            run = tmp_path / f"run-{policy}-{seed}"
+            assert main(["run", str(p), "--out", str(run), "--no-figures"]) == 0
+            summaries[policy, seed] = json.loads((run / "summary.json").read_text())["metrics"][
+                "spectral"
+            ]
+    for key in ("gospa_mean", "false_tracks", "missed_targets"):
+        d = [summaries["random", s][key] - summaries["covariance_control", s][key]
+             for s in (7, 8, 9)]  # fmt: skip
+        got = row[f"{key}_vs_reference"]
+        assert got["n"] == 3 and math.isclose(got["mean"], sum(d) / 3, rel_tol=1e-12, abs_tol=1e-12)
+        mean = sum(d) / 3
+        sd = math.sqrt(sum((x - mean) ** 2 for x in d) / 2)
+        half = float(t_half_width(sd, 3))
+        assert got["ci95"] == [mean - half, mean + half] or math.isclose(
+            got["ci95"][1] - got["ci95"][0], 2 * half, rel_tol=1e-9, abs_tol=1e-12
+        )
+    csv = (out / "compare.csv").read_text().splitlines()
+    assert "gospa_mean_vs_reference_mean" in csv[0].split(",")
+    assert "paired against covariance_control" in printed
