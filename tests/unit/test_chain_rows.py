@@ -6,7 +6,11 @@ at most the exhaustive minimum over the sets they bound; each column's bound at 
 price at most the exhaustive minimum with prices; the Lagrangian dual function never exceeds
 the exhaustive assignment optimum at any prices (with and without a binding budget, and after
 the vertex rows raise the chain's intervals); rows raised above their sets' minimum are
-caught; the other metrics get no chain."""
+caught; the other metrics get no chain.
+
+The exhaustive assignment optimum is the fast exact allocator's (``allocate_assignments``:
+the exhaustive reference's bits, tests/property/test_multitarget_equivalence.py); the
+exhaustive loop itself took seconds a case here."""
 
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ import pytest
 from test_assignment_search import _problem, _timed_bounded
 from test_vertex_rows import _values
 
-from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments_exhaustive
+from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments
 from covnet.core.metrics import METRICS
 
 
@@ -95,7 +99,7 @@ def test_chain_rows_below_the_exhaustive_optimum(monkeypatch, metric, seed, max_
     N, T = 8, 3
     P, J, D, w, feas = _problem(N, T, 90 + seed)
     cons = MultiConstraints(max_active=max_active)
-    ref = allocate_assignments_exhaustive(P, J, D, metric, w, feas, cons)
+    ref = allocate_assignments(P, J, D, metric, w, feas, cons)
     plain = _dual(P, J, D, w, feas, metric, cons, chain=False, monkeypatch=monkeypatch)
     dual = _dual(P, J, D, w, feas, metric, cons)
     assert not plain.chain_pos and set(dual.chain_pos) == set(range(T))

@@ -1,7 +1,11 @@
 """The timed plan's root floors (covnet.core.allocation.assignment_search, round mt12): each
 root floor never exceeds the exhaustive minimum of its target; the Lagrangian dual function
 with them never exceeds the exhaustive assignment optimum at any prices; an inflated floor is
-caught; the dual steps' hook changes nothing when it raises nothing."""
+caught; the dual steps' hook changes nothing when it raises nothing.
+
+The exhaustive assignment optimum is the fast exact allocator's (``allocate_assignments``:
+the exhaustive reference's bits, tests/property/test_multitarget_equivalence.py); the
+exhaustive loop itself took seconds a case here."""
 
 from __future__ import annotations
 
@@ -12,7 +16,7 @@ import numpy as np
 import pytest
 from test_assignment_search import _problem, _timed_bounded
 
-from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments_exhaustive
+from covnet.core.allocation.assignment import MultiConstraints, allocate_assignments
 from covnet.core.allocation.exact import subset_covariance
 from covnet.core.metrics import METRICS
 
@@ -49,7 +53,7 @@ def test_root_floors_below_the_exhaustive_optimum(metric, seed, max_active):
     N, T = 7, 3
     P, J, D, w, feas = _problem(N, T, 40 + seed)
     cons = MultiConstraints(max_active=max_active)
-    ref = allocate_assignments_exhaustive(P, J, D, metric, w, feas, cons)
+    ref = allocate_assignments(P, J, D, metric, w, feas, cons)
     dual = _dual(P, J, D, w, feas, metric, cons)
     upper = np.full(T, 1e300)
     assert srch._root_floors(dual, upper, lambda: 10.0, 0.0) == T
@@ -72,7 +76,7 @@ def test_dual_steps_with_an_idle_mid_are_unchanged():
     from covnet.core.allocation import assignment_search as srch
 
     P, J, D, w, feas = _problem(9, 3, 7)
-    ref = allocate_assignments_exhaustive(P, J, D, "spectral", w, feas)
+    ref = allocate_assignments(P, J, D, "spectral", w, feas)
     ran = []
     a = srch._dual_bound(_dual(P, J, D, w, feas, "spectral", MultiConstraints()), ref.value, 60,
                          0.0, None)  # fmt: skip
@@ -106,7 +110,7 @@ def test_dual_steps_from_any_start_stay_below_the_optimum(seed):
     N, T = 8, 3
     P, J, D, w, feas = _problem(N, T, 60 + seed)
     cons = MultiConstraints(max_active=3)
-    ref = allocate_assignments_exhaustive(P, J, D, "spectral", w, feas, cons)
+    ref = allocate_assignments(P, J, D, "spectral", w, feas, cons)
     plain = srch._dual_bound(_dual(P, J, D, w, feas, "spectral", cons), ref.value, 40, 0.0, None)
     zero = srch._dual_bound(_dual(P, J, D, w, feas, "spectral", cons), ref.value, 40, 0.0, None,
                             pi0=np.zeros(N))  # fmt: skip
