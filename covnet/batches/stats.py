@@ -118,6 +118,19 @@ def plus_minus(
     return f"{format(mean, spec)} [{format(lo, spec)}, {format(hi, spec)}]"
 
 
+def interval_text(b: Mapping[str, Any], fmt: str = "{:.2f}", *, zero_mark: bool = False) -> str:
+    """An :func:`interval` summary as a table says it: ``mean [lo, hi]``, the mean alone
+    without an interval (one value), ``-`` without a value; ``zero_mark``: ``" ="`` appended
+    where the interval holds 0 (a paired difference not shown by these seeds)."""
+    if b["mean"] is None:
+        return "-"
+    if b["ci95"] is None:
+        return fmt.format(b["mean"])
+    lo, hi = b["ci95"]
+    same = " =" if zero_mark and lo <= 0.0 <= hi else ""
+    return f"{fmt.format(b['mean'])} [{fmt.format(lo)}, {fmt.format(hi)}]{same}"
+
+
 def count_range(counts: Iterable[int]) -> str:
     """Seed counts as a title says them: ``"6"``, or ``"6-9"`` where ``--ci-width`` gave the
     points different counts."""

@@ -29,7 +29,7 @@ import numpy as np
 
 from covnet import __version__
 from covnet.batches.pool import BatchInterrupted
-from covnet.batches.stats import NONNEGATIVE, SHARE, interval, per_scan_interval
+from covnet.batches.stats import NONNEGATIVE, SHARE, interval, interval_text, per_scan_interval
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, config_hash, from_dict, normalised
 from covnet.runs.rundir import CONFIG, RUN_INFO, utc_now, write_json
@@ -337,13 +337,7 @@ def json_rows(doc: Mapping[str, Any]) -> list[dict[str, Any]]:
 def format_table(doc: Mapping[str, Any]) -> str:
     """The headline numbers: per metric and target, means with their 95 % intervals."""
 
-    def ci(b: Mapping[str, Any], fmt: str = "{:.2f}") -> str:
-        if b["mean"] is None:
-            return "-"
-        if b["ci95"] is None:
-            return fmt.format(b["mean"])
-        lo, hi = b["ci95"]
-        return f"{fmt.format(b['mean'])} [{fmt.format(lo)}, {fmt.format(hi)}]"
+    ci = interval_text
 
     if doc.get("surveillance"):
         from covnet.covariance_control import surveillance_batch  # start-up

@@ -26,7 +26,13 @@ from typing import Any
 
 import numpy as np
 
-from covnet.batches.stats import NONNEGATIVE, SHARE, interval, per_scan_interval
+from covnet.batches.stats import (
+    NONNEGATIVE,
+    SHARE,
+    interval,
+    interval_text,
+    per_scan_interval,
+)
 from covnet.batches.trials import Batch, BatchProgress, Outcome, run_trials, trial_hash
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 from covnet.runs.rundir import save_figure
@@ -104,12 +110,7 @@ def aggregate(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 
 def _ci(b: Mapping[str, Any], fmt: str = "{:.2f}") -> str:
-    if b["mean"] is None:
-        return "-"
-    if b["ci95"] is None:
-        return fmt.format(b["mean"])
-    lo, hi = b["ci95"]
-    return f"{fmt.format(b['mean'])} [{fmt.format(lo)}, {fmt.format(hi)}]"
+    return interval_text(b, fmt)
 
 
 def format_table(agg: Mapping[str, Any], n_seeds: int) -> str:
@@ -381,10 +382,4 @@ def compare_table(rows: Sequence[Mapping[str, Any]]) -> str:
 
 def _signed(b: Mapping[str, Any], fmt: str = "{:+.2f}") -> str:
     """A paired difference's mean and interval, ``=`` appended where the interval holds 0."""
-    if b["mean"] is None:
-        return "-"
-    if b["ci95"] is None:
-        return fmt.format(b["mean"])
-    lo, hi = b["ci95"]
-    same = " =" if lo <= 0.0 <= hi else ""
-    return f"{fmt.format(b['mean'])} [{fmt.format(lo)}, {fmt.format(hi)}]{same}"
+    return interval_text(b, fmt, zero_mark=True)
