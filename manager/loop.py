@@ -43,7 +43,7 @@ from typing import Any, Protocol
 
 from covnet.clock import Clock
 from covnet.config import NetworkSpec
-from covnet.processes.node_kit import WORLD_GONE_WAIT_S, world_returns
+from covnet.processes.node_kit import WORLD_GONE_WAIT_S, config_id, world_returns
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, dropped
@@ -233,6 +233,10 @@ class Loop:
         #: whose world may be restarted): a scan then waits for it as for anything else
         self.world_returns = False
         self._looked_ns: int | None = None  # the last poll_membership
+        #: this manager's :func:`~covnet.processes.node_kit.config_id` (None: not compared), and
+        #: the one each node's heartbeats carry
+        self.config_id: str | None = None
+        self.node_configs: dict[str, str | None] = {}
         self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
         # each sensor's own measurement key (what parse_measurement_key gives for it)
         self._key_sensor = {msg.measurement_key(run_id, sid): sid for sid in sensor_ids}
@@ -247,12 +251,14 @@ class Loop:
             "status": msg.status_key(run_id),
         }
 
-    def end(self) -> None:
+    def end(self, failed: bool = False) -> None:
         """The run is over on purpose: declare its end (the nodes leave at once; a manager
         token lost without it is waited for, :class:`covnet.processes.node_kit.
-        ManagerWatch`), then withdraw the manager's token."""
+        ManagerWatch`), then withdraw the manager's token.  ``failed``: the run ended with an
+        error (:func:`~covnet.wire.messages.failed_key`: the nodes leave saying so)."""
         self.ending = True
-        self.done_token = self.bus.declare_token(msg.done_key(self.run_id))
+        key = msg.failed_key(self.run_id) if failed else msg.done_key(self.run_id)
+        self.done_token = self.bus.declare_token(key)
         self.token.undeclare()
 
     # ---- bus helpers --------------------------------------------------------------------
@@ -283,12 +289,24 @@ class Loop:
                 continue
             if role in ("sensor", "world", "recorder"):
                 self.members.token(node, ev.alive, now)
-            elif role == "manager" and node == msg.DONE_ID and ev.alive and not self.ending:
+            elif (
+                role == "manager"
+                and node in (msg.DONE_ID, msg.FAILED_ID)
+                and ev.alive
+                and not self.ending
+            ):
                 self.stats.reject(ev.key, "forged_done")
                 self.forged_done = True
         while (s := self.hb_sub.try_recv()) is not None:
             self.stats.received(s.key, len(s.payload))
             hb = take_heartbeat(self.stats, self.run_id, s, self.hb_known)
+            if hb is not None:
+                self.node_configs.setdefault(hb.node_id, hb.config)
+                if self.config_id is not None and hb.config not in (None, self.config_id):
+                    # another config's node (a host restarted with another copy): no sign of
+                    # life, so it fails like a node that went silent
+                    self.stats.reject(s.key, "config_mismatch")
+                    continue
             if hb is not None and hb.node_id != RECORDER_ID:
                 self.members.heartbeat(hb.node_id, now)
                 if hb.sent is not None and hb.role == "sensor":
@@ -353,17 +371,33 @@ class Loop:
         )
 
     def wait_ready(self, stop: threading.Event) -> None:
+        """Until every node's liveliness token is up and, with :attr:`config_id` set, every
+        node has said in a heartbeat which config it runs: one of another config is refused
+        (:class:`ManagerError` naming it and both identities), as is the wait past
+        ``ready_timeout_s``."""
         deadline = time.monotonic() + self.net.ready_timeout_s
         while True:
             self.poll_membership()
             missing = [n for n in self.wait_for if n not in self.members.alive_tokens]
             missing = missing or self.members.missing_tokens()
-            if not missing:
+            unheard: list[str] = []
+            if self.config_id is not None:
+                self._check_configs()
+                unheard = [n for n in (self.wait_for or self.members.expected)
+                           if n not in self.node_configs]  # fmt: skip
+            if not missing and not unheard:
                 return
             if stop.is_set():
                 raise ManagerError("stopped before the network was ready")
             if time.monotonic() > deadline:
-                raise ManagerError(f"nodes not alive after {self.net.ready_timeout_s} s: {missing}")
+                if missing:
+                    raise ManagerError(
+                        f"nodes not alive after {self.net.ready_timeout_s} s: {missing}"
+                    )
+                raise ManagerError(
+                    f"nodes alive but sent no heartbeat within {self.net.ready_timeout_s} s: "
+                    f"{unheard}"
+                )
             ev = self.live_sub.recv(timeout=0.05)
             if ev is not None:
                 try:
@@ -373,6 +407,19 @@ class Loop:
                     continue
                 if role in ("sensor", "world", "recorder"):
                     self.members.token(node, ev.alive, self.clock.now_ns())
+
+    def _check_configs(self) -> None:
+        """Refuse the run when a node's heartbeat named another config than this manager's
+        (:meth:`wait_ready`)."""
+        other = {n: c for n, c in self.node_configs.items() if c not in (None, self.config_id)}
+        if other:
+            nodes = ", ".join(f"{n} ({c})" for n, c in sorted(other.items()))
+            raise ManagerError(
+                f"nodes run another config than this manager's ({self.config_id}): {nodes}. "
+                "Every host of a run must run the same config file with the same run options "
+                "(--seed, --fusion, --solver); only network.router, network.connect, "
+                "network.security and the metrics (--metric) may differ"
+            )
 
     # ---- step 6 -------------------------------------------------------------------------
 
@@ -778,7 +825,7 @@ def _run_scans(
     finally:
         report.run()  # a stopped loop's last scan
         loop.stages.dump("manager", scans=loop.stats.scans_done)
-        loop.end()
+        loop.end(failed=result.error is not None)
         if linger_s > 0:
             loop.linger(linger_s, stop)
         loop.stats.dropped = dropped(loop.bus)
@@ -804,6 +851,7 @@ def run(
     ``completed=False``, or when the network never came up, with ``error`` set)."""
     loop = Loop(cfg.network, cfg.sensor_ids, bus, run_id, clock)
     loop.world_returns = world_returns(cfg)
+    loop.config_id = config_id(cfg)
     return run_scans(
         make_logic(cfg, loop),
         loop,

@@ -185,7 +185,10 @@ def run(
                 e, k = (e + 1, 1) if last else (e, k + 1)
         result.completed = True
     finally:
-        _done = bus.declare_token(msg.done_key(run_id))  # the run's end, on purpose (kept)
+        # the run's end, on purpose (kept); with an error, the nodes leave saying so
+        _done = bus.declare_token(
+            msg.failed_key(run_id) if result.error else msg.done_key(run_id)
+        )
         token.undeclare()
         # the nodes' last heartbeats, sent as they leave (what they refused to the end), and,
         # stopped, the Tracks and Statuses they sent meanwhile (the recording has them too)

@@ -37,7 +37,13 @@ from typing import Any
 
 from covnet.clock import Clock
 from covnet.config import Networked
-from covnet.processes.node_kit import NOTE, Heartbeat, ManagerWatch, manager_appear_s
+from covnet.processes.node_kit import (
+    NOTE,
+    Heartbeat,
+    ManagerWatch,
+    config_id,
+    manager_appear_s,
+)
 from covnet.runs.recording import RecordingReader, RecordingWriter, peek
 from covnet.runs.visual import Visualiser
 from covnet.wire import messages as msg
@@ -185,7 +191,9 @@ def _run(
     # its end is a crash whose recording the launcher rebuilds from at once
     manager = ManagerWatch(bus, run_id, appear_s=manager_appear_s(sc.network))
     token = bus.declare_token(msg.alive_key(run_id, ROLE, NODE_ID))
-    heartbeat = Heartbeat(bus, clock, run_id, ROLE, NODE_ID, sc.network.heartbeat_s)
+    heartbeat = Heartbeat(
+        bus, clock, run_id, ROLE, NODE_ID, sc.network.heartbeat_s, config_id(sc)
+    )
     last_scan = 0
 
     write = writer.write

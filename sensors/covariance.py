@@ -35,6 +35,7 @@ from covnet.clock import Clock, WallClock
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import Model, build_model, measure
 from covnet.covariance_control.sensor_side import Measured, SensorSide, Tracked
+from covnet.processes.node_kit import config_id
 from covnet.processes.process import EXIT_OK, open_client
 from covnet.wire import messages as msg
 from covnet.wire.batch_encode import MeasurementTemplate
@@ -135,6 +136,7 @@ def run_surveillance(
         respond=respond,
         scans=sm.scans,
         keep_truth=sm.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
+        config=config_id(sc),
         command_ok=command_ok,
     )
 
@@ -193,6 +195,7 @@ def run_targets(
         missed_command="off" if not sc.network.latency.is_ideal(sc.sensor_ids) else None,
         scans=tm.scans,
         keep_truth=tm.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
+        config=config_id(sc),
         command_ok=command_ok,
     )
 
@@ -244,6 +247,7 @@ def run(
         missed_command=sc.network.latency.missed_command if slow else None,
         scans=model.scans,
         keep_truth=model.scans <= msg.TRUTH_UPFRONT_MAX_SCANS,
+        config=config_id(sc),
         fast=fast_respond(side, clock),
     )
 

@@ -20,6 +20,7 @@ import numpy as np
 from covnet.clock import Clock
 from covnet.mobile.config import MobileConfig
 from covnet.mobile.model import build_model, measure_pair
+from covnet.processes.node_kit import config_id
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
 from sensors.protocol import SensorStats, process_main, serve
@@ -79,7 +80,7 @@ def run(
 
     stats = serve(
         sensor_id, bus, run_id, clock, stop, cfg.network, truth_ok=truth_ok, respond=respond,
-        scans=cfg.scans,
+        scans=cfg.scans, config=config_id(cfg),
     )
     if bad_targets[0]:
         stats.rejected["bad_target"] += bad_targets[0]

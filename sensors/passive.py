@@ -26,6 +26,7 @@ import numpy as np
 from covnet.clock import Clock
 from covnet.passive.config import PassiveConfig
 from covnet.passive.scene import draw
+from covnet.processes.node_kit import config_id
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
 from sensors.protocol import SensorStats, process_main, serve
@@ -62,7 +63,7 @@ def run(
 
     return serve(
         sensor_id, bus, run_id, clock, stop, cfg.network, truth_ok=truth_ok, respond=respond,
-        scans=cfg.scans,
+        scans=cfg.scans, config=config_id(cfg),
     )
 
 

@@ -56,6 +56,7 @@ from covnet.processes.node_kit import (
     WORLD_GONE_WAIT_S,
     Heartbeat,
     ManagerWatch,
+    config_id,
     manager_appear_s,
     manager_grace_s,
     world_returns,
@@ -306,7 +307,7 @@ def run(
     )
     manager = ManagerWatch(bus, run_id, manager_grace_s(net), manager_appear_s(net))
     token = bus.declare_token(msg.alive_key(run_id, "sensor", node_id))
-    heartbeat = Heartbeat(bus, clock, run_id, "sensor", node_id, net.heartbeat_s)
+    heartbeat = Heartbeat(bus, clock, run_id, "sensor", node_id, net.heartbeat_s, config_id(sc))
     keys = {
         "meas": msg.measurement_key(run_id, node_id),
         "track": msg.peer_track_key(run_id, node_id),

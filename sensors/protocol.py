@@ -31,8 +31,14 @@ from typing import Any
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
 from covnet.core.delay import measures_on_missed
-from covnet.processes.node_kit import Heartbeat, ManagerWatch, manager_appear_s, manager_grace_s
-from covnet.processes.process import EXIT_OK, open_client
+from covnet.processes.node_kit import (
+    NOTE,
+    Heartbeat,
+    ManagerWatch,
+    manager_appear_s,
+    manager_grace_s,
+)
+from covnet.processes.process import EXIT_FAIL, EXIT_OK, open_client
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, Subscription, Token
 from covnet.wire.profiling import Stages, profiled
@@ -47,6 +53,9 @@ class SensorStats:
     missed_truth: int = 0  # commanded scans whose truth never came (e.g. just after a restart)
     missed_commands: int = 0  # scans whose command never came (slow links)
     rejected: Counter[str] = field(default_factory=Counter)
+    #: the sensor left because the manager went away without ending the run
+    #: (:attr:`~covnet.processes.node_kit.ManagerWatch.crashed`)
+    manager_lost: bool = False
 
 
 TruthCheck = Callable[[msg.Truth], bool]
@@ -116,6 +125,7 @@ def serve(
     keep_truth: bool = False,
     command_ok: Callable[[msg.Command], bool] | None = None,
     fast: FastRespond | None = None,
+    config: str | None = None,
 ) -> SensorStats:
     """The protocol every kind of sensor shares (see the module docstring).
 
@@ -138,12 +148,13 @@ def serve(
     ``fast(command, truth, seq)`` is the payload of ``respond(command, truth)`` numbered
     ``seq``, the same bytes made without building the message (``sensors.covariance``: a
     measurement from its :class:`~covnet.wire.batch_encode.MeasurementTemplate`), or ``None``
-    for a case it does not take (then ``respond`` and the codec)."""
+    for a case it does not take (then ``respond`` and the codec).  ``config``: the sensor's
+    :func:`~covnet.processes.node_kit.config_id`, in its heartbeats."""
     with profiled(f"sensor-{sensor_id}"):
         return _serve(
             sensor_id, bus, run_id, clock, stop, net, truth_ok=truth_ok, respond=respond,
             scans=scans, missed_command=missed_command, keep_truth=keep_truth,
-            command_ok=command_ok, fast=fast,
+            command_ok=command_ok, fast=fast, config=config,
         )  # fmt: skip
 
 
@@ -167,6 +178,7 @@ class _Sensor:
         keep_truth: bool,
         command_ok: Callable[[msg.Command], bool] | None,
         fast: FastRespond | None = None,
+        config: str | None = None,
     ) -> None:
         self.id, self.bus, self.run_id, self.clock = sensor_id, bus, run_id, clock
         self.scans = scans
@@ -178,7 +190,9 @@ class _Sensor:
         #: the sub-chunk a command key carries when it enables this sensor (``$*~<id>~$*``)
         self.tag = f"~{sensor_id}~"
         self.meas_key = msg.measurement_key(run_id, sensor_id)
-        self.heartbeat = Heartbeat(bus, clock, run_id, "sensor", sensor_id, net.heartbeat_s)
+        self.heartbeat = Heartbeat(
+            bus, clock, run_id, "sensor", sensor_id, net.heartbeat_s, config
+        )
         self.truths: dict[int, msg.Truth] = {}
         self.pending: deque[msg.Command] = deque()  # enabled commands not yet answered
         self.last_scan = 0
@@ -318,10 +332,12 @@ def _serve(
     keep_truth: bool,
     command_ok: Callable[[msg.Command], bool] | None,
     fast: FastRespond | None,
+    config: str | None,
 ) -> SensorStats:
     one = _Sensor(
         sensor_id, bus, run_id, clock, net, truth_ok=truth_ok, respond=respond, scans=scans,
         missed_command=missed_command, keep_truth=keep_truth, command_ok=command_ok, fast=fast,
+        config=config,
     )  # fmt: skip
     host = _hosts.get(id(getattr(bus, "session", None)))
     if host is not None and host.takes(one):
@@ -340,6 +356,7 @@ def _serve(
         while not stop.is_set():
             one.tick()
             if manager.left:
+                one.stats.manager_lost = manager.crashed
                 break
             lap("heartbeat")
             if one.pending:  # waiting for a commanded scan's truth
@@ -469,6 +486,8 @@ class HostLoop:
                             one.tick()
                     next_beat = min(one.heartbeat.due_ns for one in sensors)
                 if manager.left:
+                    for one in sensors:
+                        one.stats.manager_lost = manager.crashed
                     break
                 lap("heartbeat")
                 if waiting:  # waiting for a commanded scan's truth
@@ -547,4 +566,12 @@ def process_main(
         f"stopped: {stats.commands} commands received, {stats.enabled_scans} scans enabled, "
         f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}",
     )
+    if stats.manager_lost:
+        say(
+            args,
+            f"{NOTE}run {args.run} did not end well: its manager failed or went away without "
+            "ending the run (see the manager's output, on its host); this sensor stopped with "
+            "it",
+        )
+        return EXIT_FAIL
     return EXIT_OK

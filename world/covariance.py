@@ -31,6 +31,7 @@ from covnet.covariance_control.model import Model, build_model, truth_trajectory
 from covnet.processes.node_kit import (
     Heartbeat,
     ManagerWatch,
+    config_id,
     manager_appear_s,
     manager_grace_s,
     serve_commands,
@@ -106,7 +107,7 @@ def run(sc: Scenario, bus: Bus, run_id: str, clock: Clock, stop: threading.Event
     try:
         serve_commands(
             bus, run_id, clock, stop, sc.network, "world", "world", counts, handle,
-            idle=follow_heartbeats,
+            idle=follow_heartbeats, config=config_id(sc),
         )  # fmt: skip
     finally:
         joins.close()

@@ -19,7 +19,7 @@ from covnet.clock import Clock
 from covnet.core.mobile.models import MODE_NAMES, STAY
 from covnet.mobile.config import MobileConfig
 from covnet.mobile.model import build_model, move_platforms, truth
-from covnet.processes.node_kit import serve_commands
+from covnet.processes.node_kit import config_id, serve_commands
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
 
@@ -80,5 +80,8 @@ def run(
         last = k
         return True
 
-    serve_commands(bus, run_id, clock, stop, cfg.network, ROLE, NODE_ID, counts, handle)
+    serve_commands(
+        bus, run_id, clock, stop, cfg.network, ROLE, NODE_ID, counts, handle,
+        config=config_id(cfg),
+    )  # fmt: skip
     return counts

@@ -10,7 +10,7 @@ from collections import Counter
 
 from covnet.clock import Clock
 from covnet.passive.config import PassiveConfig
-from covnet.processes.node_kit import serve_commands
+from covnet.processes.node_kit import config_id, serve_commands
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
 
@@ -49,5 +49,8 @@ def run(
         state["last"] = k
         return True
 
-    serve_commands(bus, run_id, clock, stop, cfg.network, ROLE, NODE_ID, counts, handle)
+    serve_commands(
+        bus, run_id, clock, stop, cfg.network, ROLE, NODE_ID, counts, handle,
+        config=config_id(cfg),
+    )  # fmt: skip
     return counts

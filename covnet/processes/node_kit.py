@@ -29,10 +29,17 @@ class Heartbeat:
     sensor measuring every scan sends no heartbeat while it does."""
 
     def __init__(
-        self, bus: Bus, clock: Clock, run_id: str, role: str, node_id: str, period_s: float
+        self,
+        bus: Bus,
+        clock: Clock,
+        run_id: str,
+        role: str,
+        node_id: str,
+        period_s: float,
+        config: str | None = None,
     ) -> None:
         self._bus, self._clock = bus, clock
-        self._role, self._node_id = role, node_id
+        self._role, self._node_id, self._config = role, node_id, config
         self._key = msg.heartbeat_key(run_id, role, node_id)
         self._period_ns = int(period_s * 1e9)
         self._next_ns = 0
@@ -63,6 +70,7 @@ class Heartbeat:
             t_sent_ns=t,
             rejected=dict(rejected) if rejected else None,
             sent=sent,
+            config=self._config,
         )
         self._bus.publish(self._key, msg.encode(hb))
         self._next_ns = t + self._period_ns
@@ -91,6 +99,34 @@ NOTE = "note: "
 it: :func:`covnet.processes.up.shown`); the recorder's visual channels cut short by their time
 budget said so only with ``--verbose``: a long run's Foxglove view ended at scan 4 731 of 6 000
 without a word."""
+
+
+CONFIG_ID_FREE = ("router", "connect", "security")
+"""The ``network`` keys that may differ between the hosts of one run (their endpoints, their
+certificate and password files), left out of :func:`config_id`."""
+
+
+def config_id(cfg: Any) -> str:
+    """The identity of the config a node runs, run options applied (``--seed``, ``--fusion``,
+    ``--solver``): 16 hex digits of the hash of the kind's normalised config without the
+    ``network`` keys of :data:`CONFIG_ID_FREE` and without ``allocation.metrics`` (``--metric``:
+    the manager's choice of episodes; a sensor measures the same whatever the metric, and
+    the manager's episodes are its own).  Every node's heartbeats carry it, and the manager
+    starts only when every node's equals its own: hosts given one ``--run`` with a stale copy
+    of the config, another seed or another fusion mode ran one mixed network, every host
+    exiting 0 and ``run.json`` claiming the manager's config."""
+    # start-up: the kinds' registry, only as a node begins
+    from covnet import kinds
+    from covnet.config import hash_of
+
+    data = kinds.of(cfg).normalised(cfg)
+    net = data.get("network")
+    if isinstance(net, dict):
+        data = {**data, "network": {k: v for k, v in net.items() if k not in CONFIG_ID_FREE}}
+    alloc = data.get("allocation")
+    if isinstance(alloc, dict):
+        data = {**data, "allocation": {k: v for k, v in alloc.items() if k != "metrics"}}
+    return hash_of(data)[:16]
 
 
 def world_returns(cfg: Any) -> bool:
@@ -139,6 +175,7 @@ class ManagerWatch:
         self.seen = False
         self.up = False
         self.done = False
+        self.failed = False  # the manager declared the run's end with an error
         self.down_since = 0.0
 
     def poll(self) -> None:
@@ -147,8 +184,9 @@ class ManagerWatch:
                 node = msg.parse_alive_key(ev.key)[1]
             except ValueError:
                 continue
-            if node == msg.DONE_ID:
+            if node in (msg.DONE_ID, msg.FAILED_ID):
                 self.done = self.done or ev.alive
+                self.failed = self.failed or (ev.alive and node == msg.FAILED_ID)
             elif node == msg.MANAGER_ID:
                 self.seen = self.seen or ev.alive
                 if self.up and not ev.alive:
@@ -167,6 +205,15 @@ class ManagerWatch:
             )
         return self.seen and not self.up and time.monotonic() - self.down_since >= self.grace_s
 
+    @property
+    def crashed(self) -> bool:
+        """Whether the run did not end well for this node: the manager declared its end with
+        an error (:func:`~covnet.wire.messages.failed_key`: nodes of another config, say), or
+        left without declaring it (its process or host failed).  A sensor that leaves for
+        that says so and exits 1 (a sensors-only host exited 0, with the lines of a completed
+        run, when the manager's host died mid-run)."""
+        return self.failed or (self.seen and not self.done and not self.up)
+
     def close(self) -> None:
         self._sub.close()
 
@@ -182,16 +229,19 @@ def serve_commands(
     counts: Counter[str],
     handle: Callable[[msg.Command], bool],
     idle: Callable[[], None] | None = None,
+    *,
+    config: str | None = None,
 ) -> None:
     """A node that acts on the manager's commands (the world): subscribe, declare the token,
     then until ``stop`` or the manager leaves: heartbeat, decode each command strictly (a bad
     one counted as ``rejected:<reason>``) and pass it to ``handle``, which returns whether it
     took it (else it counted why).  Heartbeats carry the last scan taken and the rejections.
-    ``idle()``, when given, runs before each wait for a command."""
+    ``idle()``, when given, runs before each wait for a command; ``config``: the node's
+    :func:`config_id`, in its heartbeats."""
     cmd_sub = bus.subscribe(msg.command_keyexpr(run_id))  # every command
     manager = ManagerWatch(bus, run_id, manager_grace_s(net), manager_appear_s(net))
     token = bus.declare_token(msg.alive_key(run_id, role, node_id))
-    heartbeat = Heartbeat(bus, clock, run_id, role, node_id, net.heartbeat_s)
+    heartbeat = Heartbeat(bus, clock, run_id, role, node_id, net.heartbeat_s, config)
     last_scan = 0
     try:
         while not stop.is_set() and not manager.left:

@@ -208,6 +208,19 @@ def done_key(run: str) -> str:
     return alive_key(run, "manager", DONE_ID)
 
 
+FAILED_ID = "failed"
+"""The id of the token a manager declares instead of :data:`DONE_ID` when its run ended with an
+error, :func:`failed_key`."""
+
+
+def failed_key(run: str) -> str:
+    """``covnet/<run>/alive/manager/failed``: as :func:`done_key` (the nodes leave at once),
+    for a run that ended with an error (nodes of another config, nodes never up, a forged
+    end): a node that leaves on it says so and exits 1, where it exits 0 after
+    :func:`done_key`."""
+    return alive_key(run, "manager", FAILED_ID)
+
+
 def alive_keyexpr(run: str, role: str | None = None) -> str:
     """``covnet/<run>/alive/<role>/*`` (or ``alive/*/*`` for every role): liveliness tokens."""
     return f"{_root(run)}/alive/{'*' if role is None else _valid(role, 'role')}/*"

@@ -21,6 +21,7 @@ from covnet.wire.codec import (
 )
 from covnet.wire.keys import (
     DONE_ID,
+    FAILED_ID,
     MANAGER_ID,
     MAX_NAME_LEN,
     RECORDER_ID,
@@ -32,6 +33,7 @@ from covnet.wire.keys import (
     command_key,
     command_keyexpr,
     done_key,
+    failed_key,
     heartbeat_key,
     heartbeat_keyexpr,
     measurement_key,
@@ -87,6 +89,7 @@ __all__ = [
     "MAX_IDS",
     "MAX_NAME_LEN",
     "DONE_ID",
+    "FAILED_ID",
     "MANAGER_ID",
     "MAX_PAYLOAD_BYTES",
     "MESSAGE_TYPES",
@@ -107,6 +110,7 @@ __all__ = [
     "WireError",
     "alive_key",
     "done_key",
+    "failed_key",
     "alive_keyexpr",
     "command_key",
     "command_keyexpr",

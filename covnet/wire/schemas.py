@@ -618,7 +618,11 @@ class Heartbeat(_Message):
     optionally its running count of rejected messages by reason (so the manager's
     ``network.json`` can report every node's rejections).  A sensor's also carry ``sent``, how
     many messages it has sent for the manager (the ``seq`` of its last one), and it sends one
-    more as it leaves: so the manager knows of the last ones too when they are lost."""
+    more as it leaves: so the manager knows of the last ones too when they are lost.
+    ``config``: the identity of the config the node runs
+    (:func:`covnet.processes.node_kit.config_id`), which the manager compares with its own
+    before the run starts (hosts given one ``--run`` but different configs or run options
+    were mixed without a word)."""
 
     KIND: ClassVar[str] = "hb"
     role: Name
@@ -627,6 +631,7 @@ class Heartbeat(_Message):
     t_sent_ns: Stamp
     rejected: Counts | None = None
     sent: Count | None = None
+    config: Name | None = None
 
 
 Message = Truth | Command | Measurement | Track | Status | Heartbeat | LocalTrack

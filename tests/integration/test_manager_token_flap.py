@@ -93,7 +93,7 @@ def test_a_manager_token_lost_for_a_moment_loses_no_node(paper, tmp_path, monkey
     out = tmp_path / "run"
     t0 = time.monotonic()
     result, stats = run_recorded_network(sc, ["spectral"], out)
-    assert flapped.is_set()
+    assert flapped.is_set(), result.error
     assert result.completed and result.error is None
     assert not result.episodes["spectral"].failures  # no node failed, none left
     ref = run_metric(sc, "spectral")

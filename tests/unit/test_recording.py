@@ -216,9 +216,9 @@ def test_every_key_builder_of_a_message_has_its_channel_kind():
         msg.peer_track_key(RUN, "S1"), msg.peer_status_key(RUN, "S1"),
     }  # fmt: skip
     # every message key builder is among these (a new one must be added here and to key_kind;
-    # alive_key and done_key make liveliness tokens, not message keys)
+    # alive_key, done_key and failed_key make liveliness tokens, not message keys)
     builders = {n for n in dir(msg) if n.endswith("_key") and not n.startswith("parse_")}
-    assert builders - {"alive_key", "done_key"} == {
+    assert builders - {"alive_key", "done_key", "failed_key"} == {
         "truth_key", "command_key", "measurement_key", "track_key", "status_key",
         "heartbeat_key", "peer_track_key", "peer_status_key",
     }  # fmt: skip

@@ -1,0 +1,96 @@
+"""Hosts of one run must run one config (hunt 11): two launchers on 127.0.0.1 given one
+``--run`` and router, the sensors' with another ``--seed`` (or a stale copy of the config),
+ran one mixed network, both exiting 0, ``run.json`` claiming the manager's config and seed.
+Every node's heartbeat now carries its config's identity
+(:func:`covnet.processes.node_kit.config_id`), and the manager refuses to start with a node of
+another, naming it."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+
+import pytest
+import yaml
+from multiproc import CovnetProcess, assert_nothing_left
+
+from covnet.processes.node_kit import config_id
+from covnet.processes.up import free_port
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
+
+
+def _short(paper_path, tmp_path, name="p.yaml", **over):
+    data = yaml.safe_load(paper_path.read_text())
+    data.update({"scans": 12, **over})
+    data["network"] = {**data.get("network", {}), "ready_timeout_s": 20.0}
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_a_host_of_another_seed_is_refused_by_name(tmp_path, paper_path):
+    cfg = _short(paper_path, tmp_path)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    common = [str(cfg), "--router", router, "--run", f"agree{os.getpid()}", "--no-figures"]
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", "manager,world,recorder"])
+    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", "sensors", "--seed", "7"])
+    try:
+        rc_a = mgr.wait(timeout=90)
+        rc_b = sens.wait(timeout=60)
+    finally:
+        mgr.stop()
+        sens.stop()
+    out = mgr.output()
+    assert rc_a == 1, out
+    # the first node heard of the other config, named with its identity
+    assert "another config" in out and "--seed" in out, out
+    assert re.search(r"S\d+ \([0-9a-f]{16}\)", out), out
+    info = json.loads((a_out / "run.json").read_text())
+    assert info["status"] == "failed" and "another config" in info["ended"]
+    assert info["scans_completed"] == {}  # refused before the first scan: nothing mixed
+    # the sensors' host does not say the run went well (it exited 0, "stopped" lines only)
+    assert rc_b == 1 and "did not end well" in sens.output(), sens.output()
+    assert_nothing_left(a_out)
+
+
+def test_a_sensors_host_says_so_when_the_managers_host_dies(tmp_path, paper_path):
+    """The manager's host killed mid-run: the sensors' host exited 0 with the lines of a
+    completed run, about 3 s later; it now exits 1 saying the run did not end well."""
+    cfg = _short(paper_path, tmp_path, scans=400)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    common = [str(cfg), "--router", router, "--run", f"die{os.getpid()}", "--no-figures"]
+    common += ["--realtime", "--speed", "20"]
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", "manager,world,recorder"])
+    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", "sensors"])
+    try:
+        assert mgr.wait_for("[manager] READY", timeout=60), mgr.output() + sens.output()
+        pid = json.loads((a_out / "processes.json").read_text())["manager"]
+        os.kill(pid, signal.SIGKILL)
+        rc_b = sens.wait(timeout=60)
+        mgr.wait(timeout=60)
+    finally:
+        mgr.stop()
+        sens.stop()
+    assert rc_b == 1, sens.output()
+    assert "did not end well" in sens.output(), sens.output()
+
+
+def test_config_id_ignores_only_the_per_host_keys(tmp_path, paper_path):
+    """The hosts' endpoints and security files may differ; the rest may not."""
+    from covnet import kinds
+
+    def cid(**over):
+        _, cfg = kinds.load(_short(paper_path, tmp_path, "c.yaml", **over))
+        return config_id(cfg)
+
+    base = cid()
+    assert cid(network={"router": "tcp/127.0.0.1:7447", "ready_timeout_s": 20.0}) == base
+    assert cid(network={"connect": "tcp/127.0.0.1:7447", "ready_timeout_s": 20.0}) == base
+    assert cid(seed=7) != base
+    assert cid(allocation={"metrics": ["svd"]}) == base  # the manager's episodes, its own
+    assert cid(network={"heartbeat_s": 0.1, "ready_timeout_s": 20.0}) != base
