@@ -78,6 +78,7 @@ def entry() -> int:
         # the command has its status: a late signal must not turn the exit into a traceback
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
         if status is not None:
             _status.append(status)
     assert status is not None

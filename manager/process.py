@@ -17,6 +17,7 @@ from typing import Any
 
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
+from covnet.processes import output
 from covnet.processes.process import EXIT_FAIL, EXIT_OK, open_bus
 from covnet.runs.rundir import LIVE, record_end, utc_now, write_json
 from covnet.wire import security
@@ -126,15 +127,29 @@ def serve(
     last_write = [0.0]
     last_status = [0.0]
     latest: list[dict[str, Any]] = []
+    launcher_gone = threading.Event()
+
+    def tell(line: str) -> None:
+        """A line for the launcher (its pipe).  Once the launcher has gone (killed, or its
+        terminal closed: a hang-up), the write fails: stop the run and keep its results, as
+        a Ctrl-C does (the manager died on the broken pipe, and every scan done was lost)."""
+        if launcher_gone.is_set():
+            return
+        try:
+            print(line, flush=True)
+        except OSError:
+            launcher_gone.set()
+            output.silence()
+            stop.set()
 
     def on_ready() -> None:
-        print("READY", flush=True)
+        tell("READY")
 
     def on_status(st: dict[str, Any]) -> None:
         now = time.monotonic()
         latest[:] = [st]
         if now - last_status[0] >= 0.05 or st["scan"] == st["scans"]:
-            print("STATUS " + json.dumps(st), flush=True)
+            tell("STATUS " + json.dumps(st))
             last_status[0] = now
 
     def on_progress(result: Any, episode_done: bool) -> None:
@@ -154,34 +169,42 @@ def serve(
         stop=stop,
         extra_json5=extra,
     ) as bus:
-        print(f"LISTENING {endpoint}", flush=True)
+        tell(f"LISTENING {endpoint}")
         result = run_loop(bus, WallClock(args.speed), Hooks(on_ready, on_status, on_progress))
         # the run is over (our token is gone): the nodes leave on their own; keep the router
         # up until they have, so that none is cut off mid-publish
         wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
     try:
         write(result)
-        status, why = ending(result, stop)
+        status, why = ending(result, stop, launcher_gone.is_set())
         record_end(out, status, why, membership=result.stats.membership_counts())
     finally:  # the run is over: no live snapshot stays, also when the results could not be
         # written (a full disk: the OSError names the file; the launcher rebuilds or says so)
         with contextlib.suppress(OSError):
             (out / LIVE).unlink(missing_ok=True)
     if result.error and status == "failed":
-        print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
+        with contextlib.suppress(OSError):  # the launcher may have gone
+            print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
         return EXIT_FAIL
-    print(f"DONE completed={result.completed} out={args.out}", flush=True)
+    tell(f"DONE completed={result.completed} out={args.out}")
     return EXIT_OK
 
 
-def ending(result: Any, stop: threading.Event) -> tuple[str, str]:
+def ending(
+    result: Any, stop: threading.Event, launcher_gone: bool = False
+) -> tuple[str, str]:
     """``(status, why)`` of a loop's ``result``: ``completed`` when every scan was done,
     ``interrupted`` when a signal stopped it (also before the network was ready: the loop's
-    error then only says that it was stopped), ``failed`` with its error, else ``failed``."""
+    error then only says that it was stopped) or the launcher went (``launcher_gone``: the
+    pipe of its lines broke), ``failed`` with its error, else ``failed``."""
     if result.completed and not result.error:
         return "completed", "every scan done"
     if stop.is_set():
-        why = "stopped by SIGINT or SIGTERM (Ctrl-C in the launcher)"
+        why = (
+            "stopped: the launcher went away (killed, or its terminal closed)"
+            if launcher_gone
+            else "stopped by SIGINT or SIGTERM (Ctrl-C in the launcher)"
+        )
         return "interrupted", f"{why}: {result.error}" if result.error else why
     if result.error:
         return "failed", str(result.error)

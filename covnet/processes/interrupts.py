@@ -116,13 +116,16 @@ def _hook(unraisable: Any, fallback: Any = None) -> None:
 
 
 def deliver_late_interrupts() -> None:
-    """Install :func:`raise_interrupt` for SIGINT and SIGTERM (a SIGTERM stops a command as a
-    Ctrl-C does) and the unraisable hook (idempotent; other unraisable exceptions go to the
-    hook in place).  Main thread only."""
+    """Install :func:`raise_interrupt` for SIGINT, SIGTERM and SIGHUP (a SIGTERM or a hang-up
+    stops a command as a Ctrl-C does) and the unraisable hook (idempotent; other unraisable
+    exceptions go to the hook in place).  Main thread only."""
     global _answered
     _answered = False  # a new command (tests run several in one process)
     signal.signal(signal.SIGINT, raise_interrupt)
     signal.signal(signal.SIGTERM, raise_interrupt)
+    # a hang-up (the terminal closed, an ssh session dropped) as SIGTERM: it killed the
+    # launcher at once, and a long run's results with it
+    signal.signal(signal.SIGHUP, raise_interrupt)
     current = sys.unraisablehook
     if getattr(current, "covnet_interrupts", False):
         return

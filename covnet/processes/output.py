@@ -46,5 +46,5 @@ def say(text: str) -> None:
         return
     try:
         print(text, flush=True)
-    except BrokenPipeError:
+    except OSError:  # a broken pipe, or a terminal hung up (EIO)
         silence()

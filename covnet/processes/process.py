@@ -120,7 +120,8 @@ def resolve_run(args: Any, cfg: Any) -> str:
 
 
 def stop_on_signals() -> threading.Event:
-    """SIGINT and SIGTERM set the returned event (the loop then winds down and returns)."""
+    """SIGINT, SIGTERM and SIGHUP set the returned event (the loop then winds down and
+    returns)."""
     stop = threading.Event()
 
     def handler(signum: int, frame: Any) -> None:
@@ -128,6 +129,7 @@ def stop_on_signals() -> threading.Event:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGHUP, handler)
     return stop
 
 

@@ -373,6 +373,7 @@ def up(
         "router": router,
     }
     previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt)
+    previous_hup = signal.signal(signal.SIGHUP, interrupts.raise_interrupt)  # a hang-up too
     status = 0
     lost: dict[str, dict[str, Any]] = {}  # VITAL nodes that died and were not restarted
     sup = Supervisor(
@@ -446,13 +447,17 @@ def up(
         raise
     except KeyboardInterrupt:
         sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
-        ended = settle(kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C or SIGTERM)")
+        ended = settle(
+            kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C, SIGTERM or a hang-up)"
+        )
         _note_restarts(out, sup.restarts)  # the launcher printed them: run.json says them too
         ended += _note_lost(out, lost)
-        print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
+        with contextlib.suppress(OSError):  # a hang-up: the terminal may be gone
+            print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
         return interrupts.EXIT_INTERRUPTED
     finally:
         signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGHUP, previous_hup)
 
 
 def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str, why: str) -> str:
