@@ -16,6 +16,7 @@ draws the figures from the run directory.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shutil
@@ -120,6 +121,32 @@ def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
+
+
+def router_in_use(endpoint: str) -> str | None:
+    """Why the manager could not listen on ``endpoint`` because something already does
+    (another run given the same ``--router``), else None: a probe bind, before any node
+    starts.  The manager found out only ~2 s later, as it opened its router, and by then this
+    launcher's world and sensors had joined the other run on that port (its sensors took their
+    truths, its estimate drifted, and it waited ``scan_timeout_s`` every scan).  Other bind
+    errors (an address not on this host) are the manager's to report, as before."""
+    proto, _, hostport = endpoint.partition("/")
+    host, _, port = hostport.rpartition(":")
+    if proto not in ("tcp", "tls") or not port.isdigit() or int(port) == 0:
+        return None
+    host = host.strip("[]")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # not fooled by TIME_WAIT
+        try:
+            s.bind((host, int(port)))
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                return (
+                    f"{endpoint} is in use: something listens there already (another run "
+                    "given the same --router?); its nodes would have joined that run"
+                )
+    return None
 
 
 def resolve_router(endpoint: str) -> str:
@@ -344,6 +371,8 @@ def up(
     preflight(sc, nodes_here, str(config_path), router=given_router)
     if not any(sp.name == "manager" for sp in specs):
         return _supervise_without_manager(specs, out, run_id, router, hosts)
+    if topology is None and (taken := router_in_use(router)) is not None:
+        raise UpError(f"--router: {taken}; nothing was started")
     ready = threading.Event()
     view = StatusView(sc.scans, kind.episodes(sc))
     restartable = {sp.name for sp in specs if sp.restart}
