@@ -14,6 +14,7 @@ memory.  :meth:`Column.array` gives the stacked array, with the values bit for b
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import tempfile
@@ -69,10 +70,11 @@ class Column(_Spilling):
         self._n += 1
 
     def _write(self, block: NDArray[Any]) -> None:
-        if self._spill is None:
-            self._spill = tempfile.TemporaryFile(prefix="covnet-column-")
-        self._spill.seek(0, 2)
-        self._spill.write(np.ascontiguousarray(block).tobytes())
+        with _named_spill_errors():
+            if self._spill is None:
+                self._spill = tempfile.TemporaryFile(prefix="covnet-column-")
+            self._spill.seek(0, 2)
+            self._spill.write(np.ascontiguousarray(block).tobytes())
         self._spilled += BLOCK
 
     def _read_spilled(self) -> NDArray[Any]:
@@ -102,6 +104,20 @@ class Column(_Spilling):
         return np.concatenate([head, tail])
 
 
+@contextlib.contextmanager
+def _named_spill_errors() -> Iterator[None]:
+    """An ``OSError`` of a spill file (an anonymous file: its error names no file, so a full
+    ``$TMPDIR`` was reported as a bare "No space left on device", the disk of ``--out``
+    having room) raised again naming the folder and what the file holds."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is not None or exc.errno is None:
+            raise
+        where = f"{tempfile.gettempdir()} (the spill file of a long run's per-scan rows; $TMPDIR)"
+        raise OSError(exc.errno, exc.strerror, where) from exc
+
+
 class Records(_Spilling):
     """Per-scan records of varying shape (JSON-able dicts: what a run's JSON file lists scan by
     scan), appended one at a time (a list's ``append``, ``len``, truthiness and iteration);
@@ -119,10 +135,11 @@ class Records(_Spilling):
         self._tail.append(record)
         self._n += 1
         if len(self._tail) >= BLOCK:
-            if self._spill is None:
-                self._spill = tempfile.TemporaryFile(prefix="covnet-records-")
-            self._spill.seek(0, 2)
-            self._spill.write("".join(json.dumps(r) + "\n" for r in self._tail).encode())
+            with _named_spill_errors():
+                if self._spill is None:
+                    self._spill = tempfile.TemporaryFile(prefix="covnet-records-")
+                self._spill.seek(0, 2)
+                self._spill.write("".join(json.dumps(r) + "\n" for r in self._tail).encode())
             self._tail = []
 
     def __len__(self) -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -62,3 +63,33 @@ def test_a_column_whose_init_was_cut_short_is_collected_quietly(monkeypatch):
     monkeypatch.undo()
     gc.collect()
     assert not seen, [str(u.exc_value) for u in seen]
+
+
+def test_a_full_spill_folder_is_named(monkeypatch, tmp_path):
+    """A spill file is anonymous, so its error named no file: a full ``$TMPDIR`` was a bare
+    "No space left on device" while the disk of ``--out`` had room (hunt 11)."""
+    import errno
+    import tempfile
+
+    from covnet.runs import columns
+    from covnet.runs.rundir import os_error_text
+
+    class Full:
+        def seek(self, *a):
+            return 0
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(tempfile, "TemporaryFile", lambda **kw: Full())
+    for store, row in ((columns.Column((2,)), np.zeros(2)), (columns.Records(), {})):
+        with pytest.raises(OSError) as err:
+            for _ in range(columns.BLOCK + 1):
+                store.append(row)
+        text = os_error_text(err.value)
+        assert str(tmp_path) in text and "No space left on device" in text and "TMPDIR" in text
+        assert err.value.errno == errno.ENOSPC
