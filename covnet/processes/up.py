@@ -523,7 +523,15 @@ def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str,
         # a file that could not be written (a full disk) as FILE: why
         what = os_error_text(exc) if isinstance(exc, OSError) else str(exc)
         unsaid = _record_end(out, status, f"{why}; rebuilding from the recording failed: {what}")
-        return f"the recording could not be rebuilt ({what}); {out} holds no results{unsaid}"
+        later = (
+            f" (once it can be written, covnet replay {out} rebuilds them from the recording)"
+            if isinstance(exc, OSError)
+            else ""
+        )
+        return (
+            f"the recording could not be rebuilt ({what}); {out} holds no complete "
+            f"results{later}{unsaid}"
+        )
     info = _run_info(out)
     scans = _scans(info)
     record_end(

@@ -347,13 +347,17 @@ class KindReplay:
         write_json(out / REPORT, report.as_dict())
         return report
 
-    def replay_run(self, run_dir: Path, out: Path | None = None) -> ReplayReport:
+    def replay_run(
+        self, run_dir: Path, out: Path | None = None, *, compare: bool = True
+    ) -> ReplayReport:
         """Replay ``run_dir`` from its recording into ``out`` (default ``run_dir/replay``) and
-        compare (module docstring).  Raises :class:`ReplayError` when a needed file is
-        missing or unreadable."""
+        compare (module docstring; ``compare=False``: rebuild only, for a run that never wrote
+        its results).  Raises :class:`ReplayError` when a needed file is missing or
+        unreadable."""
         run_dir = Path(run_dir)
         out_dir = Path(out) if out is not None else run_dir / REPLAY_DIR
-        for name in (CONFIG, RUN_INFO, *self.compared, RECORDING):
+        compared = self.compared if compare else ()
+        for name in (CONFIG, RUN_INFO, *compared, RECORDING):
             if not (run_dir / name).is_file():
                 raise ReplayError(f"{run_dir} has no {name}: not a recorded network run")
         kind = kinds.get(self.kind)
@@ -366,7 +370,7 @@ class KindReplay:
             raise ReplayError(f"{run_dir / RUN_INFO} has no 'episodes' list (not a network run?)")
         # the files compared and the recording are readable before anything is compared: an
         # unreadable one was a "difference" (exit 1), where the README says exit 2
-        for name in self.compared:
+        for name in compared:
             _read_json(run_dir / name)
         problem = mcap_start_problem(run_dir / RECORDING)
         if problem is not None:
@@ -382,20 +386,25 @@ class KindReplay:
             "replayed_from": str(run_dir),
         }
         return self.rebuild(
-            cfg, run_id, episodes, run_dir / RECORDING, out_dir, run_info, compare_with=run_dir
-        )
+            cfg, run_id, episodes, run_dir / RECORDING, out_dir, run_info,
+            compare_with=run_dir if compare else None,
+        )  # fmt: skip
 
     def command(self, args: argparse.Namespace, cfg: Any) -> int:
         """``covnet replay RUN_DIR [--out DIR] [--force]``: :meth:`replay_run`, then one line
         (``identical``) or the differences, and the recording's notes (:func:`recording_notes`)
-        on stderr; exit 0 when identical, else 1."""
+        on stderr; exit 0 when identical, else 1.  A run whose results were never written (a
+        full disk as it ended, and the launcher's rebuild on the same disk) but whose config,
+        ``run.json`` and recording are there is rebuilt without a comparison, and says so
+        (exit 0): it was refused, and no command gave its results back."""
         run_dir = Path(args.run_dir)
-        needed = (CONFIG, RUN_INFO, *self.compared, RECORDING)
+        needed = (CONFIG, RUN_INFO, RECORDING)
         missing = [f for f in needed if not (run_dir / f).is_file()]
         if missing:
             raise UsageError(
                 f"{run_dir}: not a recorded network run directory (missing {', '.join(missing)})"
             )
+        absent = [f for f in self.compared if not (run_dir / f).is_file()]
         # default: the run's own replay directory, replaced
         own = args.out is None
         out = prepare_out(
@@ -403,11 +412,16 @@ class KindReplay:
             "the replay directory" if own else "--out", reads=run_dir,
         )  # fmt: skip
         try:
-            report = self.replay_run(run_dir, out)
+            report = self.replay_run(run_dir, out, compare=not absent)
         except ReplayError as exc:  # a file of the run missing or unreadable: the user's input
             raise UsageError(str(exc)) from None
         files = " and ".join(self.compared)
-        if report.identical:
+        if absent:
+            print(
+                f"rebuilt {run_dir} from its recording into {report.out_dir}: it has no "
+                f"{' or '.join(absent)} to compare with (its results were never written)"
+            )
+        elif report.identical:
             print(f"replayed {run_dir}: identical: {files} reproduced exactly ({report.out_dir})")
         else:
             print(f"replayed {run_dir}: {files} DIFFERS ({report.out_dir}):", file=sys.stderr)

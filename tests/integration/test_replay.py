@@ -342,3 +342,25 @@ def test_an_unreadable_file_of_the_run_is_exit_2(recorded_run, tmp_path, capsys,
     assert main(["replay", str(run), "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err
     assert message in err and "DIFFERS" not in err, err
+
+
+def test_a_run_that_never_wrote_its_results_is_rebuilt(recorded_run, tmp_path, capsys):
+    """A disk full as a long run ended: the manager could not write ``summary.json``, the
+    launcher's rebuild failed on the same disk, and once space was freed ``covnet replay``
+    refused the directory ("missing summary.json"): no command gave the results back from
+    the complete recording (hunt 11).  Without the files to compare it now rebuilds them."""
+    from covnet.cli.app import main
+
+    src, _, _ = recorded_run
+    run = tmp_path / "run"
+    _copy_run(src, run)
+    (run / "summary.json").unlink()
+    (run / "arrays.npz").unlink()
+    assert main(["replay", str(run), "--out", str(tmp_path / "r")]) == 0
+    said = capsys.readouterr().out
+    assert "rebuilt" in said and "no summary.json" in said, said
+    assert (tmp_path / "r" / "summary.json").read_bytes() == (src / "summary.json").read_bytes()
+    # without the config or the recording there is still nothing to rebuild from
+    (run / "config.json").unlink()
+    assert main(["replay", str(run), "--out", str(tmp_path / "r2")]) == 2
+    assert "no config.json" in capsys.readouterr().err
