@@ -395,6 +395,7 @@ def up(
     view.line(f"[launcher] run {run_id}: router {router}, run directory {out}")
     if foxglove is not None and any(sp.name == "recorder" for sp in specs):
         view.line(f"[launcher] Foxglove live view: ws://{foxglove} (open it in Foxglove)")
+    recorded_here = any(sp.name == "recorder" for sp in specs)
     facts = {  # what a rebuild from the recording cannot know (settle)
         "run_id": run_id,
         "clock": "realtime" if realtime else "lockstep",
@@ -453,7 +454,7 @@ def up(
         others = {k: v for k, v in final.items() if k != "manager" and v not in (0, None)}
         if status != 0:
             why = f"the manager exited with status {status}"
-            ended = settle(kind, sc, out, facts, "failed", why)
+            ended = settle(kind, sc, out, facts, "failed", why, recorded_here=recorded_here)
             _note_restarts(out, sup.restarts)  # (into a run.json rebuilt from the recording too)
             ended += _note_lost(out, lost)
             raise UpError(f"the manager failed (exit status {status}); {ended}")
@@ -477,8 +478,9 @@ def up(
     except KeyboardInterrupt:
         sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
         ended = settle(
-            kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C, SIGTERM or a hang-up)"
-        )
+            kind, sc, out, facts, "interrupted", "interrupted (Ctrl-C, SIGTERM or a hang-up)",
+            recorded_here=recorded_here,
+        )  # fmt: skip
         _note_restarts(out, sup.restarts)  # the launcher printed them: run.json says them too
         ended += _note_lost(out, lost)
         with contextlib.suppress(OSError):  # a hang-up: the terminal may be gone
@@ -489,12 +491,23 @@ def up(
         signal.signal(signal.SIGHUP, previous_hup)
 
 
-def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str, why: str) -> str:
+def settle(
+    kind: Any,
+    sc: Any,
+    out: Path,
+    run_info: dict[str, Any],
+    status: str,
+    why: str,
+    *,
+    recorded_here: bool = True,
+) -> str:
     """After the network stopped: make sure ``out`` is a valid run directory and say what it
     holds.  The manager writes it when its loop ends (with ``run.json``'s ``status``); when it
     could not (killed, crashed, or stopped before READY), the directory is rebuilt from the
     recording by the kind's replay (``kind.rebuild``: every scan recorded complete) and marked
-    ``status`` because of ``why``."""
+    ``status`` because of ``why``.  ``recorded_here``: the recorder ran under this launcher
+    (else on another host: its recording is there, and nothing here says how many scans were
+    done; this launcher said "nothing was recorded", ``scans_completed: 0``, after 25 scans)."""
     info = _run_info(out)
     if info.get("status") in STATUSES:
         return f"{out} holds the scans done ({info['status']}: {_scans(info)})"
@@ -502,6 +515,14 @@ def settle(kind: Any, sc: Any, out: Path, run_info: dict[str, Any], status: str,
     with contextlib.suppress(OSError):
         (out / LIVE).unlink(missing_ok=True)
     recording = out / "recording.mcap"
+    if not recorded_here and not recording.is_file():
+        unsaid = _record_end(
+            out, status, f"{why}; the recorder ran on another host: its recording holds the scans"
+        )
+        return (
+            "the recorder ran on another host: the scans done are in its recording.mcap "
+            f"there, not in {out}{unsaid}"
+        )
     if not recording.is_file() or recording.stat().st_size == 0:
         if not out.is_dir() or not any(p.name != "processes.json" for p in out.iterdir()):
             # stopped before the manager wrote anything: no scan was done (run.json says so,

@@ -94,3 +94,34 @@ def test_config_id_ignores_only_the_per_host_keys(tmp_path, paper_path):
     assert cid(seed=7) != base
     assert cid(allocation={"metrics": ["svd"]}) == base  # the manager's episodes, its own
     assert cid(network={"heartbeat_s": 0.1, "ready_timeout_s": 20.0}) != base
+
+
+def test_a_manager_host_without_the_recorder_does_not_say_nothing_was_recorded(
+    tmp_path, paper_path
+):
+    """The recorder on the sensors' host and the manager killed mid-run: the manager's host
+    said "nothing was recorded" and wrote ``scans_completed: 0`` after dozens of scans, while
+    the recording on the other host held them (hunt 11)."""
+    cfg = _short(paper_path, tmp_path, scans=400)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    common = [str(cfg), "--router", router, "--run", f"rec{os.getpid()}", "--no-figures"]
+    common += ["--realtime", "--speed", "20"]
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", "manager,world"])
+    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", "sensors,recorder"])
+    try:
+        assert mgr.wait_for("[manager] READY", timeout=60), mgr.output() + sens.output()
+        assert mgr.wait_for(lambda s: "[status]" in s, timeout=30), mgr.output()
+        pid = json.loads((a_out / "processes.json").read_text())["manager"]
+        os.kill(pid, signal.SIGKILL)
+        rc_a = mgr.wait(timeout=60)
+        sens.wait(timeout=60)
+    finally:
+        mgr.stop()
+        sens.stop()
+    assert rc_a == 1, mgr.output()
+    assert "recorder ran on another host" in mgr.output(), mgr.output()
+    assert "nothing was recorded" not in mgr.output()
+    info = json.loads((a_out / "run.json").read_text())
+    assert info["status"] == "failed" and info.get("scans_completed") != 0, info
+    assert (b_out / "recording.mcap").is_file()
