@@ -57,27 +57,36 @@ def test_a_host_of_another_seed_is_refused_by_name(tmp_path, paper_path):
     assert_nothing_left(a_out)
 
 
-def test_a_sensors_host_says_so_when_the_managers_host_dies(tmp_path, paper_path):
-    """The manager's host killed mid-run: the sensors' host exited 0 with the lines of a
-    completed run, about 3 s later; it now exits 1 saying the run did not end well."""
+def _manager_killed_mid_run(tmp_path, paper_path, host_a: str, host_b: str):
+    """Two launchers of a realtime run (``--nodes host_a`` and ``--nodes host_b``); the
+    manager SIGKILLed once the run goes: ``(rc_a, rc_b, out_a, out_b, output_a, output_b)``."""
     cfg = _short(paper_path, tmp_path, scans=400)
     router = f"tcp/127.0.0.1:{free_port()}"
     common = [str(cfg), "--router", router, "--run", f"die{os.getpid()}", "--no-figures"]
     common += ["--realtime", "--speed", "20"]
     a_out, b_out = tmp_path / "a", tmp_path / "b"
-    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", "manager,world,recorder"])
-    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", "sensors"])
+    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", host_a])
+    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", host_b])
     try:
         assert mgr.wait_for("[manager] READY", timeout=60), mgr.output() + sens.output()
+        assert mgr.wait_for(lambda s: "[status]" in s, timeout=30), mgr.output()
         pid = json.loads((a_out / "processes.json").read_text())["manager"]
         os.kill(pid, signal.SIGKILL)
         rc_b = sens.wait(timeout=60)
-        mgr.wait(timeout=60)
+        rc_a = mgr.wait(timeout=60)
     finally:
         mgr.stop()
         sens.stop()
-    assert rc_b == 1, sens.output()
-    assert "did not end well" in sens.output(), sens.output()
+    return rc_a, rc_b, a_out, b_out, mgr.output(), sens.output()
+
+
+def test_a_sensors_host_says_so_when_the_managers_host_dies(tmp_path, paper_path):
+    """The manager's host killed mid-run: the sensors' host exited 0 with the lines of a
+    completed run, about 3 s later; it now exits 1 saying the run did not end well."""
+    _, rc_b, _, _, _, said = _manager_killed_mid_run(
+        tmp_path, paper_path, "manager,world,recorder", "sensors"
+    )
+    assert rc_b == 1 and "did not end well" in said, said
 
 
 def test_config_id_ignores_only_the_per_host_keys(tmp_path, paper_path):
@@ -102,26 +111,11 @@ def test_a_manager_host_without_the_recorder_does_not_say_nothing_was_recorded(
     """The recorder on the sensors' host and the manager killed mid-run: the manager's host
     said "nothing was recorded" and wrote ``scans_completed: 0`` after dozens of scans, while
     the recording on the other host held them (hunt 11)."""
-    cfg = _short(paper_path, tmp_path, scans=400)
-    router = f"tcp/127.0.0.1:{free_port()}"
-    common = [str(cfg), "--router", router, "--run", f"rec{os.getpid()}", "--no-figures"]
-    common += ["--realtime", "--speed", "20"]
-    a_out, b_out = tmp_path / "a", tmp_path / "b"
-    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", "manager,world"])
-    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", "sensors,recorder"])
-    try:
-        assert mgr.wait_for("[manager] READY", timeout=60), mgr.output() + sens.output()
-        assert mgr.wait_for(lambda s: "[status]" in s, timeout=30), mgr.output()
-        pid = json.loads((a_out / "processes.json").read_text())["manager"]
-        os.kill(pid, signal.SIGKILL)
-        rc_a = mgr.wait(timeout=60)
-        sens.wait(timeout=60)
-    finally:
-        mgr.stop()
-        sens.stop()
-    assert rc_a == 1, mgr.output()
-    assert "recorder ran on another host" in mgr.output(), mgr.output()
-    assert "nothing was recorded" not in mgr.output()
+    rc_a, _, a_out, b_out, said, _ = _manager_killed_mid_run(
+        tmp_path, paper_path, "manager,world", "sensors,recorder"
+    )
+    assert rc_a == 1 and "recorder ran on another host" in said, said
+    assert "nothing was recorded" not in said
     info = json.loads((a_out / "run.json").read_text())
     assert info["status"] == "failed" and info.get("scans_completed") != 0, info
     assert (b_out / "recording.mcap").is_file()
