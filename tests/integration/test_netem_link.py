@@ -151,8 +151,9 @@ def test_loss_is_binomial_and_follows_the_seed(ns_pair):
 def test_jitter_spreads_the_round_trip(ns_pair, strict):
     """U[5, 25] ms one way: never early, spread as drawn, on time in bulk.  Beside busy loops the
     userspace forwarder is sometimes late by more than a few ms (a max of 42 ms seen beside two
-    busy loops), so its worst case and the mean's tight band are the ``slow`` twin's
-    (``strict``), run on a quiet machine."""
+    busy loops; a p90 of 36 ms in a suite run on three workers beside other tests), so its
+    worst case, its p90 and the mean's tight band are the ``slow`` twin's (``strict``), run on a
+    quiet machine; the default run holds three quarters on time."""
     ns_a, ns_b = ns_pair
     spec = LinkSpec(DelayDist("uniform", low_s=0.005, high_s=0.025), reorder=1.0)
     with emulated_link(ns_a, ns_b, spec, LinkSpec(), seed=3, mode="userspace") as info:
@@ -164,8 +165,9 @@ def test_jitter_spreads_the_round_trip(ns_pair, strict):
     assert len(got) == 150
     assert q["min"] >= 4.9  # a packet is never delivered early
     assert q["p75"] - q["p25"] >= 6.0  # 10 ms for U[5, 25] ms
-    assert q["p90"] <= 25.0 + 8.0  # the bulk on time (p90 of the draws: 23 ms)
+    assert q["p75"] <= 25.0 + 8.0  # the bulk on time (p75 of the draws: 20 ms)
     if strict:
+        assert q["p90"] <= 25.0 + 8.0  # p90 of the draws: 23 ms
         assert q["max"] <= 25.0 + 8.0
         assert 14.0 <= statistics.mean(got) * 1e3 <= 17.5  # 15 ms + the forwarder's lateness
 

@@ -307,8 +307,9 @@ def test_access_control_rogue_commands_never_reach_a_sensor(lab, paper):
             assert msg.alive_key(run, "sensor", "S3") not in alive_keys
             # the intruder hears only its own puts (a session hears itself), nothing routed
             assert heard and all(msg.decode(h.payload).scan == 8 for h in heard), heard
-            # the run ends: the manager's token goes, the sensor stops on its own, and its
-            # own token's disappearance goes through the ACL too
+            # the run ends as a manager ends it (its end declared, then its token gone): the
+            # sensor stops on its own, and its own token's disappearance goes through the ACL
+            mgr.declare_token(msg.done_key(run))
             mgr_token.undeclare()
             assert sensor.wait(timeout=15) == 0, sensor.output()
             wait_until(
