@@ -119,7 +119,7 @@ class _LiveFeed:
 
     def add(self, kind: str, key: str, payload: bytes, t_recv: int, t_sent: int | None) -> None:
         try:
-            if kind == msg.Truth.KIND:
+            if kind in (msg.Truth.KIND, msg.Heartbeat.KIND):  # (a heartbeat: its node's host)
                 self.visualiser.feed(kind, key, payload, t_recv, t_sent)
             elif kind == msg.Status.KIND:
                 now = time.monotonic_ns()

@@ -4,6 +4,9 @@ here runs on its own thread."""
 
 from __future__ import annotations
 
+import functools
+import os
+import socket
 import threading
 import time
 from collections import Counter
@@ -71,6 +74,7 @@ class Heartbeat:
             rejected=dict(rejected) if rejected else None,
             sent=sent,
             config=self._config,
+            host=host_id(),
         )
         self._bus.publish(self._key, msg.encode(hb))
         self._next_ns = t + self._period_ns
@@ -99,6 +103,30 @@ NOTE = "note: "
 it: :func:`covnet.processes.up.shown`); the recorder's visual channels cut short by their time
 budget said so only with ``--verbose``: a long run's Foxglove view ended at scan 4 731 of 6 000
 without a word."""
+
+
+@functools.cache
+def host_id() -> str:
+    """This host's identity as its clock sees it: the kernel's boot id (32 hex digits) and the
+    process's time namespace, the same in every process of one boot and namespace, so equal
+    ids mean one ``CLOCK_MONOTONIC`` (the stamps of the messages, :mod:`covnet.clock`);
+    another boot's, another host's, counts from another origin (the hosts' uptimes apart).
+    Without ``/proc`` (not Linux): the host name."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            boot = f.read().strip().replace("-", "")[:32]
+    except OSError:
+        return socket.gethostname()[:64] or "host"
+    try:  # a time namespace (``unshare --time``) offsets the monotonic clock of its processes
+        return f"{boot}-{os.stat('/proc/self/ns/time').st_ino:x}"
+    except OSError:
+        return boot
+
+
+def same_clock(host: str | None) -> bool:
+    """Whether a node whose heartbeats name ``host`` stamps with this process's clock (None:
+    not known yet, taken as one: a node of this host never sent another)."""
+    return host is None or host == host_id()
 
 
 CONFIG_ID_FREE = ("router", "connect", "security")

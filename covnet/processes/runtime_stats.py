@@ -112,6 +112,9 @@ class NetStats:
     # int64 arrays, not lists: 8 bytes a value over a long run (covnet bench soak)
     scan_latency_ns: array[int] = field(default_factory=lambda: array("q"))  # cmd -> fused
     meas_latency_ns: array[int] = field(default_factory=lambda: array("q"))  # sensor -> manager
+    #: measurements whose sender stamps with another clock (another host: its monotonic clock
+    #: counts from its own boot), left out of ``meas_latency_ns``
+    meas_latency_other_clock: int = 0
     core_ns: array[int] = field(default_factory=lambda: array("q"))  # predict+allocate+fuse
     loop_wall_ns: int = 0  # READY -> last scan fused, all episodes
     scans_done: int = 0
@@ -231,4 +234,9 @@ class NetStats:
             "sensors": self.sensors(),
             "membership": self.membership_counts(),
             **({} if self.dropped is None else {"dropped": self.dropped}),
+            **(
+                {"measurement_latency_other_clocks": self.meas_latency_other_clock}
+                if self.meas_latency_other_clock
+                else {}
+            ),
         }

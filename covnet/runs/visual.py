@@ -46,6 +46,7 @@ goes, at a bounded rate (``recorder/node.py``).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from collections.abc import Iterable, Sequence
@@ -58,6 +59,7 @@ import numpy as np
 from foxglove import messages as fm
 from numpy.typing import NDArray
 
+from covnet.processes.node_kit import same_clock
 from covnet.runs.recording import RecordingWriter, run_metadata
 from covnet.wire import messages as msg
 
@@ -529,6 +531,9 @@ class Visualiser:
         self._counts = 0
         self._bytes = 0
         self._latency_ms: list[float] = []
+        #: each node's host (its heartbeats'): a measurement's latency is taken only from a
+        #: sender of this process's clock (:func:`~covnet.processes.node_kit.same_clock`)
+        self._hosts: dict[str, str | None] = {}
         self.frames = 0
         self.undecodable = 0
         self.last_episode = -1
@@ -541,10 +546,17 @@ class Visualiser:
         for the others its latency comes from ``t_sent_ns``."""
         self._counts += 1
         self._bytes += len(payload)
+        if kind == msg.Heartbeat.KIND:
+            with contextlib.suppress(msg.WireError):
+                hb = msg.decode_as(payload, msg.Heartbeat)
+                self._hosts[hb.node_id] = hb.host
+            return []
         if kind not in _NEEDED:
             return []
         if kind == "meas" and t_sent_ns is not None and not self._wants_measurements:
-            self._latency_ms.append((t_recv_ns - t_sent_ns) / 1e6)
+            with contextlib.suppress(ValueError):
+                if same_clock(self._hosts.get(msg.parse_measurement_key(key))):
+                    self._latency_ms.append((t_recv_ns - t_sent_ns) / 1e6)
             return []
         try:
             m = msg.decode(payload)
@@ -561,7 +573,8 @@ class Visualiser:
             self._truth[m.scan] = m
         elif isinstance(m, msg.Measurement):
             self._at(m.episode, m.scan).measurements[m.sensor_id] = m
-            self._latency_ms.append((t_recv_ns - m.t_sent_ns) / 1e6)
+            if same_clock(self._hosts.get(m.sensor_id)):
+                self._latency_ms.append((t_recv_ns - m.t_sent_ns) / 1e6)
         elif isinstance(m, msg.Command):
             self._at(m.episode, m.scan).command = m
         elif isinstance(m, msg.Track):

@@ -622,7 +622,9 @@ class Heartbeat(_Message):
     ``config``: the identity of the config the node runs
     (:func:`covnet.processes.node_kit.config_id`), which the manager compares with its own
     before the run starts (hosts given one ``--run`` but different configs or run options
-    were mixed without a word)."""
+    were mixed without a word); ``host``: its host's identity
+    (:func:`covnet.processes.node_kit.host_id`: the boot, whose monotonic clock its stamps
+    read), so that one-way latencies are taken only between nodes of one clock."""
 
     KIND: ClassVar[str] = "hb"
     role: Name
@@ -632,6 +634,7 @@ class Heartbeat(_Message):
     rejected: Counts | None = None
     sent: Count | None = None
     config: Name | None = None
+    host: Name | None = None
 
 
 Message = Truth | Command | Measurement | Track | Status | Heartbeat | LocalTrack

@@ -354,3 +354,26 @@ def test_run_mcap_times_are_scenario_time_episode_after_episode(tmp_path):
         expected += [base + k * T for k in range(1, 7)]
         base = expected[-1] + 1.0
     np.testing.assert_allclose(times, expected)
+
+
+def test_latency_only_from_senders_of_this_clock():
+    """A measurement's one-way latency subtracts its sender's monotonic stamp from this
+    process's clock: meaningful only when both read one clock (one boot and time namespace,
+    ``node_kit.host_id``).  A sensor whose heartbeats name another host is left out (a sensors'
+    host an hour younger gave -3 599 999 ms, hunt 11); one of this host, or not heard, counts."""
+    from covnet.processes.node_kit import host_id
+
+    kind, cfg = _paper(scans=3)
+    vis = Visualiser(kind.visual(cfg), kind.episodes(cfg))
+    for node, host in (("S1", host_id()), ("S2", "another-host")):
+        hb = msg.Heartbeat(role="sensor", node_id=node, scan=0, t_sent_ns=0, host=host)
+        assert vis.feed(hb.KIND, msg.heartbeat_key("r", "sensor", node), msg.encode(hb), 1) == []
+    for sid, sent in (("S1", 1_000_000), ("S2", 3_600_001_000_000), ("S3", 1_000_000)):
+        m = msg.Measurement(sensor_id=sid, scan=1, t=1.0, z=np.zeros((1, 2)), R=np.eye(2),
+                            t_sent_ns=sent)  # fmt: skip (S2's clock an hour ahead)
+        vis.feed(m.KIND, msg.measurement_key("r", sid), msg.encode(m), 3_000_000)
+    status = msg.Status(scan=1, t=1.0, enabled=("S1", "S2", "S3"), trace_P=1.0, trace_Pd=1.0,
+                        value=1.0, t_sent_ns=4_000_000)  # fmt: skip
+    out = vis.feed(status.KIND, "k", msg.encode(status), 5_000_000)
+    doc = json.loads(next(vm for vm in out if vm.topic == METRICS_TOPIC).data)
+    assert doc["measurement_latency_ms"] == pytest.approx(2.0)  # S1's and S3's, not S2's
