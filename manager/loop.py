@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -97,6 +97,22 @@ def take_heartbeat(
     if hb.rejected:
         stats.node_rejected[hb.node_id] = dict(hb.rejected)
     return hb
+
+
+def other_configs(own: str, heard: Mapping[str, str | None]) -> str | None:
+    """Why a run must not start: the nodes whose heartbeats named another config than ``own``
+    (:func:`~covnet.processes.node_kit.config_id`), else None.  The manager's loop and the
+    peer observer check alike."""
+    other = {n: c for n, c in heard.items() if c not in (None, own)}
+    if not other:
+        return None
+    nodes = ", ".join(f"{n} ({c})" for n, c in sorted(other.items()))
+    return (
+        f"nodes run another config than this manager's ({own}): {nodes}. Every host of a run "
+        "must run the same config file with the same run options (--seed, --fusion, "
+        "--solver); only network.router, network.connect, network.security and the metrics "
+        "(--metric) may differ"
+    )
 
 
 class ManagerError(RuntimeError):
@@ -414,15 +430,9 @@ class Loop:
     def _check_configs(self) -> None:
         """Refuse the run when a node's heartbeat named another config than this manager's
         (:meth:`wait_ready`)."""
-        other = {n: c for n, c in self.node_configs.items() if c not in (None, self.config_id)}
-        if other:
-            nodes = ", ".join(f"{n} ({c})" for n, c in sorted(other.items()))
-            raise ManagerError(
-                f"nodes run another config than this manager's ({self.config_id}): {nodes}. "
-                "Every host of a run must run the same config file with the same run options "
-                "(--seed, --fusion, --solver); only network.router, network.connect, "
-                "network.security and the metrics (--metric) may differ"
-            )
+        assert self.config_id is not None
+        if (why := other_configs(self.config_id, self.node_configs)) is not None:
+            raise ManagerError(why)
 
     # ---- step 6 -------------------------------------------------------------------------
 

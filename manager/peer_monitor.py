@@ -30,10 +30,11 @@ from covnet.core.gaussian import is_spd
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.peer_run import NodeLog, PeerResult
+from covnet.processes.node_kit import config_id
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
-from manager.loop import take_heartbeat
+from manager.loop import other_configs, take_heartbeat
 
 STOPPED_LINGER_S = 1.0
 """Stopped: the longest time to keep taking the nodes' reports until they have left (stopped
@@ -88,10 +89,15 @@ def run(
             node = ev.key.rsplit("/", 1)[-1]
             (alive.add if ev.alive else alive.discard)(node)
 
+    own = config_id(sc)
+    configs: dict[str, str | None] = {}  # the config each node's heartbeats name
+
     def take(s: Any) -> None:
         stats.received(s.key, len(s.payload))
         if s.key.startswith(hb_root):
-            take_heartbeat(stats, run_id, s, expected)
+            hb = take_heartbeat(stats, run_id, s, expected)
+            if hb is not None:
+                configs.setdefault(hb.node_id, hb.config)
             return
         if "/peer/" not in s.key:
             return
@@ -138,14 +144,25 @@ def run(
     ready = False
     try:
         deadline = time.monotonic() + net.ready_timeout_s
-        while not expected <= alive:
+        # every node alive and heard naming its config (one of another: the run is refused,
+        # as the manager's loop refuses it; the nodes leave on the failed end)
+        while not expected <= alive or not expected <= configs.keys():
             drain_live()
+            while (s := subs[2].try_recv()) is not None:  # the heartbeats
+                take(s)
+            if (why := other_configs(own, configs)) is not None:
+                result.error = why
+                return result
             if stop.is_set():
                 result.error = "stopped before the network was ready"
                 return result
             if time.monotonic() > deadline:
+                unheard = sorted(expected - alive) or sorted(expected - configs.keys())
                 result.error = (
-                    f"nodes not alive after {net.ready_timeout_s} s: {sorted(expected - alive)}"
+                    f"nodes not alive after {net.ready_timeout_s} s: {unheard}"
+                    if not expected <= alive
+                    else f"nodes alive but sent no heartbeat within {net.ready_timeout_s} s: "
+                    f"{unheard}"
                 )
                 return result
             time.sleep(0.01)

@@ -333,8 +333,12 @@ def run(
         # start: every peer, the world, the monitor (and the recorder) up, so that every node
         # starts with the same members and nothing goes unrecorded
         everyone = {*ids, "world", "manager", *(("recorder",) if net.record else ())}
+        # (or the monitor ended the run already: a node of another config refused, say)
         if not inbox.wait(
-            lambda: inbox.alive >= everyone, time.monotonic() + net.ready_timeout_s, stop, beat
+            lambda: inbox.alive >= everyone or manager.left,
+            time.monotonic() + net.ready_timeout_s,
+            stop,
+            beat,
         ):
             return stats
         members = set(ids)

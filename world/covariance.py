@@ -178,7 +178,9 @@ def _serve_upfront(
         bus, run_id, manager_grace_s(sc.network), manager_appear_s(sc.network)
     )
     token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
-    heartbeat = Heartbeat(bus, clock, run_id, "world", "world", sc.network.heartbeat_s)
+    heartbeat = Heartbeat(
+        bus, clock, run_id, "world", "world", sc.network.heartbeat_s, config_id(sc)
+    )
     wanted = _first_truth_waits_for(sc, run_id)
     alive: set[str] = set()
     sent = False
@@ -237,7 +239,9 @@ def _serve_peers(
         bus, run_id, manager_grace_s(sc.network), manager_appear_s(sc.network)
     )
     token = bus.declare_token(msg.alive_key(run_id, "world", "world"))
-    heartbeat = Heartbeat(bus, clock, run_id, "world", "world", sc.network.heartbeat_s)
+    heartbeat = Heartbeat(
+        bus, clock, run_id, "world", "world", sc.network.heartbeat_s, config_id(sc)
+    )
     alive: set[str] = set()
     window = [0, -1]
     last_scan = 0

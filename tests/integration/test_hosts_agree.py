@@ -11,6 +11,7 @@ import json
 import os
 import re
 import signal
+import time
 
 import pytest
 import yaml
@@ -164,3 +165,30 @@ def test_latency_is_not_taken_across_clocks(tmp_path, paper_path):
     want = json.loads((ref / "summary.json").read_text())["metrics"]
     for m in want:
         assert got[m]["subsets"] == want[m]["subsets"] and got[m]["P_diag"] == want[m]["P_diag"]
+
+
+def test_a_peer_host_of_another_seed_is_refused_too(tmp_path, paper_path):
+    """Peer mode: the observer, not the manager's loop, waits for the nodes; it refuses a node
+    of another config as the manager does (the run fails, named, before anything is
+    reported; the nodes leave on its failed end)."""
+    cfg = _short(paper_path, tmp_path)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    common = [str(cfg), "--router", router, "--run", f"peer{os.getpid()}", "--no-figures",
+              "--fusion", "peer"]  # fmt: skip
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", "manager,world,recorder"])
+    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", "sensors", "--seed", "7"])
+    try:
+        rc_a = mgr.wait(timeout=90)
+        t0 = time.monotonic()
+        sens.wait(timeout=60)
+        # the peer nodes leave on the failed end (they waited ready_timeout_s, 20 s, for the
+        # monitor that had gone)
+        assert time.monotonic() - t0 < 15, sens.output()
+    finally:
+        mgr.stop()
+        sens.stop()
+    out = mgr.output()
+    assert rc_a == 1 and "another config" in out, out
+    info = json.loads((a_out / "run.json").read_text())
+    assert info["status"] == "failed" and "another config" in info["ended"]

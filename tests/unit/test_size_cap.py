@@ -54,7 +54,8 @@ def _largest_messages(n_sensors: int, n_targets: int, rows: int) -> list[m.Messa
         m.Status(big, 1.5, sids, 1.5, 1.5, 1.5, big, big, sids, sids, sids[0], refiltered,
                  rng.normal(size=m.CAP_CELLS)),  # fmt: skip
         m.LocalTrack(sids[0], big, 1.5, x, P, x, P, big, big, big, tids[0]),
-        m.Heartbeat("sensor", sids[0], big, big, reasons, big),
+        m.Heartbeat("sensor", sids[0], big, big, reasons, big, "C" * m.MAX_NAME_LEN,
+                    "H" * m.MAX_NAME_LEN),  # fmt: skip (its config and host)
     ]
 
 
