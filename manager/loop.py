@@ -115,6 +115,15 @@ def other_configs(own: str, heard: Mapping[str, str | None]) -> str | None:
     )
 
 
+def not_ready(timeout_s: float, not_alive: Sequence[str], unheard: Sequence[str]) -> str:
+    """Why the network did not become ready within ``timeout_s``: the nodes whose liveliness
+    token never came up, else those that never said in a heartbeat which config they run.
+    The manager's loop and the peer observer say it alike."""
+    if not_alive:
+        return f"nodes not alive after {timeout_s} s: {list(not_alive)}"
+    return f"nodes alive but sent no heartbeat within {timeout_s} s: {list(unheard)}"
+
+
 class ManagerError(RuntimeError):
     """The network could not run (nodes never came up, the stop was requested, ...)."""
 
@@ -253,8 +262,9 @@ class Loop:
         #: the one each node's heartbeats carry
         self.config_id: str | None = None
         self.node_configs: dict[str, str | None] = {}
-        #: the host (:func:`~covnet.processes.node_kit.host_id`) each node's heartbeats name
-        self.node_hosts: dict[str, str | None] = {}
+        #: the nodes whose heartbeats name another clock than this process's
+        #: (:func:`~covnet.processes.node_kit.same_clock`): their latencies are not taken
+        self.other_clock: set[str] = set()
         self.meas_sub = bus.subscribe(msg.measurement_keyexpr(run_id))
         # each sensor's own measurement key (what parse_measurement_key gives for it)
         self._key_sensor = {msg.measurement_key(run_id, sid): sid for sid in sensor_ids}
@@ -320,7 +330,10 @@ class Loop:
             hb = take_heartbeat(self.stats, self.run_id, s, self.hb_known)
             if hb is not None:
                 self.node_configs.setdefault(hb.node_id, hb.config)
-                self.node_hosts[hb.node_id] = hb.host
+                if same_clock(hb.host):
+                    self.other_clock.discard(hb.node_id)
+                else:
+                    self.other_clock.add(hb.node_id)
                 if self.config_id is not None and hb.config not in (None, self.config_id):
                     # another config's node (a host restarted with another copy): no sign of
                     # life, so it fails like a node that went silent
@@ -409,14 +422,7 @@ class Loop:
             if stop.is_set():
                 raise ManagerError("stopped before the network was ready")
             if time.monotonic() > deadline:
-                if missing:
-                    raise ManagerError(
-                        f"nodes not alive after {self.net.ready_timeout_s} s: {missing}"
-                    )
-                raise ManagerError(
-                    f"nodes alive but sent no heartbeat within {self.net.ready_timeout_s} s: "
-                    f"{unheard}"
-                )
+                raise ManagerError(not_ready(self.net.ready_timeout_s, missing, unheard))
             ev = self.live_sub.recv(timeout=0.05)
             if ev is not None:
                 try:
@@ -588,10 +594,10 @@ class Loop:
         with this process's clock (:func:`~covnet.processes.node_kit.same_clock`); a sensor on
         another host is counted instead (its monotonic clock counts from its own boot: a
         sensors' host an hour younger gave a p50 of -3 599 999 ms)."""
-        if same_clock(self.node_hosts.get(m.sensor_id)):
-            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
-        else:
+        if m.sensor_id in self.other_clock:
             self.stats.meas_latency_other_clock += 1
+        else:
+            self.stats.meas_latency_ns.append(s.t_recv_ns - m.t_sent_ns)
 
     def _judge(
         self,

@@ -34,7 +34,7 @@ from covnet.processes.node_kit import config_id
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
-from manager.loop import other_configs, take_heartbeat
+from manager.loop import not_ready, other_configs, take_heartbeat
 
 STOPPED_LINGER_S = 1.0
 """Stopped: the longest time to keep taking the nodes' reports until they have left (stopped
@@ -157,12 +157,8 @@ def run(
                 result.error = "stopped before the network was ready"
                 return result
             if time.monotonic() > deadline:
-                unheard = sorted(expected - alive) or sorted(expected - configs.keys())
-                result.error = (
-                    f"nodes not alive after {net.ready_timeout_s} s: {unheard}"
-                    if not expected <= alive
-                    else f"nodes alive but sent no heartbeat within {net.ready_timeout_s} s: "
-                    f"{unheard}"
+                result.error = not_ready(
+                    net.ready_timeout_s, sorted(expected - alive), sorted(expected - configs.keys())
                 )
                 return result
             time.sleep(0.01)

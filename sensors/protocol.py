@@ -53,8 +53,8 @@ class SensorStats:
     missed_truth: int = 0  # commanded scans whose truth never came (e.g. just after a restart)
     missed_commands: int = 0  # scans whose command never came (slow links)
     rejected: Counter[str] = field(default_factory=Counter)
-    #: the sensor left because the manager went away without ending the run
-    #: (:attr:`~covnet.processes.node_kit.ManagerWatch.crashed`)
+    #: the sensor left because the run did not end well: its manager ended it with an error or
+    #: went away without ending it (:attr:`~covnet.processes.node_kit.ManagerWatch.crashed`)
     manager_lost: bool = False
 
 

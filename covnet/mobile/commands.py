@@ -43,6 +43,14 @@ def _pct(x: float | None) -> str:
     return "-" if x is None else f"{100.0 * x:.1f} %"
 
 
+def _none_solved_text(opt: dict[str, Any]) -> str:
+    """The optimality line of a run or batch whose every compared MILP timed out."""
+    return (
+        f"  optimality: no MILP proved an optimum within its time limit "
+        f"({opt['exact_not_optimal']} compared decisions left out)"
+    )
+
+
 def print_summary(out: Path, s: dict[str, Any]) -> None:
     """The run's headline numbers (the ``covnet run`` style)."""
     print(
@@ -65,10 +73,7 @@ def print_summary(out: Path, s: dict[str, Any]) -> None:
     )
     opt = s.get("optimality")
     if opt is not None and not opt["decisions"]:
-        print(
-            f"  optimality: no MILP proved an optimum within its time limit "
-            f"({opt['exact_not_optimal']} compared decisions left out)"
-        )
+        print(_none_solved_text(opt))
     elif opt is not None:
         worse = round(opt["share_lp_post_worse"] * opt["decisions"])
         print(
@@ -252,10 +257,7 @@ def _print_mc(
     )
     opt = agg.get("optimality")
     if opt is not None and not opt["decisions"]:
-        print(
-            f"  optimality: no MILP proved an optimum within its time limit "
-            f"({opt['exact_not_optimal']} compared decisions left out)"
-        )
+        print(_none_solved_text(opt))
     elif opt is not None:
         print(
             f"  optimality: LP + post-step worse than the MILP in "

@@ -43,6 +43,7 @@ class Heartbeat:
     ) -> None:
         self._bus, self._clock = bus, clock
         self._role, self._node_id, self._config = role, node_id, config
+        self._host = host_id()
         self._key = msg.heartbeat_key(run_id, role, node_id)
         self._period_ns = int(period_s * 1e9)
         self._next_ns = 0
@@ -74,7 +75,7 @@ class Heartbeat:
             rejected=dict(rejected) if rejected else None,
             sent=sent,
             config=self._config,
-            host=host_id(),
+            host=self._host,
         )
         self._bus.publish(self._key, msg.encode(hb))
         self._next_ns = t + self._period_ns

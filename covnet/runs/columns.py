@@ -37,6 +37,23 @@ class _Spilling:
     #: ``__del__`` then closes without an "Exception ignored ... AttributeError" traceback
     _spill: IO[bytes] | None = None
 
+    _n = 0  # rows or records held
+
+    def _spill_out(self, prefix: str, data: bytes) -> None:
+        """Append ``data`` to the spill file (made at the first block; an error of it names
+        the folder: :func:`_named_spill_errors`)."""
+        with _named_spill_errors():
+            if self._spill is None:
+                self._spill = tempfile.TemporaryFile(prefix=prefix)
+            self._spill.seek(0, 2)
+            self._spill.write(data)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __bool__(self) -> bool:
+        return self._n > 0
+
     def close(self) -> None:
         """Drop the spill file (also done when the store is garbage-collected)."""
         if self._spill is not None:
@@ -70,11 +87,7 @@ class Column(_Spilling):
         self._n += 1
 
     def _write(self, block: NDArray[Any]) -> None:
-        with _named_spill_errors():
-            if self._spill is None:
-                self._spill = tempfile.TemporaryFile(prefix="covnet-column-")
-            self._spill.seek(0, 2)
-            self._spill.write(np.ascontiguousarray(block).tobytes())
+        self._spill_out("covnet-column-", np.ascontiguousarray(block).tobytes())
         self._spilled += BLOCK
 
     def _read_spilled(self) -> NDArray[Any]:
@@ -83,12 +96,6 @@ class Column(_Spilling):
         self._spill.seek(0)
         data = self._spill.read(self._spilled * self.dtype.itemsize * math.prod(self.shape))
         return np.frombuffer(data, dtype=self.dtype).reshape((self._spilled, *self.shape)).copy()
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __bool__(self) -> bool:
-        return self._n > 0
 
     def __iter__(self) -> Iterator[Any]:
         yield from self.array()
@@ -135,18 +142,10 @@ class Records(_Spilling):
         self._tail.append(record)
         self._n += 1
         if len(self._tail) >= BLOCK:
-            with _named_spill_errors():
-                if self._spill is None:
-                    self._spill = tempfile.TemporaryFile(prefix="covnet-records-")
-                self._spill.seek(0, 2)
-                self._spill.write("".join(json.dumps(r) + "\n" for r in self._tail).encode())
+            self._spill_out(
+                "covnet-records-", "".join(json.dumps(r) + "\n" for r in self._tail).encode()
+            )
             self._tail = []
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __bool__(self) -> bool:
-        return self._n > 0
 
     def __iter__(self) -> Iterator[Any]:
         if self._spill is not None:

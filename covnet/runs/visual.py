@@ -531,9 +531,9 @@ class Visualiser:
         self._counts = 0
         self._bytes = 0
         self._latency_ms: list[float] = []
-        #: each node's host (its heartbeats'): a measurement's latency is taken only from a
-        #: sender of this process's clock (:func:`~covnet.processes.node_kit.same_clock`)
-        self._hosts: dict[str, str | None] = {}
+        #: the nodes whose heartbeats name another clock than this process's
+        #: (:func:`~covnet.processes.node_kit.same_clock`): their latencies are not taken
+        self._other_clock: set[str] = set()
         self.frames = 0
         self.undecodable = 0
         self.last_episode = -1
@@ -549,13 +549,16 @@ class Visualiser:
         if kind == msg.Heartbeat.KIND:
             with contextlib.suppress(msg.WireError):
                 hb = msg.decode_as(payload, msg.Heartbeat)
-                self._hosts[hb.node_id] = hb.host
+                if same_clock(hb.host):
+                    self._other_clock.discard(hb.node_id)
+                else:
+                    self._other_clock.add(hb.node_id)
             return []
         if kind not in _NEEDED:
             return []
         if kind == "meas" and t_sent_ns is not None and not self._wants_measurements:
             with contextlib.suppress(ValueError):
-                if same_clock(self._hosts.get(msg.parse_measurement_key(key))):
+                if msg.parse_measurement_key(key) not in self._other_clock:
                     self._latency_ms.append((t_recv_ns - t_sent_ns) / 1e6)
             return []
         try:
@@ -573,7 +576,7 @@ class Visualiser:
             self._truth[m.scan] = m
         elif isinstance(m, msg.Measurement):
             self._at(m.episode, m.scan).measurements[m.sensor_id] = m
-            if same_clock(self._hosts.get(m.sensor_id)):
+            if m.sensor_id not in self._other_clock:
                 self._latency_ms.append((t_recv_ns - m.t_sent_ns) / 1e6)
         elif isinstance(m, msg.Command):
             self._at(m.episode, m.scan).command = m
