@@ -35,8 +35,8 @@ from covnet.clock import Clock, WallClock
 from covnet.covariance_control.config import Scenario
 from covnet.covariance_control.model import Model, build_model, measure
 from covnet.covariance_control.sensor_side import Measured, SensorSide, Tracked
-from covnet.processes.node_kit import config_id
-from covnet.processes.process import EXIT_OK, open_client
+from covnet.processes.node_kit import config_id, not_ended_well
+from covnet.processes.process import EXIT_OK, EXIT_RUN_FAILED, open_client
 from covnet.wire import messages as msg
 from covnet.wire.batch_encode import MeasurementTemplate
 from covnet.wire.bus import Bus
@@ -76,6 +76,9 @@ def _peer(args: Any, sc: Scenario, stop: threading.Event) -> int:
         f"stopped: {stats.scans} scans, {stats.tracks_sent} tracks sent, "
         f"{stats.tracks_fused} fused, rejected {dict(stats.rejected)}",
     )
+    if stats.manager_lost:
+        say(args, not_ended_well(args.run, "this peer node"))
+        return EXIT_RUN_FAILED
     return EXIT_OK
 
 

@@ -34,7 +34,7 @@ from typing import Any
 
 from covnet.config import ConfigError
 from covnet.errors import UsageError
-from covnet.processes.process import EXIT_FAIL, EXIT_OK, EXIT_USAGE, open_client
+from covnet.processes.process import EXIT_FAIL, EXIT_OK, EXIT_RUN_FAILED, EXIT_USAGE, open_client
 from covnet.wire import security
 
 __all__ = ["host", "say"]
@@ -125,8 +125,10 @@ def _run_all(ids: list[str], main: SensorMain, args: Any, cfg: Any, stop: thread
     for th in threads:
         while th.is_alive():
             th.join(_SLICE_S)
-    worst = max(codes.values(), default=EXIT_OK)
-    if worst != EXIT_OK:
-        failed = sorted(s for s, c in codes.items() if c != EXIT_OK)
+    # a sensor's own failure outranks leaving with a run that did not end well (the others
+    # then stop with it: their status is that failure's, and a restart may follow)
+    failed = sorted(s for s, c in codes.items() if c not in (EXIT_OK, EXIT_RUN_FAILED))
+    if failed:
         print(f"sensors: hosted sensors failed: {failed}", file=sys.stderr, flush=True)
-    return worst
+        return max(codes[s] for s in failed)
+    return EXIT_RUN_FAILED if EXIT_RUN_FAILED in codes.values() else EXIT_OK

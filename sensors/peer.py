@@ -72,6 +72,9 @@ class PeerStats:
     tracks_sent: int = 0
     tracks_fused: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
+    #: the node left because the run did not end well: the monitor ended it with an error or
+    #: went away without ending it (:attr:`~covnet.processes.node_kit.ManagerWatch.crashed`)
+    manager_lost: bool = False
 
 
 MAX_CANDIDATES = 4
@@ -443,6 +446,9 @@ def run(
     finally:
         # what it refused to the end, for the monitor's network.json (it lingers for this)
         heartbeat.tick(last[0], stats.rejected, now=True)
+        lost: Counter[str] = Counter()
+        manager.note_lost(lost, stop)
+        stats.manager_lost = bool(lost)
         token.undeclare()
         manager.close()
         inbox.close()

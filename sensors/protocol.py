@@ -32,13 +32,13 @@ from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
 from covnet.core.delay import measures_on_missed
 from covnet.processes.node_kit import (
-    NOTE,
     Heartbeat,
     ManagerWatch,
     manager_appear_s,
     manager_grace_s,
+    not_ended_well,
 )
-from covnet.processes.process import EXIT_FAIL, EXIT_OK, open_client
+from covnet.processes.process import EXIT_OK, EXIT_RUN_FAILED, open_client
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus, Sample, Subscription, Token
 from covnet.wire.profiling import Stages, profiled
@@ -567,11 +567,6 @@ def process_main(
         f"{stats.measurements_sent} measurements sent, rejected {dict(stats.rejected)}",
     )
     if stats.manager_lost:
-        say(
-            args,
-            f"{NOTE}run {args.run} did not end well: its manager failed or went away without "
-            "ending the run (see the manager's output, on its host); this sensor stopped with "
-            "it",
-        )
-        return EXIT_FAIL
+        say(args, not_ended_well(args.run, "this sensor"))
+        return EXIT_RUN_FAILED
     return EXIT_OK

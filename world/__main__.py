@@ -11,8 +11,10 @@ import importlib
 import sys
 
 from covnet.clock import WallClock
+from covnet.processes.node_kit import MANAGER_LOST, not_ended_well
 from covnet.processes.process import (
     EXIT_OK,
+    EXIT_RUN_FAILED,
     common_parser,
     guarded,
     load_config,
@@ -35,7 +37,11 @@ def main(argv: list[str] | None = None) -> int:
         resolve_run(args, cfg)
         with open_client(args, cfg.network, WORLD_ID, WORLD_ID, stop) as bus:
             counts = loop.run(cfg, bus, args.run, WallClock(args.speed), stop)
+        lost = counts.pop(MANAGER_LOST, 0)
         print(f"stopped: {dict(counts)}")
+        if lost:  # the sensors' host of a run whose manager's host died: not a completed run
+            print(not_ended_well(args.run, "the world"), flush=True)
+            return EXIT_RUN_FAILED
         return EXIT_OK
 
     return guarded(body, "world")

@@ -199,6 +199,7 @@ def _serve_upfront(
                 publish(1, publish.model.scans)  # first time, or a (re)joined sensor needs it
                 sent = True
     finally:
+        manager.note_lost(publish.counts, stop)
         token.undeclare()
         manager.close()
         live.close()
@@ -284,6 +285,7 @@ def _serve_peers(
             if not window[0] <= need <= window[1]:
                 publish_from(need)
     finally:
+        manager.note_lost(counts, stop)
         token.undeclare()
         manager.close()
         live.close()

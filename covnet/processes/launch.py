@@ -62,6 +62,13 @@ _SLICE_S = 0.1
 # Longest wait for a child just forked to become the leader of its own process group.
 _GROUP_WAIT_S = 1.0
 
+EXIT_RUN_FAILED = 3
+"""A node's exit status when it left because its run did not end well (the manager ended it
+with an error, or its host died): a failure, but not the node's own, so never restarted
+(there is no run to rejoin: sensors restarted with ``restart: on-failure`` on a sensors-only
+host waited for a manager that never came, failed, and were restarted again, without end) and
+not a node lost mid-run."""
+
 
 def _print_line(name: str, line: str) -> None:
     with _print_lock:
@@ -72,7 +79,8 @@ def _print_line(name: str, line: str) -> None:
 class ProcessSpec:
     """One child: ``argv`` run with the parent's environment updated by ``env``.
     ``restart=True``: :meth:`Supervisor.poll` restarts it when it has *failed* (exited with a
-    non-zero status or by a signal); a clean exit (status 0) is final."""
+    non-zero status or by a signal); a clean exit (status 0) and :data:`EXIT_RUN_FAILED` (the
+    run is over) are final."""
 
     name: str
     argv: list[str]
@@ -310,7 +318,8 @@ class Supervisor:
             out: dict[str, int | None] = {}
             for name, run in list(self._runs.items()):
                 rc = run.proc.poll()
-                if rc not in (None, 0) and self._specs[name].restart and not self._stopping:
+                failed = rc not in (None, 0, EXIT_RUN_FAILED)
+                if failed and self._specs[name].restart and not self._stopping:
                     self._finish(run)
                     self._spawn(name)
                     self.restarts[name] += 1

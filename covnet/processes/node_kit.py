@@ -105,6 +105,21 @@ it: :func:`covnet.processes.up.shown`); the recorder's visual channels cut short
 budget said so only with ``--verbose``: a long run's Foxglove view ended at scan 4 731 of 6 000
 without a word."""
 
+MANAGER_LOST = "manager_lost"
+"""The counter a node loop built on :func:`serve_commands` (the world) sets when it left
+because the run did not end well (:attr:`ManagerWatch.crashed`): its process then exits 1
+saying so (:func:`not_ended_well`)."""
+
+
+def not_ended_well(run_id: str, who: str) -> str:
+    """The line of a node that left because its run did not end well (its manager failed or
+    went away without ending it): a node of another host exited 0 with the lines of a completed
+    run when the manager's host died."""
+    return (
+        f"{NOTE}run {run_id} did not end well: its manager failed or went away without ending "
+        f"the run (see the manager's output, on its host); {who} stopped with it"
+    )
+
 
 @functools.cache
 def host_id() -> str:
@@ -243,6 +258,13 @@ class ManagerWatch:
         run, when the manager's host died mid-run)."""
         return self.failed or (self.seen and not self.done and not self.up)
 
+    def note_lost(self, counts: Counter[str], stop: threading.Event) -> None:
+        """Set ``counts[MANAGER_LOST]`` when the node leaves (not stopped itself) because the
+        run did not end well (:attr:`crashed`)."""
+        self.poll()
+        if not stop.is_set() and self.crashed:
+            counts[MANAGER_LOST] = 1
+
     def close(self) -> None:
         self._sub.close()
 
@@ -289,5 +311,6 @@ def serve_commands(
             if handle(cmd):
                 last_scan = cmd.scan
     finally:
+        manager.note_lost(counts, stop)
         token.undeclare()
         manager.close()

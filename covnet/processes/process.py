@@ -29,6 +29,7 @@ from covnet.config import (
     hash_of,
 )
 from covnet.errors import UsageError
+from covnet.processes.launch import EXIT_RUN_FAILED as EXIT_RUN_FAILED  # the nodes' too
 from covnet.runs.rundir import os_error_text
 from covnet.wire import security
 from covnet.wire.keys import run_keyexpr

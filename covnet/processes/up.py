@@ -32,7 +32,7 @@ from typing import Any
 
 from covnet.errors import UpError
 from covnet.processes import interrupts, output
-from covnet.processes.launch import ProcessSpec, Supervisor
+from covnet.processes.launch import EXIT_RUN_FAILED, ProcessSpec, Supervisor
 from covnet.processes.netns_launch import NetnsTopology, up_in_namespaces
 from covnet.processes.node_kit import NOTE
 from covnet.processes.process import run_option_args
@@ -421,7 +421,12 @@ def up(
                 rcs = sup.poll()
                 if rcs.get("manager") is not None:
                     raise UpError(f"the manager exited with status {rcs['manager']} before READY")
-                gone = {k: v for k, v in rcs.items() if v not in (None, 0) and not restarts(k)}
+                # (a node that left with the run, EXIT_RUN_FAILED: the manager's exit says why)
+                gone = {
+                    k: v
+                    for k, v in rcs.items()
+                    if v not in (None, 0, EXIT_RUN_FAILED) and not restarts(k)
+                }
                 if gone:  # a node that cannot start (a refused login, a bad file): fail now
                     name, rc = next(iter(gone.items()))
                     raise UpError(
@@ -438,7 +443,9 @@ def up(
                 rcs = sup.poll()
                 for name in (VITAL.keys() & rcs.keys()) - lost.keys():
                     code = rcs[name]
-                    if code is not None and code != 0:  # died (a restartable one runs again)
+                    # died (a restartable one runs again); not one that left because the
+                    # manager failed (EXIT_RUN_FAILED: the manager's exit says why)
+                    if code not in (None, 0, EXIT_RUN_FAILED):
                         lost[name] = _lost(name, code, view.last)
                         view.line(f"[launcher] {lost[name]['ended']}")
                 n = sum(sup.restarts.values())

@@ -58,13 +58,16 @@ def test_a_host_of_another_seed_is_refused_by_name(tmp_path, paper_path):
     assert_nothing_left(a_out)
 
 
-def _manager_killed_mid_run(tmp_path, paper_path, host_a: str, host_b: str):
-    """Two launchers of a realtime run (``--nodes host_a`` and ``--nodes host_b``); the
-    manager SIGKILLed once the run goes: ``(rc_a, rc_b, out_a, out_b, output_a, output_b)``."""
-    cfg = _short(paper_path, tmp_path, scans=400)
+def _manager_killed_mid_run(
+    tmp_path, paper_path, host_a: str, host_b: str, realtime: bool = True, **over
+):
+    """Two launchers of a run (``--nodes host_a`` and ``--nodes host_b``; realtime unless
+    ``realtime`` is false: peer mode); the manager SIGKILLed once the run goes: ``(rc_a, rc_b,
+    out_a, out_b, output_a, output_b)``."""
+    cfg = _short(paper_path, tmp_path, **{"scans": 400, **over})
     router = f"tcp/127.0.0.1:{free_port()}"
     common = [str(cfg), "--router", router, "--run", f"die{os.getpid()}", "--no-figures"]
-    common += ["--realtime", "--speed", "20"]
+    common += ["--realtime", "--speed", "20"] if realtime else []
     a_out, b_out = tmp_path / "a", tmp_path / "b"
     mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", host_a])
     sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", host_b])
@@ -88,6 +91,45 @@ def test_a_sensors_host_says_so_when_the_managers_host_dies(tmp_path, paper_path
         tmp_path, paper_path, "manager,world,recorder", "sensors"
     )
     assert rc_b == 1 and "did not end well" in said, said
+
+
+def test_the_world_and_peer_nodes_say_so_too(tmp_path, paper_path):
+    """The world on the sensors' host (and, in peer mode, the peer nodes) exited 0 with the
+    lines of a completed run when the manager's (the monitor's) host died mid-run; each now
+    exits with ``EXIT_RUN_FAILED`` saying the run did not end well."""
+    (tmp_path / "central").mkdir()
+    (tmp_path / "peer").mkdir()
+    _, rc_b, _, _, _, said = _manager_killed_mid_run(
+        tmp_path / "central", paper_path, "manager,recorder", "sensors,world"
+    )
+    assert rc_b == 1 and "the world stopped with it" in said, said
+    _, rc_b, _, _, _, said = _manager_killed_mid_run(
+        tmp_path / "peer",
+        paper_path,
+        "manager,recorder",
+        "sensors,world",
+        realtime=False,
+        scans=3000,
+        fusion={"mode": "peer", "peer": {"graph": "ring"}},
+    )
+    assert rc_b == 1 and "this peer node stopped with it" in said, said
+    assert "the world stopped with it" in said, said
+
+
+def test_restartable_nodes_are_not_restarted_into_a_run_that_is_over(tmp_path, paper_path):
+    """``network.restart: on-failure`` on a sensors-only host whose manager's host died: the
+    sensors left saying the run did not end well (exit 1), were restarted, waited for a
+    manager that never came, failed and were restarted again: the host never ended.  A node
+    that leaves for that (``EXIT_RUN_FAILED``) is not restarted, and its launcher ends."""
+    net = {"ready_timeout_s": 20.0, "restart": "on-failure"}
+    t0 = time.monotonic()
+    _, rc_b, _, b_out, _, said = _manager_killed_mid_run(
+        tmp_path, paper_path, "manager,recorder", "sensors,world", network=net
+    )
+    assert rc_b == 1 and "did not end well" in said, said
+    assert time.monotonic() - t0 < 120
+    assert "restart" not in said.lower(), said
+    assert_nothing_left(b_out)
 
 
 def test_config_id_ignores_only_the_per_host_keys(tmp_path, paper_path):

@@ -122,6 +122,31 @@ def test_a_failing_hosted_sensor_stops_the_host(capsys):
     assert "hosted sensors failed: ['bad']" in err
 
 
+def test_hosted_sensors_that_leave_with_a_failed_run_are_not_a_failure_of_their_own(capsys):
+    """Sensors that left because the run did not end well give the process EXIT_RUN_FAILED
+    (not restarted); a sensor's own failure among them outranks it."""
+    from covnet.processes.process import EXIT_FAIL, EXIT_RUN_FAILED
+
+    def leaving(args, cfg, stop_):
+        return EXIT_RUN_FAILED if args.id != "fine" else 0
+
+    assert host(["a", "fine", "b"], leaving, _args(), None, threading.Event(), share=False) == (
+        EXIT_RUN_FAILED
+    )
+    assert "hosted sensors failed" not in capsys.readouterr().err
+
+    def one_broken(args, cfg, stop_):
+        if args.id == "bad":
+            return EXIT_FAIL
+        stop_.wait(10)
+        return EXIT_RUN_FAILED
+
+    assert host(["a", "bad", "b"], one_broken, _args(), None, threading.Event(), share=False) == (
+        EXIT_FAIL
+    )
+    assert "hosted sensors failed: ['bad']" in capsys.readouterr().err
+
+
 def test_sensors_process_refuses_unknown_or_repeated_ids(paper_path, capsys):
     from sensors.__main__ import main as sensors_main
 

@@ -13,7 +13,7 @@ import threading
 
 import pytest
 
-from covnet.processes.launch import ProcessSpec, Supervisor
+from covnet.processes.launch import EXIT_RUN_FAILED, ProcessSpec, Supervisor
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -161,9 +161,11 @@ def test_restart_by_hand_and_automatic(tmp_path):
     pids_file = tmp_path / "pids.json"
     specs = [
         ProcessSpec("manual", [PY, "-c", POLITE]),
-        ProcessSpec("auto", [PY, "-c", "print('READY'); raise SystemExit(3)"], restart=True),
+        ProcessSpec("auto", [PY, "-c", "print('READY'); raise SystemExit(5)"], restart=True),
         ProcessSpec("once", [PY, "-c", "raise SystemExit(4)"]),
         ProcessSpec("clean", [PY, "-c", "raise SystemExit(0)"], restart=True),
+        # left because its run did not end well: there is no run to rejoin
+        ProcessSpec("over", [PY, "-c", f"raise SystemExit({EXIT_RUN_FAILED})"], restart=True),
     ]
     with Supervisor(specs, on_line=Lines(), pids_file=pids_file) as sup:
         assert sup.wait_for_line("manual", "READY", timeout=20)
@@ -173,12 +175,14 @@ def test_restart_by_hand_and_automatic(tmp_path):
         assert sup.wait_for_line("manual", "READY", timeout=20)  # the new incarnation's
         assert json.loads(pids_file.read_text())["manual"] == sup.pids["manual"]
 
-        assert sup.wait("auto", timeout=20) == 3
+        assert sup.wait("auto", timeout=20) == 5
         assert sup.wait("once", timeout=20) == 4
         assert sup.wait("clean", timeout=20) == 0
+        assert sup.wait("over", timeout=20) == EXIT_RUN_FAILED
         status = sup.poll()  # restarts "auto" (failed), not "once" (no policy), not "clean"
         assert status["auto"] is None and status["once"] == 4 and status["clean"] == 0
-        assert sup.restarts == {"manual": 1, "auto": 1, "once": 0, "clean": 0}
+        assert status["over"] == EXIT_RUN_FAILED
+        assert sup.restarts == {"manual": 1, "auto": 1, "once": 0, "clean": 0, "over": 0}
         assert sup.pids["auto"] != old["auto"]
         assert json.loads(pids_file.read_text()) == sup.pids
         assert sup.wait_for_line("auto", "READY", timeout=20)
