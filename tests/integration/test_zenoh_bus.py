@@ -389,3 +389,28 @@ def test_a_router_whose_port_is_taken_says_so_within_seconds_not_at_the_ready_ti
             )  # fmt: skip
         # generous: the retries stop at ROUTER_RETRY_S (2 s); the old code took timeout_s
         assert time.monotonic() - t0 < 30.0
+
+
+@pytest.mark.parametrize("end", [m.done_key, m.failed_key])
+def test_the_manager_waits_for_the_nodes_to_leave_not_for_its_own_end(router, run, end):
+    """After a run the manager keeps its router up until the other nodes have left.  Its own
+    ``done`` (or ``failed``) token, declared to the end for nodes that come late, was counted
+    among them: every ``covnet up`` waited the whole 5 s bound after its nodes had gone."""
+    from manager.loop import wait_for_nodes_to_leave
+
+    bus, endpoint = router
+    done = bus.declare_token(end(run))
+    with ZenohBus.open(zenoh_config("client", connect=[endpoint])) as node:
+        token = node.declare_token(m.alive_key(run, "sensor", "S1"))
+        threading.Timer(0.3, token.undeclare).start()
+        t0 = time.monotonic()
+        wait_for_nodes_to_leave(bus, run, timeout_s=60.0, stop=threading.Event())
+        assert time.monotonic() - t0 < 30  # the sensor's leaving ends it, not the bound
+    # and a node that stays is waited for up to the bound
+    with ZenohBus.open(zenoh_config("client", connect=[endpoint])) as node:
+        stays = node.declare_token(m.alive_key(run, "world", "world"))
+        t0 = time.monotonic()
+        wait_for_nodes_to_leave(bus, run, timeout_s=1.0, stop=threading.Event())
+        assert time.monotonic() - t0 >= 1.0
+        stays.undeclare()
+    done.undeclare()
