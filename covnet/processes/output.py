@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 
 __all__ = ["gone", "reset", "say", "silence"]
 
 _gone = False
+_lock = threading.Lock()
 
 
 def reset() -> None:
@@ -41,10 +43,13 @@ def gone() -> bool:
 
 
 def say(text: str) -> None:
-    """``print(text, flush=True)``, or nothing once stdout's reader has gone."""
+    """``print(text, flush=True)``, or nothing once stdout's reader has gone.  One line at a
+    time: the launcher's reader threads (one a process) say their lines at once, and
+    ``print`` writes a line's text and its newline apart (two nodes' lines ran into one)."""
     if _gone:
         return
     try:
-        print(text, flush=True)
+        with _lock:
+            print(text, flush=True)
     except OSError:  # a broken pipe, or a terminal hung up (EIO)
         silence()
