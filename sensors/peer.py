@@ -362,8 +362,10 @@ def run(
                 plan = engine.decide(k, engine.unavailable(frozenset(ids) - members))
                 t_k = k * model.T
                 got: dict[str, Any] = {}
+                # one WORLD_GONE_WAIT_S a scan while the world is gone, from here: the waits
+                # for the truth and for the neighbours' tracks each took one (1 s a scan)
+                t0 = time.monotonic()
                 if node_id in plan.enabled:
-                    t0 = time.monotonic()
                     if inbox.wait(
                         partial(_truth_or, inbox, k, partial(world_gone, t0)),
                         t0 + net.scan_timeout_s,
@@ -392,7 +394,7 @@ def run(
                         got[node_id] = tr
                 want = [ids[j] for j in plan.subset if j in nbrs and ids[j] in members]
                 passing = _Passing(inbox.tracks, engine.verdict)
-                give_up = partial(world_gone, time.monotonic())
+                give_up = partial(world_gone, t0)
                 inbox.each(want, passing, e, k, net.scan_timeout_s, stop, beat, give_up)
                 if stop.is_set():  # cut by the stop: not the scan the network would have fused
                     return stats
