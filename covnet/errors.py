@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import sys
 
-__all__ = ["ClusterLost", "UpError", "UsageError", "WorkerDied", "shadowed_package"]
+__all__ = ["ClusterLost", "NoRun", "UpError", "UsageError", "WorkerDied", "shadowed_package"]
 
 
 def shadowed_package() -> str | None:
@@ -51,6 +51,14 @@ class UsageError(Exception):
 
 class UpError(RuntimeError):
     """The network could not be brought up or did not finish."""
+
+
+class NoRun(ConnectionError):
+    """A node found no run to join: its session with the run's router did not open (nothing
+    listens there, or the router refuses it), or no manager of its run appeared in time.  Its
+    process exits :data:`covnet.processes.launch.EXIT_NO_RUN` and is not restarted: trying
+    again cannot make the run appear (``restart: on-failure`` on a sensors-only host restarted
+    such a sensor every half minute, without end)."""
 
 
 class WorkerDied(RuntimeError):

@@ -258,6 +258,7 @@ class Loop:
         #: whose world may be restarted): a scan then waits for it as for anything else
         self.world_returns = False
         self._looked_ns: int | None = None  # the last poll_membership
+        self._vital_down: dict[str, dict[str, Any]] = {}  # note_vital
         #: this manager's :func:`~covnet.processes.node_kit.config_id` (None: not compared), and
         #: the one each node's heartbeats carry
         self.config_id: str | None = None
@@ -378,6 +379,27 @@ class Loop:
             self.stats.membership[sid]["failed" if sid in failed else "rejoined"] += 1
         self._counted_failed = failed
         return failed, events
+
+    def note_vital(self, episode: str, last_scan: int, failed: frozenset[str]) -> None:
+        """Follow the world and the recorder, which no decision needs but a complete run does:
+        the first time each is seen down (``failed`` holds the world; the recorder's token is
+        gone) after scan ``last_scan`` of ``episode``, until it is up again.  What is still
+        down at the end is :attr:`NetStats.gone_at_end`: a world or recorder of another host
+        that died went unreported (its launcher does not watch the manager's run), and the
+        manager's host said ``completed``."""
+        down = {WORLD_ID} & failed
+        if self.net.record and RECORDER_ID not in self.members.alive_tokens:
+            down.add(RECORDER_ID)
+        for node in down:
+            self._vital_down.setdefault(node, {"after_scan": last_scan, "episode": episode})
+        for node in set(self._vital_down) - down:
+            del self._vital_down[node]
+
+    def vital_gone_at_end(self, episode: str, last_scan: int) -> None:
+        """After the last scan: the world or recorder down now (:meth:`note_vital`)."""
+        self.poll_membership()
+        self.note_vital(episode, last_scan, self.members.failed(self.clock.now_ns()))
+        self.stats.gone_at_end = {n: dict(v) for n, v in sorted(self._vital_down.items())}
 
     def linger(self, timeout_s: float, stop: threading.Event) -> None:
         """After the run (our token gone): keep reading heartbeats, whose ``sent`` counts say
@@ -795,6 +817,7 @@ def _run_scans(
                 if events:
                     logic.membership(e, k, events)
                 failed_prev = failed
+                loop.note_vital(logic.episodes[e], k - 1, failed)
                 lap("membership")
                 decision = logic.decide(e, k, failed)
                 lap("decide")
@@ -848,6 +871,8 @@ def _run_scans(
                 if realtime:
                     report.run()
             report.run()  # the episode's last scan
+        if logic.episodes:
+            loop.vital_gone_at_end(logic.episodes[-1], logic.scans)
         result.completed = True
     except ManagerError as exc:
         result.error = str(exc)

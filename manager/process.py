@@ -177,7 +177,11 @@ def serve(
     try:
         write(result)
         status, why = ending(result, stop, launcher_gone.is_set())
-        record_end(out, status, why, membership=result.stats.membership_counts())
+        # the world or recorder down at the end (NetStats.gone_at_end): the launcher of this
+        # host says it when that node ran on another host (its own it watches itself)
+        gone = getattr(result.stats, "gone_at_end", None)
+        facts = {"gone_at_end": gone} if gone else {}
+        record_end(out, status, why, membership=result.stats.membership_counts(), **facts)
     finally:  # the run is over: no live snapshot stays, also when the results could not be
         # written (a full disk: the OSError names the file; the launcher rebuilds or says so)
         with contextlib.suppress(OSError):

@@ -33,8 +33,15 @@ from collections.abc import Callable
 from typing import Any
 
 from covnet.config import ConfigError
-from covnet.errors import UsageError
-from covnet.processes.process import EXIT_FAIL, EXIT_OK, EXIT_RUN_FAILED, EXIT_USAGE, open_client
+from covnet.errors import NoRun, UsageError
+from covnet.processes.process import (
+    EXIT_FAIL,
+    EXIT_NO_RUN,
+    EXIT_OK,
+    EXIT_RUN_FAILED,
+    EXIT_USAGE,
+    open_client,
+)
 from covnet.wire import security
 
 __all__ = ["host", "say"]
@@ -43,6 +50,9 @@ SensorMain = Callable[[Any, Any, threading.Event], int]
 
 #: the main thread's longest wait (signal handlers run in the main thread, between waits)
 _SLICE_S = 0.1
+# the statuses of sensors that left for no failure of their own, the first ranking higher:
+# no run to join, or a run that did not end well
+_NOT_THEIR_OWN = (EXIT_NO_RUN, EXIT_RUN_FAILED)
 
 
 _say_lock = threading.Lock()
@@ -103,6 +113,9 @@ def _run_all(ids: list[str], main: SensorMain, args: Any, cfg: Any, stop: thread
         except (ConfigError, UsageError) as exc:
             print(f"sensors: {sid}: error: {exc}", file=sys.stderr, flush=True)
             code = EXIT_USAGE
+        except NoRun as exc:  # no run to join: not restarted
+            print(f"sensors: {sid}: error: {exc}", file=sys.stderr, flush=True)
+            code = EXIT_NO_RUN
         except (ValueError, ConnectionError) as exc:
             print(f"sensors: {sid}: error: {exc}", file=sys.stderr, flush=True)
         except Exception:  # noqa: BLE001 (a hosted sensor's crash must not go unsaid)
@@ -125,10 +138,11 @@ def _run_all(ids: list[str], main: SensorMain, args: Any, cfg: Any, stop: thread
     for th in threads:
         while th.is_alive():
             th.join(_SLICE_S)
-    # a sensor's own failure outranks leaving with a run that did not end well (the others
-    # then stop with it: their status is that failure's, and a restart may follow)
-    failed = sorted(s for s, c in codes.items() if c not in (EXIT_OK, EXIT_RUN_FAILED))
+    # a sensor's own failure outranks finding no run and leaving with a run that did not end
+    # well (the others then stop with it: their status is that failure's, and a restart may
+    # follow)
+    failed = sorted(s for s, c in codes.items() if c not in (EXIT_OK, *_NOT_THEIR_OWN))
     if failed:
         print(f"sensors: hosted sensors failed: {failed}", file=sys.stderr, flush=True)
         return max(codes[s] for s in failed)
-    return EXIT_RUN_FAILED if EXIT_RUN_FAILED in codes.values() else EXIT_OK
+    return next((c for c in _NOT_THEIR_OWN if c in codes.values()), EXIT_OK)

@@ -69,6 +69,10 @@ with an error, or its host died): a failure, but not the node's own, so never re
 host waited for a manager that never came, failed, and were restarted again, without end) and
 not a node lost mid-run."""
 
+EXIT_NO_RUN = 4
+"""A node's exit status when it found no run to join (:class:`covnet.errors.NoRun`: its
+session did not open, or no manager of its run appeared in time): never restarted."""
+
 
 def _print_line(name: str, line: str) -> None:
     with _print_lock:
@@ -79,8 +83,8 @@ def _print_line(name: str, line: str) -> None:
 class ProcessSpec:
     """One child: ``argv`` run with the parent's environment updated by ``env``.
     ``restart=True``: :meth:`Supervisor.poll` restarts it when it has *failed* (exited with a
-    non-zero status or by a signal); a clean exit (status 0) and :data:`EXIT_RUN_FAILED` (the
-    run is over) are final."""
+    non-zero status or by a signal); a clean exit (status 0), :data:`EXIT_RUN_FAILED` (the
+    run is over) and :data:`EXIT_NO_RUN` (there is no run to join) are final."""
 
     name: str
     argv: list[str]
@@ -318,7 +322,7 @@ class Supervisor:
             out: dict[str, int | None] = {}
             for name, run in list(self._runs.items()):
                 rc = run.proc.poll()
-                failed = rc not in (None, 0, EXIT_RUN_FAILED)
+                failed = rc not in (None, 0, EXIT_RUN_FAILED, EXIT_NO_RUN)
                 if failed and self._specs[name].restart and not self._stopping:
                     self._finish(run)
                     self._spawn(name)

@@ -15,6 +15,7 @@ from typing import Any
 
 from covnet.clock import Clock
 from covnet.config import NetworkSpec
+from covnet.errors import NoRun
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
 
@@ -243,7 +244,7 @@ class ManagerWatch:
         if self.done:
             return True
         if not self.seen and self.appear_by is not None and time.monotonic() > self.appear_by:
-            raise ConnectionError(
+            raise NoRun(
                 f"no manager of run {self.run_id!r} appeared within {self.appear_s:g} s (is "
                 "--run the same on every host, and the manager's host started?)"
             )

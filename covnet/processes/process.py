@@ -28,8 +28,9 @@ from covnet.config import (
     endpoint_security_problem,
     hash_of,
 )
-from covnet.errors import UsageError
-from covnet.processes.launch import EXIT_RUN_FAILED as EXIT_RUN_FAILED  # the nodes' too
+from covnet.errors import NoRun, UsageError
+from covnet.processes.launch import EXIT_NO_RUN as EXIT_NO_RUN  # the nodes' too
+from covnet.processes.launch import EXIT_RUN_FAILED as EXIT_RUN_FAILED
 from covnet.runs.rundir import os_error_text
 from covnet.wire import security
 from covnet.wire.keys import run_keyexpr
@@ -197,9 +198,12 @@ def open_bus(
                 give_up = True
             if give_up:
                 where = f"cannot open a zenoh {mode} session ({listen or connect})"
+                # a client that cannot join has no run to join (not restarted); a router's
+                # listener that cannot open is the manager's failure
+                error = NoRun if mode == "client" else ConnectionError
                 if verdict is not None:
-                    raise ConnectionError(f"{verdict}: {where} (zenoh: {exc})") from None
-                raise ConnectionError(f"{where}: {exc}") from None
+                    raise error(f"{verdict}: {where} (zenoh: {exc})") from None
+                raise error(f"{where}: {exc}") from None
             stop.wait(0.1)
 
 
@@ -236,7 +240,8 @@ def open_client(args: Any, net: NetworkSpec, role: str, node_id: str, stop: thre
 
 def guarded(body: Callable[[], int], prog: str) -> int:
     """Run ``body``; a user's mistake prints one line and exits 2, a failure exits 1 (a file
-    that could not be written, a full disk: one line naming it, no traceback)."""
+    that could not be written, a full disk: one line naming it, no traceback), a node that
+    found no run to join (:class:`~covnet.errors.NoRun`) :data:`EXIT_NO_RUN`."""
     try:
         return body()
     except ConfigError as exc:
@@ -245,6 +250,9 @@ def guarded(body: Callable[[], int], prog: str) -> int:
     except UsageError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except NoRun as exc:  # no run to join: not restarted (before ConnectionError, its base)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_NO_RUN
     except (ValueError, ConnectionError) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_FAIL

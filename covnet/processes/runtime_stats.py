@@ -131,6 +131,9 @@ class NetStats:
         default_factory=lambda: defaultdict(Counter)
     )  # per node: failed, rejoined (events seen by the manager)
     node_rejected: dict[str, dict[str, int]] = field(default_factory=dict)  # from heartbeats
+    #: the world or recorder down as the last scan was done, and since when: ``{node:
+    #: {"after_scan": k, "episode": name}}`` (:meth:`manager.loop.Loop.note_vital`)
+    gone_at_end: dict[str, dict[str, Any]] = field(default_factory=dict)
     # over the bus only: what the manager's bus dropped before decoding ({key: {reason: n}},
     # reason "oversize": covnet.wire.bus); None in process (no bus, and not in network.json)
     dropped: dict[str, dict[str, int]] | None = None

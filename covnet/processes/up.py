@@ -32,7 +32,7 @@ from typing import Any
 
 from covnet.errors import UpError
 from covnet.processes import interrupts, output
-from covnet.processes.launch import EXIT_RUN_FAILED, ProcessSpec, Supervisor
+from covnet.processes.launch import EXIT_NO_RUN, EXIT_RUN_FAILED, ProcessSpec, Supervisor
 from covnet.processes.netns_launch import NetnsTopology, up_in_namespaces
 from covnet.processes.node_kit import NOTE
 from covnet.processes.process import run_option_args
@@ -466,6 +466,13 @@ def up(
             ended += _note_lost(out, lost)
             raise UpError(f"the manager failed (exit status {status}); {ended}")
         _note_restarts(out, sup.restarts)
+        # a world or recorder of another host down at the end, as the manager saw it (this
+        # launcher watches only its own: the run was "completed", exit 0)
+        here = {sp.name for sp in specs}
+        for name, when in _gone_at_end(out).items():
+            if name in VITAL and name not in here and name not in lost:
+                lost[name] = _lost_elsewhere(name, when)
+                view.line(f"[launcher] {lost[name]['ended']}")
         if lost:
             unsaid = _note_lost(out, lost)
             why = "; ".join(ev["ended"] for ev in lost.values())
@@ -672,6 +679,10 @@ def _supervise_without_manager(
                 time.sleep(0.1)
             final = sup.stop()
         bad = {k: v for k, v in final.items() if v != 0}
+        for name, rc in sorted(bad.items()):
+            if rc not in (EXIT_RUN_FAILED, EXIT_NO_RUN):  # those said why themselves
+                what = f": {VITAL[name]}" if name in VITAL else ""
+                print(f"[launcher] {name} failed (exit status {rc}){what}", flush=True)
         return 1 if bad else 0
     except KeyboardInterrupt:
         sup.stop()  # done already, unless the Ctrl-C came as the with statement took it
@@ -705,6 +716,32 @@ def _lost(name: str, rc: int, last: dict[str, Any] | None) -> dict[str, Any]:
         "after_scan": scan,
         "episode": episode,
         "ended": f"the {name} died (exit status {rc}) {where} and was not restarted: {VITAL[name]}",
+    }
+
+
+def _gone_at_end(out: Path) -> dict[str, dict[str, Any]]:
+    """``run.json``'s ``gone_at_end`` (the manager's: :meth:`manager.loop.Loop.note_vital`)."""
+    gone = _run_info(out).get("gone_at_end")
+    if not isinstance(gone, dict):
+        return {}
+    return {str(k): v for k, v in gone.items() if isinstance(v, dict)}
+
+
+def _lost_elsewhere(name: str, when: dict[str, Any]) -> dict[str, Any]:
+    """``run.json``'s ``lost`` entry of a :data:`VITAL` node of another host that the manager
+    saw go after scan ``when["after_scan"]`` and not come back (its exit status is that
+    host's)."""
+    scan, episode = when.get("after_scan"), when.get("episode")
+    where = "before the first scan" if not scan else f"after scan {scan}"
+    if episode and scan:
+        where += f" ({episode})"
+    return {
+        "node": name,
+        "exit_status": None,
+        "after_scan": scan,
+        "episode": episode,
+        "ended": f"the {name}, on another host, was gone {where} to the end of the run: "
+        f"{VITAL[name]}",
     }
 
 

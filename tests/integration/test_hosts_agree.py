@@ -132,6 +132,69 @@ def test_restartable_nodes_are_not_restarted_into_a_run_that_is_over(tmp_path, p
     assert_nothing_left(b_out)
 
 
+def test_a_sensors_host_that_finds_no_run_ends_restart_or_not(tmp_path, paper_path):
+    """``restart: on-failure`` on a sensors-only host with no router at ``--router`` (or no
+    manager of its run): each sensor failed to join, exit 1, and was restarted, every half
+    minute without end (hunt 12).  A node that finds no run to join exits ``EXIT_NO_RUN``, is
+    not restarted, and the host ends with exit 1 once ``ready_timeout_s`` has passed."""
+    cfg = _short(paper_path, tmp_path, network={"restart": "on-failure"})
+    data = yaml.safe_load(cfg.read_text())
+    data["network"]["ready_timeout_s"] = 2.0
+    cfg.write_text(yaml.safe_dump(data))
+    router = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    out = tmp_path / "b"
+    sens = CovnetProcess(
+        ["up", str(cfg), "--router", router, "--run", f"none{os.getpid()}", "--out", str(out),
+         "--nodes", "S1,S2"]
+    )  # fmt: skip
+    try:
+        rc = sens.wait(timeout=60)
+    finally:
+        sens.stop()
+    said = sens.output()
+    assert rc == 1, said
+    assert said.count("cannot open a zenoh client session") == 2, said  # once each, no restart
+    assert_nothing_left(out)
+
+
+@pytest.mark.parametrize("node", ["recorder", "world"])
+def test_a_world_or_recorder_of_another_host_that_dies_is_a_run_not_complete(
+    tmp_path, paper_path, node
+):
+    """The recorder (or the world) on the sensors' host killed mid-run: the manager's host
+    said `completed` and exited 0 (its launcher watches only its own processes), the recording
+    ending hundreds of scans before the run; the other host exited 1 without a word (hunt 12).
+    The manager notes the world and recorder down at the end, the manager's host says which
+    after which scan and exits 1 (`run.json` failed, `lost`), and the other host names its
+    failed node."""
+    cfg = _short(paper_path, tmp_path, scans=200)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    common = [str(cfg), "--router", router, "--run", f"rec{os.getpid()}", "--no-figures"]
+    common += ["--realtime", "--speed", "20", "--metric", "spectral"]
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    here = "manager,world" if node == "recorder" else "manager,recorder"
+    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", here])
+    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", f"sensors,{node}"])
+    try:
+        assert mgr.wait_for("[manager] READY", timeout=60), mgr.output() + sens.output()
+        assert mgr.wait_for(lambda s: "[status]" in s, timeout=30), mgr.output()
+        pid = json.loads((b_out / "processes.json").read_text())[node]
+        os.kill(pid, signal.SIGKILL)
+        rc_a = mgr.wait(timeout=90)
+        rc_b = sens.wait(timeout=60)
+    finally:
+        mgr.stop()
+        sens.stop()
+    said_a, said_b = mgr.output(), sens.output()
+    assert rc_a == 1, said_a
+    assert re.search(rf"the {node}, on another host, was gone after scan \d+", said_a), said_a
+    info = json.loads((a_out / "run.json").read_text())
+    assert info["status"] == "failed" and info["lost"][0]["node"] == node, info
+    assert info["membership"][node]["failed"] == 1
+    assert rc_b == 1 and f"[launcher] {node} failed (exit status -9)" in said_b, said_b
+    assert_nothing_left(a_out)
+
+
 def test_config_id_ignores_only_the_per_host_keys(tmp_path, paper_path):
     """The hosts' endpoints and security files may differ; the rest may not."""
     from covnet import kinds

@@ -23,6 +23,7 @@ from multiproc import REPO, CovnetProcess
 
 from covnet.cli.app import main as covnet_main
 from covnet.covariance_control.config import load, normalised
+from covnet.processes.launch import EXIT_NO_RUN
 from covnet.processes.up import free_port
 from covnet.runs.rundir import load_arrays
 from covnet.wire import messages as msg
@@ -333,7 +334,7 @@ def test_access_control_rogue_commands_never_reach_a_sensor(lab, paper):
 def test_wrong_password_cannot_join(lab, paper):
     """A client with a wrong password, an unknown user or no credentials at all cannot open a
     session: ``zenoh.open`` fails at once ("Unable to connect"). A node process given a wrong
-    password retries until ``ready_timeout_s`` and exits 1."""
+    password retries until ``ready_timeout_s`` and exits 4 (``EXIT_NO_RUN``: not restarted)."""
     cfg = write_config(lab, paper, "pw", credentials_file="creds.txt")
     sc = load(cfg)
     ep = f"tcp/127.0.0.1:{free_port()}"
@@ -356,7 +357,7 @@ def test_wrong_password_cannot_join(lab, paper):
         child = Child("sensors", "--config", str(bad_cfg), "--id", "S2", "--run", "r",
                       "--connect", ep)  # fmt: skip
         try:
-            assert child.wait(timeout=30) == 1
+            assert child.wait(timeout=30) == EXIT_NO_RUN
         finally:
             child.stop()
         assert "cannot open a zenoh client session" in child.output()

@@ -18,6 +18,7 @@ from multiproc import REPO
 from test_security import PASSWORDS, _make_ca, _make_cert, client, router, write_config
 
 from covnet.covariance_control.config import load
+from covnet.processes.launch import EXIT_NO_RUN
 from covnet.processes.up import free_port
 from covnet.wire import messages as msg
 
@@ -72,7 +73,7 @@ def test_wrong_password_says_authentication_failed(lab, paper):
         with client(good, ep, "S1") as ok:  # positive control: the right password opens
             ok.publish(msg.heartbeat_key("r", "sensor", "S1"), b"x")
         rc, err, took = sensor(wrong, ep)
-    assert rc == 1, err
+    assert rc == EXIT_NO_RUN, err  # not restarted: no run to join
     line = next(ln for ln in err.splitlines() if "authentication failed for S1" in ln)
     assert line.startswith("sensors: error: authentication failed for S1 (the password in ")
     assert f"{lab / 'wrong-creds.txt'} is not the router's" in line
@@ -92,7 +93,7 @@ def test_certificate_of_another_ca_says_tls_handshake_failed(lab, paper):
         with client(good, ep, "S1"):  # positive control: S1's own certificate opens
             pass
         rc, err, took = sensor(rogue, ep)
-    assert rc == 1, err
+    assert rc == EXIT_NO_RUN, err  # not restarted: no run to join
     line = next(ln for ln in err.splitlines() if "TLS handshake failed for S1" in ln)
     assert "the router rejected S1's certificate" in line
     assert str(lab / "rogue-pki" / "certs" / "S1.pem") in line
@@ -108,6 +109,6 @@ def test_no_router_is_not_an_authentication_failure(lab, paper):
     data["network"]["ready_timeout_s"] = 1.0
     cfg.write_text(yaml.safe_dump(data, sort_keys=False))
     rc, err, _ = sensor(cfg, f"tcp/127.0.0.1:{free_port()}")
-    assert rc == 1, err
+    assert rc == EXIT_NO_RUN, err  # not restarted: no run to join
     assert "cannot open a zenoh client session" in err
     assert "authentication failed" not in err and "TLS handshake failed" not in err
