@@ -110,8 +110,8 @@ def other_configs(own: str, heard: Mapping[str, str | None]) -> str | None:
     return (
         f"nodes run another config than this manager's ({own}): {nodes}. Every host of a run "
         "must run the same config file with the same run options (--seed, --fusion, "
-        "--solver); only network.router, network.connect, network.security and the metrics "
-        "(--metric) may differ"
+        "--solver, --realtime, --speed); only network.router, network.connect, "
+        "network.security and the metrics (--metric) may differ"
     )
 
 

@@ -151,15 +151,30 @@ CONFIG_ID_FREE = ("router", "connect", "security")
 certificate and password files), left out of :func:`config_id`."""
 
 
+_run_clock = "lockstep"
+
+
+def set_run_clock(realtime: bool, speed: float) -> None:
+    """This process's clock options (``--realtime``, ``--speed``), part of :func:`config_id`
+    in real time: a sensors' host given another ``--speed`` emulated its links' delays at its
+    own speed while the manager paced and timed the scans at its, and the run (33 m of RMSE
+    against 7) said ``completed`` at the manager's speed (hunt 12).  Every node process sets it
+    as it starts (:func:`covnet.processes.process.resolve_run`); a loop run in a test's
+    threads keeps the default, lockstep."""
+    global _run_clock
+    _run_clock = f"realtime x{speed!r}" if realtime else "lockstep"
+
+
 def config_id(cfg: Any) -> str:
     """The identity of the config a node runs, run options applied (``--seed``, ``--fusion``,
-    ``--solver``): 16 hex digits of the hash of the kind's normalised config without the
-    ``network`` keys of :data:`CONFIG_ID_FREE` and without ``allocation.metrics`` (``--metric``:
-    the manager's choice of episodes; a sensor measures the same whatever the metric, and
-    the manager's episodes are its own).  Every node's heartbeats carry it, and the manager
-    starts only when every node's equals its own: hosts given one ``--run`` with a stale copy
-    of the config, another seed or another fusion mode ran one mixed network, every host
-    exiting 0 and ``run.json`` claiming the manager's config."""
+    ``--solver``; ``--realtime`` and ``--speed``: :func:`set_run_clock`): 16 hex digits of the
+    hash of the kind's normalised config without the ``network`` keys of
+    :data:`CONFIG_ID_FREE` and without ``allocation.metrics`` (``--metric``: the manager's
+    choice of episodes; a sensor measures the same whatever the metric, and the manager's
+    episodes are its own).  Every node's heartbeats carry it, and the manager starts only when
+    every node's equals its own: hosts given one ``--run`` with a stale copy of the config,
+    another seed or another fusion mode ran one mixed network, every host exiting 0 and
+    ``run.json`` claiming the manager's config."""
     # start-up: the kinds' registry, only as a node begins
     from covnet import kinds
     from covnet.config import hash_of
@@ -171,6 +186,8 @@ def config_id(cfg: Any) -> str:
     alloc = data.get("allocation")
     if isinstance(alloc, dict):
         data = {**data, "allocation": {k: v for k, v in alloc.items() if k != "metrics"}}
+    if _run_clock != "lockstep":  # (a lockstep run's identity is its config's alone)
+        data = {**data, "run_clock": _run_clock}
     return hash_of(data)[:16]
 
 

@@ -118,6 +118,10 @@ def resolve_run(args: Any, cfg: Any) -> str:
         ):
             raise UsageError(f"--{option}: {problem}")
     args.run = args.run or default_run_id(cfg)
+    # the clock options are part of the identity every node's heartbeats carry
+    from covnet.processes.node_kit import set_run_clock  # (a node's start-up, not the CLI's)
+
+    set_run_clock(bool(getattr(args, "realtime", False)), float(getattr(args, "speed", 1.0)))
     return str(args.run)
 
 

@@ -58,6 +58,51 @@ def test_a_host_of_another_seed_is_refused_by_name(tmp_path, paper_path):
     assert_nothing_left(a_out)
 
 
+def test_a_host_of_another_speed_is_refused(tmp_path, paper_path):
+    """Hosts of one realtime run given different ``--speed``s ran one network, the sensors
+    emulating their links' delays at their own speed and the manager timing the scans at its
+    own: 33 m of RMSE against 7, ``completed`` (hunt 12).  The clock options are part of every
+    node's config identity."""
+    cfg = _short(paper_path, tmp_path)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    common = [str(cfg), "--router", router, "--run", f"speed{os.getpid()}", "--no-figures"]
+    common += ["--realtime"]
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    mgr = CovnetProcess(
+        ["up", *common, "--speed", "20", "--out", str(a_out), "--nodes", "manager,world,recorder"]
+    )
+    sens = CovnetProcess(
+        ["up", *common, "--speed", "10", "--out", str(b_out), "--nodes", "sensors"]
+    )
+    try:
+        rc_a = mgr.wait(timeout=90)
+        rc_b = sens.wait(timeout=60)
+    finally:
+        mgr.stop()
+        sens.stop()
+    out = mgr.output()
+    assert rc_a == 1 and "another config" in out and "--speed" in out, out
+    assert json.loads((a_out / "run.json").read_text())["scans_completed"] == {}
+    assert rc_b == 1, sens.output()
+    assert_nothing_left(a_out)
+
+
+def test_config_id_holds_the_clock_options(tmp_path, paper_path):
+    from covnet import kinds
+    from covnet.processes import node_kit
+
+    _, cfg = kinds.load(_short(paper_path, tmp_path, "c.yaml"))
+    try:
+        ids = []
+        for realtime, speed in [(False, 1.0), (False, 20.0), (True, 1.0), (True, 20.0)]:
+            node_kit.set_run_clock(realtime, speed)
+            ids.append(config_id(cfg))
+    finally:
+        node_kit.set_run_clock(False, 1.0)
+    assert ids[0] == ids[1]  # lockstep: the speed paces nothing
+    assert len(set(ids[1:])) == 3
+
+
 def _manager_killed_mid_run(
     tmp_path, paper_path, host_a: str, host_b: str, realtime: bool = True, **over
 ):
