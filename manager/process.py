@@ -10,7 +10,7 @@ import json
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,8 +18,10 @@ from typing import Any
 from covnet.clock import Clock, WallClock
 from covnet.config import NetworkSpec
 from covnet.processes import output
+from covnet.processes.node_kit import NOTE
 from covnet.processes.process import EXIT_FAIL, EXIT_OK, open_bus
 from covnet.runs.rundir import LIVE, record_end, utc_now, write_json
+from covnet.wire import messages as msg
 from covnet.wire import security
 from covnet.wire.bus import Bus
 from manager.loop import LoopResult, wait_for_nodes_to_leave
@@ -190,8 +192,31 @@ def serve(
         with contextlib.suppress(OSError):  # the launcher may have gone
             print(f"manager: error: {result.error}", file=sys.stderr, flush=True)
         return EXIT_FAIL
+    for line in twice_sent(getattr(result.stats, "rejected_by_key", {})):
+        tell(line)
     tell(f"DONE completed={result.completed} out={args.out}")
     return EXIT_OK
+
+
+def twice_sent(rejected_by_key: Mapping[str, Mapping[str, int]]) -> list[str]:
+    """A :data:`~covnet.processes.node_kit.NOTE` for each sensor whose measurements came twice
+    (``duplicate`` in ``network.json``'s rejections: the same numbers again, not fused).  One
+    sensor started on two hosts (or twice on one) runs the run twice over: only the counts
+    said so (hunt 11); a replayed or forged copy is counted the same way."""
+    lines = []
+    for key, reasons in sorted(rejected_by_key.items()):
+        n = reasons.get("duplicate", 0)
+        if not n:
+            continue
+        try:
+            sid = msg.parse_measurement_key(key)
+        except ValueError:
+            continue
+        lines.append(
+            f"{NOTE}{n} of {sid}'s measurements came twice (counted duplicate, not fused): is "
+            f"{sid} run by two processes at once (started on two hosts)? Stop one"
+        )
+    return lines
 
 
 def ending(

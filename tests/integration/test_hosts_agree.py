@@ -87,6 +87,35 @@ def test_a_host_of_another_speed_is_refused(tmp_path, paper_path):
     assert_nothing_left(a_out)
 
 
+def test_a_sensor_run_twice_is_named(tmp_path, paper_path):
+    """S3 started on two hosts (``--nodes sensors`` on one, ``--nodes S3`` on another): the run
+    completed and only ``network.json``'s ``duplicate`` count said anything (hunt 11).  The
+    manager names the sensor whose measurements came twice."""
+    cfg = _short(paper_path, tmp_path)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    common = [str(cfg), "--router", router, "--run", f"twice{os.getpid()}", "--no-figures"]
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    # the second S3 first: up before the run starts (the manager waits for every token)
+    again = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", "S3"])
+    try:
+        assert again.wait_for("[launcher]", timeout=30), again.output()
+    except BaseException:
+        again.stop()
+        raise
+    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--metric", "spectral"])
+    try:
+        rc_a = mgr.wait(timeout=90)
+        again.wait(timeout=60)
+    finally:
+        mgr.stop()
+        again.stop()
+    said = mgr.output()
+    dup = json.loads((a_out / "network.json").read_text())["rejected"].get("duplicate", 0)
+    assert rc_a == 0 and dup > 0, said
+    assert f"note: {dup} of S3's measurements came twice" in said, said
+    assert "run by two processes at once" in said
+
+
 def test_config_id_holds_the_clock_options(tmp_path, paper_path):
     from covnet import kinds
     from covnet.processes import node_kit
