@@ -262,3 +262,30 @@ def test_a_null_noise_key_of_another_model_is_as_if_absent(raw):
     model's), as before the registry: they load back."""
     raw["sensors"][0]["sigma_range_m"] = None
     assert config_hash(from_dict(raw)) == config_hash(load(MULTI))
+
+
+def test_all_on_with_a_max_per_target_below_the_sensors_is_refused(raw, tmp_path, capsys):
+    """``all_on`` puts every sensor on a target it covers; a cap per target below the sensors
+    left a sensor with no open target: ``covnet check`` said 0, then every run, compare and mc
+    stopped with a traceback (exit 1), with targets and in surveillance alike."""
+    from covnet.cli.app import main
+
+    raw["allocation"].update(policy="all_on", max_per_target=2)
+    got = dict(_problems(raw))
+    assert set(got) == {"allocation.max_per_target"}, got
+    assert "all_on" in got["allocation.max_per_target"]
+    assert "sensor (12) on" in got["allocation.max_per_target"]
+    path = tmp_path / "allon.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "allocation.max_per_target: 2 with policy all_on" in err and "Traceback" not in err
+    # a cap that no scan can reach stays allowed; max_per_target with any other policy too
+    raw["allocation"]["max_per_target"] = 12
+    from_dict(raw)
+    raw["allocation"].update(policy="random", budget=4, max_per_target=1)
+    from_dict(raw)
+    surv = yaml.safe_load((ROOT / "configs" / "surveillance.yaml").read_text())
+    surv["allocation"].update(policy="all_on", max_per_target=1)
+    del surv["allocation"]["search"]
+    assert [p for p, _ in _problems(surv)] == ["allocation.max_per_target"]

@@ -401,6 +401,22 @@ def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
                     f"max_active {al.max_active}",
                 )
             )
+    if al.policy == "all_on" and al.max_per_target is not None and sc.multitarget:
+        n = len(set(sc.sensor_ids) - set(al.excluded))
+        if al.max_per_target < n:
+            # every run stopped with a traceback at the first scan where more sensors than the
+            # cap covered the same targets; the coverage changes every scan, so no count of
+            # sensors and targets can tell the runs that would end
+            problems.append(
+                (
+                    "allocation.max_per_target",
+                    f"{al.max_per_target} with policy all_on: all_on turns every available "
+                    f"sensor ({n}) on, each on a target it covers, and a cap below {n} leaves a "
+                    "sensor with no target whenever more sensors than the cap cover the same "
+                    "targets (the run stops there): drop max_per_target or use a policy with a "
+                    "budget",
+                )
+            )
     return problems
 
 
