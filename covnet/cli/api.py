@@ -302,6 +302,10 @@ def sweep(
         cluster=cluster, ci_width=ci_width, max_seeds=max_seeds, workers=workers
     )
     batch_options(options, seeds or (cfg.sweep or SweepSpec()).seeds, api=True)
+    if cfg.surveillance is None and not cfg.multitarget:  # every grid point's config, first
+        why = sw.refused_point(cfg, sw.grid(cfg.sweep or SweepSpec()))
+        if why is not None:
+            raise UsageError(why)
     target = Path(out) if out is not None else None
     with claims():  # no other command writes into out while this one does
         if target is not None:

@@ -393,6 +393,9 @@ def sweep(args: argparse.Namespace, sc: Scenario) -> int:
     seeds = args.seeds or spec.seeds
     opts = batch_options(args, seeds)
     points = sw.grid(spec)
+    why = sw.refused_point(sc, points)  # every point's config before any run or file
+    if why is not None:
+        raise UsageError(why)
     key = sw.trial_key(sc, metric)
     out = _batch_out(args, f"{sc.name}-sweep", "sweep", key)
     print(

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from covnet.batches import point_text
 from covnet.batches.pool import BatchInterrupted, write_rows
 from covnet.batches.stats import (
     CUT,
@@ -60,6 +61,7 @@ from covnet.batches.trials import (
     run_trials,
     trial_hash,
 )
+from covnet.config import ConfigError
 from covnet.covariance_control.config import Scenario, SweepSpec, from_dict, normalised
 from covnet.covariance_control.latency_sim import run_latency
 from covnet.covariance_control.model import build_model, truth_trajectory
@@ -145,6 +147,54 @@ def point_scenario(sc: Scenario, point: dict[str, Any], seed: int) -> Scenario:
     data["allocation"] = {**data["allocation"], "account_for_loss": point["account_for_loss"]}
     data["seed"] = seed
     return from_dict(data, f"{sc.name} (sweep point)")
+
+
+#: the ``sweep:`` key of each grid point's key
+AXIS = {
+    "delay_ms": "delay_ms",
+    "loss": "loss",
+    "mode": "modes",
+    "account_for_loss": "account_for_loss",
+    "late_policy": "late",
+}
+
+
+def refused_point(sc: Scenario, points: Sequence[dict[str, Any]]) -> str | None:
+    """Why a grid point cannot run, in one line (``None``: every point can): its config
+    (:func:`point_scenario`) refused, the first such point, named by the axis value every point
+    of which is refused (``mode=ci``: the key to change is ``sweep.modes``), else by all its
+    values.  ``covnet sweep`` asks before any run: a refused point stopped the batch halfway,
+    with exit 2 on one worker and a traceback (exit 1) on several."""
+    bad: dict[int, ConfigError] = {}
+    for i, p in enumerate(points):
+        try:
+            point_scenario(sc, p, sc.seed)
+        except ConfigError as e:
+            bad[i] = e
+    if not bad:
+        return None
+    first = points[min(bad)]
+    why = "; ".join(f"{path}: {msg}" for path, msg in bad[min(bad)].problems)
+    given = set() if sc.sweep is None else sc.sweep.model_fields_set
+    for k in POINT_KEYS:
+        with_it = [i for i, q in enumerate(points) if point_text(q[k]) == point_text(first[k])]
+        if len(with_it) < len(points) and all(i in bad for i in with_it):
+            v = point_text(first[k])
+            change = (
+                f"take {v} out of sweep.{AXIS[k]}"
+                if AXIS[k] in given
+                else f"give sweep.{AXIS[k]} without {v} (by default "
+                f"{', '.join(point_text(x) for x in getattr(SweepSpec(), AXIS[k]))})"
+            )
+            return (
+                f"sweep: grid point {k}={v} cannot run ({len(with_it)} of the {len(points)} "
+                f"points): {why}: {change}, or change the config"
+            )
+    named = ", ".join(f"{k}={point_text(first[k])}" for k in POINT_KEYS)
+    return (
+        f"sweep: grid point {named} cannot run ({len(bad)} of the {len(points)} points): "
+        f"{why}: change the config or its sweep: section"
+    )
 
 
 def grid(spec: SweepSpec) -> list[dict[str, Any]]:

@@ -267,6 +267,56 @@ def test_cli_sweep_writes_table_and_figure(paper_path, tmp_path, capsys):
     assert main(["sweep", str(cfg), "--out", str(out), "--seeds", "0", "--force"]) == 2
 
 
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_sweep_grid_point_its_config_refuses_stops_the_sweep_before_any_run(
+    paper_path, tmp_path, capsys, workers
+):
+    """``search: greedy`` (what configs/large.yaml ships) and the default grid's ``ci``: half
+    the grid ran, then exit 2 on one worker, a traceback and exit 1 on two, never naming the
+    point nor the key to change."""
+    import yaml
+
+    data = yaml.safe_load(paper_path.read_text())
+    data["allocation"]["search"] = "greedy"
+    cfg = tmp_path / "g.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "sw"
+    argv = ["sweep", str(cfg), "--seeds", "1", "--workers", workers, "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert "grid point mode=ci cannot run (24 of the 48 points)" in err, err
+    assert "allocation.search: greedy needs" in err and "sweep.modes without ci" in err, err
+    assert not out.exists()
+    from covnet import api
+    from covnet.errors import UsageError
+
+    with pytest.raises(UsageError, match="grid point mode=ci cannot run"):
+        api.sweep(str(cfg), seeds=1, workers=1, out=out)
+    assert not out.exists()
+
+
+def test_check_refuses_a_sweep_mode_the_policy_refuses(paper_path, tmp_path, capsys):
+    """``covnet check`` said 0 for a config whose own ``sweep.modes: [central, ci]`` its
+    ``allocation.policy: random`` refuses (as it refuses ``fusion.mode: ci``)."""
+    import yaml
+
+    data = yaml.safe_load(paper_path.read_text())
+    data["allocation"].update(policy="random", budget=4)
+    data["sweep"] = {"modes": ["central", "ci"], "seeds": 1}
+    with pytest.raises(ConfigError) as err:
+        from_dict(data)
+    assert [p for p, _ in err.value.problems] == ["sweep.modes[1]"], err.value.problems
+    assert err.value.problems[0][1].startswith("ci: allocation.policy: random ")
+    cfg = tmp_path / "r.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    assert main(["check", str(cfg)]) == 2
+    assert main(["sweep", str(cfg), "--out", str(tmp_path / "sw")]) == 2
+    assert capsys.readouterr().err.count("sweep.modes[1]: ci: allocation.policy") == 2
+    data["sweep"]["modes"] = ["central", "info"]  # both information forms: accepted
+    from_dict(data)
+
+
 @pytest.mark.parametrize(
     ("axis", "values", "needle"),
     [

@@ -22,7 +22,7 @@ from covnet.covariance_control.config.sensors import (
 )
 from covnet.covariance_control.config.surveillance_checks import surveillance_problems
 from covnet.covariance_control.config.targets import DesiredSpec, segments
-from covnet.covariance_control.fusion_rules import refusal, rule_for
+from covnet.covariance_control.fusion_rules import FUSION_RULES, refusal, rule_for
 from covnet.covariance_control.searches import (
     AUTO_EXACT_MAX,
     BOUNDED_OPTIONS,
@@ -169,6 +169,7 @@ def semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
     problems += _search_problems(sc)
     problems += _policy_problems(sc)
+    problems += _sweep_mode_problems(sc)
     problems += surveillance_problems(sc)
     problems += _peer_problems(sc.fusion.peer, ids)
     if set(al.excluded) >= set(ids):
@@ -417,6 +418,27 @@ def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
                     "budget",
                 )
             )
+    return problems
+
+
+def _sweep_mode_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """An explicit ``sweep.modes`` entry that the allocation's search or policy refuses (as
+    they refuse ``fusion.mode``): ``covnet sweep`` refuses its grid points; ``covnet check``
+    said nothing."""
+    sw = sc.sweep
+    if sw is None or "modes" not in sw.model_fields_set or sc.multitarget:
+        return []  # the sweep of many targets and of surveillance: refused or checked apart
+    if not sc.fusion.has_centre:
+        return []  # covnet sweep refuses a peer config as a whole
+    own = set(_search_problems(sc) + _policy_problems(sc))
+    problems: list[tuple[str, str]] = []
+    for i, mode in enumerate(sw.modes):
+        if mode == sc.fusion.mode or mode not in FUSION_RULES:
+            continue  # checked as fusion.mode, or refused as a name
+        at = sc.model_copy(update={"fusion": sc.fusion.model_copy(update={"mode": mode})})
+        for path, why in _search_problems(at) + _policy_problems(at):
+            if (path, why) not in own:
+                problems.append((f"sweep.modes[{i}]", f"{mode}: {path}: {why}"))
     return problems
 
 
