@@ -431,7 +431,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="a run directory's truths and tracks as CSV or as Stone Soup objects",
         description="Every episode's truths and tracks (per scan: time, state x, vx, y, vy and "
         "the track's covariance) as a CSV (documented columns) or as Stone Soup GroundTruthPath "
-        "and Track objects in Stone Soup's YAML (needs: pip install 'covnet[stonesoup]').",
+        "and Track objects in Stone Soup's YAML (needs: pip install 'covnet[stonesoup]'). "
+        "A peer run's track is one node's estimate, the one summary.json's metrics block "
+        "holds (the first sensor's, S1 in the shipped configs; covnet up: the first of those "
+        "that reported the most scans); every node's own are arrays.npz's "
+        "x_est.<metric>.<node>.",
     )
     ex.add_argument("run_dir", help="a run directory of covnet run or covnet up")
     ex.add_argument("--format", choices=["csv", "stonesoup"], default="csv", help="default csv")

@@ -291,3 +291,30 @@ def test_without_stone_soup_the_format_says_how_to_install_it(paper_run, monkeyp
     assert not (paper_run / "export.stonesoup.yaml").exists()
     with pytest.raises(ImportError, match="covnet\\[stonesoup\\]"):
         ex.to_stonesoup(paper_run)
+
+
+def test_a_peer_runs_metrics_block_and_export_are_the_first_nodes_and_say_so(
+    tmp_path_factory, capsys
+):
+    """A peer run printed the node mean RMSE while ``summary.json``'s ``metrics`` block,
+    ``x_est.<metric>`` and the export held node S1's alone, and nothing said so; the numbers
+    stay (a golden hash holds them), the export's help and the README say whose they are."""
+    cfg = _config(tmp_path_factory, "paper", scans=6, fusion={"mode": "peer"})
+    out = tmp_path_factory.mktemp("runs") / "peer"
+    assert main(["run", str(cfg), "--out", str(out), "--no-figures", "--metric", "spectral"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    s1 = s["peer"]["spectral"]["nodes"]["S1"]
+    assert s["metrics"]["spectral"]["rmse_position"] == s1["rmse_position"]
+    a = load_arrays(out / "arrays.npz")
+    assert np.array_equal(a["x_est.spectral"], a["x_est.spectral.S1"])
+    rows = _export_csv(out)
+    _check(rows, "spectral", "T1", a["truth"], a["x_est.spectral.S1"], a["P_post.spectral.S1"],
+           a["t"], range(1, 7))  # fmt: skip
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["export", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "A peer run's track is one node's estimate" in text, text
+    assert "the first sensor's, S1 in the shipped configs" in text, text
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert "not the node mean the run prints" in readme
