@@ -18,7 +18,7 @@ from covnet.core.allocation.assignment import (
     allocate_assignments_exhaustive,
 )
 from covnet.covariance_control import drive, surveillance, targets
-from covnet.covariance_control.config import from_dict, load
+from covnet.covariance_control.config import from_dict, load, normalised
 from covnet.covariance_control.surveillance_centre import SurveillanceCentre
 
 SENSORS = [
@@ -189,6 +189,22 @@ def test_bad_values_are_refused_with_their_path(change, path, words):
     change(d)
     got = problems(d)
     assert any(p == path and words in m for p, m in got), got
+
+
+def test_the_latency_grids_sweep_keys_are_refused_with_surveillance():
+    """``sweep: {search_weight: [0, 20], delay_ms: [0, 100], loss: [0, 0.25]}`` swept λ alone
+    and said nothing of the delays and losses (``check`` and ``sweep`` both exit 0)."""
+    d = base(sweep={"search_weight": [0.0, 20.0], "delay_ms": [0, 100], "loss": [0.0, 0.25],
+                    "late": ["drop"], "account_for_loss": [True], "seeds": 1})  # fmt: skip
+    got = problems(d)
+    assert [p for p, _ in got] == [
+        "sweep.delay_ms", "sweep.loss", "sweep.account_for_loss", "sweep.late"
+    ], got  # fmt: skip
+    assert all("not with 'surveillance:'" in m for _, m in got), got
+    # a normalised config spells out the defaults: accepted (its λ grid runs)
+    d["sweep"] = {"search_weight": [0.0, 20.0], "seeds": 1}
+    sc = from_dict(d)
+    assert from_dict(normalised(sc)).sweep == sc.sweep
 
 
 @pytest.mark.parametrize("mode", ["ci", "info"])

@@ -91,6 +91,29 @@ def _target_keys(sc: Scenario, spec: SurveillanceSpec | None) -> list[tuple[str,
     return problems
 
 
+#: the keys of the latency grid (``covnet sweep`` of a config without surveillance), which the
+#: surveillance sweep (the search weight λ) never reads
+_LATENCY_GRID = ("delay_ms", "delay_kind", "loss", "modes", "account_for_loss", "late", "metric")
+
+
+def _latency_grid_keys(sc: Scenario) -> list[tuple[str, str]]:
+    """A surveillance config's ``sweep:`` key of the latency grid, given a value (a normalised
+    config spells out the defaults): its sweep ran the λ grid alone and said nothing."""
+    sw = sc.sweep
+    assert sw is not None
+    defaults = type(sw).model_fields
+    return [
+        (
+            f"sweep.{key}",
+            "not with 'surveillance:' (its sweep is the search weight λ alone: "
+            "sweep.search_weight and sweep.seeds, over allocation.metrics or --metric)",
+        )
+        for key in _LATENCY_GRID
+        if key in sw.model_fields_set
+        and getattr(sw, key) != defaults[key].get_default(call_default_factory=True)
+    ]
+
+
 def surveillance_problems(sc: Scenario) -> list[tuple[str, str]]:
     """Every problem of the surveillance keys (module docstring)."""
     spec = sc.surveillance
@@ -103,6 +126,8 @@ def surveillance_problems(sc: Scenario) -> list[tuple[str, str]]:
             problems.append(("sweep.search_weight", f"give weights >= 0, got {list(grid)}"))
         elif spec.search is None:
             problems.append(("sweep.search_weight", "needs surveillance.search (its cells)"))
+    if spec is not None and sc.sweep is not None:
+        problems += _latency_grid_keys(sc)
     if spec is None:
         if sc.association.method == "jpda":
             problems.append(
