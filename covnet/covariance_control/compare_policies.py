@@ -351,7 +351,7 @@ def summarise(
         row["lost_tracks"] = int(sum(lost))
     f = _stack(trials, "value_scan").mean(axis=1)
     row["mean_f"] = float(f.mean())
-    add_stats(row, "mean_f", f)
+    add_stats(row, "mean_f", f, NONNEGATIVE)  # f is a distance: every metric is >= 0
     share = _stack(trials, "within_scan").mean(axis=1)
     row["share_trP_le_trPd"] = float(share.mean())
     add_stats(row, "share_trP_le_trPd", share, SHARE)

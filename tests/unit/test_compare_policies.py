@@ -414,3 +414,26 @@ def test_targets_info_traffic_counts_the_local_tracks_the_sensors_send():
     data["fusion"]["mode"] = "central"
     central = cp.run_trial(data, "random", 4, 2026, "spectral")
     assert trial["bytes_per_scan"] > 1.5 * central["bytes_per_scan"]
+
+
+def test_the_mean_f_interval_is_cut_at_zero_as_its_neighbours():
+    """``f`` is a distance (every registered metric is >= 0), but a policy whose f varies
+    widely over two seeds printed ``575 ± 2e+03`` (``mean_f_ci_lo`` -1427) beside NEES, share,
+    RMSE and bytes cut to their range."""
+    from covnet.core.metrics import METRICS
+
+    rng = np.random.default_rng(1)
+    for fn in (m.fn for m in METRICS.values()):  # >= 0 on random pairs and either way round
+        for _ in range(20):
+            A, B = (M @ M.T + 0.1 * np.eye(4) for M in rng.normal(size=(2, 4, 4)))
+            assert fn(A, B) >= 0.0 and fn(B, A) >= 0.0
+    trial = {
+        "targets": 1, "pos_err2_scan": [1.0] * 4, "nees_scan": [4.0] * 4,
+        "sensors_scan": [3] * 4, "within_scan": [1.0] * 4,
+        "messages_per_scan": 6.0, "bytes_per_scan": 900.0,
+    }  # fmt: skip
+    trials = [{**trial, "seed": s, "value_scan": [v] * 4} for s, v in ((1, 10.0), (2, 1140.0))]
+    row = cp.summarise("random", 4, trials, 1)
+    assert row["mean_f"] == 575.0
+    assert row["mean_f_ci_lo"] == 0.0 and row["mean_f_ci_hi"] > 1140.0
+    assert "575 [0, " in cp.format_table([row])
