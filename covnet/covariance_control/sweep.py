@@ -146,6 +146,7 @@ def point_scenario(sc: Scenario, point: dict[str, Any], seed: int) -> Scenario:
     data["fusion"] = {**data["fusion"], "mode": point["mode"]}
     data["allocation"] = {**data["allocation"], "account_for_loss": point["account_for_loss"]}
     data["seed"] = seed
+    data["sweep"] = None  # one run: the grid is the batch's (its other points are not checked)
     return from_dict(data, f"{sc.name} (sweep point)")
 
 
@@ -160,9 +161,9 @@ AXIS = {
 
 
 def refused_point(sc: Scenario, points: Sequence[dict[str, Any]]) -> str | None:
-    """Why a grid point cannot run, in one line (``None``: every point can): its config
-    (:func:`point_scenario`) refused, the first such point, named by the axis value every point
-    of which is refused (``mode=ci``: the key to change is ``sweep.modes``), else by all its
+    """Why grid points cannot run, in one line (``None``: every point can): their config
+    (:func:`point_scenario`) refused, named by each axis value every point of which is refused
+    (``mode=ci``: the key to change is ``sweep.modes``), else the first such point by all its
     values.  ``covnet sweep`` asks before any run: a refused point stopped the batch halfway,
     with exit 2 on one worker and a traceback (exit 1) on several."""
     bad: dict[int, ConfigError] = {}
@@ -173,27 +174,34 @@ def refused_point(sc: Scenario, points: Sequence[dict[str, Any]]) -> str | None:
             bad[i] = e
     if not bad:
         return None
-    first = points[min(bad)]
-    why = "; ".join(f"{path}: {msg}" for path, msg in bad[min(bad)].problems)
+
+    def why(i: int) -> str:
+        return "; ".join(f"{path}: {msg}" for path, msg in bad[i].problems)
+
     given = set() if sc.sweep is None else sc.sweep.model_fields_set
+    causes: list[str] = []
     for k in POINT_KEYS:
-        with_it = [i for i, q in enumerate(points) if point_text(q[k]) == point_text(first[k])]
-        if len(with_it) < len(points) and all(i in bad for i in with_it):
-            v = point_text(first[k])
+        for v in dict.fromkeys(point_text(q[k]) for q in points):
+            with_it = [i for i, q in enumerate(points) if point_text(q[k]) == v]
+            if len(with_it) == len(points) or not all(i in bad for i in with_it):
+                continue
             change = (
                 f"take {v} out of sweep.{AXIS[k]}"
                 if AXIS[k] in given
                 else f"give sweep.{AXIS[k]} without {v} (by default "
                 f"{', '.join(point_text(x) for x in getattr(SweepSpec(), AXIS[k]))})"
             )
-            return (
-                f"sweep: grid point {k}={v} cannot run ({len(with_it)} of the {len(points)} "
-                f"points): {why}: {change}, or change the config"
+            causes.append(
+                f"grid point {k}={v} cannot run ({len(with_it)} of the {len(points)} points): "
+                f"{why(with_it[0])}: {change}"
             )
-    named = ", ".join(f"{k}={point_text(first[k])}" for k in POINT_KEYS)
+    if causes:
+        return f"sweep: {'; '.join(causes)}; or change the config"
+    first = min(bad)
+    named = ", ".join(f"{k}={point_text(points[first][k])}" for k in POINT_KEYS)
     return (
         f"sweep: grid point {named} cannot run ({len(bad)} of the {len(points)} points): "
-        f"{why}: change the config or its sweep: section"
+        f"{why(first)}: change the config or its sweep: section"
     )
 
 

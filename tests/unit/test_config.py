@@ -241,3 +241,20 @@ def test_coverage_keys_without_targets_are_the_one_problem(raw):
     found = dict(_problems(raw))
     assert set(found) == {"sensors[3].max_range_m"}, found
     assert found["sensors[3].max_range_m"].startswith("needs a 'targets:' list")
+
+
+@pytest.mark.parametrize("policy", ["all_on", "random", "round_robin"])
+def test_account_for_loss_with_a_policy_that_reads_no_information_is_refused(raw, policy):
+    """``account_for_loss: true`` scales each sensor's information by its delivery probability;
+    all_on, random and round_robin never read it: accepted, and their runs were those of false
+    (the 24 such trials of a default sweep equal the other 24)."""
+    raw["allocation"].update(policy=policy, account_for_loss=True)
+    if policy != "all_on":
+        raw["allocation"]["budget"] = 4
+    found = dict(_problems(raw))
+    assert set(found) == {"allocation.account_for_loss"}, found
+    assert found["allocation.account_for_loss"].startswith(f"policy {policy} (")
+    assert "reads no sensor information" in found["allocation.account_for_loss"]
+    raw["allocation"]["policy"] = "greedy_information"  # reads J_j: accepted
+    raw["allocation"]["budget"] = 4
+    from_dict(raw)

@@ -303,7 +303,7 @@ def test_check_refuses_a_sweep_mode_the_policy_refuses(paper_path, tmp_path, cap
 
     data = yaml.safe_load(paper_path.read_text())
     data["allocation"].update(policy="random", budget=4)
-    data["sweep"] = {"modes": ["central", "ci"], "seeds": 1}
+    data["sweep"] = {"modes": ["central", "ci"], "account_for_loss": [False], "seeds": 1}
     with pytest.raises(ConfigError) as err:
         from_dict(data)
     assert [p for p, _ in err.value.problems] == ["sweep.modes[1]"], err.value.problems
@@ -314,7 +314,21 @@ def test_check_refuses_a_sweep_mode_the_policy_refuses(paper_path, tmp_path, cap
     assert main(["sweep", str(cfg), "--out", str(tmp_path / "sw")]) == 2
     assert capsys.readouterr().err.count("sweep.modes[1]: ci: allocation.policy") == 2
     data["sweep"]["modes"] = ["central", "info"]  # both information forms: accepted
-    from_dict(data)
+    sc = from_dict(data)
+    assert from_dict(normalised(sc)).sweep == sc.sweep  # its defaults spelled out: the same
+    # the default account_for_loss grid (false, true): random reads no information
+    del data["sweep"]["account_for_loss"]
+    with pytest.raises(ConfigError) as err:
+        from_dict(data)
+    assert err.value.problems == [
+        (
+            "sweep.account_for_loss[1]",
+            "true (the default): allocation.account_for_loss: policy random (K sensors drawn "
+            "uniformly (required ones first) from the seeded generator) reads no sensor "
+            "information, the information account_for_loss scales by each sensor's delivery "
+            "probability",
+        )
+    ]
 
 
 @pytest.mark.parametrize(

@@ -271,6 +271,23 @@ def test_pd_1_no_clutter_separated_targets_all_confirmed_without_false_tracks():
     assert run.n_tracks_started == 3  # one per target, never a second
 
 
+def test_a_baselines_budget_bounds_its_track_dwells_and_lambda_only_turns_search_on():
+    """What the README says of the surveillance baselines: ``budget`` K bounds the dwells on
+    tracks, and the sensors left off search (more than K on); λ > 0 of any size gives the same
+    run (it scales only the search term of the recorded value), λ = 0 no search."""
+    runs = {}
+    for w in (0.0, 30.0, 3000.0):
+        d = base()
+        d["allocation"] = {"metrics": ["spectral"], "policy": "random", "budget": 1}
+        d["surveillance"]["search"]["weight"] = w
+        runs[w] = drive.run(from_dict(d), "spectral").run
+    a, b = runs[30.0], runs[3000.0]
+    assert (a.track_dwells <= 1).all() and a.enabled.sum(axis=1).max() > 1
+    assert np.array_equal(a.enabled, b.enabled) and np.array_equal(a.search_dwells, b.search_dwells)
+    assert np.array_equal(a.gospa, b.gospa) and not np.array_equal(a.value, b.value)
+    assert runs[0.0].search_dwells.sum() == 0
+
+
 def test_the_run_is_a_function_of_the_config_and_seed():
     sc = from_dict(base())
     a, b = drive.run(sc, "spectral").run, drive.run(sc, "spectral").run

@@ -37,7 +37,10 @@ class AllocationSpec(ConfigModel):
     ``covariance_control`` (the default: the subset closest to ``P_d`` under the metric), or a
     baseline to compare it with: ``all_on``, ``random``, ``round_robin``,
     ``greedy_information``, ``uncertainty_reward``, ``expected_kl``; ``budget``: their ``K``
-    sensors per scan (``random`` and ``round_robin`` need one, here or as ``max_active``)."""
+    sensors per scan (``random`` and ``round_robin`` need one, here or as ``max_active``; with
+    surveillance ``K`` bounds the track dwells, and the sensors left off search).
+    ``account_for_loss`` is refused with the baselines that read no sensor information
+    (``all_on``, ``random``, ``round_robin``)."""
 
     metrics: tuple[MetricName, ...] = ("spectral", "abs_trace", "svd")
     required: tuple[Str, ...] = ()

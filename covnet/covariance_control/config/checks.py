@@ -169,7 +169,7 @@ def semantic_problems(sc: Scenario) -> list[tuple[str, str]]:
         problems.append(("allocation", f"sensors both required and excluded: {sorted(both)}"))
     problems += _search_problems(sc)
     problems += _policy_problems(sc)
-    problems += _sweep_mode_problems(sc)
+    problems += _sweep_axis_problems(sc)
     problems += surveillance_problems(sc)
     problems += _peer_problems(sc.fusion.peer, ids)
     if set(al.excluded) >= set(ids):
@@ -375,6 +375,15 @@ def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
         )
     if sc.multitarget and not pol.many_targets:
         problems.append(("allocation.policy", f"{al.policy} has no many-target form"))
+    if al.account_for_loss and pol.reward is None:
+        # accepted, and its runs were those of false: nothing read the scaled information
+        problems.append(
+            (
+                "allocation.account_for_loss",
+                f"policy {al.policy} ({pol.summary}) reads no sensor information, the "
+                "information account_for_loss scales by each sensor's delivery probability",
+            )
+        )
     if not sc.fusion.has_centre or not rule_for(sc.fusion).information_form:
         problems.append(
             (
@@ -421,24 +430,33 @@ def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
     return problems
 
 
-def _sweep_mode_problems(sc: Scenario) -> list[tuple[str, str]]:
-    """An explicit ``sweep.modes`` entry that the allocation's search or policy refuses (as
-    they refuse ``fusion.mode``): ``covnet sweep`` refuses its grid points; ``covnet check``
-    said nothing."""
+def _sweep_axis_problems(sc: Scenario) -> list[tuple[str, str]]:
+    """A ``sweep.modes`` (or ``sweep.account_for_loss``) entry of a ``sweep:`` section that the
+    allocation's search or policy refuses (as they refuse ``fusion.mode``,
+    ``allocation.account_for_loss``): ``covnet sweep`` refuses its grid points; ``covnet
+    check`` said nothing.  By value, given or the default (a normalised config spells the
+    defaults out, and must validate as its config did)."""
     sw = sc.sweep
-    if sw is None or "modes" not in sw.model_fields_set or sc.multitarget:
+    if sw is None or sc.multitarget:
         return []  # the sweep of many targets and of surveillance: refused or checked apart
     if not sc.fusion.has_centre:
         return []  # covnet sweep refuses a peer config as a whole
     own = set(_search_problems(sc) + _policy_problems(sc))
     problems: list[tuple[str, str]] = []
-    for i, mode in enumerate(sw.modes):
-        if mode == sc.fusion.mode or mode not in FUSION_RULES:
-            continue  # checked as fusion.mode, or refused as a name
-        at = sc.model_copy(update={"fusion": sc.fusion.model_copy(update={"mode": mode})})
-        for path, why in _search_problems(at) + _policy_problems(at):
-            if (path, why) not in own:
-                problems.append((f"sweep.modes[{i}]", f"{mode}: {path}: {why}"))
+    axes = (("modes", "fusion", "mode"), ("account_for_loss", "allocation", "account_for_loss"))
+    for axis, part, key in axes:
+        given = "" if axis in sw.model_fields_set else " (the default)"
+        for i, value in enumerate(getattr(sw, axis)):
+            if value == getattr(getattr(sc, part), key):
+                continue  # checked as the config's own key
+            if axis == "modes" and value not in FUSION_RULES:
+                continue  # refused as a name
+            section = getattr(sc, part).model_copy(update={key: value})
+            at = sc.model_copy(update={part: section})
+            text = str(value).lower() if isinstance(value, bool) else value
+            for path, why in _search_problems(at) + _policy_problems(at):
+                if (path, why) not in own:
+                    problems.append((f"sweep.{axis}[{i}]", f"{text}{given}: {path}: {why}"))
     return problems
 
 
