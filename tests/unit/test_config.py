@@ -258,3 +258,20 @@ def test_account_for_loss_with_a_policy_that_reads_no_information_is_refused(raw
     raw["allocation"]["policy"] = "greedy_information"  # reads J_j: accepted
     raw["allocation"]["budget"] = 4
     from_dict(raw)
+
+
+@pytest.mark.parametrize("policy", ["all_on", "random", "round_robin", "greedy_information"])
+def test_a_baseline_under_ci_is_refused_with_a_reason_true_for_it(raw, policy):
+    """``random`` under ``fusion.mode: ci`` was refused because it "decides from the sensors'
+    information J_j": all_on, random and round_robin never read J_j; the key and the modes
+    allowed were right, the reason was not."""
+    raw["allocation"]["policy"] = policy
+    if policy != "all_on":
+        raw["allocation"]["budget"] = 4
+    raw["fusion"] = {"mode": "ci"}
+    why = dict(_problems(raw))["allocation.policy"]
+    ends = ("fusion.mode central or info); ci is not", "search over every subset; ci is not")
+    assert why.endswith(ends), why
+    assert ("J_j" in why) == (policy == "greedy_information"), why
+    if policy != "greedy_information":
+        assert why.startswith(f"a baseline such as {policy} is run only by a fusion centre in")

@@ -307,7 +307,7 @@ def test_check_refuses_a_sweep_mode_the_policy_refuses(paper_path, tmp_path, cap
     with pytest.raises(ConfigError) as err:
         from_dict(data)
     assert [p for p, _ in err.value.problems] == ["sweep.modes[1]"], err.value.problems
-    assert err.value.problems[0][1].startswith("ci: allocation.policy: random ")
+    assert err.value.problems[0][1].startswith("ci: allocation.policy: a baseline such as random ")
     cfg = tmp_path / "r.yaml"
     cfg.write_text(yaml.safe_dump(data))
     assert main(["check", str(cfg)]) == 2

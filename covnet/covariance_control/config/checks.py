@@ -385,13 +385,16 @@ def _policy_problems(sc: Scenario) -> list[tuple[str, str]]:
             )
         )
     if not sc.fusion.has_centre or not rule_for(sc.fusion).information_form:
-        problems.append(
-            (
-                "allocation.policy",
-                f"{al.policy} decides from the sensors' information J_j (a fusion centre in the "
-                f"information form: fusion.mode central or info); {sc.fusion.mode} is not",
-            )
+        # all_on, random and round_robin read no J_j: the reason given for them was not theirs
+        why = (
+            f"{al.policy} decides from the sensors' information J_j (a fusion centre in the "
+            "information form: fusion.mode central or info)"
+            if pol.reward is not None
+            else f"a baseline such as {al.policy} is run only by a fusion centre in the "
+            "information form (fusion.mode central or info); ci and peer decide by their own "
+            "search over every subset"
         )
+        problems.append(("allocation.policy", f"{why}; {sc.fusion.mode} is not"))
     if al.search != "auto":
         problems.append(
             ("allocation.search", f"only used by policy covariance_control, not {al.policy}")
