@@ -29,6 +29,7 @@ import numpy as np
 from covnet import __version__
 from covnet.batches.stats import median
 from covnet.covariance_control.config import Scenario, config_hash, normalised
+from covnet.covariance_control.results import policy_fields
 from covnet.covariance_control.surveillance import SurveillanceModel
 from covnet.covariance_control.surveillance_log import SurveillanceRun
 from covnet.runs.rundir import (
@@ -128,6 +129,9 @@ def write_surveillance_run(
         "cells": sm.n_cells,
         "metrics": {m: surveillance_summary(r, sm.truth_ids) for m, r in runs.items()},
     }
+    # the policy and its budget, as every other kind's summary names them (covariance control,
+    # the default, adds nothing: its summary is what it was)
+    summary.update(policy_fields(sc))
     if extra:
         summary.update(extra)
     info: dict[str, Any] = {

@@ -288,6 +288,24 @@ def test_a_baselines_budget_bounds_its_track_dwells_and_lambda_only_turns_search
     assert runs[0.0].search_dwells.sum() == 0
 
 
+def test_a_baselines_summary_names_its_policy_and_budget(tmp_path, capsys):
+    """``summary.json`` of a surveillance run with ``policy: random`` named neither (the
+    one-target and many-target runs' do: README); covariance control's adds nothing."""
+    from covnet.cli.app import main
+
+    d = base(scans=6)
+    d["allocation"] = {"metrics": ["spectral"], "policy": "random", "budget": 2}
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(json.dumps(d))
+    assert main(["run", str(cfg), "--out", str(tmp_path / "r"), "--no-figures"]) == 0
+    s = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert (s["policy"], s["budget"]) == ("random", 2)
+    cfg.write_text(json.dumps(base(scans=6)))
+    assert main(["run", str(cfg), "--out", str(tmp_path / "cc"), "--no-figures"]) == 0
+    s = json.loads((tmp_path / "cc" / "summary.json").read_text())
+    assert "policy" not in s and "budget" not in s
+
+
 def test_the_run_is_a_function_of_the_config_and_seed():
     sc = from_dict(base())
     a, b = drive.run(sc, "spectral").run, drive.run(sc, "spectral").run
