@@ -39,6 +39,7 @@ from covnet.core.allocation import allocation_rate
 from covnet.core.allocation.search_problem import gap_from_nothing
 from covnet.core.metrics import METRICS
 from covnet.covariance_control.config import Scenario, config_hash, normalised
+from covnet.covariance_control.config.allocation import policy_fields
 from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import build_model
 from covnet.covariance_control.simulate import (
@@ -195,7 +196,7 @@ def write_run(
         "fusion": fusion_label(sc),
         "metrics": {m: metric_summary(r, traj, ids, switch) for m, r in runs.items()},
     }
-    summary.update(policy_fields(sc))
+    summary.update(policy_fields(sc.allocation))
     if node_runs:
         summary["peer"] = {
             m: peer_summary(nodes, traj, ids, (disagree or {}).get(m))
@@ -427,7 +428,7 @@ def write_targets_run(
         "ospa": {"cutoff_m": tm.ospa_c, "order": tm.ospa_p},
         "metrics": {m: targets_summary(r, traj, tm) for m, r in runs.items()},
     }
-    summary.update(policy_fields(sc))
+    summary.update(policy_fields(sc.allocation))
     if extra:
         summary.update(extra)
     info: dict[str, Any] = {
@@ -578,12 +579,3 @@ def tracks(sc: Scenario, run_dir: Path) -> list[Episode]:
             )
         )
     return out
-
-
-def policy_fields(sc: Scenario) -> dict[str, Any]:
-    """The summary's ``policy`` (and ``budget``): the allocation policy when it is not the
-    default covariance control (a default run's summary is what it always was)."""
-    al = sc.allocation
-    if al.policy == "covariance_control":
-        return {}
-    return {"policy": al.policy, "budget": al.budget if al.budget is not None else al.max_active}

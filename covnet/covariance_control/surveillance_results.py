@@ -29,7 +29,7 @@ import numpy as np
 from covnet import __version__
 from covnet.batches.stats import median
 from covnet.covariance_control.config import Scenario, config_hash, normalised
-from covnet.covariance_control.results import policy_fields
+from covnet.covariance_control.config.allocation import policy_fields
 from covnet.covariance_control.surveillance import SurveillanceModel
 from covnet.covariance_control.surveillance_log import SurveillanceRun
 from covnet.runs.rundir import (
@@ -131,7 +131,7 @@ def write_surveillance_run(
     }
     # the policy and its budget, as every other kind's summary names them (covariance control,
     # the default, adds nothing: its summary is what it was)
-    summary.update(policy_fields(sc))
+    summary.update(policy_fields(sc.allocation))
     if extra:
         summary.update(extra)
     info: dict[str, Any] = {

@@ -85,3 +85,12 @@ class AllocationSpec(ConfigModel):
 
     detection: Literal["expected", "ignore", "pda"] = "expected"
     max_per_target: Int | None = Field(default=None, ge=1)
+
+
+def policy_fields(al: AllocationSpec) -> dict[str, object]:
+    """A run summary's ``policy`` (and ``budget``): the allocation policy when it is not the
+    default covariance control (a default run's summary is what it always was).  Here, where
+    the results of every kind of run read it (one target, many, surveillance)."""
+    if al.policy == "covariance_control":
+        return {}
+    return {"policy": al.policy, "budget": al.budget if al.budget is not None else al.max_active}
