@@ -81,6 +81,17 @@ def run(
     expected = {*ids, "world", *(("recorder",) if net.record else ())}
     hb_root = msg.heartbeat_keyexpr(run_id).removesuffix("*/*")
     reported: set[tuple[int, int]] = set()  # (episode, scan) whose status went to on_status
+    # the world and recorder down, since after which scan (a world or recorder of another
+    # host that died went unreported: Loop.note_vital's twin)
+    vital = ("world", *(("recorder",) if net.record else ()))
+    vital_down: dict[str, dict[str, Any]] = {}
+
+    def note_vital(episode: str, last_scan: int) -> None:
+        for node in vital:
+            if node in alive:
+                vital_down.pop(node, None)
+            else:
+                vital_down.setdefault(node, {"after_scan": last_scan, "episode": episode})
     t_loop = time.perf_counter_ns()
     t_prev = [time.perf_counter_ns()]  # when the previous scan was complete
 
@@ -186,6 +197,7 @@ def run(
                     take(s)
                     last_news = time.monotonic()
             while e < len(metrics) and scan_done(e, k):
+                note_vital(metrics[e], k - 1)
                 stats.scans_done += 1
                 now_ns = time.perf_counter_ns()
                 stats.loop_wall_ns = now_ns - t_loop
@@ -196,6 +208,9 @@ def run(
                 if on_progress is not None:
                     on_progress(result, last)
                 e, k = (e + 1, 1) if last else (e, k + 1)
+        drain_live()
+        note_vital(metrics[-1], model.scans)
+        stats.gone_at_end = {n: dict(v) for n, v in sorted(vital_down.items())}
         result.completed = True
     finally:
         # the run's end, on purpose (kept); with an error, the nodes leave saying so
