@@ -12,7 +12,16 @@ import math
 from pathlib import Path
 
 from covnet import kinds
-from covnet.cli.common import EXIT_FAIL, EXIT_OK, RUN_OPTIONS, _err, _load, _note, _options
+from covnet.cli.common import (
+    EXIT_FAIL,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    RUN_OPTIONS,
+    _err,
+    _load,
+    _note,
+    _options,
+)
 from covnet.config import endpoint_problem, endpoint_security_problem, hash_of, read_yaml
 from covnet.errors import UpError, UsageError
 from covnet.processes import interrupts
@@ -245,9 +254,14 @@ def cmd_up(args: argparse.Namespace) -> int:
     except UpError as exc:
         _err(str(exc))
         status = EXIT_FAIL
+    # interrupted (Ctrl-C, SIGTERM, a hang-up): the summary of the scans done, not the figures,
+    # which took seconds more (10 s under load) after the stop was asked for
+    figures = not args.no_figures and status != EXIT_INTERRUPTED
     # the run has ended and run.json says how: a Ctrl-C while drawing keeps it and says so
-    with after_the_results(out, "printing" if args.no_figures else "figures"):
-        kind.after_up(cfg, out, figures=not args.no_figures)
+    with after_the_results(out, "figures" if figures else "printing"):
+        kind.after_up(cfg, out, figures=figures)
+    if status == EXIT_INTERRUPTED and not args.no_figures and (out / CONFIG).is_file():
+        _note(f"the figures were not drawn (interrupted): covnet plot {out} draws them")
     return status
 
 
