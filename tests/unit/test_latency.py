@@ -297,38 +297,54 @@ def test_a_sweep_grid_point_its_config_refuses_stops_the_sweep_before_any_run(
 
 
 def test_check_refuses_a_sweep_mode_the_policy_refuses(paper_path, tmp_path, capsys):
-    """``covnet check`` said 0 for a config whose own ``sweep.modes: [central, ci]`` its
-    ``allocation.policy: random`` refuses (as it refuses ``fusion.mode: ci``)."""
+    """``covnet check`` said 0 for a config whose own ``sweep.modes`` holds ``ci``, which its
+    ``allocation.policy: random`` refuses (as it refuses ``fusion.mode: ci``).  The default
+    grid is not the config's to refuse: a ``sweep:`` section of seeds alone stopped ``covnet
+    run`` and ``check`` of the shipped large.yaml (search greedy: hunt 13); ``covnet sweep``
+    refuses its points before any run."""
     import yaml
 
     data = yaml.safe_load(paper_path.read_text())
     data["allocation"].update(policy="random", budget=4)
-    data["sweep"] = {"modes": ["central", "ci"], "account_for_loss": [False], "seeds": 1}
+    data["sweep"] = {"modes": ["central", "info", "ci"], "account_for_loss": [False], "seeds": 1}
     with pytest.raises(ConfigError) as err:
         from_dict(data)
-    assert [p for p, _ in err.value.problems] == ["sweep.modes[1]"], err.value.problems
+    assert [p for p, _ in err.value.problems] == ["sweep.modes[2]"], err.value.problems
     assert err.value.problems[0][1].startswith("ci: allocation.policy: a baseline such as random ")
     cfg = tmp_path / "r.yaml"
     cfg.write_text(yaml.safe_dump(data))
     assert main(["check", str(cfg)]) == 2
     assert main(["sweep", str(cfg), "--out", str(tmp_path / "sw")]) == 2
-    assert capsys.readouterr().err.count("sweep.modes[1]: ci: allocation.policy") == 2
+    assert capsys.readouterr().err.count("sweep.modes[2]: ci: allocation.policy") == 2
     data["sweep"]["modes"] = ["central", "info"]  # both information forms: accepted
     sc = from_dict(data)
     assert from_dict(normalised(sc)).sweep == sc.sweep  # its defaults spelled out: the same
-    # the default account_for_loss grid (false, true): random reads no information
-    del data["sweep"]["account_for_loss"]
-    with pytest.raises(ConfigError) as err:
-        from_dict(data)
-    assert err.value.problems == [
-        (
-            "sweep.account_for_loss[1]",
-            "true (the default): allocation.account_for_loss: policy random (K sensors drawn "
-            "uniformly (required ones first) from the seeded generator) reads no sensor "
-            "information, the information account_for_loss scales by each sensor's delivery "
-            "probability",
-        )
-    ]
+    # the default grids (modes central and ci; account_for_loss false and true) are accepted
+    # by the config, and refused by covnet sweep before any run or file
+    data["sweep"] = {"seeds": 1}
+    sc = from_dict(data)
+    assert from_dict(normalised(sc)).sweep == sc.sweep
+    cfg.write_text(yaml.safe_dump(data))
+    assert main(["check", str(cfg)]) == 0
+    capsys.readouterr()
+    assert main(["sweep", str(cfg), "--out", str(tmp_path / "sw2")]) == 2
+    err_text = capsys.readouterr().err
+    assert "mode=ci" in err_text and "sweep.modes" in err_text, err_text
+    assert not (tmp_path / "sw2").exists()
+
+
+def test_a_sweep_section_of_seeds_alone_leaves_covnet_run_alone(tmp_path, paper_path):
+    """large.yaml (``allocation.search: greedy``, which ``ci`` refuses) with ``sweep: {seeds:
+    2}`` added: ``covnet check`` and ``covnet run`` exited 2 on the default ``modes`` grid."""
+    import yaml
+
+    data = yaml.safe_load((paper_path.parent / "large.yaml").read_text())
+    data["sweep"] = {"seeds": 2}
+    data["scans"] = 3
+    cfg = tmp_path / "large_sweep.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    assert main(["check", str(cfg)]) == 0
+    assert main(["run", str(cfg), "--out", str(tmp_path / "r"), "--no-figures"]) == 0
 
 
 @pytest.mark.parametrize(

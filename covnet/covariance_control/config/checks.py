@@ -437,8 +437,11 @@ def _sweep_axis_problems(sc: Scenario) -> list[tuple[str, str]]:
     """A ``sweep.modes`` (or ``sweep.account_for_loss``) entry of a ``sweep:`` section that the
     allocation's search or policy refuses (as they refuse ``fusion.mode``,
     ``allocation.account_for_loss``): ``covnet sweep`` refuses its grid points; ``covnet
-    check`` said nothing.  By value, given or the default (a normalised config spells the
-    defaults out, and must validate as its config did)."""
+    check`` said nothing.  Only an axis given a value other than its default: a normalised
+    config spells the defaults out and must validate as its config did, and a ``sweep:``
+    section of seeds alone must not stop ``covnet run`` of a config whose search or policy
+    refuses ``ci`` (the default grid's points are refused by ``covnet sweep`` itself, before
+    any run: :func:`covnet.covariance_control.sweep.refused_point`)."""
     sw = sc.sweep
     if sw is None or sc.multitarget:
         return []  # the sweep of many targets and of surveillance: refused or checked apart
@@ -447,8 +450,10 @@ def _sweep_axis_problems(sc: Scenario) -> list[tuple[str, str]]:
     own = set(_search_problems(sc) + _policy_problems(sc))
     problems: list[tuple[str, str]] = []
     axes = (("modes", "fusion", "mode"), ("account_for_loss", "allocation", "account_for_loss"))
+    defaults = type(sw).model_fields
     for axis, part, key in axes:
-        given = "" if axis in sw.model_fields_set else " (the default)"
+        if getattr(sw, axis) == defaults[axis].get_default(call_default_factory=True):
+            continue  # the default grid: covnet sweep refuses its points itself
         for i, value in enumerate(getattr(sw, axis)):
             if value == getattr(getattr(sc, part), key):
                 continue  # checked as the config's own key
@@ -459,7 +464,7 @@ def _sweep_axis_problems(sc: Scenario) -> list[tuple[str, str]]:
             text = str(value).lower() if isinstance(value, bool) else value
             for path, why in _search_problems(at) + _policy_problems(at):
                 if (path, why) not in own:
-                    problems.append((f"sweep.{axis}[{i}]", f"{text}{given}: {path}: {why}"))
+                    problems.append((f"sweep.{axis}[{i}]", f"{text}: {path}: {why}"))
     return problems
 
 
