@@ -377,9 +377,6 @@ def up(
     view = StatusView(sc.scans, kind.episodes(sc))
     restartable = {sp.name for sp in specs if sp.restart}
 
-    def restarts(name: str) -> bool:
-        return name in restartable
-
     def on_line(name: str, text: str) -> None:
         if name == "manager" and text.startswith("STATUS "):
             try:
@@ -421,12 +418,7 @@ def up(
                 rcs = sup.poll()
                 if rcs.get("manager") is not None:
                     raise UpError(f"the manager exited with status {rcs['manager']} before READY")
-                # (a node that left with the run, EXIT_RUN_FAILED: the manager's exit says why)
-                gone = {
-                    k: v
-                    for k, v in rcs.items()
-                    if v not in (None, 0, EXIT_RUN_FAILED) and not restarts(k)
-                }
+                gone = gone_before_ready(rcs, restartable)
                 if gone:  # a node that cannot start (a refused login, a bad file): fail now
                     name, rc = next(iter(gone.items()))
                     raise UpError(
@@ -716,6 +708,21 @@ def _lost(name: str, rc: int, last: dict[str, Any] | None) -> dict[str, Any]:
         "after_scan": scan,
         "episode": episode,
         "ended": f"the {name} died (exit status {rc}) {where} and was not restarted: {VITAL[name]}",
+    }
+
+
+def gone_before_ready(rcs: dict[str, int | None], restartable: set[str]) -> dict[str, int]:
+    """The nodes that ended for good before READY (the launcher then fails at once, naming
+    the first): a non-zero exit that will not be restarted, a restartable node's too when it
+    found no run to join (``EXIT_NO_RUN``: not restarted; with ``restart: on-failure`` the
+    launcher said only that the manager failed, hunt 13), never one that left with the run
+    (``EXIT_RUN_FAILED``: the manager's exit says why)."""
+    return {
+        k: v
+        for k, v in rcs.items()
+        if v is not None
+        and v not in (0, EXIT_RUN_FAILED)
+        and (k not in restartable or v == EXIT_NO_RUN)
     }
 
 

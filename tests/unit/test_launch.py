@@ -351,3 +351,16 @@ def test_a_ctrl_c_between_fork_and_record_leaves_no_child(tmp_path, how, at):
                 os.killpg(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_node_gone_before_ready_is_named_unless_it_left_with_the_run():
+    """Before READY the launcher fails at once naming a node that ended for good.  A node that
+    found no run to join (EXIT_NO_RUN) is not restarted, so it is one even when restartable:
+    with ``restart: on-failure`` the launcher said only that the manager failed (hunt 13)."""
+    from covnet.processes.launch import EXIT_NO_RUN
+    from covnet.processes.up import gone_before_ready
+
+    rcs = {"manager": None, "world": EXIT_NO_RUN, "S1": 1, "S2": EXIT_RUN_FAILED, "S3": 0}
+    assert gone_before_ready(rcs, set()) == {"world": EXIT_NO_RUN, "S1": 1}
+    # restartable: S1 (a crash) runs again, the world (no run to join) does not
+    assert gone_before_ready(rcs, {"world", "S1", "S2", "S3"}) == {"world": EXIT_NO_RUN}
