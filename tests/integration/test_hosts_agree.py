@@ -33,19 +33,7 @@ def _short(paper_path, tmp_path, name="p.yaml", **over):
 
 
 def test_a_host_of_another_seed_is_refused_by_name(tmp_path, paper_path):
-    cfg = _short(paper_path, tmp_path)
-    router = f"tcp/127.0.0.1:{free_port()}"
-    common = [str(cfg), "--router", router, "--run", f"agree{os.getpid()}", "--no-figures"]
-    a_out, b_out = tmp_path / "a", tmp_path / "b"
-    mgr = CovnetProcess(["up", *common, "--out", str(a_out), "--nodes", "manager,world,recorder"])
-    sens = CovnetProcess(["up", *common, "--out", str(b_out), "--nodes", "sensors", "--seed", "7"])
-    try:
-        rc_a = mgr.wait(timeout=90)
-        rc_b = sens.wait(timeout=60)
-    finally:
-        mgr.stop()
-        sens.stop()
-    out = mgr.output()
+    rc_a, out, rc_b, said_b, a_out = _two_hosts(tmp_path, paper_path, [], ["--seed", "7"])
     assert rc_a == 1, out
     # the first node heard of the other config, named with its identity
     assert "another config" in out and "--seed" in out, out
@@ -54,8 +42,27 @@ def test_a_host_of_another_seed_is_refused_by_name(tmp_path, paper_path):
     assert info["status"] == "failed" and "another config" in info["ended"]
     assert info["scans_completed"] == {}  # refused before the first scan: nothing mixed
     # the sensors' host does not say the run went well (it exited 0, "stopped" lines only)
-    assert rc_b == 1 and "did not end well" in sens.output(), sens.output()
+    assert rc_b == 1 and "did not end well" in said_b, said_b
     assert_nothing_left(a_out)
+
+
+def _two_hosts(tmp_path, paper_path, a_extra, b_extra):
+    """The manager's host (``--nodes manager,world,recorder``, options ``a_extra``) and a
+    sensors' host (``b_extra``) of one run: ``(rc_a, output_a, rc_b, output_b, out_a)``."""
+    cfg = _short(paper_path, tmp_path)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    common = [str(cfg), "--router", router, "--run", f"two{os.getpid()}", "--no-figures"]
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    a = ["up", *common, *a_extra, "--out", str(a_out), "--nodes", "manager,world,recorder"]
+    mgr = CovnetProcess(a)
+    sens = CovnetProcess(["up", *common, *b_extra, "--out", str(b_out), "--nodes", "sensors"])
+    try:
+        rc_a = mgr.wait(timeout=90)
+        rc_b = sens.wait(timeout=60)
+    finally:
+        mgr.stop()
+        sens.stop()
+    return rc_a, mgr.output(), rc_b, sens.output(), a_out
 
 
 def test_a_host_of_another_speed_is_refused(tmp_path, paper_path):
@@ -63,27 +70,12 @@ def test_a_host_of_another_speed_is_refused(tmp_path, paper_path):
     emulating their links' delays at their own speed and the manager timing the scans at its
     own: 33 m of RMSE against 7, ``completed`` (hunt 12).  The clock options are part of every
     node's config identity."""
-    cfg = _short(paper_path, tmp_path)
-    router = f"tcp/127.0.0.1:{free_port()}"
-    common = [str(cfg), "--router", router, "--run", f"speed{os.getpid()}", "--no-figures"]
-    common += ["--realtime"]
-    a_out, b_out = tmp_path / "a", tmp_path / "b"
-    mgr = CovnetProcess(
-        ["up", *common, "--speed", "20", "--out", str(a_out), "--nodes", "manager,world,recorder"]
+    rc_a, out, rc_b, said_b, a_out = _two_hosts(
+        tmp_path, paper_path, ["--realtime", "--speed", "20"], ["--realtime", "--speed", "10"]
     )
-    sens = CovnetProcess(
-        ["up", *common, "--speed", "10", "--out", str(b_out), "--nodes", "sensors"]
-    )
-    try:
-        rc_a = mgr.wait(timeout=90)
-        rc_b = sens.wait(timeout=60)
-    finally:
-        mgr.stop()
-        sens.stop()
-    out = mgr.output()
     assert rc_a == 1 and "another config" in out and "--speed" in out, out
     assert json.loads((a_out / "run.json").read_text())["scans_completed"] == {}
-    assert rc_b == 1, sens.output()
+    assert rc_b == 1, said_b
     assert_nothing_left(a_out)
 
 
