@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -918,12 +918,22 @@ def run(
     )
 
 
-def wait_for_nodes_to_leave(bus: Bus, run_id: str, timeout_s: float, stop: threading.Event) -> None:
-    """After the run: wait (bounded) until no other node of the run is alive.  The manager's
+def wait_for_nodes_to_leave(
+    bus: Bus,
+    run_id: str,
+    timeout_s: float,
+    stop: threading.Event,
+    expected: Collection[str] = (),
+) -> None:
+    """After the run: wait (bounded) until no other node of the run is alive, and every node
+    of ``expected`` (ids) has come and gone: a run that ended before every node joined (one of
+    another config refused) keeps its router up for the late ones to hear its end, as they
+    leave at once (they found no router and tried it for ``ready_timeout_s``).  The manager's
     own tokens (its ``done`` or ``failed``, declared to the end for nodes that come late) are
     not waited for: every network run waited the whole ``timeout_s`` (5 s) for them."""
     watch = bus.watch_liveliness(msg.alive_keyexpr(run_id))
     own = msg.alive_keyexpr(run_id, "manager").removesuffix("*")  # covnet/<run>/alive/manager/
+    unseen = set(expected)
     alive: set[str] = set()
     deadline = time.monotonic() + timeout_s
     first = True
@@ -934,11 +944,12 @@ def wait_for_nodes_to_leave(bus: Bus, run_id: str, timeout_s: float, stop: threa
                 pass
             elif ev.alive:
                 alive.add(ev.key)
+                unseen.discard(ev.key.rsplit("/", 1)[-1])
             else:
                 alive.discard(ev.key)
             first = False
             continue
-        if not alive and not first:
+        if not alive and not unseen and not first:
             break
         first = False
     watch.close()

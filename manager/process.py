@@ -130,6 +130,7 @@ def serve(
     last_status = [0.0]
     latest: list[dict[str, Any]] = []
     launcher_gone = threading.Event()
+    ready = threading.Event()  # every node joined (READY)
 
     def tell(line: str) -> None:
         """A line for the launcher (its pipe).  Once the launcher has gone (killed, or its
@@ -145,6 +146,7 @@ def serve(
             stop.set()
 
     def on_ready() -> None:
+        ready.set()
         tell("READY")
 
     def on_status(st: dict[str, Any]) -> None:
@@ -175,7 +177,10 @@ def serve(
         result = run_loop(bus, WallClock(args.speed), Hooks(on_ready, on_status, on_progress))
         # the run is over (our token is gone): the nodes leave on their own; keep the router
         # up until they have, so that none is cut off mid-publish
-        wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop)
+        # (before READY, also the nodes not heard yet: they hear the end and leave at once)
+        recorder = (msg.RECORDER_ID,) if net.record else ()
+        late = () if ready.is_set() else (*sensor_ids, msg.WORLD_ID, *recorder)
+        wait_for_nodes_to_leave(bus, args.run, timeout_s=5.0, stop=stop, expected=late)
     try:
         write(result)
         status, why = ending(result, stop, launcher_gone.is_set())

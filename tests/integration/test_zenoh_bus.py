@@ -411,6 +411,18 @@ def test_the_manager_waits_for_the_nodes_to_leave_not_for_its_own_end(router, ru
         t0 = time.monotonic()
         wait_for_nodes_to_leave(bus, run, timeout_s=60.0, stop=threading.Event())
         assert time.monotonic() - t0 < 30  # the sensor's leaving ends it, not the bound
+    # before READY, the nodes not heard yet too: a late one hears the end and leaves (a peer
+    # node of a refused run found the router gone and tried it for ready_timeout_s)
+    with ZenohBus.open(zenoh_config("client", connect=[endpoint])) as node:
+
+        def come_and_go() -> None:
+            late = node.declare_token(m.alive_key(run, "sensor", "S2"))
+            threading.Timer(0.2, late.undeclare).start()
+
+        threading.Timer(0.5, come_and_go).start()
+        t0 = time.monotonic()
+        wait_for_nodes_to_leave(bus, run, timeout_s=60.0, stop=threading.Event(), expected=["S2"])
+        assert 0.5 <= time.monotonic() - t0 < 30
     # and a node that stays is waited for up to the bound
     with ZenohBus.open(zenoh_config("client", connect=[endpoint])) as node:
         stays = node.declare_token(m.alive_key(run, "world", "world"))
