@@ -98,12 +98,18 @@ def _redeliver() -> None:
 
 def _hook(unraisable: Any, fallback: Any = None) -> None:
     """Redeliver an unraisable ``KeyboardInterrupt``; report anything else as ``fallback``
-    does.  The redelivery itself may land in here: on a loaded machine the main thread can
-    still be inside ``Thread.start`` when the redelivering thread's ``REDELIVER_AFTER_S`` is
-    over, and an exception raised in the hook is printed and lost ("Exception ignored in
+    does, unless an interruption was requested (then it is the interruption's: dropped).  The
+    redelivery itself may land in here: on a loaded machine the main thread can still be
+    inside ``Thread.start`` when the redelivering thread's ``REDELIVER_AFTER_S`` is over, and
+    an exception raised in the hook is printed and lost ("Exception ignored in
     sys.unraisablehook").  So the hook catches it and starts another redelivery, until one
     gets out (each is one interrupt: at most one is pending at a time)."""
     again = isinstance(unraisable.exc_value, KeyboardInterrupt)
+    if not again and _requested and isinstance(unraisable.exc_value, Exception):
+        # a finalizer of an object the interruption cut half-built (pyparsing's Forward.__del__
+        # as matplotlib was imported: "Exception ignored in ... AttributeError", a traceback
+        # after a Ctrl-C or SIGTERM): the interruption's, as :func:`caused` counts an error
+        return
     while True:
         try:
             if again:
