@@ -448,9 +448,7 @@ def run(
     finally:
         # what it refused to the end, for the monitor's network.json (it lingers for this)
         heartbeat.tick(last[0], stats.rejected, now=True)
-        lost: Counter[str] = Counter()
-        manager.note_lost(lost, stop)
-        stats.manager_lost = bool(lost)
+        stats.manager_lost = manager.left_badly(stop)
         token.undeclare()
         manager.close()
         inbox.close()

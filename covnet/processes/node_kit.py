@@ -276,11 +276,15 @@ class ManagerWatch:
         run, when the manager's host died mid-run)."""
         return self.failed or (self.seen and not self.done and not self.up)
 
-    def note_lost(self, counts: Counter[str], stop: threading.Event) -> None:
-        """Set ``counts[MANAGER_LOST]`` when the node leaves (not stopped itself) because the
-        run did not end well (:attr:`crashed`)."""
+    def left_badly(self, stop: threading.Event) -> bool:
+        """Whether the node leaves (not stopped itself) because the run did not end well
+        (:attr:`crashed`)."""
         self.poll()
-        if not stop.is_set() and self.crashed:
+        return not stop.is_set() and self.crashed
+
+    def note_lost(self, counts: Counter[str], stop: threading.Event) -> None:
+        """Set ``counts[MANAGER_LOST]`` when :meth:`left_badly` (a world's counters)."""
+        if self.left_badly(stop):
             counts[MANAGER_LOST] = 1
 
     def close(self) -> None:

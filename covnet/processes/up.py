@@ -699,15 +699,26 @@ def _lost(name: str, rc: int, last: dict[str, Any] | None) -> dict[str, Any]:
     the manager's STATUS ``last`` (None: before the first scan)."""
     scan = None if last is None else last.get("scan")
     episode = None if last is None else last.get("metric")
-    where = "before the first scan" if scan is None else f"after scan {scan}"
-    if episode and scan is not None:
+    return _lost_entry(
+        name, rc, scan, episode, f"the {name} died (exit status {rc}) {{where}} and was not "
+        "restarted",
+    )  # fmt: skip
+
+
+def _lost_entry(
+    name: str, rc: int | None, scan: int | None, episode: str | None, what: str
+) -> dict[str, Any]:
+    """A ``lost`` entry: ``what`` with ``{where}`` (after which scan) filled in, then why it
+    matters (:data:`VITAL`)."""
+    where = "before the first scan" if not scan else f"after scan {scan}"
+    if episode and scan:
         where += f" ({episode})"
     return {
         "node": name,
         "exit_status": rc,
         "after_scan": scan,
         "episode": episode,
-        "ended": f"the {name} died (exit status {rc}) {where} and was not restarted: {VITAL[name]}",
+        "ended": f"{what.format(where=where)}: {VITAL[name]}",
     }
 
 
@@ -738,18 +749,10 @@ def _lost_elsewhere(name: str, when: dict[str, Any]) -> dict[str, Any]:
     """``run.json``'s ``lost`` entry of a :data:`VITAL` node of another host that the manager
     saw go after scan ``when["after_scan"]`` and not come back (its exit status is that
     host's)."""
-    scan, episode = when.get("after_scan"), when.get("episode")
-    where = "before the first scan" if not scan else f"after scan {scan}"
-    if episode and scan:
-        where += f" ({episode})"
-    return {
-        "node": name,
-        "exit_status": None,
-        "after_scan": scan,
-        "episode": episode,
-        "ended": f"the {name}, on another host, was gone {where} to the end of the run: "
-        f"{VITAL[name]}",
-    }
+    return _lost_entry(
+        name, None, when.get("after_scan"), when.get("episode"),
+        f"the {name}, on another host, was gone {{where}} to the end of the run",
+    )  # fmt: skip
 
 
 def _note_lost(out: Path, lost: dict[str, dict[str, Any]]) -> str:
