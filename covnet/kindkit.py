@@ -50,6 +50,11 @@ class KindBase:
     def mcap_problem(self, cfg: Any) -> str | None:
         return None
 
+    def check_notes(self, cfg: Any) -> list[str]:
+        """What ``covnet check`` says beside a valid config: a command of the kind that would
+        still refuse it (none here)."""
+        return []
+
     def tracks(self, cfg: Any, run_dir: Path) -> list[Any]:
         """No truths and tracks to export (a kind that has them overrides this)."""
         raise UsageError(f"{run_dir}: a {self.title} run has no truths and tracks to export")

@@ -130,6 +130,11 @@ class Kind(Protocol):
         the run, so a refusal writes nothing."""
         ...
 
+    def check_notes(self, cfg: Any) -> list[str]:
+        """What ``covnet check`` prints (``note:`` lines, exit 0) beside a valid ``cfg`` that a
+        command of the kind would still refuse (a ``sweep:`` grid ``covnet sweep`` refuses)."""
+        ...
+
     def run_messages(self, cfg: Any, run_dir: Path) -> Iterable[Any]:
         """An in-process run directory's scans as the messages a network run would have sent
         (``covnet run --mcap`` feeds them to :meth:`visual`)."""

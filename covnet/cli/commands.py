@@ -279,6 +279,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     preflight(cfg, [*nodes, *cfg.sensor_ids], args.config)
     print(yaml.safe_dump(data, sort_keys=False), end="")
     print(f"# config hash: {hash_of(data)}")
+    for note in kind.check_notes(cfg):  # valid, but a command of the kind would refuse it
+        _note(note)
     return EXIT_OK
 
 

@@ -72,6 +72,7 @@ class CovarianceControl(KindBase):
     visual = staticmethod(lazy(_VISUAL, "Visual"))
     run_messages = staticmethod(lazy(_VISUAL, "run_messages"))
     mcap_problem = staticmethod(lazy(_VISUAL, "mcap_problem"))
+    check_notes = staticmethod(lazy("covnet.covariance_control.sweep", "check_notes"))
 
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)

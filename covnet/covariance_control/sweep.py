@@ -160,6 +160,25 @@ AXIS = {
 }
 
 
+def check_notes(sc: Scenario) -> list[str]:
+    """``covnet check``'s note on a valid config whose ``sweep:`` grid ``covnet sweep`` refuses
+    (:func:`refused_point`): the config validates only an axis given other than its default
+    (``covnet run`` of a config with a ``sweep:`` section of seeds alone must not stop), so a
+    default grid that the policy or search refuses passed the check and was refused by the
+    sweep itself.  Surveillance, many targets and peer configs: checked apart or refused by
+    ``covnet sweep`` as a whole."""
+    if sc.sweep is None or sc.surveillance is not None or sc.multitarget:
+        return []
+    if not sc.fusion.has_centre:
+        return []
+    why = refused_point(sc, grid(sc.sweep))
+    return (
+        []
+        if why is None
+        else [f"note: the config is valid; covnet sweep would refuse its grid: {why}"]
+    )
+
+
 def refused_point(sc: Scenario, points: Sequence[dict[str, Any]]) -> str | None:
     """Why grid points cannot run, in one line (``None``: every point can): their config
     (:func:`point_scenario`) refused, named by each axis value every point of which is refused

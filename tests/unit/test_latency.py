@@ -333,9 +333,11 @@ def test_check_refuses_a_sweep_mode_the_policy_refuses(paper_path, tmp_path, cap
     assert not (tmp_path / "sw2").exists()
 
 
-def test_a_sweep_section_of_seeds_alone_leaves_covnet_run_alone(tmp_path, paper_path):
+def test_a_sweep_section_of_seeds_alone_leaves_covnet_run_alone(tmp_path, paper_path, capsys):
     """large.yaml (``allocation.search: greedy``, which ``ci`` refuses) with ``sweep: {seeds:
-    2}`` added: ``covnet check`` and ``covnet run`` exited 2 on the default ``modes`` grid."""
+    2}`` added: ``covnet check`` and ``covnet run`` exited 2 on the default ``modes`` grid.
+    ``covnet check`` says, beside exit 0, that ``covnet sweep`` refuses the grid and which
+    axis to give (it said nothing, and the sweep refused it: hunt 12)."""
     import yaml
 
     data = yaml.safe_load((paper_path.parent / "large.yaml").read_text())
@@ -343,8 +345,21 @@ def test_a_sweep_section_of_seeds_alone_leaves_covnet_run_alone(tmp_path, paper_
     data["scans"] = 3
     cfg = tmp_path / "large_sweep.yaml"
     cfg.write_text(yaml.safe_dump(data))
+    capsys.readouterr()
     assert main(["check", str(cfg)]) == 0
+    err = capsys.readouterr().err
+    assert "covnet sweep would refuse its grid" in err and "give sweep.modes without ci" in err
     assert main(["run", str(cfg), "--out", str(tmp_path / "r"), "--no-figures"]) == 0
+    assert main(["sweep", str(cfg), "--out", str(tmp_path / "s")]) == 2
+    assert not (tmp_path / "s").exists()
+    # a grid the policy can run: no note
+    data["sweep"] = {"seeds": 2, "modes": ["central"]}
+    cfg.write_text(yaml.safe_dump(data))
+    capsys.readouterr()
+    assert main(["check", str(cfg)]) == 0
+    assert "sweep" not in capsys.readouterr().err
+    assert main(["check", str(paper_path)]) == 0
+    assert capsys.readouterr().err == ""
 
 
 @pytest.mark.parametrize(
