@@ -69,7 +69,12 @@ from covnet.batches.trials import (
 )
 from covnet.config import ConfigError
 from covnet.core.allocation.policy_registry import POLICIES, Policy
-from covnet.covariance_control.compare import nees_consistency, traffic_per_scan
+from covnet.covariance_control.compare import (
+    STAMP_NS,
+    SeqCounter,
+    nees_consistency,
+    traffic_per_scan,
+)
 from covnet.covariance_control.config import Scenario, from_dict, normalised
 from covnet.covariance_control.fusion_rules import rule_for
 from covnet.errors import UsageError
@@ -273,24 +278,33 @@ def targets_traffic_per_scan(
     ids, tids = tm.sensor_ids, tm.target_ids
     x, P = np.zeros(4), np.eye(4)
     msgs = byts = 0
+    seq, ns = SeqCounter(), STAMP_NS  # the fields a real message has (compare.STAMP_NS)
     for k, row in enumerate(assignment, start=1):
         on = tuple(ids[j] for j in np.flatnonzero(row >= 0))
         who: dict[str, tuple[str, ...]] = {
             str(ids[j]): (str(tids[int(row[j])]),) for j in np.flatnonzero(row >= 0)
         }
         windows = {ids[j]: np.zeros(2 * tm.sensors[j].dim_z) for j in np.flatnonzero(row >= 0)}
-        out: list[msg.Message] = [msg.Command(k, float(k), on, 1, 0, targets=who, windows=windows)]
+        out: list[msg.Message] = [msg.Command(k, float(k), on, ns, 0, targets=who, windows=windows)]
         for j in np.flatnonzero(row >= 0):
             if tracks:
                 tid = str(tids[int(row[j])])
-                out.append(msg.LocalTrack(ids[j], k, float(k), x, P, x, P, 1, 0, target_id=tid))
+                out.append(
+                    msg.LocalTrack(
+                        ids[j], k, float(k), x, P, x, P, ns, 0, seq(ids[j]), target_id=tid
+                    )
+                )
                 continue
             dz = tm.sensors[j].dim_z
             m = max(int(returns[k - 1, j]), 0)
-            out.append(msg.Measurement(ids[j], k, float(k), np.zeros((m, dz)), np.eye(dz), 1, 0))
+            out.append(
+                msg.Measurement(
+                    ids[j], k, float(k), np.zeros((m, dz)), np.eye(dz), ns, 0, seq=seq(ids[j])
+                )
+            )
         for tid in tids:
-            out.append(msg.Track(k, float(k), x, P, 1, 0, target_id=tid))
-        out.append(msg.Status(k, float(k), on, 1.0, 1.0, 1.0, 1, 0, fused=on))
+            out.append(msg.Track(k, float(k), x, P, ns, 0, target_id=tid))
+        out.append(msg.Status(k, float(k), on, 1.0, 1.0, 1.0, ns, 0, fused=on))
         msgs += len(out)
         byts += sum(len(msg.encode(m_)) for m_ in out)
     n = max(len(assignment), 1)
@@ -744,8 +758,9 @@ def make_figure(out: Path, rows: Sequence[dict[str, Any]], title: str) -> Path:
         ax.errorbar([x], [y], xerr=xerr, yerr=yerr, fmt="o", color=c, capsize=4, ms=6)
         label = r["policy"] + ("" if r["budget"] is None else f" (K={r['budget']})")
         labels.append(
-            ax.annotate(label, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8,
-                        color=c)  # fmt: skip
+            ax.annotate(
+                label, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8, color=c
+            )  # fmt: skip
         )
     ax.margins(x=0.15, y=0.1)
     ax.set_xlabel("sensor-scans per scan (mean sensors on)")

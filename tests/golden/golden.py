@@ -14,7 +14,10 @@ three ``run-latency`` cases' ``summary.json`` recorded again the same day when i
 bounds): only ``*_ci_lo`` below 0 and ``*_ci_hi`` above 1 of a share changed (to 0 and 1), every
 other key the same (each file compared key by key with the code before); ``compare``'s both
 hashes again the same day when the grand mean NEES's interval ``nees_mean_ci_95`` was cut at 0
-too (its lower end, -3.2 and -10.3 in that file, the only other change).
+too (its lower end, -3.2 and -10.3 in that file, the only other change); and again on December
+6 (a later session) when the messages it encodes to count ``bytes_per_scan`` got the fields real
+ones have (a monotonic ``t_sent_ns``, a sensor's ``seq``): 1086.96 -> 1169.72, 1277.32 -> 1325.5
+and 5336.52 -> 5500.68 bytes, the recording's counts, every other key the same.
 
 A JSON file is hashed as its bytes; wall-clock keys (:data:`WALL_CLOCK_KEYS`) are removed first
 and the rest re-serialised canonically only where a case says so (those files held timings

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from multiproc import CovnetProcess, assert_nothing_left
+from traffic_check import assert_compare_counts_what_was_sent
 
 from covnet.cli.app import main as covnet_main
 from covnet.covariance_control.replay import RECORDING, replay_run
@@ -65,6 +66,7 @@ def test_centre_fusing_local_tracks_equals_the_in_process_run(tmp_path, paper_pa
         keys = [k for k in net["received"] if k.endswith(f"/sensor/{sid}/meas")]
         assert sum(net["received"][k]["messages"] for k in keys) == used, sid
     assert net["rejected"] == {} and net["lost"] == 0
+    assert_compare_counts_what_was_sent(out, mode)  # compare's bytes are the recording's
     # the recording of local tracks re-fuses to the same summary, byte for byte
     assert covnet_main(["replay", str(out)]) == 0
     assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()
@@ -87,6 +89,7 @@ def test_peer_ring_equals_the_in_process_run_and_nodes_agree(tmp_path, paper_pat
         np.testing.assert_array_equal(y[key], x[key], err_msg=key)
     names = set(json.loads((out / "processes.json").read_text()))
     assert "manager" in names  # the router and monitor: it neither decides nor fuses
+    assert_compare_counts_what_was_sent(out, "peer-info")  # compare's bytes: the recording's
     # the recording re-fuses node by node (the engine of each node alone) to the same summary
     assert covnet_main(["replay", str(out)]) == 0
     assert (out / "replay" / "summary.json").read_bytes() == (out / "summary.json").read_bytes()

@@ -133,6 +133,7 @@ def test_up_equals_run_and_replays(tmp_path, fusion):
     """12 sensor processes over zenoh in lockstep: covnet run's results, and covnet replay
     reproduces the summary from the recording (returns, or local tracks under info)."""
     from multiproc import CovnetProcess, assert_nothing_left
+    from traffic_check import assert_compare_counts_what_was_sent
 
     from covnet.cli.app import main as covnet_main
     from covnet.runs.rundir import load_arrays
@@ -162,6 +163,7 @@ def test_up_equals_run_and_replays(tmp_path, fusion):
         np.testing.assert_array_equal(ra[k], rb[k])
     net = json.loads((out / "network.json").read_text())
     assert net["rejected"] == {} and net["lost"] == 0
+    assert_compare_counts_what_was_sent(out, fusion)  # compare --policies' bytes: the recording's
     assert_nothing_left(out)
     rp = CovnetProcess(["replay", str(out)])
     assert rp.wait(timeout=120) == 0, rp.output()
@@ -183,3 +185,16 @@ def test_info_over_the_bus_equals_run():
     np.testing.assert_array_equal(got.assignment, ref.assignment)
     np.testing.assert_array_equal(got.x_est, ref.x_est)
     np.testing.assert_array_equal(got.P_post, ref.P_post)
+
+
+@pytest.mark.parametrize("fusion", ["central", "info"])
+def test_compare_counts_the_bytes_the_nodes_send(tmp_path, fusion):
+    """``compare --policies``' messages and bytes per scan for a run's assignments are what
+    the nodes published (the in-memory network with its recorder): under ``info`` each enabled
+    sensor's local track, and every field as long as a real one (the count was 3-7 % short)."""
+    from nodethreads import run_recorded_network
+    from traffic_check import assert_compare_counts_what_was_sent
+
+    sc = from_dict({**short_data(), "fusion": {"mode": fusion}})
+    run_recorded_network(sc, ["abs_trace"], tmp_path / "run")
+    assert_compare_counts_what_was_sent(tmp_path / "run", fusion)

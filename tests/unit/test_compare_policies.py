@@ -382,9 +382,9 @@ def test_targets_info_traffic_counts_the_local_tracks_the_sensors_send():
     """With ``targets:`` and ``fusion.mode: info`` every enabled sensor sends its local track
     of the target it dwelt on (posterior and prior: :mod:`sensors.covariance`), not its
     returns; the comparison counted the returns, and info looked no dearer than central (2.3
-    times fewer bytes than ``covnet up`` sent)."""
+    times fewer bytes than ``covnet up`` sent).  (The bytes, message for message, against the
+    nodes' own: ``tests/integration/test_multitarget_up.py``.)"""
     from covnet.covariance_control import targets
-    from covnet.wire import messages as msg
 
     data = normalised(_short(MULTI, 6))
     data["fusion"] = {**data["fusion"], "mode": "info"}
@@ -392,24 +392,11 @@ def test_targets_info_traffic_counts_the_local_tracks_the_sensors_send():
     sc = _with(from_dict(data), "random", 4, 2026)
     tm = targets.build(sc)
     run = run_targets(sc, "spectral", tm)
-    ids, tids = tm.sensor_ids, tm.target_ids
-    x, P = np.zeros(4), np.eye(4)
-    size = 0
-    for k, row in enumerate(run.assignment, start=1):
-        on = [int(j) for j in np.flatnonzero(row >= 0)]
-        cmd = msg.Command(
-            k, float(k), tuple(ids[j] for j in on), 1, 0,
-            targets={ids[j]: (tids[row[j]],) for j in on},
-            windows={ids[j]: np.zeros(2 * tm.sensors[j].dim_z) for j in on},
-        )  # fmt: skip
-        sent = [msg.LocalTrack(ids[j], k, float(k), x, P, x, P, 1, 0, target_id=tids[row[j]])
-                for j in on]  # fmt: skip
-        sent += [msg.Track(k, float(k), x, P, 1, 0, target_id=t) for t in tids]
-        sent.append(msg.Status(k, float(k), cmd.enabled, 1.0, 1.0, 1.0, 1, 0, fused=cmd.enabled))
-        size += sum(len(msg.encode(m)) for m in [cmd, *sent])
     K = len(run.assignment)
-    assert trial["bytes_per_scan"] == size / K
-    assert trial["messages_per_scan"] == 2 + len(tids) + run.enabled.sum() / K
+    assert trial["bytes_per_scan"] == cp.targets_traffic_per_scan(
+        tm, run.assignment, run.returns, True
+    )["bytes_per_scan"]
+    assert trial["messages_per_scan"] == 2 + len(tm.target_ids) + run.enabled.sum() / K
     # a local track (two estimates and covariances) outweighs a dwell's few returns
     data["fusion"]["mode"] = "central"
     central = cp.run_trial(data, "random", 4, 2026, "spectral")
