@@ -101,18 +101,31 @@ def take_heartbeat(
 
 def other_configs(own: str, heard: Mapping[str, str | None]) -> str | None:
     """Why a run must not start: the nodes whose heartbeats named another config than ``own``
-    (:func:`~covnet.processes.node_kit.config_id`), else None.  The manager's loop and the
-    peer observer check alike."""
-    other = {n: c for n, c in heard.items() if c not in (None, own)}
+    (:func:`~covnet.processes.node_kit.config_id`), or none (a covnet from before heartbeats
+    named it: its config and seed cannot be checked, and one was let in unchecked, ending
+    ``completed`` with another seed's sensors), else None.  The manager's loop and the peer
+    observer check alike."""
+    other = {n: c for n, c in heard.items() if c != own}
     if not other:
         return None
-    nodes = ", ".join(f"{n} ({c})" for n, c in sorted(other.items()))
-    return (
-        f"nodes run another config than this manager's ({own}): {nodes}. Every host of a run "
-        "must run the same config file with the same run options (--seed, --fusion, "
-        "--solver, --realtime, --speed); only network.router, network.connect, "
-        "network.security and the metrics (--metric) may differ"
-    )
+    named = {n: c for n, c in other.items() if c is not None}
+    unnamed = sorted(n for n, c in other.items() if c is None)
+    parts = []
+    if named:
+        nodes = ", ".join(f"{n} ({c})" for n, c in sorted(named.items()))
+        parts.append(
+            f"nodes run another config than this manager's ({own}): {nodes}. Every host of a "
+            "run must run the same config file with the same run options (--seed, --fusion, "
+            "--solver, --realtime, --speed); only network.router, network.connect, "
+            "network.security and the metrics (--metric) may differ"
+        )
+    if unnamed:
+        parts.append(
+            f"nodes name no config in their heartbeats: {', '.join(unnamed)} (an older covnet "
+            "than this manager's, whose config and seed cannot be checked); run the same "
+            "covnet on every host"
+        )
+    return "; ".join(parts)
 
 
 def not_ready(timeout_s: float, not_alive: Sequence[str], unheard: Sequence[str]) -> str:

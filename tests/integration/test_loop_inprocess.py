@@ -12,6 +12,7 @@ from nodethreads import with_metrics
 from covnet.clock import WallClock
 from covnet.covariance_control.config import with_overrides
 from covnet.covariance_control.simulate import run_metric
+from covnet.wire import messages as msg
 from covnet.wire.bus import InMemoryBus, InMemoryHub
 from manager import covariance as manager_node
 from sensors import covariance as sensor_node
@@ -216,3 +217,59 @@ def test_when_every_sensor_has_failed_the_scans_go_on_predicting(paper):
     f, model = get_metric("spectral"), build_model(sc)
     for i in range(k - 1, sc.scans):
         assert run.value[i] == f(run.P_pred[i], model.desired(i + 1))
+
+
+class _OlderNode:
+    """A node's bus whose heartbeats name no config: a covnet from before heartbeats named it."""
+
+    def __init__(self, bus):
+        self.bus = bus
+
+    def __getattr__(self, name):
+        return getattr(self.bus, name)
+
+    def publish(self, key, payload):
+        if "/hb/" in key:
+            payload = msg.encode(msg.decode_as(payload, msg.Heartbeat).evolve(config=None))
+        return self.bus.publish(key, payload)
+
+
+def test_a_node_that_names_no_config_is_refused_by_name(short_paper):
+    """A sensor of an older covnet (no ``config`` in its heartbeats: its seed and config cannot
+    be checked) was let in; a host of the Dec 5 code with another seed ran one mixed network
+    that ended ``completed``, exit 0 (hunt 14).  The manager refuses to start and names it."""
+    hub = InMemoryHub()
+    stops = []
+    threads = []
+
+    def start(name, target, wrap=None):
+        ev = threading.Event()
+        stops.append(ev)
+        bus = InMemoryBus(hub, name=name)
+        th = threading.Thread(
+            target=lambda: target(wrap(bus) if wrap else bus, ev), name=name, daemon=True
+        )
+        th.start()
+        threads.append((th, bus))
+
+    sc = with_overrides(short_paper, network={**short_paper.network.model_dump(),
+                                               "ready_timeout_s": 10.0})  # fmt: skip
+    start("world", lambda bus, ev: world_node.run(sc, bus, "t", WallClock(), ev))
+    for sid in sc.sensor_ids:
+        wrap = _OlderNode if sid == "S3" else None
+        start(
+            sid, lambda bus, ev, sid=sid: sensor_node.run(sc, sid, bus, "t", WallClock(), ev), wrap
+        )
+    mbus = InMemoryBus(hub, name="manager")
+    try:
+        result = manager_node.run(sc, mbus, "t", WallClock(), threading.Event())
+    finally:
+        for ev in stops:
+            ev.set()
+        for th, bus in threads:
+            th.join(timeout=10)
+            bus.close()
+        mbus.close()
+    assert not result.completed and result.error is not None
+    assert "nodes name no config in their heartbeats: S3 (an older covnet" in result.error
+    assert "another config" not in result.error  # the others run this one
