@@ -15,7 +15,9 @@ JSON-able result per seed, and how a task is made; :func:`run_trials` does the r
   same ``--out`` loads what is there, runs only the rest, and says how many it skipped; a
   directory of another batch is refused (:func:`prepare_batch_out`).  The results read back
   are the very numbers written (JSON keeps every float64 exactly), so a resumed batch equals an
-  uninterrupted one bit for bit.
+  uninterrupted one bit for bit.  Each file names the code that wrote it
+  (:func:`covnet.code_identity.code_identity`): a trial of other code (an upgrade between the
+  start and the resume) is run again, with a note, never averaged in with this code's.
 - **Seeds until the interval is narrow** (``ci_width``): after the first ``n`` seeds of every
   point, the points whose 95 % interval on the batch's headline metric is not narrower than
   ``ci_width`` get ``batch`` more seeds, round after round, until every point's is or it has
@@ -52,10 +54,12 @@ import numpy as np
 
 from covnet.batches import MAX_SEEDS, point_text
 from covnet.batches.pool import BatchInterrupted, default_workers, imap_unordered
+from covnet.code_identity import code_identity, other_code
 from covnet.config import hash_of
 from covnet.errors import UsageError
 from covnet.runs.rundir import (
     atomic_write,
+    check_writable,
     claim,
     clear_output,
     prepare_out,
@@ -113,6 +117,7 @@ class TrialStore:
         self.root = Path(out) / TRIALS / key
         self.key = key
         self.unreadable: list[tuple[Path, str]] = []  # (file, why): from the last load
+        self.stale: list[tuple[Path, str]] = []  # (file, whose code): from the last load
 
     def _file(self, point: str, seeds: Sequence[int]) -> Path:
         name = str(seeds[0]) if len(seeds) == 1 else f"{seeds[0]}-{seeds[-1]}"
@@ -126,6 +131,7 @@ class TrialStore:
         body = {"point": point, "seeds": list(seeds), "results": list(results)}
         doc = json.loads(json.dumps(body, default=_json_default))  # as a reader will see it
         doc["sha256"] = _digest(doc)
+        doc["code"] = code_identity()
         atomic_write(path, (json.dumps(doc) + "\n").encode())
 
     def load(self, points: Sequence[str] | None = None) -> dict[tuple[str, int], Result]:
@@ -133,9 +139,11 @@ class TrialStore:
         Unreadable files (cut short by a full disk, edited, not JSON) are left out, so their
         trials run again, and listed in ``unreadable`` with the reason, for the batch to say
         so (a batch run in parts, as ``compare --budget match`` is, names each file once: in
-        the part whose point it is)."""
+        the part whose point it is).  Files of other code (their ``code``, or none: an older
+        covnet's) are left out too, and listed in ``stale``: their trials run again."""
         done: dict[tuple[str, int], Result] = {}
         self.unreadable = []
+        self.stale = []
         if not self.root.is_dir():
             return done
         if points is None:
@@ -147,6 +155,10 @@ class TrialStore:
                 doc = read_json(path)
                 if "sha256" in doc and doc["sha256"] != _digest(doc):
                     raise ValueError("edited: its content is not what was written (sha256)")
+                whose = other_code(doc.get("code"))
+                if whose is not None:
+                    self.stale.append((path, whose))
+                    continue
                 pairs = zip(doc["seeds"], doc["results"], strict=True)
                 done.update({(str(doc["point"]), int(s)): r for s, r in pairs})
             except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -160,7 +172,8 @@ def _digest(doc: Mapping[str, Any]) -> str:
     sorted; floats in their round-trip form, so what is read back digests the same): a file
     edited or damaged into another valid one (a result's field removed or set to null, its
     point or seeds changed) is told from the one written, and its trials run again.  A file
-    without it (an older store) is read as before."""
+    without it and with this code's ``code`` is read as before (an older store names no code,
+    and its trials run again: :meth:`TrialStore.load`)."""
     body = {k: doc[k] for k in ("point", "seeds", "results")}
     return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
@@ -177,6 +190,21 @@ def prepare_batch_out(
         return prepare_out(None, name, force), False
     p = Path(out)
     info = p / BATCH_INFO
+    if p.is_dir() and not (info.exists() or info.is_symlink()) and (p / TRIALS / key).is_dir():
+        # batch.json lost (deleted, a copy without it), this batch's trials there: resumed, as
+        # a damaged batch.json is (it was refused as "not empty", pointing to --force, which
+        # deletes every finished trial)
+        claim(p, f"--out {out}")
+        if force:
+            clear_output(p)
+            return p, False
+        check_writable(p, f"--out {out}")
+        print(
+            f"covnet: {p} has no {BATCH_INFO}; {p / TRIALS / key} holds this batch's trials: "
+            "resuming, and writing it again",
+            file=sys.stderr,
+        )
+        return p, True
     if p.is_dir() and (info.exists() or info.is_symlink()):
         # resumed (or replaced): no other command writes into it meanwhile (prepare_out's)
         claim(p, f"--out {out}")
@@ -192,6 +220,7 @@ def prepare_batch_out(
             why = "no command or trial_hash"
         if why is not None:  # damaged: its trials folder still says which batch it holds
             if (p / TRIALS / key).is_dir() and info.is_file():
+                check_writable(p, f"--out {out}")  # before any trial runs, as a new --out
                 print(
                     f"covnet: {info} cannot be read ({why}); {p / TRIALS / key} holds this "
                     "batch's trials: resuming, and writing it again",
@@ -205,6 +234,7 @@ def prepare_batch_out(
                 "to delete what it holds and start over"
             )
         if have.get("command") == command and have.get("trial_hash") == key:
+            check_writable(p, f"--out {out}")  # before any trial runs, as a new --out
             return p, True
         raise UsageError(
             f"--out {out}: holds the trials of another batch (covnet {have.get('command')}, "
@@ -221,7 +251,13 @@ def write_batch_info(out: Path, command: str, key: str, facts: Mapping[str, Any]
     path = out / BATCH_INFO
     if path.is_file():
         return
-    doc = {"command": command, "trial_hash": key, "created_utc": utc_now(), **facts}
+    doc = {
+        "command": command,
+        "trial_hash": key,
+        "created_utc": utc_now(),
+        "code": code_identity(),  # of the start (each trial file names its own)
+        **facts,
+    }
     atomic_write(path, (json.dumps(doc, indent=2) + "\n").encode())
 
 
@@ -388,6 +424,13 @@ def run_trials(
         say(
             f"{len(store.unreadable)} trial file(s) of {out} could not be read and run "
             f"again: {path} ({why}){more}"
+        )
+    if store is not None and store.stale:
+        path, whose = store.stale[0]
+        more = f" and {len(store.stale) - 1} more" if len(store.stale) > 1 else ""
+        say(
+            f"{len(store.stale)} trial file(s) of {out} were written by {whose} and run again "
+            f"with this code, so that the batch is one code's: {path}{more}"
         )
     runner = _runner(cluster, workers)
     try:

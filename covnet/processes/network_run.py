@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from covnet import __version__
+from covnet.code_identity import code_identity
 from covnet.runs.rundir import utc_now
 
 __all__ = ["ScanDecision", "ScanImpossible", "network_run_info"]
@@ -39,6 +40,7 @@ def network_run_info(
     info: dict[str, Any] = {
         "created_utc": utc_now(),
         "covnet_version": __version__,
+        "code": code_identity(),  # covnet.code_identity: the source that ran the manager
         "mode": "network",
         "kind": kind,
         **facts,

@@ -74,6 +74,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from covnet import __version__, kinds
+from covnet.code_identity import code_identity
 from covnet.config import hash_of
 from covnet.runs.rundir import name_file
 from covnet.wire import messages as msg
@@ -477,6 +478,7 @@ def run_metadata(run_id: str, config: Any | None) -> dict[str, dict[str, str]]:
     run: dict[str, str] = {
         "run_id": run_id,
         "covnet_version": __version__,
+        "code": code_identity(),  # covnet.code_identity: a replay by other code says so
         "schema_version": str(msg.SCHEMA_VERSION),
         "time_base": "CLOCK_MONOTONIC ns (time.monotonic_ns) of the recording host",
         "start_monotonic_ns": str(time.monotonic_ns()),

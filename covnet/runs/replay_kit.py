@@ -45,6 +45,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from covnet import kinds
+from covnet.code_identity import other_code
 from covnet.errors import UsageError
 from covnet.processes.network_run import ScanDecision, ScanImpossible
 from covnet.runs.recording import (
@@ -328,6 +329,13 @@ class KindReplay:
         reader = RecordingReader(recording)
         rec = self.load(cfg, reader.samples(), run_id)
         notes = recording_notes(reader, rec.counts)
+        whose = other_code(meta_run.get("code"))
+        if whose is not None:  # the same recording re-fused by other code may differ by it
+            notes.insert(
+                0,
+                f"the run was recorded by {whose}: a difference below may be the code's, not "
+                "the recording's (replay a run with the covnet that recorded it)",
+            )
         result = self.recompute(cfg, list(episodes), rec, diffs)
         info = dict(run_info or {})
         info.setdefault("episodes", list(episodes))

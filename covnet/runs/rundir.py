@@ -52,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from covnet import __version__, blas_kernel
+from covnet.code_identity import code_identity
 from covnet.errors import UsageError
 from covnet.processes import interrupts
 
@@ -652,8 +653,9 @@ def record_end(out: Path, status: str, ended: str, **facts: Any) -> None:
     if not info:
         info = {"created_utc": utc_now(), "covnet_version": __version__}
     # the OpenBLAS kernels of the process that ends the run (covnet.blas_kernel: the same
-    # config and seed give the same bits where this is the same)
+    # config and seed give the same bits where this is the same), and the code that ran it
     info.setdefault("blas_kernel", blas_kernel.kernel())
+    info.setdefault("code", code_identity())
     info.update({"status": status, "ended": ended, **facts})
     Path(out).mkdir(parents=True, exist_ok=True)
     write_json(path, info)

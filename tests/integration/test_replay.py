@@ -42,6 +42,27 @@ def recorded_run(tmp_path_factory, short_paper):
     return out, result, stats
 
 
+def test_a_replay_by_other_code_says_whose_code_recorded_the_run(recorded_run, tmp_path,
+                                                                 monkeypatch):
+    """A recording of an older covnet replayed by today's said ``DIFFERS`` (exit 1) over the
+    last bits of a covariance, as if the recording had lost something, and nothing said the
+    code differed (hunt 14).  The recording and ``run.json`` name the code
+    (:mod:`covnet.code_identity`); a replay by other code says so first."""
+    from covnet import code_identity as ci
+
+    out, _, _ = recorded_run
+    meta = read_metadata(out / RECORDING)["covnet.run"]
+    assert meta["code"] == ci.code_identity()
+    assert not any("recorded by" in n for n in replay_run(out, tmp_path / "same").notes)
+    monkeypatch.setattr(ci, "code_identity", lambda: "fedcba9876543210")
+    report = replay_run(out, tmp_path / "other")
+    assert report.identical  # the same code in fact: the note, not a difference
+    assert report.notes[0].startswith(
+        f"the run was recorded by another covnet's ({meta['code']}; this one is "
+        "fedcba9876543210): a difference below may be the code's"
+    ), report.notes
+
+
 def test_replay_reproduces_summary_byte_for_byte(recorded_run):
     out, result, stats = recorded_run
     report = replay_run(out)

@@ -390,3 +390,81 @@ def test_a_trial_file_without_a_digest_is_read_as_before(tmp_path):
         path.write_text(json.dumps(doc))
     again = run_trials(_batch(), 2, out=tmp_path, key="o", workers=1)
     assert again.ran == 0 and again.results == first.results
+
+
+def test_a_trial_of_other_code_is_run_again_with_a_note(tmp_path):
+    """A batch begun by one covnet and resumed by another averaged both codes' trials into one
+    table, exit 0, nothing said (a compare's bytes per scan 4157 where either code alone gave
+    2560 or 5805: hunt 14).  Each trial file names its code; one of other code, or of none
+    (an older covnet), runs again, with a note naming it, and the batch is this code's."""
+    from covnet.code_identity import code_identity
+
+    first = run_trials(_batch(), 2, out=tmp_path, key="c", workers=1)
+    files = sorted((tmp_path / "trials" / "c").rglob("*.json"))
+    assert {json.loads(f.read_text())["code"] for f in files} == {code_identity()}
+    other, older = files[0], files[1]
+    doc = json.loads(other.read_text())
+    doc["code"] = "0123456789abcdef"  # the digest covers point, seeds and results only
+    other.write_text(json.dumps(doc))
+    doc = json.loads(older.read_text())
+    del doc["code"]
+    older.write_text(json.dumps(doc))
+    notes = []
+    again = run_trials(_batch(), 2, out=tmp_path, key="c", workers=1, note=notes.append)
+    assert (again.ran, again.skipped) == (2, 2) and again.results == first.results
+    note, resumed = notes
+    assert note.startswith("2 trial file(s) of ") and "run again with this code" in note, note
+    assert "another covnet's (0123456789abcdef; this one is " in note or "older covnet" in note
+    assert "2 of 4 trials already done" in resumed, resumed
+    assert {json.loads(f.read_text())["code"] for f in files} == {code_identity()}
+    notes.clear()
+    assert run_trials(_batch(), 2, out=tmp_path, key="c", workers=1, note=notes.append).ran == 0
+    assert len(notes) == 1 and "4 of 4 trials already done" in notes[0], notes
+
+
+def test_a_batch_without_its_batch_json_resumes_from_its_trials(tmp_path, capsys):
+    """``batch.json`` lost, this batch's trials there: refused as "not empty", pointing to
+    ``--force``, which deletes every finished trial (hunt 14).  It resumes, as a damaged
+    ``batch.json`` does; another batch's trials alone are still refused."""
+    out = tmp_path / "b"
+    p, resuming = prepare_batch_out(out, "x", False, "sweep", "h1")
+    write_batch_info(p, "sweep", "h1", {})
+    run_trials(_batch(), 2, out=p, key="h1", workers=1)
+    (p / "batch.json").unlink()
+    with pytest.raises(UsageError, match="not empty"):
+        prepare_batch_out(out, "x", False, "sweep", "h2")
+    capsys.readouterr()
+    p, resuming = prepare_batch_out(out, "x", False, "sweep", "h1")
+    assert resuming and "has no batch.json" in capsys.readouterr().err
+    write_batch_info(p, "sweep", "h1", {})
+    again = run_trials(_batch(), 2, out=p, key="h1", workers=1)
+    assert (again.ran, again.skipped) == (0, 4)
+
+
+@pytest.mark.parametrize("damage", ["none", "batch.json cut", "batch.json gone"])
+def test_a_resume_into_an_unwritable_out_is_refused_before_any_trial(
+    tmp_path, monkeypatch, damage
+):
+    """Resuming a batch on a read-only file system ran its trials, then ended with exit 1 on
+    the first trial file (a new ``--out`` is refused before anything runs: hunt 14)."""
+    import errno
+    import os
+
+    out = tmp_path / "b"
+    p, _ = prepare_batch_out(out, "x", False, "mc", "h1")
+    write_batch_info(p, "mc", "h1", {})
+    run_trials(_batch(), 1, out=p, key="h1", workers=1)
+    if damage == "batch.json cut":
+        (p / "batch.json").write_text('{"comm')
+    elif damage == "batch.json gone":
+        (p / "batch.json").unlink()
+    real = Path.write_bytes
+
+    def write_bytes(self, data):  # root writes into a chmod 0555 directory all the same
+        if self.name.startswith(".covnet-write-check"):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(self))
+        return real(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", write_bytes)
+    with pytest.raises(UsageError, match="cannot write there"):
+        prepare_batch_out(out, "x", False, "mc", "h1")
