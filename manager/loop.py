@@ -348,11 +348,14 @@ class Loop:
                     self.other_clock.discard(hb.node_id)
                 else:
                     self.other_clock.add(hb.node_id)
-                if self.config_id is not None and hb.config not in (None, self.config_id):
-                    # another config's node (a host restarted with another copy): no sign of
-                    # life, so it fails like a node that went silent
+                if self.config_id is not None and hb.config != self.config_id:
+                    # another config's node (a host restarted with another copy, a restart
+                    # that read an edited file; an older covnet's, which names none): down,
+                    # and nothing it sends is a sign of life or fused until it names ours
                     self.stats.reject(s.key, "config_mismatch")
+                    self.members.refuse(hb.node_id)
                     continue
+                self.members.accept(hb.node_id)
             if hb is not None and hb.node_id != RECORDER_ID:
                 self.members.heartbeat(hb.node_id, now)
                 if hb.sent is not None and hb.role == "sensor":
@@ -591,6 +594,9 @@ class Loop:
                 self._take(s, episode, k, waiting, got, usable, kind)
                 continue
             self.stats.received(s.key, len(s.payload))
+            if key_sensor in self.members.refused:  # its heartbeats name another config
+                self.stats.reject(s.key, "config_mismatch")
+                continue
             self.members.heartbeat(key_sensor, now)
             verdict = verdicts.get(i)
             self._judge(s, m, episode, k, waiting, got, usable if verdict is None else verdict)
@@ -620,6 +626,9 @@ class Loop:
             return
         if key_sensor not in self.sensor_set:  # no sensor of the run: no numbers, no fusion
             self.stats.reject(s.key, "unknown_sensor")
+            return
+        if key_sensor in self.members.refused:  # its heartbeats name another config
+            self.stats.reject(s.key, "config_mismatch")
             return
         self.members.heartbeat(key_sensor, self.clock.now_ns())  # a sensor's sign of life
         self._judge(s, m, episode, k, waiting, got, usable)

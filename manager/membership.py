@@ -29,6 +29,10 @@ class Membership:
     alive_tokens: set[str] = field(default_factory=set)
     last_heartbeat_ns: dict[str, int] = field(default_factory=dict)
     token_lost_ns: dict[str, int] = field(default_factory=dict)  # when the token went
+    refused: set[str] = field(default_factory=set)
+    """Nodes whose last heartbeat named another config than the run's (a restart that read an
+    edited or other config file): down, whatever they send, until a heartbeat names the run's
+    config again (:meth:`refuse`, :meth:`accept`)."""
 
     def token(self, node_id: str, alive: bool, now_ns: int) -> None:
         if alive:
@@ -50,6 +54,16 @@ class Membership:
     def heartbeat(self, node_id: str, now_ns: int) -> None:
         self.last_heartbeat_ns[node_id] = now_ns
 
+    def refuse(self, node_id: str) -> None:
+        """``node_id``'s heartbeat named another config: down from now on, its measurements no
+        sign of life (a restarted sensor with an edited config rejoined through them and was
+        fused with numbers its manager did not model, the run ``completed``)."""
+        self.refused.add(node_id)
+
+    def accept(self, node_id: str) -> None:
+        """``node_id``'s heartbeat named the run's config: no longer refused."""
+        self.refused.discard(node_id)
+
     def resumed(self, last_look_ns: int, now_ns: int, grace_ns: int) -> None:
         """The listener looked last at ``last_look_ns`` and looks again only now, more than the
         timeout later (its process was paused: a SIGSTOP, a swapped-out machine): what the
@@ -63,6 +77,8 @@ class Membership:
                 self.last_heartbeat_ns[node] = floor
 
     def is_up(self, node_id: str, now_ns: int) -> bool:
+        if node_id in self.refused:
+            return False
         last = self.last_heartbeat_ns.get(node_id)
         if last is None or now_ns - last > self.failure_timeout_ns:
             return False

@@ -199,6 +199,8 @@ def serve(
         return EXIT_FAIL
     for line in twice_sent(getattr(result.stats, "rejected_by_key", {})):
         tell(line)
+    for line in config_refused(getattr(result.stats, "rejected_by_key", {})):
+        tell(line)
     tell(f"DONE completed={result.completed} out={args.out}")
     return EXIT_OK
 
@@ -220,6 +222,26 @@ def twice_sent(rejected_by_key: Mapping[str, Mapping[str, int]]) -> list[str]:
         lines.append(
             f"{NOTE}{n} of {sid}'s measurements came twice (counted duplicate, not fused): is "
             f"{sid} run by two processes at once (started on two hosts)? Stop one"
+        )
+    return lines
+
+
+def config_refused(rejected_by_key: Mapping[str, Mapping[str, int]]) -> list[str]:
+    """A :data:`~covnet.processes.node_kit.NOTE` for each node refused mid-run because its
+    heartbeats named another config (``config_mismatch`` on its heartbeat key): a node
+    restarted (``restart: on-failure``) reads the config file again, and an edit made during
+    the run (or a moved file) reaches it; it was kept out of the run, and only ``network.json``
+    said so."""
+    lines = []
+    for key, reasons in sorted(rejected_by_key.items()):
+        n = reasons.get("config_mismatch", 0)
+        parts = key.split("/")
+        if not n or len(parts) < 2 or parts[-3:-2] != ["hb"]:
+            continue
+        lines.append(
+            f"{NOTE}{parts[-1]} ran another config than this run's from some point on ({n} "
+            f"heartbeat(s) refused; was it restarted after the config file was edited?): it "
+            "was kept out of the allocation and nothing it sent was fused"
         )
     return lines
 

@@ -3,6 +3,7 @@ without processes.  It must reproduce ``covnet run`` exactly (same functions, sa
 
 from __future__ import annotations
 
+import json
 import threading
 
 import numpy as np
@@ -193,7 +194,6 @@ def test_a_sensor_failure_is_counted_once_whatever_the_number_of_metrics(short_p
     assert result.stats.membership_counts() == {"S2": {"failed": 1, "rejoined": 0}}
 
 
-
 def test_when_every_sensor_has_failed_the_scans_go_on_predicting(paper):
     """Every sensor down at once (the one host of all of them killed): the manager died with
     "all 8 sensors are excluded, so no non-empty subset is feasible" (exit 1, even under
@@ -273,3 +273,65 @@ def test_a_node_that_names_no_config_is_refused_by_name(short_paper):
     assert not result.completed and result.error is not None
     assert "nodes name no config in their heartbeats: S3 (an older covnet" in result.error
     assert "another config" not in result.error  # the others run this one
+
+
+class _RestartedWithAnotherConfig:
+    """S3's bus: after its ``after``-th measurement the node "restarts" with another config
+    file (``restart: on-failure`` reads the file again): a heartbeat naming another config,
+    then its measurements as before."""
+
+    def __init__(self, bus, after):
+        self.bus, self.after, self.sent, self.said = bus, after, 0, False
+
+    def __getattr__(self, name):
+        return getattr(self.bus, name)
+
+    def publish(self, key, payload):
+        if "/meas" in key:
+            self.sent += 1
+            if self.sent > self.after and not self.said:
+                self.said = msg.decode_as(payload, msg.Measurement).scan
+                hb = msg.Heartbeat(role="sensor", node_id="S3", scan=0, t_sent_ns=1,
+                                   config="0123456789abcdef")  # fmt: skip
+                self.bus.publish(msg.heartbeat_key("t", "sensor", "S3"), msg.encode(hb))
+        return self.bus.publish(key, payload)
+
+
+def test_a_node_that_comes_back_with_another_config_is_kept_out(short_paper, tmp_path):
+    """A sensor restarted mid-run with an edited config file: the manager refused its
+    heartbeats (``config_mismatch``) but took its measurements as signs of life, so it
+    "rejoined" and was fused at every scan to the end, ``completed``, exit 0 (hunt 14).  It is
+    down from its first heartbeat of another config on, and nothing it sends is fused."""
+    from nodethreads import run_recorded_network
+
+    from covnet.covariance_control.replay import RECORDING
+    from covnet.runs.recording import read_recording
+    from manager.process import config_refused
+
+    out = tmp_path / "run"
+    s3 = []
+
+    def restarted(bus):
+        s3.append(_RestartedWithAnotherConfig(bus, 1))
+        return s3[0]
+
+    result, _ = run_recorded_network(short_paper, ["spectral"], out, wrap_bus={"S3": restarted})
+    assert result.completed
+    k0 = s3[0].said  # the scan whose measurement followed the heartbeat (taken, or not, by
+    assert k0  # the race of two subscriptions): from the next scan on, S3 is out
+    fused = {}
+    for s in read_recording(out / RECORDING):
+        m = msg.decode(s.payload)
+        if isinstance(m, msg.Status):
+            fused[m.scan] = "S3" in m.fused
+    assert any(fused[k] for k in fused if k < k0), fused  # it was used before
+    assert not any(fused[k] for k in fused if k > k0), fused
+    failures = json.loads((out / "summary.json").read_text())["failures"]["spectral"]
+    assert [(f["sensor"], f["event"]) for f in failures] == [("S3", "failed")], failures
+    rejected = result.stats.rejected_by_key
+    assert rejected[msg.heartbeat_key("t", "sensor", "S3")]["config_mismatch"] == 1
+    (note,) = config_refused(rejected)
+    assert note.endswith("S3 ran another config than this run's from some point on (1 "
+                         "heartbeat(s) refused; was it restarted after the config file was "
+                         "edited?): it was kept out of the allocation and nothing it sent was "
+                         "fused")  # fmt: skip
