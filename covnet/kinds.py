@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from covnet.config import ConfigError, hash_of, read_yaml
+from covnet.core import registries
 from covnet.errors import UsageError
 
 __all__ = [
@@ -45,6 +46,7 @@ REGISTRY: dict[str, str] = {
     "passive": "covnet.passive.kind",
 }
 """A config's ``kind`` -> the module that defines its :class:`Kind` as ``KIND``."""
+registries.ship("covnet.kinds.REGISTRY", REGISTRY)
 DEFAULT = "covariance_control"
 """The kind of a config without a top-level ``kind`` (the paper's)."""
 

@@ -56,6 +56,7 @@ from covnet.batches import MAX_SEEDS, point_text
 from covnet.batches.pool import BatchInterrupted, default_workers, imap_unordered
 from covnet.code_identity import code_identity, other_code
 from covnet.config import hash_of
+from covnet.core import registries
 from covnet.errors import UsageError
 from covnet.runs.rundir import (
     atomic_write,
@@ -680,4 +681,14 @@ def batch_options(args: Any, seeds: int, *, api: bool = False) -> BatchOptions:
         problem = scheduler_answers(cluster)
         if problem is not None:
             raise UsageError(f"{opt('cluster')} {cluster}: {problem}")
+    changed = registries.changed_at_run_time()
+    if changed and (cluster is not None or (workers or default_workers()) > 1):
+        where = f"the cluster's workers ({opt('cluster')})" if cluster else "several workers"
+        raise UsageError(
+            f"{', '.join(changed)} in this process: a batch on {where} runs in new "
+            "interpreters, which import covnet's registries as its files build them and would "
+            "not run it as this process does; add the entry in its registry's file (README: "
+            f"*Adding a metric* and the recipes after it), or run the batch in this process "
+            f"({opt('workers')} 1)"
+        )
     return BatchOptions(cluster, ci, cap, workers)

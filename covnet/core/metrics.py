@@ -33,6 +33,8 @@ from typing import Literal, TypeVar, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from covnet.core import registries
+
 MetricFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
 #: ``np.float64`` typed as the metrics' return type.  For one ``(n, n)`` pair a metric returns a
@@ -638,6 +640,7 @@ METRICS: dict[str, Metric] = {
         _builtin("kl", kl, Relaxation("kl"), floors_first=True),
     )
 }
+registries.ship("covnet.core.metrics.METRICS", METRICS)  # what a batch's workers know
 
 
 def metric_names() -> list[str]:

@@ -61,6 +61,7 @@ from typing import Any, ClassVar, overload
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from covnet.core import registries
 from covnet.core.gaussian import Mat, Vec, symmetrise
 from covnet.core.sensing import correlated_noise
 
@@ -492,6 +493,7 @@ SENSOR_MODELS: dict[str, type[SensorModel]] = {
     RangeBearingModel.kind: RangeBearingModel,
     BearingModel.kind: BearingModel,
 }
+registries.ship("covnet.core.sensor_models.SENSOR_MODELS", SENSOR_MODELS)
 
 
 def predicted_information(model: SensorModel, x_pred: ArrayLike, pd: float | None = None) -> Mat:

@@ -513,6 +513,7 @@ def mc(args: argparse.Namespace, sc: Scenario) -> int:
                 f"{opt}: covnet mc of a covariance-control config runs on this "
                 "machine's cores only, over --trials seeds"
             )
+    batch_options(args, n)  # --workers, and entries registered at run time: as every batch
     key = mcm.trial_key(sc)
     out = _batch_out(args, f"{sc.name}-mc", "mc", key)
     print(

@@ -37,6 +37,7 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
+from covnet.core import registries
 from covnet.core.fusion import (
     CI_OBJECTIVES,
     LocalTrack,
@@ -330,6 +331,7 @@ FUSION_RULES: dict[str, type[FusionRule]] = {
     "ci": CovarianceIntersection,
 }
 """Rule name (``fusion.mode``) -> its class."""
+registries.ship("covnet.covariance_control.fusion_rules.FUSION_RULES", FUSION_RULES)
 
 
 def track_rules() -> tuple[str, ...]:

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 
+from covnet.core import registries
 from covnet.core.allocation.constraints import Constraints
 from covnet.core.gaussian import Mat
 
@@ -329,3 +330,4 @@ AUTO = Search(
 )
 
 SEARCHES: dict[str, Search] = {s.name: s for s in (AUTO, EXACT, BOUNDED, GREEDY)}
+registries.ship("covnet.covariance_control.searches.SEARCHES", SEARCHES)

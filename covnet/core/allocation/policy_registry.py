@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from covnet.core import registries
 from covnet.core.allocation.policies import (
     DecideFn,
     RewardFn,
@@ -142,3 +143,4 @@ POLICIES: dict[str, Policy] = {
         ),
     )
 }
+registries.ship("covnet.core.allocation.policy_registry.POLICIES", POLICIES)
