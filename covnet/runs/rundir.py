@@ -562,11 +562,19 @@ FILE_DIGESTS = "file_sha256"
 
 def _digest_mismatch(path: Path) -> str | None:
     """Why ``path`` is not the file its run directory's ``run.json`` says the run wrote (None:
-    it is, or ``run.json`` keeps no digest of it: runs before the digests, batch files)."""
+    it is, or ``run.json`` keeps no digest of it: runs before the digests, batch files).  A
+    ``run.json`` that is there but cannot be read (cut short, not JSON) is named: its digest
+    cannot be checked, and the check was skipped silently."""
+    info_path = path.parent / RUN_INFO
     try:
-        info = read_json(path.parent / RUN_INFO)
-    except (OSError, ValueError):
+        info = read_json(info_path)
+    except FileNotFoundError:
         return None
+    except (OSError, ValueError) as exc:
+        return (
+            f"{info_path} cannot be read ({exc}), so {path.name} cannot be checked against the "
+            "digest it keeps: put back the run's own run.json, or run it again"
+        )
     want = info.get(FILE_DIGESTS, {}) if isinstance(info, dict) else {}
     want = want.get(path.name) if isinstance(want, dict) else None
     if not isinstance(want, str):

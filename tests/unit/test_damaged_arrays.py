@@ -96,3 +96,19 @@ def test_a_run_without_digests_reads_as_before(run_dir, other_run, tmp_path):
     shutil.copy(other_run / "arrays.npz", old / "arrays.npz")
     assert load_arrays(old / "arrays.npz")
     assert main(["export", str(old), "--out", str(tmp_path / "x.csv")]) == 0
+
+
+def test_a_run_json_cut_short_is_named_not_skipped(run_dir, other_run, tmp_path, capsys):
+    """A ``run.json`` cut short made ``plot`` and ``export`` skip the digest check silently
+    (exit 0, another run's arrays drawn as this run's: hunt 14); it is named, exit 2."""
+    bad = tmp_path / "run"
+    shutil.copytree(run_dir, bad)
+    raw = (bad / "run.json").read_bytes()
+    (bad / "run.json").write_bytes(raw[: len(raw) // 2])
+    shutil.copy(other_run / "arrays.npz", bad / "arrays.npz")
+    capsys.readouterr()
+    for cmd in (["plot", str(bad)], ["export", str(bad), "--out", str(tmp_path / "x.csv")]):
+        assert main(cmd) == 2, cmd
+        err = capsys.readouterr().err
+        assert f"{bad / 'run.json'} cannot be read (" in err and "Traceback" not in err, err
+        assert "arrays.npz cannot be checked against the digest it keeps" in err
