@@ -319,17 +319,25 @@ class KindReplay:
         self.check(cfg, recording.parent)
         diffs = Differences()
         meta_run = read_metadata(recording).get(META_RUN, {})
+        whose = other_code(meta_run.get("code"))
+        # a recording and a config.json (or run.json) of two runs are the user's input, as
+        # for plot and export (exit 2), not a difference the replay found (it said DIFFERS)
+        by = "" if whose is None else f"; or the run was recorded by {whose}"
         if meta_run.get("run_id", run_id) != run_id:
-            diffs.add("metadata", f"recording: run id {meta_run['run_id']!r}, run.json: {run_id!r}")
+            raise ReplayError(
+                f"{recording} is a recording of run {meta_run['run_id']!r}, its run.json names "
+                f"run {run_id!r}: files of two runs (one copied from another run?){by}"
+            )
         h = kinds.config_hash(cfg)
         if meta_run.get("config_hash", h) != h:
-            diffs.add(
-                "metadata", f"recording: config hash {meta_run['config_hash']}, config.json: {h}"
+            raise ReplayError(
+                f"{recording} was recorded with config {meta_run['config_hash']}, its "
+                f"config.json is config {h}: not this run's config (copied from another run or "
+                f"edited?); put back the run's own config.json{by}"
             )
         reader = RecordingReader(recording)
         rec = self.load(cfg, reader.samples(), run_id)
         notes = recording_notes(reader, rec.counts)
-        whose = other_code(meta_run.get("code"))
         if whose is not None:  # the same recording re-fused by other code may differ by it
             notes.insert(
                 0,

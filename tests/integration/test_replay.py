@@ -385,3 +385,28 @@ def test_a_run_that_never_wrote_its_results_is_rebuilt(recorded_run, tmp_path, c
     (run / "config.json").unlink()
     assert main(["replay", str(run), "--out", str(tmp_path / "r2")]) == 2
     assert "no config.json" in capsys.readouterr().err
+
+
+def test_a_config_json_of_another_run_is_named_exit_2(recorded_run, tmp_path, capsys):
+    """The run's ``config.json`` swapped for another run's (another seed): the replay re-fused
+    the recording under the wrong config and said ``DIFFERS`` (exit 1), where ``plot`` and
+    ``export`` refuse the same directory (exit 2: hunt 14).  The replay refuses it too, naming
+    both configs."""
+    import json
+
+    from covnet.cli.app import main
+    from covnet.runs.replay_kit import ReplayError
+
+    out, _, _ = recorded_run
+    bad = tmp_path / "run"
+    shutil.copytree(out, bad, ignore=shutil.ignore_patterns("replay"))
+    cfg = json.loads((bad / "config.json").read_text())
+    cfg["seed"] = cfg["seed"] + 1
+    (bad / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(ReplayError, match="not this run's config"):
+        replay_run(bad, tmp_path / "r1")
+    capsys.readouterr()
+    assert main(["replay", str(bad), "--out", str(tmp_path / "r2")]) == 2
+    err = capsys.readouterr().err
+    assert "was recorded with config" in err and "its config.json is config" in err, err
+    assert "Traceback" not in err
