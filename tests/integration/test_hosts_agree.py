@@ -235,11 +235,12 @@ def test_a_world_or_recorder_of_another_host_that_dies_is_a_run_not_complete(
     The manager notes the world and recorder down at the end, the manager's host says which
     after which scan and exits 1 (`run.json` failed, `lost`), and the other host names its
     failed node."""
-    cfg = _short(paper_path, tmp_path, scans=200)
+    cfg = _short(paper_path, tmp_path, scans=100)
     router = f"tcp/127.0.0.1:{free_port()}"
     common = [str(cfg), "--router", router, "--run", f"rec{os.getpid()}", "--no-figures"]
     common += ["--metric", "spectral", "--fusion", fusion]
-    # (peer mode runs in lockstep, about 20 scans a second here: 10 s)
+    # 5 s from the first scan, whose [status] line comes at once (peer mode runs in lockstep,
+    # about 20 scans a second here, slower under load: longer)
     common += ["--realtime", "--speed", "20"] if fusion == "central" else []
     a_out, b_out = tmp_path / "a", tmp_path / "b"
     here = "manager,world" if node == "recorder" else "manager,recorder"
