@@ -52,6 +52,20 @@ def _reopen_closed_standard_streams() -> None:
         setattr(sys, name, open(fd, "r" if fd == 0 else "w", closefd=False))  # noqa: SIM115
 
 
+def _never_fail_to_print() -> None:
+    """What stdout cannot encode is written as ``\\xNN`` escapes, not an error: under an ASCII
+    stdout (``PYTHONIOENCODING=ascii``, some CI and cron setups) the summary's line naming a
+    run directory ``Ünïcødé`` was a ``UnicodeEncodeError`` after every result was written,
+    exit 1, and ``run.json`` never got its status.  (stderr escapes already.)"""
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None and getattr(stream, "errors", None) == "strict":
+            try:
+                reconfigure(errors="backslashreplace")
+            except (ValueError, OSError):  # (a stream closed under it: nothing to print to)
+                pass
+
+
 def _forget_the_working_directory() -> None:
     """Under ``python -m covnet``, Python put the working directory first on ``sys.path``: a
     ``sensors.py`` (``recorder.py``, ...) there would be what the launcher imports for its
@@ -73,6 +87,7 @@ def _forget_the_working_directory() -> None:
 def entry() -> int:
     """The ``covnet`` command: :func:`covnet.cli.app.main` behind handlers installed first."""
     _reopen_closed_standard_streams()
+    _never_fail_to_print()
     # SIGINT and SIGTERM raise KeyboardInterrupt; one inside an import's weakref callback is
     # raised again, not printed and lost
     interrupts.deliver_late_interrupts()
