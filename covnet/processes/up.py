@@ -399,7 +399,10 @@ def up(
     # keys, passwords: on this host; the certificates' names against the endpoint in use
     preflight(sc, nodes_here, str(config_path), router=given_router)
     if not any(sp.name == "manager" for sp in specs):
-        return _supervise_without_manager(specs, out, run_id, router, hosts)
+        # what the nodes connect to (process_specs): network.connect when the config gives
+        # it, not the router endpoint resolved here (port 0 became a free port nobody uses)
+        to = router if topology is not None else endpoint(sc.network, sc.network.connect or router)
+        return _supervise_without_manager(specs, out, run_id, to, hosts)
     if topology is None and (taken := router_in_use(router)) is not None:
         raise UpError(f"--router: {taken}; nothing was started")
     ready = threading.Event()

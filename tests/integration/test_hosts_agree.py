@@ -90,6 +90,20 @@ def test_hosts_without_run_meet_where_the_identity_agrees(tmp_path, paper_path):
     assert_nothing_left(a_out)
 
 
+def test_a_nodes_only_launcher_names_the_endpoint_its_nodes_connect_to(tmp_path, paper_path):
+    """``network.connect`` given and the router left at its default ``tcp/127.0.0.1:0``: the
+    launcher printed ``-> router tcp/127.0.0.1:<a free port it just invented>`` while its
+    sensors connected to ``network.connect`` (hunt 14)."""
+    connect = f"tcp/127.0.0.1:{free_port()}"
+    cfg = _short(paper_path, tmp_path, "b.yaml", network={"connect": connect})
+    p = CovnetProcess(["up", str(cfg), "--out", str(tmp_path / "b"), "--nodes", "sensors"])
+    try:
+        line = p.wait_for("[launcher] run", timeout=60)
+    finally:
+        p.stop()
+    assert line is not None and line.endswith(f"-> router {connect}"), p.output()
+
+
 def test_a_host_of_another_speed_is_refused(tmp_path, paper_path):
     """Hosts of one realtime run given different ``--speed``s ran one network, the sensors
     emulating their links' delays at their own speed and the manager timing the scans at its
