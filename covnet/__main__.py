@@ -52,9 +52,42 @@ def _reopen_closed_standard_streams() -> None:
         setattr(sys, name, open(fd, "r" if fd == 0 else "w", closefd=False))  # noqa: SIM115
 
 
+def _never_fail_to_print() -> None:
+    """What stdout cannot encode is written as ``\\xNN`` escapes, not an error: under an ASCII
+    stdout (``PYTHONIOENCODING=ascii``, some CI and cron setups) the summary's line naming a
+    run directory ``Ünïcødé`` was a ``UnicodeEncodeError`` after every result was written,
+    exit 1, and ``run.json`` never got its status.  (stderr escapes already.)"""
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None and getattr(stream, "errors", None) == "strict":
+            try:
+                reconfigure(errors="backslashreplace")
+            except (ValueError, OSError):  # (a stream closed under it: nothing to print to)
+                pass
+
+
+def _forget_the_working_directory() -> None:
+    """Under ``python -m covnet``, Python put the working directory first on ``sys.path``: a
+    ``sensors.py`` (``recorder.py``, ...) there would be what the launcher imports for its
+    nodes (``covnet up`` loads their modules once and forks the nodes from itself), so it
+    leaves the path, as ``-P`` would have kept it off.  Not when it is covnet's own folder
+    (a clone run without an install): the nodes' packages are covnet's there."""
+    if sys.flags.safe_path or not sys.path:
+        return
+    try:
+        here = os.path.realpath(sys.path[0] or os.curdir)
+        cwd = os.path.realpath(os.getcwd())
+    except OSError:  # a working directory deleted meanwhile
+        return
+    root = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
+    if here == cwd and here != root:
+        del sys.path[0]
+
+
 def entry() -> int:
     """The ``covnet`` command: :func:`covnet.cli.app.main` behind handlers installed first."""
     _reopen_closed_standard_streams()
+    _never_fail_to_print()
     # SIGINT and SIGTERM raise KeyboardInterrupt; one inside an import's weakref callback is
     # raised again, not printed and lost
     interrupts.deliver_late_interrupts()
@@ -86,4 +119,5 @@ def entry() -> int:
 
 
 if __name__ == "__main__":
+    _forget_the_working_directory()
     sys.exit(entry())

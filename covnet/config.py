@@ -510,6 +510,21 @@ def _fmt_error(err: Mapping[str, Any]) -> tuple[str, str]:
     value = err.get("input")
     if kind in ("value_error", "duplicate_id"):
         return path, msg
+    if (
+        kind in ("int_type", "float_type")
+        and isinstance(value, str)
+        and _YAML11_NUMBER.fullmatch(value.strip())
+    ):
+        try:
+            read = yaml.safe_load(value)  # what YAML 1.1 makes of it (a plain string: safe)
+        except yaml.YAMLError:
+            read = None
+        if isinstance(read, (int, float)) and not isinstance(read, bool):
+            return path, (
+                f"expected a number in plain decimal form, got {value!r}, which YAML 1.1 "
+                f"reads as {read!r} (octal, base 60, hexadecimal, binary or with '_'): write "
+                "the number you mean in decimal"
+            )
     if kind == "float_type" and isinstance(value, str) and _looks_numeric(value):
         if (m := _EXPONENT.fullmatch(value.strip())) and not _YAML_FLOAT.fullmatch(value.strip()):
             mantissa, exponent = m.group(1), m.group(2)
@@ -612,10 +627,34 @@ def _resolve_security_paths(data: dict[str, Any], base_dir: Path) -> dict[str, A
     return {**data, "network": {**net, "security": sec}}
 
 
+_INT_TAG, _FLOAT_TAG = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+#: the numbers a config may write unquoted: plain decimal integers, and floats with a dot (an
+#: exponent only with a sign, as YAML 1.1 has it: the README's ``1.0e4`` pitfall, named when
+#: refused).  YAML 1.1's other forms are left text, so the strict config types refuse them
+#: with the key named: ``010`` (octal: 8), ``1:00`` (base 60: 60), ``1_0.0`` (10.0), ``0x1f``,
+#: ``0b11`` were read silently as those numbers
+_PLAIN_INT = re.compile(r"^[-+]?(?:0|[1-9][0-9]*)$")
+_PLAIN_FLOAT = re.compile(
+    r"^(?:[-+]?(?:[0-9]+\.[0-9]*|\.[0-9]+)(?:[eE][-+][0-9]+)?"
+    r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+)
+#: a string YAML 1.1 reads as a number in one of those forms (a refusal's message says why)
+_YAML11_NUMBER = re.compile(
+    r"[-+]?(?:0[0-9_]+|0x[0-9a-fA-F_]+|0b[01_]+|[0-9][0-9_]*(?::[0-5]?[0-9])+(?:\.[0-9_]*)?"
+    r"|[0-9_]*_[0-9_]*(?:\.[0-9_]*)?(?:[eE][-+][0-9]+)?)"
+)
+
+
 class _UniqueKeyLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` that notes every key repeated in one mapping (YAML's own loader keeps
     the last one silently): ``duplicates`` holds ``(key, line, first line)``, 1-based.  Merge
-    keys (``<<: *anchor``) may still be overridden by the mapping's own keys."""
+    keys (``<<: *anchor``) may still be overridden by the mapping's own keys.  Numbers resolve
+    in their plain decimal forms only (:data:`_PLAIN_INT`, :data:`_PLAIN_FLOAT`)."""
+
+    yaml_implicit_resolvers = {
+        first: [(tag, rx) for tag, rx in resolvers if tag not in (_INT_TAG, _FLOAT_TAG)]
+        for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+    }
 
     def __init__(self, stream: str) -> None:
         super().__init__(stream)
@@ -636,6 +675,10 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                 else:
                     first[key] = line
         return super().construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_implicit_resolver(_INT_TAG, _PLAIN_INT, list("-+0123456789"))
+_UniqueKeyLoader.add_implicit_resolver(_FLOAT_TAG, _PLAIN_FLOAT, list("-+0123456789."))
 
 
 def _load_yaml(text: str) -> object:

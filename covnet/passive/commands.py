@@ -28,7 +28,13 @@ from covnet.batches.trials import BatchProgress, batch_options, prepare_batch_ou
 from covnet.errors import UsageError
 from covnet.passive.associate import header, scan_record
 from covnet.passive.config import PassiveConfig, normalised
-from covnet.passive.montecarlo import run_grid_outcome, trial_key, trials_text, write_results
+from covnet.passive.montecarlo import (
+    run_grid_outcome,
+    trial_key,
+    trials_text,
+    where_it_ran,
+    write_results,
+)
 from covnet.passive.scene import draw
 from covnet.runs.rundir import RUN_INFO, after_the_results, read_json, utc_now, write_json
 
@@ -145,7 +151,8 @@ def _print_mc_summary(doc: dict[str, Any]) -> None:
     cot_t = [r["median_time_s"] for r in rows if r["method"] == "cot"]
     print(
         f"{doc['cells']} cells x {trials_text(doc)} trials in {doc['wall_s']:.1f} s "
-        f"on {doc['workers']} processes (config {doc['config_hash']}, seed {doc['seed']})"
+        f"on {where_it_ran(doc) if doc.get('cluster') else str(doc['workers']) + ' processes'} "
+        f"(config {doc['config_hash']}, seed {doc['seed']})"
     )
     print(f"{'method':>8} {'mean p':>7} {'worst p':>8}  {'worst cell':<44} {'median ms':>9}")
     for m in methods:

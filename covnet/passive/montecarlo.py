@@ -296,11 +296,13 @@ def run_grid_outcome(
     except BatchInterrupted as stop:  # the cells done, in grid order
         done = complete_points(b, stop.done, n_trials)
         rows = [r for k, recs in done.items() for r in cell_rows(by_key[k], recs, methods)]
-        facts = _facts(n_trials, len(cells), methods, n_workers, t0)
+        facts = _facts(n_trials, len(cells), methods, None if cluster else n_workers, t0, cluster)
         stop.partial = (rows, facts) if rows else None
         raise
     rows = [r for k, recs in outcome.results.items() for r in cell_rows(by_key[k], recs, methods)]
-    facts = _facts(n_trials, len(cells), methods, n_workers, t0)
+    # on a cluster, its workers (the scheduler's count), not this machine's pool it never used
+    used = outcome.backend.get("workers") if cluster else n_workers
+    facts = _facts(n_trials, len(cells), methods, used, t0, cluster)
     facts.update(outcome.ci_facts())
     ran = sorted({len(recs) for recs in outcome.results.values()})
     if ran and ran != [n_trials]:  # --ci-width added trials to some cells: say how many
@@ -315,14 +317,22 @@ def trials_text(facts: Mapping[str, Any]) -> str:
 
 
 def _facts(
-    n_trials: int, n_cells: int, methods: tuple[str, ...], n_workers: int, t0: float
+    n_trials: int,
+    n_cells: int,
+    methods: tuple[str, ...],
+    n_workers: int | None,
+    t0: float,
+    cluster: str | None = None,
 ) -> dict[str, Any]:
-    """The run facts of :func:`run_grid`: what ran, on what, how long."""
+    """The run facts of :func:`run_grid`: what ran, on what, how long.  ``n_workers``: the
+    local pool's processes, or with ``cluster`` (its scheduler's address, then in the facts
+    too) the cluster's workers (``None``: not known); ``machine`` is always this one's."""
     return {
         "trials": n_trials,
         "cells": n_cells,
         "methods": list(methods),
         "workers": n_workers,
+        **({"cluster": cluster} if cluster else {}),
         "wall_s": time.perf_counter() - t0,
         "machine": {
             "platform": platform.platform(),
@@ -332,6 +342,16 @@ def _facts(
             "numpy": np.__version__,
         },
     }
+
+
+def where_it_ran(facts: Mapping[str, Any]) -> str:
+    """``"x86_64 (2 worker processes)"`` or, on a cluster, ``"the Dask cluster tcp://...
+    (1 worker)"`` (its machines are not this one: no processor named)."""
+    n = facts.get("workers")
+    if facts.get("cluster"):
+        count = "workers not known" if n is None else f"{n} worker{'s' if n != 1 else ''}"
+        return f"the Dask cluster {facts['cluster']} ({count})"
+    return f"{facts['machine']['processor']} ({n} worker processes)"
 
 
 def _fmt(v: Any, spec: str) -> str:
@@ -390,8 +410,8 @@ def write_results(
     title = (
         f"# Passive association, Monte Carlo ({cfg.name}, config {doc['config_hash']}, "
         f"seed {cfg.seed}, {trials_text(facts)} trials per cell)\n\n"
-        f"Times are medians per scan on {facts['machine']['processor']} "
-        f"({facts['workers']} worker processes); compare methods by ratios only.\n\n"
+        f"Times are medians per scan on {where_it_ran(facts)}; compare methods by ratios "
+        "only.\n\n"
     )
     atomic_write(out_dir / TABLE, (title + table_markdown(rows)).encode())
     write_json(out_dir / RESULTS, doc)

@@ -21,7 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from covnet.passive.montecarlo import trials_text  # noqa: E402
+from covnet.passive.montecarlo import trials_text, where_it_ran  # noqa: E402
 from covnet.runs.rundir import save_figure  # noqa: E402
 
 P_VS_D = "fig_p_vs_d.png"
@@ -168,7 +168,7 @@ def mc_figures(out_dir: Path) -> list[Path]:
     ax.set_ylabel("time per scan (ms, log scale)")
     ax.set_title(
         "Median time per scan over the grid cells (bars: median of cell medians; whiskers: "
-        "min-max)\n" + f"{doc['machine']['processor']}, {doc['workers']} worker processes",
+        "min-max)\n" + where_it_ran(doc),
         fontsize=10,
     )
     ax.grid(alpha=0.3, axis="y", which="both")

@@ -12,9 +12,10 @@ stop them all for sure::
     # here every child and everything it started is gone
 
 - Each child runs in its own session (``start_new_session=True``: its own process group, out
-  of reach of the terminal's Ctrl-C), with ``PYTHONUNBUFFERED=1``, stdin from /dev/null and
-  stderr merged into stdout. One reader thread per child passes each line to
-  ``on_line(name, line)`` (default: print ``[name] line``).
+  of reach of the terminal's Ctrl-C), with ``PYTHONUNBUFFERED=1``, ``PYTHONIOENCODING=utf-8``
+  (what its output is read as), stdin from /dev/null and stderr merged into stdout. One reader
+  thread per child passes each line to ``on_line(name, line)`` (default: print ``[name]
+  line``).
 - ``stop()`` sends SIGINT to every child's process group, SIGTERM to those still running
   after ``sigint_timeout``, SIGKILL after ``sigterm_timeout`` more, reaps them, then SIGKILLs
   each group once more so that no grandchild survives. A second Ctrl-C during ``stop()`` skips
@@ -191,6 +192,7 @@ class Supervisor:
         env = dict(os.environ)
         env.update(spec.env or {})
         env["PYTHONUNBUFFERED"] = "1"
+        env["PYTHONIOENCODING"] = "utf-8"  # what _popen and the forks read (not the caller's)
         argv = spec.argv
         fork = may_fork and bool(spec.preload) and argv[:2] == [sys.executable, "-m"]
         # a child inherits the spawning thread's signal mask: make sure SIGINT/SIGTERM reach it

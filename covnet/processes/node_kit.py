@@ -175,20 +175,30 @@ def config_id(cfg: Any) -> str:
     every node's equals its own: hosts given one ``--run`` with a stale copy of the config,
     another seed or another fusion mode ran one mixed network, every host exiting 0 and
     ``run.json`` claiming the manager's config."""
-    # start-up: the kinds' registry, only as a node begins
-    from covnet import kinds
-    from covnet.config import hash_of
+    from covnet.config import hash_of  # start-up: only as a node begins
 
-    data = kinds.of(cfg).normalised(cfg)
+    data = shared_config(cfg)
+    if _run_clock != "lockstep":  # (a lockstep run's identity is its config's alone)
+        data = {**data, "run_clock": _run_clock}
+    return hash_of(data)[:16]
+
+
+def shared_config(cfg: Any) -> dict[str, Any]:
+    """What every host of one run holds alike: the kind's normalised config without the
+    ``network`` keys of :data:`CONFIG_ID_FREE` and without ``allocation.metrics``.  The
+    identity :func:`config_id` hashes (with the run's clock), and what the default run id
+    (:func:`covnet.processes.process.default_run_id`) is derived from, so that hosts whose
+    configs the identity check lets in also meet without ``--run``."""
+    from covnet import kinds  # start-up: the kinds' registry, only as a node begins
+
+    data: dict[str, Any] = kinds.of(cfg).normalised(cfg)
     net = data.get("network")
     if isinstance(net, dict):
         data = {**data, "network": {k: v for k, v in net.items() if k not in CONFIG_ID_FREE}}
     alloc = data.get("allocation")
     if isinstance(alloc, dict):
         data = {**data, "allocation": {k: v for k, v in alloc.items() if k != "metrics"}}
-    if _run_clock != "lockstep":  # (a lockstep run's identity is its config's alone)
-        data = {**data, "run_clock": _run_clock}
-    return hash_of(data)[:16]
+    return data
 
 
 def world_returns(cfg: Any) -> bool:

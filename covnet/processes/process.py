@@ -90,14 +90,17 @@ def load_config(args: Any) -> tuple[Any, Any]:
 
 def default_run_id(cfg: Any) -> str:
     """The run id processes started separately agree on without being told: ``name-hash``,
-    the hash of the config without ``network.security`` (its file paths are made absolute
-    where the config lies: copies of one config on two hosts, or in two folders, gave two run
-    ids, and the hosts never met)."""
-    data = kinds.of(cfg).normalised(cfg)
-    net = data.get("network")
-    if isinstance(net, dict) and "security" in net:
-        data = {**data, "network": {k: v for k, v in net.items() if k != "security"}}
-    return f"{cfg.name}-{hash_of(data)[:8]}"
+    the hash of what every host of the run holds alike (:func:`covnet.processes.node_kit.
+    shared_config`: the config without ``network.router``, ``network.connect``,
+    ``network.security`` and ``allocation.metrics``), the config identity's own data.  A
+    separate hash that dropped ``network.security`` only gave the manager's host, the one
+    given ``--metric``, or a host whose copy names ``connect`` where the other's names
+    ``router``, another run id: the hosts never met, and every one exited 1 after
+    ``ready_timeout_s`` (hunt 14).  The run's clock (``--realtime``, ``--speed``) is left out
+    too: hosts that differ there meet, and the identity check refuses them by name."""
+    from covnet.processes.node_kit import shared_config  # (a node's start-up, not the CLI's)
+
+    return f"{cfg.name}-{hash_of(shared_config(cfg))[:8]}"
 
 
 def resolve_run(args: Any, cfg: Any) -> str:

@@ -54,6 +54,7 @@ __all__ = [
     "default_sensors_per_process",
     "free_port",
     "hosted_by",
+    "node_env",
     "process_specs",
     "resolve_router",
     "sensor_hosts",
@@ -158,6 +159,26 @@ def resolve_router(endpoint: str) -> str:
     return endpoint
 
 
+def node_env() -> dict[str, str]:
+    """The environment a node process gets on top of the launcher's: ``PYTHONSAFEPATH=1``
+    (Python >= 3.11's ``-P``), so ``python -m sensors`` (``manager``, ``world``, ``recorder``)
+    runs covnet's node, not a ``sensors.py`` (or such a package) in the working directory,
+    which ``python -m`` would put first on ``sys.path``.  Run from covnet's own folder without
+    an install (``python -m covnet`` found there), that folder is what the nodes' packages
+    were found by: it goes first on their ``PYTHONPATH`` instead."""
+    env = {"PYTHONSAFEPATH": "1"}
+    root = Path(__file__).resolve().parents[2]  # the folder holding covnet/, sensors/, ...
+    try:
+        here = Path.cwd().resolve()
+    except OSError:  # a working directory deleted meanwhile: nothing to find there
+        return env
+    if here == root:
+        env["PYTHONPATH"] = os.pathsep.join(
+            p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p
+        )
+    return env
+
+
 def process_specs(
     kind: Any,
     cfg: Any,
@@ -185,12 +206,18 @@ def process_specs(
         common += ["--realtime", "--speed", str(speed)]
     connect = endpoint(cfg.network, cfg.network.connect or router)
     roles = kind.restartable(cfg) if cfg.network.restart == "on-failure" else frozenset()
+    env = node_env()
     specs = [
         ProcessSpec(
-            "manager", [py, "-m", "manager", *common, "--listen", router, "--out", str(out)]
+            "manager",
+            [py, "-m", "manager", *common, "--listen", router, "--out", str(out)],
+            env=env,
         ),
         ProcessSpec(
-            "world", [py, "-m", "world", *common, "--connect", connect], restart="world" in roles
+            "world",
+            [py, "-m", "world", *common, "--connect", connect],
+            env=env,
+            restart="world" in roles,
         ),
     ]
     if cfg.network.record:
@@ -198,13 +225,15 @@ def process_specs(
         argv = [py, "-m", "recorder", *common, "--connect", connect, "--out", recording]
         if foxglove is not None:
             argv += ["--foxglove", foxglove]
-        specs.append(ProcessSpec("recorder", argv, restart="recorder" in roles))
+        specs.append(ProcessSpec("recorder", argv, env=env, restart="recorder" in roles))
     ids = list(cfg.sensor_ids if sensor_ids is None else sensor_ids)
     for name, hosted in sensor_hosts(ids, sensors_per_process):
         argv = [py, "-m", "sensors", *common]
         for sid in hosted:
             argv += ["--id", sid]
-        specs.append(ProcessSpec(name, [*argv, "--connect", connect], restart="sensor" in roles))
+        specs.append(
+            ProcessSpec(name, [*argv, "--connect", connect], env=env, restart="sensor" in roles)
+        )
     return specs
 
 
@@ -370,7 +399,10 @@ def up(
     # keys, passwords: on this host; the certificates' names against the endpoint in use
     preflight(sc, nodes_here, str(config_path), router=given_router)
     if not any(sp.name == "manager" for sp in specs):
-        return _supervise_without_manager(specs, out, run_id, router, hosts)
+        # what the nodes connect to (process_specs): network.connect when the config gives
+        # it, not the router endpoint resolved here (port 0 became a free port nobody uses)
+        to = router if topology is not None else endpoint(sc.network, sc.network.connect or router)
+        return _supervise_without_manager(specs, out, run_id, to, hosts)
     if topology is None and (taken := router_in_use(router)) is not None:
         raise UpError(f"--router: {taken}; nothing was started")
     ready = threading.Event()

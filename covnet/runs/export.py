@@ -60,7 +60,7 @@ from __future__ import annotations
 import csv
 import io
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -307,14 +307,36 @@ def to_stonesoup(
     return _stonesoup_episode(episode_of(read_run(run_dir), episode, run_dir), start)
 
 
+class _WrittenSorted(set[Any]):
+    """A set whose items iterate, and so are written, in a fixed order: by ``id``, then first
+    timestamp (:func:`_set_order`).  Stone Soup's objects hash by identity (their memory
+    address), so a plain set's order, and with it the file, changed from one export of a run
+    to the next."""
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter(sorted(super().__iter__(), key=_set_order))
+
+
+def _set_order(item: Any) -> tuple[str, datetime]:
+    states = getattr(item, "states", None)
+    return str(item.id), (states[0].timestamp if states else EPOCH)
+
+
 def write_stonesoup(episodes: Iterable[Episode], start: datetime = EPOCH) -> str:
-    """Stone Soup's YAML of ``episodes`` (module docstring)."""
+    """Stone Soup's YAML of ``episodes`` (module docstring); the same text for the same
+    episodes, each set's items by id (:class:`_WrittenSorted`)."""
     serialise = _stonesoup_types()[3]
     doc = {}
     for e in episodes:
         truths, tracks = _stonesoup_episode(e, start)
-        doc[e.name] = {"groundtruth_paths": truths, "tracks": tracks}
-    text: str = serialise.YAML().dumps(doc)
+        doc[e.name] = {
+            "groundtruth_paths": _WrittenSorted(truths),
+            "tracks": _WrittenSorted(tracks),
+        }
+    yaml = serialise.YAML()
+    # written as the plain set it is (a !!set, read back as one), in its own order
+    yaml.representer.add_representer(_WrittenSorted, type(yaml.representer).yaml_representers[set])
+    text: str = yaml.dumps(doc)
     return text
 
 

@@ -70,7 +70,7 @@ def small(tmp_path_factory) -> dict[str, Path]:
 
 def _strip(obj):
     """Without the wall-clock fields (a passive cell's median time, a run's wall time)."""
-    wall = {"median_time_s", "wall_s", "created_utc", "decision_time_s", "workers"}
+    wall = {"median_time_s", "wall_s", "created_utc", "decision_time_s", "workers", "cluster"}
     if isinstance(obj, dict):
         return {k: _strip(v) for k, v in obj.items() if k not in wall}
     if isinstance(obj, list):
@@ -112,6 +112,12 @@ def test_a_cluster_gives_the_local_results_bit_for_bit(case, cluster, small, tmp
         assert local.read_bytes() == dask.read_bytes()
     info = json.loads((tmp_path / "dask" / "run.json").read_text())
     assert info["backend"] == "dask" and info["workers"] == 2
+    if case == "mc-passive":  # the cluster's 2 workers, not the local pool's 1 (one cell)
+        doc = json.loads(dask.read_text())
+        assert (doc["workers"], doc["cluster"]) == (2, cluster.address), doc
+        md = (tmp_path / "dask" / "results.md").read_text()
+        assert f"on the Dask cluster {cluster.address} (2 workers)" in md, md
+        assert "on the Dask cluster" not in (tmp_path / "local" / "results.md").read_text()
     # and the trials themselves, file by file
     loc = sorted((tmp_path / "local" / "trials").rglob("*.json"))
     das = sorted((tmp_path / "dask" / "trials").rglob("*.json"))

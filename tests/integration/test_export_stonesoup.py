@@ -167,6 +167,26 @@ def test_many_targets_stone_soup_ospa_and_gospa_are_covnets(tmp_path):
     np.testing.assert_allclose(o, load_arrays(run / "arrays.npz")["ospa.abs_trace"], rtol=RTOL)
 
 
+def test_two_exports_of_a_run_are_the_same_file(tmp_path):
+    """The sets' items are written by id: Stone Soup's objects hash by their address, so the
+    tracks and paths came in another order at each export (T1, T3, T2 then T3, T2, T1; hunt
+    14).  Two processes and this one write the same bytes, which Stone Soup still reads."""
+    cfg = _config(tmp_path, "multitarget", 4)
+    run = tmp_path / "mt"
+    _covnet("run", str(cfg), "--out", str(run), "--no-figures")
+    files = [tmp_path / f"export-{i}.yaml" for i in range(3)]
+    for f in files[:2]:
+        _covnet("export", str(run), "--format", "stonesoup", "--out", str(f))
+    ex.export(run, "stonesoup", files[2])
+    texts = [f.read_bytes() for f in files]
+    assert texts[0] == texts[1] == texts[2]
+    ids = [line.split(":")[1].strip() for line in texts[0].decode().splitlines()
+           if line.startswith("    - id:")]  # fmt: skip
+    assert ids == ["T1", "T2", "T3"] * 4, ids  # (2 episodes x truths, tracks)
+    doc = YAML().load(texts[0].decode())
+    _check_states({str(k): v for k, v in doc.items()}, run)
+
+
 def test_a_network_run_exports_the_same_way(tmp_path):
     """``covnet up`` (lockstep, real processes over zenoh on loopback) of a short many-target
     config: the exported truths and tracks give the network run's own OSPA / GOSPA."""

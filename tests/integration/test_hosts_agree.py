@@ -65,6 +65,45 @@ def _two_hosts(tmp_path, paper_path, a_extra, b_extra):
     return rc_a, mgr.output(), rc_b, sens.output(), a_out
 
 
+def test_hosts_without_run_meet_where_the_identity_agrees(tmp_path, paper_path):
+    """No ``--run``: the manager's host given ``--metric`` and a copy naming ``network.router``,
+    the sensors' host none and a copy naming ``network.connect`` (both may differ per host)
+    derived two run ids (hunt 14): the hosts never met, both exited 1 after the ready timeout.
+    The default run id is now derived from what the config identity holds."""
+    router = f"tcp/127.0.0.1:{free_port()}"
+    a_cfg = _short(paper_path, tmp_path, "a.yaml", network={"router": router})
+    b_cfg = _short(paper_path, tmp_path, "b.yaml", network={"connect": router})
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    mgr = CovnetProcess(["up", str(a_cfg), "--metric", "spectral", "--no-figures", "--out",
+                         str(a_out), "--nodes", "manager,world,recorder"])  # fmt: skip
+    sens = CovnetProcess(["up", str(b_cfg), "--out", str(b_out), "--nodes", "sensors"])
+    try:
+        rc_a = mgr.wait(timeout=90)
+        rc_b = sens.wait(timeout=60)
+    finally:
+        mgr.stop()
+        sens.stop()
+    assert (rc_a, rc_b) == (0, 0), (mgr.output(), sens.output())
+    info = json.loads((a_out / "run.json").read_text())
+    assert info["status"] == "completed" and info["run_id"].startswith("paper-"), info
+    assert f"run {info['run_id']}:" in sens.output(), sens.output()
+    assert_nothing_left(a_out)
+
+
+def test_a_nodes_only_launcher_names_the_endpoint_its_nodes_connect_to(tmp_path, paper_path):
+    """``network.connect`` given and the router left at its default ``tcp/127.0.0.1:0``: the
+    launcher printed ``-> router tcp/127.0.0.1:<a free port it just invented>`` while its
+    sensors connected to ``network.connect`` (hunt 14)."""
+    connect = f"tcp/127.0.0.1:{free_port()}"
+    cfg = _short(paper_path, tmp_path, "b.yaml", network={"connect": connect})
+    p = CovnetProcess(["up", str(cfg), "--out", str(tmp_path / "b"), "--nodes", "sensors"])
+    try:
+        line = p.wait_for("[launcher] run", timeout=60)
+    finally:
+        p.stop()
+    assert line is not None and line.endswith(f"-> router {connect}"), p.output()
+
+
 def test_a_host_of_another_speed_is_refused(tmp_path, paper_path):
     """Hosts of one realtime run given different ``--speed``s ran one network, the sensors
     emulating their links' delays at their own speed and the manager timing the scans at its

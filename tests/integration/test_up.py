@@ -294,3 +294,24 @@ def test_the_nodes_are_forks_of_the_launcher_unless_told_otherwise(tmp_path, pap
                 assert b"up" in cmdline, (name, cmdline)
             else:
                 assert cmdline[1:3] == [b"-m", role.get(name, b"sensors")], (name, cmdline)
+
+
+@pytest.mark.parametrize("fork", ["1", "0"])
+def test_an_ascii_stdout_does_not_lose_the_nodes_lines(tmp_path, paper_path, fork):
+    """``PYTHONIOENCODING=ascii`` and a run directory named ``é``: the launcher's reader
+    thread died of a ``UnicodeEncodeError`` on the manager's ``DONE ... out=`` line (hunt 14).
+    The launcher escapes what it cannot encode; the nodes write UTF-8, which it reads."""
+    out = tmp_path / "up é"
+    p = CovnetProcess(
+        ["up", str(paper_path), "--out", str(out), "--no-figures", "--metric", "spectral"],
+        prefix=["env", "PYTHONIOENCODING=ascii", f"COVNET_FORK={fork}"],
+    )
+    try:
+        rc = p.wait(timeout=150)
+    finally:
+        p.stop()
+    said = p.output()
+    assert rc == 0 and "Traceback" not in said, said
+    assert "[manager] DONE completed=True out=" in said and "up \\xe9" in said, said
+    assert json.loads((out / "run.json").read_text())["status"] == "completed"
+

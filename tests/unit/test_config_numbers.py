@@ -103,3 +103,41 @@ def test_an_earlier_interrupted_command_does_not_make_this_one_interrupted(
     cfg = _config(tmp_path, "paper", _set("period_s", value=1e14), scans=3)
     assert main(["run", str(cfg), "--out", str(tmp_path / "o"), "--no-figures"]) == 1
     assert "numerical failure:" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "line, key, read_as",
+    [("seed: 010", "seed", "8"), ("period_s: 1:00", "period_s", "60"),
+     ("period_s: 1_0.0", "period_s", "10.0"), ("period_s: 0x10", "period_s", "16"),
+     ("seed: 0b11", "seed", "3")],
+)  # fmt: skip
+def test_yaml_1_1_number_forms_are_refused_with_the_key_named(line, key, read_as, tmp_path,
+                                                              capsys):  # fmt: skip
+    """YAML 1.1 read ``seed: 010`` as 8, ``1:00`` as 60 and ``1_0.0`` as 10.0, silently
+    (``covnet check`` printed ``seed: 8``, exit 0; hunt 4 #9, hunt 14).  Numbers resolve in
+    their plain decimal forms only; the others are refused, naming the key and what YAML 1.1
+    would have read."""
+    text = (REPO / "configs" / "paper.yaml").read_text()
+    lines = [line if ln.startswith(f"{key}:") else ln for ln in text.splitlines()]
+    assert line in lines
+    path = tmp_path / "odd.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err
+    value = line.split(": ", 1)[1]
+    assert f"{key}: expected a number in plain decimal form, got {value!r}" in err, err
+    assert f"reads as {read_as} " in err and "Traceback" not in err, err
+
+
+def test_the_plain_number_forms_read_as_before(tmp_path):
+    """What a config writes in decimal reads as PyYAML's YAML 1.1 reads it, and each shipped
+    config gives the same data (so the same hash)."""
+    from covnet.config import read_yaml
+
+    forms = ["0", "-3", "+7", "10", "1.5", "-0.25", "1.", ".5", "1.0e+2", "1.0E-09", "007.5",
+             ".inf", "-.inf", "1.0e4", "'010'", "true", "off", "2001-12-14", "S01"]  # fmt: skip
+    path = tmp_path / "forms.yaml"
+    path.write_text("".join(f"k{i}: {v}\n" for i, v in enumerate(forms)))
+    assert read_yaml(path) == yaml.safe_load(path.read_text())
+    for shipped in sorted((REPO / "configs").glob("*.yaml")):
+        assert read_yaml(shipped) == yaml.safe_load(shipped.read_text()), shipped

@@ -69,3 +69,18 @@ def test_a_closed_stdout_is_dev_null_not_a_traceback(tmp_path):
         assert p.returncode == 0, p.stderr
         assert "Traceback" not in p.stderr
     assert json.loads((out / "run.json").read_text())["status"] == "completed"
+
+
+def test_an_ascii_stdout_escapes_a_name_it_cannot_encode(tmp_path):
+    """``PYTHONIOENCODING=ascii`` (some CI and cron setups) and a run directory named
+    ``Ünïcødé``: the summary's print was a ``UnicodeEncodeError`` after every result was
+    written, exit 1, and ``run.json`` had no ``status`` (hunt 14).  The name is escaped."""
+    out = tmp_path / "out Ünïcødé ✓"
+    cmd = [sys.executable, "-m", "covnet", "run", PAPER, "--metric", "spectral", "--out",
+           str(out), "--no-figures"]  # fmt: skip
+    p = subprocess.run(cmd, capture_output=True, env={**_env(), "PYTHONIOENCODING": "ascii"},
+                       timeout=120)  # fmt: skip
+    assert p.returncode == 0, p.stderr.decode()
+    assert b"Traceback" not in p.stderr
+    assert b"out \\xdcn\\xefc\\xf8d\\xe9 \\u2713" in p.stdout, p.stdout.decode()
+    assert json.loads((out / "run.json").read_text())["status"] == "completed"
