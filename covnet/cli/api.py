@@ -45,9 +45,18 @@ from covnet import kinds
 from covnet.batches import MAX_SEEDS
 from covnet.batches.stats import per_scan_bands
 from covnet.batches.trials import batch_options, prepare_batch_out, write_batch_info
+from covnet.cli.common import EXIT_OK
 from covnet.config import ConfigError
 from covnet.errors import UsageError
-from covnet.runs.rundir import ARRAYS, SUMMARY, claims, load_arrays, prepare_out, read_json
+from covnet.runs.rundir import (
+    ARRAYS,
+    SUMMARY,
+    claims,
+    load_arrays,
+    prepare_out,
+    read_json,
+    record_end,
+)
 
 __all__ = ["RunResult", "SweepResult", "load", "run", "sweep"]
 
@@ -212,8 +221,12 @@ def run(
 
 
 def _run_into(kind: Any, cfg: Any, target: Path, figures: bool) -> RunResult:
+    """Run into ``target`` and read the results back; ``run.json`` then says how the run ended
+    (``status``, ``ended``, ``blas_kernel``, ``code``) as ``covnet run``'s does."""
     with contextlib.redirect_stdout(io.StringIO()):
-        kind.run(cfg, target, figures=figures)
+        status = kind.run(cfg, target, figures=figures)
+    if int(status) == EXIT_OK:
+        record_end(target, "completed", "every scan done")
     summary_file = target / SUMMARY
     if not summary_file.is_file():
         summary_file = target / "association.json"
