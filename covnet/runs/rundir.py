@@ -30,14 +30,12 @@ import atexit
 import contextlib
 import errno
 import fcntl
-import functools
 import hashlib
 import json
 import math
 import os
 import shutil
 import sys
-import tempfile
 import threading
 import time
 import zipfile
@@ -438,21 +436,22 @@ def clear_output(p: Path, option: str = "--out") -> None:
             child.unlink()
 
 
-@functools.cache
-def _file_mode() -> int:
-    """The mode a new file gets from this process's umask (``0o666 & ~umask``): what the
-    temporary files (made ``0o600``) are given.  Read from ``/proc`` (setting the umask to
-    read it would change it for the other threads a moment)."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return 0o666 & ~int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return 0o666 & ~mask
+def _new_file_beside(path: Path) -> tuple[int, Path]:
+    """A new file of its own beside ``path`` (``NAME.<random>.tmp``), open for writing, with a
+    new file's mode: created with ``0o666``, which the kernel narrows by the process's umask as
+    it is at that moment (as any ``open()`` of a new file; a default ACL of the directory
+    too).  ``tempfile.mkstemp`` makes ``0o600`` files, which were then given a mode computed
+    from the umask cached once per process: a notebook that tightened its umask after a first
+    run still wrote ``0o644`` results.  No umask is read or set here (setting it to read it
+    would change it for the other threads a moment)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC
+    for _ in range(100):
+        tmp = path.parent / f"{path.name}.{os.urandom(6).hex()}.tmp"
+        try:
+            return os.open(tmp, flags, 0o666), tmp
+        except FileExistsError:
+            continue  # another writer's name (2**48 of them): draw again
+    raise FileExistsError(errno.EEXIST, "no free temporary file name beside it", str(path))
 
 
 @contextmanager
@@ -491,10 +490,8 @@ def _temporary_beside(path: Path) -> Iterator[tuple[Any, Path]]:
     system) names ``path``, the file that could not be written, not the temporary one."""
     tmp: Path | None = None
     try:
-        fd, name = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-        tmp = Path(name)
+        fd, tmp = _new_file_beside(path)
         with os.fdopen(fd, "wb") as fh:
-            os.fchmod(fh.fileno(), _file_mode())
             yield fh, tmp
         os.replace(tmp, path)
     except BaseException as exc:

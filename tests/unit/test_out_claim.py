@@ -225,6 +225,25 @@ def test_written_files_get_a_new_files_mode_and_a_failed_write_leaves_nothing(tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.npz"]
 
 
+def test_a_new_files_mode_follows_the_umask_of_the_moment(tmp_path):
+    """The umask was read once per process: after a first write under umask 022, a later
+    ``umask 077`` still gave ``0o644`` files (and the reverse ``0o600``), the directory
+    following the new umask.  Each file gets the mode the umask gives as it is written."""
+    before = os.umask(0o022)
+    try:
+        for i, (umask, mode) in enumerate([(0o022, 0o644), (0o077, 0o600), (0o022, 0o644)]):
+            os.umask(umask)
+            atomic_write(tmp_path / f"{i}.json", b"{}")
+            write_npz(tmp_path / f"{i}.npz", {"x": np.zeros(3)})
+            for name in (f"{i}.json", f"{i}.npz"):
+                assert (tmp_path / name).stat().st_mode & 0o777 == mode, (name, oct(umask))
+    finally:
+        os.umask(before)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        f"{i}.{ext}" for i in range(3) for ext in ("json", "npz")
+    )
+
+
 def test_flock_on_a_directory_works_here(tmp_path):
     """The claim's mechanism: an exclusive flock on a directory, refused to a second open."""
     a, b = os.open(tmp_path, os.O_RDONLY), os.open(tmp_path, os.O_RDONLY)
