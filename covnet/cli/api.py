@@ -27,14 +27,15 @@ is plain Python and numpy.
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import shutil
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import numpy as np
 
@@ -46,7 +47,7 @@ from covnet.batches import MAX_SEEDS
 from covnet.batches.stats import per_scan_bands
 from covnet.batches.trials import batch_options, prepare_batch_out, write_batch_info
 from covnet.cli.common import EXIT_OK
-from covnet.config import ConfigError
+from covnet.config import ConfigError, config_warnings_once
 from covnet.errors import UsageError
 from covnet.runs.rundir import (
     ARRAYS,
@@ -72,6 +73,23 @@ def _pandas() -> Any:
     return pandas
 
 
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+def _warning_once(function: Callable[_P, _R]) -> Callable[_P, _R]:
+    """``function`` shows each config warning once per call (a config re-validated with its
+    overrides, options or seeds said it again), and at every call."""
+
+    @functools.wraps(function)
+    def call(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        with config_warnings_once():
+            return function(*args, **kwargs)
+
+    return call
+
+
+@_warning_once
 def load(config: Any, **overrides: Any) -> tuple[Any, Any]:
     """``(kind, config)`` of ``config`` (a path, a mapping or a loaded config) with
     ``overrides`` applied (see the module docstring)."""
@@ -183,6 +201,7 @@ class RunResult:
         return pd.DataFrame(cols)
 
 
+@_warning_once
 def run(
     config: Any,
     *,
@@ -270,6 +289,7 @@ class SweepResult:
         return per_scan_bands(e["pos_err2"], e["nees"])
 
 
+@_warning_once
 def sweep(
     config: Any,
     *,

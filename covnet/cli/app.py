@@ -56,7 +56,7 @@ from covnet.cli.common import (
     RUN_OPTIONS,
     _err,
 )
-from covnet.config import ConfigError, ConfigWarning, scheduler_problem
+from covnet.config import ConfigError, ConfigWarning, config_warnings_once, scheduler_problem
 from covnet.errors import ClusterLost, UpError, UsageError, WorkerDied
 from covnet.processes import interrupts, output
 from covnet.runs import rundir
@@ -630,7 +630,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         # the output directories the command claims (prepare_out) are released when it ends
         reads = [config] if isinstance(config, str) and config else []
-        with rundir.claims(), rundir.reading(*reads):
+        with rundir.claims(), rundir.reading(*reads), config_warnings_once():
             status = int(args.func(args))
         # the output still buffered is written here, where a reader that has gone is told
         # from a failure (not at the interpreter's exit: "Exception ignored", status 120)
