@@ -28,10 +28,11 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import io
 import shutil
+import sys
 import tempfile
-from collections.abc import Callable, Mapping
+import threading
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -239,10 +240,63 @@ def run(
     return RunResult(None, result.summary, result.arrays)
 
 
+class _QuietForSome:
+    """``sys.stdout`` while API calls run: what the threads in ``quiet`` print is dropped,
+    every other thread's goes to the stream it replaced (``real``)."""
+
+    def __init__(self, real: Any) -> None:
+        self.real = real
+        self.quiet: dict[int, int] = {}  # thread ident -> its API calls running now
+
+    def write(self, text: str) -> int:
+        if threading.get_ident() in self.quiet:
+            return len(text)
+        return int(self.real.write(text))
+
+    def flush(self) -> None:
+        if threading.get_ident() not in self.quiet:
+            self.real.flush()
+
+    def __getattr__(self, name: str) -> Any:  # fileno, isatty, encoding, buffer, ...
+        return getattr(self.real, name)
+
+
+_quiet_lock = threading.Lock()
+_quiet_stdout: _QuietForSome | None = None
+
+
+@contextlib.contextmanager
+def _printout_suppressed() -> Iterator[None]:
+    """covnet's printout dropped for the calling thread only (and its forks).  It redirected
+    ``sys.stdout`` for the whole process: another thread's output (a notebook's, the program's)
+    was lost while a run went on, and two calls in threads restored each other's stream out
+    of order, leaving ``sys.stdout`` a dead ``StringIO``.  The proxy is put in place by the
+    first call running and taken away by the last (when nothing replaced it meanwhile)."""
+    global _quiet_stdout
+    me = threading.get_ident()
+    with _quiet_lock:
+        if _quiet_stdout is None:
+            _quiet_stdout = _QuietForSome(sys.stdout)
+            sys.stdout = _quiet_stdout
+        proxy = _quiet_stdout
+        proxy.quiet[me] = proxy.quiet.get(me, 0) + 1
+    try:
+        yield
+    finally:
+        with _quiet_lock:
+            proxy.quiet[me] -= 1
+            if not proxy.quiet[me]:
+                del proxy.quiet[me]
+            if not proxy.quiet and _quiet_stdout is proxy:
+                _quiet_stdout = None
+                if sys.stdout is proxy:  # (one the program put in place since stays)
+                    sys.stdout = proxy.real
+
+
 def _run_into(kind: Any, cfg: Any, target: Path, figures: bool) -> RunResult:
     """Run into ``target`` and read the results back; ``run.json`` then says how the run ended
     (``status``, ``ended``, ``blas_kernel``, ``code``) as ``covnet run``'s does."""
-    with contextlib.redirect_stdout(io.StringIO()):
+    with _printout_suppressed():
         status = kind.run(cfg, target, figures=figures)
     if int(status) == EXIT_OK:
         record_end(target, "completed", "every scan done")

@@ -306,3 +306,29 @@ def test_run_json_says_how_the_run_ended_as_the_commands_does(name, tmp_path):
         assert (info["status"], info["ended"]) == ("completed", "every scan done")
         assert info["blas_kernel"] and info["code"]
     shutil.rmtree(r.out)
+
+
+def test_run_silences_its_own_printout_not_the_programs(paper_path, capsys):
+    """``api.run`` replaced the process's ``sys.stdout`` while it ran: what the program's
+    other threads printed meanwhile was lost, and two calls in threads restored each other's
+    stream out of order, leaving ``sys.stdout`` a dead ``StringIO`` (everything printed after
+    them lost).  Now only the calling thread's printout (covnet's) is dropped."""
+    import threading
+
+    real = sys.stdout
+    runs = [
+        threading.Thread(target=lambda: api.run(paper_path, scans=30)),
+        threading.Thread(target=lambda: api.run(REPO / "configs" / "mobile.yaml", scans=10)),
+    ]
+    for t in runs:
+        t.start()
+    ticks = 0
+    while any(t.is_alive() for t in runs):
+        print(f"tick {ticks}")
+        ticks += 1
+        for t in runs:
+            t.join(0.01)
+    print("after the runs")
+    assert sys.stdout is real
+    out = capsys.readouterr().out
+    assert out.splitlines() == [*(f"tick {i}" for i in range(ticks)), "after the runs"], out
