@@ -26,7 +26,11 @@ import json
 import os
 import re
 import reprlib
-from collections.abc import Callable, Collection, Mapping, Sequence
+import sys
+import warnings
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Annotated, Any, Literal, Protocol, TypeVar, get_args
 
@@ -112,6 +116,50 @@ class ConfigWarning(UserWarning):
         super().__init__(f"{path}: {message}")
         self.path = path
         self.message = message
+
+
+#: the warnings shown so far by the command or API call running in this context (a
+#: ``warnings`` registry: its configs re-derived for each seed, metric or option do not say the
+#: same again); None outside one: every load says it
+_SHOWN: ContextVar[dict[Any, Any] | None] = ContextVar("covnet_config_warnings", default=None)
+
+
+@contextmanager
+def config_warnings_once() -> Iterator[None]:
+    """Within this block (a command, an API call) each config warning is shown once, however
+    often the config is validated again (a batch's seeds, an option applied); within an
+    enclosing block, that block's."""
+    token = _SHOWN.set(_SHOWN.get() if _SHOWN.get() is not None else {})
+    try:
+        yield
+    finally:
+        _SHOWN.reset(token)
+
+
+def warn_config(path: str, message: str) -> None:
+    """Warn of a config problem (:class:`ConfigWarning`) at every load (once within
+    :func:`config_warnings_once`), pointed at the first line outside covnet that led to it
+    (the caller's ``api.load(...)``, ``api.run(...)``).
+
+    ``warnings.warn`` showed a warning once per process: its "default" action records it in
+    the ``__warningregistry__`` of the module it names, so a second ``covnet check`` or
+    ``api.load`` of the same config in one process said nothing.  ``warn_explicit`` with no
+    registry (or the command's own) asks the filters each time and adds none of its own: a
+    user's filters (``ignore``, ``error``, ``once``) still decide."""
+    inside = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame = sys._getframe(1)
+    while frame.f_back is not None and frame.f_code.co_filename.startswith(inside):
+        frame = frame.f_back
+    # (no module_globals: with them the source line is asked of the module's loader, which
+    # raises for ``python -c``'s __main__)
+    warnings.warn_explicit(
+        ConfigWarning(path, message),
+        ConfigWarning,
+        frame.f_code.co_filename,
+        frame.f_lineno,
+        module=frame.f_globals.get("__name__"),
+        registry=_SHOWN.get(),
+    )
 
 
 class ConfigModel(Record):

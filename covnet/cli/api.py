@@ -27,14 +27,16 @@ is plain Python and numpy.
 from __future__ import annotations
 
 import contextlib
-import io
+import functools
 import shutil
+import sys
 import tempfile
-from collections.abc import Mapping
+import threading
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import numpy as np
 
@@ -45,9 +47,18 @@ from covnet import kinds
 from covnet.batches import MAX_SEEDS
 from covnet.batches.stats import per_scan_bands
 from covnet.batches.trials import batch_options, prepare_batch_out, write_batch_info
-from covnet.config import ConfigError
+from covnet.cli.common import EXIT_OK
+from covnet.config import ConfigError, config_warnings_once
 from covnet.errors import UsageError
-from covnet.runs.rundir import ARRAYS, SUMMARY, claims, load_arrays, prepare_out, read_json
+from covnet.runs.rundir import (
+    ARRAYS,
+    SUMMARY,
+    claims,
+    load_arrays,
+    prepare_out,
+    read_json,
+    record_end,
+)
 
 __all__ = ["RunResult", "SweepResult", "load", "run", "sweep"]
 
@@ -63,6 +74,23 @@ def _pandas() -> Any:
     return pandas
 
 
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+def _warning_once(function: Callable[_P, _R]) -> Callable[_P, _R]:
+    """``function`` shows each config warning once per call (a config re-validated with its
+    overrides, options or seeds said it again), and at every call."""
+
+    @functools.wraps(function)
+    def call(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        with config_warnings_once():
+            return function(*args, **kwargs)
+
+    return call
+
+
+@_warning_once
 def load(config: Any, **overrides: Any) -> tuple[Any, Any]:
     """``(kind, config)`` of ``config`` (a path, a mapping or a loaded config) with
     ``overrides`` applied (see the module docstring)."""
@@ -174,6 +202,7 @@ class RunResult:
         return pd.DataFrame(cols)
 
 
+@_warning_once
 def run(
     config: Any,
     *,
@@ -211,9 +240,66 @@ def run(
     return RunResult(None, result.summary, result.arrays)
 
 
+class _QuietForSome:
+    """``sys.stdout`` while API calls run: what the threads in ``quiet`` print is dropped,
+    every other thread's goes to the stream it replaced (``real``)."""
+
+    def __init__(self, real: Any) -> None:
+        self.real = real
+        self.quiet: dict[int, int] = {}  # thread ident -> its API calls running now
+
+    def write(self, text: str) -> int:
+        if threading.get_ident() in self.quiet:
+            return len(text)
+        return int(self.real.write(text))
+
+    def flush(self) -> None:
+        if threading.get_ident() not in self.quiet:
+            self.real.flush()
+
+    def __getattr__(self, name: str) -> Any:  # fileno, isatty, encoding, buffer, ...
+        return getattr(self.real, name)
+
+
+_quiet_lock = threading.Lock()
+_quiet_stdout: _QuietForSome | None = None
+
+
+@contextlib.contextmanager
+def _printout_suppressed() -> Iterator[None]:
+    """covnet's printout dropped for the calling thread only (and its forks).  It redirected
+    ``sys.stdout`` for the whole process: another thread's output (a notebook's, the program's)
+    was lost while a run went on, and two calls in threads restored each other's stream out
+    of order, leaving ``sys.stdout`` a dead ``StringIO``.  The proxy is put in place by the
+    first call running and taken away by the last (when nothing replaced it meanwhile)."""
+    global _quiet_stdout
+    me = threading.get_ident()
+    with _quiet_lock:
+        if _quiet_stdout is None:
+            _quiet_stdout = _QuietForSome(sys.stdout)
+            sys.stdout = _quiet_stdout
+        proxy = _quiet_stdout
+        proxy.quiet[me] = proxy.quiet.get(me, 0) + 1
+    try:
+        yield
+    finally:
+        with _quiet_lock:
+            proxy.quiet[me] -= 1
+            if not proxy.quiet[me]:
+                del proxy.quiet[me]
+            if not proxy.quiet and _quiet_stdout is proxy:
+                _quiet_stdout = None
+                if sys.stdout is proxy:  # (one the program put in place since stays)
+                    sys.stdout = proxy.real
+
+
 def _run_into(kind: Any, cfg: Any, target: Path, figures: bool) -> RunResult:
-    with contextlib.redirect_stdout(io.StringIO()):
-        kind.run(cfg, target, figures=figures)
+    """Run into ``target`` and read the results back; ``run.json`` then says how the run ended
+    (``status``, ``ended``, ``blas_kernel``, ``code``) as ``covnet run``'s does."""
+    with _printout_suppressed():
+        status = kind.run(cfg, target, figures=figures)
+    if int(status) == EXIT_OK:
+        record_end(target, "completed", "every scan done")
     summary_file = target / SUMMARY
     if not summary_file.is_file():
         summary_file = target / "association.json"
@@ -257,6 +343,7 @@ class SweepResult:
         return per_scan_bands(e["pos_err2"], e["nees"])
 
 
+@_warning_once
 def sweep(
     config: Any,
     *,

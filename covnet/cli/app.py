@@ -16,11 +16,13 @@ options and its ``cmd_NAME``); the commands are in :mod:`covnet.cli.commands` an
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
 import threading
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import covnet.errors  # noqa: F401  (first: a folder named covnet/ taken for it says so)
@@ -56,7 +58,7 @@ from covnet.cli.common import (
     RUN_OPTIONS,
     _err,
 )
-from covnet.config import ConfigError, ConfigWarning, scheduler_problem
+from covnet.config import ConfigError, ConfigWarning, config_warnings_once, scheduler_problem
 from covnet.errors import ClusterLost, UpError, UsageError, WorkerDied
 from covnet.processes import interrupts, output
 from covnet.runs import rundir
@@ -588,10 +590,49 @@ def _show_warning(
     if issubclass(category, ConfigWarning):
         print(f"covnet: warning: {message}", file=sys.stderr)
         return
-    _python_showwarning(message, category, filename, lineno, file, line)
+    _host_showwarning(message, category, filename, lineno, file, line)
 
 
-_python_showwarning = warnings.showwarning
+_host_showwarning = warnings.showwarning
+#: the commands running now that use :func:`_show_warning` (threads of one process: the last
+#: one to end puts the host's back, whatever their order)
+_showing = 0
+_showing_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def _the_hosts_state_kept() -> Iterator[None]:
+    """Around a command: the SIGINT/SIGTERM/SIGHUP handlers (main thread), the unraisable hook
+    and ``warnings.showwarning`` the command installs are the process's as it found them once
+    it returns, and an interruption it asked for is over (:func:`interrupts.end_command`).
+    A program calling :func:`main` kept covnet's: a SIGTERM or hang-up raised
+    ``KeyboardInterrupt`` in it instead of ending it, and after an interrupted command its own
+    unraisable errors (a ``__del__``'s) were dropped.  The console script's own handlers, put
+    in place before this, stay."""
+    global _showing, _host_showwarning
+    signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    in_main = threading.current_thread() is threading.main_thread()
+    handlers = {s: signal.getsignal(s) for s in signals} if in_main else {}
+    hook = sys.unraisablehook
+    with _showing_lock:
+        if _showing == 0 and warnings.showwarning is not _show_warning:
+            _host_showwarning = warnings.showwarning
+        _showing += 1
+        warnings.showwarning = _show_warning
+    try:
+        yield
+    finally:
+        with _showing_lock:
+            _showing -= 1
+            if _showing == 0 and warnings.showwarning is _show_warning:
+                warnings.showwarning = _host_showwarning
+        if in_main:
+            for signum, handler in handlers.items():
+                if handler is not None:  # (None: one not installed from Python; left as is)
+                    signal.signal(signum, handler)
+            sys.unraisablehook = hook
+            if not getattr(hook, "covnet_interrupts", False):  # not the console script's
+                interrupts.end_command()
 
 
 def _stdout_closed() -> bool:
@@ -616,6 +657,14 @@ def _stdout_closed() -> bool:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command ``argv`` (default: ``sys.argv[1:]``) and return its exit status; a
+    program may call it, also from a thread: the process's signal handlers, unraisable hook
+    and ``warnings.showwarning`` are as it found them once it returns."""
+    with _the_hosts_state_kept():
+        return _command(argv)
+
+
+def _command(argv: Sequence[str] | None) -> int:
     if threading.current_thread() is threading.main_thread():
         # SIGINT and SIGTERM raise KeyboardInterrupt; one inside a weakref callback is raised
         # again, not printed and lost
@@ -624,13 +673,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     output.reset()
     parser = build_parser()
     args = parser.parse_args(argv)
-    warnings.showwarning = _show_warning
     # the config a command reads: --force never empties a directory holding it
     config = getattr(args, "config", None)
     try:
         # the output directories the command claims (prepare_out) are released when it ends
         reads = [config] if isinstance(config, str) and config else []
-        with rundir.claims(), rundir.reading(*reads):
+        with rundir.claims(), rundir.reading(*reads), config_warnings_once():
             status = int(args.func(args))
         # the output still buffered is written here, where a reader that has gone is told
         # from a failure (not at the interpreter's exit: "Exception ignored", status 120)

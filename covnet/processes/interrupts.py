@@ -47,6 +47,15 @@ def begin_command() -> None:
     _last_request = None
 
 
+def end_command() -> None:
+    """A command has returned to a program of its own (``covnet.cli.main`` called in-process,
+    the handlers and hook put back): an interruption it asked for is over, so :func:`caused`
+    no longer takes the program's own errors for its stand-ins.  (An answered one stays
+    answered: a redelivery still pending must not raise in the program.)"""
+    global _requested
+    _requested = False
+
+
 #: a SIGINT or SIGTERM this soon after the last one is the same request delivered twice, not
 #: a second Ctrl-C (which makes ``covnet up`` SIGKILL its nodes): GNU ``timeout -s INT`` signals
 #: the command and then its own process group, and a group's Ctrl-C reaches a command once per

@@ -431,8 +431,11 @@ def up(
         "speed": speed if realtime else None,
         "router": router,
     }
-    previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt)
-    previous_hup = signal.signal(signal.SIGHUP, interrupts.raise_interrupt)  # a hang-up too
+    # a SIGTERM or a hang-up stops the run as a Ctrl-C does; a handler can be installed from the
+    # main thread only (``covnet.cli.main(["up", ...])`` called in a thread runs without them)
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, interrupts.raise_interrupt) if main else None
+    previous_hup = signal.signal(signal.SIGHUP, interrupts.raise_interrupt) if main else None
     status = 0
     lost: dict[str, dict[str, Any]] = {}  # VITAL nodes that died and were not restarted
     sup = Supervisor(
@@ -525,8 +528,9 @@ def up(
             print(f"covnet up: interrupted; every process stopped; {ended}", file=sys.stderr)
         return interrupts.EXIT_INTERRUPTED
     finally:
-        signal.signal(signal.SIGTERM, previous)
-        signal.signal(signal.SIGHUP, previous_hup)
+        if main:
+            signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGHUP, previous_hup)
 
 
 def settle(

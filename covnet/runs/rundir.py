@@ -30,14 +30,12 @@ import atexit
 import contextlib
 import errno
 import fcntl
-import functools
 import hashlib
 import json
 import math
 import os
 import shutil
 import sys
-import tempfile
 import threading
 import time
 import zipfile
@@ -206,23 +204,49 @@ class _Claim:
     fd: int  # open on the directory, flock'ed: the lock lives as long as this descriptor
     made: bool  # made by this claim: removed again at the release when still empty
     pid: int
+    owner: object  # the command that holds it (:func:`_owner`)
 
 
 _CLAIMS: dict[Path, _Claim] = {}
 """The directories this process holds (:func:`claim`), by resolved path."""
 _CLAIMS_LOCK = threading.RLock()
 _SCOPE: ContextVar[list[Path] | None] = ContextVar("covnet_claims", default=None)
+#: the outermost :func:`claims` block running in this context: the command a claim is for
+_OWNER: ContextVar[object | None] = ContextVar("covnet_claims_owner", default=None)
+
+
+def _owner() -> object:
+    """Who claims now: the outermost :func:`claims` block of this context (a command; the
+    blocks within it are the same command), else this thread."""
+    owner = _OWNER.get()
+    return owner if owner is not None else threading.current_thread()
+
+
+def _held_by_another(have: _Claim) -> bool:
+    """Whether ``have`` (a claim of this process) is another command's, still running: another
+    :func:`claims` block (a block's claims go when it ends), or another thread that is alive."""
+    if have.owner is _owner() or have.owner is threading.current_thread():
+        return False  # (this thread's claim outside any block: held for it until the exit)
+    return not isinstance(have.owner, threading.Thread) or have.owner.is_alive()
+
+
+_BUSY = (
+    "{what}: another covnet command is writing there now (it holds the directory until it "
+    "ends; --force does not take it over); wait for it to end, or choose another directory"
+)
 
 
 def claim(p: Path, what: str, *, made: bool = False) -> bool:
     """Claim the directory ``p`` (made when missing) for this command: an exclusive
     ``flock`` on the directory itself (no file of its own appears in it), held until the
     :func:`claims` block that took it ends (every CLI command is one), else until this process
-    exits.  Another process holding it (a covnet command writing there now) is a
-    :class:`~covnet.errors.UsageError` naming ``what`` (``--out DIR``); ``--force`` does not
-    change that.  This process claiming it again is no error (a command may prepare its
-    directory twice).  A forked child keeps no claim (:func:`_forget_claims`).  On a file
-    system without ``flock`` (some network mounts) the directory is used unclaimed.
+    exits.  Another command holding it (a covnet command writing there now: another process,
+    or another :func:`claims` block or thread of this one, such as two ``api.run`` calls in
+    threads) is a :class:`~covnet.errors.UsageError` naming ``what`` (``--out DIR``);
+    ``--force`` does not change that.  The same command claiming it again is no error (a
+    command may prepare its directory twice).  A forked child keeps no claim
+    (:func:`_forget_claims`).  On a file system without ``flock`` (some network mounts) the
+    directory is used unclaimed.
     True: claimed now, False: held already or not lockable."""
     made = made or not p.exists()
     try:
@@ -234,6 +258,8 @@ def claim(p: Path, what: str, *, made: bool = False) -> bool:
         have = _CLAIMS.get(key)
         if have is not None:
             if have.pid == os.getpid() and _same_dir(have.fd, p):
+                if _held_by_another(have):
+                    raise UsageError(_BUSY.format(what=what))
                 return False
             _release(key)  # the directory it held was removed (and made again)
         for _ in range(10):
@@ -250,16 +276,12 @@ def claim(p: Path, what: str, *, made: bool = False) -> bool:
             except OSError as exc:
                 os.close(fd)
                 if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
-                    raise UsageError(
-                        f"{what}: another covnet command is writing there now (it holds the "
-                        "directory until it ends; --force does not take it over); wait for it "
-                        "to end, or choose another directory"
-                    ) from None
+                    raise UsageError(_BUSY.format(what=what)) from None
                 return False  # no flock here: unclaimed, as before
             if not _same_dir(fd, p):  # removed (and made again) before the lock: once more
                 os.close(fd)
                 continue
-            _CLAIMS[key] = _Claim(p, fd, made, os.getpid())
+            _CLAIMS[key] = _Claim(p, fd, made, os.getpid(), _owner())
             scope = _SCOPE.get()
             if scope is not None:
                 scope.append(key)
@@ -300,6 +322,7 @@ def claims() -> Iterator[None]:
     (:func:`record_failure`) before it is released."""
     mine: list[Path] = []
     token = _SCOPE.set(mine)
+    owned = _OWNER.set(_OWNER.get() or object())  # (a block within one: the same command)
     try:
         yield
     except OSError as exc:
@@ -309,6 +332,7 @@ def claims() -> Iterator[None]:
         raise
     finally:
         _SCOPE.reset(token)
+        _OWNER.reset(owned)
         for key in reversed(mine):
             _release(key)
 
@@ -438,21 +462,22 @@ def clear_output(p: Path, option: str = "--out") -> None:
             child.unlink()
 
 
-@functools.cache
-def _file_mode() -> int:
-    """The mode a new file gets from this process's umask (``0o666 & ~umask``): what the
-    temporary files (made ``0o600``) are given.  Read from ``/proc`` (setting the umask to
-    read it would change it for the other threads a moment)."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return 0o666 & ~int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return 0o666 & ~mask
+def _new_file_beside(path: Path) -> tuple[int, Path]:
+    """A new file of its own beside ``path`` (``NAME.<random>.tmp``), open for writing, with a
+    new file's mode: created with ``0o666``, which the kernel narrows by the process's umask as
+    it is at that moment (as any ``open()`` of a new file; a default ACL of the directory
+    too).  ``tempfile.mkstemp`` makes ``0o600`` files, which were then given a mode computed
+    from the umask cached once per process: a notebook that tightened its umask after a first
+    run still wrote ``0o644`` results.  No umask is read or set here (setting it to read it
+    would change it for the other threads a moment)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC
+    for _ in range(100):
+        tmp = path.parent / f"{path.name}.{os.urandom(6).hex()}.tmp"
+        try:
+            return os.open(tmp, flags, 0o666), tmp
+        except FileExistsError:
+            continue  # another writer's name (2**48 of them): draw again
+    raise FileExistsError(errno.EEXIST, "no free temporary file name beside it", str(path))
 
 
 @contextmanager
@@ -491,10 +516,8 @@ def _temporary_beside(path: Path) -> Iterator[tuple[Any, Path]]:
     system) names ``path``, the file that could not be written, not the temporary one."""
     tmp: Path | None = None
     try:
-        fd, name = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-        tmp = Path(name)
+        fd, tmp = _new_file_beside(path)
         with os.fdopen(fd, "wb") as fh:
-            os.fchmod(fh.fileno(), _file_mode())
             yield fh, tmp
         os.replace(tmp, path)
     except BaseException as exc:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from multiproc import CovnetProcess, assert_nothing_left
 from traffic_check import assert_compare_counts_what_was_sent
 
@@ -315,3 +316,33 @@ def test_an_ascii_stdout_does_not_lose_the_nodes_lines(tmp_path, paper_path, for
     assert "[manager] DONE completed=True out=" in said and "up \\xe9" in said, said
     assert json.loads((out / "run.json").read_text())["status"] == "completed"
 
+
+def test_up_called_from_a_thread_runs(tmp_path, paper_path):
+    """``covnet.cli.main(["up", ...])`` called from a thread other than the main one (a
+    notebook's worker, a host program's job thread) runs the network as from the main thread: it
+    ended in a ``ValueError`` traceback ("signal only works in main thread") when it installed
+    its SIGTERM handler; the main thread's handlers stay as they were."""
+    import threading
+
+    data = yaml.safe_load(paper_path.read_text())
+    data["scans"] = 5
+    cfg = tmp_path / "paper5.yaml"
+    cfg.write_text(yaml.safe_dump(data, sort_keys=False))
+    out = tmp_path / "run"
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    got: dict[str, object] = {}
+
+    def call() -> None:
+        try:
+            got["rc"] = covnet_main(["up", str(cfg), "--out", str(out), "--no-figures"])
+        except BaseException as exc:  # noqa: BLE001 - the test reports it
+            got["raised"] = exc
+
+    th = threading.Thread(target=call)
+    th.start()
+    th.join(150)
+    assert not th.is_alive()
+    assert got == {"rc": 0}
+    assert_nothing_left(out)
+    assert json.loads((out / "run.json").read_text())["status"] == "completed"
+    assert {s: signal.getsignal(s) for s in handlers} == handlers

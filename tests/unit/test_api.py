@@ -4,6 +4,7 @@ run as it is written."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -288,3 +289,46 @@ def test_to_frame_keeps_each_targets_estimate_and_truth():
     assert np.array_equal(df["P_post.spectral[2][0][1]"], P[2, :, 0, 1])
     one = api.run(REPO / "configs" / "paper.yaml", metric="kl", scans=4)
     assert np.array_equal(one.to_frame()["P_post.kl[1][3]"], one.arrays["P_post.kl"][:, 1, 3])
+
+
+@pytest.mark.parametrize("name", ["paper", "mobile"])
+def test_run_json_says_how_the_run_ended_as_the_commands_does(name, tmp_path):
+    """``api.run(out=DIR)`` (and ``keep=True``) wrote a ``run.json`` without ``status``,
+    ``ended``, ``blas_kernel`` or ``code``, which ``covnet run --out DIR`` writes (a failed API
+    run had them, a completed one not)."""
+    config = REPO / "configs" / f"{name}.yaml"
+    for r in (
+        api.run(config, out=tmp_path / "out", scans=3),
+        api.run(config, keep=True, scans=3),
+    ):
+        assert r.out is not None
+        info = json.loads((r.out / "run.json").read_text())
+        assert (info["status"], info["ended"]) == ("completed", "every scan done")
+        assert info["blas_kernel"] and info["code"]
+    shutil.rmtree(r.out)
+
+
+def test_run_silences_its_own_printout_not_the_programs(paper_path, capsys):
+    """``api.run`` replaced the process's ``sys.stdout`` while it ran: what the program's
+    other threads printed meanwhile was lost, and two calls in threads restored each other's
+    stream out of order, leaving ``sys.stdout`` a dead ``StringIO`` (everything printed after
+    them lost).  Now only the calling thread's printout (covnet's) is dropped."""
+    import threading
+
+    real = sys.stdout
+    runs = [
+        threading.Thread(target=lambda: api.run(paper_path, scans=30)),
+        threading.Thread(target=lambda: api.run(REPO / "configs" / "mobile.yaml", scans=10)),
+    ]
+    for t in runs:
+        t.start()
+    ticks = 0
+    while any(t.is_alive() for t in runs):
+        print(f"tick {ticks}")
+        ticks += 1
+        for t in runs:
+            t.join(0.01)
+    print("after the runs")
+    assert sys.stdout is real
+    out = capsys.readouterr().out
+    assert out.splitlines() == [*(f"tick {i}" for i in range(ticks)), "after the runs"], out

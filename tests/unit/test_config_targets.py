@@ -215,6 +215,39 @@ def test_a_sensor_out_of_every_targets_reach_is_a_warning(raw):
         from_dict(raw)
 
 
+def test_a_config_warning_is_shown_at_every_load_at_the_callers_line(raw, tmp_path, capsys):
+    """A config's warning was shown once per process (Python's "default" action remembers it
+    in the registry of the module it names): a second ``api.load``, ``covnet check`` or
+    ``covnet.cli.main(["check", ...])`` of the same config in one process said nothing, and
+    the API's warning named ``covnet/kindkit.py``, not the caller's line.  Within one command
+    or API call it is said once (its configs re-validated per option or seed say no more)."""
+    from covnet.cli import api
+    from covnet.cli.app import main
+
+    raw["sensors"][0].update(position_m=[60000.0, 60000.0], max_range_m=1000.0)
+    cfg = tmp_path / "far.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("default")  # Python's own action for a UserWarning
+        for _ in range(2):
+            api.load(cfg)  # the line the warnings name
+        api.load(cfg, seed=3, metric="spectral")  # re-validated with its options: said once
+    lines = [w.lineno for w in seen]
+    assert [str(w.message).split(":")[0] for w in seen] == ["sensors[0]"] * 3
+    assert {w.filename for w in seen} == {__file__}, [w.filename for w in seen]
+    assert lines[0] == lines[1] != lines[2]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConfigWarning)  # the user's filters still decide
+        api.load(cfg)
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")  # (pytest's own filter makes a warning an error)
+        for _ in range(2):
+            assert main(["check", str(cfg)]) == 0
+            err = capsys.readouterr().err
+            assert err.count("covnet: warning: sensors[0]: P1 never covers") == 1, err
+
+
 def test_the_shipped_scenario_has_no_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -6,9 +6,12 @@ Each case runs in a child process, so the real unraisable-exception machinery an
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import textwrap
+
+import pytest
 
 CHILD = textwrap.dedent(
     """
@@ -136,14 +139,59 @@ def test_an_error_of_a_finalizer_after_an_interruption_is_not_printed() -> None:
     assert "Traceback" not in done.stderr and "half built" not in done.stderr, done.stderr
 
 
-def test_cli_main_installs_the_hook() -> None:
-    code = (
-        "import sys; from covnet import cli\n"
-        "try:\n    cli.main(['--version'])\nexcept SystemExit:\n    pass\n"
-        "print(getattr(sys.unraisablehook, 'covnet_interrupts', False))\n"
+HOST = textwrap.dedent(
+    """
+    import argparse, os, signal, sys, time, warnings, weakref
+    from covnet.cli import app
+    from covnet.processes import interrupts
+
+    def state():
+        handlers = [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)]
+        return handlers, sys.unraisablehook, warnings.showwarning
+
+    before, during = state(), []
+
+    def body(args):
+        during.append(
+            getattr(sys.unraisablehook, "covnet_interrupts", False)
+            and signal.getsignal(signal.SIGTERM) is interrupts.raise_interrupt
+            and warnings.showwarning is app._show_warning
+        )
+        if {interrupt}:  # a Ctrl-C while the command runs: answered, exit 130
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        return 0
+
+    argparse.ArgumentParser.parse_args = lambda self, argv=None: argparse.Namespace(func=body)
+    print(app.main([]), during, state() == before, flush=True)
+    class Thing: pass
+    def callback(_ref): raise ValueError("the program's own error")
+    thing = Thing(); ref = weakref.ref(thing, callback); del thing
+    os.kill(os.getpid(), signal.SIGTERM)  # ends the program, as before the command
+    time.sleep(5)
+    print("survived SIGTERM")
+    """
+)
+
+
+@pytest.mark.parametrize("interrupt", [False, True])
+def test_cli_main_leaves_the_hosts_handlers_hook_and_showwarning(interrupt) -> None:
+    """``covnet.cli.main`` called by a program installs covnet's SIGINT/SIGTERM/SIGHUP
+    handlers, unraisable hook and ``showwarning`` for the command and puts the program's back
+    when it returns: they stayed, so a SIGTERM raised ``KeyboardInterrupt`` in the program
+    instead of ending it, and after an interrupted command the program's own unraisable
+    errors (a ``__del__``'s, a weakref callback's) were dropped."""
+    done = subprocess.run(
+        [sys.executable, "-c", HOST.format(interrupt=interrupt)],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert done.stdout.strip().endswith("True"), done.stdout + done.stderr
+    assert done.stdout.strip() == f"{130 if interrupt else 0} [True] True", (
+        done.stdout + done.stderr
+    )
+    assert "ValueError: the program's own error" in done.stderr, done.stderr
+    assert done.returncode == -signal.SIGTERM, done.stdout + done.stderr
 
 
 def test_an_error_standing_in_for_a_swallowed_interrupt_is_an_interruption() -> None:

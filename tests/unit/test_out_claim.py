@@ -116,6 +116,60 @@ def test_the_same_command_may_prepare_its_directory_again(tmp_path):
     assert _free(out)
 
 
+@pytest.mark.parametrize("force", [False, True])
+def test_another_thread_of_this_process_is_another_command(tmp_path, force):
+    """Two ``api.run(out=DIR)`` calls in threads of one process both wrote into DIR (one run's
+    results, the other's figures; with ``force`` one emptied it as the other wrote): the
+    claim was per process.  A directory another block or live thread of this process holds is
+    refused as another process's is; blocks within one command share it, and a thread's claim
+    outside any block is free once that thread has ended."""
+    out = tmp_path / "o"
+    held, done = threading.Event(), threading.Event()
+    seen: list[BaseException] = []
+
+    def first() -> None:
+        with claims():
+            prepare_out(out, "x", False)
+            (out / "run.json").write_text("{}")
+            held.set()
+            done.wait(30)
+
+    a = threading.Thread(target=first)
+    a.start()
+    try:
+        assert held.wait(30)
+        for attempt in (lambda: prepare_out(out, "x", force), lambda: rundir.claim(out, "o")):
+            with claims(), pytest.raises(UsageError, match=HELD):
+                attempt()
+
+        def second() -> None:  # a thread of its own, no block
+            try:
+                prepare_out(out, "x", force)
+            except BaseException as exc:
+                seen.append(exc)
+
+        b = threading.Thread(target=second)
+        b.start()
+        b.join(30)
+        assert len(seen) == 1 and HELD in str(seen[0]), seen
+        assert (out / "run.json").is_file()  # force emptied nothing
+    finally:
+        done.set()
+        a.join(30)
+    # the same command, in blocks within its own, prepares it again
+    with claims():
+        prepare_out(out, "x", True)
+        with claims():
+            assert prepare_out(out, "x", True) == out
+    # a thread's claim outside any block, its thread gone: free for the next command
+    lone = threading.Thread(target=lambda: rundir.claim(tmp_path / "lone", "lone"))
+    lone.start()
+    lone.join(30)
+    with claims():
+        assert prepare_out(tmp_path / "lone", "x", False) == tmp_path / "lone"
+    rundir._release((tmp_path / "lone").resolve())
+
+
 def test_a_claimed_directory_left_empty_is_removed_and_a_fork_keeps_no_claim(tmp_path):
     out = tmp_path / "made"
     with claims():
@@ -223,6 +277,25 @@ def test_written_files_get_a_new_files_mode_and_a_failed_write_leaves_nothing(tm
     with pytest.raises(TypeError, match="cannot be saved"):
         write_npz(tmp_path / "c.npz", {"x": bad})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.npz"]
+
+
+def test_a_new_files_mode_follows_the_umask_of_the_moment(tmp_path):
+    """The umask was read once per process: after a first write under umask 022, a later
+    ``umask 077`` still gave ``0o644`` files (and the reverse ``0o600``), the directory
+    following the new umask.  Each file gets the mode the umask gives as it is written."""
+    before = os.umask(0o022)
+    try:
+        for i, (umask, mode) in enumerate([(0o022, 0o644), (0o077, 0o600), (0o022, 0o644)]):
+            os.umask(umask)
+            atomic_write(tmp_path / f"{i}.json", b"{}")
+            write_npz(tmp_path / f"{i}.npz", {"x": np.zeros(3)})
+            for name in (f"{i}.json", f"{i}.npz"):
+                assert (tmp_path / name).stat().st_mode & 0o777 == mode, (name, oct(umask))
+    finally:
+        os.umask(before)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        f"{i}.{ext}" for i in range(3) for ext in ("json", "npz")
+    )
 
 
 def test_flock_on_a_directory_works_here(tmp_path):

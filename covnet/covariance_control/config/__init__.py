@@ -33,12 +33,11 @@ their messages, and the coverage warning).
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import Any
 
 from covnet.config import ConfigWarning as ConfigWarning
-from covnet.config import hash_of, read_yaml, validate
+from covnet.config import hash_of, read_yaml, validate, warn_config
 from covnet.config import normalised as _normalised
 from covnet.covariance_control.config.allocation import AUTO_NODE_LIMIT as AUTO_NODE_LIMIT
 from covnet.covariance_control.config.allocation import BOUNDED_GAP as BOUNDED_GAP
@@ -109,7 +108,7 @@ def from_dict(data: object, source: str = "<dict>", base_dir: str | Path | None 
     """
     sc = validate(Scenario, data, source, base_dir, _semantic_problems)
     for path, message in reach_warnings(sc):
-        warnings.warn(ConfigWarning(path, message), stacklevel=2)
+        warn_config(path, message)  # at every load, pointed at the caller's line
     return sc
 
 
