@@ -168,6 +168,11 @@ class TrialStore:
         return done
 
 
+def _and_more(files: Sequence[object]) -> str:
+    """`` and N more`` after the first of ``files`` named, or nothing."""
+    return f" and {len(files) - 1} more" if len(files) > 1 else ""
+
+
 def _digest(doc: Mapping[str, Any]) -> str:
     """SHA-256 of a trial file's ``point``, ``seeds`` and ``results`` as canonical JSON (keys
     sorted; floats in their round-trip form, so what is read back digests the same): a file
@@ -421,17 +426,15 @@ def run_trials(
     say = note or (lambda msg: print(f"covnet: {msg}", file=sys.stderr, flush=True))
     if store is not None and store.unreadable:
         path, why = store.unreadable[0]
-        more = f" and {len(store.unreadable) - 1} more" if len(store.unreadable) > 1 else ""
         say(
             f"{len(store.unreadable)} trial file(s) of {out} could not be read and run "
-            f"again: {path} ({why}){more}"
+            f"again: {path} ({why}){_and_more(store.unreadable)}"
         )
     if store is not None and store.stale:
         path, whose = store.stale[0]
-        more = f" and {len(store.stale) - 1} more" if len(store.stale) > 1 else ""
         say(
             f"{len(store.stale)} trial file(s) of {out} were written by {whose} and run again "
-            f"with this code, so that the batch is one code's: {path}{more}"
+            f"with this code, so that the batch is one code's: {path}{_and_more(store.stale)}"
         )
     runner = _runner(cluster, workers)
     try:

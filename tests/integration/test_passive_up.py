@@ -19,6 +19,7 @@ from covnet.clock import WallClock
 from covnet.passive.associate import scan_record
 from covnet.passive.config import load, with_overrides
 from covnet.passive.scene import draw
+from covnet.processes.node_kit import config_id
 from covnet.wire import messages as msg
 from manager import passive as manager_node
 from sensors import passive as sensor_node
@@ -212,7 +213,7 @@ def _bad_sensor(cfg, sid):
 
         return serve(
             sid, bus, "t", clock, stop, cfg.network, truth_ok=lambda tr: True, respond=respond,
-            scans=cfg.scans,
+            scans=cfg.scans, config=config_id(cfg),  # a node of this run's config
         )
 
     return run
