@@ -62,6 +62,9 @@ def test_modules_in_the_working_directory_do_not_replace_the_nodes(tmp_path, pap
     assert_nothing_left(out)
 
 
+# a 15 s realtime run: under the slow marker (the suite's time); the restart's new interpreter
+# gets the same ProcessSpec environment as COVNET_FORK=0's nodes above
+@pytest.mark.slow
 def test_a_restarted_sensor_is_covnets_node(tmp_path, paper_path):
     """``restart: on-failure``: the sensor killed mid-run is restarted as a new interpreter in
     the user's folder, and rejoins.  The launcher runs as ``python -P -m covnet`` (as the
