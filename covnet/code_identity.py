@@ -6,7 +6,9 @@ covnet reads back as its own — a batch's finished trials that a resume skips, 
 that ``covnet replay`` re-fuses — carries :func:`code_identity`: the SHA-256 (16 hex digits) of
 every ``.py`` file of covnet's packages, each named by its path below the packages' root, in
 sorted order.  The same source gives the same identity on every host and install (editable
-or a wheel); any change to the source gives another.  A resumed batch runs again the trials of
+or a wheel); any change to the source gives another.  Hidden files (an editor's lock file
+``.#config.py``) are left out, and a file that cannot be read counts by its error: the
+identity never fails a command.  A resumed batch runs again the trials of
 other code (:mod:`covnet.batches.trials`); a replay names the code that recorded the run when
 it is not its own (:mod:`covnet.runs.replay_kit`)."""
 
@@ -30,8 +32,15 @@ def code_identity() -> str:
     h = hashlib.sha256()
     for pkg in PACKAGES:
         for path in sorted((root / pkg).rglob("*.py")):
-            h.update(path.relative_to(root).as_posix().encode() + b"\0")
-            h.update(path.read_bytes() + b"\0")
+            rel = path.relative_to(root)
+            if any(part.startswith(".") for part in rel.parts):
+                continue  # an editor's lock or backup (.#config.py), never imported
+            try:
+                data = path.read_bytes()
+            except OSError as exc:  # a file Python could not import either: named, not fatal
+                data = f"<unreadable: {exc.strerror}>".encode()
+            h.update(rel.as_posix().encode() + b"\0")
+            h.update(data + b"\0")
     return h.hexdigest()[:16]
 
 

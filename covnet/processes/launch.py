@@ -112,6 +112,18 @@ class _Run:
         self.reader: threading.Thread | None = None
 
 
+def _lies_under(module: object, root: Path) -> bool:
+    """Whether ``module`` was loaded from a file below ``root``."""
+    f = getattr(module, "__file__", None)
+    if not f:
+        return False
+    try:
+        Path(f).resolve().relative_to(root)
+    except ValueError:
+        return False
+    return True
+
+
 class Supervisor:
     """Start, watch and stop a set of child processes (see the module docstring)."""
 
@@ -166,12 +178,30 @@ class Supervisor:
                 raise
 
     def _preload(self) -> bool:
-        """Import the specs' ``preload`` modules; whether children may be forked now."""
+        """Import the specs' ``preload`` modules; whether children may be forked now.  They are
+        covnet's own (``sensors``, ``recorder``: packages beside ``covnet``), imported with
+        covnet's folder first on the path: a program calling ``covnet.cli.main(["up", ...])``
+        from a folder holding a ``sensors.py`` (its script's folder, a notebook's ``''``, first
+        on its path) had that file imported here, a traceback or the user's module run in the
+        launcher (hunt 15).  A program that imported a module of such a name itself keeps it:
+        then no fork, every child a new interpreter (which never imports from the working
+        directory: :func:`covnet.processes.up.node_env`)."""
         modules = sorted({m for s in self._specs.values() for m in s.preload})
         if not modules or not forked.forkable():
             return False
+        root = Path(__file__).resolve().parents[2]  # the folder of covnet/, sensors/, ...
         for m in modules:
-            importlib.import_module(m)
+            have = sys.modules.get(m.partition(".")[0])
+            if have is not None and not _lies_under(have, root):
+                return False  # the program's own module of that name
+            saved = list(sys.path)
+            sys.path.insert(0, str(root))
+            try:
+                module = importlib.import_module(m)
+            finally:
+                sys.path[:] = saved
+            if not _lies_under(module, root):
+                return False
         return forked.forkable()  # an import may have started a thread
 
     def _record(self, name: str, may_fork: bool) -> _Run:

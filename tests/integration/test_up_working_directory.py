@@ -89,3 +89,34 @@ def test_a_restarted_sensor_is_covnets_node(tmp_path, paper_path):
     events = json.loads((out / "summary.json").read_text())["failures"]["spectral"]
     assert [e["event"] for e in events if e["sensor"] == "S5"] == ["failed", "rejoined"], events
     assert_nothing_left(out)
+
+
+@pytest.mark.parametrize("imported", [False, True])
+def test_a_program_calling_covnet_up_from_such_a_folder(tmp_path, paper_path, imported):
+    """``covnet.cli.main(["up", ...])`` called by a script in a folder holding a ``sensors.py``
+    (the script's folder first on its path): the launcher imported that file for its forked
+    nodes, a traceback or the user's module run in it (hunt 15).  Covnet's own are imported;
+    a program that imported a ``sensors`` of its own keeps it, and the nodes are new
+    interpreters."""
+    import subprocess
+    import sys
+
+    here = _folder_of_user_modules(tmp_path)
+    cfg = _config(tmp_path, paper_path, scans=4)
+    out = tmp_path / "run"
+    (here / "go.py").write_text(
+        ("import sensors\n" if imported else "")
+        + "import sys\nfrom covnet.cli.app import main\n"
+        + f"rc = main(['up', {str(cfg)!r}, '--out', {str(out)!r}, '--no-figures',"
+        + " '--metric', 'spectral'])\n"
+        + ("assert sensors.SITES\n" if imported else "")
+        + "sys.exit(rc)\n"
+    )
+    p = subprocess.run([sys.executable, "go.py"], cwd=here, capture_output=True, text=True,
+                       timeout=150)  # fmt: skip
+    said = p.stdout + p.stderr
+    assert p.returncode == 0, said
+    assert "Traceback" not in said
+    assert said.count("user's sensors.py ran") == (1 if imported else 0), said
+    assert json.loads((out / "summary.json").read_text())["completed"] is True
+    assert_nothing_left(out)

@@ -50,3 +50,17 @@ def test_a_run_and_its_batch_name_their_code(tmp_path):
                  "--out", str(tmp_path / "mc"), "--no-figures"]) == 0  # fmt: skip
     assert json.loads((tmp_path / "mc" / "batch.json").read_text())["code"] == code_identity()
     assert json.loads((tmp_path / "mc" / "run.json").read_text())["code"] == code_identity()
+
+
+def test_an_editors_lock_file_or_an_unreadable_file_never_fails_it(tmp_path):
+    """An Emacs lock file (``.#config.py``, a dangling link) in the clone made every run exit 1
+    after its results, ``run.json`` without a status: the identity read every ``*.py`` and
+    raised on it (hunt 15).  Hidden files are left out; an unreadable one counts by its error."""
+    root = tmp_path / "c"
+    for pkg in PACKAGES:
+        shutil.copytree(REPO / pkg, root / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    clean = _identity_of(root)
+    (root / "covnet" / ".#config.py").symlink_to("root@host.1234:1701234567")
+    assert _identity_of(root) == clean == code_identity()
+    (root / "covnet" / "broken.py").symlink_to("nowhere.py")
+    assert _identity_of(root) not in ("", clean)
