@@ -50,6 +50,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from covnet.code_identity import PACKAGES
 from covnet.processes import forked, interrupts
 
 __all__ = ["ProcessSpec", "Supervisor", "sigterm_raises_keyboard_interrupt"]
@@ -191,6 +192,9 @@ class Supervisor:
             return False
         root = Path(__file__).resolve().parents[2]  # the folder of covnet/, sensors/, ...
         for m in modules:
+            if m.partition(".")[0] not in PACKAGES:  # numpy, zenoh, ...: as they are found
+                importlib.import_module(m)
+                continue
             have = sys.modules.get(m.partition(".")[0])
             if have is not None and not _lies_under(have, root):
                 return False  # the program's own module of that name
