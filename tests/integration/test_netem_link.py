@@ -146,14 +146,15 @@ def test_loss_is_binomial_and_follows_the_seed(ns_pair):
 
 
 @pytest.mark.parametrize(
-    "strict", [False, pytest.param(True, marks=pytest.mark.slow, id="strict")], ids=str
+    "strict", [False, pytest.param(True, marks=pytest.mark.quiet, id="strict")], ids=str
 )
 def test_jitter_spreads_the_round_trip(ns_pair, strict):
     """U[5, 25] ms one way: never early, spread as drawn, on time in bulk.  Beside busy loops the
     userspace forwarder is sometimes late by more than a few ms (a max of 42 ms seen beside two
     busy loops; a p90 of 36 ms in a suite run on three workers beside other tests), so its
-    worst case, its p90 and the mean's tight band are the ``slow`` twin's (``strict``), run on a
-    quiet machine; the default run holds three quarters on time."""
+    worst case, its p90 and the mean's tight band are the ``quiet`` twin's (``strict``), run
+    alone on a quiet machine (``-m quiet -n 0``: beside the slow suite's other worker its p90
+    was 68 and 140 ms); the default run holds three quarters on time."""
     ns_a, ns_b = ns_pair
     spec = LinkSpec(DelayDist("uniform", low_s=0.005, high_s=0.025), reorder=1.0)
     with emulated_link(ns_a, ns_b, spec, LinkSpec(), seed=3, mode="userspace") as info:
