@@ -12,6 +12,7 @@ import os
 import signal
 import sys
 
+from covnet.code_identity import packages_root
 from covnet.processes import interrupts
 
 EXIT_INTERRUPTED = 130
@@ -79,7 +80,7 @@ def _forget_the_working_directory() -> None:
         cwd = os.path.realpath(os.getcwd())
     except OSError:  # a working directory deleted meanwhile
         return
-    root = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
+    root = str(packages_root())
     if here == cwd and here != root:
         del sys.path[0]
 

@@ -18,17 +18,24 @@ import functools
 import hashlib
 from pathlib import Path
 
-__all__ = ["PACKAGES", "code_identity", "other_code"]
+__all__ = ["PACKAGES", "code_identity", "other_code", "packages_root"]
 
 PACKAGES = ("covnet", "manager", "sensors", "world", "recorder")
 """The top-level packages of covnet (pyproject's ``packages.find``)."""
+
+
+def packages_root() -> Path:
+    """The folder that holds :data:`PACKAGES` (the clone, or ``site-packages`` for a wheel):
+    what the identity reads, and where the launcher and the nodes take covnet's node packages
+    from rather than the working directory's."""
+    return Path(__file__).resolve().parents[1]
 
 
 @functools.cache
 def code_identity() -> str:
     """The digest of this process's covnet source (read once: the modules a process runs are
     the ones it imported)."""
-    root = Path(__file__).resolve().parents[1]
+    root = packages_root()
     h = hashlib.sha256()
     for pkg in PACKAGES:
         for path in sorted((root / pkg).rglob("*.py")):

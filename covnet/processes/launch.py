@@ -50,7 +50,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from covnet.code_identity import PACKAGES
+from covnet.code_identity import PACKAGES, packages_root
 from covnet.processes import forked, interrupts
 
 __all__ = ["ProcessSpec", "Supervisor", "sigterm_raises_keyboard_interrupt"]
@@ -190,12 +190,13 @@ class Supervisor:
         modules = sorted({m for s in self._specs.values() for m in s.preload})
         if not modules or not forked.forkable():
             return False
-        root = Path(__file__).resolve().parents[2]  # the folder of covnet/, sensors/, ...
+        root = packages_root()
         for m in modules:
-            if m.partition(".")[0] not in PACKAGES:  # numpy, zenoh, ...: as they are found
+            top = m.partition(".")[0]
+            if top not in PACKAGES:  # numpy, zenoh, ...: as they are found
                 importlib.import_module(m)
                 continue
-            have = sys.modules.get(m.partition(".")[0])
+            have = sys.modules.get(top)
             if have is not None and not _lies_under(have, root):
                 return False  # the program's own module of that name
             saved = list(sys.path)

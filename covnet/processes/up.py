@@ -30,6 +30,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from covnet.code_identity import packages_root
 from covnet.errors import UpError
 from covnet.processes import interrupts, output
 from covnet.processes.launch import EXIT_NO_RUN, EXIT_RUN_FAILED, ProcessSpec, Supervisor
@@ -167,7 +168,7 @@ def node_env() -> dict[str, str]:
     an install (``python -m covnet`` found there), that folder is what the nodes' packages
     were found by: it goes first on their ``PYTHONPATH`` instead."""
     env = {"PYTHONSAFEPATH": "1"}
-    root = Path(__file__).resolve().parents[2]  # the folder holding covnet/, sensors/, ...
+    root = packages_root()
     try:
         here = Path.cwd().resolve()
     except OSError:  # a working directory deleted meanwhile: nothing to find there

@@ -52,17 +52,24 @@ def _two_hosts(tmp_path, paper_path, a_extra, b_extra):
     cfg = _short(paper_path, tmp_path)
     router = f"tcp/127.0.0.1:{free_port()}"
     common = [str(cfg), "--router", router, "--run", f"two{os.getpid()}", "--no-figures"]
+    a_out = tmp_path / "a"
+    return (*_run_hosts([*common, *a_extra], [*common, *b_extra], tmp_path), a_out)
+
+
+def _run_hosts(a_args, b_args, tmp_path):
+    """``covnet up ARGS --out TMP/a --nodes manager,world,recorder`` (``a_args``) and ``covnet
+    up ARGS --out TMP/b --nodes sensors`` (``b_args``) together, until both end:
+    ``(rc_a, output_a, rc_b, output_b)``."""
     a_out, b_out = tmp_path / "a", tmp_path / "b"
-    a = ["up", *common, *a_extra, "--out", str(a_out), "--nodes", "manager,world,recorder"]
-    mgr = CovnetProcess(a)
-    sens = CovnetProcess(["up", *common, *b_extra, "--out", str(b_out), "--nodes", "sensors"])
+    mgr = CovnetProcess(["up", *a_args, "--out", str(a_out), "--nodes", "manager,world,recorder"])
+    sens = CovnetProcess(["up", *b_args, "--out", str(b_out), "--nodes", "sensors"])
     try:
         rc_a = mgr.wait(timeout=90)
         rc_b = sens.wait(timeout=60)
     finally:
         mgr.stop()
         sens.stop()
-    return rc_a, mgr.output(), rc_b, sens.output(), a_out
+    return rc_a, mgr.output(), rc_b, sens.output()
 
 
 def test_hosts_without_run_meet_where_the_identity_agrees(tmp_path, paper_path):
@@ -73,20 +80,14 @@ def test_hosts_without_run_meet_where_the_identity_agrees(tmp_path, paper_path):
     router = f"tcp/127.0.0.1:{free_port()}"
     a_cfg = _short(paper_path, tmp_path, "a.yaml", network={"router": router})
     b_cfg = _short(paper_path, tmp_path, "b.yaml", network={"connect": router})
-    a_out, b_out = tmp_path / "a", tmp_path / "b"
-    mgr = CovnetProcess(["up", str(a_cfg), "--metric", "spectral", "--no-figures", "--out",
-                         str(a_out), "--nodes", "manager,world,recorder"])  # fmt: skip
-    sens = CovnetProcess(["up", str(b_cfg), "--out", str(b_out), "--nodes", "sensors"])
-    try:
-        rc_a = mgr.wait(timeout=90)
-        rc_b = sens.wait(timeout=60)
-    finally:
-        mgr.stop()
-        sens.stop()
-    assert (rc_a, rc_b) == (0, 0), (mgr.output(), sens.output())
+    a_out = tmp_path / "a"
+    rc_a, said_a, rc_b, said_b = _run_hosts(
+        [str(a_cfg), "--metric", "spectral", "--no-figures"], [str(b_cfg)], tmp_path
+    )
+    assert (rc_a, rc_b) == (0, 0), (said_a, said_b)
     info = json.loads((a_out / "run.json").read_text())
     assert info["status"] == "completed" and info["run_id"].startswith("paper-"), info
-    assert f"run {info['run_id']}:" in sens.output(), sens.output()
+    assert f"run {info['run_id']}:" in said_b, said_b
     assert_nothing_left(a_out)
 
 
