@@ -32,6 +32,8 @@ lockstep) or outside the run (``bad_scan``), a truth outside the run, and a neig
 that fails the node's validation gate
 (``outside_gate``, :meth:`covnet.covariance_control.engine.ScanEngine.verdict`): among a
 neighbour's tracks of a scan the node fuses the first that passes it, the others are counted.
+A track the node never took is counted when it is dropped: it came after the node had fused
+its scan (``late``) or is of a neighbour the scan did not enable (``not_enabled``).
 """
 
 from __future__ import annotations
@@ -107,6 +109,7 @@ class _Inbox:
         self.live_sub = bus.watch_liveliness(msg.alive_keyexpr(run_id))  # every role
         self.statuses: set[tuple[str, int, int]] = set()
         self.tracks: dict[tuple[str, int, int], list[msg.LocalTrack]] = {}
+        self.wanted: dict[tuple[int, int], frozenset[str]] = {}  # a fused scan's neighbours
         self.truth: dict[int, np.ndarray] = {}
         self.alive: set[str] = set()
 
@@ -161,9 +164,18 @@ class _Inbox:
         scans (the next scan needs this one's statuses) and the truths of earlier scans, but
         the first :data:`~sensors.protocol.TRUTHS_NEAR` (the truth is every episode's, and the
         world may send the next episode's first window before this episode ends).  They were
-        kept for the whole run: 2.3 kB a scan."""
+        kept for the whole run: 2.3 kB a scan.
+
+        A track dropped here was never taken: it came after the node fused its scan (``late``)
+        or from a neighbour the scan did not enable (``not_enabled``, as the fusion centre
+        counts a measurement it did not ask for); each is counted.  Before, they went
+        uncounted (a forged track of a scan already fused was neither fused nor counted)."""
         for key in [key for key in self.tracks if key[1:] < (e, k)]:
-            del self.tracks[key]
+            n, scan = key[0], key[1:]
+            why = "late" if n in self.wanted.get(scan, ()) else "not_enabled"
+            self.stats.rejected[why] += len(self.tracks.pop(key))
+        for scan in [scan for scan in self.wanted if scan < (e, k)]:
+            del self.wanted[scan]
         self.statuses.difference_update([s for s in self.statuses if s[1:] < (e, k)])
         for old in [j for j in self.truth if TRUTHS_NEAR < j < k]:
             del self.truth[old]
@@ -402,6 +414,7 @@ def run(
                     m = passing.take((n, e, k), stats.rejected)
                     if m is not None:
                         got[n] = m
+                inbox.wanted[(e, k)] = frozenset(want)
                 out = engine.report(plan, engine.fuse(plan, got), got)
                 fused = out.tracks[0][1]
                 stats.tracks_fused += len(out.fused)
