@@ -47,6 +47,11 @@ class KindBase:
     ) -> str | None:
         return None
 
+    def older_hashes(self, cfg: Any) -> tuple[str, ...]:
+        """Hashes older covnets gave this config (none here: the kind's normalised form never
+        changed for a config it already took)."""
+        return ()
+
     def mcap_problem(self, cfg: Any) -> str | None:
         return None
 

@@ -34,6 +34,7 @@ __all__ = [
     "apply_named_options",
     "apply_options",
     "config_hash",
+    "config_hashes",
     "from_dict",
     "get",
     "load",
@@ -86,6 +87,11 @@ class Kind(Protocol):
 
     def normalised(self, cfg: Any) -> dict[str, Any]:
         """The config with every default filled in, as JSON-able data (what is hashed)."""
+        ...
+
+    def older_hashes(self, cfg: Any) -> tuple[str, ...]:
+        """The hashes older covnets gave ``cfg`` where its normalised form changed since
+        (:func:`config_hashes`)."""
         ...
 
     def episodes(self, cfg: Any) -> list[str]:
@@ -207,6 +213,13 @@ def load(path: str | Path) -> tuple[Kind, Any]:
 def config_hash(cfg: Any) -> str:
     """The config hash of a config of any kind (of its normalised form)."""
     return hash_of(of(cfg).normalised(cfg))
+
+
+def config_hashes(cfg: Any) -> tuple[str, ...]:
+    """Every hash a run of ``cfg`` may carry: :func:`config_hash` first, then those older
+    covnets gave it (``Kind.older_hashes``: a run directory or recording they made is still
+    this config's)."""
+    return (config_hash(cfg), *of(cfg).older_hashes(cfg))
 
 
 def apply_options(

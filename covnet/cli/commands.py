@@ -292,7 +292,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
         )
     # a corrupt config.json is a ConfigError (exit 2), as for replay
     kind, cfg = kinds.from_dict(read_yaml(run_dir / CONFIG), str(run_dir / CONFIG))
-    stale = config_mismatch(run_dir, kinds.config_hash(cfg))
+    stale = config_mismatch(run_dir, kinds.config_hashes(cfg))
     if stale is not None:
         raise UsageError(stale)
     # the figures go into the directory: one on a read-only file system is named now (exit 2),

@@ -73,6 +73,7 @@ class CovarianceControl(KindBase):
     run_messages = staticmethod(lazy(_VISUAL, "run_messages"))
     mcap_problem = staticmethod(lazy(_VISUAL, "mcap_problem"))
     check_notes = staticmethod(lazy("covnet.covariance_control.sweep", "check_notes"))
+    older_hashes = staticmethod(config.older_hashes)
 
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)

@@ -187,7 +187,7 @@ def read_run(run_dir: str | Path) -> list[Episode]:
         raise UsageError(f"{d}: not a run directory (no {CONFIG}, which names its kind)")
     # a corrupt or invalid config.json is a ConfigError (exit 2), as for covnet plot
     kind, cfg = kinds.from_dict(read_yaml(d / CONFIG), str(d / CONFIG))
-    stale = config_mismatch(d, kinds.config_hash(cfg))
+    stale = config_mismatch(d, kinds.config_hashes(cfg))
     if stale is not None:
         raise UsageError(stale)
     episodes: list[Episode] = kind.tracks(cfg, d)

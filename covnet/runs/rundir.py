@@ -40,7 +40,7 @@ import threading
 import time
 import zipfile
 import zlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
@@ -627,10 +627,14 @@ def read_json(path: Path) -> Any:
 HASHED_RESULTS = (SUMMARY, "association.json", "montecarlo.json", "results.json")
 
 
-def config_mismatch(run_dir: Path, config_hash: str) -> str | None:
-    """Why ``run_dir``'s ``config.json`` (whose hash is ``config_hash``) is not the config its
-    results were computed from (None: it is, or no result file says): ``config.json`` edited
-    after the run, as ``covnet replay`` finds against the recording."""
+def config_mismatch(run_dir: Path, config_hashes: Sequence[str]) -> str | None:
+    """Why ``run_dir``'s ``config.json`` (whose hashes are ``config_hashes``:
+    :func:`covnet.kinds.config_hashes`, today's first) is not the config its results were
+    computed from (None: it is, or no result file says): ``config.json`` edited after the run,
+    as ``covnet replay`` finds against the recording."""
+    if isinstance(config_hashes, str):  # one hash, not its characters
+        config_hashes = (config_hashes,)
+    config_hash = config_hashes[0]
     for name in HASHED_RESULTS:
         path = run_dir / name
         if not path.is_file():
@@ -639,7 +643,7 @@ def config_mismatch(run_dir: Path, config_hash: str) -> str | None:
             stored = read_json(path).get("config_hash")
         except (ValueError, AttributeError):
             return f"{path}: not a readable result file (not a JSON object)"
-        if stored is not None and stored != config_hash:
+        if stored is not None and stored not in config_hashes:
             return (
                 f"{run_dir / CONFIG}: not the config of this run's results (config hash "
                 f"{config_hash}, {name}: {stored}); was it edited after the run? Put back the "

@@ -90,6 +90,7 @@ __all__ = [
     "SensorSpec",
     "SweepSpec",
     "config_hash",
+    "older_hashes",
     "from_dict",
     "load",
     "normalised",
@@ -133,12 +134,38 @@ def normalised(sc: Scenario) -> dict[str, Any]:
     """The config with every default filled in, as plain JSON-able data (except
     ``network.security`` while it is all off, ``evaluation`` while it is the default and the
     allocation fields added later while at their defaults, so that configs without them keep
-    their hash).
+    their hash).  ``allocation.required`` and ``allocation.excluded`` are sets: they are
+    listed in the order of ``sensors:``, however the file wrote them, so that one config has
+    one hash (:func:`older_hashes` gives the hash covnet gave it before).
 
     A config without ``targets:`` leaves out every key the many-target scenario added (they
     hold their defaults: the semantic checks see to it), so that its hash is what it was; one
     with ``targets:`` leaves out the one-target ``target`` and ``desired`` it does not use, and
     says ``network.latency.missed_command: off``, what it does."""
+    return _in_sensor_order(_as_written(sc))
+
+
+def _in_sensor_order(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` (a normalised config) with ``allocation.required`` and ``excluded`` in the
+    order of its ``sensors:`` (an id of no sensor, which the checks refuse, last)."""
+    order = {s["id"]: i for i, s in enumerate(data["sensors"])}
+    allocation = data["allocation"]
+    for key in ("required", "excluded"):
+        allocation[key] = sorted(allocation[key], key=lambda sid: order.get(sid, len(order)))
+    return data
+
+
+def older_hashes(sc: Scenario) -> tuple[str, ...]:
+    """The config hashes covnet gave ``sc`` before :func:`normalised` put ``required`` and
+    ``excluded`` in the order of ``sensors:`` (they hashed the lists as written), where they
+    differ from :func:`config_hash`: a run directory or recording made then is still this
+    config's (``covnet plot``, ``export``, ``replay``)."""
+    h = hash_of(_as_written(sc))
+    return () if h == config_hash(sc) else (h,)
+
+
+def _as_written(sc: Scenario) -> dict[str, Any]:
+    """:func:`normalised` with ``required`` and ``excluded`` as the file lists them."""
     later = ("evaluation", *(f"allocation.{f}" for f in _ADDED))
     if sc.sweep is not None:  # the surveillance grid, added later: left out while unset
         later = (*later, "sweep.search_weight")
