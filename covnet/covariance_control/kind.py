@@ -73,7 +73,12 @@ class CovarianceControl(KindBase):
     run_messages = staticmethod(lazy(_VISUAL, "run_messages"))
     mcap_problem = staticmethod(lazy(_VISUAL, "mcap_problem"))
     check_notes = staticmethod(lazy("covnet.covariance_control.sweep", "check_notes"))
-    older_hashes = staticmethod(config.older_hashes)
+
+    def older_hashes(self, cfg: Any) -> tuple[str, ...]:
+        """The hash of ``required`` and ``excluded`` as written (:func:`~covnet.
+        covariance_control.config.older_hashes`)."""
+        result: tuple[str, ...] = config.older_hashes(cfg)
+        return result
 
     def episodes(self, cfg: Any) -> list[str]:
         return list(cfg.allocation.metrics)
