@@ -10,6 +10,7 @@ write_network_run`).
 
 from __future__ import annotations
 
+import collections
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -290,6 +291,43 @@ class Gains:
         # = fused_covariance(model, P_pred, [(j, model.R[j]) ...]), step by step
         gains, P = gains_sequential(P_pred, model.H, [model.R[j] for j in order])
         return Gains(order, tuple(model.R[j].tobytes() for j in order), tuple(gains), P)
+
+
+class GainsMemo:
+    """:meth:`Gains.of` for one model, remembering the last :attr:`SIZE` results by the bytes
+    of ``P⁻`` and the subset.
+
+    The covariance recursion ``P⁻ -> P⁺ -> P⁻`` does not depend on the measured values, and in
+    floating point it reaches a steady state *bit for bit*: with the same subset every scan,
+    ``P⁻`` repeats exactly after some scans, on a cycle of a few scans (the bench networks,
+    every sensor on: scan 80 -> 81 at 8 sensors, a cycle of 9 scans from scan 86 at 64, of 20
+    from scan 88 at 256).  From then on every scan's gains and ``P⁺`` are ones already computed,
+    and the same input gives the same bits, so they are returned again instead of computed
+    again (256 sequential updates, about 3 ms a scan at 256 sensors).  The arrays returned are
+    read-only: shared between scans, they must never be written in place."""
+
+    SIZE = 32
+
+    def __init__(self, model: Model) -> None:
+        self.model = model
+        self._memo: collections.OrderedDict[tuple[bytes, tuple[int, ...]], Gains] = (
+            collections.OrderedDict()
+        )
+
+    def of(self, P_pred: np.ndarray, subset: tuple[int, ...]) -> Gains:
+        key = (np.ascontiguousarray(P_pred, dtype=np.float64).tobytes(), tuple(sorted(subset)))
+        memo = self._memo
+        found = memo.get(key)
+        if found is not None:
+            memo.move_to_end(key)
+            return found
+        gains = Gains.of(self.model, P_pred, subset)
+        for a in (*gains.K, gains.P_post):
+            a.flags.writeable = False
+        memo[key] = gains
+        if len(memo) > self.SIZE:
+            memo.popitem(last=False)
+        return gains
 
 
 @functools.lru_cache(maxsize=8)

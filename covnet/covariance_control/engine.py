@@ -63,6 +63,7 @@ from covnet.covariance_control.centre import (
     CentreFilter,
     EpisodeLog,
     Gains,
+    GainsMemo,
     ManagerResult,
     as_local_track,
     position_of,
@@ -135,6 +136,7 @@ class _OneTarget:
         self.centre = CentreFilter(sc, model)
         self.spec: _Speculation | None = None
         self.gains: Gains | None = None
+        self.gains_memo = GainsMemo(model)
         self.gate: tuple[Plan, np.ndarray, np.ndarray] | None = None  # the scan's H x⁻, H P⁻ Hᵀ
         self.log = EpisodeLog(metric)
 
@@ -158,7 +160,7 @@ class _OneTarget:
         if self.rule.tracks or self.slow:
             return
         pred, alloc, unavailable = plan.detail
-        self.gains = Gains.of(self.model, pred.P, alloc.subset)
+        self.gains = self.gains_memo.of(pred.P, alloc.subset)
         k_next = plan.k + 1
         self.spec = None
         if k_next <= self.model.scans:
