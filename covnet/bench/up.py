@@ -129,10 +129,13 @@ def probe(
     command_bytes: int,
     measurement_bytes: int,
     threads: bool = False,
+    taps: int = 0,
 ) -> dict[str, Any]:
     """One closed-loop probe run (:mod:`covnet.bench.zenoh_probe`): ``n_sensors`` responders,
     ``per_process`` to a process (``threads``: a thread each, else one loop per process);
-    its ``RESULT``."""
+    its ``RESULT``.  ``taps``: that many bare recording subscribers beside it (what a recorder
+    of every message costs the probe at least); ``tap_messages`` then says how many messages
+    each kept."""
     py = sys.executable
     run_id = new_run_id()
     listen = f"tcp/127.0.0.1:{free_port()}"
@@ -141,9 +144,15 @@ def probe(
             "commander",
             [py, "-m", "covnet.bench.zenoh_probe", "commander", "--listen", listen, "--run", run_id,
              "--sensors", str(n_sensors), "--scans", str(scans),
-             "--command-bytes", str(command_bytes)],
+             "--command-bytes", str(command_bytes), "--taps", str(taps)],
         ),
     ]  # fmt: skip
+    for i in range(taps):
+        specs.append(ProcessSpec(
+            f"tap-{i}",
+            [py, "-m", "covnet.bench.zenoh_probe", "tap", "--connect", listen, "--run", run_id,
+             "--id", str(i)],
+        ))  # fmt: skip
     ids = [str(i) for i in range(n_sensors)]
     for name, hosted in sensor_hosts(ids, per_process):
         argv = [
@@ -164,12 +173,19 @@ def probe(
     with Supervisor(specs, on_line=lambda name, line: None) as sup:
         rc = sup.wait("commander", timeout=600)
         lines = sup.output("commander")
+        kept = []
+        for i in range(taps):
+            sup.wait(f"tap-{i}", timeout=30)
+            said = [ln for ln in sup.output(f"tap-{i}") if ln.startswith("TAP ")]
+            kept.append(int(said[-1].split()[1]) if said else None)
     cpu = _children_cpu_s() - cpu0
     result = next((ln for ln in lines if ln.startswith("RESULT ")), None)
     if rc != 0 or result is None:
         raise RuntimeError(f"the zenoh probe failed (status {rc}): {lines[-20:]}")
     out: dict[str, Any] = json.loads(result[len("RESULT ") :])
     out["cpu_ms_per_scan"] = 1e3 * cpu / max(scans, 1)
+    if taps:
+        out["tap_messages"] = kept
     return out
 
 

@@ -21,6 +21,9 @@ work cost on top of the transport.
 ``python -m covnet.bench.zenoh_probe responders --connect EP --run R --id 0 --id 1 ...``: serves
 until
 the commander says stop (or leaves).
+``python -m covnet.bench.zenoh_probe tap --connect EP --run R``: a bare recording subscriber of
+every message (the commander's ``--taps 1`` waits for it), ``TAP {count}`` at the stop: what a
+recorder process costs the probe at the least (:func:`covnet.bench.up.probe`, ``taps``).
 """
 
 from __future__ import annotations
@@ -89,12 +92,12 @@ def commander(args: argparse.Namespace) -> int:
         token = bus.declare_token(f"probe/{run}/alive/commander")
         up: set[str] = set()
         deadline = time.monotonic() + args.ready_timeout
-        while len(up) < n:
+        while len(up) < n + args.taps:
             ev = alive.recv(timeout=0.1)
             if ev is not None and not ev.key.endswith("/commander"):
                 (up.add if ev.alive else up.discard)(ev.key)
             if time.monotonic() > deadline:
-                print(f"probe: only {len(up)} of {n} responders up", file=sys.stderr)
+                print(f"probe: only {len(up)} of {n + args.taps} up", file=sys.stderr)
                 return 1
         time.sleep(0.2)  # the responders' subscriptions reach the router
         print("READY", flush=True)
@@ -188,6 +191,36 @@ def responders(args: argparse.Namespace) -> int:
     return 1 if errors else 0
 
 
+def tap(args: argparse.Namespace) -> int:
+    """A bare recording subscriber: every message of the run (``probe/RUN/**``), stamped on
+    arrival and kept in memory, drained in bursts as covnet's recorder drains its own
+    (:mod:`recorder.node`); nothing decoded, nothing written.  Its cost on the probe is the
+    least any recorder process of every message can cost."""
+    from recorder.node import BATCH_S
+
+    stop = threading.Event()
+    kept: list[tuple[str, bytes, int]] = []
+    with _open("client", args.connect, stop) as bus:
+        sub = bus.subscribe_stamped(f"probe/{args.run}/**")
+        token = bus.declare_token(f"probe/{args.run}/alive/tap-{args.id}")
+        while True:
+            s = sub.recv(timeout=0.5)
+            if s is None:
+                continue
+            time.sleep(BATCH_S)
+            done = False
+            while s is not None:
+                kept.append((s.key, s.payload, s.t_recv_ns))
+                if s.key.endswith("/cmd") and _HEAD.unpack_from(s.payload)[0] == 0:
+                    done = True
+                s = sub.try_recv()
+            if done:
+                break
+        token.undeclare()
+    print(f"TAP {len(kept)}", flush=True)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="covnet.bench.zenoh_probe", description=__doc__.splitlines()[0]
@@ -201,6 +234,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     c.add_argument("--command-bytes", type=int, default=64)
     c.add_argument("--ready-timeout", type=float, default=60.0)
     c.add_argument("--scan-timeout", type=float, default=10.0)
+    c.add_argument("--taps", type=int, default=0, help="recording taps to wait for")
+    t = sub.add_parser("tap")
+    t.add_argument("--connect", required=True)
+    t.add_argument("--run", required=True)
+    t.add_argument("--id", default="0")
     r = sub.add_parser("responders")
     r.add_argument("--connect", required=True)
     r.add_argument("--run", required=True)
@@ -208,7 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     r.add_argument("--measurement-bytes", type=int, default=146)
     r.add_argument("--threads", action="store_true", help="a thread per responder")
     args = p.parse_args(argv)
-    return commander(args) if args.role == "commander" else responders(args)
+    return {"commander": commander, "responders": responders, "tap": tap}[args.role](args)
 
 
 if __name__ == "__main__":

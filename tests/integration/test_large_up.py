@@ -73,6 +73,17 @@ def test_bench_up_sizes_against_the_probe(monkeypatch, capsys, paper_path):
         assert 0 < r["probe_p50_ms"] <= r["probe_p99_ms"]
 
 
+def test_the_probe_with_a_recording_tap_keeps_every_message():
+    """The probe with a bare recording subscriber beside it (``taps=1``): it runs its scans and
+    the tap keeps every message of the run, each command (and the stop) and every answer."""
+    from covnet.bench.up import probe
+
+    n, scans = 6, 30
+    out = probe(n, 3, scans, command_bytes=60, measurement_bytes=140, taps=1)
+    assert out["scans"] == scans and out["scans_per_s"] > 0
+    assert out["tap_messages"] == [scans * (1 + n) + 1]
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_256_sensors_become_ready_and_equal_run(tmp_path, paper_path):
