@@ -12,7 +12,6 @@ import os
 import signal
 import sys
 
-from covnet.code_identity import packages_root
 from covnet.processes import interrupts
 
 EXIT_INTERRUPTED = 130
@@ -80,13 +79,18 @@ def _forget_the_working_directory() -> None:
         cwd = os.path.realpath(os.getcwd())
     except OSError:  # a working directory deleted meanwhile
         return
+    # imported here, after the handlers (:func:`entry`): its imports are start-up time
+    from covnet.code_identity import packages_root
+
     root = str(packages_root())
     if here == cwd and here != root:
         del sys.path[0]
 
 
-def entry() -> int:
-    """The ``covnet`` command: :func:`covnet.cli.app.main` behind handlers installed first."""
+def entry(*, as_module: bool = False) -> int:
+    """The ``covnet`` command: :func:`covnet.cli.app.main` behind handlers installed first
+    (``as_module``: run as ``python -m covnet``, whose working directory leaves ``sys.path``
+    before any of the command's imports: :func:`_forget_the_working_directory`)."""
     _reopen_closed_standard_streams()
     _never_fail_to_print()
     # SIGINT and SIGTERM raise KeyboardInterrupt; one inside an import's weakref callback is
@@ -96,6 +100,8 @@ def entry() -> int:
     status: int | None = None  # None: an error of covnet's own, raised on (a traceback, 1)
     try:
         try:
+            if as_module:
+                _forget_the_working_directory()
             # imported after the handlers (start-up: an interrupt during the imports is answered)
             from covnet.cli.app import main
 
@@ -120,5 +126,4 @@ def entry() -> int:
 
 
 if __name__ == "__main__":
-    _forget_the_working_directory()
-    sys.exit(entry())
+    sys.exit(entry(as_module=True))

@@ -15,7 +15,6 @@ it is not its own (:mod:`covnet.runs.replay_kit`)."""
 from __future__ import annotations
 
 import functools
-import hashlib
 from pathlib import Path
 
 __all__ = ["PACKAGES", "code_identity", "other_code", "packages_root"]
@@ -35,6 +34,8 @@ def packages_root() -> Path:
 def code_identity() -> str:
     """The digest of this process's covnet source (read once: the modules a process runs are
     the ones it imported)."""
+    import hashlib  # here: python -m covnet imports this module before its signal handlers
+
     root = packages_root()
     h = hashlib.sha256()
     for pkg in PACKAGES:

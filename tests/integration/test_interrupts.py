@@ -192,6 +192,29 @@ def _launchers() -> dict[str, list[str]]:
     return {"-m covnet": [sys.executable, "-m", "covnet"], "script": [sys.executable, "-c", script]}
 
 
+def test_the_command_imports_nothing_more_before_its_signal_handlers():
+    """What ``covnet`` (``python -m covnet`` and the console script alike) imports before
+    :func:`covnet.__main__.entry` installs the handlers is a window in which a Ctrl-C is a
+    traceback: only covnet's package and its interrupt handling.  ``covnet.code_identity``
+    there (hashlib and OpenSSL's library, for ``packages_root``) made it wide enough for the
+    start-up Ctrl-C test to land in it beside two busy loops (exit -2, a KeyboardInterrupt
+    traceback)."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import sys; import covnet.__main__; "
+        "print(sorted(m for m in sys.modules if m.startswith('covnet')), 'hashlib' in sys.modules)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert out == (
+        "['covnet', 'covnet.__main__', 'covnet.blas_kernel', 'covnet.processes', "
+        "'covnet.processes.interrupts'] False"
+    ), out
+
+
 def _covnet_began(pid: int) -> bool:
     """covnet's own first import has begun: ``covnet/__init__`` loads ctypes (to pin the BLAS
     kernel) as its first act, which nothing before it in the interpreter's start-up loads.
