@@ -39,6 +39,10 @@ from typing import Any
 
 __all__ = ["command_bytes", "main", "measurement_bytes"]
 
+#: how long the tap lets a burst gather before it drains it (the recorder's ``BATCH_S``, which
+#: covnet may not import: a process package)
+TAP_BURST_S = 0.005
+
 #: the scan number heads every payload (``0``: stop)
 _HEAD = struct.Struct("<q")
 
@@ -196,8 +200,6 @@ def tap(args: argparse.Namespace) -> int:
     arrival and kept in memory, drained in bursts as covnet's recorder drains its own
     (:mod:`recorder.node`); nothing decoded, nothing written.  Its cost on the probe is the
     least any recorder process of every message can cost."""
-    from recorder.node import BATCH_S
-
     stop = threading.Event()
     kept: list[tuple[str, bytes, int]] = []
     with _open("client", args.connect, stop) as bus:
@@ -207,7 +209,7 @@ def tap(args: argparse.Namespace) -> int:
             s = sub.recv(timeout=0.5)
             if s is None:
                 continue
-            time.sleep(BATCH_S)
+            time.sleep(TAP_BURST_S)
             done = False
             while s is not None:
                 kept.append((s.key, s.payload, s.t_recv_ns))

@@ -77,7 +77,10 @@ def test_the_probe_with_a_recording_tap_keeps_every_message():
     """The probe with a bare recording subscriber beside it (``taps=1``): it runs its scans and
     the tap keeps every message of the run, each command (and the stop) and every answer."""
     from covnet.bench.up import probe
+    from covnet.bench.zenoh_probe import TAP_BURST_S
+    from recorder.node import BATCH_S
 
+    assert TAP_BURST_S == BATCH_S  # it drains as the recorder does
     n, scans = 6, 30
     out = probe(n, 3, scans, command_bytes=60, measurement_bytes=140, taps=1)
     assert out["scans"] == scans and out["scans_per_s"] > 0
