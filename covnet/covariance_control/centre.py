@@ -14,7 +14,7 @@ import collections
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 import numpy as np
 
@@ -205,6 +205,7 @@ class CentreFilter:
         self.late = LateHandler(sc, model) if slow else None
         # allocation.account_for_loss on slow links: decide on the expected information
         self.alloc_model, self.delivery = model, None
+        self.decisions: DecisionMemo | None = None
         if slow and sc.allocation.account_for_loss:
             # start-up: the link model only for slow links that account for loss
             from covnet.covariance_control.links import delivery_probabilities, loss_aware_model
@@ -219,7 +220,9 @@ class CentreFilter:
         self, P_pred: np.ndarray, k: int, metric: str, unavailable: frozenset[int]
     ) -> Allocation:
         if self.mirror is None:
-            return decide(self.alloc_model, P_pred, k, metric, unavailable)
+            if self.decisions is None or self.decisions.model is not self.alloc_model:
+                self.decisions = DecisionMemo(self.alloc_model)
+            return self.decisions.decide(P_pred, k, metric, unavailable)
         P_loc = self.mirror.predicted(self.model)[1]
         return decide_rule(
             self.rule, self.model, P_pred, P_loc, k, metric, unavailable, delivery=self.delivery
@@ -293,6 +296,35 @@ class Gains:
         return Gains(order, tuple(model.R[j].tobytes() for j in order), tuple(gains), P)
 
 
+_K = TypeVar("_K")
+_V = TypeVar("_V")
+
+
+class _Last(Generic[_K, _V]):
+    """The last ``size`` values put, by key (the least recently used goes first)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.items: collections.OrderedDict[_K, _V] = collections.OrderedDict()
+
+    def get(self, key: _K) -> _V | None:
+        found = self.items.get(key)
+        if found is not None:
+            self.items.move_to_end(key)
+        return found
+
+    def put(self, key: _K, value: _V) -> _V:
+        self.items[key] = value
+        if len(self.items) > self.size:
+            self.items.popitem(last=False)
+        return value
+
+
+def _read_only(*arrays: np.ndarray) -> None:
+    for a in arrays:
+        a.flags.writeable = False
+
+
 class GainsMemo:
     """:meth:`Gains.of` for one model, remembering the last :attr:`SIZE` results by the bytes
     of ``P⁻`` and the subset.
@@ -310,24 +342,53 @@ class GainsMemo:
 
     def __init__(self, model: Model) -> None:
         self.model = model
-        self._memo: collections.OrderedDict[tuple[bytes, tuple[int, ...]], Gains] = (
-            collections.OrderedDict()
-        )
+        self._memo: _Last[tuple[bytes, tuple[int, ...]], Gains] = _Last(self.SIZE)
 
     def of(self, P_pred: np.ndarray, subset: tuple[int, ...]) -> Gains:
-        key = (np.ascontiguousarray(P_pred, dtype=np.float64).tobytes(), tuple(sorted(subset)))
-        memo = self._memo
-        found = memo.get(key)
+        key = (_bytes(P_pred), tuple(sorted(subset)))
+        found = self._memo.get(key)
         if found is not None:
-            memo.move_to_end(key)
             return found
         gains = Gains.of(self.model, P_pred, subset)
-        for a in (*gains.K, gains.P_post):
-            a.flags.writeable = False
-        memo[key] = gains
-        if len(memo) > self.SIZE:
-            memo.popitem(last=False)
-        return gains
+        _read_only(*gains.K, gains.P_post)
+        return self._memo.put(key, gains)
+
+
+class DecisionMemo:
+    """:func:`~covnet.covariance_control.model.decide` for one model, remembering the last
+    :attr:`SIZE` decisions by the bytes of ``P⁻`` and ``P_d(t_k)``, the metric and the sensors
+    unavailable, where a decision is a function of those alone: the covariance-control policy
+    (a baseline policy may depend on the scan itself) and no ``allocation.time_limit_s`` (a
+    search stopped by the clock may stop elsewhere next time; a node limit is deterministic).
+    In a steady state (:class:`GainsMemo`) the next scan's decision is then one already made:
+    the same subset, value and certificate, bit for bit.  The decision's ``P`` is read-only."""
+
+    SIZE = 32
+
+    def __init__(self, model: Model) -> None:
+        self.model = model
+        self.on = model.policy == "covariance_control" and model.search.time_limit_s is None
+        self._memo: _Last[tuple[bytes, bytes, str, frozenset[int]], Allocation] = _Last(
+            self.SIZE
+        )
+
+    def decide(
+        self, P_pred: np.ndarray, k: int, metric: str, unavailable: frozenset[int]
+    ) -> Allocation:
+        if not self.on:
+            return decide(self.model, P_pred, k, metric, unavailable)
+        key = (_bytes(P_pred), _bytes(self.model.desired(k)), metric, unavailable)
+        found = self._memo.get(key)
+        if found is not None:
+            return found
+        alloc = decide(self.model, P_pred, k, metric, unavailable)
+        _read_only(alloc.P)
+        return self._memo.put(key, alloc)
+
+
+def _bytes(a: np.ndarray) -> bytes:
+    """The float64 bytes of ``a`` (C order): a key equal for equal arrays, bit for bit."""
+    return np.ascontiguousarray(a, dtype=np.float64).tobytes()
 
 
 @functools.lru_cache(maxsize=8)

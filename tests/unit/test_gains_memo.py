@@ -1,13 +1,14 @@
-"""The fusion centre's gains memo (:class:`covnet.covariance_control.centre.GainsMemo`): the same
-bits as computing every scan's gains, and computed once a steady state repeats them."""
+"""The fusion centre's gains and decision memos (:class:`covnet.covariance_control.centre.
+GainsMemo`, :class:`~covnet.covariance_control.centre.DecisionMemo`): the same bits as
+computing every scan afresh, and computed once a steady state repeats them."""
 
 import numpy as np
 import pytest
 import yaml
 
 from covnet import kinds
-from covnet.covariance_control.centre import Gains, GainsMemo
-from covnet.covariance_control.model import build_model, predict_cov
+from covnet.covariance_control.centre import DecisionMemo, Gains, GainsMemo
+from covnet.covariance_control.model import build_model, decide, predict_cov
 from covnet.covariance_control.network_sizes import bench_config
 from tests.conftest import PAPER
 
@@ -54,4 +55,48 @@ def test_the_memo_keeps_its_size():
     memo = GainsMemo(model)
     for i in range(GainsMemo.SIZE + 5):
         memo.of(np.eye(4) * (1.0 + i), (0,))
-    assert len(memo._memo) == GainsMemo.SIZE
+    assert len(memo._memo.items) == GainsMemo.SIZE
+
+
+def _same(a, b):
+    return (a.subset, a.value, a.P.tobytes(), a.n_feasible, a.n_evaluated, a.lower_bound,
+            a.gap) == (b.subset, b.value, b.P.tobytes(), b.n_feasible, b.n_evaluated,
+                       b.lower_bound, b.gap)  # fmt: skip
+
+
+@pytest.mark.parametrize("metric", ["spectral", "abs_trace", "svd"])
+def test_the_decision_memo_decides_every_scan_bit_for_bit(paper, metric):
+    """The paper scenario's 100 scans (the exact search over 8 sensors, the desired schedule
+    changing at scan 51, a failed sensor at scans 30-40): every decision of the memo is the one
+    made afresh, field for field; the steady state's are remembered ones."""
+    model = build_model(paper)
+    memo = DecisionMemo(model)
+    assert memo.on
+    P = predict_cov(model, np.asarray(model.P0))
+    reused, seen = 0, set()
+    for k in range(1, model.scans + 1):
+        unavailable = frozenset({2}) if 30 <= k <= 40 else frozenset()
+        got = memo.decide(P, k, metric, unavailable)
+        assert _same(got, decide(model, P, k, metric, unavailable)), k
+        reused += id(got) in seen
+        seen.add(id(got))
+        P = predict_cov(model, Gains.of(model, P, got.subset).P_post)
+    assert reused > 0
+    with pytest.raises(ValueError, match="read-only"):
+        got.P[0, 0] = 1.0
+
+
+def test_decisions_that_depend_on_more_are_not_remembered(paper):
+    """A search stopped by the clock, or a baseline policy, decides afresh every time."""
+    from covnet.covariance_control.config import normalised, with_overrides
+
+    for allocation in ({"time_limit_s": 1.0, "search": "bounded"}, {"policy": "round_robin",
+                                                                     "budget": 2}):  # fmt: skip
+        sc = with_overrides(paper, allocation={**normalised(paper)["allocation"], **allocation})
+        model = build_model(sc)
+        memo = DecisionMemo(model)
+        assert not memo.on
+        P = predict_cov(model, np.asarray(model.P0))
+        a, b = memo.decide(P, 5, "spectral", frozenset()), memo.decide(P, 5, "spectral",
+                                                                         frozenset())  # fmt: skip
+        assert a is not b
