@@ -34,7 +34,7 @@ def packages_root() -> Path:
 def code_identity() -> str:
     """The digest of this process's covnet source (read once: the modules a process runs are
     the ones it imported)."""
-    import hashlib  # here: python -m covnet imports this module before its signal handlers
+    import hashlib  # start-up: not before the command's signal handlers (covnet/__main__)
 
     root = packages_root()
     h = hashlib.sha256()
