@@ -58,6 +58,14 @@ LINGER_S = 1.0
 """Wind-down: longest time to keep recording after the stop (while the manager is up)."""
 BATCH_S = 0.005
 """After a message wakes the loop: how long to let the burst gather before writing it."""
+OWN_CLOCK_S = 60.0
+"""A message's ``t_sent_ns`` is taken for a stamp of the recorder's clock (and is the
+recording's ``publish_time``) only when it is at most this long before the message's receipt
+and not after it: on one host ``CLOCK_MONOTONIC`` is shared and a message is received after it
+was sent, within far less.  Another host's clock counts from its own boot (the hosts' uptimes
+apart: hours, days), so its stamps land outside; the recording then gives the receive time as
+``publish_time``, what MCAP asks for a message whose publish time is not known (the payload
+keeps its stamp).  Two hosts booted within a minute of each other are not told apart."""
 DRAW_BUDGET_S = 6.0
 """After the run: the longest time spent drawing the recording's visual channels (the launcher
 stops a recorder 10 s after the manager at the latest; ~0.5 ms a scan: about 10 000 scans)."""
@@ -217,11 +225,15 @@ def _run(
 
     statuses: set[tuple[str, int | None, int | None]] = set()  # (key, episode, scan) heard
     status_kind = msg.Status.KIND
+    own_clock_ns = int(OWN_CLOCK_S * 1e9)
 
     def record(s: Sample) -> None:
         nonlocal last_scan
         kind, t_sent, scan = peek(s.payload)
-        if not write(s.key, s.payload, s.t_recv_ns, t_sent):
+        t_pub = t_sent
+        if t_sent is not None and not 0 <= s.t_recv_ns - t_sent <= own_clock_ns:
+            t_pub = None  # not a stamp of this clock (OWN_CLOCK_S): the receive time
+        if not write(s.key, s.payload, s.t_recv_ns, t_pub):
             rejected["no_channel"] += 1  # a new key with no channel left (writer.write)
             return
         counts[kind] += 1

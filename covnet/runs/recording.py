@@ -35,7 +35,9 @@ Layout of ``recording.mcap``
 - Messages: ``data`` = the payload exactly as received (also when it does not decode: the
   recording is of the wire, the replay decodes strictly); ``log_time`` = receive time
   (:attr:`covnet.wire.bus.Sample.t_recv_ns`); ``publish_time`` = the message's own ``t_sent_ns``
-  when it has one (read by :func:`peek`, without the strict decode), else the receive time;
+  when it has one (read by :func:`peek`, without the strict decode) and it is a stamp of the
+  recorder's clock (:data:`recorder.node.OWN_CLOCK_S`: not after the receipt, at most a minute
+  before it; another host's stamps count from its own boot), else the receive time;
   ``sequence`` = 1, 2, ... per channel.
 - Visual channels (:mod:`covnet.runs.visual`): topics ``/covnet/scene`` (``foxglove.SceneUpdate``),
   ``/covnet/scan`` (``covnet.ScanMetrics``, JSON) and ``/covnet/log`` (``foxglove.Log``), one
@@ -53,8 +55,9 @@ Layout of ``recording.mcap``
 Times
 -----
 ``log_time`` / ``publish_time`` are ``time.monotonic_ns()`` stamps (CLOCK_MONOTONIC, shared by
-every process of one Linux host), not Unix time: ``publish_time - log_time`` of a message is a
-one-way latency.  ``utc = start_utc_ns + (t - start_monotonic_ns)`` converts to calendar time.
+every process of one Linux host), not Unix time: ``log_time - publish_time`` of a message is a
+one-way latency (0 where the sender's stamp was another host's).
+``utc = start_utc_ns + (t - start_monotonic_ns)`` converts to calendar time.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ import os
 import re
 import signal
 import time
+from collections import Counter
 
 import pytest
 import yaml
@@ -377,6 +378,24 @@ def test_latency_is_not_taken_across_clocks(tmp_path, paper_path):
     net = json.loads((a_out / "network.json").read_text())
     assert net["measurement_latency"]["n"] == 0, net["measurement_latency"]
     assert net["measurement_latency_other_clocks"] > 0
+    # the recording (on the manager's host): the sensors' host's stamps are not the recording's
+    # publish_time (an hour after the receipt: MCAP's "not known" is the receive time); their
+    # payloads keep them; the manager's own messages keep theirs
+    from covnet.runs.recording import read_recording
+    from covnet.wire import messages as wire
+
+    seen = Counter()
+    for r in read_recording(a_out / "recording.mcap"):
+        what = r.key.split("/")[2]
+        if what not in ("sensor", "cmd"):
+            continue
+        seen[what] += 1
+        stamp = wire.decode(r.payload).t_sent_ns
+        if what == "sensor":  # a measurement of the other host
+            assert r.t_sent_ns == r.t_recv_ns and stamp - r.t_recv_ns > 3000e9, r.key
+        else:
+            assert r.t_sent_ns == stamp and 0 <= r.t_recv_ns - stamp < 60e9, r.key
+    assert seen["sensor"] > 10 and seen["cmd"] > 10, seen
     got = json.loads((a_out / "summary.json").read_text())["metrics"]
     want = json.loads((ref / "summary.json").read_text())["metrics"]
     for m in want:
