@@ -99,6 +99,12 @@ def take_heartbeat(
     return hb
 
 
+CONFIGS_HEARD_S = 1.0
+"""After the first heartbeat of another config, how long the manager still listens for the other
+nodes' (five heartbeats at the default ``network.heartbeat_s``) before it refuses the run, so that
+the refusal names them all (a host's nodes start together), unless every node has spoken."""
+
+
 def other_configs(own: str, heard: Mapping[str, str | None]) -> str | None:
     """Why a run must not start: the nodes whose heartbeats named another config than ``own``
     (:func:`~covnet.processes.node_kit.config_id`), or none (a covnet from before heartbeats
@@ -276,6 +282,7 @@ class Loop:
         #: the one each node's heartbeats carry
         self.config_id: str | None = None
         self.node_configs: dict[str, str | None] = {}
+        self._other_config_at: float | None = None  # when a node of another config was heard
         #: the nodes whose heartbeats name another clock than this process's
         #: (:func:`~covnet.processes.node_kit.same_clock`): their latencies are not taken
         self.other_clock: set[str] = set()
@@ -452,9 +459,9 @@ class Loop:
             missing = missing or self.members.missing_tokens()
             unheard: list[str] = []
             if self.config_id is not None:
-                self._check_configs()
                 unheard = [n for n in (self.wait_for or self.members.expected)
                            if n not in self.node_configs]  # fmt: skip
+                self._check_configs(unheard)
             if not missing and not unheard:
                 return
             if stop.is_set():
@@ -471,12 +478,20 @@ class Loop:
                 if role in ("sensor", "world", "recorder"):
                     self.members.token(node, ev.alive, self.clock.now_ns())
 
-    def _check_configs(self) -> None:
+    def _check_configs(self, unheard: Sequence[str]) -> None:
         """Refuse the run when a node's heartbeat named another config than this manager's
-        (:meth:`wait_ready`)."""
+        (:meth:`wait_ready`): once every node has said which config it runs, or
+        :data:`CONFIGS_HEARD_S` after the first of another config, so that the refusal names
+        every node of the other host heard by then, not the first one alone."""
         assert self.config_id is not None
-        if (why := other_configs(self.config_id, self.node_configs)) is not None:
-            raise ManagerError(why)
+        if (why := other_configs(self.config_id, self.node_configs)) is None:
+            return
+        now = time.monotonic()
+        if self._other_config_at is None:
+            self._other_config_at = now
+        if unheard and now - self._other_config_at < CONFIGS_HEARD_S:
+            return  # the others' heartbeats are on their way
+        raise ManagerError(why)
 
     # ---- step 6 -------------------------------------------------------------------------
 

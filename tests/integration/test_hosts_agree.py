@@ -36,9 +36,11 @@ def _short(paper_path, tmp_path, name="p.yaml", **over):
 def test_a_host_of_another_seed_is_refused_by_name(tmp_path, paper_path):
     rc_a, out, rc_b, said_b, a_out = _two_hosts(tmp_path, paper_path, [], ["--seed", "7"])
     assert rc_a == 1, out
-    # the first node heard of the other config, named with its identity
+    # every node of the other config, each named with its identity (the first one heard alone,
+    # often S1, was named before)
     assert "another config" in out and "--seed" in out, out
-    assert re.search(r"S\d+ \([0-9a-f]{16}\)", out), out
+    named = set(re.findall(r"(S\d+) \([0-9a-f]{16}\)", out))
+    assert named == {f"S{i}" for i in range(1, 9)}, out
     info = json.loads((a_out / "run.json").read_text())
     assert info["status"] == "failed" and "another config" in info["ended"]
     assert info["scans_completed"] == {}  # refused before the first scan: nothing mixed
@@ -425,5 +427,6 @@ def test_a_peer_host_of_another_seed_is_refused_too(tmp_path, paper_path):
         sens.stop()
     out = mgr.output()
     assert rc_a == 1 and "another config" in out, out
+    assert set(re.findall(r"(S\d+) \([0-9a-f]{16}\)", out)) == {f"S{i}" for i in range(1, 9)}
     info = json.loads((a_out / "run.json").read_text())
     assert info["status"] == "failed" and "another config" in info["ended"]
