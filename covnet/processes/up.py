@@ -488,7 +488,7 @@ def up(
             final = sup.stop()
         others = {k: v for k, v in final.items() if k != "manager" and v not in (0, None)}
         if status != 0:
-            why = f"the manager exited with status {status}"
+            why = f"the manager exited with status {status}{_its_error(sup, 'manager')}"
             ended = settle(kind, sc, out, facts, "failed", why, recorded_here=recorded_here)
             _note_restarts(out, sup.restarts)  # (into a run.json rebuilt from the recording too)
             ended += _note_lost(out, lost)
@@ -532,6 +532,14 @@ def up(
         if main:
             signal.signal(signal.SIGTERM, previous)
             signal.signal(signal.SIGHUP, previous_hup)
+
+
+def _its_error(sup: Supervisor, name: str) -> str:
+    """``": <its last error line>"`` of node ``name`` (``manager: error: ...``, which names a
+    file that could not be written, a full ``$TMPDIR``'s spill file ...), for ``run.json``'s
+    ``ended``; ``""`` when it said none."""
+    said = [ln for ln in sup.output(name) if ln.startswith(f"{name}: error: ")]
+    return f" ({said[-1]})" if said else ""
 
 
 def settle(

@@ -41,3 +41,28 @@ def test_up_on_a_full_disk_names_the_file_and_ends_failed(tmpfs, size):
     left = sorted(p.name for p in out.iterdir() if p.name == "live.json" or ".tmp" in p.name)
     assert left == [], left
     assert_nothing_left(out)
+
+
+def test_a_full_tmpdir_is_named_in_run_json(tmpfs, tmp_path, monkeypatch):
+    """A long run whose per-scan rows spill into a full ``$TMPDIR`` (the run directory's disk
+    has room): the manager's line names the folder, and so does ``run.json``'s ``ended``,
+    which said only "the manager exited with status 1"."""
+    import yaml
+
+    tmp = tmpfs("tmp", "size=8k")
+    data = yaml.safe_load(PAPER.read_text())
+    data["scans"] = 1100  # past one block of rows (covnet.runs.columns.BLOCK): a spill file
+    cfg = tmp_path / "long.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    out = tmp_path / "up"
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    p = CovnetProcess(["up", str(cfg), "--out", str(out), "--no-figures", "--metric", "spectral"])
+    try:
+        rc = p.wait(timeout=150)
+    finally:
+        p.stop()
+    text = p.output()
+    assert rc == 1 and "Traceback" not in text, text
+    assert re.search(rf"manager: error: .*{re.escape(str(tmp))}.*{FULL}", text), text
+    ended = json.loads((out / "run.json").read_text())["ended"]
+    assert str(tmp) in ended and "spill file" in ended and FULL in ended, ended
