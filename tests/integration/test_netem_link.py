@@ -154,7 +154,8 @@ def test_jitter_spreads_the_round_trip(ns_pair, strict):
     busy loops; a p90 of 36 ms in a suite run on three workers beside other tests), so its
     worst case, its p90 and the mean's tight band are the ``quiet`` twin's (``strict``), run
     alone on a quiet machine (``-m quiet -n 0``: beside the slow suite's other worker its p90
-    was 68 and 140 ms); the default run holds three quarters on time."""
+    was 68 and 140 ms); the default run holds half of them on time (its p75 was 34.7 ms beside
+    two busy loops and the suite's other worker, its median 25.3)."""
     ns_a, ns_b = ns_pair
     spec = LinkSpec(DelayDist("uniform", low_s=0.005, high_s=0.025), reorder=1.0)
     with emulated_link(ns_a, ns_b, spec, LinkSpec(), seed=3, mode="userspace") as info:
@@ -166,8 +167,9 @@ def test_jitter_spreads_the_round_trip(ns_pair, strict):
     assert len(got) == 150
     assert q["min"] >= 4.9  # a packet is never delivered early
     assert q["p75"] - q["p25"] >= 6.0  # 10 ms for U[5, 25] ms
-    assert q["p75"] <= 25.0 + 8.0  # the bulk on time (p75 of the draws: 20 ms)
+    assert q["median"] <= 25.0 + 8.0  # half on time (the draws' median: 15 ms)
     if strict:
+        assert q["p75"] <= 25.0 + 8.0  # the bulk on time (p75 of the draws: 20 ms)
         assert q["p90"] <= 25.0 + 8.0  # p90 of the draws: 23 ms
         assert q["max"] <= 25.0 + 8.0
         assert 14.0 <= statistics.mean(got) * 1e3 <= 17.5  # 15 ms + the forwarder's lateness
