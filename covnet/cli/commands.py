@@ -8,6 +8,7 @@ the kind provides."""
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from pathlib import Path
 
@@ -53,6 +54,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             from covnet.runs.visual import write_run_mcap
 
             print(f"visual channels for Foxglove: {write_run_mcap(kind, cfg, out)}")
+        if status == EXIT_OK:  # (in the try: a Ctrl-C just before it is answered below)
+            record_end(out, "completed", "every scan done")
     except BaseException as exc:
         # every kind writes run.json last: with it the results are whole (it was written before
         # summary.json, and a Ctrl-C between them was recorded as complete)
@@ -61,7 +64,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             record_end(out, "completed", "every scan done (its printed output cut)")
         if not interrupts.caused(exc):
             raise
-        if whole:
+        if whole and _status(out) == "completed":  # a Ctrl-C held while run.json was written
+            _note(f"interrupted as it ended: {out} holds the complete results")
+        elif whole:
             later = "figures" if not args.no_figures else "printing"
             record_end(out, "completed", f"every scan done ({later} interrupted)")
             _note(f"interrupted after the results were written: {out} holds the complete "
@@ -72,9 +77,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         else:
             _note("interrupted before the results were written: nothing written")
         raise
-    if status == EXIT_OK:
-        record_end(out, "completed", "every scan done")
     return status
+
+
+def _status(out: Path) -> object:
+    """``out/run.json``'s ``status`` (None when it has none or cannot be read)."""
+    try:
+        info = json.loads((out / RUN_INFO).read_text())
+    except (OSError, ValueError):
+        return None
+    return info.get("status") if isinstance(info, dict) else None
 
 
 def cmd_mc(args: argparse.Namespace) -> int:

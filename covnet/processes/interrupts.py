@@ -22,10 +22,12 @@ the command can tell such an error from a defect: :func:`caused`.
 from __future__ import annotations
 
 import _thread
+import contextlib
 import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 #: the exit status of an interrupted command or run (a shell's for SIGINT)
@@ -79,6 +81,34 @@ def raise_interrupt(signum: int, frame: Any) -> None:
     _last_request = now
     _requested = True
     raise KeyboardInterrupt(f"signal {signum}")
+
+
+@contextlib.contextmanager
+def held() -> Iterator[None]:
+    """A SIGINT or SIGTERM that comes meanwhile is answered when the block ends, not inside it:
+    for a write that must finish once begun (``run.json``'s status: a Ctrl-C inside its write
+    left a run whose results were complete without a status).  In the main thread only (where
+    Python runs the handlers; elsewhere the block runs as it is).  At the end the handler that
+    was in place is called with the first signal held (covnet's raises KeyboardInterrupt)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list[int] = []
+    wanted = (signal.SIGINT, signal.SIGTERM)
+    before: dict[int, Any] = {
+        s: signal.signal(s, lambda signum, frame: got.append(signum)) for s in wanted
+    }
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+        if got:
+            handler = before[got[0]]
+            if callable(handler):
+                handler(got[0], None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(got[0])
 
 
 def caused(exc: BaseException) -> bool:

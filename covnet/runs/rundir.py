@@ -675,10 +675,17 @@ def load_arrays(path: Path) -> dict[str, np.ndarray]:
 
 def record_end(out: Path, status: str, ended: str, **facts: Any) -> None:
     """Merge how the run ended into ``out/run.json`` (created if missing): ``status`` (one of
-    :data:`STATUSES`), ``ended`` (why) and ``facts``; atomically."""
+    :data:`STATUSES`), ``ended`` (why) and ``facts``; atomically, and whole: a Ctrl-C or
+    SIGTERM during the write is answered once it is done (:func:`covnet.processes.interrupts.
+    held`)."""
     if status not in STATUSES:
         raise ValueError(f"status: one of {STATUSES}, got {status!r}")
-    path = Path(out) / RUN_INFO
+    with interrupts.held():  # once begun, the status is written (then the Ctrl-C is answered)
+        _record_end(Path(out), status, ended, facts)
+
+
+def _record_end(out: Path, status: str, ended: str, facts: dict[str, Any]) -> None:
+    path = out / RUN_INFO
     info: dict[str, Any] = {}
     if path.is_file():
         try:
@@ -692,7 +699,7 @@ def record_end(out: Path, status: str, ended: str, **facts: Any) -> None:
     info.setdefault("blas_kernel", blas_kernel.kernel())
     info.setdefault("code", code_identity())
     info.update({"status": status, "ended": ended, **facts})
-    Path(out).mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     write_json(path, info)
 
 
