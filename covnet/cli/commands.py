@@ -8,7 +8,6 @@ the kind provides."""
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -35,6 +34,7 @@ from covnet.runs.rundir import (
     prepare_out,
     read_json,
     record_end,
+    run_info,
 )
 
 
@@ -64,7 +64,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             record_end(out, "completed", "every scan done (its printed output cut)")
         if not interrupts.caused(exc):
             raise
-        if whole and _status(out) == "completed":  # a Ctrl-C held while run.json was written
+        # a Ctrl-C held while run.json was written (interrupts.held): its status is said
+        if whole and run_info(out).get("status") == "completed":
             _note(f"interrupted as it ended: {out} holds the complete results")
         elif whole:
             later = "figures" if not args.no_figures else "printing"
@@ -78,15 +79,6 @@ def cmd_run(args: argparse.Namespace) -> int:
             _note("interrupted before the results were written: nothing written")
         raise
     return status
-
-
-def _status(out: Path) -> object:
-    """``out/run.json``'s ``status`` (None when it has none or cannot be read)."""
-    try:
-        info = json.loads((out / RUN_INFO).read_text())
-    except (OSError, ValueError):
-        return None
-    return info.get("status") if isinstance(info, dict) else None
 
 
 def cmd_mc(args: argparse.Namespace) -> int:

@@ -205,7 +205,6 @@ class CentreFilter:
         self.late = LateHandler(sc, model) if slow else None
         # allocation.account_for_loss on slow links: decide on the expected information
         self.alloc_model, self.delivery = model, None
-        self.decisions: DecisionMemo | None = None
         if slow and sc.allocation.account_for_loss:
             # start-up: the link model only for slow links that account for loss
             from covnet.covariance_control.links import delivery_probabilities, loss_aware_model
@@ -215,13 +214,12 @@ class CentreFilter:
                 self.alloc_model = loss_aware_model(model, p)
             else:
                 self.delivery = p
+        self.decisions = DecisionMemo(self.alloc_model)
 
     def decide(
         self, P_pred: np.ndarray, k: int, metric: str, unavailable: frozenset[int]
     ) -> Allocation:
         if self.mirror is None:
-            if self.decisions is None or self.decisions.model is not self.alloc_model:
-                self.decisions = DecisionMemo(self.alloc_model)
             return self.decisions.decide(P_pred, k, metric, unavailable)
         P_loc = self.mirror.predicted(self.model)[1]
         return decide_rule(

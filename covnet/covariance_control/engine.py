@@ -75,7 +75,6 @@ from covnet.covariance_control.fusion_rules import rule_for
 from covnet.covariance_control.model import (
     Model,
     build_model,
-    decide,
     initial_estimate,
     predict_cov,
     predict_step,
@@ -166,7 +165,8 @@ class _OneTarget:
         if k_next <= self.model.scans:
             t0 = time.perf_counter()
             P_next = predict_cov(self.model, self.gains.P_post)
-            nxt = decide(self.model, P_next, k_next, self.metric, unavailable)
+            # the decision decide() would make (the centre's, remembered in a steady state)
+            nxt = self.centre.decide(P_next, k_next, self.metric, unavailable)
             self.spec = _Speculation(k_next, P_next, unavailable, nxt, time.perf_counter() - t0)
 
     def verdict(self, m: Any, plan: Plan | None) -> str | None:

@@ -46,6 +46,9 @@ from covnet.runs.rundir import (
     try_record_end,
     write_json,
 )
+from covnet.runs.rundir import (
+    run_info as _run_info,  # (settle's parameter run_info is the run's facts)
+)
 from covnet.wire.security import endpoint, preflight
 
 __all__ = [
@@ -535,7 +538,7 @@ def up(
 
 
 def _its_error(sup: Supervisor, name: str) -> str:
-    """``": <its last error line>"`` of node ``name`` (``manager: error: ...``, which names a
+    """``" (<its last error line>)"`` of node ``name`` (``manager: error: ...``, which names a
     file that could not be written, a full ``$TMPDIR``'s spill file ...), for ``run.json``'s
     ``ended``; ``""`` when it said none."""
     said = [ln for ln in sup.output(name) if ln.startswith(f"{name}: error: ")]
@@ -682,14 +685,6 @@ def _rebuilt_membership(info: dict[str, Any], summary: dict[str, Any]) -> dict[s
 def _summary(out: Path) -> dict[str, Any]:
     try:
         info = json.loads((out / "summary.json").read_text())
-    except (OSError, ValueError):
-        return {}
-    return info if isinstance(info, dict) else {}
-
-
-def _run_info(out: Path) -> dict[str, Any]:
-    try:
-        info = json.loads((out / RUN_INFO).read_text())
     except (OSError, ValueError):
         return {}
     return info if isinstance(info, dict) else {}

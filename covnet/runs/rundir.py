@@ -60,6 +60,7 @@ __all__ = [
     "FILE_DIGESTS",
     "LIVE",
     "RUN_INFO",
+    "run_info",
     "STATUSES",
     "SUMMARY",
     "after_the_results",
@@ -703,6 +704,15 @@ def _record_end(out: Path, status: str, ended: str, facts: dict[str, Any]) -> No
     write_json(path, info)
 
 
+def run_info(out: Path) -> dict[str, Any]:
+    """``out/run.json`` as a dict, ``{}`` when it is missing, unreadable or not an object."""
+    try:
+        info = json.loads((out / RUN_INFO).read_text())
+    except (OSError, ValueError):
+        return {}
+    return info if isinstance(info, dict) else {}
+
+
 @contextmanager
 def after_the_results(out: Path, step: str) -> Iterator[None]:
     """Around what a command does once its results are written and ``out/run.json`` says how
@@ -717,12 +727,7 @@ def after_the_results(out: Path, step: str) -> Iterator[None]:
     except BaseException as exc:
         if not interrupts.caused(exc):
             raise
-        try:
-            info = json.loads((Path(out) / RUN_INFO).read_text())
-        except (OSError, ValueError):
-            info = None
-        if not isinstance(info, dict):
-            info = {}
+        info = run_info(Path(out))
         status = info.get("status")
         if status in STATUSES:
             ended = info.get("ended") or status
