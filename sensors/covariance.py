@@ -6,8 +6,8 @@ stream ``(seed, j, k)`` (:func:`covnet.covariance_control.model.measure`, the sa
 ``covnet run`` makes) and publishes ``Measurement(k)``; under a fusion rule whose sensors run
 local filters (``fusion.mode: info | ci``) it publishes its
 :class:`~covnet.wire.messages.LocalTrack`
-instead.  The measurement noise of every scan is drawn at start-up (:class:`NoiseTable`): that
-takes work off the scan's critical path and changes no result.  Its payload is then written
+instead.  The measurement noise of the first scans is drawn at start-up (:class:`NoiseTable`):
+that takes work off the scan's critical path and changes no result.  Its payload is then written
 from the sensor's msgpack template (:func:`fast_respond`,
 :class:`covnet.wire.batch_encode.MeasurementTemplate`: the codec's bytes, without building the
 message; issue 29's seventh round).  With ``fusion.mode: peer`` the process is a peer node
@@ -227,7 +227,8 @@ def run(
     j = model.index(sensor_id)
     # what it sends: the kind's sensor side (the one covnet run hands over in process), its
     # noise drawn ahead
-    side = SensorSide.of_process(sc, model, j, NoiseTable(model, j))
+    table = NoiseTable(model, j, NoiseTable.reserve(model.scans))
+    side = SensorSide.of_process(sc, model, j, table)
 
     def truth_ok(tr: msg.Truth) -> bool:
         return tr.states.shape[0] >= 1 and tr.states.shape[1] == 4
@@ -271,23 +272,13 @@ def fast_respond(side: SensorSide, clock: Clock) -> FastRespond | None:
     if template is None:
         return None
     encode, noisy, now_ns = template.encode_row, side.noisy, clock.now_ns
-    if isinstance(noisy, NoiseTable):
-        tabled = noisy.tabled
 
-        def fast(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
-            z = tabled(cmd.scan, tr.states[0])
-            if z is None:  # a scan the table does not hold: respond draws it
-                return None
-            return encode(cmd.scan, cmd.t, z, now_ns(), cmd.episode, seq)
-
-        return fast
-
-    def fast_any(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
+    def fast(cmd: msg.Command, tr: msg.Truth, seq: int) -> bytes | None:
         # side.respond's z (no track rule: its episode start keeps nothing), without its
-        # Measured
+        # Measured; a NoiseTable's scan from the table, or drawn where the table ends
         return encode(cmd.scan, cmd.t, noisy(cmd.scan, tr.states[0]), now_ns(), cmd.episode, seq)
 
-    return fast_any
+    return fast
 
 
 def _wire(
@@ -321,22 +312,46 @@ def _wire(
 
 class NoiseTable:
     """``noisy(k, x)`` is :func:`covnet.covariance_control.model.measure` ``(model, j, k, x)`` bit
-    for bit, with the noise of every scan drawn ahead, at start-up (up to :attr:`MAX_SCANS`): the
-    noise stream ``(seed, j, k)`` does not depend on the truth, and building a generator per scan
-    is most of a measurement's cost on the scan's critical path.  The measurement is
-    ``H x + v``: ``v`` is taken as ``measure(model, j, k, 0)`` (``0 + v`` is ``v`` exactly
-    unless ``v`` holds a zero, then that scan is drawn as before), and a start-up check falls
-    back to :func:`measure` for every scan if the model is not of that form."""
+    for bit, with the noise of the first scans drawn ahead, at start-up: the noise stream
+    ``(seed, j, k)`` does not depend on the truth, and building a generator per scan is most of
+    a measurement's cost on the scan's critical path.  The measurement is ``H x + v``: ``v`` is
+    taken as ``measure(model, j, k, 0)`` (``0 + v`` is ``v`` exactly unless ``v`` holds a zero,
+    then that scan is drawn as before), and a start-up check falls back to :func:`measure` for
+    every scan if the model is not of that form.
+
+    How far ahead: at most :attr:`MAX_SCANS` scans a sensor and :attr:`PROCESS_DRAWS` draws in
+    a process (its hosted sensors together, first come first served); later scans are drawn
+    when they are measured.  A table of every scan of a long run made a large network's start
+    too slow for the manager's ``ready_timeout_s``: 256 sensors in four processes, each drawing
+    20 000 scans at start-up, were not alive after the 30 s it waits (two cores)."""
 
     MAX_SCANS = 20_000
+    PROCESS_DRAWS = 400_000
 
-    def __init__(self, model: Model, j: int) -> None:
+    _reserved = 0  # draws reserved in this process (:meth:`reserve`)
+    _lock = threading.Lock()
+
+    @classmethod
+    def reserve(cls, scans: int) -> int:
+        """How many of a sensor's first ``scans`` scans its table may draw at start-up in this
+        process: at most :attr:`MAX_SCANS`, and what is left of :attr:`PROCESS_DRAWS` after
+        the hosted sensors that asked before (first come, first served)."""
+        with cls._lock:
+            ahead = max(0, min(scans, cls.MAX_SCANS, cls.PROCESS_DRAWS - cls._reserved))
+            cls._reserved += ahead
+        return ahead
+
+    def __init__(self, model: Model, j: int, ahead: int | None = None) -> None:
+        """The table of sensor ``j``'s first ``ahead`` scans (default: every scan of the run,
+        at most :attr:`MAX_SCANS`; a sensor process asks :meth:`reserve`)."""
         self.model, self.j, self.H = model, j, model.H
+        if ahead is None:
+            ahead = min(model.scans, self.MAX_SCANS)
         zero = np.zeros(model.H.shape[1])
         table: dict[int, np.ndarray] = {}
-        for k in range(1, min(model.scans, self.MAX_SCANS) + 1):
+        for k in range(1, ahead + 1):
             v = measure(model, j, k, zero)
-            if np.all(v != 0.0):
+            if v.all():  # no zero entry: H x + v is then exactly what measure draws
                 table[k] = v
         x = np.arange(1.0, model.H.shape[1] + 1.0) * 1000.0 + 0.123
         if 1 in table and not np.array_equal(model.H @ x + table[1], measure(model, j, 1, x)):

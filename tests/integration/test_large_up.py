@@ -117,3 +117,31 @@ def test_256_sensors_become_ready_and_equal_run(tmp_path, paper_path):
         assert got["completed"] is True and got["metrics"] == want, f"run {i}"
         assert json.loads((out / "network.json").read_text())["lost"] == 0
         assert_nothing_left(out)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_256_sensors_of_a_long_run_become_ready(tmp_path, paper_path):
+    """256 sensors for 20 000 scans: every node alive within the default
+    ``network.ready_timeout_s`` (30 s).  Each sensor drew the noise of every scan at start-up,
+    and the manager gave up waiting for them after 30 s ("nodes not alive"); a sensor process
+    now draws at most 400 000 at start-up (the rest as the scans come), each faster.  Stopped by a
+    Ctrl-C once the scans run: nothing is left running."""
+    import yaml
+
+    from covnet import kinds
+    from covnet.covariance_control.network_sizes import bench_config
+
+    _, sc = kinds.load(str(paper_path))
+    cfg = tmp_path / "n256-long.yaml"
+    cfg.write_text(yaml.safe_dump(bench_config(sc, 256, scans=20_000)))
+    out = tmp_path / "up"
+    p = CovnetProcess(["up", str(cfg), "--out", str(out), "--no-figures"])
+    try:
+        ready = p.wait_for("[manager] READY", timeout=150)
+        assert ready is not None, p.output()[-3000:]
+        assert p.wait_for("/20000 256/256 on", timeout=60) is not None, p.output()[-3000:]
+    finally:
+        p.stop()
+    assert "not alive" not in p.output()
+    assert_nothing_left(out)

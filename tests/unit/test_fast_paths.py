@@ -114,3 +114,30 @@ def test_manager_fuses_with_gains_computed_ahead_bit_for_bit(paper):
                 ),
             }
             assert fuse_with_gains(gains, model, pred, other, ids) is None
+
+
+def test_a_short_noise_table_draws_the_scans_past_it(paper):
+    """A table of the first scans only (a sensor process's start-up budget): every scan is
+    still ``measure``'s bits, from the table or drawn."""
+    model = build_model(paper)
+    truth = truth_trajectory(model)
+    for ahead in (0, 1, 37):
+        noisy = NoiseTable(model, 3, ahead)
+        assert sorted(noisy.table) == list(range(1, ahead + 1))
+        for k in range(1, model.scans + 1):
+            assert noisy(k, truth[k - 1]).tobytes() == measure(model, 3, k, truth[k - 1]).tobytes()
+
+
+def test_a_sensor_process_reserves_its_start_up_draws(monkeypatch):
+    """At most ``MAX_SCANS`` a sensor and ``PROCESS_DRAWS`` a process, first come first served:
+    the 64 hosted sensors of a 20 000-scan run no longer draw 1.28 million noises at start."""
+    monkeypatch.setattr(NoiseTable, "_reserved", 0)
+    assert NoiseTable.MAX_SCANS == 20_000 and NoiseTable.PROCESS_DRAWS == 400_000
+    assert NoiseTable.reserve(100) == 100
+    assert NoiseTable.reserve(50_000) == 20_000
+    monkeypatch.setattr(NoiseTable, "_reserved", 0)
+    got = [NoiseTable.reserve(20_000) for _ in range(64)]  # 64 hosted sensors, a long run
+    assert got == [20_000] * 20 + [0] * 44 and sum(got) == NoiseTable.PROCESS_DRAWS
+    monkeypatch.setattr(NoiseTable, "_reserved", 0)
+    got = [NoiseTable.reserve(6_000) for _ in range(70)]
+    assert got[:66] == [6_000] * 66 and got[66:] == [4_000, 0, 0, 0]
