@@ -134,13 +134,26 @@ def other_configs(own: str, heard: Mapping[str, str | None]) -> str | None:
     return "; ".join(parts)
 
 
+#: nodes a not-ready message names one by one; the rest are counted
+NAMED_NODES = 12
+
+
+def _some(nodes: Sequence[str]) -> str:
+    """``['S1', 'S2']``; beyond :data:`NAMED_NODES` the first ones and how many more."""
+    if len(nodes) <= NAMED_NODES:
+        return str(list(nodes))
+    shown = str(list(nodes[:NAMED_NODES]))[:-1]
+    return f"{shown}, ... and {len(nodes) - NAMED_NODES} more ({len(nodes)} in all)]"
+
+
 def not_ready(timeout_s: float, not_alive: Sequence[str], unheard: Sequence[str]) -> str:
-    """Why the network did not become ready within ``timeout_s``: the nodes whose liveliness
-    token never came up, else those that never said in a heartbeat which config they run.
-    The manager's loop and the peer observer say it alike."""
+    """Why the network did not become ready within ``timeout_s`` (``network.ready_timeout_s``):
+    the nodes whose liveliness token never came up, else those that never said in a heartbeat
+    which config they run.  The manager's loop and the peer observer say it alike."""
+    wait = f"{timeout_s} s (network.ready_timeout_s)"
     if not_alive:
-        return f"nodes not alive after {timeout_s} s: {list(not_alive)}"
-    return f"nodes alive but sent no heartbeat within {timeout_s} s: {list(unheard)}"
+        return f"nodes not alive after {wait}: {_some(not_alive)}"
+    return f"nodes alive but sent no heartbeat within {wait}: {_some(unheard)}"
 
 
 class ManagerError(RuntimeError):

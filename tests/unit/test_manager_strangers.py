@@ -154,3 +154,19 @@ def test_an_enabled_sensor_dropped_as_failed_that_answers_after_all_is_taken(pap
                        logic.usable)  # fmt: skip
     assert set(got) == set(enabled)
     assert loop.stats.rejected == {"not_enabled": 1}  # the one never enabled
+
+
+def test_not_ready_names_the_setting_and_counts_a_long_list():
+    from manager.loop import NAMED_NODES, not_ready
+
+    assert not_ready(30.0, ["S1", "S2"], []) == (
+        "nodes not alive after 30.0 s (network.ready_timeout_s): ['S1', 'S2']"
+    )
+    assert not_ready(5.0, [], ["W"]) == (
+        "nodes alive but sent no heartbeat within 5.0 s (network.ready_timeout_s): ['W']"
+    )
+    ids = [f"S{i}" for i in range(256)]
+    said = not_ready(30.0, ids, [])
+    assert said.startswith("nodes not alive after 30.0 s (network.ready_timeout_s): ['S0', 'S1'")
+    assert said.endswith(f"'S{NAMED_NODES - 1}', ... and {256 - NAMED_NODES} more (256 in all)]")
+    assert f"'S{NAMED_NODES}'" not in said
