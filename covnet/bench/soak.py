@@ -59,6 +59,9 @@ from covnet.runs.recording import read_recording
 from covnet.runs.rundir import writing
 from covnet.wire import messages as msg
 
+#: the lockstep phase's scans when ``--scans`` is not given
+SOAK_SCANS = 20_000
+
 __all__ = [
     "FLAT_PCT",
     "growth",
@@ -537,6 +540,8 @@ def main(args: argparse.Namespace) -> int:
     ``work``): one JSON row per line with ``--json``, else a table per phase; exit 0 when
     every process is flat, 1 otherwise (a process not measured, in a phase too short for the
     sampling interval, is not shown flat)."""
+    if args.scans is None:
+        args.scans = SOAK_SCANS
     for name, low in (("scans", 0), ("realtime_s", 0), ("windows", 1)):
         value = getattr(args, name)
         flag = "--" + name.replace("_", "-")

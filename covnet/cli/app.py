@@ -550,6 +550,12 @@ def build_parser() -> argparse.ArgumentParser:
         "alternated, and the ratio of their median scans/s",
     )
     b.add_argument(
+        "--steady",
+        action="store_true",
+        help=takes("steady") + "with --sensors: the CPU a scan in the steady middle of long runs, "
+        "covnet's by role against the probe's, and the budget one half of the probe leaves",
+    )
+    b.add_argument(
         "--sensors-per-process",
         type=int,
         metavar="K",
@@ -557,7 +563,10 @@ def build_parser() -> argparse.ArgumentParser:
         "covnet up's)",
     )
     b.add_argument(
-        "--scans", type=int, help=takes("scans") + "lockstep scans (0: none; default 20000)"
+        "--scans",
+        type=int,
+        help=takes("scans") + "lockstep scans (soak: 0 none, default 20000; up --steady: each "
+        "steady run's, default 3000)",
     )
     b.add_argument(
         "--realtime-s",

@@ -40,6 +40,8 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
     k = args.sensors_per_process
     if k is not None and k < 1:
         raise UsageError(f"--sensors-per-process: must be >= 1, got {k}")
+    if args.steady:
+        return _bench_up_steady(kind, cfg, args, k)
     with tempfile.TemporaryDirectory(prefix="covnet-bench-up-") as tmp:
         if args.sensors:
             rows = bench_up.run_sizes(
@@ -83,6 +85,42 @@ def cmd_bench_up(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _bench_up_steady(kind: Any, cfg: Any, args: argparse.Namespace, k: int | None) -> int:
+    """``bench up --sensors N,... --steady`` (:mod:`covnet.bench.budget`)."""
+    import tempfile  # only the benchmark needs these (start-up time of the other commands)
+
+    from covnet.bench import budget
+
+    with tempfile.TemporaryDirectory(prefix="covnet-bench-steady-") as tmp:
+        rows = budget.run_steady(
+            kind, cfg, args.sensors, Path(tmp), repeat=args.repeat, per_process=k,
+            scans=args.scans, quiet=args.json,
+        )  # fmt: skip
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+        return EXIT_OK
+    print(
+        f"{'N':>5} {'K':>3} {'run':>3} {'CPU ms/scan':>11} {'scans/s':>8} {'cores':>5} "
+        f"{'probe ms':>8} {'probe/s':>8} {'cores':>5} {'ratio':>6} {'budget ms':>9} {'cut':>5}"
+    )
+    for r in rows:
+        print(
+            f"{r['n_sensors']:>5} {r['sensors_per_process']:>3} {r['run']:>3} "
+            f"{r['cpu_ms_per_scan']:>11.2f} {r['scans_per_s']:>8.1f} {r['cores']:>5.2f} "
+            f"{r['probe_cpu_ms_per_scan']:>8.2f} {r['probe_scans_per_s']:>8.1f} "
+            f"{r['probe_cores']:>5.2f} {r['ratio']:>6.2f} {r['budget_ms_per_scan']:>9.2f} "
+            f"{100 * r['cut_needed']:>4.0f}%"
+        )
+    print(
+        "the steady middle of long runs: covnet's CPU a scan over every process (by role with "
+        "--json), the probe's from a long run less a short one; budget: the CPU a scan covnet "
+        "could use at one half of the probe's scans/s on the cores it uses; cut: how much less "
+        "that is"
+    )
+    return EXIT_OK
+
+
 def _print_sized(rows: list[dict[str, Any]]) -> None:
     print(
         f"{'N':>5} {'K':>3} {'run':>3} {'scans/s':>8} {'p50 ms':>7} {'p99 ms':>7} "
@@ -103,7 +141,10 @@ def _print_sized(rows: list[dict[str, Any]]) -> None:
 
 BENCH_TAKES: dict[str, frozenset[str]] = {
     "alloc": frozenset({"sensors", "metric", "problems", "repeat", "config", "json"}),
-    "up": frozenset({"sensors", "repeat", "config", "json", "foxglove", "sensors_per_process"}),
+    "up": frozenset(
+        {"sensors", "repeat", "config", "json", "foxglove", "sensors_per_process", "steady",
+         "scans"}
+    ),
     "soak": frozenset(
         {"config", "metric", "scans", "realtime_s", "speed", "interval", "windows", "work", "json"}
     ),
@@ -134,7 +175,8 @@ BENCH_DEFAULTS: dict[str, Any] = {
     "json": False,
     "foxglove": False,
     "sensors_per_process": None,
-    "scans": 20_000,
+    "scans": None,  # soak: 20 000; up --steady: 3 000
+    "steady": False,
     "realtime_s": 600.0,
     "speed": 10.0,
     "interval": 2.0,
@@ -198,6 +240,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
             f"--repeat: bench cluster alternates the local pool and Dask, at least 2 pairs, "
             f"got {args.repeat}"
         )
+    if args.target == "up" and (args.steady or args.scans is not None) and not args.sensors:
+        flag = "--steady" if args.steady else "--scans"
+        raise UsageError(f"{flag}: only with --sensors (bench up --sensors N,... --steady)")
+    if args.target == "up" and args.scans is not None and not args.steady:
+        raise UsageError("--scans: bench up takes it with --steady (its steady runs' scans)")
     if args.foxglove and (args.target != "up" or args.sensors):
         raise UsageError("--foxglove: only for bench up (the paper network, without --sensors)")
     if default_config and not Path(args.config).is_file():

@@ -145,3 +145,29 @@ def test_256_sensors_of_a_long_run_become_ready(tmp_path, paper_path):
         p.stop()
     assert "not alive" not in p.output()
     assert_nothing_left(out)
+
+
+def test_bench_up_steady_measures_both_in_their_middle(capsys, paper_path):
+    """``covnet bench up --sensors 4 --steady``: covnet's CPU a scan from every process of a
+    real network in the middle of its run (by role), the probe's from a long run less a short
+    one, and the budget's arithmetic on them."""
+    from covnet.bench.budget import budget_row
+
+    rc = covnet_main(
+        ["bench", "up", "--sensors", "4", "--steady", "--repeat", "1", "--scans", "8000",
+         "--json", "--config", str(paper_path)]
+    )  # fmt: skip
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert rc == 0 and len(rows) == 1
+    r = rows[0]
+    assert r["n_sensors"] == 4 and r["scans"] == 8000 and 0 < r["window_scans"] < 8000
+    assert set(r["cpu_ms_by_role"]) == {"manager", "world", "recorder", "sensors"}
+    assert r["cpu_ms_per_scan"] == pytest.approx(sum(r["cpu_ms_by_role"].values()))
+    assert r["cpu_ms_by_role"]["manager"] > 0 and r["cpu_ms_by_role"]["sensors"] > 0
+    assert r["probe_cpu_ms_per_scan"] > 0 and r["probe_scans_per_s"] > 0
+    assert 0 < r["cores"] <= 2.5  # this machine's two cores, and /proc's tick
+    want = budget_row(
+        {"cpu_ms_per_scan": r["cpu_ms_per_scan"], "scans_per_s": r["scans_per_s"]},
+        {"cpu_ms_per_scan": r["probe_cpu_ms_per_scan"], "scans_per_s": r["probe_scans_per_s"]},
+    )
+    assert {k: r[k] for k in want} == want

@@ -385,7 +385,8 @@ def test_bench_help_says_which_benchmarks_take_each_option(capsys):
         main(["bench", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "--targets T,T,... [multitarget]" in text
-    assert "--scans SCANS [soak]" in text
+    assert "--scans SCANS [up, soak]" in text
+    assert "--steady [up]" in text
 
 
 @pytest.mark.parametrize("done", [{}, {"spectral": 0, "svd": 0}, 0])
