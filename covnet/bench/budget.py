@@ -26,10 +26,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import signal
-import subprocess
-import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -37,6 +33,7 @@ from typing import Any
 import yaml
 
 from covnet import kinds
+from covnet.bench.child import Child
 from covnet.bench.up import _children_cpu_s, probe
 from covnet.errors import UpError, UsageError
 from covnet.processes.up import default_sensors_per_process
@@ -67,25 +64,14 @@ def _role(name: str) -> str:
 
 
 class _Watched:
-    """``python -m covnet up ...`` in its own process group; at each ``[status]`` line, the
+    """``covnet up ...`` as a :class:`~covnet.bench.child.Child`; at each ``[status]`` line, the
     scan it names and every process's CPU (:func:`_cpu_s`) once ``processes.json`` is there."""
 
     def __init__(self, args: list[str], out: Path) -> None:
         self.out = out
         self.samples: list[tuple[int, dict[str, float]]] = []
-        self.lines: list[str] = []
         self._pids: dict[str, int] | None = None
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "covnet", *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            start_new_session=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
+        self.child = Child(["up", *args], on_line=self._sample)
 
     def _processes(self) -> dict[str, int] | None:
         if self._pids is None:
@@ -96,42 +82,23 @@ class _Watched:
             self._pids = {n: p for n, p in named.items() if isinstance(p, int)}
         return self._pids
 
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-            m = _STATUS.search(line)
-            pids = self._processes() if m else None
-            if m and pids:
-                by: dict[str, float] = {}
-                for name, pid in pids.items():
-                    cpu = _cpu_s(pid)
-                    if cpu is not None:
-                        by[_role(name)] = by.get(_role(name), 0.0) + cpu
-                self.samples.append((int(m.group(1)), by))
+    def _sample(self, line: str) -> None:
+        m = _STATUS.search(line)
+        pids = self._processes() if m else None
+        if m and pids:
+            by: dict[str, float] = {}
+            for name, pid in pids.items():
+                cpu = _cpu_s(pid)
+                if cpu is not None:
+                    by[_role(name)] = by.get(_role(name), 0.0) + cpu
+            self.samples.append((int(m.group(1)), by))
 
     def wait(self, timeout: float) -> int:
+        """Its exit status; it is stopped by PID whatever happens."""
         try:
-            return self.proc.wait(timeout=timeout)
+            return self.child.proc.wait(timeout=timeout)
         finally:
-            self.stop()
-
-    def stop(self) -> None:
-        for sig, grace in ((signal.SIGINT, 10.0), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if self.proc.poll() is not None:
-                break
-            try:
-                os.killpg(self.proc.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                self.proc.wait(timeout=grace)
-            except subprocess.TimeoutExpired:
-                continue
-        self.proc.wait()
-        self._reader.join(timeout=5)
-        if self.proc.stdout is not None and not self._reader.is_alive():
-            self.proc.stdout.close()
+            self.child.stop()
 
 
 def steady_window(
@@ -152,13 +119,13 @@ def steady_window(
 
 def _covnet(cfg: Path, out: Path, per_process: int, scans: int) -> dict[str, Any]:
     w = _Watched(
-        ["up", str(cfg), "--out", str(out), "--no-figures", "--sensors-per-process",
-         str(per_process)],
+        [str(cfg), "--out", str(out), "--no-figures", "--sensors-per-process", str(per_process)],
         out,
-    )  # fmt: skip
+    )
     rc = w.wait(timeout=max(600.0, scans / 5.0))
     if rc != 0:
-        raise UpError(f"covnet up failed (status {rc}):\n" + "\n".join(w.lines[-30:]))
+        said = "\n".join(text for _, text in w.child.lines[-30:])
+        raise UpError(f"covnet up failed (status {rc}):\n{said}")
     n, by = steady_window(w.samples, scans)
     net = json.loads((out / "network.json").read_text())
     cpu_ms = {r: 1e3 * s / n for r, s in sorted(by.items())}

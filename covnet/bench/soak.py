@@ -37,12 +37,9 @@ import json
 import math
 import os
 import re
-import signal
 import statistics
 import subprocess
-import sys
 import tempfile
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -52,6 +49,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from covnet.bench.child import Child
 from covnet.errors import UpError, UsageError
 from covnet.kinds import load
 from covnet.runs.columns import BLOCK
@@ -275,53 +273,6 @@ def _metric_names() -> list[str]:
     return list(METRICS)
 
 
-class _Child:
-    """``python -m covnet ARGS`` in its own process group, output lines kept with their
-    monotonic times; :meth:`stop` ends it by PID (SIGINT, SIGTERM, SIGKILL) when it is not done
-    and closes its pipe."""
-
-    def __init__(self, args: list[str]) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "covnet", *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            start_new_session=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
-        self.lines: list[tuple[float, str]] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append((time.monotonic(), line.rstrip("\n")))
-
-    def first(self, pattern: str) -> float | None:
-        """When the first line matching ``pattern`` (a regular expression) came."""
-        rx = re.compile(pattern)
-        return next((t for t, text in list(self.lines) if rx.search(text)), None)
-
-    def stop(self) -> None:
-        for sig, grace in ((signal.SIGINT, 10.0), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if self.proc.poll() is not None:
-                break
-            try:
-                os.killpg(self.proc.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                self.proc.wait(timeout=grace)
-            except subprocess.TimeoutExpired:
-                continue
-        self.proc.wait()
-        self._reader.join(timeout=5)
-        if self.proc.stdout is not None and not self._reader.is_alive():
-            self.proc.stdout.close()
-
-
 def _phase(
     name: str,
     cfg: Path,
@@ -343,7 +294,7 @@ def _phase(
         argv += ["--realtime", "--speed", f"{speed:g}"]
     series: dict[str, _Series] = {}
     load: list[tuple[float, float]] = []
-    child = _Child(argv)
+    child = Child(argv)
     t_start = time.monotonic()
     try:
         while child.proc.poll() is None:
