@@ -180,9 +180,15 @@ def load_recording(
     the same sensor and scan is counted ``<label>_duplicate``.  ``commands``: keep the
     Commands too (strictly, with their key: :func:`~covnet.wire.messages.decode_command`)."""
     rec = Recorded()
+    # each key's kind worked out once: a recording has few keys (the recorder bounds its
+    # channels) and up to millions of messages (a 256-sensor run's replay spent a quarter of
+    # its time classifying the same 260 keys again)
+    kind_of: dict[str, str | None] = {}
     for s in samples:
         rec.count("samples")
-        kind = key_kind(run_id, s.key)
+        if s.key not in kind_of:
+            kind_of[s.key] = key_kind(run_id, s.key)
+        kind = kind_of[s.key]
         try:
             if kind == msg.Status.KIND:
                 st = msg.decode_as(s.payload, msg.Status)

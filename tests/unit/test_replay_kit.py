@@ -276,3 +276,33 @@ def test_a_second_status_of_a_scan_is_named_in_the_notes(tmp_path):
     assert rec.status[(0, 3)].value == 9.0 and rec.counts["status_duplicate"] == 1
     notes = recording_notes(reader, rec.counts)
     assert any(n.startswith("1 scan(s) have more than one Status recorded") for n in notes)
+
+
+def test_a_recording_s_keys_are_classified_once_each(monkeypatch):
+    """``load_recording`` works out each distinct key's kind once (a 256-sensor replay spent a
+    quarter of its time on the same keys), and keeps what it kept before: the same Status,
+    measurements and counts as classifying every sample."""
+    import numpy as np
+
+    from covnet.runs import replay_kit
+    from covnet.runs.recording import RecordedSample
+
+    run = "r1"
+    samples = []
+    for k in range(1, 6):
+        for sid in ("S1", "S2", "S3"):
+            m = msg.Measurement(sid, k, float(k), np.full((1, 2), k + 0.5), np.eye(2), 5, seq=k)
+            samples.append(RecordedSample(msg.measurement_key(run, sid), msg.encode(m), k, k))
+        samples.append(RecordedSample(f"covnet/{run}/rogue/key", b"\x80", k, k))
+    real = replay_kit.key_kind
+    calls: list[str] = []
+
+    def counting(run_id: str, key: str, sensors=None):
+        calls.append(key)
+        return real(run_id, key, sensors)
+
+    monkeypatch.setattr(replay_kit, "key_kind", counting)
+    rec = replay_kit.load_recording(iter(samples), run)
+    assert sorted(calls) == sorted(set(calls)) and len(calls) == 4
+    assert rec.counts["samples"] == 20 and rec.counts["measurement"] == 15
+    assert sorted(rec.meas) == [(0, k, sid) for k in range(1, 6) for sid in ("S1", "S2", "S3")]
