@@ -105,6 +105,27 @@ nodes' (five heartbeats at the default ``network.heartbeat_s``) before it refuse
 the refusal names them all (a host's nodes start together), unless every node has spoken."""
 
 
+class ConfigRefusal:
+    """Whether to refuse the run for nodes of another config (:func:`other_configs`): once every
+    node has said which config it runs, or :data:`CONFIGS_HEARD_S` after the first heartbeat of
+    another config, so that the refusal names every node of the other host heard by then, not
+    the first one alone.  The manager's loop and the peer observer refuse alike."""
+
+    def __init__(self) -> None:
+        self.first_at: float | None = None  # when a node of another config was first heard
+
+    def why(self, own: str, heard: Mapping[str, str | None], all_heard: bool) -> str | None:
+        """The refusal, or None (no other config, or the others' heartbeats still on their
+        way)."""
+        why = other_configs(own, heard)
+        if why is None:
+            return None
+        now = time.monotonic()
+        if self.first_at is None:
+            self.first_at = now
+        return why if all_heard or now - self.first_at >= CONFIGS_HEARD_S else None
+
+
 def other_configs(own: str, heard: Mapping[str, str | None]) -> str | None:
     """Why a run must not start: the nodes whose heartbeats named another config than ``own``
     (:func:`~covnet.processes.node_kit.config_id`), or none (a covnet from before heartbeats
@@ -295,7 +316,7 @@ class Loop:
         #: the one each node's heartbeats carry
         self.config_id: str | None = None
         self.node_configs: dict[str, str | None] = {}
-        self._other_config_at: float | None = None  # when a node of another config was heard
+        self._refusal = ConfigRefusal()
         #: the nodes whose heartbeats name another clock than this process's
         #: (:func:`~covnet.processes.node_kit.same_clock`): their latencies are not taken
         self.other_clock: set[str] = set()
@@ -493,18 +514,10 @@ class Loop:
 
     def _check_configs(self, unheard: Sequence[str]) -> None:
         """Refuse the run when a node's heartbeat named another config than this manager's
-        (:meth:`wait_ready`): once every node has said which config it runs, or
-        :data:`CONFIGS_HEARD_S` after the first of another config, so that the refusal names
-        every node of the other host heard by then, not the first one alone."""
+        (:meth:`wait_ready`), when :class:`ConfigRefusal` says so."""
         assert self.config_id is not None
-        if (why := other_configs(self.config_id, self.node_configs)) is None:
-            return
-        now = time.monotonic()
-        if self._other_config_at is None:
-            self._other_config_at = now
-        if unheard and now - self._other_config_at < CONFIGS_HEARD_S:
-            return  # the others' heartbeats are on their way
-        raise ManagerError(why)
+        if (why := self._refusal.why(self.config_id, self.node_configs, not unheard)) is not None:
+            raise ManagerError(why)
 
     # ---- step 6 -------------------------------------------------------------------------
 

@@ -34,7 +34,7 @@ from covnet.processes.node_kit import config_id
 from covnet.processes.runtime_stats import NetStats
 from covnet.wire import messages as msg
 from covnet.wire.bus import Bus
-from manager.loop import CONFIGS_HEARD_S, not_ready, other_configs, take_heartbeat
+from manager.loop import ConfigRefusal, not_ready, take_heartbeat
 
 STOPPED_LINGER_S = 1.0
 """Stopped: the longest time to keep taking the nodes' reports until they have left (stopped
@@ -155,19 +155,16 @@ def run(
     ready = False
     try:
         deadline = time.monotonic() + net.ready_timeout_s
-        other_at: float | None = None  # when a node of another config was heard
+        refusal = ConfigRefusal()  # another config's nodes: refused as the manager's loop does
         # every node alive and heard naming its config (one of another: the run is refused,
         # as the manager's loop refuses it; the nodes leave on the failed end)
         while not expected <= alive or not expected <= configs.keys():
             drain_live()
             while (s := subs[2].try_recv()) is not None:  # the heartbeats
                 take(s)
-            if (why := other_configs(own, configs)) is not None:
-                # as the manager's loop: the others' heartbeats for a moment (CONFIGS_HEARD_S)
-                other_at = time.monotonic() if other_at is None else other_at
-                if expected <= configs.keys() or time.monotonic() - other_at >= CONFIGS_HEARD_S:
-                    result.error = why
-                    return result
+            if (why := refusal.why(own, configs, expected <= configs.keys())) is not None:
+                result.error = why
+                return result
             if stop.is_set():
                 result.error = "stopped before the network was ready"
                 return result

@@ -89,7 +89,10 @@ def held() -> Iterator[None]:
     for a write that must finish once begun (``run.json``'s status: a Ctrl-C inside its write
     left a run whose results were complete without a status).  In the main thread only (where
     Python runs the handlers; elsewhere the block runs as it is).  At the end the handler that
-    was in place is called with the first signal held (covnet's raises KeyboardInterrupt)."""
+    was in place is called with the first signal held (covnet's raises KeyboardInterrupt).  A
+    process forked inside the block inherits the holding handler until it installs its own
+    (:mod:`covnet.processes.forked`, before its ``setsid()``); the supervisor starts and
+    records each child inside one (:mod:`covnet.processes.launch`)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -101,8 +104,8 @@ def held() -> Iterator[None]:
     try:
         yield
     finally:
-        for s, handler in before.items():
-            signal.signal(s, handler)
+        for s, handler in before.items():  # (None: one set outside Python; the default)
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
         if got:
             handler = before[got[0]]
             if callable(handler):

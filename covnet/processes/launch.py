@@ -28,9 +28,10 @@ stop them all for sure::
   (``covnet up``: ``"hosts"``, which process hosts each sensor: skip non-integer values).
 - A child is recorded (in the supervisor and in ``pids_file``) before a Ctrl-C or SIGTERM that
   lands while it is being started is acted on: the main thread holds those signals from just
-  before the fork until the child is recorded, then raises them (:func:`_interrupts_held`), so
-  ``stop()`` always knows every child it started.  It signals each child's group, waiting
-  for a child just forked to have made it (:func:`_signal_child`).
+  before the fork until the child is recorded, then raises them
+  (:func:`covnet.processes.interrupts.held`), so ``stop()`` always knows every child it
+  started.  It signals each child's group, waiting for a child just forked to have made it
+  (:func:`_signal_child`).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -212,7 +213,7 @@ class Supervisor:
     def _record(self, name: str, may_fork: bool) -> _Run:
         """Start ``name`` and record it (here and in the pids file) before an interrupt that
         lands meanwhile is raised: a child is never started without being known to stop()."""
-        with _interrupts_held():
+        with interrupts.held():
             run = self._runs[name] = self._start(name, may_fork)
             self._write_pids()
         return run
@@ -426,7 +427,7 @@ class Supervisor:
                     except subprocess.TimeoutExpired:
                         pass
         finally:  # also after a second Ctrl-C: nothing survives (and a third one waits)
-            with _interrupts_held():
+            with interrupts.held():
                 for r in runs:
                     if r.done:
                         continue
@@ -479,35 +480,6 @@ def _signal_child(proc: subprocess.Popen[str] | forked.ForkedProcess, sig: int) 
                 pass
             return
         time.sleep(0.001)
-
-
-_HELD = (signal.SIGINT, signal.SIGTERM)
-
-
-@contextlib.contextmanager
-def _interrupts_held() -> Iterator[None]:
-    """In the main thread: SIGINT and SIGTERM that arrive inside the block are held, and
-    raised again once it is over (with the handlers of before: a KeyboardInterrupt there), so
-    the block is never cut between a fork and the line that records the child.  A fork made
-    inside inherits the holding handler until it installs its own (covnet.processes.forked, before
-    its
-    ``setsid()``).  Elsewhere (a thread, which Python never interrupts) the block just runs."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    held: list[int] = []
-
-    def hold(signum: int, frame: object) -> None:
-        held.append(signum)
-
-    previous = {sig: signal.signal(sig, hold) for sig in _HELD}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
-        for signum in dict.fromkeys(held):
-            signal.raise_signal(signum)  # its own handler now: KeyboardInterrupt, or the default
 
 
 def _group_members(pgid: int) -> list[int]:

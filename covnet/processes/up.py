@@ -46,9 +46,7 @@ from covnet.runs.rundir import (
     try_record_end,
     write_json,
 )
-from covnet.runs.rundir import (
-    run_info as _run_info,  # (settle's parameter run_info is the run's facts)
-)
+from covnet.runs.rundir import run_info as _run_info  # (settle's run_info: the run's facts)
 from covnet.wire.security import endpoint, preflight
 
 __all__ = [
